@@ -1,0 +1,17 @@
+//! One module per subcommand. Each owns its `Args` and a `run` that returns `anyhow::Result`.
+use clap::{Parser, Subcommand};
+
+/// Capture real translucent objects and turn them into compact, renderable models.
+#[derive(Debug, Parser)]
+#[command(name = "subsurf", version, about)]
+pub struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {}
+
+pub fn run(cli: Cli) -> anyhow::Result<()> {
+    match cli.command {}
+}

@@ -1,0 +1,6 @@
+//! The subsurf host library: everything the `subsurf` binary does, as typed, testable pieces.
+//!
+//! Modules follow the pipeline of Fuchs et al. 2005: the rig is driven (`link`, `rig`, `sim`,
+//! `scan`), images become samples (`dataset`, `geometry`, `registration`, `selection`), samples
+//! become a model (`model`, `fit`), and the model is rendered and judged (`render`, `plot`).
+#![warn(missing_docs)]
