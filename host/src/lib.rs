@@ -4,3 +4,5 @@
 //! `scan`), images become samples (`dataset`, `geometry`, `registration`, `selection`), samples
 //! become a model (`model`, `fit`), and the model is rendered and judged (`render`, `plot`).
 #![warn(missing_docs)]
+
+pub mod plot;
