@@ -6,5 +6,7 @@
 #![warn(missing_docs)]
 
 pub mod calib;
+pub mod link;
+pub mod model;
 pub mod plot;
 pub mod scan;
