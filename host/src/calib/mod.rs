@@ -8,6 +8,7 @@
 
 pub mod galvo;
 mod lsq;
+pub mod target;
 
 pub use galvo::{GalvoModel, GalvoObservation, fit_galvo};
 

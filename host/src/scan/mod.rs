@@ -4,6 +4,7 @@
 //! Dependencies point one way: `scan` uses `calib`, the rig client and the dataset writer; no
 //! other module calls into `scan` except the commands and the demo.
 
+pub mod camera;
 pub mod frame;
 pub mod journal;
 pub mod plan;
