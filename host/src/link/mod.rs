@@ -9,12 +9,14 @@
 //! [`MemoryLink`] with the wall clock for threaded ones.
 
 mod fault;
+mod faulty;
 mod memory;
 mod serial;
 
 use std::time::Duration;
 
 pub use fault::{FaultConfig, FaultInjector, FaultStats, VirtualWire};
+pub use faulty::FaultyLink;
 pub use memory::MemoryLink;
 pub use serial::{SerialLink, list_ports};
 
