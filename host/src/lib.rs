@@ -8,3 +8,4 @@
 pub mod link;
 pub mod model;
 pub mod plot;
+pub mod rig;

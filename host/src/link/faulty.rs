@@ -41,6 +41,11 @@ impl<L: ByteLink> FaultyLink<L> {
     }
 
     /// The wrapped link.
+    pub fn inner(&self) -> &L {
+        &self.inner
+    }
+
+    /// The wrapped link, unwrapped.
     pub fn into_inner(self) -> L {
         self.inner
     }
@@ -73,6 +78,10 @@ impl<L: ByteLink> ByteLink for FaultyLink<L> {
     fn describe(&self) -> String {
         format!("{} (with injected faults)", self.inner.describe())
     }
+
+    fn now(&self) -> std::time::Instant {
+        self.inner.now()
+    }
 }
 
 #[cfg(test)]
@@ -92,7 +101,10 @@ mod tests {
         let mut buf = [0u8; 8];
         assert_eq!(b.recv(&mut buf, Duration::from_millis(5)).expect("recv"), 0);
         b.send(&[4, 5]).expect("send");
-        assert_eq!(a.recv(&mut buf, Duration::from_millis(50)).expect("recv"), 2);
+        assert_eq!(
+            a.recv(&mut buf, Duration::from_millis(50)).expect("recv"),
+            2
+        );
         assert_eq!(a.sent_stats().dropped, 3);
     }
 }
