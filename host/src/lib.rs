@@ -6,7 +6,9 @@
 #![warn(missing_docs)]
 
 pub mod calib;
+pub mod flash;
 pub mod link;
 pub mod model;
 pub mod plot;
+pub mod rig;
 pub mod scan;

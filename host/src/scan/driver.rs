@@ -20,7 +20,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
-use subsurf_protocol::{Capture, EventKind, GalvoPoint, MoveTarget, ProgramHeader};
+use subsurf_protocol::{GalvoPoint, MoveTarget, ProgramHeader};
 
 /// Why a scan stopped. Every variant leaves a dataset the same command resumes.
 #[derive(Debug, thiserror::Error)]
@@ -348,7 +348,7 @@ impl<'a> Scan<'a> {
                     error,
                     subsurf_protocol::RigError::EmergencyStop
                         | subsurf_protocol::RigError::InterlockOpen
-                        | subsurf_protocol::RigError::Faulted
+                        | subsurf_protocol::RigError::Faulted(_)
                 ) =>
             {
                 ScanError::RigHalted {

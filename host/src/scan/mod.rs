@@ -8,3 +8,4 @@ pub mod camera;
 pub mod frame;
 pub mod journal;
 pub mod plan;
+pub mod driver;
