@@ -82,7 +82,7 @@ impl GalvoModel {
             .chain(self.centre.iter())
             .chain(self.radians_per_code.iter())
             .all(|v| v.is_finite());
-        if !finite || self.radians_per_code.iter().any(|g| *g == 0.0) || self.max_code == 0 {
+        if !finite || self.radians_per_code.contains(&0.0) || self.max_code == 0 {
             return Err(CalibError::Invalid(
                 "galvo: origin, rotation, centre and gains must be finite, gains non-zero".into(),
             ));

@@ -305,8 +305,16 @@ impl<'a> Scan<'a> {
         rig.home().map_err(|e| self.halted_or(e))?;
         rig.wait_idle(Duration::from_secs(600))
             .map_err(|e| self.halted_or(e))?;
-        let speed = self.cfg.move_speed.unwrap_or(caps.max_speed).min(caps.max_speed);
-        let accel = self.cfg.move_accel.unwrap_or(caps.max_accel).min(caps.max_accel);
+        let speed = self
+            .cfg
+            .move_speed
+            .unwrap_or(caps.max_speed)
+            .min(caps.max_speed);
+        let accel = self
+            .cfg
+            .move_accel
+            .unwrap_or(caps.max_accel)
+            .min(caps.max_accel);
         let spr = caps.steps_per_rev;
         while !self.complete() {
             self.check_stop()?;

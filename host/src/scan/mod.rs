@@ -5,7 +5,7 @@
 //! other module calls into `scan` except the commands and the demo.
 
 pub mod camera;
+pub mod driver;
 pub mod frame;
 pub mod journal;
 pub mod plan;
-pub mod driver;

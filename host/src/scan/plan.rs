@@ -517,15 +517,12 @@ pub fn coverage_plan(scene: &PlanScene, opts: &PlanOptions) -> Result<ScanPlan, 
     let mut have = 0;
     while have < goal {
         let mut best = None;
-        loop {
-            let Some((k, _)) = gains
-                .iter()
-                .enumerate()
-                .filter(|(k, _)| !chosen[*k])
-                .max_by_key(|(k, g)| (**g, std::cmp::Reverse(*k)))
-            else {
-                break;
-            };
+        while let Some((k, _)) = gains
+            .iter()
+            .enumerate()
+            .filter(|(k, _)| !chosen[*k])
+            .max_by_key(|(k, g)| (**g, std::cmp::Reverse(*k)))
+        {
             let fresh: usize = cands.sets[k]
                 .2
                 .iter()
