@@ -6,6 +6,7 @@
 //! platter). The scan writes each frame's `laser` ray from [`GalvoModel::ray`]. Fitting code here
 //! never touches files except [`Calibration::load`] / [`Calibration::save`].
 
+pub mod detect;
 pub mod galvo;
 mod lsq;
 pub mod target;
@@ -215,7 +216,11 @@ impl Calibration {
     /// the object with 20% to spare.
     pub fn builtin_for(centre: [f64; 3], radius: f64, size: u32) -> Self {
         let el = 35f64.to_radians();
-        let eye = [centre[0], centre[1] - 600.0 * el.cos(), centre[2] + 600.0 * el.sin()];
+        let eye = [
+            centre[0],
+            centre[1] - 600.0 * el.cos(),
+            centre[2] + 600.0 * el.sin(),
+        ];
         let f = 0.5 * size as f64 * 600.0 / (radius * 1.15);
         let camera = look_at_camera(eye, centre, size, size, f);
         let origin = [0.0, -600.0, 500.0];

@@ -349,7 +349,9 @@ fn raster(scene: &PlanScene, angles: &[f64], n: usize) -> Vec<[u16; 2]> {
     let [x0, y0, x1, y1] = scene.galvo_window(angles);
     let axis = |a: u16, b: u16| -> Vec<u16> {
         let mut v: Vec<u16> = (0..n)
-            .map(|k| (a as f64 + (b as f64 - a as f64) * k as f64 / (n - 1).max(1) as f64).round() as u16)
+            .map(|k| {
+                (a as f64 + (b as f64 - a as f64) * k as f64 / (n - 1).max(1) as f64).round() as u16
+            })
             .collect();
         v.dedup();
         v
@@ -688,8 +690,8 @@ pub fn estimate_duration(plan: &ScanPlan, t: &RigTiming, frame_from: usize) -> D
                 est.settle_s += settle;
                 est.exposure_s += exp;
                 let busy = settle + exp;
-                est.overhead_s += brackets * t.capture_overhead_s
-                    + (brackets * t.interval_s - busy).max(0.0);
+                est.overhead_s +=
+                    brackets * t.capture_overhead_s + (brackets * t.interval_s - busy).max(0.0);
                 g = Some(c);
             }
             frame += 1;
