@@ -6,3 +6,5 @@
 #![warn(missing_docs)]
 
 pub mod plot;
+pub mod dataset;
+pub mod geometry;
