@@ -5,6 +5,8 @@
 //! become a model (`model`, `fit`), and the model is rendered and judged (`render`, `plot`).
 #![warn(missing_docs)]
 
-pub mod plot;
 pub mod dataset;
 pub mod geometry;
+pub mod modelfile;
+pub mod plot;
+pub mod simulate;

@@ -1,6 +1,8 @@
 //! One module per subcommand. Each owns its `Args` and a `run` that returns `anyhow::Result`.
 use clap::{Parser, Subcommand};
 
+pub mod simulate;
+
 /// Capture real translucent objects and turn them into compact, renderable models.
 #[derive(Debug, Parser)]
 #[command(name = "subsurf", version, about)]
@@ -10,8 +12,13 @@ pub struct Cli {
 }
 
 #[derive(Debug, Subcommand)]
-enum Command {}
+enum Command {
+    /// Write a simulated scan dataset with ground truth.
+    Simulate(simulate::Args),
+}
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
-    match cli.command {}
+    match cli.command {
+        Command::Simulate(a) => simulate::run(a),
+    }
 }

@@ -79,7 +79,8 @@ impl Image {
             self.get(i0, j1, c) as f64,
             self.get(i1, j1, c) as f64,
         ];
-        let val = (1.0 - fv) * ((1.0 - fu) * p[0] + fu * p[1]) + fv * ((1.0 - fu) * p[2] + fu * p[3]);
+        let val =
+            (1.0 - fv) * ((1.0 - fu) * p[0] + fu * p[1]) + fv * ((1.0 - fu) * p[2] + fu * p[3]);
         let max = p.iter().copied().fold(f64::NEG_INFINITY, f64::max);
         Some((val, max))
     }
@@ -90,7 +91,11 @@ pub fn read_image(path: &Path) -> Result<Image, ImageError> {
     let is_pfm = path
         .extension()
         .is_some_and(|e| e.eq_ignore_ascii_case("pfm"));
-    if is_pfm { read_pfm(path) } else { read_exr(path) }
+    if is_pfm {
+        read_pfm(path)
+    } else {
+        read_exr(path)
+    }
 }
 
 fn read_exr(path: &Path) -> Result<Image, ImageError> {
@@ -324,7 +329,10 @@ mod tests {
     #[test]
     fn bilinear_is_exact_at_centres_and_linear_between() {
         let img = ramp(4, 3, 1);
-        assert_eq!(img.bilinear(2.0, 1.0, 0).unwrap().0, img.get(2, 1, 0) as f64);
+        assert_eq!(
+            img.bilinear(2.0, 1.0, 0).unwrap().0,
+            img.get(2, 1, 0) as f64
+        );
         let mid = img.bilinear(1.5, 1.0, 0).unwrap().0;
         let want = 0.5 * (img.get(1, 1, 0) + img.get(2, 1, 0)) as f64;
         assert!((mid - want).abs() < 1e-6);

@@ -98,7 +98,7 @@ impl Mesh {
                 sub(positions[b], positions[a]),
                 sub(positions[c], positions[a]),
             );
-            if !(norm(cr) > min_area2) {
+            if norm(cr).is_nan() || norm(cr) <= min_area2 {
                 report.degenerate_faces += 1;
                 continue;
             }
@@ -164,7 +164,6 @@ pub fn load_obj(path: &Path) -> Result<(Mesh, MeshReport), MeshError> {
         single_index: false,
         ignore_points: true,
         ignore_lines: true,
-        ..Default::default()
     };
     let (models, _materials) = tobj::load_obj(path, &opts).map_err(|source| MeshError::Obj {
         path: path.to_path_buf(),
@@ -252,7 +251,12 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("m.obj");
         let (m, _) = Mesh::new(
-            vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.5], [1.0, 1.0, 0.25]],
+            vec![
+                [0.0, 0.0, 0.0],
+                [1.0, 0.0, 0.0],
+                [0.0, 1.0, 0.5],
+                [1.0, 1.0, 0.25],
+            ],
             vec![[0, 1, 2], [1, 3, 2]],
         );
         write_obj(&p, &m).unwrap();

@@ -219,12 +219,16 @@ impl ScanSpec {
                 return bad(format!("camera {i}: zero image size"));
             }
             if !(finite_all(&[c.fx, c.fy, c.cx, c.cy]) && c.fx > 0.0 && c.fy > 0.0) {
-                return bad(format!("camera {i}: focal lengths must be positive and finite"));
+                return bad(format!(
+                    "camera {i}: focal lengths must be positive and finite"
+                ));
             }
             if let Some(d) = &c.distortion
                 && (!(4..=5).contains(&d.len()) || !finite_all(d))
             {
-                return bad(format!("camera {i}: distortion must be 4 or 5 finite numbers"));
+                return bad(format!(
+                    "camera {i}: distortion must be 4 or 5 finite numbers"
+                ));
             }
             let m = &c.camera_from_world;
             if !m.iter().all(|r| finite_all(r)) || m[3] != [0.0, 0.0, 0.0, 1.0] {
@@ -331,14 +335,23 @@ pub fn parse_frame_list(s: &str) -> Result<Vec<usize>, String> {
     let mut out = Vec::new();
     for part in s.split(',').map(str::trim).filter(|p| !p.is_empty()) {
         if let Some((a, b)) = part.split_once('-') {
-            let a: usize = a.trim().parse().map_err(|_| format!("bad frame range {part:?}"))?;
-            let b: usize = b.trim().parse().map_err(|_| format!("bad frame range {part:?}"))?;
+            let a: usize = a
+                .trim()
+                .parse()
+                .map_err(|_| format!("bad frame range {part:?}"))?;
+            let b: usize = b
+                .trim()
+                .parse()
+                .map_err(|_| format!("bad frame range {part:?}"))?;
             if b < a {
                 return Err(format!("empty frame range {part:?}"));
             }
             out.extend(a..=b);
         } else {
-            out.push(part.parse().map_err(|_| format!("bad frame index {part:?}"))?);
+            out.push(
+                part.parse()
+                    .map_err(|_| format!("bad frame index {part:?}"))?,
+            );
         }
     }
     out.sort_unstable();
@@ -355,7 +368,14 @@ mod tests {
         let d = Path::new("/data/scan");
         assert!(confined_path(d, "frames/0.exr").is_ok());
         assert!(confined_path(d, "./frames/0.exr").is_ok());
-        for bad in ["../x.exr", "frames/../../x.exr", "/etc/passwd", "", "a/..", "C:\\x"] {
+        for bad in [
+            "../x.exr",
+            "frames/../../x.exr",
+            "/etc/passwd",
+            "",
+            "a/..",
+            "C:\\x",
+        ] {
             assert!(
                 matches!(confined_path(d, bad), Err(DatasetError::PathEscapes(_))),
                 "{bad}"

@@ -60,7 +60,11 @@ impl DatasetWriter {
 
     /// Writes one frame's image and records it; `frame.image` is replaced by the file's name.
     /// Returns the frame's index.
-    pub fn add_frame(&mut self, mut frame: FrameSpec, image: &Image) -> Result<usize, DatasetError> {
+    pub fn add_frame(
+        &mut self,
+        mut frame: FrameSpec,
+        image: &Image,
+    ) -> Result<usize, DatasetError> {
         let k = self.spec.frames.len();
         let ext = if self.pfm { "pfm" } else { "exr" };
         frame.image = format!("frames/{k:06}.{ext}");
@@ -80,10 +84,11 @@ impl DatasetWriter {
         self.spec.validate()?;
         let path = self.dir.join("scan.json");
         let tmp = self.dir.join("scan.json.tmp");
-        let text = serde_json::to_string_pretty(&self.spec).map_err(|source| DatasetError::Json {
-            path: path.clone(),
-            source,
-        })?;
+        let text =
+            serde_json::to_string_pretty(&self.spec).map_err(|source| DatasetError::Json {
+                path: path.clone(),
+                source,
+            })?;
         std::fs::write(&tmp, text).map_err(|source| DatasetError::Io {
             path: tmp.clone(),
             source,

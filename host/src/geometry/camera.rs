@@ -74,7 +74,7 @@ impl Camera {
             r[1][0] * p[0] + r[1][1] * p[1] + r[1][2] * p[2] + self.t[1],
             r[2][0] * p[0] + r[2][1] * p[1] + r[2][2] * p[2] + self.t[2],
         ];
-        if !(c[2] > 0.0) {
+        if c[2].is_nan() || c[2] <= 0.0 {
             return None;
         }
         let (x, y) = self.distort(c[0] / c[2], c[1] / c[2]);
@@ -146,7 +146,10 @@ mod tests {
                 let (o, dir) = cam.ray(u, v).unwrap();
                 let p = add_scaled(o, 280.0, dir);
                 let back = cam.project(p).unwrap();
-                assert!((back[0] - u).abs() < 1e-9 && (back[1] - v).abs() < 1e-9, "{u} {v} {back:?}");
+                assert!(
+                    (back[0] - u).abs() < 1e-9 && (back[1] - v).abs() < 1e-9,
+                    "{u} {v} {back:?}"
+                );
             }
         }
     }

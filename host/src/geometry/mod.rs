@@ -187,7 +187,7 @@ impl Scene {
         let (d00, d01, d11) = (dot(v0, v0), dot(v0, v1), dot(v1, v1));
         let (d20, d21) = (dot(v2, v0), dot(v2, v1));
         let den = d00 * d11 - d01 * d01;
-        if !(den.abs() > 0.0) {
+        if den.is_nan() || den == 0.0 {
             return [1.0 / 3.0; 3];
         }
         let v = ((d11 * d20 - d01 * d21) / den).clamp(0.0, 1.0);
@@ -217,7 +217,8 @@ impl Scene {
                 let p = self.mesh.positions[i];
                 let n = self.mesh.normals[i];
                 let to_cam = normalize(sub(c_obj, p))?;
-                if !(dot(n, to_cam) >= cos_min) {
+                let facing = dot(n, to_cam);
+                if facing.is_nan() || facing < cos_min {
                     return None;
                 }
                 let [u, v] = cam.project(turntable_to_world(p, deg))?;
@@ -291,7 +292,8 @@ mod tests {
         // A grid at z=0 and a small roof at z=1 over its centre.
         let mut m = grid(5, 1.0);
         let base = m.positions.len() as u32;
-        m.positions.extend([[-0.6, -0.6, 1.0], [0.6, -0.6, 1.0], [0.0, 0.7, 1.0]]);
+        m.positions
+            .extend([[-0.6, -0.6, 1.0], [0.6, -0.6, 1.0], [0.0, 0.7, 1.0]]);
         m.triangles.push([base, base + 1, base + 2]);
         let (m, _) = Mesh::new(m.positions, m.triangles);
         let s = Scene::new(m).unwrap();
