@@ -7,6 +7,9 @@
 
 pub mod dataset;
 pub mod geometry;
+pub mod link;
+pub mod model;
 pub mod modelfile;
 pub mod plot;
+pub mod rig;
 pub mod simulate;
