@@ -6,6 +6,7 @@
 #![warn(missing_docs)]
 
 pub mod dataset;
+pub mod flash;
 pub mod geometry;
 pub mod link;
 pub mod model;

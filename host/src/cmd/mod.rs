@@ -1,7 +1,9 @@
 //! One module per subcommand. Each owns its `Args` and a `run` that returns `anyhow::Result`.
 use clap::{Parser, Subcommand};
 
+mod flash;
 mod ports;
+mod probes;
 mod simulate;
 
 /// Capture real translucent objects and turn them into compact, renderable models.
@@ -16,6 +18,10 @@ pub struct Cli {
 enum Command {
     /// List serial ports.
     Ports(ports::Args),
+    /// Flash the board firmware through a debug probe and confirm it runs.
+    Flash(flash::Args),
+    /// List debug probes (ST-LINK, CMSIS-DAP, J-Link).
+    Probes(probes::Args),
     /// Write a simulated scan dataset with ground truth.
     Simulate(simulate::Args),
 }
@@ -23,6 +29,8 @@ enum Command {
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Ports(args) => ports::run(args),
+        Command::Flash(args) => flash::run(args),
+        Command::Probes(args) => probes::run(args),
         Command::Simulate(a) => simulate::run(a),
     }
 }
