@@ -5,6 +5,7 @@
 //! become a model (`model`, `fit`), and the model is rendered and judged (`render`, `plot`).
 #![warn(missing_docs)]
 
+pub mod calib;
 pub mod dataset;
 pub mod flash;
 pub mod geometry;
@@ -13,4 +14,5 @@ pub mod model;
 pub mod modelfile;
 pub mod plot;
 pub mod rig;
+pub mod scan;
 pub mod simulate;
