@@ -5,6 +5,7 @@
 //! become a model (`model`, `fit`), and the model is rendered and judged (`render`, `plot`).
 #![warn(missing_docs)]
 
+pub mod fit;
 pub mod link;
 pub mod model;
 pub mod plot;
