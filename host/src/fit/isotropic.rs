@@ -306,6 +306,46 @@ fn line_fit(pts: &[(f64, f64, f64)]) -> Option<(f64, f64)> {
     Some((my - b * mx, b))
 }
 
+/// A term whose amplitude is below 1e-6 of the largest contributes nothing the data can see: the
+/// solver fell into the "switch a term off" valley and another start is worth a try.
+fn has_dead_term(theta: &[f64], n: usize) -> bool {
+    let amax = (0..n).map(|k| theta[2 * k]).fold(f64::NEG_INFINITY, f64::max);
+    (0..n).any(|k| theta[2 * k] < amax - 13.8)
+}
+
+/// Start candidates, best (lowest binned log cost) first: the peeled start, and rates spread
+/// geometrically (factor 3 and 8 apart) around the overall fall-off rate, each with amplitudes
+/// from the non-negative least-squares fit.
+pub(crate) fn starts(bins: &[Bin], n: usize) -> Vec<Vec<f64>> {
+    let mut out = vec![peel(bins, n)];
+    if n > 1 {
+        let pts: Vec<(f64, f64, f64)> = bins.iter().map(|b| (b.r, b.y, b.n)).collect();
+        let rho = line_fit(&pts).map_or(1.0, |(_, b)| (-b).max(0.5));
+        for q in [3.0f64, 8.0] {
+            let rates: Vec<f64> = (0..n)
+                .map(|k| rho * q.powf(k as f64 - (n - 1) as f64 / 2.0))
+                .collect();
+            let mut amps: Vec<f64> = vec![(bins.first().map_or(0.0, |b| b.y)).exp() / n as f64; n];
+            nnls_amplitudes(bins, &rates, &mut amps);
+            let cmax = amps.iter().cloned().fold(0.0, f64::max).max(1e-300);
+            out.push(
+                (0..n)
+                    .flat_map(|k| [amps[k].max(cmax * 1e-3).ln(), rates[k].ln()])
+                    .collect(),
+            );
+        }
+    }
+    let problem = LogBinned { bins, n };
+    let cost = |t: &Vec<f64>| {
+        let mut c = 0.0;
+        let ok = problem.eval(t, false, |r, _, _| c += r * r);
+        if ok && c.is_finite() { c } else { f64::INFINITY }
+    };
+    let mut scored: Vec<(f64, Vec<f64>)> = out.into_iter().map(|t| (cost(&t), t)).collect();
+    scored.sort_by(|a, b| a.0.total_cmp(&b.0));
+    scored.into_iter().map(|(_, t)| t).collect()
+}
+
 /// Start values by peeling the tail in log space: the slowest term is a line through ln s over
 /// the farthest group of bins; it is subtracted and the next group gives the next term, up to the
 /// fastest term near x_i. Rates are forced to grow by ≥ 1.5× per term (well separated, ordered),
@@ -351,7 +391,7 @@ pub(crate) fn peel(bins: &[Bin], n: usize) -> Vec<f64> {
     let mut theta = Vec::with_capacity(2 * n);
     let cmax = amps.iter().cloned().fold(0.0, f64::max).max(1e-300);
     for k in 0..n {
-        theta.push(amps[k].max(cmax * 1e-6).ln());
+        theta.push(amps[k].max(cmax * 1e-3).ln());
         theta.push(rates[k].ln());
     }
     theta
@@ -454,7 +494,7 @@ pub(crate) fn fit_fixed(
             }
             t
         }
-        None => peel(&prefit_bins, n),
+        None => starts(&prefit_bins, n).swap_remove(0),
     };
     let settings = Settings {
         max_iterations,
@@ -463,19 +503,31 @@ pub(crate) fn fit_fixed(
     let mut iterations = 0;
     let out = match (objective, solver) {
         (Objective::Log, Solver::Specialised) => {
-            // Binned pre-fit (the whole fit in fast mode), then polish on every sample.
-            let pre = lm::minimize(&LogBinned { bins: &prefit_bins, n }, &theta0, &settings)
-                .filter(|o| o.theta.iter().all(|v| v.is_finite()));
-            if bins.is_some() {
-                pre
-            } else {
-                let theta1 = match &pre {
-                    Some(o) => {
-                        iterations += o.iterations;
-                        o.theta.clone()
-                    }
-                    None => theta0.clone(),
+            // Binned pre-fit (the whole fit in fast mode) from each start candidate until one
+            // converges with every term alive, then polish on every sample.
+            let candidates = match start {
+                Some(_) => vec![theta0.clone()],
+                None => starts(&prefit_bins, n),
+            };
+            let binned = LogBinned { bins: &prefit_bins, n };
+            let mut pre: Option<lm::Outcome> = None;
+            for cand in &candidates {
+                let Some(o) = lm::minimize(&binned, cand, &settings) else {
+                    continue;
                 };
+                iterations += o.iterations;
+                let healthy = o.converged && !has_dead_term(&o.theta, n);
+                if pre.as_ref().is_none_or(|p| o.cost < p.cost) {
+                    pre = Some(o);
+                }
+                if healthy {
+                    break;
+                }
+            }
+            if bins.is_some() {
+                pre.map(|o| lm::Outcome { iterations, ..o })
+            } else {
+                let theta1 = pre.map_or_else(|| theta0.clone(), |o| o.theta);
                 lm::minimize(&LogExact { r: &rn, y: &y, n }, &theta1, &settings)
             }
         }

@@ -107,7 +107,7 @@ impl Default for FitOptions {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Preset {
-    /// Fast previews: n = 2, 16 distance bins, every 2nd sample, isotropic.
+    /// Fast previews: n = 3, 16 distance bins, every 2nd sample, isotropic.
     Draft,
     /// Production default: n = 3, 64 distance bins, all samples, 4 segments.
     Balanced,
@@ -120,7 +120,7 @@ impl Preset {
     pub fn options(self) -> FitOptions {
         match self {
             Self::Draft => FitOptions {
-                terms: Terms::Fixed(2),
+                terms: Terms::Fixed(3),
                 bins: Some(16),
                 subsample: 2,
                 max_iterations: 30,
