@@ -6,6 +6,8 @@
 #![warn(missing_docs)]
 
 pub mod fit;
+pub mod flash;
 pub mod link;
 pub mod model;
 pub mod plot;
+pub mod rig;

@@ -1,7 +1,9 @@
 //! One module per subcommand. Each owns its `Args` and a `run` that returns `anyhow::Result`.
 use clap::{Parser, Subcommand};
 
+mod flash;
 mod ports;
+mod probes;
 
 /// Capture real translucent objects and turn them into compact, renderable models.
 #[derive(Debug, Parser)]
@@ -15,10 +17,16 @@ pub struct Cli {
 enum Command {
     /// List serial ports.
     Ports(ports::Args),
+    /// Flash the board firmware through a debug probe and confirm it runs.
+    Flash(flash::Args),
+    /// List debug probes (ST-LINK, CMSIS-DAP, J-Link).
+    Probes(probes::Args),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Ports(args) => ports::run(args),
+        Command::Flash(args) => flash::run(args),
+        Command::Probes(args) => probes::run(args),
     }
 }

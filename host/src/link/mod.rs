@@ -9,12 +9,14 @@
 //! [`MemoryLink`] with the wall clock for threaded ones.
 
 mod fault;
+mod faulty;
 mod memory;
 mod serial;
 
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 pub use fault::{FaultConfig, FaultInjector, FaultStats, VirtualWire};
+pub use faulty::FaultyLink;
 pub use memory::MemoryLink;
 pub use serial::{SerialLink, list_ports};
 
@@ -69,6 +71,13 @@ pub trait ByteLink: Send {
     fn recv(&mut self, buf: &mut [u8], timeout: Duration) -> Result<usize, LinkError>;
     /// A human-readable name for error messages (a device path, `memory`).
     fn describe(&self) -> String;
+    /// The link's clock. Real links use the wall clock; a simulated link with virtual time
+    /// (`crate::sim::SimLink`) returns its virtual clock, and its `recv` advances it instead of
+    /// sleeping, so everything timed against the link (retransmissions, heartbeats, waits) runs
+    /// in virtual time.
+    fn now(&self) -> Instant {
+        Instant::now()
+    }
 }
 
 impl<L: ByteLink + ?Sized> ByteLink for Box<L> {
@@ -80,5 +89,8 @@ impl<L: ByteLink + ?Sized> ByteLink for Box<L> {
     }
     fn describe(&self) -> String {
         (**self).describe()
+    }
+    fn now(&self) -> Instant {
+        (**self).now()
     }
 }
