@@ -32,7 +32,9 @@ pub fn bin_by_distance(r: &[f64], y: &[f64], count: usize) -> Vec<Bin> {
     let count = count.max(1);
     let (lo, hi) = r
         .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| {
+            (a.min(v), b.max(v))
+        });
     if !(lo.is_finite() && hi.is_finite()) {
         return Vec::new();
     }

@@ -200,7 +200,11 @@ pub fn fit_dipole(r: &[f64], s: &[f64], options: &DipoleOptions) -> Result<Dipol
         sigma_a: out.theta[1].exp(),
         eta: options.eta,
     };
-    let scale = if options.absolute { 1.0 } else { out.theta[2].exp() };
+    let scale = if options.absolute {
+        1.0
+    } else {
+        out.theta[2].exp()
+    };
     if !(scale.is_finite() && scale > 0.0) || dipole.validate().is_err() || dipole.sigma_a <= 0.0 {
         return Err(FitFailure::OutOfRange {
             what: "dipole coefficients or scale left the representable range",
@@ -234,18 +238,30 @@ mod tests {
             let r: Vec<f64> = (0..300).map(|i| 0.05 * i as f64).collect();
             let s: Vec<f64> = r.iter().map(|&v| 3.0 * truth.r_d(v)).collect();
             for solver in [Solver::Specialised, Solver::Reference] {
-                let fit = fit_dipole(&r, &s, &DipoleOptions { solver, eta: truth.eta, ..DipoleOptions::default() })
-                    .unwrap();
+                let fit = fit_dipole(
+                    &r,
+                    &s,
+                    &DipoleOptions {
+                        solver,
+                        eta: truth.eta,
+                        ..DipoleOptions::default()
+                    },
+                )
+                .unwrap();
                 let e1 = (fit.dipole.sigma_s_prime / truth.sigma_s_prime - 1.0).abs();
                 let e2 = (fit.dipole.sigma_a / truth.sigma_a - 1.0).abs();
                 assert!(e1 < 1e-5 && e2 < 1e-5, "{name} {solver:?}: {fit:?}");
                 assert!((fit.scale / 3.0 - 1.0).abs() < 1e-5);
             }
-            let fit = fit_dipole(&r, &s.iter().map(|v| v / 3.0).collect::<Vec<_>>(), &DipoleOptions {
-                absolute: true,
-                eta: truth.eta,
-                ..DipoleOptions::default()
-            })
+            let fit = fit_dipole(
+                &r,
+                &s.iter().map(|v| v / 3.0).collect::<Vec<_>>(),
+                &DipoleOptions {
+                    absolute: true,
+                    eta: truth.eta,
+                    ..DipoleOptions::default()
+                },
+            )
             .unwrap();
             assert!((fit.dipole.sigma_a / truth.sigma_a - 1.0).abs() < 1e-5);
         }
@@ -254,7 +270,10 @@ mod tests {
     #[test]
     fn fails_cleanly() {
         let o = DipoleOptions::default();
-        assert!(matches!(fit_dipole(&[1.0], &[1.0], &o), Err(FitFailure::TooFewSamples { .. })));
+        assert!(matches!(
+            fit_dipole(&[1.0], &[1.0], &o),
+            Err(FitFailure::TooFewSamples { .. })
+        ));
         assert!(matches!(
             fit_dipole(&[1.0; 10], &[1.0; 10], &o),
             Err(FitFailure::TooFewDistances { .. })

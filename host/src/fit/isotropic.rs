@@ -176,7 +176,10 @@ pub(crate) struct VarPro<'a> {
 
 impl VarPro<'_> {
     /// Amplitudes c for rates θ, or `None` if the basis is rank deficient.
-    pub(crate) fn amplitudes(&self, theta: &[f64]) -> Option<(DVector<f64>, DMatrix<f64>, DMatrix<f64>)> {
+    pub(crate) fn amplitudes(
+        &self,
+        theta: &[f64],
+    ) -> Option<(DVector<f64>, DMatrix<f64>, DMatrix<f64>)> {
         let (m, n) = (self.r.len(), self.n);
         // Coalescing rates make the basis singular (amplitudes ±∞): treat as infeasible so the
         // solver backs off instead of sliding into that limit.
@@ -259,14 +262,21 @@ fn linear_specialised(
         Some(lm::Outcome { theta, ..o })
     };
     let better = |a: Option<lm::Outcome>, b: Option<lm::Outcome>| match (a, b) {
-        (Some(a), Some(b)) => Some(if (b.converged, -b.cost) > (a.converged, -a.cost) { b } else { a }),
+        (Some(a), Some(b)) => Some(if (b.converged, -b.cost) > (a.converged, -a.cost) {
+            b
+        } else {
+            a
+        }),
         (a, b) => a.or(b),
     };
     let rates0: Vec<f64> = (0..n).map(|k| theta0[2 * k + 1]).collect();
     let mut best: Option<lm::Outcome> = None;
     let mut iterations = 0;
     for max_step in [1.0, 4.0] {
-        let s = Settings { max_step, ..*settings };
+        let s = Settings {
+            max_step,
+            ..*settings
+        };
         if let Some(o) = lm::minimize(&vp, &rates0, &s) {
             iterations += o.iterations;
             best = better(best, finish(o));
@@ -275,16 +285,16 @@ fn linear_specialised(
             break;
         }
     }
-    if !best.as_ref().is_some_and(|b| b.converged) {
-        if let Some(full) = lm::minimize(&Linear { r: rn, s: sn, n }, theta0, settings) {
-            iterations += full.iterations;
-            let rates: Vec<f64> = (0..n).map(|k| full.theta[2 * k + 1]).collect();
-            let restarted = lm::minimize(&vp, &rates, settings).and_then(finish);
-            if let Some(o) = &restarted {
-                iterations += o.iterations;
-            }
-            best = better(better(best, Some(full)), restarted);
+    if !best.as_ref().is_some_and(|b| b.converged)
+        && let Some(full) = lm::minimize(&Linear { r: rn, s: sn, n }, theta0, settings)
+    {
+        iterations += full.iterations;
+        let rates: Vec<f64> = (0..n).map(|k| full.theta[2 * k + 1]).collect();
+        let restarted = lm::minimize(&vp, &rates, settings).and_then(finish);
+        if let Some(o) = &restarted {
+            iterations += o.iterations;
         }
+        best = better(better(best, Some(full)), restarted);
     }
     best.map(|b| lm::Outcome { iterations, ..b })
 }
@@ -299,7 +309,7 @@ fn line_fit(pts: &[(f64, f64, f64)]) -> Option<(f64, f64)> {
     let my = pts.iter().map(|p| p.2 * p.1).sum::<f64>() / w;
     let sxx: f64 = pts.iter().map(|p| p.2 * (p.0 - mx).powi(2)).sum();
     let sxy: f64 = pts.iter().map(|p| p.2 * (p.0 - mx) * (p.1 - my)).sum();
-    if !(sxx > 0.0) {
+    if sxx.is_nan() || sxx <= 0.0 {
         return None;
     }
     let b = sxy / sxx;
@@ -309,7 +319,9 @@ fn line_fit(pts: &[(f64, f64, f64)]) -> Option<(f64, f64)> {
 /// A term whose amplitude is below 1e-6 of the largest contributes nothing the data can see: the
 /// solver fell into the "switch a term off" valley and another start is worth a try.
 fn has_dead_term(theta: &[f64], n: usize) -> bool {
-    let amax = (0..n).map(|k| theta[2 * k]).fold(f64::NEG_INFINITY, f64::max);
+    let amax = (0..n)
+        .map(|k| theta[2 * k])
+        .fold(f64::NEG_INFINITY, f64::max);
     (0..n).any(|k| theta[2 * k] < amax - 13.8)
 }
 
@@ -339,7 +351,11 @@ pub(crate) fn starts(bins: &[Bin], n: usize) -> Vec<Vec<f64>> {
     let cost = |t: &Vec<f64>| {
         let mut c = 0.0;
         let ok = problem.eval(t, false, |r, _, _| c += r * r);
-        if ok && c.is_finite() { c } else { f64::INFINITY }
+        if ok && c.is_finite() {
+            c
+        } else {
+            f64::INFINITY
+        }
     };
     let mut scored: Vec<(f64, Vec<f64>)> = out.into_iter().map(|t| (cost(&t), t)).collect();
     scored.sort_by(|a, b| a.0.total_cmp(&b.0));
@@ -366,11 +382,19 @@ pub(crate) fn peel(bins: &[Bin], n: usize) -> Vec<f64> {
             .map(|i| (bins[i].r, resid[i].ln(), bins[i].n))
             .collect();
         let fitted = line_fit(&pts).filter(|(a, b)| a.is_finite() && *b < 0.0);
-        let floor = if prev_rate > 0.0 { prev_rate * 1.5 } else { 0.5 };
+        let floor = if prev_rate > 0.0 {
+            prev_rate * 1.5
+        } else {
+            0.5
+        };
         let (a, rate) = match fitted {
             Some((a, b)) if -b >= floor => (a, -b),
             _ => {
-                let rate = floor.max(if prev_rate > 0.0 { prev_rate * 3.0 } else { 1.0 });
+                let rate = floor.max(if prev_rate > 0.0 {
+                    prev_rate * 3.0
+                } else {
+                    1.0
+                });
                 // Amplitude from the group's mean level at that rate.
                 let a = if pts.is_empty() {
                     0.0
@@ -509,7 +533,10 @@ pub(crate) fn fit_fixed(
                 Some(_) => vec![theta0.clone()],
                 None => starts(&prefit_bins, n),
             };
-            let binned = LogBinned { bins: &prefit_bins, n };
+            let binned = LogBinned {
+                bins: &prefit_bins,
+                n,
+            };
             let mut pre: Option<lm::Outcome> = None;
             for cand in &candidates {
                 let Some(o) = lm::minimize(&binned, cand, &settings) else {

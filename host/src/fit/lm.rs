@@ -16,8 +16,12 @@ pub(crate) trait Problem {
     /// Evaluates every residual at θ and calls `row(residual, indices, jacobian_values)`; the
     /// Jacobian slices are empty when `with_jacobian` is false. Returns `false` if anything
     /// non-finite came up (the caller treats θ as infeasible).
-    fn eval<F: FnMut(f64, &[usize], &[f64])>(&self, theta: &[f64], with_jacobian: bool, row: F)
-    -> bool;
+    fn eval<F: FnMut(f64, &[usize], &[f64])>(
+        &self,
+        theta: &[f64],
+        with_jacobian: bool,
+        row: F,
+    ) -> bool;
 }
 
 /// Solver settings.
@@ -99,7 +103,9 @@ fn solve_damped(a: &[f64], b: &[f64], mu: f64, x: &mut [f64], l: &mut [f64]) -> 
         l[i * p + i] += mu * a[i * p + i].max(floor);
     }
     // Jacobi-scaled Cholesky: factor S A S with S = diag(1/sqrt(a_ii)) for conditioning.
-    let s: Vec<f64> = (0..p).map(|i| 1.0 / l[i * p + i].max(floor).sqrt()).collect();
+    let s: Vec<f64> = (0..p)
+        .map(|i| 1.0 / l[i * p + i].max(floor).sqrt())
+        .collect();
     for i in 0..p {
         for j in 0..p {
             l[i * p + j] *= s[i] * s[j];
@@ -150,7 +156,11 @@ pub(crate) fn solve_plain(a: &[f64], b: &[f64], x: &mut [f64], scratch: &mut [f6
 
 /// Levenberg–Marquardt with Nielsen's damping update and Marquardt's diagonal scaling.
 /// Never panics; a non-finite start returns `None`.
-pub(crate) fn minimize<P: Problem>(problem: &P, start: &[f64], settings: &Settings) -> Option<Outcome> {
+pub(crate) fn minimize<P: Problem>(
+    problem: &P,
+    start: &[f64],
+    settings: &Settings,
+) -> Option<Outcome> {
     let p = problem.params();
     if start.len() != p || p == 0 {
         return None;
@@ -205,10 +215,13 @@ pub(crate) fn minimize<P: Problem>(problem: &P, start: &[f64], settings: &Settin
             })
             .sum();
         let ok = build(problem, &candidate, &mut trial);
-        if std::env::var("LMDBG").is_ok() { eprintln!("it {iterations} mu {mu:e} cost {:e} trial {:e} ok {ok} step {step_norm:e} theta {theta:?}", cur.cost, trial.cost); }
         let actual = cur.cost - trial.cost;
         if ok && actual > 0.0 {
-            let rho = if predicted > 0.0 { actual / predicted } else { 1.0 };
+            let rho = if predicted > 0.0 {
+                actual / predicted
+            } else {
+                1.0
+            };
             std::mem::swap(&mut cur, &mut trial);
             std::mem::swap(&mut theta, &mut candidate);
             mu *= (1.0f64 / 3.0).max(1.0 - (2.0 * rho - 1.0).powi(3));

@@ -14,7 +14,6 @@
 //! Fast mode ([`FitOptions::bins`]): fit the sufficient statistics of distance bins instead of
 //! the samples (see [`bins`]); the bin count trades speed for accuracy.
 
-pub mod aniso;
 pub mod bins;
 pub mod dipole;
 mod isotropic;
@@ -285,7 +284,7 @@ pub fn fit_expsum(r: &[f64], s: &[f64], options: &FitOptions) -> Result<ExpFit, 
     match options.terms {
         Terms::Fixed(n) => fit_order(&cr, &cs, n, options, report),
         Terms::Auto { max, tolerance } => {
-            if !(1..=MAX_TERMS).contains(&max) || !(tolerance >= 0.0 && tolerance.is_finite()) {
+            if !((1..=MAX_TERMS).contains(&max) && tolerance >= 0.0 && tolerance.is_finite()) {
                 return Err(FitFailure::InvalidOptions {
                     reason: "auto order needs 1 <= max <= 4 and a finite tolerance >= 0",
                 });
@@ -313,12 +312,10 @@ pub fn fit_expsum(r: &[f64], s: &[f64], options: &FitOptions) -> Result<ExpFit, 
                     log_e: f.as_ref().ok().map(|f| f.log_e),
                 })
                 .collect();
-            let chosen = fits
-                .iter()
-                .position(|(_, f)| {
-                    f.as_ref()
-                        .is_ok_and(|f| f.log_e <= best * (1.0 + tolerance) + 1e-15)
-                });
+            let chosen = fits.iter().position(|(_, f)| {
+                f.as_ref()
+                    .is_ok_and(|f| f.log_e <= best * (1.0 + tolerance) + 1e-15)
+            });
             match chosen {
                 Some(i) => {
                     let (n, f) = fits.swap_remove(i);
@@ -352,12 +349,12 @@ fn fit_order(
             reason: "the number of terms must be 1..=4",
         });
     }
-    if let Some(start) = &options.start {
-        if start.len() != n {
-            return Err(FitFailure::InvalidOptions {
-                reason: "start values must have as many terms as the fit",
-            });
-        }
+    if let Some(start) = &options.start
+        && start.len() != n
+    {
+        return Err(FitFailure::InvalidOptions {
+            reason: "start values must have as many terms as the fit",
+        });
     }
     let needed = samples_needed(n);
     if r.len() < needed {

@@ -22,15 +22,17 @@ impl<P: Problem> Adapter<'_, P> {
         let mut res = DVector::zeros(m);
         let mut jac = DMatrix::zeros(m, p);
         let mut i = 0;
-        let ok = self.problem.eval(self.theta.as_slice(), true, |r, idx, val| {
-            if i < m {
-                res[i] = r;
-                for (&j, &v) in idx.iter().zip(val) {
-                    jac[(i, j)] = v;
+        let ok = self
+            .problem
+            .eval(self.theta.as_slice(), true, |r, idx, val| {
+                if i < m {
+                    res[i] = r;
+                    for (&j, &v) in idx.iter().zip(val) {
+                        jac[(i, j)] = v;
+                    }
                 }
-            }
-            i += 1;
-        });
+                i += 1;
+            });
         if ok && i == m {
             self.residuals = Some(res);
             self.jacobian = Some(jac);
@@ -65,7 +67,11 @@ impl<P: Problem> LeastSquaresProblem<f64, Dyn, Dyn> for Adapter<'_, P> {
 }
 
 /// Minimises Σ res² with the crate from `start`; `None` if the start is infeasible.
-pub(crate) fn minimize<P: Problem>(problem: &P, start: &[f64], max_iterations: usize) -> Option<Outcome> {
+pub(crate) fn minimize<P: Problem>(
+    problem: &P,
+    start: &[f64],
+    max_iterations: usize,
+) -> Option<Outcome> {
     let p = problem.params();
     if start.len() != p || p == 0 || problem.rows() == 0 {
         return None;

@@ -68,7 +68,10 @@ mod tests {
         assert_eq!(rep.dropped_non_positive, 2);
         assert_eq!(rep.dropped_negative_distance, 1);
         assert_eq!(
-            rep.used + rep.dropped_non_finite + rep.dropped_non_positive + rep.dropped_negative_distance,
+            rep.used
+                + rep.dropped_non_finite
+                + rep.dropped_non_positive
+                + rep.dropped_negative_distance,
             rep.input
         );
         assert_eq!(distinct_distances(&[1.0, 1.0, 2.0], 10), 2);

@@ -46,7 +46,10 @@ fn start(v: [f64; 6]) -> Vec<Term> {
 #[test]
 fn lanczos1_linear_objective_both_starts_both_solvers() {
     let (r, s) = lanczos();
-    for st in [[1.2, 0.3, 5.6, 5.5, 6.5, 7.6], [0.5, 0.7, 3.6, 4.2, 4.0, 6.3]] {
+    for st in [
+        [1.2, 0.3, 5.6, 5.5, 6.5, 7.6],
+        [0.5, 0.7, 3.6, 4.2, 4.0, 6.3],
+    ] {
         for solver in [Solver::Specialised, Solver::Reference] {
             let opts = FitOptions {
                 objective: Objective::Linear,
@@ -62,7 +65,10 @@ fn lanczos1_linear_objective_both_starts_both_solvers() {
                 }
             };
             let dg = digits(&nist_vector(&fit.model), &CERTIFIED);
-            eprintln!("{solver:?} {st:?}: {dg:.2} digits, rss {:e}, it {}", fit.rss, fit.iterations);
+            eprintln!(
+                "{solver:?} {st:?}: {dg:.2} digits, rss {:e}, it {}",
+                fit.rss, fit.iterations
+            );
             if solver == Solver::Specialised {
                 assert!(dg >= 9.0, "{dg}");
                 assert!(fit.rss < 1.5e-25);
@@ -75,7 +81,10 @@ fn lanczos1_linear_objective_both_starts_both_solvers() {
 fn lanczos1_log_objective_recovers_generating_values() {
     let (r, s) = lanczos();
     let fit = fit_expsum(&r, &s, &FitOptions::default()).unwrap();
-    let dg = digits(&nist_vector(&fit.model), &[0.0951, 1.0, 0.8607, 3.0, 1.5576, 5.0]);
+    let dg = digits(
+        &nist_vector(&fit.model),
+        &[0.0951, 1.0, 0.8607, 3.0, 1.5576, 5.0],
+    );
     eprintln!("log: {dg:.2} digits, it {}", fit.iterations);
     assert!(dg >= 9.0, "{dg}");
 }
@@ -115,8 +124,20 @@ fn noise_free_recovery_exact_and_reference() {
     let truth = model(&[(0.05, -0.3), (0.5, -1.0), (5.0, -3.0)]);
     let (r, s) = synthetic(&truth, 500, 15.0, 0.0, 1);
     for solver in [Solver::Specialised, Solver::Reference] {
-        let fit = fit_expsum(&r, &s, &FitOptions { solver, ..FitOptions::default() }).unwrap();
-        eprintln!("{solver:?}: it {} err {:e}", fit.iterations, max_rel_err(&fit.model, &truth));
+        let fit = fit_expsum(
+            &r,
+            &s,
+            &FitOptions {
+                solver,
+                ..FitOptions::default()
+            },
+        )
+        .unwrap();
+        eprintln!(
+            "{solver:?}: it {} err {:e}",
+            fit.iterations,
+            max_rel_err(&fit.model, &truth)
+        );
         assert!(max_rel_err(&fit.model, &truth) < 1e-6);
         assert!(fit.converged && fit.log_e < 1e-8);
     }
@@ -127,21 +148,49 @@ fn noisy_fit_fast_mode_close_to_exact() {
     let truth = model(&[(0.05, -0.3), (0.5, -1.0), (5.0, -3.0)]);
     let (r, s) = synthetic(&truth, 2000, 15.0, 0.01, 2);
     let exact = fit_expsum(&r, &s, &FitOptions::default()).unwrap();
-    let reference =
-        fit_expsum(&r, &s, &FitOptions { solver: Solver::Reference, ..FitOptions::default() })
-            .unwrap();
+    let reference = fit_expsum(
+        &r,
+        &s,
+        &FitOptions {
+            solver: Solver::Reference,
+            ..FitOptions::default()
+        },
+    )
+    .unwrap();
     eprintln!("exact it {} log_e {}", exact.iterations, exact.log_e);
-    eprintln!("reference it {} log_e {}", reference.iterations, reference.log_e);
+    eprintln!(
+        "reference it {} log_e {}",
+        reference.iterations, reference.log_e
+    );
     assert!(exact.log_e <= reference.log_e * (1.0 + 1e-9));
     // 1 % multiplicative noise: log E of the fit is the noise level.
     assert!((exact.log_e - 0.01).abs() < 0.001, "{}", exact.log_e);
     for bins in [16, 32, 64, 128] {
-        let fast = fit_expsum(&r, &s, &FitOptions { bins: Some(bins), ..FitOptions::default() })
-            .unwrap();
-        eprintln!("bins {bins}: it {} log_e {} ratio {}", fast.iterations, fast.log_e, fast.log_e / exact.log_e);
+        let fast = fit_expsum(
+            &r,
+            &s,
+            &FitOptions {
+                bins: Some(bins),
+                ..FitOptions::default()
+            },
+        )
+        .unwrap();
+        eprintln!(
+            "bins {bins}: it {} log_e {} ratio {}",
+            fast.iterations,
+            fast.log_e,
+            fast.log_e / exact.log_e
+        );
     }
-    let fast =
-        fit_expsum(&r, &s, &FitOptions { bins: Some(64), ..FitOptions::default() }).unwrap();
+    let fast = fit_expsum(
+        &r,
+        &s,
+        &FitOptions {
+            bins: Some(64),
+            ..FitOptions::default()
+        },
+    )
+    .unwrap();
     assert!(fast.log_e <= exact.log_e * 1.01);
 }
 
@@ -149,10 +198,19 @@ fn noisy_fit_fast_mode_close_to_exact() {
 fn values_spanning_1e8() {
     let truth = model(&[(1e-3, -0.5), (1.0, -2.0)]);
     let (r, s) = synthetic(&truth, 400, 30.0, 0.0, 3);
-    let (lo, hi) = s.iter().fold((f64::INFINITY, 0.0f64), |(a, b), v| (a.min(*v), b.max(*v)));
+    let (lo, hi) = s
+        .iter()
+        .fold((f64::INFINITY, 0.0f64), |(a, b), v| (a.min(*v), b.max(*v)));
     assert!(hi / lo > 1e8);
-    let fit = fit_expsum(&r, &s, &FitOptions { terms: Terms::Fixed(2), ..FitOptions::default() })
-        .unwrap();
+    let fit = fit_expsum(
+        &r,
+        &s,
+        &FitOptions {
+            terms: Terms::Fixed(2),
+            ..FitOptions::default()
+        },
+    )
+    .unwrap();
     assert!(max_rel_err(&fit.model, &truth) < 1e-6);
 }
 
@@ -163,9 +221,19 @@ fn distances_to_1e4_with_underflowing_terms() {
     let truth = model(&[(1e-5, -0.05), (1.0, -1.0)]);
     let (r, s) = synthetic(&truth, 400, 1e4, 0.0, 4);
     let r: Vec<f64> = r.into_iter().chain([0.0, 1e4]).collect();
-    let s: Vec<f64> = s.into_iter().chain([truth.eval(0.0), truth.eval(1e4)]).collect();
-    let fit = fit_expsum(&r, &s, &FitOptions { terms: Terms::Fixed(2), ..FitOptions::default() })
-        .unwrap();
+    let s: Vec<f64> = s
+        .into_iter()
+        .chain([truth.eval(0.0), truth.eval(1e4)])
+        .collect();
+    let fit = fit_expsum(
+        &r,
+        &s,
+        &FitOptions {
+            terms: Terms::Fixed(2),
+            ..FitOptions::default()
+        },
+    )
+    .unwrap();
     assert_eq!(fit.samples.used, 402);
     assert!(max_rel_err(&fit.model, &truth) < 1e-6, "{:?}", fit.model);
 }
@@ -176,12 +244,28 @@ fn one_to_three_samples_fail_cleanly() {
         let r: Vec<f64> = (0..count).map(|i| i as f64).collect();
         let s: Vec<f64> = r.iter().map(|v| (-v).exp()).collect();
         for n in 1..=4 {
-            let e = fit_expsum(&r, &s, &FitOptions { terms: Terms::Fixed(n), ..FitOptions::default() })
-                .unwrap_err();
+            let e = fit_expsum(
+                &r,
+                &s,
+                &FitOptions {
+                    terms: Terms::Fixed(n),
+                    ..FitOptions::default()
+                },
+            )
+            .unwrap_err();
             assert!(matches!(e, FitFailure::TooFewSamples { usable, .. } if usable == count));
         }
-        let auto = FitOptions { terms: Terms::Auto { max: 4, tolerance: 0.05 }, ..FitOptions::default() };
-        assert!(matches!(fit_expsum(&r, &s, &auto), Err(FitFailure::TooFewSamples { .. })));
+        let auto = FitOptions {
+            terms: Terms::Auto {
+                max: 4,
+                tolerance: 0.05,
+            },
+            ..FitOptions::default()
+        };
+        assert!(matches!(
+            fit_expsum(&r, &s, &auto),
+            Err(FitFailure::TooFewSamples { .. })
+        ));
     }
     assert!(matches!(
         fit_expsum(&[], &[], &FitOptions::default()),
@@ -197,7 +281,14 @@ fn all_samples_at_one_distance_fail_cleanly() {
     assert!(matches!(e, FitFailure::TooFewDistances { distinct: 1, .. }));
     let r = vec![0.0; 50];
     assert!(matches!(
-        fit_expsum(&r, &s, &FitOptions { terms: Terms::Fixed(1), ..FitOptions::default() }),
+        fit_expsum(
+            &r,
+            &s,
+            &FitOptions {
+                terms: Terms::Fixed(1),
+                ..FitOptions::default()
+            }
+        ),
         Err(FitFailure::TooFewDistances { .. })
     ));
 }
@@ -206,12 +297,24 @@ fn all_samples_at_one_distance_fail_cleanly() {
 fn bad_samples_are_dropped_counted_and_ignored() {
     let truth = model(&[(0.2, -0.4), (3.0, -2.0)]);
     let (r, s) = synthetic(&truth, 300, 10.0, 0.01, 5);
-    let opts = FitOptions { terms: Terms::Fixed(2), ..FitOptions::default() };
+    let opts = FitOptions {
+        terms: Terms::Fixed(2),
+        ..FitOptions::default()
+    };
     let clean_fit = fit_expsum(&r, &s, &opts).unwrap();
     let mut r2 = r.clone();
     let mut s2 = s.clone();
     r2.extend([1.0, 2.0, 3.0, 4.0, 5.0, f64::NAN, -1.0, f64::INFINITY]);
-    s2.extend([0.0, -1.0, f64::NAN, f64::INFINITY, f64::NEG_INFINITY, 1.0, 1.0, 1.0]);
+    s2.extend([
+        0.0,
+        -1.0,
+        f64::NAN,
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+        1.0,
+        1.0,
+        1.0,
+    ]);
     let dirty_fit = fit_expsum(&r2, &s2, &opts).unwrap();
     assert_eq!(dirty_fit.model, clean_fit.model);
     let rep = dirty_fit.samples;
@@ -225,7 +328,10 @@ fn bad_samples_are_dropped_counted_and_ignored() {
 fn duplicated_points_change_nothing() {
     let truth = model(&[(0.2, -0.4), (3.0, -2.0)]);
     let (r, s) = synthetic(&truth, 200, 10.0, 0.02, 6);
-    let opts = FitOptions { terms: Terms::Fixed(2), ..FitOptions::default() };
+    let opts = FitOptions {
+        terms: Terms::Fixed(2),
+        ..FitOptions::default()
+    };
     let once = fit_expsum(&r, &s, &opts).unwrap();
     let r2: Vec<f64> = r.iter().flat_map(|v| [*v, *v]).collect();
     let s2: Vec<f64> = s.iter().flat_map(|v| [*v, *v]).collect();
@@ -244,7 +350,11 @@ fn huge_and_tiny_units_scale_exactly() {
         let s2: Vec<f64> = s.iter().map(|v| v * ks).collect();
         let fit = fit_expsum(&r2, &s2, &FitOptions::default()).unwrap();
         let back = model(
-            &fit.model.terms.iter().map(|t| (t.c / ks, t.d * kr)).collect::<Vec<_>>(),
+            &fit.model
+                .terms
+                .iter()
+                .map(|t| (t.c / ks, t.d * kr))
+                .collect::<Vec<_>>(),
         );
         assert!(max_rel_err(&back, &base.model) < 1e-8, "{kr} {ks}");
         assert!((fit.log_e - base.log_e).abs() < 1e-10);
@@ -255,7 +365,13 @@ fn huge_and_tiny_units_scale_exactly() {
 fn auto_order_picks_the_generating_order() {
     let truth = model(&[(0.1, -0.3), (2.0, -1.5)]);
     let (r, s) = synthetic(&truth, 800, 15.0, 0.01, 8);
-    let opts = FitOptions { terms: Terms::Auto { max: 4, tolerance: 0.02 }, ..FitOptions::default() };
+    let opts = FitOptions {
+        terms: Terms::Auto {
+            max: 4,
+            tolerance: 0.02,
+        },
+        ..FitOptions::default()
+    };
     let fit = fit_expsum(&r, &s, &opts).unwrap();
     let order = fit.order.unwrap();
     assert_eq!(order.chosen, 2, "{order:?}");
@@ -279,14 +395,22 @@ mod props {
     use proptest::prelude::*;
 
     fn valid_model() -> impl Strategy<Value = ExpSum> {
-        (1usize..=3, 0.1f64..1.0, prop::collection::vec((3.0f64..6.0, 3.0f64..10.0), 2), 0.1f64..10.0)
+        (
+            1usize..=3,
+            0.1f64..1.0,
+            prop::collection::vec((3.0f64..6.0, 3.0f64..10.0), 2),
+            0.1f64..10.0,
+        )
             .prop_map(|(n, rate, steps, c0)| {
                 // Well-separated rates and amplitudes growing with the rate: every term dominates
                 // somewhere, so the parameters are identifiable.
                 let mut terms = vec![Term { c: c0, d: -rate }];
                 for (q, a) in steps.into_iter().take(n - 1) {
                     let last = terms[terms.len() - 1];
-                    terms.push(Term { c: last.c * a, d: last.d * q });
+                    terms.push(Term {
+                        c: last.c * a,
+                        d: last.d * q,
+                    });
                 }
                 ExpSum::new(terms).unwrap()
             })
