@@ -5,6 +5,7 @@ mod fit_curve;
 mod flash;
 mod ports;
 mod probes;
+mod simulate;
 
 /// Capture real translucent objects and turn them into compact, renderable models.
 #[derive(Debug, Parser)]
@@ -24,6 +25,8 @@ enum Command {
     Probes(probes::Args),
     /// Fit one fall-off curve R_d(r) (sum of exponentials or dipole) from a CSV file.
     FitCurve(fit_curve::Args),
+    /// Write a simulated scan dataset with ground truth.
+    Simulate(simulate::Args),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -32,5 +35,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Flash(args) => flash::run(args),
         Command::Probes(args) => probes::run(args),
         Command::FitCurve(args) => fit_curve::run(args),
+        Command::Simulate(a) => simulate::run(a),
     }
 }
