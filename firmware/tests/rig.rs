@@ -568,3 +568,22 @@ fn framed_bytes_with_garbage_between_frames() {
     assert_eq!(s.rx_dropped, 2);
     assert_eq!(sim.rig().rx_stats().frames, 2);
 }
+
+#[test]
+fn galvo_settle_grows_with_the_larger_axis_jump_and_saturates() {
+    use subsurf_firmware::galvo_settle_us;
+    let config = SimParams::default().config;
+    let p = |x, y| GalvoPoint { x, y };
+    assert_eq!(galvo_settle_us(&config, p(0, 0), p(0, 0)), 100);
+    assert_eq!(galvo_settle_us(&config, p(0, 0), p(1000, 500)), 120);
+    assert_eq!(
+        galvo_settle_us(&config, p(60_000, 0), p(10_000, 65_535)),
+        100 + 65_535 * 20 / 1000
+    );
+    let extreme = Config {
+        galvo_settle_min_us: u32::MAX,
+        galvo_settle_per_kcode_us: u32::MAX,
+        ..config
+    };
+    assert_eq!(galvo_settle_us(&extreme, p(0, 0), p(u16::MAX, 0)), u32::MAX);
+}
