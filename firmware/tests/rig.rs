@@ -587,3 +587,42 @@ fn galvo_settle_grows_with_the_larger_axis_jump_and_saturates() {
     };
     assert_eq!(galvo_settle_us(&extreme, p(0, 0), p(u16::MAX, 0)), u32::MAX);
 }
+
+#[test]
+fn reply_precedes_the_events_its_command_caused() {
+    let mut sim = SimRig::default();
+    sim.rig_mut().handle_request(
+        0,
+        Request {
+            seq: 1,
+            command: Command::Arm,
+        },
+    );
+    sim.rig_mut().handle_request(
+        0,
+        Request {
+            seq: 2,
+            command: Command::Stop,
+        },
+    );
+    let msgs: Vec<RigMessage> = std::iter::from_fn(|| sim.rig_mut().poll_message()).collect();
+    assert!(
+        matches!(
+            &msgs[..],
+            [
+                RigMessage::Reply(Reply { seq: 1, .. }),
+                RigMessage::Reply(Reply {
+                    seq: 2,
+                    result: Ok(Response::Ack)
+                }),
+                RigMessage::Event(Event {
+                    kind: EventKind::Halted {
+                        reason: HaltReason::Stop
+                    },
+                    ..
+                }),
+            ]
+        ),
+        "{msgs:?}"
+    );
+}
