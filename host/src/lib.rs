@@ -6,9 +6,14 @@
 #![warn(missing_docs)]
 
 pub mod calib;
+pub mod dataset;
+pub mod fit;
 pub mod flash;
+pub mod geometry;
 pub mod link;
 pub mod model;
+pub mod modelfile;
 pub mod plot;
 pub mod rig;
 pub mod scan;
+pub mod simulate;
