@@ -6,6 +6,7 @@ mod flash;
 mod ports;
 mod probes;
 mod simulate;
+mod plan;
 
 /// Capture real translucent objects and turn them into compact, renderable models.
 #[derive(Debug, Parser)]
@@ -27,6 +28,8 @@ enum Command {
     FitCurve(fit_curve::Args),
     /// Write a simulated scan dataset with ground truth.
     Simulate(simulate::Args),
+    /// Plan a scan: frames, expected duration and predicted coverage, before anything moves.
+    Plan(plan::Args),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -36,5 +39,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Probes(args) => probes::run(args),
         Command::FitCurve(args) => fit_curve::run(args),
         Command::Simulate(a) => simulate::run(a),
+        Command::Plan(args) => plan::run(args),
     }
 }

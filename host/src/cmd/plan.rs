@@ -81,6 +81,7 @@ pub struct Args {
 pub struct Resolved {
     pub mesh: Mesh,
     pub calib: Calibration,
+    #[allow(dead_code)]
     pub builtin: bool,
 }
 
