@@ -5,8 +5,14 @@
 //! become a model (`model`, `fit`), and the model is rendered and judged (`render`, `plot`).
 #![warn(missing_docs)]
 
+pub mod calib;
+pub mod dataset;
 pub mod flash;
+pub mod geometry;
 pub mod link;
 pub mod model;
+pub mod modelfile;
 pub mod plot;
 pub mod rig;
+pub mod scan;
+pub mod simulate;

@@ -4,6 +4,7 @@ use clap::{Parser, Subcommand};
 mod flash;
 mod ports;
 mod probes;
+mod simulate;
 
 /// Capture real translucent objects and turn them into compact, renderable models.
 #[derive(Debug, Parser)]
@@ -21,6 +22,8 @@ enum Command {
     Flash(flash::Args),
     /// List debug probes (ST-LINK, CMSIS-DAP, J-Link).
     Probes(probes::Args),
+    /// Write a simulated scan dataset with ground truth.
+    Simulate(simulate::Args),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -28,5 +31,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Ports(args) => ports::run(args),
         Command::Flash(args) => flash::run(args),
         Command::Probes(args) => probes::run(args),
+        Command::Simulate(a) => simulate::run(a),
     }
 }
