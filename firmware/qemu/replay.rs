@@ -72,7 +72,9 @@ pub fn replay_observed(
     let mut records = 0;
     let mut last: Micros = 0;
     while at < script.len() {
-        let header = script.get(at..at + 11).ok_or(ScriptError::Truncated { at })?;
+        let header = script
+            .get(at..at + 11)
+            .ok_or(ScriptError::Truncated { at })?;
         let mut time = [0u8; 8];
         time.copy_from_slice(&header[..8]);
         let time = Micros::from_le_bytes(time);
@@ -108,7 +110,10 @@ fn summary(rig: &SimRig, out: &mut dyn FnMut(&[u8])) {
     out(SUMMARY_MAGIC);
     out(&hw.position().to_le_bytes());
     out(&hw.steps().to_le_bytes());
-    out(&hw.min_step_interval_us().unwrap_or(Micros::MAX).to_le_bytes());
+    out(&hw
+        .min_step_interval_us()
+        .unwrap_or(Micros::MAX)
+        .to_le_bytes());
     out(&hw.violations().to_le_bytes());
     out(&rig.rig().rx_stats().dropped().to_le_bytes());
     out(&rig.rig().tx_dropped().to_le_bytes());

@@ -62,8 +62,22 @@ fn scenario() -> Vec<u8> {
     s.send(2 * ms, 2, Command::GetConfig);
     s.send(2 * ms + 10, 3, Command::Status);
     s.send(3 * ms, 4, Command::Arm);
-    s.send(4 * ms, 5, Command::Laser { channel: 0, on: true });
-    s.send(5 * ms, 6, Command::Laser { channel: 0, on: false });
+    s.send(
+        4 * ms,
+        5,
+        Command::Laser {
+            channel: 0,
+            on: true,
+        },
+    );
+    s.send(
+        5 * ms,
+        6,
+        Command::Laser {
+            channel: 0,
+            on: false,
+        },
+    );
     s.send(
         6 * ms,
         7,
@@ -140,7 +154,14 @@ fn scenario() -> Vec<u8> {
         },
     );
     s.send(680 * ms, 21, Command::Arm);
-    s.send(681 * ms, 22, Command::Laser { channel: 0, on: true });
+    s.send(
+        681 * ms,
+        22,
+        Command::Laser {
+            channel: 0,
+            on: true,
+        },
+    );
     // The host goes quiet: the heartbeat timeout turns the laser off.
     s.record(3_000 * ms, KIND_ADVANCE, &[]);
     s.send(3_010 * ms, 23, Command::Status);

@@ -36,7 +36,10 @@ unsafe extern "C" {
 
 fn stack_bounds() -> (usize, usize) {
     // Only the addresses of the linker symbols are taken (no read), which needs no `unsafe`.
-    (addr_of!(_stack_end) as usize, addr_of!(_stack_start) as usize)
+    (
+        addr_of!(_stack_end) as usize,
+        addr_of!(_stack_start) as usize,
+    )
 }
 
 /// Bytes of stack used so far: from the top down to the deepest word that lost its paint.
