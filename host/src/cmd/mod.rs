@@ -1,6 +1,7 @@
 //! One module per subcommand. Each owns its `Args` and a `run` that returns `anyhow::Result`.
 use clap::{Parser, Subcommand};
 
+mod fit_curve;
 mod flash;
 mod ports;
 mod probes;
@@ -22,6 +23,8 @@ enum Command {
     Flash(flash::Args),
     /// List debug probes (ST-LINK, CMSIS-DAP, J-Link).
     Probes(probes::Args),
+    /// Fit one fall-off curve R_d(r) (sum of exponentials or dipole) from a CSV file.
+    FitCurve(fit_curve::Args),
     /// Write a simulated scan dataset with ground truth.
     Simulate(simulate::Args),
 }
@@ -31,6 +34,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Ports(args) => ports::run(args),
         Command::Flash(args) => flash::run(args),
         Command::Probes(args) => probes::run(args),
+        Command::FitCurve(args) => fit_curve::run(args),
         Command::Simulate(a) => simulate::run(a),
     }
 }
