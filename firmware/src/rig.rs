@@ -21,7 +21,7 @@
 //! }
 //! ```
 //!
-//! All laser-safety rules live in [`Rig::laser_permitted`] and [`Rig::sync_lasers`]: no code path
+//! All laser-safety rules live in [`Rig::laser_permitted`] and `Rig::sync_lasers`: no code path
 //! writes the laser outputs except `sync_lasers`, which outputs nothing unless `laser_permitted`.
 
 use heapless::{Deque, Vec};
