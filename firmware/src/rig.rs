@@ -282,6 +282,17 @@ impl<H: Hardware> Rig<H> {
         self.motion.is_some()
     }
 
+    /// Turntable position, steps (0 = home once homed).
+    pub fn position(&self) -> i32 {
+        self.position
+    }
+
+    /// When the next motor step is due, µs (for a board that programs a hardware timer per step;
+    /// [`Rig::poll_timeout`] already includes it).
+    pub fn next_step_due(&self) -> Option<Micros> {
+        self.motion.as_ref().map(|m| m.next_due)
+    }
+
     /// The active fault.
     pub fn fault(&self) -> Option<Fault> {
         self.fault
