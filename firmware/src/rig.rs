@@ -120,11 +120,11 @@ impl ReplyCache {
         self.entries.iter().find(|r| r.seq == seq)
     }
 
-    /// Behind the newest executed seq (wrapping) but not cached.
+    /// Shortly behind the newest executed seq (wrapping) but not cached: a late duplicate.
     fn is_stale(&self, seq: Seq) -> bool {
         self.newest.is_some_and(|n| {
             let behind = n.wrapping_sub(seq);
-            behind != 0 && behind < 1 << 31
+            behind != 0 && behind <= subsurf_protocol::STALE_WINDOW
         })
     }
 
@@ -499,6 +499,8 @@ impl<H: Hardware> Rig<H> {
 
     /// Stop laser work (and the motor when `stop_motion`), disarm, and report why.
     fn abort(&mut self, now: Micros, reason: HaltReason, stop_motion: bool) {
+        #[cfg(feature = "defmt")]
+        defmt::warn!("halt at {=u64} us: {}", now, reason);
         let was_active = self.armed
             || self.lasers != 0
             || self.capture.is_some()

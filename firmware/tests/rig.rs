@@ -304,6 +304,12 @@ fn retransmitted_request_is_answered_not_reexecuted() {
     assert_eq!(stale[0].result, Err(RigError::StaleSequence));
     h.advance(1_000_000);
     assert_eq!(h.kinds().len(), 1, "the move ran once");
+    // Farther back than STALE_WINDOW counts as new (a restarted host that skipped Hello).
+    h.send(1_000, Command::Heartbeat);
+    let far = h.send(1_000 - STALE_WINDOW - 1, mv(MoveTarget::Relative(1)));
+    assert_eq!(far[0].result, Ok(Response::Ack));
+    let near = h.send(1_000 - STALE_WINDOW - 1 - STALE_WINDOW, Command::Heartbeat);
+    assert_eq!(near[0].result, Err(RigError::StaleSequence));
     // A new session (Hello) may start anywhere.
     h.send(
         3,
