@@ -7,6 +7,7 @@
 
 pub mod calib;
 pub mod dataset;
+pub mod fit;
 pub mod flash;
 pub mod geometry;
 pub mod link;

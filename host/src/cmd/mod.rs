@@ -2,6 +2,7 @@
 use clap::{Parser, Subcommand};
 
 mod bench;
+mod fit_curve;
 mod flash;
 mod ports;
 mod probes;
@@ -24,6 +25,8 @@ enum Command {
     Flash(flash::Args),
     /// List debug probes (ST-LINK, CMSIS-DAP, J-Link).
     Probes(probes::Args),
+    /// Fit one fall-off curve R_d(r) (sum of exponentials or dipole) from a CSV file.
+    FitCurve(fit_curve::Args),
     /// Write a simulated scan dataset with ground truth.
     Simulate(simulate::Args),
     /// Talk to the rig or the simulated rig.
@@ -37,6 +40,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Ports(args) => ports::run(args),
         Command::Flash(args) => flash::run(args),
         Command::Probes(args) => probes::run(args),
+        Command::FitCurve(args) => fit_curve::run(args),
         Command::Simulate(a) => simulate::run(a),
         Command::Rig(args) => rig::run(args),
         Command::Bench(args) => bench::run(args),
