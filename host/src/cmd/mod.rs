@@ -1,10 +1,12 @@
 //! One module per subcommand. Each owns its `Args` and a `run` that returns `anyhow::Result`.
 use clap::{Parser, Subcommand};
 
+mod bench;
 mod fit_curve;
 mod flash;
 mod ports;
 mod probes;
+mod rig;
 mod simulate;
 
 /// Capture real translucent objects and turn them into compact, renderable models.
@@ -27,6 +29,10 @@ enum Command {
     FitCurve(fit_curve::Args),
     /// Write a simulated scan dataset with ground truth.
     Simulate(simulate::Args),
+    /// Talk to the rig or the simulated rig.
+    Rig(rig::Args),
+    /// Measure performance (figures for BENCHMARKS.md).
+    Bench(bench::Args),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -36,5 +42,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Probes(args) => probes::run(args),
         Command::FitCurve(args) => fit_curve::run(args),
         Command::Simulate(a) => simulate::run(a),
+        Command::Rig(args) => rig::run(args),
+        Command::Bench(args) => bench::run(args),
     }
 }
