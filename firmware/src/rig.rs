@@ -21,7 +21,7 @@
 //! }
 //! ```
 //!
-//! All laser-safety rules live in [`Rig::laser_permitted`] and [`Rig::sync_lasers`]: no code path
+//! All laser-safety rules live in [`Rig::laser_permitted`] and `Rig::sync_lasers`: no code path
 //! writes the laser outputs except `sync_lasers`, which outputs nothing unless `laser_permitted`.
 
 use heapless::{Deque, Vec};
@@ -280,6 +280,17 @@ impl<H: Hardware> Rig<H> {
     /// Whether the turntable is moving (including homing).
     pub fn moving(&self) -> bool {
         self.motion.is_some()
+    }
+
+    /// Turntable position, steps (0 = home once homed).
+    pub fn position(&self) -> i32 {
+        self.position
+    }
+
+    /// When the next motor step is due, µs (for a board that programs a hardware timer per step;
+    /// [`Rig::poll_timeout`] already includes it).
+    pub fn next_step_due(&self) -> Option<Micros> {
+        self.motion.as_ref().map(|m| m.next_due)
     }
 
     /// The active fault.

@@ -626,3 +626,40 @@ fn reply_precedes_the_events_its_command_caused() {
         "{msgs:?}"
     );
 }
+
+#[test]
+fn estop_pressed_at_boot_is_a_fault() {
+    use subsurf_firmware::Rig;
+    use subsurf_firmware::sim::SimHardware;
+    let params = SimParams::default();
+    let mut hw = SimHardware::new(16_000, 0, 10);
+    hw.set_estop(true);
+    let mut rig = Rig::new(hw, params.capabilities, params.config, 0);
+    assert_eq!(rig.fault(), Some(Fault::EmergencyStop));
+    rig.handle_request(
+        0,
+        Request {
+            seq: 1,
+            command: Command::Arm,
+        },
+    );
+    let replies: Vec<RigMessage> = std::iter::from_fn(|| rig.poll_message()).collect();
+    assert!(replies.contains(&RigMessage::Reply(Reply {
+        seq: 1,
+        result: Err(RigError::Faulted(Fault::EmergencyStop))
+    })));
+    assert_eq!(rig.laser_output(), 0);
+}
+
+#[test]
+fn next_step_due_follows_the_profile() {
+    let mut h = Host::new(SimParams::default());
+    assert_eq!(h.sim.rig().next_step_due(), None);
+    let t0 = h.sim.now();
+    h.call(mv(MoveTarget::Absolute(100))).unwrap();
+    // First step of a move from rest at 100 000 steps/s²: sqrt(2/a) = 4472 µs.
+    assert_eq!(h.sim.rig().next_step_due(), Some(t0 + 4_472));
+    h.advance(1_000_000);
+    assert_eq!(h.sim.rig().next_step_due(), None);
+    assert_eq!(h.sim.rig().position(), 100);
+}

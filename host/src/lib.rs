@@ -16,4 +16,5 @@ pub mod modelfile;
 pub mod plot;
 pub mod rig;
 pub mod scan;
+pub mod sim;
 pub mod simulate;

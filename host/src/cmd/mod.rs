@@ -1,12 +1,15 @@
 //! One module per subcommand. Each owns its `Args` and a `run` that returns `anyhow::Result`.
 use clap::{Parser, Subcommand};
 
+mod bench;
 mod fit_curve;
 mod flash;
 mod ports;
 mod probes;
+mod rig;
 mod simulate;
 mod plan;
+mod scan;
 
 /// Capture real translucent objects and turn them into compact, renderable models.
 #[derive(Debug, Parser)]
@@ -30,6 +33,12 @@ enum Command {
     Simulate(simulate::Args),
     /// Plan a scan: frames, expected duration and predicted coverage, before anything moves.
     Plan(plan::Args),
+    /// Scan an object into a dataset (resumable; `--sim --camera sim` needs no other files).
+    Scan(scan::Args),
+    /// Talk to the rig or the simulated rig.
+    Rig(rig::Args),
+    /// Measure performance (figures for BENCHMARKS.md).
+    Bench(bench::Args),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -40,5 +49,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::FitCurve(args) => fit_curve::run(args),
         Command::Simulate(a) => simulate::run(a),
         Command::Plan(args) => plan::run(args),
+        Command::Scan(args) => scan::run(args),
+        Command::Rig(args) => rig::run(args),
+        Command::Bench(args) => bench::run(args),
     }
 }

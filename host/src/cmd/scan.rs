@@ -103,8 +103,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     let result = if args.sim {
         let mut connect = || {
-            let link = subsurf::sim::SimLink::clean(subsurf::sim::SimRig::new(
-                subsurf::sim::SimOptions::default(),
+            let link = subsurf::sim::SimLink::clean(subsurf::sim::VirtualRig::new(
+                subsurf::sim::SimParams::default(),
             ));
             RigClient::connect_with_seq(link, ClientConfig::default(), 1)
         };
