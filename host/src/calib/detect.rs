@@ -162,7 +162,7 @@ fn saddle(g: &Gray, x: i64, y: i64) -> Option<[f64; 2]> {
     }
     let ox = (-2.0 * cc * d + b * e) / det;
     let oy = (-2.0 * a * e + b * d) / det;
-    (ox.abs() <= 1.0 && oy.abs() <= 1.0).then(|| [x as f64 + ox, y as f64 + oy])
+    (ox.abs() <= 1.0 && oy.abs() <= 1.0).then_some([x as f64 + ox, y as f64 + oy])
 }
 
 /// Refines a corner like OpenCV's `cornerSubPix`: every edge gradient `g` at `p` near the corner
@@ -200,7 +200,7 @@ fn refine(g: &Gray, start: [f64; 2]) -> Option<[f64; 2]> {
 /// Finds the inner corners of `target` in `img`, in board order (row-major, as
 /// [`ChessboardTarget::points`]).
 pub fn detect_chessboard(img: &Gray, target: &ChessboardTarget) -> Result<TargetView, CalibError> {
-    if (target.cols + target.rows) % 2 == 0 || target.cols < 2 || target.rows < 2 {
+    if (target.cols + target.rows).is_multiple_of(2) || target.cols < 2 || target.rows < 2 {
         return Err(CalibError::Invalid(format!(
             "a {}x{} board is ambiguous under a half turn: use inner corner counts with an odd \
              sum (e.g. 9x6)",
@@ -289,10 +289,13 @@ fn dist2(a: [f64; 2], b: [f64; 2]) -> f64 {
     (a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)
 }
 
+/// Two lattice vectors (pixels).
+type Basis = ([f64; 2], [f64; 2]);
+
 /// Candidate lattice bases at the most central corner: pairs of vectors to its nearest
 /// neighbours that are clearly not collinear. Sheared bases also grow complete lattices, so
 /// the caller keeps the basis whose lattice is the board's rectangle.
-fn bases(c: &[[f64; 2]]) -> (usize, Vec<([f64; 2], [f64; 2])>) {
+fn bases(c: &[[f64; 2]]) -> (usize, Vec<Basis>) {
     let n = c.len() as f64;
     let centre = c
         .iter()

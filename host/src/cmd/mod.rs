@@ -4,12 +4,12 @@ use clap::{Parser, Subcommand};
 mod bench;
 mod fit_curve;
 mod flash;
+mod plan;
 mod ports;
 mod probes;
 mod rig;
-mod simulate;
-mod plan;
 mod scan;
+mod simulate;
 
 /// Capture real translucent objects and turn them into compact, renderable models.
 #[derive(Debug, Parser)]

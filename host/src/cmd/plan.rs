@@ -134,11 +134,17 @@ pub fn make_plan(a: &PlanArgs, r: &Resolved) -> anyhow::Result<(ScanPlan, PlanSc
 }
 
 fn load_plan(p: &Path) -> anyhow::Result<ScanPlan> {
-    let text = std::fs::read_to_string(p).with_context(|| format!("cannot read {}", p.display()))?;
+    let text =
+        std::fs::read_to_string(p).with_context(|| format!("cannot read {}", p.display()))?;
     let plan: ScanPlan =
         serde_json::from_str(&text).with_context(|| format!("{} is not a plan", p.display()))?;
     if plan.format != subsurf::scan::plan::PLAN_FORMAT {
-        bail!("{}: format {:?} is not {:?}", p.display(), plan.format, subsurf::scan::plan::PLAN_FORMAT);
+        bail!(
+            "{}: format {:?} is not {:?}",
+            p.display(),
+            plan.format,
+            subsurf::scan::plan::PLAN_FORMAT
+        );
     }
     Ok(plan)
 }
@@ -181,7 +187,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     println!("{}", describe(&plan, &scene, &opts, &timing));
     if args.compare {
         let dense = dense_for_target(&scene, &opts)?;
-        println!("for comparison, the coarsest dense raster reaching {:.0}% coverage:", 100.0 * opts.coverage);
+        println!(
+            "for comparison, the coarsest dense raster reaching {:.0}% coverage:",
+            100.0 * opts.coverage
+        );
         println!("{}", describe(&dense, &scene, &opts, &timing));
     }
     if let Some(p) = &args.save {

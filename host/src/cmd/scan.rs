@@ -108,7 +108,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             ));
             RigClient::connect_with_seq(link, ClientConfig::default(), 1)
         };
-        run_with_reconnect(&cfg, &mut connect, camera.as_mut(), &progress, args.reconnects)
+        run_with_reconnect(
+            &cfg,
+            &mut connect,
+            camera.as_mut(),
+            &progress,
+            args.reconnects,
+        )
     } else {
         let port = args.port.clone().unwrap_or_default();
         let baud = args.baud;
@@ -116,7 +122,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             let link = SerialLink::open(&port, baud)?;
             RigClient::connect(link, ClientConfig::default())
         };
-        run_with_reconnect(&cfg, &mut connect, camera.as_mut(), &progress, args.reconnects)
+        run_with_reconnect(
+            &cfg,
+            &mut connect,
+            camera.as_mut(),
+            &progress,
+            args.reconnects,
+        )
     };
     progress.finish_and_clear();
     match result {

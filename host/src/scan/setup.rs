@@ -50,7 +50,11 @@ pub fn rig_timing(
     let half = caps.steps_per_rev as f64 / 2.0;
     let home_s = if hv > 0.0 && ha > 0.0 {
         let ramp = hv * hv / (2.0 * ha);
-        if half > ramp { hv / ha + (half - ramp) / hv } else { (2.0 * half / ha).sqrt() }
+        if half > ramp {
+            hv / ha + (half - ramp) / hv
+        } else {
+            (2.0 * half / ha).sqrt()
+        }
     } else {
         0.0
     };

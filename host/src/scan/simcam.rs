@@ -7,7 +7,7 @@
 
 use super::camera::{Camera, CameraError, Shot, Timing};
 use super::frame::LinearImage;
-use crate::calib::{CameraModel, Calibration};
+use crate::calib::{Calibration, CameraModel};
 use crate::dataset::{CameraSpec, LaserRay, Mesh};
 use crate::simulate::{Field, Sensor, SimScene, Spot, render_frame};
 
@@ -43,8 +43,13 @@ impl SimCamera {
         sensor: Sensor,
         seed: u64,
     ) -> Result<Self, CameraError> {
-        let scene = SimScene::new(mesh, vec![camera_spec(&calib.camera)], field, Spot::default())
-            .map_err(|e| CameraError::Spec(format!("sim: {e}")))?;
+        let scene = SimScene::new(
+            mesh,
+            vec![camera_spec(&calib.camera)],
+            field,
+            Spot::default(),
+        )
+        .map_err(|e| CameraError::Spec(format!("sim: {e}")))?;
         Ok(SimCamera {
             scene,
             calib: calib.clone(),
