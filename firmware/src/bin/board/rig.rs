@@ -17,7 +17,10 @@ use static_cell::StaticCell;
 use subsurf_firmware::hal::{CameraTrigger, GalvoDac, LaserOutputs, RigInputs, Stepper};
 use subsurf_firmware::rig::MAX_PROGRAM_POINTS;
 use subsurf_firmware::{Micros, Rig};
-use subsurf_protocol::{Capabilities, Config, GalvoPoint, Inputs, MAX_FRAME};
+use subsurf_protocol::{
+    Capabilities, Config, EventKind, GalvoPoint, Inputs, MAX_FRAME, RigMessage, encode_event,
+    encode_reply,
+};
 
 use crate::inputs;
 use crate::outputs::{self, GALVO_MAX, Galvo, Lasers};
@@ -103,6 +106,11 @@ impl Hardware {
 
 impl Stepper for Hardware {
     fn step(&mut self, forward: bool) {
+        if sample_inputs().estop {
+            // The e-stop task already stopped the timer; do not restart it before the core has
+            // seen the e-stop and halted the motion.
+            return;
+        }
         let interval = if self.stepper.is_running() {
             u32::try_from(self.now.saturating_sub(self.last_step_at))
                 .unwrap_or(u32::MAX)
@@ -154,9 +162,25 @@ impl RigInputs for Hardware {
     }
 }
 
-/// Send every frame the core has queued.
+/// Send every message the core has queued. A `Halted` event also empties the step queue: the
+/// core stopped the motion (stop request, heartbeat loss, fault), so the steps still waiting in
+/// the step pipeline must not run either.
 async fn transmit(rig: &mut Rig<Hardware>, tx: &mut BufferedUartTx<'static>, frame: &mut [u8]) {
-    while let Some(n) = rig.poll_transmit(frame) {
+    while let Some(message) = rig.poll_message() {
+        let encoded = match &message {
+            RigMessage::Reply(reply) => encode_reply(reply, frame),
+            RigMessage::Event(event) => {
+                if let EventKind::Halted { reason } = event.kind {
+                    stepper::force_stop();
+                    defmt::warn!("halted: {}", reason);
+                }
+                encode_event(event, frame)
+            }
+        };
+        let Ok(n) = encoded else {
+            defmt::error!("message does not fit a frame; dropped");
+            continue;
+        };
         if let Some(bytes) = frame.get(..n)
             && tx.write_all(bytes).await.is_err()
         {
