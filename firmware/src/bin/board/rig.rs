@@ -24,7 +24,8 @@ use subsurf_protocol::{
 
 use crate::inputs;
 use crate::outputs::{self, GALVO_MAX, Galvo, Lasers};
-use crate::stepper::{self, MIN_INTERVAL_TICKS, StepGen};
+use crate::pulse_train::interval_for;
+use crate::stepper::{self, StepGen};
 
 /// The rig task wakes at least this often (the watchdog task expects it).
 pub const MAX_SLEEP: Duration = Duration::from_millis(50);
@@ -111,13 +112,13 @@ impl Stepper for Hardware {
             // seen the e-stop and halted the motion.
             return;
         }
-        let interval = if self.stepper.is_running() {
-            u32::try_from(self.now.saturating_sub(self.last_step_at))
-                .unwrap_or(u32::MAX)
-                .max(MIN_INTERVAL_TICKS)
-        } else {
-            STEP_PIPELINE_US
-        };
+        let interval = interval_for(
+            self.now,
+            self.last_step_at,
+            self.stepper.is_running(),
+            STEP_PIPELINE_US,
+            now_us().saturating_sub(self.now),
+        );
         self.last_step_at = self.now;
         // The queue holds 12.8 ms of steps at full speed and the pipeline keeps 1 ms in it, so a
         // full queue means the timer stopped draining: give up after ~1 s rather than hang.
