@@ -5,5 +5,16 @@
 //! become a model (`model`, `fit`), and the model is rendered and judged (`render`, `plot`).
 #![warn(missing_docs)]
 
+pub mod calib;
+pub mod dataset;
+pub mod fit;
+pub mod flash;
+pub mod geometry;
+pub mod link;
+pub mod model;
+pub mod modelfile;
 pub mod plot;
 pub mod render;
+pub mod rig;
+pub mod scan;
+pub mod simulate;

@@ -2,7 +2,12 @@
 use clap::{Parser, Subcommand};
 
 mod bench;
+mod fit_curve;
+mod flash;
+mod ports;
+mod probes;
 mod render;
+mod simulate;
 
 /// Capture real translucent objects and turn them into compact, renderable models.
 #[derive(Debug, Parser)]
@@ -14,6 +19,16 @@ pub struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
+    /// List serial ports.
+    Ports(ports::Args),
+    /// Flash the board firmware through a debug probe and confirm it runs.
+    Flash(flash::Args),
+    /// List debug probes (ST-LINK, CMSIS-DAP, J-Link).
+    Probes(probes::Args),
+    /// Fit one fall-off curve R_d(r) (sum of exponentials or dipole) from a CSV file.
+    FitCurve(fit_curve::Args),
+    /// Write a simulated scan dataset with ground truth.
+    Simulate(simulate::Args),
     /// Benchmarks (release mode) whose output goes into BENCHMARKS.md.
     Bench(bench::Args),
     /// Relight a fitted model under point, spot and directional lights: PNG (+ linear EXR).
@@ -22,6 +37,11 @@ enum Command {
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
+        Command::Ports(args) => ports::run(args),
+        Command::Flash(args) => flash::run(args),
+        Command::Probes(args) => probes::run(args),
+        Command::FitCurve(args) => fit_curve::run(args),
+        Command::Simulate(a) => simulate::run(a),
         Command::Bench(a) => bench::run(a),
         Command::Render(a) => render::run(a),
     }

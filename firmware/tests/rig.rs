@@ -1,0 +1,570 @@
+//! The firmware core on simulated hardware: commands, timing, retransmissions and safety trips.
+
+use subsurf_firmware::rig::{FIRMWARE_VERSION, Micros};
+use subsurf_firmware::sim::{SimParams, SimRig};
+use subsurf_protocol::*;
+
+/// A minimal host: numbered requests, collected events.
+struct Host {
+    sim: SimRig,
+    seq: Seq,
+    events: Vec<Event>,
+}
+
+impl Host {
+    fn new(params: SimParams) -> Self {
+        let mut h = Self {
+            sim: SimRig::new(params),
+            seq: 0,
+            events: Vec::new(),
+        };
+        let hello = h.call(Command::Hello {
+            protocol_version: PROTOCOL_VERSION,
+        });
+        assert!(matches!(hello, Ok(Response::Hello(_))));
+        h
+    }
+
+    fn send(&mut self, seq: Seq, command: Command) -> Vec<Reply> {
+        let now = self.sim.now();
+        self.sim
+            .rig_mut()
+            .handle_request(now, Request { seq, command });
+        self.collect()
+    }
+
+    fn collect(&mut self) -> Vec<Reply> {
+        let mut replies = Vec::new();
+        while let Some(msg) = self.sim.rig_mut().poll_message() {
+            match msg {
+                RigMessage::Reply(r) => replies.push(r),
+                RigMessage::Event(e) => self.events.push(e),
+            }
+        }
+        replies
+    }
+
+    fn call(&mut self, command: Command) -> Result<Response, RigError> {
+        self.seq += 1;
+        let replies = self.send(self.seq, command);
+        assert_eq!(replies.len(), 1);
+        assert_eq!(replies[0].seq, self.seq);
+        replies[0].result.clone()
+    }
+
+    fn advance(&mut self, dt: Micros) {
+        let t = self.sim.now() + dt;
+        self.sim.advance_to(t);
+        self.collect();
+    }
+
+    fn kinds(&self) -> Vec<EventKind> {
+        self.events.iter().map(|e| e.kind.clone()).collect()
+    }
+}
+
+fn mv(target: MoveTarget) -> Command {
+    Command::Move(Move {
+        target,
+        max_speed: 10_000,
+        accel: 100_000,
+    })
+}
+
+fn capture(x: u16, channel: u8) -> Capture {
+    Capture {
+        galvo: GalvoPoint { x, y: 0 },
+        settle_us: None,
+        channel,
+        exposure_us: 5_000,
+        trigger_us: 100,
+    }
+}
+
+#[test]
+fn hello_announces_version_and_capabilities() {
+    let mut h = Host::new(SimParams::default());
+    match h.call(Command::Hello {
+        protocol_version: PROTOCOL_VERSION,
+    }) {
+        Ok(Response::Hello(hello)) => {
+            assert_eq!(hello.protocol_version, PROTOCOL_VERSION);
+            assert_eq!(hello.firmware_version, FIRMWARE_VERSION);
+            assert_eq!(hello.capabilities, SimParams::default().capabilities);
+        }
+        other => panic!("{other:?}"),
+    }
+    assert_eq!(
+        h.call(Command::Hello {
+            protocol_version: PROTOCOL_VERSION + 1
+        }),
+        Err(RigError::UnknownVersion {
+            rig: PROTOCOL_VERSION
+        })
+    );
+}
+
+#[test]
+fn move_takes_exact_steps_within_speed_limit() {
+    let mut h = Host::new(SimParams::default());
+    let start = h.sim.hw().position();
+    assert_eq!(h.call(mv(MoveTarget::Absolute(1000))), Ok(Response::Ack));
+    assert_eq!(h.call(mv(MoveTarget::Relative(5))), Err(RigError::Busy));
+    h.advance(1_000_000);
+    assert_eq!(h.kinds(), vec![EventKind::MoveDone { position: 1000 }]);
+    assert_eq!(h.sim.hw().position() - start, 1000);
+    assert_eq!(h.sim.hw().steps(), 1000);
+    // 10 000 steps/s: never closer than 100 µs (1 µs rounding).
+    assert!(h.sim.hw().min_step_interval_us().unwrap() >= 99);
+    assert_eq!(h.call(mv(MoveTarget::Relative(-1500))), Ok(Response::Ack));
+    h.advance(1_000_000);
+    assert_eq!(
+        h.events.last().unwrap().kind,
+        EventKind::MoveDone { position: -500 }
+    );
+    assert_eq!(h.sim.hw().position() - start, -500);
+}
+
+#[test]
+fn move_parameters_are_checked() {
+    let mut h = Host::new(SimParams::default());
+    let bad_speed = Move {
+        target: MoveTarget::Absolute(10),
+        max_speed: 0,
+        accel: 1,
+    };
+    assert_eq!(h.call(Command::Move(bad_speed)), Err(RigError::OutOfRange));
+    let too_fast = Move {
+        target: MoveTarget::Absolute(10),
+        max_speed: 1_000_000,
+        accel: 1,
+    };
+    assert_eq!(h.call(Command::Move(too_fast)), Err(RigError::OutOfRange));
+    assert_eq!(h.call(mv(MoveTarget::Absolute(-3))), Ok(Response::Ack));
+    h.advance(100_000);
+    assert_eq!(
+        h.call(mv(MoveTarget::Relative(i32::MIN))),
+        Err(RigError::OutOfRange)
+    );
+    assert_eq!(h.call(mv(MoveTarget::Absolute(-3))), Ok(Response::Ack));
+    assert_eq!(
+        h.events.last().unwrap().kind,
+        EventKind::MoveDone { position: -3 }
+    );
+}
+
+#[test]
+fn homing_finds_the_switch_and_zeroes_position() {
+    let mut h = Host::new(SimParams::default());
+    assert_eq!(h.call(Command::Home), Ok(Response::Ack));
+    h.advance(3_000_000);
+    assert_eq!(h.kinds(), vec![EventKind::Homed]);
+    assert!(h.sim.hw().home_switch());
+    let Ok(Response::Status(s)) = h.call(Command::Status) else {
+        panic!()
+    };
+    assert!(s.homed);
+    assert_eq!(s.position, 0);
+    assert_eq!(s.state, RigState::Idle);
+}
+
+#[test]
+fn homing_without_switch_faults() {
+    let params = SimParams {
+        home_switch_width: 0,
+        ..SimParams::default()
+    };
+    let mut h = Host::new(params);
+    assert_eq!(h.call(Command::Home), Ok(Response::Ack));
+    for _ in 0..10 {
+        h.advance(500_000);
+        h.call(Command::Heartbeat).unwrap();
+    }
+    assert_eq!(
+        h.kinds(),
+        vec![EventKind::Halted {
+            reason: HaltReason::HomingFailed
+        }]
+    );
+    // 16 000 + 2 000 steps searched, then gave up.
+    assert_eq!(h.sim.hw().steps(), 18_000);
+    assert_eq!(
+        h.call(Command::Arm),
+        Err(RigError::Faulted(Fault::HomingFailed))
+    );
+    assert_eq!(h.call(Command::ClearFault), Ok(Response::Ack));
+    assert_eq!(h.call(Command::Arm), Ok(Response::Ack));
+}
+
+#[test]
+fn capture_sequence_timing() {
+    let mut h = Host::new(SimParams::default());
+    assert_eq!(
+        h.call(Command::Capture(capture(1000, 1))),
+        Err(RigError::NotArmed)
+    );
+    assert_eq!(h.call(Command::Arm), Ok(Response::Ack));
+    let t0 = h.sim.now();
+    assert_eq!(
+        h.call(Command::Capture(capture(1000, 1))),
+        Ok(Response::CaptureStarted { capture_id: 0 })
+    );
+    assert_eq!(
+        h.call(Command::Capture(capture(1000, 1))),
+        Err(RigError::Busy)
+    );
+    h.advance(20_000);
+    // Settle from jump size: 100 µs + 20 µs per 1000 codes.
+    let on = t0 + 120;
+    let lasers: Vec<_> = h
+        .sim
+        .hw()
+        .laser_log()
+        .entries()
+        .map(|e| (e.at, e.value))
+        .collect();
+    assert_eq!(lasers, vec![(0, 0), (on, 0b10), (on + 5_000, 0)]);
+    let trig: Vec<_> = h
+        .sim
+        .hw()
+        .trigger_log()
+        .entries()
+        .map(|e| (e.at, e.value))
+        .collect();
+    assert_eq!(trig, vec![(0, false), (on, true), (on + 100, false)]);
+    let galvo = h.sim.hw().galvo_log().last().unwrap();
+    assert_eq!((galvo.at, galvo.value), (t0, GalvoPoint { x: 1000, y: 0 }));
+    let expected = Captured {
+        capture_id: 0,
+        program_index: None,
+        triggered_at_us: on,
+        galvo: GalvoPoint { x: 1000, y: 0 },
+        channel: 1,
+    };
+    assert_eq!(h.kinds(), vec![EventKind::Captured(expected)]);
+    assert_eq!(h.events[0].timestamp_us, on + 5_000);
+}
+
+#[test]
+fn capture_parameters_are_checked() {
+    let mut h = Host::new(SimParams::default());
+    assert_eq!(h.call(Command::Arm), Ok(Response::Ack));
+    assert_eq!(
+        h.call(Command::Capture(capture(0, 3))),
+        Err(RigError::NoSuchChannel)
+    );
+    let long_trigger = Capture {
+        trigger_us: 6_000,
+        ..capture(0, 0)
+    };
+    assert_eq!(
+        h.call(Command::Capture(long_trigger)),
+        Err(RigError::OutOfRange)
+    );
+    let no_exposure = Capture {
+        exposure_us: 0,
+        trigger_us: 0,
+        ..capture(0, 0)
+    };
+    assert_eq!(
+        h.call(Command::Capture(no_exposure)),
+        Err(RigError::OutOfRange)
+    );
+    let params = SimParams::default();
+    let small_galvo = SimParams {
+        capabilities: Capabilities {
+            galvo_max: 4095,
+            ..params.capabilities
+        },
+        ..params
+    };
+    let mut h = Host::new(small_galvo);
+    assert_eq!(
+        h.call(Command::Galvo(GalvoPoint { x: 4096, y: 0 })),
+        Err(RigError::OutOfRange)
+    );
+}
+
+#[test]
+fn retransmitted_request_is_answered_not_reexecuted() {
+    let mut h = Host::new(SimParams::default());
+    let first = h.send(50, mv(MoveTarget::Relative(100)));
+    let again = h.send(50, mv(MoveTarget::Relative(100)));
+    assert_eq!(first, again);
+    assert_eq!(first[0].result, Ok(Response::Ack));
+    h.advance(1_000_000);
+    assert_eq!(h.kinds(), vec![EventKind::MoveDone { position: 100 }]);
+    // Still cached after more traffic, then stale once it fell out of the cache.
+    for seq in 51..51 + REPLY_CACHE as u32 - 1 {
+        h.send(seq, Command::Heartbeat);
+    }
+    assert_eq!(h.send(50, mv(MoveTarget::Relative(100))), first);
+    h.send(60, Command::Heartbeat);
+    let stale = h.send(50, mv(MoveTarget::Relative(100)));
+    assert_eq!(stale[0].result, Err(RigError::StaleSequence));
+    h.advance(1_000_000);
+    assert_eq!(h.kinds().len(), 1, "the move ran once");
+    // Farther back than STALE_WINDOW counts as new (a restarted host that skipped Hello).
+    h.send(1_000, Command::Heartbeat);
+    let far = h.send(1_000 - STALE_WINDOW - 1, mv(MoveTarget::Relative(1)));
+    assert_eq!(far[0].result, Ok(Response::Ack));
+    let near = h.send(1_000 - STALE_WINDOW - 1 - STALE_WINDOW, Command::Heartbeat);
+    assert_eq!(near[0].result, Err(RigError::StaleSequence));
+    // A new session (Hello) may start anywhere.
+    h.send(
+        3,
+        Command::Hello {
+            protocol_version: PROTOCOL_VERSION,
+        },
+    );
+    assert_eq!(h.send(4, Command::Heartbeat)[0].result, Ok(Response::Ack));
+}
+
+#[test]
+fn program_streams_one_event_per_point() {
+    let mut h = Host::new(SimParams::default());
+    let header = ProgramHeader {
+        len: 40,
+        channel: 2,
+        settle_us: Some(50),
+        exposure_us: 1_000,
+        trigger_us: 10,
+        interval_us: 3_000,
+    };
+    assert_eq!(h.call(Command::ProgramLoad(header)), Ok(Response::Ack));
+    let points: Vec<GalvoPoint> = (0..40).map(|i| GalvoPoint { x: i * 100, y: 7 }).collect();
+    assert_eq!(
+        h.call(Command::ProgramRun),
+        Err(RigError::ProgramIncomplete)
+    );
+    let chunk = |offset: usize, n: usize| {
+        Command::ProgramPoints(ProgramChunk {
+            offset: offset as u16,
+            points: heapless::Vec::from_slice(&points[offset..offset + n]).unwrap(),
+        })
+    };
+    assert_eq!(h.call(chunk(0, 32)), Ok(Response::Ack));
+    assert_eq!(
+        h.call(chunk(0, 32)),
+        Err(RigError::ProgramIncomplete),
+        "out of order"
+    );
+    assert_eq!(h.call(chunk(32, 8)), Ok(Response::Ack));
+    assert_eq!(h.call(Command::ProgramRun), Err(RigError::NotArmed));
+    assert_eq!(h.call(Command::Arm), Ok(Response::Ack));
+    let t0 = h.sim.now();
+    assert_eq!(
+        h.call(Command::ProgramRun),
+        Ok(Response::ProgramStarted {
+            first_capture_id: 0
+        })
+    );
+    for _ in 0..20 {
+        h.advance(10_000);
+        h.call(Command::Heartbeat).unwrap();
+    }
+    let kinds = h.kinds();
+    assert_eq!(kinds.len(), 41);
+    for (i, k) in kinds[..40].iter().enumerate() {
+        let EventKind::Captured(c) = k else {
+            panic!("{k:?}")
+        };
+        assert_eq!(c.capture_id, i as u32);
+        assert_eq!(c.program_index, Some(i as u16));
+        assert_eq!(c.galvo, points[i]);
+        assert_eq!(c.triggered_at_us, t0 + 3_000 * i as u64 + 50);
+    }
+    assert_eq!(
+        kinds[40],
+        EventKind::ProgramDone {
+            completed: 40,
+            finished: true
+        }
+    );
+    let seqs: Vec<u32> = h.events.iter().map(|e| e.event_seq).collect();
+    assert_eq!(seqs, (0..41).collect::<Vec<_>>());
+    assert_eq!(h.sim.hw().violations(), 0);
+}
+
+#[test]
+fn heartbeat_loss_turns_laser_off() {
+    let mut h = Host::new(SimParams::default());
+    h.call(Command::Arm).unwrap();
+    h.call(Command::Laser {
+        channel: 0,
+        on: true,
+    })
+    .unwrap();
+    assert_eq!(h.sim.hw().lasers(), 1);
+    h.advance(1_999_000);
+    assert_eq!(h.sim.hw().lasers(), 1);
+    h.advance(2_000);
+    assert_eq!(h.sim.hw().lasers(), 0);
+    assert!(!h.sim.rig().armed());
+    assert_eq!(
+        h.kinds(),
+        vec![EventKind::Halted {
+            reason: HaltReason::HeartbeatLost
+        }]
+    );
+    assert_eq!(
+        h.call(Command::Laser {
+            channel: 0,
+            on: true
+        }),
+        Err(RigError::NotArmed)
+    );
+}
+
+#[test]
+fn estop_aborts_program_and_faults() {
+    let mut h = Host::new(SimParams::default());
+    let header = ProgramHeader {
+        len: 3,
+        channel: 0,
+        settle_us: Some(0),
+        exposure_us: 10_000,
+        trigger_us: 5,
+        interval_us: 0,
+    };
+    h.call(Command::ProgramLoad(header)).unwrap();
+    let pts = heapless::Vec::from_slice(&[GalvoPoint::default(); 3]).unwrap();
+    h.call(Command::ProgramPoints(ProgramChunk {
+        offset: 0,
+        points: pts,
+    }))
+    .unwrap();
+    h.call(Command::Arm).unwrap();
+    h.call(Command::ProgramRun).unwrap();
+    h.advance(15_000);
+    assert_eq!(h.sim.hw().lasers(), 1);
+    let now = h.sim.now();
+    h.sim.set_estop(now, true);
+    h.collect();
+    assert_eq!(h.sim.hw().lasers(), 0);
+    assert!(!h.sim.hw().trigger());
+    let kinds = h.kinds();
+    assert!(matches!(kinds[0], EventKind::Captured(_)));
+    assert_eq!(
+        kinds[1],
+        EventKind::ProgramDone {
+            completed: 1,
+            finished: false
+        }
+    );
+    assert_eq!(
+        kinds[2],
+        EventKind::Halted {
+            reason: HaltReason::EmergencyStop
+        }
+    );
+    assert_eq!(
+        h.call(Command::Arm),
+        Err(RigError::Faulted(Fault::EmergencyStop))
+    );
+    assert_eq!(h.call(Command::ClearFault), Err(RigError::EmergencyStop));
+    let now = h.sim.now();
+    h.sim.set_estop(now, false);
+    assert_eq!(h.call(Command::ClearFault), Ok(Response::Ack));
+    assert_eq!(h.call(Command::Arm), Ok(Response::Ack));
+}
+
+#[test]
+fn interlock_open_disarms_and_blocks_arming() {
+    let mut h = Host::new(SimParams::default());
+    h.call(Command::Arm).unwrap();
+    h.call(Command::Laser {
+        channel: 2,
+        on: true,
+    })
+    .unwrap();
+    assert_eq!(h.sim.hw().lasers(), 0b100);
+    let now = h.sim.now();
+    h.sim.set_interlock(now + 10, false);
+    h.collect();
+    assert_eq!(h.sim.hw().lasers(), 0);
+    assert_eq!(
+        h.kinds(),
+        vec![EventKind::Halted {
+            reason: HaltReason::InterlockOpen
+        }]
+    );
+    assert_eq!(h.call(Command::Arm), Err(RigError::InterlockOpen));
+}
+
+#[test]
+fn moving_turns_laser_off_and_refuses_it() {
+    let mut h = Host::new(SimParams::default());
+    h.call(Command::Arm).unwrap();
+    h.call(Command::Laser {
+        channel: 0,
+        on: true,
+    })
+    .unwrap();
+    h.call(mv(MoveTarget::Relative(500))).unwrap();
+    assert_eq!(h.sim.hw().lasers(), 0);
+    assert_eq!(
+        h.call(Command::Laser {
+            channel: 0,
+            on: true
+        }),
+        Err(RigError::Busy)
+    );
+    h.advance(500_000);
+    assert_eq!(
+        h.sim.hw().lasers(),
+        0,
+        "manual channels stay off after the move"
+    );
+    assert_eq!(
+        h.call(Command::Laser {
+            channel: 0,
+            on: true
+        }),
+        Ok(Response::Ack)
+    );
+    assert_eq!(h.call(Command::Stop), Ok(Response::Ack));
+    assert_eq!(h.sim.hw().lasers(), 0);
+    assert!(!h.sim.rig().armed());
+    assert_eq!(h.sim.hw().violations(), 0);
+}
+
+#[test]
+fn framed_bytes_with_garbage_between_frames() {
+    let mut sim = SimRig::default();
+    let mut stream = vec![0x13, 0x37, 0xff];
+    let mut buf = [0u8; MAX_FRAME];
+    for (seq, command) in [
+        (
+            1,
+            Command::Hello {
+                protocol_version: PROTOCOL_VERSION,
+            },
+        ),
+        (2, Command::Status),
+    ] {
+        stream.push(0);
+        let n = encode_request(&Request { seq, command }, &mut buf).unwrap();
+        stream.extend_from_slice(&buf[..n]);
+        stream.extend_from_slice(&[9, 9, 9]);
+    }
+    for chunk in stream.chunks(5) {
+        let now = sim.now() + 10;
+        sim.feed(now, chunk);
+    }
+    let mut out = vec![0u8; 4096];
+    let n = sim.drain(&mut out);
+    let mut dec = FrameDecoder::new();
+    let msgs: Vec<RigMessage> = dec.decode(&out[..n]).collect();
+    assert_eq!(msgs.len(), 2);
+    let RigMessage::Reply(Reply {
+        seq: 2,
+        result: Ok(Response::Status(s)),
+    }) = &msgs[1]
+    else {
+        panic!("{msgs:?}")
+    };
+    // A lone 0 before each frame flushed the garbage in front of it: two corrupt frames counted.
+    assert_eq!(s.rx_dropped, 2);
+    assert_eq!(sim.rig().rx_stats().frames, 2);
+}

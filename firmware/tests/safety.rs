@@ -1,0 +1,190 @@
+//! The laser-safety invariants over random command and input sequences: the laser is never on
+//! while unarmed, moving, stopped, in fault, with the e-stop pressed or the interlock open, or
+//! after the heartbeat timeout. Checked after every request, input change and rig deadline, both
+//! from the core's state and from the simulated hardware's own view of its outputs.
+
+use proptest::prelude::*;
+use subsurf_firmware::rig::Micros;
+use subsurf_firmware::sim::{SimParams, SimRig};
+use subsurf_protocol::*;
+
+#[derive(Debug, Clone)]
+enum Op {
+    Request(Command),
+    Estop(bool),
+    Interlock(bool),
+    /// Let this much time pass, µs.
+    Wait(Micros),
+}
+
+fn galvo() -> impl Strategy<Value = GalvoPoint> {
+    (any::<u16>(), any::<u16>()).prop_map(|(x, y)| GalvoPoint { x, y })
+}
+
+fn command() -> impl Strategy<Value = Command> {
+    let capture = (
+        galvo(),
+        prop::option::of(0u32..2_000),
+        0u8..4,
+        1u32..20_000,
+        1u32..500,
+    )
+        .prop_map(|(galvo, settle_us, channel, exposure_us, trigger_us)| {
+            Command::Capture(Capture {
+                galvo,
+                settle_us,
+                channel,
+                exposure_us,
+                trigger_us,
+            })
+        });
+    let mv = (
+        prop_oneof![
+            (-3000i32..3000).prop_map(MoveTarget::Absolute),
+            (-3000i32..3000).prop_map(MoveTarget::Relative)
+        ],
+        1u32..30_000,
+        1u32..300_000,
+    )
+        .prop_map(|(target, max_speed, accel)| {
+            Command::Move(Move {
+                target,
+                max_speed,
+                accel,
+            })
+        });
+    let load = (
+        1u16..6,
+        0u8..3,
+        prop::option::of(0u32..500),
+        1u32..5_000,
+        0u32..8_000,
+    )
+        .prop_map(|(len, channel, settle_us, exposure_us, interval_us)| {
+            Command::ProgramLoad(ProgramHeader {
+                len,
+                channel,
+                settle_us,
+                exposure_us,
+                trigger_us: 1,
+                interval_us,
+            })
+        });
+    let points = (0u16..6, prop::collection::vec(galvo(), 0..6)).prop_map(|(offset, pts)| {
+        Command::ProgramPoints(ProgramChunk {
+            offset,
+            points: heapless::Vec::from_slice(&pts).unwrap(),
+        })
+    });
+    let config = (50u32..3_000).prop_map(|ms| {
+        let mut c = SimParams::default().config;
+        c.heartbeat_timeout_ms = ms;
+        Command::SetConfig(c)
+    });
+    prop_oneof![
+        4 => Just(Command::Arm),
+        1 => Just(Command::Disarm),
+        4 => (0u8..4, any::<bool>()).prop_map(|(channel, on)| Command::Laser { channel, on }),
+        3 => capture,
+        2 => mv,
+        1 => Just(Command::Home),
+        1 => galvo().prop_map(Command::Galvo),
+        1 => load,
+        2 => points,
+        2 => Just(Command::ProgramRun),
+        1 => Just(Command::Stop),
+        1 => Just(Command::ClearFault),
+        2 => Just(Command::Heartbeat),
+        1 => Just(Command::Status),
+        1 => config,
+    ]
+}
+
+fn op() -> impl Strategy<Value = Op> {
+    prop_oneof![
+        12 => command().prop_map(Op::Request),
+        1 => any::<bool>().prop_map(Op::Estop),
+        1 => any::<bool>().prop_map(Op::Interlock),
+        6 => prop_oneof![0u64..2_000, 0u64..200_000, 0u64..4_000_000].prop_map(Op::Wait),
+    ]
+}
+
+/// What the test itself knows, independent of the core's bookkeeping.
+struct Model {
+    last_request: Micros,
+    estop: bool,
+    interlock_closed: bool,
+}
+
+fn check(sim: &SimRig, model: &Model, after: &str) -> Result<(), TestCaseError> {
+    let rig = sim.rig();
+    let hw = sim.hw();
+    prop_assert_eq!(hw.violations(), 0, "hardware saw a breach after {}", after);
+    prop_assert_eq!(hw.lasers(), rig.laser_output());
+    if hw.lasers() != 0 {
+        prop_assert!(rig.armed(), "laser on while disarmed after {}", after);
+        prop_assert!(!rig.moving(), "laser on while moving after {}", after);
+        prop_assert!(rig.fault().is_none(), "laser on in fault after {}", after);
+        prop_assert!(!model.estop, "laser on with e-stop after {}", after);
+        prop_assert!(
+            model.interlock_closed,
+            "laser on with interlock open after {}",
+            after
+        );
+        let timeout = u64::from(rig.config().heartbeat_timeout_ms) * 1000;
+        prop_assert!(
+            sim.now() < model.last_request + timeout,
+            "laser on {} µs after the last request (timeout {}) after {}",
+            sim.now() - model.last_request,
+            timeout,
+            after
+        );
+    }
+    Ok(())
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(192))]
+
+    #[test]
+    fn laser_is_never_on_when_it_must_be_off(ops in prop::collection::vec(op(), 1..60)) {
+        let mut sim = SimRig::new(SimParams::default());
+        let mut model = Model { last_request: 0, estop: false, interlock_closed: true };
+        let mut seq: Seq = 0;
+        for op in &ops {
+            let now = sim.now();
+            match op {
+                Op::Request(command) => {
+                    seq = seq.wrapping_add(1);
+                    sim.rig_mut().handle_request(now, Request { seq, command: command.clone() });
+                    model.last_request = now;
+                    let label = format!("{command:?}");
+                    check(&sim, &model, &label)?;
+                    if matches!(command, Command::Stop | Command::Disarm) {
+                        prop_assert_eq!(sim.hw().lasers(), 0, "laser on right after {:?}", command);
+                    }
+                }
+                Op::Estop(pressed) => {
+                    sim.set_estop(now + 1, *pressed);
+                    model.estop = *pressed;
+                    check(&sim, &model, "e-stop change")?;
+                }
+                Op::Interlock(closed) => {
+                    sim.set_interlock(now + 1, *closed);
+                    model.interlock_closed = *closed;
+                    check(&sim, &model, "interlock change")?;
+                }
+                Op::Wait(dt) => {
+                    let end = now + dt;
+                    while let Some(t) = sim.next_deadline().filter(|&t| t <= end) {
+                        sim.advance_to(t);
+                        check(&sim, &model, "a deadline")?;
+                    }
+                    sim.advance_to(end);
+                    check(&sim, &model, "waiting")?;
+                }
+            }
+            while sim.rig_mut().poll_message().is_some() {}
+        }
+    }
+}

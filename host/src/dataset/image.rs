@@ -1,0 +1,342 @@
+//! Frame images: linear float OpenEXR (half or float, RGB or one channel) and PFM.
+use std::io::{BufRead, BufReader, Read, Write};
+use std::path::{Path, PathBuf};
+
+/// Why an image could not be read or written.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum ImageError {
+    /// The file could not be opened, read or written.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// The OpenEXR decoder rejected the file (truncated, corrupt, unsupported).
+    #[error("{path}: not a readable OpenEXR image: {message}")]
+    Exr {
+        /// The file.
+        path: PathBuf,
+        /// The decoder's message.
+        message: String,
+    },
+    /// The file decoded but its content does not fit the contract.
+    #[error("{0}")]
+    Format(String),
+}
+
+/// A linear float image, row-major, channels interleaved (1 or 3).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Image {
+    /// Width in pixels.
+    pub width: usize,
+    /// Height in pixels.
+    pub height: usize,
+    /// 1 (one laser colour) or 3 (r, g, b).
+    pub channels: usize,
+    /// `height * width * channels` values; pixel `(i, j)` channel `c` at `(j * width + i) * channels + c`.
+    pub data: Vec<f32>,
+}
+
+impl Image {
+    /// A black image.
+    pub fn new(width: usize, height: usize, channels: usize) -> Image {
+        Image {
+            width,
+            height,
+            channels,
+            data: vec![0.0; width * height * channels],
+        }
+    }
+
+    /// The value of pixel column `i`, row `j`, channel `c`.
+    pub fn get(&self, i: usize, j: usize, c: usize) -> f32 {
+        self.data[(j * self.width + i) * self.channels + c]
+    }
+
+    /// Bilinear interpolation at pixel coordinates `(u, v)` (pixel centres at integers), for
+    /// colour channel `c` (0..3; a one-channel image answers its only channel). Returns the value
+    /// and the largest of the four raw pixels used, so callers can reject clipped neighbourhoods.
+    /// `None` outside the image.
+    pub fn bilinear(&self, u: f64, v: f64, c: usize) -> Option<(f64, f64)> {
+        if !(u >= -0.5 && v >= -0.5 && u < self.width as f64 - 0.5 && v < self.height as f64 - 0.5)
+        {
+            return None;
+        }
+        let c = if self.channels == 1 { 0 } else { c };
+        let u = u.clamp(0.0, (self.width - 1) as f64);
+        let v = v.clamp(0.0, (self.height - 1) as f64);
+        let i0 = (u.floor() as usize).min(self.width.saturating_sub(2));
+        let j0 = (v.floor() as usize).min(self.height.saturating_sub(2));
+        let i1 = (i0 + 1).min(self.width - 1);
+        let j1 = (j0 + 1).min(self.height - 1);
+        let (fu, fv) = (u - i0 as f64, v - j0 as f64);
+        let p = [
+            self.get(i0, j0, c) as f64,
+            self.get(i1, j0, c) as f64,
+            self.get(i0, j1, c) as f64,
+            self.get(i1, j1, c) as f64,
+        ];
+        let val =
+            (1.0 - fv) * ((1.0 - fu) * p[0] + fu * p[1]) + fv * ((1.0 - fu) * p[2] + fu * p[3]);
+        let max = p.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        Some((val, max))
+    }
+}
+
+/// Reads an `.exr` or `.pfm` image (by extension; anything else is tried as EXR).
+pub fn read_image(path: &Path) -> Result<Image, ImageError> {
+    let is_pfm = path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("pfm"));
+    if is_pfm {
+        read_pfm(path)
+    } else {
+        read_exr(path)
+    }
+}
+
+fn read_exr(path: &Path) -> Result<Image, ImageError> {
+    use exr::prelude::*;
+    let exr_err = |e: exr::error::Error| ImageError::Exr {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    };
+    let img = read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .first_valid_layer()
+        .all_attributes()
+        .from_file(path)
+        .map_err(exr_err)?;
+    let layer = &img.layer_data;
+    let (w, h) = (layer.size.width(), layer.size.height());
+    let chans = &layer.channel_data.list;
+    let find = |name: &str| {
+        chans.iter().position(|c| {
+            let n = c.name.to_string();
+            n == name || n.ends_with(&format!(".{name}"))
+        })
+    };
+    let picked: Vec<usize> = match (find("R"), find("G"), find("B")) {
+        (Some(r), Some(g), Some(b)) => vec![r, g, b],
+        _ => {
+            if let Some(y) = find("Y") {
+                vec![y]
+            } else if chans.len() == 1 {
+                vec![0]
+            } else {
+                return Err(ImageError::Format(format!(
+                    "{}: channels {:?} are neither R,G,B nor one channel",
+                    path.display(),
+                    chans.iter().map(|c| c.name.to_string()).collect::<Vec<_>>()
+                )));
+            }
+        }
+    };
+    let n = picked.len();
+    let mut data = vec![0.0f32; w * h * n];
+    for (k, &ci) in picked.iter().enumerate() {
+        let samples = &chans[ci].sample_data;
+        if samples.len() != w * h {
+            return Err(ImageError::Format(format!(
+                "{}: channel holds {} samples, expected {}",
+                path.display(),
+                samples.len(),
+                w * h
+            )));
+        }
+        for (p, v) in samples.values_as_f32().enumerate() {
+            data[p * n + k] = v;
+        }
+    }
+    Ok(self::Image {
+        width: w,
+        height: h,
+        channels: n,
+        data,
+    })
+}
+
+fn read_pfm(path: &Path) -> Result<Image, ImageError> {
+    let io = |source| ImageError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let bad = |m: &str| ImageError::Format(format!("{}: not a PFM image: {m}", path.display()));
+    let file = std::fs::File::open(path).map_err(io)?;
+    let mut r = BufReader::new(file);
+    let mut tokens = Vec::new();
+    // Header: three whitespace-separated tokens (type, "w h", scale), each line ended by one newline.
+    let mut line = String::new();
+    while tokens.len() < 4 {
+        line.clear();
+        let n = r.read_line(&mut line).map_err(io)?;
+        if n == 0 || line.len() > 256 {
+            return Err(bad("truncated header"));
+        }
+        tokens.extend(line.split_whitespace().map(str::to_owned));
+    }
+    let channels = match tokens[0].as_str() {
+        "PF" => 3,
+        "Pf" => 1,
+        _ => return Err(bad("magic is not PF or Pf")),
+    };
+    let w: usize = tokens[1].parse().map_err(|_| bad("bad width"))?;
+    let h: usize = tokens[2].parse().map_err(|_| bad("bad height"))?;
+    let scale: f64 = tokens[3].parse().map_err(|_| bad("bad scale"))?;
+    if w == 0 || h == 0 || w > 1 << 16 || h > 1 << 16 || scale == 0.0 || !scale.is_finite() {
+        return Err(bad("bad size or scale"));
+    }
+    let little = scale < 0.0;
+    let mut bytes = vec![0u8; w * h * channels * 4];
+    r.read_exact(&mut bytes)
+        .map_err(|_| bad("truncated pixel data"))?;
+    let mut data = vec![0.0f32; w * h * channels];
+    let row = w * channels;
+    for j in 0..h {
+        // PFM stores rows bottom to top.
+        let src = (h - 1 - j) * row;
+        for k in 0..row {
+            let b: [u8; 4] = bytes[(src + k) * 4..(src + k) * 4 + 4]
+                .try_into()
+                .map_err(|_| bad("internal size"))?;
+            data[j * row + k] = if little {
+                f32::from_le_bytes(b)
+            } else {
+                f32::from_be_bytes(b)
+            };
+        }
+    }
+    Ok(Image {
+        width: w,
+        height: h,
+        channels,
+        data,
+    })
+}
+
+/// Writes a PFM (little-endian, rows bottom to top as the format requires).
+pub fn write_pfm(path: &Path, img: &Image) -> Result<(), ImageError> {
+    let io = |source| ImageError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    if img.channels != 1 && img.channels != 3 {
+        return Err(ImageError::Format(format!(
+            "PFM holds 1 or 3 channels, image has {}",
+            img.channels
+        )));
+    }
+    let mut out = Vec::with_capacity(img.data.len() * 4 + 32);
+    let magic = if img.channels == 3 { "PF" } else { "Pf" };
+    write!(out, "{magic}\n{} {}\n-1.0\n", img.width, img.height).map_err(io)?;
+    let row = img.width * img.channels;
+    for j in (0..img.height).rev() {
+        for v in &img.data[j * row..(j + 1) * row] {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    std::fs::write(path, out).map_err(io)
+}
+
+/// Writes a float32 OpenEXR: channels R, G, B for a three-channel image, Y for one channel.
+pub fn write_exr(path: &Path, img: &Image) -> Result<(), ImageError> {
+    use exr::prelude::*;
+    let exr_err = |e: exr::error::Error| ImageError::Exr {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    };
+    let (w, c) = (img.width, img.channels);
+    let size = (img.width, img.height);
+    match c {
+        3 => {
+            let channels = SpecificChannels::rgb(|p: Vec2<usize>| {
+                let k = (p.y() * w + p.x()) * 3;
+                (img.data[k], img.data[k + 1], img.data[k + 2])
+            });
+            exr::image::Image::from_channels(size, channels)
+                .write()
+                .to_file(path)
+                .map_err(exr_err)
+        }
+        1 => {
+            let channels = SpecificChannels::build()
+                .with_channel("Y")
+                .with_pixel_fn(|p: Vec2<usize>| (img.data[p.y() * w + p.x()],));
+            exr::image::Image::from_channels(size, channels)
+                .write()
+                .to_file(path)
+                .map_err(exr_err)
+        }
+        _ => Err(ImageError::Format(format!(
+            "EXR writer takes 1 or 3 channels, image has {c}"
+        ))),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ramp(w: usize, h: usize, c: usize) -> Image {
+        let mut img = Image::new(w, h, c);
+        for (k, v) in img.data.iter_mut().enumerate() {
+            *v = k as f32 * 0.25 + 1e-3;
+        }
+        img
+    }
+
+    #[test]
+    fn exr_and_pfm_round_trip_one_and_three_channels() {
+        let dir = tempfile::tempdir().unwrap();
+        for c in [1, 3] {
+            let img = ramp(7, 5, c);
+            for name in ["a.exr", "a.pfm"] {
+                let p = dir.path().join(name);
+                if name.ends_with("exr") {
+                    write_exr(&p, &img).unwrap();
+                } else {
+                    write_pfm(&p, &img).unwrap();
+                }
+                assert_eq!(read_image(&p).unwrap(), img, "{name} {c}");
+            }
+        }
+    }
+
+    #[test]
+    fn truncated_files_are_errors_not_panics() {
+        let dir = tempfile::tempdir().unwrap();
+        let img = ramp(16, 16, 3);
+        for name in ["t.exr", "t.pfm"] {
+            let p = dir.path().join(name);
+            if name.ends_with("exr") {
+                write_exr(&p, &img).unwrap();
+            } else {
+                write_pfm(&p, &img).unwrap();
+            }
+            let bytes = std::fs::read(&p).unwrap();
+            for cut in [0, 3, 20, bytes.len() / 2, bytes.len() - 1] {
+                std::fs::write(&p, &bytes[..cut]).unwrap();
+                assert!(read_image(&p).is_err(), "{name} cut at {cut}");
+            }
+        }
+    }
+
+    #[test]
+    fn bilinear_is_exact_at_centres_and_linear_between() {
+        let img = ramp(4, 3, 1);
+        assert_eq!(
+            img.bilinear(2.0, 1.0, 0).unwrap().0,
+            img.get(2, 1, 0) as f64
+        );
+        let mid = img.bilinear(1.5, 1.0, 0).unwrap().0;
+        let want = 0.5 * (img.get(1, 1, 0) + img.get(2, 1, 0)) as f64;
+        assert!((mid - want).abs() < 1e-6);
+        assert!(img.bilinear(-0.6, 0.0, 0).is_none());
+        assert!(img.bilinear(3.6, 0.0, 0).is_none());
+    }
+}

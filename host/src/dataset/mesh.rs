@@ -1,0 +1,270 @@
+//! The object's triangle mesh: OBJ in through `tobj`, degenerate and duplicate faces reported and
+//! dropped, area-weighted vertex normals, OBJ out.
+use std::collections::HashSet;
+use std::path::{Path, PathBuf};
+
+/// Why a mesh could not be used.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum MeshError {
+    /// The OBJ parser failed.
+    #[error("{path}: cannot load OBJ: {source}")]
+    Obj {
+        /// The file.
+        path: PathBuf,
+        /// The parser's error.
+        source: tobj::LoadError,
+    },
+    /// The mesh has no usable triangle or a non-finite coordinate.
+    #[error("{path}: {message}")]
+    Invalid {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
+    /// Writing the OBJ failed.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+}
+
+/// What loading found and left out, so nothing is dropped silently.
+#[derive(Debug, Clone, Default, PartialEq, Eq, serde::Serialize)]
+pub struct MeshReport {
+    /// Faces with zero area or a repeated vertex (dropped).
+    pub degenerate_faces: usize,
+    /// Faces with the same three vertices as an earlier face (dropped).
+    pub duplicate_faces: usize,
+    /// Vertices that belong to no usable face (they get no normal and are never visible).
+    pub isolated_vertices: usize,
+}
+
+/// A triangle mesh in the object frame (mm), with unit vertex normals.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Mesh {
+    /// Vertex positions.
+    pub positions: Vec<[f64; 3]>,
+    /// Triangles (counter-clockwise seen from outside), indices into `positions`.
+    pub triangles: Vec<[u32; 3]>,
+    /// Area-weighted unit vertex normals; zero for isolated vertices.
+    pub normals: Vec<[f64; 3]>,
+}
+
+fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+fn norm(a: [f64; 3]) -> f64 {
+    (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt()
+}
+
+impl Mesh {
+    /// Builds a mesh from positions and triangles: drops degenerate and duplicate faces (counted in
+    /// the report) and computes normals.
+    pub fn new(positions: Vec<[f64; 3]>, triangles: Vec<[u32; 3]>) -> (Mesh, MeshReport) {
+        let mut report = MeshReport::default();
+        let n = positions.len();
+        let mut lo = [f64::INFINITY; 3];
+        let mut hi = [f64::NEG_INFINITY; 3];
+        for p in &positions {
+            for k in 0..3 {
+                lo[k] = lo[k].min(p[k]);
+                hi[k] = hi[k].max(p[k]);
+            }
+        }
+        let diag = norm(sub(hi, lo));
+        // Area below this counts as zero: relative to the mesh's size, far below any real triangle.
+        let min_area2 = (diag * diag * 1e-14).max(f64::MIN_POSITIVE);
+        let mut seen = HashSet::new();
+        let mut kept = Vec::with_capacity(triangles.len());
+        for t in triangles {
+            let [a, b, c] = t.map(|i| i as usize);
+            if a >= n || b >= n || c >= n || a == b || b == c || a == c {
+                report.degenerate_faces += 1;
+                continue;
+            }
+            let cr = cross(
+                sub(positions[b], positions[a]),
+                sub(positions[c], positions[a]),
+            );
+            if norm(cr).is_nan() || norm(cr) <= min_area2 {
+                report.degenerate_faces += 1;
+                continue;
+            }
+            let mut key = t;
+            key.sort_unstable();
+            if !seen.insert(key) {
+                report.duplicate_faces += 1;
+                continue;
+            }
+            kept.push(t);
+        }
+        let mut normals = vec![[0.0; 3]; n];
+        for t in &kept {
+            let [a, b, c] = t.map(|i| i as usize);
+            // Unnormalised cross product = area-weighted face normal.
+            let cr = cross(
+                sub(positions[b], positions[a]),
+                sub(positions[c], positions[a]),
+            );
+            for v in [a, b, c] {
+                for k in 0..3 {
+                    normals[v][k] += cr[k];
+                }
+            }
+        }
+        for nv in &mut normals {
+            let l = norm(*nv);
+            if l > 0.0 && l.is_finite() {
+                *nv = nv.map(|x| x / l);
+            } else {
+                *nv = [0.0; 3];
+                report.isolated_vertices += 1;
+            }
+        }
+        (
+            Mesh {
+                positions,
+                triangles: kept,
+                normals,
+            },
+            report,
+        )
+    }
+
+    /// Length of the bounding box diagonal (mm): the scale for geometric tolerances.
+    pub fn diagonal(&self) -> f64 {
+        let mut lo = [f64::INFINITY; 3];
+        let mut hi = [f64::NEG_INFINITY; 3];
+        for p in &self.positions {
+            for k in 0..3 {
+                lo[k] = lo[k].min(p[k]);
+                hi[k] = hi[k].max(p[k]);
+            }
+        }
+        norm(sub(hi, lo))
+    }
+}
+
+/// Loads an OBJ (all objects merged, polygons triangulated).
+pub fn load_obj(path: &Path) -> Result<(Mesh, MeshReport), MeshError> {
+    let opts = tobj::LoadOptions {
+        triangulate: true,
+        single_index: false,
+        ignore_points: true,
+        ignore_lines: true,
+    };
+    let (models, _materials) = tobj::load_obj(path, &opts).map_err(|source| MeshError::Obj {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let mut positions = Vec::new();
+    let mut triangles = Vec::new();
+    for m in &models {
+        let base = positions.len() as u32;
+        for p in m.mesh.positions.chunks_exact(3) {
+            positions.push([p[0] as f64, p[1] as f64, p[2] as f64]);
+        }
+        for t in m.mesh.indices.chunks_exact(3) {
+            triangles.push([t[0] + base, t[1] + base, t[2] + base]);
+        }
+    }
+    let invalid = |message: String| MeshError::Invalid {
+        path: path.to_path_buf(),
+        message,
+    };
+    if positions.iter().flatten().any(|x| !x.is_finite()) {
+        return Err(invalid("a vertex coordinate is not finite".into()));
+    }
+    let (mesh, report) = Mesh::new(positions, triangles);
+    if mesh.triangles.is_empty() {
+        return Err(invalid(format!(
+            "no usable triangle ({} degenerate, {} duplicate)",
+            report.degenerate_faces, report.duplicate_faces
+        )));
+    }
+    Ok((mesh, report))
+}
+
+/// Writes the mesh as OBJ (positions with nine decimals, 1-based faces).
+pub fn write_obj(path: &Path, mesh: &Mesh) -> Result<(), MeshError> {
+    use std::fmt::Write as _;
+    let mut s = String::with_capacity(mesh.positions.len() * 40 + mesh.triangles.len() * 24);
+    s.push_str("# subsurf mesh, object frame, mm\n");
+    for p in &mesh.positions {
+        let _ = writeln!(s, "v {:.9} {:.9} {:.9}", p[0], p[1], p[2]);
+    }
+    for t in &mesh.triangles {
+        let _ = writeln!(s, "f {} {} {}", t[0] + 1, t[1] + 1, t[2] + 1);
+    }
+    std::fs::write(path, s).map_err(|source| MeshError::Io {
+        path: path.to_path_buf(),
+        source,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn degenerate_and_duplicate_faces_are_reported_and_dropped() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.obj");
+        std::fs::write(
+            &p,
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 2 0 0\nv 5 5 5\nf 1 2 3\nf 2 3 1\nf 1 2 4\nf 1 1 3\n",
+        )
+        .unwrap();
+        let (m, r) = load_obj(&p).unwrap();
+        assert_eq!(m.triangles.len(), 1);
+        assert_eq!(r.duplicate_faces, 1);
+        assert_eq!(r.degenerate_faces, 2);
+        // (2,0,0) is used only by a degenerate face; tobj drops the unused (5,5,5) itself.
+        assert_eq!(r.isolated_vertices, 1);
+        assert_eq!(m.normals[0], [0.0, 0.0, 1.0]);
+    }
+
+    #[test]
+    fn only_degenerate_faces_is_an_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.obj");
+        std::fs::write(&p, "v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n").unwrap();
+        assert!(matches!(load_obj(&p), Err(MeshError::Invalid { .. })));
+        std::fs::write(&p, "v 0 0 0\nf 1 2 9\n").unwrap();
+        assert!(load_obj(&p).is_err());
+    }
+
+    #[test]
+    fn write_then_load_round_trips() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.obj");
+        let (m, _) = Mesh::new(
+            vec![
+                [0.0, 0.0, 0.0],
+                [1.0, 0.0, 0.0],
+                [0.0, 1.0, 0.5],
+                [1.0, 1.0, 0.25],
+            ],
+            vec![[0, 1, 2], [1, 3, 2]],
+        );
+        write_obj(&p, &m).unwrap();
+        let (back, r) = load_obj(&p).unwrap();
+        assert_eq!(r, MeshReport::default());
+        assert_eq!(back.triangles, m.triangles);
+        for (a, b) in back.positions.iter().zip(&m.positions) {
+            assert!(norm(sub(*a, *b)) < 1e-6);
+        }
+    }
+}

@@ -1,0 +1,420 @@
+//! Scan datasets (`docs/scan-format.md`, `subsurf-scan/1`): reading and validating `scan.json`, the
+//! OBJ mesh and the frame images, and writing the same format.
+//!
+//! Contract: a dataset made by any program that follows the format loads without change; unknown
+//! keys are ignored; every path a dataset names is confined to the dataset directory. Frames are
+//! never all in memory: [`Dataset::read_frame`] loads one image at a time, so the caller streams.
+use std::path::{Component, Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+mod image;
+mod mesh;
+mod writer;
+
+pub use image::{Image, ImageError, read_image, write_exr, write_pfm};
+pub use mesh::{Mesh, MeshError, MeshReport, load_obj, write_obj};
+pub use writer::DatasetWriter;
+
+/// The only format string this version reads and writes.
+pub const FORMAT: &str = "subsurf-scan/1";
+
+/// Why a dataset could not be opened.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum DatasetError {
+    /// `scan.json` could not be read from disk.
+    #[error("cannot read {path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// `scan.json` is not valid JSON or misses a required key.
+    #[error("{path} is not a valid scan description: {source}")]
+    Json {
+        /// The file.
+        path: PathBuf,
+        /// The cause, with line and column.
+        source: serde_json::Error,
+    },
+    /// The JSON parsed but breaks the contract (wrong format string, bad index, bad number).
+    #[error("invalid scan.json: {0}")]
+    Invalid(String),
+    /// A path in `scan.json` is absolute or leaves the dataset directory.
+    #[error("path {0:?} in scan.json is absolute or leaves the dataset directory")]
+    PathEscapes(String),
+    /// A file that `scan.json` names does not exist.
+    #[error("file {0} named in scan.json is missing")]
+    Missing(PathBuf),
+    /// The mesh could not be loaded.
+    #[error(transparent)]
+    Mesh(#[from] MeshError),
+    /// A frame image could not be read.
+    #[error("frame {frame}: {source}")]
+    Frame {
+        /// Index of the frame in `scan.json`.
+        frame: usize,
+        /// The cause.
+        source: ImageError,
+    },
+}
+
+/// One camera: OpenCV pinhole intrinsics, optional distortion, world-to-camera extrinsics.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CameraSpec {
+    /// Image width in pixels.
+    pub width: u32,
+    /// Image height in pixels.
+    pub height: u32,
+    /// Focal length in pixels along x.
+    pub fx: f64,
+    /// Focal length in pixels along y.
+    pub fy: f64,
+    /// Principal point x (pixel centres at integer coordinates).
+    pub cx: f64,
+    /// Principal point y.
+    pub cy: f64,
+    /// OpenCV distortion `[k1, k2, p1, p2, k3]` (`k3` may be left out).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub distortion: Option<Vec<f64>>,
+    /// Row-major 4x4 matrix taking world points to camera coordinates.
+    pub camera_from_world: [[f64; 4]; 4],
+}
+
+/// The laser ray of a frame in the world frame, as the galvo calibration predicts it.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LaserRay {
+    /// Ray origin, mm.
+    pub origin: [f64; 3],
+    /// Ray direction (need not be unit length, must not be zero).
+    pub direction: [f64; 3],
+}
+
+/// Which colour a frame records.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum FrameChannel {
+    /// All three colours lit at once.
+    #[default]
+    Rgb,
+    /// Only the red laser lit.
+    R,
+    /// Only the green laser lit.
+    G,
+    /// Only the blue laser lit.
+    B,
+}
+
+impl FrameChannel {
+    /// The colour channels (0 = r, 1 = g, 2 = b) this frame measures.
+    pub fn channels(self) -> &'static [usize] {
+        match self {
+            FrameChannel::Rgb => &[0, 1, 2],
+            FrameChannel::R => &[0],
+            FrameChannel::G => &[1],
+            FrameChannel::B => &[2],
+        }
+    }
+}
+
+fn default_exposure() -> f64 {
+    1.0
+}
+
+/// One captured image: which camera, at which turntable angle, with which laser ray.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FrameSpec {
+    /// Image path relative to the dataset directory.
+    pub image: String,
+    /// Index into `cameras`.
+    #[serde(default)]
+    pub camera: usize,
+    /// Turntable angle in degrees: mesh point `p` is at `R_z(turntable_deg)·p` in the world.
+    pub turntable_deg: f64,
+    /// Exposure time; radiance is `pixel / exposure_s`.
+    #[serde(default = "default_exposure")]
+    pub exposure_s: f64,
+    /// The colour(s) lit in this frame.
+    #[serde(default)]
+    pub channel: FrameChannel,
+    /// The laser ray the rig's calibration predicts (a prior, not ground truth).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub laser: Option<LaserRay>,
+    /// Galvo DAC codes used.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub galvo: Option<[u32; 2]>,
+}
+
+/// The content of `scan.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ScanSpec {
+    /// Always [`FORMAT`].
+    pub format: String,
+    /// Always `mm`.
+    pub units: String,
+    /// OBJ path relative to the dataset directory.
+    pub mesh: String,
+    /// Radiance (pixel / exposure) under which a pixel is noise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub noise_floor: Option<f64>,
+    /// Extension of this project (see `docs/scan-format.md`): raw pixel value at or above which the
+    /// sensor clipped. Absent: only infinite pixels count as saturated.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub saturation: Option<f64>,
+    /// The cameras.
+    pub cameras: Vec<CameraSpec>,
+    /// The frames, in capture order.
+    pub frames: Vec<FrameSpec>,
+}
+
+/// Rejects absolute paths and any `..`, so a dataset can only name files inside its directory.
+pub fn confined_path(dir: &Path, rel: &str) -> Result<PathBuf, DatasetError> {
+    let p = Path::new(rel);
+    if rel.is_empty() || rel.starts_with('/') || rel.starts_with('\\') || rel.contains(':') {
+        return Err(DatasetError::PathEscapes(rel.to_owned()));
+    }
+    for c in p.components() {
+        match c {
+            Component::Normal(_) | Component::CurDir => {}
+            _ => return Err(DatasetError::PathEscapes(rel.to_owned())),
+        }
+    }
+    if rel.split(['/', '\\']).any(|s| s == "..") {
+        return Err(DatasetError::PathEscapes(rel.to_owned()));
+    }
+    Ok(dir.join(p))
+}
+
+fn finite_all(v: &[f64]) -> bool {
+    v.iter().all(|x| x.is_finite())
+}
+
+impl ScanSpec {
+    /// Checks every rule of the contract that does not need the file system.
+    pub fn validate(&self) -> Result<(), DatasetError> {
+        let bad = |m: String| Err(DatasetError::Invalid(m));
+        if self.format != FORMAT {
+            return bad(format!("format is {:?}, expected {FORMAT:?}", self.format));
+        }
+        if self.units != "mm" {
+            return bad(format!("units are {:?}, expected \"mm\"", self.units));
+        }
+        if let Some(n) = self.noise_floor
+            && !(n.is_finite() && n >= 0.0)
+        {
+            return bad(format!("noise_floor {n} must be finite and >= 0"));
+        }
+        if let Some(s) = self.saturation
+            && !(s.is_finite() && s > 0.0)
+        {
+            return bad(format!("saturation {s} must be finite and > 0"));
+        }
+        if self.cameras.is_empty() {
+            return bad("no cameras".into());
+        }
+        for (i, c) in self.cameras.iter().enumerate() {
+            if c.width == 0 || c.height == 0 {
+                return bad(format!("camera {i}: zero image size"));
+            }
+            if !(finite_all(&[c.fx, c.fy, c.cx, c.cy]) && c.fx > 0.0 && c.fy > 0.0) {
+                return bad(format!(
+                    "camera {i}: focal lengths must be positive and finite"
+                ));
+            }
+            if let Some(d) = &c.distortion
+                && (!(4..=5).contains(&d.len()) || !finite_all(d))
+            {
+                return bad(format!(
+                    "camera {i}: distortion must be 4 or 5 finite numbers"
+                ));
+            }
+            let m = &c.camera_from_world;
+            if !m.iter().all(|r| finite_all(r)) || m[3] != [0.0, 0.0, 0.0, 1.0] {
+                return bad(format!(
+                    "camera {i}: camera_from_world must be finite with last row [0,0,0,1]"
+                ));
+            }
+        }
+        if self.frames.is_empty() {
+            return bad("no frames".into());
+        }
+        for (i, f) in self.frames.iter().enumerate() {
+            if f.camera >= self.cameras.len() {
+                return bad(format!("frame {i}: camera {} does not exist", f.camera));
+            }
+            if !f.turntable_deg.is_finite() {
+                return bad(format!("frame {i}: turntable_deg is not finite"));
+            }
+            if !(f.exposure_s.is_finite() && f.exposure_s > 0.0) {
+                return bad(format!("frame {i}: exposure_s must be positive"));
+            }
+            if let Some(l) = &f.laser {
+                let d = l.direction;
+                if !finite_all(&l.origin) || !finite_all(&d) || d == [0.0; 3] {
+                    return bad(format!("frame {i}: laser ray must be finite and non-zero"));
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// An opened, validated dataset: its description and mesh; frames are read on demand.
+#[derive(Debug, Clone)]
+pub struct Dataset {
+    /// The dataset directory.
+    pub dir: PathBuf,
+    /// `scan.json`.
+    pub spec: ScanSpec,
+    /// The mesh, in the object frame.
+    pub mesh: Mesh,
+    /// What loading the mesh found (degenerate and duplicate faces).
+    pub mesh_report: MeshReport,
+}
+
+impl Dataset {
+    /// Opens `dir/scan.json`, validates it, checks that every named file exists inside `dir`, and
+    /// loads the mesh. Images are not read here.
+    pub fn open(dir: impl AsRef<Path>) -> Result<Dataset, DatasetError> {
+        let dir = dir.as_ref().to_path_buf();
+        let path = dir.join("scan.json");
+        let text = std::fs::read_to_string(&path).map_err(|source| DatasetError::Io {
+            path: path.clone(),
+            source,
+        })?;
+        let spec: ScanSpec =
+            serde_json::from_str(&text).map_err(|source| DatasetError::Json { path, source })?;
+        spec.validate()?;
+        let mesh_path = confined_path(&dir, &spec.mesh)?;
+        if !mesh_path.is_file() {
+            return Err(DatasetError::Missing(mesh_path));
+        }
+        for f in &spec.frames {
+            let p = confined_path(&dir, &f.image)?;
+            if !p.is_file() {
+                return Err(DatasetError::Missing(p));
+            }
+        }
+        let (mesh, mesh_report) = load_obj(&mesh_path)?;
+        Ok(Dataset {
+            dir,
+            spec,
+            mesh,
+            mesh_report,
+        })
+    }
+
+    /// Reads frame `k`'s image, checking that its size matches its camera.
+    pub fn read_frame(&self, k: usize) -> Result<Image, DatasetError> {
+        let f = self.spec.frames.get(k).ok_or_else(|| {
+            DatasetError::Invalid(format!(
+                "frame {k} requested, dataset has {}",
+                self.spec.frames.len()
+            ))
+        })?;
+        let path = confined_path(&self.dir, &f.image)?;
+        let img = read_image(&path).map_err(|source| DatasetError::Frame { frame: k, source })?;
+        let cam = &self.spec.cameras[f.camera];
+        if img.width != cam.width as usize || img.height != cam.height as usize {
+            return Err(DatasetError::Frame {
+                frame: k,
+                source: ImageError::Format(format!(
+                    "image is {}x{}, camera {} is {}x{}",
+                    img.width, img.height, f.camera, cam.width, cam.height
+                )),
+            });
+        }
+        Ok(img)
+    }
+}
+
+/// Parses a frame selection such as `3,17,40-59` into sorted, unique frame indices.
+pub fn parse_frame_list(s: &str) -> Result<Vec<usize>, String> {
+    let mut out = Vec::new();
+    for part in s.split(',').map(str::trim).filter(|p| !p.is_empty()) {
+        if let Some((a, b)) = part.split_once('-') {
+            let a: usize = a
+                .trim()
+                .parse()
+                .map_err(|_| format!("bad frame range {part:?}"))?;
+            let b: usize = b
+                .trim()
+                .parse()
+                .map_err(|_| format!("bad frame range {part:?}"))?;
+            if b < a {
+                return Err(format!("empty frame range {part:?}"));
+            }
+            out.extend(a..=b);
+        } else {
+            out.push(
+                part.parse()
+                    .map_err(|_| format!("bad frame index {part:?}"))?,
+            );
+        }
+    }
+    out.sort_unstable();
+    out.dedup();
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn paths_leaving_the_dataset_are_rejected() {
+        let d = Path::new("/data/scan");
+        assert!(confined_path(d, "frames/0.exr").is_ok());
+        assert!(confined_path(d, "./frames/0.exr").is_ok());
+        for bad in [
+            "../x.exr",
+            "frames/../../x.exr",
+            "/etc/passwd",
+            "",
+            "a/..",
+            "C:\\x",
+        ] {
+            assert!(
+                matches!(confined_path(d, bad), Err(DatasetError::PathEscapes(_))),
+                "{bad}"
+            );
+        }
+    }
+
+    #[test]
+    fn frame_lists_parse() {
+        assert_eq!(
+            parse_frame_list("3,17,40-42, 17").unwrap(),
+            vec![3, 17, 40, 41, 42]
+        );
+        assert!(parse_frame_list("5-2").is_err());
+        assert!(parse_frame_list("x").is_err());
+    }
+
+    #[test]
+    fn the_documented_example_parses_and_validates() {
+        let text = r#"{
+          "format": "subsurf-scan/1", "units": "mm", "mesh": "object.obj", "noise_floor": 1e-4,
+          "unknown_key": {"ignored": true},
+          "cameras": [{"width": 128, "height": 128, "fx": 3200.0, "fy": 3200.0, "cx": 63.5,
+            "cy": 63.5, "distortion": [0.0, 0.0, 0.0, 0.0, 0.0],
+            "camera_from_world": [[1,0,0,0],[0,-1,0,0],[0,0,-1,600],[0,0,0,1]]}],
+          "frames": [{"image": "frames/000000.exr", "camera": 0, "turntable_deg": 0.0,
+            "exposure_s": 0.01, "channel": "rgb",
+            "laser": {"origin": [0, 0, 850], "direction": [0, 0, -1]}, "galvo": [2048, 2048]},
+            {"image": "frames/000001.exr", "turntable_deg": 10.0, "channel": "g"}]
+        }"#;
+        let s: ScanSpec = serde_json::from_str(text).unwrap();
+        s.validate().unwrap();
+        assert_eq!(s.frames[1].exposure_s, 1.0);
+        assert_eq!(s.frames[1].channel, FrameChannel::G);
+        let mut bad = s.clone();
+        bad.frames[0].camera = 3;
+        assert!(bad.validate().is_err());
+        let mut bad = s;
+        bad.format = "subsurf-scan/2".into();
+        assert!(bad.validate().is_err());
+    }
+}

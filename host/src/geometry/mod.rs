@@ -1,0 +1,333 @@
+//! Rig geometry: the OpenCV pinhole camera with distortion, the turntable, ray casting against the
+//! mesh (BVH of `parry3d-f64`), vertex visibility and mesh adjacency.
+//!
+//! Frames (see `docs/scan-format.md`): the object frame is the turntable at angle 0; a mesh point
+//! `p` sits in the world at `R_z(θ)·p`. Everything here is plain `[f64; 3]`; parry's glam types
+//! stay inside [`Scene`].
+use parry3d_f64::math::Vector as PVec;
+use parry3d_f64::query::{Ray, RayCast};
+use parry3d_f64::shape::TriMesh;
+
+use crate::dataset::{CameraSpec, Mesh};
+
+mod camera;
+pub use camera::Camera;
+
+/// A 3-vector in millimetres.
+pub type V3 = [f64; 3];
+
+/// `a - b`.
+pub fn sub(a: V3, b: V3) -> V3 {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+/// `a + s·b`.
+pub fn add_scaled(a: V3, s: f64, b: V3) -> V3 {
+    [a[0] + s * b[0], a[1] + s * b[1], a[2] + s * b[2]]
+}
+/// Dot product.
+pub fn dot(a: V3, b: V3) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+/// Cross product.
+pub fn cross(a: V3, b: V3) -> V3 {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+/// Euclidean length.
+pub fn norm(a: V3) -> f64 {
+    dot(a, a).sqrt()
+}
+/// `|a - b|`, the distance `|x_o - x_i|` of Eq. 1.
+pub fn dist(a: V3, b: V3) -> f64 {
+    norm(sub(a, b))
+}
+/// `a / |a|`, or `None` for a zero or non-finite vector.
+pub fn normalize(a: V3) -> Option<V3> {
+    let l = norm(a);
+    (l > 0.0 && l.is_finite()).then(|| a.map(|x| x / l))
+}
+
+/// Rotation of the turntable by `deg` about `+z` (counter-clockwise seen from above):
+/// object frame → world frame.
+pub fn turntable_to_world(p: V3, deg: f64) -> V3 {
+    let (s, c) = deg.to_radians().sin_cos();
+    [c * p[0] - s * p[1], s * p[0] + c * p[1], p[2]]
+}
+/// Inverse of [`turntable_to_world`]: world frame → object frame.
+pub fn world_to_turntable(p: V3, deg: f64) -> V3 {
+    turntable_to_world(p, -deg)
+}
+
+/// Where a ray met the mesh.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Hit {
+    /// Distance along the (unit) ray, mm.
+    pub t: f64,
+    /// The point, object frame.
+    pub point: V3,
+    /// Index of the triangle hit.
+    pub triangle: u32,
+}
+
+/// A vertex seen by a camera, with where it lands in the image.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Visible {
+    /// Vertex index.
+    pub vertex: u32,
+    /// Pixel column coordinate (pixel centres at integers).
+    pub u: f64,
+    /// Pixel row coordinate.
+    pub v: f64,
+}
+
+/// Why a scene could not be built.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum GeometryError {
+    /// The BVH builder rejected the mesh.
+    #[error("cannot build the ray-casting structure: {0}")]
+    Bvh(String),
+}
+
+/// The mesh ready for queries: BVH, normals, adjacency (compressed rows).
+pub struct Scene {
+    /// The mesh (object frame).
+    pub mesh: Mesh,
+    bvh: TriMesh,
+    adj_start: Vec<u32>,
+    adj: Vec<u32>,
+    eps: f64,
+}
+
+impl std::fmt::Debug for Scene {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Scene")
+            .field("vertices", &self.mesh.positions.len())
+            .field("triangles", &self.mesh.triangles.len())
+            .finish()
+    }
+}
+
+impl Scene {
+    /// Builds the BVH and the vertex adjacency.
+    pub fn new(mesh: Mesh) -> Result<Scene, GeometryError> {
+        let verts: Vec<PVec> = mesh
+            .positions
+            .iter()
+            .map(|p| PVec::new(p[0], p[1], p[2]))
+            .collect();
+        let bvh = TriMesh::new(verts, mesh.triangles.clone())
+            .map_err(|e| GeometryError::Bvh(format!("{e:?}")))?;
+        let n = mesh.positions.len();
+        let mut lists: Vec<Vec<u32>> = vec![Vec::new(); n];
+        for t in &mesh.triangles {
+            for (a, b) in [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])] {
+                lists[a as usize].push(b);
+                lists[b as usize].push(a);
+            }
+        }
+        let mut adj_start = Vec::with_capacity(n + 1);
+        let mut adj = Vec::new();
+        adj_start.push(0);
+        for mut l in lists {
+            l.sort_unstable();
+            l.dedup();
+            adj.extend(l);
+            adj_start.push(adj.len() as u32);
+        }
+        let eps = (mesh.diagonal() * 1e-7).max(1e-9);
+        Ok(Scene {
+            mesh,
+            bvh,
+            adj_start,
+            adj,
+            eps,
+        })
+    }
+
+    /// The vertices sharing an edge with vertex `v`.
+    pub fn neighbours(&self, v: usize) -> &[u32] {
+        &self.adj[self.adj_start[v] as usize..self.adj_start[v + 1] as usize]
+    }
+
+    /// First hit of the ray `origin + t·dir` (object frame, `dir` need not be unit) with
+    /// `t_min < t < t_max` measured in units of `|dir|`... normalised here: `t` is in mm.
+    pub fn cast(&self, origin: V3, dir: V3, t_max: f64) -> Option<Hit> {
+        let d = normalize(dir)?;
+        let ray = Ray::new(
+            PVec::new(origin[0], origin[1], origin[2]),
+            PVec::new(d[0], d[1], d[2]),
+        );
+        let hit = self.bvh.cast_local_ray_and_get_normal(&ray, t_max, false)?;
+        let t = hit.time_of_impact;
+        Some(Hit {
+            t,
+            point: add_scaled(origin, t, d),
+            triangle: hit.subshape,
+        })
+    }
+
+    /// Casts a ray given in the world frame at turntable angle `deg`; the hit is in the object frame.
+    pub fn cast_world(&self, origin: V3, dir: V3, deg: f64) -> Option<Hit> {
+        self.cast(
+            world_to_turntable(origin, deg),
+            world_to_turntable(dir, deg),
+            f64::MAX,
+        )
+    }
+
+    /// Barycentric weights of `p` in triangle `tri` (clamped to the triangle, summing to 1).
+    pub fn barycentric(&self, tri: u32, p: V3) -> [f64; 3] {
+        let t = self.mesh.triangles[tri as usize];
+        let [a, b, c] = t.map(|i| self.mesh.positions[i as usize]);
+        let (v0, v1, v2) = (sub(b, a), sub(c, a), sub(p, a));
+        let (d00, d01, d11) = (dot(v0, v0), dot(v0, v1), dot(v1, v1));
+        let (d20, d21) = (dot(v2, v0), dot(v2, v1));
+        let den = d00 * d11 - d01 * d01;
+        if den.is_nan() || den == 0.0 {
+            return [1.0 / 3.0; 3];
+        }
+        let v = ((d11 * d20 - d01 * d21) / den).clamp(0.0, 1.0);
+        let w = ((d00 * d21 - d01 * d20) / den).clamp(0.0, 1.0 - v);
+        [1.0 - v - w, v, w]
+    }
+
+    /// Is the segment from `p` (on the surface) to `q` free of the mesh?
+    pub fn unoccluded(&self, p: V3, q: V3) -> bool {
+        let Some(d) = normalize(sub(q, p)) else {
+            return true;
+        };
+        let len = dist(p, q);
+        let start = add_scaled(p, 4.0 * self.eps, d);
+        self.cast(start, d, len - 8.0 * self.eps).is_none()
+    }
+
+    /// Vertices of the mesh the camera sees at turntable angle `deg`: in front of the camera,
+    /// inside the image, facing it at less than the grazing limit (`cos_min` = cosine of the
+    /// largest accepted angle between normal and view direction), and not occluded.
+    pub fn visible_vertices(&self, cam: &Camera, deg: f64, cos_min: f64) -> Vec<Visible> {
+        use rayon::prelude::*;
+        let c_obj = world_to_turntable(cam.center(), deg);
+        (0..self.mesh.positions.len())
+            .into_par_iter()
+            .filter_map(|i| {
+                let p = self.mesh.positions[i];
+                let n = self.mesh.normals[i];
+                let to_cam = normalize(sub(c_obj, p))?;
+                let facing = dot(n, to_cam);
+                if facing.is_nan() || facing < cos_min {
+                    return None;
+                }
+                let [u, v] = cam.project(turntable_to_world(p, deg))?;
+                if !cam.inside(u, v) {
+                    return None;
+                }
+                self.unoccluded(p, c_obj).then_some(Visible {
+                    vertex: i as u32,
+                    u,
+                    v,
+                })
+            })
+            .collect()
+    }
+}
+
+/// Builds the camera model of a camera description.
+pub fn camera(spec: &CameraSpec) -> Camera {
+    Camera::new(spec)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    pub(crate) fn grid(n: usize, step: f64) -> Mesh {
+        let mut pos = Vec::new();
+        let half = (n - 1) as f64 * step / 2.0;
+        for j in 0..n {
+            for i in 0..n {
+                pos.push([i as f64 * step - half, j as f64 * step - half, 0.0]);
+            }
+        }
+        let mut tris = Vec::new();
+        for j in 0..n - 1 {
+            for i in 0..n - 1 {
+                let a = (j * n + i) as u32;
+                tris.push([a, a + 1, a + n as u32 + 1]);
+                tris.push([a, a + n as u32 + 1, a + n as u32]);
+            }
+        }
+        Mesh::new(pos, tris).0
+    }
+
+    #[test]
+    fn turntable_rotates_counter_clockwise() {
+        let p = turntable_to_world([1.0, 0.0, 2.0], 90.0);
+        assert!(dist(p, [0.0, 1.0, 2.0]) < 1e-12);
+        assert!(dist(world_to_turntable(p, 90.0), [1.0, 0.0, 2.0]) < 1e-12);
+    }
+
+    #[test]
+    fn rays_hit_the_grid_and_adjacency_is_symmetric() {
+        let s = Scene::new(grid(5, 1.0)).unwrap();
+        let h = s.cast([0.3, 0.2, 10.0], [0.0, 0.0, -1.0], 100.0).unwrap();
+        assert!((h.t - 10.0).abs() < 1e-9);
+        assert!(dist(h.point, [0.3, 0.2, 0.0]) < 1e-9);
+        let b = s.barycentric(h.triangle, h.point);
+        assert!((b.iter().sum::<f64>() - 1.0).abs() < 1e-12);
+        assert!(s.cast([0.3, 0.2, 10.0], [0.0, 0.0, 1.0], 100.0).is_none());
+        for v in 0..25 {
+            for &w in s.neighbours(v) {
+                assert!(s.neighbours(w as usize).contains(&(v as u32)));
+            }
+        }
+        assert_eq!(s.neighbours(12).len(), 6);
+    }
+
+    #[test]
+    fn occluded_and_grazing_vertices_are_not_visible() {
+        // A grid at z=0 and a small roof at z=1 over its centre.
+        let mut m = grid(5, 1.0);
+        let base = m.positions.len() as u32;
+        m.positions
+            .extend([[-0.6, -0.6, 1.0], [0.6, -0.6, 1.0], [0.0, 0.7, 1.0]]);
+        m.triangles.push([base, base + 1, base + 2]);
+        let (m, _) = Mesh::new(m.positions, m.triangles);
+        let s = Scene::new(m).unwrap();
+        let spec = CameraSpec {
+            width: 200,
+            height: 200,
+            fx: 1000.0,
+            fy: 1000.0,
+            cx: 99.5,
+            cy: 99.5,
+            distortion: None,
+            camera_from_world: [
+                [1.0, 0.0, 0.0, 0.0],
+                [0.0, -1.0, 0.0, 0.0],
+                [0.0, 0.0, -1.0, 100.0],
+                [0.0, 0.0, 0.0, 1.0],
+            ],
+        };
+        let cam = camera(&spec);
+        let vis = s.visible_vertices(&cam, 0.0, 0.1);
+        let ids: Vec<u32> = vis.iter().map(|v| v.vertex).collect();
+        assert!(!ids.contains(&12), "centre vertex is under the roof");
+        assert!(ids.contains(&0));
+        // Seen from the side (camera on +x looking along -x), the flat grid is grazing.
+        let side = CameraSpec {
+            camera_from_world: [
+                [0.0, 1.0, 0.0, 0.0],
+                [0.0, 0.0, -1.0, 0.0],
+                [-1.0, 0.0, 0.0, 100.0],
+                [0.0, 0.0, 0.0, 1.0],
+            ],
+            ..spec
+        };
+        let vis = s.visible_vertices(&camera(&side), 0.0, 0.1);
+        assert!(vis.iter().all(|v| v.vertex >= 25));
+    }
+}

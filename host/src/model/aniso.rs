@@ -1,0 +1,229 @@
+//! Eq. 3: the anisotropic model, m direction segments around x_i blended by hat functions, and the
+//! tangent frame at x_i that defines the directions.
+
+use serde::{Deserialize, Serialize};
+
+use super::{ExpSum, ModelError, log_sum_exp};
+
+/// An orthonormal frame (t, b, n) at a surface point; directions around x_i are angles
+/// φ = atan2(v·b, v·t) of the tangent-plane projection v of x_o − x_i.
+///
+/// The rule (deterministic, shared by fitting and rendering): n is the normalised normal; the
+/// reference axis is world +X, or world +Y when |n_x| > 0.9; t is the reference projected into the
+/// tangent plane and normalised; b = n × t. So segment 0 points as close to +X as the surface
+/// allows, neighbouring vertices get nearly the same frame, and the frame only jumps where the
+/// normal crosses |n_x| = 0.9.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct TangentFrame {
+    /// Tangent, direction φ = 0.
+    pub t: [f64; 3],
+    /// Bitangent n × t, direction φ = π/2.
+    pub b: [f64; 3],
+    /// Unit normal.
+    pub n: [f64; 3],
+}
+
+fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+fn normalized(a: [f64; 3]) -> Option<[f64; 3]> {
+    // Scale first so that tiny and huge vectors normalise without under/overflow.
+    let m = a[0].abs().max(a[1].abs()).max(a[2].abs());
+    if !(m.is_finite() && m > 0.0) {
+        return None;
+    }
+    let s = [a[0] / m, a[1] / m, a[2] / m];
+    let l = dot(s, s).sqrt();
+    Some([s[0] / l, s[1] / l, s[2] / l])
+}
+
+impl TangentFrame {
+    /// The frame at a point with normal `normal` (any non-zero finite length), by the rule above.
+    pub fn from_normal(normal: [f64; 3]) -> Result<Self, ModelError> {
+        let n = normalized(normal).ok_or(ModelError::BadNormal)?;
+        let reference = if n[0].abs() > 0.9 {
+            [0.0, 1.0, 0.0]
+        } else {
+            [1.0, 0.0, 0.0]
+        };
+        let k = dot(reference, n);
+        let t = normalized([
+            reference[0] - k * n[0],
+            reference[1] - k * n[1],
+            reference[2] - k * n[2],
+        ])
+        .ok_or(ModelError::BadNormal)?;
+        let b = cross(n, t);
+        Ok(Self { t, b, n })
+    }
+
+    /// Distance r = |x_o − x_i| and direction φ ∈ [0, 2π) of x_o around x_i in this frame; φ is
+    /// `None` when x_o − x_i has no tangential component (x_o = x_i or straight along n).
+    pub fn polar(&self, x_i: [f64; 3], x_o: [f64; 3]) -> (f64, Option<f64>) {
+        let v = [x_o[0] - x_i[0], x_o[1] - x_i[1], x_o[2] - x_i[2]];
+        let r = v[0].hypot(v[1]).hypot(v[2]);
+        let (u, w) = (dot(v, self.t), dot(v, self.b));
+        if u == 0.0 && w == 0.0 || !(u.is_finite() && w.is_finite()) {
+            return (r, None);
+        }
+        let mut phi = w.atan2(u);
+        if phi < 0.0 {
+            phi += std::f64::consts::TAU;
+        }
+        if phi >= std::f64::consts::TAU {
+            phi = 0.0;
+        }
+        (r, Some(phi))
+    }
+}
+
+/// Eq. 3 hat-function weights w_l(φ) for m segments centred at φ_l = 2π·l/m: linear interpolation
+/// between the two neighbouring centres, so Σ_l w_l = 1 and w_l(φ_l) = 1. Returns
+/// `[(l0, w0), (l1, w1)]`; for m = 1 the single segment gets weight 1 (twice 0.5 on index 0). A
+/// missing or non-finite direction (x_o = x_i) gives equal weights, see [`Anisotropic::eval`].
+pub fn hat_weights(phi: f64, m: usize) -> [(usize, f64); 2] {
+    if m <= 1 {
+        return [(0, 0.5), (0, 0.5)];
+    }
+    let u = phi.rem_euclid(std::f64::consts::TAU) * m as f64 / std::f64::consts::TAU;
+    let f = u.floor();
+    let l0 = (f as usize) % m;
+    let t = (u - f).clamp(0.0, 1.0);
+    [(l0, 1.0 - t), ((l0 + 1) % m, t)]
+}
+
+/// Eq. 3: R_d(x_i → x_o) = Σ_l w_l(x_i, x_o) Σ_k c_kl·exp(d_kl·r), m = `segments.len()`
+/// segments, segment l centred at φ_l = 2π·l/m in the [`TangentFrame`] at x_i. One segment is the
+/// isotropic model of Eq. 1.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Anisotropic {
+    /// Fall-off per direction segment l = 0..m.
+    pub segments: Vec<ExpSum>,
+}
+
+impl Anisotropic {
+    /// The isotropic model (m = 1).
+    pub fn isotropic(falloff: ExpSum) -> Self {
+        Self {
+            segments: vec![falloff],
+        }
+    }
+
+    /// Checks every segment (Eq. 1 constraints) and m ≥ 1.
+    pub fn validate(&self) -> Result<(), ModelError> {
+        if self.segments.is_empty() {
+            return Err(ModelError::NoSegments);
+        }
+        self.segments.iter().try_for_each(ExpSum::validate)
+    }
+
+    /// Number of segments m.
+    pub fn m(&self) -> usize {
+        self.segments.len()
+    }
+
+    /// R_d at distance r and direction φ (Eq. 3). `phi = None` (x_o = x_i, no direction) blends all
+    /// segments equally.
+    pub fn eval(&self, r: f64, phi: Option<f64>) -> f64 {
+        self.ln_eval(r, phi).exp()
+    }
+
+    /// ln R_d (Eq. 3) as a log-sum-exp over segments and terms, finite where exp underflows.
+    pub fn ln_eval(&self, r: f64, phi: Option<f64>) -> f64 {
+        let m = self.segments.len();
+        if m == 0 {
+            return f64::NEG_INFINITY;
+        }
+        match phi.filter(|p| p.is_finite()) {
+            Some(phi) if m > 1 => {
+                let [(l0, w0), (l1, w1)] = hat_weights(phi, m);
+                let a = w0.ln() + self.segments[l0].ln_eval(r);
+                let b = w1.ln() + self.segments[l1].ln_eval(r);
+                log_sum_exp([a, b].into_iter())
+            }
+            _ => {
+                let lw = -(m as f64).ln();
+                log_sum_exp(self.segments.iter().map(|s| lw + s.ln_eval(r)))
+            }
+        }
+    }
+
+    /// R_d(x_i → x_o) for surface points, using the frame at x_i.
+    pub fn eval_points(&self, frame: &TangentFrame, x_i: [f64; 3], x_o: [f64; 3]) -> f64 {
+        let (r, phi) = frame.polar(x_i, x_o);
+        self.eval(r, phi)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::Term;
+
+    #[test]
+    fn frame_is_orthonormal_and_deterministic() {
+        for n in [
+            [0.0, 0.0, 1.0],
+            [1.0, 0.0, 0.0],
+            [0.3, -0.2, 5.0],
+            [-1e-200, 1e-200, 0.0],
+        ] {
+            let f = TangentFrame::from_normal(n).unwrap();
+            assert!((dot(f.t, f.t) - 1.0).abs() < 1e-14);
+            assert!((dot(f.b, f.b) - 1.0).abs() < 1e-14);
+            assert!(dot(f.t, f.n).abs() < 1e-14 && dot(f.b, f.n).abs() < 1e-14);
+            assert_eq!(f, TangentFrame::from_normal(n).unwrap());
+        }
+        let f = TangentFrame::from_normal([0.0, 0.0, 2.0]).unwrap();
+        assert_eq!(f.t, [1.0, 0.0, 0.0]);
+        assert_eq!(f.b, [0.0, 1.0, 0.0]);
+        assert!(TangentFrame::from_normal([0.0, 0.0, 0.0]).is_err());
+        assert!(TangentFrame::from_normal([f64::NAN, 0.0, 1.0]).is_err());
+    }
+
+    #[test]
+    fn polar_angles() {
+        let f = TangentFrame::from_normal([0.0, 0.0, 1.0]).unwrap();
+        let (r, phi) = f.polar([1.0, 1.0, 0.0], [1.0, 3.0, 0.0]);
+        assert_eq!(r, 2.0);
+        assert!((phi.unwrap() - std::f64::consts::FRAC_PI_2).abs() < 1e-15);
+        assert_eq!(f.polar([0.0; 3], [0.0; 3]).1, None);
+    }
+
+    #[test]
+    fn hat_weights_interpolate_and_sum_to_one() {
+        let m = 8;
+        let step = std::f64::consts::TAU / m as f64;
+        let w = hat_weights(3.0 * step, m);
+        assert_eq!(w[0], (3, 1.0));
+        let w = hat_weights(7.5 * step, m);
+        assert_eq!((w[0].0, w[1].0), (7, 0));
+        assert!((w[0].1 - 0.5).abs() < 1e-12 && (w[1].1 - 0.5).abs() < 1e-12);
+        for i in 0..100 {
+            let w = hat_weights(i as f64 * 0.1 - 3.0, m);
+            assert!((w[0].1 + w[1].1 - 1.0).abs() < 1e-15);
+        }
+    }
+
+    #[test]
+    fn eval_blends_neighbours() {
+        let seg = |c| ExpSum::new(vec![Term { c, d: -1.0 }]).unwrap();
+        let a = Anisotropic {
+            segments: vec![seg(1.0), seg(2.0), seg(3.0), seg(4.0)],
+        };
+        let step = std::f64::consts::FRAC_PI_2;
+        assert!((a.eval(0.0, Some(0.5 * step)) - 1.5).abs() < 1e-14);
+        assert!((a.eval(0.0, Some(3.5 * step)) - 2.5).abs() < 1e-14);
+        assert!((a.eval(0.0, None) - 2.5).abs() < 1e-14);
+        assert!(a.ln_eval(1e5, Some(1.0)).is_finite());
+    }
+}

@@ -1,0 +1,106 @@
+//! Colour: per-channel fall-off (Eq. 3 per channel) or one shared fall-off scaled per channel
+//! (Eq. 5, and Eq. 9 for the isotropic case used on arbitrary surfaces).
+
+use serde::{Deserialize, Serialize};
+
+use super::{Anisotropic, ModelError};
+
+/// The RGB diffuse reflectance R_d at x_i.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum ColourModel {
+    /// Eq. 3 fitted independently per channel (r, g, b).
+    PerChannel {
+        /// Fall-off per channel, in r, g, b order.
+        channels: [Anisotropic; 3],
+    },
+    /// Eq. 5 / Eq. 9: (1, s_g, s_b)ᵀ · R_d, one fall-off for all channels (red scale is 1).
+    Shared {
+        /// The common fall-off (red channel).
+        falloff: Anisotropic,
+        /// Green scale s_g(x_i) > 0.
+        s_g: f64,
+        /// Blue scale s_b(x_i) > 0.
+        s_b: f64,
+    },
+}
+
+impl ColourModel {
+    /// Checks every fall-off and scale.
+    pub fn validate(&self) -> Result<(), ModelError> {
+        match self {
+            Self::PerChannel { channels } => channels.iter().try_for_each(Anisotropic::validate),
+            Self::Shared { falloff, s_g, s_b } => {
+                for (what, value) in [("s_g", *s_g), ("s_b", *s_b)] {
+                    if !(value.is_finite() && value > 0.0) {
+                        return Err(ModelError::BadScale { what, value });
+                    }
+                }
+                falloff.validate()
+            }
+        }
+    }
+
+    /// ln R_d per channel at distance r and direction φ (see [`Anisotropic::ln_eval`]).
+    pub fn ln_eval(&self, r: f64, phi: Option<f64>) -> [f64; 3] {
+        match self {
+            Self::PerChannel { channels } => [0, 1, 2].map(|c| channels[c].ln_eval(r, phi)),
+            Self::Shared { falloff, s_g, s_b } => {
+                let l = falloff.ln_eval(r, phi);
+                [l, l + s_g.ln(), l + s_b.ln()]
+            }
+        }
+    }
+
+    /// R_d per channel at distance r and direction φ.
+    pub fn eval(&self, r: f64, phi: Option<f64>) -> [f64; 3] {
+        self.ln_eval(r, phi).map(f64::exp)
+    }
+
+    /// The fall-off model of one channel (0 = r, 1 = g, 2 = b), scales applied; `None` for a
+    /// channel index above 2.
+    pub fn channel(&self, channel: usize) -> Option<Anisotropic> {
+        match self {
+            Self::PerChannel { channels } => channels.get(channel).cloned(),
+            Self::Shared { falloff, s_g, s_b } => {
+                let s = [1.0, *s_g, *s_b].get(channel).copied()?;
+                Some(Anisotropic {
+                    segments: falloff.segments.iter().map(|e| e.scaled(s)).collect(),
+                })
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::{ExpSum, Term};
+
+    #[test]
+    fn shared_scales_channels() {
+        let f = Anisotropic::isotropic(ExpSum::new(vec![Term { c: 2.0, d: -0.5 }]).unwrap());
+        let m = ColourModel::Shared {
+            falloff: f,
+            s_g: 0.5,
+            s_b: 0.25,
+        };
+        m.validate().unwrap();
+        let v = m.eval(2.0, None);
+        let base = 2.0 * (-1.0f64).exp();
+        assert!((v[0] - base).abs() < 1e-14);
+        assert!((v[1] - 0.5 * base).abs() < 1e-14);
+        assert!((v[2] - 0.25 * base).abs() < 1e-14);
+        let g = m.channel(1).unwrap();
+        assert!((g.eval(2.0, None) - v[1]).abs() < 1e-14);
+        assert!(m.channel(3).is_none());
+        let bad = ColourModel::Shared {
+            falloff: m.channel(0).unwrap(),
+            s_g: 0.0,
+            s_b: 1.0,
+        };
+        assert!(bad.validate().is_err());
+        let json = serde_json::to_string(&m).unwrap();
+        assert_eq!(serde_json::from_str::<ColourModel>(&json).unwrap(), m);
+    }
+}

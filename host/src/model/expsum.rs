@@ -1,0 +1,184 @@
+//! Eq. 1: the sum of exponentials R_d(r) = Σ_k c_k·exp(d_k·r).
+
+use serde::{Deserialize, Serialize};
+
+use super::{ModelError, log_sum_exp};
+
+/// Largest number of terms n the project fits (the paper uses n = 3; auto order tries 1..=4).
+pub const MAX_TERMS: usize = 4;
+
+/// One term c·exp(d·r) of Eq. 1. Valid terms have c > 0 and d < 0.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Term {
+    /// Amplitude c_k(x_i) > 0.
+    pub c: f64,
+    /// Rate d_k(x_i) < 0 (per length unit).
+    pub d: f64,
+}
+
+/// Eq. 1: isotropic diffuse reflectance R_d(x_i → x_o) = Σ_k c_k·exp(d_k·|x_o − x_i|).
+///
+/// Invariant of a validated value: 1..=[`MAX_TERMS`] terms, every c_k > 0 and d_k < 0 finite, so
+/// R_d > 0 everywhere and R_d → 0 as r → ∞. Terms are kept in canonical order: by rate −d_k
+/// ascending (slowest fall-off first, the NIST Lanczos order), ties by c.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ExpSum {
+    /// The terms, in canonical order when built by [`ExpSum::new`].
+    pub terms: Vec<Term>,
+}
+
+impl ExpSum {
+    /// Validates and sorts the terms into canonical order.
+    pub fn new(mut terms: Vec<Term>) -> Result<Self, ModelError> {
+        sort_terms(&mut terms);
+        let s = Self { terms };
+        s.validate()?;
+        Ok(s)
+    }
+
+    /// Checks the Eq. 1 constraints (term count, finite, c > 0, d < 0).
+    pub fn validate(&self) -> Result<(), ModelError> {
+        if self.terms.is_empty() || self.terms.len() > MAX_TERMS {
+            return Err(ModelError::TermCount {
+                got: self.terms.len(),
+                max: MAX_TERMS,
+            });
+        }
+        for (index, t) in self.terms.iter().enumerate() {
+            if !t.c.is_finite() {
+                return Err(ModelError::NonFinite { what: "c" });
+            }
+            if !t.d.is_finite() {
+                return Err(ModelError::NonFinite { what: "d" });
+            }
+            if t.c <= 0.0 {
+                return Err(ModelError::NonPositiveC { index, c: t.c });
+            }
+            if t.d >= 0.0 {
+                return Err(ModelError::NonNegativeD { index, d: t.d });
+            }
+        }
+        Ok(())
+    }
+
+    /// Number of terms n.
+    pub fn n(&self) -> usize {
+        self.terms.len()
+    }
+
+    /// R_d(r), Eq. 1. Underflows to 0 gracefully for large r; use [`ExpSum::ln_eval`] when the
+    /// logarithm is wanted.
+    pub fn eval(&self, r: f64) -> f64 {
+        self.terms.iter().map(|t| t.c * (t.d * r).exp()).sum()
+    }
+
+    /// ln R_d(r), Eq. 1 evaluated as a log-sum-exp of ln c_k + d_k·r: finite wherever the model is
+    /// valid and r is finite, even where every exp(d_k·r) underflows.
+    pub fn ln_eval(&self, r: f64) -> f64 {
+        log_sum_exp(self.terms.iter().map(move |t| t.c.ln() + t.d * r))
+    }
+
+    /// d/dr ln R_d(r): the local fall-off rate (negative), a convex combination of the d_k.
+    pub fn ln_slope(&self, r: f64) -> f64 {
+        let l = self.ln_eval(r);
+        self.terms
+            .iter()
+            .map(|t| t.d * (t.c.ln() + t.d * r - l).exp())
+            .sum()
+    }
+
+    /// ∫_0^∞ R_d(r)·2πr dr = 2π Σ c_k / d_k²: the total diffuse reflectance of the isotropic model
+    /// on a plane, comparable to [`super::Dipole::total_reflectance`].
+    pub fn total_reflectance(&self) -> f64 {
+        self.terms
+            .iter()
+            .map(|t| 2.0 * std::f64::consts::PI * t.c / (t.d * t.d))
+            .sum()
+    }
+
+    /// The same model with every amplitude multiplied by `s` (channel scales of Eq. 5).
+    pub fn scaled(&self, s: f64) -> Self {
+        Self {
+            terms: self
+                .terms
+                .iter()
+                .map(|t| Term { c: t.c * s, d: t.d })
+                .collect(),
+        }
+    }
+}
+
+/// Canonical term order: rate −d ascending (slowest first), then c ascending; NaN last.
+pub(crate) fn sort_terms(terms: &mut [Term]) {
+    terms.sort_by(|a, b| b.d.total_cmp(&a.d).then(a.c.total_cmp(&b.c)));
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn m() -> ExpSum {
+        ExpSum::new(vec![
+            Term { c: 1.5576, d: -5.0 },
+            Term { c: 0.0951, d: -1.0 },
+            Term { c: 0.8607, d: -3.0 },
+        ])
+        .unwrap()
+    }
+
+    #[test]
+    fn canonical_order_is_slowest_first() {
+        let d: Vec<f64> = m().terms.iter().map(|t| t.d).collect();
+        assert_eq!(d, vec![-1.0, -3.0, -5.0]);
+    }
+
+    #[test]
+    fn ln_eval_matches_eval_and_survives_underflow() {
+        let m = m();
+        for r in [0.0, 0.3, 1.15, 10.0] {
+            assert!((m.ln_eval(r) - m.eval(r).ln()).abs() < 1e-13);
+        }
+        // exp(-1e4) underflows; the log does not.
+        let l = m.ln_eval(1e4);
+        assert!((l - (0.0951f64.ln() - 1e4)).abs() < 1e-9);
+        assert_eq!(m.eval(1e4), 0.0);
+    }
+
+    #[test]
+    fn slope_matches_finite_difference() {
+        let m = m();
+        let h = 1e-6;
+        let fd = (m.ln_eval(0.5 + h) - m.ln_eval(0.5 - h)) / (2.0 * h);
+        assert!((m.ln_slope(0.5) - fd).abs() < 1e-7);
+    }
+
+    #[test]
+    fn rejects_invalid_terms() {
+        assert!(matches!(
+            ExpSum::new(vec![]),
+            Err(ModelError::TermCount { .. })
+        ));
+        assert!(matches!(
+            ExpSum::new(vec![Term { c: -1.0, d: -1.0 }]),
+            Err(ModelError::NonPositiveC { .. })
+        ));
+        assert!(matches!(
+            ExpSum::new(vec![Term { c: 1.0, d: 0.0 }]),
+            Err(ModelError::NonNegativeD { .. })
+        ));
+        assert!(matches!(
+            ExpSum::new(vec![Term {
+                c: f64::NAN,
+                d: -1.0
+            }]),
+            Err(ModelError::NonFinite { .. })
+        ));
+        assert!(ExpSum::new(vec![Term { c: 1.0, d: -1.0 }; 5]).is_err());
+    }
+
+    #[test]
+    fn total_reflectance_is_the_integral() {
+        let m = ExpSum::new(vec![Term { c: 2.0, d: -0.5 }]).unwrap();
+        assert!((m.total_reflectance() - 2.0 * std::f64::consts::PI * 8.0).abs() < 1e-12);
+    }
+}

@@ -1,0 +1,497 @@
+//! The model file (`docs/model-format.md`, `subsurf-model/1`): a binary little-endian PLY holding
+//! the mesh and, per vertex, the fitted parameters of the light position `x_i` (Eq. 1/3/5/9), the
+//! modulation texture `alpha(x_o)` (Eq. 2/6), a status and the fit's `log E(x_i)` (Eq. 8).
+//!
+//! Writing refuses non-finite parameters, so every number in a written model is finite.
+use std::io::{BufRead, BufReader, Read, Write};
+use std::path::{Path, PathBuf};
+
+/// The magic comment that marks a subsurf model.
+pub const MODEL_FORMAT: &str = "subsurf-model/1";
+
+/// Why a model file could not be read or written.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum ModelFileError {
+    /// File system error.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// The file is not a subsurf model PLY or is damaged.
+    #[error("{path}: {message}")]
+    Format {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
+    /// The model to be written is inconsistent (sizes, non-finite numbers).
+    #[error("refusing to write model: {0}")]
+    Invalid(String),
+}
+
+/// How colour is modelled.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ColourMode {
+    /// One fall-off for all channels with scales `s_g`, `s_b` (Eq. 5 and 9).
+    Shared,
+    /// Separate parameters per channel (Eq. 3 per channel).
+    PerChannel,
+}
+
+/// The shape shared by all vertices of a model.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+pub struct ModelShape {
+    /// `n`, the largest number of exponentials per segment (Eq. 1); a vertex may use fewer.
+    pub terms: usize,
+    /// `m`, direction segments (Eq. 3); 1 = isotropic.
+    pub segments: usize,
+    /// Colour handling.
+    pub colour: ColourMode,
+}
+
+impl ModelShape {
+    /// Number of parameters of a vertex that uses `n` terms.
+    pub fn param_count(&self, n: usize) -> usize {
+        match self.colour {
+            ColourMode::Shared => 2 + 2 * n * self.segments,
+            ColourMode::PerChannel => 3 * 2 * n * self.segments,
+        }
+    }
+}
+
+/// What a vertex's model is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[repr(u8)]
+pub enum VertexStatus {
+    /// Fitted from its own closest light position.
+    Fitted = 0,
+    /// Interpolated from fitted mesh neighbours (the fit failed or there was no data).
+    Interpolated = 1,
+    /// No model: nothing fitted is connected to this vertex.
+    NoModel = 2,
+}
+
+/// One vertex's model.
+#[derive(Debug, Clone, PartialEq)]
+pub struct VertexModel {
+    /// Eq. 2/6: modulation texture alpha(x_o) per channel.
+    pub alpha: [f32; 3],
+    /// Fitted, interpolated or none.
+    pub status: VertexStatus,
+    /// Eq. 8: log E(x_i) of this vertex's fit, mean over channels; NaN if not fitted.
+    pub log_e: f32,
+    /// Number of exponential terms this vertex uses (0 for [`VertexStatus::NoModel`]).
+    pub terms: u8,
+    /// Parameters in the order of `docs/model-format.md`.
+    pub params: Vec<f64>,
+}
+
+/// A whole model: mesh plus per-vertex models.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ModelFile {
+    /// Shape of the model.
+    pub shape: ModelShape,
+    /// Vertex positions (object frame, mm).
+    pub positions: Vec<[f64; 3]>,
+    /// Unit vertex normals.
+    pub normals: Vec<[f64; 3]>,
+    /// Triangles.
+    pub triangles: Vec<[u32; 3]>,
+    /// One model per vertex.
+    pub vertices: Vec<VertexModel>,
+}
+
+impl ModelFile {
+    /// Checks sizes and finiteness (the invariant of every written file).
+    pub fn check(&self) -> Result<(), ModelFileError> {
+        let n = self.positions.len();
+        let bad = |m: String| Err(ModelFileError::Invalid(m));
+        if self.normals.len() != n || self.vertices.len() != n {
+            return bad("positions, normals and vertex models differ in length".into());
+        }
+        if self.shape.terms == 0 || self.shape.terms > 8 || self.shape.segments == 0 {
+            return bad(format!("unsupported shape {:?}", self.shape));
+        }
+        for (i, v) in self.vertices.iter().enumerate() {
+            let want = if v.status == VertexStatus::NoModel {
+                0
+            } else {
+                self.shape.param_count(v.terms as usize)
+            };
+            if v.params.len() != want || v.terms as usize > self.shape.terms {
+                return bad(format!(
+                    "vertex {i}: {} parameters for {} terms",
+                    v.params.len(),
+                    v.terms
+                ));
+            }
+            if v.params.iter().any(|p| !p.is_finite()) || v.alpha.iter().any(|a| !a.is_finite()) {
+                return bad(format!("vertex {i}: non-finite parameter or alpha"));
+            }
+        }
+        for t in &self.triangles {
+            if t.iter().any(|&i| i as usize >= n) {
+                return bad("triangle index out of range".into());
+            }
+        }
+        Ok(())
+    }
+
+    /// Writes the binary PLY.
+    pub fn write(&self, path: &Path) -> Result<(), ModelFileError> {
+        self.check()?;
+        let colour = match self.shape.colour {
+            ColourMode::Shared => "shared",
+            ColourMode::PerChannel => "per-channel",
+        };
+        let mut out = Vec::with_capacity(self.positions.len() * 120 + self.triangles.len() * 13);
+        let header = format!(
+            "ply\nformat binary_little_endian 1.0\ncomment {MODEL_FORMAT}\ncomment terms {}\n\
+             comment segments {}\ncomment colour {colour}\nelement vertex {}\n\
+             property double x\nproperty double y\nproperty double z\n\
+             property double nx\nproperty double ny\nproperty double nz\n\
+             property float alpha_r\nproperty float alpha_g\nproperty float alpha_b\n\
+             property uchar status\nproperty float log_e\nproperty uchar terms\n\
+             property list uchar double params\nelement face {}\n\
+             property list uchar int vertex_indices\nend_header\n",
+            self.shape.terms,
+            self.shape.segments,
+            self.positions.len(),
+            self.triangles.len()
+        );
+        out.extend_from_slice(header.as_bytes());
+        for (i, v) in self.vertices.iter().enumerate() {
+            for x in self.positions[i].iter().chain(&self.normals[i]) {
+                out.extend_from_slice(&x.to_le_bytes());
+            }
+            for a in v.alpha {
+                out.extend_from_slice(&a.to_le_bytes());
+            }
+            out.push(v.status as u8);
+            out.extend_from_slice(&v.log_e.to_le_bytes());
+            out.push(v.terms);
+            out.push(v.params.len() as u8);
+            for p in &v.params {
+                out.extend_from_slice(&p.to_le_bytes());
+            }
+        }
+        for t in &self.triangles {
+            out.push(3);
+            for i in t {
+                out.extend_from_slice(&(*i as i32).to_le_bytes());
+            }
+        }
+        let mut f = std::fs::File::create(path).map_err(|source| ModelFileError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        f.write_all(&out).map_err(|source| ModelFileError::Io {
+            path: path.to_path_buf(),
+            source,
+        })
+    }
+
+    /// Reads a model written by [`ModelFile::write`] (properties are looked up by name, so a
+    /// tool that reorders or adds properties keeps the file readable).
+    pub fn read(path: &Path) -> Result<ModelFile, ModelFileError> {
+        let io = |source| ModelFileError::Io {
+            path: path.to_path_buf(),
+            source,
+        };
+        let fmt = |message: String| ModelFileError::Format {
+            path: path.to_path_buf(),
+            message,
+        };
+        let f = std::fs::File::open(path).map_err(io)?;
+        let mut r = BufReader::new(f);
+        let mut line = String::new();
+        let mut elements: Vec<(String, usize, Vec<Prop>)> = Vec::new();
+        let (mut terms, mut segments, mut colour, mut magic) = (None, None, None, false);
+        let mut first = true;
+        loop {
+            line.clear();
+            if r.read_line(&mut line).map_err(io)? == 0 || line.len() > 1024 {
+                return Err(fmt("truncated or malformed PLY header".into()));
+            }
+            let words: Vec<&str> = line.split_whitespace().collect();
+            if first {
+                if words != ["ply"] {
+                    return Err(fmt("not a PLY file".into()));
+                }
+                first = false;
+                continue;
+            }
+            match words.as_slice() {
+                ["format", "binary_little_endian", "1.0"] => {}
+                ["format", ..] => return Err(fmt("only binary_little_endian PLY is read".into())),
+                ["comment", m] if *m == MODEL_FORMAT => magic = true,
+                ["comment", "terms", n] => terms = n.parse().ok(),
+                ["comment", "segments", n] => segments = n.parse().ok(),
+                ["comment", "colour", "shared"] => colour = Some(ColourMode::Shared),
+                ["comment", "colour", "per-channel"] => colour = Some(ColourMode::PerChannel),
+                ["comment", ..] | ["obj_info", ..] => {}
+                ["element", name, n] => {
+                    let n: usize = n
+                        .parse()
+                        .map_err(|_| fmt(format!("bad count in {line:?}")))?;
+                    elements.push((name.to_string(), n, Vec::new()));
+                }
+                ["property", "list", ct, vt, name] => {
+                    let p = Prop {
+                        name: name.to_string(),
+                        count: Some(ty(ct).ok_or_else(|| fmt(format!("type {ct}")))?),
+                        ty: ty(vt).ok_or_else(|| fmt(format!("type {vt}")))?,
+                    };
+                    elements
+                        .last_mut()
+                        .ok_or_else(|| fmt("property before element".into()))?
+                        .2
+                        .push(p);
+                }
+                ["property", t, name] => {
+                    let p = Prop {
+                        name: name.to_string(),
+                        count: None,
+                        ty: ty(t).ok_or_else(|| fmt(format!("type {t}")))?,
+                    };
+                    elements
+                        .last_mut()
+                        .ok_or_else(|| fmt("property before element".into()))?
+                        .2
+                        .push(p);
+                }
+                ["end_header"] => break,
+                _ => return Err(fmt(format!("unexpected header line {:?}", line.trim()))),
+            }
+        }
+        if !magic {
+            return Err(fmt(format!(
+                "no `comment {MODEL_FORMAT}`: not a subsurf model"
+            )));
+        }
+        let shape = ModelShape {
+            terms: terms.ok_or_else(|| fmt("no terms comment".into()))?,
+            segments: segments.ok_or_else(|| fmt("no segments comment".into()))?,
+            colour: colour.ok_or_else(|| fmt("no colour comment".into()))?,
+        };
+        let mut body = Vec::new();
+        r.read_to_end(&mut body).map_err(io)?;
+        let mut cur = Cursor { b: &body, at: 0 };
+        let mut m = ModelFile {
+            shape,
+            positions: Vec::new(),
+            normals: Vec::new(),
+            triangles: Vec::new(),
+            vertices: Vec::new(),
+        };
+        for (name, count, props) in &elements {
+            if count.saturating_mul(props.len()) > body.len() {
+                return Err(fmt(format!(
+                    "element {name} claims more data than the file holds"
+                )));
+            }
+            for _ in 0..*count {
+                let mut vals: Vec<(&str, Vec<f64>)> = Vec::with_capacity(props.len());
+                for p in props {
+                    let v = match p.count {
+                        None => vec![cur.read(p.ty).ok_or_else(|| fmt("truncated data".into()))?],
+                        Some(ct) => {
+                            let n = cur.read(ct).ok_or_else(|| fmt("truncated data".into()))?;
+                            if !(0.0..=1e6).contains(&n) {
+                                return Err(fmt("bad list length".into()));
+                            }
+                            (0..n as usize)
+                                .map(|_| cur.read(p.ty).ok_or_else(|| fmt("truncated data".into())))
+                                .collect::<Result<Vec<f64>, _>>()?
+                        }
+                    };
+                    vals.push((&p.name, v));
+                }
+                let get = |k: &str| vals.iter().find(|(n, _)| *n == k).map(|(_, v)| v);
+                let one = |k: &str| -> Result<f64, ModelFileError> {
+                    get(k)
+                        .and_then(|v| v.first().copied())
+                        .ok_or_else(|| fmt(format!("{name} has no property {k}")))
+                };
+                match name.as_str() {
+                    "vertex" => {
+                        m.positions.push([one("x")?, one("y")?, one("z")?]);
+                        m.normals.push([one("nx")?, one("ny")?, one("nz")?]);
+                        let status = match one("status")? as u8 {
+                            0 => VertexStatus::Fitted,
+                            1 => VertexStatus::Interpolated,
+                            2 => VertexStatus::NoModel,
+                            s => return Err(fmt(format!("unknown vertex status {s}"))),
+                        };
+                        let params = get("params")
+                            .cloned()
+                            .ok_or_else(|| fmt("vertex has no params".into()))?;
+                        let terms = match get("terms") {
+                            Some(v) => v.first().copied().unwrap_or(0.0) as u8,
+                            None => shape.terms as u8,
+                        };
+                        m.vertices.push(VertexModel {
+                            alpha: [
+                                one("alpha_r")? as f32,
+                                one("alpha_g")? as f32,
+                                one("alpha_b")? as f32,
+                            ],
+                            status,
+                            log_e: one("log_e")? as f32,
+                            terms,
+                            params,
+                        });
+                    }
+                    "face" => {
+                        let idx = get("vertex_indices")
+                            .ok_or_else(|| fmt("face has no vertex_indices".into()))?;
+                        // Triangulate polygons as a fan.
+                        for k in 1..idx.len().saturating_sub(1) {
+                            m.triangles
+                                .push([idx[0] as u32, idx[k] as u32, idx[k + 1] as u32]);
+                        }
+                    }
+                    _ => {}
+                }
+            }
+        }
+        m.check().map_err(|e| fmt(e.to_string()))?;
+        Ok(m)
+    }
+}
+
+struct Prop {
+    name: String,
+    count: Option<Ty>,
+    ty: Ty,
+}
+
+#[derive(Clone, Copy)]
+enum Ty {
+    I8,
+    U8,
+    I16,
+    U16,
+    I32,
+    U32,
+    F32,
+    F64,
+}
+
+fn ty(s: &str) -> Option<Ty> {
+    Some(match s {
+        "char" | "int8" => Ty::I8,
+        "uchar" | "uint8" => Ty::U8,
+        "short" | "int16" => Ty::I16,
+        "ushort" | "uint16" => Ty::U16,
+        "int" | "int32" => Ty::I32,
+        "uint" | "uint32" => Ty::U32,
+        "float" | "float32" => Ty::F32,
+        "double" | "float64" => Ty::F64,
+        _ => return None,
+    })
+}
+
+struct Cursor<'a> {
+    b: &'a [u8],
+    at: usize,
+}
+
+impl Cursor<'_> {
+    fn take<const N: usize>(&mut self) -> Option<[u8; N]> {
+        let s = self.b.get(self.at..self.at + N)?;
+        self.at += N;
+        s.try_into().ok()
+    }
+    fn read(&mut self, t: Ty) -> Option<f64> {
+        Some(match t {
+            Ty::I8 => i8::from_le_bytes(self.take()?) as f64,
+            Ty::U8 => u8::from_le_bytes(self.take()?) as f64,
+            Ty::I16 => i16::from_le_bytes(self.take()?) as f64,
+            Ty::U16 => u16::from_le_bytes(self.take()?) as f64,
+            Ty::I32 => i32::from_le_bytes(self.take()?) as f64,
+            Ty::U32 => u32::from_le_bytes(self.take()?) as f64,
+            Ty::F32 => f32::from_le_bytes(self.take()?) as f64,
+            Ty::F64 => f64::from_le_bytes(self.take()?),
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample() -> ModelFile {
+        let shape = ModelShape {
+            terms: 3,
+            segments: 1,
+            colour: ColourMode::Shared,
+        };
+        let v = |status, terms: u8| VertexModel {
+            alpha: [1.0, 0.9, 1.1],
+            status,
+            log_e: if status == VertexStatus::Fitted {
+                0.02
+            } else {
+                f32::NAN
+            },
+            terms,
+            params: if status == VertexStatus::NoModel {
+                vec![]
+            } else {
+                (0..shape.param_count(terms as usize))
+                    .map(|k| k as f64 * 0.5 - 1.0)
+                    .collect()
+            },
+        };
+        ModelFile {
+            shape,
+            positions: vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]],
+            normals: vec![[0.0, 0.0, 1.0]; 3],
+            triangles: vec![[0, 1, 2]],
+            vertices: vec![
+                v(VertexStatus::Fitted, 3),
+                v(VertexStatus::Interpolated, 2),
+                v(VertexStatus::NoModel, 0),
+            ],
+        }
+    }
+
+    #[test]
+    fn round_trip() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.ply");
+        let m = sample();
+        m.write(&p).unwrap();
+        let back = ModelFile::read(&p).unwrap();
+        assert_eq!(back.positions, m.positions);
+        assert_eq!(back.triangles, m.triangles);
+        for (a, b) in back.vertices.iter().zip(&m.vertices) {
+            assert_eq!(a.params, b.params);
+            assert_eq!(a.status, b.status);
+            assert_eq!(a.terms, b.terms);
+        }
+    }
+
+    #[test]
+    fn non_finite_parameters_are_refused_and_damaged_files_rejected() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.ply");
+        let mut m = sample();
+        m.vertices[0].params[1] = f64::NAN;
+        assert!(matches!(m.write(&p), Err(ModelFileError::Invalid(_))));
+        let m = sample();
+        m.write(&p).unwrap();
+        let bytes = std::fs::read(&p).unwrap();
+        for cut in [0, 10, 200, bytes.len() - 3] {
+            std::fs::write(&p, &bytes[..cut]).unwrap();
+            assert!(ModelFile::read(&p).is_err(), "cut {cut}");
+        }
+    }
+}

@@ -1,0 +1,363 @@
+//! Cameras behind one trait.
+//!
+//! A camera is either triggered by the rig (the `sim` camera and `dir:PATH`: the rig's queued
+//! capture program fires the trigger, the host then collects the image of each capture) or timed
+//! by the host (`cmd:"…"`: the host points the galvo, switches the laser on, runs the command,
+//! switches the laser off). HDR comes from [`super::frame::merge_hdr`] over exposure brackets
+//! when the camera is not HDR itself.
+
+use super::frame::LinearImage;
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::{Duration, Instant, SystemTime};
+
+/// Why a camera gave no image.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum CameraError {
+    /// No image arrived in time.
+    #[error("camera {camera}: no image for frame {frame} within {waited:?}")]
+    Timeout {
+        /// Camera description.
+        camera: String,
+        /// The frame.
+        frame: usize,
+        /// How long we waited.
+        waited: Duration,
+    },
+    /// The capture command failed.
+    #[error("camera {camera}: capture command failed for frame {frame}: {message}")]
+    Command {
+        /// Camera description.
+        camera: String,
+        /// The frame.
+        frame: usize,
+        /// Exit status and standard error.
+        message: String,
+    },
+    /// The image could not be read.
+    #[error("camera {camera}: image {path} unreadable: {message}")]
+    Image {
+        /// Camera description.
+        camera: String,
+        /// The file.
+        path: String,
+        /// The decoder's message.
+        message: String,
+    },
+    /// The camera specification is wrong.
+    #[error("camera: {0}")]
+    Spec(String),
+}
+
+/// Who times the exposure.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Timing {
+    /// The rig's capture program triggers the camera; the host collects images afterwards.
+    RigTriggered,
+    /// The host runs the exposure itself while the laser is held on.
+    HostTimed,
+}
+
+/// One exposure the camera is asked for.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Shot {
+    /// Frame number in the plan.
+    pub frame: usize,
+    /// Bracket index within the frame.
+    pub bracket: usize,
+    /// Turntable angle the rig reported (degrees).
+    pub turntable_deg: f64,
+    /// Galvo codes the rig reported.
+    pub galvo: [u16; 2],
+    /// Laser channel fired.
+    pub channel: u8,
+    /// Exposure (s).
+    pub exposure_s: f64,
+    /// Rig clock at the trigger (µs), when rig-triggered.
+    pub triggered_at_us: Option<u64>,
+}
+
+/// A camera.
+pub trait Camera: Send {
+    /// Short description for messages.
+    fn describe(&self) -> String;
+    /// Who times the exposure.
+    fn timing(&self) -> Timing;
+    /// Whether images are already HDR (no bracketing needed).
+    fn is_hdr(&self) -> bool {
+        false
+    }
+    /// Whether `capture` returns within a few milliseconds (then the driver does not keep the
+    /// rig's heartbeat going from a second thread meanwhile, which keeps virtual time exact).
+    fn is_quick(&self) -> bool {
+        false
+    }
+    /// Sensor value at saturation (for bracket merging).
+    fn saturation(&self) -> f32 {
+        1.0
+    }
+    /// Called before a batch of rig-triggered shots is fired.
+    fn begin_batch(&mut self) -> Result<(), CameraError> {
+        Ok(())
+    }
+    /// The image of `shot`; for host-timed cameras this performs the exposure.
+    fn capture(&mut self, shot: &Shot) -> Result<LinearImage, CameraError>;
+}
+
+/// `dir:PATH`: a camera program writes each triggered image into a folder; images are taken in
+/// name order among files that appeared since the batch began.
+pub struct DirCamera {
+    dir: PathBuf,
+    timeout: Duration,
+    seen: BTreeSet<PathBuf>,
+    since: SystemTime,
+}
+
+impl DirCamera {
+    /// Watches `dir`; waits up to `timeout` for each image.
+    pub fn new(dir: &Path, timeout: Duration) -> Result<Self, CameraError> {
+        if !dir.is_dir() {
+            return Err(CameraError::Spec(format!(
+                "dir:{}: the folder does not exist",
+                dir.display()
+            )));
+        }
+        let mut cam = DirCamera {
+            dir: dir.to_path_buf(),
+            timeout,
+            seen: BTreeSet::new(),
+            since: SystemTime::UNIX_EPOCH,
+        };
+        // Files already there belong to earlier runs.
+        cam.seen = cam.listing().into_iter().collect();
+        cam.since = SystemTime::now();
+        Ok(cam)
+    }
+
+    fn listing(&self) -> Vec<PathBuf> {
+        let mut v: Vec<PathBuf> = std::fs::read_dir(&self.dir)
+            .map(|rd| {
+                rd.flatten()
+                    .map(|e| e.path())
+                    .filter(|p| {
+                        p.is_file()
+                            && !p
+                                .file_name()
+                                .is_some_and(|n| n.to_string_lossy().starts_with('.'))
+                    })
+                    .collect()
+            })
+            .unwrap_or_default();
+        v.sort();
+        v
+    }
+}
+
+impl Camera for DirCamera {
+    fn describe(&self) -> String {
+        format!("dir:{}", self.dir.display())
+    }
+    fn timing(&self) -> Timing {
+        Timing::RigTriggered
+    }
+    fn capture(&mut self, shot: &Shot) -> Result<LinearImage, CameraError> {
+        let start = Instant::now();
+        loop {
+            let next = self.listing().into_iter().find(|p| {
+                !self.seen.contains(p)
+                    && std::fs::metadata(p)
+                        .and_then(|m| m.modified())
+                        .is_ok_and(|t| t + Duration::from_secs(2) >= self.since)
+            });
+            if let Some(p) = next {
+                // Wait until the writer is done: the size is stable across a short pause.
+                let s1 = std::fs::metadata(&p).map(|m| m.len()).unwrap_or(0);
+                std::thread::sleep(Duration::from_millis(20));
+                let s2 = std::fs::metadata(&p).map(|m| m.len()).unwrap_or(0);
+                if s1 == s2 && s1 > 0 {
+                    self.seen.insert(p.clone());
+                    let bytes = std::fs::read(&p).map_err(|e| CameraError::Image {
+                        camera: self.describe(),
+                        path: p.display().to_string(),
+                        message: e.to_string(),
+                    })?;
+                    return LinearImage::from_bytes(&bytes).map_err(|e| CameraError::Image {
+                        camera: self.describe(),
+                        path: p.display().to_string(),
+                        message: e.to_string(),
+                    });
+                }
+            }
+            if start.elapsed() > self.timeout {
+                return Err(CameraError::Timeout {
+                    camera: self.describe(),
+                    frame: shot.frame,
+                    waited: self.timeout,
+                });
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+    }
+}
+
+/// `cmd:"…"`: an external capture command (e.g. gphoto2), run by `sh -c` once per exposure while
+/// the host holds the laser on. `{out}` is replaced by the image path to write, `{exposure}` by
+/// the exposure in seconds, `{frame}` by the frame number.
+pub struct CmdCamera {
+    template: String,
+    scratch: tempfile::TempDir,
+    timeout: Duration,
+}
+
+impl CmdCamera {
+    /// A command camera; each run may take up to `timeout`.
+    pub fn new(template: &str, timeout: Duration) -> Result<Self, CameraError> {
+        if !template.contains("{out}") {
+            return Err(CameraError::Spec(
+                "cmd: the command must contain {out}, the path the image is to be written to"
+                    .into(),
+            ));
+        }
+        let scratch = tempfile::tempdir().map_err(|e| CameraError::Spec(e.to_string()))?;
+        Ok(CmdCamera {
+            template: template.to_string(),
+            scratch,
+            timeout,
+        })
+    }
+}
+
+impl Camera for CmdCamera {
+    fn describe(&self) -> String {
+        format!("cmd:{:?}", self.template)
+    }
+    fn timing(&self) -> Timing {
+        Timing::HostTimed
+    }
+    fn capture(&mut self, shot: &Shot) -> Result<LinearImage, CameraError> {
+        let out = self
+            .scratch
+            .path()
+            .join(format!("shot-{}-{}.img", shot.frame, shot.bracket));
+        let _ = std::fs::remove_file(&out);
+        let cmd = self
+            .template
+            .replace("{out}", &out.display().to_string())
+            .replace("{exposure}", &format!("{}", shot.exposure_s))
+            .replace("{frame}", &shot.frame.to_string());
+        let mut child = Command::new("sh")
+            .arg("-c")
+            .arg(&cmd)
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .map_err(|e| CameraError::Command {
+                camera: self.describe(),
+                frame: shot.frame,
+                message: format!("cannot start sh: {e}"),
+            })?;
+        let start = Instant::now();
+        let status = loop {
+            match child.try_wait() {
+                Ok(Some(s)) => break s,
+                Ok(None) if start.elapsed() > self.timeout => {
+                    let _ = child.kill();
+                    let _ = child.wait();
+                    return Err(CameraError::Timeout {
+                        camera: self.describe(),
+                        frame: shot.frame,
+                        waited: self.timeout,
+                    });
+                }
+                Ok(None) => std::thread::sleep(Duration::from_millis(5)),
+                Err(e) => {
+                    return Err(CameraError::Command {
+                        camera: self.describe(),
+                        frame: shot.frame,
+                        message: e.to_string(),
+                    });
+                }
+            }
+        };
+        if !status.success() {
+            let mut err = String::new();
+            if let Some(mut s) = child.stderr.take() {
+                use std::io::Read;
+                let _ = s.read_to_string(&mut err);
+            }
+            return Err(CameraError::Command {
+                camera: self.describe(),
+                frame: shot.frame,
+                message: format!("{status}: {}", err.trim()),
+            });
+        }
+        let bytes = std::fs::read(&out).map_err(|e| CameraError::Image {
+            camera: self.describe(),
+            path: out.display().to_string(),
+            message: format!("the command did not write it ({e})"),
+        })?;
+        LinearImage::from_bytes(&bytes).map_err(|e| CameraError::Image {
+            camera: self.describe(),
+            path: out.display().to_string(),
+            message: e.to_string(),
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn shot(frame: usize) -> Shot {
+        Shot {
+            frame,
+            bracket: 0,
+            turntable_deg: 0.0,
+            galvo: [0, 0],
+            channel: 0,
+            exposure_s: 0.01,
+            triggered_at_us: None,
+        }
+    }
+
+    fn exr(v: f32) -> Vec<u8> {
+        let mut i = LinearImage::zeros(2, 2, 3);
+        i.data.fill(v);
+        i.to_exr().unwrap()
+    }
+
+    #[test]
+    fn dir_camera_takes_new_images_in_order_and_times_out() {
+        let d = tempfile::tempdir().unwrap();
+        std::fs::write(d.path().join("old.exr"), exr(9.0)).unwrap();
+        let mut cam = DirCamera::new(d.path(), Duration::from_millis(150)).unwrap();
+        std::fs::write(d.path().join("b.exr"), exr(2.0)).unwrap();
+        std::fs::write(d.path().join("a.exr"), exr(1.0)).unwrap();
+        assert_eq!(cam.capture(&shot(0)).unwrap().data[0], 1.0);
+        assert_eq!(cam.capture(&shot(1)).unwrap().data[0], 2.0);
+        let e = cam.capture(&shot(2)).unwrap_err().to_string();
+        assert!(e.contains("no image for frame 2"), "{e}");
+    }
+
+    #[test]
+    fn cmd_camera_runs_the_command_and_reports_failures() {
+        let src = tempfile::NamedTempFile::new().unwrap();
+        std::fs::write(src.path(), exr(3.0)).unwrap();
+        let mut cam = CmdCamera::new(
+            &format!("cp {} {{out}}", src.path().display()),
+            Duration::from_secs(5),
+        )
+        .unwrap();
+        assert_eq!(cam.capture(&shot(0)).unwrap().data[0], 3.0);
+        let mut bad = CmdCamera::new(
+            "echo lens cap on >&2; exit 3 # {out}",
+            Duration::from_secs(5),
+        )
+        .unwrap();
+        let e = bad.capture(&shot(4)).unwrap_err().to_string();
+        assert!(e.contains("frame 4") && e.contains("lens cap on"), "{e}");
+        assert!(CmdCamera::new("gphoto2", Duration::from_secs(1)).is_err());
+    }
+}

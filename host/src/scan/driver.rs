@@ -1,0 +1,719 @@
+//! The scan driver: home, then per turntable angle run the rig's queued capture program, collect
+//! each triggered image from the camera, and commit it to the dataset (see [`super::journal`]).
+//!
+//! Faults: a link error ends the session with [`ScanError::Link`] (the caller reconnects and
+//! calls again: [`run_with_reconnect`] does that with back-off), a rig halt (emergency stop,
+//! interlock) with [`ScanError::RigHalted`], a camera that keeps timing out with
+//! [`ScanError::Camera`], a full disk with [`ScanError::Journal`]. Every session ends with the
+//! laser off (`Stop`, best effort when the link is gone — the rig's heartbeat timeout covers that)
+//! and leaves a dataset the same command resumes.
+
+use super::camera::{Camera, CameraError, Shot, Timing};
+use super::frame::{Bracket, LinearImage, MergeOptions, merge_hdr};
+use super::journal::{DatasetHeader, DatasetWriter, FrameEntry, JournalError, LaserRay};
+use super::plan::{ScanPlan, angle_steps};
+use crate::calib::Calibration;
+use crate::link::ByteLink;
+use crate::rig::{RigClient, RigClientError};
+use indicatif::ProgressBar;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+use subsurf_protocol::{GalvoPoint, MoveTarget, ProgramHeader};
+
+/// Why a scan stopped. Every variant leaves a dataset the same command resumes.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum ScanError {
+    /// The link to the rig failed (after retries in the rig client).
+    #[error("lost the rig: {0}")]
+    Link(#[source] RigClientError),
+    /// The rig refused something or reported a fault; the message says what.
+    #[error("rig: {0}")]
+    Rig(#[source] RigClientError),
+    /// The rig halted the scan itself (emergency stop, interlock, homing failure).
+    #[error(
+        "the rig halted the scan at frame {frame}: {reason}; the laser is off. Fix the cause, then \
+         run the same command again to resume"
+    )]
+    RigHalted {
+        /// First frame not written.
+        frame: usize,
+        /// The rig's reason.
+        reason: String,
+    },
+    /// The camera gave no usable image for a frame, even after retries.
+    #[error("frame {frame} failed after {attempts} attempts: {source}")]
+    Camera {
+        /// The frame.
+        frame: usize,
+        /// Attempts made.
+        attempts: u32,
+        /// The last camera error.
+        source: CameraError,
+    },
+    /// Merging or encoding an image failed.
+    #[error("frame {frame}: {message}")]
+    Image {
+        /// The frame.
+        frame: usize,
+        /// What went wrong.
+        message: String,
+    },
+    /// Writing the dataset failed (disk full, permissions, another scan in the directory).
+    #[error(transparent)]
+    Journal(#[from] JournalError),
+    /// The plan does not fit the rig.
+    #[error("the plan does not fit the rig: {0}")]
+    Plan(String),
+    /// Stopped on request (Ctrl-C); the laser is off.
+    #[error("stopped on request after frame {done} of {total}; run the same command to resume")]
+    Interrupted {
+        /// Frames complete.
+        done: usize,
+        /// Frames planned.
+        total: usize,
+    },
+}
+
+impl ScanError {
+    /// Whether reconnecting and calling again can help (a link or timeout problem).
+    pub fn is_link(&self) -> bool {
+        matches!(self, ScanError::Link(_))
+    }
+}
+
+fn classify(e: RigClientError) -> ScanError {
+    match e {
+        RigClientError::Link(_) | RigClientError::NoReply { .. } => ScanError::Link(e),
+        e => ScanError::Rig(e),
+    }
+}
+
+/// What to scan and how.
+#[derive(Debug, Clone)]
+pub struct ScanConfig {
+    /// Output dataset directory.
+    pub out: PathBuf,
+    /// The plan.
+    pub plan: ScanPlan,
+    /// The rig's calibration (camera, galvo).
+    pub calib: Calibration,
+    /// The object mesh as OBJ text (copied into the dataset as `object.obj`).
+    pub mesh_obj: Vec<u8>,
+    /// `noise_floor` written to `scan.json`.
+    pub noise_floor: f64,
+    /// Laser channel index on the rig.
+    pub laser_channel: u8,
+    /// Turntable speed (steps/s) and acceleration (steps/s²); `None` = the rig's maximum.
+    pub move_speed: Option<u32>,
+    /// See `move_speed`.
+    pub move_accel: Option<u32>,
+    /// Camera trigger pulse (µs).
+    pub trigger_us: u32,
+    /// Minimum time between captures (camera read-out), µs.
+    pub interval_us: u32,
+    /// Most points per uploaded program (bounds memory for HDR brackets).
+    pub chunk_points: usize,
+    /// How often a frame's capture is retried when the camera gives nothing.
+    pub camera_retries: u32,
+    /// Bytes kept free on the disk.
+    pub reserve_bytes: u64,
+    /// Set to stop cleanly (Ctrl-C).
+    pub stop: Arc<AtomicBool>,
+}
+
+impl ScanConfig {
+    /// Sensible defaults for `plan` and `calib`.
+    pub fn new(out: PathBuf, plan: ScanPlan, calib: Calibration, mesh_obj: Vec<u8>) -> Self {
+        ScanConfig {
+            out,
+            plan,
+            calib,
+            mesh_obj,
+            noise_floor: 1e-4,
+            laser_channel: 0,
+            move_speed: None,
+            move_accel: None,
+            trigger_us: 100,
+            interval_us: 0,
+            chunk_points: 64,
+            camera_retries: 2,
+            reserve_bytes: 16 << 20,
+            stop: Arc::new(AtomicBool::new(false)),
+        }
+    }
+
+    /// The string that identifies this scan in its directory (resume refuses any other).
+    pub fn identity(&self, camera: &str) -> String {
+        let id = serde_json::json!({
+            "plan": self.plan,
+            "calib": self.calib,
+            "noise_floor": self.noise_floor,
+            "laser_channel": self.laser_channel,
+            "camera": camera,
+            "mesh_crc32": crc::Crc::<u32>::new(&crc::CRC_32_ISO_HDLC).checksum(&self.mesh_obj),
+        });
+        serde_json::to_string_pretty(&id).unwrap_or_default()
+    }
+}
+
+/// What a scan did.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ScanSummary {
+    /// The dataset's `scan.json`.
+    pub scan_json: PathBuf,
+    /// Frames in the plan.
+    pub frames_total: usize,
+    /// Frames that were already complete when this run started.
+    pub resumed_from: usize,
+    /// Frames written by this run.
+    pub frames_written: usize,
+    /// Rig clock time the scan took (virtual on the simulated rig), summed over sessions.
+    pub rig_seconds: f64,
+    /// Wall-clock time.
+    pub wall_seconds: f64,
+    /// Reconnections after link failures.
+    pub reconnects: u32,
+    /// Camera retries.
+    pub camera_retries: u32,
+}
+
+/// An open scan: the dataset writer and the plan, across rig sessions.
+pub struct Scan<'a> {
+    cfg: &'a ScanConfig,
+    writer: DatasetWriter,
+    frames: Vec<super::plan::PlannedFrame>,
+    resumed_from: usize,
+    written: usize,
+    rig_us: u64,
+    retries: u32,
+    started: Instant,
+}
+
+impl<'a> Scan<'a> {
+    /// Opens (or resumes) the dataset for `cfg` scanned with `camera`.
+    pub fn open(cfg: &'a ScanConfig, camera: &dyn Camera) -> Result<Self, ScanError> {
+        if cfg.plan.exposures_s.is_empty() {
+            return Err(ScanError::Plan("no exposure times".into()));
+        }
+        let header = DatasetHeader {
+            mesh: "object.obj".into(),
+            noise_floor: cfg.noise_floor,
+            cameras: vec![cfg.calib.camera.clone()],
+        };
+        let (mut writer, done) = DatasetWriter::open(
+            &cfg.out,
+            &cfg.identity(&camera.describe()),
+            header,
+            &cfg.mesh_obj,
+        )?;
+        writer.reserve_bytes = cfg.reserve_bytes;
+        Ok(Scan {
+            cfg,
+            writer,
+            frames: cfg.plan.frames(),
+            resumed_from: done,
+            written: 0,
+            rig_us: 0,
+            retries: 0,
+            started: Instant::now(),
+        })
+    }
+
+    /// Frames complete.
+    pub fn done(&self) -> usize {
+        self.writer.done()
+    }
+
+    /// Whether every planned frame is written.
+    pub fn complete(&self) -> bool {
+        self.done() >= self.frames.len()
+    }
+
+    /// Runs one rig session until the plan is done or something fails. Always tries to leave
+    /// the laser off.
+    pub fn session<L: ByteLink>(
+        &mut self,
+        rig: &mut RigClient<L>,
+        camera: &mut dyn Camera,
+        progress: &ProgressBar,
+    ) -> Result<(), ScanError> {
+        let t0 = rig.status().map_err(classify)?.uptime_us;
+        let result = self.session_inner(rig, camera, progress);
+        // Laser off whatever happened; on a dead link the rig's heartbeat timeout does it.
+        let _ = rig.stop();
+        if let Ok(s) = rig.status() {
+            self.rig_us += s.uptime_us.saturating_sub(t0);
+        }
+        result
+    }
+
+    fn check_stop(&self) -> Result<(), ScanError> {
+        if self.cfg.stop.load(Ordering::Relaxed) {
+            return Err(ScanError::Interrupted {
+                done: self.done(),
+                total: self.frames.len(),
+            });
+        }
+        Ok(())
+    }
+
+    fn session_inner<L: ByteLink>(
+        &mut self,
+        rig: &mut RigClient<L>,
+        camera: &mut dyn Camera,
+        progress: &ProgressBar,
+    ) -> Result<(), ScanError> {
+        let caps = rig.hello().capabilities;
+        progress.set_length(self.frames.len() as u64);
+        progress.set_position(self.done() as u64);
+        if self.complete() {
+            return Ok(());
+        }
+        let max_code = caps.galvo_max;
+        if let Some(f) = self
+            .frames
+            .iter()
+            .find(|f| f.galvo[0] > max_code || f.galvo[1] > max_code)
+        {
+            return Err(ScanError::Plan(format!(
+                "frame {} aims at galvo codes {:?}, the rig's largest code is {max_code}",
+                f.index, f.galvo
+            )));
+        }
+        let exposures_us: Vec<u32> = self
+            .cfg
+            .plan
+            .exposures_s
+            .iter()
+            .map(|e| (e * 1e6).round().max(1.0) as u32)
+            .collect();
+        if let Some(e) = exposures_us.iter().find(|e| **e > caps.max_exposure_us) {
+            return Err(ScanError::Plan(format!(
+                "exposure {e} µs exceeds the rig's limit of {} µs",
+                caps.max_exposure_us
+            )));
+        }
+        // Clear a fault left from before (an e-stop that was released); refuses while pressed.
+        let status = rig.status().map_err(classify)?;
+        if status.fault.is_some() {
+            rig.clear_fault().map_err(|e| self.halted_or(e))?;
+        }
+        progress.set_message("homing");
+        rig.home().map_err(|e| self.halted_or(e))?;
+        rig.wait_idle(Duration::from_secs(600))
+            .map_err(|e| self.halted_or(e))?;
+        let speed = self
+            .cfg
+            .move_speed
+            .unwrap_or(caps.max_speed)
+            .min(caps.max_speed);
+        let accel = self
+            .cfg
+            .move_accel
+            .unwrap_or(caps.max_accel)
+            .min(caps.max_accel);
+        let spr = caps.steps_per_rev;
+        while !self.complete() {
+            self.check_stop()?;
+            let first = self.frames[self.done()];
+            let steps = angle_steps(first.turntable_deg, spr);
+            progress.set_message(format!("turntable → {:.1}°", first.turntable_deg));
+            rig.start_move(MoveTarget::Absolute(steps as i32), speed, accel)
+                .map_err(|e| self.halted_or(e))?;
+            let s = rig
+                .wait_idle(Duration::from_secs(600))
+                .map_err(|e| self.halted_or(e))?;
+            let deg = s.position as f64 * 360.0 / spr.max(1) as f64;
+            rig.arm().map_err(|e| self.halted_or(e))?;
+            progress.set_message(format!("{deg:.1}°"));
+            // The rest of this angle, in program-sized chunks.
+            let max_pts = (caps.max_program_points as usize)
+                .min(self.cfg.chunk_points)
+                .max(1);
+            let chunk: Vec<_> = self.frames[self.done()..]
+                .iter()
+                .take_while(|f| f.angle_index == first.angle_index)
+                .take(max_pts)
+                .copied()
+                .collect();
+            self.run_chunk(rig, camera, progress, &chunk, deg, &exposures_us)?;
+        }
+        rig.disarm().map_err(classify)?;
+        Ok(())
+    }
+
+    fn halted_or(&self, e: RigClientError) -> ScanError {
+        match e {
+            RigClientError::Halted { reason, .. } => ScanError::RigHalted {
+                frame: self.done(),
+                reason,
+            },
+            RigClientError::Rejected { ref error, .. }
+                if matches!(
+                    error,
+                    subsurf_protocol::RigError::EmergencyStop
+                        | subsurf_protocol::RigError::InterlockOpen
+                        | subsurf_protocol::RigError::Faulted(_)
+                ) =>
+            {
+                ScanError::RigHalted {
+                    frame: self.done(),
+                    reason: format!("{error:?}"),
+                }
+            }
+            e => classify(e),
+        }
+    }
+
+    /// Captures `chunk` (frames of one angle) with every exposure, merges and commits them.
+    fn run_chunk<L: ByteLink>(
+        &mut self,
+        rig: &mut RigClient<L>,
+        camera: &mut dyn Camera,
+        progress: &ProgressBar,
+        chunk: &[super::plan::PlannedFrame],
+        deg: f64,
+        exposures_us: &[u32],
+    ) -> Result<(), ScanError> {
+        let n_exp = exposures_us.len();
+        let mut brackets: Vec<Vec<Bracket>> = vec![Vec::with_capacity(n_exp); chunk.len()];
+        for (b, &exp_us) in exposures_us.iter().enumerate() {
+            let mut next = 0usize;
+            let mut attempts = 0u32;
+            while next < chunk.len() {
+                self.check_stop()?;
+                let rest = &chunk[next..];
+                let got = match camera.timing() {
+                    Timing::RigTriggered => {
+                        self.program(rig, camera, rest, b, deg, exp_us, &mut brackets[next..])?
+                    }
+                    Timing::HostTimed => {
+                        self.host_timed(rig, camera, rest, b, deg, exp_us, &mut brackets[next..])?
+                    }
+                };
+                // Commit what is complete (all brackets present) in order.
+                if b + 1 == n_exp {
+                    for k in next..next + got.count {
+                        self.commit(&chunk[k], deg, &mut brackets[k], camera)?;
+                        progress.inc(1);
+                    }
+                }
+                next += got.count;
+                if let Some(err) = got.camera_error {
+                    attempts += 1;
+                    self.retries += 1;
+                    if attempts > self.cfg.camera_retries {
+                        return Err(ScanError::Camera {
+                            frame: chunk[next].index,
+                            attempts,
+                            source: err,
+                        });
+                    }
+                    progress.println(format!(
+                        "frame {}: {err}; retrying ({attempts}/{})",
+                        chunk[next].index, self.cfg.camera_retries
+                    ));
+                } else {
+                    attempts = 0;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn shot(&self, f: &super::plan::PlannedFrame, b: usize, deg: f64, exp_us: u32) -> Shot {
+        Shot {
+            frame: f.index,
+            bracket: b,
+            turntable_deg: deg,
+            galvo: f.galvo,
+            channel: self.cfg.laser_channel,
+            exposure_s: exp_us as f64 * 1e-6,
+            triggered_at_us: None,
+        }
+    }
+
+    /// Runs `rest` as one queued program; returns how many leading points got an image.
+    #[allow(clippy::too_many_arguments)]
+    fn program<L: ByteLink>(
+        &mut self,
+        rig: &mut RigClient<L>,
+        camera: &mut dyn Camera,
+        rest: &[super::plan::PlannedFrame],
+        b: usize,
+        deg: f64,
+        exp_us: u32,
+        out: &mut [Vec<Bracket>],
+    ) -> Result<Progressed, ScanError> {
+        let points: Vec<GalvoPoint> = rest
+            .iter()
+            .map(|f| GalvoPoint {
+                x: f.galvo[0],
+                y: f.galvo[1],
+            })
+            .collect();
+        let header = ProgramHeader {
+            len: points.len() as u16,
+            channel: self.cfg.laser_channel,
+            settle_us: None,
+            exposure_us: exp_us,
+            trigger_us: self.cfg.trigger_us.min(exp_us).max(1),
+            interval_us: self.cfg.interval_us,
+        };
+        camera.begin_batch().map_err(|e| ScanError::Camera {
+            frame: rest[0].index,
+            attempts: 1,
+            source: e,
+        })?;
+        rig.load_program(header, &points)
+            .map_err(|e| self.halted_or(e))?;
+        let first_id = rig.run_program().map_err(|e| self.halted_or(e))?;
+        let per = Duration::from_micros(
+            2_000_000 + 4 * (exp_us as u64 + self.cfg.interval_us as u64 + 50_000),
+        );
+        for (i, f) in rest.iter().enumerate() {
+            let c = wait_capture(rig, first_id.wrapping_add(i as u32), per)
+                .map_err(|e| self.halted_or(e))?;
+            let mut shot = self.shot(f, b, deg, exp_us);
+            shot.galvo = [c.galvo.x, c.galvo.y];
+            shot.triggered_at_us = Some(c.triggered_at_us);
+            match fetch(rig, camera, &shot)? {
+                Ok(img) => out[i].push(Bracket {
+                    exposure_s: shot.exposure_s,
+                    image: img,
+                }),
+                Err(e) => {
+                    // Stop the program; the rest is rerun from this point.
+                    rig.stop().map_err(classify)?;
+                    rig.wait_idle(Duration::from_secs(60))
+                        .map_err(|e| self.halted_or(e))?;
+                    rig.arm().map_err(|e| self.halted_or(e))?;
+                    return Ok(Progressed {
+                        count: i,
+                        camera_error: Some(e),
+                    });
+                }
+            }
+        }
+        rig.wait_idle(Duration::from_secs(60))
+            .map_err(|e| self.halted_or(e))?;
+        Ok(Progressed {
+            count: rest.len(),
+            camera_error: None,
+        })
+    }
+
+    /// Host-timed exposures: galvo, laser on, camera, laser off — one frame at a time.
+    #[allow(clippy::too_many_arguments)]
+    fn host_timed<L: ByteLink>(
+        &mut self,
+        rig: &mut RigClient<L>,
+        camera: &mut dyn Camera,
+        rest: &[super::plan::PlannedFrame],
+        b: usize,
+        deg: f64,
+        exp_us: u32,
+        out: &mut [Vec<Bracket>],
+    ) -> Result<Progressed, ScanError> {
+        for (i, f) in rest.iter().enumerate() {
+            self.check_stop()?;
+            rig.galvo(f.galvo[0], f.galvo[1])
+                .map_err(|e| self.halted_or(e))?;
+            rig.poll(Duration::from_millis(5)).map_err(classify)?;
+            rig.laser(self.cfg.laser_channel, true)
+                .map_err(|e| self.halted_or(e))?;
+            let shot = self.shot(f, b, deg, exp_us);
+            let r = fetch(rig, camera, &shot);
+            let off = rig.laser(self.cfg.laser_channel, false);
+            let r = r?;
+            off.map_err(|e| self.halted_or(e))?;
+            match r {
+                Ok(img) => out[i].push(Bracket {
+                    exposure_s: shot.exposure_s,
+                    image: img,
+                }),
+                Err(e) => {
+                    return Ok(Progressed {
+                        count: i,
+                        camera_error: Some(e),
+                    });
+                }
+            }
+        }
+        Ok(Progressed {
+            count: rest.len(),
+            camera_error: None,
+        })
+    }
+
+    fn commit(
+        &mut self,
+        f: &super::plan::PlannedFrame,
+        deg: f64,
+        brackets: &mut Vec<Bracket>,
+        camera: &dyn Camera,
+    ) -> Result<(), ScanError> {
+        let (image, exposure_s) = if brackets.len() == 1 {
+            let b = brackets.remove(0);
+            (b.image, b.exposure_s)
+        } else {
+            let merged = merge_hdr(
+                brackets,
+                &MergeOptions {
+                    saturation: camera.saturation(),
+                    noise_floor: 0.0,
+                },
+            )
+            .map_err(|e| ScanError::Image {
+                frame: f.index,
+                message: e.to_string(),
+            })?;
+            brackets.clear();
+            (merged, 1.0)
+        };
+        let bytes = image.to_exr().map_err(|e| ScanError::Image {
+            frame: f.index,
+            message: e.to_string(),
+        })?;
+        let (origin, direction) = self.cfg.calib.galvo.ray(f.galvo);
+        let entry = FrameEntry {
+            image: DatasetWriter::image_name(f.index),
+            camera: 0,
+            turntable_deg: deg,
+            exposure_s,
+            channel: self.cfg.plan.channel.clone(),
+            laser: LaserRay { origin, direction },
+            galvo: f.galvo,
+        };
+        self.writer.commit(entry, &bytes)?;
+        self.written += 1;
+        Ok(())
+    }
+
+    /// Writes the final `scan.json` and reports.
+    pub fn finish(self, reconnects: u32) -> Result<ScanSummary, ScanError> {
+        let frames_total = self.frames.len();
+        let (resumed_from, frames_written, rig_us, retries, started) = (
+            self.resumed_from,
+            self.written,
+            self.rig_us,
+            self.retries,
+            self.started,
+        );
+        let scan_json = self.writer.finish()?;
+        Ok(ScanSummary {
+            scan_json,
+            frames_total,
+            resumed_from,
+            frames_written,
+            rig_seconds: rig_us as f64 * 1e-6,
+            wall_seconds: started.elapsed().as_secs_f64(),
+            reconnects,
+            camera_retries: retries,
+        })
+    }
+
+    /// Writes `scan.json` with the frames so far (after an error, so the partial dataset is
+    /// readable).
+    pub fn flush_index(&self) -> Result<(), ScanError> {
+        Ok(self.writer.write_index()?)
+    }
+}
+
+struct Progressed {
+    count: usize,
+    camera_error: Option<CameraError>,
+}
+
+/// Waits for the `Captured` event of capture `id`.
+fn wait_capture<L: ByteLink>(
+    rig: &mut RigClient<L>,
+    id: u32,
+    timeout: Duration,
+) -> Result<subsurf_protocol::Captured, RigClientError> {
+    rig.wait_captured(id, timeout)
+}
+
+/// Gets the camera's image for `shot`, keeping the rig's heartbeat going when the camera is slow.
+fn fetch<L: ByteLink>(
+    rig: &mut RigClient<L>,
+    camera: &mut dyn Camera,
+    shot: &Shot,
+) -> Result<Result<LinearImage, CameraError>, ScanError> {
+    if camera.is_quick() {
+        return Ok(camera.capture(shot));
+    }
+    std::thread::scope(|s| {
+        let h = s.spawn(|| camera.capture(shot));
+        while !h.is_finished() {
+            rig.poll(Duration::from_millis(10)).map_err(classify)?;
+        }
+        h.join().map_err(|_| ScanError::Image {
+            frame: shot.frame,
+            message: "the camera thread panicked".into(),
+        })
+    })
+}
+
+/// Runs `scan` over `rig` until done (single session; link failures are returned).
+pub fn run<L: ByteLink>(
+    cfg: &ScanConfig,
+    rig: &mut RigClient<L>,
+    camera: &mut dyn Camera,
+    progress: &ProgressBar,
+) -> Result<ScanSummary, ScanError> {
+    let mut scan = Scan::open(cfg, camera)?;
+    match scan.session(rig, camera, progress) {
+        Ok(()) => scan.finish(0),
+        Err(e) => {
+            let _ = scan.flush_index();
+            Err(e)
+        }
+    }
+}
+
+/// Runs the scan, reconnecting with back-off (0.1 s doubling to 5 s, up to `max_reconnects`)
+/// whenever the link fails; each reconnect handshakes again and resumes at the first frame not
+/// written.
+pub fn run_with_reconnect<L: ByteLink>(
+    cfg: &ScanConfig,
+    connect: &mut dyn FnMut() -> Result<RigClient<L>, RigClientError>,
+    camera: &mut dyn Camera,
+    progress: &ProgressBar,
+    max_reconnects: u32,
+) -> Result<ScanSummary, ScanError> {
+    let mut scan = Scan::open(cfg, camera)?;
+    let mut reconnects = 0u32;
+    let mut backoff = Duration::from_millis(100);
+    loop {
+        let outcome = match connect() {
+            Ok(mut rig) => scan.session(&mut rig, camera, progress),
+            Err(e) => Err(classify(e)),
+        };
+        match outcome {
+            Ok(()) => return scan.finish(reconnects),
+            Err(e) if e.is_link() && reconnects < max_reconnects => {
+                reconnects += 1;
+                progress.println(format!(
+                    "{e}; reconnecting in {backoff:?} (attempt {reconnects}/{max_reconnects})"
+                ));
+                if cfg.stop.load(Ordering::Relaxed) {
+                    let _ = scan.flush_index();
+                    return Err(ScanError::Interrupted {
+                        done: scan.done(),
+                        total: scan.frames.len(),
+                    });
+                }
+                std::thread::sleep(backoff);
+                backoff = (backoff * 2).min(Duration::from_secs(5));
+            }
+            Err(e) => {
+                let _ = scan.flush_index();
+                return Err(e);
+            }
+        }
+    }
+}

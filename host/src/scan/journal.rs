@@ -1,0 +1,478 @@
+//! The crash-safe dataset writer.
+//!
+//! Order of operations for frame `k` (the invariant resume relies on):
+//! 1. the image is written to `frames/.k.exr.tmp`, fsynced, renamed to `frames/k.exr`, and the
+//!    directory is fsynced;
+//! 2. then one line is appended to `.subsurf-scan/journal.jsonl` and fsynced.
+//!
+//! A frame is complete exactly when its journal line is. On reopening, a torn last line is cut
+//! off, every journaled image is checked (size and CRC-32), leftover temporary files are removed,
+//! and the scan continues at the first frame not journaled — so a half-written frame is redone.
+//! Lines hold no timestamps, so a resumed dataset is byte-identical to an uninterrupted one.
+//! `scan.json` is rewritten atomically from the journal now and then and at the end; the journal
+//! is the truth.
+
+use serde::{Deserialize, Serialize};
+use std::fs::{self, File, OpenOptions};
+use std::io::{Read, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use crate::calib::CameraModel;
+
+/// Directory of the bookkeeping files inside the dataset.
+pub const STATE_DIR: &str = ".subsurf-scan";
+
+/// Why the dataset could not be written or resumed.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum JournalError {
+    /// A file operation failed.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: String,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// The disk is (nearly) full; the frame was not written and nothing partial was left.
+    #[error(
+        "disk full at {path}: stopped before frame {frame} ({need} bytes needed, {free} free); \
+         free some space and run the same command again to resume"
+    )]
+    DiskFull {
+        /// The directory.
+        path: String,
+        /// The frame that was not written.
+        frame: usize,
+        /// Bytes needed including the reserve.
+        need: u64,
+        /// Bytes free.
+        free: u64,
+    },
+    /// The output directory holds something else.
+    #[error("{0}")]
+    Mismatch(String),
+}
+
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> JournalError + '_ {
+    move |source| {
+        if source.kind() == std::io::ErrorKind::StorageFull {
+            JournalError::DiskFull {
+                path: path.display().to_string(),
+                frame: usize::MAX,
+                need: 0,
+                free: 0,
+            }
+        } else {
+            JournalError::Io {
+                path: path.display().to_string(),
+                source,
+            }
+        }
+    }
+}
+
+/// The laser ray of a frame, as `scan.json` writes it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LaserRay {
+    /// Ray origin, world frame (mm).
+    pub origin: [f64; 3],
+    /// Unit direction, world frame.
+    pub direction: [f64; 3],
+}
+
+/// One `frames[]` entry of `scan.json` (`docs/scan-format.md`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FrameEntry {
+    /// Image path relative to the dataset.
+    pub image: String,
+    /// Camera index.
+    pub camera: usize,
+    /// Turntable angle (degrees), as the rig reached it.
+    pub turntable_deg: f64,
+    /// Exposure (s); 1 for HDR-merged radiance images.
+    pub exposure_s: f64,
+    /// `rgb`, `r`, `g` or `b`.
+    pub channel: String,
+    /// The laser ray predicted by the galvo calibration.
+    pub laser: LaserRay,
+    /// Galvo codes used.
+    pub galvo: [u16; 2],
+}
+
+/// The dataset-level part of `scan.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DatasetHeader {
+    /// Mesh file name inside the dataset.
+    pub mesh: String,
+    /// Noise floor after dividing by exposure.
+    pub noise_floor: f64,
+    /// The cameras.
+    pub cameras: Vec<CameraModel>,
+}
+
+#[derive(Serialize, Deserialize)]
+struct JournalLine {
+    frame: usize,
+    bytes: u64,
+    crc32: u32,
+    entry: FrameEntry,
+}
+
+#[derive(Serialize)]
+struct ScanJson<'a> {
+    format: &'static str,
+    units: &'static str,
+    mesh: &'a str,
+    noise_floor: f64,
+    cameras: &'a [CameraModel],
+    frames: &'a [FrameEntry],
+}
+
+/// Writes a dataset frame by frame; see the module docs for the guarantees.
+pub struct DatasetWriter {
+    dir: PathBuf,
+    header: DatasetHeader,
+    entries: Vec<FrameEntry>,
+    journal: File,
+    journal_path: PathBuf,
+    last_index: Instant,
+    /// Bytes that must stay free on the disk after each frame.
+    pub reserve_bytes: u64,
+}
+
+/// Writes `bytes` to `path` atomically: temp file, fsync, rename, fsync of the directory.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), JournalError> {
+    let dir = path.parent().unwrap_or(Path::new("."));
+    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("file");
+    let tmp = dir.join(format!(".{name}.tmp"));
+    let result = (|| {
+        let mut f = File::create(&tmp).map_err(io(&tmp))?;
+        f.write_all(bytes).map_err(io(&tmp))?;
+        f.sync_all().map_err(io(&tmp))?;
+        drop(f);
+        fs::rename(&tmp, path).map_err(io(path))?;
+        sync_dir(dir)
+    })();
+    if result.is_err() {
+        let _ = fs::remove_file(&tmp);
+    }
+    result
+}
+
+fn sync_dir(dir: &Path) -> Result<(), JournalError> {
+    File::open(dir).and_then(|d| d.sync_all()).map_err(io(dir))
+}
+
+/// Free bytes on the file system holding `dir`.
+#[cfg(unix)]
+pub fn free_bytes(dir: &Path) -> Option<u64> {
+    use std::os::unix::ffi::OsStrExt;
+    let c = std::ffi::CString::new(dir.as_os_str().as_bytes()).ok()?;
+    let mut s: libc::statvfs = unsafe { std::mem::zeroed() };
+    // SAFETY: `c` is a valid NUL-terminated path and `s` a properly sized out-parameter.
+    let r = unsafe { libc::statvfs(c.as_ptr(), &mut s) };
+    (r == 0).then(|| s.f_bavail as u64 * s.f_frsize as u64)
+}
+
+/// Free bytes are not known on this platform.
+#[cfg(not(unix))]
+pub fn free_bytes(_dir: &Path) -> Option<u64> {
+    None
+}
+
+impl DatasetWriter {
+    /// Opens `dir` for the scan identified by `identity` (the plan and calibration as JSON):
+    /// creates it, or resumes it if it holds the same scan. Returns the writer and the number of
+    /// frames already complete. A directory holding other files or another scan is refused.
+    pub fn open(
+        dir: &Path,
+        identity: &str,
+        header: DatasetHeader,
+        mesh_obj: &[u8],
+    ) -> Result<(Self, usize), JournalError> {
+        let state = dir.join(STATE_DIR);
+        let ident_path = state.join("identity.json");
+        fs::create_dir_all(dir).map_err(io(dir))?;
+        if ident_path.exists() {
+            let old = fs::read_to_string(&ident_path).map_err(io(&ident_path))?;
+            if old != identity {
+                return Err(JournalError::Mismatch(format!(
+                    "{} holds a different scan (other plan, calibration or options); use another \
+                     --out directory, or delete it to start over",
+                    dir.display()
+                )));
+            }
+        } else {
+            let foreign = fs::read_dir(dir)
+                .map_err(io(dir))?
+                .filter_map(|e| e.ok())
+                .any(|e| e.file_name() != STATE_DIR);
+            if foreign {
+                return Err(JournalError::Mismatch(format!(
+                    "{} is not empty and holds no scan to resume; choose an empty or new --out \
+                     directory",
+                    dir.display()
+                )));
+            }
+            fs::create_dir_all(dir.join("frames")).map_err(io(dir))?;
+            fs::create_dir_all(&state).map_err(io(&state))?;
+            write_atomic(&dir.join(&header.mesh), mesh_obj)?;
+            write_atomic(&ident_path, identity.as_bytes())?;
+        }
+        fs::create_dir_all(dir.join("frames")).map_err(io(dir))?;
+        if !dir.join(&header.mesh).exists() {
+            write_atomic(&dir.join(&header.mesh), mesh_obj)?;
+        }
+        // Leftover temporaries of an interrupted write.
+        for e in fs::read_dir(dir.join("frames")).map_err(io(dir))?.flatten() {
+            if e.file_name().to_string_lossy().ends_with(".tmp") {
+                let _ = fs::remove_file(e.path());
+            }
+        }
+        let journal_path = state.join("journal.jsonl");
+        let mut journal = OpenOptions::new()
+            .create(true)
+            .read(true)
+            .append(true)
+            .open(&journal_path)
+            .map_err(io(&journal_path))?;
+        let mut text = Vec::new();
+        journal.read_to_end(&mut text).map_err(io(&journal_path))?;
+        let mut entries = Vec::new();
+        let mut good_len = 0usize;
+        for line in text.split_inclusive(|b| *b == b'\n') {
+            if !line.ends_with(b"\n") {
+                break;
+            }
+            let Ok(l) = serde_json::from_slice::<JournalLine>(line) else {
+                break;
+            };
+            if l.frame != entries.len() || !image_intact(dir, &l) {
+                break;
+            }
+            entries.push(l.entry);
+            good_len += line.len();
+        }
+        if good_len != text.len() {
+            journal
+                .set_len(good_len as u64)
+                .map_err(io(&journal_path))?;
+            journal.sync_all().map_err(io(&journal_path))?;
+        }
+        journal.seek(SeekFrom::End(0)).map_err(io(&journal_path))?;
+        let done = entries.len();
+        let w = DatasetWriter {
+            dir: dir.to_path_buf(),
+            header,
+            entries,
+            journal,
+            journal_path,
+            last_index: Instant::now(),
+            reserve_bytes: 16 << 20,
+        };
+        w.write_index()?;
+        Ok((w, done))
+    }
+
+    /// Frames complete so far.
+    pub fn done(&self) -> usize {
+        self.entries.len()
+    }
+
+    /// The image path (relative) of frame `k`.
+    pub fn image_name(k: usize) -> String {
+        format!("frames/{k:06}.exr")
+    }
+
+    /// Records frame `entries.len()`: image atomically, then its journal line (see module docs).
+    pub fn commit(&mut self, entry: FrameEntry, image_bytes: &[u8]) -> Result<(), JournalError> {
+        let k = self.entries.len();
+        let need = image_bytes.len() as u64 + 4096 + self.reserve_bytes;
+        if let Some(free) = free_bytes(&self.dir)
+            && free < need
+        {
+            return Err(JournalError::DiskFull {
+                path: self.dir.display().to_string(),
+                frame: k,
+                need,
+                free,
+            });
+        }
+        let path = self.dir.join(&entry.image);
+        write_atomic(&path, image_bytes).map_err(|e| match e {
+            JournalError::DiskFull { path, .. } => JournalError::DiskFull {
+                path,
+                frame: k,
+                need,
+                free: 0,
+            },
+            e => e,
+        })?;
+        let line = JournalLine {
+            frame: k,
+            bytes: image_bytes.len() as u64,
+            crc32: crc32(image_bytes),
+            entry: entry.clone(),
+        };
+        let mut text = serde_json::to_string(&line).map_err(|e| JournalError::Io {
+            path: self.journal_path.display().to_string(),
+            source: std::io::Error::other(e),
+        })?;
+        text.push('\n');
+        self.journal
+            .write_all(text.as_bytes())
+            .and_then(|_| self.journal.sync_data())
+            .map_err(io(&self.journal_path))?;
+        self.entries.push(entry);
+        if self.last_index.elapsed() > Duration::from_secs(5) {
+            self.write_index()?;
+        }
+        Ok(())
+    }
+
+    /// Rewrites `scan.json` from the frames journaled so far.
+    pub fn write_index(&self) -> Result<(), JournalError> {
+        let json = ScanJson {
+            format: "subsurf-scan/1",
+            units: "mm",
+            mesh: &self.header.mesh,
+            noise_floor: self.header.noise_floor,
+            cameras: &self.header.cameras,
+            frames: &self.entries,
+        };
+        let path = self.dir.join("scan.json");
+        let text = serde_json::to_string_pretty(&json).map_err(|e| JournalError::Io {
+            path: path.display().to_string(),
+            source: std::io::Error::other(e),
+        })?;
+        write_atomic(&path, (text + "\n").as_bytes())
+    }
+
+    /// Writes the final `scan.json`.
+    pub fn finish(mut self) -> Result<PathBuf, JournalError> {
+        self.write_index()?;
+        self.last_index = Instant::now();
+        Ok(self.dir.join("scan.json"))
+    }
+}
+
+fn crc32(b: &[u8]) -> u32 {
+    crc::Crc::<u32>::new(&crc::CRC_32_ISO_HDLC).checksum(b)
+}
+
+fn image_intact(dir: &Path, l: &JournalLine) -> bool {
+    if l.entry.image.contains("..") || Path::new(&l.entry.image).is_absolute() {
+        return false;
+    }
+    match fs::read(dir.join(&l.entry.image)) {
+        Ok(b) => b.len() as u64 == l.bytes && crc32(&b) == l.crc32,
+        Err(_) => false,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn header() -> DatasetHeader {
+        DatasetHeader {
+            mesh: "object.obj".into(),
+            noise_floor: 1e-4,
+            cameras: vec![crate::calib::Calibration::builtin().camera],
+        }
+    }
+
+    fn entry(k: usize) -> FrameEntry {
+        FrameEntry {
+            image: DatasetWriter::image_name(k),
+            camera: 0,
+            turntable_deg: k as f64,
+            exposure_s: 0.01,
+            channel: "rgb".into(),
+            laser: LaserRay {
+                origin: [0.0; 3],
+                direction: [0.0, 0.0, -1.0],
+            },
+            galvo: [k as u16, 7],
+        }
+    }
+
+    fn snapshot(dir: &Path) -> Vec<(String, Vec<u8>)> {
+        let mut out = Vec::new();
+        for p in ["scan.json", "object.obj", ".subsurf-scan/journal.jsonl"] {
+            out.push((p.to_string(), fs::read(dir.join(p)).unwrap()));
+        }
+        let mut names: Vec<_> = fs::read_dir(dir.join("frames"))
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().to_string())
+            .collect();
+        names.sort();
+        for n in names {
+            out.push((n.clone(), fs::read(dir.join("frames").join(n)).unwrap()));
+        }
+        out
+    }
+
+    #[test]
+    fn torn_journal_and_half_written_frame_are_redone() {
+        let a = tempfile::tempdir().unwrap();
+        let (mut w, done) = DatasetWriter::open(a.path(), "id", header(), b"o").unwrap();
+        assert_eq!(done, 0);
+        for k in 0..4 {
+            w.commit(entry(k), &[k as u8; 10]).unwrap();
+        }
+        w.finish().unwrap();
+
+        let b = tempfile::tempdir().unwrap();
+        let (mut w, _) = DatasetWriter::open(b.path(), "id", header(), b"o").unwrap();
+        for k in 0..3 {
+            w.commit(entry(k), &[k as u8; 10]).unwrap();
+        }
+        drop(w);
+        // Frame 3's image renamed but not journaled, frame 2's line torn, a stray temp file.
+        fs::write(b.path().join("frames/000003.exr"), b"garbage").unwrap();
+        fs::write(b.path().join("frames/.000004.exr.tmp"), b"x").unwrap();
+        let j = b.path().join(".subsurf-scan/journal.jsonl");
+        let text = fs::read(&j).unwrap();
+        fs::write(&j, &text[..text.len() - 7]).unwrap();
+        let (mut w, done) = DatasetWriter::open(b.path(), "id", header(), b"o").unwrap();
+        assert_eq!(done, 2);
+        for k in done..4 {
+            w.commit(entry(k), &[k as u8; 10]).unwrap();
+        }
+        w.finish().unwrap();
+        assert_eq!(snapshot(a.path()), snapshot(b.path()));
+    }
+
+    #[test]
+    fn refuses_foreign_directories_and_other_scans() {
+        let d = tempfile::tempdir().unwrap();
+        fs::write(d.path().join("holiday.jpg"), b"x").unwrap();
+        let e = DatasetWriter::open(d.path(), "id", header(), b"o")
+            .err()
+            .unwrap();
+        assert!(e.to_string().contains("not empty"), "{e}");
+        let d = tempfile::tempdir().unwrap();
+        DatasetWriter::open(d.path(), "id", header(), b"o").unwrap();
+        let e = DatasetWriter::open(d.path(), "other", header(), b"o")
+            .err()
+            .unwrap();
+        assert!(e.to_string().contains("different scan"), "{e}");
+    }
+
+    #[test]
+    fn full_disk_stops_before_the_frame() {
+        let d = tempfile::tempdir().unwrap();
+        let (mut w, _) = DatasetWriter::open(d.path(), "id", header(), b"o").unwrap();
+        w.commit(entry(0), b"abc").unwrap();
+        w.reserve_bytes = u64::MAX / 4;
+        let e = w.commit(entry(1), b"def").unwrap_err();
+        assert!(matches!(e, JournalError::DiskFull { frame: 1, .. }), "{e}");
+        assert!(!d.path().join("frames/000001.exr").exists());
+        drop(w);
+        let (_, done) = DatasetWriter::open(d.path(), "id", header(), b"o").unwrap();
+        assert_eq!(done, 1);
+    }
+}

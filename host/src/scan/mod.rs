@@ -1,0 +1,11 @@
+//! Scanning: plan what to capture, drive the rig and a camera, and write a scan dataset
+//! (`docs/scan-format.md`) that survives crashes and resumes.
+//!
+//! Dependencies point one way: `scan` uses `calib`, the rig client and the dataset writer; no
+//! other module calls into `scan` except the commands and the demo.
+
+pub mod camera;
+pub mod driver;
+pub mod frame;
+pub mod journal;
+pub mod plan;

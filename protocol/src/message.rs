@@ -1,0 +1,453 @@
+//! The message set: host → rig [`Request`]s, rig → host [`RigMessage`]s (replies and events).
+//!
+//! Every type here is plain data with a fixed upper size (no `String`, no unbounded `Vec`), so a whole
+//! message always fits into one frame of at most [`crate::MAX_FRAME`] bytes.
+
+use heapless::Vec;
+use serde::{Deserialize, Serialize};
+
+/// Version of this wire format. The rig refuses a [`Command::Hello`] with any other version
+/// ([`RigError::UnknownVersion`]), so host and rig never talk past each other.
+pub const PROTOCOL_VERSION: u16 = 1;
+
+/// Galvo points per [`Command::ProgramPoints`] chunk: 32 points of at most 6 bytes each keep the
+/// chunk well inside [`crate::MAX_MESSAGE`].
+pub const PROGRAM_CHUNK: usize = 32;
+
+/// Number of laser channels a [`Command::Laser`] can address (bits of [`Status::lasers`]).
+pub const MAX_LASER_CHANNELS: u8 = 8;
+
+/// How many recent replies the rig keeps for answering retransmissions (see `docs/protocol.md`).
+pub const REPLY_CACHE: usize = 4;
+
+/// A request at most this far behind the newest executed `seq` (wrapping) and no longer in the
+/// reply cache is a late duplicate: refused with [`RigError::StaleSequence`], never executed.
+/// Farther back counts as new (a host that restarted without `Hello`).
+pub const STALE_WINDOW: u32 = 64;
+
+/// Request sequence number. The host increments it (wrapping) for every new request and reuses it
+/// when it retransmits; the rig echoes it in the [`Reply`].
+pub type Seq = u32;
+
+/// One host → rig message. See `docs/protocol.md` for the sequence and retransmission rules.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Request {
+    /// Echoed in the reply; a repeated `seq` is answered from the rig's reply cache, not re-run.
+    pub seq: Seq,
+    /// What the rig should do.
+    pub command: Command,
+}
+
+/// Everything the host can ask the rig to do.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[non_exhaustive]
+pub enum Command {
+    /// Handshake: the host's [`PROTOCOL_VERSION`]; answered with [`Response::Hello`].
+    Hello {
+        /// The host's protocol version.
+        protocol_version: u16,
+    },
+    /// Keeps the link alive (any valid request does); answered with [`Response::Ack`].
+    Heartbeat,
+    /// Answered with [`Response::Status`].
+    Status,
+    /// Answered with [`Response::Config`].
+    GetConfig,
+    /// Replaces the rig's tunable settings; answered with [`Response::Ack`].
+    SetConfig(Config),
+    /// Seek the home switch and define position 0 there; [`EventKind::Homed`] when done.
+    Home,
+    /// Move the turntable; [`EventKind::MoveDone`] when done. The laser is forced off meanwhile.
+    Move(Move),
+    /// Set the galvo DAC codes now.
+    Galvo(GalvoPoint),
+    /// Allow laser emission (refused with the interlock open, e-stop pressed or in fault).
+    Arm,
+    /// Forbid laser emission; all channels go off.
+    Disarm,
+    /// Switch one laser channel (armed and not moving only).
+    Laser {
+        /// Channel index, `0..capabilities.laser_channels`.
+        channel: u8,
+        /// On or off; "off" is always accepted.
+        on: bool,
+    },
+    /// One atomic capture; answered with [`Response::CaptureStarted`], then [`EventKind::Captured`].
+    Capture(Capture),
+    /// Start uploading a queued capture program (discards any previous one).
+    ProgramLoad(ProgramHeader),
+    /// One chunk of program points, in order.
+    ProgramPoints(ProgramChunk),
+    /// Run the fully uploaded program: one [`EventKind::Captured`] per point, then
+    /// [`EventKind::ProgramDone`].
+    ProgramRun,
+    /// Laser off, disarm, halt the motor, abort any capture or program.
+    Stop,
+    /// Leave the fault state once its cause is gone (e.g. e-stop released).
+    ClearFault,
+}
+
+/// A turntable move. Speeds in steps/s, acceleration in steps/s².
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Move {
+    /// Where to go.
+    pub target: MoveTarget,
+    /// Cruise speed, steps/s (`1..=capabilities.max_speed`).
+    pub max_speed: u32,
+    /// Acceleration and deceleration, steps/s² (`1..=capabilities.max_accel`).
+    pub accel: u32,
+}
+
+/// Absolute or relative move target, in motor steps.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum MoveTarget {
+    /// Go to this step position.
+    Absolute(i32),
+    /// Go this many steps from the current position (out of range if the sum overflows i32).
+    Relative(i32),
+}
+
+/// Galvo DAC codes for the two mirror axes, `0..=capabilities.galvo_max`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct GalvoPoint {
+    /// X mirror code.
+    pub x: u16,
+    /// Y mirror code.
+    pub y: u16,
+}
+
+/// One atomic capture: galvo → settle → laser on → camera trigger → expose → laser off.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Capture {
+    /// Where to point the laser.
+    pub galvo: GalvoPoint,
+    /// Settle time after the galvo jump; `None` = computed by the rig from the jump size.
+    pub settle_us: Option<u32>,
+    /// Laser channel to fire.
+    pub channel: u8,
+    /// Laser-on time, µs (`1..=capabilities.max_exposure_us`).
+    pub exposure_us: u32,
+    /// Camera trigger pulse width, µs (`1..=exposure_us`).
+    pub trigger_us: u32,
+}
+
+/// Header of a queued capture program: the shared capture settings and the point count.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct ProgramHeader {
+    /// Number of points that will follow (`1..=capabilities.max_program_points`).
+    pub len: u16,
+    /// Laser channel for every capture.
+    pub channel: u8,
+    /// Settle time per point; `None` = from the jump size.
+    pub settle_us: Option<u32>,
+    /// Laser-on time per capture, µs.
+    pub exposure_us: u32,
+    /// Camera trigger pulse width, µs.
+    pub trigger_us: u32,
+    /// Minimum time between the starts of two consecutive captures (camera read-out), µs.
+    pub interval_us: u32,
+}
+
+/// A run of program points starting at index `offset`. Chunks must arrive in order
+/// (`offset` = points received so far); a repeated chunk is answered from the reply cache.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct ProgramChunk {
+    /// Index of the first point of this chunk within the program.
+    pub offset: u16,
+    /// The points.
+    pub points: Vec<GalvoPoint, PROGRAM_CHUNK>,
+}
+
+/// Tunable rig settings (read with [`Command::GetConfig`], written with [`Command::SetConfig`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Config {
+    /// Without any valid request for this long, the rig turns the laser off, disarms and halts.
+    pub heartbeat_timeout_ms: u32,
+    /// Galvo settle time for a zero-length jump, µs.
+    pub galvo_settle_min_us: u32,
+    /// Extra galvo settle time per 1000 codes of the larger axis jump, µs.
+    pub galvo_settle_per_kcode_us: u32,
+    /// Homing cruise speed, steps/s.
+    pub home_speed: u32,
+    /// Homing acceleration, steps/s².
+    pub home_accel: u32,
+    /// Homing gives up (fault) after this many steps without seeing the switch.
+    pub home_max_steps: u32,
+}
+
+/// Rig → host: either a reply to a request or an unsolicited event.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum RigMessage {
+    /// Answer to the request with the same `seq`.
+    Reply(Reply),
+    /// Something happened on the rig.
+    Event(Event),
+}
+
+/// The rig's answer to one request.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Reply {
+    /// The request's sequence number.
+    pub seq: Seq,
+    /// What the request did, or why the rig refused it (nothing was executed then).
+    pub result: Result<Response, RigError>,
+}
+
+/// Successful answers.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[non_exhaustive]
+pub enum Response {
+    /// Accepted; for long operations, completion comes as an event.
+    Ack,
+    /// Answer to [`Command::Hello`].
+    Hello(Hello),
+    /// Answer to [`Command::Status`].
+    Status(Status),
+    /// Answer to [`Command::GetConfig`].
+    Config(Config),
+    /// The capture was started with this id; [`EventKind::Captured`] carries the same id.
+    CaptureStarted {
+        /// Id of the capture (a rig-wide counter).
+        capture_id: u32,
+    },
+    /// The program was started; its captures get ids `first_capture_id..first_capture_id + len`.
+    ProgramStarted {
+        /// Id of the program's first capture.
+        first_capture_id: u32,
+    },
+}
+
+/// Handshake answer: what the rig is and can do.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Hello {
+    /// The rig's [`PROTOCOL_VERSION`].
+    pub protocol_version: u16,
+    /// Firmware build version.
+    pub firmware_version: FirmwareVersion,
+    /// Hardware limits.
+    pub capabilities: Capabilities,
+}
+
+/// Semantic version of the firmware.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct FirmwareVersion {
+    /// Major.
+    pub major: u16,
+    /// Minor.
+    pub minor: u16,
+    /// Patch.
+    pub patch: u16,
+}
+
+/// Fixed hardware limits of the rig, announced in the handshake.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Capabilities {
+    /// Motor steps (microsteps) per turntable revolution.
+    pub steps_per_rev: u32,
+    /// Largest galvo DAC code (both axes).
+    pub galvo_max: u16,
+    /// Number of laser channels.
+    pub laser_channels: u8,
+    /// Largest accepted move speed, steps/s.
+    pub max_speed: u32,
+    /// Largest accepted acceleration, steps/s².
+    pub max_accel: u32,
+    /// Longest accepted exposure, µs.
+    pub max_exposure_us: u32,
+    /// Most points in one queued capture program.
+    pub max_program_points: u16,
+}
+
+/// What the rig is doing.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum RigState {
+    /// Nothing in progress.
+    Idle,
+    /// Seeking the home switch.
+    Homing,
+    /// Turntable moving.
+    Moving,
+    /// Running one atomic capture.
+    Capturing,
+    /// Running a queued capture program.
+    Program,
+    /// Stopped by a fault; see [`Status::fault`].
+    Fault,
+}
+
+/// Raw state of the rig's safety and homing inputs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Inputs {
+    /// Emergency stop pressed.
+    pub estop: bool,
+    /// Enclosure interlock closed (laser allowed).
+    pub interlock_closed: bool,
+    /// Home switch active.
+    pub home_switch: bool,
+}
+
+/// A snapshot of the rig (answer to [`Command::Status`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Status {
+    /// What the rig is doing.
+    pub state: RigState,
+    /// Current turntable position, steps.
+    pub position: i32,
+    /// Whether position 0 is the home switch.
+    pub homed: bool,
+    /// Laser armed.
+    pub armed: bool,
+    /// Bit `i` set = laser channel `i` emitting.
+    pub lasers: u8,
+    /// Current galvo codes.
+    pub galvo: GalvoPoint,
+    /// Safety and homing inputs.
+    pub inputs: Inputs,
+    /// The active fault, if any.
+    pub fault: Option<Fault>,
+    /// Id the next capture will get (= captures completed or started so far).
+    pub next_capture_id: u32,
+    /// Sequence number the next event will get: lets the host detect lost events.
+    pub next_event_seq: u32,
+    /// Points of the loaded program received so far / its length.
+    pub program_received: u16,
+    /// Length of the loaded program (0 = none).
+    pub program_len: u16,
+    /// Frames the rig's decoder dropped (corrupt, oversize, malformed).
+    pub rx_dropped: u32,
+    /// Rig clock, µs since boot.
+    pub uptime_us: u64,
+}
+
+/// Why the rig refused a request. Nothing was executed when a request gets an error.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[non_exhaustive]
+pub enum RigError {
+    /// The host's protocol version is not the rig's.
+    UnknownVersion {
+        /// The rig's version.
+        rig: u16,
+    },
+    /// Laser command while disarmed.
+    NotArmed,
+    /// Arming or laser command with the enclosure interlock open.
+    InterlockOpen,
+    /// Emergency stop is pressed.
+    EmergencyStop,
+    /// The rig is in fault; send [`Command::ClearFault`] once the cause is gone.
+    Faulted(Fault),
+    /// Another operation is in progress (move, homing, capture, program).
+    Busy,
+    /// A parameter is outside the announced capabilities, or a relative move overflows.
+    OutOfRange,
+    /// No such laser channel.
+    NoSuchChannel,
+    /// Program chunk out of order, or running a program that is not completely uploaded.
+    ProgramIncomplete,
+    /// A request older than the rig's reply cache (already executed, its reply is gone).
+    StaleSequence,
+}
+
+/// Conditions that stop the rig until [`Command::ClearFault`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[non_exhaustive]
+pub enum Fault {
+    /// Emergency stop was pressed.
+    EmergencyStop,
+    /// Homing ran `home_max_steps` without reaching the switch.
+    HomingFailed,
+}
+
+/// Unsolicited rig → host message. `event_seq` increases by one per event, so the host can tell
+/// when one was lost on the link (and reconcile through [`Command::Status`]).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Event {
+    /// Per-rig event counter (wrapping).
+    pub event_seq: u32,
+    /// Rig clock when the event was emitted, µs since boot.
+    pub timestamp_us: u64,
+    /// What happened.
+    pub kind: EventKind,
+}
+
+/// What an [`Event`] reports.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[non_exhaustive]
+pub enum EventKind {
+    /// A capture finished (laser off again).
+    Captured(Captured),
+    /// A move finished at this position.
+    MoveDone {
+        /// Final position, steps.
+        position: i32,
+    },
+    /// Homing finished; position is now 0.
+    Homed,
+    /// A queued program finished or was aborted after `completed` captures.
+    ProgramDone {
+        /// Captures run.
+        completed: u16,
+        /// Whether all points were captured.
+        finished: bool,
+    },
+    /// Work in progress was aborted and the laser forced off and disarmed.
+    Halted {
+        /// Why.
+        reason: HaltReason,
+    },
+}
+
+/// One finished capture.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Captured {
+    /// Capture id (from [`Response::CaptureStarted`] or [`Response::ProgramStarted`]).
+    pub capture_id: u32,
+    /// Index within the running program, `None` for an atomic capture.
+    pub program_index: Option<u16>,
+    /// Rig clock at the rising edge of the camera trigger, µs.
+    pub triggered_at_us: u64,
+    /// Where the laser pointed.
+    pub galvo: GalvoPoint,
+    /// Which channel fired.
+    pub channel: u8,
+}
+
+/// Why the rig halted.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[non_exhaustive]
+pub enum HaltReason {
+    /// [`Command::Stop`].
+    Stop,
+    /// Emergency stop pressed.
+    EmergencyStop,
+    /// Enclosure interlock opened.
+    InterlockOpen,
+    /// No request within `heartbeat_timeout_ms`.
+    HeartbeatLost,
+    /// Homing failed.
+    HomingFailed,
+}
