@@ -17,4 +17,5 @@ pub mod plot;
 pub mod render;
 pub mod rig;
 pub mod scan;
+pub mod sim;
 pub mod simulate;

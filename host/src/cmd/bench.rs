@@ -1,144 +1,167 @@
-//! `subsurf bench …`: measurements whose output goes into BENCHMARKS.md unedited (release mode).
+//! `subsurf bench …`: performance figures for BENCHMARKS.md (run with `--release`).
 
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
-use anyhow::{Context, Result};
-use clap::Subcommand;
-use subsurf::render::{self, Camera, HierarchyParams, Method, RenderOptions};
+use anyhow::{Context, bail};
+use subsurf::link::SerialLink;
+use subsurf::rig::{ClientConfig, RigClient};
+use subsurf_protocol::{Command, EventKind, GalvoPoint, ProgramHeader};
 
-/// Run a benchmark and print its table.
+/// Measure parts of subsurf; each subcommand prints its figures.
 #[derive(Debug, clap::Args)]
 pub struct Args {
     #[command(subcommand)]
-    what: What,
+    what: Bench,
 }
 
-#[derive(Debug, Subcommand)]
-enum What {
-    /// Hierarchical against exact transport on the built-in marble torus: speed-up and pixel error
-    /// along the error-bound curve.
-    Render(RenderBench),
+#[derive(Debug, clap::Subcommand)]
+enum Bench {
+    /// Rig link: request/reply round trips per second and capture events per second, against the
+    /// simulated rig served on a pseudo-terminal (or a real rig with --port).
+    Rig(RigArgs),
+    /// Rendering: hierarchical against exact transport on the built-in marble torus (speed-up and
+    /// pixel error along the error-bound curve).
+    Render(super::bench_render::RenderBench),
 }
 
 #[derive(Debug, clap::Args)]
-struct RenderBench {
-    /// Vertices of the built-in model (rounded to a torus grid).
-    #[arg(long, default_value_t = 50_000)]
-    vertices: usize,
-    /// Image width and height.
-    #[arg(long, default_value_t = 384)]
-    size: u32,
-    /// Write the speed/error curve as a PNG here.
+struct RigArgs {
+    /// Round trips to time.
+    #[arg(long, default_value_t = 20_000)]
+    round_trips: u32,
+    /// Captures to stream (queued capture programs, one event each).
+    #[arg(long, default_value_t = 20_000)]
+    captures: u32,
+    /// Benchmark the rig on this serial port instead of the simulated rig.
     #[arg(long)]
-    plot: Option<std::path::PathBuf>,
+    port: Option<String>,
+    /// Baud rate for --port.
+    #[arg(long, default_value_t = 115_200)]
+    baud: u32,
 }
 
-pub fn run(args: Args) -> Result<()> {
+pub fn run(args: Args) -> anyhow::Result<()> {
     match args.what {
-        What::Render(b) => bench_render(b),
+        Bench::Rig(a) => rig(a),
+        Bench::Render(a) => super::bench_render::bench_render(a),
     }
 }
 
-/// The error-bound curve the benchmark walks: (ε, tail tolerance), loosest first.
-pub const CURVE: [(f64, f64); 7] = [
-    (1.0, 1e-3),
-    (0.5, 1e-3),
-    (0.3, 1e-3),
-    (0.2, 1e-3),
-    (0.1, 1e-4),
-    (0.05, 1e-4),
-    (0.02, 1e-5),
-];
+fn rig(args: RigArgs) -> anyhow::Result<()> {
+    // The simulated rig is served by a thread on a pseudo-terminal, exactly as `rig serve-sim`
+    // does, and the client opens the device path like any serial client.
+    let mut _server = None;
+    let mut _device = None;
+    let (path, what) = match &args.port {
+        Some(p) => (p.clone(), format!("rig on {p}")),
+        None => {
+            let (controller, device) = SerialLink::pty_pair().context("creating a pty")?;
+            let path = device.path().context("pty without a path")?;
+            _server = Some(
+                subsurf::sim::spawn(controller, subsurf::sim::SimParams::default())
+                    .context("starting the simulated rig")?,
+            );
+            _device = Some(device);
+            (
+                path.clone(),
+                format!("simulated rig on pseudo-terminal {path}"),
+            )
+        }
+    };
+    let link = SerialLink::open(&path, args.baud)?;
+    let mut rig = RigClient::connect(link, ClientConfig::default())
+        .with_context(|| format!("connecting to the {what}"))?;
+    println!("bench rig: {what}");
 
-fn bench_render(b: RenderBench) -> Result<()> {
-    let nu = ((b.vertices as f64 * 2.5).sqrt().round() as usize).max(3);
-    let nv = (b.vertices / nu).max(3);
-    let model = render::synthetic::marble_torus(nu, nv);
-    let lights: Vec<render::Light> = vec![
-        "point:120,-80,90:9000,9000,9000".parse()?,
-        "dir:0.3,1,-0.4:0.3,0.3,0.35".parse()?,
-    ];
-    let (lo, hi) = model.bounds();
-    let cam = Camera::framing(lo, hi, [0.6, -1.0, 0.8], b.size, b.size)?;
-    println!(
-        "model: marble torus, {} vertices, {} faces; image {}x{}; {} rayon threads",
-        model.len(),
-        model.faces.len(),
-        b.size,
-        b.size,
-        rayon::current_num_threads()
-    );
-    let t = Instant::now();
-    let exact = render::render(
-        &model,
-        &lights,
-        &cam,
-        &RenderOptions {
-            method: Method::Exact,
-            eta: Some(1.3),
-        },
-    )
-    .context("exact render")?;
-    let t_exact = t.elapsed().as_secs_f64();
-    println!();
-    println!(
-        "| method | ε (sr) | tail tol | transport s | render s | speed-up (transport) | speed-up (render) | mean rel. pixel error | clusters/receiver | points/receiver | build s |"
-    );
-    println!("|---|---|---|---|---|---|---|---|---|---|---|");
-    println!(
-        "| exact | – | – | {:.3} | {:.3} | 1 | 1 | 0 | 0 | {:.0} | – |",
-        exact.seconds[1],
-        t_exact,
-        exact.stats.point_evals as f64 / exact.stats.receivers.max(1) as f64
-    );
-    let mut curve = Vec::new();
-    for (eps, tol) in CURVE {
-        let opts = RenderOptions {
-            method: Method::Hierarchical(HierarchyParams {
-                max_solid_angle: eps,
-                tail_tolerance: tol,
-            }),
-            eta: Some(1.3),
-        };
-        let t = Instant::now();
-        let h = render::render(&model, &lights, &cam, &opts)?;
-        let total = t.elapsed().as_secs_f64();
-        let err = render::relative_pixel_error(&h.image, &exact.image, 1e-3).unwrap_or(f64::NAN);
-        let r = h.stats.receivers.max(1) as f64;
-        println!(
-            "| hierarchical | {eps} | {tol:e} | {:.3} | {:.3} | {:.1} | {:.1} | {:.4}% | {:.0} | {:.0} | {:.3} |",
-            h.seconds[1],
-            total,
-            exact.seconds[1] / h.seconds[1],
-            t_exact / total,
-            100.0 * err,
-            h.stats.cluster_evals as f64 / r,
-            h.stats.point_evals as f64 / r,
-            h.stats.build_seconds
-        );
-        curve.push((total, err));
-    }
-    for q in [
-        render::Quality::Draft,
-        render::Quality::Balanced,
-        render::Quality::Best,
+    // Round trips: Heartbeat (smallest request and reply) and Status (largest reply).
+    for (name, command) in [
+        ("heartbeat", Command::Heartbeat),
+        ("status", Command::Status),
     ] {
+        let start = Instant::now();
+        for _ in 0..args.round_trips {
+            rig.call(command.clone())
+                .with_context(|| format!("{name} round trip"))?;
+        }
+        let secs = start.elapsed().as_secs_f64();
         println!(
-            "`--quality {:?}` = ε {}, tail tol {:e}",
-            q,
-            q.params().max_solid_angle,
-            q.params().tail_tolerance
+            "round trips ({name}): {} in {:.3} s = {:.0} /s ({:.1} us each)",
+            args.round_trips,
+            secs,
+            f64::from(args.round_trips) / secs,
+            secs * 1e6 / f64::from(args.round_trips)
         );
     }
-    if let Some(path) = b.plot {
-        subsurf::plot::tradeoff_curve(
-            &path,
-            "Hierarchical transport: time vs. error (exact = reference)",
-            &curve,
-            t_exact,
-        )
-        .with_context(|| format!("writing {}", path.display()))?;
-        println!("plot: {}", path.display());
+
+    // Capture events: queued programs with the shortest timings the rig accepts, so the figure
+    // is the event path (rig → link → decoder → client), not the optics.
+    let caps = rig.hello().capabilities;
+    let per_program = u32::from(caps.max_program_points).max(1);
+    let galvo_max = u32::from(caps.galvo_max).max(1);
+    rig.arm().context("arming for the capture benchmark")?;
+    let mut received = 0u32;
+    let mut lost = 0u32;
+    let mut rig_time_us = 0u64;
+    let start = Instant::now();
+    let mut remaining = args.captures;
+    while remaining > 0 {
+        let len = remaining.min(per_program);
+        let points: Vec<GalvoPoint> = (0..len)
+            .map(|i| GalvoPoint {
+                x: u16::try_from(i % galvo_max).unwrap_or(0),
+                y: 0,
+            })
+            .collect();
+        let header = ProgramHeader {
+            len: u16::try_from(len).context("program length")?,
+            channel: 0,
+            settle_us: Some(1),
+            exposure_us: 1,
+            trigger_us: 1,
+            interval_us: 1,
+        };
+        rig.load_program(header, &points)
+            .context("loading a program")?;
+        rig.run_program().context("running a program")?;
+        let mut got = 0u32;
+        let mut first_us = None;
+        loop {
+            let Some(event) = rig.next_event(Duration::from_secs(10))? else {
+                bail!("no event for 10 s while streaming captures");
+            };
+            match event.kind {
+                EventKind::Captured(c) => {
+                    got += 1;
+                    first_us.get_or_insert(c.triggered_at_us);
+                }
+                EventKind::ProgramDone { completed, .. } => {
+                    lost += u32::from(completed).saturating_sub(got);
+                    rig_time_us += event
+                        .timestamp_us
+                        .saturating_sub(first_us.unwrap_or(event.timestamp_us));
+                    break;
+                }
+                EventKind::Halted { reason } => bail!("rig halted: {reason:?}"),
+                _ => {}
+            }
+        }
+        received += got;
+        remaining -= len;
     }
+    let secs = start.elapsed().as_secs_f64();
+    rig.disarm().context("disarming")?;
+    println!(
+        "capture events: {received} in {secs:.3} s = {:.0} /s (programs of {per_program} points, \
+         upload included; {lost} lost; rig clock span {:.3} s)",
+        f64::from(received) / secs,
+        rig_time_us as f64 / 1e6
+    );
+    let stats = rig.stats();
+    println!(
+        "client: {} requests, {} retransmits, {} decoder drops",
+        stats.requests,
+        stats.retransmits,
+        stats.decoder.dropped()
+    );
     Ok(())
 }

@@ -2,11 +2,13 @@
 use clap::{Parser, Subcommand};
 
 mod bench;
+mod bench_render;
 mod fit_curve;
 mod flash;
 mod ports;
 mod probes;
 mod render;
+mod rig;
 mod simulate;
 
 /// Capture real translucent objects and turn them into compact, renderable models.
@@ -29,7 +31,9 @@ enum Command {
     FitCurve(fit_curve::Args),
     /// Write a simulated scan dataset with ground truth.
     Simulate(simulate::Args),
-    /// Benchmarks (release mode) whose output goes into BENCHMARKS.md.
+    /// Talk to the rig or the simulated rig.
+    Rig(rig::Args),
+    /// Measure performance (figures for BENCHMARKS.md).
     Bench(bench::Args),
     /// Relight a fitted model under point, spot and directional lights: PNG (+ linear EXR).
     Render(render::Args),
@@ -42,7 +46,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Probes(args) => probes::run(args),
         Command::FitCurve(args) => fit_curve::run(args),
         Command::Simulate(a) => simulate::run(a),
-        Command::Bench(a) => bench::run(a),
+        Command::Rig(args) => rig::run(args),
+        Command::Bench(args) => bench::run(args),
         Command::Render(a) => render::run(a),
     }
 }
