@@ -2,10 +2,12 @@
 use clap::{Parser, Subcommand};
 
 mod bench;
+mod bench_render;
 mod fit_curve;
 mod flash;
 mod ports;
 mod probes;
+mod render;
 mod rig;
 mod simulate;
 
@@ -33,6 +35,8 @@ enum Command {
     Rig(rig::Args),
     /// Measure performance (figures for BENCHMARKS.md).
     Bench(bench::Args),
+    /// Relight a fitted model under point, spot and directional lights: PNG (+ linear EXR).
+    Render(render::Args),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -44,5 +48,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Simulate(a) => simulate::run(a),
         Command::Rig(args) => rig::run(args),
         Command::Bench(args) => bench::run(args),
+        Command::Render(a) => render::run(a),
     }
 }
