@@ -14,6 +14,7 @@ pub mod link;
 pub mod model;
 pub mod modelfile;
 pub mod plot;
+pub mod render;
 pub mod rig;
 pub mod scan;
 pub mod sim;

@@ -2,11 +2,13 @@
 use clap::{Parser, Subcommand};
 
 mod bench;
+mod bench_render;
 mod fit_curve;
 mod flash;
 mod plan;
 mod ports;
 mod probes;
+mod render;
 mod rig;
 mod scan;
 mod simulate;
@@ -39,6 +41,8 @@ enum Command {
     Rig(rig::Args),
     /// Measure performance (figures for BENCHMARKS.md).
     Bench(bench::Args),
+    /// Relight a fitted model under point, spot and directional lights: PNG (+ linear EXR).
+    Render(render::Args),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -52,5 +56,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Scan(args) => scan::run(args),
         Command::Rig(args) => rig::run(args),
         Command::Bench(args) => bench::run(args),
+        Command::Render(a) => render::run(a),
     }
 }
