@@ -7,12 +7,18 @@
 
 pub mod calib;
 pub mod dataset;
+pub mod evaluate;
 pub mod flash;
 pub mod geometry;
+pub mod interpolate;
 pub mod link;
 pub mod model;
 pub mod modelfile;
+pub mod pipeline;
 pub mod plot;
+pub mod registration;
 pub mod rig;
+pub mod samples;
+pub mod selection;
 pub mod scan;
 pub mod simulate;

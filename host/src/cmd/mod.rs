@@ -4,6 +4,8 @@ use clap::{Parser, Subcommand};
 mod flash;
 mod ports;
 mod probes;
+mod evaluate;
+mod predict;
 mod simulate;
 
 /// Capture real translucent objects and turn them into compact, renderable models.
@@ -24,6 +26,10 @@ enum Command {
     Probes(probes::Args),
     /// Write a simulated scan dataset with ground truth.
     Simulate(simulate::Args),
+    /// Render a model's prediction of one frame of a scan.
+    Predict(predict::Args),
+    /// Table-1 statistics (log E, Eq. 8) of a model on frames of a scan.
+    Evaluate(evaluate::Args),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -32,5 +38,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Flash(args) => flash::run(args),
         Command::Probes(args) => probes::run(args),
         Command::Simulate(a) => simulate::run(a),
+        Command::Predict(a) => predict::run(a),
+        Command::Evaluate(a) => evaluate::run(a),
     }
 }
