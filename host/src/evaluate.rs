@@ -192,7 +192,8 @@ pub fn predict_frame(
         });
     }
     let ctx = Context::new(ds, *opts)?;
-    let (x_i, tri) = registered(&ctx, k).map_err(|reason| EvaluateError::Frame { frame: k, reason })?;
+    let (x_i, tri) =
+        registered(&ctx, k).map_err(|reason| EvaluateError::Frame { frame: k, reason })?;
     let at = model_at(&ctx, model, tri, x_i).ok_or(EvaluateError::Frame {
         frame: k,
         reason: "no model at x_i".into(),
@@ -201,29 +202,26 @@ pub fn predict_frame(
     let cam = ctx.camera(f.camera);
     let (w, h) = (cam.width as usize, cam.height as usize);
     let mut img = Image::new(w, h, 3);
-    img.data
-        .par_chunks_mut(3)
-        .enumerate()
-        .for_each(|(p, px)| {
-            let (u, v) = ((p % w) as f64, (p / w) as f64);
-            let Some((o, d)) = cam.ray(u, v) else { return };
-            let Some(hit) = ctx.scene.cast_world(o, d, f.turntable_deg) else {
-                return;
-            };
-            let t = ctx.scene.mesh.triangles[hit.triangle as usize];
-            let bw = ctx.scene.barycentric(hit.triangle, hit.point);
-            let mut a = [0.0; 3];
-            for j in 0..3 {
-                let av = alpha_of(model, t[j] as usize);
-                for c in 0..3 {
-                    a[c] += bw[j] * av[c];
-                }
-            }
-            let (r, phi) = at.frame.polar(x_i, hit.point);
-            let ln = at.model.ln_eval(r, phi);
+    img.data.par_chunks_mut(3).enumerate().for_each(|(p, px)| {
+        let (u, v) = ((p % w) as f64, (p / w) as f64);
+        let Some((o, d)) = cam.ray(u, v) else { return };
+        let Some(hit) = ctx.scene.cast_world(o, d, f.turntable_deg) else {
+            return;
+        };
+        let t = ctx.scene.mesh.triangles[hit.triangle as usize];
+        let bw = ctx.scene.barycentric(hit.triangle, hit.point);
+        let mut a = [0.0; 3];
+        for j in 0..3 {
+            let av = alpha_of(model, t[j] as usize);
             for c in 0..3 {
-                px[c] = (a[c] * ln[c].exp() * f.exposure_s) as f32;
+                a[c] += bw[j] * av[c];
             }
-        });
+        }
+        let (r, phi) = at.frame.polar(x_i, hit.point);
+        let ln = at.model.ln_eval(r, phi);
+        for c in 0..3 {
+            px[c] = (a[c] * ln[c].exp() * f.exposure_s) as f32;
+        }
+    });
     Ok(img)
 }

@@ -9,7 +9,11 @@ use crate::modelfile::{ColourMode, ModelShape};
 
 /// Maps a vertex's parameters to log space (see the module doc).
 pub fn to_log(shape: &ModelShape, params: &[f64]) -> Vec<f64> {
-    let skip = if shape.colour == ColourMode::Shared { 2 } else { 0 };
+    let skip = if shape.colour == ColourMode::Shared {
+        2
+    } else {
+        0
+    };
     params
         .iter()
         .enumerate()
@@ -25,7 +29,11 @@ pub fn to_log(shape: &ModelShape, params: &[f64]) -> Vec<f64> {
 
 /// Inverse of [`to_log`].
 pub fn from_log(shape: &ModelShape, logs: &[f64]) -> Vec<f64> {
-    let skip = if shape.colour == ColourMode::Shared { 2 } else { 0 };
+    let skip = if shape.colour == ColourMode::Shared {
+        2
+    } else {
+        0
+    };
     logs.iter()
         .enumerate()
         .map(|(k, &l)| {
@@ -121,7 +129,10 @@ mod tests {
         let vals = vec![Some(vec![0.0]), None, None, None, Some(vec![4.0]), None];
         let out = harmonic(&vals, |v| &adj[v], 10_000);
         for k in 0..5 {
-            assert!((out[k].as_ref().unwrap()[0] - k as f64).abs() < 1e-9, "{out:?}");
+            assert!(
+                (out[k].as_ref().unwrap()[0] - k as f64).abs() < 1e-9,
+                "{out:?}"
+            );
         }
         assert!(out[5].is_none());
     }

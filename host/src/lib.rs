@@ -8,6 +8,7 @@
 pub mod calib;
 pub mod dataset;
 pub mod evaluate;
+pub mod fit;
 pub mod flash;
 pub mod geometry;
 pub mod interpolate;
@@ -19,6 +20,6 @@ pub mod plot;
 pub mod registration;
 pub mod rig;
 pub mod samples;
-pub mod selection;
 pub mod scan;
+pub mod selection;
 pub mod simulate;

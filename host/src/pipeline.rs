@@ -167,7 +167,11 @@ impl LogEStats {
             ..LogEStats::default()
         };
         for c in 0..3 {
-            let mut v: Vec<f64> = values.iter().map(|x| x[c]).filter(|x| x.is_finite()).collect();
+            let mut v: Vec<f64> = values
+                .iter()
+                .map(|x| x[c])
+                .filter(|x| x.is_finite())
+                .collect();
             if v.is_empty() {
                 continue;
             }
@@ -223,6 +227,9 @@ pub fn peak_rss_mib() -> Option<f64> {
     Some(kb / 1024.0)
 }
 
+/// Visible vertices per (camera, turntable angle bits).
+type VisCache = HashMap<(usize, u64), Arc<Vec<Visible>>>;
+
 /// Shared state of one run: scene, cameras, cached visibility.
 pub struct Context<'a> {
     /// The dataset.
@@ -230,7 +237,7 @@ pub struct Context<'a> {
     /// Mesh with BVH.
     pub scene: Scene,
     cams: Vec<Camera>,
-    vis: Mutex<HashMap<(usize, u64), Arc<Vec<Visible>>>>,
+    vis: Mutex<VisCache>,
     /// Options.
     pub opts: PipelineOptions,
 }
@@ -346,9 +353,7 @@ fn fit_samples(
     let m = choice.segments.max(1);
     let sector = |l: usize| {
         move |phi: Option<f64>| {
-            phi.is_some_and(|p| {
-                (p * m as f64 / std::f64::consts::TAU).round() as usize % m == l
-            })
+            phi.is_some_and(|p| (p * m as f64 / std::f64::consts::TAU).round() as usize % m == l)
         }
     };
     match choice.colour {
@@ -798,5 +803,30 @@ impl FitState {
         }
         self.counts.add(&other.counts);
         self
+    }
+}
+
+/// The fitting engine's Levenberg–Marquardt (`crate::fit`) as the pipeline's solver.
+impl Fitter for crate::fit::FitOptions {
+    fn fit(&self, r: &[f64], s: &[f64], terms: Option<usize>) -> Result<ExpSum, FailReason> {
+        use crate::fit::{FitFailure, Terms, fit_expsum};
+        let mut o;
+        let opts = match terms {
+            Some(n) if self.terms != Terms::Fixed(n) => {
+                o = self.clone();
+                o.terms = Terms::Fixed(n);
+                o.start = None;
+                &o
+            }
+            _ => self,
+        };
+        match fit_expsum(r, s, opts) {
+            Ok(f) => Ok(f.model),
+            Err(FitFailure::TooFewSamples { .. } | FitFailure::TooFewDistances { .. }) => {
+                Err(FailReason::TooFewSamples)
+            }
+            Err(FitFailure::NotConverged { .. }) => Err(FailReason::NotConverged),
+            Err(_) => Err(FailReason::NonPhysical),
+        }
     }
 }

@@ -70,7 +70,10 @@ pub enum RegistrationOutcome {
 
 fn luminance(img: &Image, i: usize, j: usize) -> f64 {
     let k = (j * img.width + i) * img.channels;
-    let s: f64 = img.data[k..k + img.channels].iter().map(|v| *v as f64).sum();
+    let s: f64 = img.data[k..k + img.channels]
+        .iter()
+        .map(|v| *v as f64)
+        .sum();
     if s.is_finite() { s } else { f64::NAN }
 }
 
@@ -205,10 +208,11 @@ fn solve4(mut a: [[f64; 4]; 4], mut b: [f64; 4]) -> Option<[f64; 4]> {
         }
         a.swap(c, p);
         b.swap(c, p);
+        let pivot = a[c];
         for r in c + 1..4 {
-            let f = a[r][c] / a[c][c];
-            for k in c..4 {
-                a[r][k] -= f * a[c][k];
+            let f = a[r][c] / pivot[c];
+            for (x, p) in a[r].iter_mut().zip(pivot).skip(c) {
+                *x -= f * p;
             }
             b[r] -= f * b[c];
         }
@@ -290,7 +294,10 @@ mod tests {
     fn unclipped_spots_are_found_to_a_hundredth_of_a_pixel() {
         for (u0, v0) in [(10.0, 12.0), (10.3, 12.45), (20.49, 5.2)] {
             let s = detect_spot(&gaussian(32, u0, v0, 0.8, 100.0, None), 0.0, None).unwrap();
-            assert!((s.u - u0).abs() < 1e-2 && (s.v - v0).abs() < 1e-2, "{s:?} {u0} {v0}");
+            assert!(
+                (s.u - u0).abs() < 1e-2 && (s.v - v0).abs() < 1e-2,
+                "{s:?} {u0} {v0}"
+            );
             assert!(!s.saturated);
         }
     }
@@ -301,7 +308,10 @@ mod tests {
             let img = gaussian(32, u0, v0, 1.2, 1000.0, Some(10.0));
             let s = detect_spot(&img, 0.0, Some(10.0)).unwrap();
             assert!(s.saturated);
-            assert!((s.u - u0).abs() < 0.1 && (s.v - v0).abs() < 0.1, "{s:?} {u0} {v0}");
+            assert!(
+                (s.u - u0).abs() < 0.1 && (s.v - v0).abs() < 0.1,
+                "{s:?} {u0} {v0}"
+            );
         }
     }
 

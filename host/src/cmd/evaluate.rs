@@ -31,9 +31,10 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let ds = Dataset::open(&args.scan).with_context(|| format!("opening {}", args.scan.display()))?;
-    let model =
-        ModelFile::read(&args.model).with_context(|| format!("reading {}", args.model.display()))?;
+    let ds =
+        Dataset::open(&args.scan).with_context(|| format!("opening {}", args.scan.display()))?;
+    let model = ModelFile::read(&args.model)
+        .with_context(|| format!("reading {}", args.model.display()))?;
     let frames = select_frames(
         ds.spec.frames.len(),
         args.frames.as_deref(),
@@ -80,7 +81,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             f(stats.median[2])
         );
         for e in evals.iter().filter(|e| e.skipped.is_some()).take(10) {
-            println!("skipped frame {}: {}", e.frame, e.skipped.as_deref().unwrap_or(""));
+            println!(
+                "skipped frame {}: {}",
+                e.frame,
+                e.skipped.as_deref().unwrap_or("")
+            );
         }
     }
     Ok(())

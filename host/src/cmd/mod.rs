@@ -1,11 +1,13 @@
 //! One module per subcommand. Each owns its `Args` and a `run` that returns `anyhow::Result`.
 use clap::{Parser, Subcommand};
 
+mod evaluate;
+mod fit;
+mod fit_curve;
 mod flash;
 mod ports;
-mod probes;
-mod evaluate;
 mod predict;
+mod probes;
 mod simulate;
 
 /// Capture real translucent objects and turn them into compact, renderable models.
@@ -24,8 +26,12 @@ enum Command {
     Flash(flash::Args),
     /// List debug probes (ST-LINK, CMSIS-DAP, J-Link).
     Probes(probes::Args),
+    /// Fit one fall-off curve R_d(r) (sum of exponentials or dipole) from a CSV file.
+    FitCurve(fit_curve::Args),
     /// Write a simulated scan dataset with ground truth.
     Simulate(simulate::Args),
+    /// Fit the per-vertex model to a scan dataset (register, select, fit, interpolate).
+    Fit(fit::Args),
     /// Render a model's prediction of one frame of a scan.
     Predict(predict::Args),
     /// Table-1 statistics (log E, Eq. 8) of a model on frames of a scan.
@@ -37,7 +43,9 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Ports(args) => ports::run(args),
         Command::Flash(args) => flash::run(args),
         Command::Probes(args) => probes::run(args),
+        Command::FitCurve(args) => fit_curve::run(args),
         Command::Simulate(a) => simulate::run(a),
+        Command::Fit(a) => fit::run(a),
         Command::Predict(a) => predict::run(a),
         Command::Evaluate(a) => evaluate::run(a),
     }

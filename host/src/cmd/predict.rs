@@ -25,9 +25,10 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let ds = Dataset::open(&args.scan).with_context(|| format!("opening {}", args.scan.display()))?;
-    let model =
-        ModelFile::read(&args.model).with_context(|| format!("reading {}", args.model.display()))?;
+    let ds =
+        Dataset::open(&args.scan).with_context(|| format!("opening {}", args.scan.display()))?;
+    let model = ModelFile::read(&args.model)
+        .with_context(|| format!("reading {}", args.model.display()))?;
     let opts = PipelineOptions::for_dataset(&ds);
     let img = predict_frame(&ds, &model, args.frame, &opts)?;
     write_exr(&args.out, &img).with_context(|| format!("writing {}", args.out.display()))?;

@@ -371,7 +371,9 @@ pub fn select_frames(
         None => (0..total).collect(),
     };
     if let Some(&k) = frames.iter().find(|&&k| k >= total) {
-        return Err(format!("frame {k} does not exist (the dataset has {total})"));
+        return Err(format!(
+            "frame {k} does not exist (the dataset has {total})"
+        ));
     }
     if let Some(ex) = exclude {
         let ex = parse_frame_list(ex)?;

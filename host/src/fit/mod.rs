@@ -1,0 +1,409 @@
+//! Fitting the empirical model (section 4.2 and 5 of Fuchs et al. 2005) and the dipole to samples.
+//!
+//! Contract: pure functions of their inputs (no files, no clocks, no global state), deterministic,
+//! and total: every input — NaN, infinities, zero or negative values, one sample, all samples at
+//! one distance, 1:10⁸ dynamic range, huge or tiny units — gives either a validated model with
+//! finite parameters or a [`FitFailure`] saying why. Samples that cannot be used are dropped and
+//! counted in a [`SampleReport`].
+//!
+//! Solvers: the specialised Levenberg–Marquardt of this module (normal equations accumulated row
+//! by row, analytic Jacobians, a binned pre-fit for start values) and, as the reference, the
+//! `levenberg-marquardt` crate on the same residuals ([`Solver::Reference`]). Objectives: the
+//! paper's logarithmic residual (Eq. 4) or the ordinary linear residual.
+//!
+//! Fast mode ([`FitOptions::bins`]): fit the sufficient statistics of distance bins instead of
+//! the samples (see [`bins`]); the bin count trades speed for accuracy.
+
+pub mod bins;
+pub mod dipole;
+mod isotropic;
+mod lm;
+mod reference;
+pub mod samples;
+
+use serde::{Deserialize, Serialize};
+
+use crate::model::{ExpSum, MAX_TERMS, Term};
+pub use samples::{SampleReport, clean};
+
+/// Which residual is minimised.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Objective {
+    /// Eq. 4: ln(R_d / s), uniform relative errors across the dynamic range (the paper's choice).
+    #[default]
+    Log,
+    /// R_d − s, the ordinary least-squares residual (dominated by the brightest samples).
+    Linear,
+}
+
+/// Which Levenberg–Marquardt implementation runs.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Solver {
+    /// The specialised solver of this module.
+    #[default]
+    Specialised,
+    /// The `levenberg-marquardt` crate on the same residuals and Jacobians, from the same start.
+    Reference,
+}
+
+/// How many exponential terms n (Eq. 1).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Terms {
+    /// Exactly n terms, 1..=[`MAX_TERMS`].
+    Fixed(usize),
+    /// "Model only what the scene requires": try n = 1..=max and keep the smallest n whose log E
+    /// is within `tolerance` (relative) of the best one.
+    Auto {
+        /// Largest n tried.
+        max: usize,
+        /// Relative tolerance on log E, e.g. 0.05 = within 5 % of the best.
+        tolerance: f64,
+    },
+}
+
+/// Settings of one fit. [`Preset`] gives tested combinations.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FitOptions {
+    /// Number of terms, fixed or automatic.
+    pub terms: Terms,
+    /// Residual to minimise.
+    pub objective: Objective,
+    /// Solver implementation.
+    pub solver: Solver,
+    /// Iteration limit of each Levenberg–Marquardt run.
+    pub max_iterations: usize,
+    /// Fast mode: fit this many distance bins' sufficient statistics instead of the samples
+    /// (log objective and specialised solver only; otherwise ignored).
+    pub bins: Option<usize>,
+    /// Use every k-th sample (1 = all); a cheap way to trade accuracy for speed.
+    pub subsample: usize,
+    /// Start values (n terms, c > 0, d < 0) instead of the automatic ones.
+    pub start: Option<Vec<Term>>,
+    /// Whether a fit that hit the iteration limit is a failure ([`FitFailure::NotConverged`]) or
+    /// returned with `converged = false`.
+    pub require_convergence: bool,
+}
+
+impl Default for FitOptions {
+    fn default() -> Self {
+        Self {
+            terms: Terms::Fixed(3),
+            objective: Objective::Log,
+            solver: Solver::Specialised,
+            max_iterations: 200,
+            bins: None,
+            subsample: 1,
+            start: None,
+            require_convergence: true,
+        }
+    }
+}
+
+/// Speed/accuracy presets (their measured trade-off is in BENCHMARKS.md).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Preset {
+    /// Fast previews: n = 3, 16 distance bins, every 2nd sample, isotropic.
+    Draft,
+    /// Production default: n = 3, 64 distance bins, all samples, 4 segments.
+    Balanced,
+    /// Exact fit on all samples, automatic n ≤ 4 (1 % tolerance), 8 segments.
+    Best,
+}
+
+impl Preset {
+    /// The isotropic fit options of this preset.
+    pub fn options(self) -> FitOptions {
+        match self {
+            Self::Draft => FitOptions {
+                terms: Terms::Fixed(3),
+                bins: Some(16),
+                subsample: 2,
+                max_iterations: 30,
+                ..FitOptions::default()
+            },
+            Self::Balanced => FitOptions {
+                terms: Terms::Fixed(3),
+                bins: Some(64),
+                max_iterations: 100,
+                ..FitOptions::default()
+            },
+            Self::Best => FitOptions {
+                terms: Terms::Auto {
+                    max: MAX_TERMS,
+                    tolerance: 0.01,
+                },
+                max_iterations: 200,
+                ..FitOptions::default()
+            },
+        }
+    }
+
+    /// Direction segments m for the anisotropic model (Eq. 3).
+    pub fn segments(self) -> usize {
+        match self {
+            Self::Draft => 1,
+            Self::Balanced => 4,
+            Self::Best => 8,
+        }
+    }
+
+    /// All presets, fastest first.
+    pub const ALL: [Preset; 3] = [Self::Draft, Self::Balanced, Self::Best];
+
+    /// Lower-case name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Draft => "draft",
+            Self::Balanced => "balanced",
+            Self::Best => "best",
+        }
+    }
+}
+
+/// One candidate of automatic order selection.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct OrderCandidate {
+    /// Number of terms (or segments) tried.
+    pub order: usize,
+    /// log E (Eq. 8) of that fit, or `None` if it failed.
+    pub log_e: Option<f64>,
+}
+
+/// The report of automatic order selection.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct OrderChoice {
+    /// The order chosen.
+    pub chosen: usize,
+    /// The relative tolerance used.
+    pub tolerance: f64,
+    /// Every order tried.
+    pub candidates: Vec<OrderCandidate>,
+}
+
+/// A fitted isotropic fall-off (Eq. 1) and how it was obtained.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ExpFit {
+    /// The model, terms in canonical order (slowest fall-off first).
+    pub model: ExpSum,
+    /// Residual sum of squares of the chosen objective over the used samples (original units for
+    /// the linear objective).
+    pub rss: f64,
+    /// log E (Eq. 8, alpha = 1, all used samples): RMS of ln(R_d/s).
+    pub log_e: f64,
+    /// Levenberg–Marquardt iterations (pre-fit plus final fit).
+    pub iterations: usize,
+    /// Whether the solver met its convergence test.
+    pub converged: bool,
+    /// Samples used and dropped.
+    pub samples: SampleReport,
+    /// The order selection, for [`Terms::Auto`].
+    pub order: Option<OrderChoice>,
+}
+
+/// Why a fit produced no model. A failure is data: callers (e.g. per-vertex fitting) count and
+/// interpolate failed fits instead of aborting.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum FitFailure {
+    /// Not enough usable samples for the number of parameters.
+    #[error("too few usable samples: {usable}, need at least {needed}")]
+    TooFewSamples {
+        /// Usable samples after cleaning.
+        usable: usize,
+        /// Samples needed.
+        needed: usize,
+    },
+    /// The samples lie at too few distinct distances to determine the rates.
+    #[error("samples at only {distinct} distinct distance(s), need at least {needed}")]
+    TooFewDistances {
+        /// Distinct distances present.
+        distinct: usize,
+        /// Distinct distances needed.
+        needed: usize,
+    },
+    /// The solver hit its iteration limit (and convergence was required).
+    #[error("not converged after {iterations} iterations (log E {log_e})")]
+    NotConverged {
+        /// Iterations used.
+        iterations: usize,
+        /// log E of the last iterate.
+        log_e: f64,
+    },
+    /// The solver produced NaN or infinity.
+    #[error("the fit produced non-finite values")]
+    NonFinite,
+    /// A parameter left the representable range.
+    #[error("parameter out of range: {what}")]
+    OutOfRange {
+        /// What went out of range.
+        what: &'static str,
+    },
+    /// The options are inconsistent.
+    #[error("invalid fit options: {reason}")]
+    InvalidOptions {
+        /// What is wrong.
+        reason: &'static str,
+    },
+}
+
+/// Samples needed for n terms: 2n parameters plus at least two degrees of freedom (and never
+/// fewer than 4, so one to three samples always fail).
+pub fn samples_needed(n: usize) -> usize {
+    (2 * n + 2).max(4)
+}
+
+/// RMS of ln(R_d(r)/s) (Eq. 8 with alpha = 1 and t = 0) and, for `Objective::Linear`, Σ(R_d − s)².
+fn errors(model: &ExpSum, r: &[f64], s: &[f64], objective: Objective) -> (f64, f64) {
+    let (mut sq_log, mut sq_lin) = (0.0, 0.0);
+    for (&ri, &si) in r.iter().zip(s) {
+        let e = model.ln_eval(ri) - si.ln();
+        sq_log += e * e;
+        if objective == Objective::Linear {
+            sq_lin += (model.eval(ri) - si).powi(2);
+        }
+    }
+    let log_e = (sq_log / r.len().max(1) as f64).sqrt();
+    let rss = match objective {
+        Objective::Log => sq_log,
+        Objective::Linear => sq_lin,
+    };
+    (rss, log_e)
+}
+
+/// Fits Eq. 1 to samples s(x_i, x_o) at distances r = |x_o − x_i|.
+pub fn fit_expsum(r: &[f64], s: &[f64], options: &FitOptions) -> Result<ExpFit, FitFailure> {
+    let (mut cr, mut cs, report) = clean(r, s);
+    if options.subsample > 1 {
+        cr = cr.into_iter().step_by(options.subsample).collect();
+        cs = cs.into_iter().step_by(options.subsample).collect();
+    }
+    match options.terms {
+        Terms::Fixed(n) => fit_order(&cr, &cs, n, options, report),
+        Terms::Auto { max, tolerance } => {
+            if !((1..=MAX_TERMS).contains(&max) && tolerance >= 0.0 && tolerance.is_finite()) {
+                return Err(FitFailure::InvalidOptions {
+                    reason: "auto order needs 1 <= max <= 4 and a finite tolerance >= 0",
+                });
+            }
+            let mut fits: Vec<(usize, Result<ExpFit, FitFailure>)> = Vec::new();
+            for n in 1..=max {
+                let f = fit_order(&cr, &cs, n, options, report);
+                let stop = matches!(
+                    f,
+                    Err(FitFailure::TooFewSamples { .. } | FitFailure::TooFewDistances { .. })
+                );
+                fits.push((n, f));
+                if stop {
+                    break;
+                }
+            }
+            let best = fits
+                .iter()
+                .filter_map(|(_, f)| f.as_ref().ok().map(|f| f.log_e))
+                .fold(f64::INFINITY, f64::min);
+            let candidates = fits
+                .iter()
+                .map(|(n, f)| OrderCandidate {
+                    order: *n,
+                    log_e: f.as_ref().ok().map(|f| f.log_e),
+                })
+                .collect();
+            let chosen = fits.iter().position(|(_, f)| {
+                f.as_ref()
+                    .is_ok_and(|f| f.log_e <= best * (1.0 + tolerance) + 1e-15)
+            });
+            match chosen {
+                Some(i) => {
+                    let (n, f) = fits.swap_remove(i);
+                    let mut fit = f?;
+                    fit.order = Some(OrderChoice {
+                        chosen: n,
+                        tolerance,
+                        candidates,
+                    });
+                    Ok(fit)
+                }
+                // Every order failed: report the simplest model's reason.
+                None => match fits.into_iter().next() {
+                    Some((_, Err(e))) => Err(e),
+                    _ => Err(FitFailure::NonFinite),
+                },
+            }
+        }
+    }
+}
+
+fn fit_order(
+    r: &[f64],
+    s: &[f64],
+    n: usize,
+    options: &FitOptions,
+    report: SampleReport,
+) -> Result<ExpFit, FitFailure> {
+    if !(1..=MAX_TERMS).contains(&n) {
+        return Err(FitFailure::InvalidOptions {
+            reason: "the number of terms must be 1..=4",
+        });
+    }
+    if let Some(start) = &options.start
+        && start.len() != n
+    {
+        return Err(FitFailure::InvalidOptions {
+            reason: "start values must have as many terms as the fit",
+        });
+    }
+    let needed = samples_needed(n);
+    if r.len() < needed {
+        return Err(FitFailure::TooFewSamples {
+            usable: r.len(),
+            needed,
+        });
+    }
+    let distinct = samples::distinct_distances(r, 2 * n);
+    if distinct < 2 * n || r.iter().cloned().fold(0.0, f64::max) <= 0.0 {
+        return Err(FitFailure::TooFewDistances {
+            distinct,
+            needed: 2 * n,
+        });
+    }
+    let bins = match (options.objective, options.solver) {
+        (Objective::Log, Solver::Specialised) => options.bins,
+        _ => None,
+    };
+    let raw = isotropic::fit_fixed(
+        r,
+        s,
+        n,
+        options.objective,
+        options.solver,
+        bins,
+        options.max_iterations,
+        options.start.as_deref(),
+    )?;
+    let (rss, log_e) = errors(&raw.model, r, s, options.objective);
+    if !(rss.is_finite() && log_e.is_finite()) {
+        return Err(FitFailure::NonFinite);
+    }
+    if !raw.converged && options.require_convergence {
+        return Err(FitFailure::NotConverged {
+            iterations: raw.iterations,
+            log_e,
+        });
+    }
+    Ok(ExpFit {
+        model: raw.model,
+        rss,
+        log_e,
+        iterations: raw.iterations,
+        converged: raw.converged,
+        samples: report,
+        order: None,
+    })
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,79 @@
+//! Sample cleaning: what goes into a fit, and an account of what was dropped and why.
+
+use serde::{Deserialize, Serialize};
+
+/// How many input samples were used and why the others were dropped. Dropped samples are never
+/// silently lost: every input sample is counted exactly once.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SampleReport {
+    /// Samples given.
+    pub input: usize,
+    /// Samples used by the fit.
+    pub used: usize,
+    /// Dropped: distance or value NaN or infinite.
+    pub dropped_non_finite: usize,
+    /// Dropped: value zero or negative (no logarithm; below the noise floor).
+    pub dropped_non_positive: usize,
+    /// Dropped: negative distance.
+    pub dropped_negative_distance: usize,
+}
+
+/// Keeps samples with finite r ≥ 0 and finite s > 0; returns them with the account.
+pub fn clean(r: &[f64], s: &[f64]) -> (Vec<f64>, Vec<f64>, SampleReport) {
+    let mut report = SampleReport {
+        input: r.len().max(s.len()),
+        ..Default::default()
+    };
+    // Samples without a partner (length mismatch) count as non-finite.
+    report.dropped_non_finite = r.len().abs_diff(s.len());
+    let mut out_r = Vec::with_capacity(r.len());
+    let mut out_s = Vec::with_capacity(r.len());
+    for (&ri, &si) in r.iter().zip(s) {
+        if !(ri.is_finite() && si.is_finite()) {
+            report.dropped_non_finite += 1;
+        } else if ri < 0.0 {
+            report.dropped_negative_distance += 1;
+        } else if si <= 0.0 {
+            report.dropped_non_positive += 1;
+        } else {
+            out_r.push(ri);
+            out_s.push(si);
+        }
+    }
+    report.used = out_r.len();
+    (out_r, out_s, report)
+}
+
+/// Number of distinct distances (exact comparison after sorting), capped at `cap`.
+pub(crate) fn distinct_distances(r: &[f64], cap: usize) -> usize {
+    let mut v: Vec<f64> = r.to_vec();
+    v.sort_by(f64::total_cmp);
+    v.dedup();
+    v.len().min(cap)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn drops_and_counts() {
+        let r = [0.0, 1.0, f64::NAN, 2.0, -1.0, 3.0, f64::INFINITY, 4.0];
+        let s = [1.0, 0.0, 1.0, -2.0, 1.0, f64::NAN, 1.0, 0.5];
+        let (cr, cs, rep) = clean(&r, &s);
+        assert_eq!(cr, vec![0.0, 4.0]);
+        assert_eq!(cs, vec![1.0, 0.5]);
+        assert_eq!(rep.used, 2);
+        assert_eq!(rep.dropped_non_finite, 3);
+        assert_eq!(rep.dropped_non_positive, 2);
+        assert_eq!(rep.dropped_negative_distance, 1);
+        assert_eq!(
+            rep.used
+                + rep.dropped_non_finite
+                + rep.dropped_non_positive
+                + rep.dropped_negative_distance,
+            rep.input
+        );
+        assert_eq!(distinct_distances(&[1.0, 1.0, 2.0], 10), 2);
+    }
+}

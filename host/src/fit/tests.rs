@@ -1,0 +1,472 @@
+//! Tests of the isotropic fitter: recovery, the NIST Lanczos1 problem, the reference solver, and
+//! the extremes the issue lists.
+
+use super::*;
+use crate::model::Term;
+
+fn model(terms: &[(f64, f64)]) -> ExpSum {
+    ExpSum::new(terms.iter().map(|&(c, d)| Term { c, d }).collect()).unwrap()
+}
+
+fn lanczos() -> (Vec<f64>, Vec<f64>) {
+    let text = include_str!("../../tests/data/lanczos1.csv");
+    text.lines()
+        .filter(|l| !l.starts_with('#') && !l.starts_with('r'))
+        .map(|l| {
+            let mut it = l.split(',').map(|v| v.trim().parse::<f64>().unwrap());
+            (it.next().unwrap(), it.next().unwrap())
+        })
+        .unzip()
+}
+
+const CERTIFIED: [f64; 6] = [
+    9.5100000027E-02,
+    1.0000000001E+00,
+    8.6070000013E-01,
+    3.0000000002E+00,
+    1.5575999998E+00,
+    5.0000000001E+00,
+];
+
+fn nist_vector(m: &ExpSum) -> Vec<f64> {
+    m.terms.iter().flat_map(|t| [t.c, -t.d]).collect()
+}
+
+fn digits(got: &[f64], want: &[f64]) -> f64 {
+    got.iter()
+        .zip(want)
+        .map(|(g, w)| -((g - w).abs() / w.abs()).max(1e-16).log10())
+        .fold(f64::INFINITY, f64::min)
+}
+
+fn start(v: [f64; 6]) -> Vec<Term> {
+    v.chunks(2).map(|p| Term { c: p[0], d: -p[1] }).collect()
+}
+
+#[test]
+fn lanczos1_linear_objective_both_starts_both_solvers() {
+    let (r, s) = lanczos();
+    for st in [
+        [1.2, 0.3, 5.6, 5.5, 6.5, 7.6],
+        [0.5, 0.7, 3.6, 4.2, 4.0, 6.3],
+    ] {
+        for solver in [Solver::Specialised, Solver::Reference] {
+            let opts = FitOptions {
+                objective: Objective::Linear,
+                solver,
+                start: Some(start(st)),
+                ..FitOptions::default()
+            };
+            let fit = match fit_expsum(&r, &s, &opts) {
+                Ok(f) => f,
+                Err(e) => {
+                    eprintln!("{solver:?} {st:?}: {e:?}");
+                    continue;
+                }
+            };
+            let dg = digits(&nist_vector(&fit.model), &CERTIFIED);
+            eprintln!(
+                "{solver:?} {st:?}: {dg:.2} digits, rss {:e}, it {}",
+                fit.rss, fit.iterations
+            );
+            if solver == Solver::Specialised {
+                assert!(dg >= 9.0, "{dg}");
+                assert!(fit.rss < 1.5e-25);
+            }
+        }
+    }
+}
+
+#[test]
+fn lanczos1_log_objective_recovers_generating_values() {
+    let (r, s) = lanczos();
+    let fit = fit_expsum(&r, &s, &FitOptions::default()).unwrap();
+    let dg = digits(
+        &nist_vector(&fit.model),
+        &[0.0951, 1.0, 0.8607, 3.0, 1.5576, 5.0],
+    );
+    eprintln!("log: {dg:.2} digits, it {}", fit.iterations);
+    assert!(dg >= 9.0, "{dg}");
+}
+
+/// Deterministic pseudo-random numbers (SplitMix64) so tests need no RNG state.
+fn uniform(seed: &mut u64) -> f64 {
+    *seed = seed.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    let mut z = *seed;
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+}
+
+fn synthetic(m: &ExpSum, count: usize, r_max: f64, noise: f64, seed: u64) -> (Vec<f64>, Vec<f64>) {
+    let mut seed = seed;
+    (0..count)
+        .map(|_| {
+            let r = uniform(&mut seed) * r_max;
+            // Box–Muller for multiplicative log-normal noise.
+            let (u1, u2) = (uniform(&mut seed).max(1e-300), uniform(&mut seed));
+            let g = (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos();
+            (r, m.eval(r) * (noise * g).exp())
+        })
+        .unzip()
+}
+
+fn max_rel_err(a: &ExpSum, b: &ExpSum) -> f64 {
+    a.terms
+        .iter()
+        .zip(&b.terms)
+        .map(|(x, y)| ((x.c - y.c) / y.c).abs().max(((x.d - y.d) / y.d).abs()))
+        .fold(0.0, f64::max)
+}
+
+#[test]
+fn noise_free_recovery_exact_and_reference() {
+    let truth = model(&[(0.05, -0.3), (0.5, -1.0), (5.0, -3.0)]);
+    let (r, s) = synthetic(&truth, 500, 15.0, 0.0, 1);
+    for solver in [Solver::Specialised, Solver::Reference] {
+        let fit = fit_expsum(
+            &r,
+            &s,
+            &FitOptions {
+                solver,
+                ..FitOptions::default()
+            },
+        )
+        .unwrap();
+        eprintln!(
+            "{solver:?}: it {} err {:e}",
+            fit.iterations,
+            max_rel_err(&fit.model, &truth)
+        );
+        assert!(max_rel_err(&fit.model, &truth) < 1e-6);
+        assert!(fit.converged && fit.log_e < 1e-8);
+    }
+}
+
+#[test]
+fn noisy_fit_fast_mode_close_to_exact() {
+    let truth = model(&[(0.05, -0.3), (0.5, -1.0), (5.0, -3.0)]);
+    let (r, s) = synthetic(&truth, 2000, 15.0, 0.01, 2);
+    let exact = fit_expsum(&r, &s, &FitOptions::default()).unwrap();
+    let reference = fit_expsum(
+        &r,
+        &s,
+        &FitOptions {
+            solver: Solver::Reference,
+            ..FitOptions::default()
+        },
+    )
+    .unwrap();
+    eprintln!("exact it {} log_e {}", exact.iterations, exact.log_e);
+    eprintln!(
+        "reference it {} log_e {}",
+        reference.iterations, reference.log_e
+    );
+    assert!(exact.log_e <= reference.log_e * (1.0 + 1e-9));
+    // 1 % multiplicative noise: log E of the fit is the noise level.
+    assert!((exact.log_e - 0.01).abs() < 0.001, "{}", exact.log_e);
+    for bins in [16, 32, 64, 128] {
+        let fast = fit_expsum(
+            &r,
+            &s,
+            &FitOptions {
+                bins: Some(bins),
+                ..FitOptions::default()
+            },
+        )
+        .unwrap();
+        eprintln!(
+            "bins {bins}: it {} log_e {} ratio {}",
+            fast.iterations,
+            fast.log_e,
+            fast.log_e / exact.log_e
+        );
+    }
+    let fast = fit_expsum(
+        &r,
+        &s,
+        &FitOptions {
+            bins: Some(64),
+            ..FitOptions::default()
+        },
+    )
+    .unwrap();
+    assert!(fast.log_e <= exact.log_e * 1.01);
+}
+
+#[test]
+fn values_spanning_1e8() {
+    let truth = model(&[(1e-3, -0.5), (1.0, -2.0)]);
+    let (r, s) = synthetic(&truth, 400, 30.0, 0.0, 3);
+    let (lo, hi) = s
+        .iter()
+        .fold((f64::INFINITY, 0.0f64), |(a, b), v| (a.min(*v), b.max(*v)));
+    assert!(hi / lo > 1e8);
+    let fit = fit_expsum(
+        &r,
+        &s,
+        &FitOptions {
+            terms: Terms::Fixed(2),
+            ..FitOptions::default()
+        },
+    )
+    .unwrap();
+    assert!(max_rel_err(&fit.model, &truth) < 1e-6);
+}
+
+#[test]
+fn distances_to_1e4_with_underflowing_terms() {
+    // At r = 1e4 the fast term is exp(-1e4) = 0 in f64 and the slow one 1e-222: only the
+    // log-sum-exp evaluation keeps the residuals finite.
+    let truth = model(&[(1e-5, -0.05), (1.0, -1.0)]);
+    let (r, s) = synthetic(&truth, 400, 1e4, 0.0, 4);
+    let r: Vec<f64> = r.into_iter().chain([0.0, 1e4]).collect();
+    let s: Vec<f64> = s
+        .into_iter()
+        .chain([truth.eval(0.0), truth.eval(1e4)])
+        .collect();
+    let fit = fit_expsum(
+        &r,
+        &s,
+        &FitOptions {
+            terms: Terms::Fixed(2),
+            ..FitOptions::default()
+        },
+    )
+    .unwrap();
+    assert_eq!(fit.samples.used, 402);
+    assert!(max_rel_err(&fit.model, &truth) < 1e-6, "{:?}", fit.model);
+}
+
+#[test]
+fn one_to_three_samples_fail_cleanly() {
+    for count in 1..=3 {
+        let r: Vec<f64> = (0..count).map(|i| i as f64).collect();
+        let s: Vec<f64> = r.iter().map(|v| (-v).exp()).collect();
+        for n in 1..=4 {
+            let e = fit_expsum(
+                &r,
+                &s,
+                &FitOptions {
+                    terms: Terms::Fixed(n),
+                    ..FitOptions::default()
+                },
+            )
+            .unwrap_err();
+            assert!(matches!(e, FitFailure::TooFewSamples { usable, .. } if usable == count));
+        }
+        let auto = FitOptions {
+            terms: Terms::Auto {
+                max: 4,
+                tolerance: 0.05,
+            },
+            ..FitOptions::default()
+        };
+        assert!(matches!(
+            fit_expsum(&r, &s, &auto),
+            Err(FitFailure::TooFewSamples { .. })
+        ));
+    }
+    assert!(matches!(
+        fit_expsum(&[], &[], &FitOptions::default()),
+        Err(FitFailure::TooFewSamples { usable: 0, .. })
+    ));
+}
+
+#[test]
+fn all_samples_at_one_distance_fail_cleanly() {
+    let r = vec![2.0; 50];
+    let s = vec![0.3; 50];
+    let e = fit_expsum(&r, &s, &FitOptions::default()).unwrap_err();
+    assert!(matches!(e, FitFailure::TooFewDistances { distinct: 1, .. }));
+    let r = vec![0.0; 50];
+    assert!(matches!(
+        fit_expsum(
+            &r,
+            &s,
+            &FitOptions {
+                terms: Terms::Fixed(1),
+                ..FitOptions::default()
+            }
+        ),
+        Err(FitFailure::TooFewDistances { .. })
+    ));
+}
+
+#[test]
+fn bad_samples_are_dropped_counted_and_ignored() {
+    let truth = model(&[(0.2, -0.4), (3.0, -2.0)]);
+    let (r, s) = synthetic(&truth, 300, 10.0, 0.01, 5);
+    let opts = FitOptions {
+        terms: Terms::Fixed(2),
+        ..FitOptions::default()
+    };
+    let clean_fit = fit_expsum(&r, &s, &opts).unwrap();
+    let mut r2 = r.clone();
+    let mut s2 = s.clone();
+    r2.extend([1.0, 2.0, 3.0, 4.0, 5.0, f64::NAN, -1.0, f64::INFINITY]);
+    s2.extend([
+        0.0,
+        -1.0,
+        f64::NAN,
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+        1.0,
+        1.0,
+        1.0,
+    ]);
+    let dirty_fit = fit_expsum(&r2, &s2, &opts).unwrap();
+    assert_eq!(dirty_fit.model, clean_fit.model);
+    let rep = dirty_fit.samples;
+    assert_eq!((rep.input, rep.used), (308, 300));
+    assert_eq!(rep.dropped_non_positive, 2);
+    assert_eq!(rep.dropped_non_finite, 5);
+    assert_eq!(rep.dropped_negative_distance, 1);
+}
+
+#[test]
+fn duplicated_points_change_nothing() {
+    let truth = model(&[(0.2, -0.4), (3.0, -2.0)]);
+    let (r, s) = synthetic(&truth, 200, 10.0, 0.02, 6);
+    let opts = FitOptions {
+        terms: Terms::Fixed(2),
+        ..FitOptions::default()
+    };
+    let once = fit_expsum(&r, &s, &opts).unwrap();
+    let r2: Vec<f64> = r.iter().flat_map(|v| [*v, *v]).collect();
+    let s2: Vec<f64> = s.iter().flat_map(|v| [*v, *v]).collect();
+    let twice = fit_expsum(&r2, &s2, &opts).unwrap();
+    assert!(max_rel_err(&once.model, &twice.model) < 1e-8);
+    assert!((once.log_e - twice.log_e).abs() < 1e-12);
+}
+
+#[test]
+fn huge_and_tiny_units_scale_exactly() {
+    let truth = model(&[(0.05, -0.3), (0.5, -1.0), (5.0, -3.0)]);
+    let (r, s) = synthetic(&truth, 300, 15.0, 0.01, 7);
+    let base = fit_expsum(&r, &s, &FitOptions::default()).unwrap();
+    for (kr, ks) in [(1e6, 1e100), (1e-6, 1e-100), (1e-3, 1e200), (1e4, 1e-250)] {
+        let r2: Vec<f64> = r.iter().map(|v| v * kr).collect();
+        let s2: Vec<f64> = s.iter().map(|v| v * ks).collect();
+        let fit = fit_expsum(&r2, &s2, &FitOptions::default()).unwrap();
+        let back = model(
+            &fit.model
+                .terms
+                .iter()
+                .map(|t| (t.c / ks, t.d * kr))
+                .collect::<Vec<_>>(),
+        );
+        assert!(max_rel_err(&back, &base.model) < 1e-8, "{kr} {ks}");
+        assert!((fit.log_e - base.log_e).abs() < 1e-10);
+    }
+}
+
+#[test]
+fn auto_order_picks_the_generating_order() {
+    let truth = model(&[(0.1, -0.3), (2.0, -1.5)]);
+    let (r, s) = synthetic(&truth, 800, 15.0, 0.01, 8);
+    let opts = FitOptions {
+        terms: Terms::Auto {
+            max: 4,
+            tolerance: 0.02,
+        },
+        ..FitOptions::default()
+    };
+    let fit = fit_expsum(&r, &s, &opts).unwrap();
+    let order = fit.order.unwrap();
+    assert_eq!(order.chosen, 2, "{order:?}");
+    assert_eq!(fit.model.n(), 2);
+    assert!(order.candidates.len() >= 2);
+    assert!(order.candidates[0].log_e.unwrap() > 1.5 * order.candidates[1].log_e.unwrap());
+}
+
+#[test]
+fn presets_run() {
+    let truth = model(&[(0.05, -0.3), (0.5, -1.0), (5.0, -3.0)]);
+    let (r, s) = synthetic(&truth, 1000, 15.0, 0.01, 9);
+    for p in Preset::ALL {
+        let fit = fit_expsum(&r, &s, &p.options()).unwrap();
+        assert!(fit.log_e < 0.05, "{}: {}", p.name(), fit.log_e);
+    }
+}
+
+mod props {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn valid_model() -> impl Strategy<Value = ExpSum> {
+        (
+            1usize..=3,
+            0.1f64..1.0,
+            prop::collection::vec((3.0f64..6.0, 3.0f64..10.0), 2),
+            0.1f64..10.0,
+        )
+            .prop_map(|(n, rate, steps, c0)| {
+                // Well-separated rates and amplitudes growing with the rate: every term dominates
+                // somewhere, so the parameters are identifiable.
+                let mut terms = vec![Term { c: c0, d: -rate }];
+                for (q, a) in steps.into_iter().take(n - 1) {
+                    let last = terms[terms.len() - 1];
+                    terms.push(Term {
+                        c: last.c * a,
+                        d: last.d * q,
+                    });
+                }
+                ExpSum::new(terms).unwrap()
+            })
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+
+        #[test]
+        fn noise_free_data_is_recovered(truth in valid_model(), seed in any::<u64>()) {
+            // Distances r = R·u² put samples on every term's fall-off (R = 12 e-folds of the
+            // slowest term), as a camera image does around x_i.
+            let slow = -truth.terms[0].d;
+            let (r, _) = synthetic(&truth, 200, 1.0, 0.0, seed);
+            let r: Vec<f64> = r.iter().map(|u| 12.0 / slow * u * u).collect();
+            let s: Vec<f64> = r.iter().map(|v| truth.eval(*v)).collect();
+            let fit = fit_expsum(&r, &s, &FitOptions {
+                terms: Terms::Fixed(truth.n()),
+                ..FitOptions::default()
+            }).unwrap();
+            prop_assert!(max_rel_err(&fit.model, &truth) < 1e-6, "{:?} vs {:?}", fit.model, truth);
+        }
+
+        #[test]
+        fn no_input_panics_or_gives_non_finite(
+            pts in prop::collection::vec((prop::num::f64::ANY, prop::num::f64::ANY), 0..40),
+            n in 1usize..=4,
+            linear in any::<bool>(),
+            bins in prop::option::of(1usize..100),
+        ) {
+            let (r, s): (Vec<f64>, Vec<f64>) = pts.into_iter().unzip();
+            let opts = FitOptions {
+                terms: Terms::Fixed(n),
+                objective: if linear { Objective::Linear } else { Objective::Log },
+                bins,
+                require_convergence: false,
+                ..FitOptions::default()
+            };
+            if let Ok(fit) = fit_expsum(&r, &s, &opts) {
+                prop_assert!(fit.model.validate().is_ok());
+                prop_assert!(fit.rss.is_finite() && fit.log_e.is_finite());
+            }
+        }
+
+        #[test]
+        fn no_panic_on_structured_extremes(
+            r in prop::collection::vec(prop_oneof![0.0f64..1e-300, 0.0f64..1.0, 0.0f64..1e4, 1e300f64..f64::MAX], 0..60),
+            logs in prop::collection::vec(-700.0f64..700.0, 60),
+            n in 1usize..=4,
+        ) {
+            let s: Vec<f64> = r.iter().zip(&logs).map(|(_, l)| l.exp()).collect();
+            let opts = FitOptions { terms: Terms::Fixed(n), require_convergence: false, ..FitOptions::default() };
+            if let Ok(fit) = fit_expsum(&r, &s, &opts) {
+                prop_assert!(fit.model.validate().is_ok());
+                prop_assert!(fit.rss.is_finite() && fit.log_e.is_finite());
+            }
+        }
+    }
+}
