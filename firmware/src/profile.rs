@@ -26,6 +26,23 @@ fn to_u64(x: u128) -> u64 {
     u64::try_from(x).unwrap_or(u64::MAX)
 }
 
+/// `n / d` (d > 0), in 64-bit arithmetic when both fit: a Cortex-M4 has no 128-bit divide, and
+/// this runs once per step. Moves shorter than ~9 million steps always take the fast path.
+fn div(n: u128, d: u128) -> u128 {
+    match (u64::try_from(n), u64::try_from(d)) {
+        (Ok(n), Ok(d)) => u128::from(n.checked_div(d).unwrap_or(u64::MAX)),
+        _ => n.checked_div(d).unwrap_or(u128::MAX),
+    }
+}
+
+/// `floor(sqrt(x))`, in 64-bit arithmetic when `x` fits.
+fn isqrt(x: u128) -> u128 {
+    match u64::try_from(x) {
+        Ok(x) => u128::from(x.isqrt()),
+        Err(_) => x.isqrt(),
+    }
+}
+
 impl Profile {
     /// A profile for `steps` steps at cruise speed `speed` (steps/s) and acceleration `accel`
     /// (steps/s²); `None` if the speed or acceleration is zero.
@@ -38,10 +55,10 @@ impl Profile {
         let trapezoid = v * v < a * n;
         let total_us = if trapezoid {
             // T = n/v + v/a
-            to_u64(US * (n * a + v * v) / (a * v))
+            to_u64(div(US * (n * a + v * v), a * v))
         } else {
             // T = 2·sqrt(n/a)
-            to_u64((4 * n * US * US / a).isqrt())
+            to_u64(isqrt(div(4 * n * US * US, a)))
         };
         Some(Self {
             steps,
@@ -77,7 +94,7 @@ impl Profile {
         let k = u128::from(k);
         let rest = n - k;
         // Time to cover s steps from rest at acceleration a: sqrt(2s/a).
-        let from_rest = |s: u128| to_u64((2 * s * US * US / a).isqrt());
+        let from_rest = |s: u128| to_u64(isqrt(div(2 * s * US * US, a)));
         if self.trapezoid {
             if 2 * a * k <= v * v {
                 from_rest(k)
@@ -85,7 +102,7 @@ impl Profile {
                 self.total_us.saturating_sub(from_rest(rest))
             } else {
                 // Cruise: t = k/v + v/2a.
-                to_u64(US * (2 * a * k + v * v) / (2 * a * v))
+                to_u64(div(US * (2 * a * k + v * v), 2 * a * v))
             }
         } else if 2 * k <= n {
             from_rest(k)

@@ -7,7 +7,21 @@
 //! drain [`Rig::poll_transmit`] until it returns `None`. The core never blocks, never reads a clock
 //! and never allocates.
 //!
-//! All laser-safety rules live in [`Rig::laser_permitted`] and [`Rig::sync_lasers`]: no code path
+//! A pump loop (board task or host thread) looks like this:
+//!
+//! ```text
+//! loop {
+//!     let deadline = rig.poll_timeout();            // always Some: inputs are polled every 1 ms
+//!     match wait_for(uart_rx, input_pin_change, deadline) {
+//!         Rx(bytes)  => rig.handle_bytes(now(), bytes),
+//!         PinChange  => rig.handle_inputs(now()),
+//!         Timeout    => rig.handle_timeout(now()),  // takes every step due by now, even if late
+//!     }
+//!     while let Some(n) = rig.poll_transmit(&mut frame) { uart_tx.write(&frame[..n]) }
+//! }
+//! ```
+//!
+//! All laser-safety rules live in [`Rig::laser_permitted`] and `Rig::sync_lasers`: no code path
 //! writes the laser outputs except `sync_lasers`, which outputs nothing unless `laser_permitted`.
 
 use heapless::{Deque, Vec};
@@ -120,11 +134,11 @@ impl ReplyCache {
         self.entries.iter().find(|r| r.seq == seq)
     }
 
-    /// Behind the newest executed seq (wrapping) but not cached.
+    /// Shortly behind the newest executed seq (wrapping) but not cached: a late duplicate.
     fn is_stale(&self, seq: Seq) -> bool {
         self.newest.is_some_and(|n| {
             let behind = n.wrapping_sub(seq);
-            behind != 0 && behind < 1 << 31
+            behind != 0 && behind <= subsurf_protocol::STALE_WINDOW
         })
     }
 
@@ -150,6 +164,9 @@ pub struct Rig<H: Hardware> {
     config: Config,
     decoder: FrameDecoder,
     out: Deque<RigMessage, OUT_QUEUE>,
+    /// Events raised while a request executes: sent right after its reply.
+    deferred: Deque<Event, 4>,
+    executing: bool,
     tx_dropped: u32,
     replies: ReplyCache,
     now: Micros,
@@ -199,6 +216,8 @@ impl<H: Hardware> Rig<H> {
             config,
             decoder: FrameDecoder::new(),
             out: Deque::new(),
+            deferred: Deque::new(),
+            executing: false,
             tx_dropped: 0,
             replies: ReplyCache::default(),
             now,
@@ -261,6 +280,17 @@ impl<H: Hardware> Rig<H> {
     /// Whether the turntable is moving (including homing).
     pub fn moving(&self) -> bool {
         self.motion.is_some()
+    }
+
+    /// Turntable position, steps (0 = home once homed).
+    pub fn position(&self) -> i32 {
+        self.position
+    }
+
+    /// When the next motor step is due, µs (for a board that programs a hardware timer per step;
+    /// [`Rig::poll_timeout`] already includes it).
+    pub fn next_step_due(&self) -> Option<Micros> {
+        self.motion.as_ref().map(|m| m.next_due)
     }
 
     /// The active fault.
@@ -352,7 +382,9 @@ impl<H: Hardware> Rig<H> {
                 result: Err(RigError::StaleSequence),
             }
         } else {
+            self.executing = true;
             let result = self.execute(now, req.command);
+            self.executing = false;
             let reply = Reply {
                 seq: req.seq,
                 result,
@@ -361,6 +393,10 @@ impl<H: Hardware> Rig<H> {
             reply
         };
         self.send(RigMessage::Reply(reply));
+        // The reply precedes the events its command caused (e.g. a zero-length move's MoveDone).
+        while let Some(event) = self.deferred.pop_front() {
+            self.send(RigMessage::Event(event));
+        }
         self.sync_lasers();
     }
 
@@ -499,6 +535,8 @@ impl<H: Hardware> Rig<H> {
 
     /// Stop laser work (and the motor when `stop_motion`), disarm, and report why.
     fn abort(&mut self, now: Micros, reason: HaltReason, stop_motion: bool) {
+        #[cfg(feature = "defmt")]
+        defmt::warn!("halt at {=u64} us: {}", now, reason);
         let was_active = self.armed
             || self.lasers != 0
             || self.capture.is_some()
@@ -574,7 +612,13 @@ impl<H: Hardware> Rig<H> {
             kind,
         };
         self.next_event_seq = self.next_event_seq.wrapping_add(1);
-        self.send(RigMessage::Event(event));
+        if self.executing {
+            if let Err(event) = self.deferred.push_back(event) {
+                self.send(RigMessage::Event(event));
+            }
+        } else {
+            self.send(RigMessage::Event(event));
+        }
     }
 
     /// Refuse actuation in fault or with the e-stop pressed.

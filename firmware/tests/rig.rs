@@ -304,6 +304,12 @@ fn retransmitted_request_is_answered_not_reexecuted() {
     assert_eq!(stale[0].result, Err(RigError::StaleSequence));
     h.advance(1_000_000);
     assert_eq!(h.kinds().len(), 1, "the move ran once");
+    // Farther back than STALE_WINDOW counts as new (a restarted host that skipped Hello).
+    h.send(1_000, Command::Heartbeat);
+    let far = h.send(1_000 - STALE_WINDOW - 1, mv(MoveTarget::Relative(1)));
+    assert_eq!(far[0].result, Ok(Response::Ack));
+    let near = h.send(1_000 - STALE_WINDOW - 1 - STALE_WINDOW, Command::Heartbeat);
+    assert_eq!(near[0].result, Err(RigError::StaleSequence));
     // A new session (Hello) may start anywhere.
     h.send(
         3,
@@ -561,4 +567,99 @@ fn framed_bytes_with_garbage_between_frames() {
     // A lone 0 before each frame flushed the garbage in front of it: two corrupt frames counted.
     assert_eq!(s.rx_dropped, 2);
     assert_eq!(sim.rig().rx_stats().frames, 2);
+}
+
+#[test]
+fn galvo_settle_grows_with_the_larger_axis_jump_and_saturates() {
+    use subsurf_firmware::galvo_settle_us;
+    let config = SimParams::default().config;
+    let p = |x, y| GalvoPoint { x, y };
+    assert_eq!(galvo_settle_us(&config, p(0, 0), p(0, 0)), 100);
+    assert_eq!(galvo_settle_us(&config, p(0, 0), p(1000, 500)), 120);
+    assert_eq!(
+        galvo_settle_us(&config, p(60_000, 0), p(10_000, 65_535)),
+        100 + 65_535 * 20 / 1000
+    );
+    let extreme = Config {
+        galvo_settle_min_us: u32::MAX,
+        galvo_settle_per_kcode_us: u32::MAX,
+        ..config
+    };
+    assert_eq!(galvo_settle_us(&extreme, p(0, 0), p(u16::MAX, 0)), u32::MAX);
+}
+
+#[test]
+fn reply_precedes_the_events_its_command_caused() {
+    let mut sim = SimRig::default();
+    sim.rig_mut().handle_request(
+        0,
+        Request {
+            seq: 1,
+            command: Command::Arm,
+        },
+    );
+    sim.rig_mut().handle_request(
+        0,
+        Request {
+            seq: 2,
+            command: Command::Stop,
+        },
+    );
+    let msgs: Vec<RigMessage> = std::iter::from_fn(|| sim.rig_mut().poll_message()).collect();
+    assert!(
+        matches!(
+            &msgs[..],
+            [
+                RigMessage::Reply(Reply { seq: 1, .. }),
+                RigMessage::Reply(Reply {
+                    seq: 2,
+                    result: Ok(Response::Ack)
+                }),
+                RigMessage::Event(Event {
+                    kind: EventKind::Halted {
+                        reason: HaltReason::Stop
+                    },
+                    ..
+                }),
+            ]
+        ),
+        "{msgs:?}"
+    );
+}
+
+#[test]
+fn estop_pressed_at_boot_is_a_fault() {
+    use subsurf_firmware::Rig;
+    use subsurf_firmware::sim::SimHardware;
+    let params = SimParams::default();
+    let mut hw = SimHardware::new(16_000, 0, 10);
+    hw.set_estop(true);
+    let mut rig = Rig::new(hw, params.capabilities, params.config, 0);
+    assert_eq!(rig.fault(), Some(Fault::EmergencyStop));
+    rig.handle_request(
+        0,
+        Request {
+            seq: 1,
+            command: Command::Arm,
+        },
+    );
+    let replies: Vec<RigMessage> = std::iter::from_fn(|| rig.poll_message()).collect();
+    assert!(replies.contains(&RigMessage::Reply(Reply {
+        seq: 1,
+        result: Err(RigError::Faulted(Fault::EmergencyStop))
+    })));
+    assert_eq!(rig.laser_output(), 0);
+}
+
+#[test]
+fn next_step_due_follows_the_profile() {
+    let mut h = Host::new(SimParams::default());
+    assert_eq!(h.sim.rig().next_step_due(), None);
+    let t0 = h.sim.now();
+    h.call(mv(MoveTarget::Absolute(100))).unwrap();
+    // First step of a move from rest at 100 000 steps/s²: sqrt(2/a) = 4472 µs.
+    assert_eq!(h.sim.rig().next_step_due(), Some(t0 + 4_472));
+    h.advance(1_000_000);
+    assert_eq!(h.sim.rig().next_step_due(), None);
+    assert_eq!(h.sim.rig().position(), 100);
 }

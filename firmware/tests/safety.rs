@@ -188,3 +188,32 @@ proptest! {
         }
     }
 }
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(128))]
+
+    /// Line noise never panics the rig, never makes it emit light, and never stops it from
+    /// answering the next good request.
+    #[test]
+    fn garbage_is_survived(noise in prop::collection::vec(any::<u8>(), 0..3000), chunk in 1usize..300) {
+        let mut sim = SimRig::new(SimParams::default());
+        for (i, part) in noise.chunks(chunk).enumerate() {
+            sim.feed(i as u64 * 100, part);
+            while sim.rig_mut().poll_message().is_some() {}
+        }
+        prop_assert_eq!(sim.hw().lasers(), 0);
+        prop_assert_eq!(sim.hw().violations(), 0);
+        let mut frame = [0u8; MAX_FRAME];
+        let n = encode_request(&Request { seq: 7, command: Command::Status }, &mut frame).unwrap();
+        let mut bytes = vec![0u8];
+        bytes.extend_from_slice(&frame[..n]);
+        let now = sim.now() + 100;
+        sim.feed(now, &bytes);
+        let mut out = [0u8; 4 * MAX_FRAME];
+        let len = sim.drain(&mut out);
+        let mut dec = FrameDecoder::new();
+        let replies: Vec<RigMessage> = dec.decode(&out[..len]).collect();
+        let answered = replies.iter().any(|m| matches!(m, RigMessage::Reply(Reply { seq: 7, .. })));
+        prop_assert!(answered, "{:?}", replies);
+    }
+}

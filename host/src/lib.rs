@@ -22,4 +22,5 @@ pub mod rig;
 pub mod samples;
 pub mod scan;
 pub mod selection;
+pub mod sim;
 pub mod simulate;

@@ -20,6 +20,11 @@ pub const MAX_LASER_CHANNELS: u8 = 8;
 /// How many recent replies the rig keeps for answering retransmissions (see `docs/protocol.md`).
 pub const REPLY_CACHE: usize = 4;
 
+/// A request at most this far behind the newest executed `seq` (wrapping) and no longer in the
+/// reply cache is a late duplicate: refused with [`RigError::StaleSequence`], never executed.
+/// Farther back counts as new (a host that restarted without `Hello`).
+pub const STALE_WINDOW: u32 = 64;
+
 /// Request sequence number. The host increments it (wrapping) for every new request and reuses it
 /// when it retransmits; the rig echoes it in the [`Reply`].
 pub type Seq = u32;

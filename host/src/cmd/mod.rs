@@ -1,6 +1,7 @@
 //! One module per subcommand. Each owns its `Args` and a `run` that returns `anyhow::Result`.
 use clap::{Parser, Subcommand};
 
+mod bench;
 mod evaluate;
 mod fit;
 mod fit_curve;
@@ -8,6 +9,7 @@ mod flash;
 mod ports;
 mod predict;
 mod probes;
+mod rig;
 mod simulate;
 
 /// Capture real translucent objects and turn them into compact, renderable models.
@@ -30,6 +32,10 @@ enum Command {
     FitCurve(fit_curve::Args),
     /// Write a simulated scan dataset with ground truth.
     Simulate(simulate::Args),
+    /// Talk to the rig or the simulated rig.
+    Rig(rig::Args),
+    /// Measure performance (figures for BENCHMARKS.md).
+    Bench(bench::Args),
     /// Fit the per-vertex model to a scan dataset (register, select, fit, interpolate).
     Fit(fit::Args),
     /// Render a model's prediction of one frame of a scan.
@@ -45,6 +51,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Probes(args) => probes::run(args),
         Command::FitCurve(args) => fit_curve::run(args),
         Command::Simulate(a) => simulate::run(a),
+        Command::Rig(args) => rig::run(args),
+        Command::Bench(args) => bench::run(args),
         Command::Fit(a) => fit::run(a),
         Command::Predict(a) => predict::run(a),
         Command::Evaluate(a) => evaluate::run(a),

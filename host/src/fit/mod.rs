@@ -14,6 +14,7 @@
 //! Fast mode ([`FitOptions::bins`]): fit the sufficient statistics of distance bins instead of
 //! the samples (see [`bins`]); the bin count trades speed for accuracy.
 
+pub mod aniso;
 pub mod bins;
 pub mod dipole;
 mod isotropic;

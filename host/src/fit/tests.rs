@@ -470,3 +470,18 @@ mod props {
         }
     }
 }
+
+#[test]
+fn isotropic_jacobians_match_finite_differences() {
+    use super::aniso::tests::check_jacobian;
+    use super::bins::bin_by_distance;
+    use super::isotropic::{Linear, LogBinned, LogExact};
+    let r: Vec<f64> = (0..30).map(|i| i as f64 / 29.0).collect();
+    let y: Vec<f64> = r.iter().map(|v| -2.0 * v + (7.0 * v).sin() * 0.1).collect();
+    let s: Vec<f64> = y.iter().map(|v| v.exp()).collect();
+    let theta = [0.2, 0.1, -0.5, 1.2, -1.0, 2.0];
+    check_jacobian(&LogExact { r: &r, y: &y, n: 3 }, &theta);
+    check_jacobian(&Linear { r: &r, s: &s, n: 3 }, &theta);
+    let bins = bin_by_distance(&r, &y, 5);
+    check_jacobian(&LogBinned { bins: &bins, n: 3 }, &theta);
+}

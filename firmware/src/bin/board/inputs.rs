@@ -1,0 +1,79 @@
+//! Safety and homing inputs on EXTI: each edge updates a flag and wakes the rig task. The e-stop
+//! and interlock edges also force the lasers off (and the e-stop halts the stepper) right in this
+//! task, before the core even hears of it.
+use core::sync::atomic::{AtomicBool, Ordering};
+
+use embassy_stm32::exti::ExtiInput;
+use embassy_stm32::mode::Async;
+use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
+use embassy_sync::signal::Signal;
+
+use crate::outputs::force_lasers_off;
+use crate::stepper;
+
+/// Emergency stop pressed (or its wire broken).
+pub static ESTOP: AtomicBool = AtomicBool::new(true);
+/// Enclosure interlock closed.
+pub static INTERLOCK_CLOSED: AtomicBool = AtomicBool::new(false);
+/// Home switch active.
+pub static HOME: AtomicBool = AtomicBool::new(false);
+/// Camera reports an exposure in progress.
+pub static EXPOSING: AtomicBool = AtomicBool::new(false);
+/// Any input changed: the rig task re-reads the flags.
+pub static CHANGED: Signal<CriticalSectionRawMutex, ()> = Signal::new();
+
+fn store(flag: &AtomicBool, value: bool) {
+    if flag.swap(value, Ordering::SeqCst) != value {
+        CHANGED.signal(());
+    }
+}
+
+/// E-stop: normally-closed contact to GND with pull-up, so high = pressed or wire broken.
+#[embassy_executor::task]
+pub async fn estop(mut pin: ExtiInput<'static, Async>) {
+    loop {
+        let pressed = pin.is_high();
+        if pressed {
+            force_lasers_off();
+            stepper::force_stop();
+            defmt::warn!("emergency stop");
+        }
+        store(&ESTOP, pressed);
+        pin.wait_for_any_edge().await;
+    }
+}
+
+/// Interlock: normally-closed contact to GND with pull-up, so high = enclosure open.
+#[embassy_executor::task]
+pub async fn interlock(mut pin: ExtiInput<'static, Async>) {
+    loop {
+        let closed = pin.is_low();
+        if !closed {
+            force_lasers_off();
+            defmt::warn!("interlock open");
+        }
+        store(&INTERLOCK_CLOSED, closed);
+        pin.wait_for_any_edge().await;
+    }
+}
+
+/// Home switch to GND with pull-up: low = at home.
+#[embassy_executor::task]
+pub async fn home(mut pin: ExtiInput<'static, Async>) {
+    loop {
+        store(&HOME, pin.is_low());
+        pin.wait_for_any_edge().await;
+    }
+}
+
+/// Optional camera strobe ("exposure active", high while exposing); logged for diagnostics.
+#[embassy_executor::task]
+pub async fn exposure(mut pin: ExtiInput<'static, Async>) {
+    loop {
+        let exposing = pin.is_high();
+        if EXPOSING.swap(exposing, Ordering::SeqCst) != exposing {
+            defmt::debug!("camera exposing: {}", exposing);
+        }
+        pin.wait_for_any_edge().await;
+    }
+}
