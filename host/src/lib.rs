@@ -18,6 +18,7 @@ pub mod modelfile;
 pub mod pipeline;
 pub mod plot;
 pub mod registration;
+pub mod render;
 pub mod rig;
 pub mod samples;
 pub mod scan;

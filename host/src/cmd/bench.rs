@@ -19,6 +19,9 @@ enum Bench {
     /// Rig link: request/reply round trips per second and capture events per second, against the
     /// simulated rig served on a pseudo-terminal (or a real rig with --port).
     Rig(RigArgs),
+    /// Rendering: hierarchical against exact transport on the built-in marble torus (speed-up and
+    /// pixel error along the error-bound curve).
+    Render(super::bench_render::RenderBench),
 }
 
 #[derive(Debug, clap::Args)]
@@ -40,6 +43,7 @@ struct RigArgs {
 pub fn run(args: Args) -> anyhow::Result<()> {
     match args.what {
         Bench::Rig(a) => rig(a),
+        Bench::Render(a) => super::bench_render::bench_render(a),
     }
 }
 

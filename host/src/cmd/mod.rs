@@ -2,6 +2,7 @@
 use clap::{Parser, Subcommand};
 
 mod bench;
+mod bench_render;
 mod evaluate;
 mod fit;
 mod fit_curve;
@@ -9,6 +10,7 @@ mod flash;
 mod ports;
 mod predict;
 mod probes;
+mod render;
 mod rig;
 mod simulate;
 
@@ -36,6 +38,8 @@ enum Command {
     Rig(rig::Args),
     /// Measure performance (figures for BENCHMARKS.md).
     Bench(bench::Args),
+    /// Relight a fitted model under point, spot and directional lights: PNG (+ linear EXR).
+    Render(render::Args),
     /// Fit the per-vertex model to a scan dataset (register, select, fit, interpolate).
     Fit(fit::Args),
     /// Render a model's prediction of one frame of a scan.
@@ -53,6 +57,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Simulate(a) => simulate::run(a),
         Command::Rig(args) => rig::run(args),
         Command::Bench(args) => bench::run(args),
+        Command::Render(a) => render::run(a),
         Command::Fit(a) => fit::run(a),
         Command::Predict(a) => predict::run(a),
         Command::Evaluate(a) => evaluate::run(a),

@@ -227,12 +227,13 @@ pub async fn run(link: BufferedUart<'static>, hw: Hardware) {
             // The core is done with the move but the last steps are still in the timer: hold
             // requests back, watch only the inputs, until the motor really stands still.
             let wait = select(stepper::REFILL.wait(), inputs::CHANGED.wait());
-            if let Ok(Either::Second(())) = with_timeout(MAX_SLEEP, wait).await {
+            let changed = matches!(with_timeout(MAX_SLEEP, wait).await, Ok(Either::Second(())));
+            run_due(rig);
+            if changed {
                 let now = now_us();
                 rig.hw_mut().now = now;
                 rig.handle_inputs(now);
             }
-            run_due(rig);
             continue;
         }
 
@@ -241,13 +242,16 @@ pub async fn run(link: BufferedUart<'static>, hw: Hardware) {
             .poll_timeout()
             .unwrap_or(Micros::MAX)
             .min(now.saturating_add(MAX_SLEEP.as_micros()));
-        match select3(
+        let woke = select3(
             rx.read(&mut rx_buf),
             Timer::at(Instant::from_micros(wake)),
             inputs::CHANGED.wait(),
         )
-        .await
-        {
+        .await;
+        // Deadlines that came while we slept run first, each at its own time: handling bytes at
+        // the later wall-clock time first would make the core emit the missed steps as a burst.
+        run_due(rig);
+        match woke {
             Either3::First(Ok(n)) => {
                 let now = now_us();
                 rig.hw_mut().now = now;
@@ -261,6 +265,5 @@ pub async fn run(link: BufferedUart<'static>, hw: Hardware) {
                 rig.handle_inputs(now);
             }
         }
-        run_due(rig);
     }
 }
