@@ -7,11 +7,13 @@ mod evaluate;
 mod fit;
 mod fit_curve;
 mod flash;
+mod plan;
 mod ports;
 mod predict;
 mod probes;
 mod render;
 mod rig;
+mod scan;
 mod simulate;
 
 /// Capture real translucent objects and turn them into compact, renderable models.
@@ -34,6 +36,10 @@ enum Command {
     FitCurve(fit_curve::Args),
     /// Write a simulated scan dataset with ground truth.
     Simulate(simulate::Args),
+    /// Plan a scan: frames, expected duration and predicted coverage, before anything moves.
+    Plan(plan::Args),
+    /// Scan an object into a dataset (resumable; `--sim --camera sim` needs no other files).
+    Scan(scan::Args),
     /// Talk to the rig or the simulated rig.
     Rig(rig::Args),
     /// Measure performance (figures for BENCHMARKS.md).
@@ -55,6 +61,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Probes(args) => probes::run(args),
         Command::FitCurve(args) => fit_curve::run(args),
         Command::Simulate(a) => simulate::run(a),
+        Command::Plan(args) => plan::run(args),
+        Command::Scan(args) => scan::run(args),
         Command::Rig(args) => rig::run(args),
         Command::Bench(args) => bench::run(args),
         Command::Render(a) => render::run(a),

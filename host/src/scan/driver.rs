@@ -296,6 +296,8 @@ impl<'a> Scan<'a> {
                 caps.max_exposure_us
             )));
         }
+        // Whatever a previous session left running (a program whose host vanished) stops now.
+        rig.stop().map_err(classify)?;
         // Clear a fault left from before (an e-stop that was released); refuses while pressed.
         let status = rig.status().map_err(classify)?;
         if status.fault.is_some() {
