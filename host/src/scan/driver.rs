@@ -296,8 +296,11 @@ impl<'a> Scan<'a> {
                 caps.max_exposure_us
             )));
         }
-        // Whatever a previous session left running (a program whose host vanished) stops now.
+        // Whatever a previous session left running (a program whose host vanished) stops now,
+        // and events still buffered from it are dropped.
         rig.stop().map_err(classify)?;
+        rig.poll(Duration::from_millis(20)).map_err(classify)?;
+        while rig.next_event(Duration::ZERO).map_err(classify)?.is_some() {}
         // Clear a fault left from before (an e-stop that was released); refuses while pressed.
         let status = rig.status().map_err(classify)?;
         if status.fault.is_some() {
@@ -349,6 +352,11 @@ impl<'a> Scan<'a> {
 
     fn halted_or(&self, e: RigClientError) -> ScanError {
         match e {
+            // The rig stopped because it stopped hearing from us: a link problem, resumable by
+            // reconnecting (a stale event of a dropped session can also arrive this way).
+            RigClientError::Halted { ref reason, .. } if reason.contains("HeartbeatLost") => {
+                ScanError::Link(e)
+            }
             RigClientError::Halted { reason, .. } => ScanError::RigHalted {
                 frame: self.done(),
                 reason,
@@ -388,21 +396,32 @@ impl<'a> Scan<'a> {
             while next < chunk.len() {
                 self.check_stop()?;
                 let rest = &chunk[next..];
+                // Frames are committed as their last bracket arrives.
+                let last = b + 1 == n_exp;
                 let got = match camera.timing() {
-                    Timing::RigTriggered => {
-                        self.program(rig, camera, rest, b, deg, exp_us, &mut brackets[next..])?
-                    }
-                    Timing::HostTimed => {
-                        self.host_timed(rig, camera, rest, b, deg, exp_us, &mut brackets[next..])?
-                    }
+                    Timing::RigTriggered => self.program(
+                        rig,
+                        camera,
+                        progress,
+                        last,
+                        rest,
+                        b,
+                        deg,
+                        exp_us,
+                        &mut brackets[next..],
+                    )?,
+                    Timing::HostTimed => self.host_timed(
+                        rig,
+                        camera,
+                        progress,
+                        last,
+                        rest,
+                        b,
+                        deg,
+                        exp_us,
+                        &mut brackets[next..],
+                    )?,
                 };
-                // Commit what is complete (all brackets present) in order.
-                if b + 1 == n_exp {
-                    for k in next..next + got.count {
-                        self.commit(&chunk[k], deg, &mut brackets[k], camera)?;
-                        progress.inc(1);
-                    }
-                }
                 next += got.count;
                 if let Some(err) = got.camera_error {
                     attempts += 1;
@@ -444,6 +463,8 @@ impl<'a> Scan<'a> {
         &mut self,
         rig: &mut RigClient<L>,
         camera: &mut dyn Camera,
+        progress: &ProgressBar,
+        last_bracket: bool,
         rest: &[super::plan::PlannedFrame],
         b: usize,
         deg: f64,
@@ -483,10 +504,16 @@ impl<'a> Scan<'a> {
             shot.galvo = [c.galvo.x, c.galvo.y];
             shot.triggered_at_us = Some(c.triggered_at_us);
             match fetch(rig, camera, &shot)? {
-                Ok(img) => out[i].push(Bracket {
-                    exposure_s: shot.exposure_s,
-                    image: img,
-                }),
+                Ok(img) => {
+                    out[i].push(Bracket {
+                        exposure_s: shot.exposure_s,
+                        image: img,
+                    });
+                    if last_bracket {
+                        self.commit(f, deg, &mut out[i], camera)?;
+                        progress.inc(1);
+                    }
+                }
                 Err(e) => {
                     // Stop the program; the rest is rerun from this point.
                     rig.stop().map_err(classify)?;
@@ -514,6 +541,8 @@ impl<'a> Scan<'a> {
         &mut self,
         rig: &mut RigClient<L>,
         camera: &mut dyn Camera,
+        progress: &ProgressBar,
+        last_bracket: bool,
         rest: &[super::plan::PlannedFrame],
         b: usize,
         deg: f64,
@@ -533,10 +562,16 @@ impl<'a> Scan<'a> {
             let r = r?;
             off.map_err(|e| self.halted_or(e))?;
             match r {
-                Ok(img) => out[i].push(Bracket {
-                    exposure_s: shot.exposure_s,
-                    image: img,
-                }),
+                Ok(img) => {
+                    out[i].push(Bracket {
+                        exposure_s: shot.exposure_s,
+                        image: img,
+                    });
+                    if last_bracket {
+                        self.commit(f, deg, &mut out[i], camera)?;
+                        progress.inc(1);
+                    }
+                }
                 Err(e) => {
                     return Ok(Progressed {
                         count: i,
