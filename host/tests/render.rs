@@ -219,3 +219,125 @@ fn subsurf_render_command_writes_png_and_exr() {
         "{err}"
     );
 }
+
+/// A model file as `subsurf fit` writes one: anisotropic (m = 4), some vertices with fewer terms,
+/// one interpolated and one without a model.
+fn torus_model_file() -> subsurf::modelfile::ModelFile {
+    use subsurf::modelfile::{ColourMode, ModelFile, ModelShape, VertexModel, VertexStatus};
+    let t = render::synthetic::marble_torus(30, 12);
+    let m = 4;
+    let vertices = (0..t.len())
+        .map(|v| {
+            let p = t.vertex_params(v);
+            let (status, terms) = match v {
+                5 => (VertexStatus::NoModel, 0),
+                7 => (VertexStatus::Interpolated, 3),
+                _ if v % 3 == 0 => (VertexStatus::Fitted, 2),
+                _ => (VertexStatus::Fitted, 3),
+            };
+            let mut params = Vec::new();
+            if terms > 0 {
+                params.extend_from_slice(&p[..2]);
+                for l in 0..m {
+                    // Segment l scatters a little farther than the last: a preferred direction.
+                    let s = 1.0 + 0.15 * l as f64;
+                    for k in 0..terms {
+                        params.extend([p[2 + 2 * k], p[3 + 2 * k] / s]);
+                    }
+                }
+            }
+            VertexModel {
+                alpha: t.alpha[v].map(|a| a as f32),
+                status,
+                log_e: 0.01,
+                terms: terms as u8,
+                params,
+            }
+        })
+        .collect();
+    ModelFile {
+        shape: ModelShape {
+            terms: 3,
+            segments: m,
+            colour: ColourMode::Shared,
+        },
+        positions: t.positions.clone(),
+        normals: t.normals.clone(),
+        triangles: t.faces.clone(),
+        vertices,
+    }
+}
+
+#[test]
+fn model_files_render_anisotropic_and_partial_models() {
+    let file = torus_model_file();
+    let model = render::VertexModel::from_model_file(&file);
+    model.validate().unwrap();
+    assert_eq!(model.status[5], render::VertexStatus::NoModel);
+    let lights: Vec<Light> = vec!["point:-60,-80,90:20000,20000,20000".parse().unwrap()];
+    let exact = render::light_transport(
+        &model,
+        &lights,
+        &RenderOptions {
+            method: Method::Exact,
+            eta: Some(1.3),
+        },
+    )
+    .unwrap();
+    let fine = HierarchyParams {
+        max_solid_angle: 0.05,
+        tail_tolerance: 1e-5,
+    };
+    let h = render::light_transport(
+        &model,
+        &lights,
+        &RenderOptions {
+            method: Method::Hierarchical(fine),
+            eta: Some(1.3),
+        },
+    )
+    .unwrap();
+    let max = exact.exitance.iter().map(|b| b[1]).fold(0.0, f64::max);
+    let mut err = 0.0;
+    let mut n = 0;
+    for (a, b) in h.exitance.iter().zip(&exact.exitance) {
+        if b[1] > 1e-3 * max {
+            err += (a[1] / b[1] - 1.0).abs();
+            n += 1;
+        }
+    }
+    assert!(
+        err / (n as f64) < 0.01,
+        "anisotropic hierarchy vs exact: {}",
+        err / n as f64
+    );
+
+    let dir = tempfile::tempdir().unwrap();
+    let ply = dir.path().join("m.ply");
+    file.write(&ply).unwrap();
+    let png = dir.path().join("m.png");
+    let out = Command::new(env!("CARGO_BIN_EXE_subsurf"))
+        .args(["render", "--size", "64x48", "--model"])
+        .arg(&ply)
+        .arg("--out")
+        .arg(&png)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_picture(&png, 64, 48);
+    // A damaged model file is an error naming the file.
+    std::fs::write(&ply, b"ply\nformat ascii 1.0\nend_header\n").unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_subsurf"))
+        .args(["render", "--model"])
+        .arg(&ply)
+        .arg("--out")
+        .arg(&png)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("m.ply"));
+}

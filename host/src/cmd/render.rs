@@ -10,6 +10,9 @@ use subsurf::render::{
 /// Render a model under point, spot and directional lights.
 #[derive(Debug, clap::Args)]
 pub struct Args {
+    /// The fitted model (`docs/model-format.md`), as written by `subsurf fit`.
+    #[arg(long, conflicts_with = "builtin")]
+    model: Option<PathBuf>,
     /// Built-in model instead of a file: `torus` (veined-marble torus) or `torus:NU,NV`.
     #[arg(long, default_value = "torus")]
     builtin: String,
@@ -114,8 +117,22 @@ pub fn builtin(name: &str) -> Result<VertexModel> {
     }
 }
 
+/// Reads a model file into the renderer's form and checks it.
+pub fn load_model(path: &std::path::Path) -> Result<VertexModel> {
+    let file = subsurf::modelfile::ModelFile::read(path)
+        .with_context(|| format!("reading model {}", path.display()))?;
+    let model = VertexModel::from_model_file(&file);
+    model
+        .validate()
+        .with_context(|| format!("model {}", path.display()))?;
+    Ok(model)
+}
+
 pub fn run(args: Args) -> Result<()> {
-    let model = builtin(&args.builtin)?;
+    let model = match &args.model {
+        Some(p) => load_model(p)?,
+        None => builtin(&args.builtin)?,
+    };
     let lights = if args.lights.is_empty() {
         default_lights(&model)
     } else {

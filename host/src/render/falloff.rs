@@ -4,6 +4,7 @@
 //! a huge `c` with a tiny exponential neither overflows nor underflows before the product is formed.
 
 use super::vertex_model::{ColourMode, VertexModel, VertexStatus};
+use crate::model::{TangentFrame, hat_weights};
 
 /// Per-vertex fall-off parameters (Eq. 1/3/5/9) in a layout made for inner loops.
 #[derive(Clone, Debug)]
@@ -228,11 +229,10 @@ pub fn tail_cutoff(terms: &[(f64, f64)], tol: f64) -> f64 {
     hi
 }
 
-/// Eq. 3's weights `w_l(x_i, x_o)`: hat functions over the angle of `x_o − x_i` in the tangent
-/// plane of `x_i`, with segment `l` centred at angle `2πl/m` counter-clockwise from the tangent.
-/// The tangent frame is built from the normal alone (Duff et al. 2017, "Building an orthonormal
-/// basis, revisited"). Weights sum to 1; a direction along the normal gets equal weights.
-pub fn segment_weights(normal: [f64; 3], x_i: [f64; 3], x_o: [f64; 3], w: &mut [f64]) {
+/// Eq. 3's weights `w_l(x_i, x_o)` into `w` (one per segment): the hat functions of
+/// [`crate::model::hat_weights`] over the angle of `x_o − x_i` in the [`TangentFrame`] at `x_i`
+/// (the rule shared with fitting); a direction with no tangential part gets equal weights.
+pub fn segment_weights(frame: &TangentFrame, x_i: [f64; 3], x_o: [f64; 3], w: &mut [f64]) {
     let m = w.len();
     if m == 0 {
         return;
@@ -241,26 +241,15 @@ pub fn segment_weights(normal: [f64; 3], x_i: [f64; 3], x_o: [f64; 3], w: &mut [
         w[0] = 1.0;
         return;
     }
-    let [nx, ny, nz] = normal;
-    let sign = 1.0f64.copysign(nz);
-    let a = -1.0 / (sign + nz);
-    let b = nx * ny * a;
-    let t = [1.0 + sign * nx * nx * a, sign * b, -sign * nx];
-    let bt = [b, sign + ny * ny * a, -ny];
-    let v = [x_o[0] - x_i[0], x_o[1] - x_i[1], x_o[2] - x_i[2]];
-    let x = v[0] * t[0] + v[1] * t[1] + v[2] * t[2];
-    let y = v[0] * bt[0] + v[1] * bt[1] + v[2] * bt[2];
     w.iter_mut().for_each(|x| *x = 0.0);
-    if x == 0.0 && y == 0.0 {
-        w.iter_mut().for_each(|x| *x = 1.0 / m as f64);
-        return;
+    match frame.polar(x_i, x_o).1 {
+        Some(phi) => {
+            for (l, wl) in hat_weights(phi, m) {
+                w[l] += wl;
+            }
+        }
+        None => w.iter_mut().for_each(|x| *x = 1.0 / m as f64),
     }
-    let phi = y.atan2(x).rem_euclid(std::f64::consts::TAU);
-    let u = phi / (std::f64::consts::TAU / m as f64);
-    let l0 = (u.floor() as usize) % m;
-    let f = u - u.floor();
-    w[l0] += 1.0 - f;
-    w[(l0 + 1) % m] += f;
 }
 
 #[cfg(test)]
@@ -326,22 +315,19 @@ mod tests {
     #[test]
     fn segment_weights_are_hats_that_sum_to_one() {
         let mut w = [0.0; 4];
-        let n = [0.0, 0.0, 1.0];
+        let frame = TangentFrame::from_normal([0.0, 0.0, 1.0]).unwrap();
         for k in 0..64 {
             let a = k as f64 * 0.1;
-            segment_weights(n, [0.0; 3], [a.cos(), a.sin(), 0.3], &mut w);
+            segment_weights(&frame, [0.0; 3], [a.cos(), a.sin(), 0.3], &mut w);
             assert!((w.iter().sum::<f64>() - 1.0).abs() < 1e-12);
             assert!(w.iter().filter(|&&x| x > 0.0).count() <= 2);
         }
-        // Along the tangent itself: all weight on segment 0.
-        let t = {
-            let sign = 1.0f64;
-            let a = -1.0 / (sign + 1.0);
-            [1.0 + 0.0 * a, 0.0, 0.0]
-        };
-        segment_weights(n, [0.0; 3], t, &mut w);
+        // Along the frame's tangent: all weight on segment 0; a quarter turn: segment 1.
+        segment_weights(&frame, [0.0; 3], frame.t, &mut w);
         assert!((w[0] - 1.0).abs() < 1e-12);
-        segment_weights(n, [0.0; 3], [0.0, 0.0, 1.0], &mut w);
+        segment_weights(&frame, [0.0; 3], frame.b, &mut w);
+        assert!((w[1] - 1.0).abs() < 1e-12);
+        segment_weights(&frame, [0.0; 3], [0.0, 0.0, 1.0], &mut w);
         assert_eq!(w, [0.25; 4]);
     }
 }

@@ -15,6 +15,7 @@
 use rayon::prelude::*;
 
 use super::falloff::{Falloffs, segment_weights};
+use crate::model::TangentFrame;
 
 /// The error bound of the hierarchical evaluation.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -78,7 +79,6 @@ pub struct TransportStats {
 /// One lit scene: positions, fall-offs and the flux `Φ_i = E(x_i) A(x_i)` of every vertex.
 pub struct Transport<'a> {
     positions: &'a [[f64; 3]],
-    normals: &'a [[f64; 3]],
     falloffs: &'a Falloffs,
     irradiance: &'a [[f64; 3]],
     power: Vec<[f64; 3]>,
@@ -87,6 +87,8 @@ pub struct Transport<'a> {
     /// Vertices that emit: a model and non-zero flux.
     sources: Vec<u32>,
     is_source: Vec<bool>,
+    /// Tangent frames of the sources (anisotropic models only; Eq. 3).
+    frames: Vec<TangentFrame>,
 }
 
 impl<'a> Transport<'a> {
@@ -115,9 +117,25 @@ impl<'a> Transport<'a> {
             .iter()
             .map(|a| (a / std::f64::consts::PI).sqrt())
             .collect();
+        let frames = if falloffs.segments() > 1 {
+            // A validated model has unit normals; a degenerate one falls back to +z rather than
+            // failing the render.
+            normals
+                .iter()
+                .map(|&n| {
+                    TangentFrame::from_normal(n).unwrap_or(TangentFrame {
+                        t: [1.0, 0.0, 0.0],
+                        b: [0.0, 1.0, 0.0],
+                        n: [0.0, 0.0, 1.0],
+                    })
+                })
+                .collect()
+        } else {
+            Vec::new()
+        };
         Self {
+            frames,
             positions,
-            normals,
             falloffs,
             irradiance,
             power,
@@ -143,7 +161,7 @@ impl<'a> Transport<'a> {
     #[inline]
     fn point_term(&self, i: usize, x_o: [f64; 3], r: f64, w: &mut [f64]) -> [f64; 3] {
         if w.len() > 1 {
-            segment_weights(self.normals[i], self.positions[i], x_o, w);
+            segment_weights(&self.frames[i], self.positions[i], x_o, w);
         }
         let rd = self.falloffs.eval(i, r, w);
         let p = self.power[i];

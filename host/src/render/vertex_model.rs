@@ -1,6 +1,7 @@
 //! The per-vertex model as the renderer needs it: exactly the data of `docs/model-format.md`.
 
 use super::RenderError;
+use crate::modelfile::{ColourMode as FileColour, ModelFile, VertexStatus as FileStatus};
 
 /// How colour is modelled (the `comment colour` header line of the model file).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -125,6 +126,71 @@ impl VertexModel {
         }
     }
 
+    /// The renderer's view of a model file. Vertices that use fewer than the file's `n` terms are
+    /// padded with `c = 0` terms so every vertex has the same layout.
+    pub fn from_model_file(file: &ModelFile) -> Self {
+        let shape = file.shape;
+        let (n, m) = (shape.terms, shape.segments);
+        let colour = match shape.colour {
+            FileColour::Shared => ColourMode::Shared,
+            FileColour::PerChannel => ColourMode::PerChannel,
+        };
+        let len = param_len(colour, n, m);
+        let blocks = if colour == ColourMode::Shared { 1 } else { 3 };
+        let mut params = Vec::with_capacity(file.vertices.len() * len);
+        for v in &file.vertices {
+            let k = v.terms as usize;
+            let head = if colour == ColourMode::Shared { 2 } else { 0 };
+            if v.status == FileStatus::NoModel
+                || k == 0
+                || k > n
+                || v.params.len() != head + blocks * m * 2 * k
+            {
+                // No usable parameters: a neutral placeholder; the status keeps it dark.
+                params.extend(std::iter::repeat_n([1.0, -1.0], len / 2).flatten());
+                if head == 2 {
+                    let at = params.len() - len;
+                    params[at] = 1.0;
+                    params[at + 1] = 1.0;
+                }
+                continue;
+            }
+            params.extend_from_slice(&v.params[..head]);
+            for b in 0..blocks * m {
+                let src = &v.params[head + b * 2 * k..head + (b + 1) * 2 * k];
+                params.extend_from_slice(src);
+                for _ in k..n {
+                    params.extend([0.0, -1.0]);
+                }
+            }
+        }
+        let status = file
+            .vertices
+            .iter()
+            .map(|v| match v.status {
+                FileStatus::Fitted => VertexStatus::Fitted,
+                FileStatus::Interpolated => VertexStatus::Interpolated,
+                FileStatus::NoModel => VertexStatus::NoModel,
+            })
+            .collect();
+        Self {
+            terms: n,
+            segments: m,
+            colour,
+            positions: file.positions.clone(),
+            normals: file.normals.clone(),
+            alpha: file
+                .vertices
+                .iter()
+                .map(|v| v.alpha.map(f64::from))
+                .collect(),
+            status,
+            log_e: file.vertices.iter().map(|v| f64::from(v.log_e)).collect(),
+            params,
+            faces: file.triangles.clone(),
+        }
+    }
+
     /// Checks every invariant the renderer relies on: array lengths, finite numbers, `c > 0`,
     /// `d < 0` (so `R_d → 0` as `r → ∞`, §3.1), face indices in range.
     pub fn validate(&self) -> Result<(), RenderError> {
@@ -200,7 +266,8 @@ impl VertexModel {
                 ColourMode::PerChannel => p,
             };
             for cd in terms.chunks_exact(2) {
-                if !cd[0].is_finite() || cd[0] <= 0.0 {
+                // c = 0 is a padding term (a vertex that uses fewer than n terms).
+                if !cd[0].is_finite() || cd[0] < 0.0 {
                     return Err(bad("c", cd[0]));
                 }
                 if !cd[1].is_finite() || cd[1] >= 0.0 {
