@@ -6,6 +6,7 @@ mod bench_render;
 mod fit_curve;
 mod flash;
 mod plan;
+mod plot;
 mod ports;
 mod probes;
 mod render;
@@ -43,6 +44,8 @@ enum Command {
     Bench(bench::Args),
     /// Relight a fitted model under point, spot and directional lights: PNG (+ linear EXR).
     Render(render::Args),
+    /// Figures: fall-off (Figure 3), error maps (Figures 4/5), model viewer.
+    Plot(plot::Args),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -57,5 +60,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Rig(args) => rig::run(args),
         Command::Bench(args) => bench::run(args),
         Command::Render(a) => render::run(a),
+        Command::Plot(a) => plot::run(a),
     }
 }
