@@ -47,17 +47,14 @@ enum Command {
     Bench(bench::Args),
     /// Relight a fitted model under point, spot and directional lights: PNG (+ linear EXR).
     Render(render::Args),
-<<<<<<< HEAD
-    /// Figures: fall-off (Figure 3), error maps (Figures 4/5), model viewer.
-    Plot(plot::Args),
-=======
     /// Fit the per-vertex model to a scan dataset (register, select, fit, interpolate).
     Fit(fit::Args),
     /// Render a model's prediction of one frame of a scan.
     Predict(predict::Args),
     /// Table-1 statistics (log E, Eq. 8) of a model on frames of a scan.
     Evaluate(evaluate::Args),
->>>>>>> main
+    /// Figures: fall-off (Figure 3), error maps (Figures 4/5), model viewer.
+    Plot(plot::Args),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -72,12 +69,9 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Rig(args) => rig::run(args),
         Command::Bench(args) => bench::run(args),
         Command::Render(a) => render::run(a),
-<<<<<<< HEAD
-        Command::Plot(a) => plot::run(a),
-=======
         Command::Fit(a) => fit::run(a),
         Command::Predict(a) => predict::run(a),
         Command::Evaluate(a) => evaluate::run(a),
->>>>>>> main
+        Command::Plot(a) => plot::run(a),
     }
 }
