@@ -9,6 +9,7 @@ mod fit;
 mod fit_curve;
 mod flash;
 mod plan;
+mod plot;
 mod ports;
 mod predict;
 mod probes;
@@ -55,6 +56,8 @@ enum Command {
     Predict(predict::Args),
     /// Table-1 statistics (log E, Eq. 8) of a model on frames of a scan.
     Evaluate(evaluate::Args),
+    /// Figures: fall-off (Figure 3), error maps (Figures 4/5), model viewer.
+    Plot(plot::Args),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -73,5 +76,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Fit(a) => fit::run(a),
         Command::Predict(a) => predict::run(a),
         Command::Evaluate(a) => evaluate::run(a),
+        Command::Plot(a) => plot::run(a),
     }
 }
