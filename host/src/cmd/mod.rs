@@ -3,6 +3,7 @@ use clap::{Parser, Subcommand};
 
 mod bench;
 mod bench_render;
+mod calib;
 mod demo;
 mod evaluate;
 mod fit;
@@ -42,6 +43,8 @@ enum Command {
     Plan(plan::Args),
     /// Scan an object into a dataset (resumable; `--sim --camera sim` needs no other files).
     Scan(scan::Args),
+    /// Calibrate the camera, turntable axis and galvo into calib.json.
+    Calib(calib::Args),
     /// Talk to the rig or the simulated rig.
     Rig(rig::Args),
     /// Measure performance (figures for BENCHMARKS.md).
@@ -69,6 +72,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Simulate(a) => simulate::run(a),
         Command::Plan(args) => plan::run(args),
         Command::Scan(args) => scan::run(args),
+        Command::Calib(args) => calib::run(args),
         Command::Rig(args) => rig::run(args),
         Command::Bench(args) => bench::run(args),
         Command::Render(a) => render::run(a),
