@@ -1,7 +1,8 @@
 //! Chessboard corners in images, and simulated images of the target.
 //!
-//! No maintained pure-Rust chessboard detector builds offline here (`calib-targets` pulls crates
-//! that are not available), so this is a compact detector for the job: saddle points of the
+//! `calib-targets` (a maintained pure-Rust detector) was not adopted: its sub-crates were not in
+//! the local crate cache and its build cost on this machine was not tried within the schedule.
+//! This is a compact detector for the job instead: saddle points of the
 //! smoothed image (negative Hessian determinant) → sub-pixel saddle of a fitted quadratic → a
 //! lattice grown from the most central corner with locally updated grid vectors → the unique
 //! orientation given by handedness (the printed side faces the camera) and the colour of the
