@@ -26,6 +26,20 @@ pub struct Bin {
     pub syy: f64,
 }
 
+impl Bin {
+    /// The same statistics for distances divided by `scale_r` and log values shifted by −`level`.
+    pub fn normalised(self, scale_r: f64, level: f64) -> Self {
+        Self {
+            n: self.n,
+            r: self.r / scale_r,
+            y: self.y - level,
+            srr: self.srr / (scale_r * scale_r),
+            sry: self.sry / scale_r,
+            syy: self.syy,
+        }
+    }
+}
+
 /// Bins samples (r, y = ln s) into `count` equal-width distance bins over [min r, max r]; returns
 /// the non-empty bins in increasing distance. Inputs must be finite (cleaned).
 pub fn bin_by_distance(r: &[f64], y: &[f64], count: usize) -> Vec<Bin> {
