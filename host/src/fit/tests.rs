@@ -552,3 +552,20 @@ fn specialised_binned_normal_equations_match_generic_rows() {
         assert!((a - b).abs() < 1e-12 * (1.0 + b.abs()), "{a} {b}");
     }
 }
+
+#[test]
+fn vectorisable_ln_matches_std() {
+    let mut worst = 0.0f64;
+    let mut x = 1e-300;
+    while x < 1e300 {
+        for m in [1.0, 1.1, 1.4142, 1.4143, 1.7, 1.999] {
+            let v = x * m;
+            let (a, b) = (super::isotropic::ln_positive(v), v.ln());
+            worst = worst.max((a - b).abs() / b.abs().max(1.0));
+        }
+        x *= 3.7;
+    }
+    assert!(worst < 4e-16, "{worst:e}");
+    assert_eq!(super::isotropic::ln_positive(1.0), 0.0);
+    assert_eq!(super::isotropic::ln_positive(1e-310), 1e-310f64.ln());
+}
