@@ -2,16 +2,66 @@
 //! on identical data, the fast (binned) mode, the presets, and the bins → speed/accuracy curve.
 //!
 //! Run: `cargo bench -p subsurf --bench fit`. One fit per iteration on one core; "fits/s" is
-//! 1 / (time per iteration). Accuracy lines (log E, Eq. 8) are printed once per configuration,
-//! measured on all samples whatever mode produced the fit.
+//! 1 / (time per iteration). Time is the benchmark thread's CPU time (`CLOCK_THREAD_CPUTIME_ID`),
+//! not wall time: the project machine has 2 cores shared by seven engineers' builds (load
+//! average 10–14 while these figures were taken), so wall time would measure the queue, not the
+//! fitter. Accuracy lines (log E, Eq. 8) are printed once per configuration, measured on all
+//! samples whatever mode produced the fit.
 
 use std::hint::black_box;
 
+use std::time::Duration;
+
+use criterion::measurement::{Measurement, ValueFormatter, WallTime};
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 use subsurf::fit::aniso::{AnisoOptions, fit_anisotropic};
 use subsurf::fit::dipole::{DipoleOptions, fit_dipole};
 use subsurf::fit::{FitOptions, Preset, Solver, fit_expsum};
 use subsurf::model::{Anisotropic, ExpSum, Material, Term};
+
+/// CPU time of the calling thread.
+#[allow(unsafe_code)]
+fn thread_cpu() -> Duration {
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: clock_gettime writes one timespec through a valid pointer.
+    let ok = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts) } == 0;
+    if ok {
+        Duration::new(ts.tv_sec as u64, ts.tv_nsec as u32)
+    } else {
+        Duration::ZERO
+    }
+}
+
+/// Criterion measurement: thread CPU time, formatted like wall time.
+struct ThreadCpuTime;
+static WALL: WallTime = WallTime;
+impl Measurement for ThreadCpuTime {
+    type Intermediate = Duration;
+    type Value = Duration;
+    fn start(&self) -> Duration {
+        thread_cpu()
+    }
+    fn end(&self, start: Duration) -> Duration {
+        thread_cpu().saturating_sub(start)
+    }
+    fn add(&self, a: &Duration, b: &Duration) -> Duration {
+        *a + *b
+    }
+    fn zero(&self) -> Duration {
+        Duration::ZERO
+    }
+    fn to_f64(&self, v: &Duration) -> f64 {
+        v.as_nanos() as f64
+    }
+    fn formatter(&self) -> &dyn ValueFormatter {
+        WALL.formatter()
+    }
+}
+
+type Crit = Criterion<ThreadCpuTime>;
 
 /// SplitMix64 uniform numbers: identical data on every run and for both solvers.
 struct Rng(u64);
@@ -61,7 +111,7 @@ fn log_e(m: &ExpSum, r: &[f64], s: &[f64]) -> f64 {
     (sq / r.len() as f64).sqrt()
 }
 
-fn isotropic(c: &mut Criterion) {
+fn isotropic(c: &mut Crit) {
     let mut g = c.benchmark_group("isotropic_n3");
     for count in [500usize, 2_000, 20_000] {
         let (r, s) = curve(count, count as u64);
@@ -95,7 +145,7 @@ fn isotropic(c: &mut Criterion) {
     g.finish();
 }
 
-fn anisotropic(c: &mut Criterion) {
+fn anisotropic(c: &mut Crit) {
     let m = 8;
     let segments: Vec<ExpSum> = (0..m)
         .map(|l| {
@@ -146,7 +196,7 @@ fn anisotropic(c: &mut Criterion) {
     g.finish();
 }
 
-fn dipole(c: &mut Criterion) {
+fn dipole(c: &mut Crit) {
     let truth = Material::by_name("skin1").unwrap().dipole(0).unwrap();
     let mut rng = Rng(3);
     let (r, s): (Vec<f64>, Vec<f64>) = (0..2_000)
@@ -176,7 +226,7 @@ fn dipole(c: &mut Criterion) {
     g.finish();
 }
 
-fn presets(c: &mut Criterion) {
+fn presets(c: &mut Crit) {
     let (r, s) = curve(2_000, 2_000);
     let mut g = c.benchmark_group("preset");
     for p in Preset::ALL {
@@ -197,7 +247,7 @@ fn presets(c: &mut Criterion) {
     g.finish();
 }
 
-fn trade_curve(c: &mut Criterion) {
+fn trade_curve(c: &mut Crit) {
     let (r, s) = curve(2_000, 2_000);
     let exact = fit_expsum(&r, &s, &FitOptions::default()).unwrap();
     let e0 = log_e(&exact.model, &r, &s);
@@ -223,7 +273,7 @@ fn trade_curve(c: &mut Criterion) {
 criterion_group! {
     name = benches;
     // No HTML plots: they need system fonts, and the figures go into BENCHMARKS.md as text.
-    config = Criterion::default().without_plots();
+    config = Criterion::default().with_measurement(ThreadCpuTime).without_plots();
     targets = isotropic, anisotropic, dipole, presets, trade_curve
 }
 criterion_main!(benches);
