@@ -53,8 +53,9 @@ fn rates(theta: &[f64], n: usize) -> [f64; 4] {
 /// `isotropic_n3` benchmark measures the gain, and a test checks it against `f64::exp`.
 #[inline(always)]
 pub(crate) fn exp_nonpositive(x: f64) -> f64 {
-    const LN2_HI: f64 = 6.931_471_803_691_238_2e-1;
-    const LN2_LO: f64 = 1.908_214_929_270_587_7e-10;
+    // ln 2 split so that k·LN2_HI is exact (fdlibm's constants).
+    const LN2_HI: f64 = f64::from_bits(0x3fe6_2e42_fee0_0000);
+    const LN2_LO: f64 = f64::from_bits(0x3dea_39ef_3579_3c76);
     // Round-to-nearest by the 1.5·2^52 trick: k lands in the low mantissa bits of `kk`, with no
     // libm `round` and no float→int conversion, both of which block vectorisation.
     const MAGIC: f64 = 6_755_399_441_055_744.0;
@@ -120,8 +121,9 @@ pub(crate) fn ln_positive(x: f64) -> f64 {
     ] {
         p = p * s2 + c;
     }
-    const LN2_HI: f64 = 6.931_471_803_691_238_2e-1;
-    const LN2_LO: f64 = 1.908_214_929_270_587_7e-10;
+    // ln 2 split so that k·LN2_HI is exact (fdlibm's constants).
+    const LN2_HI: f64 = f64::from_bits(0x3fe6_2e42_fee0_0000);
+    const LN2_LO: f64 = f64::from_bits(0x3dea_39ef_3579_3c76);
     let ef = e as f64;
     ef * LN2_HI + (2.0 * s * p + ef * LN2_LO)
 }
@@ -144,6 +146,7 @@ fn log_exact_normal(
     }
 }
 
+#[allow(clippy::needless_range_loop)] // index loops over parallel arrays vectorise
 fn log_exact_normal_n<const N: usize>(
     problem: &LogExact<'_>,
     theta: &[f64],
@@ -225,6 +228,7 @@ fn log_binned_normal(
     }
 }
 
+#[allow(clippy::needless_range_loop)] // index loops over parallel arrays vectorise
 fn log_binned_normal_n<const N: usize>(
     problem: &LogBinned<'_>,
     theta: &[f64],
@@ -331,7 +335,12 @@ impl Problem for LogExact<'_> {
     fn params(&self) -> usize {
         2 * self.n
     }
-    fn normal_equations(&self, theta: &[f64], jtj: &mut [f64], jtr: &mut [f64]) -> Option<Option<f64>> {
+    fn normal_equations(
+        &self,
+        theta: &[f64],
+        jtj: &mut [f64],
+        jtr: &mut [f64],
+    ) -> Option<Option<f64>> {
         Some(log_exact_normal(self, theta, jtj, jtr))
     }
     fn rows(&self) -> usize {
@@ -794,10 +803,11 @@ pub(crate) fn fit_fixed(
     };
     // Bins feed the start values and the pre-fit (the whole fit in fast mode). They are built
     // from the raw samples and normalised afterwards, so the fast mode touches each sample once.
-    let prefit_bins: Vec<Bin> = bin_by_distance(r, &ln_s, bins.unwrap_or(PREFIT_BINS).max(2 * n + 2))
-        .into_iter()
-        .map(|b| b.normalised(scale_r, level))
-        .collect();
+    let prefit_bins: Vec<Bin> =
+        bin_by_distance(r, &ln_s, bins.unwrap_or(PREFIT_BINS).max(2 * n + 2))
+            .into_iter()
+            .map(|b| b.normalised(scale_r, level))
+            .collect();
     // Per-sample normalised data, only for the solves that use every sample.
     let per_sample = || -> (Vec<f64>, Vec<f64>) {
         (
@@ -842,7 +852,11 @@ pub(crate) fn fit_fixed(
             // The binned fit only approximates the exact one (its log E differs in the 3rd–5th
             // digit), so iterating it to machine precision buys nothing.
             let binned_settings = Settings {
-                ftol: if bins.is_some() { FAST_FTOL } else { POLISH_FTOL },
+                ftol: if bins.is_some() {
+                    FAST_FTOL
+                } else {
+                    POLISH_FTOL
+                },
                 ..settings
             };
             let mut pre: Option<lm::Outcome> = None;

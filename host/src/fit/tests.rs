@@ -508,7 +508,10 @@ fn specialised_normal_equations_match_generic_rows() {
     let p = LogExact { r: &r, y: &y, n: 3 };
     let theta = [0.2, 0.1, -0.5, 1.2, -1.0, 2.0];
     let (mut jtj, mut jtr) = (vec![0.0; 36], vec![0.0; 6]);
-    let cost = p.normal_equations(&theta, &mut jtj, &mut jtr).unwrap().unwrap();
+    let cost = p
+        .normal_equations(&theta, &mut jtj, &mut jtr)
+        .unwrap()
+        .unwrap();
     let (mut jtj2, mut jtr2, mut cost2) = (vec![0.0; 36], vec![0.0; 6], 0.0);
     p.eval(&theta, true, |res, idx, val| {
         cost2 += res * res;
@@ -531,12 +534,18 @@ fn specialised_binned_normal_equations_match_generic_rows() {
     use super::isotropic::LogBinned;
     use super::lm::Problem;
     let r: Vec<f64> = (0..300).map(|i| (i as f64 / 299.0).powi(2)).collect();
-    let y: Vec<f64> = r.iter().map(|v| -2.0 * v + (17.0 * v).sin() * 0.1).collect();
+    let y: Vec<f64> = r
+        .iter()
+        .map(|v| -2.0 * v + (17.0 * v).sin() * 0.1)
+        .collect();
     let bins = bin_by_distance(&r, &y, 37);
     let p = LogBinned { bins: &bins, n: 3 };
     let theta = [0.2, 0.1, -0.5, 1.2, -1.0, 2.0];
     let (mut jtj, mut jtr) = (vec![0.0; 36], vec![0.0; 6]);
-    let cost = p.normal_equations(&theta, &mut jtj, &mut jtr).unwrap().unwrap();
+    let cost = p
+        .normal_equations(&theta, &mut jtj, &mut jtr)
+        .unwrap()
+        .unwrap();
     let (mut jtj2, mut jtr2, mut cost2) = (vec![0.0; 36], vec![0.0; 6], 0.0);
     p.eval(&theta, true, |res, idx, val| {
         cost2 += res * res;
@@ -558,7 +567,8 @@ fn vectorisable_ln_matches_std() {
     let mut worst = 0.0f64;
     let mut x = 1e-300;
     while x < 1e300 {
-        for m in [1.0, 1.1, 1.4142, 1.4143, 1.7, 1.999] {
+        let r2 = std::f64::consts::SQRT_2;
+        for m in [1.0, 1.1, r2 * (1.0 - 1e-12), r2 * (1.0 + 1e-12), 1.7, 1.999] {
             let v = x * m;
             let (a, b) = (super::isotropic::ln_positive(v), v.ln());
             worst = worst.max((a - b).abs() / b.abs().max(1.0));
