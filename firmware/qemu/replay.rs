@@ -12,6 +12,15 @@
 
 use subsurf_firmware::Micros;
 use subsurf_firmware::sim::{SimParams, SimRig};
+use subsurf_protocol::{
+    Capture, Command, GalvoPoint, MAX_FRAME, Move, MoveTarget, PROTOCOL_VERSION, Request,
+    encode_request,
+};
+
+/// Seed and length of the pseudo-random session that follows the recorded script.
+pub const NOISE_SEED: u64 = 0x5EED_F00D_CAFE_0001;
+/// Requests in the pseudo-random session.
+pub const NOISE_REQUESTS: u32 = 400;
 
 /// Bytes from the host arrive.
 pub const KIND_BYTES: u8 = 0;
@@ -28,6 +37,8 @@ pub const KIND_ADVANCE: u8 = 5;
 
 /// Marks the start of the summary in the output.
 pub const SUMMARY_MAGIC: &[u8] = b"\0SUMMARY";
+/// Marks the start of the pseudo-random session's replies in the output.
+pub const NOISE_MAGIC: &[u8] = b"\0NOISE";
 
 /// Why a script could not be replayed.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -101,8 +112,144 @@ pub fn replay_observed(
     }
     rig.advance_to(last);
     rig.drain_frames(|frame| out(frame));
+    out(NOISE_MAGIC);
+    observe(KIND_NOISE, false);
+    noise_session(rig, last, NOISE_SEED, NOISE_REQUESTS, out);
+    observe(KIND_NOISE, true);
     summary(rig, out);
     Ok(records)
+}
+
+/// Not a script record: marks the pseudo-random session for `observe`.
+pub const KIND_NOISE: u8 = 6;
+
+/// xorshift64*: a tiny deterministic generator, identical on every target.
+struct Rng(u64);
+
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 ^= self.0 >> 12;
+        self.0 ^= self.0 << 25;
+        self.0 ^= self.0 >> 27;
+        self.0.wrapping_mul(0x2545_F491_4F6C_DD1D)
+    }
+
+    fn below(&mut self, n: u64) -> u64 {
+        self.next() % n.max(1)
+    }
+}
+
+/// A pseudo-random host that sends every kind of request, some with flipped bits, truncated, or
+/// split across reads, with line noise in between, and pokes the e-stop and interlock now and
+/// then. Generated on the fly (no allocation), so the QEMU binary and the host test see the same
+/// bytes without storing them.
+pub fn noise_session(
+    rig: &mut SimRig,
+    start: Micros,
+    seed: u64,
+    requests: u32,
+    out: &mut dyn FnMut(&[u8]),
+) {
+    let mut rng = Rng(seed | 1);
+    let mut t = start;
+    let mut frame = [0u8; MAX_FRAME];
+    for i in 0..requests {
+        t += 200 + rng.below(3_000);
+        let point = GalvoPoint {
+            x: rng.below(70_000) as u16,
+            y: rng.below(70_000) as u16,
+        };
+        let command = match rng.below(14) {
+            0 => Command::Status,
+            1 => Command::Heartbeat,
+            2 => Command::GetConfig,
+            3 => Command::Galvo(point),
+            4 => Command::Arm,
+            5 => Command::Disarm,
+            6 => Command::Laser {
+                channel: rng.below(5) as u8,
+                on: rng.below(2) == 0,
+            },
+            7 => Command::Move(Move {
+                target: MoveTarget::Relative(rng.below(400) as i32 - 200),
+                max_speed: 500 + rng.below(25_000) as u32,
+                accel: 5_000 + rng.below(300_000) as u32,
+            }),
+            8 => Command::Capture(Capture {
+                galvo: point,
+                settle_us: if rng.below(2) == 0 {
+                    None
+                } else {
+                    Some(rng.below(2_000) as u32)
+                },
+                channel: rng.below(4) as u8,
+                exposure_us: 1 + rng.below(3_000) as u32,
+                trigger_us: 1 + rng.below(500) as u32,
+            }),
+            9 => Command::Stop,
+            10 => Command::ClearFault,
+            11 => Command::Hello {
+                protocol_version: PROTOCOL_VERSION,
+            },
+            12 => Command::Move(Move {
+                target: MoveTarget::Absolute(rng.below(2_000) as i32 - 1_000),
+                max_speed: rng.below(30_000) as u32,
+                accel: rng.below(400_000) as u32,
+            }),
+            _ => Command::Home,
+        };
+        // Mostly fresh sequence numbers, sometimes a retransmission of the previous one.
+        let seq = if rng.below(10) == 0 { i } else { i + 1 };
+        let request = Request {
+            seq: 10_000 + seq,
+            command,
+        };
+        let Ok(len) = encode_request(&request, &mut frame) else {
+            continue;
+        };
+        let bytes = &mut frame[..len];
+        match rng.below(16) {
+            0 => {
+                let at = rng.below(len as u64) as usize;
+                bytes[at] ^= 1 << rng.below(8);
+            }
+            1 => {
+                let cut = rng.below(len as u64) as usize;
+                rig.feed(t, &bytes[..cut]);
+                rig.feed(t, &[0]);
+            }
+            2 => {
+                let mut noise = [0u8; 16];
+                for b in &mut noise {
+                    *b = rng.next() as u8;
+                }
+                rig.feed(t, &noise[..1 + rng.below(16) as usize]);
+            }
+            3 => match rng.below(4) {
+                0 => rig.set_estop(t, true),
+                1 => rig.set_estop(t, false),
+                2 => rig.set_interlock(t, false),
+                _ => rig.set_interlock(t, true),
+            },
+            _ => {}
+        }
+        // Deliver in one piece or split at a random point.
+        let split = rng.below(len as u64 + 1) as usize;
+        rig.feed(t, &bytes[..split]);
+        rig.feed(t + 50, &bytes[split..]);
+        rig.drain_frames(|f| out(f));
+        // Let a move or capture progress between some requests.
+        if rng.below(4) == 0 {
+            t += rng.below(100_000);
+            rig.advance_to(t);
+            rig.drain_frames(|f| out(f));
+        }
+    }
+    rig.set_estop(t, false);
+    rig.set_interlock(t, true);
+    t += 3_000_000;
+    rig.advance_to(t);
+    rig.drain_frames(|f| out(f));
 }
 
 fn summary(rig: &SimRig, out: &mut dyn FnMut(&[u8])) {

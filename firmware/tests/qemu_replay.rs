@@ -2,7 +2,8 @@
 //!
 //! `scenario()` records a host session (handshake, moves, homing, captures, a capture program,
 //! corrupted and truncated frames, a retransmission, e-stop, interlock, a lost heartbeat) as a
-//! replay script. This test runs it through the firmware core on the host and checks the result
+//! replay script; the replay then runs a seeded pseudo-random session (every request kind, bit
+//! flips, truncations, split reads, line noise, safety inputs toggling) generated on the fly. This test runs it through the firmware core on the host and checks the result
 //! against the two golden files the QEMU binary embeds (`firmware/qemu/script.bin`,
 //! `firmware/qemu/expected.bin`); CI then runs the same script through the same core compiled for
 //! thumbv7em under `qemu-system-arm -M mps2-an386` and requires byte-identical output.
@@ -211,13 +212,26 @@ fn golden_files_are_what_the_host_core_produces() {
 #[test]
 fn the_scenario_exercises_every_path_it_claims() {
     let out = run_on_host(&scenario());
-    let split = out
-        .windows(SUMMARY_MAGIC.len())
-        .position(|w| w == SUMMARY_MAGIC)
-        .expect("summary present");
+    let find = |magic: &[u8]| {
+        out.windows(magic.len())
+            .position(|w| w == magic)
+            .expect("marker present")
+    };
+    let (noise, summary) = (find(NOISE_MAGIC), find(SUMMARY_MAGIC));
     let mut decoder = FrameDecoder::new();
-    let messages: Vec<RigMessage> = decoder.decode(&out[..split]).collect();
+    let messages: Vec<RigMessage> = decoder.decode(&out[..noise]).collect();
     assert_eq!(decoder.stats().dropped(), 0, "the rig sent a bad frame");
+    // The pseudo-random session gets answers too, all well-formed.
+    let mut decoder = FrameDecoder::new();
+    let noisy: Vec<RigMessage> = decoder
+        .decode(&out[noise + NOISE_MAGIC.len()..summary])
+        .collect();
+    assert_eq!(decoder.stats().dropped(), 0, "the rig sent a bad frame");
+    assert!(
+        noisy.len() > 200,
+        "{} replies to the noise session",
+        noisy.len()
+    );
 
     let reply = |seq: u32| {
         messages

@@ -10,7 +10,7 @@
 //! ([`Budget`]).
 
 use std::path::{Path, PathBuf};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use object::{Object, ObjectSection, SectionFlags, SectionKind};
 use probe_rs::flashing::{ElfLoader, ElfOptions};
@@ -410,18 +410,19 @@ pub fn handshake(
     let len = encode_request(&request, &mut frame)
         .map_err(|e| FlashError::BadReply(format!("cannot encode hello: {e:?}")))?;
     let mut decoder = FrameDecoder::new();
-    let deadline = Instant::now() + timeout;
-    let mut next_send = Instant::now();
+    // The link's clock, so a simulated link in virtual time never sleeps.
+    let deadline = link.now() + timeout;
+    let mut next_send = link.now();
     let mut buf = [0u8; 256];
-    while Instant::now() < deadline {
-        if Instant::now() >= next_send {
+    while link.now() < deadline {
+        if link.now() >= next_send {
             // A leading delimiter ends whatever half frame the firmware may hold.
             link.send(&[0])?;
             link.send(&frame[..len])?;
-            next_send = Instant::now() + Duration::from_millis(250);
+            next_send = link.now() + Duration::from_millis(250);
         }
         let n = link.recv(&mut buf, Duration::from_millis(50))?;
-        for message in decoder.decode::<RigMessage>(&buf[..n]) {
+        for message in decoder.decode::<RigMessage>(buf.get(..n).unwrap_or(&[])) {
             if let RigMessage::Reply(reply) = message
                 && reply.seq == SEQ
             {

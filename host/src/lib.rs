@@ -7,13 +7,21 @@
 
 pub mod calib;
 pub mod dataset;
+pub mod evaluate;
 pub mod fit;
 pub mod flash;
 pub mod geometry;
+pub mod interpolate;
 pub mod link;
 pub mod model;
 pub mod modelfile;
+pub mod pipeline;
 pub mod plot;
+pub mod registration;
+pub mod render;
 pub mod rig;
+pub mod samples;
 pub mod scan;
+pub mod selection;
+pub mod sim;
 pub mod simulate;

@@ -423,6 +423,104 @@ impl Cursor<'_> {
     }
 }
 
+/// Parameters of a colour model in the file's order (`docs/model-format.md`), its term count n
+/// and segment count m. Segments must share one term count.
+pub fn params_of(
+    model: &crate::model::ColourModel,
+) -> Result<(Vec<f64>, usize, usize), ModelFileError> {
+    use crate::model::{Anisotropic, ColourModel};
+    fn push(
+        out: &mut Vec<f64>,
+        a: &Anisotropic,
+        n: &mut Option<usize>,
+    ) -> Result<(), ModelFileError> {
+        for seg in &a.segments {
+            if n.is_some_and(|n| n != seg.n()) {
+                return Err(ModelFileError::Invalid(
+                    "segments and channels of a vertex must share one term count".into(),
+                ));
+            }
+            *n = Some(seg.n());
+            for t in &seg.terms {
+                out.push(t.c);
+                out.push(t.d);
+            }
+        }
+        Ok(())
+    }
+    let mut out = Vec::new();
+    let mut n = None;
+    let m = match model {
+        ColourModel::Shared { falloff, s_g, s_b } => {
+            out.push(*s_g);
+            out.push(*s_b);
+            push(&mut out, falloff, &mut n)?;
+            falloff.m()
+        }
+        ColourModel::PerChannel { channels } => {
+            for ch in channels {
+                if ch.m() != channels[0].m() {
+                    return Err(ModelFileError::Invalid(
+                        "channels differ in segments".into(),
+                    ));
+                }
+                push(&mut out, ch, &mut n)?;
+            }
+            channels[0].m()
+        }
+    };
+    Ok((out, n.unwrap_or(0), m))
+}
+
+/// The colour model of a vertex's parameters (validated: c > 0, d < 0, finite, scales > 0).
+pub fn model_of(
+    shape: &ModelShape,
+    terms: usize,
+    params: &[f64],
+) -> Result<crate::model::ColourModel, crate::model::ModelError> {
+    use crate::model::{Anisotropic, ColourModel, ExpSum, ModelError, Term};
+    if params.len() != shape.param_count(terms) || terms == 0 {
+        return Err(ModelError::TermCount {
+            got: terms,
+            max: crate::model::MAX_TERMS,
+        });
+    }
+    let aniso = |p: &[f64]| -> Result<Anisotropic, ModelError> {
+        let segments = p
+            .chunks_exact(2 * terms)
+            .map(|s| {
+                ExpSum::new(
+                    s.chunks_exact(2)
+                        .map(|t| Term { c: t[0], d: t[1] })
+                        .collect(),
+                )
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        let a = Anisotropic { segments };
+        a.validate()?;
+        Ok(a)
+    };
+    let m = match shape.colour {
+        ColourMode::Shared => ColourModel::Shared {
+            falloff: aniso(&params[2..])?,
+            s_g: params[0],
+            s_b: params[1],
+        },
+        ColourMode::PerChannel => {
+            let k = 2 * terms * shape.segments;
+            ColourModel::PerChannel {
+                channels: [
+                    aniso(&params[..k])?,
+                    aniso(&params[k..2 * k])?,
+                    aniso(&params[2 * k..])?,
+                ],
+            }
+        }
+    };
+    m.validate()?;
+    Ok(m)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -354,3 +354,81 @@ fn probes_command_runs_without_hardware() {
         String::from_utf8_lossy(&out.stderr)
     );
 }
+
+/// The simulated rig (the firmware core on simulated hardware) behind a link with a virtual
+/// clock: what `subsurf flash` talks to after the reset, minus the USB.
+struct SimBoard {
+    rig: subsurf_firmware::sim::SimRig,
+    start: std::time::Instant,
+    now_us: u64,
+    /// Bytes the board "boots" with before it answers (noise on the line).
+    noise: Vec<u8>,
+    /// A board that never answers (wrong firmware, wrong port).
+    mute: bool,
+}
+
+impl SimBoard {
+    fn new() -> Self {
+        Self {
+            rig: subsurf_firmware::sim::SimRig::default(),
+            start: std::time::Instant::now(),
+            now_us: 0,
+            noise: vec![0x55, 0xaa, 0x00, 0x17],
+            mute: false,
+        }
+    }
+}
+
+impl subsurf::link::ByteLink for SimBoard {
+    fn send(&mut self, bytes: &[u8]) -> Result<(), subsurf::link::LinkError> {
+        if !self.mute {
+            self.rig.feed(self.now_us, bytes);
+        }
+        Ok(())
+    }
+
+    fn recv(
+        &mut self,
+        buf: &mut [u8],
+        timeout: std::time::Duration,
+    ) -> Result<usize, subsurf::link::LinkError> {
+        self.now_us += u64::try_from(timeout.as_micros()).unwrap_or(u64::MAX);
+        self.rig.advance_to(self.now_us);
+        let mut n = 0;
+        for b in std::mem::take(&mut self.noise) {
+            buf[n] = b;
+            n += 1;
+        }
+        n += self.rig.drain(&mut buf[n..]);
+        Ok(n)
+    }
+
+    fn describe(&self) -> String {
+        "simulated board".into()
+    }
+
+    fn now(&self) -> std::time::Instant {
+        self.start + std::time::Duration::from_micros(self.now_us)
+    }
+}
+
+#[test]
+fn handshake_reads_the_firmware_version_through_line_noise() {
+    let mut board = SimBoard::new();
+    let version = flash::handshake(&mut board, std::time::Duration::from_secs(3)).expect("hello");
+    assert_eq!(version, subsurf_firmware::FIRMWARE_VERSION);
+    assert_eq!(version, flash::expected_firmware_version());
+}
+
+#[test]
+fn handshake_with_a_silent_board_times_out_in_virtual_time() {
+    let mut board = SimBoard::new();
+    board.mute = true;
+    let wall = std::time::Instant::now();
+    let err = flash::handshake(&mut board, std::time::Duration::from_secs(3)).unwrap_err();
+    assert!(matches!(err, FlashError::NoReply(_)), "{err}");
+    assert!(
+        wall.elapsed() < std::time::Duration::from_secs(2),
+        "slept on the wall clock"
+    );
+}

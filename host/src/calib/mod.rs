@@ -6,6 +6,7 @@
 //! platter). The scan writes each frame's `laser` ray from [`GalvoModel::ray`]. Fitting code here
 //! never touches files except [`Calibration::load`] / [`Calibration::save`].
 
+pub mod detect;
 pub mod galvo;
 mod lsq;
 pub mod target;
@@ -204,11 +205,28 @@ impl Calibration {
         self.galvo.validate()
     }
 
-    /// The built-in calibration of the simulated rig: a 128x128 camera 600 mm from the axis and the
-    /// laser 850 mm away (the distances of the paper's Fig. 2), both looking at the platter centre.
+    /// The built-in calibration of the simulated rig for the built-in sphere (radius 10 mm).
     pub fn builtin() -> Self {
-        let camera = look_at_camera([0.0, -600.0, 160.0], [0.0, 0.0, 12.0], 128, 128, 1500.0);
-        let galvo = GalvoModel::looking_at([160.0, -830.0, 140.0], [0.0, 0.0, 12.0], 4095, 0.08);
+        Self::builtin_for([0.0, 0.0, 10.0], 10.0, 128)
+    }
+
+    /// The built-in calibration for an object with bounding sphere `(centre, radius)`: a
+    /// `size`² camera 600 mm from the object at 35° elevation (the paper's camera distance, Fig. 2)
+    /// framing it, and the laser from 780 mm above the camera's side, its 16-bit galvo spanning
+    /// the object with 20% to spare.
+    pub fn builtin_for(centre: [f64; 3], radius: f64, size: u32) -> Self {
+        let el = 35f64.to_radians();
+        let eye = [
+            centre[0],
+            centre[1] - 600.0 * el.cos(),
+            centre[2] + 600.0 * el.sin(),
+        ];
+        let f = 0.5 * size as f64 * 600.0 / (radius * 1.15);
+        let camera = look_at_camera(eye, centre, size, size, f);
+        let origin = [0.0, -600.0, 500.0];
+        let d = sub(centre, origin);
+        let half = (1.2 * radius / dot(d, d).sqrt()).atan();
+        let galvo = GalvoModel::looking_at(origin, centre, u16::MAX, half);
         Calibration {
             format: CALIB_FORMAT.to_string(),
             camera,
@@ -284,10 +302,13 @@ mod tests {
                 .all(|(x, y)| (x - y).abs() < 1e-9)
         );
         assert_eq!(c.galvo.max_code, back.galvo.max_code);
-        let uv = c.camera.project([0.0, 0.0, 12.0]).unwrap();
+        let uv = c.camera.project([0.0, 0.0, 10.0]).unwrap();
         assert!((uv[0] - 63.5).abs() < 1e-9 && (uv[1] - 63.5).abs() < 1e-9);
         let cw = c.camera.centre_world();
-        assert!((cw[1] + 600.0).abs() < 1e-9);
+        assert!((cw[1] + 600.0 * 35f64.to_radians().cos()).abs() < 1e-9);
+        let (o, d) = c.galvo.ray([32768, 32768]);
+        let to_centre = normalize(sub([0.0, 0.0, 10.0], o));
+        assert!(dot(d, to_centre) > 0.999_999);
     }
 
     #[test]

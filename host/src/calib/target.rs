@@ -274,10 +274,11 @@ pub fn fit_turntable_axis(poses: &[Pose], deg: &[f64]) -> Result<TurntableFit, C
         let q = p.r * r0.transpose();
         let s = p.t - q * t0;
         let rv = Rotation3::from_matrix_unchecked(q).scaled_axis();
-        let dtheta = (deg[k] - deg[0]).to_radians();
-        if dtheta.abs() > 1e-6 {
-            // scaled_axis has angle in [0, π]; orient it so the angle has dtheta's sign.
-            dir += rv * dtheta.signum();
+        // scaled_axis has its angle in [0, π]: orient it by the sign of the turn wrapped to
+        // (−180°, 180°]; half turns are ambiguous and left out of the direction.
+        let wrapped = (deg[k] - deg[0] + 180.0).rem_euclid(360.0) - 180.0;
+        if wrapped.abs() > 1e-6 && wrapped.abs() < 170.0 {
+            dir += rv * wrapped.signum();
         }
         let iq = Matrix3::identity() - q;
         for a in 0..3 {
@@ -342,6 +343,84 @@ pub fn fit_turntable_axis(poses: &[Pose], deg: &[f64]) -> Result<TurntableFit, C
         camera_from_world: cfw,
         rms_mm: (se / cnt).sqrt(),
     })
+}
+
+/// The turntable axis refined against the images: views `first..` of `intr` (whose corners are
+/// `views[first..]`) show the board lying on the platter at angles `deg`. Starting from
+/// [`fit_turntable_axis`], Levenberg–Marquardt adjusts the first board pose and the axis
+/// (direction, and its point across the axis) so that rotating the board about the axis
+/// reprojects onto every corner seen — one rigid model for all views instead of one pose each.
+pub fn fit_turntable(
+    intr: &IntrinsicsFit,
+    views: &[TargetView],
+    first: usize,
+    deg: &[f64],
+) -> Result<TurntableFit, CalibError> {
+    let poses = intr.poses.get(first..).unwrap_or(&[]);
+    let init = fit_turntable_axis(poses, deg)?;
+    let views = views.get(first..).unwrap_or(&[]);
+    let a0 = init.direction;
+    let e1 = a0
+        .cross(&if a0[0].abs() < 0.9 {
+            Vector3::x()
+        } else {
+            Vector3::y()
+        })
+        .normalize();
+    let e2 = a0.cross(&e1);
+    let (r0, t0) = (poses[0].r, poses[0].t);
+    let rv0 = Rotation3::from_matrix_unchecked(r0).scaled_axis();
+    // [rv(3), t(3), axis tilt along e1, e2 (2), point shift along e1, e2 (2)]
+    let p0 = DVector::from_vec(vec![
+        rv0[0], rv0[1], rv0[2], t0[0], t0[1], t0[2], 0.0, 0.0, 0.0, 0.0,
+    ]);
+    let model = |p: &DVector<f64>| {
+        let r = Rotation3::new(Vector3::new(p[0], p[1], p[2])).into_inner();
+        let t = Vector3::new(p[3], p[4], p[5]);
+        let a = (a0 + e1 * p[6] + e2 * p[7]).normalize();
+        let q = init.point + e1 * p[8] + e2 * p[9];
+        (r, t, a, q)
+    };
+    let k = intr.k;
+    let dist = [intr.distortion[0], intr.distortion[1]];
+    let residual = |p: &DVector<f64>| {
+        let (r, t, a, q) = model(p);
+        let mut res = Vec::new();
+        for (v, d) in views.iter().zip(deg) {
+            let rot = Rotation3::from_axis_angle(
+                &nalgebra::Unit::new_normalize(a),
+                (d - deg[0]).to_radians(),
+            )
+            .into_inner();
+            let pose = Pose {
+                r: rot * r,
+                t: rot * (t - q) + q,
+            };
+            for (b, px) in v.board.iter().zip(&v.pixels) {
+                let pr = project(&k, dist, &pose, *b);
+                res.push(pr[0] - px[0]);
+                res.push(pr[1] - px[1]);
+            }
+        }
+        DVector::from_vec(res)
+    };
+    let (p, _) = minimize(p0, residual).ok_or_else(|| {
+        CalibError::NotConverged("turntable axis: the joint fit did not converge".into())
+    })?;
+    let (r, t, a, q) = model(&p);
+    let mut refined: Vec<Pose> = Vec::new();
+    for d in deg {
+        let rot = Rotation3::from_axis_angle(
+            &nalgebra::Unit::new_normalize(a),
+            (d - deg[0]).to_radians(),
+        )
+        .into_inner();
+        refined.push(Pose {
+            r: rot * r,
+            t: rot * (t - q) + q,
+        });
+    }
+    fit_turntable_axis(&refined, deg)
 }
 
 /// Builds the camera model from an intrinsics fit and a turntable fit.

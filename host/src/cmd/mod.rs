@@ -1,10 +1,21 @@
 //! One module per subcommand. Each owns its `Args` and a `run` that returns `anyhow::Result`.
 use clap::{Parser, Subcommand};
 
+mod bench;
+mod bench_render;
+mod calib;
+mod evaluate;
+mod fit;
 mod fit_curve;
 mod flash;
+mod plan;
+mod plot;
 mod ports;
+mod predict;
 mod probes;
+mod render;
+mod rig;
+mod scan;
 mod simulate;
 
 /// Capture real translucent objects and turn them into compact, renderable models.
@@ -27,6 +38,26 @@ enum Command {
     FitCurve(fit_curve::Args),
     /// Write a simulated scan dataset with ground truth.
     Simulate(simulate::Args),
+    /// Plan a scan: frames, expected duration and predicted coverage, before anything moves.
+    Plan(plan::Args),
+    /// Scan an object into a dataset (resumable; `--sim --camera sim` needs no other files).
+    Scan(scan::Args),
+    /// Calibrate the camera, turntable axis and galvo into calib.json.
+    Calib(calib::Args),
+    /// Talk to the rig or the simulated rig.
+    Rig(rig::Args),
+    /// Measure performance (figures for BENCHMARKS.md).
+    Bench(bench::Args),
+    /// Relight a fitted model under point, spot and directional lights: PNG (+ linear EXR).
+    Render(render::Args),
+    /// Fit the per-vertex model to a scan dataset (register, select, fit, interpolate).
+    Fit(fit::Args),
+    /// Render a model's prediction of one frame of a scan.
+    Predict(predict::Args),
+    /// Table-1 statistics (log E, Eq. 8) of a model on frames of a scan.
+    Evaluate(evaluate::Args),
+    /// Figures: fall-off (Figure 3), error maps (Figures 4/5), model viewer.
+    Plot(plot::Args),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -36,5 +67,15 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Probes(args) => probes::run(args),
         Command::FitCurve(args) => fit_curve::run(args),
         Command::Simulate(a) => simulate::run(a),
+        Command::Plan(args) => plan::run(args),
+        Command::Scan(args) => scan::run(args),
+        Command::Calib(args) => calib::run(args),
+        Command::Rig(args) => rig::run(args),
+        Command::Bench(args) => bench::run(args),
+        Command::Render(a) => render::run(a),
+        Command::Fit(a) => fit::run(a),
+        Command::Predict(a) => predict::run(a),
+        Command::Evaluate(a) => evaluate::run(a),
+        Command::Plot(a) => plot::run(a),
     }
 }

@@ -58,7 +58,8 @@ impl Image {
 
     /// Bilinear interpolation at pixel coordinates `(u, v)` (pixel centres at integers), for
     /// colour channel `c` (0..3; a one-channel image answers its only channel). Returns the value
-    /// and the largest of the four raw pixels used, so callers can reject clipped neighbourhoods.
+    /// and the largest raw pixel with a non-zero weight, so callers can reject clipped
+    /// neighbourhoods.
     /// `None` outside the image.
     pub fn bilinear(&self, u: f64, v: f64, c: usize) -> Option<(f64, f64)> {
         if !(u >= -0.5 && v >= -0.5 && u < self.width as f64 - 0.5 && v < self.height as f64 - 0.5)
@@ -79,9 +80,21 @@ impl Image {
             self.get(i0, j1, c) as f64,
             self.get(i1, j1, c) as f64,
         ];
-        let val =
-            (1.0 - fv) * ((1.0 - fu) * p[0] + fu * p[1]) + fv * ((1.0 - fu) * p[2] + fu * p[3]);
-        let max = p.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        let w = [
+            (1.0 - fu) * (1.0 - fv),
+            fu * (1.0 - fv),
+            (1.0 - fu) * fv,
+            fu * fv,
+        ];
+        // Pixels with zero weight take no part: neither their value (a NaN there must not poison
+        // an exact hit on a pixel centre) nor their clipping.
+        let (mut val, mut max) = (0.0, f64::NEG_INFINITY);
+        for (pk, wk) in p.iter().zip(w) {
+            if wk > 0.0 {
+                val += wk * pk;
+                max = max.max(*pk);
+            }
+        }
         Some((val, max))
     }
 }

@@ -169,21 +169,61 @@ pub fn load_obj(path: &Path) -> Result<(Mesh, MeshReport), MeshError> {
         path: path.to_path_buf(),
         source,
     })?;
-    let mut positions = Vec::new();
-    let mut triangles = Vec::new();
-    for m in &models {
-        let base = positions.len() as u32;
-        for p in m.mesh.positions.chunks_exact(3) {
-            positions.push([p[0] as f64, p[1] as f64, p[2] as f64]);
-        }
-        for t in m.mesh.indices.chunks_exact(3) {
-            triangles.push([t[0] + base, t[1] + base, t[2] + base]);
-        }
-    }
     let invalid = |message: String| MeshError::Invalid {
         path: path.to_path_buf(),
         message,
     };
+    // tobj orders vertices by first use in a face (and splits them by normal/texture index).
+    // Vertex i of every per-vertex file of this project is the i-th `v` line of the OBJ, so the
+    // positions are read in file order here (as f64) and tobj's faces are mapped back to them by
+    // the exact f32 values tobj parsed. Duplicate positions map to their first occurrence.
+    let text = std::fs::read_to_string(path).map_err(|source| MeshError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let mut positions = Vec::new();
+    let mut index_of: std::collections::HashMap<[u32; 3], u32> = std::collections::HashMap::new();
+    for line in text.lines() {
+        let mut w = line.split_whitespace();
+        if w.next() != Some("v") {
+            continue;
+        }
+        let toks: Vec<&str> = w.take(3).collect();
+        let (Some(p64), Some(p32)) = (
+            toks.iter()
+                .map(|t| t.parse::<f64>().ok())
+                .collect::<Option<Vec<f64>>>(),
+            toks.iter()
+                .map(|t| t.parse::<f32>().ok())
+                .collect::<Option<Vec<f32>>>(),
+        ) else {
+            return Err(invalid(format!("bad vertex line {line:?}")));
+        };
+        if p64.len() != 3 {
+            return Err(invalid(format!("bad vertex line {line:?}")));
+        }
+        let key = [p32[0].to_bits(), p32[1].to_bits(), p32[2].to_bits()];
+        index_of.entry(key).or_insert(positions.len() as u32);
+        positions.push([p64[0], p64[1], p64[2]]);
+    }
+    let mut triangles = Vec::new();
+    for m in &models {
+        let lookup = |i: u32| -> Result<u32, MeshError> {
+            let k = 3 * i as usize;
+            let p = m
+                .mesh
+                .positions
+                .get(k..k + 3)
+                .ok_or_else(|| invalid("face index out of range".into()))?;
+            index_of
+                .get(&[p[0].to_bits(), p[1].to_bits(), p[2].to_bits()])
+                .copied()
+                .ok_or_else(|| invalid("face vertex not among the v lines".into()))
+        };
+        for t in m.mesh.indices.chunks_exact(3) {
+            triangles.push([lookup(t[0])?, lookup(t[1])?, lookup(t[2])?]);
+        }
+    }
     if positions.iter().flatten().any(|x| !x.is_finite()) {
         return Err(invalid("a vertex coordinate is not finite".into()));
     }
@@ -231,8 +271,9 @@ mod tests {
         assert_eq!(m.triangles.len(), 1);
         assert_eq!(r.duplicate_faces, 1);
         assert_eq!(r.degenerate_faces, 2);
-        // (2,0,0) is used only by a degenerate face; tobj drops the unused (5,5,5) itself.
-        assert_eq!(r.isolated_vertices, 1);
+        // (2,0,0) is used only by a degenerate face, (5,5,5) by none.
+        assert_eq!(r.isolated_vertices, 2);
+        assert_eq!(m.positions.len(), 5);
         assert_eq!(m.normals[0], [0.0, 0.0, 1.0]);
     }
 
@@ -244,6 +285,21 @@ mod tests {
         assert!(matches!(load_obj(&p), Err(MeshError::Invalid { .. })));
         std::fs::write(&p, "v 0 0 0\nf 1 2 9\n").unwrap();
         assert!(load_obj(&p).is_err());
+    }
+
+    #[test]
+    fn vertex_order_is_the_files_even_when_faces_use_them_out_of_order() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.obj");
+        std::fs::write(
+            &p,
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nvn 0 0 1\nf 4//1 2//1 3//1\nf 2//1 1//1 3//1\n",
+        )
+        .unwrap();
+        let (m, r) = load_obj(&p).unwrap();
+        assert_eq!(m.positions[3], [1.0, 1.0, 0.0]);
+        assert_eq!(m.triangles, vec![[3, 1, 2], [1, 0, 2]]);
+        assert_eq!(r, MeshReport::default());
     }
 
     #[test]

@@ -359,6 +359,29 @@ pub fn parse_frame_list(s: &str) -> Result<Vec<usize>, String> {
     Ok(out)
 }
 
+/// The frames a command works on: `include` (default all) minus `exclude`, both in the syntax
+/// of [`parse_frame_list`]; indices beyond the dataset are an error.
+pub fn select_frames(
+    total: usize,
+    include: Option<&str>,
+    exclude: Option<&str>,
+) -> Result<Vec<usize>, String> {
+    let mut frames = match include {
+        Some(s) => parse_frame_list(s)?,
+        None => (0..total).collect(),
+    };
+    if let Some(&k) = frames.iter().find(|&&k| k >= total) {
+        return Err(format!(
+            "frame {k} does not exist (the dataset has {total})"
+        ));
+    }
+    if let Some(ex) = exclude {
+        let ex = parse_frame_list(ex)?;
+        frames.retain(|k| ex.binary_search(k).is_err());
+    }
+    Ok(frames)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

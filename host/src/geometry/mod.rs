@@ -154,9 +154,30 @@ impl Scene {
     }
 
     /// First hit of the ray `origin + t·dir` (object frame, `dir` need not be unit) with
-    /// `t_min < t < t_max` measured in units of `|dir|`... normalised here: `t` is in mm.
+    /// `0 <= t <= t_max`, `t` in mm along the normalised direction.
     pub fn cast(&self, origin: V3, dir: V3, t_max: f64) -> Option<Hit> {
         let d = normalize(dir)?;
+        let first = self.cast_once(origin, d, t_max);
+        if first.is_some() {
+            return first;
+        }
+        // A ray through a shared edge or vertex can slip between the triangles' boundary tests
+        // (aligned cameras put pixel centres exactly on grid vertices). Retry with the origin
+        // nudged sideways by a distance far below any feature of the mesh.
+        let e1 = normalize(cross(d, [0.0, 0.0, 1.0]))
+            .or_else(|| normalize(cross(d, [1.0, 0.0, 0.0])))?;
+        let e2 = cross(d, e1);
+        let h = 10.0 * self.eps;
+        [e1, e2, e1.map(|x| -x), e2.map(|x| -x)]
+            .iter()
+            .find_map(|e| self.cast_once(add_scaled(origin, h, *e), d, t_max))
+            .map(|hit| Hit {
+                point: add_scaled(origin, hit.t, d),
+                ..hit
+            })
+    }
+
+    fn cast_once(&self, origin: V3, d: V3, t_max: f64) -> Option<Hit> {
         let ray = Ray::new(
             PVec::new(origin[0], origin[1], origin[2]),
             PVec::new(d[0], d[1], d[2]),
@@ -273,6 +294,13 @@ mod tests {
     #[test]
     fn rays_hit_the_grid_and_adjacency_is_symmetric() {
         let s = Scene::new(grid(5, 1.0)).unwrap();
+        // Rays exactly through grid vertices and edges hit too.
+        for (x, y) in [(0.0, 0.0), (1.0, 0.0), (0.5, 0.5), (0.5, 0.0), (-1.0, 1.0)] {
+            assert!(
+                s.cast([x, y, 10.0], [0.0, 0.0, -1.0], 100.0).is_some(),
+                "{x} {y}"
+            );
+        }
         let h = s.cast([0.3, 0.2, 10.0], [0.0, 0.0, -1.0], 100.0).unwrap();
         assert!((h.t - 10.0).abs() < 1e-9);
         assert!(dist(h.point, [0.3, 0.2, 0.0]) < 1e-9);

@@ -21,3 +21,40 @@ pub fn register_font() {
         );
     });
 }
+
+mod curves;
+mod figures;
+mod surface;
+
+pub use curves::{Curve, falloff_plot, tradeoff_curve};
+pub use figures::{FalloffSummary, error_maps, falloff_figure};
+pub use surface::{MeshView, Panel, PanelData, model_viewer, surface_panels, viridis};
+
+/// Why a picture could not be drawn.
+#[non_exhaustive]
+#[derive(Debug, thiserror::Error)]
+pub enum PlotError {
+    /// The data has nothing to show (no finite, positive values on a log axis, no vertices…).
+    #[error("nothing to plot: {0}")]
+    Empty(String),
+    /// The drawing backend failed (usually writing the file).
+    #[error("drawing {path}: {message}")]
+    Draw {
+        /// The file being drawn.
+        path: std::path::PathBuf,
+        /// The backend's message.
+        message: String,
+    },
+    /// Rendering the mesh for a surface map failed.
+    #[error(transparent)]
+    Render(#[from] crate::render::RenderError),
+}
+
+pub(crate) fn draw_err<E: std::fmt::Display>(
+    path: &std::path::Path,
+) -> impl Fn(E) -> PlotError + '_ {
+    move |e| PlotError::Draw {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    }
+}

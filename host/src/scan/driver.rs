@@ -296,6 +296,10 @@ impl<'a> Scan<'a> {
                 caps.max_exposure_us
             )));
         }
+        // Whatever a previous session left running (a program whose host vanished) stops now,
+        // and events still buffered from it are dropped.
+        rig.stop().map_err(classify)?;
+        drain_events(rig)?;
         // Clear a fault left from before (an e-stop that was released); refuses while pressed.
         let status = rig.status().map_err(classify)?;
         if status.fault.is_some() {
@@ -347,6 +351,11 @@ impl<'a> Scan<'a> {
 
     fn halted_or(&self, e: RigClientError) -> ScanError {
         match e {
+            // The rig stopped because it stopped hearing from us: a link problem, resumable by
+            // reconnecting (a stale event of a dropped session can also arrive this way).
+            RigClientError::Halted { ref reason, .. } if reason.contains("HeartbeatLost") => {
+                ScanError::Link(e)
+            }
             RigClientError::Halted { reason, .. } => ScanError::RigHalted {
                 frame: self.done(),
                 reason,
@@ -386,21 +395,32 @@ impl<'a> Scan<'a> {
             while next < chunk.len() {
                 self.check_stop()?;
                 let rest = &chunk[next..];
+                // Frames are committed as their last bracket arrives.
+                let last = b + 1 == n_exp;
                 let got = match camera.timing() {
-                    Timing::RigTriggered => {
-                        self.program(rig, camera, rest, b, deg, exp_us, &mut brackets[next..])?
-                    }
-                    Timing::HostTimed => {
-                        self.host_timed(rig, camera, rest, b, deg, exp_us, &mut brackets[next..])?
-                    }
+                    Timing::RigTriggered => self.program(
+                        rig,
+                        camera,
+                        progress,
+                        last,
+                        rest,
+                        b,
+                        deg,
+                        exp_us,
+                        &mut brackets[next..],
+                    )?,
+                    Timing::HostTimed => self.host_timed(
+                        rig,
+                        camera,
+                        progress,
+                        last,
+                        rest,
+                        b,
+                        deg,
+                        exp_us,
+                        &mut brackets[next..],
+                    )?,
                 };
-                // Commit what is complete (all brackets present) in order.
-                if b + 1 == n_exp {
-                    for k in next..next + got.count {
-                        self.commit(&chunk[k], deg, &mut brackets[k], camera)?;
-                        progress.inc(1);
-                    }
-                }
                 next += got.count;
                 if let Some(err) = got.camera_error {
                     attempts += 1;
@@ -442,6 +462,8 @@ impl<'a> Scan<'a> {
         &mut self,
         rig: &mut RigClient<L>,
         camera: &mut dyn Camera,
+        progress: &ProgressBar,
+        last_bracket: bool,
         rest: &[super::plan::PlannedFrame],
         b: usize,
         deg: f64,
@@ -481,15 +503,23 @@ impl<'a> Scan<'a> {
             shot.galvo = [c.galvo.x, c.galvo.y];
             shot.triggered_at_us = Some(c.triggered_at_us);
             match fetch(rig, camera, &shot)? {
-                Ok(img) => out[i].push(Bracket {
-                    exposure_s: shot.exposure_s,
-                    image: img,
-                }),
+                Ok(img) => {
+                    out[i].push(Bracket {
+                        exposure_s: shot.exposure_s,
+                        image: img,
+                    });
+                    if last_bracket {
+                        self.commit(f, deg, &mut out[i], camera)?;
+                        progress.inc(1);
+                    }
+                }
                 Err(e) => {
                     // Stop the program; the rest is rerun from this point.
                     rig.stop().map_err(classify)?;
                     rig.wait_idle(Duration::from_secs(60))
                         .map_err(|e| self.halted_or(e))?;
+                    // The `Halted { Stop }` and `ProgramDone` events of this stop are ours.
+                    drain_events(rig)?;
                     rig.arm().map_err(|e| self.halted_or(e))?;
                     return Ok(Progressed {
                         count: i,
@@ -512,6 +542,8 @@ impl<'a> Scan<'a> {
         &mut self,
         rig: &mut RigClient<L>,
         camera: &mut dyn Camera,
+        progress: &ProgressBar,
+        last_bracket: bool,
         rest: &[super::plan::PlannedFrame],
         b: usize,
         deg: f64,
@@ -531,10 +563,16 @@ impl<'a> Scan<'a> {
             let r = r?;
             off.map_err(|e| self.halted_or(e))?;
             match r {
-                Ok(img) => out[i].push(Bracket {
-                    exposure_s: shot.exposure_s,
-                    image: img,
-                }),
+                Ok(img) => {
+                    out[i].push(Bracket {
+                        exposure_s: shot.exposure_s,
+                        image: img,
+                    });
+                    if last_bracket {
+                        self.commit(f, deg, &mut out[i], camera)?;
+                        progress.inc(1);
+                    }
+                }
                 Err(e) => {
                     return Ok(Progressed {
                         count: i,
@@ -626,6 +664,13 @@ impl<'a> Scan<'a> {
 struct Progressed {
     count: usize,
     camera_error: Option<CameraError>,
+}
+
+/// Drops events already sent by the rig (those of a stopped program or a previous session).
+fn drain_events<L: ByteLink>(rig: &mut RigClient<L>) -> Result<(), ScanError> {
+    rig.poll(Duration::from_millis(20)).map_err(classify)?;
+    while rig.next_event(Duration::ZERO).map_err(classify)?.is_some() {}
+    Ok(())
 }
 
 /// Waits for the `Captured` event of capture `id`.

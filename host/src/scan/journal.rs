@@ -112,29 +112,32 @@ pub struct DatasetHeader {
     pub cameras: Vec<CameraModel>,
 }
 
+/// One journal line. The frame entry is kept as the exact JSON text first written (a string
+/// field), so resuming never re-formats a float and `scan.json` comes out byte-identical.
 #[derive(Serialize, Deserialize)]
 struct JournalLine {
     frame: usize,
+    image: String,
     bytes: u64,
     crc32: u32,
-    entry: FrameEntry,
+    entry: String,
 }
 
 #[derive(Serialize)]
-struct ScanJson<'a> {
+struct ScanHeaderJson<'a> {
     format: &'static str,
     units: &'static str,
     mesh: &'a str,
     noise_floor: f64,
     cameras: &'a [CameraModel],
-    frames: &'a [FrameEntry],
 }
 
 /// Writes a dataset frame by frame; see the module docs for the guarantees.
 pub struct DatasetWriter {
     dir: PathBuf,
     header: DatasetHeader,
-    entries: Vec<FrameEntry>,
+    /// `frames[]` entries as JSON text.
+    entries: Vec<String>,
     journal: File,
     journal_path: PathBuf,
     last_index: Instant,
@@ -195,6 +198,8 @@ impl DatasetWriter {
         let state = dir.join(STATE_DIR);
         let ident_path = state.join("identity.json");
         fs::create_dir_all(dir).map_err(io(dir))?;
+        // The identity is written first: a run killed at any later point is recognised as this
+        // scan and resumed.
         if ident_path.exists() {
             let old = fs::read_to_string(&ident_path).map_err(io(&ident_path))?;
             if old != identity {
@@ -216,20 +221,21 @@ impl DatasetWriter {
                     dir.display()
                 )));
             }
-            fs::create_dir_all(dir.join("frames")).map_err(io(dir))?;
             fs::create_dir_all(&state).map_err(io(&state))?;
-            write_atomic(&dir.join(&header.mesh), mesh_obj)?;
             write_atomic(&ident_path, identity.as_bytes())?;
         }
+        // Leftover temporaries of an interrupted write.
         fs::create_dir_all(dir.join("frames")).map_err(io(dir))?;
+        for d in [dir.to_path_buf(), dir.join("frames"), state.clone()] {
+            for e in fs::read_dir(&d).map_err(io(&d))?.flatten() {
+                let name = e.file_name().to_string_lossy().to_string();
+                if name.starts_with('.') && name.ends_with(".tmp") {
+                    let _ = fs::remove_file(e.path());
+                }
+            }
+        }
         if !dir.join(&header.mesh).exists() {
             write_atomic(&dir.join(&header.mesh), mesh_obj)?;
-        }
-        // Leftover temporaries of an interrupted write.
-        for e in fs::read_dir(dir.join("frames")).map_err(io(dir))?.flatten() {
-            if e.file_name().to_string_lossy().ends_with(".tmp") {
-                let _ = fs::remove_file(e.path());
-            }
         }
         let journal_path = state.join("journal.jsonl");
         let mut journal = OpenOptions::new()
@@ -249,7 +255,10 @@ impl DatasetWriter {
             let Ok(l) = serde_json::from_slice::<JournalLine>(line) else {
                 break;
             };
-            if l.frame != entries.len() || !image_intact(dir, &l) {
+            if l.frame != entries.len()
+                || serde_json::from_str::<FrameEntry>(&l.entry).is_err()
+                || !image_intact(dir, &l)
+            {
                 break;
             }
             entries.push(l.entry);
@@ -310,11 +319,16 @@ impl DatasetWriter {
             },
             e => e,
         })?;
+        let entry_json = serde_json::to_string(&entry).map_err(|e| JournalError::Io {
+            path: self.journal_path.display().to_string(),
+            source: std::io::Error::other(e),
+        })?;
         let line = JournalLine {
             frame: k,
+            image: entry.image.clone(),
             bytes: image_bytes.len() as u64,
             crc32: crc32(image_bytes),
-            entry: entry.clone(),
+            entry: entry_json.clone(),
         };
         let mut text = serde_json::to_string(&line).map_err(|e| JournalError::Io {
             path: self.journal_path.display().to_string(),
@@ -325,7 +339,7 @@ impl DatasetWriter {
             .write_all(text.as_bytes())
             .and_then(|_| self.journal.sync_data())
             .map_err(io(&self.journal_path))?;
-        self.entries.push(entry);
+        self.entries.push(entry_json);
         if self.last_index.elapsed() > Duration::from_secs(5) {
             self.write_index()?;
         }
@@ -334,19 +348,30 @@ impl DatasetWriter {
 
     /// Rewrites `scan.json` from the frames journaled so far.
     pub fn write_index(&self) -> Result<(), JournalError> {
-        let json = ScanJson {
+        let json = ScanHeaderJson {
             format: "subsurf-scan/1",
             units: "mm",
             mesh: &self.header.mesh,
             noise_floor: self.header.noise_floor,
             cameras: &self.header.cameras,
-            frames: &self.entries,
         };
         let path = self.dir.join("scan.json");
-        let text = serde_json::to_string_pretty(&json).map_err(|e| JournalError::Io {
+        let head = serde_json::to_string_pretty(&json).map_err(|e| JournalError::Io {
             path: path.display().to_string(),
             source: std::io::Error::other(e),
         })?;
+        // `{ ...header... }` → `{ ...header..., "frames": [ one entry per line ] }`
+        let mut text = head.trim_end().trim_end_matches('}').trim_end().to_string();
+        text.push_str(",\n  \"frames\": [");
+        for (k, e) in self.entries.iter().enumerate() {
+            text.push_str(if k == 0 { "\n    " } else { ",\n    " });
+            text.push_str(e);
+        }
+        text.push_str(if self.entries.is_empty() {
+            "]\n}"
+        } else {
+            "\n  ]\n}"
+        });
         write_atomic(&path, (text + "\n").as_bytes())
     }
 
@@ -363,10 +388,10 @@ fn crc32(b: &[u8]) -> u32 {
 }
 
 fn image_intact(dir: &Path, l: &JournalLine) -> bool {
-    if l.entry.image.contains("..") || Path::new(&l.entry.image).is_absolute() {
+    if l.image.contains("..") || Path::new(&l.image).is_absolute() {
         return false;
     }
-    match fs::read(dir.join(&l.entry.image)) {
+    match fs::read(dir.join(&l.image)) {
         Ok(b) => b.len() as u64 == l.bytes && crc32(&b) == l.crc32,
         Err(_) => false,
     }

@@ -9,3 +9,5 @@ pub mod driver;
 pub mod frame;
 pub mod journal;
 pub mod plan;
+pub mod setup;
+pub mod simcam;

@@ -103,8 +103,8 @@ impl ScanPlan {
 pub struct PlanOptions {
     /// Number of equally spaced turntable angles.
     pub angles: usize,
-    /// Galvo raster step in codes (the candidate spacing).
-    pub raster_step: u16,
+    /// Raster points per axis over the object's galvo window (the candidate spacing).
+    pub raster: usize,
     /// Every visible vertex needs an x_i this close (mm).
     pub target_mm: f64,
     /// Fraction of coverable vertices the coverage planner must cover (0..=1].
@@ -119,7 +119,7 @@ impl Default for PlanOptions {
     fn default() -> Self {
         PlanOptions {
             angles: 8,
-            raster_step: 128,
+            raster: 24,
             target_mm: 4.0,
             coverage: 1.0,
             exposures_s: vec![0.02],
@@ -133,9 +133,9 @@ impl PlanOptions {
         if self.angles == 0 || self.angles > 3600 {
             return Err(PlanError::Options("angles must be 1..=3600".into()));
         }
-        if self.raster_step == 0 {
+        if !(2..=1024).contains(&self.raster) {
             return Err(PlanError::Options(
-                "raster step must be at least 1 code".into(),
+                "raster must be 2..=1024 points per axis".into(),
             ));
         }
         if !(self.target_mm.is_finite() && self.target_mm > 0.0) {
@@ -304,8 +304,8 @@ impl PlanScene {
     }
 
     /// The galvo code window (`[x0, y0, x1, y1]`, inclusive) covering the object at all angles,
-    /// widened by `margin` codes.
-    pub fn galvo_window(&self, angles: &[f64], margin: u16) -> [u16; 4] {
+    /// widened by 3% on each side.
+    pub fn galvo_window(&self, angles: &[f64]) -> [u16; 4] {
         let g = &self.calib.galvo;
         let r = g.world_from_galvo;
         let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
@@ -333,7 +333,7 @@ impl PlanScene {
         if !(lo[0].is_finite() && hi[0].is_finite()) {
             return [0, 0, g.max_code, g.max_code];
         }
-        let m = margin as f64;
+        let m = 0.03 * (hi[0] - lo[0]).abs().max((hi[1] - lo[1]).abs());
         [
             clamp(lo[0].min(hi[0]) - m),
             clamp(lo[1].min(hi[1]) - m),
@@ -343,14 +343,23 @@ impl PlanScene {
     }
 }
 
-/// The candidate targets: a raster over the object's galvo window at every angle, in serpentine
-/// order (so consecutive galvo jumps are one step).
-fn raster(scene: &PlanScene, angles: &[f64], step: u16) -> Vec<[u16; 2]> {
-    let [x0, y0, x1, y1] = scene.galvo_window(angles, step);
+/// The candidate targets: an `n × n` raster over the object's galvo window, in serpentine order
+/// (so consecutive galvo jumps are one step).
+fn raster(scene: &PlanScene, angles: &[f64], n: usize) -> Vec<[u16; 2]> {
+    let [x0, y0, x1, y1] = scene.galvo_window(angles);
+    let axis = |a: u16, b: u16| -> Vec<u16> {
+        let mut v: Vec<u16> = (0..n)
+            .map(|k| {
+                (a as f64 + (b as f64 - a as f64) * k as f64 / (n - 1).max(1) as f64).round() as u16
+            })
+            .collect();
+        v.dedup();
+        v
+    };
     let mut out = Vec::new();
-    let ys: Vec<u16> = (y0..=y1).step_by(step as usize).collect();
+    let ys = axis(y0, y1);
     for (row, &y) in ys.iter().enumerate() {
-        let mut xs: Vec<u16> = (x0..=x1).step_by(step as usize).collect();
+        let mut xs = axis(x0, x1);
         if row % 2 == 1 {
             xs.reverse();
         }
@@ -422,12 +431,12 @@ fn count(bits: &[u64]) -> usize {
 }
 
 /// Predicts the coverage of `plan` over `scene`.
-pub fn predict_coverage(scene: &PlanScene, plan: &ScanPlan, candidate_step: u16) -> Coverage {
+pub fn predict_coverage(scene: &PlanScene, plan: &ScanPlan, candidate_raster: usize) -> Coverage {
     let angles: Vec<f64> = plan.angles.iter().map(|a| a.turntable_deg).collect();
     let all = cover_sets(
         scene,
         &angles,
-        &raster(scene, &angles, candidate_step),
+        &raster(scene, &angles, candidate_raster),
         plan.target_mm,
     );
     let mut coverable = vec![0u64; all.words];
@@ -475,7 +484,7 @@ fn new_plan(planner: &str, opts: &PlanOptions, angles: Vec<AnglePlan>) -> ScanPl
 pub fn dense_raster(scene: &PlanScene, opts: &PlanOptions) -> Result<ScanPlan, PlanError> {
     opts.validate()?;
     let angles = opts.angle_list();
-    let targets = raster(scene, &angles, opts.raster_step);
+    let targets = raster(scene, &angles, opts.raster);
     Ok(new_plan(
         "dense",
         opts,
@@ -489,6 +498,23 @@ pub fn dense_raster(scene: &PlanScene, opts: &PlanOptions) -> Result<ScanPlan, P
     ))
 }
 
+/// The coarsest dense raster (fewest points per axis, at most `opts.raster`) whose predicted
+/// coverage reaches `opts.coverage`: the fair baseline for [`coverage_plan`].
+pub fn dense_for_target(scene: &PlanScene, opts: &PlanOptions) -> Result<ScanPlan, PlanError> {
+    opts.validate()?;
+    for n in 2..opts.raster {
+        let o = PlanOptions {
+            raster: n,
+            ..opts.clone()
+        };
+        let plan = dense_raster(scene, &o)?;
+        if predict_coverage(scene, &plan, opts.raster).fraction() >= opts.coverage {
+            return Ok(plan);
+        }
+    }
+    dense_raster(scene, opts)
+}
+
 /// The coverage planner (greedy set cover over the raster candidates, see the module docs).
 /// Angles left without targets are dropped, so the turntable does not stop there.
 pub fn coverage_plan(scene: &PlanScene, opts: &PlanOptions) -> Result<ScanPlan, PlanError> {
@@ -497,7 +523,7 @@ pub fn coverage_plan(scene: &PlanScene, opts: &PlanOptions) -> Result<ScanPlan, 
     let cands = cover_sets(
         scene,
         &angles,
-        &raster(scene, &angles, opts.raster_step),
+        &raster(scene, &angles, opts.raster),
         opts.target_mm,
     );
     if cands.sets.is_empty() {
@@ -583,6 +609,8 @@ pub struct RigTiming {
     pub settle_per_code_s: f64,
     /// Fixed cost per capture on top of exposure and settle (trigger, laser switching, event).
     pub capture_overhead_s: f64,
+    /// Minimum time between the starts of consecutive program captures (camera read-out).
+    pub interval_s: f64,
 }
 
 /// Time of a trapezoidal (or triangular) move of `steps` steps from rest to rest.
@@ -656,9 +684,14 @@ pub fn estimate_duration(plan: &ScanPlan, t: &RigTiming, frame_from: usize) -> D
                     t.settle_base_s
                         + t.settle_per_code_s * p[0].abs_diff(c[0]).max(p[1].abs_diff(c[1])) as f64
                 });
-                est.settle_s += jump + (brackets - 1.0) * t.settle_base_s;
+                // A capture starts when the previous one is done and `interval` has passed since
+                // the previous start.
+                let settle = jump + (brackets - 1.0) * t.settle_base_s;
+                est.settle_s += settle;
                 est.exposure_s += exp;
-                est.overhead_s += brackets * t.capture_overhead_s;
+                let busy = settle + exp;
+                est.overhead_s +=
+                    brackets * t.capture_overhead_s + (brackets * t.interval_s - busy).max(0.0);
                 g = Some(c);
             }
             frame += 1;
@@ -719,28 +752,34 @@ mod tests {
         let scene = PlanScene::new(&v, &t, &Calibration::builtin()).unwrap();
         let opts = PlanOptions {
             angles: 6,
-            raster_step: 96,
+            raster: 16,
             target_mm: 5.0,
             ..PlanOptions::default()
         };
-        let dense = dense_raster(&scene, &opts).unwrap();
-        let dc = predict_coverage(&scene, &dense, opts.raster_step);
-        assert!(dc.coverable > v.len() / 3, "{dc:?}");
-        assert!((dc.fraction() - 1.0).abs() < 1e-12);
-        let cov = coverage_plan(&scene, &opts).unwrap();
-        let cc = predict_coverage(&scene, &cov, opts.raster_step);
-        eprintln!(
-            "dense {} frames {dc:?}; coverage {} frames {cc:?}",
-            dense.frame_count(),
-            cov.frame_count()
-        );
-        assert_eq!(cc.covered, dc.covered);
-        assert!(
-            2 * cov.frame_count() <= dense.frame_count(),
-            "coverage {} vs dense {}",
-            cov.frame_count(),
-            dense.frame_count()
-        );
+        for coverage in [0.9, 1.0] {
+            let opts = PlanOptions {
+                coverage,
+                ..opts.clone()
+            };
+            let dense = dense_for_target(&scene, &opts).unwrap();
+            let dc = predict_coverage(&scene, &dense, opts.raster);
+            assert!(dc.coverable > v.len() / 3, "{dc:?}");
+            assert!(dc.fraction() >= coverage);
+            let cov = coverage_plan(&scene, &opts).unwrap();
+            let cc = predict_coverage(&scene, &cov, opts.raster);
+            eprintln!(
+                "dense {} frames {dc:?}; coverage {} frames {cc:?}",
+                dense.frame_count(),
+                cov.frame_count()
+            );
+            assert!(cc.fraction() >= coverage);
+            assert!(
+                2 * cov.frame_count() <= dense.frame_count(),
+                "coverage {} vs dense {}",
+                cov.frame_count(),
+                dense.frame_count()
+            );
+        }
     }
 
     #[test]

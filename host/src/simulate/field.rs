@@ -58,11 +58,11 @@ pub struct TrueParams {
 }
 
 impl TrueParams {
-    /// Parameters in the model file's shared-colour order `[s_g, s_b, c_1, d_1, …]`, terms sorted
-    /// by `d` ascending (as `docs/model-format.md` asks).
+    /// Parameters in the model file's shared-colour order `[s_g, s_b, c_1, d_1, …]`, terms in the
+    /// `model` module's canonical order (slowest fall-off first, as `docs/model-format.md` asks).
     pub fn model_params(&self) -> Vec<f64> {
         let mut idx = [0usize, 1, 2];
-        idx.sort_by(|&a, &b| self.d[a].total_cmp(&self.d[b]));
+        idx.sort_by(|&a, &b| self.d[b].total_cmp(&self.d[a]));
         let mut p = vec![self.scale[1], self.scale[2]];
         for k in idx {
             p.push(self.c[k]);
@@ -193,7 +193,7 @@ mod tests {
             }
         }
         let mp = p.model_params();
-        assert!(mp[3] < mp[5] && mp[5] < mp[7]);
+        assert!(mp[3] > mp[5] && mp[5] > mp[7]);
     }
 
     #[test]

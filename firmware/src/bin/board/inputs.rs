@@ -71,7 +71,9 @@ pub async fn home(mut pin: ExtiInput<'static, Async>) {
 pub async fn exposure(mut pin: ExtiInput<'static, Async>) {
     loop {
         let exposing = pin.is_high();
-        EXPOSING.store(exposing, Ordering::SeqCst);
+        if EXPOSING.swap(exposing, Ordering::SeqCst) != exposing {
+            defmt::debug!("camera exposing: {}", exposing);
+        }
         pin.wait_for_any_edge().await;
     }
 }

@@ -13,6 +13,7 @@
 mod inputs;
 mod outputs;
 mod pins;
+mod pulse_train;
 mod rig;
 mod stepper;
 

@@ -17,11 +17,15 @@ use static_cell::StaticCell;
 use subsurf_firmware::hal::{CameraTrigger, GalvoDac, LaserOutputs, RigInputs, Stepper};
 use subsurf_firmware::rig::MAX_PROGRAM_POINTS;
 use subsurf_firmware::{Micros, Rig};
-use subsurf_protocol::{Capabilities, Config, GalvoPoint, Inputs, MAX_FRAME};
+use subsurf_protocol::{
+    Capabilities, Config, EventKind, GalvoPoint, Inputs, MAX_FRAME, RigMessage, encode_event,
+    encode_reply,
+};
 
 use crate::inputs;
 use crate::outputs::{self, GALVO_MAX, Galvo, Lasers};
-use crate::stepper::{self, MIN_INTERVAL_TICKS, StepGen};
+use crate::pulse_train::interval_for;
+use crate::stepper::{self, StepGen};
 
 /// The rig task wakes at least this often (the watchdog task expects it).
 pub const MAX_SLEEP: Duration = Duration::from_millis(50);
@@ -103,13 +107,18 @@ impl Hardware {
 
 impl Stepper for Hardware {
     fn step(&mut self, forward: bool) {
-        let interval = if self.stepper.is_running() {
-            u32::try_from(self.now.saturating_sub(self.last_step_at))
-                .unwrap_or(u32::MAX)
-                .max(MIN_INTERVAL_TICKS)
-        } else {
-            STEP_PIPELINE_US
-        };
+        if sample_inputs().estop {
+            // The e-stop task already stopped the timer; do not restart it before the core has
+            // seen the e-stop and halted the motion.
+            return;
+        }
+        let interval = interval_for(
+            self.now,
+            self.last_step_at,
+            self.stepper.is_running(),
+            STEP_PIPELINE_US,
+            now_us().saturating_sub(self.now),
+        );
         self.last_step_at = self.now;
         // The queue holds 12.8 ms of steps at full speed and the pipeline keeps 1 ms in it, so a
         // full queue means the timer stopped draining: give up after ~1 s rather than hang.
@@ -154,9 +163,25 @@ impl RigInputs for Hardware {
     }
 }
 
-/// Send every frame the core has queued.
+/// Send every message the core has queued. A `Halted` event also empties the step queue: the
+/// core stopped the motion (stop request, heartbeat loss, fault), so the steps still waiting in
+/// the step pipeline must not run either.
 async fn transmit(rig: &mut Rig<Hardware>, tx: &mut BufferedUartTx<'static>, frame: &mut [u8]) {
-    while let Some(n) = rig.poll_transmit(frame) {
+    while let Some(message) = rig.poll_message() {
+        let encoded = match &message {
+            RigMessage::Reply(reply) => encode_reply(reply, frame),
+            RigMessage::Event(event) => {
+                if let EventKind::Halted { reason } = event.kind {
+                    stepper::force_stop();
+                    defmt::warn!("halted: {}", reason);
+                }
+                encode_event(event, frame)
+            }
+        };
+        let Ok(n) = encoded else {
+            defmt::error!("message does not fit a frame; dropped");
+            continue;
+        };
         if let Some(bytes) = frame.get(..n)
             && tx.write_all(bytes).await.is_err()
         {
@@ -202,12 +227,13 @@ pub async fn run(link: BufferedUart<'static>, hw: Hardware) {
             // The core is done with the move but the last steps are still in the timer: hold
             // requests back, watch only the inputs, until the motor really stands still.
             let wait = select(stepper::REFILL.wait(), inputs::CHANGED.wait());
-            if let Ok(Either::Second(())) = with_timeout(MAX_SLEEP, wait).await {
+            let changed = matches!(with_timeout(MAX_SLEEP, wait).await, Ok(Either::Second(())));
+            run_due(rig);
+            if changed {
                 let now = now_us();
                 rig.hw_mut().now = now;
                 rig.handle_inputs(now);
             }
-            run_due(rig);
             continue;
         }
 
@@ -216,13 +242,16 @@ pub async fn run(link: BufferedUart<'static>, hw: Hardware) {
             .poll_timeout()
             .unwrap_or(Micros::MAX)
             .min(now.saturating_add(MAX_SLEEP.as_micros()));
-        match select3(
+        let woke = select3(
             rx.read(&mut rx_buf),
             Timer::at(Instant::from_micros(wake)),
             inputs::CHANGED.wait(),
         )
-        .await
-        {
+        .await;
+        // Deadlines that came while we slept run first, each at its own time: handling bytes at
+        // the later wall-clock time first would make the core emit the missed steps as a burst.
+        run_due(rig);
+        match woke {
             Either3::First(Ok(n)) => {
                 let now = now_us();
                 rig.hw_mut().now = now;
@@ -236,6 +265,5 @@ pub async fn run(link: BufferedUart<'static>, hw: Hardware) {
                 rig.handle_inputs(now);
             }
         }
-        run_due(rig);
     }
 }

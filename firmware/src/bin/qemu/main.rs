@@ -115,8 +115,8 @@ fn main() -> ! {
     );
     hprintln!(
         "subsurf-qemu: peak by record kind (bytes, e-stop press/release, interlock open/close, \
-         advance): {:?}",
-        &per_kind[..6]
+         advance, pseudo-random session): {:?}",
+        &per_kind[..7]
     );
     let ok = match (result, first_mismatch) {
         (Err(e), _) => {

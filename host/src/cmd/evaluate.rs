@@ -1,0 +1,92 @@
+//! `subsurf evaluate`: Table-1 statistics of a model on any frames of a scan.
+use std::path::PathBuf;
+
+use anyhow::{Context, anyhow};
+use subsurf::dataset::{Dataset, select_frames};
+use subsurf::evaluate::evaluate_frames;
+use subsurf::modelfile::ModelFile;
+use subsurf::pipeline::PipelineOptions;
+
+/// Print mean and median log E (Eq. 8, Table 1) of a model on frames of a scan.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// The model (PLY written by `subsurf fit`).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// The scan dataset directory.
+    #[arg(long)]
+    pub scan: PathBuf,
+    /// Frames to evaluate, e.g. `3,17,40-59` (default: all).
+    #[arg(long)]
+    pub frames: Option<String>,
+    /// Frames to leave out.
+    #[arg(long)]
+    pub exclude_frames: Option<String>,
+    /// Print one JSON object.
+    #[arg(long)]
+    pub json: bool,
+    /// Samples closer than this to x_i (mm) are not compared.
+    #[arg(long, default_value_t = 0.5)]
+    pub exclusion_radius: f64,
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let ds =
+        Dataset::open(&args.scan).with_context(|| format!("opening {}", args.scan.display()))?;
+    let model = ModelFile::read(&args.model)
+        .with_context(|| format!("reading {}", args.model.display()))?;
+    let frames = select_frames(
+        ds.spec.frames.len(),
+        args.frames.as_deref(),
+        args.exclude_frames.as_deref(),
+    )
+    .map_err(|e| anyhow!(e))?;
+    let mut opts = PipelineOptions::for_dataset(&ds);
+    opts.samples.exclusion_radius_mm = args.exclusion_radius;
+    let bar = if args.json {
+        indicatif::ProgressBar::hidden()
+    } else {
+        indicatif::ProgressBar::new(0)
+    };
+    let (evals, stats) = evaluate_frames(&ds, &model, &frames, &opts, &bar)?;
+    bar.finish_and_clear();
+    let rgb = |v: [Option<f64>; 3]| v.map(|x| x.map_or(serde_json::Value::Null, |x| x.into()));
+    let evaluated = evals.iter().filter(|e| e.skipped.is_none()).count();
+    if args.json {
+        let out = serde_json::json!({
+            "frames": evaluated,
+            "skipped": evals.len() - evaluated,
+            "mean_log_e": rgb(stats.mean),
+            "median_log_e": rgb(stats.median),
+            "per_frame": evals,
+        });
+        println!("{out}");
+    } else {
+        let f = |v: Option<f64>| v.map_or("-".to_string(), |x| format!("{x:.4}"));
+        println!(
+            "{evaluated} frames evaluated, {} skipped",
+            evals.len() - evaluated
+        );
+        println!("            red      green    blue");
+        println!(
+            "mean log E  {:8} {:8} {:8}",
+            f(stats.mean[0]),
+            f(stats.mean[1]),
+            f(stats.mean[2])
+        );
+        println!(
+            "median      {:8} {:8} {:8}",
+            f(stats.median[0]),
+            f(stats.median[1]),
+            f(stats.median[2])
+        );
+        for e in evals.iter().filter(|e| e.skipped.is_some()).take(10) {
+            println!(
+                "skipped frame {}: {}",
+                e.frame,
+                e.skipped.as_deref().unwrap_or("")
+            );
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,184 @@
+//! `subsurf fit`: a scan dataset in, a per-vertex model (`docs/model-format.md`) and
+//! `fit-report.json` out.
+use std::path::PathBuf;
+
+use anyhow::{Context, anyhow};
+use subsurf::dataset::{Dataset, select_frames};
+use subsurf::fit::{FitOptions, Preset, Terms};
+use subsurf::modelfile::ColourMode;
+use subsurf::pipeline::{ModelChoice, PipelineOptions, fit_dataset};
+
+/// Colour handling.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum Colour {
+    /// One fall-off with channel scales s_g, s_b (Eq. 9, the paper's choice for objects).
+    Shared,
+    /// Separate fall-off per channel (Eq. 3 per channel).
+    PerChannel,
+}
+
+/// Solver presets of the fitting engine.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum PresetArg {
+    /// Exact fit on all samples (default).
+    Exact,
+    /// Fast previews (binned, subsampled).
+    Draft,
+    /// Binned sufficient statistics.
+    Balanced,
+    /// Exact, automatic order.
+    Best,
+}
+
+/// Fit the per-vertex subsurface-scattering model to a scan (section 5).
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// The scan dataset directory.
+    #[arg(long)]
+    pub scan: PathBuf,
+    /// Output model (binary PLY).
+    #[arg(long, default_value = "model.ply")]
+    pub out: PathBuf,
+    /// Output report (default: `fit-report.json` beside the model).
+    #[arg(long)]
+    pub report: Option<PathBuf>,
+    /// Frames to use, e.g. `3,17,40-59` (default: all).
+    #[arg(long)]
+    pub frames: Option<String>,
+    /// Frames to hold out of the fit.
+    #[arg(long)]
+    pub exclude_frames: Option<String>,
+    /// Colour model.
+    #[arg(long, value_enum, default_value = "shared")]
+    pub colour: Colour,
+    /// Direction segments m (Eq. 3); 1 = isotropic.
+    #[arg(long, default_value_t = 1)]
+    pub segments: usize,
+    /// Exponential terms n (Eq. 1), or `auto` for the smallest order within 1 % of the best.
+    #[arg(long, default_value = "3")]
+    pub terms: String,
+    /// Solver preset.
+    #[arg(long, value_enum, default_value = "exact")]
+    pub preset: PresetArg,
+    /// Samples closer than this to x_i are dropped (mm).
+    #[arg(long, default_value_t = 0.5)]
+    pub exclusion_radius: f64,
+    /// A vertex whose closest x_i is farther than this has no data (mm).
+    #[arg(long, default_value_t = 2.0)]
+    pub max_distance: f64,
+    /// Fits with log E (Eq. 8) above this are failures, interpolated from neighbours.
+    #[arg(long, default_value_t = 1.0)]
+    pub max_log_e: f64,
+    /// Largest disagreement between detected spot and laser ray (mm).
+    #[arg(long, default_value_t = 2.0)]
+    pub laser_tolerance: f64,
+    /// Override the dataset's noise floor.
+    #[arg(long)]
+    pub noise_floor: Option<f64>,
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let ds =
+        Dataset::open(&args.scan).with_context(|| format!("opening {}", args.scan.display()))?;
+    let frames = select_frames(
+        ds.spec.frames.len(),
+        args.frames.as_deref(),
+        args.exclude_frames.as_deref(),
+    )
+    .map_err(|e| anyhow!(e))?;
+    let mut opts = PipelineOptions::for_dataset(&ds);
+    if let Some(f) = args.noise_floor {
+        opts.samples.noise_floor = f;
+        opts.spot.min_peak = 10.0 * f;
+        opts.alpha_window.t2 = 10.0 * f;
+        opts.error_threshold = f;
+    }
+    opts.samples.exclusion_radius_mm = args.exclusion_radius;
+    opts.max_select_mm = args.max_distance;
+    opts.max_log_e = args.max_log_e;
+    opts.spot.laser_tolerance_mm = args.laser_tolerance;
+    opts.model = ModelChoice {
+        colour: match args.colour {
+            Colour::Shared => ColourMode::Shared,
+            Colour::PerChannel => ColourMode::PerChannel,
+        },
+        segments: args.segments.max(1),
+    };
+    let mut fit = match args.preset {
+        PresetArg::Exact => FitOptions::default(),
+        PresetArg::Draft => Preset::Draft.options(),
+        PresetArg::Balanced => Preset::Balanced.options(),
+        PresetArg::Best => Preset::Best.options(),
+    };
+    fit.terms = match args.terms.as_str() {
+        "auto" => Terms::Auto {
+            max: subsurf::model::MAX_TERMS,
+            tolerance: 0.01,
+        },
+        n => Terms::Fixed(
+            n.parse()
+                .ok()
+                .filter(|n| (1..=subsurf::model::MAX_TERMS).contains(n))
+                .ok_or_else(|| anyhow!("--terms must be 1..=4 or auto, got {n:?}"))?,
+        ),
+    };
+    let bar = indicatif::ProgressBar::new(0).with_style(
+        indicatif::ProgressStyle::with_template("{msg:>12} {bar:40} {pos}/{len} {eta}")
+            .context("progress style")?,
+    );
+    let out = fit_dataset(&ds, &frames, &opts, &fit, &bar)
+        .with_context(|| format!("fitting {}", args.scan.display()))?;
+    bar.finish_and_clear();
+    out.model
+        .write(&args.out)
+        .with_context(|| format!("writing {}", args.out.display()))?;
+    let bytes = std::fs::metadata(&args.out).map(|m| m.len()).unwrap_or(0);
+    let report_path = args
+        .report
+        .unwrap_or_else(|| args.out.with_file_name("fit-report.json"));
+    let mut json = serde_json::to_value(&out.report)?;
+    json["model_bytes"] = bytes.into();
+    json["model"] = args.out.display().to_string().into();
+    json["fit_options"] = serde_json::to_value(&fit)?;
+    std::fs::write(&report_path, serde_json::to_string_pretty(&json)?)
+        .with_context(|| format!("writing {}", report_path.display()))?;
+    let r = &out.report;
+    let f = |v: Option<f64>| v.map_or("-".to_string(), |x| format!("{x:.4}"));
+    println!(
+        "{} vertices: {} fitted, {} interpolated, {} without model; failures {:?}",
+        r.vertices, r.vertices_fitted, r.vertices_interpolated, r.vertices_no_model, r.failures
+    );
+    println!(
+        "frames: {} selected, {} registered, {} no spot, {} off object, {} laser mismatch, {} unreadable; {} fits",
+        r.frames.selected,
+        r.frames.registered,
+        r.frames.no_spot,
+        r.frames.spot_off_object,
+        r.frames.laser_mismatch,
+        r.frames.unreadable,
+        r.frames.fitted
+    );
+    println!(
+        "log E(x_i) mean r/g/b {} {} {}, median {} {} {}",
+        f(r.log_e.mean[0]),
+        f(r.log_e.mean[1]),
+        f(r.log_e.mean[2]),
+        f(r.log_e.median[0]),
+        f(r.log_e.median[1]),
+        f(r.log_e.median[2])
+    );
+    let stages: Vec<String> = r
+        .stage_seconds
+        .iter()
+        .map(|(k, v)| format!("{k} {v:.2}s"))
+        .collect();
+    println!(
+        "stages: {}; peak RSS {} MiB; model {} ({:.2} MB); report {}",
+        stages.join(", "),
+        r.peak_rss_mib.map_or("-".into(), |m| format!("{m:.0}")),
+        args.out.display(),
+        bytes as f64 / 1e6,
+        report_path.display()
+    );
+    Ok(())
+}

@@ -1,0 +1,210 @@
+//! `subsurf plan`: what a scan will do, before anything moves — frames, expected duration,
+//! predicted coverage.
+use anyhow::{Context, bail};
+use std::path::{Path, PathBuf};
+
+use subsurf::calib::Calibration;
+use subsurf::dataset::{Mesh, load_obj};
+use subsurf::scan::plan::{
+    PlanOptions, PlanScene, RigTiming, ScanPlan, coverage_plan, dense_for_target, dense_raster,
+    estimate_duration, predict_coverage,
+};
+use subsurf::scan::setup::{builtin_object, rig_timing};
+
+/// Which planner.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Planner {
+    /// Aim only where visible vertices still lack an x_i within the target distance.
+    Coverage,
+    /// Fire at every raster point at every angle.
+    Dense,
+}
+
+/// Object, calibration and planner options shared by `plan` and `scan`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct PlanArgs {
+    /// Object mesh (Wavefront OBJ, mm, object frame). Default: the built-in sphere.
+    #[arg(long)]
+    pub mesh: Option<PathBuf>,
+    /// Rig calibration (`calib.json`). Default: the simulated rig's built-in calibration.
+    #[arg(long)]
+    pub calib: Option<PathBuf>,
+    /// A plan saved by `subsurf plan --save` (overrides the planner options).
+    #[arg(long)]
+    pub plan: Option<PathBuf>,
+    /// Planner.
+    #[arg(long, value_enum, default_value = "coverage")]
+    pub planner: Planner,
+    /// Turntable angles (equally spaced).
+    #[arg(long, default_value_t = 8)]
+    pub angles: usize,
+    /// Galvo raster points per axis over the object (the candidate spacing).
+    #[arg(long, default_value_t = 24)]
+    pub raster: usize,
+    /// Every visible vertex needs a laser spot x_i this close, mm.
+    #[arg(long, default_value_t = 2.0)]
+    pub target_mm: f64,
+    /// Fraction of coverable vertices to cover (coverage planner).
+    #[arg(long, default_value_t = 1.0)]
+    pub coverage: f64,
+    /// Exposure time(s) in seconds; several (comma-separated) = HDR bracketing. Default 0.05,
+    /// or 1 with the simulated camera.
+    #[arg(long, value_delimiter = ',')]
+    pub exposure: Vec<f64>,
+    /// Built-in calibration's image size (pixels, square), when no --calib is given.
+    #[arg(long, default_value_t = 128)]
+    pub size: u32,
+    /// Turntable speed, steps/s (default: the rig's maximum).
+    #[arg(long)]
+    pub speed: Option<u32>,
+    /// Turntable acceleration, steps/s² (default: the rig's maximum).
+    #[arg(long)]
+    pub accel: Option<u32>,
+    /// Minimum time between captures (camera read-out), µs.
+    #[arg(long, default_value_t = 0)]
+    pub interval_us: u32,
+}
+
+/// Print a scan plan: frames, expected duration and predicted coverage.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    #[command(flatten)]
+    pub plan: PlanArgs,
+    /// Also plan the dense raster that reaches the same coverage, for comparison.
+    #[arg(long)]
+    pub compare: bool,
+    /// Save the plan as JSON (for `subsurf scan --plan`).
+    #[arg(long)]
+    pub save: Option<PathBuf>,
+}
+
+/// The resolved inputs of a plan.
+pub struct Resolved {
+    pub mesh: Mesh,
+    pub calib: Calibration,
+    pub builtin: bool,
+}
+
+/// Loads the mesh and calibration named by `a` (or the built-in ones).
+pub fn resolve(a: &PlanArgs) -> anyhow::Result<Resolved> {
+    let (mesh, builtin) = match &a.mesh {
+        Some(p) => {
+            let (mesh, report) =
+                load_obj(p).with_context(|| format!("cannot load mesh {}", p.display()))?;
+            let _ = report;
+            (mesh, false)
+        }
+        None => (builtin_object().mesh(), true),
+    };
+    let calib = match &a.calib {
+        Some(p) => Calibration::load(p)?,
+        None if builtin => {
+            let (centre, radius) = builtin_object().bounds();
+            Calibration::builtin_for(centre, radius, a.size)
+        }
+        None => bail!("--calib calib.json is required with --mesh (run `subsurf calib` first)"),
+    };
+    Ok(Resolved {
+        mesh,
+        calib,
+        builtin,
+    })
+}
+
+/// Builds (or loads) the plan.
+pub fn make_plan(a: &PlanArgs, r: &Resolved) -> anyhow::Result<(ScanPlan, PlanScene, PlanOptions)> {
+    let scene = PlanScene::new(&r.mesh.positions, &r.mesh.triangles, &r.calib)?;
+    let opts = PlanOptions {
+        angles: a.angles,
+        raster: a.raster,
+        target_mm: a.target_mm,
+        coverage: a.coverage,
+        exposures_s: if a.exposure.is_empty() {
+            vec![if r.builtin {
+                subsurf::scan::setup::SIM_EXPOSURE_S
+            } else {
+                0.05
+            }]
+        } else {
+            a.exposure.clone()
+        },
+        channel: "rgb".into(),
+    };
+    let plan = if let Some(p) = &a.plan {
+        load_plan(p)?
+    } else {
+        match a.planner {
+            Planner::Coverage => coverage_plan(&scene, &opts)?,
+            Planner::Dense => dense_raster(&scene, &opts)?,
+        }
+    };
+    Ok((plan, scene, opts))
+}
+
+fn load_plan(p: &Path) -> anyhow::Result<ScanPlan> {
+    let text =
+        std::fs::read_to_string(p).with_context(|| format!("cannot read {}", p.display()))?;
+    let plan: ScanPlan =
+        serde_json::from_str(&text).with_context(|| format!("{} is not a plan", p.display()))?;
+    if plan.format != subsurf::scan::plan::PLAN_FORMAT {
+        bail!(
+            "{}: format {:?} is not {:?}",
+            p.display(),
+            plan.format,
+            subsurf::scan::plan::PLAN_FORMAT
+        );
+    }
+    Ok(plan)
+}
+
+/// The simulated rig's timing (what `--sim` scans run on).
+pub fn sim_timing(a: &PlanArgs) -> RigTiming {
+    let p = subsurf_firmware::sim::SimParams::default();
+    rig_timing(&p.capabilities, &p.config, a.speed, a.accel, a.interval_us)
+}
+
+fn describe(plan: &ScanPlan, scene: &PlanScene, opts: &PlanOptions, t: &RigTiming) -> String {
+    let cov = predict_coverage(scene, plan, opts.raster);
+    let est = estimate_duration(plan, t, 0);
+    format!(
+        "{} planner: {} frames at {} turntable angles, {} exposure(s) each\n\
+         expected duration {:.1} s (homing {:.1}, turntable {:.1}, galvo settle {:.1}, exposure {:.1}, other {:.1})\n\
+         predicted coverage: {} of {} coverable vertices ({:.1}%) have an x_i within {} mm; {} vertices in all",
+        plan.planner,
+        plan.frame_count(),
+        plan.angles.len(),
+        plan.exposures_s.len(),
+        est.total_s(),
+        est.home_s,
+        est.turntable_s,
+        est.settle_s,
+        est.exposure_s,
+        est.overhead_s,
+        cov.covered,
+        cov.coverable,
+        100.0 * cov.fraction(),
+        plan.target_mm,
+        cov.vertices,
+    )
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let r = resolve(&args.plan)?;
+    let (plan, scene, opts) = make_plan(&args.plan, &r)?;
+    let timing = sim_timing(&args.plan);
+    println!("{}", describe(&plan, &scene, &opts, &timing));
+    if args.compare {
+        let dense = dense_for_target(&scene, &opts)?;
+        println!(
+            "for comparison, the coarsest dense raster reaching {:.0}% coverage:",
+            100.0 * opts.coverage
+        );
+        println!("{}", describe(&dense, &scene, &opts, &timing));
+    }
+    if let Some(p) = &args.save {
+        std::fs::write(p, serde_json::to_string_pretty(&plan)? + "\n")
+            .with_context(|| format!("cannot write {}", p.display()))?;
+        println!("plan saved to {}", p.display());
+    }
+    Ok(())
+}

@@ -1,0 +1,166 @@
+//! `subsurf scan`: drive the rig and a camera into a scan dataset — planned, resumable.
+use anyhow::{Context, bail};
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
+
+use subsurf::link::SerialLink;
+use subsurf::rig::{ClientConfig, RigClient};
+use subsurf::scan::driver::{ScanConfig, ScanError, run_with_reconnect};
+use subsurf::scan::plan::estimate_duration;
+use subsurf::scan::setup::{camera_from_spec, obj_text, rig_timing};
+
+use super::plan::{PlanArgs, make_plan, resolve};
+
+/// Scan an object: home, then per turntable angle run the rig's capture program and write each
+/// camera image to the dataset. Re-running the same command resumes an interrupted scan.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Serial port of the rig.
+    #[arg(long, conflicts_with = "sim")]
+    pub port: Option<String>,
+    /// Baud rate.
+    #[arg(long, default_value_t = 115_200)]
+    pub baud: u32,
+    /// Use the simulated rig in this process (virtual time).
+    #[arg(long)]
+    pub sim: bool,
+    /// Camera: `sim`, `dir:PATH` (a camera program saves triggered images there) or
+    /// `cmd:"COMMAND {out}"` (run per exposure; `{out}`, `{exposure}`, `{frame}` are replaced).
+    #[arg(long)]
+    pub camera: String,
+    /// Output dataset directory (created, or resumed if it holds this scan).
+    #[arg(long)]
+    pub out: PathBuf,
+    #[command(flatten)]
+    pub plan: PlanArgs,
+    /// Seed of the simulated camera's noise.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Laser channel index.
+    #[arg(long, default_value_t = 0)]
+    pub laser_channel: u8,
+    /// Seconds to wait for each camera image.
+    #[arg(long, default_value_t = 10.0)]
+    pub camera_timeout: f64,
+    /// Retries of a frame whose image did not arrive.
+    #[arg(long, default_value_t = 2)]
+    pub camera_retries: u32,
+    /// Reconnection attempts after the link fails.
+    #[arg(long, default_value_t = 20)]
+    pub reconnects: u32,
+    /// Megabytes to keep free on the output disk.
+    #[arg(long, default_value_t = 16)]
+    pub reserve_mb: u64,
+    /// No progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    if !args.sim && args.port.is_none() {
+        bail!("say which rig: --port PATH (serial) or --sim (simulated rig)");
+    }
+    if args.plan.mesh.is_none() && !args.sim && args.camera != "sim" {
+        bail!("--mesh object.obj is required with a real rig (the built-in object is simulated)");
+    }
+    let r = resolve(&args.plan)?;
+    let (plan, _scene, _opts) = make_plan(&args.plan, &r)?;
+    let mut cfg = ScanConfig::new(args.out.clone(), plan, r.calib.clone(), obj_text(&r.mesh));
+    cfg.laser_channel = args.laser_channel;
+    cfg.move_speed = args.plan.speed;
+    cfg.move_accel = args.plan.accel;
+    cfg.interval_us = args.plan.interval_us;
+    cfg.camera_retries = args.camera_retries;
+    cfg.reserve_bytes = args.reserve_mb << 20;
+    let stop = Arc::new(AtomicBool::new(false));
+    cfg.stop = stop.clone();
+    {
+        let stop = stop.clone();
+        // Ctrl-C: finish the frame in hand, laser off, journal consistent, exit.
+        let _ = ctrlc::set_handler(move || stop.store(true, Ordering::Relaxed));
+    }
+    let mut camera = camera_from_spec(
+        &args.camera,
+        &r.mesh,
+        &r.calib,
+        args.seed,
+        Duration::from_secs_f64(args.camera_timeout.max(0.01)),
+    )?;
+    let progress = if args.quiet {
+        ProgressBar::hidden()
+    } else {
+        let p = ProgressBar::new(cfg.plan.frame_count() as u64);
+        p.set_style(
+            ProgressStyle::with_template(
+                "{bar:30} {pos}/{len} frames  {per_sec}  ETA {eta}  {msg}",
+            )
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        p
+    };
+    let result = if args.sim {
+        let mut connect = || {
+            let link = subsurf::sim::SimLink::clean(subsurf::sim::VirtualRig::new(
+                subsurf::sim::SimParams::default(),
+            ));
+            RigClient::connect_with_seq(link, ClientConfig::default(), 1)
+        };
+        run_with_reconnect(
+            &cfg,
+            &mut connect,
+            camera.as_mut(),
+            &progress,
+            args.reconnects,
+        )
+    } else {
+        let port = args.port.clone().unwrap_or_default();
+        let baud = args.baud;
+        let mut connect = || {
+            let link = SerialLink::open(&port, baud)?;
+            RigClient::connect(link, ClientConfig::default())
+        };
+        run_with_reconnect(
+            &cfg,
+            &mut connect,
+            camera.as_mut(),
+            &progress,
+            args.reconnects,
+        )
+    };
+    progress.finish_and_clear();
+    match result {
+        Ok(s) => {
+            let p = subsurf_firmware::sim::SimParams::default();
+            let t = rig_timing(
+                &p.capabilities,
+                &p.config,
+                cfg.move_speed,
+                cfg.move_accel,
+                cfg.interval_us,
+            );
+            let est = estimate_duration(&cfg.plan, &t, s.resumed_from);
+            println!(
+                "scan complete: {} frames in {} ({} written now, {} were already done); rig time \
+                 {:.2} s (planned {:.2} s), wall {:.1} s, {} reconnects, {} camera retries",
+                s.frames_total,
+                s.scan_json.display(),
+                s.frames_written,
+                s.resumed_from,
+                s.rig_seconds,
+                est.total_s(),
+                s.wall_seconds,
+                s.reconnects,
+                s.camera_retries
+            );
+            Ok(())
+        }
+        Err(e @ ScanError::Interrupted { .. }) => {
+            eprintln!("{e}");
+            std::process::exit(130);
+        }
+        Err(e) => Err(e).context(format!("scan into {} stopped", args.out.display())),
+    }
+}

@@ -1,0 +1,227 @@
+//! Judging a model against frames (Table 1 statistics for any frames, held-out ones included) and
+//! predicting what a frame's camera sees (Eq. 9 with alpha, parameters interpolated at x_i).
+use crate::dataset::{Dataset, Image};
+use crate::geometry::V3;
+use crate::interpolate::{from_log, to_log};
+use crate::model::{ColourModel, LogEAccumulator, TangentFrame};
+use crate::modelfile::{ModelFile, VertexStatus, model_of};
+use crate::pipeline::{Context, LogEStats, PipelineError, PipelineOptions};
+use crate::registration::RegistrationOutcome;
+
+/// Why a model cannot be evaluated on a dataset.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum EvaluateError {
+    /// The model was fitted to a different mesh.
+    #[error("the model has {model} vertices, the dataset's mesh {mesh}: not the same object")]
+    MeshMismatch {
+        /// Vertices in the model.
+        model: usize,
+        /// Vertices in the dataset's mesh.
+        mesh: usize,
+    },
+    /// Preparing the dataset failed.
+    #[error(transparent)]
+    Pipeline(#[from] PipelineError),
+    /// A frame could not be used.
+    #[error("frame {frame}: {reason}")]
+    Frame {
+        /// The frame.
+        frame: usize,
+        /// Why.
+        reason: String,
+    },
+}
+
+/// The model at a light position: Eq. 9's parameters interpolated over the triangle holding x_i.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ModelAt {
+    /// The colour model at x_i.
+    pub model: ColourModel,
+    /// Tangent frame at x_i (for anisotropic models).
+    pub frame: TangentFrame,
+}
+
+/// Interpolates the vertex models of triangle `tri` at `x_i` (barycentric, in log-parameter
+/// space, over the corners that have a model of the dominant corner's order).
+pub fn model_at(ctx: &Context, model: &ModelFile, tri: u32, x_i: V3) -> Option<ModelAt> {
+    let t = *ctx.scene.mesh.triangles.get(tri as usize)?;
+    let w = ctx.scene.barycentric(tri, x_i);
+    let mut corners: Vec<(usize, f64)> = (0..3)
+        .map(|k| (t[k] as usize, w[k]))
+        .filter(|(v, _)| model.vertices[*v].status != VertexStatus::NoModel)
+        .collect();
+    corners.sort_by(|a, b| b.1.total_cmp(&a.1));
+    let terms = model.vertices[corners.first()?.0].terms;
+    corners.retain(|(v, _)| model.vertices[*v].terms == terms);
+    let total: f64 = corners.iter().map(|c| c.1).sum();
+    let mut acc: Vec<f64> = Vec::new();
+    for (v, wt) in &corners {
+        let l = to_log(&model.shape, &model.vertices[*v].params);
+        let wt = if total > 0.0 {
+            wt / total
+        } else {
+            1.0 / corners.len() as f64
+        };
+        if acc.is_empty() {
+            acc = vec![0.0; l.len()];
+        }
+        for (a, x) in acc.iter_mut().zip(l) {
+            *a += wt * x;
+        }
+    }
+    let params = from_log(&model.shape, &acc);
+    let m = model_of(&model.shape, terms as usize, &params).ok()?;
+    let frame = TangentFrame::from_normal(ctx.normal_at(tri, x_i)).ok()?;
+    Some(ModelAt { model: m, frame })
+}
+
+/// alpha(x_o) (Eq. 2) at a vertex.
+fn alpha_of(model: &ModelFile, v: usize) -> [f64; 3] {
+    model.vertices[v].alpha.map(|a| a as f64)
+}
+
+/// Table-1 statistics of one frame.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct FrameEval {
+    /// Frame index.
+    pub frame: usize,
+    /// log E(x_i) (Eq. 8) per channel; `None` where no sample passed the threshold.
+    pub log_e: [Option<f64>; 3],
+    /// Channel samples used.
+    pub samples: u64,
+    /// Why the frame was not evaluated, if it was not.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub skipped: Option<String>,
+}
+
+fn registered(ctx: &Context, k: usize) -> Result<(V3, u32), String> {
+    match ctx.register(k) {
+        Ok(RegistrationOutcome::Registered { x_i, triangle, .. }) => Ok((x_i, triangle)),
+        Ok(other) => Err(format!("not registered: {other:?}")),
+        Err(e) => Err(e.to_string()),
+    }
+}
+
+/// Evaluates `model` on the frames `frames` of `ds` (each frame read once, in parallel).
+pub fn evaluate_frames(
+    ds: &Dataset,
+    model: &ModelFile,
+    frames: &[usize],
+    opts: &PipelineOptions,
+    progress: &indicatif::ProgressBar,
+) -> Result<(Vec<FrameEval>, LogEStats), EvaluateError> {
+    use rayon::prelude::*;
+    if model.positions.len() != ds.mesh.positions.len() {
+        return Err(EvaluateError::MeshMismatch {
+            model: model.positions.len(),
+            mesh: ds.mesh.positions.len(),
+        });
+    }
+    let ctx = Context::new(ds, *opts)?;
+    progress.set_length(frames.len() as u64);
+    let evals: Vec<FrameEval> = frames
+        .par_iter()
+        .map(|&k| {
+            let r = evaluate_one(&ctx, model, k, opts);
+            progress.inc(1);
+            r.unwrap_or_else(|reason| FrameEval {
+                frame: k,
+                log_e: [None; 3],
+                samples: 0,
+                skipped: Some(reason),
+            })
+        })
+        .collect();
+    let vals: Vec<[f64; 3]> = evals
+        .iter()
+        .filter(|e| e.skipped.is_none())
+        .map(|e| e.log_e.map(|x| x.unwrap_or(f64::NAN)))
+        .collect();
+    Ok((evals, LogEStats::of(&vals)))
+}
+
+fn evaluate_one(
+    ctx: &Context,
+    model: &ModelFile,
+    k: usize,
+    opts: &PipelineOptions,
+) -> Result<FrameEval, String> {
+    let (x_i, tri) = registered(ctx, k)?;
+    let at = model_at(ctx, model, tri, x_i).ok_or("no model at x_i")?;
+    let (samples, _) = ctx.samples(k, x_i).map_err(|e| e.to_string())?;
+    let mut acc = [LogEAccumulator::default(); 3];
+    for s in &samples {
+        let x_o = ctx.ds.mesh.positions[s.vertex as usize];
+        let (r, phi) = at.frame.polar(x_i, x_o);
+        let ln = at.model.ln_eval(r, phi);
+        let a = alpha_of(model, s.vertex as usize);
+        for c in 0..3 {
+            if s.valid & (1 << c) != 0 {
+                acc[c].add_ln(a[c].ln() + ln[c], s.value[c], opts.error_threshold);
+            }
+        }
+    }
+    Ok(FrameEval {
+        frame: k,
+        log_e: acc.map(|a| a.log_e()),
+        samples: acc.iter().map(|a| a.count).sum(),
+        skipped: None,
+    })
+}
+
+/// Renders what the camera of frame `k` sees when the laser hits that frame's x_i, as the model
+/// predicts it (Eq. 9 with alpha; pixel = radiance · exposure, so it compares to the capture).
+pub fn predict_frame(
+    ds: &Dataset,
+    model: &ModelFile,
+    k: usize,
+    opts: &PipelineOptions,
+) -> Result<Image, EvaluateError> {
+    use rayon::prelude::*;
+    if model.positions.len() != ds.mesh.positions.len() {
+        return Err(EvaluateError::MeshMismatch {
+            model: model.positions.len(),
+            mesh: ds.mesh.positions.len(),
+        });
+    }
+    if k >= ds.spec.frames.len() {
+        return Err(EvaluateError::Frame {
+            frame: k,
+            reason: format!("dataset has {} frames", ds.spec.frames.len()),
+        });
+    }
+    let ctx = Context::new(ds, *opts)?;
+    let (x_i, tri) =
+        registered(&ctx, k).map_err(|reason| EvaluateError::Frame { frame: k, reason })?;
+    let at = model_at(&ctx, model, tri, x_i).ok_or(EvaluateError::Frame {
+        frame: k,
+        reason: "no model at x_i".into(),
+    })?;
+    let f = &ds.spec.frames[k];
+    let cam = ctx.camera(f.camera);
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    let mut img = Image::new(w, h, 3);
+    img.data.par_chunks_mut(3).enumerate().for_each(|(p, px)| {
+        let (u, v) = ((p % w) as f64, (p / w) as f64);
+        let Some((o, d)) = cam.ray(u, v) else { return };
+        let Some(hit) = ctx.scene.cast_world(o, d, f.turntable_deg) else {
+            return;
+        };
+        let t = ctx.scene.mesh.triangles[hit.triangle as usize];
+        let bw = ctx.scene.barycentric(hit.triangle, hit.point);
+        let mut a = [0.0; 3];
+        for j in 0..3 {
+            let av = alpha_of(model, t[j] as usize);
+            for c in 0..3 {
+                a[c] += bw[j] * av[c];
+            }
+        }
+        let (r, phi) = at.frame.polar(x_i, hit.point);
+        let ln = at.model.ln_eval(r, phi);
+        for c in 0..3 {
+            px[c] = (a[c] * ln[c].exp() * f.exposure_s) as f32;
+        }
+    });
+    Ok(img)
+}

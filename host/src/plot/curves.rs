@@ -1,0 +1,179 @@
+//! Line plots: the fall-off of one `x_i` (Figure 3) and speed/accuracy curves.
+
+use std::path::Path;
+
+use plotters::prelude::*;
+
+use super::{PlotError, draw_err, register_font};
+
+/// A named curve for [`falloff_plot`].
+#[derive(Clone, Debug)]
+pub struct Curve {
+    /// Legend text.
+    pub name: String,
+    /// `(r, value)` points, drawn as a line.
+    pub points: Vec<(f64, f64)>,
+}
+
+/// Figure 3: the samples `s(x_i, x_o)` of one lit point against distance `|x_o − x_i|` on a log
+/// scale, with fitted curves (the sum of exponentials, the dipole) as lines. Non-positive and
+/// non-finite values are left out (they have no logarithm).
+pub fn falloff_plot(
+    path: &Path,
+    title: &str,
+    samples: &[(f64, f64)],
+    curves: &[Curve],
+    size: (u32, u32),
+) -> Result<(), PlotError> {
+    register_font();
+    let ok = |&(r, v): &(f64, f64)| r.is_finite() && v.is_finite() && v > 0.0 && r >= 0.0;
+    let pts: Vec<(f64, f64)> = samples.iter().copied().filter(ok).collect();
+    if pts.is_empty() {
+        return Err(PlotError::Empty("no positive finite samples".into()));
+    }
+    let rmax = pts.iter().map(|p| p.0).fold(0.0, f64::max).max(1e-9);
+    let vmin = pts.iter().map(|p| p.1).fold(f64::INFINITY, f64::min);
+    let vmax = pts.iter().map(|p| p.1).fold(0.0, f64::max);
+    let (lo, hi) = (vmin / 3.0, vmax * 3.0);
+    let e = draw_err(path);
+    let root = BitMapBackend::new(path, size).into_drawing_area();
+    root.fill(&WHITE).map_err(&e)?;
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 20))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(70)
+        .build_cartesian_2d(0.0..rmax * 1.02, (lo..hi).log_scale())
+        .map_err(&e)?;
+    chart
+        .configure_mesh()
+        .x_desc("|x_o − x_i| (mm)")
+        .y_desc("R_d (log scale)")
+        .y_label_formatter(&|v| format!("{v:.0e}"))
+        .draw()
+        .map_err(&e)?;
+    chart
+        .draw_series(
+            pts.iter()
+                .map(|&(r, v)| Circle::new((r, v), 2, RGBColor(90, 90, 90).mix(0.5).filled())),
+        )
+        .map_err(&e)?
+        .label("samples")
+        .legend(|(x, y)| Circle::new((x + 10, y), 3, RGBColor(90, 90, 90).filled()));
+    let colours = [
+        RGBColor(200, 30, 30),
+        RGBColor(30, 90, 200),
+        RGBColor(20, 150, 60),
+        RGBColor(160, 60, 170),
+    ];
+    for (k, c) in curves.iter().enumerate() {
+        let colour = colours[k % colours.len()];
+        let line: Vec<(f64, f64)> = c
+            .points
+            .iter()
+            .copied()
+            .filter(|&(r, v)| ok(&(r, v)) && v >= lo && v <= hi)
+            .collect();
+        chart
+            .draw_series(LineSeries::new(line, colour.stroke_width(2)))
+            .map_err(&e)?
+            .label(c.name.clone())
+            .legend(move |(x, y)| {
+                PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(2))
+            });
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .position(SeriesLabelPosition::UpperRight)
+        .draw()
+        .map_err(&e)?;
+    root.present().map_err(&e)?;
+    Ok(())
+}
+
+/// A speed/accuracy curve: wall time against error (log–log), one point per setting, with the
+/// reference's time as a horizontal line. Points with zero error are drawn at the axis' floor.
+pub fn tradeoff_curve(
+    path: &Path,
+    title: &str,
+    points: &[(f64, f64)],
+    reference_seconds: f64,
+) -> Result<(), PlotError> {
+    register_font();
+    let pts: Vec<(f64, f64)> = points
+        .iter()
+        .copied()
+        .filter(|&(t, err)| t.is_finite() && t > 0.0 && err.is_finite())
+        .collect();
+    if pts.is_empty() {
+        return Err(PlotError::Empty("no finite points".into()));
+    }
+    let emax = pts.iter().map(|p| p.1).fold(0.0, f64::max).max(1e-6);
+    let epos = pts
+        .iter()
+        .map(|p| p.1)
+        .filter(|&v| v > 0.0)
+        .fold(f64::INFINITY, f64::min);
+    let efloor = if epos.is_finite() {
+        epos / 3.0
+    } else {
+        emax / 100.0
+    };
+    let tmin = pts
+        .iter()
+        .map(|p| p.0)
+        .fold(f64::INFINITY, f64::min)
+        .min(reference_seconds);
+    let tmax = pts
+        .iter()
+        .map(|p| p.0)
+        .fold(0.0, f64::max)
+        .max(reference_seconds);
+    let e = draw_err(path);
+    let root = BitMapBackend::new(path, (720, 480)).into_drawing_area();
+    root.fill(&WHITE).map_err(&e)?;
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 18))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(60)
+        .build_cartesian_2d(
+            (efloor..emax * 2.0).log_scale(),
+            (tmin / 2.0..tmax * 2.0).log_scale(),
+        )
+        .map_err(&e)?;
+    chart
+        .configure_mesh()
+        .x_desc("mean relative error")
+        .y_desc("wall time (s)")
+        .x_label_formatter(&|v| format!("{v:.0e}"))
+        .draw()
+        .map_err(&e)?;
+    let line: Vec<(f64, f64)> = pts.iter().map(|&(t, err)| (err.max(efloor), t)).collect();
+    chart
+        .draw_series(LineSeries::new(line.clone(), BLUE.stroke_width(2)))
+        .map_err(&e)?;
+    chart
+        .draw_series(line.iter().map(|&p| Circle::new(p, 4, BLUE.filled())))
+        .map_err(&e)?
+        .label("hierarchical")
+        .legend(|(x, y)| Circle::new((x + 10, y), 4, BLUE.filled()));
+    chart
+        .draw_series(LineSeries::new(
+            vec![(efloor, reference_seconds), (emax * 2.0, reference_seconds)],
+            RED.stroke_width(2),
+        ))
+        .map_err(&e)?
+        .label("exact sum")
+        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], RED.stroke_width(2)));
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()
+        .map_err(&e)?;
+    root.present().map_err(&e)?;
+    Ok(())
+}

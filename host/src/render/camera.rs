@@ -1,0 +1,329 @@
+//! Cameras: the OpenCV pinhole model of `docs/scan-format.md`, or a look-at camera.
+
+use serde::Deserialize;
+
+use super::RenderError;
+
+/// A pinhole camera with optional OpenCV distortion `[k1, k2, p1, p2, k3]`. Camera coordinates:
+/// x right, y down, z forward; pixel centres at integer coordinates (as in the scan format).
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+pub struct Camera {
+    /// Image width, pixels.
+    pub width: u32,
+    /// Image height, pixels.
+    pub height: u32,
+    /// Focal length in pixels, x.
+    pub fx: f64,
+    /// Focal length in pixels, y.
+    pub fy: f64,
+    /// Principal point, x.
+    pub cx: f64,
+    /// Principal point, y.
+    pub cy: f64,
+    /// OpenCV distortion `[k1, k2, p1, p2, k3]`.
+    #[serde(default)]
+    pub distortion: [f64; 5],
+    /// Row-major 4x4 matrix taking world (= object frame at turntable angle 0) points to camera
+    /// coordinates.
+    pub camera_from_world: [[f64; 4]; 4],
+}
+
+fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+fn norm(a: [f64; 3]) -> Option<[f64; 3]> {
+    let l = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
+    (l > 1e-12 && l.is_finite()).then(|| a.map(|x| x / l))
+}
+
+impl Camera {
+    /// A camera at `eye` looking at `target` with `up` pointing up in the image, vertical field of
+    /// view `fov_y_deg`.
+    pub fn look_at(
+        eye: [f64; 3],
+        target: [f64; 3],
+        up: [f64; 3],
+        fov_y_deg: f64,
+        width: u32,
+        height: u32,
+    ) -> Result<Self, RenderError> {
+        let bad = |s: &str| RenderError::Camera(s.to_string());
+        if width == 0 || height == 0 || width > 16384 || height > 16384 {
+            return Err(bad("image size must be 1..=16384 pixels per side"));
+        }
+        if !(fov_y_deg > 0.0 && fov_y_deg < 179.0) {
+            return Err(bad("field of view must be in (0, 179) degrees"));
+        }
+        let z = norm(sub(target, eye)).ok_or_else(|| bad("eye and target coincide"))?;
+        let x = norm(cross(z, up)).ok_or_else(|| bad("up is parallel to the view direction"))?;
+        let y = cross(z, x);
+        let t = |r: [f64; 3]| -(r[0] * eye[0] + r[1] * eye[1] + r[2] * eye[2]);
+        let f = 0.5 * height as f64 / (0.5 * fov_y_deg.to_radians()).tan();
+        Ok(Self {
+            width,
+            height,
+            fx: f,
+            fy: f,
+            cx: 0.5 * (width as f64 - 1.0),
+            cy: 0.5 * (height as f64 - 1.0),
+            distortion: [0.0; 5],
+            camera_from_world: [
+                [x[0], x[1], x[2], t(x)],
+                [y[0], y[1], y[2], t(y)],
+                [z[0], z[1], z[2], t(z)],
+                [0.0, 0.0, 0.0, 1.0],
+            ],
+        })
+    }
+
+    /// A look-at camera from `direction` (pointing from the object to the eye) that frames the
+    /// box `lo..hi`, with +z up in the image.
+    pub fn framing(
+        lo: [f64; 3],
+        hi: [f64; 3],
+        direction: [f64; 3],
+        width: u32,
+        height: u32,
+    ) -> Result<Self, RenderError> {
+        let c = [
+            0.5 * (lo[0] + hi[0]),
+            0.5 * (lo[1] + hi[1]),
+            0.5 * (lo[2] + hi[2]),
+        ];
+        let radius = 0.5
+            * (sub(hi, lo).iter().map(|x| x * x).sum::<f64>())
+                .sqrt()
+                .max(1e-6);
+        let d = norm(direction).ok_or_else(|| RenderError::Camera("zero view direction".into()))?;
+        let fov: f64 = 30.0;
+        let aspect = (width as f64 / height as f64).min(1.0);
+        let dist = 1.1 * radius / ((0.5 * fov).to_radians().tan() * aspect);
+        let eye = [c[0] + d[0] * dist, c[1] + d[1] * dist, c[2] + d[2] * dist];
+        let up = if d[2].abs() > 0.99 {
+            [0.0, 1.0, 0.0]
+        } else {
+            [0.0, 0.0, 1.0]
+        };
+        Self::look_at(eye, c, up, fov, width, height)
+    }
+
+    /// Reads one camera from JSON: a scan-format camera object, or a whole `scan.json` (then
+    /// camera `index` of its `cameras` list).
+    pub fn from_json(text: &str, index: usize) -> Result<Self, RenderError> {
+        let bad = |s: String| RenderError::Camera(s);
+        let v: serde_json::Value =
+            serde_json::from_str(text).map_err(|e| bad(format!("not JSON: {e}")))?;
+        let obj = match v.get("cameras") {
+            Some(list) => list
+                .get(index)
+                .cloned()
+                .ok_or_else(|| bad(format!("no camera {index} in `cameras`")))?,
+            None => v,
+        };
+        let cam: Camera =
+            serde_json::from_value(obj).map_err(|e| bad(format!("invalid camera: {e}")))?;
+        cam.check()?;
+        Ok(cam)
+    }
+
+    fn check(&self) -> Result<(), RenderError> {
+        let bad = |s: &str| Err(RenderError::Camera(s.to_string()));
+        if self.width == 0 || self.height == 0 || self.width > 16384 || self.height > 16384 {
+            return bad("image size must be 1..=16384 pixels per side");
+        }
+        let nums = [self.fx, self.fy, self.cx, self.cy];
+        if nums
+            .iter()
+            .chain(self.distortion.iter())
+            .chain(self.camera_from_world.iter().flatten())
+            .any(|x| !x.is_finite())
+        {
+            return bad("non-finite number");
+        }
+        if !(self.fx > 0.0 && self.fy > 0.0) {
+            return bad("focal lengths must be positive");
+        }
+        Ok(())
+    }
+
+    /// World point → camera coordinates.
+    pub fn to_camera(&self, p: [f64; 3]) -> [f64; 3] {
+        let m = &self.camera_from_world;
+        let r = |k: usize| m[k][0] * p[0] + m[k][1] * p[1] + m[k][2] * p[2] + m[k][3];
+        [r(0), r(1), r(2)]
+    }
+
+    /// The camera centre in world coordinates.
+    pub fn centre(&self) -> [f64; 3] {
+        let m = &self.camera_from_world;
+        // c = −Rᵀ t for a rigid transform.
+        let t = [m[0][3], m[1][3], m[2][3]];
+        [0, 1, 2].map(|k| -(m[0][k] * t[0] + m[1][k] * t[1] + m[2][k] * t[2]))
+    }
+
+    /// Camera coordinates → pixel `(u, v)` with distortion; `None` behind the camera.
+    pub fn project_camera(&self, c: [f64; 3]) -> Option<[f64; 2]> {
+        if c[2] <= 1e-9 {
+            return None;
+        }
+        let (x, y) = (c[0] / c[2], c[1] / c[2]);
+        let [k1, k2, p1, p2, k3] = self.distortion;
+        let r2 = x * x + y * y;
+        let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+        let xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
+        let yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
+        Some([self.fx * xd + self.cx, self.fy * yd + self.cy])
+    }
+}
+
+/// A camera as the command line names it, before any file is read.
+#[derive(Clone, Debug, PartialEq)]
+pub enum CameraSpec {
+    /// `auto[:DX,DY,DZ]`: frame the object, looking from the direction given (object → eye).
+    Auto([f64; 3]),
+    /// `lookat:EX,EY,EZ:TX,TY,TZ[:FOV_DEG]`.
+    LookAt {
+        /// Eye position, mm.
+        eye: [f64; 3],
+        /// Point looked at, mm.
+        target: [f64; 3],
+        /// Vertical field of view, degrees.
+        fov_deg: f64,
+    },
+    /// `FILE.json[#K]`: camera K of a scan.json, or a single camera object.
+    File {
+        /// The JSON file.
+        path: std::path::PathBuf,
+        /// Index into `cameras`.
+        index: usize,
+    },
+}
+
+/// The default view direction of `auto`: from the front-right, above.
+pub const DEFAULT_VIEW: [f64; 3] = [0.6, -1.0, 0.7];
+
+fn triple(s: &str) -> Result<[f64; 3], RenderError> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|x| x.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| RenderError::Camera(format!("`{s}`: {e}")))?;
+    match v[..] {
+        [a, b, c] if a.is_finite() && b.is_finite() && c.is_finite() => Ok([a, b, c]),
+        _ => Err(RenderError::Camera(format!(
+            "`{s}` is not three finite numbers"
+        ))),
+    }
+}
+
+impl std::str::FromStr for CameraSpec {
+    type Err = RenderError;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let parts: Vec<&str> = s.split(':').collect();
+        match parts[..] {
+            ["auto"] => Ok(Self::Auto(DEFAULT_VIEW)),
+            ["auto", d] => Ok(Self::Auto(triple(d)?)),
+            ["lookat", e, t] => Ok(Self::LookAt {
+                eye: triple(e)?,
+                target: triple(t)?,
+                fov_deg: 30.0,
+            }),
+            ["lookat", e, t, f] => Ok(Self::LookAt {
+                eye: triple(e)?,
+                target: triple(t)?,
+                fov_deg: f
+                    .parse()
+                    .map_err(|_| RenderError::Camera(format!("bad field of view `{f}`")))?,
+            }),
+            _ if s.ends_with(".json") || s.contains(".json#") => {
+                let (path, index) = match s.rsplit_once('#') {
+                    Some((p, k)) => (
+                        p,
+                        k.parse()
+                            .map_err(|_| RenderError::Camera(format!("bad camera index `{k}`")))?,
+                    ),
+                    None => (s, 0),
+                };
+                Ok(Self::File {
+                    path: path.into(),
+                    index,
+                })
+            }
+            _ => Err(RenderError::Camera(format!(
+                "`{s}`: expected auto[:DX,DY,DZ], lookat:EX,EY,EZ:TX,TY,TZ[:FOV] or FILE.json[#K]"
+            ))),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn look_at_puts_the_target_at_the_principal_point_and_up_up() {
+        let c =
+            Camera::look_at([0.0, -100.0, 0.0], [0.0; 3], [0.0, 0.0, 1.0], 40.0, 64, 48).unwrap();
+        let p = c.project_camera(c.to_camera([0.0; 3])).unwrap();
+        assert!((p[0] - 31.5).abs() < 1e-9 && (p[1] - 23.5).abs() < 1e-9);
+        let up = c.project_camera(c.to_camera([0.0, 0.0, 10.0])).unwrap();
+        assert!(up[1] < 23.5, "+z appears above the centre");
+        let right = c.project_camera(c.to_camera([10.0, 0.0, 0.0])).unwrap();
+        assert!(right[0] > 31.5, "+x appears to the right seen from -y");
+        let e = c.centre();
+        assert!((e[1] + 100.0).abs() < 1e-9 && e[0].abs() < 1e-9);
+        assert!(Camera::look_at([0.0; 3], [0.0; 3], [0.0, 0.0, 1.0], 40.0, 8, 8).is_err());
+    }
+
+    #[test]
+    fn camera_specs_parse() {
+        assert_eq!(
+            "auto".parse::<CameraSpec>().unwrap(),
+            CameraSpec::Auto(DEFAULT_VIEW)
+        );
+        assert_eq!(
+            "auto:0,0,1".parse::<CameraSpec>().unwrap(),
+            CameraSpec::Auto([0.0, 0.0, 1.0])
+        );
+        assert!(matches!(
+            "lookat:0,-100,0:0,0,0:40".parse::<CameraSpec>().unwrap(),
+            CameraSpec::LookAt { fov_deg: 40.0, .. }
+        ));
+        assert_eq!(
+            "scan/scan.json#2".parse::<CameraSpec>().unwrap(),
+            CameraSpec::File {
+                path: "scan/scan.json".into(),
+                index: 2
+            }
+        );
+        for bad in [
+            "",
+            "lookat:1,2",
+            "auto:1,2",
+            "cam.json#x",
+            "lookat:0,0,0:1,1,1:wide",
+        ] {
+            assert!(bad.parse::<CameraSpec>().is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn scan_format_cameras_parse_and_project() {
+        let text = r#"{"format":"subsurf-scan/1","cameras":[{"width":128,"height":128,"fx":3200.0,
+            "fy":3200.0,"cx":63.5,"cy":63.5,"camera_from_world":[[1,0,0,0],[0,-1,0,0],[0,0,-1,600],[0,0,0,1]]}]}"#;
+        let c = Camera::from_json(text, 0).unwrap();
+        let p = c.project_camera(c.to_camera([0.0, 0.0, 0.0])).unwrap();
+        assert_eq!(p, [63.5, 63.5]);
+        assert!(Camera::from_json(text, 1).is_err());
+        assert!(Camera::from_json("{]", 0).is_err());
+        assert!(Camera::from_json(r#"{"width":0,"height":1,"fx":1,"fy":1,"cx":0,"cy":0,"camera_from_world":[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}"#, 0).is_err());
+    }
+}

@@ -1,0 +1,333 @@
+//! The fall-off `R_d(x_i → x_o)` of every source vertex, prepared for fast evaluation.
+//!
+//! Each term `c_kl e^{d_kl r}` is stored as `(ln c_kl, d_kl)` and evaluated as `e^{ln c + d r}`, so
+//! a huge `c` with a tiny exponential neither overflows nor underflows before the product is formed.
+
+use super::vertex_model::{ColourMode, VertexModel, VertexStatus};
+use crate::model::{TangentFrame, hat_weights};
+
+/// Per-vertex fall-off parameters (Eq. 1/3/5/9) in a layout made for inner loops.
+#[derive(Clone, Debug)]
+pub struct Falloffs {
+    n: usize,
+    m: usize,
+    shared: bool,
+    /// Per vertex: `blocks × m × n` values of `ln c` (1 block when shared, 3 per channel).
+    lnc: Vec<f64>,
+    /// Same layout: `d` (1/mm, negative).
+    d: Vec<f64>,
+    /// Channel scales `(1, s_g, s_b)` (Eq. 5/9); `(1, 1, 1)` per channel.
+    scale: Vec<[f64; 3]>,
+    /// False for vertices without a model: they emit nothing.
+    active: Vec<bool>,
+}
+
+impl Falloffs {
+    /// Prepares the fall-offs of a (validated) model.
+    pub fn new(model: &VertexModel) -> Self {
+        let (n, m) = (model.terms, model.segments);
+        let shared = model.colour == ColourMode::Shared;
+        let blocks = if shared { 1 } else { 3 };
+        let nv = model.len();
+        let mut lnc = Vec::with_capacity(nv * blocks * n * m);
+        let mut d = Vec::with_capacity(nv * blocks * n * m);
+        let mut scale = Vec::with_capacity(nv);
+        let mut active = Vec::with_capacity(nv);
+        for v in 0..nv {
+            let p = model.vertex_params(v);
+            let on = model.status[v] != VertexStatus::NoModel;
+            let terms = if shared {
+                scale.push([1.0, p[0], p[1]]);
+                &p[2..]
+            } else {
+                scale.push([1.0; 3]);
+                p
+            };
+            for cd in terms.chunks_exact(2) {
+                if on {
+                    lnc.push(cd[0].ln());
+                    d.push(cd[1]);
+                } else {
+                    lnc.push(f64::NEG_INFINITY);
+                    d.push(-1.0);
+                }
+            }
+            active.push(on);
+        }
+        Self {
+            n,
+            m,
+            shared,
+            lnc,
+            d,
+            scale,
+            active,
+        }
+    }
+
+    /// Direction segments m (Eq. 3).
+    pub fn segments(&self) -> usize {
+        self.m
+    }
+
+    /// Whether vertex `i` has a model and so can act as a source.
+    pub fn is_active(&self, i: usize) -> bool {
+        self.active[i]
+    }
+
+    fn stride(&self) -> usize {
+        self.n * self.m * if self.shared { 1 } else { 3 }
+    }
+
+    /// Σ_k c_kl e^{d_kl r} of one block (one channel, or the shared fall-off), one segment.
+    #[inline]
+    fn segment_sum(&self, base: usize, r: f64) -> f64 {
+        let mut s = 0.0;
+        for k in base..base + self.n {
+            s += (self.lnc[k] + self.d[k] * r).exp();
+        }
+        s
+    }
+
+    /// `R_d(x_i → x_o)` per channel at distance `r` (mm), blended over direction segments with the
+    /// weights `w_l(x_i, x_o)` of Eq. 3 (`w` has one entry per segment; ignored when `m = 1`).
+    #[inline]
+    pub fn eval(&self, i: usize, r: f64, w: &[f64]) -> [f64; 3] {
+        let base = i * self.stride();
+        let block = self.n * self.m;
+        let one = |b: usize| -> f64 {
+            if self.m == 1 {
+                self.segment_sum(b, r)
+            } else {
+                let mut s = 0.0;
+                for (l, &wl) in w.iter().enumerate().take(self.m) {
+                    if wl != 0.0 {
+                        s += wl * self.segment_sum(b + l * self.n, r);
+                    }
+                }
+                s
+            }
+        };
+        if self.shared {
+            let f = one(base);
+            let s = self.scale[i];
+            [f, f * s[1], f * s[2]]
+        } else {
+            [one(base), one(base + block), one(base + 2 * block)]
+        }
+    }
+
+    /// `ln` of the direction-averaged fall-off `(1/m) Σ_l R_l(r)` per channel, as a log-sum-exp so
+    /// that it stays finite where every exponential underflows. Used to build cluster tables.
+    pub fn ln_eval_mean(&self, i: usize, r: f64) -> [f64; 3] {
+        let base = i * self.stride();
+        let block = self.n * self.m;
+        let lse = |b: usize| -> f64 {
+            let mut mx = f64::NEG_INFINITY;
+            for k in b..b + block {
+                mx = mx.max(self.lnc[k] + self.d[k] * r);
+            }
+            if mx == f64::NEG_INFINITY {
+                return mx;
+            }
+            let mut s = 0.0;
+            for k in b..b + block {
+                s += (self.lnc[k] + self.d[k] * r - mx).exp();
+            }
+            mx + s.ln() - (self.m as f64).ln()
+        };
+        if self.shared {
+            let f = lse(base);
+            let s = self.scale[i];
+            [f, f + s[1].ln(), f + s[2].ln()]
+        } else {
+            [lse(base), lse(base + block), lse(base + 2 * block)]
+        }
+    }
+
+    /// `∫_0^ρ R_d(r) 2πr dr` per channel, averaged over segments: the light a source keeps within
+    /// the disk of radius `ρ` around itself. Used for the `x_o = x_i` term, where the point sum would
+    /// put all of a vertex's own area at distance 0 and overestimate sharp fall-offs.
+    pub fn disk_integral(&self, i: usize, rho: f64) -> [f64; 3] {
+        let base = i * self.stride();
+        let block = self.n * self.m;
+        let one = |b: usize| -> f64 {
+            let mut s = 0.0;
+            for k in b..b + block {
+                let (c, d) = (self.lnc[k].exp(), self.d[k]);
+                let x = d * rho;
+                // (e^{dρ}(dρ − 1) + 1)/d², written with exp_m1 for small dρ.
+                s += 2.0 * std::f64::consts::PI * c * (x.exp_m1() * (x - 1.0) + x) / (d * d);
+            }
+            s / self.m as f64
+        };
+        if self.shared {
+            let f = one(base);
+            let s = self.scale[i];
+            [f, f * s[1], f * s[2]]
+        } else {
+            [one(base), one(base + block), one(base + 2 * block)]
+        }
+    }
+
+    /// The distance beyond which vertex `i` sends less than the fraction `tol` of its light, the
+    /// largest over channels and segments (see [`tail_cutoff`]). `tol <= 0` gives infinity.
+    pub fn cutoff(&self, i: usize, tol: f64) -> f64 {
+        if !self.active[i] {
+            return 0.0;
+        }
+        let base = i * self.stride();
+        let blocks = if self.shared { 1 } else { 3 };
+        let mut terms = Vec::with_capacity(self.n);
+        let mut r: f64 = 0.0;
+        for b in 0..blocks * self.m {
+            terms.clear();
+            for k in base + b * self.n..base + (b + 1) * self.n {
+                terms.push((self.lnc[k].exp(), self.d[k]));
+            }
+            r = r.max(tail_cutoff(&terms, tol));
+        }
+        r
+    }
+}
+
+/// The radius `R` beyond which a fall-off `Σ c_k e^{d_k r}` (Eq. 1) keeps at most the fraction
+/// `tol` of its total diffuse reflectance `∫_0^∞ R_d(r) 2πr dr`. Closed form of the tail,
+/// `∫_R^∞ c e^{dr} 2πr dr = 2πc e^{dR}(1 − dR)/d²`, which falls monotonically, so bisection is
+/// exact to the tolerance. `tol <= 0` gives infinity (no cutoff).
+pub fn tail_cutoff(terms: &[(f64, f64)], tol: f64) -> f64 {
+    if tol <= 0.0 || terms.is_empty() {
+        return f64::INFINITY;
+    }
+    let total: f64 = terms.iter().map(|&(c, d)| c / (d * d)).sum();
+    if total.is_nan() || total <= 0.0 || !total.is_finite() {
+        return 0.0;
+    }
+    let tail = |r: f64| -> f64 {
+        terms
+            .iter()
+            .map(|&(c, d)| c * (d * r).exp() * (1.0 - d * r) / (d * d))
+            .sum::<f64>()
+            / total
+    };
+    let slowest = terms.iter().map(|&(_, d)| -d).fold(f64::INFINITY, f64::min);
+    let mut hi = 1.0 / slowest;
+    let mut guard = 0;
+    while tail(hi) > tol && guard < 200 {
+        hi *= 2.0;
+        guard += 1;
+    }
+    let mut lo = 0.0;
+    for _ in 0..60 {
+        let mid = 0.5 * (lo + hi);
+        if tail(mid) > tol {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    hi
+}
+
+/// Eq. 3's weights `w_l(x_i, x_o)` into `w` (one per segment): the hat functions of
+/// [`crate::model::hat_weights`] over the angle of `x_o − x_i` in the [`TangentFrame`] at `x_i`
+/// (the rule shared with fitting); a direction with no tangential part gets equal weights.
+pub fn segment_weights(frame: &TangentFrame, x_i: [f64; 3], x_o: [f64; 3], w: &mut [f64]) {
+    let m = w.len();
+    if m == 0 {
+        return;
+    }
+    if m == 1 {
+        w[0] = 1.0;
+        return;
+    }
+    w.iter_mut().for_each(|x| *x = 0.0);
+    match frame.polar(x_i, x_o).1 {
+        Some(phi) => {
+            for (l, wl) in hat_weights(phi, m) {
+                w[l] += wl;
+            }
+        }
+        None => w.iter_mut().for_each(|x| *x = 1.0 / m as f64),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn disk_integral_to_infinity_is_the_total_reflectance() {
+        let model = VertexModel::homogeneous(
+            vec![[0.0; 3]; 3],
+            vec![[0.0, 0.0, 1.0]; 3],
+            vec![[0, 1, 2]],
+            [0.5, 2.0],
+            &[(2.0, -3.0), (0.2, -0.5)],
+        );
+        let f = Falloffs::new(&model);
+        let total = 2.0 * std::f64::consts::PI * (2.0 / 9.0 + 0.2 / 0.25);
+        let got = f.disk_integral(0, 1e3);
+        assert!((got[0] / total - 1.0).abs() < 1e-12);
+        assert!((got[1] / (0.5 * total) - 1.0).abs() < 1e-12);
+        assert!((got[2] / (2.0 * total) - 1.0).abs() < 1e-12);
+        // Small radius: R(0) π ρ² to first order.
+        let rho = 1e-6;
+        let small = f.disk_integral(0, rho)[0];
+        assert!((small / (2.2 * std::f64::consts::PI * rho * rho) - 1.0).abs() < 1e-5);
+    }
+
+    #[test]
+    fn log_eval_matches_direct_eval_and_survives_underflow() {
+        let model = VertexModel::homogeneous(
+            vec![[0.0; 3]; 3],
+            vec![[0.0, 0.0, 1.0]; 3],
+            vec![[0, 1, 2]],
+            [0.5, 2.0],
+            &[(2.0, -3.0), (0.2, -0.5)],
+        );
+        let f = Falloffs::new(&model);
+        let direct = f.eval(0, 1.7, &[1.0]);
+        let ln = f.ln_eval_mean(0, 1.7);
+        for ch in 0..3 {
+            assert!((ln[ch].exp() / direct[ch] - 1.0).abs() < 1e-12);
+        }
+        // At 10 m every term underflows in linear space; the log stays finite and exact.
+        let far = f.ln_eval_mean(0, 1e4)[0];
+        assert!((far - (0.2f64.ln() - 0.5e4)).abs() < 1e-9);
+    }
+
+    #[test]
+    fn tail_cutoff_leaves_the_requested_fraction() {
+        let terms = [(1.0, -2.0), (0.01, -0.2)];
+        let total: f64 = terms.iter().map(|&(c, d)| c / (d * d)).sum();
+        for tol in [1e-2, 1e-4, 1e-6] {
+            let r = tail_cutoff(&terms, tol);
+            let tail: f64 = terms
+                .iter()
+                .map(|&(c, d)| c * (d * r).exp() * (1.0 - d * r) / (d * d))
+                .sum();
+            assert!((tail / total / tol - 1.0).abs() < 1e-6, "tol {tol}");
+        }
+        assert!(tail_cutoff(&terms, 0.0).is_infinite());
+    }
+
+    #[test]
+    fn segment_weights_are_hats_that_sum_to_one() {
+        let mut w = [0.0; 4];
+        let frame = TangentFrame::from_normal([0.0, 0.0, 1.0]).unwrap();
+        for k in 0..64 {
+            let a = k as f64 * 0.1;
+            segment_weights(&frame, [0.0; 3], [a.cos(), a.sin(), 0.3], &mut w);
+            assert!((w.iter().sum::<f64>() - 1.0).abs() < 1e-12);
+            assert!(w.iter().filter(|&&x| x > 0.0).count() <= 2);
+        }
+        // Along the frame's tangent: all weight on segment 0; a quarter turn: segment 1.
+        segment_weights(&frame, [0.0; 3], frame.t, &mut w);
+        assert!((w[0] - 1.0).abs() < 1e-12);
+        segment_weights(&frame, [0.0; 3], frame.b, &mut w);
+        assert!((w[1] - 1.0).abs() < 1e-12);
+        segment_weights(&frame, [0.0; 3], [0.0, 0.0, 1.0], &mut w);
+        assert_eq!(w, [0.25; 4]);
+    }
+}

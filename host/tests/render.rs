@@ -1,0 +1,343 @@
+//! End-to-end tests of the renderer and its pictures, through the public API and the binary.
+
+use std::path::Path;
+use std::process::Command;
+
+use subsurf::render::{
+    self, Camera, HierarchyParams, Light, Method, Quality, RenderOptions, image_stats,
+};
+
+/// A picture someone can look at: the right size, many colours, real contrast.
+fn assert_picture(path: &Path, width: u32, height: u32) {
+    let s = image_stats(path).unwrap_or_else(|e| panic!("{} does not decode: {e}", path.display()));
+    assert_eq!((s.width, s.height), (width, height), "{}", path.display());
+    assert!(
+        s.distinct_colours > 20,
+        "{}: only {} colours",
+        path.display(),
+        s.distinct_colours
+    );
+    assert!(
+        s.luma_std > 5.0,
+        "{}: flat (luma std {})",
+        path.display(),
+        s.luma_std
+    );
+}
+
+fn small_torus() -> render::VertexModel {
+    render::synthetic::marble_torus(48, 20)
+}
+
+#[test]
+fn render_writes_a_picture_and_a_linear_exr() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = small_torus();
+    let (lo, hi) = model.bounds();
+    let cam = Camera::framing(lo, hi, render::DEFAULT_VIEW, 120, 90).unwrap();
+    let lights: Vec<Light> = vec!["point:-60,-80,90:20000,20000,20000".parse().unwrap()];
+    let out = render::render(&model, &lights, &cam, &RenderOptions::default()).unwrap();
+    let png = dir.path().join("a.png");
+    let exr = dir.path().join("a.exr");
+    render::save_png(&out.image, None, &png).unwrap();
+    render::save_exr(&out.image, &exr).unwrap();
+    assert_picture(&png, 120, 90);
+    let lin = image::open(&exr).unwrap().to_rgb32f();
+    assert_eq!(lin.dimensions(), (120, 90));
+    assert!(
+        lin.pixels()
+            .all(|p| p.0.iter().all(|v| v.is_finite() && *v >= 0.0))
+    );
+    let covered = out.image.covered.iter().filter(|c| **c).count();
+    assert!(
+        covered > 120 * 90 / 10,
+        "the object fills a good part of the frame"
+    );
+    // The EXR holds the linear values, not the tone-mapped ones.
+    let k = out.image.covered.iter().position(|c| *c).unwrap();
+    let (x, y) = ((k % 120) as u32, (k / 120) as u32);
+    assert_eq!(lin.get_pixel(x, y).0, out.image.pixels[k]);
+}
+
+#[test]
+fn the_far_side_of_a_lit_object_is_darker_and_shadows_fall() {
+    let model = small_torus();
+    // Light straight down: the underside of the ring is in shadow; its light there arrives only
+    // through transport, so it is much darker than the top.
+    let lights: Vec<Light> = vec!["dir:0,0,-1".parse().unwrap()];
+    let t = render::light_transport(&model, &lights, &RenderOptions::default()).unwrap();
+    let (mut top, mut bottom) = (Vec::new(), Vec::new());
+    for v in 0..model.len() {
+        let nz = model.normals[v][2];
+        if nz > 0.9 {
+            top.push(t.exitance[v][0]);
+        } else if nz < -0.9 {
+            bottom.push(t.exitance[v][0]);
+            assert_eq!(
+                t.irradiance[v], [0.0; 3],
+                "vertex {v} faces away from the light"
+            );
+        }
+    }
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+    assert!(!top.is_empty() && !bottom.is_empty());
+    assert!(
+        mean(&top) > 20.0 * mean(&bottom),
+        "top {} bottom {}",
+        mean(&top),
+        mean(&bottom)
+    );
+    assert!(mean(&bottom) > 0.0, "light scatters round to the underside");
+    // Inner side of the ring facing the hole at the light's grazing angle: a vertex on the
+    // inner equator facing +x at u = π is lit only from above, never through the ring.
+    assert!(
+        t.irradiance
+            .iter()
+            .all(|e| e.iter().all(|x| x.is_finite() && *x >= 0.0))
+    );
+}
+
+#[test]
+fn several_lights_add_up() {
+    let model = render::synthetic::marble_torus(24, 10);
+    let a: Light = "point:-60,-80,90:9000,9000,9000".parse().unwrap();
+    let b: Light = "spot:80,0,60:-1,0,-0.5:40:0,3000,6000".parse().unwrap();
+    let opts = RenderOptions {
+        method: Method::Exact,
+        eta: Some(1.3),
+    };
+    let ea = render::light_transport(&model, std::slice::from_ref(&a), &opts).unwrap();
+    let eb = render::light_transport(&model, std::slice::from_ref(&b), &opts).unwrap();
+    let both = render::light_transport(&model, &[a, b], &opts).unwrap();
+    for v in 0..model.len() {
+        for c in 0..3 {
+            let sum = ea.exitance[v][c] + eb.exitance[v][c];
+            assert!(
+                (both.exitance[v][c] - sum).abs() <= 1e-9 * sum.max(1e-300),
+                "vertex {v}"
+            );
+        }
+    }
+}
+
+#[test]
+fn balanced_quality_is_within_a_per_cent_of_the_exact_image() {
+    let model = render::synthetic::marble_torus(60, 24);
+    let (lo, hi) = model.bounds();
+    let cam = Camera::framing(lo, hi, render::DEFAULT_VIEW, 80, 80).unwrap();
+    let lights: Vec<Light> = vec!["point:-60,-80,90:20000,20000,20000".parse().unwrap()];
+    let exact = render::render(
+        &model,
+        &lights,
+        &cam,
+        &RenderOptions {
+            method: Method::Exact,
+            eta: Some(1.3),
+        },
+    )
+    .unwrap();
+    let mut last = f64::INFINITY;
+    for q in [Quality::Draft, Quality::Balanced, Quality::Best] {
+        let opts = RenderOptions {
+            method: Method::Hierarchical(q.params()),
+            eta: Some(1.3),
+        };
+        let h = render::render(&model, &lights, &cam, &opts).unwrap();
+        let err = render::relative_pixel_error(&h.image, &exact.image, 1e-3).unwrap();
+        assert!(err <= last + 1e-12, "{q:?}: error {err} after {last}");
+        last = err;
+        if q != Quality::Draft {
+            assert!(err < 0.01, "{q:?}: mean relative pixel error {err}");
+        }
+    }
+    // The knob reaches the exact sum when it allows no approximation at all.
+    let off = RenderOptions {
+        method: Method::Hierarchical(HierarchyParams {
+            max_solid_angle: 0.0,
+            tail_tolerance: 0.0,
+        }),
+        eta: Some(1.3),
+    };
+    let h = render::render(&model, &lights, &cam, &off).unwrap();
+    assert!(render::relative_pixel_error(&h.image, &exact.image, 0.0).unwrap() < 1e-6);
+}
+
+#[test]
+fn subsurf_render_command_writes_png_and_exr() {
+    let dir = tempfile::tempdir().unwrap();
+    let png = dir.path().join("r.png");
+    let exr = dir.path().join("r.exr");
+    let out = Command::new(env!("CARGO_BIN_EXE_subsurf"))
+        .args([
+            "render",
+            "--builtin",
+            "torus:40,16",
+            "--size",
+            "96x72",
+            "--quality",
+            "draft",
+        ])
+        .args([
+            "--light",
+            "point:-60,-80,90:20000,20000,20000",
+            "--light",
+            "dir:1,0,-1:0.2,0.2,0.2",
+        ])
+        .arg("--out")
+        .arg(&png)
+        .arg("--exr")
+        .arg(&exr)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_picture(&png, 96, 72);
+    assert_eq!(
+        image::open(&exr).unwrap().to_rgb32f().dimensions(),
+        (96, 72)
+    );
+    // A bad light is a clear error, not a panic.
+    let out = Command::new(env!("CARGO_BIN_EXE_subsurf"))
+        .args([
+            "render",
+            "--builtin",
+            "torus:20,8",
+            "--light",
+            "lamp:1,2,3",
+            "--out",
+        ])
+        .arg(dir.path().join("x.png"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("lamp:1,2,3") && !err.contains("panicked"),
+        "{err}"
+    );
+}
+
+/// A model file as `subsurf fit` writes one: anisotropic (m = 4), some vertices with fewer terms,
+/// one interpolated and one without a model.
+fn torus_model_file() -> subsurf::modelfile::ModelFile {
+    use subsurf::modelfile::{ColourMode, ModelFile, ModelShape, VertexModel, VertexStatus};
+    let t = render::synthetic::marble_torus(30, 12);
+    let m = 4;
+    let vertices = (0..t.len())
+        .map(|v| {
+            let p = t.vertex_params(v);
+            let (status, terms) = match v {
+                5 => (VertexStatus::NoModel, 0),
+                7 => (VertexStatus::Interpolated, 3),
+                _ if v % 3 == 0 => (VertexStatus::Fitted, 2),
+                _ => (VertexStatus::Fitted, 3),
+            };
+            let mut params = Vec::new();
+            if terms > 0 {
+                params.extend_from_slice(&p[..2]);
+                for l in 0..m {
+                    // Segment l scatters a little farther than the last: a preferred direction.
+                    let s = 1.0 + 0.15 * l as f64;
+                    for k in 0..terms {
+                        params.extend([p[2 + 2 * k], p[3 + 2 * k] / s]);
+                    }
+                }
+            }
+            VertexModel {
+                alpha: t.alpha[v].map(|a| a as f32),
+                status,
+                log_e: 0.01,
+                terms: terms as u8,
+                params,
+            }
+        })
+        .collect();
+    ModelFile {
+        shape: ModelShape {
+            terms: 3,
+            segments: m,
+            colour: ColourMode::Shared,
+        },
+        positions: t.positions.clone(),
+        normals: t.normals.clone(),
+        triangles: t.faces.clone(),
+        vertices,
+    }
+}
+
+#[test]
+fn model_files_render_anisotropic_and_partial_models() {
+    let file = torus_model_file();
+    let model = render::VertexModel::from_model_file(&file);
+    model.validate().unwrap();
+    assert_eq!(model.status[5], render::VertexStatus::NoModel);
+    let lights: Vec<Light> = vec!["point:-60,-80,90:20000,20000,20000".parse().unwrap()];
+    let exact = render::light_transport(
+        &model,
+        &lights,
+        &RenderOptions {
+            method: Method::Exact,
+            eta: Some(1.3),
+        },
+    )
+    .unwrap();
+    let fine = HierarchyParams {
+        max_solid_angle: 0.05,
+        tail_tolerance: 1e-5,
+    };
+    let h = render::light_transport(
+        &model,
+        &lights,
+        &RenderOptions {
+            method: Method::Hierarchical(fine),
+            eta: Some(1.3),
+        },
+    )
+    .unwrap();
+    let max = exact.exitance.iter().map(|b| b[1]).fold(0.0, f64::max);
+    let mut err = 0.0;
+    let mut n = 0;
+    for (a, b) in h.exitance.iter().zip(&exact.exitance) {
+        if b[1] > 1e-3 * max {
+            err += (a[1] / b[1] - 1.0).abs();
+            n += 1;
+        }
+    }
+    assert!(
+        err / (n as f64) < 0.01,
+        "anisotropic hierarchy vs exact: {}",
+        err / n as f64
+    );
+
+    let dir = tempfile::tempdir().unwrap();
+    let ply = dir.path().join("m.ply");
+    file.write(&ply).unwrap();
+    let png = dir.path().join("m.png");
+    let out = Command::new(env!("CARGO_BIN_EXE_subsurf"))
+        .args(["render", "--size", "64x48", "--model"])
+        .arg(&ply)
+        .arg("--out")
+        .arg(&png)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_picture(&png, 64, 48);
+    // A damaged model file is an error naming the file.
+    std::fs::write(&ply, b"ply\nformat ascii 1.0\nend_header\n").unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_subsurf"))
+        .args(["render", "--model"])
+        .arg(&ply)
+        .arg("--out")
+        .arg(&png)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("m.ply"));
+}
