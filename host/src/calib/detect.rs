@@ -278,7 +278,7 @@ pub fn detect_chessboard(img: &Gray, target: &ChessboardTarget) -> Result<Target
     }
     let (_, _, ni, nj, complete) = best.as_ref().map_or((0, 0, 0, 0, false), extent);
     Err(CalibError::TargetNotFound(format!(
-        "found a {ni}x{nj} grid of corners{}, expected the {}x{} chessboard (check --board, and          that the whole board is visible)",
+        "found a {ni}x{nj} grid of corners{}, expected the {}x{} chessboard (check --board, and that the whole board is visible)",
         if complete { "" } else { " with gaps" },
         target.cols,
         target.rows

@@ -3,11 +3,13 @@ use clap::{Parser, Subcommand};
 
 mod bench;
 mod bench_render;
+mod calib;
 mod evaluate;
 mod fit;
 mod fit_curve;
 mod flash;
 mod plan;
+mod plot;
 mod ports;
 mod predict;
 mod probes;
@@ -40,6 +42,8 @@ enum Command {
     Plan(plan::Args),
     /// Scan an object into a dataset (resumable; `--sim --camera sim` needs no other files).
     Scan(scan::Args),
+    /// Calibrate the camera, turntable axis and galvo into calib.json.
+    Calib(calib::Args),
     /// Talk to the rig or the simulated rig.
     Rig(rig::Args),
     /// Measure performance (figures for BENCHMARKS.md).
@@ -52,6 +56,8 @@ enum Command {
     Predict(predict::Args),
     /// Table-1 statistics (log E, Eq. 8) of a model on frames of a scan.
     Evaluate(evaluate::Args),
+    /// Figures: fall-off (Figure 3), error maps (Figures 4/5), model viewer.
+    Plot(plot::Args),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -63,11 +69,13 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Simulate(a) => simulate::run(a),
         Command::Plan(args) => plan::run(args),
         Command::Scan(args) => scan::run(args),
+        Command::Calib(args) => calib::run(args),
         Command::Rig(args) => rig::run(args),
         Command::Bench(args) => bench::run(args),
         Command::Render(a) => render::run(a),
         Command::Fit(a) => fit::run(a),
         Command::Predict(a) => predict::run(a),
         Command::Evaluate(a) => evaluate::run(a),
+        Command::Plot(a) => plot::run(a),
     }
 }

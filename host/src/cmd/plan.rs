@@ -47,8 +47,9 @@ pub struct PlanArgs {
     /// Fraction of coverable vertices to cover (coverage planner).
     #[arg(long, default_value_t = 1.0)]
     pub coverage: f64,
-    /// Exposure time(s) in seconds; several (comma-separated) = HDR bracketing.
-    #[arg(long, value_delimiter = ',', default_value = "0.05")]
+    /// Exposure time(s) in seconds; several (comma-separated) = HDR bracketing. Default 0.05,
+    /// or 1 with the simulated camera.
+    #[arg(long, value_delimiter = ',')]
     pub exposure: Vec<f64>,
     /// Built-in calibration's image size (pixels, square), when no --calib is given.
     #[arg(long, default_value_t = 128)]
@@ -81,7 +82,6 @@ pub struct Args {
 pub struct Resolved {
     pub mesh: Mesh,
     pub calib: Calibration,
-    #[allow(dead_code)]
     pub builtin: bool,
 }
 
@@ -119,7 +119,15 @@ pub fn make_plan(a: &PlanArgs, r: &Resolved) -> anyhow::Result<(ScanPlan, PlanSc
         raster: a.raster,
         target_mm: a.target_mm,
         coverage: a.coverage,
-        exposures_s: a.exposure.clone(),
+        exposures_s: if a.exposure.is_empty() {
+            vec![if r.builtin {
+                subsurf::scan::setup::SIM_EXPOSURE_S
+            } else {
+                0.05
+            }]
+        } else {
+            a.exposure.clone()
+        },
         channel: "rgb".into(),
     };
     let plan = if let Some(p) = &a.plan {

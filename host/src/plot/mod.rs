@@ -23,9 +23,11 @@ pub fn register_font() {
 }
 
 mod curves;
+mod figures;
 mod surface;
 
 pub use curves::{Curve, falloff_plot, tradeoff_curve};
+pub use figures::{FalloffSummary, error_maps, falloff_figure};
 pub use surface::{MeshView, Panel, PanelData, model_viewer, surface_panels, viridis};
 
 /// Why a picture could not be drawn.

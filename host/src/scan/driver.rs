@@ -299,8 +299,7 @@ impl<'a> Scan<'a> {
         // Whatever a previous session left running (a program whose host vanished) stops now,
         // and events still buffered from it are dropped.
         rig.stop().map_err(classify)?;
-        rig.poll(Duration::from_millis(20)).map_err(classify)?;
-        while rig.next_event(Duration::ZERO).map_err(classify)?.is_some() {}
+        drain_events(rig)?;
         // Clear a fault left from before (an e-stop that was released); refuses while pressed.
         let status = rig.status().map_err(classify)?;
         if status.fault.is_some() {
@@ -519,6 +518,8 @@ impl<'a> Scan<'a> {
                     rig.stop().map_err(classify)?;
                     rig.wait_idle(Duration::from_secs(60))
                         .map_err(|e| self.halted_or(e))?;
+                    // The `Halted { Stop }` and `ProgramDone` events of this stop are ours.
+                    drain_events(rig)?;
                     rig.arm().map_err(|e| self.halted_or(e))?;
                     return Ok(Progressed {
                         count: i,
@@ -663,6 +664,13 @@ impl<'a> Scan<'a> {
 struct Progressed {
     count: usize,
     camera_error: Option<CameraError>,
+}
+
+/// Drops events already sent by the rig (those of a stopped program or a previous session).
+fn drain_events<L: ByteLink>(rig: &mut RigClient<L>) -> Result<(), ScanError> {
+    rig.poll(Duration::from_millis(20)).map_err(classify)?;
+    while rig.next_event(Duration::ZERO).map_err(classify)?.is_some() {}
+    Ok(())
 }
 
 /// Waits for the `Captured` event of capture `id`.

@@ -6,11 +6,14 @@ use super::plan::RigTiming;
 use super::simcam::SimCamera;
 use crate::calib::Calibration;
 use crate::dataset::Mesh;
-use crate::simulate::{Field, Sensor, SimObject};
+use crate::simulate::{Field, Sensor, SimObject, Spot};
 use std::fmt::Write as _;
 use std::path::Path;
 use std::time::Duration;
 use subsurf_protocol::{Capabilities, Config};
+
+/// Default exposure of a `--camera sim` scan (s).
+pub const SIM_EXPOSURE_S: f64 = 1.0;
 
 /// The built-in object of `subsurf scan --sim`: a sphere of radius 10 mm resting on the platter.
 pub fn builtin_object() -> SimObject {
@@ -80,13 +83,14 @@ pub fn camera_from_spec(
 ) -> Result<Box<dyn Camera>, super::camera::CameraError> {
     if spec == "sim" {
         let sensor = sim_sensor();
-        return Ok(Box::new(SimCamera::new(
-            mesh.clone(),
-            calib,
-            Field::default(),
-            sensor,
-            seed,
-        )?));
+        // The spot as `subsurf simulate` renders it (a bright first-surface reflection).
+        let spot = Spot {
+            radiance: 200.0,
+            sigma_px: 0.8,
+        };
+        return Ok(Box::new(
+            SimCamera::new(mesh.clone(), calib, Field::default(), sensor, seed)?.with_spot(spot),
+        ));
     }
     if let Some(dir) = spec.strip_prefix("dir:") {
         return Ok(Box::new(DirCamera::new(Path::new(dir), timeout)?));
@@ -100,7 +104,8 @@ pub fn camera_from_spec(
 }
 
 /// The simulated camera's sensor: the simulator's realistic HDR sensor (shot and read noise,
-/// clipping); exposure comes from each shot.
+/// clipping); exposure comes from each shot ([`SIM_EXPOSURE_S`] by default, the exposure the
+/// sensor's noise figures are given for).
 pub fn sim_sensor() -> Sensor {
     Sensor::realistic()
 }

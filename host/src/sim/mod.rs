@@ -29,6 +29,8 @@ use subsurf_protocol::{GalvoPoint, Status};
 pub struct VirtualRig {
     sim: SimRig,
     start_position: i64,
+    /// Frames taken from the firmware after every step: its own queue holds only 32 messages.
+    out: Vec<u8>,
     galvo: LogCopy<GalvoPoint>,
     lasers: LogCopy<u8>,
     trigger: LogCopy<bool>,
@@ -79,6 +81,7 @@ impl VirtualRig {
         let mut rig = Self {
             sim: SimRig::new(params),
             start_position: params.start_position,
+            out: Vec::new(),
             galvo: LogCopy::default(),
             lasers: LogCopy::default(),
             trigger: LogCopy::default(),
@@ -87,7 +90,10 @@ impl VirtualRig {
         rig
     }
 
+    /// Copy new log entries and take queued frames: called after every step of the core.
     fn sync_logs(&mut self) {
+        let out = &mut self.out;
+        self.sim.drain_frames(|frame| out.extend_from_slice(frame));
         let hw = self.sim.hw();
         self.galvo.sync(hw.galvo_log());
         self.lasers.sync(hw.laser_log());
@@ -101,15 +107,20 @@ impl VirtualRig {
         self.sync_logs();
     }
 
-    /// Let time pass up to `now_us`, one rig deadline at a time (so logs and the rig's bounded
-    /// output queue never overflow between two looks).
+    /// Let time pass up to `now_us`, one rig deadline at a time (so neither the firmware's
+    /// bounded logs nor its bounded output queue overflow between two looks).
     pub fn advance(&mut self, now_us: Micros) {
         while let Some(t) = self.sim.next_deadline() {
-            if t >= now_us || t <= self.sim.now() {
+            if t >= now_us {
                 break;
             }
+            // Runs everything due at `t` (or now, if `t` has passed already).
             self.sim.advance_to(t);
             self.sync_logs();
+            if self.sim.next_deadline().is_some_and(|next| next <= t) {
+                // A deadline that does not move: let the firmware's own guard handle the rest.
+                break;
+            }
         }
         self.sim.advance_to(now_us);
         self.sync_logs();
@@ -117,7 +128,8 @@ impl VirtualRig {
 
     /// Append every frame the rig wants to send to `out`.
     pub fn drain_output(&mut self, out: &mut Vec<u8>) {
-        self.sim.drain_frames(|frame| out.extend_from_slice(frame));
+        self.sync_logs();
+        out.append(&mut self.out);
     }
 
     /// When the rig next wants to run by itself, µs.
@@ -222,5 +234,60 @@ mod tests {
         assert_eq!(rig.galvo_log().len(), 1001);
         assert_eq!(rig.missed_log_entries(), 0);
         assert_eq!(rig.galvo_log()[1000].value, GalvoPoint { x: 999, y: 1 });
+    }
+
+    #[test]
+    fn one_long_advance_loses_no_event() {
+        use subsurf_protocol::{
+            Command, EventKind, FrameDecoder, ProgramChunk, ProgramHeader, Request, RigMessage,
+            encode_request,
+        };
+        let mut rig = VirtualRig::default();
+        let mut seq = 0;
+        let mut send = |rig: &mut VirtualRig, command: Command| {
+            let mut buf = [0u8; subsurf_protocol::MAX_FRAME];
+            seq += 1;
+            let n = encode_request(&Request { seq, command }, &mut buf).expect("encode");
+            let now = rig.now_us() + 10;
+            rig.handle_input(now, &buf[..n]);
+        };
+        let len = 200u16;
+        send(&mut rig, Command::Arm);
+        send(
+            &mut rig,
+            Command::ProgramLoad(ProgramHeader {
+                len,
+                channel: 0,
+                settle_us: Some(1),
+                exposure_us: 1,
+                trigger_us: 1,
+                interval_us: 1,
+            }),
+        );
+        for offset in (0..len).step_by(subsurf_protocol::PROGRAM_CHUNK) {
+            let mut points = heapless::Vec::new();
+            for i in offset..(offset + 32).min(len) {
+                points.push(GalvoPoint { x: i, y: i }).expect("chunk");
+            }
+            send(
+                &mut rig,
+                Command::ProgramPoints(ProgramChunk { offset, points }),
+            );
+        }
+        send(&mut rig, Command::ProgramRun);
+        // Far more than the firmware's 32-message queue happens in this one call.
+        rig.advance(rig.now_us() + 1_000_000);
+        let mut out = Vec::new();
+        rig.drain_output(&mut out);
+        let mut decoder = FrameDecoder::new();
+        let captured = decoder
+            .decode::<RigMessage>(&out)
+            .filter(
+                |m| matches!(m, RigMessage::Event(e) if matches!(e.kind, EventKind::Captured(_))),
+            )
+            .count();
+        assert_eq!(captured, usize::from(len));
+        assert_eq!(rig.triggers().len(), usize::from(len));
+        assert_eq!(rig.missed_log_entries(), 0);
     }
 }

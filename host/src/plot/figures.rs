@@ -1,0 +1,132 @@
+//! The paper's figures as one call each: Figure 3 (fall-off of one `x_i` with the exponential
+//! and dipole fits) and Figures 4/5 (per-`x_i` error maps over the surface).
+
+use std::path::Path;
+
+use super::surface::{MeshView, Panel, PanelData, surface_panels};
+use super::{Curve, PlotError, falloff_plot};
+use crate::fit::dipole::{DipoleOptions, fit_dipole};
+use crate::fit::{FitOptions, fit_expsum};
+use crate::render::VertexModel;
+
+/// What Figure 3 showed: both fits' log E (Eq. 8) on the plotted samples.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FalloffSummary {
+    /// Samples plotted.
+    pub samples: usize,
+    /// log E of the sum of exponentials (Eq. 1), if it could be fitted.
+    pub expsum_log_e: Option<f64>,
+    /// log E of the dipole, if it could be fitted.
+    pub dipole_log_e: Option<f64>,
+}
+
+/// Figure 3: fits the sum of exponentials (n = 3, log objective) and the dipole (relative index
+/// `eta`, free scale) to the samples `(r, s)` of one lit point and plots all three on a log scale.
+/// A fit that fails is left out of the picture (and reported as `None`), not an error.
+pub fn falloff_figure(
+    path: &Path,
+    title: &str,
+    r: &[f64],
+    s: &[f64],
+    eta: f64,
+) -> Result<FalloffSummary, PlotError> {
+    let rmax = r
+        .iter()
+        .copied()
+        .filter(|x| x.is_finite())
+        .fold(0.0, f64::max);
+    let grid: Vec<f64> = (0..200).map(|k| rmax * k as f64 / 199.0).collect();
+    let mut curves = Vec::new();
+    let expsum = fit_expsum(r, s, &FitOptions::default()).ok();
+    if let Some(f) = &expsum {
+        curves.push(Curve {
+            name: format!(
+                "sum of exponentials, n = {} (log E {:.3})",
+                f.model.n(),
+                f.log_e
+            ),
+            points: grid.iter().map(|&x| (x, f.model.eval(x))).collect(),
+        });
+    }
+    let dipole = fit_dipole(
+        r,
+        s,
+        &DipoleOptions {
+            eta,
+            ..Default::default()
+        },
+    )
+    .ok();
+    if let Some(f) = &dipole {
+        curves.push(Curve {
+            name: format!("dipole (log E {:.3})", f.log_e),
+            points: grid
+                .iter()
+                .map(|&x| (x, f.scale * f.dipole.r_d(x)))
+                .collect(),
+        });
+    }
+    let pts: Vec<(f64, f64)> = r.iter().copied().zip(s.iter().copied()).collect();
+    falloff_plot(path, title, &pts, &curves, (800, 520))?;
+    Ok(FalloffSummary {
+        samples: pts.len(),
+        expsum_log_e: expsum.map(|f| f.log_e),
+        dipole_log_e: dipole.map(|f| f.log_e),
+    })
+}
+
+/// Figures 4/5: `log E(x_i)` (Eq. 8, stored per vertex in the model file) over the surface, one
+/// panel per model (e.g. isotropic against anisotropic) on one colour scale. The models must share
+/// the mesh. Vertices without a fit are grey.
+pub fn error_maps(
+    path: &Path,
+    models: &[(String, &VertexModel)],
+    direction: [f64; 3],
+    panel_size: (u32, u32),
+) -> Result<(), PlotError> {
+    let Some((_, first)) = models.first() else {
+        return Err(PlotError::Empty("no model".into()));
+    };
+    let mut all: Vec<f64> = models
+        .iter()
+        .flat_map(|(_, m)| m.log_e.iter().copied())
+        .filter(|v| v.is_finite())
+        .collect();
+    if all.is_empty() {
+        return Err(PlotError::Empty("no vertex has a log E".into()));
+    }
+    all.sort_by(f64::total_cmp);
+    let lo = all[all.len() / 100];
+    let hi = all[all.len() - 1 - all.len() / 100].max(lo + 1e-9);
+    let mut panels = Vec::new();
+    for (name, m) in models {
+        if m.len() != first.len() {
+            return Err(PlotError::Empty(format!(
+                "model `{name}` has a different mesh"
+            )));
+        }
+        let fitted = m.log_e.iter().filter(|v| v.is_finite()).collect::<Vec<_>>();
+        let mean = fitted.iter().copied().sum::<f64>() / fitted.len().max(1) as f64;
+        panels.push(Panel {
+            title: format!("{name}: mean log E {mean:.4}"),
+            data: PanelData::Scalar {
+                values: m.log_e.clone(),
+                range: (lo, hi),
+                label: "log E(x_i), Eq. 8".into(),
+            },
+        });
+    }
+    let mesh = MeshView {
+        positions: &first.positions,
+        normals: &first.normals,
+        faces: &first.faces,
+    };
+    surface_panels(
+        path,
+        "Reconstruction error per x_i",
+        mesh,
+        &panels,
+        direction,
+        panel_size,
+    )
+}

@@ -1,0 +1,139 @@
+//! Every picture the plot module draws is decoded and checked: right size, not blank.
+
+use std::path::Path;
+use std::process::Command;
+
+use subsurf::model::Material;
+use subsurf::plot;
+use subsurf::render::{self, image_stats};
+
+fn assert_picture(path: &Path, width: u32, height: u32) {
+    let s = image_stats(path).unwrap_or_else(|e| panic!("{} does not decode: {e}", path.display()));
+    assert_eq!((s.width, s.height), (width, height), "{}", path.display());
+    assert!(
+        s.distinct_colours > 20,
+        "{}: only {} colours",
+        path.display(),
+        s.distinct_colours
+    );
+    assert!(
+        s.luma_std > 5.0,
+        "{}: flat (luma std {})",
+        path.display(),
+        s.luma_std
+    );
+}
+
+#[test]
+fn figure_3_falloff_with_both_fits() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = Material::by_name("marble").unwrap().dipole(1).unwrap();
+    let r: Vec<f64> = (0..300).map(|i| 0.05 + i as f64 * 0.08).collect();
+    // Multiplicative ripple: a heterogeneous sample the dipole cannot follow exactly.
+    let s: Vec<f64> = r
+        .iter()
+        .map(|&x| d.r_d(x) * (1.0 + 0.2 * (1.3 * x).sin()))
+        .collect();
+    let png = dir.path().join("f.png");
+    let sum = plot::falloff_figure(&png, "marble", &r, &s, 1.3).unwrap();
+    assert_eq!(sum.samples, 300);
+    assert!(sum.expsum_log_e.unwrap() > 0.0 && sum.dipole_log_e.is_some());
+    assert_picture(&png, 800, 520);
+    // Nothing positive to plot on a log axis: an error, not a panic or an empty file.
+    assert!(
+        plot::falloff_figure(
+            &dir.path().join("g.png"),
+            "x",
+            &[1.0, 2.0],
+            &[0.0, -1.0],
+            1.3
+        )
+        .is_err()
+    );
+}
+
+#[test]
+fn error_maps_and_model_viewer() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut iso = render::synthetic::marble_torus(40, 16);
+    let mut aniso = iso.clone();
+    for v in 0..iso.len() {
+        let p = iso.positions[v];
+        iso.log_e[v] = 0.04 + 0.02 * (0.2 * p[0]).sin();
+        aniso.log_e[v] = 0.02 + 0.01 * (0.2 * p[0]).sin();
+    }
+    iso.log_e[3] = f64::NAN;
+    let png = dir.path().join("e.png");
+    plot::error_maps(
+        &png,
+        &[
+            ("isotropic".into(), &iso),
+            ("anisotropic, m = 4".into(), &aniso),
+        ],
+        render::DEFAULT_VIEW,
+        (300, 320),
+    )
+    .unwrap();
+    assert_picture(&png, 600, 320 + 34);
+    let png = dir.path().join("m.png");
+    iso.status[10] = render::VertexStatus::Interpolated;
+    plot::model_viewer(&png, &iso, render::DEFAULT_VIEW, (240, 300)).unwrap();
+    assert_picture(&png, 4 * 240, 300 + 34);
+}
+
+#[test]
+fn tradeoff_curve_plot() {
+    let dir = tempfile::tempdir().unwrap();
+    let png = dir.path().join("t.png");
+    plot::tradeoff_curve(
+        &png,
+        "t",
+        &[(0.5, 0.03), (1.0, 0.008), (2.0, 0.001), (4.0, 0.0)],
+        30.0,
+    )
+    .unwrap();
+    assert_picture(&png, 720, 480);
+    assert!(plot::tradeoff_curve(&png, "t", &[], 1.0).is_err());
+}
+
+#[test]
+fn plot_commands_write_pictures() {
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("s.csv");
+    let mut text = String::from("# one lit point\nr,value\n");
+    for i in 0..120 {
+        let r = 0.1 + i as f64 * 0.1;
+        text.push_str(&format!(
+            "{r},{}\n",
+            0.5 * (-1.2 * r).exp() + 0.01 * (-0.2 * r).exp()
+        ));
+    }
+    std::fs::write(&csv, text).unwrap();
+    let out = dir.path().join("f.png");
+    let o = Command::new(env!("CARGO_BIN_EXE_subsurf"))
+        .args(["plot", "falloff"])
+        .arg(&csv)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_picture(&out, 800, 520);
+    let out = dir.path().join("m.png");
+    let o = Command::new(env!("CARGO_BIN_EXE_subsurf"))
+        .args(["plot", "model", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_picture(&out, 4 * 360, 400 + 34);
+    // A bad CSV line is named.
+    std::fs::write(&csv, "r,value\n1,2\nthree,4\n").unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_subsurf"))
+        .args(["plot", "falloff"])
+        .arg(&csv)
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("s.csv:3"));
+}
