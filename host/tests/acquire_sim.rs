@@ -97,3 +97,45 @@ fn hdr_brackets_merge_into_radiance_frames() {
         .count();
     assert_eq!(triggers, 9);
 }
+
+#[test]
+fn coverage_planner_needs_at_most_half_the_dense_frames_on_built_in_objects() {
+    use subsurf::scan::plan::{dense_for_target, predict_coverage};
+    use subsurf::simulate::SimObject;
+    for obj in [
+        builtin_object(),
+        SimObject::Torus {
+            major: 12.0,
+            minor: 5.0,
+            segments: 12,
+        },
+    ] {
+        let mesh = obj.mesh();
+        let (centre, radius) = obj.bounds();
+        let calib = Calibration::builtin_for(centre, radius, 64);
+        let scene = PlanScene::new(&mesh.positions, &mesh.triangles, &calib).unwrap();
+        let opts = PlanOptions {
+            angles: 6,
+            raster: 16,
+            target_mm: 2.5,
+            coverage: 0.95,
+            ..PlanOptions::default()
+        };
+        let dense = dense_for_target(&scene, &opts).unwrap();
+        let cov = coverage_plan(&scene, &opts).unwrap();
+        let (dc, cc) = (
+            predict_coverage(&scene, &dense, opts.raster),
+            predict_coverage(&scene, &cov, opts.raster),
+        );
+        assert!(
+            dc.fraction() >= 0.95 && cc.fraction() >= 0.95,
+            "{dc:?} {cc:?}"
+        );
+        assert!(
+            2 * cov.frame_count() <= dense.frame_count(),
+            "{obj:?}: coverage {} frames vs dense {}",
+            cov.frame_count(),
+            dense.frame_count()
+        );
+    }
+}
