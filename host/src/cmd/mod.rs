@@ -4,6 +4,7 @@ use clap::{Parser, Subcommand};
 mod bench;
 mod bench_render;
 mod calib;
+mod demo;
 mod evaluate;
 mod fit;
 mod fit_curve;
@@ -58,6 +59,8 @@ enum Command {
     Evaluate(evaluate::Args),
     /// Figures: fall-off (Figure 3), error maps (Figures 4/5), model viewer.
     Plot(plot::Args),
+    /// The main job with no hardware and no arguments: simulated rig, scan, fit, render, pictures.
+    Demo(demo::Args),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -77,5 +80,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Predict(a) => predict::run(a),
         Command::Evaluate(a) => evaluate::run(a),
         Command::Plot(a) => plot::run(a),
+        Command::Demo(a) => demo::run_cmd(a),
     }
 }

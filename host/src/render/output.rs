@@ -5,8 +5,10 @@ use std::path::Path;
 use super::RenderError;
 use super::raster::Image;
 
-/// Tone mapping: scales so that the 99th percentile of the covered pixels' luminance maps to 0.9
-/// (or uses `exposure` when given), clips, and applies the sRGB transfer curve. Uncovered pixels
+/// Tone mapping: automatic exposure puts the median luminance of the covered pixels at 0.25
+/// (photographic mid-grey: a few very bright vertices, e.g. badly extrapolated fits, clip instead
+/// of darkening the whole object) unless the 99th percentile would then stay below 0.9, in which
+/// case that percentile maps to 0.9; `exposure` overrides it. Then it clips, and applies the sRGB transfer curve. Uncovered pixels
 /// are a dark grey, so the object's silhouette is visible even where it is dark.
 pub fn tone_map(img: &Image, exposure: Option<f64>) -> image::RgbImage {
     let lum = |p: &[f32; 3]| 0.2126 * p[0] as f64 + 0.7152 * p[1] as f64 + 0.0722 * p[2] as f64;
@@ -23,7 +25,13 @@ pub fn tone_map(img: &Image, exposure: Option<f64>) -> image::RgbImage {
             return 1.0;
         }
         l.sort_by(f64::total_cmp);
-        0.9 / l[((l.len() - 1) as f64 * 0.99) as usize]
+        let p99 = l[((l.len() - 1) as f64 * 0.99) as usize];
+        let median = l[l.len() / 2];
+        if 0.25 / median * p99 > 0.9 {
+            0.25 / median
+        } else {
+            0.9 / p99
+        }
     });
     let srgb = |x: f64| -> u8 {
         let x = if x.is_finite() {

@@ -27,10 +27,10 @@ use subsurf_protocol::{GalvoPoint, MoveTarget, ProgramHeader};
 #[non_exhaustive]
 pub enum ScanError {
     /// The link to the rig failed (after retries in the rig client).
-    #[error("lost the rig: {0}")]
+    #[error("lost the rig")]
     Link(#[source] RigClientError),
     /// The rig refused something or reported a fault; the message says what.
-    #[error("rig: {0}")]
+    #[error("the rig refused or failed")]
     Rig(#[source] RigClientError),
     /// The rig halted the scan itself (emergency stop, interlock, homing failure).
     #[error(
@@ -733,9 +733,18 @@ pub fn run_with_reconnect<L: ByteLink>(
     let mut scan = Scan::open(cfg, camera)?;
     let mut reconnects = 0u32;
     let mut backoff = Duration::from_millis(100);
+    let mut ever_connected = false;
     loop {
         let outcome = match connect() {
-            Ok(mut rig) => scan.session(&mut rig, camera, progress),
+            Ok(mut rig) => {
+                ever_connected = true;
+                scan.session(&mut rig, camera, progress)
+            }
+            // A rig that was never reached is a wrong port or a rig that is off: say so now.
+            Err(e) if !ever_connected => {
+                let _ = scan.flush_index();
+                return Err(classify(e));
+            }
             Err(e) => Err(classify(e)),
         };
         match outcome {
