@@ -26,8 +26,23 @@ pub struct Bin {
     pub syy: f64,
 }
 
-/// Bins samples (r, y = ln s) into `count` equal-width distance bins over [min r, max r]; returns
-/// the non-empty bins in increasing distance. Inputs must be finite (cleaned).
+impl Bin {
+    /// The same statistics for distances divided by `scale_r` and log values shifted by −`level`.
+    pub fn normalised(self, scale_r: f64, level: f64) -> Self {
+        Self {
+            n: self.n,
+            r: self.r / scale_r,
+            y: self.y - level,
+            srr: self.srr / (scale_r * scale_r),
+            sry: self.sry / scale_r,
+            syy: self.syy,
+        }
+    }
+}
+
+/// Bins samples (r, y = ln s) into `count` distance bins over [min r, max r], equal steps in √r
+/// (edges lo + (hi − lo)·(b/count)²); returns the non-empty bins in increasing distance. Inputs
+/// must be finite (cleaned).
 pub fn bin_by_distance(r: &[f64], y: &[f64], count: usize) -> Vec<Bin> {
     let count = count.max(1);
     let (lo, hi) = r
@@ -38,16 +53,20 @@ pub fn bin_by_distance(r: &[f64], y: &[f64], count: usize) -> Vec<Bin> {
     if !(lo.is_finite() && hi.is_finite()) {
         return Vec::new();
     }
-    let width = (hi - lo) / count as f64;
+    let span = hi - lo;
+    let c = count as f64;
+    // Edges at lo + span·(b/count)²: narrow bins near x_i, where the fast terms bend ln R_d
+    // most, wide ones in the slowly varying tail.
+    let edge = |b: usize| lo + span * (b as f64 / c) * (b as f64 / c);
     // Raw sums relative to each bin's left edge (keeps the centred moments accurate).
     let mut acc = vec![[0.0f64; 6]; count];
     for (&ri, &yi) in r.iter().zip(y) {
-        let b = if width > 0.0 {
-            (((ri - lo) / width) as usize).min(count - 1)
+        let b = if span > 0.0 {
+            ((c * ((ri - lo) / span).sqrt()) as usize).min(count - 1)
         } else {
             0
         };
-        let x = ri - (lo + b as f64 * width);
+        let x = ri - edge(b);
         let a = &mut acc[b];
         a[0] += 1.0;
         a[1] += x;
@@ -65,7 +84,7 @@ pub fn bin_by_distance(r: &[f64], y: &[f64], count: usize) -> Vec<Bin> {
             let my = a[2] / n;
             Bin {
                 n,
-                r: lo + b as f64 * width + mx,
+                r: edge(b) + mx,
                 y: my,
                 srr: (a[3] - n * mx * mx).max(0.0),
                 sry: a[4] - n * mx * my,
@@ -87,11 +106,10 @@ mod tests {
         assert_eq!(bins.iter().map(|b| b.n).sum::<f64>(), 100.0);
         let b = bins[1];
         let hi = r.iter().cloned().fold(0.0, f64::max);
-        let width = hi / 4.0;
         let sel: Vec<(f64, f64)> = r
             .iter()
             .zip(&y)
-            .filter(|(r, _)| ((**r / width) as usize).min(3) == 1)
+            .filter(|(r, _)| ((4.0 * (**r / hi).sqrt()) as usize).min(3) == 1)
             .map(|(a, b)| (*a, *b))
             .collect();
         let n = sel.len() as f64;

@@ -22,6 +22,16 @@ pub(crate) trait Problem {
         with_jacobian: bool,
         row: F,
     ) -> bool;
+    /// A specialised one-pass computation of JᵀJ (full, p×p), Jᵀres and the cost, where a
+    /// problem has one; `None` = use `eval`. `Some(None)` = θ is infeasible.
+    fn normal_equations(
+        &self,
+        _theta: &[f64],
+        _jtj: &mut [f64],
+        _jtr: &mut [f64],
+    ) -> Option<Option<f64>> {
+        None
+    }
 }
 
 /// Solver settings.
@@ -67,6 +77,15 @@ struct Normal {
 
 fn build<P: Problem>(problem: &P, theta: &[f64], out: &mut Normal) -> bool {
     let p = problem.params();
+    if let Some(result) = problem.normal_equations(theta, &mut out.jtj, &mut out.jtr) {
+        return match result {
+            Some(cost) => {
+                out.cost = cost;
+                true
+            }
+            None => false,
+        };
+    }
     out.jtj.iter_mut().for_each(|v| *v = 0.0);
     out.jtr.iter_mut().for_each(|v| *v = 0.0);
     let mut cost = 0.0;

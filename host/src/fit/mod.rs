@@ -193,7 +193,9 @@ pub struct ExpFit {
     /// Residual sum of squares of the chosen objective over the used samples (original units for
     /// the linear objective).
     pub rss: f64,
-    /// log E (Eq. 8, alpha = 1, all used samples): RMS of ln(R_d/s).
+    /// log E (Eq. 8, alpha = 1, all used samples): RMS of ln(R_d/s). In fast mode
+    /// ([`FitOptions::bins`]) it is computed from the bin statistics (exact up to the curvature
+    /// of ln R_d within a bin) instead of another pass over the samples; so is `rss`.
     pub log_e: f64,
     /// Levenberg–Marquardt iterations (pre-fit plus final fit).
     pub iterations: usize,
@@ -385,7 +387,10 @@ fn fit_order(
         options.max_iterations,
         options.start.as_deref(),
     )?;
-    let (rss, log_e) = errors(&raw.model, r, s, options.objective);
+    let (rss, log_e) = match raw.rss_estimate {
+        Some(rss) => (rss, (rss / r.len().max(1) as f64).sqrt()),
+        None => errors(&raw.model, r, s, options.objective),
+    };
     if !(rss.is_finite() && log_e.is_finite()) {
         return Err(FitFailure::NonFinite);
     }

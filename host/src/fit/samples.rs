@@ -44,12 +44,19 @@ pub fn clean(r: &[f64], s: &[f64]) -> (Vec<f64>, Vec<f64>, SampleReport) {
     (out_r, out_s, report)
 }
 
-/// Number of distinct distances (exact comparison after sorting), capped at `cap`.
+/// Number of distinct distances, counted up to `cap` (a linear scan with at most `cap` values
+/// remembered: no sort of the samples on the per-fit path).
 pub(crate) fn distinct_distances(r: &[f64], cap: usize) -> usize {
-    let mut v: Vec<f64> = r.to_vec();
-    v.sort_by(f64::total_cmp);
-    v.dedup();
-    v.len().min(cap)
+    let mut seen: Vec<f64> = Vec::with_capacity(cap);
+    for &v in r {
+        if seen.len() >= cap {
+            break;
+        }
+        if !seen.contains(&v) {
+            seen.push(v);
+        }
+    }
+    seen.len()
 }
 
 #[cfg(test)]

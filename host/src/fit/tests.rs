@@ -485,3 +485,97 @@ fn isotropic_jacobians_match_finite_differences() {
     let bins = bin_by_distance(&r, &y, 5);
     check_jacobian(&LogBinned { bins: &bins, n: 3 }, &theta);
 }
+
+#[test]
+fn vectorisable_exp_matches_std() {
+    let mut worst = 0.0f64;
+    for i in 0..=200_000 {
+        let x = -708.0 * i as f64 / 200_000.0;
+        let (a, b) = (super::isotropic::exp_nonpositive(x), x.exp());
+        worst = worst.max(((a - b) / b).abs());
+    }
+    assert!(worst < 4e-16, "{worst:e}");
+    assert_eq!(super::isotropic::exp_nonpositive(0.0), 1.0);
+    assert!(super::isotropic::exp_nonpositive(-1e6) > 0.0);
+}
+
+#[test]
+fn specialised_normal_equations_match_generic_rows() {
+    use super::isotropic::LogExact;
+    use super::lm::Problem;
+    let r: Vec<f64> = (0..37).map(|i| i as f64 / 36.0).collect();
+    let y: Vec<f64> = r.iter().map(|v| -2.0 * v + (7.0 * v).sin() * 0.1).collect();
+    let p = LogExact { r: &r, y: &y, n: 3 };
+    let theta = [0.2, 0.1, -0.5, 1.2, -1.0, 2.0];
+    let (mut jtj, mut jtr) = (vec![0.0; 36], vec![0.0; 6]);
+    let cost = p
+        .normal_equations(&theta, &mut jtj, &mut jtr)
+        .unwrap()
+        .unwrap();
+    let (mut jtj2, mut jtr2, mut cost2) = (vec![0.0; 36], vec![0.0; 6], 0.0);
+    p.eval(&theta, true, |res, idx, val| {
+        cost2 += res * res;
+        for (&i, &vi) in idx.iter().zip(val) {
+            jtr2[i] += vi * res;
+            for (&j, &vj) in idx.iter().zip(val) {
+                jtj2[i * 6 + j] += vi * vj;
+            }
+        }
+    });
+    assert!((cost - cost2).abs() < 1e-12 * cost2);
+    for (a, b) in jtj.iter().zip(&jtj2).chain(jtr.iter().zip(&jtr2)) {
+        assert!((a - b).abs() < 1e-12 * (1.0 + b.abs()), "{a} {b}");
+    }
+}
+
+#[test]
+fn specialised_binned_normal_equations_match_generic_rows() {
+    use super::bins::bin_by_distance;
+    use super::isotropic::LogBinned;
+    use super::lm::Problem;
+    let r: Vec<f64> = (0..300).map(|i| (i as f64 / 299.0).powi(2)).collect();
+    let y: Vec<f64> = r
+        .iter()
+        .map(|v| -2.0 * v + (17.0 * v).sin() * 0.1)
+        .collect();
+    let bins = bin_by_distance(&r, &y, 37);
+    let p = LogBinned { bins: &bins, n: 3 };
+    let theta = [0.2, 0.1, -0.5, 1.2, -1.0, 2.0];
+    let (mut jtj, mut jtr) = (vec![0.0; 36], vec![0.0; 6]);
+    let cost = p
+        .normal_equations(&theta, &mut jtj, &mut jtr)
+        .unwrap()
+        .unwrap();
+    let (mut jtj2, mut jtr2, mut cost2) = (vec![0.0; 36], vec![0.0; 6], 0.0);
+    p.eval(&theta, true, |res, idx, val| {
+        cost2 += res * res;
+        for (&i, &vi) in idx.iter().zip(val) {
+            jtr2[i] += vi * res;
+            for (&j, &vj) in idx.iter().zip(val) {
+                jtj2[i * 6 + j] += vi * vj;
+            }
+        }
+    });
+    assert!((cost - cost2).abs() < 1e-12 * cost2);
+    for (a, b) in jtj.iter().zip(&jtj2).chain(jtr.iter().zip(&jtr2)) {
+        assert!((a - b).abs() < 1e-12 * (1.0 + b.abs()), "{a} {b}");
+    }
+}
+
+#[test]
+fn vectorisable_ln_matches_std() {
+    let mut worst = 0.0f64;
+    let mut x = 1e-300;
+    while x < 1e300 {
+        let r2 = std::f64::consts::SQRT_2;
+        for m in [1.0, 1.1, r2 * (1.0 - 1e-12), r2 * (1.0 + 1e-12), 1.7, 1.999] {
+            let v = x * m;
+            let (a, b) = (super::isotropic::ln_positive(v), v.ln());
+            worst = worst.max((a - b).abs() / b.abs().max(1.0));
+        }
+        x *= 3.7;
+    }
+    assert!(worst < 4e-16, "{worst:e}");
+    assert_eq!(super::isotropic::ln_positive(1.0), 0.0);
+    assert_eq!(super::isotropic::ln_positive(1e-310), 1e-310f64.ln());
+}

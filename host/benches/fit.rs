@@ -1,0 +1,279 @@
+//! Fitting throughput: the specialised solver against the `levenberg-marquardt` crate (reference)
+//! on identical data, the fast (binned) mode, the presets, and the bins → speed/accuracy curve.
+//!
+//! Run: `cargo bench -p subsurf --bench fit`. One fit per iteration on one core; "fits/s" is
+//! 1 / (time per iteration). Time is the benchmark thread's CPU time (`CLOCK_THREAD_CPUTIME_ID`),
+//! not wall time: the project machine has 2 cores shared by seven engineers' builds (load
+//! average 10–14 while these figures were taken), so wall time would measure the queue, not the
+//! fitter. Accuracy lines (log E, Eq. 8) are printed once per configuration, measured on all
+//! samples whatever mode produced the fit.
+
+use std::hint::black_box;
+
+use std::time::Duration;
+
+use criterion::measurement::{Measurement, ValueFormatter, WallTime};
+use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
+use subsurf::fit::aniso::{AnisoOptions, fit_anisotropic};
+use subsurf::fit::dipole::{DipoleOptions, fit_dipole};
+use subsurf::fit::{FitOptions, Preset, Solver, fit_expsum};
+use subsurf::model::{Anisotropic, ExpSum, Material, Term};
+
+/// CPU time of the calling thread.
+#[allow(unsafe_code)]
+fn thread_cpu() -> Duration {
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: clock_gettime writes one timespec through a valid pointer.
+    let ok = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts) } == 0;
+    if ok {
+        Duration::new(ts.tv_sec as u64, ts.tv_nsec as u32)
+    } else {
+        Duration::ZERO
+    }
+}
+
+/// Criterion measurement: thread CPU time, formatted like wall time.
+struct ThreadCpuTime;
+static WALL: WallTime = WallTime;
+impl Measurement for ThreadCpuTime {
+    type Intermediate = Duration;
+    type Value = Duration;
+    fn start(&self) -> Duration {
+        thread_cpu()
+    }
+    fn end(&self, start: Duration) -> Duration {
+        thread_cpu().saturating_sub(start)
+    }
+    fn add(&self, a: &Duration, b: &Duration) -> Duration {
+        *a + *b
+    }
+    fn zero(&self) -> Duration {
+        Duration::ZERO
+    }
+    fn to_f64(&self, v: &Duration) -> f64 {
+        v.as_nanos() as f64
+    }
+    fn formatter(&self) -> &dyn ValueFormatter {
+        WALL.formatter()
+    }
+}
+
+type Crit = Criterion<ThreadCpuTime>;
+
+/// SplitMix64 uniform numbers: identical data on every run and for both solvers.
+struct Rng(u64);
+impl Rng {
+    fn uniform(&mut self) -> f64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+    }
+    fn gauss(&mut self) -> f64 {
+        let (u1, u2) = (self.uniform().max(1e-300), self.uniform());
+        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+    }
+}
+
+fn marble_like() -> ExpSum {
+    ExpSum::new(vec![
+        Term { c: 0.05, d: -0.3 },
+        Term { c: 0.5, d: -1.0 },
+        Term { c: 5.0, d: -3.0 },
+    ])
+    .unwrap()
+}
+
+/// `count` samples of a 3-term fall-off, r = 15·u² mm (dense near x_i like a camera image),
+/// 1 % multiplicative noise.
+fn curve(count: usize, seed: u64) -> (Vec<f64>, Vec<f64>) {
+    let m = marble_like();
+    let mut rng = Rng(seed);
+    (0..count)
+        .map(|_| {
+            let u = rng.uniform();
+            let r = 15.0 * u * u;
+            (r, m.eval(r) * (0.01 * rng.gauss()).exp())
+        })
+        .unzip()
+}
+
+fn log_e(m: &ExpSum, r: &[f64], s: &[f64]) -> f64 {
+    let sq: f64 = r
+        .iter()
+        .zip(s)
+        .map(|(r, s)| (m.ln_eval(*r) - s.ln()).powi(2))
+        .sum();
+    (sq / r.len() as f64).sqrt()
+}
+
+fn isotropic(c: &mut Crit) {
+    let mut g = c.benchmark_group("isotropic_n3");
+    for count in [500usize, 2_000, 20_000] {
+        let (r, s) = curve(count, count as u64);
+        let exact = FitOptions::default();
+        let reference = FitOptions {
+            solver: Solver::Reference,
+            ..FitOptions::default()
+        };
+        let fast = FitOptions {
+            bins: Some(64),
+            ..FitOptions::default()
+        };
+        for (name, o) in [
+            ("specialised", &exact),
+            ("reference", &reference),
+            ("fast_64_bins", &fast),
+        ] {
+            let f = fit_expsum(&r, &s, o).unwrap();
+            eprintln!(
+                "accuracy isotropic_n3/{name}/{count}: log E {:.6e} (reported {:.6e}), {} iterations, converged {}",
+                log_e(&f.model, &r, &s),
+                f.log_e,
+                f.iterations,
+                f.converged
+            );
+            g.bench_with_input(BenchmarkId::new(name, count), &(&r, &s), |b, (r, s)| {
+                b.iter(|| fit_expsum(black_box(r), black_box(s), o).unwrap())
+            });
+        }
+    }
+    g.finish();
+}
+
+fn anisotropic(c: &mut Crit) {
+    let m = 8;
+    let segments: Vec<ExpSum> = (0..m)
+        .map(|l| {
+            let a = 1.0 + 0.4 * (l as f64 * 1.3).sin();
+            ExpSum::new(vec![
+                Term {
+                    c: 0.05 * a,
+                    d: -0.3 / a,
+                },
+                Term { c: 0.5, d: -a },
+                Term {
+                    c: 5.0 / a,
+                    d: -3.0 * a,
+                },
+            ])
+            .unwrap()
+        })
+        .collect();
+    let model = Anisotropic { segments };
+    let mut rng = Rng(8);
+    let (mut r, mut phi, mut s) = (Vec::new(), Vec::new(), Vec::new());
+    for _ in 0..4_000 {
+        let u = rng.uniform();
+        let p = rng.uniform() * std::f64::consts::TAU;
+        r.push(15.0 * u * u);
+        phi.push(p);
+        s.push(model.eval(15.0 * u * u, Some(p)) * (0.01 * rng.gauss()).exp());
+    }
+    let mut g = c.benchmark_group("anisotropic_m8_n3");
+    g.sample_size(10);
+    for solver in [Solver::Specialised, Solver::Reference] {
+        let o = AnisoOptions {
+            terms: 3,
+            segments: m,
+            solver,
+            ..AnisoOptions::default()
+        };
+        let f = fit_anisotropic(&r, &phi, &s, &o).unwrap();
+        eprintln!(
+            "accuracy anisotropic_m8_n3/{solver:?}/4000: log E {:.6e}, {} iterations, converged {}",
+            f.1, f.2, f.3
+        );
+        let name = format!("{solver:?}").to_lowercase();
+        g.bench_function(BenchmarkId::new(name, 4_000), |b| {
+            b.iter(|| fit_anisotropic(black_box(&r), black_box(&phi), black_box(&s), &o).unwrap())
+        });
+    }
+    g.finish();
+}
+
+fn dipole(c: &mut Crit) {
+    let truth = Material::by_name("skin1").unwrap().dipole(0).unwrap();
+    let mut rng = Rng(3);
+    let (r, s): (Vec<f64>, Vec<f64>) = (0..2_000)
+        .map(|_| {
+            let u = rng.uniform();
+            let r = 15.0 * u * u;
+            (r, truth.r_d(r) * (0.01 * rng.gauss()).exp())
+        })
+        .unzip();
+    let mut g = c.benchmark_group("dipole");
+    for solver in [Solver::Specialised, Solver::Reference] {
+        let o = DipoleOptions {
+            solver,
+            eta: truth.eta,
+            ..DipoleOptions::default()
+        };
+        let f = fit_dipole(&r, &s, &o).unwrap();
+        eprintln!(
+            "accuracy dipole/{solver:?}/2000: log E {:.6e}, {} iterations, converged {}",
+            f.log_e, f.iterations, f.converged
+        );
+        let name = format!("{solver:?}").to_lowercase();
+        g.bench_function(BenchmarkId::new(name, 2_000), |b| {
+            b.iter(|| fit_dipole(black_box(&r), black_box(&s), &o).unwrap())
+        });
+    }
+    g.finish();
+}
+
+fn presets(c: &mut Crit) {
+    let (r, s) = curve(2_000, 2_000);
+    let mut g = c.benchmark_group("preset");
+    for p in Preset::ALL {
+        let o = p.options();
+        let f = fit_expsum(&r, &s, &o).unwrap();
+        eprintln!(
+            "accuracy preset/{}/2000: log E {:.6e}, terms {}, {} iterations ({:?})",
+            p.name(),
+            log_e(&f.model, &r, &s),
+            f.model.n(),
+            f.iterations,
+            o
+        );
+        g.bench_function(p.name(), |b| {
+            b.iter(|| fit_expsum(black_box(&r), black_box(&s), &o).unwrap())
+        });
+    }
+    g.finish();
+}
+
+fn trade_curve(c: &mut Crit) {
+    let (r, s) = curve(2_000, 2_000);
+    let exact = fit_expsum(&r, &s, &FitOptions::default()).unwrap();
+    let e0 = log_e(&exact.model, &r, &s);
+    let mut g = c.benchmark_group("trade_bins");
+    for bins in [8usize, 16, 32, 64, 128, 256] {
+        let o = FitOptions {
+            bins: Some(bins),
+            ..FitOptions::default()
+        };
+        let f = fit_expsum(&r, &s, &o).unwrap();
+        let e = log_e(&f.model, &r, &s);
+        eprintln!(
+            "accuracy trade_bins/{bins}: log E {e:.6e} = {:.4} x exact ({e0:.6e})",
+            e / e0
+        );
+        g.bench_with_input(BenchmarkId::from_parameter(bins), &o, |b, o| {
+            b.iter(|| fit_expsum(black_box(&r), black_box(&s), o).unwrap())
+        });
+    }
+    g.finish();
+}
+
+criterion_group! {
+    name = benches;
+    // No HTML plots: they need system fonts, and the figures go into BENCHMARKS.md as text.
+    config = Criterion::default().with_measurement(ThreadCpuTime).without_plots();
+    targets = isotropic, anisotropic, dipole, presets, trade_curve
+}
+criterion_main!(benches);
