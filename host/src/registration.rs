@@ -5,7 +5,18 @@
 //! Pure: takes an image and geometry, returns data. Frames without a spot on the object are a
 //! [`RegistrationOutcome`], not an error.
 use crate::dataset::{FrameSpec, Image};
-use crate::geometry::{Camera, Scene, V3, dist};
+use crate::geometry::{
+    Camera, Hit, Scene, V3, add_scaled, dist, dot, normalize, sub, turntable_to_world,
+    world_to_turntable,
+};
+
+/// Cosine of the largest angle between the surface normal at the laser's hit and the direction
+/// to the camera at which the spot still counts as seen. Beyond it (and when the hit is
+/// occluded) the camera cannot see the spot: the brightest pixel is then scattered light next to
+/// the limb, and back-projecting it misplaces x_i by several mean free paths. At grazing angles
+/// the back-projection also magnifies the sub-pixel error by `1 / cos`. Same limit as the
+/// samples' grazing rejection (`SampleOptions::cos_min`).
+pub const SPOT_COS_MIN: f64 = 0.2;
 
 /// Settings of spot detection.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
@@ -225,8 +236,42 @@ fn solve4(mut a: [[f64; 4]; 4], mut b: [f64; 4]) -> Option<[f64; 4]> {
     x.iter().all(|v| v.is_finite()).then_some(x)
 }
 
+/// Whether the camera can see the point `hit` (object frame, turntable at `deg`): in the image,
+/// facing the camera by more than [`SPOT_COS_MIN`] (interpolated vertex normal, as shading
+/// sees it) and unoccluded.
+pub fn spot_visible(scene: &Scene, camera: &Camera, deg: f64, hit: &Hit) -> bool {
+    let t = scene.mesh.triangles[hit.triangle as usize];
+    let w = scene.barycentric(hit.triangle, hit.point);
+    let mut n = [0.0; 3];
+    for k in 0..3 {
+        n = add_scaled(n, w[k], scene.mesh.normals[t[k] as usize]);
+    }
+    let c_obj = world_to_turntable(camera.center(), deg);
+    let (n, facing) = match (normalize(n), normalize(sub(c_obj, hit.point))) {
+        (Some(n), Some(to_cam)) => (n, dot(n, to_cam)),
+        _ => return false,
+    };
+    facing > SPOT_COS_MIN
+        && camera
+            .project(turntable_to_world(hit.point, deg))
+            .is_some_and(|[u, v]| camera.inside(u, v))
+        && scene.unoccluded(lift_off(scene, hit.point, n), c_obj)
+}
+
+/// `p` moved off the surface along the normal `n` by far less than any feature of the mesh
+/// (1e-5 of its diagonal) — but more than the sideways nudge `Scene::cast` retries a missed ray
+/// with, so that retry cannot start under the surface and report `p`'s own triangle as an
+/// occluder (which happens for grazing rays).
+pub fn lift_off(scene: &Scene, p: V3, n: V3) -> V3 {
+    add_scaled(p, 1e-5 * scene.mesh.diagonal(), n)
+}
+
 /// Registers one frame: detect the spot, back-project it onto the mesh at the frame's turntable
 /// angle, cross-check with the frame's `laser` ray.
+///
+/// A frame whose `laser` ray hits the mesh where the camera cannot see it ([`spot_visible`]) has
+/// [`RegistrationOutcome::NoSpot`]: whatever is brightest in it is scattered light, not the spot,
+/// and would be registered up to the laser tolerance away from the true x_i.
 pub fn register_frame(
     img: &Image,
     frame: &FrameSpec,
@@ -234,6 +279,12 @@ pub fn register_frame(
     scene: &Scene,
     opts: &SpotOptions,
 ) -> (RegistrationOutcome, Option<Spot>) {
+    if let Some(l) = &frame.laser
+        && let Some(h) = scene.cast_world(l.origin, l.direction, frame.turntable_deg)
+        && !spot_visible(scene, camera, frame.turntable_deg, &h)
+    {
+        return (RegistrationOutcome::NoSpot, None);
+    }
     let min_peak = opts.min_peak * frame.exposure_s;
     let Some(spot) = detect_spot(img, min_peak, opts.saturation) else {
         return (RegistrationOutcome::NoSpot, None);

@@ -19,7 +19,7 @@ const ARGS: &[&str] = &[
     "--raster",
     "5",
     "--target-mm",
-    "4",
+    "2",
     "--exposure",
     "0.01",
 ];

@@ -20,7 +20,7 @@ fn setup(exposure: f64) -> (ScanConfig, subsurf::dataset::Mesh, tempfile::TempDi
         &PlanOptions {
             angles: 3,
             raster: 10,
-            target_mm: 3.0,
+            target_mm: 1.5,
             exposures_s: vec![exposure],
             ..PlanOptions::default()
         },

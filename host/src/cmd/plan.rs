@@ -9,7 +9,7 @@ use subsurf::scan::plan::{
     PlanOptions, PlanScene, RigTiming, ScanPlan, coverage_plan, dense_for_target, dense_raster,
     estimate_duration, predict_coverage,
 };
-use subsurf::scan::setup::{builtin_object, rig_timing};
+use subsurf::scan::setup::{builtin_image_size, builtin_object, rig_timing, sim_exposures_s};
 
 /// Which planner.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -48,12 +48,13 @@ pub struct PlanArgs {
     #[arg(long, default_value_t = 1.0)]
     pub coverage: f64,
     /// Exposure time(s) in seconds; several (comma-separated) = HDR bracketing. Default 0.05,
-    /// or 1 with the simulated camera.
+    /// or with the built-in object the simulated camera's (`sim_exposure_s`).
     #[arg(long, value_delimiter = ',')]
     pub exposure: Vec<f64>,
-    /// Built-in calibration's image size (pixels, square), when no --calib is given.
-    #[arg(long, default_value_t = 128)]
-    pub size: u32,
+    /// Built-in calibration's image size (pixels, square), when no --calib is given. Default:
+    /// the size whose pixel footprint resolves the simulated material (`builtin_image_size`).
+    #[arg(long)]
+    pub size: Option<u32>,
     /// Turntable speed, steps/s (default: the rig's maximum).
     #[arg(long)]
     pub speed: Option<u32>,
@@ -100,7 +101,8 @@ pub fn resolve(a: &PlanArgs) -> anyhow::Result<Resolved> {
         Some(p) => Calibration::load(p)?,
         None if builtin => {
             let (centre, radius) = builtin_object().bounds();
-            Calibration::builtin_for(centre, radius, a.size)
+            let size = a.size.unwrap_or_else(builtin_image_size);
+            Calibration::builtin_for(centre, radius, size)
         }
         None => bail!("--calib calib.json is required with --mesh (run `subsurf calib` first)"),
     };
@@ -120,11 +122,11 @@ pub fn make_plan(a: &PlanArgs, r: &Resolved) -> anyhow::Result<(ScanPlan, PlanSc
         target_mm: a.target_mm,
         coverage: a.coverage,
         exposures_s: if a.exposure.is_empty() {
-            vec![if r.builtin {
-                subsurf::scan::setup::SIM_EXPOSURE_S
+            if r.builtin {
+                sim_exposures_s()
             } else {
-                0.05
-            }]
+                vec![0.05]
+            }
         } else {
             a.exposure.clone()
         },

@@ -10,7 +10,9 @@ use subsurf::link::SerialLink;
 use subsurf::rig::{ClientConfig, RigClient};
 use subsurf::scan::driver::{ScanConfig, ScanError, run_with_reconnect};
 use subsurf::scan::plan::estimate_duration;
-use subsurf::scan::setup::{camera_from_spec, obj_text, rig_timing};
+use subsurf::scan::setup::{
+    GROUND_TRUTH_FILE, camera_from_spec, obj_text, rig_timing, sim_noise_floor, write_ground_truth,
+};
 
 use super::plan::{PlanArgs, make_plan, resolve};
 
@@ -69,6 +71,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let r = resolve(&args.plan)?;
     let (plan, _scene, _opts) = make_plan(&args.plan, &r)?;
     let mut cfg = ScanConfig::new(args.out.clone(), plan, r.calib.clone(), obj_text(&r.mesh));
+    if args.camera == "sim" {
+        // The simulated sensor's noise is known: the floor is where a pixel's SNR drops to
+        // FLOOR_SNR at the scan's longest exposure.
+        let longest = cfg.plan.exposures_s.iter().copied().fold(0.0, f64::max);
+        cfg.noise_floor = sim_noise_floor(longest);
+    }
     cfg.laser_channel = args.laser_channel;
     cfg.move_speed = args.plan.speed;
     cfg.move_accel = args.plan.accel;
@@ -133,6 +141,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     progress.finish_and_clear();
     match result {
         Ok(s) => {
+            if args.camera == "sim" {
+                // The simulated camera's material is known: write it as the floor to compare
+                // fitted models with.
+                write_ground_truth(&r.mesh, &args.out).with_context(|| {
+                    format!(
+                        "cannot write {}",
+                        args.out.join(GROUND_TRUTH_FILE).display()
+                    )
+                })?;
+            }
             let p = subsurf_firmware::sim::SimParams::default();
             let t = rig_timing(
                 &p.capabilities,

@@ -180,6 +180,22 @@ pub struct ScanSummary {
     pub camera_retries: u32,
 }
 
+/// The raw level at which the frames a scan writes are clipped, for `scan.json`: the camera's
+/// own for single exposures; for merged brackets (written with exposure 1) the level a pixel
+/// clipped in every bracket is given by [`merge_hdr`] (at least 98 % of saturation over the
+/// shortest exposure). `None` when the camera never clips.
+pub fn frame_saturation(camera_saturation: f32, exposures_s: &[f64]) -> Option<f64> {
+    let sat = camera_saturation as f64;
+    if !(sat.is_finite() && sat > 0.0) {
+        return None;
+    }
+    if exposures_s.len() <= 1 {
+        return Some(sat);
+    }
+    let shortest = exposures_s.iter().copied().fold(f64::INFINITY, f64::min);
+    (shortest.is_finite() && shortest > 0.0).then(|| 0.98 * sat / shortest)
+}
+
 /// An open scan: the dataset writer and the plan, across rig sessions.
 pub struct Scan<'a> {
     cfg: &'a ScanConfig,
@@ -201,6 +217,7 @@ impl<'a> Scan<'a> {
         let header = DatasetHeader {
             mesh: "object.obj".into(),
             noise_floor: cfg.noise_floor,
+            saturation: frame_saturation(camera.saturation(), &cfg.plan.exposures_s),
             cameras: vec![cfg.calib.camera.clone()],
         };
         let (mut writer, done) = DatasetWriter::open(

@@ -108,6 +108,10 @@ pub struct DatasetHeader {
     pub mesh: String,
     /// Noise floor after dividing by exposure.
     pub noise_floor: f64,
+    /// Raw value at or above which a frame's pixels are clipped (`scan.json`'s `saturation`):
+    /// without it the pipeline takes a clipped spot for an unclipped one and misplaces x_i.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub saturation: Option<f64>,
     /// The cameras.
     pub cameras: Vec<CameraModel>,
 }
@@ -129,6 +133,8 @@ struct ScanHeaderJson<'a> {
     units: &'static str,
     mesh: &'a str,
     noise_floor: f64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    saturation: Option<f64>,
     cameras: &'a [CameraModel],
 }
 
@@ -353,6 +359,7 @@ impl DatasetWriter {
             units: "mm",
             mesh: &self.header.mesh,
             noise_floor: self.header.noise_floor,
+            saturation: self.header.saturation,
             cameras: &self.header.cameras,
         };
         let path = self.dir.join("scan.json");
@@ -405,6 +412,7 @@ mod tests {
         DatasetHeader {
             mesh: "object.obj".into(),
             noise_floor: 1e-4,
+            saturation: Some(20.0),
             cameras: vec![crate::calib::Calibration::builtin().camera],
         }
     }

@@ -12,15 +12,94 @@ use std::path::Path;
 use std::time::Duration;
 use subsurf_protocol::{Capabilities, Config};
 
-/// Default exposure of a `--camera sim` scan (s).
-pub const SIM_EXPOSURE_S: f64 = 1.0;
+/// Radius of the built-in object, mm: a bead. Small, so that a vertex spacing and a pixel
+/// footprint fine enough for the material (see [`builtin_object`]) stay a few thousand vertices
+/// and a ~100² image, which keeps `scan --sim` + `fit` to seconds.
+pub const BUILTIN_RADIUS_MM: f64 = 4.0;
 
-/// The built-in object of `subsurf scan --sim`: a sphere of radius 10 mm resting on the platter.
+/// Sampling of the built-in scan, against the material's shortest mean free path `1 / |d_max|`
+/// (Eq. 1: the steepest exponential term falls by `e` over it). Samples `s(x_i, x_o)` exist only
+/// at vertices, so the vertex spacing is at most one mean free path: a few vertices then lie in
+/// the band (about 0.5–1.5 mean free paths beyond the exclusion radius) where that term
+/// dominates, and its `c_k, d_k` are constrained by data instead of extrapolated.
+pub const VERTEX_SPACING_PER_MEAN_FREE_PATH: f64 = 1.0;
+
+/// Pixel footprint of the built-in scan against the shortest mean free path: a pixel spans at
+/// most half of it, so the bilinear sample of the fall-off between pixel centres is off by at most
+/// `ln cosh(|d| p / 2) < 0.03` where the steepest term dominates (the noise, elsewhere less), and
+/// the laser spot's reflection (a Gaussian of 0.8 px) stays inside the exclusion radius.
+pub const PIXEL_FOOTPRINT_PER_MEAN_FREE_PATH: f64 = 0.5;
+
+/// Signal-to-noise ratio of one pixel at the simulated scan's noise floor: log E (Eq. 8)
+/// compares logarithms, and a sample at SNR `k` carries about `1/k` of noise in its log, so
+/// samples fainter than SNR 50 (2 %) would make the noise, not the model, the error.
+pub const FLOOR_SNR: f64 = 50.0;
+
+/// The built-in object of `subsurf scan --sim`: a sphere of radius [`BUILTIN_RADIUS_MM`] resting
+/// on the platter, its vertex spacing (largest at the equator, `π r / rings`) at most
+/// [`VERTEX_SPACING_PER_MEAN_FREE_PATH`] mean free paths of the material the `sim` camera renders.
 pub fn builtin_object() -> SimObject {
+    let spacing = VERTEX_SPACING_PER_MEAN_FREE_PATH / sim_field().steepest_falloff();
     SimObject::Sphere {
-        radius: 10.0,
-        rings: 16,
+        radius: BUILTIN_RADIUS_MM,
+        rings: (std::f64::consts::PI * BUILTIN_RADIUS_MM / spacing).ceil() as usize,
     }
+}
+
+/// Image size (pixels per side) of the built-in calibration: `Calibration::builtin_for` frames
+/// the object's bounding diameter with 15 % margin, so the footprint at the object is
+/// `2.3 r / size`; the size is the smallest multiple of 16 that makes it at most
+/// [`PIXEL_FOOTPRINT_PER_MEAN_FREE_PATH`] mean free paths.
+pub fn builtin_image_size() -> u32 {
+    let (_, radius) = builtin_object().bounds();
+    let footprint = PIXEL_FOOTPRINT_PER_MEAN_FREE_PATH / sim_field().steepest_falloff();
+    let size = (2.3 * radius / footprint).ceil() as u32;
+    size.div_ceil(16) * 16
+}
+
+/// Exposure bracket of a `--camera sim` scan (s), shortest first (merged per frame by
+/// `scan::frame::merge_hdr`, section 5's HDR capture):
+/// - the spot exposure keeps the laser spot's reflection unclipped (at half the clipping
+///   level), so registration takes the exact log-Gaussian sub-pixel path; a clipped spot's
+///   plateau and ring are skewed by the scattered light around it, most near the limb, which
+///   misplaced x_i by ~0.1 mm (0.4 mean free paths);
+/// - the scatter exposure is the longest at which the brightest scattered light the material can
+///   produce ([`Field::peak_radiance`]) stays unclipped, so every sample is as far above the
+///   noise as the sensor allows — but no longer than the simulated rig accepts.
+pub fn sim_exposures_s() -> Vec<f64> {
+    let sensor = sim_sensor();
+    let rig_max = subsurf_firmware::sim::SimParams::default()
+        .capabilities
+        .max_exposure_us as f64
+        * 1e-6;
+    let Some(sat) = sensor.saturation else {
+        return vec![sensor.exposure_s.min(rig_max)];
+    };
+    let peak = sim_field().peak_radiance();
+    let spot = (0.5 * sat / (sim_spot().radiance + peak)).min(rig_max);
+    let scatter = (sat / peak).min(rig_max);
+    // Whole microseconds: the rig takes exposures in µs.
+    let us = |s: f64| (s * 1e6).floor().max(1.0) * 1e-6;
+    vec![us(spot), us(scatter)]
+}
+
+/// The laser spot's first-surface reflection as the `sim` camera draws it (as `subsurf
+/// simulate` does): far brighter than the scattered light.
+pub fn sim_spot() -> Spot {
+    Spot {
+        radiance: 200.0,
+        sigma_px: 0.8,
+    }
+}
+
+/// `noise_floor` of a `--camera sim` scan (radiance): where one pixel's SNR drops to
+/// [`FLOOR_SNR`] at `exposure_s` (the longest exposure of the scan).
+pub fn sim_noise_floor(exposure_s: f64) -> f64 {
+    Sensor {
+        exposure_s,
+        ..sim_sensor()
+    }
+    .radiance_at_snr(FLOOR_SNR)
 }
 
 /// The mesh as Wavefront OBJ text (deterministic: equal meshes give equal bytes).
@@ -83,13 +162,8 @@ pub fn camera_from_spec(
 ) -> Result<Box<dyn Camera>, super::camera::CameraError> {
     if spec == "sim" {
         let sensor = sim_sensor();
-        // The spot as `subsurf simulate` renders it (a bright first-surface reflection).
-        let spot = Spot {
-            radiance: 200.0,
-            sigma_px: 0.8,
-        };
         return Ok(Box::new(
-            SimCamera::new(mesh.clone(), calib, Field::default(), sensor, seed)?.with_spot(spot),
+            SimCamera::new(mesh.clone(), calib, sim_field(), sensor, seed)?.with_spot(sim_spot()),
         ));
     }
     if let Some(dir) = spec.strip_prefix("dir:") {
@@ -104,8 +178,28 @@ pub fn camera_from_spec(
 }
 
 /// The simulated camera's sensor: the simulator's realistic HDR sensor (shot and read noise,
-/// clipping); exposure comes from each shot ([`SIM_EXPOSURE_S`] by default, the exposure the
-/// sensor's noise figures are given for).
+/// clipping); exposure comes from each shot ([`sim_exposures_s`] by default).
 pub fn sim_sensor() -> Sensor {
     Sensor::realistic()
+}
+
+/// The material the `sim` camera renders: the simulator's marble field (heterogeneous, with the
+/// modulation texture alpha), isotropic so that the model file's isotropic Eq. 9 (the paper's
+/// choice for objects) holds it exactly and `ground-truth.ply` is the true model, not an
+/// approximation of it.
+pub fn sim_field() -> Field {
+    Field {
+        anisotropy: 0.0,
+        ..Field::default()
+    }
+}
+
+/// File name of the ground truth a `--camera sim` scan writes beside `scan.json`.
+pub const GROUND_TRUTH_FILE: &str = "ground-truth.ply";
+
+/// Writes the true model of what the `sim` camera renders (`mesh` made of [`sim_field`]) as
+/// `dir/ground-truth.ply`, the same file `subsurf simulate` writes: the floor a fitted model is
+/// judged against (`subsurf evaluate --model ground-truth.ply`).
+pub fn write_ground_truth(mesh: &Mesh, dir: &Path) -> Result<(), crate::modelfile::ModelFileError> {
+    crate::simulate::ground_truth_model(mesh, &sim_field()).write(&dir.join(GROUND_TRUTH_FILE))
 }

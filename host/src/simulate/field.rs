@@ -163,6 +163,36 @@ impl Field {
         }
     }
 
+    /// An upper bound of the steepest fall-off `|d_k|` (1/mm, Eq. 1) anywhere on any surface:
+    /// `1 / steepest_falloff()` is the material's shortest mean free path, the length a scan must
+    /// resolve (vertex spacing, pixel footprint). Exact bound of [`Field::params_at`]: the vein
+    /// value `v - 0.5` lies in `[-0.5, 0.5]`.
+    pub fn steepest_falloff(&self) -> f64 {
+        let h = 0.5 * self.heterogeneity.abs();
+        [0.5, 0.4, 0.3]
+            .iter()
+            .zip(self.d)
+            .map(|(k, d)| d.abs() * (k * h).exp())
+            .fold(0.0, f64::max)
+    }
+
+    /// An upper bound of the radiance `alpha(x_o) · R_d(x_i → x_o)` any channel reaches (at
+    /// `x_o → x_i`, Eq. 9): what an exposure must keep below the sensor's clipping level.
+    pub fn peak_radiance(&self) -> f64 {
+        let h = 0.5 * self.heterogeneity.abs();
+        let c: f64 = [1.0, 0.6, 0.8]
+            .iter()
+            .zip(self.c)
+            .map(|(k, c)| c * (k * h).exp())
+            .sum();
+        let scale = self
+            .s
+            .iter()
+            .fold(1.0f64, |m, s| m.max(s * (0.5 * h).exp()));
+        let alpha = (1.2 * 0.5 * self.alpha_amplitude.abs()).exp();
+        c * scale * alpha
+    }
+
     /// Eq. 2/6: the true modulation texture alpha(x_o), per channel.
     pub fn alpha_at(&self, x_o: V3) -> [f64; 3] {
         let v = self.vein(x_o) - 0.5;
@@ -194,6 +224,27 @@ mod tests {
         }
         let mp = p.model_params();
         assert!(mp[3] > mp[5] && mp[5] > mp[7]);
+    }
+
+    #[test]
+    fn falloff_and_peak_bounds_hold_everywhere() {
+        let f = Field::default();
+        let (dmax, peak) = (f.steepest_falloff(), f.peak_radiance());
+        let mut seen = (0.0f64, 0.0f64);
+        for k in 0..2000 {
+            let t = k as f64 * 0.37;
+            let p = [10.0 * t.sin(), 7.0 * (1.3 * t).cos(), 0.05 * t];
+            let n = normalize([t.cos(), t.sin(), 0.5]).unwrap();
+            let tp = f.params_at(p, n);
+            seen.0 = seen.0.max(tp.d.iter().fold(0.0, |m, d| m.max(d.abs())));
+            let a = f.alpha_at(p);
+            let c: f64 = tp.c.iter().sum();
+            for (a, s) in a.iter().zip(tp.scale) {
+                seen.1 = seen.1.max(a * c * s);
+            }
+        }
+        assert!(seen.0 <= dmax && seen.0 > 0.95 * dmax, "{seen:?} {dmax}");
+        assert!(seen.1 <= peak && seen.1 > 0.5 * peak, "{seen:?} {peak}");
     }
 
     #[test]

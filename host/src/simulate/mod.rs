@@ -90,6 +90,19 @@ impl Sensor {
     }
 }
 
+impl Sensor {
+    /// The radiance at which one pixel's signal-to-noise ratio (shot and read noise) is `snr`
+    /// at this sensor's exposure: below it, a sample's log carries more than `1 / snr` of noise.
+    /// Solves `raw / sqrt(raw / gain + read_noise²) = snr` for `raw`.
+    pub fn radiance_at_snr(&self, snr: f64) -> f64 {
+        let k2 = snr * snr;
+        let inv_g = self.gain.map_or(0.0, |g| 1.0 / g);
+        let s2 = self.read_noise * self.read_noise;
+        let raw = 0.5 * (k2 * inv_g + (k2 * k2 * inv_g * inv_g + 4.0 * k2 * s2).sqrt());
+        raw / self.exposure_s
+    }
+}
+
 /// The laser spot's first-surface reflection as the camera sees it.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
 pub struct Spot {
@@ -284,7 +297,9 @@ pub fn render_frame_truth(
         let c_obj = world_to_turntable(cam.center(), turntable_deg);
         let facing = normalize(sub(c_obj, spot)).is_some_and(|d| dot(d, n_i) > 0.0);
         if facing
-            && sim.scene.unoccluded(spot, c_obj)
+            && sim
+                .scene
+                .unoccluded(crate::registration::lift_off(&sim.scene, spot, n_i), c_obj)
             && let Some([su, sv]) = cam.project(turntable_to_world(spot, turntable_deg))
         {
             let s = sim.spot.sigma_px.max(0.05);
@@ -592,6 +607,35 @@ struct FrameTruthJson {
     anisotropy: Option<f64>,
 }
 
+/// The true per-vertex model of `mesh` made of `field`, as `docs/model-format.md` holds it:
+/// isotropic shared colour with n = 3 terms and the true alpha(x_o). The field's direction
+/// dependence (anisotropy) cannot be written in this shape; it is part of the floor a fitted
+/// isotropic model is compared against.
+pub fn ground_truth_model(mesh: &crate::dataset::Mesh, field: &Field) -> ModelFile {
+    ModelFile {
+        shape: ModelShape {
+            terms: 3,
+            segments: 1,
+            colour: ColourMode::Shared,
+        },
+        positions: mesh.positions.clone(),
+        normals: mesh.normals.clone(),
+        triangles: mesh.triangles.clone(),
+        vertices: mesh
+            .positions
+            .iter()
+            .zip(&mesh.normals)
+            .map(|(p, n)| VertexModel {
+                alpha: field.alpha_at(*p).map(|a| a as f32),
+                status: VertexStatus::Fitted,
+                log_e: 0.0,
+                terms: 3,
+                params: field.params_at(*p, *n).model_params(),
+            })
+            .collect(),
+    }
+}
+
 /// Writes a simulated dataset to `out` and its ground truth beside it: `out/ground-truth.ply`
 /// (the true per-vertex model, `docs/model-format.md`: isotropic shared colour n = 3 and the true
 /// alpha; the direction dependence is in the JSON) and `out/ground-truth.json` (configuration,
@@ -665,28 +709,7 @@ pub fn simulate(
     }
     let frames = writer.frame_count();
     writer.finish()?;
-    let truth_model = ModelFile {
-        shape: ModelShape {
-            terms: 3,
-            segments: 1,
-            colour: ColourMode::Shared,
-        },
-        positions: mesh.positions.clone(),
-        normals: mesh.normals.clone(),
-        triangles: mesh.triangles.clone(),
-        vertices: mesh
-            .positions
-            .iter()
-            .zip(&mesh.normals)
-            .map(|(p, n)| VertexModel {
-                alpha: cfg.field.alpha_at(*p).map(|a| a as f32),
-                status: VertexStatus::Fitted,
-                log_e: 0.0,
-                terms: 3,
-                params: cfg.field.params_at(*p, *n).model_params(),
-            })
-            .collect(),
-    };
+    let truth_model = ground_truth_model(&mesh, &cfg.field);
     truth_model.write(&out.join("ground-truth.ply"))?;
     let json = serde_json::json!({
         "format": "subsurf-ground-truth/1",
