@@ -248,7 +248,7 @@ fn print_growth(rows: &[Row]) {
 
 /// Two panels: seconds against frames (fit wall time and the frame stages) and peak RSS against
 /// frames, one line per vertex count, both axes from zero so linearity reads directly.
-fn plot(path: &Path, rows: &[Row]) -> Result<()> {
+fn plot(path: &Path, rows: &[Row], size: u32) -> Result<()> {
     use plotters::prelude::*;
     subsurf::plot::register_font();
     let err = |e: &dyn std::fmt::Display| anyhow::anyhow!("drawing {}: {e}", path.display());
@@ -283,7 +283,8 @@ fn plot(path: &Path, rows: &[Row]) -> Result<()> {
         .map_err(|e| err(&e))?;
     chart
         .configure_mesh()
-        .x_desc("frames (256x256)")
+        .x_desc(format!("frames ({size}x{size})"))
+        .x_label_formatter(&|v| format!("{v:.0}"))
         .y_desc("seconds")
         .draw()
         .map_err(|e| err(&e))?;
@@ -329,7 +330,8 @@ fn plot(path: &Path, rows: &[Row]) -> Result<()> {
         .map_err(|e| err(&e))?;
     chart
         .configure_mesh()
-        .x_desc("frames (256x256)")
+        .x_desc(format!("frames ({size}x{size})"))
+        .x_label_formatter(&|v| format!("{v:.0}"))
         .y_desc("peak RSS (MiB)")
         .draw()
         .map_err(|e| err(&e))?;
@@ -397,7 +399,7 @@ pub fn bench_fit_scale(b: FitScaleBench) -> Result<()> {
         println!("wrote {}", p.display());
     }
     if let Some(p) = &b.plot {
-        plot(p, &rows)?;
+        plot(p, &rows, b.size)?;
         println!("wrote {}", p.display());
     }
     Ok(())
