@@ -22,6 +22,9 @@ enum Bench {
     /// Rendering: hierarchical against exact transport on the built-in marble torus (speed-up and
     /// pixel error along the error-bound curve).
     Render(super::bench_render::RenderBench),
+    /// The whole chain: simulated scan density × fit preset × render quality → wall time per
+    /// stage and error against the exact result, with the Pareto front.
+    Tradeoff(super::bench_tradeoff::TradeoffBench),
 }
 
 #[derive(Debug, clap::Args)]
@@ -44,6 +47,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     match args.what {
         Bench::Rig(a) => rig(a),
         Bench::Render(a) => super::bench_render::bench_render(a),
+        Bench::Tradeoff(a) => super::bench_tradeoff::bench_tradeoff(a),
     }
 }
 

@@ -3,6 +3,7 @@ use clap::{Parser, Subcommand};
 
 mod bench;
 mod bench_render;
+mod bench_tradeoff;
 mod calib;
 mod demo;
 mod evaluate;
