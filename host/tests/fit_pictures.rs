@@ -92,9 +92,8 @@ fn fit_writes_an_error_map_and_a_model_picture_beside_the_report() {
         );
     }
 
-    // --no-pictures: the model and report only.
+    // --no-pictures: the model and report only (in a directory `fit` creates).
     let quiet = tmp.path().join("quiet");
-    std::fs::create_dir_all(&quiet).unwrap();
     fit(&scan, &quiet.join("model.ply"), &["--no-pictures"]);
     let mut names: Vec<String> = std::fs::read_dir(&quiet)
         .unwrap()

@@ -157,6 +157,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let out = fit_dataset(&ds, &frames, &opts, &fit, &bar)
         .with_context(|| format!("fitting {}", args.scan.display()))?;
     bar.finish_and_clear();
+    let report_dir = args.report.as_deref().and_then(std::path::Path::parent);
+    for dir in [args.out.parent(), report_dir].into_iter().flatten() {
+        if !dir.as_os_str().is_empty() {
+            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        }
+    }
     out.model
         .write(&args.out)
         .with_context(|| format!("writing {}", args.out.display()))?;
