@@ -223,7 +223,11 @@ impl Scene {
         };
         let len = dist(p, q);
         let start = add_scaled(p, 4.0 * self.eps, d);
-        self.cast(start, d, len - 8.0 * self.eps).is_none()
+        // No sideways-nudged retry here (unlike `cast`): the ray starts 4·eps off the surface,
+        // so a nudge of 10·eps can put its origin below the surface at grazing angles, and the
+        // surface itself then "occludes" it (this hid every vertex facing the camera at more
+        // than ~20° from the normal).
+        self.cast_once(start, d, len - 8.0 * self.eps).is_none()
     }
 
     /// Vertices of the mesh the camera sees at turntable angle `deg`: in front of the camera,
