@@ -22,6 +22,9 @@ enum Bench {
     /// Rendering: hierarchical against exact transport on the built-in marble torus (speed-up and
     /// pixel error along the error-bound curve).
     Render(super::bench_render::RenderBench),
+    /// Scan processing at scale: `subsurf fit` on simulated scans over a grid of vertex and
+    /// frame counts (stage times, peak RSS, growth), one dataset on disk at a time.
+    FitScale(super::bench_fit::FitScaleBench),
 }
 
 #[derive(Debug, clap::Args)]
@@ -44,6 +47,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     match args.what {
         Bench::Rig(a) => rig(a),
         Bench::Render(a) => super::bench_render::bench_render(a),
+        Bench::FitScale(a) => super::bench_fit::bench_fit_scale(a),
     }
 }
 

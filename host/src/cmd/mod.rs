@@ -2,6 +2,7 @@
 use clap::{Parser, Subcommand};
 
 mod bench;
+mod bench_fit;
 mod bench_render;
 mod calib;
 mod demo;
