@@ -466,11 +466,14 @@ fn fit_common_order(
     }
 }
 
-/// A direction segment's fit with the isotropic order `n`, or the isotropic fall-off where the
-/// segment's samples do not support n terms (too few samples in the sector).
+/// A direction segment's fit with the isotropic order, or the isotropic fall-off where the
+/// segment's fit fails or has a term that never decays. (A sector holds a fraction of the
+/// samples, so the support rule for steep terms would reject most segments; the isotropic fit
+/// already chose an order the samples support, and evaluation never extrapolates below the
+/// sampled range.)
 fn fit_segment(fitter: &dyn Fitter, r: &[f64], s: &[f64], iso: &ExpSum) -> ExpSum {
     match fitter.fit(r, s, Some(iso.n())) {
-        Ok(f) if f.n() == iso.n() && unsupported_term(&f, r).is_none() => f,
+        Ok(f) if f.n() == iso.n() && unsupported_term(&f, r) != Some(TermDropped::NonDecaying) => f,
         _ => iso.clone(),
     }
 }
