@@ -57,6 +57,9 @@ fn fit_scale_tabulates_every_pair_and_deletes_its_datasets() {
             assert!(r["stages"][stage].as_f64().is_some(), "{stage} in {r}");
         }
     }
+    // Every run's progress line and the children's output reach a non-terminal stdout.
+    assert!(stdout.contains("[4/4] "), "{stdout}");
+    assert!(stdout.contains("fit wall"), "{stdout}");
     // The growth summary compares the frame doublings.
     assert!(stdout.contains("frames 9 -> 18 at"), "{stdout}");
     // No dataset is left behind.

@@ -106,7 +106,13 @@ fn run_child(cmd: &mut Command, what: &str) -> Result<String> {
     Ok(stdout)
 }
 
-fn measure(b: &FitScaleBench, exe: &Path, vertices: usize, frames: usize) -> Result<Row> {
+fn measure(
+    b: &FitScaleBench,
+    exe: &Path,
+    vertices: usize,
+    frames: usize,
+    bar: &indicatif::ProgressBar,
+) -> Result<Row> {
     let per_angle = b.raster.max(1) * b.raster.max(1);
     let angles = (frames / per_angle).max(1);
     let data = b.dir.join(format!("scan-v{vertices}-f{frames}"));
@@ -115,6 +121,7 @@ fn measure(b: &FitScaleBench, exe: &Path, vertices: usize, frames: usize) -> Res
     if data.exists() {
         std::fs::remove_dir_all(&data).with_context(|| format!("removing {}", data.display()))?;
     }
+    bar.set_message(format!("simulating {frames} frames, {vertices} vertices"));
     let t = Instant::now();
     let sim_out = run_child(
         Command::new(exe)
@@ -129,7 +136,9 @@ fn measure(b: &FitScaleBench, exe: &Path, vertices: usize, frames: usize) -> Res
         "subsurf simulate",
     )?;
     let simulate_s = t.elapsed().as_secs_f64();
-    print!("  {}", sim_out);
+    bar.inc(1);
+    bar.suspend(|| print!("  {sim_out}"));
+    bar.set_message(format!("fitting {frames} frames, {vertices} vertices"));
     let dataset_mb = dir_bytes(&data) as f64 / 1e6;
     let t = Instant::now();
     let fit_out = run_child(
@@ -149,9 +158,12 @@ fn measure(b: &FitScaleBench, exe: &Path, vertices: usize, frames: usize) -> Res
     // The dataset goes before anything else can fail: the disk is shared.
     std::fs::remove_dir_all(&data).with_context(|| format!("removing {}", data.display()))?;
     let fit_out = fit_out?;
-    for line in fit_out.lines() {
-        println!("    {line}");
-    }
+    bar.inc(1);
+    bar.suspend(|| {
+        for line in fit_out.lines() {
+            println!("    {line}");
+        }
+    });
     let text = std::fs::read_to_string(&report)
         .with_context(|| format!("reading {}", report.display()))?;
     let json: serde_json::Value =
@@ -380,17 +392,26 @@ pub fn bench_fit_scale(b: FitScaleBench) -> Result<()> {
     );
     let total = b.vertices.len() * b.frames.len();
     let mut rows = Vec::with_capacity(total);
+    // Children run with captured output; this bar shows which one is running.
+    let bar = indicatif::ProgressBar::new(2 * total as u64).with_style(
+        indicatif::ProgressStyle::with_template("{spinner} {msg} [{pos}/{len} runs, {elapsed}]")
+            .context("progress style")?,
+    );
+    bar.enable_steady_tick(std::time::Duration::from_millis(250));
     for &v in &b.vertices {
         for &f in &b.frames {
-            println!("[{}/{total}] {v} vertices, {f} frames", rows.len() + 1);
-            let row = measure(&b, &exe, v, f)?;
-            println!(
-                "  simulate {:.1} s, dataset {:.0} MB; fit wall {:.2} s, peak RSS {:.0} MiB",
-                row.simulate_s, row.dataset_mb, row.wall_s, row.peak_rss_mib
-            );
+            bar.suspend(|| println!("[{}/{total}] {v} vertices, {f} frames", rows.len() + 1));
+            let row = measure(&b, &exe, v, f, &bar)?;
+            bar.suspend(|| {
+                println!(
+                    "  simulate {:.1} s, dataset {:.0} MB; fit wall {:.2} s, peak RSS {:.0} MiB",
+                    row.simulate_s, row.dataset_mb, row.wall_s, row.peak_rss_mib
+                )
+            });
             rows.push(row);
         }
     }
+    bar.finish_and_clear();
     print_table(&rows);
     print_growth(&rows);
     if let Some(p) = &b.json {
