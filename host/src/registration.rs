@@ -51,6 +51,26 @@ pub struct Spot {
     pub peak: f64,
     /// Whether the spot's centre was clipped.
     pub saturated: bool,
+    /// Peak of the fitted Gaussian (summed over channels, raw): `peak` for an unclipped spot,
+    /// the extrapolated top of a clipped one.
+    pub peak_fit: f64,
+    /// Standard deviation of the spot as a Gaussian, pixels (from the same log-quadratic fit as
+    /// the centre): how far its own light reaches into the samples around it.
+    pub sigma_px: f64,
+}
+
+impl Spot {
+    /// Distance (pixels) beyond which the spot's own light, a Gaussian of [`Spot::sigma_px`]
+    /// and peak [`Spot::peak_fit`], falls below `floor` (same units): pixels closer hold
+    /// first-surface reflection, not subsurface scattering.
+    pub fn reach_px(&self, floor: f64) -> f64 {
+        let ratio = self.peak_fit / floor.max(f64::MIN_POSITIVE);
+        if ratio > 1.0 && self.sigma_px.is_finite() {
+            self.sigma_px * (2.0 * ratio.ln()).sqrt()
+        } else {
+            0.0
+        }
+    }
 }
 
 /// What registration concluded about a frame.
@@ -122,24 +142,34 @@ pub fn detect_spot(img: &Image, min_peak: f64, saturation: Option<f64>) -> Optio
         };
         let (ci, cj) = (pi as isize, pj as isize);
         let l0 = peak.ln();
+        // (offset, second difference of ln L) per axis; a Gaussian has -1/σ² there.
         let refine = |a: Option<f64>, b: Option<f64>| match (a, b) {
             (Some(a), Some(b)) => {
                 let den = a - 2.0 * l0 + b;
                 if den < 0.0 {
-                    (0.5 * (a - b) / den).clamp(-0.5, 0.5)
+                    ((0.5 * (a - b) / den).clamp(-0.5, 0.5), Some(den))
                 } else {
-                    0.0
+                    (0.0, None)
                 }
             }
-            _ => 0.0,
+            _ => (0.0, None),
         };
-        let du = refine(at(ci - 1, cj), at(ci + 1, cj));
-        let dv = refine(at(ci, cj - 1), at(ci, cj + 1));
+        let (du, cu) = refine(at(ci - 1, cj), at(ci + 1, cj));
+        let (dv, cv) = refine(at(ci, cj - 1), at(ci, cj + 1));
+        // The wider axis (a spot seen at an angle is elongated); one pixel if nothing curves.
+        let sigma_px = [cu, cv]
+            .iter()
+            .flatten()
+            .map(|c| (-1.0 / c).sqrt())
+            .fold(None, |m: Option<f64>, x| Some(m.map_or(x, |m| m.max(x))))
+            .unwrap_or(1.0);
         return Some(Spot {
             u: pi as f64 + du,
             v: pj as f64 + dv,
             peak,
             saturated: false,
+            peak_fit: peak,
+            sigma_px,
         });
     }
     // Clipped: flood the plateau (bounded), then fit ln L = a + b·u + c·v + e·(u² + v²) through
@@ -192,11 +222,20 @@ pub fn detect_spot(img: &Image, min_peak: f64, saturation: Option<f64>) -> Optio
         }
     }
     let (mut u, mut v) = (cu, cv);
+    // Without a usable fit: the plateau's radius.
+    let mut sigma_px = (n / std::f64::consts::PI).sqrt().max(1.0);
+    let mut peak_fit = peak;
     if used >= 6
         && let Some(sol) = solve4(ata, atb)
         && sol[3] < 0.0
     {
+        // ln L = … + e·ρ² with e = -1/(2σ²).
+        sigma_px = (-0.5 / sol[3]).sqrt();
         let (du, dv) = (-sol[1] / (2.0 * sol[3]), -sol[2] / (2.0 * sol[3]));
+        let top = (sol[0] + sol[1] * du + sol[2] * dv + sol[3] * (du * du + dv * dv)).exp();
+        if top.is_finite() && top > peak {
+            peak_fit = top;
+        }
         // Trust the refinement only inside the plateau's extent.
         if du.abs() <= 1.0 + (n.sqrt()) && dv.abs() <= 1.0 + n.sqrt() {
             u += du;
@@ -208,6 +247,8 @@ pub fn detect_spot(img: &Image, min_peak: f64, saturation: Option<f64>) -> Optio
         v,
         peak,
         saturated: true,
+        peak_fit,
+        sigma_px,
     })
 }
 
@@ -350,6 +391,7 @@ mod tests {
                 "{s:?} {u0} {v0}"
             );
             assert!(!s.saturated);
+            assert!((s.sigma_px - 0.8).abs() < 0.01, "{s:?}");
         }
     }
 
@@ -359,6 +401,7 @@ mod tests {
             let img = gaussian(32, u0, v0, 1.2, 1000.0, Some(10.0));
             let s = detect_spot(&img, 0.0, Some(10.0)).unwrap();
             assert!(s.saturated);
+            assert!((s.sigma_px - 1.2).abs() < 0.1, "{s:?}");
             assert!(
                 (s.u - u0).abs() < 0.1 && (s.v - v0).abs() < 0.1,
                 "{s:?} {u0} {v0}"
