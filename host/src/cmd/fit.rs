@@ -75,6 +75,34 @@ pub struct Args {
     /// Override the dataset's noise floor.
     #[arg(long)]
     pub noise_floor: Option<f64>,
+    /// Do not draw the PNGs beside the report (`<report>-error-map.png`: log E(x_i) per vertex,
+    /// Eq. 8; `<report>-model.png`: alpha, reflectance, reach and vertex status).
+    #[arg(long)]
+    pub no_pictures: bool,
+}
+
+/// Panel size of the error map and of the model picture, pixels.
+const ERROR_PANEL: (u32, u32) = (420, 420);
+const MODEL_PANEL: (u32, u32) = (360, 400);
+
+/// The pictures of a fit, beside the report: the per-vertex error map log E(x_i) (Eq. 8, Figures
+/// 4/5) and the model viewer (alpha, total reflectance, reach, fitted/interpolated/no-model).
+fn pictures(
+    model: &subsurf::modelfile::ModelFile,
+    report: &std::path::Path,
+) -> anyhow::Result<Vec<PathBuf>> {
+    let stem = report
+        .file_stem()
+        .map_or_else(|| "fit".into(), |s| s.to_string_lossy().into_owned());
+    let error_png = report.with_file_name(format!("{stem}-error-map.png"));
+    let model_png = report.with_file_name(format!("{stem}-model.png"));
+    let vm = subsurf::render::VertexModel::from_model_file(model);
+    let view = subsurf::render::DEFAULT_VIEW;
+    subsurf::plot::error_maps(&error_png, &[("fit".to_string(), &vm)], view, ERROR_PANEL)
+        .with_context(|| format!("drawing {}", error_png.display()))?;
+    subsurf::plot::model_viewer(&model_png, &vm, view, MODEL_PANEL)
+        .with_context(|| format!("drawing {}", model_png.display()))?;
+    Ok(vec![error_png, model_png])
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -129,6 +157,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let out = fit_dataset(&ds, &frames, &opts, &fit, &bar)
         .with_context(|| format!("fitting {}", args.scan.display()))?;
     bar.finish_and_clear();
+    let report_dir = args.report.as_deref().and_then(std::path::Path::parent);
+    for dir in [args.out.parent(), report_dir].into_iter().flatten() {
+        if !dir.as_os_str().is_empty() {
+            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        }
+    }
     out.model
         .write(&args.out)
         .with_context(|| format!("writing {}", args.out.display()))?;
@@ -140,8 +174,28 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     json["model_bytes"] = bytes.into();
     json["model"] = args.out.display().to_string().into();
     json["fit_options"] = serde_json::to_value(&fit)?;
+    // The model is already on disk: a picture that cannot be drawn is reported after the report
+    // is written, so no result is lost.
+    let drawn = if args.no_pictures {
+        Ok(Vec::new())
+    } else {
+        pictures(&out.model, &report_path)
+    };
+    if let Ok(p) = &drawn {
+        json["pictures"] = p
+            .iter()
+            .map(|p| p.display().to_string())
+            .collect::<Vec<_>>()
+            .into();
+    }
+    // Peak memory of the whole process, after the model (and pictures) were written; the
+    // pipeline's own `peak_rss_mib` is taken at its end.
+    if let Some(m) = subsurf::pipeline::peak_rss_mib() {
+        json["process_peak_rss_mib"] = m.into();
+    }
     std::fs::write(&report_path, serde_json::to_string_pretty(&json)?)
         .with_context(|| format!("writing {}", report_path.display()))?;
+    let drawn = drawn?;
     let r = &out.report;
     let f = |v: Option<f64>| v.map_or("-".to_string(), |x| format!("{x:.4}"));
     println!(
@@ -180,5 +234,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         bytes as f64 / 1e6,
         report_path.display()
     );
+    for p in &drawn {
+        println!("wrote {}", p.display());
+    }
     Ok(())
 }

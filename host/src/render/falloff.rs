@@ -156,8 +156,16 @@ impl Falloffs {
             for k in b..b + block {
                 let (c, d) = (self.lnc[k].exp(), self.d[k]);
                 let x = d * rho;
-                // (e^{dρ}(dρ − 1) + 1)/d², written with exp_m1 for small dρ.
-                s += 2.0 * std::f64::consts::PI * c * (x.exp_m1() * (x - 1.0) + x) / (d * d);
+                // (e^{dρ}(dρ − 1) + 1)/d², written with exp_m1 for small dρ; for large |dρ|
+                // (ρ = ∞ included) the exp_m1 form cancels to NaN or 0, the direct one is exact.
+                let g = if x > -1.0 {
+                    x.exp_m1() * (x - 1.0) + x
+                } else if x > -745.0 {
+                    1.0 + x.exp() * (x - 1.0)
+                } else {
+                    1.0
+                };
+                s += 2.0 * std::f64::consts::PI * c * g / (d * d);
             }
             s / self.m as f64
         };
@@ -271,6 +279,8 @@ mod tests {
         assert!((got[0] / total - 1.0).abs() < 1e-12);
         assert!((got[1] / (0.5 * total) - 1.0).abs() < 1e-12);
         assert!((got[2] / (2.0 * total) - 1.0).abs() < 1e-12);
+        let inf = f.disk_integral(0, f64::INFINITY);
+        assert!((inf[0] / total - 1.0).abs() < 1e-12, "{inf:?}");
         // Small radius: R(0) π ρ² to first order.
         let rho = 1e-6;
         let small = f.disk_integral(0, rho)[0];

@@ -1,0 +1,427 @@
+//! `subsurf bench fit-scale`: how `subsurf fit` grows with frames and vertices (issue 4's scale
+//! benchmark). For every (vertices, frames) pair it simulates a sphere scan with `subsurf
+//! simulate`, fits it with `subsurf fit` in a fresh process (so each run's peak RSS is its own),
+//! reads the stage timings and peak memory from the fit report, deletes the dataset before the next
+//! one is written (the disk holds one dataset at a time) and finally prints the table, the growth
+//! ratios and a PNG (time and peak RSS against frames).
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+
+/// Simulate, fit and tabulate `subsurf fit` over a grid of vertex and frame counts.
+#[derive(Debug, clap::Args)]
+pub struct FitScaleBench {
+    /// Approximate vertex counts of the simulated sphere (comma-separated).
+    #[arg(long, value_delimiter = ',', default_values_t = [10_000usize, 20_000])]
+    vertices: Vec<usize>,
+    /// Frame counts (comma-separated); each is rounded down to whole turntable angles of
+    /// `raster × raster` laser positions.
+    #[arg(long, value_delimiter = ',', default_values_t = [1250usize, 2500, 5000])]
+    frames: Vec<usize>,
+    /// Image width and height, pixels.
+    #[arg(long, default_value_t = 256)]
+    size: u32,
+    /// Laser raster per axis and turntable angle.
+    #[arg(long, default_value_t = 5)]
+    raster: usize,
+    /// Scratch directory for the datasets, models and reports (each dataset is deleted after
+    /// its fit).
+    #[arg(long, default_value = "/tmp/subsurf-fit-scale")]
+    dir: PathBuf,
+    /// Write time and peak RSS against frames as a PNG here.
+    #[arg(long)]
+    plot: Option<PathBuf>,
+    /// Write every row as JSON here.
+    #[arg(long)]
+    json: Option<PathBuf>,
+    /// Extra arguments passed to `subsurf fit` (e.g. `--fit-args=--preset,balanced`).
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    fit_args: Vec<String>,
+}
+
+/// One measured (vertices, frames) point.
+#[derive(Debug, Clone, serde::Serialize)]
+struct Row {
+    vertices: usize,
+    frames: usize,
+    registered: usize,
+    fits: usize,
+    dataset_mb: f64,
+    simulate_s: f64,
+    /// Wall time of the whole `subsurf fit` process (loading, stages, writing the model).
+    wall_s: f64,
+    /// The pipeline's own stage timings (`fit-report.json`).
+    stages: BTreeMap<String, f64>,
+    /// `VmHWM` of the fit process after everything was written.
+    peak_rss_mib: f64,
+}
+
+impl Row {
+    /// The stages that touch frames: registration, fit, error (Eq. 8).
+    fn frame_stages_s(&self) -> f64 {
+        ["registration", "fit", "error"]
+            .iter()
+            .filter_map(|s| self.stages.get(*s))
+            .sum()
+    }
+    fn stage(&self, name: &str) -> f64 {
+        self.stages.get(name).copied().unwrap_or(f64::NAN)
+    }
+}
+
+fn dir_bytes(dir: &Path) -> u64 {
+    let mut total = 0;
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        let Ok(entries) = std::fs::read_dir(&d) else {
+            continue;
+        };
+        for e in entries.flatten() {
+            match e.metadata() {
+                Ok(m) if m.is_dir() => stack.push(e.path()),
+                Ok(m) => total += m.len(),
+                Err(_) => {}
+            }
+        }
+    }
+    total
+}
+
+fn run_child(cmd: &mut Command, what: &str) -> Result<String> {
+    let out = cmd
+        .output()
+        .with_context(|| format!("starting {what}: {cmd:?}"))?;
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    if !out.status.success() {
+        bail!(
+            "{what} failed ({}): {cmd:?}\n{stdout}\n{}",
+            out.status,
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    Ok(stdout)
+}
+
+fn measure(
+    b: &FitScaleBench,
+    exe: &Path,
+    vertices: usize,
+    frames: usize,
+    bar: &indicatif::ProgressBar,
+) -> Result<Row> {
+    let per_angle = b.raster.max(1) * b.raster.max(1);
+    let angles = (frames / per_angle).max(1);
+    let data = b.dir.join(format!("scan-v{vertices}-f{frames}"));
+    let model = b.dir.join(format!("model-v{vertices}-f{frames}.ply"));
+    let report = b.dir.join(format!("report-v{vertices}-f{frames}.json"));
+    if data.exists() {
+        std::fs::remove_dir_all(&data).with_context(|| format!("removing {}", data.display()))?;
+    }
+    bar.set_message(format!("simulating {frames} frames, {vertices} vertices"));
+    let t = Instant::now();
+    let sim_out = run_child(
+        Command::new(exe)
+            .arg("simulate")
+            .arg("--out")
+            .arg(&data)
+            .args(["--object", "sphere", "--cameras", "1", "--seed", "3"])
+            .args(["--vertices", &vertices.to_string()])
+            .args(["--size", &b.size.to_string()])
+            .args(["--angles", &angles.to_string()])
+            .args(["--raster", &b.raster.to_string()]),
+        "subsurf simulate",
+    )?;
+    let simulate_s = t.elapsed().as_secs_f64();
+    bar.inc(1);
+    bar.suspend(|| print!("  {sim_out}"));
+    bar.set_message(format!("fitting {frames} frames, {vertices} vertices"));
+    let dataset_mb = dir_bytes(&data) as f64 / 1e6;
+    let t = Instant::now();
+    let fit_out = run_child(
+        Command::new(exe)
+            .arg("fit")
+            .arg("--scan")
+            .arg(&data)
+            .arg("--out")
+            .arg(&model)
+            .arg("--report")
+            .arg(&report)
+            .arg("--no-pictures")
+            .args(&b.fit_args),
+        "subsurf fit",
+    );
+    let wall_s = t.elapsed().as_secs_f64();
+    // The dataset goes before anything else can fail: the disk is shared.
+    std::fs::remove_dir_all(&data).with_context(|| format!("removing {}", data.display()))?;
+    let fit_out = fit_out?;
+    bar.inc(1);
+    bar.suspend(|| {
+        for line in fit_out.lines() {
+            println!("    {line}");
+        }
+    });
+    let text = std::fs::read_to_string(&report)
+        .with_context(|| format!("reading {}", report.display()))?;
+    let json: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| format!("parsing {}", report.display()))?;
+    let num = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN);
+    let count = |v: &serde_json::Value| v.as_u64().unwrap_or(0) as usize;
+    let stages: BTreeMap<String, f64> = json["stage_seconds"]
+        .as_object()
+        .map(|m| m.iter().map(|(k, v)| (k.clone(), num(v))).collect())
+        .unwrap_or_default();
+    let peak = json
+        .get("process_peak_rss_mib")
+        .or_else(|| json.get("peak_rss_mib"))
+        .map_or(f64::NAN, num);
+    let _ = std::fs::remove_file(&model);
+    Ok(Row {
+        vertices: count(&json["vertices"]),
+        frames: count(&json["frames"]["total"]),
+        registered: count(&json["frames"]["registered"]),
+        fits: count(&json["frames"]["fitted"]),
+        dataset_mb,
+        simulate_s,
+        wall_s,
+        stages,
+        peak_rss_mib: peak,
+    })
+}
+
+fn print_table(rows: &[Row]) {
+    println!();
+    println!(
+        "| vertices | frames | registered | fits | dataset MB | mesh s | registration s | selection s | fit s | error s | interpolate s | frame stages s | ms / frame | fit wall s | peak RSS MiB |"
+    );
+    println!("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    for r in rows {
+        println!(
+            "| {} | {} | {} | {} | {:.0} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.0} |",
+            r.vertices,
+            r.frames,
+            r.registered,
+            r.fits,
+            r.dataset_mb,
+            r.stage("mesh"),
+            r.stage("registration"),
+            r.stage("selection"),
+            r.stage("fit"),
+            r.stage("error"),
+            r.stage("interpolate"),
+            r.frame_stages_s(),
+            1e3 * r.frame_stages_s() / r.frames.max(1) as f64,
+            r.wall_s,
+            r.peak_rss_mib
+        );
+    }
+}
+
+/// Ratios between consecutive rows that double one quantity and keep the other.
+fn print_growth(rows: &[Row]) {
+    println!();
+    println!("growth (later / earlier):");
+    for (i, a) in rows.iter().enumerate() {
+        for b in &rows[i + 1..] {
+            let frames_doubled = a.vertices == b.vertices && b.frames == 2 * a.frames;
+            let vertices_doubled = a.frames == b.frames
+                && (b.vertices as f64 / a.vertices.max(1) as f64 - 2.0).abs() < 0.1;
+            if !(frames_doubled || vertices_doubled) {
+                continue;
+            }
+            let what = if frames_doubled {
+                format!(
+                    "frames {} -> {} at {} vertices",
+                    a.frames, b.frames, a.vertices
+                )
+            } else {
+                format!(
+                    "vertices {} -> {} at {} frames",
+                    a.vertices, b.vertices, a.frames
+                )
+            };
+            println!(
+                "  {what}: registration x{:.2}, fit x{:.2}, error x{:.2}, frame stages x{:.2}, \
+                 interpolate x{:.2}, wall x{:.2}, peak RSS x{:.2}",
+                b.stage("registration") / a.stage("registration"),
+                b.stage("fit") / a.stage("fit"),
+                b.stage("error") / a.stage("error"),
+                b.frame_stages_s() / a.frame_stages_s(),
+                b.stage("interpolate") / a.stage("interpolate"),
+                b.wall_s / a.wall_s,
+                b.peak_rss_mib / a.peak_rss_mib
+            );
+        }
+    }
+}
+
+/// Two panels: seconds against frames (fit wall time and the frame stages) and peak RSS against
+/// frames, one line per vertex count, both axes from zero so linearity reads directly.
+fn plot(path: &Path, rows: &[Row], size: u32) -> Result<()> {
+    use plotters::prelude::*;
+    subsurf::plot::register_font();
+    let err = |e: &dyn std::fmt::Display| anyhow::anyhow!("drawing {}: {e}", path.display());
+    let root = BitMapBackend::new(path, (1200, 480)).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| err(&e))?;
+    let (left, right) = root.split_horizontally(600);
+    let fmax = rows.iter().map(|r| r.frames).max().unwrap_or(1) as f64 * 1.05;
+    let tmax = rows.iter().map(|r| r.wall_s).fold(0.0, f64::max).max(1e-3) * 1.1;
+    let mmax = rows
+        .iter()
+        .map(|r| r.peak_rss_mib)
+        .filter(|m| m.is_finite())
+        .fold(0.0, f64::max)
+        .max(1.0)
+        * 1.25;
+    let mut by_v: BTreeMap<usize, Vec<&Row>> = BTreeMap::new();
+    for r in rows {
+        by_v.entry(r.vertices).or_default().push(r);
+    }
+    let colours = [
+        RGBColor(31, 119, 180),
+        RGBColor(214, 39, 40),
+        RGBColor(44, 160, 44),
+        RGBColor(148, 103, 189),
+    ];
+    let mut chart = ChartBuilder::on(&left)
+        .caption("subsurf fit: time vs frames", ("sans-serif", 20))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(60)
+        .build_cartesian_2d(0.0..fmax, 0.0..tmax)
+        .map_err(|e| err(&e))?;
+    chart
+        .configure_mesh()
+        .x_desc(format!("frames ({size}x{size})"))
+        .x_label_formatter(&|v| format!("{v:.0}"))
+        .y_desc("seconds")
+        .draw()
+        .map_err(|e| err(&e))?;
+    for (i, (v, rs)) in by_v.iter().enumerate() {
+        let c = colours[i % colours.len()];
+        let mut rs = rs.clone();
+        rs.sort_by_key(|r| r.frames);
+        let wall: Vec<(f64, f64)> = rs.iter().map(|r| (r.frames as f64, r.wall_s)).collect();
+        let frame: Vec<(f64, f64)> = rs
+            .iter()
+            .map(|r| (r.frames as f64, r.frame_stages_s()))
+            .collect();
+        chart
+            .draw_series(LineSeries::new(wall.clone(), c.stroke_width(2)))
+            .map_err(|e| err(&e))?
+            .label(format!("{v} vertices: fit wall"))
+            .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], c.stroke_width(2)));
+        chart
+            .draw_series(wall.iter().map(|&p| Circle::new(p, 3, c.filled())))
+            .map_err(|e| err(&e))?;
+        chart
+            .draw_series(LineSeries::new(frame.clone(), c.mix(0.6).stroke_width(1)))
+            .map_err(|e| err(&e))?
+            .label(format!("{v} vertices: registration+fit+error"))
+            .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], c.mix(0.6)));
+        chart
+            .draw_series(frame.iter().map(|&p| TriangleMarker::new(p, 4, c.mix(0.6))))
+            .map_err(|e| err(&e))?;
+    }
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::UpperLeft)
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()
+        .map_err(|e| err(&e))?;
+    let mut chart = ChartBuilder::on(&right)
+        .caption("subsurf fit: peak RSS vs frames", ("sans-serif", 20))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(60)
+        .build_cartesian_2d(0.0..fmax, 0.0..mmax)
+        .map_err(|e| err(&e))?;
+    chart
+        .configure_mesh()
+        .x_desc(format!("frames ({size}x{size})"))
+        .x_label_formatter(&|v| format!("{v:.0}"))
+        .y_desc("peak RSS (MiB)")
+        .draw()
+        .map_err(|e| err(&e))?;
+    for (i, (v, rs)) in by_v.iter().enumerate() {
+        let c = colours[i % colours.len()];
+        let mut rs = rs.clone();
+        rs.sort_by_key(|r| r.frames);
+        let pts: Vec<(f64, f64)> = rs
+            .iter()
+            .map(|r| (r.frames as f64, r.peak_rss_mib))
+            .collect();
+        chart
+            .draw_series(LineSeries::new(pts.clone(), c.stroke_width(2)))
+            .map_err(|e| err(&e))?
+            .label(format!("{v} vertices"))
+            .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], c.stroke_width(2)));
+        chart
+            .draw_series(pts.iter().map(|&p| Circle::new(p, 3, c.filled())))
+            .map_err(|e| err(&e))?;
+    }
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::LowerRight)
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()
+        .map_err(|e| err(&e))?;
+    root.present().map_err(|e| err(&e))?;
+    Ok(())
+}
+
+pub fn bench_fit_scale(b: FitScaleBench) -> Result<()> {
+    if b.vertices.is_empty() || b.frames.is_empty() {
+        bail!("--vertices and --frames need at least one value each");
+    }
+    let exe = std::env::current_exe().context("locating the subsurf binary")?;
+    std::fs::create_dir_all(&b.dir).with_context(|| format!("creating {}", b.dir.display()))?;
+    if cfg!(debug_assertions) {
+        println!("warning: debug build; figures for BENCHMARKS.md come from --release");
+    }
+    println!(
+        "fit-scale: sphere, 1 camera, {0}x{0} EXR frames, {1}x{1} laser raster per angle, {2} rayon threads",
+        b.size,
+        b.raster,
+        rayon::current_num_threads()
+    );
+    let total = b.vertices.len() * b.frames.len();
+    let mut rows = Vec::with_capacity(total);
+    // Children run with captured output; this bar shows which one is running.
+    let bar = indicatif::ProgressBar::new(2 * total as u64).with_style(
+        indicatif::ProgressStyle::with_template("{spinner} {msg} [{pos}/{len} runs, {elapsed}]")
+            .context("progress style")?,
+    );
+    bar.enable_steady_tick(std::time::Duration::from_millis(250));
+    for &v in &b.vertices {
+        for &f in &b.frames {
+            bar.suspend(|| println!("[{}/{total}] {v} vertices, {f} frames", rows.len() + 1));
+            let row = measure(&b, &exe, v, f, &bar)?;
+            bar.suspend(|| {
+                println!(
+                    "  simulate {:.1} s, dataset {:.0} MB; fit wall {:.2} s, peak RSS {:.0} MiB",
+                    row.simulate_s, row.dataset_mb, row.wall_s, row.peak_rss_mib
+                )
+            });
+            rows.push(row);
+        }
+    }
+    bar.finish_and_clear();
+    print_table(&rows);
+    print_growth(&rows);
+    if let Some(p) = &b.json {
+        std::fs::write(p, serde_json::to_string_pretty(&rows)?)
+            .with_context(|| format!("writing {}", p.display()))?;
+        println!("wrote {}", p.display());
+    }
+    if let Some(p) = &b.plot {
+        plot(p, &rows, b.size)?;
+        println!("wrote {}", p.display());
+    }
+    Ok(())
+}
