@@ -107,9 +107,9 @@ impl Default for FitOptions {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Preset {
-    /// Fast previews: n = 3, 16 distance bins, every 2nd sample, isotropic.
+    /// Fast previews: n = 3, 8 distance bins, every 2nd sample, isotropic.
     Draft,
-    /// Production default: n = 3, 64 distance bins, all samples, 4 segments.
+    /// Production default: n = 3, 16 distance bins, all samples, 4 segments.
     Balanced,
     /// Exact fit on all samples, automatic n ≤ 4 (1 % tolerance), 8 segments.
     Best,
@@ -121,14 +121,14 @@ impl Preset {
         match self {
             Self::Draft => FitOptions {
                 terms: Terms::Fixed(3),
-                bins: Some(16),
+                bins: Some(8),
                 subsample: 2,
                 max_iterations: 30,
                 ..FitOptions::default()
             },
             Self::Balanced => FitOptions {
                 terms: Terms::Fixed(3),
-                bins: Some(64),
+                bins: Some(16),
                 max_iterations: 100,
                 ..FitOptions::default()
             },
@@ -194,8 +194,9 @@ pub struct ExpFit {
     /// the linear objective).
     pub rss: f64,
     /// log E (Eq. 8, alpha = 1, all used samples): RMS of ln(R_d/s). In fast mode
-    /// ([`FitOptions::bins`]) it is computed from the bin statistics (exact up to the curvature
-    /// of ln R_d within a bin) instead of another pass over the samples; so is `rss`.
+    /// ([`FitOptions::bins`]) it is computed from the bin statistics (exact up to the cubic term
+    /// of ln R_d across a bin, see [`bins`]) instead of another pass over the samples; so is
+    /// `rss`.
     pub log_e: f64,
     /// Levenberg–Marquardt iterations (pre-fit plus final fit).
     pub iterations: usize,
