@@ -59,20 +59,6 @@ pub struct Spot {
     pub sigma_px: f64,
 }
 
-impl Spot {
-    /// Distance (pixels) beyond which the spot's own light, a Gaussian of [`Spot::sigma_px`]
-    /// and peak [`Spot::peak_fit`], falls below `floor` (same units): pixels closer hold
-    /// first-surface reflection, not subsurface scattering.
-    pub fn reach_px(&self, floor: f64) -> f64 {
-        let ratio = self.peak_fit / floor.max(f64::MIN_POSITIVE);
-        if ratio > 1.0 && self.sigma_px.is_finite() {
-            self.sigma_px * (2.0 * ratio.ln()).sqrt()
-        } else {
-            0.0
-        }
-    }
-}
-
 /// What registration concluded about a frame.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]

@@ -3,12 +3,18 @@
 //!
 //! A sample is dropped — and counted — when it is below the noise floor, clipped, non-finite, or
 //! closer to x_i than the exclusion radius (first-surface reflection and single scattering
-//! dominate there, section 5), or when its bilinear neighbourhood lies where the laser spot's
-//! own light, in the image, is above the noise floor. The spot is spread in the image (optics,
-//! sensor), not on the surface: seen at an angle, its light reaches samples well beyond the
-//! exclusion radius (up to 30 times the scattered light was measured there).
+//! dominate there, section 5), or when the laser spot's own light, spread in the image (optics,
+//! sensor) rather than on the surface, adds more than [`SPOT_SHARE`] to it: seen at an angle,
+//! the spot reaches samples well beyond the exclusion radius (up to 30 times the scattered light
+//! was measured there on the built-in sphere).
 use crate::dataset::{FrameSpec, Image};
 use crate::geometry::{V3, Visible, dist};
+
+/// Largest share of a sample's value the laser spot's light (the Gaussian fitted by
+/// [`crate::registration::detect_spot`], at the nearest corner of the sample's bilinear
+/// neighbourhood) may make up: 0.5 % is an error of 0.005 in ln s, below the sensor noise at any
+/// sensible noise floor.
+pub const SPOT_SHARE: f64 = 0.005;
 
 /// Settings of sample extraction.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
@@ -62,7 +68,8 @@ pub struct SampleCounts {
     pub saturated: u64,
     /// NaN or infinite.
     pub non_finite: u64,
-    /// Within the exclusion radius of x_i, or inside the laser spot's light in the image.
+    /// Within the exclusion radius of x_i, or lit by the laser spot's light in the image by
+    /// more than [`SPOT_SHARE`].
     pub excluded: u64,
 }
 
@@ -90,13 +97,24 @@ pub fn frame_samples(
     let mut out = Vec::with_capacity(visible.len());
     let chans = frame.channel.channels();
     let sat = opts.saturation.map(|s| s * 0.999).unwrap_or(f64::INFINITY);
-    let spot = spot_exclusion(img, frame, opts);
+    let spot = spot_light(img, opts);
     for vis in visible {
         let x_o = positions[vis.vertex as usize];
         let r = dist(x_o, x_i);
-        let in_spot = spot
-            .is_some_and(|(u, v, reach)| (vis.u - u).powi(2) + (vis.v - v).powi(2) < reach * reach);
-        if r < opts.exclusion_radius_mm || in_spot {
+        if r < opts.exclusion_radius_mm {
+            counts.excluded += chans.len() as u64;
+            continue;
+        }
+        let mut raw = [None; 3];
+        for &c in chans {
+            raw[c] = img.bilinear(vis.u, vis.v, c);
+        }
+        let spot_raw = spot.as_ref().map_or(0.0, |l| l.raw_at(vis.u, vis.v));
+        let lit = raw
+            .iter()
+            .flatten()
+            .any(|(val, _)| spot_raw > SPOT_SHARE * val || (spot_raw > 0.0 && *val <= 0.0));
+        if lit {
             counts.excluded += chans.len() as u64;
             continue;
         }
@@ -107,7 +125,7 @@ pub fn frame_samples(
             valid: 0,
         };
         for &c in chans {
-            let Some((val, max_raw)) = img.bilinear(vis.u, vis.v, c) else {
+            let Some((val, max_raw)) = raw[c] else {
                 continue;
             };
             let v = val / frame.exposure_s;
@@ -130,19 +148,41 @@ pub fn frame_samples(
     (out, counts)
 }
 
-/// The laser spot in the frame and how far (pixels) from its centre a sample is affected: the
-/// spot's reach down to the noise floor ([`crate::registration::Spot::reach_px`]; with no floor,
-/// down to 1e-6 of its peak) plus the bilinear neighbourhood (√2 px).
-fn spot_exclusion(img: &Image, frame: &FrameSpec, opts: &SampleOptions) -> Option<(f64, f64, f64)> {
+/// The laser spot's light in a frame: a Gaussian in the image (raw, per channel).
+struct SpotLight {
+    u: f64,
+    v: f64,
+    sigma_px: f64,
+    peak: f64,
+}
+
+impl SpotLight {
+    /// The spot's light as the bilinear sample at `(u, v)` holds it (the same weights over the
+    /// four pixel centres around it as `Image::bilinear`).
+    fn raw_at(&self, u: f64, v: f64) -> f64 {
+        let g = |i: f64, j: f64| {
+            let d2 = (i - self.u).powi(2) + (j - self.v).powi(2);
+            self.peak * (-d2 / (2.0 * self.sigma_px * self.sigma_px)).exp()
+        };
+        let (i0, j0) = (u.floor(), v.floor());
+        let (fu, fv) = (u - i0, v - j0);
+        (1.0 - fu) * (1.0 - fv) * g(i0, j0)
+            + fu * (1.0 - fv) * g(i0 + 1.0, j0)
+            + (1.0 - fu) * fv * g(i0, j0 + 1.0)
+            + fu * fv * g(i0 + 1.0, j0 + 1.0)
+    }
+}
+
+fn spot_light(img: &Image, opts: &SampleOptions) -> Option<SpotLight> {
     let spot = crate::registration::detect_spot(img, 0.0, opts.saturation)?;
-    // Floor in the spot's units: raw, summed over channels.
-    let floor_raw = opts.noise_floor * frame.exposure_s * img.channels as f64;
-    let floor = floor_raw.max(1e-6 * spot.peak_fit);
-    Some((
-        spot.u,
-        spot.v,
-        spot.reach_px(floor) + std::f64::consts::SQRT_2,
-    ))
+    (spot.sigma_px.is_finite() && spot.sigma_px > 0.0 && spot.peak_fit.is_finite()).then(|| {
+        SpotLight {
+            u: spot.u,
+            v: spot.v,
+            sigma_px: spot.sigma_px,
+            peak: spot.peak_fit / img.channels.max(1) as f64,
+        }
+    })
 }
 
 #[cfg(test)]
@@ -204,18 +244,18 @@ mod tests {
     }
 
     #[test]
-    fn the_spot_reaches_as_far_as_its_light_exceeds_the_floor() {
-        let spot = crate::registration::Spot {
+    fn the_spot_light_is_sampled_like_the_image() {
+        let l = SpotLight {
             u: 0.0,
             v: 0.0,
-            peak: 100.0,
-            saturated: false,
-            peak_fit: 100.0,
             sigma_px: 0.8,
+            peak: 100.0,
         };
-        // 100·exp(-d²/(2σ²)) = 1e-2 at d = σ·sqrt(2 ln 1e4).
-        let d = spot.reach_px(1e-2);
-        assert!((d - 0.8 * (2.0 * 1e4f64.ln()).sqrt()).abs() < 1e-12);
-        assert_eq!(spot.reach_px(1e3), 0.0);
+        let g = |d2: f64| 100.0 * (-d2 / (2.0 * 0.64)).exp();
+        assert!((l.raw_at(0.0, 0.0) - 100.0).abs() < 1e-12);
+        assert!((l.raw_at(3.0, 0.0) - g(9.0)).abs() < 1e-12);
+        // Half-way between pixel centres: the mean of the two.
+        assert!((l.raw_at(2.5, 0.0) - 0.5 * (g(4.0) + g(9.0))).abs() < 1e-12);
+        assert!(l.raw_at(30.0, 0.0) < 1e-100);
     }
 }
