@@ -12,8 +12,7 @@ use serde::{Deserialize, Serialize};
 
 use super::lm::{self, Problem, Settings};
 use super::{
-    FitFailure, FitOptions, OrderCandidate, OrderChoice, SampleReport, Solver, Terms, fit_expsum,
-    samples_needed,
+    FitFailure, FitOptions, OrderChoice, SampleReport, Solver, Terms, fit_expsum, samples_needed,
 };
 use crate::model::expsum::sort_terms;
 use crate::model::{Anisotropic, ColourModel, ExpSum, MAX_TERMS, Term, hat_weights};
@@ -287,29 +286,17 @@ pub fn fit_colour_auto_segments(
         m *= 2;
     }
     let mean = |f: &ColourFit| f.log_e.iter().sum::<f64>() / 3.0;
-    let best = fits
+    let log_es: Vec<(usize, Option<f64>)> = fits
         .iter()
-        .filter_map(|(_, f)| f.as_ref().ok().map(mean))
-        .fold(f64::INFINITY, f64::min);
-    let candidates = fits
-        .iter()
-        .map(|(m, f)| OrderCandidate {
-            order: *m,
-            log_e: f.as_ref().ok().map(mean),
-        })
+        .map(|(m, f)| (*m, f.as_ref().ok().map(mean)))
         .collect();
-    let chosen = fits.iter().position(|(_, f)| {
-        f.as_ref()
-            .is_ok_and(|f| mean(f) <= best * (1.0 + tolerance) + 1e-15)
-    });
-    match chosen {
-        Some(i) => {
-            let (m, f) = fits.swap_remove(i);
-            let choice = OrderChoice {
-                chosen: m,
-                tolerance,
-                candidates,
-            };
+    match super::choose_order(&log_es, tolerance) {
+        Some(choice) => {
+            let i = fits
+                .iter()
+                .position(|(m, _)| *m == choice.chosen)
+                .ok_or(FitFailure::NonFinite)?;
+            let (_, f) = fits.swap_remove(i);
             Ok((f?, choice))
         }
         // Every m failed: the simplest model's reason.

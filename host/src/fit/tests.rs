@@ -600,3 +600,24 @@ fn vectorisable_ln_matches_std() {
     let sub = 1e-310f64;
     assert!((super::isotropic::ln_positive(sub) - sub.ln()).abs() < 4e-16 * sub.ln().abs());
 }
+
+#[test]
+fn choose_order_keeps_the_smallest_within_tolerance() {
+    use super::choose_order;
+    let c = [
+        (1, Some(0.050)),
+        (2, Some(0.0101)),
+        (4, Some(0.0100)),
+        (8, None),
+    ];
+    let choice = choose_order(&c, 0.02).unwrap();
+    assert_eq!(choice.chosen, 2);
+    assert_eq!(choice.candidates.len(), 4);
+    assert_eq!(choose_order(&c, 0.0).unwrap().chosen, 4);
+    assert_eq!(choose_order(&c, 10.0).unwrap().chosen, 1);
+    assert!(choose_order(&[(1, None), (2, None)], 0.1).is_none());
+    assert!(choose_order(&[], 0.1).is_none());
+    // A non-finite log E never wins.
+    let c = [(1, Some(f64::NAN)), (2, Some(0.2))];
+    assert_eq!(choose_order(&c, 0.0).unwrap().chosen, 2);
+}
