@@ -218,9 +218,11 @@ pub fn detect_spot(img: &Image, min_peak: f64, saturation: Option<f64>) -> Optio
         // ln L = … + e·ρ² with e = -1/(2σ²).
         sigma_px = (-0.5 / sol[3]).sqrt();
         let (du, dv) = (-sol[1] / (2.0 * sol[3]), -sol[2] / (2.0 * sol[3]));
+        // The extrapolated top, trusted up to 100× the clipping level (a poorly constrained
+        // ring fit extrapolates without bound, and would then claim the whole image).
         let top = (sol[0] + sol[1] * du + sol[2] * dv + sol[3] * (du * du + dv * dv)).exp();
         if top.is_finite() && top > peak {
-            peak_fit = top;
+            peak_fit = top.min(100.0 * peak);
         }
         // Trust the refinement only inside the plateau's extent.
         if du.abs() <= 1.0 + (n.sqrt()) && dv.abs() <= 1.0 + n.sqrt() {

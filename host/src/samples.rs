@@ -173,15 +173,20 @@ impl SpotLight {
     }
 }
 
+/// The spot's light, when the spot is unclipped: only then are its peak and width measured (a
+/// clipped spot's width comes from its ring, which the scattered light around it widens, and its
+/// peak is unknown). Scans that need the exclusion bracket the spot (HDR), as `scan --sim` does.
 fn spot_light(img: &Image, opts: &SampleOptions) -> Option<SpotLight> {
     let spot = crate::registration::detect_spot(img, 0.0, opts.saturation)?;
-    (spot.sigma_px.is_finite() && spot.sigma_px > 0.0 && spot.peak_fit.is_finite()).then(|| {
-        SpotLight {
-            u: spot.u,
-            v: spot.v,
-            sigma_px: spot.sigma_px,
-            peak: spot.peak_fit / img.channels.max(1) as f64,
-        }
+    (!spot.saturated
+        && spot.sigma_px.is_finite()
+        && spot.sigma_px > 0.0
+        && spot.peak_fit.is_finite())
+    .then(|| SpotLight {
+        u: spot.u,
+        v: spot.v,
+        sigma_px: spot.sigma_px,
+        peak: spot.peak_fit / img.channels.max(1) as f64,
     })
 }
 
@@ -193,14 +198,14 @@ mod tests {
     #[test]
     fn each_rejection_rule_is_applied_and_counted() {
         let mut img = Image::new(16, 1, 3);
-        // Pixel 0: fine; 1: NaN in green; 2: clipped; 3: dark; 13: fine but next to the laser
-        // spot at 14.
+        // Pixel 0: fine; 1: NaN in green; 2: clipped in red and green, dark in blue; 3: dark;
+        // 13: fine but next to the (unclipped) laser spot at 14.
         img.data[..3].copy_from_slice(&[1.0, 1.0, 1.0]);
         img.data[3..6].copy_from_slice(&[1.0, f32::NAN, 1.0]);
-        img.data[6..9].copy_from_slice(&[50.0, 50.0, 50.0]);
+        img.data[6..9].copy_from_slice(&[50.0, 50.0, 1e-6]);
         img.data[9..12].copy_from_slice(&[1e-6, 1e-6, 1e-6]);
         img.data[39..42].copy_from_slice(&[1.0, 1.0, 1.0]);
-        img.data[42..45].copy_from_slice(&[1000.0, 1000.0, 1000.0]);
+        img.data[42..45].copy_from_slice(&[39.0, 39.0, 39.0]);
         let frame = FrameSpec {
             image: String::new(),
             camera: 0,
@@ -236,8 +241,8 @@ mod tests {
         assert_eq!(s[0].value, [0.5, 0.5, 0.5]);
         assert_eq!(s[1].valid, 0b101);
         assert_eq!(c.non_finite, 1);
-        assert_eq!(c.saturated, 3);
-        assert_eq!(c.below_noise, 3);
+        assert_eq!(c.saturated, 2);
+        assert_eq!(c.below_noise, 4);
         // Vertex 4 by the exclusion radius, vertex 5 by the spot's light in the image.
         assert_eq!(c.excluded, 6);
         assert_eq!(c.used, 5);

@@ -198,7 +198,7 @@ fn noisy_scan_with_deprived_vertices_gives_every_vertex_a_model() {
     .unwrap();
     let out = fit(&ds, &train, &opts);
     let r = &out.report;
-    assert_eq!(r.vertices_no_model, 0);
+    assert_eq!(r.vertices_no_model, 0, "{:?} {:?}", r.frames, r.failures);
     assert!(r.failures.get(&FailReason::NoData).copied().unwrap_or(0) >= deprived.len());
     for &v in &deprived {
         assert_eq!(
