@@ -42,7 +42,8 @@ pub type Micros = u64;
 pub const MAX_PROGRAM_POINTS: usize = 1024;
 
 /// Outgoing messages buffered between two drains; beyond this, new messages are dropped and
-/// counted ([`Rig::tx_dropped`]). Replies are recovered by retransmission, events by `Status`.
+/// counted ([`Rig::tx_dropped`]). Replies are recovered by retransmission, events by
+/// [`Command::Replay`] from the event history.
 pub const OUT_QUEUE: usize = 32;
 
 /// Recent events the rig keeps for [`Command::Replay`]: a host that saw a gap in `event_seq`
