@@ -1,29 +1,11 @@
 //! End-to-end tests of the renderer and its pictures, through the public API and the binary.
 
-use std::path::Path;
+mod render_common;
+
 use std::process::Command;
 
-use subsurf::render::{
-    self, Camera, HierarchyParams, Light, Method, Quality, RenderOptions, image_stats,
-};
-
-/// A picture someone can look at: the right size, many colours, real contrast.
-fn assert_picture(path: &Path, width: u32, height: u32) {
-    let s = image_stats(path).unwrap_or_else(|e| panic!("{} does not decode: {e}", path.display()));
-    assert_eq!((s.width, s.height), (width, height), "{}", path.display());
-    assert!(
-        s.distinct_colours > 20,
-        "{}: only {} colours",
-        path.display(),
-        s.distinct_colours
-    );
-    assert!(
-        s.luma_std > 5.0,
-        "{}: flat (luma std {})",
-        path.display(),
-        s.luma_std
-    );
-}
+use render_common::assert_picture;
+use subsurf::render::{self, Camera, HierarchyParams, Light, Method, Quality, RenderOptions};
 
 fn small_torus() -> render::VertexModel {
     render::synthetic::marble_torus(48, 20)
@@ -252,6 +234,7 @@ fn torus_model_file() -> subsurf::modelfile::ModelFile {
                 log_e: 0.01,
                 terms: terms as u8,
                 params,
+                r_range: subsurf::modelfile::NO_RANGE,
             }
         })
         .collect();
@@ -340,4 +323,26 @@ fn model_files_render_anisotropic_and_partial_models() {
         .unwrap();
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("m.ply"));
+}
+
+#[test]
+fn a_fall_off_too_large_to_represent_is_an_error_not_an_image_of_infinities() {
+    let mut model = small_torus();
+    let camera = {
+        let (lo, hi) = model.bounds();
+        Camera::framing(lo, hi, render::DEFAULT_VIEW, 40, 40).unwrap()
+    };
+    let lights: Vec<Light> = vec!["dir:0,0,-1".parse().unwrap()];
+    assert!(render::render(&model, &lights, &camera, &RenderOptions::default()).is_ok());
+    // Valid by the model's rules (c > 0 finite, d < 0), but 1e300 · E · A overflows.
+    let k = model.param_len();
+    for v in 0..model.len() {
+        model.params[v * k + 2] = 1e300;
+    }
+    model.validate().unwrap();
+    let err = render::render(&model, &lights, &camera, &RenderOptions::default()).unwrap_err();
+    assert!(
+        matches!(err, render::RenderError::InvalidValue { .. }),
+        "{err}"
+    );
 }

@@ -1,28 +1,13 @@
 //! Every picture the plot module draws is decoded and checked: right size, not blank.
 
-use std::path::Path;
+mod render_common;
+
 use std::process::Command;
 
+use render_common::assert_picture;
 use subsurf::model::Material;
 use subsurf::plot;
-use subsurf::render::{self, image_stats};
-
-fn assert_picture(path: &Path, width: u32, height: u32) {
-    let s = image_stats(path).unwrap_or_else(|e| panic!("{} does not decode: {e}", path.display()));
-    assert_eq!((s.width, s.height), (width, height), "{}", path.display());
-    assert!(
-        s.distinct_colours > 20,
-        "{}: only {} colours",
-        path.display(),
-        s.distinct_colours
-    );
-    assert!(
-        s.luma_std > 5.0,
-        "{}: flat (luma std {})",
-        path.display(),
-        s.luma_std
-    );
-}
+use subsurf::render;
 
 #[test]
 fn figure_3_falloff_with_both_fits() {

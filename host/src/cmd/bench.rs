@@ -22,6 +22,9 @@ enum Bench {
     /// Rendering: hierarchical against exact transport on the built-in marble torus (speed-up and
     /// pixel error along the error-bound curve).
     Render(super::bench_render::RenderBench),
+    /// The whole chain: simulated scan density × fit preset × render quality → wall time per
+    /// stage and error against the exact result, with the Pareto front.
+    Tradeoff(super::bench_tradeoff::TradeoffBench),
     /// Scan processing at scale: `subsurf fit` on simulated scans over a grid of vertex and
     /// frame counts (stage times, peak RSS, growth), one dataset on disk at a time.
     FitScale(super::bench_fit::FitScaleBench),
@@ -47,6 +50,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     match args.what {
         Bench::Rig(a) => rig(a),
         Bench::Render(a) => super::bench_render::bench_render(a),
+        Bench::Tradeoff(a) => super::bench_tradeoff::bench_tradeoff(a),
         Bench::FitScale(a) => super::bench_fit::bench_fit_scale(a),
     }
 }

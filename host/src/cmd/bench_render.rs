@@ -1,4 +1,4 @@
-//! `subsurf bench render` and `subsurf bench tradeoff`: the renderer's figures for BENCHMARKS.md
+//! `subsurf bench render`: the renderer's figures for BENCHMARKS.md
 //! (release mode; output pasted unedited).
 
 use std::time::Instant;

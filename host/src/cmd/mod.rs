@@ -4,6 +4,7 @@ use clap::{Parser, Subcommand};
 mod bench;
 mod bench_fit;
 mod bench_render;
+mod bench_tradeoff;
 mod calib;
 mod demo;
 mod evaluate;

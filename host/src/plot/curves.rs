@@ -177,3 +177,123 @@ pub fn tradeoff_curve(
     root.present().map_err(&e)?;
     Ok(())
 }
+
+/// One configuration of a speed/accuracy study for [`pareto_plot`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct TradeoffPoint {
+    /// Short label, drawn beside the point when it is on the Pareto front.
+    pub label: String,
+    /// Wall time, seconds (> 0).
+    pub seconds: f64,
+    /// Error against the reference (>= 0; 0 is drawn at the axis' floor).
+    pub error: f64,
+}
+
+/// Indices of the points on the Pareto front (no other point is at least as fast and at least as
+/// accurate, and strictly better in one), sorted by time. Non-finite points are never on it.
+pub fn pareto_front(points: &[TradeoffPoint]) -> Vec<usize> {
+    let ok = |p: &TradeoffPoint| p.seconds.is_finite() && p.error.is_finite();
+    let mut front: Vec<usize> = (0..points.len())
+        .filter(|&i| {
+            let a = &points[i];
+            ok(a)
+                && !points.iter().any(|b| {
+                    ok(b)
+                        && b.seconds <= a.seconds
+                        && b.error <= a.error
+                        && (b.seconds < a.seconds || b.error < a.error)
+                })
+        })
+        .collect();
+    front.sort_by(|&i, &j| points[i].seconds.total_cmp(&points[j].seconds));
+    front
+}
+
+/// A whole-chain speed/accuracy study: every configuration as a point (error against time,
+/// log–log), the Pareto front joined by a line with its points labelled. Returns the front's
+/// indices ([`pareto_front`]).
+pub fn pareto_plot(
+    path: &Path,
+    title: &str,
+    points: &[TradeoffPoint],
+    size: (u32, u32),
+) -> Result<Vec<usize>, PlotError> {
+    register_font();
+    let ok: Vec<&TradeoffPoint> = points
+        .iter()
+        .filter(|p| p.seconds.is_finite() && p.seconds > 0.0 && p.error.is_finite())
+        .collect();
+    if ok.is_empty() {
+        return Err(PlotError::Empty("no finite points".into()));
+    }
+    let front = pareto_front(points);
+    let emax = ok.iter().map(|p| p.error).fold(0.0, f64::max).max(1e-6);
+    let epos = ok
+        .iter()
+        .map(|p| p.error)
+        .filter(|&v| v > 0.0)
+        .fold(f64::INFINITY, f64::min);
+    let efloor = if epos.is_finite() {
+        (epos / 3.0).min(emax / 10.0)
+    } else {
+        emax / 100.0
+    };
+    let tmin = ok.iter().map(|p| p.seconds).fold(f64::INFINITY, f64::min);
+    let tmax = ok.iter().map(|p| p.seconds).fold(0.0, f64::max);
+    let e = draw_err(path);
+    let root = BitMapBackend::new(path, size).into_drawing_area();
+    root.fill(&WHITE).map_err(&e)?;
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 18))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(60)
+        .build_cartesian_2d(
+            (efloor..emax * 3.0).log_scale(),
+            (tmin / 1.5..tmax * 1.5).log_scale(),
+        )
+        .map_err(&e)?;
+    chart
+        .configure_mesh()
+        .x_desc("mean relative pixel error against the reference")
+        .y_desc("wall time, whole chain (s)")
+        .x_label_formatter(&|v| format!("{v:.0e}"))
+        .draw()
+        .map_err(&e)?;
+    let at = |p: &TradeoffPoint| (p.error.max(efloor), p.seconds);
+    chart
+        .draw_series(
+            ok.iter()
+                .map(|p| Circle::new(at(p), 4, BLUE.mix(0.5).filled())),
+        )
+        .map_err(&e)?
+        .label("configuration")
+        .legend(|(x, y)| Circle::new((x + 10, y), 4, BLUE.mix(0.5).filled()));
+    let line: Vec<(f64, f64)> = front.iter().map(|&i| at(&points[i])).collect();
+    chart
+        .draw_series(LineSeries::new(line.clone(), RED.stroke_width(2)))
+        .map_err(&e)?
+        .label("Pareto front")
+        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], RED.stroke_width(2)));
+    chart
+        .draw_series(line.iter().map(|&p| Circle::new(p, 6, RED.filled())))
+        .map_err(&e)?;
+    chart
+        .draw_series(front.iter().map(|&i| {
+            Text::new(
+                points[i].label.clone(),
+                at(&points[i]),
+                ("sans-serif", 12).into_font(),
+            )
+        }))
+        .map_err(&e)?;
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::UpperRight)
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()
+        .map_err(&e)?;
+    root.present().map_err(&e)?;
+    Ok(front)
+}

@@ -26,7 +26,7 @@ mod curves;
 mod figures;
 mod surface;
 
-pub use curves::{Curve, falloff_plot, tradeoff_curve};
+pub use curves::{Curve, TradeoffPoint, falloff_plot, pareto_front, pareto_plot, tradeoff_curve};
 pub use figures::{FalloffSummary, error_maps, falloff_figure};
 pub use surface::{MeshView, Panel, PanelData, model_viewer, surface_panels, viridis};
 

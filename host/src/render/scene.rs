@@ -154,6 +154,19 @@ pub fn render(
             [0, 1, 2].map(|c| a[c] * ft * b[v][c] / std::f64::consts::PI)
         })
         .collect();
+    // A validated model can still have a fall-off too large to represent near its source (c huge
+    // where d is steep): say so instead of writing an image of infinities and NaNs.
+    if let Some((v, c)) = radiance.iter().enumerate().find_map(|(v, l)| {
+        l.iter()
+            .position(|x| !(x.is_finite() && x.abs() <= f64::from(f32::MAX)))
+            .map(|c| (v, l[c]))
+    }) {
+        return Err(RenderError::InvalidValue {
+            vertex: v,
+            what: "outgoing radiance (the model's fall-off is too large to represent)",
+            value: c,
+        });
+    }
     let image = rasterise(camera, &model.positions, &model.faces, &radiance);
     let t_r = t0.elapsed().as_secs_f64();
     Ok(RenderOutput {

@@ -1,0 +1,462 @@
+//! `subsurf bench tradeoff`: the speed/accuracy curve of the whole chain — simulated scan at
+//! several plan densities → fit preset → render quality — with wall time per stage and the error of
+//! every configuration against the exact result, as a markdown table and a PNG with the Pareto
+//! front (release mode; output pasted unedited, or written with `--write-benchmarks`).
+//!
+//! Everything runs through library calls (`simulate::simulate`, `pipeline::fit_dataset`,
+//! `evaluate::evaluate_frames`, `render::render`), never through the binary.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, anyhow, bail};
+use subsurf::dataset::{Dataset, select_frames};
+use subsurf::evaluate::evaluate_frames;
+use subsurf::fit::Preset;
+use subsurf::modelfile::ModelFile;
+use subsurf::pipeline::{PipelineOptions, fit_dataset};
+use subsurf::plot::TradeoffPoint;
+use subsurf::render::{self, Camera, Image, Method, Quality, RenderOptions, VertexModel};
+use subsurf::scan::setup::builtin_object;
+use subsurf::simulate::{CameraRig, SimConfig, simulate};
+
+/// Scan, fit and render settings of the whole chain against the exact result.
+#[derive(Debug, clap::Args)]
+pub struct TradeoffBench {
+    /// Small sizes (one plan density, two presets, two render qualities) so the whole chain
+    /// runs in seconds; for tests and a first look.
+    #[arg(long)]
+    quick: bool,
+    /// Scratch folder for the simulated scans (created; removed at the end unless --keep).
+    #[arg(long, default_value = "/tmp/subsurf-bench-tradeoff")]
+    work: PathBuf,
+    /// Keep the simulated scans in --work.
+    #[arg(long)]
+    keep: bool,
+    /// Write the time-vs-error plot here.
+    #[arg(long, default_value = "docs/bench/tradeoff.png")]
+    plot: PathBuf,
+    /// Replace the generated part of this BENCHMARKS.md's tradeoff section (between its
+    /// `bench-tradeoff` markers; the section is appended when the markers are missing).
+    #[arg(long)]
+    write_benchmarks: Option<PathBuf>,
+}
+
+/// One plan density of the simulated scan.
+#[derive(Clone, Copy, Debug)]
+struct Density {
+    /// Turntable angles.
+    angles: usize,
+    /// Laser raster per side.
+    raster: usize,
+}
+
+/// The sizes of one run.
+struct Sizes {
+    densities: Vec<Density>,
+    presets: Vec<Preset>,
+    /// `None` = exact transport.
+    qualities: Vec<Option<Quality>>,
+    /// Camera image size of the simulated scan.
+    scan_px: u32,
+    /// Rendered image size.
+    render_px: u32,
+    /// Held-out scan: its density (its angles sit halfway between the training angles).
+    held_out: Density,
+}
+
+impl Sizes {
+    fn new(quick: bool) -> Sizes {
+        let all_q = vec![
+            Some(Quality::Draft),
+            Some(Quality::Balanced),
+            Some(Quality::Best),
+            None,
+        ];
+        if quick {
+            Sizes {
+                densities: vec![Density {
+                    angles: 3,
+                    raster: 5,
+                }],
+                presets: vec![Preset::Draft, Preset::Best],
+                qualities: vec![Some(Quality::Draft), None],
+                scan_px: 40,
+                render_px: 48,
+                held_out: Density {
+                    angles: 2,
+                    raster: 4,
+                },
+            }
+        } else {
+            Sizes {
+                densities: vec![
+                    Density {
+                        angles: 4,
+                        raster: 6,
+                    },
+                    Density {
+                        angles: 6,
+                        raster: 10,
+                    },
+                    Density {
+                        angles: 8,
+                        raster: 14,
+                    },
+                ],
+                presets: Preset::ALL.to_vec(),
+                qualities: all_q,
+                scan_px: 64,
+                render_px: 256,
+                held_out: Density {
+                    angles: 4,
+                    raster: 8,
+                },
+            }
+        }
+    }
+}
+
+/// One simulated scan: one camera orbiting at the default elevation, so the frame count is
+/// angles × raster².
+fn scan_config(d: Density, px: u32, seed: u64, half_step: bool) -> SimConfig {
+    let mut cfg = SimConfig::for_object(builtin_object(), px, d.angles, d.raster);
+    if let CameraRig::Orbit { count, .. } = &mut cfg.cameras {
+        *count = 1;
+    }
+    if half_step {
+        let step = 360.0 / d.angles.max(1) as f64;
+        for a in &mut cfg.turntable_deg {
+            *a += step / 2.0;
+        }
+    }
+    cfg.seed = seed;
+    cfg
+}
+
+fn quality_name(q: Option<Quality>) -> &'static str {
+    match q {
+        Some(Quality::Draft) => "draft",
+        Some(Quality::Balanced) => "balanced",
+        Some(Quality::Best) => "best",
+        None => "exact",
+    }
+}
+
+/// One row of the table: a (scan density, fit preset, render quality) configuration.
+struct Row {
+    density: usize,
+    frames: usize,
+    preset: Preset,
+    quality: Option<Quality>,
+    scan_s: f64,
+    fit_s: f64,
+    render_s: f64,
+    /// Held-out mean log E (Eq. 8, mean over R, G, B).
+    model_log_e: f64,
+    /// Vertices fitted / interpolated.
+    fitted: usize,
+    interpolated: usize,
+    /// The render, or why there is none.
+    image: Result<Image, String>,
+    render_err: f64,
+    /// Against the exact render of the simulation's ground-truth model.
+    truth_err: f64,
+}
+
+impl Row {
+    fn total(&self) -> f64 {
+        self.scan_s + self.fit_s + self.render_s
+    }
+    fn label(&self) -> String {
+        format!(
+            "{}f/{}/{}",
+            self.frames,
+            self.preset.name(),
+            quality_name(self.quality)
+        )
+    }
+}
+
+fn hidden_or_bar(len: u64, msg: &str) -> indicatif::ProgressBar {
+    let p = indicatif::ProgressBar::new(len);
+    if let Ok(style) =
+        indicatif::ProgressStyle::with_template("{msg:>14} {bar:40} {pos}/{len} {elapsed}")
+    {
+        p.set_style(style);
+    }
+    p.set_message(msg.to_string());
+    p
+}
+
+pub fn bench_tradeoff(b: TradeoffBench) -> Result<()> {
+    let sizes = Sizes::new(b.quick);
+    if b.work.exists() {
+        std::fs::remove_dir_all(&b.work)
+            .with_context(|| format!("clearing {}", b.work.display()))?;
+    }
+    std::fs::create_dir_all(&b.work).with_context(|| format!("creating {}", b.work.display()))?;
+    let t_all = Instant::now();
+    let result = run_chain(&b, &sizes);
+    if !b.keep {
+        // The scans are scratch data: never leave them behind, whatever happened.
+        let _ = std::fs::remove_dir_all(&b.work);
+    }
+    let rows = result?;
+    let text = report(&b, &sizes, &rows, t_all.elapsed().as_secs_f64())?;
+    println!("{text}");
+    if let Some(md) = &b.write_benchmarks {
+        write_section(md, &text).with_context(|| format!("updating {}", md.display()))?;
+        println!("updated {}", md.display());
+    }
+    Ok(())
+}
+
+fn run_chain(b: &TradeoffBench, sizes: &Sizes) -> Result<Vec<Row>> {
+    // The held-out scan: other turntable angles, other noise; no model ever sees it while fitting.
+    let held_dir = b.work.join("held-out");
+    let p = hidden_or_bar(0, "held-out scan");
+    simulate(
+        &scan_config(sizes.held_out, sizes.scan_px, 101, true),
+        &held_dir,
+        &p,
+    )
+    .context("simulating the held-out scan")?;
+    p.finish_and_clear();
+    let held = Dataset::open(&held_dir).context("reading the held-out scan")?;
+    let held_frames = select_frames(held.spec.frames.len(), None, None).map_err(|e| anyhow!(e))?;
+    let held_opts = PipelineOptions::for_dataset(&held);
+
+    let mut rows = Vec::new();
+    let mut truth: Result<Image, String> = Err("no scan".into());
+    for (di, &d) in sizes.densities.iter().enumerate() {
+        let dir = b.work.join(format!("scan-{di}"));
+        let p = hidden_or_bar(0, &format!("scan {}x{}²", d.angles, d.raster));
+        let t = Instant::now();
+        let sum = simulate(&scan_config(d, sizes.scan_px, 7, false), &dir, &p)
+            .with_context(|| format!("simulating scan {di}"))?;
+        let scan_s = t.elapsed().as_secs_f64();
+        p.finish_and_clear();
+        let ds = Dataset::open(&dir).with_context(|| format!("reading scan {di}"))?;
+        let frames = select_frames(ds.spec.frames.len(), None, None).map_err(|e| anyhow!(e))?;
+        if di == 0 {
+            // Every scan is of the same object and material: one ground truth for all.
+            let gt = ModelFile::read(&dir.join("ground-truth.ply")).context("ground truth")?;
+            let gt = VertexModel::from_model_file(&gt);
+            let (lo, hi) = gt.bounds();
+            let cam = Camera::framing(
+                lo,
+                hi,
+                render::DEFAULT_VIEW,
+                sizes.render_px,
+                sizes.render_px,
+            )?;
+            let opts = RenderOptions {
+                method: Method::Exact,
+                ..RenderOptions::default()
+            };
+            truth = render::render(&gt, &super::render::default_lights(&gt), &cam, &opts)
+                .map(|r| r.image)
+                .map_err(|e| e.to_string());
+        }
+        for &preset in &sizes.presets {
+            let mut opts = PipelineOptions::for_dataset(&ds);
+            opts.model.segments = preset.segments();
+            let p = hidden_or_bar(0, &format!("fit {}", preset.name()));
+            let t = Instant::now();
+            let fitted = fit_dataset(&ds, &frames, &opts, &preset.options(), &p)
+                .with_context(|| format!("fitting scan {di} with preset {}", preset.name()))?;
+            let fit_s = t.elapsed().as_secs_f64();
+            p.finish_and_clear();
+            let p = hidden_or_bar(0, "evaluate");
+            let (_, stats) = evaluate_frames(&held, &fitted.model, &held_frames, &held_opts, &p)
+                .context("evaluating on the held-out scan")?;
+            p.finish_and_clear();
+            let means: Vec<f64> = stats.mean.iter().flatten().copied().collect();
+            let model_log_e = if means.is_empty() {
+                f64::NAN
+            } else {
+                means.iter().sum::<f64>() / means.len() as f64
+            };
+            let model = VertexModel::from_model_file(&fitted.model);
+            model.validate().context("fitted model")?;
+            let (lo, hi) = model.bounds();
+            let cam = Camera::framing(
+                lo,
+                hi,
+                render::DEFAULT_VIEW,
+                sizes.render_px,
+                sizes.render_px,
+            )?;
+            let lights = super::render::default_lights(&model);
+            for &q in &sizes.qualities {
+                let opts = RenderOptions {
+                    method: q.map_or(Method::Exact, |q| Method::Hierarchical(q.params())),
+                    ..RenderOptions::default()
+                };
+                let t = Instant::now();
+                // A model the renderer refuses is a measured outcome of that configuration (a row
+                // without an error figure), not a reason to stop the benchmark.
+                let image = render::render(&model, &lights, &cam, &opts)
+                    .map(|r| r.image)
+                    .map_err(|e| e.to_string());
+                let render_s = t.elapsed().as_secs_f64();
+                rows.push(Row {
+                    density: di,
+                    frames: sum.frames,
+                    preset,
+                    quality: q,
+                    scan_s,
+                    fit_s,
+                    render_s,
+                    model_log_e,
+                    fitted: fitted.report.vertices_fitted,
+                    interpolated: fitted.report.vertices_interpolated,
+                    image,
+                    render_err: f64::NAN,
+                    truth_err: f64::NAN,
+                });
+            }
+        }
+        if !b.keep {
+            let _ = std::fs::remove_dir_all(&dir);
+        }
+    }
+    // The reference: the exact render of the best model, i.e. the one with the lowest held-out
+    // log E among those the renderer accepts (normally the densest scan with the best preset).
+    let reference = rows
+        .iter()
+        .enumerate()
+        .filter(|(_, r)| r.quality.is_none() && r.image.is_ok() && r.model_log_e.is_finite())
+        .min_by(|a, b| a.1.model_log_e.total_cmp(&b.1.model_log_e))
+        .map(|(i, _)| i)
+        .ok_or_else(|| anyhow!("no model gave an exact render to compare against"))?;
+    let ref_image = rows[reference]
+        .image
+        .clone()
+        .map_err(|e| anyhow!("reference render: {e}"))?;
+    let truth_image = truth
+        .as_ref()
+        .map_err(|e| anyhow!("ground-truth render: {e}"))?;
+    for r in &mut rows {
+        if let Ok(i) = &r.image {
+            r.render_err = render::relative_pixel_error(i, &ref_image, 1e-3).unwrap_or(f64::NAN);
+            r.truth_err = render::relative_pixel_error(i, truth_image, 1e-3).unwrap_or(f64::NAN);
+        }
+    }
+    Ok(rows)
+}
+
+fn report(b: &TradeoffBench, sizes: &Sizes, rows: &[Row], total_s: f64) -> Result<String> {
+    let points: Vec<TradeoffPoint> = rows
+        .iter()
+        .map(|r| TradeoffPoint {
+            label: r.label(),
+            seconds: r.total(),
+            error: r.render_err,
+        })
+        .collect();
+    if let Some(dir) = b.plot.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    let front = subsurf::plot::pareto_plot(
+        &b.plot,
+        "Whole chain: scan density × fit preset × render quality",
+        &points,
+        (900, 600),
+    )
+    .with_context(|| format!("writing {}", b.plot.display()))?;
+    let mut s = String::new();
+    let obj = builtin_object().mesh();
+    writeln!(
+        s,
+        "built-in sphere, {} vertices; scans {}x{} px, one camera; held-out scan {} frames \
+         ({} angles between the training angles × {}² raster, other noise seed); renders {}x{} px, \
+         two lights; {} rayon threads",
+        obj.positions.len(),
+        sizes.scan_px,
+        sizes.scan_px,
+        sizes.held_out.angles * sizes.held_out.raster * sizes.held_out.raster,
+        sizes.held_out.angles,
+        sizes.held_out.raster,
+        sizes.render_px,
+        sizes.render_px,
+        rayon::current_num_threads()
+    )?;
+    writeln!(s)?;
+    writeln!(
+        s,
+        "| scan (angles × raster²) | frames | fit preset | render | scan s | fit s | render s | total s | fitted / interp. | held-out log E | render error | vs. truth | Pareto |"
+    )?;
+    writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|---|---|")?;
+    for (i, r) in rows.iter().enumerate() {
+        let d = sizes.densities[r.density];
+        writeln!(
+            s,
+            "| {} × {}² | {} | {} | {} | {:.2} | {:.2} | {:.3} | {:.2} | {} / {} | {:.4} | {} | {:.1}% | {} |",
+            d.angles,
+            d.raster,
+            r.frames,
+            r.preset.name(),
+            quality_name(r.quality),
+            r.scan_s,
+            r.fit_s,
+            r.render_s,
+            r.total(),
+            r.fitted,
+            r.interpolated,
+            r.model_log_e,
+            match &r.image {
+                Err(_) => "render refused ¹".to_string(),
+                Ok(_) => format!("{:.3}%", 100.0 * r.render_err),
+            },
+            100.0 * r.truth_err,
+            if front.contains(&i) { "★" } else { "" }
+        )?;
+    }
+    let mut refused: Vec<String> = rows.iter().filter_map(|r| r.image.clone().err()).collect();
+    refused.dedup();
+    for e in refused {
+        writeln!(s, "\n¹ {e}")?;
+    }
+    writeln!(s)?;
+    writeln!(
+        s,
+        "render error = mean relative pixel error (channels of covered pixels above 1e-3 of the \
+         maximum) against the exact render of the best model, the one with the lowest held-out \
+         log E (the row with 0%); vs. truth = the same against the exact render of the \
+         simulation's ground-truth model; held-out log E = Eq. 8, mean over R, G, B, on the \
+         held-out scan; ★ = Pareto front of (total s, render error). Plot: `{}`. Whole benchmark \
+         {:.1} s.",
+        b.plot.display(),
+        total_s
+    )?;
+    if !front.iter().all(|&i| rows[i].render_err.is_finite()) {
+        bail!("a Pareto point without a finite error");
+    }
+    Ok(s)
+}
+
+const BEGIN: &str =
+    "<!-- bench-tradeoff:begin (generated by `subsurf bench tradeoff --write-benchmarks`) -->";
+const END: &str = "<!-- bench-tradeoff:end -->";
+
+/// Replaces the text between the markers, or appends a section holding them.
+fn write_section(path: &Path, text: &str) -> Result<()> {
+    let old = std::fs::read_to_string(path).unwrap_or_default();
+    let body = format!("{BEGIN}\n\n{}\n\n{END}", text.trim_end());
+    let new = match (old.find(BEGIN), old.find(END)) {
+        (Some(a), Some(z)) if a < z => format!("{}{body}{}", &old[..a], &old[z + END.len()..]),
+        _ => format!(
+            "{}\n## Whole chain: speed vs. accuracy (`render` engineer)\n\n\
+             Command: `cargo build --release -p subsurf && ./target/release/subsurf bench tradeoff \
+             --write-benchmarks BENCHMARKS.md`\n\n{body}\n",
+            old.trim_end()
+        ),
+    };
+    let tmp = path.with_extension("md.tmp");
+    std::fs::write(&tmp, new)?;
+    std::fs::rename(&tmp, path)?;
+    Ok(())
+}
