@@ -244,21 +244,7 @@ fn run_chain(b: &TradeoffBench, sizes: &Sizes) -> Result<Vec<Row>> {
             // Every scan is of the same object and material: one ground truth for all.
             let gt = ModelFile::read(&dir.join("ground-truth.ply")).context("ground truth")?;
             let gt = VertexModel::from_model_file(&gt);
-            let (lo, hi) = gt.bounds();
-            let cam = Camera::framing(
-                lo,
-                hi,
-                render::DEFAULT_VIEW,
-                sizes.render_px,
-                sizes.render_px,
-            )?;
-            let opts = RenderOptions {
-                method: Method::Exact,
-                ..RenderOptions::default()
-            };
-            truth = render::render(&gt, &super::render::default_lights(&gt), &cam, &opts)
-                .map(|r| r.image)
-                .map_err(|e| e.to_string());
+            truth = render_image(&gt, sizes.render_px, None).map(|(i, _)| i);
         }
         for &preset in &sizes.presets {
             let mut opts = PipelineOptions::for_dataset(&ds);
@@ -281,27 +267,12 @@ fn run_chain(b: &TradeoffBench, sizes: &Sizes) -> Result<Vec<Row>> {
             };
             let model = VertexModel::from_model_file(&fitted.model);
             model.validate().context("fitted model")?;
-            let (lo, hi) = model.bounds();
-            let cam = Camera::framing(
-                lo,
-                hi,
-                render::DEFAULT_VIEW,
-                sizes.render_px,
-                sizes.render_px,
-            )?;
-            let lights = super::render::default_lights(&model);
             for &q in &sizes.qualities {
-                let opts = RenderOptions {
-                    method: q.map_or(Method::Exact, |q| Method::Hierarchical(q.params())),
-                    ..RenderOptions::default()
-                };
-                let t = Instant::now();
                 // A model the renderer refuses is a measured outcome of that configuration (a row
                 // without an error figure), not a reason to stop the benchmark.
-                let image = render::render(&model, &lights, &cam, &opts)
-                    .map(|r| r.image)
-                    .map_err(|e| e.to_string());
-                let render_s = t.elapsed().as_secs_f64();
+                let r = render_image(&model, sizes.render_px, q);
+                let render_s = r.as_ref().map_or(f64::NAN, |(_, s)| *s);
+                let image = r.map(|(i, _)| i);
                 rows.push(Row {
                     density: di,
                     frames: sum.frames,
@@ -346,6 +317,34 @@ fn run_chain(b: &TradeoffBench, sizes: &Sizes) -> Result<Vec<Row>> {
         }
     }
     Ok(rows)
+}
+
+/// A table cell: `value` with `digits` decimals and `unit`, or "–" where there is no figure.
+fn num(value: f64, digits: usize, unit: &str) -> String {
+    if value.is_finite() {
+        format!("{value:.digits$}{unit}")
+    } else {
+        "–".to_string()
+    }
+}
+
+/// Renders `model` under the default lights from the default view, exactly (`None`) or at a
+/// quality; the image and its wall time (seconds), or why the renderer refused.
+fn render_image(
+    model: &VertexModel,
+    px: u32,
+    quality: Option<Quality>,
+) -> Result<(Image, f64), String> {
+    let t = Instant::now();
+    let (lo, hi) = model.bounds();
+    let cam = Camera::framing(lo, hi, render::DEFAULT_VIEW, px, px).map_err(|e| e.to_string())?;
+    let opts = RenderOptions {
+        method: quality.map_or(Method::Exact, |q| Method::Hierarchical(q.params())),
+        ..RenderOptions::default()
+    };
+    let lights = super::render::default_lights(model);
+    let r = render::render(model, &lights, &cam, &opts).map_err(|e| e.to_string())?;
+    Ok((r.image, t.elapsed().as_secs_f64()))
 }
 
 fn report(b: &TradeoffBench, sizes: &Sizes, rows: &[Row], total_s: f64) -> Result<String> {
@@ -394,7 +393,7 @@ fn report(b: &TradeoffBench, sizes: &Sizes, rows: &[Row], total_s: f64) -> Resul
         let d = sizes.densities[r.density];
         writeln!(
             s,
-            "| {} × {}² | {} | {} | {} | {:.2} | {:.2} | {:.3} | {:.2} | {} / {} | {:.4} | {} | {:.1}% | {} |",
+            "| {} × {}² | {} | {} | {} | {:.2} | {:.2} | {} | {} | {} / {} | {:.4} | {} | {} | {} |",
             d.angles,
             d.raster,
             r.frames,
@@ -402,8 +401,8 @@ fn report(b: &TradeoffBench, sizes: &Sizes, rows: &[Row], total_s: f64) -> Resul
             quality_name(r.quality),
             r.scan_s,
             r.fit_s,
-            r.render_s,
-            r.total(),
+            num(r.render_s, 3, ""),
+            num(r.total(), 2, ""),
             r.fitted,
             r.interpolated,
             r.model_log_e,
@@ -411,7 +410,7 @@ fn report(b: &TradeoffBench, sizes: &Sizes, rows: &[Row], total_s: f64) -> Resul
                 Err(_) => "render refused ¹".to_string(),
                 Ok(_) => format!("{:.3}%", 100.0 * r.render_err),
             },
-            100.0 * r.truth_err,
+            num(100.0 * r.truth_err, 1, "%"),
             if front.contains(&i) { "★" } else { "" }
         )?;
     }
