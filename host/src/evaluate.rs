@@ -1,8 +1,8 @@
 //! Judging a model against frames (Table 1 statistics for any frames, held-out ones included) and
-//! predicting what a frame's camera sees (Eq. 9 with alpha, parameters interpolated at x_i).
+//! predicting what a frame's camera sees (Eq. 9 with alpha; at x_i between vertices the corners'
+//! predictions of ln R_d are blended, see [`ModelAt`]).
 use crate::dataset::{Dataset, Image};
 use crate::geometry::V3;
-use crate::interpolate::{from_log, to_log};
 use crate::model::{ColourModel, LogEAccumulator, TangentFrame};
 use crate::modelfile::{ModelFile, VertexStatus, model_of};
 use crate::pipeline::{Context, LogEStats, PipelineError, PipelineOptions};
@@ -33,47 +33,106 @@ pub enum EvaluateError {
     },
 }
 
-/// The model at a light position: Eq. 9's parameters interpolated over the triangle holding x_i.
+/// One corner of the triangle holding x_i: its own model, claimed over its sampled range.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Corner {
+    /// Normalised barycentric weight of the corner at x_i.
+    pub weight: f64,
+    /// The corner vertex's colour model (Eq. 9, or Eq. 3 per channel).
+    pub model: ColourModel,
+    /// The corner's sampled distance range `[r_min, r_max]` (see [`VertexModel::r_range`]).
+    ///
+    /// [`VertexModel::r_range`]: crate::modelfile::VertexModel::r_range
+    pub r_range: [f32; 2],
+}
+
+/// The model at a light position x_i between vertices: the corners of the triangle holding x_i.
+///
+/// Neighbouring fits are not term-aligned (a sum of exponentials has no canonical
+/// parametrisation: two 3-term fits of nearly the same curve can have unrelated terms), so
+/// blending parameters is meaningless. What is blended is each corner's *prediction*:
+/// ln R_d(x_i → x_o) = Σ_k w_k · ln R_d^(k)(|x_o − x_i|), each corner evaluated only where its
+/// samples were ([`ln_eval_supported`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct ModelAt {
-    /// The colour model at x_i.
-    pub model: ColourModel,
+    /// Corners with a model, weights summing to 1.
+    pub corners: Vec<Corner>,
     /// Tangent frame at x_i (for anisotropic models).
     pub frame: TangentFrame,
 }
 
-/// Interpolates the vertex models of triangle `tri` at `x_i` (barycentric, in log-parameter
-/// space, over the corners that have a model of the dominant corner's order).
+impl ModelAt {
+    /// ln R_d per channel at distance r and direction φ from x_i (Eq. 9, blended over corners).
+    pub fn ln_eval(&self, r: f64, phi: Option<f64>) -> [f64; 3] {
+        let mut out = [0.0; 3];
+        for c in &self.corners {
+            let l = ln_eval_supported(&c.model, c.r_range, r, phi);
+            for k in 0..3 {
+                out[k] += c.weight * l[k];
+            }
+        }
+        out
+    }
+}
+
+/// ln R_d per channel of one vertex model, claimed only where its samples were: for r below
+/// r_min, ln R_d continues linearly with its slope at r_min (an exponential through the nearest
+/// sample), so terms steeper than the samples resolve cannot explode at small distances. At and
+/// beyond r_min, or without a known range, the model itself.
+pub fn ln_eval_supported(
+    model: &ColourModel,
+    r_range: [f32; 2],
+    r: f64,
+    phi: Option<f64>,
+) -> [f64; 3] {
+    let (lo, hi) = (r_range[0] as f64, r_range[1] as f64);
+    if !(hi > lo && lo > 0.0) || r >= lo {
+        return model.ln_eval(r, phi);
+    }
+    // One-sided difference: ln R_d is smooth and slowly curved at the scale h.
+    let h = 1e-4 * lo;
+    let a = model.ln_eval(lo, phi);
+    let b = model.ln_eval(lo + h, phi);
+    [0, 1, 2].map(|c| {
+        let slope = ((b[c] - a[c]) / h).min(0.0);
+        a[c] + slope * (r - lo)
+    })
+}
+
+/// The corners of triangle `tri` that have a model, weighted barycentrically at `x_i` (weights
+/// renormalised over those corners).
 pub fn model_at(ctx: &Context, model: &ModelFile, tri: u32, x_i: V3) -> Option<ModelAt> {
     let t = *ctx.scene.mesh.triangles.get(tri as usize)?;
     let w = ctx.scene.barycentric(tri, x_i);
-    let mut corners: Vec<(usize, f64)> = (0..3)
-        .map(|k| (t[k] as usize, w[k]))
-        .filter(|(v, _)| model.vertices[*v].status != VertexStatus::NoModel)
-        .collect();
-    corners.sort_by(|a, b| b.1.total_cmp(&a.1));
-    let terms = model.vertices[corners.first()?.0].terms;
-    corners.retain(|(v, _)| model.vertices[*v].terms == terms);
-    let total: f64 = corners.iter().map(|c| c.1).sum();
-    let mut acc: Vec<f64> = Vec::new();
-    for (v, wt) in &corners {
-        let l = to_log(&model.shape, &model.vertices[*v].params);
-        let wt = if total > 0.0 {
-            wt / total
-        } else {
-            1.0 / corners.len() as f64
+    let mut corners: Vec<Corner> = Vec::with_capacity(3);
+    for k in 0..3 {
+        let v = &model.vertices[t[k] as usize];
+        if v.status == VertexStatus::NoModel {
+            continue;
+        }
+        let Ok(m) = model_of(&model.shape, v.terms as usize, &v.params) else {
+            continue;
         };
-        if acc.is_empty() {
-            acc = vec![0.0; l.len()];
-        }
-        for (a, x) in acc.iter_mut().zip(l) {
-            *a += wt * x;
-        }
+        corners.push(Corner {
+            weight: w[k].max(0.0),
+            model: m,
+            r_range: v.r_range,
+        });
     }
-    let params = from_log(&model.shape, &acc);
-    let m = model_of(&model.shape, terms as usize, &params).ok()?;
+    if corners.is_empty() {
+        return None;
+    }
+    let total: f64 = corners.iter().map(|c| c.weight).sum();
+    let n = corners.len() as f64;
+    for c in &mut corners {
+        c.weight = if total > 0.0 {
+            c.weight / total
+        } else {
+            1.0 / n
+        };
+    }
     let frame = TangentFrame::from_normal(ctx.normal_at(tri, x_i)).ok()?;
-    Some(ModelAt { model: m, frame })
+    Some(ModelAt { corners, frame })
 }
 
 /// alpha(x_o) (Eq. 2) at a vertex.
@@ -154,7 +213,7 @@ fn evaluate_one(
     for s in &samples {
         let x_o = ctx.ds.mesh.positions[s.vertex as usize];
         let (r, phi) = at.frame.polar(x_i, x_o);
-        let ln = at.model.ln_eval(r, phi);
+        let ln = at.ln_eval(r, phi);
         let a = alpha_of(model, s.vertex as usize);
         for c in 0..3 {
             if s.valid & (1 << c) != 0 {
@@ -218,7 +277,7 @@ pub fn predict_frame(
             }
         }
         let (r, phi) = at.frame.polar(x_i, hit.point);
-        let ln = at.model.ln_eval(r, phi);
+        let ln = at.ln_eval(r, phi);
         for c in 0..3 {
             px[c] = (a[c] * ln[c].exp() * f.exposure_s) as f32;
         }

@@ -90,7 +90,15 @@ pub struct VertexModel {
     pub terms: u8,
     /// Parameters in the order of `docs/model-format.md`.
     pub params: Vec<f64>,
+    /// `[r_min, r_max]` (mm): the distances |x_o − x_i| the fit's samples covered. The model is
+    /// only claimed inside it; below r_min evaluation continues ln R_d linearly
+    /// ([`crate::evaluate::ln_eval_supported`]). `r_max <= r_min` (e.g. `[0, 0]`, what files
+    /// without the properties read as) means unknown: the model is used as is everywhere.
+    pub r_range: [f32; 2],
 }
+
+/// The sampled range of a model without one (ground truth, old files): used as is everywhere.
+pub const NO_RANGE: [f32; 2] = [0.0, 0.0];
 
 /// A whole model: mesh plus per-vertex models.
 #[derive(Debug, Clone, PartialEq)]
@@ -131,8 +139,13 @@ impl ModelFile {
                     v.terms
                 ));
             }
-            if v.params.iter().any(|p| !p.is_finite()) || v.alpha.iter().any(|a| !a.is_finite()) {
-                return bad(format!("vertex {i}: non-finite parameter or alpha"));
+            if v.params.iter().any(|p| !p.is_finite())
+                || v.alpha.iter().any(|a| !a.is_finite())
+                || v.r_range.iter().any(|r| !(r.is_finite() && *r >= 0.0))
+            {
+                return bad(format!(
+                    "vertex {i}: non-finite parameter, alpha or sampled range"
+                ));
             }
         }
         for t in &self.triangles {
@@ -158,7 +171,8 @@ impl ModelFile {
              property double nx\nproperty double ny\nproperty double nz\n\
              property float alpha_r\nproperty float alpha_g\nproperty float alpha_b\n\
              property uchar status\nproperty float log_e\nproperty uchar terms\n\
-             property list uchar double params\nelement face {}\n\
+             property list uchar double params\n\
+             property float r_min\nproperty float r_max\nelement face {}\n\
              property list uchar int vertex_indices\nend_header\n",
             self.shape.terms,
             self.shape.segments,
@@ -179,6 +193,9 @@ impl ModelFile {
             out.push(v.params.len() as u8);
             for p in &v.params {
                 out.extend_from_slice(&p.to_le_bytes());
+            }
+            for r in v.r_range {
+                out.extend_from_slice(&r.to_le_bytes());
             }
         }
         for t in &self.triangles {
@@ -346,6 +363,14 @@ impl ModelFile {
                             log_e: one("log_e")? as f32,
                             terms,
                             params,
+                            // Older files have no sampled range: unknown.
+                            r_range: match (get("r_min"), get("r_max")) {
+                                (Some(a), Some(b)) => [
+                                    a.first().copied().unwrap_or(0.0) as f32,
+                                    b.first().copied().unwrap_or(0.0) as f32,
+                                ],
+                                _ => NO_RANGE,
+                            },
                         });
                     }
                     "face" => {
@@ -547,6 +572,7 @@ mod tests {
                     .map(|k| k as f64 * 0.5 - 1.0)
                     .collect()
             },
+            r_range: [0.7, 12.5],
         };
         ModelFile {
             shape,
@@ -574,6 +600,38 @@ mod tests {
             assert_eq!(a.params, b.params);
             assert_eq!(a.status, b.status);
             assert_eq!(a.terms, b.terms);
+            assert_eq!(a.r_range, b.r_range);
+        }
+    }
+
+    #[test]
+    fn files_without_a_sampled_range_read_as_unknown() {
+        // A file written before `r_min`/`r_max` existed: the same layout without them.
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.ply");
+        let m = sample();
+        m.write(&p).unwrap();
+        let bytes = std::fs::read(&p).unwrap();
+        let end = bytes
+            .windows(11)
+            .position(|w| w == b"end_header\n")
+            .unwrap()
+            + 11;
+        let header = String::from_utf8(bytes[..end].to_vec()).unwrap();
+        let old_header = header.replace("property float r_min\nproperty float r_max\n", "");
+        let mut old = old_header.into_bytes();
+        let mut at = end;
+        for v in &m.vertices {
+            let len = 6 * 8 + 3 * 4 + 1 + 4 + 1 + 1 + 8 * v.params.len();
+            old.extend_from_slice(&bytes[at..at + len]);
+            at += len + 8;
+        }
+        old.extend_from_slice(&bytes[at..]);
+        std::fs::write(&p, &old).unwrap();
+        let back = ModelFile::read(&p).unwrap();
+        for (a, b) in back.vertices.iter().zip(&m.vertices) {
+            assert_eq!(a.params, b.params);
+            assert_eq!(a.r_range, NO_RANGE);
         }
     }
 

@@ -17,9 +17,7 @@ use crate::model::{
     AlphaAccumulator, Anisotropic, ColourModel, ExpSum, IntensityWindow, LogEAccumulator,
     TangentFrame,
 };
-use crate::modelfile::{
-    ColourMode, ModelFile, ModelShape, VertexModel, VertexStatus, model_of, params_of,
-};
+use crate::modelfile::{ColourMode, ModelFile, ModelShape, VertexModel, VertexStatus, params_of};
 use crate::registration::{RegistrationOutcome, SpotOptions, register_frame};
 use crate::samples::{Sample, SampleCounts, SampleOptions, frame_samples};
 use crate::selection::{Light, select};
@@ -75,6 +73,9 @@ pub struct PipelineOptions {
     pub alpha_window: IntensityWindow,
     /// Eq. 8 threshold t.
     pub error_threshold: f64,
+    /// Extra fit rounds on samples divided by the previous round's alpha(x_o) (Eq. 6); 0 fits
+    /// once and treats the modulation texture as noise.
+    pub alpha_rounds: usize,
 }
 
 impl PipelineOptions {
@@ -103,6 +104,7 @@ impl PipelineOptions {
                 t1: f64::INFINITY,
             },
             error_threshold: floor,
+            alpha_rounds: 1,
         }
     }
 }
@@ -211,12 +213,28 @@ pub struct FitReport {
     pub log_e: LogEStats,
     /// Number of fitted light positions per chosen model order n.
     pub orders: BTreeMap<usize, usize>,
+    /// Terms dropped because the samples do not support them, by reason (each drop refits
+    /// with one term fewer; counted in the last fit round, not in interpolation refits).
+    pub terms_dropped: BTreeMap<TermDropped, usize>,
+    /// Where each vertex's alpha(x_o) (Eq. 6) comes from.
+    pub alpha: AlphaReport,
     /// Wall time per stage, seconds.
     pub stage_seconds: BTreeMap<String, f64>,
     /// Peak resident memory of the process, MiB (Linux; `None` elsewhere).
     pub peak_rss_mib: Option<f64>,
     /// The options used.
     pub options: Option<PipelineOptions>,
+}
+
+/// Where the vertices' alpha(x_o) (Eq. 6) come from.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct AlphaReport {
+    /// Eq. 6 from the vertex's own samples in the intensity window.
+    pub from_samples: usize,
+    /// No sample in the window (never seen by a fitted frame): interpolated from neighbours.
+    pub interpolated: usize,
+    /// Neither: alpha = 1.
+    pub default_one: usize,
 }
 
 /// Peak resident set size of this process (`VmHWM`), MiB.
@@ -329,6 +347,8 @@ type ChannelSamples = [Vec<(f64, f64, u32, Option<f64>)>; 3];
 struct GroupFit {
     model: ColourModel,
     terms: usize,
+    /// Sampled distance range `[r_min, r_max]` of the fit.
+    r_range: [f64; 2],
 }
 
 fn fit_failure_from_model(e: crate::model::ModelError) -> FailReason {
@@ -336,11 +356,134 @@ fn fit_failure_from_model(e: crate::model::ModelError) -> FailReason {
     FailReason::NonPhysical
 }
 
-/// The model variant fitted to one group's samples.
+/// Why a fitted exponential term was dropped ("model only what the scene requires"): the
+/// samples do not support it, so the fit is repeated with one term fewer.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TermDropped {
+    /// The term hardly decays over the sampled distances (|d|·(r_max − r_min) below
+    /// [`MIN_DECAY`]): it is indistinguishable from a constant there and would never decay
+    /// beyond (fits produce d ≈ −1e−16 such terms).
+    NonDecaying,
+    /// The term carries at least [`MIN_SHARE`] of R_d at fewer than [`MIN_SUPPORT`] distinct
+    /// sampled distances: typically a fall-off steeper than the spacing of the samples near x_i
+    /// resolves, which the fit places below the smallest sampled distance, where it explodes.
+    Unresolved,
+}
+
+/// Smallest total decay |d|·(r_max − r_min) of a supported term (see [`TermDropped`]).
+pub const MIN_DECAY: f64 = 0.1;
+/// Share c·e^{d·r} / R_d(r) above which a sample counts as supporting a term.
+pub const MIN_SHARE: f64 = 0.05;
+/// Distinct sampled distances a term needs as support (see [`TermDropped`]).
+pub const MIN_SUPPORT: usize = 4;
+
+/// The first term of `f` the sample distances `r` do not support, if any.
+pub fn unsupported_term(f: &ExpSum, r: &[f64]) -> Option<TermDropped> {
+    let (lo, hi) = r
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
+            (a.min(x), b.max(x))
+        });
+    if hi.partial_cmp(&lo).is_none_or(|o| o.is_lt()) {
+        return None;
+    }
+    if f.terms.iter().any(|t| -t.d * (hi - lo) < MIN_DECAY) {
+        return Some(TermDropped::NonDecaying);
+    }
+    if f.n() < 2 {
+        return None;
+    }
+    let mut rs: Vec<f64> = r.to_vec();
+    rs.sort_by(f64::total_cmp);
+    rs.dedup_by(|a, b| (*a - *b).abs() <= 1e-9 * b.abs().max(1.0));
+    let ln_min_share = MIN_SHARE.ln();
+    for t in &f.terms {
+        let ln_c = t.c.ln();
+        let support = rs
+            .iter()
+            .filter(|&&x| ln_c + t.d * x - f.ln_eval(x) >= ln_min_share)
+            .count();
+        if support < MIN_SUPPORT {
+            return Some(TermDropped::Unresolved);
+        }
+    }
+    None
+}
+
+/// Fits Eq. 1 and drops unsupported terms: while [`unsupported_term`] finds one, refit with one
+/// term fewer. `dropped` collects why.
+fn fit_supported(
+    fitter: &dyn Fitter,
+    r: &[f64],
+    s: &[f64],
+    terms: Option<usize>,
+    dropped: &mut Vec<TermDropped>,
+) -> Result<ExpSum, FailReason> {
+    let mut f = fitter.fit(r, s, terms)?;
+    loop {
+        match unsupported_term(&f, r) {
+            None => return Ok(f),
+            Some(why) => {
+                if f.n() <= 1 {
+                    return Err(FailReason::NonPhysical);
+                }
+                dropped.push(why);
+                f = fitter.fit(r, s, Some(f.n() - 1))?;
+            }
+        }
+    }
+}
+
+/// Fits every sample set with one common order: the first set chooses n (as `terms` says, with
+/// unsupported terms dropped), the others are fitted with n, and n is lowered until every set
+/// supports all its terms.
+fn fit_common_order(
+    fitter: &dyn Fitter,
+    sets: &[(Vec<f64>, Vec<f64>)],
+    terms: Option<usize>,
+    dropped: &mut Vec<TermDropped>,
+) -> Result<Vec<ExpSum>, FailReason> {
+    let (r0, s0) = sets.first().ok_or(FailReason::TooFewSamples)?;
+    let first = fit_supported(fitter, r0, s0, terms, dropped)?;
+    let mut n = first.n();
+    let mut out = vec![first];
+    'order: loop {
+        out.truncate(1);
+        for (r, s) in &sets[1..] {
+            let f = fit_supported(fitter, r, s, Some(n), dropped)?;
+            if f.n() < n {
+                n = f.n();
+                out[0] = fit_supported(fitter, r0, s0, Some(n), dropped)?;
+                if out[0].n() < n {
+                    n = out[0].n();
+                }
+                continue 'order;
+            }
+            out.push(f);
+        }
+        return Ok(out);
+    }
+}
+
+/// A direction segment's fit with the isotropic order, or the isotropic fall-off where the
+/// segment's fit fails or has a term that never decays. (A sector holds a fraction of the
+/// samples, so the support rule for steep terms would reject most segments; the isotropic fit
+/// already chose an order the samples support, and evaluation never extrapolates below the
+/// sampled range.)
+fn fit_segment(fitter: &dyn Fitter, r: &[f64], s: &[f64], iso: &ExpSum) -> ExpSum {
+    match fitter.fit(r, s, Some(iso.n())) {
+        Ok(f) if f.n() == iso.n() && unsupported_term(&f, r) != Some(TermDropped::NonDecaying) => f,
+        _ => iso.clone(),
+    }
+}
+
+/// The model variant fitted to one group's samples, its order and the terms dropped on the way.
 fn fit_samples(
     data: &ChannelSamples,
     choice: &ModelChoice,
     fitter: &dyn Fitter,
+    dropped: &mut Vec<TermDropped>,
 ) -> Result<(ColourModel, usize), FailReason> {
     let rs = |c: usize, sel: &dyn Fn(Option<f64>) -> bool| -> (Vec<f64>, Vec<f64>) {
         data[c]
@@ -358,17 +501,11 @@ fn fit_samples(
     };
     match choice.colour {
         ColourMode::PerChannel => {
-            let (r, s) = rs(0, &all);
-            let red = fitter.fit(&r, &s, None)?;
-            let n = red.n();
+            let sets: Vec<(Vec<f64>, Vec<f64>)> = (0..3).map(|c| rs(c, &all)).collect();
+            let isos = fit_common_order(fitter, &sets, None, dropped)?;
+            let n = isos[0].n();
             let mut chans = Vec::with_capacity(3);
-            for c in 0..3 {
-                let iso = if c == 0 {
-                    red.clone()
-                } else {
-                    let (r, s) = rs(c, &all);
-                    fitter.fit(&r, &s, Some(n))?
-                };
+            for (c, iso) in isos.into_iter().enumerate() {
                 let mut segs = Vec::with_capacity(m);
                 for l in 0..m {
                     if m == 1 {
@@ -376,8 +513,7 @@ fn fit_samples(
                         continue;
                     }
                     let (r, s) = rs(c, &sector(l));
-                    // A segment without enough samples keeps the isotropic fall-off.
-                    segs.push(fitter.fit(&r, &s, Some(n)).unwrap_or_else(|_| iso.clone()));
+                    segs.push(fit_segment(fitter, &r, &s, &iso));
                 }
                 chans.push(Anisotropic { segments: segs });
             }
@@ -392,8 +528,7 @@ fn fit_samples(
             // ln s_c to the mean residual of channel c, refit the fall-off to all channels divided
             // by their scales, update the scales. Exact on noise-free data.
             let (r, s) = rs(0, &all);
-            let red = fitter.fit(&r, &s, None)?;
-            let n = red.n();
+            let red = fit_supported(fitter, &r, &s, None, dropped)?;
             let scales = |f: &ExpSum| -> Result<[f64; 3], FailReason> {
                 let mut out = [1.0; 3];
                 for (c, o) in out.iter_mut().enumerate().skip(1) {
@@ -424,7 +559,8 @@ fn fit_samples(
             };
             let sc = scales(&red)?;
             let (r, s) = pooled(&sc, &all);
-            let iso = fitter.fit(&r, &s, Some(n))?;
+            let iso = fit_supported(fitter, &r, &s, Some(red.n()), dropped)?;
+            let n = iso.n();
             let sc = scales(&iso)?;
             let mut segs = Vec::with_capacity(m);
             if m == 1 {
@@ -432,7 +568,7 @@ fn fit_samples(
             } else {
                 for l in 0..m {
                     let (r, s) = pooled(&sc, &sector(l));
-                    segs.push(fitter.fit(&r, &s, Some(n)).unwrap_or_else(|_| iso.clone()));
+                    segs.push(fit_segment(fitter, &r, &s, &iso));
                 }
             }
             let model = ColourModel::Shared {
@@ -570,56 +706,85 @@ pub fn fit_dataset(
         }
         Ok((data, counts))
     };
-    progress.set_message("fit");
-    progress.set_length(keys.len() as u64);
-    progress.set_position(0);
-    let state = keys
-        .par_iter()
-        .enumerate()
-        .fold(FitState::default, |mut st, (idx, key)| {
-            let out = load(key).and_then(|(data, counts)| {
-                let (model, terms) = fit_samples(&data, &opts.model, fitter)?;
-                Ok((GroupFit { model, terms }, data, counts))
-            });
-            match out {
-                Ok((g, data, counts)) => {
-                    // Eq. 6 contributions are folded right away so the samples can be dropped.
-                    if st.alpha.is_empty() {
-                        st.alpha = vec![[AlphaAccumulator::default(); 3]; nv];
-                    }
-                    for (ch, d) in data.iter().enumerate() {
-                        for &(r, s, v, phi) in d {
-                            let rd = g.model.ln_eval(r, phi)[ch].exp();
-                            st.alpha[v as usize][ch].add(s, rd, &opts.alpha_window);
+    // Round 0 fits the samples as captured; each further round divides them by the previous
+    // round's alpha(x_o) (Eq. 6) and refits, so the modulation texture is not mistaken for
+    // noise by the fit of R_d. Every round re-reads the frames (memory does not grow with them).
+    let fit_round = |alpha_div: Option<&[[f64; 3]]>, round: usize| -> FitState {
+        progress.set_message(format!("fit (round {})", round + 1));
+        progress.set_length(keys.len() as u64);
+        progress.set_position(0);
+        keys.par_iter()
+            .enumerate()
+            .fold(FitState::default, |mut st, (idx, key)| {
+                let mut dropped = Vec::new();
+                let out = load(key).and_then(|(mut data, counts)| {
+                    if let Some(a) = alpha_div {
+                        for (ch, d) in data.iter_mut().enumerate() {
+                            for x in d.iter_mut() {
+                                x.1 /= a[x.2 as usize][ch];
+                            }
                         }
                     }
-                    st.counts.add(&counts);
-                    st.fits.push((idx, Ok(g)));
+                    let (model, terms) = fit_samples(&data, &opts.model, fitter, &mut dropped)?;
+                    let r_range = data
+                        .iter()
+                        .flatten()
+                        .fold([f64::INFINITY, 0.0], |[lo, hi], x| {
+                            [lo.min(x.0), hi.max(x.0)]
+                        });
+                    Ok((
+                        GroupFit {
+                            model,
+                            terms,
+                            r_range,
+                        },
+                        data,
+                        counts,
+                    ))
+                });
+                for why in dropped {
+                    *st.dropped.entry(why).or_default() += 1;
                 }
-                Err(e) => st.fits.push((idx, Err(e))),
-            }
-            progress.inc(1);
-            st
-        })
-        .reduce(FitState::default, FitState::merge);
+                match out {
+                    Ok((g, data, counts)) => {
+                        // Eq. 6 contributions are folded right away so the samples can be dropped.
+                        if st.alpha.is_empty() {
+                            st.alpha = vec![[AlphaAccumulator::default(); 3]; nv];
+                        }
+                        for (ch, d) in data.iter().enumerate() {
+                            for &(r, s, v, phi) in d {
+                                // Eq. 6 compares the captured sample with R_d.
+                                let s = alpha_div.map_or(s, |a| s * a[v as usize][ch]);
+                                let rd = g.model.ln_eval(r, phi)[ch].exp();
+                                st.alpha[v as usize][ch].add(s, rd, &opts.alpha_window);
+                            }
+                        }
+                        st.counts.add(&counts);
+                        st.fits.push((idx, Ok(g)));
+                    }
+                    Err(e) => st.fits.push((idx, Err(e))),
+                }
+                progress.inc(1);
+                st
+            })
+            .reduce(FitState::default, FitState::merge)
+    };
+    let mut state = fit_round(None, 0);
+    for round in 1..=opts.alpha_rounds {
+        let (a, _) = alpha_texture(&state.alpha, nv, &ctx.scene);
+        state = fit_round(Some(&a), round);
+    }
     let FitState {
         mut fits,
         alpha,
         counts,
+        dropped,
     } = state;
     report.samples = counts;
+    report.terms_dropped = dropped;
     fits.sort_by_key(|f| f.0);
-    let alpha: Vec<[f64; 3]> = (0..nv)
-        .map(|v| {
-            [0, 1, 2].map(|c| {
-                alpha
-                    .get(v)
-                    .and_then(|a| a[c].alpha())
-                    .filter(|a| a.is_finite() && *a > 0.0)
-                    .unwrap_or(1.0)
-            })
-        })
-        .collect();
+    let (alpha, alpha_report) = alpha_texture(&alpha, nv, &ctx.scene);
+    report.alpha = alpha_report;
     stage("fit", &mut t, &mut report);
 
     // Eq. 8 with alpha: read the fitted frames again (cheaper in memory than keeping samples).
@@ -669,7 +834,7 @@ pub fn fit_dataset(
         segments: opts.model.segments,
         colour: opts.model.colour,
     };
-    let mut own: Vec<Option<(Vec<f64>, usize, f32)>> = vec![None; nv];
+    let mut own: Vec<Option<OwnFit>> = vec![None; nv];
     let mut light_log_e = Vec::new();
     for (((_, f), err), key) in fits.iter().zip(&errors).zip(&keys) {
         let verts = &groups[key];
@@ -688,7 +853,13 @@ pub fn fit_dataset(
                         Ok((p, n, _)) if p.iter().all(|x| x.is_finite()) => {
                             light_log_e.push(*le);
                             *report.orders.entry(n).or_default() += 1;
-                            Ok((p, n, mean as f32))
+                            Ok(OwnFit {
+                                params: p,
+                                terms: n,
+                                log_e: mean as f32,
+                                model: g.model.clone(),
+                                r_range: g.r_range,
+                            })
                         }
                         _ => Err(FailReason::NonPhysical),
                     }
@@ -707,66 +878,77 @@ pub fn fit_dataset(
         *report.failures.entry(*r).or_default() += 1;
     }
 
-    // Interpolation of every vertex without its own model (section 5), among the vertices that
-    // use the most common order.
+    // Interpolation of every vertex without its own model (section 5). Neighbouring fits are
+    // not term-aligned, so what is interpolated is each fitted vertex's curve ln R_d(r) (per
+    // segment and, for per-channel models, per channel) on a common distance grid, with ln s_g,
+    // ln s_b and the sampled range; the interpolated curve is then refitted (term-aligned by
+    // construction) with the most common order.
     let common_n = report
         .orders
         .iter()
         .max_by_key(|(_, c)| **c)
         .map(|(n, _)| *n)
         .unwrap_or(shape_terms);
+    let grid = CurveGrid::of(own.iter().flatten().map(|o| o.r_range));
     let known: Vec<Option<Vec<f64>>> = own
         .iter()
-        .map(|o| {
-            o.as_ref()
-                .filter(|(_, n, _)| *n == common_n)
-                .map(|(p, _, _)| crate::interpolate::to_log(&shape, p))
-        })
+        .map(|o| o.as_ref().map(|o| grid.encode(&o.model, o.r_range)))
         .collect();
     let filled = crate::interpolate::harmonic(&known, |v| ctx.scene.neighbours(v), 2000);
+    let refits: Vec<Option<Refit>> = (0..nv)
+        .into_par_iter()
+        .map(|v| {
+            if own[v].is_some() {
+                return None;
+            }
+            let enc = filled[v].as_ref()?;
+            let mut dropped = Vec::new();
+            let (m, range) = grid.decode(enc, &shape, common_n, fitter, &mut dropped)?;
+            match params_of(&m) {
+                Ok((p, n, _)) if p.iter().all(|x| x.is_finite()) => Some((p, n, range)),
+                _ => None,
+            }
+        })
+        .collect();
     let mut vertices = Vec::with_capacity(nv);
     for v in 0..nv {
         let a = alpha[v].map(|x| x as f32);
         let vm = match &own[v] {
-            Some((p, n, le)) => {
+            Some(o) => {
                 report.vertices_fitted += 1;
                 VertexModel {
                     alpha: a,
                     status: VertexStatus::Fitted,
-                    log_e: *le,
-                    terms: *n as u8,
-                    params: p.clone(),
+                    log_e: o.log_e,
+                    terms: o.terms as u8,
+                    params: o.params.clone(),
+                    r_range: o.r_range.map(|x| x as f32),
                 }
             }
-            None => {
-                let interp = filled[v]
-                    .as_ref()
-                    .map(|l| crate::interpolate::from_log(&shape, l))
-                    .and_then(|p| model_of(&shape, common_n, &p).ok())
-                    .and_then(|m| params_of(&m).ok());
-                match interp {
-                    Some((p, n, _)) if p.iter().all(|x| x.is_finite()) => {
-                        report.vertices_interpolated += 1;
-                        VertexModel {
-                            alpha: a,
-                            status: VertexStatus::Interpolated,
-                            log_e: f32::NAN,
-                            terms: n as u8,
-                            params: p,
-                        }
-                    }
-                    _ => {
-                        report.vertices_no_model += 1;
-                        VertexModel {
-                            alpha: a,
-                            status: VertexStatus::NoModel,
-                            log_e: f32::NAN,
-                            terms: 0,
-                            params: Vec::new(),
-                        }
+            None => match &refits[v] {
+                Some((p, n, range)) => {
+                    report.vertices_interpolated += 1;
+                    VertexModel {
+                        alpha: a,
+                        status: VertexStatus::Interpolated,
+                        log_e: f32::NAN,
+                        terms: *n as u8,
+                        params: p.clone(),
+                        r_range: range.map(|x| x as f32),
                     }
                 }
-            }
+                None => {
+                    report.vertices_no_model += 1;
+                    VertexModel {
+                        alpha: a,
+                        status: VertexStatus::NoModel,
+                        log_e: f32::NAN,
+                        terms: 0,
+                        params: Vec::new(),
+                        r_range: crate::modelfile::NO_RANGE,
+                    }
+                }
+            },
         };
         vertices.push(vm);
     }
@@ -782,11 +964,202 @@ pub fn fit_dataset(
     Ok(FitOutput { model, report })
 }
 
+/// An interpolated vertex's refit: parameters, order, sampled range.
+type Refit = (Vec<f64>, usize, [f64; 2]);
+
+/// A vertex's own fit.
+#[derive(Clone)]
+struct OwnFit {
+    params: Vec<f64>,
+    terms: usize,
+    log_e: f32,
+    model: ColourModel,
+    r_range: [f64; 2],
+}
+
+/// Eq. 6 per vertex from the accumulated samples; vertices no fitted frame saw (Eq. 6's X is
+/// empty: not visible from any camera at any selected turntable angle) take the harmonic
+/// interpolation of ln alpha from their mesh neighbours, and 1 where no neighbour has data.
+fn alpha_texture(
+    acc: &[[AlphaAccumulator; 3]],
+    nv: usize,
+    scene: &Scene,
+) -> (Vec<[f64; 3]>, AlphaReport) {
+    let own: Vec<Option<Vec<f64>>> = (0..nv)
+        .map(|v| {
+            let a = acc.get(v)?;
+            let vals: Vec<Option<f64>> = a
+                .iter()
+                .map(|c| c.alpha().filter(|x| x.is_finite() && *x > 0.0))
+                .collect();
+            // A channel without samples in the window takes the vertex's other channels' mean.
+            let known: Vec<f64> = vals.iter().flatten().map(|x| x.ln()).collect();
+            if known.is_empty() {
+                return None;
+            }
+            let mean = known.iter().sum::<f64>() / known.len() as f64;
+            Some(vals.iter().map(|x| x.map_or(mean, f64::ln)).collect())
+        })
+        .collect();
+    let filled = crate::interpolate::harmonic(&own, |v| scene.neighbours(v), 500);
+    let mut rep = AlphaReport::default();
+    let alpha = (0..nv)
+        .map(|v| {
+            if own[v].is_some() {
+                rep.from_samples += 1;
+            } else if filled[v].is_some() {
+                rep.interpolated += 1;
+            } else {
+                rep.default_one += 1;
+            }
+            match &filled[v] {
+                Some(l) if l.len() == 3 => [l[0].exp(), l[1].exp(), l[2].exp()],
+                _ => [1.0; 3],
+            }
+        })
+        .collect();
+    (alpha, rep)
+}
+
+/// The distance grid on which fitted curves ln R_d(r) are interpolated between vertices.
+struct CurveGrid {
+    r: Vec<f64>,
+}
+
+/// Points of [`CurveGrid`] and of each refit.
+const GRID_POINTS: usize = 32;
+/// Points of the refit of an interpolated curve, spread over its sampled range.
+const REFIT_POINTS: usize = 24;
+
+impl CurveGrid {
+    /// Spans every fitted vertex's sampled range.
+    fn of(ranges: impl Iterator<Item = [f64; 2]>) -> CurveGrid {
+        let (mut lo, mut hi) = (f64::INFINITY, 0.0f64);
+        for [a, b] in ranges {
+            lo = lo.min(a);
+            hi = hi.max(b);
+        }
+        if !(lo.is_finite() && hi > lo) {
+            (lo, hi) = (0.5, 10.0);
+        }
+        let r = (0..GRID_POINTS)
+            .map(|k| lo + (hi - lo) * k as f64 / (GRID_POINTS - 1) as f64)
+            .collect();
+        CurveGrid { r }
+    }
+
+    /// ln R_d of `f` at `r`, claimed only from `lo` on (linear continuation below, as in
+    /// [`crate::evaluate::ln_eval_supported`]).
+    fn ln_supported(f: &ExpSum, lo: f64, r: f64) -> f64 {
+        if r >= lo {
+            f.ln_eval(r)
+        } else {
+            f.ln_eval(lo) + f.ln_slope(lo).min(0.0) * (r - lo)
+        }
+    }
+
+    /// The fall-off curves of a model: per channel (per-channel models) and segment.
+    fn curves(m: &ColourModel) -> Vec<&ExpSum> {
+        match m {
+            ColourModel::Shared { falloff, .. } => falloff.segments.iter().collect(),
+            ColourModel::PerChannel { channels } => {
+                channels.iter().flat_map(|c| c.segments.iter()).collect()
+            }
+        }
+    }
+
+    /// `[ln r_min, ln r_max, (ln s_g, ln s_b), ln R_d on the grid for every curve]`.
+    fn encode(&self, m: &ColourModel, range: [f64; 2]) -> Vec<f64> {
+        let mut out = vec![range[0].max(1e-6).ln(), range[1].max(1e-6).ln()];
+        if let ColourModel::Shared { s_g, s_b, .. } = m {
+            out.push(s_g.ln());
+            out.push(s_b.ln());
+        }
+        for f in Self::curves(m) {
+            out.extend(self.r.iter().map(|&r| Self::ln_supported(f, range[0], r)));
+        }
+        out
+    }
+
+    /// ln R_d of curve `k` of an encoding at `r` (piecewise linear between grid points; the end
+    /// segments continue linearly).
+    fn ln_at(&self, enc: &[f64], head: usize, k: usize, r: f64) -> f64 {
+        let g = &enc[head + k * self.r.len()..head + (k + 1) * self.r.len()];
+        let n = self.r.len();
+        let step = (self.r[n - 1] - self.r[0]) / (n - 1) as f64;
+        let x = ((r - self.r[0]) / step).clamp(0.0, (n - 1) as f64);
+        let i = (x.floor() as usize).min(n - 2);
+        let t = (r - self.r[i]) / step;
+        g[i] + (g[i + 1] - g[i]) * t
+    }
+
+    /// Refits an interpolated encoding: the model (term-aligned by construction, order at most
+    /// `n`) and its range. `None` if a refit fails.
+    fn decode(
+        &self,
+        enc: &[f64],
+        shape: &ModelShape,
+        n: usize,
+        fitter: &dyn Fitter,
+        dropped: &mut Vec<TermDropped>,
+    ) -> Option<(ColourModel, [f64; 2])> {
+        let range = [enc[0].exp(), enc[1].exp()];
+        if range[1].partial_cmp(&range[0]) != Some(std::cmp::Ordering::Greater) {
+            return None;
+        }
+        let head = if shape.colour == ColourMode::Shared {
+            4
+        } else {
+            2
+        };
+        let curves = match shape.colour {
+            ColourMode::Shared => shape.segments,
+            ColourMode::PerChannel => 3 * shape.segments,
+        };
+        if enc.len() != head + curves * self.r.len() {
+            return None;
+        }
+        let rs: Vec<f64> = (0..REFIT_POINTS)
+            .map(|k| range[0] + (range[1] - range[0]) * k as f64 / (REFIT_POINTS - 1) as f64)
+            .collect();
+        let sets: Vec<(Vec<f64>, Vec<f64>)> = (0..curves)
+            .map(|k| {
+                let s = rs
+                    .iter()
+                    .map(|&r| self.ln_at(enc, head, k, r).exp())
+                    .collect();
+                (rs.clone(), s)
+            })
+            .collect();
+        let fits = fit_common_order(fitter, &sets, Some(n), dropped).ok()?;
+        let m = shape.segments;
+        let model = match shape.colour {
+            ColourMode::Shared => ColourModel::Shared {
+                falloff: Anisotropic { segments: fits },
+                s_g: enc[2].exp(),
+                s_b: enc[3].exp(),
+            },
+            ColourMode::PerChannel => {
+                let mut it = fits.into_iter();
+                let mut ch = || Anisotropic {
+                    segments: it.by_ref().take(m).collect(),
+                };
+                ColourModel::PerChannel {
+                    channels: [ch(), ch(), ch()],
+                }
+            }
+        };
+        model.validate().ok()?;
+        Some((model, range))
+    }
+}
+
 #[derive(Default)]
 struct FitState {
     fits: Vec<(usize, Result<GroupFit, FailReason>)>,
     alpha: Vec<[AlphaAccumulator; 3]>,
     counts: SampleCounts,
+    dropped: BTreeMap<TermDropped, usize>,
 }
 
 impl FitState {
@@ -802,6 +1175,9 @@ impl FitState {
             }
         }
         self.counts.add(&other.counts);
+        for (k, v) in other.dropped {
+            *self.dropped.entry(k).or_default() += v;
+        }
         self
     }
 }

@@ -218,6 +218,7 @@ fn torus_model_file() -> subsurf::modelfile::ModelFile {
                 log_e: 0.01,
                 terms: terms as u8,
                 params,
+                r_range: subsurf::modelfile::NO_RANGE,
             }
         })
         .collect();

@@ -222,8 +222,13 @@ impl Scene {
             return true;
         };
         let len = dist(p, q);
-        let start = add_scaled(p, 4.0 * self.eps, d);
-        self.cast(start, d, len - 8.0 * self.eps).is_none()
+        // Start well off the surface: `cast` retries a miss with its origin nudged sideways by
+        // 10·eps, which from a start only 4·eps off the surface lands below it at grazing
+        // angles, where the surface itself then "occludes" the ray (this hid every vertex
+        // facing the camera at more than ~20° from the normal). 100·eps keeps the nudged origin
+        // above the surface down to ~6° from the tangent, beyond any grazing limit in use.
+        let start = add_scaled(p, 100.0 * self.eps, d);
+        self.cast(start, d, len - 200.0 * self.eps).is_none()
     }
 
     /// Vertices of the mesh the camera sees at turntable angle `deg`: in front of the camera,

@@ -684,6 +684,7 @@ pub fn simulate(
                 log_e: 0.0,
                 terms: 3,
                 params: cfg.field.params_at(*p, *n).model_params(),
+                r_range: crate::modelfile::NO_RANGE,
             })
             .collect(),
     };
