@@ -159,7 +159,7 @@ pub fn noise_session(
             x: rng.below(70_000) as u16,
             y: rng.below(70_000) as u16,
         };
-        let command = match rng.below(14) {
+        let command = match rng.below(15) {
             0 => Command::Status,
             1 => Command::Heartbeat,
             2 => Command::GetConfig,
@@ -196,6 +196,10 @@ pub fn noise_session(
                 max_speed: rng.below(30_000) as u32,
                 accel: rng.below(400_000) as u32,
             }),
+            13 => Command::Replay {
+                since: rng.below(80) as u32,
+                max: rng.below(8) as u8,
+            },
             _ => Command::Home,
         };
         // Mostly fresh sequence numbers, sometimes a retransmission of the previous one.

@@ -26,10 +26,10 @@
 
 use heapless::{Deque, Vec};
 use subsurf_protocol::{
-    Capabilities, Capture, Captured, Command, Config, Event, EventKind, Fault, FirmwareVersion,
-    FrameDecoder, GalvoPoint, HaltReason, Hello, Inputs, Move, MoveTarget, PROTOCOL_VERSION,
-    ProgramChunk, ProgramHeader, Reply, Request, Response, RigError, RigMessage, RigState, Seq,
-    Status, encode_event, encode_reply,
+    Capabilities, Capture, Captured, Command, Config, Event, EventKind, EventReplay, Fault,
+    FirmwareVersion, FrameDecoder, GalvoPoint, HaltReason, Hello, Inputs, Move, MoveTarget,
+    PROTOCOL_VERSION, ProgramChunk, ProgramHeader, REPLAY_BATCH, Reply, Request, Response,
+    RigError, RigMessage, RigState, Seq, Status, encode_event, encode_reply,
 };
 
 use crate::hal::Hardware;
@@ -42,8 +42,15 @@ pub type Micros = u64;
 pub const MAX_PROGRAM_POINTS: usize = 1024;
 
 /// Outgoing messages buffered between two drains; beyond this, new messages are dropped and
-/// counted ([`Rig::tx_dropped`]). Replies are recovered by retransmission, events by `Status`.
+/// counted ([`Rig::tx_dropped`]). Replies are recovered by retransmission, events by
+/// [`Command::Replay`] from the event history.
 pub const OUT_QUEUE: usize = 32;
+
+/// Recent events the rig keeps for [`Command::Replay`]: a host that saw a gap in `event_seq`
+/// gets them again as long as no more than this many events came after. 32 covers a whole
+/// [`subsurf_protocol::REPLAY_BATCH`] round trip of a program at 1 kHz many times over, at
+/// 32 × 48 bytes of RAM.
+pub const EVENT_HISTORY: usize = 32;
 
 /// Inputs are sampled at least this often (µs) even without pin-change notifications.
 pub const INPUT_POLL_US: Micros = 1_000;
@@ -166,6 +173,8 @@ pub struct Rig<H: Hardware> {
     out: Deque<RigMessage, OUT_QUEUE>,
     /// Events raised while a request executes: sent right after its reply.
     deferred: Deque<Event, 4>,
+    /// The last [`EVENT_HISTORY`] events, oldest first, for [`Command::Replay`].
+    history: Deque<Event, EVENT_HISTORY>,
     executing: bool,
     tx_dropped: u32,
     replies: ReplyCache,
@@ -217,6 +226,7 @@ impl<H: Hardware> Rig<H> {
             decoder: FrameDecoder::new(),
             out: Deque::new(),
             deferred: Deque::new(),
+            history: Deque::new(),
             executing: false,
             tx_dropped: 0,
             replies: ReplyCache::default(),
@@ -612,6 +622,11 @@ impl<H: Hardware> Rig<H> {
             kind,
         };
         self.next_event_seq = self.next_event_seq.wrapping_add(1);
+        if self.history.is_full() {
+            self.history.pop_front();
+        }
+        // Cannot fail: a slot was just freed.
+        let _ = self.history.push_back(event.clone());
         if self.executing {
             if let Err(event) = self.deferred.push_back(event) {
                 self.send(RigMessage::Event(event));
@@ -768,9 +783,34 @@ impl<H: Hardware> Rig<H> {
                 self.fault = None;
                 Ok(Response::Ack)
             }
+            Command::Replay { since, max } => Ok(Response::Events(self.replay(since, max))),
             // The protocol enum is non-exhaustive: a newer host command this firmware predates.
             #[allow(unreachable_patterns)]
             _ => Err(RigError::OutOfRange),
+        }
+    }
+
+    /// Up to `max` (at most [`REPLAY_BATCH`]) kept events from `since` on (or from the oldest
+    /// kept one, when `since` was overwritten). Read-only: replaying changes nothing on the rig.
+    fn replay(&self, since: u32, max: u8) -> EventReplay {
+        let next = self.next_event_seq;
+        let oldest = self.history.front().map_or(next, |e| e.event_seq);
+        // Wrapping distance from the next event back to `since`: within the kept window, the
+        // kept events from `since` on are the last `back` ones; farther back (or "ahead" of the
+        // rig, a confused host), everything kept is newer than `since`.
+        let kept = self.history.len();
+        let back = usize::try_from(next.wrapping_sub(since)).unwrap_or(usize::MAX);
+        let skip = kept.saturating_sub(back.min(kept));
+        let mut events = Vec::new();
+        let take = usize::from(max).clamp(1, REPLAY_BATCH);
+        for e in self.history.iter().skip(skip).take(take) {
+            // Cannot fail: at most REPLAY_BATCH are taken.
+            let _ = events.push(e.clone());
+        }
+        EventReplay {
+            oldest,
+            next_event_seq: next,
+            events,
         }
     }
 

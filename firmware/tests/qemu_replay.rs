@@ -232,6 +232,15 @@ fn the_scenario_exercises_every_path_it_claims() {
         "{} replies to the noise session",
         noisy.len()
     );
+    // Event replays (protocol version 2), the largest replies, are part of the comparison.
+    let replays = noisy
+        .iter()
+        .filter(|m| {
+            matches!(m, RigMessage::Reply(subsurf_protocol::Reply { result: Ok(Response::Events(r)), .. })
+                if !r.events.is_empty())
+        })
+        .count();
+    assert!(replays >= 3, "{replays} non-empty event replays");
 
     let reply = |seq: u32| {
         messages

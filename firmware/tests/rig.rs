@@ -663,3 +663,50 @@ fn next_step_due_follows_the_profile() {
     assert_eq!(h.sim.rig().next_step_due(), None);
     assert_eq!(h.sim.rig().position(), 100);
 }
+
+fn replay(h: &mut Host, since: u32, max: u8) -> EventReplay {
+    match h.call(Command::Replay { since, max }) {
+        Ok(Response::Events(r)) => r,
+        other => panic!("not an event replay: {other:?}"),
+    }
+}
+
+#[test]
+fn replay_returns_kept_events_and_says_which_are_gone_after_overflow() {
+    use subsurf_firmware::rig::EVENT_HISTORY;
+    let mut h = Host::new(SimParams::default());
+    let total = EVENT_HISTORY as u32 + 8;
+    for i in 0..total {
+        assert_eq!(h.call(mv(MoveTarget::Relative(1))), Ok(Response::Ack));
+        h.advance(10_000);
+        assert_eq!(h.events.len() as u32, i + 1);
+    }
+    let sent = h.events.clone();
+    let events_before = h.events.len();
+    // Everything before the last EVENT_HISTORY events was overwritten.
+    let r = replay(&mut h, 0, u8::MAX);
+    assert_eq!((r.oldest, r.next_event_seq), (8, total));
+    assert_eq!(
+        &r.events[..],
+        &sent[8..8 + REPLAY_BATCH],
+        "from the oldest kept, capped"
+    );
+    // Within the history: exactly the asked-for events, identical to the ones sent live.
+    let r = replay(&mut h, 20, 2);
+    assert_eq!(&r.events[..], &sent[20..22]);
+    let r = replay(&mut h, total - 2, 5);
+    assert_eq!(&r.events[..], &sent[sent.len() - 2..]);
+    // Nothing missing, or a host that is confused about the rig's counter: harmless answers.
+    assert!(replay(&mut h, total, 5).events.is_empty());
+    assert_eq!(
+        replay(&mut h, total + 3, 0).events.len(),
+        1,
+        "max 0 counts as 1"
+    );
+    // Replaying is read-only: no new events, no state change.
+    assert_eq!(h.events.len(), events_before);
+    let s = h.call(Command::Status);
+    assert!(
+        matches!(s, Ok(Response::Status(s)) if s.next_event_seq == total && s.position == total as i32)
+    );
+}

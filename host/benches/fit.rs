@@ -121,13 +121,13 @@ fn isotropic(c: &mut Crit) {
             ..FitOptions::default()
         };
         let fast = FitOptions {
-            bins: Some(64),
+            bins: Some(16),
             ..FitOptions::default()
         };
         for (name, o) in [
             ("specialised", &exact),
             ("reference", &reference),
-            ("fast_64_bins", &fast),
+            ("fast_16_bins", &fast),
         ] {
             let f = fit_expsum(&r, &s, o).unwrap();
             eprintln!(
@@ -247,12 +247,27 @@ fn presets(c: &mut Crit) {
     g.finish();
 }
 
+/// Mean thread-CPU seconds per call of `f` over ~0.3 s (for the plot; criterion's own estimates
+/// are not exposed to the benchmark).
+fn cpu_seconds_per_call<T>(mut f: impl FnMut() -> T) -> f64 {
+    let start = thread_cpu();
+    let mut calls = 0u32;
+    while thread_cpu() - start < Duration::from_millis(300) {
+        black_box(f());
+        calls += 1;
+    }
+    (thread_cpu() - start).as_secs_f64() / f64::from(calls.max(1))
+}
+
 fn trade_curve(c: &mut Crit) {
     let (r, s) = curve(2_000, 2_000);
     let exact = fit_expsum(&r, &s, &FitOptions::default()).unwrap();
     let e0 = log_e(&exact.model, &r, &s);
+    // With SUBSURF_FIT_PLOT=path.png, also time each setting directly and draw the curve.
+    let plot = std::env::var_os("SUBSURF_FIT_PLOT");
+    let mut points = Vec::new();
     let mut g = c.benchmark_group("trade_bins");
-    for bins in [8usize, 16, 32, 64, 128, 256] {
+    for bins in [4usize, 6, 8, 12, 16, 24, 32, 48, 64, 128] {
         let o = FitOptions {
             bins: Some(bins),
             ..FitOptions::default()
@@ -260,14 +275,33 @@ fn trade_curve(c: &mut Crit) {
         let f = fit_expsum(&r, &s, &o).unwrap();
         let e = log_e(&f.model, &r, &s);
         eprintln!(
-            "accuracy trade_bins/{bins}: log E {e:.6e} = {:.4} x exact ({e0:.6e})",
-            e / e0
+            "accuracy trade_bins/{bins}: log E {e:.6e} = {:.5} x exact ({e0:.6e}), {} iterations",
+            e / e0,
+            f.iterations
         );
         g.bench_with_input(BenchmarkId::from_parameter(bins), &o, |b, o| {
             b.iter(|| fit_expsum(black_box(&r), black_box(&s), o).unwrap())
         });
+        if plot.is_some() {
+            let t = cpu_seconds_per_call(|| fit_expsum(black_box(&r), black_box(&s), &o));
+            points.push((t, e / e0 - 1.0));
+        }
     }
     g.finish();
+    if let Some(path) = plot {
+        let t_exact = cpu_seconds_per_call(|| {
+            fit_expsum(black_box(&r), black_box(&s), &FitOptions::default())
+        });
+        let path = std::path::PathBuf::from(path);
+        subsurf::plot::tradeoff_curve(
+            &path,
+            "Fast mode, n = 3, 2,000 samples: time vs. log E / exact - 1 (line: exact fit)",
+            &points,
+            t_exact,
+        )
+        .unwrap();
+        eprintln!("plot: {}", path.display());
+    }
 }
 
 criterion_group! {

@@ -63,15 +63,48 @@ pub struct ModelAt {
 
 impl ModelAt {
     /// ln R_d per channel at distance r and direction φ from x_i (Eq. 9, blended over corners).
+    ///
+    /// A corner whose samples did not reach down to r (r below its r_min) only extrapolates
+    /// there, so its barycentric weight is damped by [`support_weight`]: where another corner
+    /// was sampled, that corner decides; where none was, all extrapolate together.
     pub fn ln_eval(&self, r: f64, phi: Option<f64>) -> [f64; 3] {
         let mut out = [0.0; 3];
+        let mut total = 0.0;
         for c in &self.corners {
+            let w = c.weight * support_weight(c.r_range, r);
+            if w <= 0.0 {
+                continue;
+            }
+            total += w;
             let l = ln_eval_supported(&c.model, c.r_range, r, phi);
             for k in 0..3 {
-                out[k] += c.weight * l[k];
+                out[k] += w * l[k];
             }
         }
-        out
+        if total > 0.0 {
+            out.map(|x| x / total)
+        } else {
+            // Every weight underflowed (far below every r_min): plain barycentric blend.
+            let mut out = [0.0; 3];
+            for c in &self.corners {
+                let l = ln_eval_supported(&c.model, c.r_range, r, phi);
+                for k in 0..3 {
+                    out[k] += c.weight * l[k];
+                }
+            }
+            out
+        }
+    }
+}
+
+/// How much a model is trusted at distance r: 1 inside its sampled range (or without a known
+/// range), decaying as exp(−(r_min − r) / (0.1·r_min)) below it.
+pub fn support_weight(r_range: [f32; 2], r: f64) -> f64 {
+    let (lo, hi) = (r_range[0] as f64, r_range[1] as f64);
+    if !(hi > lo && lo > 0.0) || r >= lo {
+        1.0
+    } else {
+        (-(lo - r) / (0.1 * lo)).exp()
     }
 }
 

@@ -69,6 +69,10 @@ pub struct PipelineOptions {
     pub model: ModelChoice,
     /// Fits with log E(x_i) (Eq. 8, mean over channels) above this fail.
     pub max_log_e: f64,
+    /// Fits with log E(x_i) above this multiple of the median over all fits (and above
+    /// [`OUTLIER_MIN_LOG_E`]) fail too: outliers, interpolated from neighbours;
+    /// `f64::INFINITY` disables the rule.
+    pub outlier_factor: f64,
     /// Eq. 6 window [t2, t1] for alpha(x_o).
     pub alpha_window: IntensityWindow,
     /// Eq. 8 threshold t.
@@ -99,6 +103,7 @@ impl PipelineOptions {
                 segments: 1,
             },
             max_log_e: 1.0,
+            outlier_factor: 3.0,
             alpha_window: IntensityWindow {
                 t2: 10.0 * floor,
                 t1: f64::INFINITY,
@@ -218,6 +223,9 @@ pub struct FitReport {
     pub terms_dropped: BTreeMap<TermDropped, usize>,
     /// Where each vertex's alpha(x_o) (Eq. 6) comes from.
     pub alpha: AlphaReport,
+    /// The log E(x_i) acceptance threshold applied: `max_log_e`, or `outlier_factor` × the
+    /// median fit's log E (at least [`OUTLIER_MIN_LOG_E`]) if lower.
+    pub max_log_e: f64,
     /// Wall time per stage, seconds.
     pub stage_seconds: BTreeMap<String, f64>,
     /// Peak resident memory of the process, MiB (Linux; `None` elsewhere).
@@ -370,6 +378,10 @@ pub enum TermDropped {
     /// resolves, which the fit places below the smallest sampled distance, where it explodes.
     Unresolved,
 }
+
+/// A fit within this log E (3 % RMS) is never an outlier, however good the typical fit is
+/// (noise-free scans: log E ~ 1e-4 with relative spread far above `outlier_factor`).
+pub const OUTLIER_MIN_LOG_E: f64 = 0.03;
 
 /// Smallest total decay |d|·(r_max − r_min) of a supported term (see [`TermDropped`]).
 pub const MIN_DECAY: f64 = 0.1;
@@ -834,6 +846,27 @@ pub fn fit_dataset(
         segments: opts.model.segments,
         colour: opts.model.colour,
     };
+    // Outliers: a fit far worse than the typical one (e.g. x_i misregistered near a
+    // silhouette, so every distance is wrong) is a failure and interpolated from neighbours.
+    let max_log_e = {
+        let mut means: Vec<f64> = errors
+            .iter()
+            .flatten()
+            .map(|le| {
+                let f: Vec<f64> = le.iter().copied().filter(|x| x.is_finite()).collect();
+                f.iter().sum::<f64>() / f.len().max(1) as f64
+            })
+            .filter(|m| m.is_finite())
+            .collect();
+        means.sort_by(f64::total_cmp);
+        match means.get(means.len() / 2) {
+            Some(&median) if median > 0.0 => opts
+                .max_log_e
+                .min((opts.outlier_factor * median).max(OUTLIER_MIN_LOG_E)),
+            _ => opts.max_log_e,
+        }
+    };
+    report.max_log_e = max_log_e;
     let mut own: Vec<Option<OwnFit>> = vec![None; nv];
     let mut light_log_e = Vec::new();
     for (((_, f), err), key) in fits.iter().zip(&errors).zip(&keys) {
@@ -846,7 +879,7 @@ pub fn fit_dataset(
                 let mean = finite.iter().sum::<f64>() / finite.len().max(1) as f64;
                 if finite.is_empty() {
                     Err(FailReason::TooFewSamples)
-                } else if mean > opts.max_log_e {
+                } else if mean > max_log_e {
                     Err(FailReason::HighError)
                 } else {
                     match params_of(&g.model) {
@@ -903,11 +936,18 @@ pub fn fit_dataset(
             }
             let enc = filled[v].as_ref()?;
             let mut dropped = Vec::new();
-            let (m, range) = grid.decode(enc, &shape, common_n, fitter, &mut dropped)?;
-            match params_of(&m) {
-                Ok((p, n, _)) if p.iter().all(|x| x.is_finite()) => Some((p, n, range)),
-                _ => None,
-            }
+            let refit = grid
+                .decode(enc, &shape, common_n, fitter, &mut dropped)
+                .and_then(|(m, range)| match params_of(&m) {
+                    Ok((p, n, _)) if p.iter().all(|x| x.is_finite()) => Some((p, n, range)),
+                    _ => None,
+                });
+            // Where the interpolated curve cannot be refitted, the nearest fitted vertex's own
+            // model (breadth-first over the mesh) stands in.
+            refit.or_else(|| {
+                nearest_fitted(v, &own, |w| ctx.scene.neighbours(w))
+                    .map(|o| (o.params.clone(), o.terms, o.r_range))
+            })
         })
         .collect();
     let mut vertices = Vec::with_capacity(nv);
@@ -962,6 +1002,32 @@ pub fn fit_dataset(
         vertices,
     };
     Ok(FitOutput { model, report })
+}
+
+/// The fitted vertex nearest to `v` in mesh hops (breadth-first), if any is connected.
+fn nearest_fitted<'a, 'n>(
+    v: usize,
+    own: &'a [Option<OwnFit>],
+    neighbours: impl Fn(usize) -> &'n [u32],
+) -> Option<&'a OwnFit> {
+    let mut seen = std::collections::HashSet::from([v]);
+    let mut frontier = vec![v];
+    while !frontier.is_empty() {
+        let mut next = Vec::new();
+        for &u in &frontier {
+            for &w in neighbours(u) {
+                let w = w as usize;
+                if w < own.len() && seen.insert(w) {
+                    if let Some(o) = &own[w] {
+                        return Some(o);
+                    }
+                    next.push(w);
+                }
+            }
+        }
+        frontier = next;
+    }
+    None
 }
 
 /// An interpolated vertex's refit: parameters, order, sampled range.
@@ -1131,7 +1197,10 @@ impl CurveGrid {
                 (rs.clone(), s)
             })
             .collect();
-        let fits = fit_common_order(fitter, &sets, Some(n), dropped).ok()?;
+        // Lower the order when a refit fails (not converged on a smooth curve, e.g.).
+        let fits = (1..=n.max(1))
+            .rev()
+            .find_map(|n| fit_common_order(fitter, &sets, Some(n), dropped).ok())?;
         let m = shape.segments;
         let model = match shape.colour {
             ColourMode::Shared => ColourModel::Shared {

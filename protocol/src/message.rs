@@ -8,7 +8,11 @@ use serde::{Deserialize, Serialize};
 
 /// Version of this wire format. The rig refuses a [`Command::Hello`] with any other version
 /// ([`RigError::UnknownVersion`]), so host and rig never talk past each other.
-pub const PROTOCOL_VERSION: u16 = 1;
+///
+/// Version 2 appended [`Command::Replay`] and [`Response::Events`] (event recovery); every
+/// version-1 encoding is unchanged, but a version-1 host would not understand a rig that expects
+/// to be asked for lost events, so the handshake refuses the mix.
+pub const PROTOCOL_VERSION: u16 = 2;
 
 /// Galvo points per [`Command::ProgramPoints`] chunk: 32 points of at most 6 bytes each keep the
 /// chunk well inside [`crate::MAX_MESSAGE`].
@@ -24,6 +28,10 @@ pub const REPLY_CACHE: usize = 4;
 /// reply cache is a late duplicate: refused with [`RigError::StaleSequence`], never executed.
 /// Farther back counts as new (a host that restarted without `Hello`).
 pub const STALE_WINDOW: u32 = 64;
+
+/// Most events one [`Response::Events`] carries: five of the largest event (42 bytes) plus the
+/// reply's header stay inside [`crate::MAX_MESSAGE`] (pinned by `protocol/tests/wire.rs`).
+pub const REPLAY_BATCH: usize = 5;
 
 /// Request sequence number. The host increments it (wrapping) for every new request and reuses it
 /// when it retransmits; the rig echoes it in the [`Reply`].
@@ -87,6 +95,15 @@ pub enum Command {
     Stop,
     /// Leave the fault state once its cause is gone (e.g. e-stop released).
     ClearFault,
+    /// Send again the events from `event_seq = since` on (events are not acknowledged, so the
+    /// host asks for the ones it saw a gap for); answered with [`Response::Events`].
+    Replay {
+        /// The first `event_seq` the host is missing.
+        since: u32,
+        /// At most this many events (the rig caps it at [`REPLAY_BATCH`]): on a noisy line a
+        /// short reply gets through where a long one would not.
+        max: u8,
+    },
 }
 
 /// A turntable move. Speeds in steps/s, acceleration in steps/s².
@@ -227,6 +244,25 @@ pub enum Response {
         /// Id of the program's first capture.
         first_capture_id: u32,
     },
+    /// Answer to [`Command::Replay`].
+    Events(EventReplay),
+}
+
+/// Events sent again from the rig's bounded event history (answer to [`Command::Replay`]).
+///
+/// The rig keeps only its most recent events: events from `since` up to `oldest` (wrapping) have
+/// been overwritten and are gone for good. `events` holds the kept events from
+/// `max(since, oldest)` on, in order, at most [`REPLAY_BATCH`]; the host asks again from the one
+/// after the last if that is still before `next_event_seq`.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct EventReplay {
+    /// `event_seq` of the oldest event the rig still holds (= `next_event_seq` when it holds none).
+    pub oldest: u32,
+    /// `event_seq` the rig's next event will get.
+    pub next_event_seq: u32,
+    /// The events, consecutive and in `event_seq` order.
+    pub events: Vec<Event, REPLAY_BATCH>,
 }
 
 /// Handshake answer: what the rig is and can do.

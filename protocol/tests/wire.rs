@@ -62,6 +62,54 @@ fn golden_relative_move() {
     );
 }
 
+/// Version 2's event recovery, appended to the enums: `Replay` is command variant 17.
+#[test]
+fn golden_replay_request() {
+    let mut out = [0u8; MAX_FRAME];
+    let req = Request {
+        seq: 5,
+        command: Command::Replay { since: 300, max: 5 },
+    };
+    let n = encode_request(&req, &mut out).unwrap();
+    assert_eq!(&out[..n], &[10, 5, 17, 172, 2, 5, 158, 122, 89, 116, 0]);
+}
+
+/// `Events` is response variant 6: oldest, next_event_seq, then a length-prefixed event list.
+#[test]
+fn golden_events_reply() {
+    let mut out = [0u8; MAX_FRAME];
+    let mut events = heapless::Vec::new();
+    events
+        .push(Event {
+            event_seq: 3,
+            timestamp_us: 99,
+            kind: EventKind::Homed,
+        })
+        .unwrap();
+    events
+        .push(Event {
+            event_seq: 4,
+            timestamp_us: 1000,
+            kind: EventKind::MoveDone { position: -2 },
+        })
+        .unwrap();
+    let reply = Reply {
+        seq: 9,
+        result: Ok(Response::Events(EventReplay {
+            oldest: 3,
+            next_event_seq: 5,
+            events,
+        })),
+    };
+    let n = encode_reply(&reply, &mut out).unwrap();
+    assert_eq!(
+        &out[..n],
+        &[
+            1, 2, 9, 17, 6, 3, 5, 2, 3, 99, 2, 4, 232, 7, 1, 3, 125, 149, 138, 221, 0
+        ]
+    );
+}
+
 #[test]
 fn reply_and_event_encoders_match_rig_message() {
     let reply = Reply {
@@ -142,6 +190,30 @@ fn largest_messages_fit_in_a_frame() {
     let reply = Reply {
         seq: u32::MAX,
         result: Ok(Response::Status(status)),
+    };
+    assert!(encode_reply(&reply, &mut out).unwrap() <= MAX_FRAME);
+    // A full replay of the largest event there is.
+    let largest = Event {
+        event_seq: u32::MAX,
+        timestamp_us: u64::MAX,
+        kind: EventKind::Captured(Captured {
+            capture_id: u32::MAX,
+            program_index: Some(u16::MAX),
+            triggered_at_us: u64::MAX,
+            galvo: far,
+            channel: u8::MAX,
+        }),
+    };
+    let mut events = heapless::Vec::new();
+    while events.push(largest.clone()).is_ok() {}
+    assert_eq!(events.len(), REPLAY_BATCH);
+    let reply = Reply {
+        seq: u32::MAX,
+        result: Ok(Response::Events(EventReplay {
+            oldest: u32::MAX,
+            next_event_seq: u32::MAX,
+            events,
+        })),
     };
     assert!(encode_reply(&reply, &mut out).unwrap() <= MAX_FRAME);
 }
@@ -288,6 +360,7 @@ fn command() -> impl Strategy<Value = Command> {
         Just(Command::ProgramRun),
         Just(Command::Stop),
         Just(Command::ClearFault),
+        (any::<u32>(), any::<u8>()).prop_map(|(since, max)| Command::Replay { since, max }),
     ]
 }
 
@@ -427,16 +500,29 @@ fn rig_message() -> impl Strategy<Value = RigMessage> {
         }),
         reason.prop_map(|reason| EventKind::Halted { reason }),
     ];
-    let result = prop_oneof![response().prop_map(Ok), rig_error().prop_map(Err)];
+    let event = (any::<u32>(), any::<u64>(), kind)
+        .prop_map(|(event_seq, timestamp_us, kind)| Event {
+            event_seq,
+            timestamp_us,
+            kind,
+        })
+        .boxed();
+    let replay = (
+        any::<u32>(),
+        any::<u32>(),
+        vec(event.clone(), 0..=REPLAY_BATCH),
+    )
+        .prop_map(|(oldest, next_event_seq, events)| {
+            Ok(Response::Events(EventReplay {
+                oldest,
+                next_event_seq,
+                events: heapless::Vec::from_slice(&events).unwrap_or_default(),
+            }))
+        });
+    let result = prop_oneof![response().prop_map(Ok), replay, rig_error().prop_map(Err)];
     prop_oneof![
         (any::<u32>(), result).prop_map(|(seq, result)| RigMessage::Reply(Reply { seq, result })),
-        (any::<u32>(), any::<u64>(), kind).prop_map(|(event_seq, timestamp_us, kind)| {
-            RigMessage::Event(Event {
-                event_seq,
-                timestamp_us,
-                kind,
-            })
-        }),
+        event.prop_map(RigMessage::Event),
     ]
 }
 

@@ -51,9 +51,14 @@ pub struct Args {
     /// Colour model.
     #[arg(long, value_enum, default_value = "shared")]
     pub colour: Colour,
-    /// Direction segments m (Eq. 3); 1 = isotropic.
-    #[arg(long, default_value_t = 1)]
-    pub segments: usize,
+    /// Direction segments m (Eq. 3); 1 = isotropic; `auto` fits m = 1, 2, 4, 8 and keeps the
+    /// smallest whose mean log E is within --segments-tolerance of the best (the choice is
+    /// written to the report as `segments_choice`).
+    #[arg(long, default_value = "1")]
+    pub segments: String,
+    /// Relative log E tolerance of `--segments auto` (0.05 = within 5 % of the best).
+    #[arg(long, default_value_t = 0.05)]
+    pub segments_tolerance: f64,
     /// Exponential terms n (Eq. 1), or `auto` for the smallest order within 1 % of the best.
     #[arg(long, default_value = "3")]
     pub terms: String,
@@ -69,6 +74,13 @@ pub struct Args {
     /// Fits with log E (Eq. 8) above this are failures, interpolated from neighbours.
     #[arg(long, default_value_t = 1.0)]
     pub max_log_e: f64,
+    /// Fits with log E above this multiple of the median fit's (and above 0.03) are outliers,
+    /// interpolated from neighbours (`inf` disables).
+    #[arg(long, default_value_t = 3.0)]
+    pub outlier_factor: f64,
+    /// Extra fit rounds on samples divided by the previous round's alpha (Eq. 6).
+    #[arg(long, default_value_t = 1)]
+    pub alpha_rounds: usize,
     /// Largest disagreement between detected spot and laser ray (mm).
     #[arg(long, default_value_t = 2.0)]
     pub laser_tolerance: f64,
@@ -124,13 +136,28 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     opts.samples.exclusion_radius_mm = args.exclusion_radius;
     opts.max_select_mm = args.max_distance;
     opts.max_log_e = args.max_log_e;
+    opts.outlier_factor = args.outlier_factor;
+    opts.alpha_rounds = args.alpha_rounds;
     opts.spot.laser_tolerance_mm = args.laser_tolerance;
+    // `--segments auto`: the ladder of m to try; a number: just that m.
+    let segment_ladder: Vec<usize> = match args.segments.as_str() {
+        "auto" => vec![1, 2, 4, 8],
+        m => vec![
+            m.parse()
+                .ok()
+                .filter(|m| (1..=64).contains(m))
+                .ok_or_else(|| anyhow!("--segments must be 1..=64 or auto, got {m:?}"))?,
+        ],
+    };
+    if !(args.segments_tolerance >= 0.0 && args.segments_tolerance.is_finite()) {
+        anyhow::bail!("--segments-tolerance must be finite and >= 0");
+    }
     opts.model = ModelChoice {
         colour: match args.colour {
             Colour::Shared => ColourMode::Shared,
             Colour::PerChannel => ColourMode::PerChannel,
         },
-        segments: args.segments.max(1),
+        segments: segment_ladder[0],
     };
     let mut fit = match args.preset {
         PresetArg::Exact => FitOptions::default(),
@@ -154,8 +181,33 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         indicatif::ProgressStyle::with_template("{msg:>12} {bar:40} {pos}/{len} {eta}")
             .context("progress style")?,
     );
-    let out = fit_dataset(&ds, &frames, &opts, &fit, &bar)
-        .with_context(|| format!("fitting {}", args.scan.display()))?;
+    let mut segments_choice = None;
+    let out = if segment_ladder.len() == 1 {
+        fit_dataset(&ds, &frames, &opts, &fit, &bar)
+            .with_context(|| format!("fitting {}", args.scan.display()))?
+    } else {
+        // One whole fit per m; the choice rule is the library's (`fit::choose_order`) on the
+        // mean over channels of the Table-1 mean log E(x_i).
+        let mut runs = Vec::new();
+        for &m in &segment_ladder {
+            opts.model.segments = m;
+            let run = fit_dataset(&ds, &frames, &opts, &fit, &bar);
+            let log_e = run.as_ref().ok().and_then(|o| {
+                let means: Vec<f64> = o.report.log_e.mean.iter().flatten().copied().collect();
+                (!means.is_empty()).then(|| means.iter().sum::<f64>() / means.len() as f64)
+            });
+            runs.push((m, log_e, run));
+        }
+        let candidates: Vec<(usize, Option<f64>)> = runs.iter().map(|(m, e, _)| (*m, *e)).collect();
+        let choice = subsurf::fit::choose_order(&candidates, args.segments_tolerance);
+        let chosen = choice.as_ref().map_or(1, |c| c.chosen);
+        segments_choice = choice;
+        let (_, _, run) = runs
+            .into_iter()
+            .find(|(m, _, _)| *m == chosen)
+            .ok_or_else(|| anyhow!("no segment count was fitted"))?;
+        run.with_context(|| format!("fitting {}", args.scan.display()))?
+    };
     bar.finish_and_clear();
     let report_dir = args.report.as_deref().and_then(std::path::Path::parent);
     for dir in [args.out.parent(), report_dir].into_iter().flatten() {
@@ -174,6 +226,23 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     json["model_bytes"] = bytes.into();
     json["model"] = args.out.display().to_string().into();
     json["fit_options"] = serde_json::to_value(&fit)?;
+    if let Some(c) = &segments_choice {
+        json["segments_choice"] = serde_json::to_value(c)?;
+        println!(
+            "segments: m = {} chosen (tolerance {}); candidates {}",
+            c.chosen,
+            c.tolerance,
+            c.candidates
+                .iter()
+                .map(|k| format!(
+                    "m = {}: {}",
+                    k.order,
+                    k.log_e.map_or("failed".into(), |v| format!("{v:.4}"))
+                ))
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+    }
     // The model is already on disk: a picture that cannot be drawn is reported after the report
     // is written, so no result is lost.
     let drawn = if args.no_pictures {

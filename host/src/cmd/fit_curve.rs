@@ -40,9 +40,9 @@ pub enum SolverArg {
 /// Speed/accuracy preset.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum PresetArg {
-    /// n = 3, 16 bins, every 2nd sample.
+    /// n = 3, 8 bins, every 2nd sample.
     Draft,
-    /// n = 3, 64 bins.
+    /// n = 3, 16 bins.
     Balanced,
     /// Exact, automatic n.
     Best,

@@ -11,7 +11,9 @@
 use serde::{Deserialize, Serialize};
 
 use super::lm::{self, Problem, Settings};
-use super::{FitFailure, FitOptions, SampleReport, Solver, Terms, fit_expsum, samples_needed};
+use super::{
+    FitFailure, FitOptions, OrderChoice, SampleReport, Solver, Terms, fit_expsum, samples_needed,
+};
 use crate::model::expsum::sort_terms;
 use crate::model::{Anisotropic, ColourModel, ExpSum, MAX_TERMS, Term, hat_weights};
 
@@ -240,6 +242,69 @@ pub fn fit_colour(
         converged,
         samples,
     })
+}
+
+/// "Model only what the scene requires" for directions: fits Eq. 3 / Eq. 5 with m = 1, 2, 4, …
+/// ≤ `max_segments` direction segments (doubling keeps every coarser segment centre a centre of
+/// the finer model) and keeps the smallest m whose log E (Eq. 8, mean over the channels) is
+/// within `tolerance` (relative, e.g. 0.02 = 2 %) of the best. `options.segments` is ignored.
+/// The ladder stops at the first m whose segments run out of samples; the returned
+/// [`OrderChoice`] lists every m tried (`order` = m) and the one chosen.
+pub fn fit_colour_auto_segments(
+    r: &[f64],
+    phi: &[f64],
+    s: [&[f64]; 3],
+    options: &AnisoOptions,
+    max_segments: usize,
+    tolerance: f64,
+) -> Result<(ColourFit, OrderChoice), FitFailure> {
+    if !((1..=64).contains(&max_segments) && tolerance >= 0.0 && tolerance.is_finite()) {
+        return Err(FitFailure::InvalidOptions {
+            reason: "auto segments need 1 <= max <= 64 and a finite tolerance >= 0",
+        });
+    }
+    let mut fits: Vec<(usize, Result<ColourFit, FitFailure>)> = Vec::new();
+    let mut m = 1;
+    while m <= max_segments {
+        let f = fit_colour(
+            r,
+            phi,
+            s,
+            &AnisoOptions {
+                segments: m,
+                ..*options
+            },
+        );
+        let stop = matches!(
+            f,
+            Err(FitFailure::TooFewSamples { .. } | FitFailure::TooFewDistances { .. })
+        );
+        fits.push((m, f));
+        if stop {
+            break;
+        }
+        m *= 2;
+    }
+    let mean = |f: &ColourFit| f.log_e.iter().sum::<f64>() / 3.0;
+    let log_es: Vec<(usize, Option<f64>)> = fits
+        .iter()
+        .map(|(m, f)| (*m, f.as_ref().ok().map(mean)))
+        .collect();
+    match super::choose_order(&log_es, tolerance) {
+        Some(choice) => {
+            let i = fits
+                .iter()
+                .position(|(m, _)| *m == choice.chosen)
+                .ok_or(FitFailure::NonFinite)?;
+            let (_, f) = fits.swap_remove(i);
+            Ok((f?, choice))
+        }
+        // Every m failed: the simplest model's reason.
+        None => match fits.into_iter().next() {
+            Some((_, Err(e))) => Err(e),
+            _ => Err(FitFailure::NonFinite),
+        },
+    }
 }
 
 /// Cleans one channel: ln s where r, φ-or-NaN and s are usable, NaN elsewhere; counts drops.
@@ -633,6 +698,37 @@ pub(crate) mod tests {
         )
         .unwrap();
         assert!((reference.rss - fit.rss).abs() <= 1e-6 * fit.rss);
+    }
+
+    #[test]
+    fn auto_segments_pick_one_for_isotropic_and_more_for_anisotropic_data() {
+        let opts = AnisoOptions {
+            terms: 2,
+            ..AnisoOptions::default()
+        };
+        // Isotropic truth (one segment): m = 1 is within 2 % of the best.
+        let iso = truth(1);
+        let (r, phi, s) = samples(&iso, 1600, 0.01, 21);
+        let (fit, choice) =
+            fit_colour_auto_segments(&r, &phi, [&s[0], &s[1], &s[2]], &opts, 8, 0.02).unwrap();
+        assert_eq!(choice.chosen, 1, "{choice:?}");
+        assert_eq!(choice.candidates.len(), 4);
+        let ColourModel::Shared { falloff, .. } = &fit.model else {
+            panic!("shared colour expected");
+        };
+        assert_eq!(falloff.segments.len(), 1);
+        // Anisotropic truth (four segments): m = 1 and 2 are far off, m = 4 is chosen.
+        let aniso = truth(4);
+        let (r, phi, s) = samples(&aniso, 1600, 0.01, 22);
+        let (fit, choice) =
+            fit_colour_auto_segments(&r, &phi, [&s[0], &s[1], &s[2]], &opts, 8, 0.02).unwrap();
+        assert_eq!(choice.chosen, 4, "{choice:?}");
+        assert!((fit.log_e[0] - 0.01).abs() < 0.001, "{:?}", fit.log_e);
+        // Bad options fail cleanly.
+        assert!(fit_colour_auto_segments(&r, &phi, [&s[0], &s[1], &s[2]], &opts, 0, 0.02).is_err());
+        assert!(
+            fit_colour_auto_segments(&r, &phi, [&s[0], &s[1], &s[2]], &opts, 8, f64::NAN).is_err()
+        );
     }
 
     #[test]

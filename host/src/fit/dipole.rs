@@ -9,7 +9,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::bins::bin_by_distance;
+use super::bins::bin_samples;
 use super::lm::{self, Problem, Settings};
 use super::{FitFailure, SampleReport, Solver, clean};
 use crate::model::Dipole;
@@ -142,9 +142,10 @@ pub fn fit_dipole(r: &[f64], s: &[f64], options: &DipoleOptions) -> Result<Dipol
     let scale_r = r.iter().sum::<f64>() / r.len() as f64;
     let scale_r = if scale_r > 0.0 { scale_r } else { 1.0 };
     // Start: a grid over sigma_s' and sigma_a/sigma_s' on binned data, k in closed form.
-    let bins = bin_by_distance(&r, &y, 32);
-    let br: Vec<f64> = bins.iter().map(|b| b.r).collect();
-    let by: Vec<f64> = bins.iter().map(|b| b.y).collect();
+    let binned = bin_samples(&r, &s, 32);
+    let bins = binned.bins.as_slice();
+    let br: Vec<f64> = bins.iter().map(|b| b.r * binned.scale_r).collect();
+    let by: Vec<f64> = bins.iter().map(|b| b.y + binned.level).collect();
     let bw: Vec<f64> = bins.iter().map(|b| b.n).collect();
     let coarse = DipoleProblem {
         r: &br,
@@ -163,7 +164,7 @@ pub fn fit_dipole(r: &[f64], s: &[f64], options: &DipoleOptions) -> Result<Dipol
             if !options.absolute {
                 // Best k for this shape: weighted mean of ln s − ln R_d.
                 let (mut num, mut den) = (0.0, 0.0);
-                for b in &bins {
+                for b in bins {
                     num += b.n * (b.y - coarse.ln_model(&theta, b.r));
                     den += b.n;
                 }

@@ -6,7 +6,7 @@
 //! exp(L)). The constraints c_k > 0, d_k < 0 of Eq. 1 hold for every finite θ, and huge or tiny
 //! units only move L and R, never the conditioning of the solve.
 
-use super::bins::{Bin, bin_by_distance};
+use super::bins::{Bin, bin_samples};
 use super::lm::{self, Problem, Settings};
 use super::{FitFailure, Objective, Solver};
 use crate::model::expsum::sort_terms;
@@ -88,21 +88,24 @@ pub(crate) fn exp_nonpositive(x: f64) -> f64 {
     p * scale
 }
 
-/// ln(x) for finite x > 0, branch-light so loops vectorise (companion of [`exp_nonpositive`]):
+/// ln(x) for finite x > 0, branch-free so loops vectorise (companion of [`exp_nonpositive`]):
 /// x = 2^e·m with m ∈ [√½, √2), ln m = 2·atanh(s), s = (m − 1)/(m + 1), |s| ≤ 0.172, by its odd
-/// series to s²³ (truncation < 1e-18). Subnormal inputs take `f64::ln`.
+/// series to s²³ (truncation < 1e-18). Subnormal inputs are scaled by 2^54 first; the exponent
+/// reaches f64 through the 2^52 bit trick instead of an int→float conversion (which x86-64's
+/// baseline SIMD lacks).
 #[inline(always)]
 pub(crate) fn ln_positive(x: f64) -> f64 {
-    if x < f64::MIN_POSITIVE {
-        return x.ln();
-    }
+    const TWO_52: f64 = 4_503_599_627_370_496.0;
+    let sub = x < f64::MIN_POSITIVE;
+    let x = if sub { x * 18_014_398_509_481_984.0 } else { x };
+    let shift = if sub { 54.0 } else { 0.0 };
     let bits = x.to_bits();
-    let mut e = ((bits >> 52) & 0x7ff) as i64 - 1023;
-    let mut m = f64::from_bits((bits & 0x000f_ffff_ffff_ffff) | 0x3ff0_0000_0000_0000);
-    if m > std::f64::consts::SQRT_2 {
-        m *= 0.5;
-        e += 1;
-    }
+    // Biased exponent field as an f64: 2^52 + field, minus 2^52.
+    let field = f64::from_bits((bits >> 52) | 0x4330_0000_0000_0000) - TWO_52;
+    let m = f64::from_bits((bits & 0x000f_ffff_ffff_ffff) | 0x3ff0_0000_0000_0000);
+    let big = m > std::f64::consts::SQRT_2;
+    let m = if big { m * 0.5 } else { m };
+    let ef = field - 1023.0 - shift + if big { 1.0 } else { 0.0 };
     let s = (m - 1.0) / (m + 1.0);
     let s2 = s * s;
     let mut p = 1.0 / 23.0;
@@ -124,211 +127,278 @@ pub(crate) fn ln_positive(x: f64) -> f64 {
     // ln 2 split so that k·LN2_HI is exact (fdlibm's constants).
     const LN2_HI: f64 = f64::from_bits(0x3fe6_2e42_fee0_0000);
     const LN2_LO: f64 = f64::from_bits(0x3dea_39ef_3579_3c76);
-    let ef = e as f64;
     ef * LN2_HI + (2.0 * s * p + ef * LN2_LO)
 }
 
-/// The exact log objective's normal equations JᵀJ, Jᵀres and cost in one pass, in chunks of
-/// samples laid out so the exponentials vectorise (see [`exp_nonpositive`]). Same residuals and
-/// Jacobian as [`LogExact`]'s `eval`.
-fn log_exact_normal(
-    problem: &LogExact<'_>,
-    theta: &[f64],
-    jtj: &mut [f64],
-    jtr: &mut [f64],
-) -> Option<f64> {
-    // Monomorphised per term count so every inner loop has constant bounds and unrolls.
-    match problem.n {
-        1 => log_exact_normal_n::<1>(problem, theta, jtj, jtr),
-        2 => log_exact_normal_n::<2>(problem, theta, jtj, jtr),
-        3 => log_exact_normal_n::<3>(problem, theta, jtj, jtr),
-        _ => log_exact_normal_n::<4>(problem, theta, jtj, jtr),
-    }
-}
+/// Points per block of the log-sum-exp kernel: long enough for the exponentials to vectorise,
+/// short enough to stay in registers and L1.
+const CHUNK: usize = 16;
 
+/// The log-sum-exp kernel shared by every log objective (exact samples and bins): for points
+/// j = 0..len at distances `r_at(j)`, calls `point(j, r_j, ln R_d(r_j), w)` with the weights
+/// w_k = c_k e^{d_k r_j} / R_d (Eq. 1 evaluated as a log-sum-exp, so nothing underflows). The
+/// exponentials of a block run in loops of constant bounds with [`exp_nonpositive`], which the
+/// compiler vectorises.
+#[inline(always)]
 #[allow(clippy::needless_range_loop)] // index loops over parallel arrays vectorise
-fn log_exact_normal_n<const N: usize>(
-    problem: &LogExact<'_>,
-    theta: &[f64],
-    jtj: &mut [f64],
-    jtr: &mut [f64],
-) -> Option<f64> {
-    const CHUNK: usize = 16;
-    let n = N;
-    let p = 2 * N;
-    let d = rates(theta, n);
-    let mut a = [0.0; 4];
-    for k in 0..n {
-        a[k] = theta[2 * k];
-    }
-    let mut cost = 0.0;
-    let mut acc = [[0.0f64; 8]; 8];
-    let mut g = [0.0f64; 8];
+fn log_sum_exp_points<const N: usize>(
+    len: usize,
+    r_at: impl Fn(usize) -> f64,
+    a: &[f64; 4],
+    d: &[f64; 4],
+    mut point: impl FnMut(usize, f64, f64, &[f64; 4]),
+) {
     let mut t = [[0.0f64; CHUNK]; 4];
+    let mut rr = [0.0f64; CHUNK];
     let mut m = [0.0f64; CHUNK];
     let mut sum = [0.0f64; CHUNK];
-    for (rc, yc) in problem.r.chunks(CHUNK).zip(problem.y.chunks(CHUNK)) {
-        let len = rc.len();
-        m[..len].fill(f64::NEG_INFINITY);
-        for k in 0..n {
-            for j in 0..len {
-                t[k][j] = a[k] + d[k] * rc[j];
+    let mut start = 0;
+    while start < len {
+        let l = CHUNK.min(len - start);
+        for j in 0..l {
+            rr[j] = r_at(start + j);
+        }
+        m[..l].fill(f64::NEG_INFINITY);
+        for k in 0..N {
+            for j in 0..l {
+                t[k][j] = a[k] + d[k] * rr[j];
                 m[j] = m[j].max(t[k][j]);
             }
         }
-        sum[..len].fill(0.0);
-        for k in 0..n {
-            for j in 0..len {
+        sum[..l].fill(0.0);
+        for k in 0..N {
+            for j in 0..l {
                 t[k][j] = exp_nonpositive(t[k][j] - m[j]);
                 sum[j] += t[k][j];
             }
         }
-        for j in 0..len {
-            let res = m[j] + ln_positive(sum[j]) - yc[j];
+        for j in 0..l {
             let inv = 1.0 / sum[j];
-            let mut row = [0.0f64; 8];
-            for k in 0..n {
-                let w = t[k][j] * inv;
-                row[2 * k] = w;
-                row[2 * k + 1] = w * rc[j] * d[k];
+            let mut w = [0.0f64; 4];
+            for k in 0..N {
+                w[k] = t[k][j] * inv;
             }
-            cost += res * res;
-            for i in 0..p {
-                g[i] += row[i] * res;
-                for l in i..p {
-                    acc[i][l] += row[i] * row[l];
-                }
-            }
+            point(start + j, rr[j], m[j] + ln_positive(sum[j]), &w);
         }
+        start += l;
     }
+}
+
+/// The residual rows of a log objective at one point, from the kernel's ln R_d and weights.
+/// Written once per objective and used both by the one-pass normal equations (the solver's hot
+/// path) and by the generic row evaluation (reference solver, tests), so the two cannot drift.
+trait LogRows {
+    /// Number of points.
+    fn points(&self) -> usize;
+    /// Distance of point j (normalised).
+    fn r(&self, j: usize) -> f64;
+    /// Residual rows at point j: `emit(residual, jacobian_row)`, row over θ = (a_1, b_1, …).
+    fn rows<const N: usize>(
+        &self,
+        j: usize,
+        ln_rd: f64,
+        w: &[f64; 4],
+        d: &[f64; 4],
+        emit: impl FnMut(f64, &[f64; 8]),
+    );
+    /// Residual rows per point (for the reference adapter's dense matrices).
+    fn rows_per_point(&self, j: usize) -> usize;
+}
+
+/// Splits θ into amplitudes a_k = ln c_k and rates d_k = −exp(b_k).
+#[inline]
+fn split(theta: &[f64], n: usize) -> ([f64; 4], [f64; 4]) {
+    let mut a = [0.0; 4];
+    for k in 0..n.min(4) {
+        a[k] = theta[2 * k];
+    }
+    (a, rates(theta, n))
+}
+
+/// JᵀJ, Jᵀres and the cost of a log objective in one pass, monomorphised per term count so
+/// every inner loop has constant bounds.
+#[allow(clippy::needless_range_loop)] // index loops over parallel arrays vectorise
+fn log_normal_n<const N: usize, O: LogRows>(
+    problem: &O,
+    theta: &[f64],
+    jtj: &mut [f64],
+    jtr: &mut [f64],
+) -> Option<f64> {
+    let p = 2 * N;
+    let (a, d) = split(theta, N);
+    let mut cost = 0.0;
+    let mut acc = [[0.0f64; 8]; 8];
+    let mut g = [0.0f64; 8];
+    log_sum_exp_points::<N>(
+        problem.points(),
+        |j| problem.r(j),
+        &a,
+        &d,
+        |j, _, l, w| {
+            problem.rows::<N>(j, l, w, &d, |res, row| {
+                cost += res * res;
+                for i in 0..p {
+                    g[i] += row[i] * res;
+                    for k in i..p {
+                        acc[i][k] += row[i] * row[k];
+                    }
+                }
+            });
+        },
+    );
     for i in 0..p {
         jtr[i] = g[i];
-        for l in i..p {
-            jtj[i * p + l] = acc[i][l];
-            jtj[l * p + i] = acc[i][l];
+        for k in i..p {
+            jtj[i * p + k] = acc[i][k];
+            jtj[k * p + i] = acc[i][k];
         }
     }
     (cost.is_finite() && g[..p].iter().all(|v| v.is_finite())).then_some(cost)
 }
 
-/// [`LogBinned`]'s normal equations in one pass with vectorisable exponentials (the fast mode's
-/// inner loop). Same residuals and Jacobian as its `eval`.
-fn log_binned_normal(
-    problem: &LogBinned<'_>,
+fn log_normal<O: LogRows>(
+    problem: &O,
+    n: usize,
     theta: &[f64],
     jtj: &mut [f64],
     jtr: &mut [f64],
 ) -> Option<f64> {
-    // Monomorphised per term count so every inner loop has constant bounds and unrolls.
-    match problem.n {
-        1 => log_binned_normal_n::<1>(problem, theta, jtj, jtr),
-        2 => log_binned_normal_n::<2>(problem, theta, jtj, jtr),
-        3 => log_binned_normal_n::<3>(problem, theta, jtj, jtr),
-        _ => log_binned_normal_n::<4>(problem, theta, jtj, jtr),
+    match n {
+        1 => log_normal_n::<1, O>(problem, theta, jtj, jtr),
+        2 => log_normal_n::<2, O>(problem, theta, jtj, jtr),
+        3 => log_normal_n::<3, O>(problem, theta, jtj, jtr),
+        _ => log_normal_n::<4, O>(problem, theta, jtj, jtr),
     }
 }
 
-#[allow(clippy::needless_range_loop)] // index loops over parallel arrays vectorise
-fn log_binned_normal_n<const N: usize>(
-    problem: &LogBinned<'_>,
+/// The generic row-by-row evaluation of a log objective (same rows as [`log_normal`]).
+fn log_eval_n<const N: usize, O: LogRows, F: FnMut(f64, &[usize], &[f64])>(
+    problem: &O,
     theta: &[f64],
-    jtj: &mut [f64],
-    jtr: &mut [f64],
-) -> Option<f64> {
-    const CHUNK: usize = 16;
-    let n = N;
-    let p = 2 * N;
-    let d = rates(theta, n);
-    let mut a = [0.0; 4];
-    for k in 0..n {
-        a[k] = theta[2 * k];
-    }
-    let mut cost = 0.0;
-    let mut acc = [[0.0f64; 8]; 8];
-    let mut g8 = [0.0f64; 8];
-    let mut t = [[0.0f64; CHUNK]; 4];
-    let mut m = [0.0f64; CHUNK];
-    let mut sum = [0.0f64; CHUNK];
-    let mut add = |row: &[f64; 8], res: f64, cost: &mut f64| {
-        *cost += res * res;
-        for i in 0..p {
-            g8[i] += row[i] * res;
-            for l in i..p {
-                acc[i][l] += row[i] * row[l];
-            }
-        }
-    };
-    for bc in problem.bins.chunks(CHUNK) {
-        let len = bc.len();
-        m[..len].fill(f64::NEG_INFINITY);
-        for k in 0..n {
-            for j in 0..len {
-                t[k][j] = a[k] + d[k] * bc[j].r;
-                m[j] = m[j].max(t[k][j]);
-            }
-        }
-        sum[..len].fill(0.0);
-        for k in 0..n {
-            for j in 0..len {
-                t[k][j] = exp_nonpositive(t[k][j] - m[j]);
-                sum[j] += t[k][j];
-            }
-        }
-        for j in 0..len {
-            let b = &bc[j];
-            let inv = 1.0 / sum[j];
-            let sn = b.n.sqrt();
-            let mut w = [0.0f64; 4];
-            let mut g = 0.0;
-            for k in 0..n {
-                w[k] = t[k][j] * inv;
-                g += w[k] * d[k];
-            }
-            let mut row = [0.0f64; 8];
-            for k in 0..n {
-                row[2 * k] = sn * w[k];
-                row[2 * k + 1] = sn * w[k] * b.r * d[k];
-            }
-            add(&row, sn * (m[j] + ln_positive(sum[j]) - b.y), &mut cost);
-            if b.srr > 0.0 {
-                let ss = b.srr.sqrt();
-                for k in 0..n {
-                    let dk = d[k] - g;
-                    row[2 * k] = ss * w[k] * dk;
-                    row[2 * k + 1] = ss * (w[k] + w[k] * b.r * dk) * d[k];
+    jac: bool,
+    row: &mut F,
+) -> bool {
+    let (a, d) = split(theta, N);
+    let mut ok = true;
+    log_sum_exp_points::<N>(
+        problem.points(),
+        |j| problem.r(j),
+        &a,
+        &d,
+        |j, _, l, w| {
+            ok &= l.is_finite();
+            problem.rows::<N>(j, l, w, &d, |res, vals| {
+                if jac {
+                    row(res, &IDX[..2 * N], &vals[..2 * N]);
+                } else {
+                    row(res, &[], &[]);
                 }
-                add(&row, ss * (g - b.sry / b.srr), &mut cost);
-            }
-        }
-    }
-    for i in 0..p {
-        jtr[i] = g8[i];
-        for l in i..p {
-            jtj[i * p + l] = acc[i][l];
-            jtj[l * p + i] = acc[i][l];
-        }
-    }
-    (cost.is_finite() && g8[..p].iter().all(|v| v.is_finite())).then_some(cost)
+            });
+        },
+    );
+    ok
 }
 
-/// ln R_d(r) and the weights w_k = c_k e^{d_k r} / R_d (a log-sum-exp, so nothing underflows).
-#[inline]
-fn ln_and_weights(theta: &[f64], n: usize, r: f64, w: &mut [f64; 4], d: &[f64; 4]) -> f64 {
-    let mut t = [0.0f64; 4];
-    let mut m = f64::NEG_INFINITY;
-    for k in 0..n {
-        t[k] = theta[2 * k] + d[k] * r;
-        m = m.max(t[k]);
+fn log_eval<O: LogRows, F: FnMut(f64, &[usize], &[f64])>(
+    problem: &O,
+    n: usize,
+    theta: &[f64],
+    jac: bool,
+    mut row: F,
+) -> bool {
+    match n {
+        1 => log_eval_n::<1, O, F>(problem, theta, jac, &mut row),
+        2 => log_eval_n::<2, O, F>(problem, theta, jac, &mut row),
+        3 => log_eval_n::<3, O, F>(problem, theta, jac, &mut row),
+        _ => log_eval_n::<4, O, F>(problem, theta, jac, &mut row),
     }
-    let mut sum = 0.0;
-    for k in 0..n {
-        w[k] = (t[k] - m).exp();
-        sum += w[k];
+}
+
+impl LogRows for LogExact<'_> {
+    fn points(&self) -> usize {
+        self.r.len().min(self.y.len())
     }
-    for wk in w.iter_mut().take(n) {
-        *wk /= sum;
+    fn r(&self, j: usize) -> f64 {
+        self.r[j]
     }
-    m + sum.ln()
+    fn rows_per_point(&self, _: usize) -> usize {
+        1
+    }
+    /// Eq. 4: ln R_d(r_j) − ln s_j; ∂/∂a_k = w_k, ∂/∂b_k = w_k·r·d_k.
+    #[inline(always)]
+    fn rows<const N: usize>(
+        &self,
+        j: usize,
+        ln_rd: f64,
+        w: &[f64; 4],
+        d: &[f64; 4],
+        mut emit: impl FnMut(f64, &[f64; 8]),
+    ) {
+        let r = self.r[j];
+        let mut row = [0.0f64; 8];
+        for k in 0..N {
+            row[2 * k] = w[k];
+            row[2 * k + 1] = w[k] * r * d[k];
+        }
+        emit(ln_rd - self.y[j], &row);
+    }
+}
+
+impl LogRows for LogBinned<'_> {
+    fn points(&self) -> usize {
+        self.bins.len()
+    }
+    fn r(&self, j: usize) -> f64 {
+        self.bins[j].r
+    }
+    fn rows_per_point(&self, _: usize) -> usize {
+        3
+    }
+    /// The bin's three rows U·v − z, v = (L − ȳ, g, h/2) (see [`super::bins`]), with
+    /// g = Σ w_k d_k and h = Σ w_k d_k² − g² the first two derivatives of ln R_d at r̄, and
+    /// ∂g/∂a_k = w_k(d_k − g), ∂h/∂a_k = w_k((d_k − g)² − h), ∂/∂b_k = d_k·∂/∂d_k with
+    /// ∂g/∂d_k = w_k(1 + r(d_k − g)), ∂h/∂d_k = w_k(2(d_k − g) + r((d_k − g)² − h)).
+    #[inline(always)]
+    #[allow(clippy::needless_range_loop)]
+    fn rows<const N: usize>(
+        &self,
+        j: usize,
+        ln_rd: f64,
+        w: &[f64; 4],
+        d: &[f64; 4],
+        mut emit: impl FnMut(f64, &[f64; 8]),
+    ) {
+        let b = &self.bins[j];
+        let r = b.r;
+        let (mut g, mut q) = (0.0, 0.0);
+        for k in 0..N {
+            g += w[k] * d[k];
+            q += w[k] * d[k] * d[k];
+        }
+        let h = q - g * g;
+        let v = [ln_rd - b.y, g, 0.5 * h];
+        // Jacobian rows of v.
+        let mut jv = [[0.0f64; 8]; 3];
+        for k in 0..N {
+            let dk = d[k] - g;
+            let e = dk * dk - h;
+            jv[0][2 * k] = w[k];
+            jv[0][2 * k + 1] = w[k] * r * d[k];
+            jv[1][2 * k] = w[k] * dk;
+            jv[1][2 * k + 1] = w[k] * (1.0 + r * dk) * d[k];
+            jv[2][2 * k] = 0.5 * w[k] * e;
+            jv[2][2 * k + 1] = 0.5 * w[k] * (2.0 * dk + r * e) * d[k];
+        }
+        let u = &b.u;
+        let rows_u = [[u[0], u[1], u[2]], [0.0, u[3], u[4]], [0.0, 0.0, u[5]]];
+        for (i, ui) in rows_u.iter().enumerate() {
+            let mut row = [0.0f64; 8];
+            for c in 0..2 * N {
+                row[c] = ui[0] * jv[0][c] + ui[1] * jv[1][c] + ui[2] * jv[2][c];
+            }
+            emit(ui[0] * v[0] + ui[1] * v[1] + ui[2] * v[2] - b.z[i], &row);
+        }
+    }
 }
 
 impl Problem for LogExact<'_> {
@@ -341,31 +411,13 @@ impl Problem for LogExact<'_> {
         jtj: &mut [f64],
         jtr: &mut [f64],
     ) -> Option<Option<f64>> {
-        Some(log_exact_normal(self, theta, jtj, jtr))
+        Some(log_normal(self, self.n, theta, jtj, jtr))
     }
     fn rows(&self) -> usize {
-        self.r.len()
+        self.points()
     }
-    fn eval<F: FnMut(f64, &[usize], &[f64])>(&self, theta: &[f64], jac: bool, mut row: F) -> bool {
-        let n = self.n;
-        let (mut w, d) = ([0.0; 4], rates(theta, n));
-        let mut vals = [0.0; 8];
-        for (&r, &y) in self.r.iter().zip(self.y) {
-            let l = ln_and_weights(theta, n, r, &mut w, &d);
-            if !l.is_finite() {
-                return false;
-            }
-            if jac {
-                for k in 0..n {
-                    vals[2 * k] = w[k];
-                    vals[2 * k + 1] = w[k] * r * d[k];
-                }
-                row(l - y, &IDX[..2 * n], &vals[..2 * n]);
-            } else {
-                row(l - y, &[], &[]);
-            }
-        }
-        true
+    fn eval<F: FnMut(f64, &[usize], &[f64])>(&self, theta: &[f64], jac: bool, row: F) -> bool {
+        log_eval(self, self.n, theta, jac, row)
     }
 }
 
@@ -379,47 +431,13 @@ impl Problem for LogBinned<'_> {
         jtj: &mut [f64],
         jtr: &mut [f64],
     ) -> Option<Option<f64>> {
-        Some(log_binned_normal(self, theta, jtj, jtr))
+        Some(log_normal(self, self.n, theta, jtj, jtr))
     }
     fn rows(&self) -> usize {
-        2 * self.bins.len()
+        (0..self.points()).map(|j| self.rows_per_point(j)).sum()
     }
-    fn eval<F: FnMut(f64, &[usize], &[f64])>(&self, theta: &[f64], jac: bool, mut row: F) -> bool {
-        let n = self.n;
-        let (mut w, d) = ([0.0; 4], rates(theta, n));
-        let mut vals = [0.0; 8];
-        for b in self.bins {
-            let l = ln_and_weights(theta, n, b.r, &mut w, &d);
-            if !l.is_finite() {
-                return false;
-            }
-            let sn = b.n.sqrt();
-            let g: f64 = (0..n).map(|k| w[k] * d[k]).sum();
-            if jac {
-                for k in 0..n {
-                    vals[2 * k] = sn * w[k];
-                    vals[2 * k + 1] = sn * w[k] * b.r * d[k];
-                }
-                row(sn * (l - b.y), &IDX[..2 * n], &vals[..2 * n]);
-            } else {
-                row(sn * (l - b.y), &[], &[]);
-            }
-            if b.srr > 0.0 {
-                let ss = b.srr.sqrt();
-                let beta = b.sry / b.srr;
-                if jac {
-                    for k in 0..n {
-                        let dk = d[k] - g;
-                        vals[2 * k] = ss * w[k] * dk;
-                        vals[2 * k + 1] = ss * (w[k] + w[k] * b.r * dk) * d[k];
-                    }
-                    row(ss * (g - beta), &IDX[..2 * n], &vals[..2 * n]);
-                } else {
-                    row(ss * (g - beta), &[], &[]);
-                }
-            }
-        }
-        true
+    fn eval<F: FnMut(f64, &[usize], &[f64])>(&self, theta: &[f64], jac: bool, row: F) -> bool {
+        log_eval(self, self.n, theta, jac, row)
     }
 }
 
@@ -795,27 +813,32 @@ pub(crate) fn fit_fixed(
     max_iterations: usize,
     start: Option<&[Term]>,
 ) -> Result<Raw, FitFailure> {
-    let scale_r = r.iter().cloned().fold(0.0, f64::max);
-    let ln_s: Vec<f64> = s.iter().map(|&v| ln_positive(v)).collect();
-    let level = match objective {
-        Objective::Log => ln_s.iter().sum::<f64>() / ln_s.len() as f64,
-        Objective::Linear => ln_s.iter().cloned().fold(f64::NEG_INFINITY, f64::max),
+    // Bins feed the start values and the pre-fit (the whole fit in fast mode). Binning computes
+    // ln s, the scale and the level on the fly, so the fast mode touches each sample once.
+    let binned = bin_samples(r, s, bins.unwrap_or(PREFIT_BINS).max(2 * n + 2));
+    let scale_r = binned.scale_r;
+    let (level, prefit_bins) = match objective {
+        Objective::Log => (binned.level, binned.bins),
+        Objective::Linear => {
+            // Values relative to the largest one, where the linear residual has its weight.
+            let level = s.iter().cloned().fold(f64::NEG_INFINITY, f64::max).ln();
+            let shift = level - binned.level;
+            let bins = binned
+                .bins
+                .into_iter()
+                .map(|b| b.normalised(1.0, shift))
+                .collect();
+            (level, bins)
+        }
     };
-    // Bins feed the start values and the pre-fit (the whole fit in fast mode). They are built
-    // from the raw samples and normalised afterwards, so the fast mode touches each sample once.
-    let prefit_bins: Vec<Bin> =
-        bin_by_distance(r, &ln_s, bins.unwrap_or(PREFIT_BINS).max(2 * n + 2))
-            .into_iter()
-            .map(|b| b.normalised(scale_r, level))
-            .collect();
     // Per-sample normalised data, only for the solves that use every sample.
     let per_sample = || -> (Vec<f64>, Vec<f64>) {
         (
             r.iter().map(|v| v / scale_r).collect(),
-            ln_s.iter().map(|v| v - level).collect(),
+            s.iter().map(|&v| ln_positive(v) - level).collect(),
         )
     };
-    let theta0 = match start {
+    let candidates = match start {
         Some(terms) => {
             let mut t = Vec::with_capacity(2 * n);
             for term in terms {
@@ -827,10 +850,11 @@ pub(crate) fn fit_fixed(
                     reason: "start values must be n terms with c > 0 and d < 0",
                 });
             }
-            t
+            vec![t]
         }
-        None => starts(&prefit_bins, n).swap_remove(0),
+        None => starts(&prefit_bins, n),
     };
+    let theta0 = candidates[0].clone();
     let settings = Settings {
         max_iterations,
         ..Settings::default()
@@ -841,10 +865,6 @@ pub(crate) fn fit_fixed(
         (Objective::Log, Solver::Specialised) => {
             // Binned pre-fit (the whole fit in fast mode) from each start candidate until one
             // converges with every term alive, then polish on every sample.
-            let candidates = match start {
-                Some(_) => vec![theta0.clone()],
-                None => starts(&prefit_bins, n),
-            };
             let binned = LogBinned {
                 bins: &prefit_bins,
                 n,
@@ -875,20 +895,10 @@ pub(crate) fn fit_fixed(
             }
             if bins.is_some() {
                 // log E from the statistics: the binned cost plus each bin's scatter about its
-                // own regression line (the part no smooth model can explain).
-                rss_estimate = pre.as_ref().map(|o| {
-                    o.cost
-                        + prefit_bins
-                            .iter()
-                            .map(|b| {
-                                if b.srr > 0.0 {
-                                    (b.syy - b.sry * b.sry / b.srr).max(0.0)
-                                } else {
-                                    b.syy
-                                }
-                            })
-                            .sum::<f64>()
-                });
+                // own quadratic (the part no smooth model can explain).
+                rss_estimate = pre
+                    .as_ref()
+                    .map(|o| o.cost + prefit_bins.iter().map(|b| b.scatter).sum::<f64>());
                 pre.map(|o| lm::Outcome { iterations, ..o })
             } else {
                 let theta1 = pre.map_or_else(|| theta0.clone(), |o| o.theta);

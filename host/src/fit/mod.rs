@@ -107,9 +107,9 @@ impl Default for FitOptions {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Preset {
-    /// Fast previews: n = 3, 16 distance bins, every 2nd sample, isotropic.
+    /// Fast previews: n = 3, 8 distance bins, every 2nd sample, isotropic.
     Draft,
-    /// Production default: n = 3, 64 distance bins, all samples, 4 segments.
+    /// Production default: n = 3, 16 distance bins, all samples, 4 segments.
     Balanced,
     /// Exact fit on all samples, automatic n ≤ 4 (1 % tolerance), 8 segments.
     Best,
@@ -121,14 +121,14 @@ impl Preset {
         match self {
             Self::Draft => FitOptions {
                 terms: Terms::Fixed(3),
-                bins: Some(16),
+                bins: Some(8),
                 subsample: 2,
                 max_iterations: 30,
                 ..FitOptions::default()
             },
             Self::Balanced => FitOptions {
                 terms: Terms::Fixed(3),
-                bins: Some(64),
+                bins: Some(16),
                 max_iterations: 100,
                 ..FitOptions::default()
             },
@@ -185,6 +185,30 @@ pub struct OrderChoice {
     pub candidates: Vec<OrderCandidate>,
 }
 
+/// "Model only what the scene requires": among candidates (order, log E or `None` if that fit
+/// failed), in increasing order, the smallest order whose log E is within `tolerance` (relative)
+/// of the best. `None` if every candidate failed. Shared by the automatic choice of terms
+/// ([`Terms::Auto`]), of direction segments ([`aniso::fit_colour_auto_segments`]) and the
+/// pipeline's `subsurf fit --segments auto`.
+pub fn choose_order(candidates: &[(usize, Option<f64>)], tolerance: f64) -> Option<OrderChoice> {
+    let best = candidates
+        .iter()
+        .filter_map(|c| c.1.filter(|v| v.is_finite()))
+        .fold(f64::INFINITY, f64::min);
+    let chosen = candidates
+        .iter()
+        .find(|c| c.1.is_some_and(|v| v <= best * (1.0 + tolerance) + 1e-15))?
+        .0;
+    Some(OrderChoice {
+        chosen,
+        tolerance,
+        candidates: candidates
+            .iter()
+            .map(|&(order, log_e)| OrderCandidate { order, log_e })
+            .collect(),
+    })
+}
+
 /// A fitted isotropic fall-off (Eq. 1) and how it was obtained.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ExpFit {
@@ -194,8 +218,9 @@ pub struct ExpFit {
     /// the linear objective).
     pub rss: f64,
     /// log E (Eq. 8, alpha = 1, all used samples): RMS of ln(R_d/s). In fast mode
-    /// ([`FitOptions::bins`]) it is computed from the bin statistics (exact up to the curvature
-    /// of ln R_d within a bin) instead of another pass over the samples; so is `rss`.
+    /// ([`FitOptions::bins`]) it is computed from the bin statistics (exact up to the cubic term
+    /// of ln R_d across a bin, see [`bins`]) instead of another pass over the samples; so is
+    /// `rss`.
     pub log_e: f64,
     /// Levenberg–Marquardt iterations (pre-fit plus final fit).
     pub iterations: usize,
@@ -304,30 +329,19 @@ pub fn fit_expsum(r: &[f64], s: &[f64], options: &FitOptions) -> Result<ExpFit, 
                     break;
                 }
             }
-            let best = fits
+            let log_es: Vec<(usize, Option<f64>)> = fits
                 .iter()
-                .filter_map(|(_, f)| f.as_ref().ok().map(|f| f.log_e))
-                .fold(f64::INFINITY, f64::min);
-            let candidates = fits
-                .iter()
-                .map(|(n, f)| OrderCandidate {
-                    order: *n,
-                    log_e: f.as_ref().ok().map(|f| f.log_e),
-                })
+                .map(|(n, f)| (*n, f.as_ref().ok().map(|f| f.log_e)))
                 .collect();
-            let chosen = fits.iter().position(|(_, f)| {
-                f.as_ref()
-                    .is_ok_and(|f| f.log_e <= best * (1.0 + tolerance) + 1e-15)
-            });
-            match chosen {
-                Some(i) => {
-                    let (n, f) = fits.swap_remove(i);
+            match choose_order(&log_es, tolerance) {
+                Some(choice) => {
+                    let i = fits
+                        .iter()
+                        .position(|(n, _)| *n == choice.chosen)
+                        .ok_or(FitFailure::NonFinite)?;
+                    let (_, f) = fits.swap_remove(i);
                     let mut fit = f?;
-                    fit.order = Some(OrderChoice {
-                        chosen: n,
-                        tolerance,
-                        candidates,
-                    });
+                    fit.order = Some(choice);
                     Ok(fit)
                 }
                 // Every order failed: report the simplest model's reason.

@@ -100,6 +100,9 @@ impl<L: ByteLink> RigClient<L> {
         let reply = self.call_raw(Command::Hello {
             protocol_version: PROTOCOL_VERSION,
         })?;
+        // A new session: events queued so far belong to the previous one. The core delivers
+        // none until the next `Status` tells it the rig's event counter.
+        self.events.clear();
         hello_from_reply(reply)
     }
 
@@ -220,6 +223,8 @@ impl<L: ByteLink> RigClient<L> {
     pub fn hello_again(&mut self) -> Result<Hello, RigClientError> {
         let hello = self.handshake()?;
         self.hello = hello;
+        // Resynchronises the event stream (see `handshake`).
+        self.status()?;
         Ok(hello)
     }
 
@@ -349,9 +354,12 @@ impl<L: ByteLink> RigClient<L> {
 
     /// Wait until capture `id` has finished and return its report.
     ///
-    /// Events are not retransmitted: if the `Captured` event was lost on the link, this notices
-    /// from the status (the capture counter moved past `id` and the rig is idle) and reports
-    /// [`RigClientError::EventTimeout`] early rather than waiting for the full timeout.
+    /// A `Captured` event lost on the link is recovered: the status polls made here tell the
+    /// client that the rig's event counter moved on, and it asks the rig to replay the missing
+    /// events. Only when the rig no longer keeps the event (more than
+    /// `subsurf_firmware::rig::EVENT_HISTORY` events later) does this notice from the status
+    /// (the capture counter moved past `id`, the rig is idle, nothing is being recovered) and
+    /// report [`RigClientError::EventTimeout`] early rather than waiting for the full timeout.
     pub fn wait_captured(
         &mut self,
         id: u32,
@@ -384,12 +392,15 @@ impl<L: ByteLink> RigClient<L> {
                 next_poll = now + STATUS_POLL;
                 let s = self.status()?;
                 if self.events.is_empty()
+                    && !self.core.recovering_events()
                     && s.state != RigState::Capturing
                     && s.state != RigState::Program
                     && s.next_capture_id.wrapping_sub(id) as i32 > 0
                 {
                     return Err(RigClientError::EventTimeout {
-                        what: format!("{what} (finished on the rig, its event was lost)"),
+                        what: format!(
+                            "{what} (finished on the rig, its event was lost and is no longer kept)"
+                        ),
                         waited: now.duration_since(started),
                     });
                 }

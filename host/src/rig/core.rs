@@ -11,13 +11,21 @@
 //! retransmitted with the same sequence number until its reply arrives or `give_up_after` passes.
 //! The rig answers a retransmission from its reply cache without executing it again, so every
 //! command runs at most once and commands run in the order they were started.
+//!
+//! Events are not acknowledged. The core delivers them in `event_seq` order, each exactly once:
+//! it learns where the rig's counter stands from every `Status` reply (and from the events
+//! themselves), and when one is missing it holds back the later ones and asks the rig for the
+//! missing ones ([`Command::Replay`], an internal request like the heartbeat). Only events the
+//! rig no longer keeps are skipped, and counted ([`ClientStats::gone_events`]). Until the first
+//! `Status` after a `Hello` tells it the rig's counter, the core delivers no event at all: whatever
+//! arrives then belongs to an earlier session.
 
-use std::collections::VecDeque;
+use std::collections::{BTreeMap, VecDeque};
 use std::time::{Duration, Instant};
 
 use subsurf_protocol::{
-    Command, DecoderStats, Event, FrameDecoder, MAX_FRAME, Reply, Request, Response, RigError,
-    RigMessage, Seq, encode_request,
+    Command, DecoderStats, Event, EventReplay, FrameDecoder, MAX_FRAME, REPLAY_BATCH, Reply,
+    Request, Response, RigError, RigMessage, Seq, encode_request,
 };
 
 /// Timing of retransmissions and heartbeats.
@@ -43,6 +51,9 @@ impl Default for ClientConfig {
 }
 
 /// How a started command ended.
+// An `Events` reply makes `Replied` a few hundred bytes; completions are few and short-lived, so
+// boxing would only add an allocation per request.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Outcome {
     /// The rig executed it (or refused it with a typed error, then it executed nothing).
@@ -78,10 +89,36 @@ pub struct ClientStats {
     pub stray_replies: u64,
     /// Events received twice (duplicated frames) and ignored.
     pub duplicate_events: u64,
-    /// Events the rig sent that never arrived (gaps in `event_seq`).
+    /// Events that did not arrive on their own (gaps in `event_seq`): recovered plus gone.
     pub lost_events: u64,
+    /// Lost events delivered after all, from a [`Command::Replay`].
+    pub recovered_events: u64,
+    /// Lost events the rig no longer kept: skipped, never delivered.
+    pub gone_events: u64,
+    /// Replay requests sent.
+    pub replays: u64,
+    /// Events dropped because they came before the session's `Status` (an earlier session's).
+    pub stale_events: u64,
     /// What the frame decoder dropped.
     pub decoder: DecoderStats,
+}
+
+/// Who started a request: the user (its completion is reported) or the core itself.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Origin {
+    User,
+    Heartbeat,
+    Replay,
+}
+
+/// Most out-of-order events held back while a gap is being recovered; beyond this the gap is
+/// given up (counted as gone) so memory stays bounded whatever the rig sends.
+const MAX_HELD_EVENTS: usize = 4096;
+
+/// Wrapping distance from `from` forward to `to`, `None` when `to` is behind `from`.
+fn ahead(to: u32, from: u32) -> Option<u32> {
+    let d = to.wrapping_sub(from);
+    (d <= u32::MAX / 2).then_some(d)
 }
 
 #[derive(Debug)]
@@ -91,8 +128,8 @@ struct InFlight {
     first_sent: Instant,
     last_sent: Instant,
     attempts: u32,
-    /// A heartbeat the client sent by itself: its completion is not reported.
-    internal: bool,
+    /// Only [`Origin::User`] requests report a completion.
+    origin: Origin,
 }
 
 /// The host side of the protocol, without I/O or clock. See the module documentation.
@@ -101,12 +138,22 @@ pub struct ClientCore {
     config: ClientConfig,
     decoder: FrameDecoder,
     next_seq: Seq,
-    queue: VecDeque<(Seq, Command, bool)>,
+    queue: VecDeque<(Seq, Command, Origin)>,
     in_flight: Option<InFlight>,
     transmit: VecDeque<Vec<u8>>,
     completions: VecDeque<Completion>,
     events: VecDeque<Event>,
+    /// The next `event_seq` to deliver; `None` until synced with the rig's counter.
     next_event_seq: Option<u32>,
+    /// The rig's counter as last heard of (status, replay, or one past the newest event).
+    rig_next_event_seq: Option<u32>,
+    /// Events that arrived ahead of a gap, by `event_seq`; at most [`MAX_HELD_EVENTS`].
+    held: BTreeMap<u32, Event>,
+    /// Whether a [`Command::Replay`] is queued or in flight.
+    replay_outstanding: bool,
+    /// Events to ask for per replay: halved when a replay needed retransmitting (long replies
+    /// are what a noisy line loses), doubled up to [`REPLAY_BATCH`] when one got through at once.
+    replay_batch: u8,
     last_activity: Instant,
     stats: ClientStats,
 }
@@ -128,6 +175,10 @@ impl ClientCore {
             completions: VecDeque::new(),
             events: VecDeque::new(),
             next_event_seq: None,
+            rig_next_event_seq: None,
+            held: BTreeMap::new(),
+            replay_outstanding: false,
+            replay_batch: REPLAY_BATCH as u8,
             last_activity: now,
             stats: ClientStats::default(),
         }
@@ -147,8 +198,22 @@ impl ClientCore {
     pub fn stats(&self) -> ClientStats {
         ClientStats {
             decoder: self.decoder.stats(),
+            lost_events: self.stats.recovered_events + self.stats.gone_events,
             ..self.stats
         }
+    }
+
+    /// Whether events the rig has sent are still missing (a replay is under way): a caller that
+    /// waits for an event should keep pumping rather than conclude it was lost.
+    pub fn recovering_events(&self) -> bool {
+        let Some(expected) = self.next_event_seq else {
+            return false;
+        };
+        !self.held.is_empty()
+            || self
+                .rig_next_event_seq
+                .and_then(|n| ahead(n, expected))
+                .is_some_and(|d| d > 0)
     }
 
     /// Whether no command is queued or in flight.
@@ -158,19 +223,32 @@ impl ClientCore {
 
     /// Queue `command`; returns the sequence number its [`Completion`] will carry.
     pub fn start(&mut self, now: Instant, command: Command) -> Seq {
-        self.enqueue(now, command, false)
+        self.enqueue(now, command, Origin::User)
     }
 
     /// Expect the next event to have this `event_seq` (from [`subsurf_protocol::Status`]), so
-    /// duplicates and gaps are recognised from the first event on.
+    /// duplicates and gaps are recognised from the first event on. The core also does this by
+    /// itself from the first `Status` reply after a `Hello`.
     pub fn sync_events(&mut self, next_event_seq: u32) {
         self.next_event_seq = Some(next_event_seq);
+        self.rig_next_event_seq = Some(next_event_seq);
+        self.held.clear();
     }
 
-    fn enqueue(&mut self, now: Instant, command: Command, internal: bool) -> Seq {
+    /// Forget the event position: a new session (a `Hello` reply) starts unsynced, so nothing
+    /// queued from the previous one is delivered.
+    fn unsync_events(&mut self) {
+        self.next_event_seq = None;
+        self.rig_next_event_seq = None;
+        self.held.clear();
+        self.stats.stale_events += self.events.len() as u64;
+        self.events.clear();
+    }
+
+    fn enqueue(&mut self, now: Instant, command: Command, origin: Origin) -> Seq {
         let seq = self.next_seq;
         self.next_seq = self.next_seq.wrapping_add(1);
-        self.queue.push_back((seq, command, internal));
+        self.queue.push_back((seq, command, origin));
         self.send_next(now);
         seq
     }
@@ -179,7 +257,7 @@ impl ClientCore {
         if self.in_flight.is_some() {
             return;
         }
-        let Some((seq, command, internal)) = self.queue.pop_front() else {
+        let Some((seq, command, origin)) = self.queue.pop_front() else {
             return;
         };
         let mut buf = [0u8; MAX_FRAME];
@@ -189,19 +267,16 @@ impl ClientCore {
             // not be, it fails like a lost request instead of being sent truncated.
             Err(_) => {
                 self.stats.timeouts += 1;
-                if !internal {
-                    self.completions.push_back(Completion {
-                        seq,
-                        outcome: Outcome::TimedOut { attempts: 0 },
-                    });
-                }
+                self.report_timeout(seq, 0, origin);
                 return self.send_next(now);
             }
         };
         self.transmit.push_back(frame.clone());
         self.stats.requests += 1;
-        if internal {
-            self.stats.heartbeats += 1;
+        match origin {
+            Origin::Heartbeat => self.stats.heartbeats += 1,
+            Origin::Replay => self.stats.replays += 1,
+            Origin::User => {}
         }
         self.last_activity = now;
         self.in_flight = Some(InFlight {
@@ -210,8 +285,20 @@ impl ClientCore {
             first_sent: now,
             last_sent: now,
             attempts: 1,
-            internal,
+            origin,
         });
+    }
+
+    fn report_timeout(&mut self, seq: Seq, attempts: u32, origin: Origin) {
+        match origin {
+            Origin::User => self.completions.push_back(Completion {
+                seq,
+                outcome: Outcome::TimedOut { attempts },
+            }),
+            // Asked again by `handle_timeout` while the gap persists.
+            Origin::Replay => self.replay_outstanding = false,
+            Origin::Heartbeat => {}
+        }
     }
 
     /// Bytes received from the rig, in any chunking.
@@ -222,7 +309,10 @@ impl ClientCore {
             input = rest;
             match msg {
                 Some(RigMessage::Reply(reply)) => self.handle_reply(now, reply),
-                Some(RigMessage::Event(event)) => self.handle_event(event),
+                Some(RigMessage::Event(event)) => {
+                    self.accept_event(event, false);
+                    self.request_replay_if_needed(now);
+                }
                 None => {}
             }
         }
@@ -231,12 +321,21 @@ impl ClientCore {
     fn handle_reply(&mut self, now: Instant, reply: Reply) {
         match self.in_flight.take() {
             Some(f) if f.seq == reply.seq => {
-                if !f.internal {
+                if f.origin == Origin::Replay {
+                    self.replay_batch = if f.attempts > 1 {
+                        (self.replay_batch / 2).max(1)
+                    } else {
+                        self.replay_batch.saturating_mul(2).min(REPLAY_BATCH as u8)
+                    };
+                }
+                self.observe_reply(f.origin, &reply.result);
+                if f.origin == Origin::User {
                     self.completions.push_back(Completion {
                         seq: f.seq,
                         outcome: Outcome::Replied(reply.result),
                     });
                 }
+                self.request_replay_if_needed(now);
                 self.send_next(now);
             }
             other => {
@@ -246,33 +345,163 @@ impl ClientCore {
         }
     }
 
-    fn handle_event(&mut self, event: Event) {
-        if let Some(expected) = self.next_event_seq {
-            // Wrapping comparison: "behind" means a duplicate of something already delivered.
-            let ahead = event.event_seq.wrapping_sub(expected);
-            if ahead > u32::MAX / 2 {
-                self.stats.duplicate_events += 1;
-                return;
-            }
-            self.stats.lost_events += u64::from(ahead);
+    /// What a reply tells the event machinery: a `Hello` starts a new session, a `Status` syncs
+    /// or reveals missing events, an `Events` reply delivers them.
+    fn observe_reply(&mut self, origin: Origin, result: &Result<Response, RigError>) {
+        match result {
+            Ok(Response::Hello(_)) => self.unsync_events(),
+            Ok(Response::Status(status)) => match self.next_event_seq {
+                None => self.sync_events(status.next_event_seq),
+                Some(_) => self.note_rig_counter(status.next_event_seq),
+            },
+            Ok(Response::Events(replay)) => self.handle_replay(replay),
+            _ => {}
         }
-        self.next_event_seq = Some(event.event_seq.wrapping_add(1));
+        if origin == Origin::Replay {
+            self.replay_outstanding = false;
+            if !matches!(result, Ok(Response::Events(_))) {
+                // A rig that cannot replay (it refused): what is missing stays missing.
+                if let Some(target) = self.rig_next_event_seq {
+                    self.skip_to(target);
+                }
+            }
+        }
+    }
+
+    /// The rig's counter is at least `next`.
+    fn note_rig_counter(&mut self, next: u32) {
+        match self.rig_next_event_seq {
+            Some(known) if ahead(next, known).is_none() => {}
+            _ => self.rig_next_event_seq = Some(next),
+        }
+    }
+
+    /// One event from the link (`replayed = false`) or from a replay: delivered if it is the next
+    /// one, held if it is ahead of a gap, ignored if it was delivered already.
+    fn accept_event(&mut self, event: Event, replayed: bool) {
+        let Some(expected) = self.next_event_seq else {
+            self.stats.stale_events += 1;
+            return;
+        };
+        self.note_rig_counter(event.event_seq.wrapping_add(1));
+        match ahead(event.event_seq, expected) {
+            None => self.stats.duplicate_events += 1,
+            Some(0) => {
+                if replayed {
+                    self.stats.recovered_events += 1;
+                }
+                self.deliver(event);
+            }
+            Some(_) => {
+                if self.held.contains_key(&event.event_seq) {
+                    self.stats.duplicate_events += 1;
+                    return;
+                }
+                if replayed {
+                    self.stats.recovered_events += 1;
+                }
+                self.held.insert(event.event_seq, event);
+                if self.held.len() > MAX_HELD_EVENTS {
+                    // Bounded memory: give up the oldest gap.
+                    if let Some(first) = self.first_held() {
+                        self.skip_to(first);
+                    }
+                }
+            }
+        }
+    }
+
+    /// Deliver `event` (the expected one) and every held event that now follows on.
+    fn deliver(&mut self, event: Event) {
+        let mut next = event.event_seq.wrapping_add(1);
         self.events.push_back(event);
+        while let Some(e) = self.held.remove(&next) {
+            self.events.push_back(e);
+            next = next.wrapping_add(1);
+        }
+        self.next_event_seq = Some(next);
+    }
+
+    /// The held event nearest after the expected one.
+    fn first_held(&self) -> Option<u32> {
+        let expected = self.next_event_seq?;
+        self.held
+            .keys()
+            .copied()
+            .min_by_key(|k| k.wrapping_sub(expected))
+    }
+
+    /// Give up every missing event before `target` (counted as gone); held ones are delivered.
+    fn skip_to(&mut self, target: u32) {
+        while let Some(expected) = self.next_event_seq {
+            let Some(gap) = ahead(target, expected).filter(|d| *d > 0) else {
+                return;
+            };
+            match self.first_held() {
+                Some(h) if h.wrapping_sub(expected) < gap => {
+                    self.stats.gone_events += u64::from(h.wrapping_sub(expected));
+                    if let Some(e) = self.held.remove(&h) {
+                        self.deliver(e);
+                    }
+                }
+                _ => {
+                    self.stats.gone_events += u64::from(gap);
+                    self.next_event_seq = Some(target);
+                    return;
+                }
+            }
+        }
+    }
+
+    fn handle_replay(&mut self, replay: &EventReplay) {
+        let Some(before) = self.next_event_seq else {
+            return;
+        };
+        // The rig's own word on its counter replaces what we inferred (it may have restarted).
+        if ahead(replay.next_event_seq, before).is_none() {
+            self.sync_events(replay.next_event_seq);
+            return;
+        }
+        self.rig_next_event_seq = Some(replay.next_event_seq);
+        // Nothing can be held from beyond the rig's counter (a corrupted-yet-valid frame).
+        self.held
+            .retain(|k, _| ahead(replay.next_event_seq, *k).is_some_and(|d| d > 0));
+        // Events before the rig's oldest kept one are gone.
+        if ahead(replay.oldest, before).is_some() {
+            self.skip_to(replay.oldest);
+        }
+        for event in &replay.events {
+            self.accept_event(event.clone(), true);
+        }
+        if self.next_event_seq == Some(before) {
+            // No progress although the rig says more exist: never loop on a confused rig.
+            self.skip_to(replay.next_event_seq);
+        }
+    }
+
+    /// Ask the rig for the events missing before the held ones or before its counter.
+    fn request_replay_if_needed(&mut self, now: Instant) {
+        if self.replay_outstanding || !self.recovering_events() {
+            return;
+        }
+        let Some(since) = self.next_event_seq else {
+            return;
+        };
+        self.replay_outstanding = true;
+        // Queued like any request: sequence numbers must reach the rig in increasing order.
+        let max = self.replay_batch;
+        self.enqueue(now, Command::Replay { since, max }, Origin::Replay);
     }
 
     /// Retransmit, give up or send a heartbeat, as due at `now`.
     pub fn handle_timeout(&mut self, now: Instant) {
         if let Some(f) = &mut self.in_flight {
             if now.duration_since(f.first_sent) >= self.config.give_up_after {
-                let (seq, attempts, internal) = (f.seq, f.attempts, f.internal);
+                let (seq, attempts, origin) = (f.seq, f.attempts, f.origin);
                 self.in_flight = None;
                 self.stats.timeouts += 1;
-                if !internal {
-                    self.completions.push_back(Completion {
-                        seq,
-                        outcome: Outcome::TimedOut { attempts },
-                    });
-                }
+                self.report_timeout(seq, attempts, origin);
+                self.request_replay_if_needed(now);
                 self.send_next(now);
             } else if now.duration_since(f.last_sent) >= self.config.retransmit_after {
                 f.last_sent = now;
@@ -287,7 +516,7 @@ impl ClientCore {
             && let Some(every) = self.config.heartbeat_every
             && now.duration_since(self.last_activity) >= every
         {
-            self.enqueue(now, Command::Heartbeat, true);
+            self.enqueue(now, Command::Heartbeat, Origin::Heartbeat);
         }
     }
 
@@ -333,17 +562,7 @@ mod tests {
     }
 
     fn event_bytes(event_seq: u32) -> Vec<u8> {
-        let event = Event {
-            event_seq,
-            timestamp_us: 5,
-            kind: EventKind::Captured(Captured {
-                capture_id: event_seq,
-                program_index: None,
-                triggered_at_us: 3,
-                galvo: GalvoPoint { x: 1, y: 2 },
-                channel: 0,
-            }),
-        };
+        let event = event(event_seq);
         let mut buf = [0u8; MAX_FRAME];
         let n = encode_event(&event, &mut buf).expect("encode");
         buf[..n].to_vec()
@@ -438,26 +657,175 @@ mod tests {
         assert_eq!(core.stats().heartbeats, 1);
     }
 
+    fn event(event_seq: u32) -> Event {
+        Event {
+            event_seq,
+            timestamp_us: 5,
+            kind: EventKind::Captured(Captured {
+                capture_id: event_seq,
+                program_index: None,
+                triggered_at_us: 3,
+                galvo: GalvoPoint { x: 1, y: 2 },
+                channel: 0,
+            }),
+        }
+    }
+
+    fn replay_bytes(seq: Seq, oldest: u32, next: u32, events: &[u32]) -> Vec<u8> {
+        let mut batch = heapless::Vec::new();
+        for &e in events {
+            batch.push(event(e)).expect("batch size");
+        }
+        reply_bytes(
+            seq,
+            Ok(Response::Events(EventReplay {
+                oldest,
+                next_event_seq: next,
+                events: batch,
+            })),
+        )
+    }
+
+    fn delivered(core: &mut ClientCore) -> Vec<u32> {
+        std::iter::from_fn(|| core.poll_event())
+            .map(|e| e.event_seq)
+            .collect()
+    }
+
     #[test]
-    fn events_dedup_and_count_gaps_in_any_chunking() {
+    fn events_before_sync_are_stale_after_sync_deduplicated_in_any_chunking() {
         let t0 = Instant::now();
         let mut core = ClientCore::new(config(), t0, 1);
+        core.handle_input(t0, &event_bytes(3));
+        assert!(
+            delivered(&mut core).is_empty(),
+            "unsynced: an earlier session's"
+        );
+        core.sync_events(10);
         let stream = [
+            event_bytes(9),
             event_bytes(10),
             event_bytes(10),
             event_bytes(11),
-            event_bytes(14),
         ]
         .concat();
         for byte in &stream {
             core.handle_input(t0, std::slice::from_ref(byte));
         }
-        let seqs: Vec<u32> = std::iter::from_fn(|| core.poll_event())
-            .map(|e| e.event_seq)
-            .collect();
-        assert_eq!(seqs, vec![10, 11, 14]);
+        assert_eq!(delivered(&mut core), vec![10, 11]);
         let stats = core.stats();
-        assert_eq!((stats.duplicate_events, stats.lost_events), (1, 2));
+        assert_eq!((stats.stale_events, stats.duplicate_events), (1, 2));
+        assert_eq!((stats.lost_events, stats.replays), (0, 0));
+        assert!(core.poll_transmit().is_none(), "no gap, no replay");
+    }
+
+    #[test]
+    fn a_gap_is_replayed_and_delivered_in_order_exactly_once() {
+        let t0 = Instant::now();
+        let mut core = ClientCore::new(config(), t0, 1);
+        core.sync_events(10);
+        core.handle_input(
+            t0,
+            &[event_bytes(10), event_bytes(13), event_bytes(14)].concat(),
+        );
+        assert_eq!(
+            delivered(&mut core),
+            vec![10],
+            "13 and 14 wait for 11 and 12"
+        );
+        assert!(core.recovering_events());
+        let req = sent_request(&mut core);
+        assert_eq!(req.command, Command::Replay { since: 11, max: 5 });
+        // A retransmitted 13 meanwhile is still only one 13.
+        core.handle_input(t0, &event_bytes(13));
+        core.handle_input(t0, &replay_bytes(req.seq, 2, 15, &[11, 12, 13, 14]));
+        assert_eq!(delivered(&mut core), vec![11, 12, 13, 14]);
+        assert!(!core.recovering_events());
+        assert!(core.poll_completion().is_none(), "internal request");
+        let stats = core.stats();
+        assert_eq!((stats.recovered_events, stats.gone_events), (2, 0));
+        assert_eq!((stats.lost_events, stats.duplicate_events), (2, 3));
+        assert!(core.poll_transmit().is_none());
+    }
+
+    #[test]
+    fn a_status_reveals_a_lost_last_event_and_long_gaps_take_several_replays() {
+        let t0 = Instant::now();
+        let mut core = ClientCore::new(config(), t0, 1);
+        let s = core.start(t0, Command::Status);
+        sent_request(&mut core);
+        let mut status = crate::sim::VirtualRig::new(crate::sim::SimParams::default()).status();
+        status.next_event_seq = 20;
+        core.handle_input(t0, &reply_bytes(s, Ok(Response::Status(status))));
+        assert!(core.poll_completion().is_some());
+        assert!(!core.recovering_events(), "the first status syncs");
+        // Nothing arrives, but the next status says eight events were sent.
+        let s = core.start(t0, Command::Status);
+        sent_request(&mut core);
+        status.next_event_seq = 28;
+        core.handle_input(t0, &reply_bytes(s, Ok(Response::Status(status))));
+        core.poll_completion();
+        let req = sent_request(&mut core);
+        assert_eq!(req.command, Command::Replay { since: 20, max: 5 });
+        // The rig keeps only from 22 on: 20 and 21 are gone.
+        core.handle_input(t0, &replay_bytes(req.seq, 22, 28, &[22, 23, 24, 25, 26]));
+        let req = sent_request(&mut core);
+        assert_eq!(req.command, Command::Replay { since: 27, max: 5 });
+        core.handle_input(t0, &replay_bytes(req.seq, 22, 28, &[27]));
+        assert_eq!(delivered(&mut core), (22..28).collect::<Vec<_>>());
+        let stats = core.stats();
+        assert_eq!((stats.gone_events, stats.recovered_events), (2, 6));
+        assert_eq!(stats.replays, 2);
+        assert!(!core.recovering_events());
+    }
+
+    #[test]
+    fn a_hello_starts_a_new_session_without_the_old_events() {
+        let t0 = Instant::now();
+        let mut core = ClientCore::new(config(), t0, 1);
+        core.sync_events(0);
+        core.handle_input(t0, &event_bytes(0));
+        let h = core.start(
+            t0,
+            Command::Hello {
+                protocol_version: 2,
+            },
+        );
+        sent_request(&mut core);
+        let hello = subsurf_protocol::Hello {
+            protocol_version: 2,
+            firmware_version: subsurf_protocol::FirmwareVersion {
+                major: 0,
+                minor: 1,
+                patch: 0,
+            },
+            capabilities: subsurf_protocol::Capabilities {
+                steps_per_rev: 3200,
+                galvo_max: 4095,
+                laser_channels: 1,
+                max_speed: 1000,
+                max_accel: 1000,
+                max_exposure_us: 1000,
+                max_program_points: 10,
+            },
+        };
+        core.handle_input(t0, &reply_bytes(h, Ok(Response::Hello(hello))));
+        core.handle_input(t0, &event_bytes(1));
+        assert!(delivered(&mut core).is_empty());
+        assert_eq!(core.stats().stale_events, 2);
+    }
+
+    #[test]
+    fn a_rig_that_cannot_replay_ends_the_recovery() {
+        let t0 = Instant::now();
+        let mut core = ClientCore::new(config(), t0, 1);
+        core.sync_events(0);
+        core.handle_input(t0, &event_bytes(3));
+        let req = sent_request(&mut core);
+        core.handle_input(t0, &reply_bytes(req.seq, Err(RigError::OutOfRange)));
+        assert_eq!(delivered(&mut core), vec![3]);
+        assert_eq!(core.stats().gone_events, 3);
+        assert!(!core.recovering_events());
     }
 
     /// A test double of the rig's reply cache (docs/protocol.md): executes each new `seq` once,

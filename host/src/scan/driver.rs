@@ -297,7 +297,8 @@ impl<'a> Scan<'a> {
             )));
         }
         // Whatever a previous session left running (a program whose host vanished) stops now,
-        // and events still buffered from it are dropped.
+        // and the events of that stop are dropped (the client never delivers a previous
+        // session's own events).
         rig.stop().map_err(classify)?;
         drain_events(rig)?;
         // Clear a fault left from before (an e-stop that was released); refuses while pressed.
@@ -352,7 +353,7 @@ impl<'a> Scan<'a> {
     fn halted_or(&self, e: RigClientError) -> ScanError {
         match e {
             // The rig stopped because it stopped hearing from us: a link problem, resumable by
-            // reconnecting (a stale event of a dropped session can also arrive this way).
+            // reconnecting.
             RigClientError::Halted { ref reason, .. } if reason.contains("HeartbeatLost") => {
                 ScanError::Link(e)
             }
@@ -666,7 +667,7 @@ struct Progressed {
     camera_error: Option<CameraError>,
 }
 
-/// Drops events already sent by the rig (those of a stopped program or a previous session).
+/// Drops events already sent by the rig (those of a stopped program).
 fn drain_events<L: ByteLink>(rig: &mut RigClient<L>) -> Result<(), ScanError> {
     rig.poll(Duration::from_millis(20)).map_err(classify)?;
     while rig.next_event(Duration::ZERO).map_err(classify)?.is_some() {}
