@@ -176,19 +176,41 @@ fn anisotropic(c: &mut Crit) {
     }
     let mut g = c.benchmark_group("anisotropic_m8_n3");
     g.sample_size(10);
-    for solver in [Solver::Specialised, Solver::Reference] {
-        let o = AnisoOptions {
-            terms: 3,
-            segments: m,
-            solver,
-            ..AnisoOptions::default()
-        };
+    let exact = AnisoOptions {
+        terms: 3,
+        segments: m,
+        ..AnisoOptions::default()
+    };
+    let variants = [
+        ("specialised", exact),
+        (
+            "reference",
+            AnisoOptions {
+                solver: Solver::Reference,
+                ..exact
+            },
+        ),
+        (
+            "fast_8_bins",
+            AnisoOptions {
+                direction_bins: Some(8),
+                ..exact
+            },
+        ),
+        (
+            "fast_16_bins",
+            AnisoOptions {
+                direction_bins: Some(16),
+                ..exact
+            },
+        ),
+    ];
+    for (name, o) in variants {
         let f = fit_anisotropic(&r, &phi, &s, &o).unwrap();
         eprintln!(
-            "accuracy anisotropic_m8_n3/{solver:?}/4000: log E {:.6e}, {} iterations, converged {}",
+            "accuracy anisotropic_m8_n3/{name}/4000: log E {:.6e} (on all samples), {} iterations, converged {}",
             f.1, f.2, f.3
         );
-        let name = format!("{solver:?}").to_lowercase();
         g.bench_function(BenchmarkId::new(name, 4_000), |b| {
             b.iter(|| fit_anisotropic(black_box(&r), black_box(&phi), black_box(&s), &o).unwrap())
         });

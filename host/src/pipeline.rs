@@ -936,11 +936,18 @@ pub fn fit_dataset(
             }
             let enc = filled[v].as_ref()?;
             let mut dropped = Vec::new();
-            let (m, range) = grid.decode(enc, &shape, common_n, fitter, &mut dropped)?;
-            match params_of(&m) {
-                Ok((p, n, _)) if p.iter().all(|x| x.is_finite()) => Some((p, n, range)),
-                _ => None,
-            }
+            let refit = grid
+                .decode(enc, &shape, common_n, fitter, &mut dropped)
+                .and_then(|(m, range)| match params_of(&m) {
+                    Ok((p, n, _)) if p.iter().all(|x| x.is_finite()) => Some((p, n, range)),
+                    _ => None,
+                });
+            // Where the interpolated curve cannot be refitted, the nearest fitted vertex's own
+            // model (breadth-first over the mesh) stands in.
+            refit.or_else(|| {
+                nearest_fitted(v, &own, |w| ctx.scene.neighbours(w))
+                    .map(|o| (o.params.clone(), o.terms, o.r_range))
+            })
         })
         .collect();
     let mut vertices = Vec::with_capacity(nv);
@@ -995,6 +1002,32 @@ pub fn fit_dataset(
         vertices,
     };
     Ok(FitOutput { model, report })
+}
+
+/// The fitted vertex nearest to `v` in mesh hops (breadth-first), if any is connected.
+fn nearest_fitted<'a, 'n>(
+    v: usize,
+    own: &'a [Option<OwnFit>],
+    neighbours: impl Fn(usize) -> &'n [u32],
+) -> Option<&'a OwnFit> {
+    let mut seen = std::collections::HashSet::from([v]);
+    let mut frontier = vec![v];
+    while !frontier.is_empty() {
+        let mut next = Vec::new();
+        for &u in &frontier {
+            for &w in neighbours(u) {
+                let w = w as usize;
+                if w < own.len() && seen.insert(w) {
+                    if let Some(o) = &own[w] {
+                        return Some(o);
+                    }
+                    next.push(w);
+                }
+            }
+        }
+        frontier = next;
+    }
+    None
 }
 
 /// An interpolated vertex's refit: parameters, order, sampled range.
@@ -1164,7 +1197,10 @@ impl CurveGrid {
                 (rs.clone(), s)
             })
             .collect();
-        let fits = fit_common_order(fitter, &sets, Some(n), dropped).ok()?;
+        // Lower the order when a refit fails (not converged on a smooth curve, e.g.).
+        let fits = (1..=n.max(1))
+            .rev()
+            .find_map(|n| fit_common_order(fitter, &sets, Some(n), dropped).ok())?;
         let m = shape.segments;
         let model = match shape.colour {
             ColourMode::Shared => ColourModel::Shared {

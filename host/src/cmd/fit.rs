@@ -74,6 +74,13 @@ pub struct Args {
     /// Fits with log E (Eq. 8) above this are failures, interpolated from neighbours.
     #[arg(long, default_value_t = 1.0)]
     pub max_log_e: f64,
+    /// Fits with log E above this multiple of the median fit's (and above 0.03) are outliers,
+    /// interpolated from neighbours (`inf` disables).
+    #[arg(long, default_value_t = 3.0)]
+    pub outlier_factor: f64,
+    /// Extra fit rounds on samples divided by the previous round's alpha (Eq. 6).
+    #[arg(long, default_value_t = 1)]
+    pub alpha_rounds: usize,
     /// Largest disagreement between detected spot and laser ray (mm).
     #[arg(long, default_value_t = 2.0)]
     pub laser_tolerance: f64,
@@ -129,6 +136,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     opts.samples.exclusion_radius_mm = args.exclusion_radius;
     opts.max_select_mm = args.max_distance;
     opts.max_log_e = args.max_log_e;
+    opts.outlier_factor = args.outlier_factor;
+    opts.alpha_rounds = args.alpha_rounds;
     opts.spot.laser_tolerance_mm = args.laser_tolerance;
     // `--segments auto`: the ladder of m to try; a number: just that m.
     let segment_ladder: Vec<usize> = match args.segments.as_str() {

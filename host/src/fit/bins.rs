@@ -116,8 +116,33 @@ const MAGIC: f64 = 6_755_399_441_055_744.0;
 /// where the fast terms bend ln R_d most, wide ones in the slowly varying tail). One pass over
 /// the samples after a min/max scan; no sort, no per-sample allocation.
 pub fn bin_samples(r: &[f64], s: &[f64], count: usize) -> Binned {
+    bin_inner::<false>(r, s, &[], count).0
+}
+
+/// [`bin_samples`] that also returns, per non-empty bin, the mean of a per-sample `aux` value
+/// (the direction φ in the fast anisotropic mode).
+pub(crate) fn bin_samples_aux(
+    r: &[f64],
+    s: &[f64],
+    aux: &[f64],
+    count: usize,
+) -> (Binned, Vec<f64>) {
+    bin_inner::<true>(r, s, aux, count)
+}
+
+/// The binning pass, monomorphised so the isotropic path carries no auxiliary sums.
+fn bin_inner<const AUX: bool>(
+    r: &[f64],
+    s: &[f64],
+    aux: &[f64],
+    count: usize,
+) -> (Binned, Vec<f64>) {
     let count = count.max(1);
-    let len = r.len().min(s.len());
+    let len = if AUX {
+        r.len().min(s.len()).min(aux.len())
+    } else {
+        r.len().min(s.len())
+    };
     let (r, s) = (&r[..len], &s[..len]);
     // Min and max over four independent lanes (one lane's compare chain would serialise).
     let (mut lo4, mut hi4) = ([f64::INFINITY; 4], [f64::NEG_INFINITY; 4]);
@@ -137,7 +162,7 @@ pub fn bin_samples(r: &[f64], s: &[f64], count: usize) -> Binned {
         hi = hi.max(v);
     }
     if !(lo.is_finite() && hi.is_finite()) || len == 0 {
-        return Binned::default();
+        return (Binned::default(), Vec::new());
     }
     let span = hi - lo;
     let c = count as f64;
@@ -149,10 +174,11 @@ pub fn bin_samples(r: &[f64], s: &[f64], count: usize) -> Binned {
     let y0 = ln_positive(s[0]);
     // Raw sums per bin relative to the bin's left edge: n, x, x², x³, x⁴, y, xy, x²y, y².
     let mut acc = vec![[0.0f64; 9]; count];
+    let mut aux_sum = vec![0.0f64; if AUX { count } else { 0 }];
     let mut yb = [0.0f64; BLOCK];
     let mut ib = [0usize; BLOCK];
     let last = (count - 1) as f64;
-    for (rc, sc) in r.chunks(BLOCK).zip(s.chunks(BLOCK)) {
+    for (block, (rc, sc)) in r.chunks(BLOCK).zip(s.chunks(BLOCK)).enumerate() {
         let k = rc.len();
         for j in 0..k {
             yb[j] = ln_positive(sc[j]) - y0;
@@ -181,11 +207,23 @@ pub fn bin_samples(r: &[f64], s: &[f64], count: usize) -> Binned {
             a[6] += x * y;
             a[7] += x2 * y;
             a[8] += y * y;
+            if AUX {
+                aux_sum[b] += aux[block * BLOCK + j];
+            }
         }
     }
     let total: f64 = acc.iter().map(|a| a[5]).sum();
     let level = y0 + total / len as f64;
     let scale_r = hi;
+    let aux_mean: Vec<f64> = if AUX {
+        acc.iter()
+            .zip(&aux_sum)
+            .filter(|(a, _)| a[0] > 0.0)
+            .map(|(a, x)| x / a[0])
+            .collect()
+    } else {
+        Vec::new()
+    };
     let bins = acc
         .iter()
         .zip(&edges)
@@ -204,11 +242,14 @@ pub fn bin_samples(r: &[f64], s: &[f64], count: usize) -> Binned {
                 .normalised(scale_r, level)
         })
         .collect();
-    Binned {
-        bins,
-        scale_r,
-        level,
-    }
+    (
+        Binned {
+            bins,
+            scale_r,
+            level,
+        },
+        aux_mean,
+    )
 }
 
 #[cfg(test)]

@@ -188,6 +188,8 @@ fn log_sum_exp_points<const N: usize>(
 /// Written once per objective and used both by the one-pass normal equations (the solver's hot
 /// path) and by the generic row evaluation (reference solver, tests), so the two cannot drift.
 trait LogRows {
+    /// Number of exponential terms n.
+    fn terms(&self) -> usize;
     /// Number of points.
     fn points(&self) -> usize;
     /// Distance of point j (normalised).
@@ -315,6 +317,9 @@ fn log_eval<O: LogRows, F: FnMut(f64, &[usize], &[f64])>(
 }
 
 impl LogRows for LogExact<'_> {
+    fn terms(&self) -> usize {
+        self.n
+    }
     fn points(&self) -> usize {
         self.r.len().min(self.y.len())
     }
@@ -345,6 +350,9 @@ impl LogRows for LogExact<'_> {
 }
 
 impl LogRows for LogBinned<'_> {
+    fn terms(&self) -> usize {
+        self.n
+    }
     fn points(&self) -> usize {
         self.bins.len()
     }
@@ -401,9 +409,11 @@ impl LogRows for LogBinned<'_> {
     }
 }
 
-impl Problem for LogExact<'_> {
+/// Every log objective is a [`Problem`] through its rows: the one-pass normal equations for the
+/// solver, the generic row evaluation for the reference solver and the tests.
+impl<O: LogRows> Problem for O {
     fn params(&self) -> usize {
-        2 * self.n
+        2 * self.terms()
     }
     fn normal_equations(
         &self,
@@ -411,33 +421,13 @@ impl Problem for LogExact<'_> {
         jtj: &mut [f64],
         jtr: &mut [f64],
     ) -> Option<Option<f64>> {
-        Some(log_normal(self, self.n, theta, jtj, jtr))
-    }
-    fn rows(&self) -> usize {
-        self.points()
-    }
-    fn eval<F: FnMut(f64, &[usize], &[f64])>(&self, theta: &[f64], jac: bool, row: F) -> bool {
-        log_eval(self, self.n, theta, jac, row)
-    }
-}
-
-impl Problem for LogBinned<'_> {
-    fn params(&self) -> usize {
-        2 * self.n
-    }
-    fn normal_equations(
-        &self,
-        theta: &[f64],
-        jtj: &mut [f64],
-        jtr: &mut [f64],
-    ) -> Option<Option<f64>> {
-        Some(log_normal(self, self.n, theta, jtj, jtr))
+        Some(log_normal(self, self.terms(), theta, jtj, jtr))
     }
     fn rows(&self) -> usize {
         (0..self.points()).map(|j| self.rows_per_point(j)).sum()
     }
     fn eval<F: FnMut(f64, &[usize], &[f64])>(&self, theta: &[f64], jac: bool, row: F) -> bool {
-        log_eval(self, self.n, theta, jac, row)
+        log_eval(self, self.terms(), theta, jac, row)
     }
 }
 
