@@ -2,10 +2,8 @@
 
 mod render_common;
 
-use std::process::Command;
-
-use render_common::assert_picture;
-use subsurf::render::{self, Camera, HierarchyParams, Light, Method, Quality, RenderOptions};
+use render_common::{assert_picture, fails, framed, ok, subsurf};
+use subsurf::render::{self, HierarchyParams, Light, Method, Quality, RenderOptions};
 
 fn small_torus() -> render::VertexModel {
     render::synthetic::marble_torus(48, 20)
@@ -15,8 +13,7 @@ fn small_torus() -> render::VertexModel {
 fn render_writes_a_picture_and_a_linear_exr() {
     let dir = tempfile::tempdir().unwrap();
     let model = small_torus();
-    let (lo, hi) = model.bounds();
-    let cam = Camera::framing(lo, hi, render::DEFAULT_VIEW, 120, 90).unwrap();
+    let cam = framed(&model, 120, 90);
     let lights: Vec<Light> = vec!["point:-60,-80,90:20000,20000,20000".parse().unwrap()];
     let out = render::render(&model, &lights, &cam, &RenderOptions::default()).unwrap();
     let png = dir.path().join("a.png");
@@ -105,8 +102,7 @@ fn several_lights_add_up() {
 #[test]
 fn balanced_quality_is_within_a_per_cent_of_the_exact_image() {
     let model = render::synthetic::marble_torus(60, 24);
-    let (lo, hi) = model.bounds();
-    let cam = Camera::framing(lo, hi, render::DEFAULT_VIEW, 80, 80).unwrap();
+    let cam = framed(&model, 80, 80);
     let lights: Vec<Light> = vec!["point:-60,-80,90:20000,20000,20000".parse().unwrap()];
     let exact = render::render(
         &model,
@@ -149,7 +145,7 @@ fn subsurf_render_command_writes_png_and_exr() {
     let dir = tempfile::tempdir().unwrap();
     let png = dir.path().join("r.png");
     let exr = dir.path().join("r.exr");
-    let out = Command::new(env!("CARGO_BIN_EXE_subsurf"))
+    ok(subsurf()
         .args([
             "render",
             "--builtin",
@@ -168,38 +164,26 @@ fn subsurf_render_command_writes_png_and_exr() {
         .arg("--out")
         .arg(&png)
         .arg("--exr")
-        .arg(&exr)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+        .arg(&exr));
     assert_picture(&png, 96, 72);
     assert_eq!(
         image::open(&exr).unwrap().to_rgb32f().dimensions(),
         (96, 72)
     );
     // A bad light is a clear error, not a panic.
-    let out = Command::new(env!("CARGO_BIN_EXE_subsurf"))
-        .args([
-            "render",
-            "--builtin",
-            "torus:20,8",
-            "--light",
-            "lamp:1,2,3",
-            "--out",
-        ])
-        .arg(dir.path().join("x.png"))
-        .output()
-        .unwrap();
-    assert!(!out.status.success());
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(
-        err.contains("lamp:1,2,3") && !err.contains("panicked"),
-        "{err}"
+    let err = fails(
+        subsurf()
+            .args([
+                "render",
+                "--builtin",
+                "torus:20,8",
+                "--light",
+                "lamp:1,2,3",
+                "--out",
+            ])
+            .arg(dir.path().join("x.png")),
     );
+    assert!(err.contains("lamp:1,2,3"), "{err}");
 }
 
 /// A model file as `subsurf fit` writes one: anisotropic (m = 4), some vertices with fewer terms,
@@ -299,39 +283,28 @@ fn model_files_render_anisotropic_and_partial_models() {
     let ply = dir.path().join("m.ply");
     file.write(&ply).unwrap();
     let png = dir.path().join("m.png");
-    let out = Command::new(env!("CARGO_BIN_EXE_subsurf"))
+    ok(subsurf()
         .args(["render", "--size", "64x48", "--model"])
         .arg(&ply)
         .arg("--out")
-        .arg(&png)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+        .arg(&png));
     assert_picture(&png, 64, 48);
     // A damaged model file is an error naming the file.
     std::fs::write(&ply, b"ply\nformat ascii 1.0\nend_header\n").unwrap();
-    let out = Command::new(env!("CARGO_BIN_EXE_subsurf"))
-        .args(["render", "--model"])
-        .arg(&ply)
-        .arg("--out")
-        .arg(&png)
-        .output()
-        .unwrap();
-    assert!(!out.status.success());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("m.ply"));
+    let err = fails(
+        subsurf()
+            .args(["render", "--model"])
+            .arg(&ply)
+            .arg("--out")
+            .arg(&png),
+    );
+    assert!(err.contains("m.ply"), "{err}");
 }
 
 #[test]
 fn a_fall_off_too_large_to_represent_is_an_error_not_an_image_of_infinities() {
     let mut model = small_torus();
-    let camera = {
-        let (lo, hi) = model.bounds();
-        Camera::framing(lo, hi, render::DEFAULT_VIEW, 40, 40).unwrap()
-    };
+    let camera = framed(&model, 40, 40);
     let lights: Vec<Light> = vec!["dir:0,0,-1".parse().unwrap()];
     assert!(render::render(&model, &lights, &camera, &RenderOptions::default()).is_ok());
     // Valid by the model's rules (c > 0 finite, d < 0), but 1e300 · E · A overflows.

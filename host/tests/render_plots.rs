@@ -2,9 +2,7 @@
 
 mod render_common;
 
-use std::process::Command;
-
-use render_common::assert_picture;
+use render_common::{assert_picture, fails, ok, subsurf};
 use subsurf::model::Material;
 use subsurf::plot;
 use subsurf::render;
@@ -95,30 +93,17 @@ fn plot_commands_write_pictures() {
     }
     std::fs::write(&csv, text).unwrap();
     let out = dir.path().join("f.png");
-    let o = Command::new(env!("CARGO_BIN_EXE_subsurf"))
+    ok(subsurf()
         .args(["plot", "falloff"])
         .arg(&csv)
         .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        .arg(&out));
     assert_picture(&out, 800, 520);
     let out = dir.path().join("m.png");
-    let o = Command::new(env!("CARGO_BIN_EXE_subsurf"))
-        .args(["plot", "model", "--out"])
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    ok(subsurf().args(["plot", "model", "--out"]).arg(&out));
     assert_picture(&out, 4 * 360, 400 + 34);
     // A bad CSV line is named.
     std::fs::write(&csv, "r,value\n1,2\nthree,4\n").unwrap();
-    let o = Command::new(env!("CARGO_BIN_EXE_subsurf"))
-        .args(["plot", "falloff"])
-        .arg(&csv)
-        .output()
-        .unwrap();
-    assert!(!o.status.success());
-    assert!(String::from_utf8_lossy(&o.stderr).contains("s.csv:3"));
+    let err = fails(subsurf().args(["plot", "falloff"]).arg(&csv));
+    assert!(err.contains("s.csv:3"), "{err}");
 }

@@ -3,9 +3,7 @@
 
 mod render_common;
 
-use std::process::Command;
-
-use render_common::assert_picture;
+use render_common::{assert_picture, ok, subsurf};
 use subsurf::plot::{TradeoffPoint, pareto_front};
 
 #[test]
@@ -20,17 +18,13 @@ fn quick_tradeoff_prints_rows_draws_the_front_and_updates_its_section() {
         format!("# Benchmarks\n\n## Other\n\nkeep me\n\n{begin}\nold figures\n<!-- bench-tradeoff:end -->\n\n## After\n\nkeep me too\n"),
     )
     .unwrap();
-    let o = Command::new(env!("CARGO_BIN_EXE_subsurf"))
+    let out = ok(subsurf()
         .args(["bench", "tradeoff", "--quick", "--work"])
         .arg(dir.path().join("work"))
         .arg("--plot")
         .arg(&png)
         .arg("--write-benchmarks")
-        .arg(&md)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let out = String::from_utf8_lossy(&o.stdout);
+        .arg(&md));
     // One density × two presets × two render qualities.
     let rows: Vec<&str> = out
         .lines()

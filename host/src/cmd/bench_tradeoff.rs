@@ -19,7 +19,7 @@ use subsurf::pipeline::{PipelineOptions, fit_dataset};
 use subsurf::plot::TradeoffPoint;
 use subsurf::render::{self, Camera, Image, Method, Quality, RenderOptions, VertexModel};
 use subsurf::scan::setup::builtin_object;
-use subsurf::simulate::{CameraRig, SimConfig, simulate};
+use subsurf::simulate::{CameraRig, SimConfig, SimObject, simulate};
 
 /// Scan, fit and render settings of the whole chain against the exact result.
 #[derive(Debug, clap::Args)]
@@ -34,6 +34,14 @@ pub struct TradeoffBench {
     /// Keep the simulated scans in --work.
     #[arg(long)]
     keep: bool,
+    /// Tessellation of the built-in sphere (rings pole to pole; vertices ≈ 2·rings²). Finer than
+    /// the scan default so the render stage has work worth approximating. Default 64 (16 with
+    /// --quick).
+    #[arg(long)]
+    rings: Option<usize>,
+    /// Camera image size of the simulated scans (pixels per side). Default 96 (40 with --quick).
+    #[arg(long)]
+    scan_px: Option<u32>,
     /// Write the time-vs-error plot here.
     #[arg(long, default_value = "docs/bench/tradeoff.png")]
     plot: PathBuf,
@@ -58,6 +66,8 @@ struct Sizes {
     presets: Vec<Preset>,
     /// `None` = exact transport.
     qualities: Vec<Option<Quality>>,
+    /// Sphere tessellation.
+    rings: usize,
     /// Camera image size of the simulated scan.
     scan_px: u32,
     /// Rendered image size.
@@ -67,7 +77,8 @@ struct Sizes {
 }
 
 impl Sizes {
-    fn new(quick: bool) -> Sizes {
+    fn new(b: &TradeoffBench) -> Sizes {
+        let quick = b.quick;
         let all_q = vec![
             Some(Quality::Draft),
             Some(Quality::Balanced),
@@ -82,7 +93,8 @@ impl Sizes {
                 }],
                 presets: vec![Preset::Draft, Preset::Best],
                 qualities: vec![Some(Quality::Draft), None],
-                scan_px: 40,
+                rings: b.rings.unwrap_or(16),
+                scan_px: b.scan_px.unwrap_or(40),
                 render_px: 48,
                 held_out: Density {
                     angles: 2,
@@ -107,7 +119,8 @@ impl Sizes {
                 ],
                 presets: Preset::ALL.to_vec(),
                 qualities: all_q,
-                scan_px: 64,
+                rings: b.rings.unwrap_or(64),
+                scan_px: b.scan_px.unwrap_or(96),
                 render_px: 256,
                 held_out: Density {
                     angles: 4,
@@ -120,8 +133,8 @@ impl Sizes {
 
 /// One simulated scan: one camera orbiting at the default elevation, so the frame count is
 /// angles × raster².
-fn scan_config(d: Density, px: u32, seed: u64, half_step: bool) -> SimConfig {
-    let mut cfg = SimConfig::for_object(builtin_object(), px, d.angles, d.raster);
+fn scan_config(sizes: &Sizes, d: Density, seed: u64, half_step: bool) -> SimConfig {
+    let mut cfg = SimConfig::for_object(object(sizes), sizes.scan_px, d.angles, d.raster);
     if let CameraRig::Orbit { count, .. } = &mut cfg.cameras {
         *count = 1;
     }
@@ -133,6 +146,17 @@ fn scan_config(d: Density, px: u32, seed: u64, half_step: bool) -> SimConfig {
     }
     cfg.seed = seed;
     cfg
+}
+
+/// The built-in object (`scan::setup::builtin_object`) at the benchmark's tessellation.
+fn object(sizes: &Sizes) -> SimObject {
+    match builtin_object() {
+        SimObject::Sphere { radius, .. } => SimObject::Sphere {
+            radius,
+            rings: sizes.rings,
+        },
+        other => other,
+    }
 }
 
 fn quality_name(q: Option<Quality>) -> &'static str {
@@ -191,7 +215,7 @@ fn hidden_or_bar(len: u64, msg: &str) -> indicatif::ProgressBar {
 }
 
 pub fn bench_tradeoff(b: TradeoffBench) -> Result<()> {
-    let sizes = Sizes::new(b.quick);
+    let sizes = Sizes::new(&b);
     if b.work.exists() {
         std::fs::remove_dir_all(&b.work)
             .with_context(|| format!("clearing {}", b.work.display()))?;
@@ -218,7 +242,7 @@ fn run_chain(b: &TradeoffBench, sizes: &Sizes) -> Result<Vec<Row>> {
     let held_dir = b.work.join("held-out");
     let p = hidden_or_bar(0, "held-out scan");
     simulate(
-        &scan_config(sizes.held_out, sizes.scan_px, 101, true),
+        &scan_config(sizes, sizes.held_out, 101, true),
         &held_dir,
         &p,
     )
@@ -234,7 +258,7 @@ fn run_chain(b: &TradeoffBench, sizes: &Sizes) -> Result<Vec<Row>> {
         let dir = b.work.join(format!("scan-{di}"));
         let p = hidden_or_bar(0, &format!("scan {}x{}²", d.angles, d.raster));
         let t = Instant::now();
-        let sum = simulate(&scan_config(d, sizes.scan_px, 7, false), &dir, &p)
+        let sum = simulate(&scan_config(sizes, d, 7, false), &dir, &p)
             .with_context(|| format!("simulating scan {di}"))?;
         let scan_s = t.elapsed().as_secs_f64();
         p.finish_and_clear();
@@ -244,21 +268,7 @@ fn run_chain(b: &TradeoffBench, sizes: &Sizes) -> Result<Vec<Row>> {
             // Every scan is of the same object and material: one ground truth for all.
             let gt = ModelFile::read(&dir.join("ground-truth.ply")).context("ground truth")?;
             let gt = VertexModel::from_model_file(&gt);
-            let (lo, hi) = gt.bounds();
-            let cam = Camera::framing(
-                lo,
-                hi,
-                render::DEFAULT_VIEW,
-                sizes.render_px,
-                sizes.render_px,
-            )?;
-            let opts = RenderOptions {
-                method: Method::Exact,
-                ..RenderOptions::default()
-            };
-            truth = render::render(&gt, &super::render::default_lights(&gt), &cam, &opts)
-                .map(|r| r.image)
-                .map_err(|e| e.to_string());
+            truth = render_image(&gt, sizes.render_px, None).map(|(i, _)| i);
         }
         for &preset in &sizes.presets {
             let mut opts = PipelineOptions::for_dataset(&ds);
@@ -281,27 +291,12 @@ fn run_chain(b: &TradeoffBench, sizes: &Sizes) -> Result<Vec<Row>> {
             };
             let model = VertexModel::from_model_file(&fitted.model);
             model.validate().context("fitted model")?;
-            let (lo, hi) = model.bounds();
-            let cam = Camera::framing(
-                lo,
-                hi,
-                render::DEFAULT_VIEW,
-                sizes.render_px,
-                sizes.render_px,
-            )?;
-            let lights = super::render::default_lights(&model);
             for &q in &sizes.qualities {
-                let opts = RenderOptions {
-                    method: q.map_or(Method::Exact, |q| Method::Hierarchical(q.params())),
-                    ..RenderOptions::default()
-                };
-                let t = Instant::now();
                 // A model the renderer refuses is a measured outcome of that configuration (a row
                 // without an error figure), not a reason to stop the benchmark.
-                let image = render::render(&model, &lights, &cam, &opts)
-                    .map(|r| r.image)
-                    .map_err(|e| e.to_string());
-                let render_s = t.elapsed().as_secs_f64();
+                let r = render_image(&model, sizes.render_px, q);
+                let render_s = r.as_ref().map_or(f64::NAN, |(_, s)| *s);
+                let image = r.map(|(i, _)| i);
                 rows.push(Row {
                     density: di,
                     frames: sum.frames,
@@ -348,6 +343,34 @@ fn run_chain(b: &TradeoffBench, sizes: &Sizes) -> Result<Vec<Row>> {
     Ok(rows)
 }
 
+/// A table cell: `value` with `digits` decimals and `unit`, or "–" where there is no figure.
+fn num(value: f64, digits: usize, unit: &str) -> String {
+    if value.is_finite() {
+        format!("{value:.digits$}{unit}")
+    } else {
+        "–".to_string()
+    }
+}
+
+/// Renders `model` under the default lights from the default view, exactly (`None`) or at a
+/// quality; the image and its wall time (seconds), or why the renderer refused.
+fn render_image(
+    model: &VertexModel,
+    px: u32,
+    quality: Option<Quality>,
+) -> Result<(Image, f64), String> {
+    let t = Instant::now();
+    let (lo, hi) = model.bounds();
+    let cam = Camera::framing(lo, hi, render::DEFAULT_VIEW, px, px).map_err(|e| e.to_string())?;
+    let opts = RenderOptions {
+        method: quality.map_or(Method::Exact, |q| Method::Hierarchical(q.params())),
+        ..RenderOptions::default()
+    };
+    let lights = super::render::default_lights(model);
+    let r = render::render(model, &lights, &cam, &opts).map_err(|e| e.to_string())?;
+    Ok((r.image, t.elapsed().as_secs_f64()))
+}
+
 fn report(b: &TradeoffBench, sizes: &Sizes, rows: &[Row], total_s: f64) -> Result<String> {
     let points: Vec<TradeoffPoint> = rows
         .iter()
@@ -368,7 +391,7 @@ fn report(b: &TradeoffBench, sizes: &Sizes, rows: &[Row], total_s: f64) -> Resul
     )
     .with_context(|| format!("writing {}", b.plot.display()))?;
     let mut s = String::new();
-    let obj = builtin_object().mesh();
+    let obj = object(sizes).mesh();
     writeln!(
         s,
         "built-in sphere, {} vertices; scans {}x{} px, one camera; held-out scan {} frames \
@@ -394,7 +417,7 @@ fn report(b: &TradeoffBench, sizes: &Sizes, rows: &[Row], total_s: f64) -> Resul
         let d = sizes.densities[r.density];
         writeln!(
             s,
-            "| {} × {}² | {} | {} | {} | {:.2} | {:.2} | {:.3} | {:.2} | {} / {} | {:.4} | {} | {:.1}% | {} |",
+            "| {} × {}² | {} | {} | {} | {:.2} | {:.2} | {} | {} | {} / {} | {:.4} | {} | {} | {} |",
             d.angles,
             d.raster,
             r.frames,
@@ -402,8 +425,8 @@ fn report(b: &TradeoffBench, sizes: &Sizes, rows: &[Row], total_s: f64) -> Resul
             quality_name(r.quality),
             r.scan_s,
             r.fit_s,
-            r.render_s,
-            r.total(),
+            num(r.render_s, 3, ""),
+            num(r.total(), 2, ""),
             r.fitted,
             r.interpolated,
             r.model_log_e,
@@ -411,14 +434,13 @@ fn report(b: &TradeoffBench, sizes: &Sizes, rows: &[Row], total_s: f64) -> Resul
                 Err(_) => "render refused ¹".to_string(),
                 Ok(_) => format!("{:.3}%", 100.0 * r.render_err),
             },
-            100.0 * r.truth_err,
+            num(100.0 * r.truth_err, 1, "%"),
             if front.contains(&i) { "★" } else { "" }
         )?;
     }
-    let mut refused: Vec<String> = rows.iter().filter_map(|r| r.image.clone().err()).collect();
-    refused.dedup();
-    for e in refused {
-        writeln!(s, "\n¹ {e}")?;
+    let refused: Vec<&String> = rows.iter().filter_map(|r| r.image.as_ref().err()).collect();
+    if let Some(first) = refused.first() {
+        writeln!(s, "\n¹ {} renders refused, e.g. {first}", refused.len())?;
     }
     writeln!(s)?;
     writeln!(

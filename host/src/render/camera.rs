@@ -160,26 +160,24 @@ impl Camera {
         [r(0), r(1), r(2)]
     }
 
-    /// The camera centre in world coordinates.
-    pub fn centre(&self) -> [f64; 3] {
-        let m = &self.camera_from_world;
-        // c = −Rᵀ t for a rigid transform.
-        let t = [m[0][3], m[1][3], m[2][3]];
-        [0, 1, 2].map(|k| -(m[0][k] * t[0] + m[1][k] * t[1] + m[2][k] * t[2]))
+    /// The same camera as the scan-processing code sees it: projection and distortion have one
+    /// definition, [`crate::geometry::Camera`], shared with registration and sampling.
+    pub fn geometry(&self) -> crate::geometry::Camera {
+        crate::geometry::Camera::new(&crate::dataset::CameraSpec {
+            width: self.width,
+            height: self.height,
+            fx: self.fx,
+            fy: self.fy,
+            cx: self.cx,
+            cy: self.cy,
+            distortion: Some(self.distortion.to_vec()),
+            camera_from_world: self.camera_from_world,
+        })
     }
 
-    /// Camera coordinates → pixel `(u, v)` with distortion; `None` behind the camera.
-    pub fn project_camera(&self, c: [f64; 3]) -> Option<[f64; 2]> {
-        if c[2] <= 1e-9 {
-            return None;
-        }
-        let (x, y) = (c[0] / c[2], c[1] / c[2]);
-        let [k1, k2, p1, p2, k3] = self.distortion;
-        let r2 = x * x + y * y;
-        let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
-        let xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
-        let yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
-        Some([self.fx * xd + self.cx, self.fy * yd + self.cy])
+    /// The camera centre in world coordinates.
+    pub fn centre(&self) -> [f64; 3] {
+        self.geometry().center()
     }
 }
 
@@ -272,11 +270,12 @@ mod tests {
     fn look_at_puts_the_target_at_the_principal_point_and_up_up() {
         let c =
             Camera::look_at([0.0, -100.0, 0.0], [0.0; 3], [0.0, 0.0, 1.0], 40.0, 64, 48).unwrap();
-        let p = c.project_camera(c.to_camera([0.0; 3])).unwrap();
+        let g = c.geometry();
+        let p = g.project([0.0; 3]).unwrap();
         assert!((p[0] - 31.5).abs() < 1e-9 && (p[1] - 23.5).abs() < 1e-9);
-        let up = c.project_camera(c.to_camera([0.0, 0.0, 10.0])).unwrap();
+        let up = g.project([0.0, 0.0, 10.0]).unwrap();
         assert!(up[1] < 23.5, "+z appears above the centre");
-        let right = c.project_camera(c.to_camera([10.0, 0.0, 0.0])).unwrap();
+        let right = g.project([10.0, 0.0, 0.0]).unwrap();
         assert!(right[0] > 31.5, "+x appears to the right seen from -y");
         let e = c.centre();
         assert!((e[1] + 100.0).abs() < 1e-9 && e[0].abs() < 1e-9);
@@ -320,7 +319,7 @@ mod tests {
         let text = r#"{"format":"subsurf-scan/1","cameras":[{"width":128,"height":128,"fx":3200.0,
             "fy":3200.0,"cx":63.5,"cy":63.5,"camera_from_world":[[1,0,0,0],[0,-1,0,0],[0,0,-1,600],[0,0,0,1]]}]}"#;
         let c = Camera::from_json(text, 0).unwrap();
-        let p = c.project_camera(c.to_camera([0.0, 0.0, 0.0])).unwrap();
+        let p = c.geometry().project([0.0, 0.0, 0.0]).unwrap();
         assert_eq!(p, [63.5, 63.5]);
         assert!(Camera::from_json(text, 1).is_err());
         assert!(Camera::from_json("{]", 0).is_err());

@@ -20,6 +20,9 @@ pub struct Falloffs {
     scale: Vec<[f64; 3]>,
     /// False for vertices without a model: they emit nothing.
     active: Vec<bool>,
+    /// Per vertex: below this distance (mm) R_d continues exponentially from its value and
+    /// slope here ([`VertexModel::r_min`]); 0 = the model everywhere.
+    r_min: Vec<f64>,
 }
 
 impl Falloffs {
@@ -62,6 +65,7 @@ impl Falloffs {
             d,
             scale,
             active,
+            r_min: model.r_min.clone(),
         }
     }
 
@@ -79,39 +83,62 @@ impl Falloffs {
         self.n * self.m * if self.shared { 1 } else { 3 }
     }
 
-    /// Σ_k c_kl e^{d_kl r} of one block (one channel, or the shared fall-off), one segment.
+    /// Σ_k c_kl e^{d_kl r} of one block (one channel, or the shared fall-off), one segment, and
+    /// its derivative in r.
     #[inline]
-    fn segment_sum(&self, base: usize, r: f64) -> f64 {
-        let mut s = 0.0;
+    fn segment_sum(&self, base: usize, r: f64) -> (f64, f64) {
+        let (mut s, mut ds) = (0.0, 0.0);
         for k in base..base + self.n {
-            s += (self.lnc[k] + self.d[k] * r).exp();
+            let e = (self.lnc[k] + self.d[k] * r).exp();
+            s += e;
+            ds += self.d[k] * e;
         }
-        s
+        (s, ds)
     }
 
     /// `R_d(x_i → x_o)` per channel at distance `r` (mm), blended over direction segments with the
     /// weights `w_l(x_i, x_o)` of Eq. 3 (`w` has one entry per segment; ignored when `m = 1`).
+    /// Below the source's `r_min` the fall-off is `R_d(r_min) e^{g (r − r_min)}` with `g` the
+    /// logarithmic slope at `r_min` (never rising), as `evaluate::ln_eval_supported` predicts.
     #[inline]
     pub fn eval(&self, i: usize, r: f64, w: &[f64]) -> [f64; 3] {
+        let lo = self.r_min[i];
+        if r >= lo {
+            return self.eval_model(i, r, w).map(|(f, _)| f);
+        }
+        self.eval_model(i, lo, w).map(|(f, df)| {
+            if f > 0.0 {
+                f * ((df / f).min(0.0) * (r - lo)).exp()
+            } else {
+                f
+            }
+        })
+    }
+
+    /// The model itself (no support range) and its derivative in r, per channel.
+    #[inline]
+    fn eval_model(&self, i: usize, r: f64, w: &[f64]) -> [(f64, f64); 3] {
         let base = i * self.stride();
         let block = self.n * self.m;
-        let one = |b: usize| -> f64 {
+        let one = |b: usize| -> (f64, f64) {
             if self.m == 1 {
                 self.segment_sum(b, r)
             } else {
-                let mut s = 0.0;
+                let (mut s, mut ds) = (0.0, 0.0);
                 for (l, &wl) in w.iter().enumerate().take(self.m) {
                     if wl != 0.0 {
-                        s += wl * self.segment_sum(b + l * self.n, r);
+                        let (a, da) = self.segment_sum(b + l * self.n, r);
+                        s += wl * a;
+                        ds += wl * da;
                     }
                 }
-                s
+                (s, ds)
             }
         };
         if self.shared {
-            let f = one(base);
+            let (f, df) = one(base);
             let s = self.scale[i];
-            [f, f * s[1], f * s[2]]
+            [(f, df), (f * s[1], df * s[1]), (f * s[2], df * s[2])]
         } else {
             [one(base), one(base + block), one(base + 2 * block)]
         }
@@ -119,27 +146,42 @@ impl Falloffs {
 
     /// `ln` of the direction-averaged fall-off `(1/m) Σ_l R_l(r)` per channel, as a log-sum-exp so
     /// that it stays finite where every exponential underflows. Used to build cluster tables.
+    /// Below the source's `r_min` it continues linearly in `ln` with its slope there (as
+    /// [`Falloffs::eval`]).
     pub fn ln_eval_mean(&self, i: usize, r: f64) -> [f64; 3] {
+        let lo = self.r_min[i];
+        if r >= lo {
+            return self.ln_eval_mean_model(i, r).map(|(l, _)| l);
+        }
+        self.ln_eval_mean_model(i, lo)
+            .map(|(l, g)| l + g.min(0.0) * (r - lo))
+    }
+
+    /// The log-sum-exp of [`Falloffs::ln_eval_mean`] without the support range, and its
+    /// derivative in r (0 where every term is zero).
+    fn ln_eval_mean_model(&self, i: usize, r: f64) -> [(f64, f64); 3] {
         let base = i * self.stride();
         let block = self.n * self.m;
-        let lse = |b: usize| -> f64 {
+        let lse = |b: usize| -> (f64, f64) {
             let mut mx = f64::NEG_INFINITY;
             for k in b..b + block {
                 mx = mx.max(self.lnc[k] + self.d[k] * r);
             }
             if mx == f64::NEG_INFINITY {
-                return mx;
+                return (mx, 0.0);
             }
-            let mut s = 0.0;
+            let (mut s, mut ds) = (0.0, 0.0);
             for k in b..b + block {
-                s += (self.lnc[k] + self.d[k] * r - mx).exp();
+                let e = (self.lnc[k] + self.d[k] * r - mx).exp();
+                s += e;
+                ds += self.d[k] * e;
             }
-            mx + s.ln() - (self.m as f64).ln()
+            (mx + s.ln() - (self.m as f64).ln(), ds / s)
         };
         if self.shared {
-            let f = lse(base);
+            let (f, g) = lse(base);
             let s = self.scale[i];
-            [f, f + s[1].ln(), f + s[2].ln()]
+            [(f, g), (f + s[1].ln(), g), (f + s[2].ln(), g)]
         } else {
             [lse(base), lse(base + block), lse(base + 2 * block)]
         }
@@ -149,23 +191,42 @@ impl Falloffs {
     /// the disk of radius `ρ` around itself. Used for the `x_o = x_i` term, where the point sum would
     /// put all of a vertex's own area at distance 0 and overestimate sharp fall-offs.
     pub fn disk_integral(&self, i: usize, rho: f64) -> [f64; 3] {
+        let lo = self.r_min[i];
+        if lo <= 0.0 {
+            return self.disk_integral_model(i, rho);
+        }
+        // Below r_min the fall-off is one exponential through the model's value and slope at
+        // r_min (see `eval`), averaged over segments like the model part.
+        let w = vec![1.0 / self.m as f64; self.m];
+        let at = self.eval_model(i, lo, &w);
+        let inner = |r: f64| {
+            at.map(|(f, df)| {
+                if f > 0.0 {
+                    let g = (df / f).min(0.0);
+                    exp_disk(f * (-g * lo).exp(), g, r)
+                } else {
+                    0.0
+                }
+            })
+        };
+        if rho <= lo {
+            return inner(rho);
+        }
+        let (a, b, c) = (
+            inner(lo),
+            self.disk_integral_model(i, rho),
+            self.disk_integral_model(i, lo),
+        );
+        [0, 1, 2].map(|k| a[k] + b[k] - c[k])
+    }
+
+    fn disk_integral_model(&self, i: usize, rho: f64) -> [f64; 3] {
         let base = i * self.stride();
         let block = self.n * self.m;
         let one = |b: usize| -> f64 {
             let mut s = 0.0;
             for k in b..b + block {
-                let (c, d) = (self.lnc[k].exp(), self.d[k]);
-                let x = d * rho;
-                // (e^{dρ}(dρ − 1) + 1)/d², written with exp_m1 for small dρ; for large |dρ|
-                // (ρ = ∞ included) the exp_m1 form cancels to NaN or 0, the direct one is exact.
-                let g = if x > -1.0 {
-                    x.exp_m1() * (x - 1.0) + x
-                } else if x > -745.0 {
-                    1.0 + x.exp() * (x - 1.0)
-                } else {
-                    1.0
-                };
-                s += 2.0 * std::f64::consts::PI * c * g / (d * d);
+                s += exp_disk(self.lnc[k].exp(), self.d[k], rho);
             }
             s / self.m as f64
         };
@@ -260,6 +321,24 @@ pub fn segment_weights(frame: &TangentFrame, x_i: [f64; 3], x_o: [f64; 3], w: &m
     }
 }
 
+/// `∫_0^ρ c e^{d r} 2π r dr` for `d <= 0` (`π c ρ²` at `d = 0`).
+fn exp_disk(c: f64, d: f64, rho: f64) -> f64 {
+    if d == 0.0 {
+        return std::f64::consts::PI * c * rho * rho;
+    }
+    let x = d * rho;
+    // (e^{dρ}(dρ − 1) + 1)/d², written with exp_m1 for small dρ; for large |dρ| (ρ = ∞ included)
+    // the exp_m1 form cancels to NaN or 0, the direct one is exact.
+    let g = if x > -1.0 {
+        x.exp_m1() * (x - 1.0) + x
+    } else if x > -745.0 {
+        1.0 + x.exp() * (x - 1.0)
+    } else {
+        1.0
+    };
+    2.0 * std::f64::consts::PI * c * g / (d * d)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -305,6 +384,57 @@ mod tests {
         // At 10 m every term underflows in linear space; the log stays finite and exact.
         let far = f.ln_eval_mean(0, 1e4)[0];
         assert!((far - (0.2f64.ln() - 0.5e4)).abs() < 1e-9);
+    }
+
+    #[test]
+    fn below_r_min_the_fall_off_continues_with_its_slope_there() {
+        // A steep term the samples (r >= 1) did not resolve: huge at r -> 0 as a model.
+        let mut model = VertexModel::homogeneous(
+            vec![[0.0; 3]; 3],
+            vec![[0.0, 0.0, 1.0]; 3],
+            vec![[0, 1, 2]],
+            [1.0, 1.0],
+            &[(1e6, -20.0), (0.5, -0.5)],
+        );
+        let free = Falloffs::new(&model);
+        assert!(free.eval(0, 0.1, &[1.0])[0] > 1e5);
+        model.r_min = vec![1.0; 3];
+        let f = Falloffs::new(&model);
+        // At and beyond r_min: the model.
+        for r in [1.0, 2.5] {
+            assert_eq!(f.eval(0, r, &[1.0]), free.eval(0, r, &[1.0]));
+        }
+        // Below: value and slope at r_min, continued exponentially, in both evaluations.
+        let (r1, g) = {
+            let a = free.eval(0, 1.0, &[1.0])[0];
+            let h = 1e-6;
+            let b = free.eval(0, 1.0 + h, &[1.0])[0];
+            (a, (b.ln() - a.ln()) / h)
+        };
+        for r in [0.0, 0.3, 0.9] {
+            let want = r1 * (g * (r - 1.0)).exp();
+            let got = f.eval(0, r, &[1.0])[0];
+            assert!((got / want - 1.0).abs() < 1e-5, "r {r}: {got} vs {want}");
+            let ln = f.ln_eval_mean(0, r)[0];
+            assert!(
+                (ln - want.ln()).abs() < 1e-4,
+                "r {r}: ln {ln} vs {}",
+                want.ln()
+            );
+        }
+        // The self-term disk integral matches a numerical integral of `eval`.
+        for rho in [0.5, 2.0] {
+            let steps = 200_000;
+            let dr = rho / steps as f64;
+            let num: f64 = (0..steps)
+                .map(|k| {
+                    let r = (k as f64 + 0.5) * dr;
+                    f.eval(0, r, &[1.0])[0] * 2.0 * std::f64::consts::PI * r * dr
+                })
+                .sum();
+            let got = f.disk_integral(0, rho)[0];
+            assert!((got / num - 1.0).abs() < 1e-6, "rho {rho}: {got} vs {num}");
+        }
     }
 
     #[test]

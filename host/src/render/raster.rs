@@ -32,12 +32,10 @@ pub fn rasterise(
     let mut covered = vec![false; w * h];
     // Depth as 1/z: larger is nearer; linear in screen space.
     let mut inv_z = vec![0.0f64; w * h];
+    let g = camera.geometry();
     let proj: Vec<Option<([f64; 2], f64)>> = positions
         .iter()
-        .map(|&p| {
-            let c = camera.to_camera(p);
-            camera.project_camera(c).map(|uv| (uv, c[2]))
-        })
+        .map(|&p| g.project(p).map(|uv| (uv, camera.to_camera(p)[2])))
         .collect();
     for f in faces {
         let Some(idx) = f

@@ -58,6 +58,11 @@ pub struct VertexModel {
     pub log_e: Vec<f64>,
     /// Flat parameters, [`VertexModel::param_len`] per vertex, in the model file's order.
     pub params: Vec<f64>,
+    /// Per vertex: the smallest distance its fit sampled (mm, `r_min` of `docs/model-format.md`).
+    /// Below it R_d continues as the exponential with the model's value and slope at `r_min`
+    /// (as `evaluate::ln_eval_supported`), because terms steeper than the samples resolve are not
+    /// determined by them and would explode near the source. 0 = the model is used everywhere.
+    pub r_min: Vec<f64>,
     /// Triangles as vertex indices.
     pub faces: Vec<[u32; 3]>,
 }
@@ -122,6 +127,7 @@ impl VertexModel {
             status: vec![VertexStatus::Fitted; n],
             log_e: vec![f64::NAN; n],
             params,
+            r_min: vec![0.0; n],
             faces,
         }
     }
@@ -187,6 +193,15 @@ impl VertexModel {
             status,
             log_e: file.vertices.iter().map(|v| f64::from(v.log_e)).collect(),
             params,
+            // Only a real range (r_max > r_min > 0) limits the model; [0, 0] means unknown.
+            r_min: file
+                .vertices
+                .iter()
+                .map(|v| {
+                    let [lo, hi] = v.r_range.map(f64::from);
+                    if hi > lo && lo > 0.0 { lo } else { 0.0 }
+                })
+                .collect(),
             faces: file.triangles.clone(),
         }
     }
@@ -212,6 +227,7 @@ impl VertexModel {
             ("alpha", self.alpha.len()),
             ("status", self.status.len()),
             ("log_e", self.log_e.len()),
+            ("r_min", self.r_min.len()),
         ] {
             if found != n {
                 return Err(RenderError::Length {
@@ -249,6 +265,9 @@ impl VertexModel {
                 if !a.is_finite() || a < 0.0 {
                     return Err(bad("alpha", a));
                 }
+            }
+            if !(self.r_min[v].is_finite() && self.r_min[v] >= 0.0) {
+                return Err(bad("r_min", self.r_min[v]));
             }
             if self.status[v] == VertexStatus::NoModel {
                 continue;
