@@ -77,9 +77,15 @@ pub struct PipelineOptions {
     pub alpha_window: IntensityWindow,
     /// Eq. 8 threshold t.
     pub error_threshold: f64,
-    /// Extra fit rounds on samples divided by the previous round's alpha(x_o) (Eq. 6); 0 fits
-    /// once and treats the modulation texture as noise.
+    /// At most this many extra fit rounds on samples divided by the previous round's alpha(x_o)
+    /// (Eq. 6); 0 fits once and treats the modulation texture as noise.
     pub alpha_rounds: usize,
+    /// The rounds stop early once alpha has converged: the RMS change of ln alpha(x_o) over the
+    /// vertices between two rounds is below this. Fit and Eq. 6 are a block coordinate descent
+    /// that converges linearly, so a fixed small round count leaves part of the modulation
+    /// texture in the fall-off (measured on the built-in scan: held-out log E 0.026 after one
+    /// round, 0.014 after four); the tolerance pays only for the rounds the data need.
+    pub alpha_tolerance: f64,
 }
 
 impl PipelineOptions {
@@ -109,7 +115,8 @@ impl PipelineOptions {
                 t1: f64::INFINITY,
             },
             error_threshold: floor,
-            alpha_rounds: 1,
+            alpha_rounds: 8,
+            alpha_tolerance: 2e-3,
         }
     }
 }
@@ -243,6 +250,11 @@ pub struct AlphaReport {
     pub interpolated: usize,
     /// Neither: alpha = 1.
     pub default_one: usize,
+    /// Fit rounds on alpha-divided samples that were run (at most `alpha_rounds`).
+    pub rounds: usize,
+    /// RMS change of ln alpha(x_o) in the last round (0 when no extra round ran): below
+    /// `alpha_tolerance` when the rounds converged.
+    pub last_change: f64,
 }
 
 /// Peak resident set size of this process (`VmHWM`), MiB.
@@ -782,9 +794,20 @@ pub fn fit_dataset(
             .reduce(FitState::default, FitState::merge)
     };
     let mut state = fit_round(None, 0);
+    let mut rounds = 0;
+    let mut last_change = 0.0;
+    let mut previous: Option<Vec<[f64; 3]>> = None;
     for round in 1..=opts.alpha_rounds {
         let (a, _) = alpha_texture(&state.alpha, nv, &ctx.scene);
+        if let Some(prev) = &previous {
+            last_change = rms_ln_change(prev, &a);
+            if last_change < opts.alpha_tolerance {
+                break;
+            }
+        }
         state = fit_round(Some(&a), round);
+        rounds = round;
+        previous = Some(a);
     }
     let FitState {
         mut fits,
@@ -795,7 +818,12 @@ pub fn fit_dataset(
     report.samples = counts;
     report.terms_dropped = dropped;
     fits.sort_by_key(|f| f.0);
-    let (alpha, alpha_report) = alpha_texture(&alpha, nv, &ctx.scene);
+    let (alpha, mut alpha_report) = alpha_texture(&alpha, nv, &ctx.scene);
+    if let Some(prev) = &previous {
+        last_change = rms_ln_change(prev, &alpha);
+    }
+    alpha_report.rounds = rounds;
+    alpha_report.last_change = last_change;
     report.alpha = alpha_report;
     stage("fit", &mut t, &mut report);
 
@@ -1046,6 +1074,17 @@ struct OwnFit {
 /// Eq. 6 per vertex from the accumulated samples; vertices no fitted frame saw (Eq. 6's X is
 /// empty: not visible from any camera at any selected turntable angle) take the harmonic
 /// interpolation of ln alpha from their mesh neighbours, and 1 where no neighbour has data.
+/// RMS over vertices and channels of the change of ln alpha(x_o) between two rounds.
+fn rms_ln_change(a: &[[f64; 3]], b: &[[f64; 3]]) -> f64 {
+    let (sum, n) = a
+        .iter()
+        .zip(b)
+        .flat_map(|(x, y)| x.iter().zip(y).map(|(p, q)| (p.ln() - q.ln()).powi(2)))
+        .filter(|d| d.is_finite())
+        .fold((0.0, 0usize), |(s, n), d| (s + d, n + 1));
+    if n == 0 { 0.0 } else { (sum / n as f64).sqrt() }
+}
+
 fn alpha_texture(
     acc: &[[AlphaAccumulator; 3]],
     nv: usize,

@@ -35,6 +35,13 @@ fn scan(out: &Path) -> std::process::Child {
         .unwrap()
 }
 
+/// Entries in the dataset's `frames/` folder (0 before it exists).
+fn count_frames(dir: &Path) -> usize {
+    std::fs::read_dir(dir.join("frames"))
+        .map(|d| d.count())
+        .unwrap_or(0)
+}
+
 /// Every file under `dir` (relative path, bytes), sorted.
 fn snapshot(dir: &Path) -> Vec<(String, Vec<u8>)> {
     let mut out = Vec::new();
@@ -87,16 +94,33 @@ fn killed_at_twenty_random_points_the_resumed_scan_equals_an_uninterrupted_one()
             attempts < 200,
             "the scan finished before it could be killed 20 times"
         );
+        // Every other kill waits until the scan has written one or two more frames, so kills land
+        // mid-scan however fast or loaded the machine is; the others land at a random moment of
+        // an uninterrupted run's duration (start-up and homing included).
+        let before = count_frames(&resumed);
+        let wait_frames = if kills % 2 == 0 {
+            rng.random_range(1..=2)
+        } else {
+            0
+        };
         let mut child = scan(&resumed);
         let at = full.mul_f64(rng.random_range(0.05..1.0));
         let start = Instant::now();
         let mut finished = false;
-        while start.elapsed() < at {
+        loop {
             if child.try_wait().unwrap().is_some() {
                 finished = true;
                 break;
             }
-            std::thread::sleep(Duration::from_millis(2));
+            let due = if wait_frames > 0 {
+                count_frames(&resumed) >= before + wait_frames
+            } else {
+                start.elapsed() >= at
+            };
+            if due {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(1));
         }
         if finished {
             // Completed before the kill: start over so every kill lands in a running scan.
@@ -106,9 +130,7 @@ fn killed_at_twenty_random_points_the_resumed_scan_equals_an_uninterrupted_one()
         child.kill().unwrap(); // SIGKILL
         child.wait().unwrap();
         kills += 1;
-        let done = std::fs::read_dir(resumed.join("frames"))
-            .map(|d| d.count())
-            .unwrap_or(0);
+        let done = count_frames(&resumed);
         if done > 0 && done < frames {
             mid_scan += 1;
         }

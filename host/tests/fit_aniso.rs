@@ -102,13 +102,18 @@ fn anisotropic_fit_beats_isotropic_and_recovers_the_axis() {
         (out.model, fit, pred)
     };
 
-    // n = 3 (the default): the segments explain the data far better, and their direction of
-    // slowest fall-off and its strength match the material's.
-    let (_, iso3_fit, _) = run(1, 3);
-    let (aniso3, aniso3_fit, _) = run(SEGMENTS, 3);
+    // n = 3 (the default): the segments explain the data far better, in the fit and on held-out
+    // frames, and their direction of slowest fall-off and its strength match the material's.
+    // (Measured 2026-11-22: in-sample 0.24 vs 0.75, held-out 0.24 vs 0.74.)
+    let (_, iso3_fit, iso3_pred) = run(1, 3);
+    let (aniso3, aniso3_fit, aniso3_pred) = run(SEGMENTS, 3);
     assert!(
         aniso3_fit < 0.5 * iso3_fit,
         "in-sample log E: anisotropic {aniso3_fit}, isotropic {iso3_fit}"
+    );
+    assert!(
+        aniso3_pred < 0.5 * iso3_pred,
+        "held-out log E: anisotropic {aniso3_pred}, isotropic {iso3_pred}"
     );
     let (axis_deg, ratio, count) = axis_errors(&cfg, &aniso3);
     eprintln!(
@@ -119,17 +124,6 @@ fn anisotropic_fit_beats_isotropic_and_recovers_the_axis() {
     assert!(
         (0.5..1.5).contains(&ratio),
         "median anisotropy (ratio - 1), fitted / true: {ratio}"
-    );
-
-    // Held-out frames, with n = 2: the anisotropic model predicts them better. (With n = 3 both
-    // models predict held-out positions between vertices equally badly, log E ≈ 1.3: the steepest
-    // term is not resolved by the samples and blows up when parameters are interpolated — the
-    // open defect of issue 4 that the pipeline's owner is fixing.)
-    let (_, _, iso2_pred) = run(1, 2);
-    let (_, _, aniso2_pred) = run(SEGMENTS, 2);
-    assert!(
-        aniso2_pred < 0.7 * iso2_pred,
-        "held-out log E: anisotropic {aniso2_pred}, isotropic {iso2_pred}"
     );
 }
 

@@ -43,7 +43,22 @@ fn a_simulated_scan_fits_a_model_that_predicts_held_out_frames() {
     let scan = tmp.path().join("scan");
     let model = tmp.path().join("model.ply");
     let s = scan.to_str().unwrap();
-    subsurf(&["scan", "--sim", "--camera", "sim", "--quiet", "--out", s]);
+    // The plan's target spacing of x_i: a held-out frame's x_i is predicted from the vertex
+    // models of the lights around it, so the lights must be closer than the distance over which
+    // the material changes. The default 2 mm plan (35 frames on the 4 mm bead) is a coverage
+    // preview: measured held-out log E 0.026 / 0.043 / 0.026 there; 0.4 mm (489 frames) gives
+    // 0.009 / 0.012 / 0.010 (2026-11-22).
+    subsurf(&[
+        "scan",
+        "--sim",
+        "--camera",
+        "sim",
+        "--quiet",
+        "--target-mm",
+        "0.4",
+        "--out",
+        s,
+    ]);
     let truth = scan.join("ground-truth.ply");
     assert!(
         truth.exists(),
@@ -78,15 +93,11 @@ fn a_simulated_scan_fits_a_model_that_predicts_held_out_frames() {
         );
     }
 
-    // The fitted model on frames it never saw. Measured 0.034–0.05 on 2026-11-22 (the per-light
-    // fits themselves reach 0.022 on their own frames), so the 0.02 is not met yet; this
-    // bound guards what the scan side delivers (it was 2.3 before the scan resolved its material).
+    // The fitted model on frames it never saw: the target (it was 2.3 before the scan
+    // resolved its material, 0.036–0.05 before alpha rounds ran to convergence).
     let (fitted, n2) = evaluate(&model, &scan, &held_out);
     assert_eq!(n, n2);
     for c in fitted {
-        assert!(
-            c < 5.0 * DONE_WHEN,
-            "fitted model on held-out frames: {fitted:?}"
-        );
+        assert!(c < DONE_WHEN, "fitted model on held-out frames: {fitted:?}");
     }
 }

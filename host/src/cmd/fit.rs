@@ -78,9 +78,13 @@ pub struct Args {
     /// interpolated from neighbours (`inf` disables).
     #[arg(long, default_value_t = 3.0)]
     pub outlier_factor: f64,
-    /// Extra fit rounds on samples divided by the previous round's alpha (Eq. 6).
-    #[arg(long, default_value_t = 1)]
+    /// At most this many extra fit rounds on samples divided by the previous round's alpha
+    /// (Eq. 6); they stop early when alpha has converged (`--alpha-tolerance`).
+    #[arg(long, default_value_t = 8)]
     pub alpha_rounds: usize,
+    /// Convergence of the alpha rounds: RMS change of ln alpha between rounds.
+    #[arg(long, default_value_t = 2e-3)]
+    pub alpha_tolerance: f64,
     /// Largest disagreement between detected spot and laser ray (mm).
     #[arg(long, default_value_t = 2.0)]
     pub laser_tolerance: f64,
@@ -138,6 +142,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     opts.max_log_e = args.max_log_e;
     opts.outlier_factor = args.outlier_factor;
     opts.alpha_rounds = args.alpha_rounds;
+    opts.alpha_tolerance = args.alpha_tolerance;
     opts.spot.laser_tolerance_mm = args.laser_tolerance;
     // `--segments auto`: the ladder of m to try; a number: just that m.
     let segment_ladder: Vec<usize> = match args.segments.as_str() {
@@ -289,6 +294,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         f(r.log_e.median[0]),
         f(r.log_e.median[1]),
         f(r.log_e.median[2])
+    );
+    println!(
+        "alpha (Eq. 6): {} rounds on alpha-divided samples, last RMS change of ln alpha {:.2e}; {} vertices from samples, {} interpolated",
+        r.alpha.rounds, r.alpha.last_change, r.alpha.from_samples, r.alpha.interpolated
     );
     let stages: Vec<String> = r
         .stage_seconds
