@@ -18,8 +18,10 @@ use subsurf::modelfile::ModelFile;
 use subsurf::pipeline::{PipelineOptions, fit_dataset};
 use subsurf::plot::TradeoffPoint;
 use subsurf::render::{self, Camera, Image, Method, Quality, RenderOptions, VertexModel};
-use subsurf::scan::setup::builtin_object;
-use subsurf::simulate::{CameraRig, SimConfig, SimObject, simulate};
+use subsurf::scan::setup::{
+    builtin_object, sim_exposures_s, sim_field, sim_noise_floor, sim_sensor, sim_spot,
+};
+use subsurf::simulate::{CameraRig, Sensor, SimConfig, SimObject, simulate};
 
 /// Scan, fit and render settings of the whole chain against the exact result.
 #[derive(Debug, clap::Args)]
@@ -135,6 +137,19 @@ impl Sizes {
 /// angles × raster².
 fn scan_config(sizes: &Sizes, d: Density, seed: u64, half_step: bool) -> SimConfig {
     let mut cfg = SimConfig::for_object(object(sizes), sizes.scan_px, d.angles, d.raster);
+    // What `subsurf scan --sim --camera sim` captures (scan::setup): its isotropic material,
+    // spot and sensor. One exposure per frame here (no HDR bracket), the one that keeps the
+    // laser spot unclipped, so registration is sub-pixel exact and the spot's own light can be
+    // told from the scattered light (a clipped spot's light leaks into the samples near x_i and
+    // the steepest term fits it); the noise floor follows that exposure.
+    let exposure = sim_exposures_s()[0];
+    cfg.field = sim_field();
+    cfg.spot = sim_spot();
+    cfg.sensor = Sensor {
+        exposure_s: exposure,
+        ..sim_sensor()
+    };
+    cfg.noise_floor = sim_noise_floor(exposure);
     if let CameraRig::Orbit { count, .. } = &mut cfg.cameras {
         *count = 1;
     }
