@@ -495,12 +495,30 @@ fn fit_common_order(
 /// samples, so the support rule for steep terms would reject most segments; the isotropic fit
 /// already chose an order the samples support, and evaluation never extrapolates below the
 /// sampled range.)
+///
+/// A segment whose steepest term decays more than [`SEGMENT_MAX_RATE_RATIO`] times faster than
+/// the isotropic fit's steepest one is not a direction effect but a term fitted to a handful of
+/// near samples; it also keeps the slope at r_min so steep that the continuation below r_min
+/// (`evaluate::ln_eval_supported`, the renderer's self term) explodes towards r = 0.
 fn fit_segment(fitter: &dyn Fitter, r: &[f64], s: &[f64], iso: &ExpSum) -> ExpSum {
+    let steepest = |f: &ExpSum| f.terms.iter().map(|t| -t.d).fold(0.0, f64::max);
     match fitter.fit(r, s, Some(iso.n())) {
-        Ok(f) if f.n() == iso.n() && unsupported_term(&f, r) != Some(TermDropped::NonDecaying) => f,
+        Ok(f)
+            if f.n() == iso.n()
+                && unsupported_term(&f, r) != Some(TermDropped::NonDecaying)
+                && steepest(&f) <= SEGMENT_MAX_RATE_RATIO * steepest(iso) =>
+        {
+            f
+        }
         _ => iso.clone(),
     }
 }
+
+/// How much faster than the isotropic fit's steepest term a direction segment's steepest term
+/// may decay (Eq. 3): light travelling 4x less far across the veins than the isotropic mean is
+/// far beyond the anisotropy of the materials in the paper (and of the simulator's, at most
+/// 1 / (1 - 0.6) = 2.5 along against across).
+pub const SEGMENT_MAX_RATE_RATIO: f64 = 4.0;
 
 /// The model variant fitted to one group's samples, its order and the terms dropped on the way.
 fn fit_samples(
