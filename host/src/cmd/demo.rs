@@ -100,8 +100,9 @@ pub fn run_demo(args: &Args) -> Result<Vec<PathBuf>> {
     println!("scanned {} frames in {scan_s:.1} s", summary.frames_written);
     writeln!(
         report,
-        "## Scan\n\nBuilt-in object (sphere, r = 10 mm, {} vertices), simulated rig on pseudo-terminal \
+        "## Scan\n\nBuilt-in object (sphere, r = {} mm, {} vertices), simulated rig on pseudo-terminal \
          `{path}`, simulated camera {}x{} px: {} frames in {scan_s:.1} s. Dataset: `scan/`.\n",
+        subsurf::scan::setup::BUILTIN_RADIUS_MM,
         mesh.positions.len(),
         args.size,
         args.size,
