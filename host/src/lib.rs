@@ -8,12 +8,10 @@
 pub mod calib;
 pub mod dataset;
 pub mod evaluate;
-pub mod fit;
 pub mod flash;
 pub mod geometry;
 pub mod interpolate;
 pub mod link;
-pub mod model;
 pub mod modelfile;
 pub mod pipeline;
 pub mod plot;
@@ -25,3 +23,7 @@ pub mod scan;
 pub mod selection;
 pub mod sim;
 pub mod simulate;
+
+/// The model and its fitting live in the `subsurf-model` crate (no files, no rig); re-exported
+/// here so `subsurf::model` and `subsurf::fit` name them as before.
+pub use subsurf_model::{fit, model};
