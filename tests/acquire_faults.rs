@@ -1,5 +1,6 @@
 //! Faults during a simulated scan: emergency stop, Ctrl-C, a camera that times out. Each one
 //! stops with the laser off and a clear message, and the same scan resumes to completion.
+use crate::fixture::{Planner, rig_scan};
 use indicatif::ProgressBar;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -12,7 +13,6 @@ use subsurf::scan::driver::{ScanConfig, ScanError, run};
 use subsurf::scan::frame::LinearImage;
 use subsurf::scan::plan::PlanOptions;
 use subsurf::scan::setup::camera_from_spec;
-use crate::fixture::{Planner, rig_scan};
 use subsurf::sim::{SimLink, SimParams, VirtualRig};
 
 fn config() -> (ScanConfig, subsurf::dataset::Mesh, tempfile::TempDir) {

@@ -1,16 +1,16 @@
 //! Link drop-out: the pseudo-terminal to the simulated rig is closed mid-scan and reopened after
 //! longer than the rig's heartbeat timeout. The scan reconnects, handshakes again and completes;
 //! the rig's own laser log shows the laser went off within the heartbeat timeout of the drop.
+use crate::fixture::{Planner, rig_scan};
 use indicatif::ProgressBar;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use subsurf::dataset::Dataset;
 use subsurf::link::{ByteLink, LinkError, SerialLink};
 use subsurf::rig::{ClientConfig, RigClient, RigClientError};
-use subsurf::scan::driver::{ScanConfig, run_with_reconnect};
+use subsurf::scan::driver::run_with_reconnect;
 use subsurf::scan::plan::PlanOptions;
 use subsurf::scan::setup::camera_from_spec;
-use crate::fixture::{Planner, rig_scan};
 use subsurf::sim::SimParams;
 
 /// A serial link that is unplugged (closed, every call fails) at `until`.

@@ -1,5 +1,6 @@
 //! End-to-end simulated scans through the library: plan → `scan::run` over the in-process
 //! simulated rig (virtual time) with the simulated camera → a dataset the reader accepts.
+use crate::fixture::{Planner, rig_scan};
 use indicatif::ProgressBar;
 use subsurf::calib::Calibration;
 use subsurf::dataset::Dataset;
@@ -7,7 +8,6 @@ use subsurf::rig::{ClientConfig, RigClient};
 use subsurf::scan::driver::{ScanConfig, run};
 use subsurf::scan::plan::{PlanOptions, PlanScene, coverage_plan, estimate_duration};
 use subsurf::scan::setup::{builtin_object, camera_from_spec, rig_timing};
-use crate::fixture::{Planner, rig_scan};
 use subsurf::sim::{SimLink, SimParams, VirtualRig};
 
 fn setup(exposure: f64) -> (ScanConfig, subsurf::dataset::Mesh, tempfile::TempDir) {
