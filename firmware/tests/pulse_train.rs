@@ -293,6 +293,76 @@ fn segments_merge_only_exact_progressions() {
     assert_eq!(train.take_stalls(), 0);
 }
 
+/// A flush at any tick (home switch seen, emergency halt) accounts for every pushed step: each
+/// was either emitted as a full pulse before the flush or reported as discarded, never both, and
+/// no pulse comes after it.
+#[test]
+fn flush_accounts_for_every_step() {
+    let steps = schedule(0, 3_000, 40_000, 400_000, true);
+    // The first pulse rises at 3 236 µs (pipeline + first step); flush around it and later.
+    for flush_at in [2_000u64, 3_232, 3_236, 3_239, 20_000, 40_000, 60_003, 77_777] {
+        let mut train = PulseTrain::new();
+        let mut tim = Tim::default();
+        let (mut next, mut pushed, mut edges) = (0usize, 0u64, 0u64);
+        let mut isr_at = None;
+        let mut dropped = None;
+        for t in 0..100_000u64 {
+            if tim.cen {
+                if tim.cnt >= tim.arr {
+                    tim.cnt = 0;
+                    tim.arr = tim.arr_pre;
+                    tim.ccr = tim.ccr_pre;
+                    tim.uif = true;
+                    isr_at = Some(t + 2);
+                } else {
+                    tim.cnt += 1;
+                }
+                let out = tim.cnt >= tim.ccr;
+                if out && !tim.out {
+                    edges += 1;
+                    assert!(dropped.is_none(), "pulse after the flush");
+                }
+                tim.out = out;
+            }
+            if isr_at.is_some_and(|at| at <= t) {
+                isr_at = None;
+                tim.uif = false;
+                let u = train.on_update();
+                match u.preload {
+                    Some(p) => (tim.arr_pre, tim.ccr_pre) = (p.arr, p.ccr),
+                    None => tim.cen = false,
+                }
+            }
+            if t == flush_at {
+                tim.cen = false;
+                tim.out = false;
+                dropped = Some(u64::from(train.flush(tim.cnt)));
+                break;
+            }
+            while next < steps.len() && steps[next].0 <= t {
+                let (at, forward) = steps[next];
+                match train.push(at + PIPELINE, forward, t, tim.cnt, tim.uif) {
+                    Push::Queued | Push::Full => {}
+                    Push::Patch(p) => (tim.arr_pre, tim.ccr_pre) = (p.arr, p.ccr),
+                    Push::Start { first, next, .. } => {
+                        (tim.arr, tim.ccr) = (first.arr, first.ccr);
+                        (tim.arr_pre, tim.ccr_pre) = (next.arr, next.ccr);
+                        tim.cnt = 0;
+                        tim.out = false;
+                        tim.cen = true;
+                    }
+                }
+                next += 1;
+                pushed += 1;
+            }
+        }
+        let dropped = dropped.expect("flushed");
+        assert_eq!(edges + dropped, pushed, "flush at {flush_at}");
+        assert!(flush_at < 3_236 || edges > 0);
+        assert!(!train.running());
+    }
+}
+
 #[test]
 fn pulse_width_is_clamped_and_fixed_while_running() {
     let mut train = PulseTrain::new();

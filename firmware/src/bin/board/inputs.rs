@@ -4,6 +4,7 @@
 //! e-stop stops the step timer) before anything else runs, whatever the executor is doing. Then
 //! embassy's handler wakes the tasks below, which update the flags and wake the rig task so the
 //! core halts, disarms and reports.
+use core::cell::RefCell;
 use core::marker::PhantomData;
 use core::sync::atomic::{AtomicBool, Ordering};
 
@@ -11,8 +12,13 @@ use embassy_stm32::exti::ExtiInput;
 use embassy_stm32::interrupt::typelevel::{Handler, Interrupt};
 use embassy_stm32::mode::Async;
 use embassy_stm32::pac;
+use embassy_stm32::Peri;
+use embassy_stm32::gpio::{Input, Pull};
+use embassy_stm32::peripherals as p;
+use embassy_sync::blocking_mutex::CriticalSectionMutex;
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
 use embassy_sync::signal::Signal;
+use heapless::Deque;
 
 use crate::outputs::force_lasers_off;
 use crate::safety::{SafetyPins, on_exti};
@@ -52,8 +58,6 @@ pub static ESTOP: AtomicBool = AtomicBool::new(true);
 pub static INTERLOCK_CLOSED: AtomicBool = AtomicBool::new(false);
 /// Home switch active.
 pub static HOME: AtomicBool = AtomicBool::new(false);
-/// Camera reports an exposure in progress.
-pub static EXPOSING: AtomicBool = AtomicBool::new(false);
 /// Any input changed: the rig task re-reads the flags.
 pub static CHANGED: Signal<CriticalSectionRawMutex, ()> = Signal::new();
 
@@ -102,14 +106,88 @@ pub async fn home(mut pin: ExtiInput<'static, Async>) {
     }
 }
 
-/// Optional camera strobe ("exposure active", high while exposing); logged for diagnostics.
-#[embassy_executor::task]
-pub async fn exposure(mut pin: ExtiInput<'static, Async>) {
-    loop {
-        let exposing = pin.is_high();
-        if EXPOSING.swap(exposing, Ordering::SeqCst) != exposing {
-            defmt::debug!("camera exposing: {}", exposing);
+/// A camera line edge with its time (rig µs).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, defmt::Format)]
+pub enum CameraLineEdge {
+    /// The trigger went active (placed by TIM8, so its time is exact).
+    Trigger(u64),
+    /// Exposure-active went active.
+    ExposureStart(u64),
+    /// Exposure-active went inactive.
+    ExposureEnd(u64),
+}
+
+/// Edges not yet taken by the rig task. 16 covers several brackets between two wakes; when full,
+/// the oldest is dropped and counted.
+static EDGES: CriticalSectionMutex<RefCell<Deque<CameraLineEdge, 16>>> =
+    CriticalSectionMutex::new(RefCell::new(Deque::new()));
+/// Exposure-active output is active low (from the rig profile).
+static EXPOSURE_ACTIVE_LOW: AtomicBool = AtomicBool::new(false);
+
+/// Queue an edge (from an interrupt or a task).
+pub fn push_edge(edge: CameraLineEdge) {
+    EDGES.lock(|q| {
+        if let Ok(mut q) = q.try_borrow_mut() {
+            if q.is_full() {
+                q.pop_front();
+                defmt::warn!("camera edge queue full; oldest dropped");
+            }
+            let _ = q.push_back(edge);
         }
-        pin.wait_for_any_edge().await;
+    });
+}
+
+/// The oldest edge not yet taken.
+pub fn pop_edge() -> Option<CameraLineEdge> {
+    EDGES.lock(|q| q.try_borrow_mut().ok().and_then(|mut q| q.pop_front()))
+}
+
+/// The camera's exposure-active output on PB6, EXTI line 6 on both edges, always unmasked and
+/// handled by [`ExposureEdge`] (not by an embassy task: embassy masks a line between its task's
+/// waits, and an exposure's end must not be lost while the executor is busy).
+pub struct ExposureInput {
+    _pin: Input<'static>,
+    _line: Peri<'static, p::EXTI6>,
+}
+
+impl ExposureInput {
+    /// Take PB6 (pull-down: an unconnected output reads inactive for active-high cameras).
+    pub fn new(pin: Peri<'static, p::PB6>, line: Peri<'static, p::EXTI6>, active_low: bool) -> Self {
+        EXPOSURE_ACTIVE_LOW.store(active_low, Ordering::SeqCst);
+        let pin = Input::new(pin, if active_low { Pull::Up } else { Pull::Down });
+        cortex_m::interrupt::free(|_| {
+            // EXTICR2 holds lines 4..7; line 6 from port B (1).
+            pac::SYSCFG.exticr(1).modify(|w| w.set_exti(2, 1));
+            pac::EXTI.rtsr(0).modify(|w| w.set_line(6, true));
+            pac::EXTI.ftsr(0).modify(|w| w.set_line(6, true));
+            pac::EXTI.pr(0).write(|w| w.set_line(6, true));
+            pac::EXTI.imr(0).modify(|w| w.set_line(6, true));
+        });
+        Self {
+            _pin: pin,
+            _line: line,
+        }
+    }
+}
+
+/// Second handler on EXTI9_5 (after [`SafetyCut`], before embassy's): timestamps exposure-active
+/// edges and clears line 6's pending bit, so embassy never sees (or masks) it.
+pub struct ExposureEdge;
+
+impl Handler<embassy_stm32::interrupt::typelevel::EXTI9_5> for ExposureEdge {
+    unsafe fn on_interrupt() {
+        if !pac::EXTI.pr(0).read().line(6) {
+            return;
+        }
+        pac::EXTI.pr(0).write(|w| w.set_line(6, true));
+        let at = embassy_time::Instant::now().as_micros();
+        let high = pac::GPIOB.idr().read().idr(6) == pac::gpio::vals::Idr::HIGH;
+        let active = high != EXPOSURE_ACTIVE_LOW.load(Ordering::Relaxed);
+        push_edge(if active {
+            CameraLineEdge::ExposureStart(at)
+        } else {
+            CameraLineEdge::ExposureEnd(at)
+        });
+        CHANGED.signal(());
     }
 }

@@ -48,6 +48,7 @@ bind_interrupts!(struct Irqs {
     EXTI4 => inputs::SafetyCut<interrupt::typelevel::EXTI4>,
         exti::InterruptHandler<interrupt::typelevel::EXTI4>;
     EXTI9_5 => inputs::SafetyCut<interrupt::typelevel::EXTI9_5>,
+        inputs::ExposureEdge,
         exti::InterruptHandler<interrupt::typelevel::EXTI9_5>;
     EXTI15_10 => inputs::SafetyCut<interrupt::typelevel::EXTI15_10>,
         exti::InterruptHandler<interrupt::typelevel::EXTI15_10>;
@@ -166,11 +167,10 @@ async fn main(spawner: Spawner) {
     let estop = ExtiInput::new(board.estop, board.estop_exti, Pull::Up, Irqs);
     let interlock = ExtiInput::new(board.interlock, board.interlock_exti, Pull::Up, Irqs);
     let home = ExtiInput::new(board.home, board.home_exti, Pull::Up, Irqs);
-    let exposure = ExtiInput::new(board.exposure, board.exposure_exti, Pull::Down, Irqs);
+    let _exposure = inputs::ExposureInput::new(board.exposure, board.exposure_exti, false);
     spawner.spawn(defmt::unwrap!(inputs::estop(estop)));
     spawner.spawn(defmt::unwrap!(inputs::interlock(interlock)));
     spawner.spawn(defmt::unwrap!(inputs::home(home)));
-    spawner.spawn(defmt::unwrap!(inputs::exposure(exposure)));
 
     static TX_BUF: StaticCell<[u8; 1024]> = StaticCell::new();
     static RX_BUF: StaticCell<[u8; 1024]> = StaticCell::new();

@@ -9,7 +9,8 @@
 //! are driven by the forced-active/forced-inactive output modes. A laser pin is in
 //! alternate-function mode only while its channel may emit; [`force_lasers_off`] puts every laser
 //! pin back to a GPIO output at its inactive level, whatever the timer is doing.
-use core::sync::atomic::{AtomicBool, AtomicU8, Ordering};
+use core::cell::Cell;
+use core::sync::atomic::{AtomicBool, AtomicU8, AtomicU16, Ordering};
 
 use embassy_stm32::Peri;
 use embassy_stm32::dac::{Dac, DualValue};
@@ -24,10 +25,12 @@ use embassy_stm32::time::Hertz;
 use embassy_stm32::timer::low_level::Timer;
 use embassy_stm32::timer::simple_pwm::PwmPin;
 use embassy_stm32::timer::{Ch1, Ch2, Ch3, Ch4};
-use embassy_time::{Duration, block_for};
+use embassy_sync::blocking_mutex::CriticalSectionMutex;
+use embassy_time::{Duration, Instant, block_for};
 
 use crate::exposure::Plan;
 use crate::galvo_map::{GalvoMap, Slew, ad5689_frames};
+use crate::inputs::{CameraLineEdge, push_edge};
 use crate::pins::{LASER_PINS, LASER_TIMER_CHANNELS, TRIGGER_TIMER_CHANNEL};
 use crate::safety::{bsrr_inactive, moder_alternate, moder_output};
 
@@ -36,7 +39,10 @@ static LASER_ACTIVE_LOW: AtomicBool = AtomicBool::new(false);
 /// Trigger channel state for the compare interrupt: 1 = rising edge armed, 0 = idle.
 static TRIGGER_PHASE: AtomicU8 = AtomicU8::new(0);
 /// Compare value of the trigger's falling edge in the running exposure.
-static TRIGGER_OFF_CCR: core::sync::atomic::AtomicU16 = core::sync::atomic::AtomicU16::new(0);
+static TRIGGER_OFF_CCR: AtomicU16 = AtomicU16::new(0);
+/// Rig time (µs) at which the running exposure's trigger edge comes: the timer's start plus the
+/// edge's count, so the edge's timestamp is exact, not the interrupt's.
+static TRIGGER_EDGE_AT: CriticalSectionMutex<Cell<u64>> = CriticalSectionMutex::new(Cell::new(0));
 
 /// Drive every laser enable to its inactive level and take the pins from the timer, through the
 /// GPIO registers only: safe from any interrupt or fault handler, whoever owns the pins. Used by
@@ -79,6 +85,7 @@ impl Handler<TIM8_CC> for TriggerInterrupt {
             tim.ccr(ch)
                 .write(|w| w.set_ccr(TRIGGER_OFF_CCR.load(Ordering::SeqCst)));
             set_ocm(ch, Ocm::INACTIVE_ON_MATCH);
+            push_edge(CameraLineEdge::Trigger(TRIGGER_EDGE_AT.lock(Cell::get)));
         }
     }
 }
@@ -231,7 +238,10 @@ impl CameraTiming {
         set_ocm(TRIGGER_TIMER_CHANNEL, Ocm::ACTIVE_ON_MATCH);
         TRIGGER_PHASE.store(1, Ordering::SeqCst);
         self.timed = true;
+        let edge_in_ns = u64::from(plan.trigger_ccr) * u64::from(plan.tick_ns);
+        let started = Instant::now().as_micros();
         tim.cr1().modify(|w| w.set_cen(true));
+        TRIGGER_EDGE_AT.lock(|at| at.set(started + edge_in_ns / 1_000));
     }
 }
 

@@ -249,6 +249,32 @@ impl PulseTrain {
         self.stalls = stalls;
     }
 
+    /// Stop here: forget every step whose pulse has not started yet and return how many (the
+    /// caller stops the timer and forces STEP low first). `counter` is the timer's counter: the
+    /// current period's pulse already started if it reached the compare value, and then counts as
+    /// emitted. Keeps the pulse width and the stall count.
+    pub fn flush(&mut self, counter: u32) -> u32 {
+        let mut dropped: u64 = 0;
+        if self.running {
+            if let Period::Step { len, .. } = self.current
+                && counter < len.saturating_sub(self.pulse_ticks)
+            {
+                dropped += 1;
+            }
+            if let Period::Step { .. } = self.next {
+                dropped += 1;
+            }
+        }
+        dropped += self.expanding.map_or(0, |e| u64::from(e.left));
+        dropped += self
+            .queue
+            .iter()
+            .map(|s| u64::from(s.count))
+            .sum::<u64>();
+        self.clear();
+        u32::try_from(dropped).unwrap_or(u32::MAX)
+    }
+
     fn preload_for(&self, period: Period) -> Preload {
         match period {
             Period::Step { len, .. } => Preload {

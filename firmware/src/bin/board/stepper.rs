@@ -230,6 +230,20 @@ impl StepGen {
         })
     }
 
+    /// Stop at once and discard every step whose pulse has not started; returns how many.
+    pub fn flush(&mut self) -> u32 {
+        let counter = pac::TIM2.cnt().read();
+        fault_stop();
+        let dropped = TRAIN.lock(|train| {
+            train
+                .try_borrow_mut()
+                .map(|mut t| t.flush(counter))
+                .unwrap_or(0)
+        });
+        REFILL.signal(());
+        dropped
+    }
+
     /// Segments waiting in the step queue.
     pub fn queued_segments(&self) -> usize {
         TRAIN.lock(|t| t.try_borrow().map(|t| t.queued_segments()).unwrap_or(0))
