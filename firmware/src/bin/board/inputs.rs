@@ -5,7 +5,12 @@ use core::sync::atomic::{AtomicBool, Ordering};
 
 use embassy_stm32::exti::ExtiInput;
 use embassy_stm32::mode::Async;
+use core::cell::RefCell;
+
+use embassy_sync::blocking_mutex::Mutex;
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
+use heapless::Deque;
+use subsurf_firmware::hal::CameraEdge;
 use embassy_sync::signal::Signal;
 
 use crate::outputs::force_lasers_off;
@@ -66,13 +71,33 @@ pub async fn home(mut pin: ExtiInput<'static, Async>) {
     }
 }
 
-/// Optional camera strobe ("exposure active", high while exposing); logged for diagnostics.
+/// Timestamped exposure-active edges for the core (`CameraInput`), oldest first.
+static EXPOSURE_EDGES: Mutex<CriticalSectionRawMutex, RefCell<Deque<CameraEdge, 8>>> =
+    Mutex::new(RefCell::new(Deque::new()));
+
+/// The oldest exposure-active edge not yet taken by the core.
+pub fn take_exposure_edge() -> Option<CameraEdge> {
+    EXPOSURE_EDGES.lock(|q| q.borrow_mut().pop_front())
+}
+
+/// Camera strobe ("exposure active", high while exposing): every edge is timestamped and queued
+/// for the core, which confirms and counts each capture's exposure with it.
 #[embassy_executor::task]
 pub async fn exposure(mut pin: ExtiInput<'static, Async>) {
     loop {
         let exposing = pin.is_high();
         if EXPOSING.swap(exposing, Ordering::SeqCst) != exposing {
-            defmt::debug!("camera exposing: {}", exposing);
+            let at = embassy_time::Instant::now().as_micros();
+            let edge = if exposing {
+                CameraEdge::ExposureStart(at)
+            } else {
+                CameraEdge::ExposureEnd(at)
+            };
+            let full = EXPOSURE_EDGES.lock(|q| q.borrow_mut().push_back(edge).is_err());
+            if full {
+                defmt::warn!("exposure edge queue full; edge dropped");
+            }
+            CHANGED.signal(());
         }
         pin.wait_for_any_edge().await;
     }

@@ -14,11 +14,12 @@ use embassy_stm32::usart::{BufferedUart, BufferedUartRx, BufferedUartTx};
 use embassy_time::{Duration, Instant, Timer, with_timeout};
 use embedded_io_async::{Read, Write};
 use static_cell::StaticCell;
-use subsurf_firmware::hal::{CameraTrigger, GalvoDac, LaserOutputs, RigInputs, Stepper};
-use subsurf_firmware::rig::MAX_PROGRAM_POINTS;
+use subsurf_firmware::hal::{
+    CameraEdge, CameraInput, CameraTrigger, GalvoDac, LaserOutputs, RigInputs, Stepper,
+};
 use subsurf_firmware::{Micros, Rig};
 use subsurf_protocol::{
-    Capabilities, Config, EventKind, GalvoPoint, Inputs, MAX_FRAME, RigMessage, encode_event,
+    Config, EventKind, GalvoPoint, Inputs, MAX_FRAME, RigMessage, RigProfile, encode_event,
     encode_reply,
 };
 
@@ -34,27 +35,26 @@ pub const MAX_SLEEP: Duration = Duration::from_millis(50);
 /// started this far ahead; later ones keep their exact spacing).
 pub const STEP_PIPELINE_US: u32 = 1_000;
 
-/// What this board announces: a 200-step motor at 1/16 microstepping through a 5:1 belt
-/// (16 000 steps per turntable revolution), the 12-bit DAC, three laser channels.
-pub const CAPABILITIES: Capabilities = Capabilities {
-    steps_per_rev: 16_000,
-    galvo_max: GALVO_MAX,
-    laser_channels: 3,
-    max_speed: 20_000,
-    max_accel: 200_000,
-    max_exposure_us: 2_000_000,
-    max_program_points: MAX_PROGRAM_POINTS as u16,
+/// The profile this board runs until one is sent: the documented wiring on the internal 12-bit
+/// DAC (the output this binary drives), 300 µs per 1000 codes.
+pub const PROFILE: RigProfile = RigProfile {
+    galvo: RigProfile::INTERNAL_DAC,
+    ..RigProfile::DEFAULT
 };
+const _: () = assert!(GALVO_MAX == PROFILE.galvo.output.max_code());
 
-/// Settings at power-on (the host may change them with `SetConfig`).
-pub const CONFIG: Config = Config {
-    heartbeat_timeout_ms: 2_000,
-    galvo_settle_min_us: 100,
-    galvo_settle_per_kcode_us: 300,
-    home_speed: 8_000,
-    home_accel: 40_000,
-    home_max_steps: 16_000 + 2_000,
-};
+/// A random number per power-on from the hardware RNG (48 MHz from PLLQ), so the host can tell a
+/// reset from a quiet rig; falls back to the clock if the RNG does not come up.
+fn boot_nonce() -> u32 {
+    pac::RCC.ahb2enr().modify(|w| w.set_rngen(true));
+    pac::RNG.cr().modify(|w| w.set_rngen(true));
+    for _ in 0..100_000 {
+        if pac::RNG.sr().read().drdy() {
+            return pac::RNG.dr().read();
+        }
+    }
+    (now_us() as u32) ^ 0x9e37_79b9
+}
 
 /// Rig clock: µs since boot, from the embassy time driver (TIM12).
 fn now_us() -> Micros {
@@ -157,6 +157,12 @@ impl CameraTrigger for Hardware {
     }
 }
 
+impl CameraInput for Hardware {
+    fn poll_camera_edge(&mut self) -> Option<CameraEdge> {
+        inputs::take_exposure_edge()
+    }
+}
+
 impl RigInputs for Hardware {
     fn read_inputs(&mut self) -> Inputs {
         sample_inputs()
@@ -210,7 +216,8 @@ fn run_due(rig: &mut Rig<Hardware>) {
 pub async fn run(link: BufferedUart<'static>, hw: Hardware) {
     let (mut tx, mut rx): (BufferedUartTx<'static>, BufferedUartRx<'static>) = link.split();
     static RIG: StaticCell<Rig<Hardware>> = StaticCell::new();
-    let rig = RIG.init_with(|| Rig::new(hw, CAPABILITIES, CONFIG, now_us()));
+    let nonce = boot_nonce();
+    let rig = RIG.init_with(|| Rig::new(hw, PROFILE, Config::DEFAULT, nonce, now_us()));
     let mut rx_buf = [0u8; 64];
     let mut frame = [0u8; MAX_FRAME];
     let mut last_fault = None;
