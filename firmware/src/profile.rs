@@ -79,6 +79,20 @@ impl Profile {
         self.total_us
     }
 
+    /// Steps of the acceleration ramp (= of the deceleration ramp): `v²/2a` for a trapezoid,
+    /// half the move for a triangle. A move stopped after `k` steps needs `min(k, ramp)` more
+    /// steps to come to rest.
+    pub fn ramp_steps(&self) -> u32 {
+        let half = self.steps / 2;
+        if !self.trapezoid {
+            return half;
+        }
+        let (v, a) = (u128::from(self.speed), u128::from(self.accel));
+        u32::try_from(div(v * v, 2 * a))
+            .unwrap_or(u32::MAX)
+            .min(half)
+    }
+
     /// Time of step `k` (1..=steps) after the start of the move, µs. `k` past the end gives the
     /// duration; `k = 0` gives 0.
     pub fn step_time_us(&self, k: u32) -> u64 {

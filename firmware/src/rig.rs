@@ -26,13 +26,14 @@
 
 use heapless::{Deque, Vec};
 use subsurf_protocol::{
-    Capabilities, Capture, Captured, Command, Config, Event, EventKind, EventReplay, Fault,
-    FirmwareVersion, FrameDecoder, GalvoPoint, HaltReason, Hello, Inputs, Move, MoveTarget,
-    PROTOCOL_VERSION, ProgramChunk, ProgramHeader, REPLAY_BATCH, Reply, Request, Response,
-    RigError, RigMessage, RigState, Seq, Status, encode_event, encode_reply,
+    Capabilities, Capture, Captured, Command, Config, Event, EventKind, EventReplay,
+    ExposureActive, Fault, FirmwareVersion, FrameDecoder, GalvoPoint, HaltReason, Hello, Inputs,
+    MAX_EXPOSURE_US, MAX_HEARTBEAT_TIMEOUT_MS, MAX_SETTLE_US, Move, MoveTarget, PROTOCOL_VERSION,
+    ProgramChunk, ProgramHeader, REPLAY_BATCH, Reply, Request, Response, RigError, RigMessage,
+    RigProfile, RigState, Seq, Status, encode_event, encode_reply,
 };
 
-use crate::hal::Hardware;
+use crate::hal::{CameraEdge, ExposureWindow, Hardware};
 use crate::profile::Profile;
 
 /// Rig time: µs since boot.
@@ -49,17 +50,11 @@ pub const OUT_QUEUE: usize = 32;
 /// Recent events the rig keeps for [`Command::Replay`]: a host that saw a gap in `event_seq`
 /// gets them again as long as no more than this many events came after. 32 covers a whole
 /// [`subsurf_protocol::REPLAY_BATCH`] round trip of a program at 1 kHz many times over, at
-/// 32 × 48 bytes of RAM.
+/// 32 × 80 bytes of RAM.
 pub const EVENT_HISTORY: usize = 32;
 
 /// Inputs are sampled at least this often (µs) even without pin-change notifications.
 pub const INPUT_POLL_US: Micros = 1_000;
-
-/// Longest accepted galvo settle time, µs.
-pub const MAX_SETTLE_US: u32 = 1_000_000;
-
-/// Longest accepted heartbeat timeout, ms.
-pub const MAX_HEARTBEAT_TIMEOUT_MS: u32 = 600_000;
 
 /// This firmware's version, from the crate version.
 pub const FIRMWARE_VERSION: FirmwareVersion = FirmwareVersion {
@@ -75,37 +70,136 @@ const fn parse_u16(s: &str) -> u16 {
     }
 }
 
-/// Galvo settle time for a jump from `from` to `to`: `galvo_settle_min_us` plus
-/// `galvo_settle_per_kcode_us` per 1000 codes of the larger axis jump, saturating.
-pub fn galvo_settle_us(config: &Config, from: GalvoPoint, to: GalvoPoint) -> u32 {
+/// Galvo settle time for a jump from `from` to `to` under the profile's settle model:
+/// `settle_min_us` plus `settle_per_kcode_us` per 1000 codes of the larger axis jump, saturating.
+pub fn galvo_settle_us(profile: &RigProfile, from: GalvoPoint, to: GalvoPoint) -> u32 {
     let jump = u64::from(from.x.abs_diff(to.x).max(from.y.abs_diff(to.y)));
-    let extra = jump.saturating_mul(u64::from(config.galvo_settle_per_kcode_us)) / 1000;
-    u32::try_from(u64::from(config.galvo_settle_min_us).saturating_add(extra)).unwrap_or(u32::MAX)
+    let extra = jump.saturating_mul(u64::from(profile.galvo.settle_per_kcode_us)) / 1000;
+    u32::try_from(u64::from(profile.galvo.settle_min_us).saturating_add(extra)).unwrap_or(u32::MAX)
 }
 
-/// A turntable move (or homing run) in progress.
+/// What a profile lets the host ask for (announced in [`Hello`]).
+pub fn capabilities(profile: &RigProfile) -> Capabilities {
+    Capabilities {
+        steps_per_rev: profile.steps_per_rev().unwrap_or(1),
+        galvo_max: profile.galvo_max(),
+        laser_channels: profile
+            .laser
+            .channels
+            .min(subsurf_protocol::MAX_LASER_CHANNELS),
+        max_speed: profile.motor.max_speed,
+        max_accel: profile.motor.max_accel,
+        max_exposure_us: MAX_EXPOSURE_US,
+        min_exposure_us: profile.camera.min_exposure_us,
+        camera_readout_us: profile.camera.readout_us,
+        max_program_points: u16::try_from(MAX_PROGRAM_POINTS).unwrap_or(u16::MAX),
+    }
+}
+
+/// The phases of two-pass homing (approach = decreasing position).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum HomePhase {
+    /// Started on the switch: slowly forward until it releases, then back off.
+    LeaveSwitch,
+    /// Fast approach until the switch is seen (then a decelerating stop).
+    Approach,
+    /// Forward at the homing speed until the switch has been active and released again.
+    Release,
+    /// Forward `backoff_steps` more.
+    BackOff,
+    /// Slow approach until the switch reads active for `debounce_us`.
+    SlowApproach,
+    /// Forward back onto the switch edge found by the slow approach.
+    Return,
+    /// Decelerating after the fast approach saw the switch; then [`HomePhase::Release`].
+    BrakeToRelease,
+    /// Decelerating after the release pass saw the switch release; then [`HomePhase::BackOff`].
+    BrakeToBackOff,
+}
+
+/// What a motion is for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum MotionKind {
+    Move,
+    Home {
+        phase: HomePhase,
+        /// The switch has been seen active in this phase.
+        seen_active: bool,
+        /// Slow approach: first active sample, and steps taken since.
+        active_since: Option<Micros>,
+        steps_since_active: u32,
+    },
+    /// Decelerating to rest after a halt; nothing follows.
+    Stopping,
+}
+
+/// A turntable move (or homing pass) in progress. Step `i` of `profile` (1-based) is due at
+/// `base + t(i) - t(base_index)`; a decelerating stop jumps `index` forward to the start of the
+/// profile's deceleration ramp at the current speed.
 #[derive(Debug, Clone, Copy)]
 struct Motion {
     profile: Profile,
-    start: Micros,
-    done: u32,
+    base: Micros,
+    base_index: u32,
+    /// Profile index of the last step taken.
+    index: u32,
+    /// When that step was due (the start for none).
+    last_step_at: Micros,
     forward: bool,
-    homing: bool,
+    kind: MotionKind,
     next_due: Micros,
+}
+
+impl Motion {
+    fn new(now: Micros, profile: Profile, forward: bool, kind: MotionKind) -> Self {
+        Self {
+            profile,
+            base: now,
+            base_index: 0,
+            index: 0,
+            last_step_at: now,
+            forward,
+            kind,
+            next_due: now.saturating_add(profile.step_time_us(1)),
+        }
+    }
+
+    fn due(&self, i: u32) -> Micros {
+        let t0 = self.profile.step_time_us(self.base_index);
+        self.base
+            .saturating_add(self.profile.step_time_us(i).saturating_sub(t0))
+    }
+
+    fn finished(&self) -> bool {
+        self.index >= self.profile.steps()
+    }
+
+    /// Decelerate to rest from the current speed: continue on the profile's ramp-down.
+    fn stop(&mut self) {
+        let n = self.profile.steps();
+        let k = self.index;
+        let d = k.min(self.profile.ramp_steps()).min(n.saturating_sub(k));
+        let from = n.saturating_sub(d);
+        if from > k {
+            self.base = self.last_step_at;
+            self.base_index = from;
+            self.index = from;
+        }
+        self.next_due = self.due(self.index.saturating_add(1));
+    }
 }
 
 /// Phase of the capture in progress.
 #[derive(Debug, Clone, Copy)]
 enum Phase {
-    Settling {
-        until: Micros,
-    },
-    Exposing {
-        triggered_at: Micros,
-        trigger_low_at: Micros,
-        laser_off_at: Micros,
-        trigger_high: bool,
-    },
+    /// Galvo settling (and camera reading out): laser on at `laser_on_at`.
+    Settling,
+    /// Laser on, trigger at `trigger_at`.
+    Lit,
+    /// Trigger given; laser off at `laser_off_at`.
+    Exposing { trigger_high: bool },
+    /// Laser off; waiting for the camera's exposure-active to drop, at most until `deadline`.
+    Confirming { deadline: Micros },
 }
 
 /// The capture in progress.
@@ -115,8 +209,15 @@ struct ActiveCapture {
     program_index: Option<u16>,
     galvo: GalvoPoint,
     channel: u8,
-    exposure_us: u32,
     trigger_us: u32,
+    exposure_us: u32,
+    laser_on_at: Micros,
+    trigger_at: Micros,
+    laser_off_at: Micros,
+    /// The trigger edge as the hardware timestamped it.
+    trigger_edge: Option<Micros>,
+    exposure_start: Option<Micros>,
+    exposure_end: Option<Micros>,
     phase: Phase,
 }
 
@@ -167,8 +268,14 @@ impl ReplyCache {
 /// The rig: owns its hardware, speaks the protocol. See the module docs for the call order.
 pub struct Rig<H: Hardware> {
     hw: H,
+    profile: RigProfile,
     caps: Capabilities,
     config: Config,
+    boot_nonce: u32,
+    /// A `Hello` succeeded since boot.
+    session: bool,
+    /// The profile changed and the board should persist it ([`Rig::take_profile_to_persist`]).
+    profile_dirty: bool,
     decoder: FrameDecoder,
     out: Deque<RigMessage, OUT_QUEUE>,
     /// Events raised while a request executes: sent right after its reply.
@@ -183,6 +290,8 @@ pub struct Rig<H: Hardware> {
     armed: bool,
     /// Manually switched-on channels ([`Command::Laser`]).
     lasers: u8,
+    /// Since when a manual channel has been on.
+    manual_since: Option<Micros>,
     /// What the laser outputs currently show.
     laser_output: u8,
     inputs: Inputs,
@@ -194,9 +303,17 @@ pub struct Rig<H: Hardware> {
     position: i32,
     homed: bool,
     motion: Option<Motion>,
-    // Galvo and captures.
+    // Galvo, camera and captures.
     galvo: GalvoPoint,
     capture: Option<ActiveCapture>,
+    /// The axis was homed when the current homing started (its coordinates still valid).
+    rehoming: bool,
+    /// Where the homing found the edge, in the coordinates before it.
+    home_edge: Option<i32>,
+    /// Exposure-active rising edges seen since boot.
+    exposures: u32,
+    /// The camera accepts its next trigger from here (last exposure end + read-out).
+    camera_ready_at: Micros,
     program_header: Option<ProgramHeader>,
     program: Vec<GalvoPoint, MAX_PROGRAM_POINTS>,
     run: Option<ProgramRun>,
@@ -205,24 +322,43 @@ pub struct Rig<H: Hardware> {
 }
 
 impl<H: Hardware> Rig<H> {
-    /// A rig at rest: lasers off, trigger low, galvo at 0, disarmed, position 0 (not homed).
-    /// `capabilities.laser_channels` is capped at 8 and `max_program_points` at
-    /// [`MAX_PROGRAM_POINTS`].
-    pub fn new(mut hw: H, mut capabilities: Capabilities, config: Config, now: Micros) -> Self {
-        capabilities.laser_channels = capabilities
-            .laser_channels
-            .min(subsurf_protocol::MAX_LASER_CHANNELS);
-        capabilities.max_program_points = capabilities
-            .max_program_points
-            .min(u16::try_from(MAX_PROGRAM_POINTS).unwrap_or(u16::MAX));
+    /// A rig at rest: lasers off, trigger low, galvo centred, disarmed, position 0 (not homed), no
+    /// session. An invalid `profile` (e.g. blank flash) is replaced by [`RigProfile::DEFAULT`].
+    /// `boot_nonce` should differ between resets (hardware RNG): the host detects a reboot by it.
+    pub fn new(
+        mut hw: H,
+        profile: RigProfile,
+        config: Config,
+        boot_nonce: u32,
+        now: Micros,
+    ) -> Self {
+        let profile = if profile.validate().is_ok() {
+            profile
+        } else {
+            RigProfile::DEFAULT
+        };
+        let config = if config_ok(&config) {
+            config
+        } else {
+            Config::DEFAULT
+        };
+        let center = profile.galvo.output.center();
+        let galvo = GalvoPoint {
+            x: center,
+            y: center,
+        };
         hw.set_lasers(0);
         hw.set_trigger(false);
-        hw.set_galvo(GalvoPoint::default());
+        hw.set_galvo(galvo);
         let inputs = hw.read_inputs();
         let mut rig = Self {
             hw,
-            caps: capabilities,
+            caps: capabilities(&profile),
+            profile,
             config,
+            boot_nonce,
+            session: false,
+            profile_dirty: false,
             decoder: FrameDecoder::new(),
             out: Deque::new(),
             deferred: Deque::new(),
@@ -233,6 +369,7 @@ impl<H: Hardware> Rig<H> {
             now,
             armed: false,
             lasers: 0,
+            manual_since: None,
             laser_output: 0,
             inputs,
             fault: None,
@@ -242,8 +379,12 @@ impl<H: Hardware> Rig<H> {
             position: 0,
             homed: false,
             motion: None,
-            galvo: GalvoPoint::default(),
+            galvo,
             capture: None,
+            rehoming: false,
+            home_edge: None,
+            exposures: 0,
+            camera_ready_at: now,
             program_header: None,
             program: Vec::new(),
             run: None,
@@ -267,14 +408,35 @@ impl<H: Hardware> Rig<H> {
         &mut self.hw
     }
 
-    /// The fixed limits announced in the handshake.
+    /// The limits announced in the handshake (derived from the profile).
     pub fn capabilities(&self) -> &Capabilities {
         &self.caps
     }
 
-    /// The current tunable settings.
+    /// The rig profile in force.
+    pub fn profile(&self) -> &RigProfile {
+        &self.profile
+    }
+
+    /// The profile, once after every accepted [`Command::SetProfile`]: the board writes it to
+    /// flash (outside the core, when idle) so it survives a reset.
+    pub fn take_profile_to_persist(&mut self) -> Option<RigProfile> {
+        core::mem::take(&mut self.profile_dirty).then_some(self.profile)
+    }
+
+    /// The current session settings.
     pub fn config(&self) -> &Config {
         &self.config
+    }
+
+    /// This boot's nonce.
+    pub fn boot_nonce(&self) -> u32 {
+        self.boot_nonce
+    }
+
+    /// Whether a host session is open (a `Hello` since boot).
+    pub fn session_open(&self) -> bool {
+        self.session
     }
 
     /// Laser channels currently emitting.
@@ -287,7 +449,7 @@ impl<H: Hardware> Rig<H> {
         self.armed
     }
 
-    /// Whether the turntable is moving (including homing).
+    /// Whether the turntable is moving (including homing and decelerating stops).
     pub fn moving(&self) -> bool {
         self.motion.is_some()
     }
@@ -295,6 +457,16 @@ impl<H: Hardware> Rig<H> {
     /// Turntable position, steps (0 = home once homed).
     pub fn position(&self) -> i32 {
         self.position
+    }
+
+    /// Whether the axis is homed.
+    pub fn homed(&self) -> bool {
+        self.homed
+    }
+
+    /// Exposures the camera confirmed since boot.
+    pub fn exposures(&self) -> u32 {
+        self.exposures
     }
 
     /// When the next motor step is due, µs (for a board that programs a hardware timer per step;
@@ -328,7 +500,7 @@ impl<H: Hardware> Rig<H> {
         let state = if self.fault.is_some() {
             RigState::Fault
         } else if let Some(m) = &self.motion {
-            if m.homing {
+            if matches!(m.kind, MotionKind::Home { .. }) {
                 RigState::Homing
             } else {
                 RigState::Moving
@@ -341,6 +513,7 @@ impl<H: Hardware> Rig<H> {
             RigState::Idle
         };
         Status {
+            boot_nonce: self.boot_nonce,
             state,
             position: self.position,
             homed: self.homed,
@@ -350,6 +523,7 @@ impl<H: Hardware> Rig<H> {
             inputs: self.inputs,
             fault: self.fault,
             next_capture_id: self.next_capture_id,
+            exposures: self.exposures,
             next_event_seq: self.next_event_seq,
             program_received: u16::try_from(self.program.len()).unwrap_or(u16::MAX),
             program_len: self.program_header.map_or(0, |h| h.len),
@@ -383,7 +557,14 @@ impl<H: Hardware> Rig<H> {
         if is_hello {
             self.replies.clear();
         }
-        let reply = if let Some(cached) = self.replies.get(req.seq) {
+        let reply = if !self.session && !is_hello {
+            // After a reset the host's request may be a retransmission of one the previous boot
+            // already ran: refuse everything until the host has noticed and said Hello.
+            Reply {
+                seq: req.seq,
+                result: Err(RigError::NoSession),
+            }
+        } else if let Some(cached) = self.replies.get(req.seq) {
             cached.clone()
         } else if self.replies.is_stale(req.seq) {
             // Not executed and not cached: the host already has (or gave up on) this reply.
@@ -410,12 +591,26 @@ impl<H: Hardware> Rig<H> {
         self.sync_lasers();
     }
 
-    /// An input pin changed (or the caller wants the inputs sampled now).
+    /// An input pin changed, or a camera edge was timestamped (or the caller wants the inputs
+    /// sampled now).
     pub fn handle_inputs(&mut self, now: Micros) {
         let now = self.advance(now);
         let inputs = self.hw.read_inputs();
         self.apply_inputs(now, inputs);
+        self.take_camera_edges();
+        self.run_capture_phases(now);
         self.sync_lasers();
+    }
+
+    /// The step generator ran dry while steps were due (board: its timer interrupt saw an empty
+    /// queue mid-move): the position is unknown, so fault, stop at once and drop `homed`.
+    pub fn handle_stall(&mut self, now: Micros) {
+        let now = self.advance(now);
+        if self.motion.is_none() {
+            return;
+        }
+        self.fault = Some(Fault::StepStall);
+        self.abort(now, HaltReason::StepStall, Halt::Emergency);
     }
 
     /// Time passed: run every step, capture phase, program capture and safety check due by `now`.
@@ -429,18 +624,26 @@ impl<H: Hardware> Rig<H> {
         if self.link_alive && now >= self.heartbeat_deadline() {
             self.link_alive = false;
             if self.armed || self.lasers != 0 || self.busy() {
-                self.abort(now, HaltReason::HeartbeatLost, true);
+                self.abort(now, HaltReason::HeartbeatLost, Halt::Decelerate);
             }
         }
+        if self.lasers != 0 && self.manual_deadline().is_some_and(|d| now >= d) {
+            self.abort(now, HaltReason::LaserTimeout, Halt::KeepMoving);
+        }
         self.run_motion(now);
+        self.take_camera_edges();
+        self.run_capture_phases(now);
+        self.sync_lasers();
+    }
+
+    fn run_capture_phases(&mut self, now: Micros) {
         // Each pass advances a capture phase or starts a program capture; a few passes settle
         // everything due at one instant (zero settle time, back-to-back program points).
-        for _ in 0..4 {
+        for _ in 0..6 {
             if !self.run_capture(now) {
                 break;
             }
         }
-        self.sync_lasers();
     }
 
     // ------------------------------------------------------------------------------------------
@@ -454,25 +657,28 @@ impl<H: Hardware> Rig<H> {
         }
         if let Some(c) = &self.capture {
             t = t.min(match c.phase {
-                Phase::Settling { until } => until,
-                Phase::Exposing {
-                    trigger_low_at,
-                    laser_off_at,
-                    trigger_high,
-                    ..
-                } => {
+                Phase::Settling => c.laser_on_at,
+                Phase::Lit => c.trigger_at,
+                Phase::Exposing { trigger_high } => {
+                    let low = c.trigger_at.saturating_add(u64::from(c.trigger_us));
                     if trigger_high {
-                        trigger_low_at.min(laser_off_at)
+                        low.min(c.laser_off_at)
                     } else {
-                        laser_off_at
+                        c.laser_off_at
                     }
                 }
+                Phase::Confirming { deadline } => deadline,
             });
         } else if let Some(r) = &self.run {
             t = t.min(r.next_start);
         }
         if self.link_alive {
             t = t.min(self.heartbeat_deadline());
+        }
+        if self.lasers != 0
+            && let Some(d) = self.manual_deadline()
+        {
+            t = t.min(d);
         }
         Some(t)
     }
@@ -520,14 +726,14 @@ impl<H: Hardware> Rig<H> {
             && self.link_alive
     }
 
-    /// Write the laser outputs: the manual channels plus the exposing capture's channel, or
-    /// nothing when [`Rig::laser_permitted`] is false. The only caller of `set_lasers`.
+    /// Write the laser outputs: the manual channels plus the lit capture's channel, or nothing
+    /// when [`Rig::laser_permitted`] is false. The only caller of `set_lasers`.
     fn sync_lasers(&mut self) {
         let wanted = if self.laser_permitted() {
             let capture = match &self.capture {
                 Some(ActiveCapture {
                     channel,
-                    phase: Phase::Exposing { .. },
+                    phase: Phase::Lit | Phase::Exposing { .. },
                     ..
                 }) => 1u8.checked_shl(u32::from(*channel)).unwrap_or(0),
                 _ => 0,
@@ -537,21 +743,30 @@ impl<H: Hardware> Rig<H> {
             self.lasers = 0;
             0
         };
+        if self.lasers == 0 {
+            self.manual_since = None;
+        }
         if wanted != self.laser_output {
             self.hw.set_lasers(wanted);
             self.laser_output = wanted;
         }
     }
 
-    /// Stop laser work (and the motor when `stop_motion`), disarm, and report why.
-    fn abort(&mut self, now: Micros, reason: HaltReason, stop_motion: bool) {
+    /// Stop laser work, disarm, and report why; what happens to a motion depends on `halt`. A
+    /// halt that cuts a motion clears `homed`.
+    fn abort(&mut self, now: Micros, reason: HaltReason, halt: Halt) {
         #[cfg(feature = "defmt")]
         defmt::warn!("halt at {=u64} us: {}", now, reason);
+        let moving = self
+            .motion
+            .as_ref()
+            .is_some_and(|m| m.kind != MotionKind::Stopping);
+        let cuts_motion = moving && halt != Halt::KeepMoving;
         let was_active = self.armed
             || self.lasers != 0
             || self.capture.is_some()
             || self.run.is_some()
-            || (stop_motion && self.motion.is_some());
+            || cuts_motion;
         self.armed = false;
         self.lasers = 0;
         if self.capture.take().is_some() {
@@ -566,8 +781,26 @@ impl<H: Hardware> Rig<H> {
                 },
             );
         }
-        if stop_motion {
-            self.motion = None;
+        match halt {
+            Halt::KeepMoving => {}
+            Halt::Decelerate => {
+                if let Some(m) = self.motion.as_mut() {
+                    m.kind = MotionKind::Stopping;
+                    m.stop();
+                    if m.finished() {
+                        self.motion = None;
+                    }
+                }
+            }
+            Halt::Emergency => {
+                if self.motion.take().is_some() {
+                    self.flush_steps();
+                }
+            }
+        }
+        if cuts_motion {
+            self.homed = false;
+            self.rehoming = false;
         }
         self.sync_lasers();
         if was_active || reason != HaltReason::Stop {
@@ -579,17 +812,23 @@ impl<H: Hardware> Rig<H> {
         self.inputs = inputs;
         if inputs.estop && self.fault != Some(Fault::EmergencyStop) {
             self.fault = Some(Fault::EmergencyStop);
-            self.abort(now, HaltReason::EmergencyStop, true);
+            self.abort(now, HaltReason::EmergencyStop, Halt::Emergency);
         } else if !inputs.interlock_closed
             && (self.armed || self.lasers != 0 || self.capture.is_some() || self.run.is_some())
         {
-            self.abort(now, HaltReason::InterlockOpen, false);
+            self.abort(now, HaltReason::InterlockOpen, Halt::KeepMoving);
         }
     }
 
     fn heartbeat_deadline(&self) -> Micros {
         self.last_request_at
             .saturating_add(u64::from(self.config.heartbeat_timeout_ms).saturating_mul(1000))
+    }
+
+    fn manual_deadline(&self) -> Option<Micros> {
+        self.manual_since.map(|t| {
+            t.saturating_add(u64::from(self.profile.laser.manual_max_ms).saturating_mul(1000))
+        })
     }
 
     // ------------------------------------------------------------------------------------------
@@ -676,7 +915,12 @@ impl<H: Hardware> Rig<H> {
         if channel >= self.caps.laser_channels {
             return Err(RigError::NoSuchChannel);
         }
-        let exposure_ok = (1..=self.caps.max_exposure_us).contains(&exposure_us);
+        if exposure_us < self.caps.min_exposure_us {
+            return Err(RigError::ExposureTooShort {
+                min_us: self.caps.min_exposure_us,
+            });
+        }
+        let exposure_ok = exposure_us <= self.caps.max_exposure_us;
         let trigger_ok = (1..=exposure_us).contains(&trigger_us);
         let settle_ok = settle_us.is_none_or(|s| s <= MAX_SETTLE_US);
         if !(exposure_ok && trigger_ok && settle_ok) {
@@ -685,17 +929,57 @@ impl<H: Hardware> Rig<H> {
         Ok(())
     }
 
-    fn check_config(&self, c: &Config) -> Result<(), RigError> {
-        let ok = (1..=MAX_HEARTBEAT_TIMEOUT_MS).contains(&c.heartbeat_timeout_ms)
-            && c.galvo_settle_min_us <= MAX_SETTLE_US
-            && c.galvo_settle_per_kcode_us <= MAX_SETTLE_US
-            && (1..=self.caps.max_speed).contains(&c.home_speed)
-            && (1..=self.caps.max_accel).contains(&c.home_accel)
-            && c.home_max_steps >= 1;
-        if ok {
-            Ok(())
+    /// Discard queued steps the hardware has not emitted yet and take them off the position.
+    fn flush_steps(&mut self) -> u32 {
+        let dropped = self.hw.flush();
+        let forward = self.motion.as_ref().is_none_or(|m| m.forward);
+        let d = i32::try_from(dropped).unwrap_or(i32::MAX);
+        self.position = if forward {
+            self.position.saturating_sub(d)
         } else {
-            Err(RigError::OutOfRange)
+            self.position.saturating_add(d)
+        };
+        dropped
+    }
+
+    /// Take every camera edge the hardware timestamped: count exposures, note the capture's.
+    fn take_camera_edges(&mut self) {
+        // Bounded: a flood of edges is taken over several calls.
+        for _ in 0..16 {
+            let Some(edge) = self.hw.poll_camera_edge() else {
+                break;
+            };
+            let capture = self.capture.as_mut();
+            match edge {
+                CameraEdge::Trigger(at) => {
+                    if let Some(c) = capture
+                        && matches!(c.phase, Phase::Exposing { .. })
+                        && c.trigger_edge.is_none()
+                    {
+                        c.trigger_edge = Some(at);
+                    }
+                }
+                CameraEdge::ExposureStart(at) => {
+                    self.exposures = self.exposures.wrapping_add(1);
+                    if let Some(c) = capture
+                        && !matches!(c.phase, Phase::Settling)
+                        && c.exposure_start.is_none()
+                    {
+                        c.exposure_start = Some(at);
+                    }
+                }
+                CameraEdge::ExposureEnd(at) => {
+                    self.camera_ready_at = self
+                        .camera_ready_at
+                        .max(at.saturating_add(u64::from(self.profile.camera.readout_us)));
+                    if let Some(c) = capture
+                        && c.exposure_start.is_some()
+                        && c.exposure_end.is_none()
+                    {
+                        c.exposure_end = Some(at);
+                    }
+                }
+            }
         }
     }
 
@@ -710,9 +994,11 @@ impl<H: Hardware> Rig<H> {
                         rig: PROTOCOL_VERSION,
                     });
                 }
+                self.session = true;
                 Ok(Response::Hello(Hello {
                     protocol_version: PROTOCOL_VERSION,
                     firmware_version: FIRMWARE_VERSION,
+                    boot_nonce: self.boot_nonce,
                     capabilities: self.caps,
                 }))
             }
@@ -723,8 +1009,31 @@ impl<H: Hardware> Rig<H> {
                 if self.busy() {
                     return Err(RigError::Busy);
                 }
-                self.check_config(&config)?;
+                if !config_ok(&config) {
+                    return Err(RigError::OutOfRange);
+                }
                 self.config = config;
+                Ok(Response::Ack)
+            }
+            Command::GetProfile => Ok(Response::Profile(self.profile)),
+            Command::SetProfile(profile) => {
+                if self.busy() {
+                    return Err(RigError::Busy);
+                }
+                profile.validate().map_err(RigError::BadProfile)?;
+                if profile.galvo.output != self.profile.galvo.output {
+                    let c = profile.galvo.output.center();
+                    self.galvo = GalvoPoint { x: c, y: c };
+                    self.hw.set_galvo(self.galvo);
+                }
+                self.profile = profile;
+                self.caps = capabilities(&profile);
+                self.homed = false;
+                self.armed = false;
+                self.lasers = 0;
+                self.program.clear();
+                self.program_header = None;
+                self.profile_dirty = true;
                 Ok(Response::Ack)
             }
             Command::Home => self.start_home(now),
@@ -765,6 +1074,9 @@ impl<H: Hardware> Rig<H> {
                 if self.busy() {
                     return Err(RigError::Busy);
                 }
+                if self.lasers == 0 {
+                    self.manual_since = Some(now);
+                }
                 self.lasers |= bit;
                 Ok(Response::Ack)
             }
@@ -773,7 +1085,7 @@ impl<H: Hardware> Rig<H> {
             Command::ProgramPoints(chunk) => self.add_program_points(chunk),
             Command::ProgramRun => self.run_program(now),
             Command::Stop => {
-                self.abort(now, HaltReason::Stop, true);
+                self.abort(now, HaltReason::Stop, Halt::Decelerate);
                 Ok(Response::Ack)
             }
             Command::ClearFault => {
@@ -814,17 +1126,10 @@ impl<H: Hardware> Rig<H> {
         }
     }
 
-    fn start_motion(&mut self, now: Micros, profile: Profile, forward: bool, homing: bool) {
+    fn start_motion(&mut self, now: Micros, profile: Profile, forward: bool, kind: MotionKind) {
         // The laser goes dark before the first step: manual channels are switched off for good.
         self.lasers = 0;
-        self.motion = Some(Motion {
-            profile,
-            start: now,
-            done: 0,
-            forward,
-            homing,
-            next_due: now.saturating_add(profile.step_time_us(1)),
-        });
+        self.motion = Some(Motion::new(now, profile, forward, kind));
         self.sync_lasers();
     }
 
@@ -839,7 +1144,12 @@ impl<H: Hardware> Rig<H> {
             return Err(RigError::OutOfRange);
         }
         let target = match mv.target {
-            MoveTarget::Absolute(t) => t,
+            MoveTarget::Absolute(t) => {
+                if !self.homed {
+                    return Err(RigError::NotHomed);
+                }
+                t
+            }
             MoveTarget::Relative(d) => self.position.checked_add(d).ok_or(RigError::OutOfRange)?,
         };
         let delta = i64::from(target) - i64::from(self.position);
@@ -854,8 +1164,36 @@ impl<H: Hardware> Rig<H> {
             return Ok(Response::Ack);
         }
         let profile = Profile::new(steps, mv.max_speed, mv.accel).ok_or(RigError::OutOfRange)?;
-        self.start_motion(now, profile, delta > 0, false);
+        self.start_motion(now, profile, delta > 0, MotionKind::Move);
         Ok(Response::Ack)
+    }
+
+    fn home_kind(phase: HomePhase) -> MotionKind {
+        MotionKind::Home {
+            phase,
+            seen_active: false,
+            active_since: None,
+            steps_since_active: 0,
+        }
+    }
+
+    /// Start a homing pass: `fast` passes use the homing speed, the others the slow speed.
+    fn start_home_pass(&mut self, now: Micros, phase: HomePhase, steps: u32) -> bool {
+        let h = self.profile.homing;
+        let (speed, forward) = match phase {
+            HomePhase::Approach => (h.speed, false),
+            HomePhase::SlowApproach => (h.slow_speed, false),
+            HomePhase::Release => (h.speed, true),
+            HomePhase::LeaveSwitch | HomePhase::BackOff | HomePhase::Return => (h.slow_speed, true),
+            // Never started as passes (they are the stops of the fast passes).
+            HomePhase::BrakeToRelease => (h.speed, false),
+            HomePhase::BrakeToBackOff => (h.speed, true),
+        };
+        let Some(profile) = Profile::new(steps, speed, h.accel) else {
+            return false;
+        };
+        self.start_motion(now, profile, forward, Self::home_kind(phase));
+        true
     }
 
     fn start_home(&mut self, now: Micros) -> Result<Response, RigError> {
@@ -863,33 +1201,99 @@ impl<H: Hardware> Rig<H> {
         if self.busy() {
             return Err(RigError::Busy);
         }
-        if self.hw.read_inputs().home_switch {
-            self.finish_home(now);
-            return Ok(Response::Ack);
-        }
-        let speed = self.config.home_speed.min(self.caps.max_speed);
-        let accel = self.config.home_accel.min(self.caps.max_accel);
-        let profile =
-            Profile::new(self.config.home_max_steps, speed, accel).ok_or(RigError::OutOfRange)?;
+        self.rehoming = self.homed;
         self.homed = false;
-        self.start_motion(now, profile, false, true);
+        self.home_edge = None;
+        let max = self.profile.homing.max_steps;
+        let phase = if self.hw.read_inputs().home_switch {
+            HomePhase::LeaveSwitch
+        } else {
+            HomePhase::Approach
+        };
+        if !self.start_home_pass(now, phase, max) {
+            return Err(RigError::OutOfRange);
+        }
         Ok(Response::Ack)
+    }
+
+    /// Back off `backoff_steps` slowly, then the slow approach.
+    fn start_backoff(&mut self, now: Micros) {
+        let h = self.profile.homing;
+        let ok = if h.backoff_steps == 0 {
+            self.start_home_pass(now, HomePhase::SlowApproach, h.max_steps)
+        } else {
+            self.start_home_pass(now, HomePhase::BackOff, h.backoff_steps)
+        };
+        if !ok {
+            self.homing_failed(now);
+        }
     }
 
     fn finish_home(&mut self, now: Micros) {
         self.position = 0;
         self.homed = true;
-        self.emit(now, EventKind::Homed);
+        let previous = if self.rehoming { self.home_edge } else { None };
+        self.emit(now, EventKind::Homed { previous });
     }
 
-    /// Take every step due by `now`; finish the move or homing run when complete.
+    fn homing_failed(&mut self, now: Micros) {
+        self.motion = None;
+        self.fault = Some(Fault::HomingFailed);
+        self.abort(now, HaltReason::HomingFailed, Halt::Emergency);
+    }
+
+    /// Before a homing step: look at the switch; `Some(next)` ends the pass (with what follows).
+    fn homing_check(&mut self, now: Micros, m: &mut Motion) -> Option<HomeNext> {
+        let MotionKind::Home {
+            phase,
+            seen_active,
+            active_since,
+            steps_since_active,
+        } = &mut m.kind
+        else {
+            return None;
+        };
+        let active = self.hw.read_inputs().home_switch;
+        let h = self.profile.homing;
+        match *phase {
+            HomePhase::LeaveSwitch => {
+                (!active).then_some(HomeNext::Pass(HomePhase::BackOff, h.backoff_steps))
+            }
+            HomePhase::Release => {
+                *seen_active |= active;
+                (!active && *seen_active).then_some(HomeNext::StopThen(HomePhase::BrakeToBackOff))
+            }
+            HomePhase::Approach => active.then_some(HomeNext::StopThen(HomePhase::BrakeToRelease)),
+            HomePhase::SlowApproach => {
+                if !active {
+                    // Bounce: start over.
+                    *active_since = None;
+                    *steps_since_active = 0;
+                    return None;
+                }
+                let since = *active_since.get_or_insert(now);
+                if now.saturating_sub(since) >= u64::from(h.debounce_us) {
+                    Some(HomeNext::Found(*steps_since_active))
+                } else {
+                    None
+                }
+            }
+            HomePhase::BackOff
+            | HomePhase::Return
+            | HomePhase::BrakeToRelease
+            | HomePhase::BrakeToBackOff => None,
+        }
+    }
+
+    /// Take every step due by `now`; finish the move or homing pass when complete.
     fn run_motion(&mut self, now: Micros) {
         let Some(mut m) = self.motion.take() else {
             return;
         };
-        while m.done < m.profile.steps() && m.next_due <= now {
-            if m.homing && self.hw.read_inputs().home_switch {
-                self.finish_home(now);
+        while !m.finished() && m.next_due <= now {
+            let due = m.next_due;
+            if let Some(next) = self.homing_check(due, &mut m) {
+                self.homing_next(due, m, next);
                 return;
             }
             self.hw.step(m.forward);
@@ -898,29 +1302,101 @@ impl<H: Hardware> Rig<H> {
             } else {
                 self.position.saturating_sub(1)
             };
-            m.done += 1;
-            let due = m
-                .start
-                .saturating_add(m.profile.step_time_us(m.done.saturating_add(1)));
-            m.next_due = m.next_due.max(due);
+            if let MotionKind::Home {
+                active_since: Some(_),
+                steps_since_active,
+                ..
+            } = &mut m.kind
+            {
+                *steps_since_active = steps_since_active.saturating_add(1);
+            }
+            m.index += 1;
+            m.last_step_at = due;
+            let next = m.due(m.index.saturating_add(1));
+            m.next_due = m.next_due.max(next);
         }
-        if m.done < m.profile.steps() {
+        if !m.finished() {
             self.motion = Some(m);
-        } else if !m.homing {
-            self.emit(
+            return;
+        }
+        match m.kind {
+            MotionKind::Move => self.emit(
                 now,
                 EventKind::MoveDone {
                     position: self.position,
                 },
-            );
-        } else if self.hw.read_inputs().home_switch {
-            self.finish_home(now);
-        } else {
-            self.fault = Some(Fault::HomingFailed);
-            self.abort(now, HaltReason::HomingFailed, true);
+            ),
+            MotionKind::Stopping => {}
+            MotionKind::Home { phase, .. } => match phase {
+                HomePhase::BackOff => {
+                    let max = self.profile.homing.max_steps;
+                    if !self.start_home_pass(now, HomePhase::SlowApproach, max) {
+                        self.homing_failed(now);
+                    }
+                }
+                HomePhase::BrakeToRelease => {
+                    let max = self.profile.homing.max_steps;
+                    if !self.start_home_pass(now, HomePhase::Release, max) {
+                        self.homing_failed(now);
+                    }
+                }
+                HomePhase::BrakeToBackOff => self.start_backoff(now),
+                HomePhase::Return => self.finish_home(now),
+                HomePhase::LeaveSwitch
+                | HomePhase::Approach
+                | HomePhase::Release
+                | HomePhase::SlowApproach => self.homing_failed(now),
+            },
         }
     }
 
+    fn homing_next(&mut self, now: Micros, mut m: Motion, next: HomeNext) {
+        match next {
+            HomeNext::Pass(phase, steps) => {
+                if phase == HomePhase::BackOff {
+                    self.start_backoff(now);
+                } else if !self.start_home_pass(now, phase, steps) {
+                    self.homing_failed(now);
+                }
+            }
+            HomeNext::StopThen(brake) => {
+                // Seen at speed: steps already queued behind the switch are discarded, then a
+                // decelerating stop; the slow pass measures the edge.
+                self.motion = Some(m);
+                self.flush_steps();
+                self.motion = None;
+                m.stop();
+                m.kind = Self::home_kind(brake);
+                if m.finished() {
+                    // At rest already: what the brake would chain into.
+                    self.motion = Some(m);
+                    self.run_motion(now);
+                    return;
+                }
+                self.motion = Some(m);
+            }
+            HomeNext::Found(past) => {
+                self.motion = Some(m);
+                let dropped = self.flush_steps();
+                self.motion = None;
+                // The edge was `past - dropped` steps back (position decreases on approach).
+                let past = past.saturating_sub(dropped);
+                let past_i = i32::try_from(past).unwrap_or(i32::MAX);
+                self.home_edge = Some(self.position.saturating_add(past_i));
+                if past == 0 {
+                    self.finish_home(now);
+                } else {
+                    self.position = -i32::try_from(past).unwrap_or(i32::MAX);
+                    if !self.start_home_pass(now, HomePhase::Return, past) {
+                        self.homing_failed(now);
+                    }
+                }
+            }
+        }
+    }
+}
+
+impl<H: Hardware> Rig<H> {
     fn start_single_capture(&mut self, now: Micros, c: Capture) -> Result<Response, RigError> {
         self.check_not_faulted()?;
         if self.busy() {
@@ -935,24 +1411,38 @@ impl<H: Hardware> Rig<H> {
         Ok(Response::CaptureStarted { capture_id })
     }
 
+    /// Plan the window: laser on once the galvo has settled and the camera has read out (less
+    /// the laser lead), trigger `lead_us` later, laser off `tail_us` after the nominal exposure.
     fn start_capture(&mut self, now: Micros, id: u32, program_index: Option<u16>, c: Capture) {
         let settle = c
             .settle_us
-            .unwrap_or_else(|| galvo_settle_us(&self.config, self.galvo, c.galvo));
+            .unwrap_or_else(|| galvo_settle_us(&self.profile, self.galvo, c.galvo));
         self.hw.set_galvo(c.galvo);
         self.galvo = c.galvo;
         // Manual channels go off: during a capture only its own channel may emit.
         self.lasers = 0;
+        let lead = u64::from(self.profile.laser.lead_us);
+        let laser_on_at = now
+            .saturating_add(u64::from(settle))
+            .max(self.camera_ready_at.saturating_sub(lead));
+        let trigger_at = laser_on_at.saturating_add(lead);
+        let laser_off_at = trigger_at
+            .saturating_add(u64::from(c.exposure_us))
+            .saturating_add(u64::from(self.profile.laser.tail_us));
         self.capture = Some(ActiveCapture {
             id,
             program_index,
             galvo: c.galvo,
             channel: c.channel,
-            exposure_us: c.exposure_us,
             trigger_us: c.trigger_us,
-            phase: Phase::Settling {
-                until: now.saturating_add(u64::from(settle)),
-            },
+            exposure_us: c.exposure_us,
+            laser_on_at,
+            trigger_at,
+            laser_off_at,
+            trigger_edge: None,
+            exposure_start: None,
+            exposure_end: None,
+            phase: Phase::Settling,
         });
         self.sync_lasers();
     }
@@ -964,67 +1454,101 @@ impl<H: Hardware> Rig<H> {
             return self.start_program_capture(now);
         };
         match c.phase {
-            Phase::Settling { until } if now >= until => {
-                c.phase = Phase::Exposing {
-                    triggered_at: now,
-                    trigger_low_at: now.saturating_add(u64::from(c.trigger_us)),
-                    laser_off_at: now.saturating_add(u64::from(c.exposure_us)),
-                    trigger_high: true,
-                };
+            Phase::Settling if now >= c.laser_on_at => {
+                c.phase = Phase::Lit;
                 self.capture = Some(c);
-                // Laser on, then trigger: the camera must see the spot from its first row.
                 self.sync_lasers();
+                if self.laser_output != 0 {
+                    let window = ExposureWindow {
+                        channel_mask: self.laser_output,
+                        laser_on_at: now,
+                        trigger_at: c.trigger_at,
+                        trigger_us: c.trigger_us,
+                        exposure_us: c.exposure_us,
+                        laser_off_at: c.laser_off_at,
+                    };
+                    self.hw.arm_window(&window);
+                }
+                true
+            }
+            Phase::Lit if now >= c.trigger_at => {
+                c.phase = Phase::Exposing { trigger_high: true };
+                self.capture = Some(c);
                 self.hw.set_trigger(true);
                 true
             }
-            Phase::Exposing {
-                triggered_at,
-                trigger_low_at,
-                laser_off_at,
-                trigger_high,
-            } => {
+            Phase::Exposing { trigger_high } => {
                 let mut changed = false;
-                if trigger_high && now >= trigger_low_at {
+                let low_at = c.trigger_at.saturating_add(u64::from(c.trigger_us));
+                if trigger_high && now >= low_at.min(c.laser_off_at) {
                     self.hw.set_trigger(false);
                     c.phase = Phase::Exposing {
-                        triggered_at,
-                        trigger_low_at,
-                        laser_off_at,
                         trigger_high: false,
                     };
+                    changed = true;
+                }
+                if now >= c.laser_off_at {
+                    c.phase = Phase::Confirming {
+                        deadline: now
+                            .saturating_add(u64::from(self.profile.camera.confirm_timeout_us)),
+                    };
                     self.capture = Some(c);
-                    changed = true;
-                }
-                if now >= laser_off_at {
-                    if let Phase::Exposing {
-                        trigger_high: true, ..
-                    } = c.phase
-                    {
-                        self.hw.set_trigger(false);
-                    }
-                    self.capture = None;
                     self.sync_lasers();
-                    if c.program_index.is_some()
-                        && let Some(run) = self.run.as_mut()
-                    {
-                        run.completed = run.completed.saturating_add(1);
-                    }
-                    self.emit(
-                        now,
-                        EventKind::Captured(Captured {
-                            capture_id: c.id,
-                            program_index: c.program_index,
-                            triggered_at_us: triggered_at,
-                            galvo: c.galvo,
-                            channel: c.channel,
-                        }),
-                    );
-                    changed = true;
+                    // The camera's edges may already be in.
+                    self.take_camera_edges();
+                    return true;
                 }
+                self.capture = Some(c);
                 changed
             }
-            Phase::Settling { .. } => false,
+            Phase::Confirming { deadline } => {
+                let done = c.exposure_end.is_some() || now >= deadline;
+                if done {
+                    self.finish_capture(now, c);
+                }
+                done
+            }
+            Phase::Settling | Phase::Lit => false,
         }
+    }
+
+    fn finish_capture(&mut self, now: Micros, c: ActiveCapture) {
+        self.capture = None;
+        if c.program_index.is_some()
+            && let Some(run) = self.run.as_mut()
+        {
+            run.completed = run.completed.saturating_add(1);
+        }
+        let triggered_at = c.trigger_edge.unwrap_or(c.trigger_at);
+        let exposure = match (c.exposure_start, c.exposure_end) {
+            (Some(start), Some(end)) => Some(ExposureActive {
+                delay_us: u32::try_from(start.saturating_sub(triggered_at)).unwrap_or(u32::MAX),
+                duration_us: u32::try_from(end.saturating_sub(start)).unwrap_or(u32::MAX),
+            }),
+            _ => None,
+        };
+        let lit = matches!((c.exposure_start, c.exposure_end),
+            (Some(start), Some(end)) if start >= c.laser_on_at && end <= c.laser_off_at);
+        if exposure.is_none() {
+            // No image will come for this capture: the camera is ready again only after the
+            // timeout (a late exposure would be counted anyway).
+            self.camera_ready_at = self.camera_ready_at.max(now);
+            #[cfg(feature = "defmt")]
+            defmt::warn!("capture {=u32}: camera did not confirm the exposure", c.id);
+        }
+        self.emit(
+            now,
+            EventKind::Captured(Captured {
+                capture_id: c.id,
+                program_index: c.program_index,
+                triggered_at_us: triggered_at,
+                exposure,
+                exposure_count: self.exposures,
+                lit,
+                galvo: c.galvo,
+                channel: c.channel,
+            }),
+        );
     }
 
     fn load_program(&mut self, header: ProgramHeader) -> Result<Response, RigError> {
@@ -1040,6 +1564,16 @@ impl<H: Hardware> Rig<H> {
             header.exposure_us,
             header.trigger_us,
         )?;
+        // Back-to-back triggers faster than the camera reads out would be dropped by the camera
+        // (or worse, silently merged): refuse them here.
+        let min_interval = header
+            .exposure_us
+            .saturating_add(self.profile.camera.readout_us);
+        if header.interval_us < min_interval {
+            return Err(RigError::IntervalTooShort {
+                min_us: min_interval,
+            });
+        }
         self.program.clear();
         self.program_header = Some(header);
         Ok(Response::Ack)
@@ -1122,4 +1656,30 @@ impl<H: Hardware> Rig<H> {
         self.start_capture(now, id, Some(index), capture);
         true
     }
+}
+
+/// How a halt treats a motion in progress.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Halt {
+    /// Leave it running (interlock, manual laser timeout: lasers only).
+    KeepMoving,
+    /// Decelerate to rest (stop request, lost heartbeat).
+    Decelerate,
+    /// Stop dead and discard queued steps (e-stop, stall, homing failure).
+    Emergency,
+}
+
+/// What ends a homing pass.
+#[derive(Debug, Clone, Copy)]
+enum HomeNext {
+    /// Start this pass over this many steps.
+    Pass(HomePhase, u32),
+    /// Decelerate, then start this pass.
+    StopThen(HomePhase),
+    /// The switch edge, this many steps back.
+    Found(u32),
+}
+
+fn config_ok(c: &Config) -> bool {
+    (1..=MAX_HEARTBEAT_TIMEOUT_MS).contains(&c.heartbeat_timeout_ms)
 }

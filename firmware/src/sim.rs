@@ -7,12 +7,20 @@
 //! [`SimRig::drain`] (bytes for the host). The hardware keeps bounded logs of laser, trigger and
 //! galvo outputs (the newest entries, with a count of the older ones dropped) and counts any
 //! output that breaks a safety rule as seen from the hardware side ([`SimHardware::violations`]).
+//!
+//! The simulated hardware is built from the same [`RigProfile`] the rig runs: its galvo is the
+//! profile's DAC (code range, mirror settle), and its camera ([`SimCamera`]) has the profile's
+//! read-out and raises an exposure-active output a fixed delay after each trigger it accepts,
+//! for the window's exposure; it can be told to miss triggers.
 
-use heapless::HistoryBuf;
-use subsurf_protocol::{Capabilities, Config, GalvoPoint, Inputs, MAX_FRAME};
+use heapless::{Deque, HistoryBuf};
+use subsurf_protocol::{Config, GalvoPoint, Inputs, MAX_FRAME, RigProfile};
 
-use crate::hal::{CameraTrigger, GalvoDac, LaserOutputs, RigInputs, Stepper};
-use crate::rig::{MAX_PROGRAM_POINTS, Micros, Rig};
+use crate::hal::{
+    CameraEdge, CameraInput, CameraTrigger, ExposureWindow, GalvoDac, LaserOutputs, RigInputs,
+    Stepper,
+};
+use crate::rig::{Micros, Rig};
 
 /// Entries kept per log.
 pub const LOG_LEN: usize = 256;
@@ -69,44 +77,68 @@ impl<T: Copy> Log<T> {
     }
 }
 
+/// The simulated camera's behaviour.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SimCamera {
+    /// The trigger pin goes active this long after the core drives it (a board's software
+    /// latency; 0 for a hardware timer).
+    pub trigger_latency_us: u32,
+    /// From the trigger edge to exposure-active rising, µs.
+    pub exposure_delay_us: u32,
+    /// Triggers (0-based, counted since boot) the camera ignores: a missed trigger.
+    pub miss_triggers: [Option<u32>; 4],
+}
+
+impl Default for SimCamera {
+    fn default() -> Self {
+        Self {
+            trigger_latency_us: 0,
+            exposure_delay_us: 15,
+            miss_triggers: [None; 4],
+        }
+    }
+}
+
 /// How the simulated rig is built.
 #[derive(Debug, Clone, Copy)]
 pub struct SimParams {
-    /// What the rig announces.
-    pub capabilities: Capabilities,
-    /// Initial settings.
+    /// The rig profile (the rig runs it; the hardware is built from it).
+    pub profile: RigProfile,
+    /// Initial session settings.
     pub config: Config,
+    /// This power-on's nonce.
+    pub boot_nonce: u32,
     /// Physical turntable position at power-on, steps (homing finds the switch from here).
     pub start_position: i64,
     /// The home switch is active while the physical position modulo one revolution is below this.
     pub home_switch_width: u32,
+    /// The camera.
+    pub camera: SimCamera,
 }
 
 impl Default for SimParams {
-    /// A plausible rig: 16 000 steps/rev, 16-bit galvo, three laser channels.
+    /// The documented wiring ([`RigProfile::DEFAULT`]): 16 000 steps/rev, external 16-bit galvo
+    /// DAC, three laser channels.
     fn default() -> Self {
-        let steps_per_rev = 16_000;
+        let profile = RigProfile::DEFAULT;
+        let steps_per_rev = profile.steps_per_rev().unwrap_or(16_000);
         Self {
-            capabilities: Capabilities {
-                steps_per_rev,
-                galvo_max: u16::MAX,
-                laser_channels: 3,
-                max_speed: 20_000,
-                max_accel: 200_000,
-                max_exposure_us: 2_000_000,
-                max_program_points: MAX_PROGRAM_POINTS as u16,
-            },
-            config: Config {
-                heartbeat_timeout_ms: 2_000,
-                galvo_settle_min_us: 100,
-                galvo_settle_per_kcode_us: 20,
-                home_speed: 8_000,
-                home_accel: 40_000,
-                home_max_steps: steps_per_rev + steps_per_rev / 8,
-            },
+            profile,
+            config: Config::DEFAULT,
+            boot_nonce: 0x5eed_0001,
             start_position: i64::from(steps_per_rev / 4),
             home_switch_width: 40,
+            camera: SimCamera::default(),
         }
+    }
+}
+
+impl SimParams {
+    /// The same rig on the fallback galvo path (internal 12-bit DAC, 300 µs per 1000 codes).
+    pub fn internal_dac() -> Self {
+        let mut p = Self::default();
+        p.profile.galvo = RigProfile::INTERNAL_DAC;
+        p
     }
 }
 
@@ -114,6 +146,28 @@ impl Default for SimParams {
 #[derive(Debug, Clone)]
 pub struct SimHardware {
     clock: Micros,
+    profile: RigProfile,
+    camera: SimCamera,
+    /// Triggers seen since boot.
+    triggers: u32,
+    /// The camera accepts a trigger from here on.
+    camera_ready_at: Micros,
+    /// Exposure of the window the core announced last.
+    window_exposure_us: u32,
+    /// Edges timestamped but not yet taken by the core, in time order.
+    edges: Deque<CameraEdge, 8>,
+    /// The mirror reaches its commanded position at this time.
+    galvo_settled_at: Micros,
+    /// Laser switched on while the mirror was still moving.
+    unsettled_exposures: u32,
+    /// Exposures the camera took.
+    exposures: u32,
+    /// Whether a laser was on for the whole of every exposure so far (checked at both edges).
+    unlit_exposures: u32,
+    /// Steps handed to `step` that reach the motor `pipeline_us` later (the board's step
+    /// pipeline), with their direction.
+    step_queue: Deque<(Micros, bool), 64>,
+    pipeline_us: u32,
     steps_per_rev: u32,
     home_switch_width: u32,
     position: i64,
@@ -126,28 +180,51 @@ pub struct SimHardware {
     estop: bool,
     interlock_closed: bool,
     violations: u32,
+    lit_from: Micros,
+    lit_until: Micros,
     laser_log: Log<u8>,
     trigger_log: Log<bool>,
     galvo_log: Log<GalvoPoint>,
 }
 
 impl SimHardware {
-    /// Hardware at `start_position`, e-stop released, interlock closed.
-    pub fn new(steps_per_rev: u32, start_position: i64, home_switch_width: u32) -> Self {
+    /// Hardware for `profile` at `start_position`, e-stop released, interlock closed; the mirror
+    /// rests centred (where the board's output stage puts it before the first DAC write).
+    pub fn new(
+        profile: RigProfile,
+        camera: SimCamera,
+        start_position: i64,
+        home_switch_width: u32,
+    ) -> Self {
+        let c = profile.galvo.output.center();
         Self {
             clock: 0,
-            steps_per_rev: steps_per_rev.max(1),
+            profile,
+            camera,
+            triggers: 0,
+            camera_ready_at: 0,
+            window_exposure_us: 0,
+            edges: Deque::new(),
+            galvo_settled_at: 0,
+            unsettled_exposures: 0,
+            exposures: 0,
+            unlit_exposures: 0,
+            step_queue: Deque::new(),
+            pipeline_us: 0,
+            steps_per_rev: profile.steps_per_rev().unwrap_or(1).max(1),
             home_switch_width,
             position: start_position,
             steps: 0,
             last_step_at: None,
             min_step_interval_us: None,
-            galvo: GalvoPoint::default(),
+            galvo: GalvoPoint { x: c, y: c },
             lasers: 0,
             trigger: false,
             estop: false,
             interlock_closed: true,
             violations: 0,
+            lit_from: 0,
+            lit_until: 0,
             laser_log: Log::default(),
             trigger_log: Log::default(),
             galvo_log: Log::default(),
@@ -199,6 +276,49 @@ impl SimHardware {
         self.interlock_closed = closed;
     }
 
+    /// Let steps reach the motor `delay_us` after the core emits them (the board's step
+    /// pipeline): steps the core flushes never move it.
+    pub fn set_step_pipeline(&mut self, delay_us: u32) {
+        self.pipeline_us = delay_us;
+    }
+
+    /// Move the motor for every queued step due by now.
+    fn drain_steps(&mut self) {
+        while let Some(&(at, forward)) = self.step_queue.front() {
+            if at > self.clock {
+                break;
+            }
+            self.step_queue.pop_front();
+            self.move_motor(forward);
+        }
+    }
+
+    /// Laser switched on for a capture while the mirror (the profile's settle model) was still
+    /// moving: the spot smeared across the image.
+    pub fn unsettled_exposures(&self) -> u32 {
+        self.unsettled_exposures
+    }
+
+    /// Exposures the simulated camera took.
+    pub fn exposures(&self) -> u32 {
+        self.exposures
+    }
+
+    /// Triggers the camera saw.
+    pub fn triggers(&self) -> u32 {
+        self.triggers
+    }
+
+    /// The earliest camera edge not yet taken by the core (when the rig must look again).
+    pub fn next_camera_edge(&self) -> Option<Micros> {
+        self.edges.front().map(CameraEdge::at)
+    }
+
+    /// Camera exposures during which no laser was on at start or end.
+    pub fn unlit_exposures(&self) -> u32 {
+        self.unlit_exposures
+    }
+
     /// Safety breaches seen at the outputs: a step while a laser emits, or a laser switched on
     /// with the e-stop pressed or the interlock open. Always 0 for a correct core.
     pub fn violations(&self) -> u32 {
@@ -225,27 +345,55 @@ impl SimHardware {
     }
 }
 
-impl Stepper for SimHardware {
-    fn step(&mut self, forward: bool) {
-        if self.lasers != 0 {
-            self.violation();
-        }
-        if let Some(prev) = self.last_step_at {
-            let gap = self.clock.saturating_sub(prev);
-            self.min_step_interval_us = Some(self.min_step_interval_us.map_or(gap, |m| m.min(gap)));
-        }
-        self.last_step_at = Some(self.clock);
-        self.steps = self.steps.saturating_add(1);
+impl SimHardware {
+    fn move_motor(&mut self, forward: bool) {
         self.position = if forward {
             self.position.saturating_add(1)
         } else {
             self.position.saturating_sub(1)
         };
     }
+
+    fn push_edge(&mut self, edge: CameraEdge) {
+        if self.edges.push_back(edge).is_err() {
+            // A camera flooding edges: the oldest is lost (the core counts what it sees).
+            self.edges.pop_front();
+            let _ = self.edges.push_back(edge);
+        }
+    }
+}
+
+impl Stepper for SimHardware {
+    fn step(&mut self, forward: bool) {
+        if self.lasers != 0 {
+            self.violation();
+        }
+        self.drain_steps();
+        if let Some(prev) = self.last_step_at {
+            let gap = self.clock.saturating_sub(prev);
+            self.min_step_interval_us = Some(self.min_step_interval_us.map_or(gap, |m| m.min(gap)));
+        }
+        self.last_step_at = Some(self.clock);
+        self.steps = self.steps.saturating_add(1);
+        let at = self.clock.saturating_add(u64::from(self.pipeline_us));
+        if self.pipeline_us == 0 || self.step_queue.push_back((at, forward)).is_err() {
+            self.move_motor(forward);
+        }
+    }
+
+    fn flush(&mut self) -> u32 {
+        self.drain_steps();
+        let n = self.step_queue.len();
+        self.step_queue.clear();
+        u32::try_from(n).unwrap_or(u32::MAX)
+    }
 }
 
 impl GalvoDac for SimHardware {
     fn set_galvo(&mut self, point: GalvoPoint) {
+        // The physical mirror: the profile's settle model (the board's DAC and galvo).
+        let settle = crate::rig::galvo_settle_us(&self.profile, self.galvo, point);
+        self.galvo_settled_at = self.clock.saturating_add(u64::from(settle));
         self.galvo = point;
         self.galvo_log.push(self.clock, point);
     }
@@ -256,6 +404,9 @@ impl LaserOutputs for SimHardware {
         if mask != 0 && (self.estop || !self.interlock_closed) {
             self.violation();
         }
+        if mask != 0 && self.lasers == 0 && self.clock < self.galvo_settled_at {
+            self.unsettled_exposures = self.unsettled_exposures.saturating_add(1);
+        }
         self.lasers = mask;
         self.laser_log.push(self.clock, mask);
     }
@@ -263,13 +414,54 @@ impl LaserOutputs for SimHardware {
 
 impl CameraTrigger for SimHardware {
     fn set_trigger(&mut self, high: bool) {
+        let rising = high && !self.trigger;
         self.trigger = high;
         self.trigger_log.push(self.clock, high);
+        if !rising {
+            return;
+        }
+        let edge = self
+            .clock
+            .saturating_add(u64::from(self.camera.trigger_latency_us));
+        let index = self.triggers;
+        self.triggers = self.triggers.saturating_add(1);
+        self.push_edge(CameraEdge::Trigger(edge));
+        let missed = self.camera.miss_triggers.contains(&Some(index));
+        if missed || edge < self.camera_ready_at {
+            return;
+        }
+        let start = edge.saturating_add(u64::from(self.camera.exposure_delay_us));
+        let end = start.saturating_add(u64::from(self.window_exposure_us.max(1)));
+        self.camera_ready_at = end.saturating_add(u64::from(self.profile.camera.readout_us));
+        self.exposures = self.exposures.saturating_add(1);
+        // Lit at both ends, judged from the window the core announced.
+        if !(self.lit_from <= start && end <= self.lit_until) {
+            self.unlit_exposures = self.unlit_exposures.saturating_add(1);
+        }
+        self.push_edge(CameraEdge::ExposureStart(start));
+        self.push_edge(CameraEdge::ExposureEnd(end));
+    }
+
+    fn arm_window(&mut self, window: &ExposureWindow) {
+        self.window_exposure_us = window.exposure_us;
+        self.lit_from = window.laser_on_at;
+        self.lit_until = window.laser_off_at;
+    }
+}
+
+impl CameraInput for SimHardware {
+    fn poll_camera_edge(&mut self) -> Option<CameraEdge> {
+        if self.edges.front()?.at() <= self.clock {
+            self.edges.pop_front()
+        } else {
+            None
+        }
     }
 }
 
 impl RigInputs for SimHardware {
     fn read_inputs(&mut self) -> Inputs {
+        self.drain_steps();
         Inputs {
             estop: self.estop,
             interlock_closed: self.interlock_closed,
@@ -294,12 +486,13 @@ impl SimRig {
     /// A rig at time 0.
     pub fn new(params: SimParams) -> Self {
         let hw = SimHardware::new(
-            params.capabilities.steps_per_rev,
+            params.profile,
+            params.camera,
             params.start_position,
             params.home_switch_width,
         );
         Self {
-            rig: Rig::new(hw, params.capabilities, params.config, 0),
+            rig: Rig::new(hw, params.profile, params.config, params.boot_nonce, 0),
             now: 0,
         }
     }
@@ -312,20 +505,28 @@ impl SimRig {
     /// When something next happens on the rig by itself (step, capture phase, input poll,
     /// heartbeat timeout).
     pub fn next_deadline(&self) -> Option<Micros> {
-        self.rig.poll_timeout()
+        let camera = self.rig.hw().next_camera_edge();
+        match (self.rig.poll_timeout(), camera) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        }
     }
 
     /// Let time pass up to `now`, running every deadline on the way at its exact time.
     pub fn advance_to(&mut self, now: Micros) {
         let now = now.max(self.now);
-        while let Some(t) = self.rig.poll_timeout() {
+        while let Some(t) = self.next_deadline() {
             if t > now {
                 break;
             }
             let t = t.max(self.now);
             self.set_clock(t);
+            if self.rig.hw().next_camera_edge().is_some_and(|e| e <= t) {
+                // The board's camera interrupt: edges go in at their own time.
+                self.rig.handle_inputs(t);
+            }
             self.rig.handle_timeout(t);
-            if self.rig.poll_timeout().is_some_and(|next| next <= t) {
+            if self.next_deadline().is_some_and(|next| next <= t) {
                 // Everything due at `t` is handled within one call; a deadline that does not move
                 // would be a core bug, so move time instead of spinning.
                 self.set_clock(t.saturating_add(1).min(now));
@@ -394,6 +595,8 @@ impl SimRig {
 
     fn set_clock(&mut self, t: Micros) {
         self.now = self.now.max(t);
-        self.rig.hw_mut().clock = self.now;
+        let hw = self.rig.hw_mut();
+        hw.clock = self.now;
+        hw.drain_steps();
     }
 }

@@ -38,8 +38,7 @@ mod galvo {
 
     #[test]
     fn external_dac_is_bipolar_and_centred_at_0v() {
-        let map = GalvoMap::for_output(GalvoOutput::ExternalSpi);
-        assert!(map.is_valid());
+        let map = GalvoMap::for_output(GalvoOutput::ExternalDac16);
         assert_eq!(map.galvo_max, 65_535);
         assert_eq!(map.centre(), (32_768, 32_768));
         // ±10 V stage (gain 4): code 0 → −10 V, centre → 0 V, full → +10 V − 1 LSB.
@@ -53,8 +52,7 @@ mod galvo {
 
     #[test]
     fn internal_dac_stays_in_its_linear_window() {
-        let map = GalvoMap::for_output(GalvoOutput::InternalDac);
-        assert!(map.is_valid());
+        let map = GalvoMap::for_output(GalvoOutput::InternalDac12);
         let (lo, hi) = map.dac_codes(0, 4095);
         // The buffered DAC swings 0.2–3.1 V, not 0–3.3 V: the ends map there, not to the rails.
         assert_eq!(internal_mv(lo), 200);
@@ -70,7 +68,7 @@ mod galvo {
         let map = GalvoMap {
             invert_x: true,
             swap_xy: true,
-            ..GalvoMap::for_output(GalvoOutput::ExternalSpi)
+            ..GalvoMap::for_output(GalvoOutput::ExternalDac16)
         };
         // X = 0 inverted → full scale, and it comes out on channel B.
         assert_eq!(map.dac_codes(0, 100), (100, 65_535));
@@ -89,7 +87,7 @@ mod galvo {
     /// as one jump. Through the slew limiter no write moves an axis by more than `max_step`.
     #[test]
     fn no_slam_at_boot() {
-        let map = GalvoMap::for_output(GalvoOutput::ExternalSpi);
+        let map = GalvoMap::for_output(GalvoOutput::ExternalDac16);
         let max_step = 2_048;
         let mut slew = Slew::new(map.centre(), max_step);
         let target = map.dac_codes(0, 0);
@@ -112,7 +110,7 @@ mod galvo {
     proptest! {
         #[test]
         fn mapping_is_monotone_and_in_range(a in 0u16..=4095, b in 0u16..=4095, ext in any::<bool>()) {
-            let output = if ext { GalvoOutput::ExternalSpi } else { GalvoOutput::InternalDac };
+            let output = if ext { GalvoOutput::ExternalDac16 } else { GalvoOutput::InternalDac12 };
             let map = GalvoMap::for_output(output);
             let (lo, hi) = (a.min(b), a.max(b));
             let (x0, y0) = map.dac_codes(lo, lo);
@@ -126,6 +124,28 @@ mod galvo {
 mod timed_exposure {
     use super::exposure::*;
     use super::*;
+
+    /// Margins around one exposure, µs: the laser on `lead_us` before the trigger edge and off
+    /// `trigger_latency_us + exposure + tail_us` after it.
+    #[derive(Clone, Copy)]
+    struct Margins {
+        lead_us: u32,
+        trigger_latency_us: u32,
+        tail_us: u32,
+    }
+
+    impl Margins {
+        const DEFAULT: Self = Self {
+            lead_us: 50,
+            trigger_latency_us: 20,
+            tail_us: 30,
+        };
+    }
+
+    fn plan(exposure_us: u32, trigger_us: u32, m: Margins) -> Result<Plan, ExposureError> {
+        let after = u64::from(m.trigger_latency_us + exposure_us + m.tail_us);
+        plan_window(u64::from(m.lead_us), trigger_us, exposure_us, after)
+    }
 
     /// One-pulse timer: counts 0..=arr once at `tick_ns` and stops. The laser channel starts
     /// active (forced on before the start) and runs "inactive on match" at `laser_off_ccr`; the
@@ -227,7 +247,7 @@ mod timed_exposure {
     #[test]
     fn window_as_the_core_announces_it() {
         // Lead 50 µs, 100 µs trigger, laser off 20 050 µs after the edge (exposure + tail).
-        let p = plan_window(50, 100, 20_050).unwrap();
+        let p = plan_window(50, 100, 20_000, 20_050).unwrap();
         assert_eq!(p.tick_ns, 1_000);
         assert_eq!(p.edges_us(), (50, 150, 20_100));
         let (off, trig, trig_off) = run(&p, 2);
@@ -254,7 +274,7 @@ mod timed_exposure {
     proptest! {
         #[test]
         fn any_exposure_is_covered(
-            exposure in MIN_EXPOSURE_US..200_000,
+            exposure in MIN_EXPOSURE_US + MIN_TRIGGER_US..200_000,
             trigger in MIN_TRIGGER_US..500,
             lead in 0u32..200,
             latency in 0u32..200,
@@ -331,6 +351,33 @@ mod profile_flash {
         assert_eq!(scan(&sector).free, None);
         write(&mut sector, b"p");
         assert_eq!(latest_payload(&sector), Some(&b"p"[..]));
+    }
+
+    /// What the board does with a profile the host sets, and reads back after a reset: postcard
+    /// into a record, the newest valid record out; a record of another format version is skipped.
+    #[test]
+    fn rig_profile_survives_the_record_round_trip() {
+        use subsurf_protocol::{GalvoOutput, RigProfile};
+        let mut profile = RigProfile::DEFAULT;
+        profile.laser.active_low = true;
+        profile.motor.step_pulse_us = 8;
+        profile.galvo.output = GalvoOutput::InternalDac12;
+        let mut buf = [0u8; MAX_PAYLOAD];
+        let bytes = postcard::to_slice(&profile, &mut buf).unwrap();
+        let mut sector = vec![0xffu8; SECTOR];
+        write(&mut sector, bytes);
+        let back: RigProfile = postcard::from_bytes(latest_payload(&sector).unwrap()).unwrap();
+        assert_eq!(back, profile);
+        assert!(back.validate().is_ok());
+        // A newer firmware's record (version + 1) is not misread as this version's profile.
+        let at = scan(&sector).free.unwrap();
+        let mut rec = [0u8; MAX_RECORD];
+        let n = encode(b"future", &mut rec).unwrap();
+        rec[4] = rec[4].wrapping_add(1);
+        for (d, s) in sector[at..at + n].iter_mut().zip(&rec[..n]) {
+            *d &= *s;
+        }
+        assert_eq!(latest_payload(&sector), Some(bytes as &[u8]));
     }
 
     #[test]

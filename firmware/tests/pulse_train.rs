@@ -300,7 +300,9 @@ fn segments_merge_only_exact_progressions() {
 fn flush_accounts_for_every_step() {
     let steps = schedule(0, 3_000, 40_000, 400_000, true);
     // The first pulse rises at 3 236 µs (pipeline + first step); flush around it and later.
-    for flush_at in [2_000u64, 3_232, 3_236, 3_239, 20_000, 40_000, 60_003, 77_777] {
+    for flush_at in [
+        2_000u64, 3_232, 3_236, 3_239, 20_000, 40_000, 60_003, 77_777,
+    ] {
         let mut train = PulseTrain::new();
         let mut tim = Tim::default();
         let (mut next, mut pushed, mut edges) = (0usize, 0u64, 0u64);

@@ -117,7 +117,7 @@ fn scenario() -> Vec<u8> {
             settle_us: Some(200),
             exposure_us: 500,
             trigger_us: 50,
-            interval_us: 5_000,
+            interval_us: 11_000,
         }),
     );
     let points = [(0, 0), (4_000, 100), (65_535, 65_535)]
@@ -134,7 +134,7 @@ fn scenario() -> Vec<u8> {
         600 * ms,
         15,
         Command::Move(Move {
-            target: MoveTarget::Absolute(-400),
+            target: MoveTarget::Relative(-400),
             max_speed: 20_000,
             accel: 200_000,
         }),
@@ -277,7 +277,7 @@ fn the_scenario_exercises_every_path_it_claims() {
     let count = |f: &dyn Fn(&EventKind) -> bool| events.iter().filter(|e| f(e)).count();
     assert_eq!(count(&|e| matches!(e, EventKind::Captured(_))), 4);
     assert_eq!(count(&|e| matches!(e, EventKind::MoveDone { .. })), 1);
-    assert_eq!(count(&|e| matches!(e, EventKind::Homed)), 1);
+    assert_eq!(count(&|e| matches!(e, EventKind::Homed { .. })), 1);
     assert_eq!(
         count(&|e| matches!(
             e,

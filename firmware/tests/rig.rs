@@ -90,7 +90,11 @@ fn hello_announces_version_and_capabilities() {
         Ok(Response::Hello(hello)) => {
             assert_eq!(hello.protocol_version, PROTOCOL_VERSION);
             assert_eq!(hello.firmware_version, FIRMWARE_VERSION);
-            assert_eq!(hello.capabilities, SimParams::default().capabilities);
+            assert_eq!(
+                hello.capabilities,
+                subsurf_firmware::rig::capabilities(&SimParams::default().profile)
+            );
+            assert_eq!(hello.boot_nonce, SimParams::default().boot_nonce);
         }
         other => panic!("{other:?}"),
     }
@@ -108,7 +112,7 @@ fn hello_announces_version_and_capabilities() {
 fn move_takes_exact_steps_within_speed_limit() {
     let mut h = Host::new(SimParams::default());
     let start = h.sim.hw().position();
-    assert_eq!(h.call(mv(MoveTarget::Absolute(1000))), Ok(Response::Ack));
+    assert_eq!(h.call(mv(MoveTarget::Relative(1000))), Ok(Response::Ack));
     assert_eq!(h.call(mv(MoveTarget::Relative(5))), Err(RigError::Busy));
     h.advance(1_000_000);
     assert_eq!(h.kinds(), vec![EventKind::MoveDone { position: 1000 }]);
@@ -140,13 +144,13 @@ fn move_parameters_are_checked() {
         accel: 1,
     };
     assert_eq!(h.call(Command::Move(too_fast)), Err(RigError::OutOfRange));
-    assert_eq!(h.call(mv(MoveTarget::Absolute(-3))), Ok(Response::Ack));
+    assert_eq!(h.call(mv(MoveTarget::Relative(-3))), Ok(Response::Ack));
     h.advance(100_000);
     assert_eq!(
         h.call(mv(MoveTarget::Relative(i32::MIN))),
         Err(RigError::OutOfRange)
     );
-    assert_eq!(h.call(mv(MoveTarget::Absolute(-3))), Ok(Response::Ack));
+    assert_eq!(h.call(mv(MoveTarget::Relative(0))), Ok(Response::Ack));
     assert_eq!(
         h.events.last().unwrap().kind,
         EventKind::MoveDone { position: -3 }
@@ -157,8 +161,11 @@ fn move_parameters_are_checked() {
 fn homing_finds_the_switch_and_zeroes_position() {
     let mut h = Host::new(SimParams::default());
     assert_eq!(h.call(Command::Home), Ok(Response::Ack));
-    h.advance(3_000_000);
-    assert_eq!(h.kinds(), vec![EventKind::Homed]);
+    for _ in 0..12 {
+        h.advance(500_000);
+        h.call(Command::Heartbeat).unwrap();
+    }
+    assert_eq!(h.kinds(), vec![EventKind::Homed { previous: None }]);
     assert!(h.sim.hw().home_switch());
     let Ok(Response::Status(s)) = h.call(Command::Status) else {
         panic!()
@@ -214,8 +221,11 @@ fn capture_sequence_timing() {
         Err(RigError::Busy)
     );
     h.advance(20_000);
-    // Settle from jump size: 100 µs + 20 µs per 1000 codes.
-    let on = t0 + 120;
+    // Settle from jump size: 100 µs + 20 µs per 1000 codes of the larger axis jump from the
+    // centred mirror (y: 32 768 to 0); the laser
+    // leads the trigger by 50 µs and trails the 5 ms exposure by 50 µs.
+    let on = t0 + 100 + 32_768 * 20 / 1000;
+    let trig_at = on + 50;
     let lasers: Vec<_> = h
         .sim
         .hw()
@@ -223,7 +233,7 @@ fn capture_sequence_timing() {
         .entries()
         .map(|e| (e.at, e.value))
         .collect();
-    assert_eq!(lasers, vec![(0, 0), (on, 0b10), (on + 5_000, 0)]);
+    assert_eq!(lasers, vec![(0, 0), (on, 0b10), (trig_at + 5_050, 0)]);
     let trig: Vec<_> = h
         .sim
         .hw()
@@ -231,18 +241,28 @@ fn capture_sequence_timing() {
         .entries()
         .map(|e| (e.at, e.value))
         .collect();
-    assert_eq!(trig, vec![(0, false), (on, true), (on + 100, false)]);
+    assert_eq!(
+        trig,
+        vec![(0, false), (trig_at, true), (trig_at + 100, false)]
+    );
     let galvo = h.sim.hw().galvo_log().last().unwrap();
     assert_eq!((galvo.at, galvo.value), (t0, GalvoPoint { x: 1000, y: 0 }));
+    // The simulated camera exposes 15 µs after the trigger edge, for the 5 ms exposure.
     let expected = Captured {
         capture_id: 0,
         program_index: None,
-        triggered_at_us: on,
+        triggered_at_us: trig_at,
+        exposure: Some(ExposureActive {
+            delay_us: 15,
+            duration_us: 5_000,
+        }),
+        exposure_count: 1,
+        lit: true,
         galvo: GalvoPoint { x: 1000, y: 0 },
         channel: 1,
     };
     assert_eq!(h.kinds(), vec![EventKind::Captured(expected)]);
-    assert_eq!(h.events[0].timestamp_us, on + 5_000);
+    assert_eq!(h.events[0].timestamp_us, trig_at + 5_050);
 }
 
 #[test]
@@ -268,17 +288,9 @@ fn capture_parameters_are_checked() {
     };
     assert_eq!(
         h.call(Command::Capture(no_exposure)),
-        Err(RigError::OutOfRange)
+        Err(RigError::ExposureTooShort { min_us: 20 })
     );
-    let params = SimParams::default();
-    let small_galvo = SimParams {
-        capabilities: Capabilities {
-            galvo_max: 4095,
-            ..params.capabilities
-        },
-        ..params
-    };
-    let mut h = Host::new(small_galvo);
+    let mut h = Host::new(SimParams::internal_dac());
     assert_eq!(
         h.call(Command::Galvo(GalvoPoint { x: 4096, y: 0 })),
         Err(RigError::OutOfRange)
@@ -329,7 +341,7 @@ fn program_streams_one_event_per_point() {
         settle_us: Some(50),
         exposure_us: 1_000,
         trigger_us: 10,
-        interval_us: 3_000,
+        interval_us: 12_000,
     };
     assert_eq!(h.call(Command::ProgramLoad(header)), Ok(Response::Ack));
     let points: Vec<GalvoPoint> = (0..40).map(|i| GalvoPoint { x: i * 100, y: 7 }).collect();
@@ -359,7 +371,7 @@ fn program_streams_one_event_per_point() {
             first_capture_id: 0
         })
     );
-    for _ in 0..20 {
+    for _ in 0..50 {
         h.advance(10_000);
         h.call(Command::Heartbeat).unwrap();
     }
@@ -372,7 +384,10 @@ fn program_streams_one_event_per_point() {
         assert_eq!(c.capture_id, i as u32);
         assert_eq!(c.program_index, Some(i as u16));
         assert_eq!(c.galvo, points[i]);
-        assert_eq!(c.triggered_at_us, t0 + 3_000 * i as u64 + 50);
+        // Fixed 50 µs settle, then the 50 µs laser lead.
+        assert_eq!(c.triggered_at_us, t0 + 12_000 * i as u64 + 100);
+        assert_eq!(c.exposure_count, i as u32 + 1);
+        assert!(c.lit);
     }
     assert_eq!(
         kinds[40],
@@ -425,7 +440,7 @@ fn estop_aborts_program_and_faults() {
         settle_us: Some(0),
         exposure_us: 10_000,
         trigger_us: 5,
-        interval_us: 0,
+        interval_us: 25_000,
     };
     h.call(Command::ProgramLoad(header)).unwrap();
     let pts = heapless::Vec::from_slice(&[GalvoPoint::default(); 3]).unwrap();
@@ -436,7 +451,7 @@ fn estop_aborts_program_and_faults() {
     .unwrap();
     h.call(Command::Arm).unwrap();
     h.call(Command::ProgramRun).unwrap();
-    h.advance(15_000);
+    h.advance(30_000);
     assert_eq!(h.sim.hw().lasers(), 1);
     let now = h.sim.now();
     h.sim.set_estop(now, true);
@@ -572,25 +587,33 @@ fn framed_bytes_with_garbage_between_frames() {
 #[test]
 fn galvo_settle_grows_with_the_larger_axis_jump_and_saturates() {
     use subsurf_firmware::galvo_settle_us;
-    let config = SimParams::default().config;
+    let profile = SimParams::default().profile;
     let p = |x, y| GalvoPoint { x, y };
-    assert_eq!(galvo_settle_us(&config, p(0, 0), p(0, 0)), 100);
-    assert_eq!(galvo_settle_us(&config, p(0, 0), p(1000, 500)), 120);
+    assert_eq!(galvo_settle_us(&profile, p(0, 0), p(0, 0)), 100);
+    assert_eq!(galvo_settle_us(&profile, p(0, 0), p(1000, 500)), 120);
     assert_eq!(
-        galvo_settle_us(&config, p(60_000, 0), p(10_000, 65_535)),
+        galvo_settle_us(&profile, p(60_000, 0), p(10_000, 65_535)),
         100 + 65_535 * 20 / 1000
     );
-    let extreme = Config {
-        galvo_settle_min_us: u32::MAX,
-        galvo_settle_per_kcode_us: u32::MAX,
-        ..config
-    };
+    let mut extreme = profile;
+    extreme.galvo.settle_min_us = u32::MAX;
+    extreme.galvo.settle_per_kcode_us = u32::MAX;
     assert_eq!(galvo_settle_us(&extreme, p(0, 0), p(u16::MAX, 0)), u32::MAX);
 }
 
 #[test]
 fn reply_precedes_the_events_its_command_caused() {
     let mut sim = SimRig::default();
+    sim.rig_mut().handle_request(
+        0,
+        Request {
+            seq: 0,
+            command: Command::Hello {
+                protocol_version: PROTOCOL_VERSION,
+            },
+        },
+    );
+    sim.rig_mut().poll_message();
     sim.rig_mut().handle_request(
         0,
         Request {
@@ -632,10 +655,19 @@ fn estop_pressed_at_boot_is_a_fault() {
     use subsurf_firmware::Rig;
     use subsurf_firmware::sim::SimHardware;
     let params = SimParams::default();
-    let mut hw = SimHardware::new(16_000, 0, 10);
+    let mut hw = SimHardware::new(params.profile, params.camera, 0, 10);
     hw.set_estop(true);
-    let mut rig = Rig::new(hw, params.capabilities, params.config, 0);
+    let mut rig = Rig::new(hw, params.profile, params.config, 1, 0);
     assert_eq!(rig.fault(), Some(Fault::EmergencyStop));
+    rig.handle_request(
+        0,
+        Request {
+            seq: 0,
+            command: Command::Hello {
+                protocol_version: PROTOCOL_VERSION,
+            },
+        },
+    );
     rig.handle_request(
         0,
         Request {
@@ -656,7 +688,7 @@ fn next_step_due_follows_the_profile() {
     let mut h = Host::new(SimParams::default());
     assert_eq!(h.sim.rig().next_step_due(), None);
     let t0 = h.sim.now();
-    h.call(mv(MoveTarget::Absolute(100))).unwrap();
+    h.call(mv(MoveTarget::Relative(100))).unwrap();
     // First step of a move from rest at 100 000 steps/s²: sqrt(2/a) = 4472 µs.
     assert_eq!(h.sim.rig().next_step_due(), Some(t0 + 4_472));
     h.advance(1_000_000);

@@ -1,11 +1,14 @@
 //! The laser-safety invariants over random command and input sequences: the laser is never on
 //! while unarmed, moving, stopped, in fault, with the e-stop pressed or the interlock open, or
-//! after the heartbeat timeout. Checked after every request, input change and rig deadline, both
-//! from the core's state and from the simulated hardware's own view of its outputs.
+//! after the heartbeat timeout, and never longer than the manual limit or a capture's window.
+//! Checked after every request, input change, camera edge, stall and rig deadline, both from the
+//! core's state and from the simulated hardware's own view of its outputs. The random sequences
+//! include profile changes, homing, decelerating stops, step-generator stalls, missed camera
+//! triggers and trigger latency.
 
 use proptest::prelude::*;
 use subsurf_firmware::rig::Micros;
-use subsurf_firmware::sim::{SimParams, SimRig};
+use subsurf_firmware::sim::{SimCamera, SimParams, SimRig};
 use subsurf_protocol::*;
 
 #[derive(Debug, Clone)]
@@ -13,6 +16,8 @@ enum Op {
     Request(Command),
     Estop(bool),
     Interlock(bool),
+    /// The board's step timer ran dry.
+    Stall,
     /// Let this much time pass, µs.
     Wait(Micros),
 }
@@ -76,11 +81,24 @@ fn command() -> impl Strategy<Value = Command> {
             points: heapless::Vec::from_slice(&pts).unwrap(),
         })
     });
-    let config = (50u32..3_000).prop_map(|ms| {
-        let mut c = SimParams::default().config;
-        c.heartbeat_timeout_ms = ms;
-        Command::SetConfig(c)
+    let config = prop_oneof![50u32..3_000, 0u32..1_000_000].prop_map(|ms| {
+        Command::SetConfig(Config {
+            heartbeat_timeout_ms: ms,
+        })
     });
+    let profile = (any::<bool>(), 1u8..4, 1u32..3_000, 0u32..30_000, 0u32..200).prop_map(
+        |(internal, channels, manual_max_ms, readout_us, lead_us)| {
+            let mut p = RigProfile::DEFAULT;
+            if internal {
+                p.galvo = RigProfile::INTERNAL_DAC;
+            }
+            p.laser.channels = channels;
+            p.laser.manual_max_ms = manual_max_ms;
+            p.laser.lead_us = lead_us;
+            p.camera.readout_us = readout_us;
+            Command::SetProfile(p)
+        },
+    );
     prop_oneof![
         4 => Just(Command::Arm),
         1 => Just(Command::Disarm),
@@ -98,6 +116,9 @@ fn command() -> impl Strategy<Value = Command> {
         1 => Just(Command::Status),
         1 => config,
         1 => (any::<u32>(), any::<u8>()).prop_map(|(since, max)| Command::Replay { since, max }),
+        1 => profile,
+        1 => Just(Command::GetProfile),
+        1 => any::<u16>().prop_map(|protocol_version| Command::Hello { protocol_version }),
     ]
 }
 
@@ -106,6 +127,7 @@ fn op() -> impl Strategy<Value = Op> {
         12 => command().prop_map(Op::Request),
         1 => any::<bool>().prop_map(Op::Estop),
         1 => any::<bool>().prop_map(Op::Interlock),
+        1 => Just(Op::Stall),
         6 => prop_oneof![0u64..2_000, 0u64..200_000, 0u64..4_000_000].prop_map(Op::Wait),
     ]
 }
@@ -122,7 +144,25 @@ fn check(sim: &SimRig, model: &Model, after: &str) -> Result<(), TestCaseError> 
     let hw = sim.hw();
     prop_assert_eq!(hw.violations(), 0, "hardware saw a breach after {}", after);
     prop_assert_eq!(hw.lasers(), rig.laser_output());
+    prop_assert!(rig.config().heartbeat_timeout_ms <= MAX_HEARTBEAT_TIMEOUT_MS);
     if hw.lasers() != 0 {
+        // On no longer than the manual limit (captures here are shorter than any limit drawn).
+        let mut on_since = 0;
+        let mut was_on = false;
+        for e in hw.laser_log().entries() {
+            if e.value != 0 && !was_on {
+                on_since = e.at;
+            }
+            was_on = e.value != 0;
+        }
+        let limit = u64::from(rig.profile().laser.manual_max_ms) * 1000 + 20_000 + 400;
+        prop_assert!(
+            sim.now() - on_since <= limit,
+            "laser on for {} µs (limit {}) after {}",
+            sim.now() - on_since,
+            limit,
+            after
+        );
         prop_assert!(rig.armed(), "laser on while disarmed after {}", after);
         prop_assert!(!rig.moving(), "laser on while moving after {}", after);
         prop_assert!(rig.fault().is_none(), "laser on in fault after {}", after);
@@ -148,8 +188,20 @@ proptest! {
     #![proptest_config(ProptestConfig::with_cases(192))]
 
     #[test]
-    fn laser_is_never_on_when_it_must_be_off(ops in prop::collection::vec(op(), 1..60)) {
-        let mut sim = SimRig::new(SimParams::default());
+    fn laser_is_never_on_when_it_must_be_off(
+        ops in prop::collection::vec(op(), 1..60),
+        miss in prop::option::of(0u32..6),
+        trigger_latency_us in prop_oneof![Just(0u32), 0u32..100],
+        start_position in 0i64..16_000,
+    ) {
+        let params = SimParams {
+            camera: SimCamera { trigger_latency_us, miss_triggers: [miss, None, None, None], ..SimCamera::default() },
+            start_position,
+            ..SimParams::default()
+        };
+        let mut sim = SimRig::new(params);
+        // The session opens first; a later random Hello may re-open it (or fail harmlessly).
+        sim.rig_mut().handle_request(0, Request { seq: 0, command: Command::Hello { protocol_version: PROTOCOL_VERSION } });
         let mut model = Model { last_request: 0, estop: false, interlock_closed: true };
         let mut seq: Seq = 0;
         for op in &ops {
@@ -174,6 +226,16 @@ proptest! {
                     sim.set_interlock(now + 1, *closed);
                     model.interlock_closed = *closed;
                     check(&sim, &model, "interlock change")?;
+                }
+                Op::Stall => {
+                    let moving = sim.rig().moving();
+                    sim.rig_mut().handle_stall(now);
+                    check(&sim, &model, "a stall")?;
+                    prop_assert!(!sim.rig().moving());
+                    if moving {
+                        prop_assert!(!sim.rig().homed());
+                        prop_assert_eq!(sim.rig().fault(), Some(Fault::StepStall));
+                    }
                 }
                 Op::Wait(dt) => {
                     let end = now + dt;
@@ -240,6 +302,7 @@ proptest! {
             let n = encode_request(&Request { seq, command }, &mut frame).unwrap();
             sim.feed(now, &frame[..n]);
         };
+        send(&mut sim, now, Command::Hello { protocol_version: PROTOCOL_VERSION });
         for _ in 0..moves {
             send(&mut sim, now, Command::Move(Move { target: MoveTarget::Relative(1), max_speed: 10_000, accel: 100_000 }));
             now += 10_000;

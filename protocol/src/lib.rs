@@ -24,9 +24,11 @@
 
 mod frame;
 mod message;
+mod profile;
 
 pub use frame::{
     CRC_LEN, DecoderStats, DropReason, EncodeError, FrameDecoder, Frames, MAX_FRAME, MAX_MESSAGE,
     decode_frame, encode_event, encode_frame, encode_reply, encode_request,
 };
 pub use message::*;
+pub use profile::*;

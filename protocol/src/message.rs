@@ -6,13 +6,16 @@
 use heapless::Vec;
 use serde::{Deserialize, Serialize};
 
+use crate::profile::{ProfileError, RigProfile};
+
 /// Version of this wire format. The rig refuses a [`Command::Hello`] with any other version
 /// ([`RigError::UnknownVersion`]), so host and rig never talk past each other.
 ///
-/// Version 2 appended [`Command::Replay`] and [`Response::Events`] (event recovery); every
-/// version-1 encoding is unchanged, but a version-1 host would not understand a rig that expects
-/// to be asked for lost events, so the handshake refuses the mix.
-pub const PROTOCOL_VERSION: u16 = 2;
+/// Version 2 appended [`Command::Replay`] and [`Response::Events`] (event recovery). Version 3
+/// added sessions (a boot nonce in [`Hello`] and [`Status`]; nothing but `Hello` before one),
+/// the [`RigProfile`] (`SetProfile`/`GetProfile`), camera confirmation in [`Captured`], and cut
+/// [`Config`] down to the session's heartbeat (see `docs/protocol.md`).
+pub const PROTOCOL_VERSION: u16 = 3;
 
 /// Galvo points per [`Command::ProgramPoints`] chunk: 32 points of at most 6 bytes each keep the
 /// chunk well inside [`crate::MAX_MESSAGE`].
@@ -29,9 +32,9 @@ pub const REPLY_CACHE: usize = 4;
 /// Farther back counts as new (a host that restarted without `Hello`).
 pub const STALE_WINDOW: u32 = 64;
 
-/// Most events one [`Response::Events`] carries: five of the largest event (42 bytes) plus the
-/// reply's header stay inside [`crate::MAX_MESSAGE`] (pinned by `protocol/tests/wire.rs`).
-pub const REPLAY_BATCH: usize = 5;
+/// Most events one [`Response::Events`] carries: three of the largest event (about 70 bytes) plus
+/// the reply's header stay inside [`crate::MAX_MESSAGE`] (pinned by `protocol/tests/wire.rs`).
+pub const REPLAY_BATCH: usize = 3;
 
 /// Request sequence number. The host increments it (wrapping) for every new request and reuses it
 /// when it retransmits; the rig echoes it in the [`Reply`].
@@ -52,7 +55,9 @@ pub struct Request {
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[non_exhaustive]
 pub enum Command {
-    /// Handshake: the host's [`PROTOCOL_VERSION`]; answered with [`Response::Hello`].
+    /// Handshake: the host's [`PROTOCOL_VERSION`]; answered with [`Response::Hello`]. Opens the
+    /// session: until a `Hello` succeeds after a reset, every other command is refused with
+    /// [`RigError::NoSession`].
     Hello {
         /// The host's protocol version.
         protocol_version: u16,
@@ -65,9 +70,11 @@ pub enum Command {
     GetConfig,
     /// Replaces the rig's tunable settings; answered with [`Response::Ack`].
     SetConfig(Config),
-    /// Seek the home switch and define position 0 there; [`EventKind::Homed`] when done.
+    /// Two-pass homing (fast approach, back-off, slow approach, debounced); position 0 at the
+    /// switch edge; [`EventKind::Homed`] when done.
     Home,
     /// Move the turntable; [`EventKind::MoveDone`] when done. The laser is forced off meanwhile.
+    /// An absolute target needs a homed axis ([`RigError::NotHomed`]).
     Move(Move),
     /// Set the galvo DAC codes now.
     Galvo(GalvoPoint),
@@ -75,7 +82,8 @@ pub enum Command {
     Arm,
     /// Forbid laser emission; all channels go off.
     Disarm,
-    /// Switch one laser channel (armed and not moving only).
+    /// Switch one laser channel (armed and not moving only). "On" lasts at most the profile's
+    /// `laser.manual_max_ms`, then the rig halts with [`HaltReason::LaserTimeout`].
     Laser {
         /// Channel index, `0..capabilities.laser_channels`.
         channel: u8,
@@ -91,7 +99,8 @@ pub enum Command {
     /// Run the fully uploaded program: one [`EventKind::Captured`] per point, then
     /// [`EventKind::ProgramDone`].
     ProgramRun,
-    /// Laser off, disarm, halt the motor, abort any capture or program.
+    /// Laser off, disarm, abort any capture or program; a move decelerates to a stop (and the
+    /// axis is no longer homed).
     Stop,
     /// Leave the fault state once its cause is gone (e.g. e-stop released).
     ClearFault,
@@ -104,6 +113,11 @@ pub enum Command {
         /// short reply gets through where a long one would not.
         max: u8,
     },
+    /// Replace the rig profile (idle only): validated, then persisted by the board; resets the
+    /// axis to not homed. Answered with [`Response::Ack`] or [`RigError::BadProfile`].
+    SetProfile(RigProfile),
+    /// Answered with [`Response::Profile`].
+    GetProfile,
 }
 
 /// A turntable move. Speeds in steps/s, acceleration in steps/s².
@@ -148,7 +162,9 @@ pub struct Capture {
     pub settle_us: Option<u32>,
     /// Laser channel to fire.
     pub channel: u8,
-    /// Laser-on time, µs (`1..=capabilities.max_exposure_us`).
+    /// Exposure, µs (`capabilities.min_exposure_us..=capabilities.max_exposure_us`). The laser is
+    /// on from the profile's `laser.lead_us` before the trigger edge to `laser.tail_us` after
+    /// the exposure's nominal end.
     pub exposure_us: u32,
     /// Camera trigger pulse width, µs (`1..=exposure_us`).
     pub trigger_us: u32,
@@ -168,7 +184,8 @@ pub struct ProgramHeader {
     pub exposure_us: u32,
     /// Camera trigger pulse width, µs.
     pub trigger_us: u32,
-    /// Minimum time between the starts of two consecutive captures (camera read-out), µs.
+    /// Minimum time between the starts of two consecutive captures, µs: at least `exposure_us`
+    /// plus the profile's camera read-out ([`RigError::IntervalTooShort`] otherwise).
     pub interval_us: u32,
 }
 
@@ -183,22 +200,27 @@ pub struct ProgramChunk {
     pub points: Vec<GalvoPoint, PROGRAM_CHUNK>,
 }
 
-/// Tunable rig settings (read with [`Command::GetConfig`], written with [`Command::SetConfig`]).
+/// The session's settings (read with [`Command::GetConfig`], written with [`Command::SetConfig`]);
+/// back to [`Config::DEFAULT`] after a reset. Mechanics and I/O are the [`RigProfile`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct Config {
-    /// Without any valid request for this long, the rig turns the laser off, disarms and halts.
+    /// Without any valid request for this long, the rig turns the laser off, disarms and halts
+    /// (`1..=`[`crate::MAX_HEARTBEAT_TIMEOUT_MS`]).
     pub heartbeat_timeout_ms: u32,
-    /// Galvo settle time for a zero-length jump, µs.
-    pub galvo_settle_min_us: u32,
-    /// Extra galvo settle time per 1000 codes of the larger axis jump, µs.
-    pub galvo_settle_per_kcode_us: u32,
-    /// Homing cruise speed, steps/s.
-    pub home_speed: u32,
-    /// Homing acceleration, steps/s².
-    pub home_accel: u32,
-    /// Homing gives up (fault) after this many steps without seeing the switch.
-    pub home_max_steps: u32,
+}
+
+impl Config {
+    /// Settings at power-on.
+    pub const DEFAULT: Config = Config {
+        heartbeat_timeout_ms: 2_000,
+    };
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Self::DEFAULT
+    }
 }
 
 /// Rig → host: either a reply to a request or an unsolicited event.
@@ -246,6 +268,8 @@ pub enum Response {
     },
     /// Answer to [`Command::Replay`].
     Events(EventReplay),
+    /// Answer to [`Command::GetProfile`].
+    Profile(RigProfile),
 }
 
 /// Events sent again from the rig's bounded event history (answer to [`Command::Replay`]).
@@ -273,6 +297,9 @@ pub struct Hello {
     pub protocol_version: u16,
     /// Firmware build version.
     pub firmware_version: FirmwareVersion,
+    /// Random per power-on: a change means the rig reset (its homing, program and reply cache are
+    /// gone) and the host must handshake and home again.
+    pub boot_nonce: u32,
     /// Hardware limits.
     pub capabilities: Capabilities,
 }
@@ -305,6 +332,10 @@ pub struct Capabilities {
     pub max_accel: u32,
     /// Longest accepted exposure, µs.
     pub max_exposure_us: u32,
+    /// Shortest accepted exposure, µs (the profile's `camera.min_exposure_us`).
+    pub min_exposure_us: u32,
+    /// Camera read-out after each exposure, µs (the profile's `camera.readout_us`).
+    pub camera_readout_us: u32,
     /// Most points in one queued capture program.
     pub max_program_points: u16,
 }
@@ -343,6 +374,8 @@ pub struct Inputs {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct Status {
+    /// The rig's [`Hello::boot_nonce`]: a change means it reset.
+    pub boot_nonce: u32,
     /// What the rig is doing.
     pub state: RigState,
     /// Current turntable position, steps.
@@ -361,6 +394,8 @@ pub struct Status {
     pub fault: Option<Fault>,
     /// Id the next capture will get (= captures completed or started so far).
     pub next_capture_id: u32,
+    /// Exposures the camera confirmed since boot ([`Captured::exposure_count`] of the last).
+    pub exposures: u32,
     /// Sequence number the next event will get: lets the host detect lost events.
     pub next_event_seq: u32,
     /// Points of the loaded program received so far / its length.
@@ -401,6 +436,22 @@ pub enum RigError {
     ProgramIncomplete,
     /// A request older than the rig's reply cache (already executed, its reply is gone).
     StaleSequence,
+    /// No session: the rig reset since the host's last `Hello` (handshake and home again).
+    NoSession,
+    /// An absolute move before the axis was homed (or after a halt cut a motion).
+    NotHomed,
+    /// The profile sent with [`Command::SetProfile`] is out of range.
+    BadProfile(ProfileError),
+    /// Exposure shorter than the hardware honours.
+    ExposureTooShort {
+        /// The shortest accepted exposure, µs.
+        min_us: u32,
+    },
+    /// Program interval shorter than exposure plus camera read-out.
+    IntervalTooShort {
+        /// The shortest accepted interval for this exposure, µs.
+        min_us: u32,
+    },
 }
 
 /// Conditions that stop the rig until [`Command::ClearFault`].
@@ -410,8 +461,10 @@ pub enum RigError {
 pub enum Fault {
     /// Emergency stop was pressed.
     EmergencyStop,
-    /// Homing ran `home_max_steps` without reaching the switch.
+    /// Homing ran `homing.max_steps` in one pass without the switch changing.
     HomingFailed,
+    /// The step generator ran dry while a move was in progress (steps lost: position unknown).
+    StepStall,
 }
 
 /// Unsolicited rig → host message. `event_seq` increases by one per event, so the host can tell
@@ -439,8 +492,13 @@ pub enum EventKind {
         /// Final position, steps.
         position: i32,
     },
-    /// Homing finished; position is now 0.
-    Homed,
+    /// Homing finished; position is now 0 at the home switch's edge.
+    Homed {
+        /// Where the new zero lay in the previous homing's coordinates, when the axis was
+        /// homed before and nothing cut a motion since: 0 (±1 step) on a repeatable rig, the
+        /// drift otherwise. `subsurf rig selftest` homes twice and reports it.
+        previous: Option<i32>,
+    },
     /// A queued program finished or was aborted after `completed` captures.
     ProgramDone {
         /// Captures run.
@@ -455,6 +513,16 @@ pub enum EventKind {
     },
 }
 
+/// What the camera's exposure-active output showed for one capture, relative to the trigger edge.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct ExposureActive {
+    /// From the trigger edge to exposure-active rising, µs.
+    pub delay_us: u32,
+    /// Exposure-active high time, µs.
+    pub duration_us: u32,
+}
+
 /// One finished capture.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
@@ -463,8 +531,16 @@ pub struct Captured {
     pub capture_id: u32,
     /// Index within the running program, `None` for an atomic capture.
     pub program_index: Option<u16>,
-    /// Rig clock at the rising edge of the camera trigger, µs.
+    /// Rig clock at the trigger edge as the hardware timestamped it, µs.
     pub triggered_at_us: u64,
+    /// The camera's confirmation; `None` = no exposure-active edge within the profile's
+    /// `camera.confirm_timeout_us` (a missed trigger: no image for this capture).
+    pub exposure: Option<ExposureActive>,
+    /// Confirmed exposures since boot, this one included: the camera's own frame counter
+    /// (minus its count at boot) must equal it, which is how images are matched to captures.
+    pub exposure_count: u32,
+    /// Whether the laser was on for the whole confirmed exposure.
+    pub lit: bool,
     /// Where the laser pointed.
     pub galvo: GalvoPoint,
     /// Which channel fired.
@@ -486,4 +562,8 @@ pub enum HaltReason {
     HeartbeatLost,
     /// Homing failed.
     HomingFailed,
+    /// A manual laser stayed on for the profile's `laser.manual_max_ms`.
+    LaserTimeout,
+    /// The step generator stalled ([`Fault::StepStall`]).
+    StepStall,
 }

@@ -83,7 +83,7 @@ fn golden_events_reply() {
         .push(Event {
             event_seq: 3,
             timestamp_us: 99,
-            kind: EventKind::Homed,
+            kind: EventKind::Homed { previous: None },
         })
         .unwrap();
     events
@@ -105,9 +105,98 @@ fn golden_events_reply() {
     assert_eq!(
         &out[..n],
         &[
-            1, 2, 9, 17, 6, 3, 5, 2, 3, 99, 2, 4, 232, 7, 1, 3, 125, 149, 138, 221, 0
+            1, 2, 9, 8, 6, 3, 5, 2, 3, 99, 2, 10, 4, 232, 7, 1, 3, 181, 30, 112, 171, 0
         ]
     );
+}
+
+/// Version 3: `IntervalTooShort { min_us }` is error variant 14.
+#[test]
+fn golden_interval_too_short_reply() {
+    let mut out = [0u8; MAX_FRAME];
+    let reply = Reply {
+        seq: 7,
+        result: Err(RigError::IntervalTooShort { min_us: 10_020 }),
+    };
+    let n = encode_reply(&reply, &mut out).unwrap();
+    assert_eq!(&out[..n], &[1, 10, 7, 1, 14, 164, 78, 166, 34, 207, 234, 0]);
+}
+
+/// Version 3's `Captured`: trigger edge, exposure-active delay and duration, exposure count, lit.
+#[test]
+fn golden_captured_event() {
+    let mut out = [0u8; MAX_FRAME];
+    let event = Event {
+        event_seq: 3,
+        timestamp_us: 1000,
+        kind: EventKind::Captured(Captured {
+            capture_id: 4,
+            program_index: Some(2),
+            triggered_at_us: 990,
+            exposure: Some(ExposureActive {
+                delay_us: 15,
+                duration_us: 100,
+            }),
+            exposure_count: 5,
+            lit: true,
+            galvo: GalvoPoint { x: 300, y: 2 },
+            channel: 1,
+        }),
+    };
+    let n = encode_event(&event, &mut out).unwrap();
+    assert_eq!(
+        &out[..n],
+        &[
+            5, 1, 3, 232, 7, 19, 4, 1, 2, 222, 7, 1, 15, 100, 5, 1, 172, 2, 2, 1, 64, 89, 31, 63, 0
+        ]
+    );
+}
+
+/// Version 3's `SetProfile` (command variant 18) with the documented wiring's profile.
+#[test]
+fn golden_set_default_profile() {
+    let mut out = [0u8; MAX_FRAME];
+    let req = Request {
+        seq: 2,
+        command: Command::SetProfile(RigProfile::DEFAULT),
+    };
+    let n = encode_request(&req, &mut out).unwrap();
+    assert_eq!(
+        &out[..n],
+        &[
+            16, 2, 18, 200, 1, 16, 5, 1, 160, 156, 1, 192, 154, 12, 5, 5, 1, 2, 1, 8, 100, 20, 144,
+            78, 20, 208, 15, 1, 2, 3, 24, 50, 50, 144, 78, 192, 62, 192, 184, 2, 232, 7, 200, 1,
+            208, 15, 208, 140, 1, 1, 16, 154, 12, 134, 0
+        ]
+    );
+}
+
+#[test]
+fn default_profile_is_valid_and_bounds_are_enforced() {
+    let p = RigProfile::DEFAULT;
+    assert_eq!(p.validate(), Ok(()));
+    assert_eq!(p.steps_per_rev(), Some(16_000));
+    assert_eq!(p.galvo_max(), u16::MAX);
+    let mut internal = p;
+    internal.galvo = RigProfile::INTERNAL_DAC;
+    assert_eq!(internal.validate(), Ok(()));
+    assert_eq!(internal.galvo_max(), 4095);
+    assert_eq!(internal.galvo.output.center(), 2048);
+    let mut bad = p;
+    bad.motor.gear_den = 3;
+    assert_eq!(bad.validate(), Err(ProfileError::Gearing));
+    let mut bad = p;
+    bad.motor.step_pulse_us = 1;
+    assert_eq!(bad.validate(), Err(ProfileError::StepTiming));
+    let mut bad = p;
+    bad.camera.min_exposure_us = 1;
+    assert_eq!(bad.validate(), Err(ProfileError::Camera));
+    let mut bad = p;
+    bad.laser.manual_max_ms = MAX_MANUAL_LASER_MS + 1;
+    assert_eq!(bad.validate(), Err(ProfileError::Laser));
+    let mut bad = p;
+    bad.homing.slow_speed = bad.homing.speed + 1;
+    assert_eq!(bad.validate(), Err(ProfileError::Homing));
 }
 
 #[test]
@@ -119,7 +208,7 @@ fn reply_and_event_encoders_match_rig_message() {
     let event = Event {
         event_seq: 3,
         timestamp_us: 99,
-        kind: EventKind::Homed,
+        kind: EventKind::Homed { previous: None },
     };
     let (mut a, mut b) = ([0u8; MAX_FRAME], [0u8; MAX_FRAME]);
     let n = encode_reply(&reply, &mut a).unwrap();
@@ -168,6 +257,8 @@ fn largest_messages_fit_in_a_frame() {
     .unwrap();
     assert!(n <= MAX_FRAME);
     let status = Status {
+        boot_nonce: u32::MAX,
+        exposures: u32::MAX,
         state: RigState::Fault,
         position: i32::MIN,
         homed: true,
@@ -200,6 +291,12 @@ fn largest_messages_fit_in_a_frame() {
             capture_id: u32::MAX,
             program_index: Some(u16::MAX),
             triggered_at_us: u64::MAX,
+            exposure: Some(ExposureActive {
+                delay_us: u32::MAX,
+                duration_us: u32::MAX,
+            }),
+            exposure_count: u32::MAX,
+            lit: true,
             galvo: far,
             channel: u8::MAX,
         }),
@@ -214,6 +311,28 @@ fn largest_messages_fit_in_a_frame() {
             next_event_seq: u32::MAX,
             events,
         })),
+    };
+    assert!(encode_reply(&reply, &mut out).unwrap() <= MAX_FRAME);
+    // The largest profile there is.
+    let mut profile = RigProfile::DEFAULT;
+    profile.motor = MotorProfile {
+        full_steps_per_rev: u16::MAX,
+        microsteps: u16::MAX,
+        gear_num: u16::MAX,
+        gear_den: u16::MAX,
+        max_speed: u32::MAX,
+        max_accel: u32::MAX,
+        step_pulse_us: u16::MAX,
+        dir_setup_us: u16::MAX,
+        invert_dir: true,
+        step_active_low: true,
+        enable_active_low: true,
+    };
+    profile.camera.readout_us = u32::MAX;
+    profile.homing.max_steps = u32::MAX;
+    let reply = Reply {
+        seq: u32::MAX,
+        result: Ok(Response::Profile(profile)),
     };
     assert!(encode_reply(&reply, &mut out).unwrap() <= MAX_FRAME);
 }
@@ -282,14 +401,65 @@ fn galvo() -> impl Strategy<Value = GalvoPoint> {
 }
 
 fn config() -> impl Strategy<Value = Config> {
-    any::<[u32; 6]>().prop_map(|v| Config {
-        heartbeat_timeout_ms: v[0],
-        galvo_settle_min_us: v[1],
-        galvo_settle_per_kcode_us: v[2],
-        home_speed: v[3],
-        home_accel: v[4],
-        home_max_steps: v[5],
+    any::<u32>().prop_map(|heartbeat_timeout_ms| Config {
+        heartbeat_timeout_ms,
     })
+}
+
+fn profile() -> impl Strategy<Value = RigProfile> {
+    (
+        any::<[u16; 6]>(),
+        any::<[u32; 16]>(),
+        any::<[bool; 8]>(),
+        any::<u8>(),
+    )
+        .prop_map(|(h, w, b, channels)| RigProfile {
+            motor: MotorProfile {
+                full_steps_per_rev: h[0],
+                microsteps: h[1],
+                gear_num: h[2],
+                gear_den: h[3],
+                max_speed: w[0],
+                max_accel: w[1],
+                step_pulse_us: h[4],
+                dir_setup_us: h[5],
+                invert_dir: b[0],
+                step_active_low: b[1],
+                enable_active_low: b[2],
+            },
+            galvo: GalvoProfile {
+                output: if b[3] {
+                    GalvoOutput::ExternalDac16
+                } else {
+                    GalvoOutput::InternalDac12
+                },
+                settle_min_us: w[2],
+                settle_per_kcode_us: w[3],
+            },
+            camera: CameraProfile {
+                readout_us: w[4],
+                min_exposure_us: w[5],
+                confirm_timeout_us: w[6],
+                trigger_active_low: b[4],
+                exposure_active_low: b[5],
+            },
+            laser: LaserProfile {
+                channels,
+                active_low: b[6],
+                lead_us: w[7],
+                tail_us: w[8],
+                manual_max_ms: w[9],
+            },
+            homing: HomingProfile {
+                speed: w[10],
+                accel: w[11],
+                slow_speed: w[12],
+                backoff_steps: w[13],
+                debounce_us: w[14],
+                max_steps: w[15],
+                switch_active_low: b[7],
+            },
+        })
 }
 
 fn capture() -> impl Strategy<Value = Capture> {
@@ -361,6 +531,8 @@ fn command() -> impl Strategy<Value = Command> {
         Just(Command::Stop),
         Just(Command::ClearFault),
         (any::<u32>(), any::<u8>()).prop_map(|(since, max)| Command::Replay { since, max }),
+        profile().prop_map(Command::SetProfile),
+        Just(Command::GetProfile),
     ]
 }
 
@@ -369,7 +541,11 @@ fn request() -> impl Strategy<Value = Request> {
 }
 
 fn fault() -> impl Strategy<Value = Fault> {
-    prop_oneof![Just(Fault::EmergencyStop), Just(Fault::HomingFailed)]
+    prop_oneof![
+        Just(Fault::EmergencyStop),
+        Just(Fault::HomingFailed),
+        Just(Fault::StepStall)
+    ]
 }
 
 fn rig_error() -> impl Strategy<Value = RigError> {
@@ -384,6 +560,11 @@ fn rig_error() -> impl Strategy<Value = RigError> {
         Just(RigError::NoSuchChannel),
         Just(RigError::ProgramIncomplete),
         Just(RigError::StaleSequence),
+        Just(RigError::NoSession),
+        Just(RigError::NotHomed),
+        Just(RigError::BadProfile(ProfileError::Camera)),
+        any::<u32>().prop_map(|min_us| RigError::ExposureTooShort { min_us }),
+        any::<u32>().prop_map(|min_us| RigError::IntervalTooShort { min_us }),
     ]
 }
 
@@ -403,12 +584,14 @@ fn status() -> impl Strategy<Value = Status> {
         any::<u8>(),
         galvo(),
         proptest::option::of(fault()),
-        any::<[u32; 3]>(),
+        any::<[u32; 5]>(),
         any::<[u16; 2]>(),
         any::<u64>(),
     )
         .prop_map(
             |(state, position, b, lasers, galvo, fault, c, p, uptime_us)| Status {
+                boot_nonce: c[3],
+                exposures: c[4],
                 state,
                 position,
                 homed: b[0],
@@ -432,7 +615,7 @@ fn status() -> impl Strategy<Value = Status> {
 }
 
 fn response() -> impl Strategy<Value = Response> {
-    let caps = (any::<[u32; 4]>(), any::<u16>(), any::<u8>(), any::<u16>()).prop_map(
+    let caps = (any::<[u32; 6]>(), any::<u16>(), any::<u8>(), any::<u16>()).prop_map(
         |(v, galvo_max, laser_channels, max_program_points)| Capabilities {
             steps_per_rev: v[0],
             galvo_max,
@@ -440,10 +623,12 @@ fn response() -> impl Strategy<Value = Response> {
             max_speed: v[1],
             max_accel: v[2],
             max_exposure_us: v[3],
+            min_exposure_us: v[4],
+            camera_readout_us: v[5],
             max_program_points,
         },
     );
-    let hello = (any::<[u16; 4]>(), caps).prop_map(|(v, capabilities)| {
+    let hello = (any::<[u16; 4]>(), any::<u32>(), caps).prop_map(|(v, boot_nonce, capabilities)| {
         Response::Hello(Hello {
             protocol_version: v[0],
             firmware_version: FirmwareVersion {
@@ -451,6 +636,7 @@ fn response() -> impl Strategy<Value = Response> {
                 minor: v[2],
                 patch: v[3],
             },
+            boot_nonce,
             capabilities,
         })
     });
@@ -461,6 +647,7 @@ fn response() -> impl Strategy<Value = Response> {
         config().prop_map(Response::Config),
         any::<u32>().prop_map(|capture_id| Response::CaptureStarted { capture_id }),
         any::<u32>().prop_map(|first_capture_id| Response::ProgramStarted { first_capture_id }),
+        profile().prop_map(Response::Profile),
     ]
 }
 
@@ -471,20 +658,30 @@ fn rig_message() -> impl Strategy<Value = RigMessage> {
         Just(HaltReason::InterlockOpen),
         Just(HaltReason::HeartbeatLost),
         Just(HaltReason::HomingFailed),
+        Just(HaltReason::LaserTimeout),
+        Just(HaltReason::StepStall),
     ];
     let captured = (
         any::<u32>(),
         any::<Option<u16>>(),
         any::<u64>(),
+        any::<Option<(u32, u32)>>(),
+        any::<(u32, bool)>(),
         galvo(),
         any::<u8>(),
     )
         .prop_map(
-            |(capture_id, program_index, triggered_at_us, galvo, channel)| {
+            |(capture_id, program_index, triggered_at_us, e, (exposure_count, lit), galvo, channel)| {
                 EventKind::Captured(Captured {
                     capture_id,
                     program_index,
                     triggered_at_us,
+                    exposure: e.map(|(delay_us, duration_us)| ExposureActive {
+                        delay_us,
+                        duration_us,
+                    }),
+                    exposure_count,
+                    lit,
                     galvo,
                     channel,
                 })
@@ -493,7 +690,7 @@ fn rig_message() -> impl Strategy<Value = RigMessage> {
     let kind = prop_oneof![
         captured,
         any::<i32>().prop_map(|position| EventKind::MoveDone { position }),
-        Just(EventKind::Homed),
+        any::<Option<i32>>().prop_map(|previous| EventKind::Homed { previous }),
         (any::<u16>(), any::<bool>()).prop_map(|(completed, finished)| EventKind::ProgramDone {
             completed,
             finished

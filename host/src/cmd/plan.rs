@@ -61,7 +61,8 @@ pub struct PlanArgs {
     /// Turntable acceleration, steps/s² (default: the rig's maximum).
     #[arg(long)]
     pub accel: Option<u32>,
-    /// Minimum time between captures (camera read-out), µs.
+    /// Minimum time between capture starts, µs (never less than the exposure plus the rig
+    /// profile's camera read-out; 0 = exactly that).
     #[arg(long, default_value_t = 0)]
     pub interval_us: u32,
 }
@@ -162,7 +163,7 @@ fn load_plan(p: &Path) -> anyhow::Result<ScanPlan> {
 /// The simulated rig's timing (what `--sim` scans run on).
 pub fn sim_timing(a: &PlanArgs) -> RigTiming {
     let p = subsurf_firmware::sim::SimParams::default();
-    rig_timing(&p.capabilities, &p.config, a.speed, a.accel, a.interval_us)
+    rig_timing(&p.profile, a.speed, a.accel, a.interval_us)
 }
 
 fn describe(plan: &ScanPlan, scene: &PlanScene, opts: &PlanOptions, t: &RigTiming) -> String {

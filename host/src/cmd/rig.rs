@@ -1,13 +1,15 @@
 //! `subsurf rig …`: talk to the rig (or the simulated rig) by hand.
 
-use std::io::Write;
+use std::io::{BufRead, Write};
+use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::{Context, bail};
 use subsurf::link::{ByteLink, SerialLink};
-use subsurf::rig::{ClientConfig, RigClient};
-use subsurf::sim::{SimLink, VirtualRig};
-use subsurf_protocol::{Capture, GalvoPoint, MoveTarget, Status};
+use subsurf::rig::selftest::{self, Prompt, SelftestOptions, Verdict};
+use subsurf::rig::{ClientConfig, RigClient, load_profile, profile_json};
+use subsurf::sim::{SimLink, SimParams, VirtualRig};
+use subsurf_protocol::{Capture, GalvoPoint, MoveTarget, RigProfile, Status};
 
 /// Drive the rig over a serial port (`--port`) or the built-in simulated rig (`--sim`).
 ///
@@ -28,6 +30,11 @@ pub struct Args {
     /// How long to wait for each reply before giving up, in milliseconds.
     #[arg(long, global = true, default_value_t = 2000)]
     reply_timeout_ms: u64,
+    /// The rig profile file (JSON: mechanics, galvo, camera, lasers, homing; start from
+    /// `subsurf rig profile default`). The simulated rig runs it; `profile send` sends it;
+    /// `selftest` checks the rig runs it. Default: the documented wiring.
+    #[arg(long, global = true)]
+    profile: Option<PathBuf>,
     #[command(subcommand)]
     action: Action,
 }
@@ -102,8 +109,42 @@ enum Action {
     },
     /// Laser off, disarm, halt the motor.
     Stop,
+    /// The rig profile: show the rig's, print the default, check or send a file.
+    Profile {
+        #[command(subcommand)]
+        what: ProfileAction,
+    },
+    /// Bring-up check for a real bench: handshake, profile and config read-back, home twice and
+    /// compare, a move and its step count, trigger/exposure-active loopback, galvo sweep, e-stop.
+    /// Exits non-zero when a step fails.
+    Selftest {
+        /// Do not ask anything: steps that need someone watching (move seen, sweep seen, e-stop)
+        /// are skipped. Implied when stdin is not a terminal.
+        #[arg(long)]
+        yes: bool,
+        /// Laser channel for the test captures.
+        #[arg(long, default_value_t = 0)]
+        channel: u8,
+    },
     /// Serve the simulated rig on a new pseudo-terminal until killed; prints its path first.
     ServeSim,
+}
+
+#[derive(Debug, clap::Subcommand)]
+enum ProfileAction {
+    /// Print the profile the rig runs (JSON, the file format).
+    Show,
+    /// Print the profile of the documented wiring (JSON), to start a profile file from.
+    Default {
+        /// The internal 12-bit DAC galvo path instead of the external SPI DAC.
+        #[arg(long)]
+        internal_dac: bool,
+    },
+    /// Validate the --profile file without a rig.
+    Check,
+    /// Send the --profile file to the rig (the board stores it in flash); the axis must be
+    /// homed again afterwards.
+    Send,
 }
 
 #[derive(Debug, clap::Subcommand)]
@@ -128,11 +169,45 @@ enum LaserAction {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    if let Action::ServeSim = args.action {
-        if args.port.is_some() || args.sim {
-            bail!("`rig serve-sim` creates its own pseudo-terminal: drop --port/--sim");
+    let profile = match &args.profile {
+        Some(path) => Some(load_profile(path)?),
+        None => None,
+    };
+    match &args.action {
+        Action::ServeSim => {
+            if args.port.is_some() || args.sim {
+                bail!("`rig serve-sim` creates its own pseudo-terminal: drop --port/--sim");
+            }
+            return serve_sim(profile.unwrap_or_default());
         }
-        return serve_sim();
+        Action::Profile {
+            what: ProfileAction::Default { internal_dac },
+        } => {
+            let mut p = RigProfile::DEFAULT;
+            if *internal_dac {
+                p.galvo = RigProfile::INTERNAL_DAC;
+            }
+            println!("{}", profile_json(&p));
+            return Ok(());
+        }
+        Action::Profile {
+            what: ProfileAction::Check,
+        } => {
+            let Some(p) = profile else {
+                bail!("`rig profile check` checks the file given with --profile FILE");
+            };
+            println!(
+                "profile ok: {} steps per revolution, galvo {:?} (codes 0..={}), {} lasers, \
+                 camera read-out {} us",
+                p.steps_per_rev().unwrap_or(0),
+                p.galvo.output,
+                p.galvo_max(),
+                p.laser.channels,
+                p.camera.readout_us
+            );
+            return Ok(());
+        }
+        _ => {}
     }
     let config = ClientConfig {
         give_up_after: Duration::from_millis(args.reply_timeout_ms),
@@ -144,19 +219,53 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             format!("the rig on {path}"),
         ),
         // In-process and in virtual time: moves and exposures finish at once.
-        (None, true) => (
-            Box::new(SimLink::clean(VirtualRig::default())),
-            "the simulated rig".to_owned(),
-        ),
+        (None, true) => {
+            let params = SimParams {
+                profile: profile.unwrap_or_default(),
+                ..SimParams::default()
+            };
+            (
+                Box::new(SimLink::clean(VirtualRig::new(params))),
+                "the simulated rig".to_owned(),
+            )
+        }
         _ => bail!("say which rig: --port PATH (see `subsurf ports`) or --sim"),
     };
     let mut rig = RigClient::connect(link, config).with_context(|| {
         format!("connecting to {what} (is it powered, and is this the right port and baud rate?)")
     })?;
-    act(&mut rig, args.action).with_context(|| format!("talking to {what}"))
+    act(&mut rig, args.action, profile).with_context(|| format!("talking to {what}"))
 }
 
-fn act(rig: &mut RigClient<Box<dyn ByteLink>>, action: Action) -> anyhow::Result<()> {
+/// Asks on the terminal.
+struct TerminalPrompt;
+
+impl Prompt for TerminalPrompt {
+    fn confirm(&mut self, question: &str) -> Option<bool> {
+        eprint!("{question} [y/n/s(kip)] ");
+        let mut line = String::new();
+        std::io::stdin().lock().read_line(&mut line).ok()?;
+        match line.trim().to_ascii_lowercase().as_str() {
+            "y" | "yes" => Some(true),
+            "n" | "no" => Some(false),
+            _ => None,
+        }
+    }
+    fn wait_for(&mut self, instruction: &str) -> bool {
+        eprint!("{instruction} (or type s and Enter to skip) ");
+        let mut line = String::new();
+        if std::io::stdin().lock().read_line(&mut line).is_err() {
+            return false;
+        }
+        !line.trim().eq_ignore_ascii_case("s")
+    }
+}
+
+fn act(
+    rig: &mut RigClient<Box<dyn ByteLink>>,
+    action: Action,
+    profile: Option<RigProfile>,
+) -> anyhow::Result<()> {
     match action {
         Action::Hello => {
             let h = rig.hello();
@@ -164,12 +273,16 @@ fn act(rig: &mut RigClient<Box<dyn ByteLink>>, action: Action) -> anyhow::Result
             let c = h.capabilities;
             println!("protocol version: {}", h.protocol_version);
             println!("firmware version: {}.{}.{}", v.major, v.minor, v.patch);
+            println!("boot nonce: {:#010x}", h.boot_nonce);
             println!("steps per revolution: {}", c.steps_per_rev);
             println!("galvo codes: 0..={}", c.galvo_max);
             println!("laser channels: {}", c.laser_channels);
             println!("max speed: {} steps/s", c.max_speed);
             println!("max acceleration: {} steps/s^2", c.max_accel);
-            println!("max exposure: {} us", c.max_exposure_us);
+            println!(
+                "exposure: {}..={} us, camera read-out {} us",
+                c.min_exposure_us, c.max_exposure_us, c.camera_readout_us
+            );
             println!("max program points: {}", c.max_program_points);
         }
         Action::Status => print_status(&rig.status()?),
@@ -251,10 +364,80 @@ fn act(rig: &mut RigClient<Box<dyn ByteLink>>, action: Action) -> anyhow::Result
                 "capture {}: triggered at {} us, galvo {} {}, channel {}",
                 c.capture_id, c.triggered_at_us, c.galvo.x, c.galvo.y, c.channel
             );
+            match c.exposure {
+                Some(e) => println!(
+                    "camera exposure {}: {} us after the trigger, {} us long, {}",
+                    c.exposure_count,
+                    e.delay_us,
+                    e.duration_us,
+                    if c.lit {
+                        "lit throughout"
+                    } else {
+                        "NOT lit throughout (raise the laser margins in the profile)"
+                    }
+                ),
+                None => println!(
+                    "camera exposure NOT confirmed: no exposure-active edge (missed trigger?)"
+                ),
+            }
         }
         Action::Stop => {
             rig.stop()?;
             println!("stopped: laser off, disarmed, motor halted");
+        }
+        Action::Profile { what } => match what {
+            ProfileAction::Show => println!("{}", profile_json(&rig.get_profile()?)),
+            ProfileAction::Send => {
+                let Some(p) = profile else {
+                    bail!("`rig profile send` sends the file given with --profile FILE");
+                };
+                rig.set_profile(p)?;
+                println!(
+                    "profile sent: {} steps per revolution; home the rig again",
+                    rig.hello().capabilities.steps_per_rev
+                );
+            }
+            ProfileAction::Default { .. } | ProfileAction::Check => {
+                bail!("handled before connecting")
+            }
+        },
+        Action::Selftest { yes, channel } => {
+            use std::io::IsTerminal;
+            let options = SelftestOptions {
+                expect_profile: profile,
+                channel,
+                ..SelftestOptions::default()
+            };
+            let interactive = !yes && std::io::stdin().is_terminal();
+            let mut no_prompt = selftest::NoPrompt;
+            let mut terminal = TerminalPrompt;
+            let prompt: &mut dyn Prompt = if interactive {
+                &mut terminal
+            } else {
+                &mut no_prompt
+            };
+            let report = selftest::run(
+                rig,
+                prompt,
+                &options,
+                Box::new(|step| {
+                    let tag = match step.verdict {
+                        Verdict::Pass => "PASS",
+                        Verdict::Fail => "FAIL",
+                        Verdict::Skip => "SKIP",
+                    };
+                    println!("{tag} {}: {}", step.name, step.detail);
+                }),
+            );
+            println!(
+                "selftest: {} passed, {} failed, {} skipped",
+                report.count(Verdict::Pass),
+                report.count(Verdict::Fail),
+                report.count(Verdict::Skip)
+            );
+            if !report.passed() {
+                bail!("the self-test failed (see the FAIL lines above)");
+            }
         }
         Action::ServeSim => bail!("serve-sim is handled before connecting"),
     }
@@ -274,7 +457,11 @@ fn print_status(s: &Status) {
         Some(f) => println!("fault: {f:?}"),
         None => println!("fault: none"),
     }
-    println!("next capture id: {}", s.next_capture_id);
+    println!("boot nonce: {:#010x}", s.boot_nonce);
+    println!(
+        "next capture id: {}, camera exposures: {}",
+        s.next_capture_id, s.exposures
+    );
     println!(
         "program: {}/{} points loaded",
         s.program_received, s.program_len
@@ -283,7 +470,7 @@ fn print_status(s: &Status) {
     println!("rig uptime: {:.3} s", s.uptime_us as f64 / 1e6);
 }
 
-fn serve_sim() -> anyhow::Result<()> {
+fn serve_sim(profile: RigProfile) -> anyhow::Result<()> {
     let (controller, device) =
         SerialLink::pty_pair().context("creating a pseudo-terminal for the simulated rig")?;
     let path = device
@@ -296,7 +483,11 @@ fn serve_sim() -> anyhow::Result<()> {
     eprintln!("serving the simulated rig on {path} until killed");
     // Keeping the device end open means the controller never sees end-of-file between clients.
     let _device = device;
-    subsurf::sim::serve_forever(controller, subsurf::sim::SimParams::default())
+    let params = SimParams {
+        profile,
+        ..SimParams::default()
+    };
+    subsurf::sim::serve_forever(controller, params)
         .context("serving the simulated rig")?;
     Ok(())
 }

@@ -153,8 +153,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             }
             let p = subsurf_firmware::sim::SimParams::default();
             let t = rig_timing(
-                &p.capabilities,
-                &p.config,
+                &p.profile,
                 cfg.move_speed,
                 cfg.move_accel,
                 cfg.interval_us,

@@ -5,8 +5,8 @@ use std::time::{Duration, Instant};
 
 use subsurf_protocol::{
     Capture, Captured, Command, Config, Event, EventKind, GalvoPoint, Hello, Move, MoveTarget,
-    PROGRAM_CHUNK, PROTOCOL_VERSION, ProgramChunk, ProgramHeader, Response, RigError, RigState,
-    Status,
+    PROGRAM_CHUNK, PROTOCOL_VERSION, ProgramChunk, ProgramHeader, Response, RigError, RigProfile,
+    RigState, Status,
 };
 
 use super::{ClientConfig, ClientCore, ClientStats, Outcome, RigClientError};
@@ -27,6 +27,7 @@ pub struct RigClient<L: ByteLink> {
     hello: Hello,
     rx: Vec<u8>,
     events: VecDeque<Event>,
+    reboots: u32,
 }
 
 impl<L: ByteLink> std::fmt::Debug for RigClient<L> {
@@ -67,6 +68,7 @@ impl<L: ByteLink> RigClient<L> {
                     minor: 0,
                     patch: 0,
                 },
+                boot_nonce: 0,
                 capabilities: subsurf_protocol::Capabilities {
                     steps_per_rev: 0,
                     galvo_max: 0,
@@ -74,11 +76,14 @@ impl<L: ByteLink> RigClient<L> {
                     max_speed: 0,
                     max_accel: 0,
                     max_exposure_us: 0,
+                    min_exposure_us: 0,
+                    camera_readout_us: 0,
                     max_program_points: 0,
                 },
             },
             rx: vec![0; 4096],
             events: VecDeque::new(),
+            reboots: 0,
         };
         client.hello = client.handshake()?;
         let status = client.status()?;
@@ -150,14 +155,49 @@ impl<L: ByteLink> RigClient<L> {
         }
     }
 
-    /// Send `command`; a refusal becomes [`RigClientError::Rejected`].
+    /// Send `command`; a refusal becomes [`RigClientError::Rejected`]. A rig that reset since
+    /// the handshake (it refuses with `NoSession`, or a status shows another boot nonce) is
+    /// handshaken again and the call fails with [`RigClientError::Rebooted`]: the command may
+    /// have been lost with the reset and the rig has forgotten its homing.
     pub fn call(&mut self, command: Command) -> Result<Response, RigClientError> {
         let name = format!("{command:?}");
-        self.call_raw(command)?
-            .map_err(|error| RigClientError::Rejected {
+        match self.call_raw(command)? {
+            Err(RigError::NoSession) => Err(self.rehandshake(name)),
+            Ok(Response::Status(s)) if s.boot_nonce != self.hello.boot_nonce => {
+                Err(self.rehandshake(name))
+            }
+            Ok(r) => Ok(r),
+            Err(error) => Err(RigClientError::Rejected {
                 command: name,
                 error,
-            })
+            }),
+        }
+    }
+
+    /// After a detected reset: open a new session (its events start from the rig's new counter,
+    /// none of them dropped as duplicates of the old session's) and say so.
+    fn rehandshake(&mut self, command: String) -> RigClientError {
+        let old = self.hello.boot_nonce;
+        match self.handshake() {
+            Ok(hello) => {
+                self.hello = hello;
+                self.reboots += 1;
+                if let Ok(Ok(Response::Status(_))) = self.call_raw(Command::Status) {
+                    // The core synced its event position from this status.
+                }
+                RigClientError::Rebooted {
+                    command,
+                    old,
+                    new: hello.boot_nonce,
+                }
+            }
+            Err(e) => e,
+        }
+    }
+
+    /// Resets of the rig this client noticed (and recovered the session from).
+    pub fn reboots(&self) -> u32 {
+        self.reboots
     }
 
     fn call_ack(&mut self, command: Command) -> Result<(), RigClientError> {
@@ -247,6 +287,28 @@ impl<L: ByteLink> RigClient<L> {
     /// Replace the rig's tunable settings.
     pub fn set_config(&mut self, config: Config) -> Result<(), RigClientError> {
         self.call_ack(Command::SetConfig(config))
+    }
+
+    /// The rig profile in force (mechanics and I/O).
+    pub fn get_profile(&mut self) -> Result<RigProfile, RigClientError> {
+        match self.call(Command::GetProfile)? {
+            Response::Profile(p) => Ok(p),
+            other => Err(unexpected("GetProfile", other)),
+        }
+    }
+
+    /// Send a rig profile (validated here first; the rig validates again and persists it) and
+    /// handshake again so [`RigClient::hello`] shows the capabilities it implies.
+    pub fn set_profile(&mut self, profile: RigProfile) -> Result<(), RigClientError> {
+        if let Err(error) = profile.validate() {
+            return Err(RigClientError::Rejected {
+                command: "SetProfile".into(),
+                error: RigError::BadProfile(error),
+            });
+        }
+        self.call_ack(Command::SetProfile(profile))?;
+        self.hello_again()?;
+        Ok(())
     }
 
     /// An explicit heartbeat (the client also sends them by itself while it is pumped).
@@ -441,7 +503,7 @@ impl<L: ByteLink> RigClient<L> {
                     matches!(
                         e.kind,
                         EventKind::MoveDone { .. }
-                            | EventKind::Homed
+                            | EventKind::Homed { .. }
                             | EventKind::Halted { .. }
                             | EventKind::ProgramDone { .. }
                             | EventKind::Captured(_)
@@ -500,6 +562,7 @@ mod tests {
                 minor: 2,
                 patch: 3,
             },
+            boot_nonce: 1,
             capabilities: Capabilities {
                 steps_per_rev: 3200,
                 galvo_max: 4095,
@@ -507,6 +570,8 @@ mod tests {
                 max_speed: 1000,
                 max_accel: 1000,
                 max_exposure_us: 1_000_000,
+                min_exposure_us: 20,
+                camera_readout_us: 0,
                 max_program_points: 100,
             },
         }

@@ -349,7 +349,9 @@ impl ClientCore {
     /// or reveals missing events, an `Events` reply delivers them.
     fn observe_reply(&mut self, origin: Origin, result: &Result<Response, RigError>) {
         match result {
-            Ok(Response::Hello(_)) => self.unsync_events(),
+            // A new session, or a rig that reset without one (its event counter restarted):
+            // either way the old position is meaningless and the next `Status` syncs it.
+            Ok(Response::Hello(_)) | Err(RigError::NoSession) => self.unsync_events(),
             Ok(Response::Status(status)) => match self.next_event_seq {
                 None => self.sync_events(status.next_event_seq),
                 Some(_) => self.note_rig_counter(status.next_event_seq),
@@ -668,6 +670,9 @@ mod tests {
                 capture_id: event_seq,
                 program_index: None,
                 triggered_at_us: 3,
+                exposure: None,
+                exposure_count: 0,
+                lit: false,
                 galvo: GalvoPoint { x: 1, y: 2 },
                 channel: 0,
             }),
@@ -738,16 +743,16 @@ mod tests {
         );
         assert!(core.recovering_events());
         let req = sent_request(&mut core);
-        assert_eq!(req.command, Command::Replay { since: 11, max: 5 });
+        assert_eq!(req.command, Command::Replay { since: 11, max: 3 });
         // A retransmitted 13 meanwhile is still only one 13.
         core.handle_input(t0, &event_bytes(13));
-        core.handle_input(t0, &replay_bytes(req.seq, 2, 15, &[11, 12, 13, 14]));
+        core.handle_input(t0, &replay_bytes(req.seq, 2, 15, &[11, 12, 13]));
         assert_eq!(delivered(&mut core), vec![11, 12, 13, 14]);
         assert!(!core.recovering_events());
         assert!(core.poll_completion().is_none(), "internal request");
         let stats = core.stats();
         assert_eq!((stats.recovered_events, stats.gone_events), (2, 0));
-        assert_eq!((stats.lost_events, stats.duplicate_events), (2, 3));
+        assert_eq!((stats.lost_events, stats.duplicate_events), (2, 2));
         assert!(core.poll_transmit().is_none());
     }
 
@@ -769,12 +774,12 @@ mod tests {
         core.handle_input(t0, &reply_bytes(s, Ok(Response::Status(status))));
         core.poll_completion();
         let req = sent_request(&mut core);
-        assert_eq!(req.command, Command::Replay { since: 20, max: 5 });
+        assert_eq!(req.command, Command::Replay { since: 20, max: 3 });
         // The rig keeps only from 22 on: 20 and 21 are gone.
-        core.handle_input(t0, &replay_bytes(req.seq, 22, 28, &[22, 23, 24, 25, 26]));
+        core.handle_input(t0, &replay_bytes(req.seq, 22, 28, &[22, 23, 24]));
         let req = sent_request(&mut core);
-        assert_eq!(req.command, Command::Replay { since: 27, max: 5 });
-        core.handle_input(t0, &replay_bytes(req.seq, 22, 28, &[27]));
+        assert_eq!(req.command, Command::Replay { since: 25, max: 3 });
+        core.handle_input(t0, &replay_bytes(req.seq, 22, 28, &[25, 26, 27]));
         assert_eq!(delivered(&mut core), (22..28).collect::<Vec<_>>());
         let stats = core.stats();
         assert_eq!((stats.gone_events, stats.recovered_events), (2, 6));
@@ -802,6 +807,7 @@ mod tests {
                 minor: 1,
                 patch: 0,
             },
+            boot_nonce: 1,
             capabilities: subsurf_protocol::Capabilities {
                 steps_per_rev: 3200,
                 galvo_max: 4095,
@@ -809,6 +815,8 @@ mod tests {
                 max_speed: 1000,
                 max_accel: 1000,
                 max_exposure_us: 1000,
+                min_exposure_us: 20,
+                camera_readout_us: 0,
                 max_program_points: 10,
             },
         };
@@ -816,6 +824,33 @@ mod tests {
         core.handle_input(t0, &event_bytes(1));
         assert!(delivered(&mut core).is_empty());
         assert_eq!(core.stats().stale_events, 2);
+    }
+
+    /// A rig that reset: its counter restarts at 0. Once the host knows (a `NoSession` refusal),
+    /// the new session's events are delivered, none dropped as duplicates of the old ones.
+    #[test]
+    fn after_a_reboot_the_new_sessions_events_are_not_duplicates() {
+        let t0 = Instant::now();
+        let mut core = ClientCore::new(config(), t0, 1);
+        core.sync_events(0);
+        for i in 0..40 {
+            core.handle_input(t0, &event_bytes(i));
+        }
+        assert_eq!(delivered(&mut core).len(), 40);
+        let h = core.start(t0, Command::Heartbeat);
+        sent_request(&mut core);
+        core.handle_input(t0, &reply_bytes(h, Err(RigError::NoSession)));
+        let s = core.start(t0, Command::Status);
+        sent_request(&mut core);
+        let mut status = crate::sim::VirtualRig::new(crate::sim::SimParams::default()).status();
+        status.next_event_seq = 0;
+        status.boot_nonce = 2;
+        core.handle_input(t0, &reply_bytes(s, Ok(Response::Status(status))));
+        for i in 0..3 {
+            core.handle_input(t0, &event_bytes(i));
+        }
+        assert_eq!(delivered(&mut core), vec![0, 1, 2]);
+        assert_eq!(core.stats().duplicate_events, 0);
     }
 
     #[test]

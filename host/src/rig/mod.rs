@@ -6,11 +6,14 @@
 
 mod client;
 mod core;
+pub mod selftest;
 
 pub use client::RigClient;
 pub use core::{ClientConfig, ClientCore, ClientStats, Completion, Outcome};
 
-use subsurf_protocol::{PROTOCOL_VERSION, RigError};
+use std::path::Path;
+
+use subsurf_protocol::{PROTOCOL_VERSION, ProfileError, RigError, RigProfile};
 
 use crate::link::LinkError;
 
@@ -68,6 +71,21 @@ pub enum RigClientError {
         /// How long.
         waited: std::time::Duration,
     },
+    /// The rig reset since the handshake (its boot nonce changed, or it refused a request with
+    /// `NoSession`): the client has handshaken again, but homing, the loaded program and the
+    /// command that got this error are gone. Home again and redo the command.
+    #[error(
+        "the rig rebooted (boot nonce {old:#010x} -> {new:#010x}) while {command} was sent; \
+         the session was re-opened: home again and repeat"
+    )]
+    Rebooted {
+        /// The command that found the rig rebooted.
+        command: String,
+        /// The previous boot's nonce.
+        old: u32,
+        /// The new boot's nonce.
+        new: u32,
+    },
     /// The rig halted or faulted while an operation was awaited.
     #[error("the rig halted while waiting for {what}: {reason}")]
     Halted {
@@ -80,3 +98,96 @@ pub enum RigClientError {
 
 /// The protocol version this host speaks.
 pub const HOST_PROTOCOL_VERSION: u16 = PROTOCOL_VERSION;
+
+/// Why a rig profile file could not be used.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum ProfileFileError {
+    /// The file could not be read or written.
+    #[error("rig profile {path}: {source}")]
+    Io {
+        /// The file.
+        path: String,
+        /// The error.
+        source: std::io::Error,
+    },
+    /// Not a rig profile (JSON syntax, a missing or misspelt field).
+    #[error("rig profile {path} is not a valid profile: {source}")]
+    Parse {
+        /// The file.
+        path: String,
+        /// What serde_json said (with line and column).
+        source: serde_json::Error,
+    },
+    /// A field is out of range.
+    #[error("rig profile {path}: {error:?} is out of range (see docs/protocol.md, RigProfile)")]
+    Invalid {
+        /// The file.
+        path: String,
+        /// Which group of fields.
+        error: ProfileError,
+    },
+}
+
+/// Read and validate a rig profile file (JSON; `subsurf rig profile default` writes one for the
+/// documented wiring to start from). Unknown fields are refused, so a misspelt one is not
+/// silently ignored.
+pub fn load_profile(path: &Path) -> Result<RigProfile, ProfileFileError> {
+    let name = path.display().to_string();
+    let text = std::fs::read_to_string(path).map_err(|source| ProfileFileError::Io {
+        path: name.clone(),
+        source,
+    })?;
+    let value: serde_json::Value =
+        serde_json::from_str(&text).map_err(|source| ProfileFileError::Parse {
+            path: name.clone(),
+            source,
+        })?;
+    // Round-trip through the typed profile and back: any key the type does not have differs.
+    let profile: RigProfile =
+        serde_json::from_value(value.clone()).map_err(|source| ProfileFileError::Parse {
+            path: name.clone(),
+            source,
+        })?;
+    if serde_json::to_value(profile).ok().as_ref() != Some(&value) {
+        let unknown = serde::de::Error::custom(
+            "unknown or duplicate fields (compare with `subsurf rig profile default`)",
+        );
+        return Err(ProfileFileError::Parse {
+            path: name,
+            source: unknown,
+        });
+    }
+    profile
+        .validate()
+        .map_err(|error| ProfileFileError::Invalid { path: name, error })?;
+    Ok(profile)
+}
+
+/// A profile as the pretty JSON [`load_profile`] reads.
+pub fn profile_json(profile: &RigProfile) -> String {
+    serde_json::to_string_pretty(profile).unwrap_or_default()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn profile_files_round_trip_and_bad_ones_are_clear_errors() {
+        let d = tempfile::tempdir().expect("tempdir");
+        let p = d.path().join("rig.json");
+        std::fs::write(&p, profile_json(&RigProfile::DEFAULT)).expect("write");
+        assert_eq!(load_profile(&p).expect("loads"), RigProfile::DEFAULT);
+        let text = profile_json(&RigProfile::DEFAULT).replace("\"microsteps\": 16", "\"microsteps\": 0");
+        std::fs::write(&p, text).expect("write");
+        let e = load_profile(&p).expect_err("invalid").to_string();
+        assert!(e.contains("Gearing"), "{e}");
+        let text = profile_json(&RigProfile::DEFAULT).replace("\"microsteps\"", "\"micro_steps\"");
+        std::fs::write(&p, text).expect("write");
+        let e = load_profile(&p).expect_err("misspelt").to_string();
+        assert!(e.contains("microsteps") || e.contains("unknown"), "{e}");
+        let e = load_profile(&d.path().join("none.json")).expect_err("missing").to_string();
+        assert!(e.contains("none.json"), "{e}");
+    }
+}

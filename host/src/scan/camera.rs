@@ -49,6 +49,15 @@ pub enum CameraError {
     /// The camera specification is wrong.
     #[error("camera: {0}")]
     Spec(String),
+    /// The images on disk do not match the rig's exposure count (an image without a confirmed
+    /// exposure, or one missing between two confirmed ones).
+    #[error("camera {camera}: {message}")]
+    Mismatch {
+        /// Camera description.
+        camera: String,
+        /// What did not match.
+        message: String,
+    },
 }
 
 /// Who times the exposure.
@@ -77,6 +86,9 @@ pub struct Shot {
     pub exposure_s: f64,
     /// Rig clock at the trigger (µs), when rig-triggered.
     pub triggered_at_us: Option<u64>,
+    /// The camera's exposure count for this shot as the rig confirmed it from the
+    /// exposure-active output (rig-triggered only): which image belongs to this shot.
+    pub exposure_count: Option<u32>,
 }
 
 /// A camera.
@@ -106,13 +118,38 @@ pub trait Camera: Send {
     fn capture(&mut self, shot: &Shot) -> Result<LinearImage, CameraError>;
 }
 
-/// `dir:PATH`: a camera program writes each triggered image into a folder; images are taken in
-/// name order among files that appeared since the batch began.
+/// `dir:PATH`: a camera program writes each triggered image into a folder, named with the
+/// camera's frame counter (the last run of digits in the file name, e.g. `img_000123.exr`).
+///
+/// Images are matched to captures by count, not by file-name order: the rig confirms every
+/// exposure from the camera's exposure-active output and reports its running count
+/// ([`Shot::exposure_count`]); the offset between the camera's counter and the rig's is learned
+/// from the first image, and from then on the image for count `k` must carry number
+/// `k + offset`. An image with an unexpected number (the camera exposed without a trigger, or
+/// an image is missing) is a [`CameraError::Mismatch`], never a silent shift. Without counts
+/// (host-timed use) or without numbers in the names, images are taken in name order.
 pub struct DirCamera {
     dir: PathBuf,
     timeout: Duration,
     seen: BTreeSet<PathBuf>,
     since: SystemTime,
+    /// Camera frame number minus the rig's exposure count, once known.
+    offset: Option<i64>,
+}
+
+/// The camera's frame number in a file name: its last run of decimal digits.
+fn frame_number(p: &Path) -> Option<i64> {
+    let stem = p.file_stem()?.to_string_lossy().into_owned();
+    let digits: String = stem
+        .chars()
+        .rev()
+        .skip_while(|c| !c.is_ascii_digit())
+        .take_while(|c| c.is_ascii_digit())
+        .collect::<Vec<_>>()
+        .into_iter()
+        .rev()
+        .collect();
+    digits.parse().ok()
 }
 
 impl DirCamera {
@@ -129,6 +166,7 @@ impl DirCamera {
             timeout,
             seen: BTreeSet::new(),
             since: SystemTime::UNIX_EPOCH,
+            offset: None,
         };
         // Files already there belong to earlier runs.
         cam.seen = cam.listing().into_iter().collect();
@@ -165,12 +203,44 @@ impl Camera for DirCamera {
     fn capture(&mut self, shot: &Shot) -> Result<LinearImage, CameraError> {
         let start = Instant::now();
         loop {
-            let next = self.listing().into_iter().find(|p| {
-                !self.seen.contains(p)
-                    && std::fs::metadata(p)
-                        .and_then(|m| m.modified())
-                        .is_ok_and(|t| t + Duration::from_secs(2) >= self.since)
-            });
+            let fresh: Vec<PathBuf> = self
+                .listing()
+                .into_iter()
+                .filter(|p| {
+                    !self.seen.contains(p)
+                        && std::fs::metadata(p)
+                            .and_then(|m| m.modified())
+                            .is_ok_and(|t| t + Duration::from_secs(2) >= self.since)
+                })
+                .collect();
+            let next = match shot.exposure_count {
+                Some(count) if fresh.iter().all(|p| frame_number(p).is_some()) => {
+                    let lowest = fresh.iter().filter_map(|p| frame_number(p)).min();
+                    let offset = match (self.offset, lowest) {
+                        (Some(o), _) => Some(o),
+                        (None, Some(n)) => Some(n - i64::from(count)),
+                        (None, None) => None,
+                    };
+                    let want = offset.map(|o| i64::from(count) + o);
+                    if let (Some(want), Some(lowest)) = (want, lowest)
+                        && lowest < want
+                    {
+                        return Err(CameraError::Mismatch {
+                            camera: self.describe(),
+                            message: format!(
+                                "image number {lowest} arrived but the rig confirmed no exposure \
+                                 for it (frame {} expects image {want})",
+                                shot.frame
+                            ),
+                        });
+                    }
+                    if let Some(o) = offset {
+                        self.offset = Some(o);
+                    }
+                    fresh.into_iter().find(|p| frame_number(p) == want)
+                }
+                _ => fresh.into_iter().next(),
+            };
             if let Some(p) = next {
                 // Wait until the writer is done: the size is stable across a short pause.
                 let s1 = std::fs::metadata(&p).map(|m| m.len()).unwrap_or(0);
@@ -319,6 +389,7 @@ mod tests {
             channel: 0,
             exposure_s: 0.01,
             triggered_at_us: None,
+            exposure_count: None,
         }
     }
 
@@ -339,6 +410,31 @@ mod tests {
         assert_eq!(cam.capture(&shot(1)).unwrap().data[0], 2.0);
         let e = cam.capture(&shot(2)).unwrap_err().to_string();
         assert!(e.contains("no image for frame 2"), "{e}");
+    }
+
+    #[test]
+    fn dir_camera_matches_images_by_exposure_count_not_name_order() {
+        let d = tempfile::tempdir().unwrap();
+        let mut cam = DirCamera::new(d.path(), Duration::from_millis(150)).unwrap();
+        let counted = |frame, count| Shot {
+            exposure_count: Some(count),
+            ..shot(frame)
+        };
+        // The camera's counter is at 100 when the rig's is at 7; names sort differently from
+        // numbers ("img_99" > "img_100" as text).
+        std::fs::write(d.path().join("img_101.exr"), exr(2.0)).unwrap();
+        std::fs::write(d.path().join("img_100.exr"), exr(1.0)).unwrap();
+        assert_eq!(cam.capture(&counted(0, 7)).unwrap().data[0], 1.0);
+        assert_eq!(cam.capture(&counted(1, 8)).unwrap().data[0], 2.0);
+        // The rig saw count 9 unconfirmed (missed trigger) and moved on to 10: image 103 is the
+        // one for it, and a stray image 102 (no confirmed exposure) is a mismatch, not a shift.
+        std::fs::write(d.path().join("img_102.exr"), exr(3.0)).unwrap();
+        std::fs::write(d.path().join("img_103.exr"), exr(4.0)).unwrap();
+        let e = cam.capture(&counted(2, 10)).unwrap_err().to_string();
+        assert!(e.contains("image number 102"), "{e}");
+        // Without numbers in the names (or without counts) name order still works.
+        assert_eq!(frame_number(Path::new("a/shot.exr")), None);
+        assert_eq!(frame_number(Path::new("cam0-000042.tiff")), Some(42));
     }
 
     #[test]

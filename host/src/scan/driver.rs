@@ -67,6 +67,20 @@ pub enum ScanError {
     /// The plan does not fit the rig.
     #[error("the plan does not fit the rig: {0}")]
     Plan(String),
+    /// The camera's exposure count does not match the rig's captures (a missed trigger, an
+    /// extra exposure, or an exposure the laser did not cover): images would land on the wrong
+    /// galvo points, so the scan stops; the frames before are kept.
+    #[error(
+        "frame {frame}: {message}; the scan stopped with the laser off and every frame before it \
+         kept. Check the camera trigger and exposure-active wiring, its read-out time and the rig \
+         profile (`subsurf rig profile`), then run the same command again to resume"
+    )]
+    CaptureMismatch {
+        /// The frame whose capture did not match.
+        frame: usize,
+        /// What did not match.
+        message: String,
+    },
     /// Stopped on request (Ctrl-C); the laser is off.
     #[error("stopped on request after frame {done} of {total}; run the same command to resume")]
     Interrupted {
@@ -86,7 +100,10 @@ impl ScanError {
 
 fn classify(e: RigClientError) -> ScanError {
     match e {
-        RigClientError::Link(_) | RigClientError::NoReply { .. } => ScanError::Link(e),
+        // A rig that reset is reached again like a lost one: a new session homes and resumes.
+        RigClientError::Link(_) | RigClientError::NoReply { .. } | RigClientError::Rebooted { .. } => {
+            ScanError::Link(e)
+        }
         e => ScanError::Rig(e),
     }
 }
@@ -112,7 +129,8 @@ pub struct ScanConfig {
     pub move_accel: Option<u32>,
     /// Camera trigger pulse (µs).
     pub trigger_us: u32,
-    /// Minimum time between captures (camera read-out), µs.
+    /// Minimum time between capture starts, µs; never less than the exposure plus the rig
+    /// profile's camera read-out (0 = exactly that).
     pub interval_us: u32,
     /// Most points per uploaded program (bounds memory for HDR brackets).
     pub chunk_points: usize,
@@ -471,6 +489,7 @@ impl<'a> Scan<'a> {
             channel: self.cfg.laser_channel,
             exposure_s: exp_us as f64 * 1e-6,
             triggered_at_us: None,
+            exposure_count: None,
         }
     }
 
@@ -495,13 +514,18 @@ impl<'a> Scan<'a> {
                 y: f.galvo[1],
             })
             .collect();
+        let readout = rig.hello().capabilities.camera_readout_us;
+        let interval_us = self
+            .cfg
+            .interval_us
+            .max(exp_us.saturating_add(readout));
         let header = ProgramHeader {
             len: points.len() as u16,
             channel: self.cfg.laser_channel,
             settle_us: None,
             exposure_us: exp_us,
             trigger_us: self.cfg.trigger_us.min(exp_us).max(1),
-            interval_us: self.cfg.interval_us,
+            interval_us,
         };
         camera.begin_batch().map_err(|e| ScanError::Camera {
             frame: rest[0].index,
@@ -510,16 +534,28 @@ impl<'a> Scan<'a> {
         })?;
         rig.load_program(header, &points)
             .map_err(|e| self.halted_or(e))?;
+        // Images are matched to captures by the camera's exposure count, which the rig confirms
+        // per capture from the camera's exposure-active output.
+        let base = rig.status().map_err(classify)?.exposures;
         let first_id = rig.run_program().map_err(|e| self.halted_or(e))?;
-        let per = Duration::from_micros(
-            2_000_000 + 4 * (exp_us as u64 + self.cfg.interval_us as u64 + 50_000),
-        );
+        let per =
+            Duration::from_micros(2_000_000 + 4 * (exp_us as u64 + interval_us as u64 + 50_000));
         for (i, f) in rest.iter().enumerate() {
             let c = wait_capture(rig, first_id.wrapping_add(i as u32), per)
                 .map_err(|e| self.halted_or(e))?;
+            let expected = base.wrapping_add(i as u32 + 1);
+            if let Some(message) = capture_mismatch(&c, expected) {
+                let _ = rig.stop();
+                let _ = drain_events(rig);
+                return Err(ScanError::CaptureMismatch {
+                    frame: f.index,
+                    message,
+                });
+            }
             let mut shot = self.shot(f, b, deg, exp_us);
             shot.galvo = [c.galvo.x, c.galvo.y];
             shot.triggered_at_us = Some(c.triggered_at_us);
+            shot.exposure_count = Some(c.exposure_count);
             match fetch(rig, camera, &shot)? {
                 Ok(img) => {
                     out[i].push(Bracket {
@@ -685,6 +721,34 @@ struct Progressed {
 }
 
 /// Drops events already sent by the rig (those of a stopped program).
+/// Why capture `c` cannot be trusted, if it cannot: the camera did not confirm it, its count is
+/// not the `expected` one (an exposure the rig did not trigger, or one missed earlier), or the
+/// laser did not cover the whole exposure.
+pub fn capture_mismatch(c: &subsurf_protocol::Captured, expected: u32) -> Option<String> {
+    if c.exposure.is_none() {
+        return Some(format!(
+            "the camera did not confirm capture {} (no exposure-active edge: a missed trigger, \
+             or the camera was still reading out)",
+            c.capture_id
+        ));
+    }
+    if c.exposure_count != expected {
+        return Some(format!(
+            "capture {} is the camera's exposure {} but should be exposure {expected}: the camera \
+             took an exposure the rig did not trigger, or missed one",
+            c.capture_id, c.exposure_count
+        ));
+    }
+    if !c.lit {
+        return Some(format!(
+            "the laser did not cover the whole exposure of capture {} (exposure-active {:?}): \
+             raise laser.lead_us / laser.tail_us in the rig profile",
+            c.capture_id, c.exposure
+        ));
+    }
+    None
+}
+
 fn drain_events<L: ByteLink>(rig: &mut RigClient<L>) -> Result<(), ScanError> {
     rig.poll(Duration::from_millis(20)).map_err(classify)?;
     while rig.next_event(Duration::ZERO).map_err(classify)?.is_some() {}

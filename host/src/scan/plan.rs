@@ -609,8 +609,12 @@ pub struct RigTiming {
     pub settle_per_code_s: f64,
     /// Fixed cost per capture on top of exposure and settle (trigger, laser switching, event).
     pub capture_overhead_s: f64,
-    /// Minimum time between the starts of consecutive program captures (camera read-out).
+    /// Minimum time between the starts of consecutive program captures.
     pub interval_s: f64,
+    /// Camera read-out after each exposure (s): a program capture period is at least the
+    /// exposure plus this (the rig refuses shorter intervals).
+    #[serde(default)]
+    pub readout_s: f64,
 }
 
 /// Time of a trapezoidal (or triangular) move of `steps` steps from rest to rest.
@@ -690,8 +694,12 @@ pub fn estimate_duration(plan: &ScanPlan, t: &RigTiming, frame_from: usize) -> D
                 est.settle_s += settle;
                 est.exposure_s += exp;
                 let busy = settle + exp;
-                est.overhead_s +=
-                    brackets * t.capture_overhead_s + (brackets * t.interval_s - busy).max(0.0);
+                let period: f64 = plan
+                    .exposures_s
+                    .iter()
+                    .map(|e| t.interval_s.max(e + t.readout_s))
+                    .sum();
+                est.overhead_s += brackets * t.capture_overhead_s + (period - busy).max(0.0);
                 g = Some(c);
             }
             frame += 1;

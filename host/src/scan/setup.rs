@@ -10,7 +10,7 @@ use crate::simulate::{Field, Sensor, SimObject, Spot};
 use std::fmt::Write as _;
 use std::path::Path;
 use std::time::Duration;
-use subsurf_protocol::{Capabilities, Config};
+use subsurf_protocol::RigProfile;
 
 /// Radius of the built-in object, mm: a bead. Small, so that a vertex spacing and a pixel
 /// footprint fine enough for the material (see [`builtin_object`]) stay a few thousand vertices
@@ -68,10 +68,7 @@ pub fn builtin_image_size() -> u32 {
 ///   noise as the sensor allows — but no longer than the simulated rig accepts.
 pub fn sim_exposures_s() -> Vec<f64> {
     let sensor = sim_sensor();
-    let rig_max = subsurf_firmware::sim::SimParams::default()
-        .capabilities
-        .max_exposure_us as f64
-        * 1e-6;
+    let rig_max = f64::from(subsurf_protocol::MAX_EXPOSURE_US) * 1e-6;
     let Some(sat) = sensor.saturation else {
         return vec![sensor.exposure_s.min(rig_max)];
     };
@@ -114,41 +111,45 @@ pub fn obj_text(mesh: &Mesh) -> Vec<u8> {
     s.into_bytes()
 }
 
-/// The rig's timing from its handshake capabilities and configuration, for the move speed and
-/// acceleration and capture interval the scan will use.
+/// The rig's timing from its profile, for the move speed and acceleration and capture interval
+/// the scan will use.
 pub fn rig_timing(
-    caps: &Capabilities,
-    cfg: &Config,
+    profile: &RigProfile,
     speed: Option<u32>,
     accel: Option<u32>,
     interval_us: u32,
 ) -> RigTiming {
-    let v = speed.unwrap_or(caps.max_speed).min(caps.max_speed) as f64;
-    let a = accel.unwrap_or(caps.max_accel).min(caps.max_accel) as f64;
-    let hv = cfg.home_speed.min(caps.max_speed) as f64;
-    let ha = cfg.home_accel.min(caps.max_accel) as f64;
-    // Homing runs at home speed until the switch, from anywhere: half a turn on average, and it
-    // stops on the switch without decelerating.
-    let half = caps.steps_per_rev as f64 / 2.0;
-    let home_s = if hv > 0.0 && ha > 0.0 {
+    let (max_v, max_a) = (profile.motor.max_speed, profile.motor.max_accel);
+    let v = speed.unwrap_or(max_v).min(max_v) as f64;
+    let a = accel.unwrap_or(max_a).min(max_a) as f64;
+    let h = &profile.homing;
+    let (hv, ha, slow) = (h.speed as f64, h.accel as f64, h.slow_speed as f64);
+    let spr = profile.steps_per_rev().unwrap_or(1);
+    // Two-pass homing from anywhere (half a turn on average): the fast approach brakes past the
+    // switch by its ramp, the release pass comes back through it and brakes again, then the
+    // back-off and the slow approach over ramp + back-off at the slow speed.
+    let half = spr as f64 / 2.0;
+    let home_s = if hv > 0.0 && ha > 0.0 && slow > 0.0 {
         let ramp = hv * hv / (2.0 * ha);
-        if half > ramp {
-            hv / ha + (half - ramp) / hv
-        } else {
-            (2.0 * half / ha).sqrt()
-        }
+        let backoff = h.backoff_steps as f64;
+        super::plan::trapezoid_s(half as u64, hv, ha)
+            + super::plan::trapezoid_s((2.0 * ramp) as u64, hv, ha)
+            + backoff / slow
+            + (ramp + backoff) / slow
     } else {
         0.0
     };
     RigTiming {
-        steps_per_rev: caps.steps_per_rev,
+        steps_per_rev: spr,
         max_speed_sps: v,
         accel_sps2: a,
         home_s,
-        settle_base_s: cfg.galvo_settle_min_us as f64 * 1e-6,
-        settle_per_code_s: cfg.galvo_settle_per_kcode_us as f64 * 1e-9,
-        capture_overhead_s: 0.0,
+        settle_base_s: profile.galvo.settle_min_us as f64 * 1e-6,
+        settle_per_code_s: profile.galvo.settle_per_kcode_us as f64 * 1e-9,
+        // The laser window's margins around each exposure.
+        capture_overhead_s: f64::from(profile.laser.lead_us + profile.laser.tail_us) * 1e-6,
         interval_s: interval_us as f64 * 1e-6,
+        readout_s: f64::from(profile.camera.readout_us) * 1e-6,
     }
 }
 

@@ -213,6 +213,19 @@ mod tests {
         use subsurf_protocol::{Command, Request, encode_request};
         let mut rig = VirtualRig::default();
         let mut t = 0;
+        let mut buf = [0u8; subsurf_protocol::MAX_FRAME];
+        let hello = Command::Hello {
+            protocol_version: subsurf_protocol::PROTOCOL_VERSION,
+        };
+        let n = encode_request(
+            &Request {
+                seq: 10_000,
+                command: hello,
+            },
+            &mut buf,
+        )
+        .expect("encode");
+        rig.handle_input(t, &buf[..n]);
         for i in 0..1000u16 {
             let mut buf = [0u8; subsurf_protocol::MAX_FRAME];
             let command = Command::Galvo(GalvoPoint { x: i, y: 1 });
@@ -242,7 +255,9 @@ mod tests {
             Command, EventKind, FrameDecoder, ProgramChunk, ProgramHeader, Request, RigMessage,
             encode_request,
         };
-        let mut rig = VirtualRig::default();
+        let mut params = SimParams::default();
+        params.profile.camera.readout_us = 100;
+        let mut rig = VirtualRig::new(params);
         let mut seq = 0;
         let mut send = |rig: &mut VirtualRig, command: Command| {
             let mut buf = [0u8; subsurf_protocol::MAX_FRAME];
@@ -252,6 +267,12 @@ mod tests {
             rig.handle_input(now, &buf[..n]);
         };
         let len = 200u16;
+        send(
+            &mut rig,
+            Command::Hello {
+                protocol_version: subsurf_protocol::PROTOCOL_VERSION,
+            },
+        );
         send(&mut rig, Command::Arm);
         send(
             &mut rig,
@@ -259,9 +280,9 @@ mod tests {
                 len,
                 channel: 0,
                 settle_us: Some(1),
-                exposure_us: 1,
+                exposure_us: 20,
                 trigger_us: 1,
-                interval_us: 1,
+                interval_us: 120,
             }),
         );
         for offset in (0..len).step_by(subsurf_protocol::PROGRAM_CHUNK) {

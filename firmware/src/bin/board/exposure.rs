@@ -27,32 +27,14 @@ pub const TIMER_CLOCK_HZ: u32 = 168_000_000;
 pub const COUNTER_MAX: u32 = 0xffff;
 /// Shortest trigger pulse: the compare interrupt that ends it must run within it.
 pub const MIN_TRIGGER_US: u32 = 10;
-/// Shortest exposure the hardware honours: below this the camera's own minimum (and the timer's
-/// 1 µs resolution) make the laser window, not the exposure, decide the light.
-pub const MIN_EXPOSURE_US: u32 = 20;
-
-/// Margins around one exposure, µs (part of the board's settings).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Margins {
-    /// Laser on this long before the trigger edge (laser rise time, speckle settling).
-    pub lead_us: u32,
-    /// Trigger edge to start of integration, camera's worst case.
-    pub trigger_latency_us: u32,
-    /// Laser stays on this long after the exposure should have ended (camera jitter).
-    pub tail_us: u32,
-}
-
-impl Margins {
-    /// Defaults for a typical machine-vision camera (a few µs trigger latency and jitter).
-    pub const DEFAULT: Self = Self {
-        lead_us: 20,
-        trigger_latency_us: 20,
-        tail_us: 20,
-    };
-}
+/// Shortest exposure the board times: the protocol's floor (the rig profile's
+/// `camera.min_exposure_us` may only raise it); below it the timer's 1 µs resolution and the laser
+/// driver's rise time, not the exposure, decide the light.
+pub const MIN_EXPOSURE_US: u32 = subsurf_protocol::MIN_EXPOSURE_FLOOR_US;
 
 /// Why an exposure cannot be timed.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(target_os = "none", derive(defmt::Format))]
 pub enum ExposureError {
     /// Shorter than [`MIN_EXPOSURE_US`].
     TooShort,
@@ -91,20 +73,19 @@ impl Plan {
     }
 }
 
-/// The timer plan for an exposure of `exposure_us` with a trigger pulse of `trigger_us`: laser on
-/// `lead_us` before the trigger edge and off `trigger_latency_us + exposure_us + tail_us` after it.
-pub fn plan(exposure_us: u32, trigger_us: u32, m: Margins) -> Result<Plan, ExposureError> {
-    if exposure_us < MIN_EXPOSURE_US {
+/// The timer plan for a window as the core announces it: trigger edge `lead_us` after the timer
+/// start (the laser is on from the start), trigger pulse `trigger_us`, an exposure of
+/// `exposure_us`, laser off `after_us` after the trigger edge (exposure, the camera's trigger
+/// latency and a tail; at least the exposure).
+pub fn plan_window(
+    lead_us: u64,
+    trigger_us: u32,
+    exposure_us: u32,
+    after_us: u64,
+) -> Result<Plan, ExposureError> {
+    if exposure_us < MIN_EXPOSURE_US || after_us < u64::from(exposure_us) {
         return Err(ExposureError::TooShort);
     }
-    let after = u64::from(m.trigger_latency_us) + u64::from(exposure_us) + u64::from(m.tail_us);
-    plan_window(u64::from(m.lead_us), trigger_us, after)
-}
-
-/// The timer plan for a window given as the core announces it: trigger edge `lead_us` after the
-/// timer start (the laser is on from the start), trigger pulse `trigger_us`, laser off `after_us`
-/// after the trigger edge.
-pub fn plan_window(lead_us: u64, trigger_us: u32, after_us: u64) -> Result<Plan, ExposureError> {
     if trigger_us < MIN_TRIGGER_US || u64::from(trigger_us) >= after_us {
         return Err(ExposureError::BadTrigger);
     }

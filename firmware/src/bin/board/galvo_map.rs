@@ -4,12 +4,12 @@
 //! The protocol speaks galvo codes `0..=galvo_max` per axis (the capabilities' `galvo_max`). The
 //! board turns them into DAC codes for one of two output paths:
 //!
-//! - [`GalvoOutput::ExternalSpi`], the documented choice: a 16-bit dual SPI DAC (AD5689R, internal
+//! - [`GalvoOutput::ExternalDac16`], the documented choice: a 16-bit dual SPI DAC (AD5689R, internal
 //!   2.5 V reference, gain ×2: 0–5 V) followed by a difference amplifier per axis,
 //!   `V_out = G·(V_dac − 2.5 V)` with `G` = 4 (±10 V galvo inputs) or 2 (±5 V). Code 0 is the
 //!   negative end, 32768 is 0 V (mirror centred), 65535 the positive end. The DAC powers up at
 //!   mid-scale (RSTSEL tied high), so the mirrors sit centred from power-on on.
-//! - [`GalvoOutput::InternalDac`], the fallback: the STM32's 12-bit DAC with its output buffer,
+//! - [`GalvoOutput::InternalDac12`], the fallback: the STM32's 12-bit DAC with its output buffer,
 //!   which only swings about 0.2–3.1 V on a 3.3 V supply (not rail to rail). The full protocol
 //!   range maps linearly onto that usable window instead of clipping at the rails.
 //!
@@ -17,14 +17,7 @@
 //! configuration, not wiring. No slam at boot: [`Slew`] ramps the first command after power-on
 //! from the centre in bounded steps.
 
-/// Which DAC drives the galvo inputs.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum GalvoOutput {
-    /// 16-bit dual SPI DAC (AD5689R class) + bipolar output stage.
-    ExternalSpi,
-    /// The STM32's buffered 12-bit DAC on PA4/PA5 (Y shares LED LD2).
-    InternalDac,
-}
+pub use subsurf_protocol::GalvoOutput;
 
 /// Supply of the internal DAC, mV.
 pub const VDDA_MV: u32 = 3_300;
@@ -71,7 +64,7 @@ impl GalvoMap {
     /// linear 0.2–3.1 V window on the internal one; announced as `galvo_max` = 65535 or 4095.
     pub const fn for_output(output: GalvoOutput) -> Self {
         match output {
-            GalvoOutput::ExternalSpi => Self {
+            GalvoOutput::ExternalDac16 => Self {
                 output,
                 galvo_max: EXTERNAL_FULL,
                 dac_lo: 0,
@@ -80,7 +73,7 @@ impl GalvoMap {
                 invert_y: false,
                 swap_xy: false,
             },
-            GalvoOutput::InternalDac => Self {
+            GalvoOutput::InternalDac12 => Self {
                 output,
                 galvo_max: INTERNAL_FULL,
                 dac_lo: internal_code_for_mv(INTERNAL_MIN_MV),
@@ -90,15 +83,6 @@ impl GalvoMap {
                 swap_xy: false,
             },
         }
-    }
-
-    /// Whether the map is usable (non-empty windows inside the DAC's range).
-    pub fn is_valid(&self) -> bool {
-        let full = match self.output {
-            GalvoOutput::ExternalSpi => EXTERNAL_FULL,
-            GalvoOutput::InternalDac => INTERNAL_FULL,
-        };
-        self.galvo_max > 0 && self.dac_lo < self.dac_hi && self.dac_hi <= full
     }
 
     fn axis(&self, code: u16, invert: bool) -> u16 {

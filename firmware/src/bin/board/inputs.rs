@@ -8,17 +8,18 @@ use core::cell::RefCell;
 use core::marker::PhantomData;
 use core::sync::atomic::{AtomicBool, Ordering};
 
+use embassy_stm32::Peri;
 use embassy_stm32::exti::ExtiInput;
+use embassy_stm32::gpio::{Input, Pull};
 use embassy_stm32::interrupt::typelevel::{Handler, Interrupt};
 use embassy_stm32::mode::Async;
 use embassy_stm32::pac;
-use embassy_stm32::Peri;
-use embassy_stm32::gpio::{Input, Pull};
 use embassy_stm32::peripherals as p;
 use embassy_sync::blocking_mutex::CriticalSectionMutex;
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
 use embassy_sync::signal::Signal;
 use heapless::Deque;
+use subsurf_firmware::hal::CameraEdge;
 
 use crate::outputs::force_lasers_off;
 use crate::safety::{SafetyPins, on_exti};
@@ -47,7 +48,8 @@ impl<I: Interrupt> Handler<I> for SafetyCut<I> {
             force_lasers_off();
         }
         if cut.stepper {
-            stepper::force_stop();
+            // Registers only: the queue stays, so the core's flush can count what was not output.
+            stepper::fault_stop();
         }
     }
 }
@@ -75,7 +77,7 @@ pub async fn estop(mut pin: ExtiInput<'static, Async>) {
         if pressed {
             // Already done by `SafetyCut` in the interrupt; repeated for the state at start-up.
             force_lasers_off();
-            stepper::force_stop();
+            stepper::fault_stop();
             defmt::warn!("emergency stop");
         }
         store(&ESTOP, pressed);
@@ -106,26 +108,15 @@ pub async fn home(mut pin: ExtiInput<'static, Async>) {
     }
 }
 
-/// A camera line edge with its time (rig µs).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, defmt::Format)]
-pub enum CameraLineEdge {
-    /// The trigger went active (placed by TIM8, so its time is exact).
-    Trigger(u64),
-    /// Exposure-active went active.
-    ExposureStart(u64),
-    /// Exposure-active went inactive.
-    ExposureEnd(u64),
-}
-
 /// Edges not yet taken by the rig task. 16 covers several brackets between two wakes; when full,
 /// the oldest is dropped and counted.
-static EDGES: CriticalSectionMutex<RefCell<Deque<CameraLineEdge, 16>>> =
+static EDGES: CriticalSectionMutex<RefCell<Deque<CameraEdge, 16>>> =
     CriticalSectionMutex::new(RefCell::new(Deque::new()));
 /// Exposure-active output is active low (from the rig profile).
 static EXPOSURE_ACTIVE_LOW: AtomicBool = AtomicBool::new(false);
 
 /// Queue an edge (from an interrupt or a task).
-pub fn push_edge(edge: CameraLineEdge) {
+pub fn push_edge(edge: CameraEdge) {
     EDGES.lock(|q| {
         if let Ok(mut q) = q.try_borrow_mut() {
             if q.is_full() {
@@ -138,7 +129,7 @@ pub fn push_edge(edge: CameraLineEdge) {
 }
 
 /// The oldest edge not yet taken.
-pub fn pop_edge() -> Option<CameraLineEdge> {
+pub fn pop_edge() -> Option<CameraEdge> {
     EDGES.lock(|q| q.try_borrow_mut().ok().and_then(|mut q| q.pop_front()))
 }
 
@@ -152,9 +143,13 @@ pub struct ExposureInput {
 
 impl ExposureInput {
     /// Take PB6 (pull-down: an unconnected output reads inactive for active-high cameras).
-    pub fn new(pin: Peri<'static, p::PB6>, line: Peri<'static, p::EXTI6>, active_low: bool) -> Self {
-        EXPOSURE_ACTIVE_LOW.store(active_low, Ordering::SeqCst);
-        let pin = Input::new(pin, if active_low { Pull::Up } else { Pull::Down });
+    pub fn new(
+        pin: Peri<'static, p::PB6>,
+        line: Peri<'static, p::EXTI6>,
+        active_low: bool,
+    ) -> Self {
+        let pin = Input::new(pin, Pull::Down);
+        set_exposure_active_low(active_low);
         cortex_m::interrupt::free(|_| {
             // EXTICR2 holds lines 4..7; line 6 from port B (1).
             pac::SYSCFG.exticr(1).modify(|w| w.set_exti(2, 1));
@@ -168,6 +163,18 @@ impl ExposureInput {
             _line: line,
         }
     }
+}
+
+/// Exposure-active polarity (from the rig profile): the pull resistor follows, so an unconnected
+/// input reads inactive.
+pub fn set_exposure_active_low(active_low: bool) {
+    EXPOSURE_ACTIVE_LOW.store(active_low, Ordering::SeqCst);
+    let pull = if active_low {
+        pac::gpio::vals::Pupdr::PULL_UP
+    } else {
+        pac::gpio::vals::Pupdr::PULL_DOWN
+    };
+    pac::GPIOB.pupdr().modify(|w| w.set_pupdr(6, pull));
 }
 
 /// Second handler on EXTI9_5 (after [`SafetyCut`], before embassy's): timestamps exposure-active
@@ -184,9 +191,9 @@ impl Handler<embassy_stm32::interrupt::typelevel::EXTI9_5> for ExposureEdge {
         let high = pac::GPIOB.idr().read().idr(6) == pac::gpio::vals::Idr::HIGH;
         let active = high != EXPOSURE_ACTIVE_LOW.load(Ordering::Relaxed);
         push_edge(if active {
-            CameraLineEdge::ExposureStart(at)
+            CameraEdge::ExposureStart(at)
         } else {
-            CameraLineEdge::ExposureEnd(at)
+            CameraEdge::ExposureEnd(at)
         });
         CHANGED.signal(());
     }

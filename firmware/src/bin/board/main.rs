@@ -10,10 +10,8 @@
 #![no_std]
 #![no_main]
 
-// The timed-exposure path is driven by the core's exposure window (ExposureWindow, landing with
-// the rig profile); until then captures use the software edges.
-#[allow(dead_code)]
 mod exposure;
+mod flash_record;
 mod galvo_map;
 mod inputs;
 mod outputs;
@@ -22,6 +20,7 @@ mod pulse_train;
 mod rig;
 mod safety;
 mod stepper;
+mod store;
 
 use core::sync::atomic::{AtomicU32, Ordering};
 
@@ -35,10 +34,10 @@ use embassy_stm32::{bind_interrupts, interrupt, peripherals};
 use embassy_time::{Duration, Timer};
 use static_cell::StaticCell;
 
-use crate::galvo_map::{GalvoMap, GalvoOutput};
-use crate::outputs::{CameraTiming, Galvo, force_lasers_off};
+use crate::outputs::{CameraIo, CameraTiming, Galvo, GalvoPins, force_lasers_off};
 use crate::pins::Board;
 use crate::stepper::{StepGen, StepperIo};
+use crate::store::Store;
 
 bind_interrupts!(struct Irqs {
     USART2 => usart::BufferedInterruptHandler<peripherals::USART2>;
@@ -80,30 +79,6 @@ const fn parse_baud(text: Option<&str>) -> u32 {
     value
 }
 
-/// Galvo output path: the external SPI DAC, or the internal DAC with `SUBSURF_GALVO=internal` at
-/// build time.
-const GALVO_OUTPUT: GalvoOutput = match option_env!("SUBSURF_GALVO") {
-    Some(v) if const_eq(v, "internal") => GalvoOutput::InternalDac,
-    Some(v) if const_eq(v, "spi") => GalvoOutput::ExternalSpi,
-    None => GalvoOutput::ExternalSpi,
-    Some(_) => panic!("SUBSURF_GALVO must be `spi` or `internal`"),
-};
-
-const fn const_eq(a: &str, b: &str) -> bool {
-    let (a, b) = (a.as_bytes(), b.as_bytes());
-    if a.len() != b.len() {
-        return false;
-    }
-    let mut i = 0;
-    while i < a.len() {
-        if a[i] != b[i] {
-            return false;
-        }
-        i += 1;
-    }
-    true
-}
-
 /// Watchdog timeout: a hung executor or a stalled rig task resets the chip after this long.
 const WATCHDOG_TIMEOUT_US: u32 = 500_000;
 /// Incremented by the rig task every loop; the watchdog task only pets while it moves.
@@ -113,17 +88,27 @@ pub static RIG_ALIVE: AtomicU32 = AtomicU32::new(0);
 async fn main(spawner: Spawner) {
     let p = embassy_stm32::init(clock_config());
     let board = Board::new(p);
-    // First thing after the clocks: laser enables parked at their inactive level, trigger idle.
-    let camera = CameraTiming::new(
+    // First thing after the clocks: laser enables parked at their inactive level (default
+    // polarity until the profile is read, which the external resistors hold anyway), trigger idle.
+    let mut camera = CameraTiming::new(
         board.camera_timer,
         board.laser_r,
         board.camera_trigger,
         board.laser_g,
         board.laser_b,
-        3,
-        false,
-        false,
+        CameraIo {
+            channels: 3,
+            laser_active_low: false,
+            trigger_active_low: false,
+        },
     );
+    let store = Store::new(board.flash);
+    let profile = rig::stored_profile(&store);
+    camera.configure(CameraIo {
+        channels: profile.laser.channels,
+        laser_active_low: profile.laser.active_low,
+        trigger_active_low: profile.camera.trigger_active_low,
+    });
     defmt::info!(
         "subsurf firmware {} on STM32F446RE, link {} baud",
         env!("CARGO_PKG_VERSION"),
@@ -139,30 +124,22 @@ async fn main(spawner: Spawner) {
         board.step,
         board.dir,
         board.enable,
-        StepperIo {
-            pulse_us: 5,
-            step_active_low: false,
-            invert_dir: false,
-            enable_active_low: true,
-        },
+        StepperIo::from(&profile.motor),
     );
     // Holding torque from here on keeps the position.
     stepper.set_enabled(true);
-    let galvo = match GALVO_OUTPUT {
-        GalvoOutput::ExternalSpi => Galvo::external(
-            board.galvo_spi,
-            board.galvo_sck,
-            board.galvo_mosi,
-            board.galvo_sync,
-            GalvoMap::for_output(GALVO_OUTPUT),
-        ),
-        GalvoOutput::InternalDac => Galvo::internal(
-            board.dac,
-            board.galvo_x,
-            board.galvo_y,
-            GalvoMap::for_output(GALVO_OUTPUT),
-        ),
-    };
+    let galvo = Galvo::new(
+        GalvoPins {
+            spi: board.galvo_spi,
+            sck: board.galvo_sck,
+            mosi: board.galvo_mosi,
+            sync: board.galvo_sync,
+            dac: board.dac,
+            x: board.galvo_x,
+            y: board.galvo_y,
+        },
+        profile.galvo.output,
+    );
 
     let estop = ExtiInput::new(board.estop, board.estop_exti, Pull::Up, Irqs);
     let interlock = ExtiInput::new(board.interlock, board.interlock_exti, Pull::Up, Irqs);
@@ -186,8 +163,46 @@ async fn main(spawner: Spawner) {
         link_config,
     ));
 
-    let hardware = rig::Hardware::new(stepper, galvo, camera);
-    spawner.spawn(defmt::unwrap!(rig::run(link, hardware)));
+    let mut hardware = rig::Hardware::new(stepper, galvo, camera, store);
+    hardware.apply_profile(&profile);
+    spawner.spawn(defmt::unwrap!(rig::run(
+        link,
+        hardware,
+        profile,
+        boot_nonce()
+    )));
+}
+
+/// Survives a reset (not a power cycle): counts resets, so the boot nonce differs after every
+/// watchdog or software reset even where RAM contents repeat.
+#[unsafe(link_section = ".uninit.BOOT_COUNT")]
+static mut BOOT_COUNT: core::mem::MaybeUninit<u32> = core::mem::MaybeUninit::uninit();
+
+/// A number that differs from one boot to the next, for the core's sessions (the host detects a
+/// reboot by it). The STM32F446 has no hardware RNG: this mixes a reset counter kept in
+/// uninitialised RAM (random after power-on, incremented by every reset), the chip's unique ID and
+/// the boot time so far, through FNV-1a.
+fn boot_nonce() -> u32 {
+    // SAFETY: single-threaded start-up, before any task runs; the static is only touched here,
+    // and any bit pattern is a valid u32.
+    let count = unsafe {
+        let slot = &mut *core::ptr::addr_of_mut!(BOOT_COUNT);
+        let next = slot.assume_init_read().wrapping_add(1);
+        slot.write(next);
+        next
+    };
+    let uid = embassy_stm32::uid::uid();
+    let now = embassy_time::Instant::now().as_ticks();
+    let mut hash: u32 = 0x811c_9dc5;
+    for byte in count
+        .to_le_bytes()
+        .iter()
+        .chain(uid.iter())
+        .chain(now.to_le_bytes().iter())
+    {
+        hash = (hash ^ u32::from(*byte)).wrapping_mul(0x0100_0193);
+    }
+    hash
 }
 
 /// 168 MHz from the internal oscillator (no dependency on the ST-LINK's 8 MHz clock output):

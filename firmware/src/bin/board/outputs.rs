@@ -29,10 +29,11 @@ use embassy_sync::blocking_mutex::CriticalSectionMutex;
 use embassy_time::{Duration, Instant, block_for};
 
 use crate::exposure::Plan;
-use crate::galvo_map::{GalvoMap, Slew, ad5689_frames};
-use crate::inputs::{CameraLineEdge, push_edge};
+use crate::galvo_map::{GalvoMap, GalvoOutput, Slew, ad5689_frames};
+use crate::inputs::push_edge;
 use crate::pins::{LASER_PINS, LASER_TIMER_CHANNELS, TRIGGER_TIMER_CHANNEL};
 use crate::safety::{bsrr_inactive, moder_alternate, moder_output};
+use subsurf_firmware::hal::CameraEdge;
 
 /// Laser enables are active low (from the rig profile; read by the fault paths).
 static LASER_ACTIVE_LOW: AtomicBool = AtomicBool::new(false);
@@ -85,9 +86,20 @@ impl Handler<TIM8_CC> for TriggerInterrupt {
             tim.ccr(ch)
                 .write(|w| w.set_ccr(TRIGGER_OFF_CCR.load(Ordering::SeqCst)));
             set_ocm(ch, Ocm::INACTIVE_ON_MATCH);
-            push_edge(CameraLineEdge::Trigger(TRIGGER_EDGE_AT.lock(Cell::get)));
+            push_edge(CameraEdge::Trigger(TRIGGER_EDGE_AT.lock(Cell::get)));
         }
     }
+}
+
+/// Laser and trigger wiring (from the rig profile).
+#[derive(Clone, Copy, Debug)]
+pub struct CameraIo {
+    /// Laser channels wired (at most 3 on this board).
+    pub channels: u8,
+    /// Laser enables are active low.
+    pub laser_active_low: bool,
+    /// Trigger is active low.
+    pub trigger_active_low: bool,
 }
 
 /// Lasers and camera trigger on TIM8.
@@ -104,18 +116,15 @@ pub struct CameraTiming {
 
 impl CameraTiming {
     /// Take TIM8 and the four pins; lasers parked at their inactive level on GPIO, trigger idle.
-    #[allow(clippy::too_many_arguments)]
     pub fn new(
         tim: Peri<'static, p::TIM8>,
         laser_r: Peri<'static, p::PC6>,
         trigger: Peri<'static, p::PC7>,
         laser_g: Peri<'static, p::PC8>,
         laser_b: Peri<'static, p::PC9>,
-        channels: u8,
-        laser_active_low: bool,
-        trigger_active_low: bool,
+        io: CameraIo,
     ) -> Self {
-        LASER_ACTIVE_LOW.store(laser_active_low, Ordering::SeqCst);
+        LASER_ACTIVE_LOW.store(io.laser_active_low, Ordering::SeqCst);
         let timer = Timer::new(tim);
         let r = PwmPin::new(laser_r, OutputType::PushPull);
         let g = PwmPin::new(laser_g, OutputType::PushPull);
@@ -132,34 +141,40 @@ impl CameraTiming {
         for ch in 0..4 {
             set_ocm(ch, Ocm::FORCE_INACTIVE);
         }
-        tim.ccer().modify(|w| {
-            for ch in LASER_TIMER_CHANNELS {
-                w.set_ccp(ch, laser_active_low);
-                w.set_cce(ch, true);
-            }
-            w.set_ccp(TRIGGER_TIMER_CHANNEL, trigger_active_low);
-            w.set_cce(TRIGGER_TIMER_CHANNEL, true);
-        });
         tim.bdtr().modify(|w| w.set_moe(true));
         tim.dier()
             .modify(|w| w.set_ccie(TRIGGER_TIMER_CHANNEL, true));
         TIM8_CC::unpend();
         // SAFETY: the handler is bound in `main`; it shares only atomics with this driver.
         unsafe { TIM8_CC::enable() };
-        Self {
+        let mut camera = Self {
             _timer: timer,
             _r: r,
             _trigger: trigger,
             _g: g,
             _b: b,
-            channels: channels.min(3),
+            channels: 0,
             timed: false,
-        }
+        };
+        camera.configure(io);
+        camera
     }
 
-    /// Laser channels wired.
-    pub fn channels(&self) -> u8 {
-        self.channels
+    /// Apply polarities and the channel count (from the rig profile): lasers off first.
+    pub fn configure(&mut self, io: CameraIo) {
+        self.set_lasers(0);
+        self.set_trigger(false);
+        LASER_ACTIVE_LOW.store(io.laser_active_low, Ordering::SeqCst);
+        force_lasers_off();
+        pac::TIM8.ccer().modify(|w| {
+            for ch in LASER_TIMER_CHANNELS {
+                w.set_ccp(ch, io.laser_active_low);
+                w.set_cce(ch, true);
+            }
+            w.set_ccp(TRIGGER_TIMER_CHANNEL, io.trigger_active_low);
+            w.set_cce(TRIGGER_TIMER_CHANNEL, true);
+        });
+        self.channels = io.channels.min(3);
     }
 
     /// Stop a timed exposure (outputs keep their levels until changed).
@@ -203,12 +218,10 @@ impl CameraTiming {
     }
 
     /// Whether a timed exposure is still running.
-    #[allow(dead_code)] // used with the core's exposure window
     pub fn timed_running(&self) -> bool {
         self.timed && pac::TIM8.cr1().read().cen()
     }
 
-    #[allow(dead_code)] // used with the core's exposure window
     /// Run one timed exposure now per `plan`: laser channels `mask` on from now (forced active)
     /// until the timer's match turns them off, the trigger pulse on its matches.
     pub fn start(&mut self, plan: &Plan, mask: u8) {
@@ -251,95 +264,84 @@ const SPI_HZ: u32 = 10_000_000;
 const RAMP_STEP_16: u16 = 1_024;
 const RAMP_PAUSE: Duration = Duration::from_millis(1);
 
-/// `map`, or the documented one for its output if it is unusable.
-fn checked(map: GalvoMap) -> GalvoMap {
-    if map.is_valid() {
-        map
-    } else {
-        defmt::warn!("galvo map out of range; using the documented one");
-        GalvoMap::for_output(map.output)
-    }
+/// The AD5689R on SPI2 with /SYNC on a GPIO.
+struct SpiDac {
+    spi: Spi<'static, Blocking, spi::mode::Master>,
+    sync: Output<'static>,
 }
 
-/// The DAC behind the galvo inputs.
-enum GalvoDacPath {
-    /// AD5689R on SPI2 with /SYNC on a GPIO.
-    Spi {
-        spi: Spi<'static, Blocking, spi::mode::Master>,
-        sync: Output<'static>,
-    },
-    /// DAC1 channels 1 and 2 (PA4, PA5).
-    Internal(Dac<'static, Blocking>),
-}
-
-/// The two galvo axes, updated together.
+/// The two galvo axes, updated together, on the external SPI DAC or the internal DAC (both are
+/// set up at boot; the rig profile picks one, and can switch it without a reset).
 pub struct Galvo {
-    dac: GalvoDacPath,
+    spi: SpiDac,
+    internal: Dac<'static, Blocking>,
     map: GalvoMap,
     slew: Slew,
 }
 
+/// Pins and peripherals of both galvo paths.
+pub struct GalvoPins {
+    pub spi: Peri<'static, p::SPI2>,
+    pub sck: Peri<'static, p::PB13>,
+    pub mosi: Peri<'static, p::PB15>,
+    pub sync: Peri<'static, p::PB12>,
+    pub dac: Peri<'static, p::DAC1>,
+    pub x: Peri<'static, p::PA4>,
+    pub y: Peri<'static, p::PA5>,
+}
+
+fn slew_step(output: GalvoOutput) -> u16 {
+    match output {
+        GalvoOutput::ExternalDac16 => RAMP_STEP_16,
+        // The same angle per write on the 12-bit DAC.
+        GalvoOutput::InternalDac12 => RAMP_STEP_16 / 16,
+    }
+}
+
 impl Galvo {
-    /// The external 16-bit DAC: SPI mode 1, MSB first; the DAC powers up at mid-scale, so nothing
-    /// is written until the first command (which the boot ramp brings there smoothly).
-    pub fn external(
-        spi: Peri<'static, p::SPI2>,
-        sck: Peri<'static, p::PB13>,
-        mosi: Peri<'static, p::PB15>,
-        sync: Peri<'static, p::PB12>,
-        map: GalvoMap,
-    ) -> Self {
-        let map = checked(map);
+    /// Both paths; nothing moves until the first command, which the boot ramp brings from the
+    /// centre smoothly. The external DAC powers up at mid-scale (RSTSEL high) and is not written
+    /// before that; the internal one is set to the centre of its linear window at once.
+    pub fn new(pins: GalvoPins, output: GalvoOutput) -> Self {
         let mut config = spi::Config::default();
         config.mode = spi::MODE_1;
         config.frequency = Hertz(SPI_HZ);
-        let spi = Spi::new_blocking_txonly(spi, sck, mosi, config);
+        let spi = Spi::new_blocking_txonly(pins.spi, pins.sck, pins.mosi, config);
+        let mut internal = Dac::new_blocking(pins.dac, pins.x, pins.y);
+        let (cx, cy) = GalvoMap::for_output(GalvoOutput::InternalDac12).centre();
+        internal.set(DualValue::Bit12Right(cx, cy));
+        let map = GalvoMap::for_output(output);
         Self {
-            dac: GalvoDacPath::Spi {
+            spi: SpiDac {
                 spi,
-                sync: Output::new(sync, Level::High, Speed::VeryHigh),
+                sync: Output::new(pins.sync, Level::High, Speed::VeryHigh),
             },
-            slew: Slew::new(map.centre(), RAMP_STEP_16),
+            internal,
+            slew: Slew::new(map.centre(), slew_step(output)),
             map,
         }
     }
 
-    /// The internal DAC fallback: both channels start at the centre of their linear window.
-    pub fn internal(
-        dac: Peri<'static, p::DAC1>,
-        x: Peri<'static, p::PA4>,
-        y: Peri<'static, p::PA5>,
-        map: GalvoMap,
-    ) -> Self {
-        let map = checked(map);
-        let mut dac = Dac::new_blocking(dac, x, y);
-        let (cx, cy) = map.centre();
-        dac.set(DualValue::Bit12Right(cx, cy));
-        Self {
-            dac: GalvoDacPath::Internal(dac),
-            // The same angle per write as the 16-bit ramp.
-            slew: Slew::new(map.centre(), RAMP_STEP_16 / 16),
-            map,
+    /// Switch the output path (from a new rig profile): the new path ramps from its centre.
+    pub fn set_output(&mut self, output: GalvoOutput) {
+        if output != self.map.output {
+            self.map = GalvoMap::for_output(output);
+            self.slew = Slew::new(self.map.centre(), slew_step(output));
         }
-    }
-
-    /// Largest protocol code.
-    pub fn max_code(&self) -> u16 {
-        self.map.galvo_max
     }
 
     fn write(&mut self, (a, b): (u16, u16)) {
-        match &mut self.dac {
-            GalvoDacPath::Spi { spi, sync } => {
+        match self.map.output {
+            GalvoOutput::ExternalDac16 => {
                 for frame in ad5689_frames(a, b) {
-                    sync.set_low();
-                    if spi.blocking_write(&frame).is_err() {
+                    self.spi.sync.set_low();
+                    if self.spi.spi.blocking_write(&frame).is_err() {
                         defmt::warn!("galvo DAC write failed");
                     }
-                    sync.set_high();
+                    self.spi.sync.set_high();
                 }
             }
-            GalvoDacPath::Internal(dac) => dac.set(DualValue::Bit12Right(a, b)),
+            GalvoOutput::InternalDac12 => self.internal.set(DualValue::Bit12Right(a, b)),
         }
     }
 

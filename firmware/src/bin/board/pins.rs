@@ -56,6 +56,7 @@ pub struct Board {
     pub exposure: Peri<'static, p::PB6>,
     pub exposure_exti: Peri<'static, p::EXTI6>,
     pub watchdog: Peri<'static, p::IWDG>,
+    pub flash: Peri<'static, p::FLASH>,
 }
 
 impl Board {
@@ -90,6 +91,7 @@ impl Board {
             exposure: p.PB6,
             exposure_exti: p.EXTI6,
             watchdog: p.IWDG,
+            flash: p.FLASH,
         }
     }
 }

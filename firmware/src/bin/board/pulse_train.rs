@@ -266,11 +266,7 @@ impl PulseTrain {
             }
         }
         dropped += self.expanding.map_or(0, |e| u64::from(e.left));
-        dropped += self
-            .queue
-            .iter()
-            .map(|s| u64::from(s.count))
-            .sum::<u64>();
+        dropped += self.queue.iter().map(|s| u64::from(s.count)).sum::<u64>();
         self.clear();
         u32::try_from(dropped).unwrap_or(u32::MAX)
     }

@@ -10,7 +10,7 @@
 //! missed its time (the timer ran dry mid-motion) is a stall: the motion is stopped and the core
 //! halted. Once the core reports a move finished, requests are held back until the last queued
 //! step has left the timer, so nothing (a laser, a capture) overlaps a moving motor.
-use core::sync::atomic::Ordering;
+use core::sync::atomic::{AtomicBool, Ordering};
 
 use embassy_futures::select::{Either, Either3, select, select3};
 use embassy_stm32::pac;
@@ -18,18 +18,21 @@ use embassy_stm32::usart::{BufferedUart, BufferedUartRx, BufferedUartTx};
 use embassy_time::{Duration, Instant, Timer, with_timeout};
 use embedded_io_async::{Read, Write};
 use static_cell::StaticCell;
-use subsurf_firmware::hal::{CameraTrigger, GalvoDac, LaserOutputs, RigInputs, Stepper};
-use subsurf_firmware::rig::MAX_PROGRAM_POINTS;
+use subsurf_firmware::hal::{
+    CameraEdge, CameraInput, CameraTrigger, ExposureWindow, GalvoDac, LaserOutputs, RigInputs,
+    Stepper,
+};
 use subsurf_firmware::{Micros, Rig};
 use subsurf_protocol::{
-    Capabilities, Config, EventKind, GalvoPoint, Inputs, MAX_FRAME, RigMessage, encode_event,
-    encode_reply,
+    Config, GalvoPoint, Inputs, MAX_FRAME, RigMessage, RigProfile, encode_event, encode_reply,
 };
 
+use crate::exposure::plan_window;
 use crate::inputs;
-use crate::outputs::{CameraTiming, Galvo};
+use crate::outputs::{CameraIo, CameraTiming, Galvo};
 use crate::pulse_train::batch_wake;
-use crate::stepper::{self, StepGen};
+use crate::stepper::{StepGen, StepperIo};
+use crate::store::Store;
 
 /// The rig task wakes at least this often (the watchdog task expects it).
 pub const MAX_SLEEP: Duration = Duration::from_millis(50);
@@ -38,30 +41,11 @@ pub const MAX_SLEEP: Duration = Duration::from_millis(50);
 /// started this far ahead; later ones keep their exact spacing).
 pub const STEP_PIPELINE_US: u64 = 1_000;
 
-/// What this board announces: a 200-step motor at 1/16 microstepping through a 5:1 belt
-/// (16 000 steps per turntable revolution), three laser channels; `galvo_max` comes from the galvo
-/// output in use.
-pub fn capabilities(galvo_max: u16, laser_channels: u8) -> Capabilities {
-    Capabilities {
-        steps_per_rev: 16_000,
-        galvo_max,
-        laser_channels,
-        max_speed: 40_000,
-        max_accel: 400_000,
-        max_exposure_us: 2_000_000,
-        max_program_points: MAX_PROGRAM_POINTS as u16,
-    }
-}
+/// A timed exposure still running this long after its scheduled end is cut in software.
+const WINDOW_GRACE_US: u64 = 2_000;
 
-/// Settings at power-on (the host may change them with `SetConfig`).
-pub const CONFIG: Config = Config {
-    heartbeat_timeout_ms: 2_000,
-    galvo_settle_min_us: 100,
-    galvo_settle_per_kcode_us: 300,
-    home_speed: 8_000,
-    home_accel: 40_000,
-    home_max_steps: 16_000 + 2_000,
-};
+/// Home switch is active low (from the rig profile).
+static HOME_ACTIVE_LOW: AtomicBool = AtomicBool::new(true);
 
 /// Rig clock: µs since boot, from the embassy time driver (TIM12).
 fn now_us() -> Micros {
@@ -71,14 +55,15 @@ fn now_us() -> Micros {
 /// Safety inputs straight from the pins (not the EXTI tasks' flags, which lag by a task switch).
 fn sample_inputs() -> Inputs {
     let pa = pac::GPIOA.idr().read();
-    let pb = pac::GPIOB.idr().read();
+    let safety = inputs::safety_pins();
     Inputs {
         // PB5: NC contact to GND, pull-up: high = pressed or broken wire.
-        estop: pb.idr(5) == pac::gpio::vals::Idr::HIGH,
+        estop: safety.estop_high,
         // PB4: NC contact to GND, pull-up: low = enclosure closed.
-        interlock_closed: pb.idr(4) == pac::gpio::vals::Idr::LOW,
-        // PA10: switch to GND, pull-up: low = at home.
-        home_switch: pa.idr(10) == pac::gpio::vals::Idr::LOW,
+        interlock_closed: !safety.interlock_high,
+        // PA10: the home switch, active level from the profile.
+        home_switch: (pa.idr(10) == pac::gpio::vals::Idr::LOW)
+            == HOME_ACTIVE_LOW.load(Ordering::Relaxed),
     }
 }
 
@@ -87,38 +72,71 @@ pub struct Hardware {
     pub stepper: StepGen,
     pub galvo: Galvo,
     pub camera: CameraTiming,
+    store: Store,
     /// Core time of the call in progress (set before every call into the core).
     pub now: Micros,
     /// Steps that missed their time since the last check.
     stalls: u32,
-    /// The motion in progress stalled: its remaining steps are not emitted.
-    stalled: bool,
+    /// Steps the core emitted while the e-stop held the timer: never output, so a flush counts
+    /// them as discarded.
+    held: u32,
+    /// Scheduled laser-off of the timed exposure in progress.
+    window_off_at: Option<Micros>,
 }
 
 impl Hardware {
-    pub fn new(stepper: StepGen, galvo: Galvo, camera: CameraTiming) -> Self {
+    pub fn new(stepper: StepGen, galvo: Galvo, camera: CameraTiming, store: Store) -> Self {
         Self {
             stepper,
             galvo,
             camera,
+            store,
             now: 0,
             stalls: 0,
-            stalled: false,
+            held: 0,
+            window_off_at: None,
         }
+    }
+
+    /// Put the board's I/O in line with a rig profile: STEP/DIR/EN, laser and trigger polarity,
+    /// the galvo path, the camera's and the home switch's polarity. The core changes the profile
+    /// only while idle, so nothing in flight changes shape.
+    pub fn apply_profile(&mut self, profile: &RigProfile) {
+        self.stepper.configure(StepperIo::from(&profile.motor));
+        self.camera.configure(CameraIo {
+            channels: profile.laser.channels,
+            laser_active_low: profile.laser.active_low,
+            trigger_active_low: profile.camera.trigger_active_low,
+        });
+        self.galvo.set_output(profile.galvo.output);
+        inputs::set_exposure_active_low(profile.camera.exposure_active_low);
+        HOME_ACTIVE_LOW.store(profile.homing.switch_active_low, Ordering::Relaxed);
+        let pull = if profile.homing.switch_active_low {
+            pac::gpio::vals::Pupdr::PULL_UP
+        } else {
+            pac::gpio::vals::Pupdr::PULL_DOWN
+        };
+        pac::GPIOA.pupdr().modify(|w| w.set_pupdr(10, pull));
     }
 }
 
 impl Stepper for Hardware {
     fn step(&mut self, forward: bool) {
-        if sample_inputs().estop || self.stalled {
-            // The EXTI interrupt already stopped the timer; do not restart it before the core
-            // has seen the e-stop and halted the motion.
+        if sample_inputs().estop {
+            // The EXTI interrupt stopped the timer; do not restart it before the core has seen
+            // the e-stop and flushed.
+            self.held = self.held.saturating_add(1);
             return;
         }
         // Never blocks: a step that cannot be placed on time counts as a stall.
         self.stepper
             .push(self.now.saturating_add(STEP_PIPELINE_US), forward, now_us());
         self.stalls = self.stalls.saturating_add(self.stepper.take_stalls());
+    }
+
+    fn flush(&mut self) -> u32 {
+        let held = core::mem::take(&mut self.held);
+        self.stepper.flush().saturating_add(held)
     }
 }
 
@@ -134,6 +152,17 @@ impl LaserOutputs for Hardware {
         // interlock open; the pins are checked again here, at the last moment.
         let inputs = sample_inputs();
         let allowed = !inputs.estop && inputs.interlock_closed;
+        if allowed
+            && mask == 0
+            && self.camera.timed_running()
+            && self.window_off_at.is_some_and(|off| self.now >= off)
+        {
+            // The scheduled end of a timed exposure: the timer ends it itself, on its count
+            // (it started a little after the core's schedule; cutting now would shorten the
+            // tail). Anything earlier is an abort and cuts at once below.
+            return;
+        }
+        self.window_off_at = None;
         self.camera.set_lasers(if allowed { mask } else { 0 });
     }
 }
@@ -141,6 +170,31 @@ impl LaserOutputs for Hardware {
 impl CameraTrigger for Hardware {
     fn set_trigger(&mut self, high: bool) {
         self.camera.set_trigger(high);
+    }
+
+    fn arm_window(&mut self, window: &ExposureWindow) {
+        let lead = window.trigger_at.saturating_sub(window.laser_on_at);
+        let after = window.laser_off_at.saturating_sub(window.trigger_at);
+        match plan_window(lead, window.trigger_us, window.exposure_us, after) {
+            Ok(plan) => {
+                self.camera.start(&plan, window.channel_mask);
+                let (rise, fall, off) = plan.edges_us();
+                defmt::debug!(
+                    "timed exposure: trigger {}..{} us, laser off {} us",
+                    rise,
+                    fall,
+                    off
+                );
+                self.window_off_at = Some(window.laser_off_at);
+            }
+            Err(e) => defmt::warn!("exposure window not timeable ({}); software edges", e),
+        }
+    }
+}
+
+impl CameraInput for Hardware {
+    fn poll_camera_edge(&mut self) -> Option<CameraEdge> {
+        inputs::pop_edge()
     }
 }
 
@@ -150,20 +204,13 @@ impl RigInputs for Hardware {
     }
 }
 
-/// Send every message the core has queued. A `Halted` event also empties the step queue: the
-/// core stopped the motion (stop request, heartbeat loss, fault), so the steps still waiting in
-/// the step pipeline must not run either.
+/// Send every message the core has queued. (A halt needs nothing here: the core decelerates a
+/// stopped motion through its own steps and flushes the step queue on an emergency.)
 async fn transmit(rig: &mut Rig<Hardware>, tx: &mut BufferedUartTx<'static>, frame: &mut [u8]) {
     while let Some(message) = rig.poll_message() {
         let encoded = match &message {
             RigMessage::Reply(reply) => encode_reply(reply, frame),
-            RigMessage::Event(event) => {
-                if let EventKind::Halted { reason } = event.kind {
-                    stepper::force_stop();
-                    defmt::warn!("halted: {}", reason);
-                }
-                encode_event(event, frame)
-            }
+            RigMessage::Event(event) => encode_event(event, frame),
         };
         let Ok(n) = encoded else {
             defmt::error!("message does not fit a frame; dropped");
@@ -192,32 +239,87 @@ fn run_due(rig: &mut Rig<Hardware>) {
     }
 }
 
-/// Stop the motion after a step stall: the motor is off its schedule, so the core halts it (as a
-/// `Stop` would) and the host sees the halt.
+/// Hand step stalls to the core (fault, emergency stop, `homed` cleared). Also a stall: the
+/// e-stop interrupt stopped the timer under a queued motion, or steps were held back, and the
+/// e-stop is released before the core saw it (a glitch): those steps would never be output.
 fn check_stalls(rig: &mut Rig<Hardware>) {
     let stalls = core::mem::take(&mut rig.hw_mut().stalls);
-    if stalls > 0 {
-        let queued = rig.hw().stepper.queued_segments();
-        stepper::force_stop();
+    let stopped =
+        (rig.hw().stepper.stopped_under_motion() || rig.hw().held > 0) && !sample_inputs().estop;
+    if stalls > 0 || stopped {
         defmt::error!(
-            "step stall: {} steps missed their time ({} segments queued); motion halted",
+            "step stall: {} steps missed their time ({} segments queued)",
             stalls,
-            queued
+            rig.hw().stepper.queued_segments()
         );
-        rig.hw_mut().stalled = true;
+        let now = now_us();
+        rig.hw_mut().now = now;
+        rig.handle_stall(now);
+        if rig.hw().stepper.is_running() {
+            // Not in a motion the core knows of: drop the queue here.
+            let _ = rig.hw_mut().flush();
+        }
     }
-    if !rig.moving() {
-        rig.hw_mut().stalled = false;
+}
+
+/// Persist a profile the host just set, and apply it to the board's I/O.
+fn persist_profile(rig: &mut Rig<Hardware>) {
+    let Some(profile) = rig.take_profile_to_persist() else {
+        return;
+    };
+    rig.hw_mut().apply_profile(&profile);
+    let mut buf = [0u8; crate::flash_record::MAX_PAYLOAD];
+    match postcard::to_slice(&profile, &mut buf) {
+        Ok(bytes) => match rig.hw_mut().store.save(bytes) {
+            Ok(()) => defmt::info!("rig profile stored in flash"),
+            Err(e) => defmt::error!("rig profile not stored: {}", e),
+        },
+        Err(_) => defmt::error!("rig profile does not fit a record"),
+    }
+}
+
+/// Safety backstop for timed exposures: once the core has the lasers off, a timer still running
+/// well past its window's end is stopped in software.
+fn check_window(rig: &mut Rig<Hardware>) {
+    let now = now_us();
+    let lasers_off = rig.laser_output() == 0;
+    let hw = rig.hw_mut();
+    if let Some(off) = hw.window_off_at
+        && now > off.saturating_add(WINDOW_GRACE_US)
+    {
+        hw.window_off_at = None;
+        if hw.camera.timed_running() && lasers_off {
+            defmt::warn!("exposure timer overran its window; stopped");
+            hw.camera.set_lasers(0);
+        }
+    }
+}
+
+/// The profile stored in flash, or the documented default.
+pub fn stored_profile(store: &Store) -> RigProfile {
+    let mut buf = [0u8; crate::flash_record::MAX_PAYLOAD];
+    let profile = store
+        .load(&mut buf)
+        .and_then(|bytes| postcard::from_bytes::<RigProfile>(bytes).ok())
+        .filter(|p| p.validate().is_ok());
+    match profile {
+        Some(p) => {
+            defmt::info!("rig profile from flash");
+            p
+        }
+        None => {
+            defmt::info!("no valid rig profile in flash: documented defaults");
+            RigProfile::DEFAULT
+        }
     }
 }
 
 /// The rig task.
 #[embassy_executor::task]
-pub async fn run(link: BufferedUart<'static>, hw: Hardware) {
+pub async fn run(link: BufferedUart<'static>, hw: Hardware, profile: RigProfile, boot_nonce: u32) {
     let (mut tx, mut rx): (BufferedUartTx<'static>, BufferedUartRx<'static>) = link.split();
     static RIG: StaticCell<Rig<Hardware>> = StaticCell::new();
-    let caps = capabilities(hw.galvo.max_code(), hw.camera.channels());
-    let rig = RIG.init_with(|| Rig::new(hw, caps, CONFIG, now_us()));
+    let rig = RIG.init_with(|| Rig::new(hw, profile, Config::DEFAULT, boot_nonce, now_us()));
     let mut last_wake = now_us();
     let mut rx_buf = [0u8; 64];
     let mut frame = [0u8; MAX_FRAME];
@@ -226,6 +328,8 @@ pub async fn run(link: BufferedUart<'static>, hw: Hardware) {
     loop {
         crate::RIG_ALIVE.fetch_add(1, Ordering::Relaxed);
         transmit(rig, &mut tx, &mut frame).await;
+        persist_profile(rig);
+        check_window(rig);
         if rig.fault() != last_fault {
             last_fault = rig.fault();
             defmt::warn!("fault: {}", last_fault);
@@ -234,9 +338,10 @@ pub async fn run(link: BufferedUart<'static>, hw: Hardware) {
         if !rig.moving() && rig.hw().stepper.is_running() {
             // The core is done with the move but the last steps are still in the timer: hold
             // requests back, watch only the inputs, until the motor really stands still.
-            let wait = select(stepper::REFILL.wait(), inputs::CHANGED.wait());
+            let wait = select(crate::stepper::REFILL.wait(), inputs::CHANGED.wait());
             let changed = matches!(with_timeout(MAX_SLEEP, wait).await, Ok(Either::Second(())));
             run_due(rig);
+            check_stalls(rig);
             if changed {
                 let now = now_us();
                 rig.hw_mut().now = now;

@@ -12,7 +12,8 @@
 //! The rig task pushes each step with its absolute target time ([`StepGen::push`]), once per batch
 //! of steps; consecutive steps merge into segments. A step that cannot be placed on schedule (the
 //! timer ran dry mid-motion, or the queue is full) is a stall: [`StepGen::take_stalls`] reports it
-//! and the rig task faults. [`force_stop`] empties the queue and stops at once.
+//! and the rig task faults. [`StepGen::flush`] stops at once and counts what it discards;
+//! [`fault_stop`] (panic, HardFault, e-stop interrupt) stops through the registers only.
 //!
 //! Hand-written rather than a HAL driver: embassy-stm32's PWM drivers run at a fixed frequency and
 //! cannot change the period per pulse without DMA, and USART2 and the DAC already contend for DMA1.
@@ -105,17 +106,6 @@ pub fn fault_stop() {
         .modify(|w| w.set_ocm(0, Ocm::FORCE_INACTIVE));
 }
 
-/// [`fault_stop`] and forget every queued step (e-stop, the core's halt).
-pub fn force_stop() {
-    fault_stop();
-    TRAIN.lock(|train| {
-        if let Ok(mut train) = train.try_borrow_mut() {
-            train.clear();
-        }
-    });
-    REFILL.signal(());
-}
-
 /// STEP/DIR/EN settings (from the rig profile's motor section).
 #[derive(Clone, Copy, Debug)]
 pub struct StepperIo {
@@ -129,6 +119,17 @@ pub struct StepperIo {
     pub enable_active_low: bool,
 }
 
+impl From<&subsurf_protocol::MotorProfile> for StepperIo {
+    fn from(m: &subsurf_protocol::MotorProfile) -> Self {
+        Self {
+            pulse_us: m.step_pulse_us,
+            step_active_low: m.step_active_low,
+            invert_dir: m.invert_dir,
+            enable_active_low: m.enable_active_low,
+        }
+    }
+}
+
 /// The STEP/DIR/EN driver interface.
 pub struct StepGen {
     _timer: Timer<'static, peripherals::TIM2>,
@@ -137,6 +138,8 @@ pub struct StepGen {
     enable: Output<'static>,
     /// EN low energises the driver.
     enable_active_low: bool,
+    /// The driver should be energised.
+    energised: bool,
 }
 
 impl StepGen {
@@ -155,11 +158,6 @@ impl StepGen {
         timer.set_tick_freq(Hertz(TICK_HZ));
         timer.set_output_compare_mode(Channel::Ch1, OutputCompareMode::ForceInactive);
         timer.set_output_compare_preload(Channel::Ch1, true);
-        // Output polarity: an active-low STEP idles high and pulses low.
-        timer
-            .regs_gp16()
-            .ccer()
-            .modify(|w| w.set_ccp(0, settings.step_active_low));
         timer.set_autoreload_preload(true);
         timer.enable_channel(Channel::Ch1, true);
         // Software update events (UG) load the preloads without raising the interrupt.
@@ -168,12 +166,6 @@ impl StepGen {
             .cr1()
             .modify(|w| w.set_urs(Urs::COUNTER_ONLY));
         timer.enable_update_interrupt(true);
-        TRAIN.lock(|train| {
-            if let Ok(mut train) = train.try_borrow_mut() {
-                train.set_pulse_ticks(u32::from(settings.pulse_us));
-                defmt::info!("STEP pulse {} us", train.pulse_ticks());
-            }
-        });
         TIM2::unpend();
         // SAFETY: the handler is bound in `main` with `bind_interrupts!`; the state it shares is
         // behind a critical-section mutex and atomics.
@@ -183,17 +175,40 @@ impl StepGen {
         } else {
             Level::Low
         };
-        Self {
+        let mut stepper = Self {
             _timer: timer,
             _step: step,
             _dir: Output::new(dir, Level::Low, Speed::Low),
             enable: Output::new(enable, idle, Speed::Low),
             enable_active_low: settings.enable_active_low,
-        }
+            energised: false,
+        };
+        stepper.configure(settings);
+        stepper
+    }
+
+    /// Apply the STEP/DIR/EN settings (from the rig profile; the core changes it only when idle,
+    /// so no pulse in flight changes shape).
+    pub fn configure(&mut self, settings: StepperIo) {
+        DIR_INVERT.store(settings.invert_dir, Ordering::Relaxed);
+        // Output polarity: an active-low STEP idles high and pulses low.
+        pac::TIM2
+            .ccer()
+            .modify(|w| w.set_ccp(0, settings.step_active_low));
+        TRAIN.lock(|train| {
+            if let Ok(mut train) = train.try_borrow_mut()
+                && train.set_pulse_ticks(u32::from(settings.pulse_us))
+            {
+                defmt::info!("STEP pulse {} us", train.pulse_ticks());
+            }
+        });
+        self.enable_active_low = settings.enable_active_low;
+        self.set_enabled(self.energised);
     }
 
     /// Energise (or release) the motor driver through EN.
     pub fn set_enabled(&mut self, on: bool) {
+        self.energised = on;
         let high = on != self.enable_active_low;
         self.enable
             .set_level(if high { Level::High } else { Level::Low });
@@ -242,6 +257,11 @@ impl StepGen {
         });
         REFILL.signal(());
         dropped
+    }
+
+    /// Steps are queued but the timer was stopped under them (by the e-stop interrupt).
+    pub fn stopped_under_motion(&self) -> bool {
+        self.is_running() && !pac::TIM2.cr1().read().cen()
     }
 
     /// Segments waiting in the step queue.
