@@ -80,8 +80,10 @@ pub struct Hardware {
     /// Steps the core emitted while the e-stop held the timer: never output, so a flush counts
     /// them as discarded.
     held: u32,
-    /// Scheduled laser-off of the timed exposure in progress.
+    /// Scheduled laser-off of the timed exposure in progress (until the core's laser-off).
     window_off_at: Option<Micros>,
+    /// Scheduled laser-off of the last timed exposure, for the overrun backstop.
+    timer_deadline: Option<Micros>,
 }
 
 impl Hardware {
@@ -95,6 +97,7 @@ impl Hardware {
             stalls: 0,
             held: 0,
             window_off_at: None,
+            timer_deadline: None,
         }
     }
 
@@ -152,23 +155,24 @@ impl LaserOutputs for Hardware {
         // interlock open; the pins are checked again here, at the last moment.
         let inputs = sample_inputs();
         let allowed = !inputs.estop && inputs.interlock_closed;
-        if allowed
-            && mask == 0
-            && self.camera.timed_running()
-            && self.window_off_at.is_some_and(|off| self.now >= off)
-        {
+        let scheduled_end = self.window_off_at.take().is_some_and(|off| self.now >= off);
+        if allowed && mask == 0 && scheduled_end && self.camera.timed_running() {
             // The scheduled end of a timed exposure: the timer ends it itself, on its count
             // (it started a little after the core's schedule; cutting now would shorten the
             // tail). Anything earlier is an abort and cuts at once below.
             return;
         }
-        self.window_off_at = None;
         self.camera.set_lasers(if allowed { mask } else { 0 });
     }
 }
 
 impl CameraTrigger for Hardware {
     fn set_trigger(&mut self, high: bool) {
+        if self.window_off_at.is_some() {
+            // The timer owns this capture's trigger: a software edge now (the timer may already
+            // be done) would be a second trigger, an extra image.
+            return;
+        }
         self.camera.set_trigger(high);
     }
 
@@ -178,6 +182,7 @@ impl CameraTrigger for Hardware {
         match plan_window(lead, window.trigger_us, window.exposure_us, after) {
             Ok(plan) => {
                 self.camera.start(&plan, window.channel_mask);
+                self.timer_deadline = Some(window.laser_off_at);
                 let (rise, fall, off) = plan.edges_us();
                 defmt::debug!(
                     "timed exposure: trigger {}..{} us, laser off {} us",
@@ -284,10 +289,10 @@ fn check_window(rig: &mut Rig<Hardware>) {
     let now = now_us();
     let lasers_off = rig.laser_output() == 0;
     let hw = rig.hw_mut();
-    if let Some(off) = hw.window_off_at
+    if let Some(off) = hw.timer_deadline
         && now > off.saturating_add(WINDOW_GRACE_US)
     {
-        hw.window_off_at = None;
+        hw.timer_deadline = None;
         if hw.camera.timed_running() && lasers_off {
             defmt::warn!("exposure timer overran its window; stopped");
             hw.camera.set_lasers(0);
