@@ -254,6 +254,42 @@ mod timed_exposure {
         assert_eq!((trig, trig_off, off), (50_000, 150_000, 20_100_000));
     }
 
+    /// The core's scheduled laser-off leaves a running timer to end the window on its count; an
+    /// earlier off (abort, heartbeat loss), a safety cut, or a finished timer cuts at once.
+    #[test]
+    fn scheduled_end_is_the_timer_s_abort_is_immediate() {
+        let off = Some(20_000);
+        assert_eq!(
+            on_set_lasers(off, 20_000, true, true, 0),
+            LaserCall::LeaveToTimer
+        );
+        assert_eq!(
+            on_set_lasers(off, 19_999, true, true, 0),
+            LaserCall::Apply(0)
+        );
+        assert_eq!(
+            on_set_lasers(off, 20_000, true, false, 0),
+            LaserCall::Apply(0)
+        );
+        assert_eq!(
+            on_set_lasers(off, 20_000, false, true, 0),
+            LaserCall::Apply(0)
+        );
+        assert_eq!(
+            on_set_lasers(None, 20_000, true, true, 0),
+            LaserCall::Apply(0)
+        );
+        // Light only with the safety pins permitting it.
+        assert_eq!(
+            on_set_lasers(None, 0, false, false, 0b1),
+            LaserCall::Apply(0)
+        );
+        assert_eq!(
+            on_set_lasers(None, 0, false, true, 0b1),
+            LaserCall::Apply(1)
+        );
+    }
+
     #[test]
     fn exposures_below_the_hardware_minimum_are_refused() {
         assert_eq!(

@@ -110,3 +110,33 @@ pub fn plan_window(
         tick_ns: u32::try_from(us_per_tick * 1_000).map_err(|_| ExposureError::TooLong)?,
     })
 }
+
+/// What the board does with the core's `set_lasers(mask)` while a timed exposure may be running.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LaserCall {
+    /// The core's scheduled laser-off of a timed exposure whose timer still runs: the timer ends
+    /// it on its own count (it started a little after the core's schedule, so cutting now would
+    /// shorten the tail by that much).
+    LeaveToTimer,
+    /// Drive these channels now (stopping any timed exposure): an abort, a safety cut or an
+    /// ordinary software change.
+    Apply(u8),
+}
+
+/// The decision for `set_lasers(mask)` at core time `now`: `window_off_at` is the scheduled
+/// laser-off of the armed exposure, `timer_running` whether its timer still counts, `allowed`
+/// whether the safety pins permit light at all.
+pub fn on_set_lasers(
+    window_off_at: Option<u64>,
+    now: u64,
+    timer_running: bool,
+    allowed: bool,
+    mask: u8,
+) -> LaserCall {
+    let scheduled_end = window_off_at.is_some_and(|off| now >= off);
+    if allowed && mask == 0 && scheduled_end && timer_running {
+        LaserCall::LeaveToTimer
+    } else {
+        LaserCall::Apply(if allowed { mask } else { 0 })
+    }
+}

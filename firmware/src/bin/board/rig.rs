@@ -27,7 +27,7 @@ use subsurf_protocol::{
     Config, GalvoPoint, Inputs, MAX_FRAME, RigMessage, RigProfile, encode_event, encode_reply,
 };
 
-use crate::exposure::plan_window;
+use crate::exposure::{LaserCall, on_set_lasers, plan_window};
 use crate::inputs;
 use crate::outputs::{CameraIo, CameraTiming, Galvo};
 use crate::pulse_train::batch_wake;
@@ -155,14 +155,12 @@ impl LaserOutputs for Hardware {
         // interlock open; the pins are checked again here, at the last moment.
         let inputs = sample_inputs();
         let allowed = !inputs.estop && inputs.interlock_closed;
-        let scheduled_end = self.window_off_at.take().is_some_and(|off| self.now >= off);
-        if allowed && mask == 0 && scheduled_end && self.camera.timed_running() {
-            // The scheduled end of a timed exposure: the timer ends it itself, on its count
-            // (it started a little after the core's schedule; cutting now would shorten the
-            // tail). Anything earlier is an abort and cuts at once below.
-            return;
+        let window = self.window_off_at.take();
+        let call = on_set_lasers(window, self.now, self.camera.timed_running(), allowed, mask);
+        match call {
+            LaserCall::LeaveToTimer => {}
+            LaserCall::Apply(mask) => self.camera.set_lasers(mask),
         }
-        self.camera.set_lasers(if allowed { mask } else { 0 });
     }
 }
 
