@@ -9,7 +9,7 @@ fn model(terms: &[(f64, f64)]) -> ExpSum {
 }
 
 fn lanczos() -> (Vec<f64>, Vec<f64>) {
-    let text = include_str!("../../../tests/data/lanczos1.csv");
+    let text = include_str!("../../../../tests/data/lanczos1.csv");
     text.lines()
         .filter(|l| !l.starts_with('#') && !l.starts_with('r'))
         .map(|l| {
