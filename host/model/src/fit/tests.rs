@@ -11,9 +11,9 @@ fn model(terms: &[(f64, f64)]) -> ExpSum {
 /// NIST StRD Lanczos1–3 (the same three decays, data to 13, 6 and 5 digits).
 fn nist_data(which: usize) -> (Vec<f64>, Vec<f64>) {
     let text = match which {
-        1 => include_str!("../../../tests/data/lanczos1.csv"),
-        2 => include_str!("../../../tests/data/lanczos2.csv"),
-        _ => include_str!("../../../tests/data/lanczos3.csv"),
+        1 => include_str!("../../../../tests/data/lanczos1.csv"),
+        2 => include_str!("../../../../tests/data/lanczos2.csv"),
+        _ => include_str!("../../../../tests/data/lanczos3.csv"),
     };
     text.lines()
         .filter(|l| !l.starts_with('#') && !l.starts_with('r'))
