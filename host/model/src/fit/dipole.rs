@@ -114,6 +114,7 @@ impl DipoleEval {
     /// ∂ln T_z = ∂ln z − u²/(1 + u)·(∂ln sigma_tr + ∂ln d) − 3·∂ln d; the two sources combine
     /// with their log-sum-exp weights, and ln alpha' adds its own derivative.
     #[inline]
+    #[allow(clippy::needless_range_loop)] // index loops over parallel arrays
     fn eval(&self, r: f64) -> (f64, [f64; 2]) {
         let mut lt = [0.0; 2];
         let mut dl = [[0.0; 2]; 2];
