@@ -102,4 +102,7 @@ pub trait Hardware:
 {
 }
 
-impl<T: Stepper + GalvoDac + LaserOutputs + CameraTrigger + CameraInput + RigInputs> Hardware for T {}
+impl<T: Stepper + GalvoDac + LaserOutputs + CameraTrigger + CameraInput + RigInputs> Hardware
+    for T
+{
+}

@@ -88,7 +88,9 @@ impl Profile {
             return half;
         }
         let (v, a) = (u128::from(self.speed), u128::from(self.accel));
-        u32::try_from(div(v * v, 2 * a)).unwrap_or(u32::MAX).min(half)
+        u32::try_from(div(v * v, 2 * a))
+            .unwrap_or(u32::MAX)
+            .min(half)
     }
 
     /// Time of step `k` (1..=steps) after the start of the move, µs. `k` past the end gives the

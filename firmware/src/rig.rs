@@ -1184,9 +1184,7 @@ impl<H: Hardware> Rig<H> {
             HomePhase::Approach => (h.speed, false),
             HomePhase::SlowApproach => (h.slow_speed, false),
             HomePhase::Release => (h.speed, true),
-            HomePhase::LeaveSwitch | HomePhase::BackOff | HomePhase::Return => {
-                (h.slow_speed, true)
-            }
+            HomePhase::LeaveSwitch | HomePhase::BackOff | HomePhase::Return => (h.slow_speed, true),
             // Never started as passes (they are the stops of the fast passes).
             HomePhase::BrakeToRelease => (h.speed, false),
             HomePhase::BrakeToBackOff => (h.speed, true),
@@ -1265,9 +1263,7 @@ impl<H: Hardware> Rig<H> {
                 *seen_active |= active;
                 (!active && *seen_active).then_some(HomeNext::StopThen(HomePhase::BrakeToBackOff))
             }
-            HomePhase::Approach => {
-                active.then_some(HomeNext::StopThen(HomePhase::BrakeToRelease))
-            }
+            HomePhase::Approach => active.then_some(HomeNext::StopThen(HomePhase::BrakeToRelease)),
             HomePhase::SlowApproach => {
                 if !active {
                     // Bounce: start over.

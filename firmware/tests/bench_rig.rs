@@ -186,7 +186,11 @@ fn a_missed_trigger_is_reported_not_shifted() {
     assert_eq!(counts, vec![1, 2, 3, 3, 4, 5]);
     assert_eq!(caps[3].exposure, None);
     assert!(!caps[3].lit);
-    assert!(caps.iter().enumerate().all(|(i, c)| i == 3 || c.exposure.is_some()));
+    assert!(
+        caps.iter()
+            .enumerate()
+            .all(|(i, c)| i == 3 || c.exposure.is_some())
+    );
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -211,7 +215,10 @@ fn a_rebooted_rig_refuses_everything_until_hello_and_says_so_by_nonce() {
         rebooted.send(seq, retransmitted.clone()),
         Err(RigError::NoSession)
     );
-    assert_eq!(rebooted.send(seq + 1, Command::Status), Err(RigError::NoSession));
+    assert_eq!(
+        rebooted.send(seq + 1, Command::Status),
+        Err(RigError::NoSession)
+    );
     rebooted.advance_without_heartbeat(1_000_000);
     assert_eq!(rebooted.sim.hw().steps(), 0, "the move did not run twice");
     let Ok(Response::Hello(hello)) = rebooted.send(
@@ -224,7 +231,9 @@ fn a_rebooted_rig_refuses_everything_until_hello_and_says_so_by_nonce() {
     };
     assert_eq!(hello.boot_nonce, params.boot_nonce);
     assert_ne!(hello.boot_nonce, before);
-    assert!(matches!(rebooted.send(seq + 3, Command::Status), Ok(Response::Status(s)) if s.boot_nonce == hello.boot_nonce && !s.homed));
+    assert!(
+        matches!(rebooted.send(seq + 3, Command::Status), Ok(Response::Status(s)) if s.boot_nonce == hello.boot_nonce && !s.homed)
+    );
 }
 
 impl Host {
@@ -447,10 +456,7 @@ fn exposures_below_the_hardware_minimum_are_refused() {
             trigger_us: 1,
         })
     };
-    assert_eq!(
-        h.call(c(1)),
-        Err(RigError::ExposureTooShort { min_us: 20 })
-    );
+    assert_eq!(h.call(c(1)), Err(RigError::ExposureTooShort { min_us: 20 }));
     assert!(matches!(h.call(c(20)), Ok(Response::CaptureStarted { .. })));
 }
 

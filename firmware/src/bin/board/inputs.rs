@@ -3,15 +3,15 @@
 //! task, before the core even hears of it.
 use core::sync::atomic::{AtomicBool, Ordering};
 
+use core::cell::RefCell;
 use embassy_stm32::exti::ExtiInput;
 use embassy_stm32::mode::Async;
-use core::cell::RefCell;
 
 use embassy_sync::blocking_mutex::Mutex;
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
+use embassy_sync::signal::Signal;
 use heapless::Deque;
 use subsurf_firmware::hal::CameraEdge;
-use embassy_sync::signal::Signal;
 
 use crate::outputs::force_lasers_off;
 use crate::stepper;

@@ -43,17 +43,16 @@ pub const PROFILE: RigProfile = RigProfile {
 };
 const _: () = assert!(GALVO_MAX == PROFILE.galvo.output.max_code());
 
-/// A random number per power-on from the hardware RNG (48 MHz from PLLQ), so the host can tell a
-/// reset from a quiet rig; falls back to the clock if the RNG does not come up.
+/// This boot's nonce. The F446 has no RNG: the chip's unique ID mixed with the µs clock when the
+/// rig task starts (after clock and peripheral start-up, whose length jitters). Reboot detection
+/// does not rest on it alone: until a `Hello`, the core refuses every request with `NoSession`.
 fn boot_nonce() -> u32 {
-    pac::RCC.ahb2enr().modify(|w| w.set_rngen(true));
-    pac::RNG.cr().modify(|w| w.set_rngen(true));
-    for _ in 0..100_000 {
-        if pac::RNG.sr().read().drdy() {
-            return pac::RNG.dr().read();
-        }
+    let uid = embassy_stm32::uid::uid();
+    let mut h: u32 = 0x811c_9dc5;
+    for b in uid.iter().chain((now_us() as u32).to_le_bytes().iter()) {
+        h = (h ^ u32::from(*b)).wrapping_mul(0x0100_0193);
     }
-    (now_us() as u32) ^ 0x9e37_79b9
+    h
 }
 
 /// Rig clock: µs since boot, from the embassy time driver (TIM12).
