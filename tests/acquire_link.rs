@@ -39,7 +39,8 @@ impl ByteLink for Unplugged {
     fn recv(&mut self, buf: &mut [u8], timeout: Duration) -> Result<usize, LinkError> {
         let until = *self.until.lock().unwrap();
         let left = until.map_or(timeout, |t| t.saturating_duration_since(Instant::now()));
-        self.check()?.recv(buf, timeout.min(left).min(Duration::from_millis(20)))
+        self.check()?
+            .recv(buf, timeout.min(left).min(Duration::from_millis(20)))
     }
     fn describe(&self) -> String {
         self.name.clone()
@@ -76,8 +77,8 @@ fn scan_survives_the_pty_closing_and_the_rig_turns_the_laser_off_in_time() {
     let reopened_at: Arc<Mutex<Option<Instant>>> = Arc::new(Mutex::new(None));
     let mut connect = || -> Result<RigClient<Unplugged>, RigClientError> {
         let now = Instant::now();
-        let mut drop = dropped_at.lock().unwrap();
-        let until = match *drop {
+        let dropped = *dropped_at.lock().unwrap();
+        let until = match dropped {
             // First connection: unplugged by the watcher below, in the middle of the first
             // program (after homing, whose length varies with the machine's load).
             None => dropped_at.clone(),

@@ -71,7 +71,11 @@ fn rig_profile_default_check_and_sim_run_the_file() {
     let hello = stdout_of(&["rig", "--sim", "--profile", f, "hello"]);
     assert!(hello.contains("galvo codes: 0..=4095"), "{hello}");
     // A bad file is a clear error naming the field group.
-    std::fs::write(&file, json.replace("\"microsteps\": 16", "\"microsteps\": 0")).expect("write");
+    std::fs::write(
+        &file,
+        json.replace("\"microsteps\": 16", "\"microsteps\": 0"),
+    )
+    .expect("write");
     let out = subsurf(&["rig", "--profile", f, "profile", "check"]);
     assert!(!out.status.success());
     assert!(

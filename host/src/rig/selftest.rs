@@ -416,7 +416,12 @@ mod tests {
     fn selftest(params: SimParams, prompt: &mut dyn Prompt) -> SelftestReport {
         let link = SimLink::clean(VirtualRig::new(params));
         let mut rig = RigClient::connect_with_seq(link, ClientConfig::default(), 1).expect("rig");
-        run(&mut rig, prompt, &SelftestOptions::default(), Box::new(|_| {}))
+        run(
+            &mut rig,
+            prompt,
+            &SelftestOptions::default(),
+            Box::new(|_| {}),
+        )
     }
 
     fn verdict(r: &SelftestReport, name: &str) -> Verdict {
