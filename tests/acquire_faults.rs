@@ -63,10 +63,11 @@ impl ByteLink for EstopAt {
 fn emergency_stop_halts_with_the_laser_off_and_the_scan_resumes() {
     let (cfg, mesh, _dir) = config();
     let mut camera = camera_from_spec("sim", &mesh, &cfg.calib, 1, Duration::from_secs(1)).unwrap();
-    // Homing takes ~0.6 s of virtual time; press the button in the middle of the captures.
+    // Two-pass homing takes ~2.5 s of virtual time; press the button in the middle of the
+    // captures.
     let link = EstopAt {
         inner: SimLink::clean(VirtualRig::new(SimParams::default())),
-        at: Duration::from_millis(1000),
+        at: Duration::from_millis(4000),
         pressed: false,
     };
     let mut rig = client(link);

@@ -13,16 +13,17 @@ use subsurf::scan::plan::PlanOptions;
 use subsurf::scan::setup::camera_from_spec;
 use subsurf::sim::SimParams;
 
-/// A serial link that is unplugged (closed, every call fails) at `until`.
+/// A serial link that is unplugged (closed, every call fails) at `until`, once that is set.
 struct Unplugged {
     inner: Option<SerialLink>,
-    until: Instant,
+    until: Arc<Mutex<Option<Instant>>>,
     name: String,
 }
 
 impl Unplugged {
     fn check(&mut self) -> Result<&mut SerialLink, LinkError> {
-        if Instant::now() >= self.until {
+        let until = *self.until.lock().unwrap();
+        if until.is_some_and(|t| Instant::now() >= t) {
             self.inner = None; // closes the pseudo-terminal
         }
         self.inner.as_mut().ok_or_else(|| LinkError::Closed {
@@ -36,8 +37,10 @@ impl ByteLink for Unplugged {
         self.check()?.send(bytes)
     }
     fn recv(&mut self, buf: &mut [u8], timeout: Duration) -> Result<usize, LinkError> {
-        let left = self.until.saturating_duration_since(Instant::now());
-        self.check()?.recv(buf, timeout.min(left))
+        let until = *self.until.lock().unwrap();
+        let left = until.map_or(timeout, |t| t.saturating_duration_since(Instant::now()));
+        self.check()?
+            .recv(buf, timeout.min(left).min(Duration::from_millis(20)))
     }
     fn describe(&self) -> String {
         self.name.clone()
@@ -74,14 +77,11 @@ fn scan_survives_the_pty_closing_and_the_rig_turns_the_laser_off_in_time() {
     let reopened_at: Arc<Mutex<Option<Instant>>> = Arc::new(Mutex::new(None));
     let mut connect = || -> Result<RigClient<Unplugged>, RigClientError> {
         let now = Instant::now();
-        let mut drop = dropped_at.lock().unwrap();
-        let until = match *drop {
-            None => {
-                // First connection: unplugged one second in, in the middle of the first program.
-                let at = now + Duration::from_millis(1000);
-                *drop = Some(at);
-                at
-            }
+        let dropped = *dropped_at.lock().unwrap();
+        let until = match dropped {
+            // First connection: unplugged by the watcher below, in the middle of the first
+            // program (after homing, whose length varies with the machine's load).
+            None => dropped_at.clone(),
             Some(at) if now < at + outage => {
                 return Err(RigClientError::Link(LinkError::Closed {
                     link: path.clone(),
@@ -89,7 +89,7 @@ fn scan_survives_the_pty_closing_and_the_rig_turns_the_laser_off_in_time() {
             }
             Some(_) => {
                 reopened_at.lock().unwrap().get_or_insert(now);
-                now + Duration::from_secs(3600)
+                Arc::new(Mutex::new(None))
             }
         };
         let link = Unplugged {
@@ -99,13 +99,27 @@ fn scan_survives_the_pty_closing_and_the_rig_turns_the_laser_off_in_time() {
         };
         RigClient::connect(link, ClientConfig::default())
     };
-    let summary = run_with_reconnect(
-        &cfg,
-        &mut connect,
-        camera.as_mut(),
-        &ProgressBar::hidden(),
-        40,
-    )
+    let summary = std::thread::scope(|s| {
+        // Unplug 150 ms after the laser first comes on.
+        s.spawn(|| {
+            let give_up = Instant::now() + Duration::from_secs(60);
+            while Instant::now() < give_up {
+                let lit = server.with_rig(|r| r.laser_log().iter().any(|e| e.value != 0));
+                if lit {
+                    *dropped_at.lock().unwrap() = Some(Instant::now() + Duration::from_millis(150));
+                    return;
+                }
+                std::thread::sleep(Duration::from_millis(2));
+            }
+        });
+        run_with_reconnect(
+            &cfg,
+            &mut connect,
+            camera.as_mut(),
+            &ProgressBar::hidden(),
+            40,
+        )
+    })
     .unwrap();
     assert!(summary.reconnects >= 1, "{summary:?}");
     assert_eq!(summary.frames_total, cfg.plan.frame_count());

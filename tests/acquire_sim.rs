@@ -50,7 +50,7 @@ fn simulated_scan_writes_a_readable_dataset_in_the_planned_time() {
     assert_eq!(rig_state.status().lasers, 0);
     assert!(!rig_state.laser_log().is_empty());
     // The plan's duration estimate against the rig's virtual clock.
-    let t = rig_timing(&params.capabilities, &params.config, None, None, 0);
+    let t = rig_timing(&params.profile, None, None, 0);
     let est = estimate_duration(&cfg.plan, &t, 0).total_s();
     let err = (summary.rig_seconds - est).abs() / summary.rig_seconds;
     assert!(

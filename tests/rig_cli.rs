@@ -41,6 +41,51 @@ fn rig_sim_move_and_capture() {
 }
 
 #[test]
+fn rig_sim_selftest_passes_every_step_it_can_check() {
+    let out = stdout_of(&["rig", "--sim", "selftest", "--yes"]);
+    for step in [
+        "PASS handshake",
+        "PASS profile read-back",
+        "PASS config read-back",
+        "PASS home:",
+        "PASS home twice and compare: second zero 0 steps",
+        "PASS move and step count",
+        "PASS trigger and exposure-active loopback",
+        "PASS galvo sweep",
+        "SKIP e-stop",
+    ] {
+        assert!(out.contains(step), "{step:?} missing:\n{out}");
+    }
+    assert!(out.contains(" 0 failed"), "{out}");
+}
+
+#[test]
+fn rig_profile_default_check_and_sim_run_the_file() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let file = dir.path().join("rig.json");
+    let json = stdout_of(&["rig", "profile", "default", "--internal-dac"]);
+    std::fs::write(&file, &json).expect("write");
+    let f = file.to_str().expect("utf-8 path");
+    let check = stdout_of(&["rig", "--profile", f, "profile", "check"]);
+    assert!(check.contains("codes 0..=4095"), "{check}");
+    let hello = stdout_of(&["rig", "--sim", "--profile", f, "hello"]);
+    assert!(hello.contains("galvo codes: 0..=4095"), "{hello}");
+    // A bad file is a clear error naming the field group.
+    std::fs::write(
+        &file,
+        json.replace("\"microsteps\": 16", "\"microsteps\": 0"),
+    )
+    .expect("write");
+    let out = subsurf(&["rig", "--profile", f, "profile", "check"]);
+    assert!(!out.status.success());
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("Gearing"),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+#[test]
 fn missing_port_and_missing_choice_are_clear_errors() {
     let out = subsurf(&["rig", "--port", "/dev/no-such-rig", "status"]);
     assert!(!out.status.success());
@@ -91,6 +136,8 @@ fn scripted_session_against_serve_sim() {
     };
     let hello = stdout_of(&with(&["hello"]));
     assert!(hello.contains("protocol version:"), "{hello}");
+    let homed = stdout_of(&with(&["home"]));
+    assert!(homed.contains("homed: true"), "{homed}");
     let moved = stdout_of(&with(&["move", "--to", "400"]));
     assert!(moved.contains("position: 400"), "{moved}");
     let moved = stdout_of(&with(&["move", "--by", "-100"]));

@@ -240,7 +240,7 @@ fn capture_program_streams_one_event_per_point_in_order() {
         settle_us: None,
         exposure_us: 1000,
         trigger_us: 100,
-        interval_us: 5000,
+        interval_us: 12_000,
     };
     rig.load_program(header, &points).expect("load");
     let first = rig.run_program().expect("run");
@@ -270,11 +270,16 @@ fn capture_program_streams_one_event_per_point_in_order() {
         assert_eq!(c.program_index, Some(i as u16));
         assert_eq!(c.galvo, points[i]);
     }
-    // Equal one-code jumps after the first point: captures start exactly interval_us apart.
+    // Equal one-code jumps after the first point: captures start exactly interval_us apart,
+    // and the camera confirmed and counted every one.
     assert!(
         seen[1..]
             .windows(2)
-            .all(|w| w[1].triggered_at_us - w[0].triggered_at_us == 5000)
+            .all(|w| w[1].triggered_at_us - w[0].triggered_at_us == 12_000)
+    );
+    assert!(
+        seen.windows(2)
+            .all(|w| w[1].exposure_count == w[0].exposure_count + 1 && w[1].lit)
     );
     assert_eq!(rig.link().rig().triggers().len(), usize::from(n));
 }

@@ -521,11 +521,12 @@ impl SimRig {
             }
             let t = t.max(self.now);
             self.set_clock(t);
-            if self.rig.hw().next_camera_edge().is_some_and(|e| e <= t) {
-                // The board's camera interrupt: edges go in at their own time.
-                self.rig.handle_inputs(t);
+            self.take_camera_edges(t);
+            if self.rig.poll_timeout().is_some_and(|d| d <= t) {
+                self.rig.handle_timeout(t);
             }
-            self.rig.handle_timeout(t);
+            // A zero-latency trigger's own edge is due at once.
+            self.take_camera_edges(t);
             if self.next_deadline().is_some_and(|next| next <= t) {
                 // Everything due at `t` is handled within one call; a deadline that does not move
                 // would be a core bug, so move time instead of spinning.
@@ -536,6 +537,13 @@ impl SimRig {
             }
         }
         self.set_clock(now);
+    }
+
+    /// The board's camera interrupt: edges due by `t` go into the core at `t`.
+    fn take_camera_edges(&mut self, t: Micros) {
+        if self.rig.hw().next_camera_edge().is_some_and(|e| e <= t) {
+            self.rig.handle_inputs(t);
+        }
     }
 
     /// Bytes from the host arrive at `now` (time first advances to `now`).

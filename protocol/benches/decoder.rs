@@ -20,6 +20,12 @@ fn stream() -> (Vec<u8>, usize) {
                     capture_id: i,
                     program_index: Some(i as u16),
                     triggered_at_us: u64::from(i) * 3_000,
+                    exposure: Some(ExposureActive {
+                        delay_us: 15,
+                        duration_us: 1_000,
+                    }),
+                    exposure_count: i,
+                    lit: true,
                     galvo: GalvoPoint {
                         x: (i * 37) as u16,
                         y: (i * 91) as u16,
@@ -34,6 +40,8 @@ fn stream() -> (Vec<u8>, usize) {
             _ => RigMessage::Reply(Reply {
                 seq: i,
                 result: Ok(Response::Status(Status {
+                    boot_nonce: 0x5eed_0001,
+                    exposures: i,
                     state: RigState::Program,
                     position: -12_345,
                     homed: true,

@@ -278,8 +278,7 @@ impl RigProfile {
         if m.steps_per_rev().is_none() || m.microsteps == 0 {
             return Err(ProfileError::Gearing);
         }
-        if !(1..=MAX_STEP_RATE).contains(&m.max_speed) || !(1..=10_000_000).contains(&m.max_accel)
-        {
+        if !(1..=MAX_STEP_RATE).contains(&m.max_speed) || !(1..=10_000_000).contains(&m.max_accel) {
             return Err(ProfileError::MotorLimits);
         }
         // The pulse must fit in half the shortest step period.
@@ -290,7 +289,8 @@ impl RigProfile {
         {
             return Err(ProfileError::StepTiming);
         }
-        if self.galvo.settle_min_us > MAX_SETTLE_US || self.galvo.settle_per_kcode_us > MAX_SETTLE_US
+        if self.galvo.settle_min_us > MAX_SETTLE_US
+            || self.galvo.settle_per_kcode_us > MAX_SETTLE_US
         {
             return Err(ProfileError::GalvoSettle);
         }

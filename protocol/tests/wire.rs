@@ -628,18 +628,19 @@ fn response() -> impl Strategy<Value = Response> {
             max_program_points,
         },
     );
-    let hello = (any::<[u16; 4]>(), any::<u32>(), caps).prop_map(|(v, boot_nonce, capabilities)| {
-        Response::Hello(Hello {
-            protocol_version: v[0],
-            firmware_version: FirmwareVersion {
-                major: v[1],
-                minor: v[2],
-                patch: v[3],
-            },
-            boot_nonce,
-            capabilities,
-        })
-    });
+    let hello =
+        (any::<[u16; 4]>(), any::<u32>(), caps).prop_map(|(v, boot_nonce, capabilities)| {
+            Response::Hello(Hello {
+                protocol_version: v[0],
+                firmware_version: FirmwareVersion {
+                    major: v[1],
+                    minor: v[2],
+                    patch: v[3],
+                },
+                boot_nonce,
+                capabilities,
+            })
+        });
     prop_oneof![
         Just(Response::Ack),
         hello,
@@ -671,7 +672,15 @@ fn rig_message() -> impl Strategy<Value = RigMessage> {
         any::<u8>(),
     )
         .prop_map(
-            |(capture_id, program_index, triggered_at_us, e, (exposure_count, lit), galvo, channel)| {
+            |(
+                capture_id,
+                program_index,
+                triggered_at_us,
+                e,
+                (exposure_count, lit),
+                galvo,
+                channel,
+            )| {
                 EventKind::Captured(Captured {
                     capture_id,
                     program_index,

@@ -487,7 +487,6 @@ fn serve_sim(profile: RigProfile) -> anyhow::Result<()> {
         profile,
         ..SimParams::default()
     };
-    subsurf::sim::serve_forever(controller, params)
-        .context("serving the simulated rig")?;
+    subsurf::sim::serve_forever(controller, params).context("serving the simulated rig")?;
     Ok(())
 }

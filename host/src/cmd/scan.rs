@@ -152,12 +152,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 })?;
             }
             let p = subsurf_firmware::sim::SimParams::default();
-            let t = rig_timing(
-                &p.profile,
-                cfg.move_speed,
-                cfg.move_accel,
-                cfg.interval_us,
-            );
+            let t = rig_timing(&p.profile, cfg.move_speed, cfg.move_accel, cfg.interval_us);
             let est = estimate_duration(&cfg.plan, &t, s.resumed_from);
             println!(
                 "scan complete: {} frames in {} ({} written now, {} were already done); rig time \

@@ -179,7 +179,8 @@ mod tests {
         let p = d.path().join("rig.json");
         std::fs::write(&p, profile_json(&RigProfile::DEFAULT)).expect("write");
         assert_eq!(load_profile(&p).expect("loads"), RigProfile::DEFAULT);
-        let text = profile_json(&RigProfile::DEFAULT).replace("\"microsteps\": 16", "\"microsteps\": 0");
+        let text =
+            profile_json(&RigProfile::DEFAULT).replace("\"microsteps\": 16", "\"microsteps\": 0");
         std::fs::write(&p, text).expect("write");
         let e = load_profile(&p).expect_err("invalid").to_string();
         assert!(e.contains("Gearing"), "{e}");
@@ -187,7 +188,9 @@ mod tests {
         std::fs::write(&p, text).expect("write");
         let e = load_profile(&p).expect_err("misspelt").to_string();
         assert!(e.contains("microsteps") || e.contains("unknown"), "{e}");
-        let e = load_profile(&d.path().join("none.json")).expect_err("missing").to_string();
+        let e = load_profile(&d.path().join("none.json"))
+            .expect_err("missing")
+            .to_string();
         assert!(e.contains("none.json"), "{e}");
     }
 }

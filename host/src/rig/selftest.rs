@@ -276,10 +276,7 @@ pub fn run<L: ByteLink>(
     s.report
 }
 
-fn home<L: ByteLink>(
-    rig: &mut RigClient<L>,
-    timeout: Duration,
-) -> Result<Option<i32>, String> {
+fn home<L: ByteLink>(rig: &mut RigClient<L>, timeout: Duration) -> Result<Option<i32>, String> {
     rig.home().map_err(err)?;
     let deadline = rig.link().now() + timeout;
     loop {
@@ -287,7 +284,10 @@ fn home<L: ByteLink>(
         if left.is_zero() {
             return Err(format!("not homed within {timeout:?}"));
         }
-        match rig.next_event(left.min(Duration::from_millis(200))).map_err(err)? {
+        match rig
+            .next_event(left.min(Duration::from_millis(200)))
+            .map_err(err)?
+        {
             Some(e) => match e.kind {
                 EventKind::Homed { previous } => return Ok(previous),
                 EventKind::Halted { reason } => return Err(format!("halted: {reason:?}")),
@@ -404,5 +404,75 @@ fn estop<L: ByteLink>(rig: &mut RigClient<L>, prompt: &mut dyn Prompt, s: &mut S
             Ok(()) => s.record("e-stop release", Verdict::Pass, "fault cleared".into()),
             Err(e) => s.record("e-stop release", Verdict::Fail, err(e)),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rig::ClientConfig;
+    use crate::sim::{SimLink, SimParams, VirtualRig};
+
+    fn selftest(params: SimParams, prompt: &mut dyn Prompt) -> SelftestReport {
+        let link = SimLink::clean(VirtualRig::new(params));
+        let mut rig = RigClient::connect_with_seq(link, ClientConfig::default(), 1).expect("rig");
+        run(
+            &mut rig,
+            prompt,
+            &SelftestOptions::default(),
+            Box::new(|_| {}),
+        )
+    }
+
+    fn verdict(r: &SelftestReport, name: &str) -> Verdict {
+        r.steps
+            .iter()
+            .find(|s| s.name == name)
+            .map(|s| s.verdict)
+            .unwrap_or_else(|| panic!("no step {name}: {r:?}"))
+    }
+
+    /// Says yes to everything and presses nothing.
+    struct Yes;
+    impl Prompt for Yes {
+        fn confirm(&mut self, _q: &str) -> Option<bool> {
+            Some(true)
+        }
+        fn wait_for(&mut self, _i: &str) -> bool {
+            false
+        }
+    }
+
+    #[test]
+    fn a_healthy_simulated_rig_passes() {
+        let r = selftest(SimParams::default(), &mut Yes);
+        assert!(r.passed(), "{r:?}");
+        assert_eq!(verdict(&r, "move seen"), Verdict::Pass);
+        assert_eq!(verdict(&r, "e-stop"), Verdict::Skip);
+    }
+
+    #[test]
+    fn a_camera_that_misses_its_trigger_fails_the_loopback() {
+        let mut params = SimParams::default();
+        params.camera.miss_triggers = [Some(0), None, None, None];
+        let r = selftest(params, &mut NoPrompt);
+        assert!(!r.passed());
+        assert_eq!(
+            verdict(&r, "trigger and exposure-active loopback"),
+            Verdict::Fail
+        );
+    }
+
+    #[test]
+    fn a_laser_window_without_margins_fails_under_trigger_latency() {
+        let mut params = SimParams::default();
+        params.camera.trigger_latency_us = 40;
+        params.profile.laser.lead_us = 0;
+        params.profile.laser.tail_us = 0;
+        let r = selftest(params, &mut NoPrompt);
+        assert_eq!(
+            verdict(&r, "trigger and exposure-active loopback"),
+            Verdict::Fail
+        );
     }
 }

@@ -101,9 +101,9 @@ impl ScanError {
 fn classify(e: RigClientError) -> ScanError {
     match e {
         // A rig that reset is reached again like a lost one: a new session homes and resumes.
-        RigClientError::Link(_) | RigClientError::NoReply { .. } | RigClientError::Rebooted { .. } => {
-            ScanError::Link(e)
-        }
+        RigClientError::Link(_)
+        | RigClientError::NoReply { .. }
+        | RigClientError::Rebooted { .. } => ScanError::Link(e),
         e => ScanError::Rig(e),
     }
 }
@@ -514,10 +514,7 @@ impl<'a> Scan<'a> {
             })
             .collect();
         let readout = rig.hello().capabilities.camera_readout_us;
-        let interval_us = self
-            .cfg
-            .interval_us
-            .max(exp_us.saturating_add(readout));
+        let interval_us = self.cfg.interval_us.max(exp_us.saturating_add(readout));
         let header = ProgramHeader {
             len: points.len() as u16,
             channel: self.cfg.laser_channel,
