@@ -1,7 +1,6 @@
 //! Link drop-out: the pseudo-terminal to the simulated rig is closed mid-scan and reopened after
 //! longer than the rig's heartbeat timeout. The scan reconnects, handshakes again and completes;
 //! the rig's own laser log shows the laser went off within the heartbeat timeout of the drop.
-use indicatif::ProgressBar;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use subsurf::calib::Calibration;
@@ -109,7 +108,7 @@ fn scan_survives_the_pty_closing_and_the_rig_turns_the_laser_off_in_time() {
         &cfg,
         &mut connect,
         camera.as_mut(),
-        &ProgressBar::hidden(),
+        &(),
         40,
     )
     .unwrap();

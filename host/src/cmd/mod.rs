@@ -15,6 +15,7 @@ mod plan;
 mod plot;
 mod ports;
 mod predict;
+mod progress;
 mod probes;
 mod render;
 mod rig;
