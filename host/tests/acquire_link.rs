@@ -104,14 +104,7 @@ fn scan_survives_the_pty_closing_and_the_rig_turns_the_laser_off_in_time() {
         };
         RigClient::connect(link, ClientConfig::default())
     };
-    let summary = run_with_reconnect(
-        &cfg,
-        &mut connect,
-        camera.as_mut(),
-        &(),
-        40,
-    )
-    .unwrap();
+    let summary = run_with_reconnect(&cfg, &mut connect, camera.as_mut(), &(), 40).unwrap();
     assert!(summary.reconnects >= 1, "{summary:?}");
     assert_eq!(summary.frames_total, cfg.plan.frame_count());
     let ds = Dataset::open(&cfg.out).unwrap();

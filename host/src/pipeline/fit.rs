@@ -353,7 +353,10 @@ pub fn fit_groups(
     let opts = &ctx.opts;
     let nv = ctx.ds.mesh.positions.len();
     let fit_round = |alpha_div: Option<&[[f64; 3]]>, round: usize| -> RoundState {
-        progress.start(&format!("fit (round {})", round + 1), groups.keys.len() as u64);
+        progress.start(
+            &format!("fit (round {})", round + 1),
+            groups.keys.len() as u64,
+        );
         let mut state = groups
             .keys
             .par_iter()
@@ -372,7 +375,9 @@ pub fn fit_groups(
                     let r_range = data
                         .iter()
                         .flatten()
-                        .fold([f64::INFINITY, 0.0], |[lo, hi], x| [lo.min(x.r), hi.max(x.r)]);
+                        .fold([f64::INFINITY, 0.0], |[lo, hi], x| {
+                            [lo.min(x.r), hi.max(x.r)]
+                        });
                     Ok((
                         GroupFit {
                             model,

@@ -29,7 +29,9 @@ use crate::geometry::GeometryError;
 use crate::modelfile::ModelFile;
 use crate::progress::Progress;
 
-pub use fit::{Fitter, MIN_DECAY, MIN_SHARE, MIN_SUPPORT, SEGMENT_MAX_RATE_RATIO, unsupported_term};
+pub use fit::{
+    Fitter, MIN_DECAY, MIN_SHARE, MIN_SUPPORT, SEGMENT_MAX_RATE_RATIO, unsupported_term,
+};
 pub use load::Context;
 pub use options::{MAX_SEGMENTS, ModelChoice, PipelineOptions, SEGMENT_LADDER, Segments};
 pub use register::{RegisteredFrame, register_one};

@@ -32,7 +32,10 @@ impl RegisteredFrame {
     /// The registered frame of an outcome, if registration found the spot on the object.
     fn of(ctx: &Context, k: usize, outcome: &RegistrationOutcome) -> Option<RegisteredFrame> {
         let RegistrationOutcome::Registered {
-            x_i, triangle, spot, ..
+            x_i,
+            triangle,
+            spot,
+            ..
         } = *outcome
         else {
             return None;

@@ -85,9 +85,7 @@ pub fn group_samples(
     distinct.dedup();
     for l in distinct {
         let reg = &regs[l as usize];
-        let (s, c) = ctx
-            .samples(reg)
-            .map_err(|_| FailReason::FrameUnreadable)?;
+        let (s, c) = ctx.samples(reg).map_err(|_| FailReason::FrameUnreadable)?;
         counts.add(&c);
         for x in s {
             let (_, phi) = frame.polar(reg.x_i, ctx.ds.mesh.positions[x.vertex as usize]);

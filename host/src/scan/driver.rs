@@ -14,8 +14,8 @@ use super::journal::{DatasetHeader, DatasetWriter, FrameEntry, JournalError, Las
 use super::plan::{ScanPlan, angle_steps};
 use crate::calib::Calibration;
 use crate::link::ByteLink;
-use crate::rig::{RigClient, RigClientError};
 use crate::progress::Progress;
+use crate::rig::{RigClient, RigClientError};
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
