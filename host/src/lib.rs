@@ -17,6 +17,7 @@ pub mod pipeline;
 pub mod plot;
 pub mod registration;
 pub mod render;
+pub mod report;
 pub mod rig;
 pub mod samples;
 pub mod scan;
