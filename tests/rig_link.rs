@@ -3,10 +3,10 @@
 
 use std::time::Duration;
 
+use crate::harness::{PtyRig, check_exactly_once, lossy_client_config, run_script, virtual_rig};
 use subsurf::link::{FaultConfig, MemoryLink};
 use subsurf::rig::{RigClient, RigClientError};
 use subsurf_protocol::{Capture, Command, EventKind, GalvoPoint, ProgramHeader, RigError};
-use subsurf_tests::{PtyRig, check_exactly_once, lossy_client_config, run_script, virtual_rig};
 
 /// Issue 2's acceptance scenario: 1% of bytes dropped, 1% corrupted, 1% of frames duplicated,
 /// both directions; 10,000 commands; every one executed exactly once, in order. Lost events are

@@ -1,23 +1,20 @@
 //! End-to-end simulated scans through the library: plan → `scan::run` over the in-process
 //! simulated rig (virtual time) with the simulated camera → a dataset the reader accepts.
+use crate::fixture::{Planner, rig_scan};
 use indicatif::ProgressBar;
 use subsurf::calib::Calibration;
 use subsurf::dataset::Dataset;
 use subsurf::rig::{ClientConfig, RigClient};
 use subsurf::scan::driver::{ScanConfig, run};
 use subsurf::scan::plan::{PlanOptions, PlanScene, coverage_plan, estimate_duration};
-use subsurf::scan::setup::{builtin_object, camera_from_spec, obj_text, rig_timing};
+use subsurf::scan::setup::{builtin_object, camera_from_spec, rig_timing};
 use subsurf::sim::{SimLink, SimParams, VirtualRig};
 
 fn setup(exposure: f64) -> (ScanConfig, subsurf::dataset::Mesh, tempfile::TempDir) {
-    let obj = builtin_object();
-    let mesh = obj.mesh();
-    let (centre, radius) = obj.bounds();
-    let calib = Calibration::builtin_for(centre, radius, 48);
-    let scene = PlanScene::new(&mesh.positions, &mesh.triangles, &calib).unwrap();
-    let plan = coverage_plan(
-        &scene,
-        &PlanOptions {
+    rig_scan(
+        48,
+        Planner::Coverage,
+        PlanOptions {
             angles: 3,
             raster: 10,
             target_mm: 1.5,
@@ -25,10 +22,6 @@ fn setup(exposure: f64) -> (ScanConfig, subsurf::dataset::Mesh, tempfile::TempDi
             ..PlanOptions::default()
         },
     )
-    .unwrap();
-    let dir = tempfile::tempdir().unwrap();
-    let cfg = ScanConfig::new(dir.path().join("ds"), plan, calib, obj_text(&mesh));
-    (cfg, mesh, dir)
 }
 
 #[test]

@@ -1,16 +1,16 @@
 //! Link drop-out: the pseudo-terminal to the simulated rig is closed mid-scan and reopened after
 //! longer than the rig's heartbeat timeout. The scan reconnects, handshakes again and completes;
 //! the rig's own laser log shows the laser went off within the heartbeat timeout of the drop.
+use crate::fixture::{Planner, rig_scan};
 use indicatif::ProgressBar;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
-use subsurf::calib::Calibration;
 use subsurf::dataset::Dataset;
 use subsurf::link::{ByteLink, LinkError, SerialLink};
 use subsurf::rig::{ClientConfig, RigClient, RigClientError};
-use subsurf::scan::driver::{ScanConfig, run_with_reconnect};
-use subsurf::scan::plan::{PlanOptions, PlanScene, dense_raster};
-use subsurf::scan::setup::{builtin_object, camera_from_spec, obj_text};
+use subsurf::scan::driver::run_with_reconnect;
+use subsurf::scan::plan::PlanOptions;
+use subsurf::scan::setup::camera_from_spec;
 use subsurf::sim::SimParams;
 
 /// A serial link that is unplugged (closed, every call fails) at `until`.
@@ -56,23 +56,17 @@ fn scan_survives_the_pty_closing_and_the_rig_turns_the_laser_off_in_time() {
     // The device end stays open here, so the rig never sees end-of-file between clients.
     let _device = device;
 
-    let obj = builtin_object();
-    let mesh = obj.mesh();
-    let (centre, radius) = obj.bounds();
-    let calib = Calibration::builtin_for(centre, radius, 24);
-    let scene = PlanScene::new(&mesh.positions, &mesh.triangles, &calib).unwrap();
-    let plan = dense_raster(
-        &scene,
-        &PlanOptions {
+    let (cfg, mesh, _dir) = rig_scan(
+        24,
+        Planner::Dense,
+        PlanOptions {
             angles: 2,
             raster: 5,
             exposures_s: vec![0.04],
             ..PlanOptions::default()
         },
-    )
-    .unwrap();
-    let dir = tempfile::tempdir().unwrap();
-    let cfg = ScanConfig::new(dir.path().join("ds"), plan, calib.clone(), obj_text(&mesh));
+    );
+    let calib = cfg.calib.clone();
     let mut camera = camera_from_spec("sim", &mesh, &calib, 5, Duration::from_secs(1)).unwrap();
 
     let outage = Duration::from_millis(1200);

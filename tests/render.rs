@@ -1,8 +1,6 @@
 //! End-to-end tests of the renderer and its pictures, through the public API and the binary.
 
-mod render_common;
-
-use render_common::{assert_picture, fails, framed, ok, subsurf};
+use crate::render_common::{assert_picture, fails, framed, ok, subsurf};
 use subsurf::render::{self, HierarchyParams, Light, Method, Quality, RenderOptions};
 
 fn small_torus() -> render::VertexModel {

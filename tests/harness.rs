@@ -1,4 +1,4 @@
-//! Shared harness for the end-to-end tests in `tests/tests/`.
+//! Shared harness for the rig-link end-to-end tests (`rig_link`).
 //!
 //! Two ways to reach the simulated rig, one scripted session to run over either:
 //! - [`virtual_rig`]: the rig stepped inline behind a faulty wire, virtual time, deterministic.

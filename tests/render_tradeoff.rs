@@ -1,9 +1,7 @@
 //! `subsurf bench tradeoff --quick`: the whole chain (simulated scan → fit → render) runs, prints
 //! its table, draws the Pareto plot and rewrites only its own part of a BENCHMARKS file.
 
-mod render_common;
-
-use render_common::{assert_picture, ok, subsurf};
+use crate::render_common::{assert_picture, ok, subsurf};
 use subsurf::plot::{TradeoffPoint, pareto_front};
 
 #[test]

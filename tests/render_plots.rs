@@ -1,8 +1,6 @@
 //! Every picture the plot module draws is decoded and checked: right size, not blank.
 
-mod render_common;
-
-use render_common::{assert_picture, fails, ok, subsurf};
+use crate::render_common::{assert_picture, fails, ok, subsurf};
 use subsurf::model::Material;
 use subsurf::plot;
 use subsurf::render;

@@ -1,39 +1,31 @@
 //! Faults during a simulated scan: emergency stop, Ctrl-C, a camera that times out. Each one
 //! stops with the laser off and a clear message, and the same scan resumes to completion.
+use crate::fixture::{Planner, rig_scan};
 use indicatif::ProgressBar;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
-use subsurf::calib::Calibration;
 use subsurf::dataset::Dataset;
 use subsurf::link::{ByteLink, LinkError};
 use subsurf::rig::{ClientConfig, RigClient};
 use subsurf::scan::camera::{Camera, CameraError, Shot, Timing};
 use subsurf::scan::driver::{ScanConfig, ScanError, run};
 use subsurf::scan::frame::LinearImage;
-use subsurf::scan::plan::{PlanOptions, PlanScene, dense_raster};
-use subsurf::scan::setup::{builtin_object, camera_from_spec, obj_text};
+use subsurf::scan::plan::PlanOptions;
+use subsurf::scan::setup::camera_from_spec;
 use subsurf::sim::{SimLink, SimParams, VirtualRig};
 
 fn config() -> (ScanConfig, subsurf::dataset::Mesh, tempfile::TempDir) {
-    let obj = builtin_object();
-    let mesh = obj.mesh();
-    let (centre, radius) = obj.bounds();
-    let calib = Calibration::builtin_for(centre, radius, 24);
-    let scene = PlanScene::new(&mesh.positions, &mesh.triangles, &calib).unwrap();
-    let plan = dense_raster(
-        &scene,
-        &PlanOptions {
+    rig_scan(
+        24,
+        Planner::Dense,
+        PlanOptions {
             angles: 2,
             raster: 4,
             exposures_s: vec![0.05],
             ..PlanOptions::default()
         },
     )
-    .unwrap();
-    let dir = tempfile::tempdir().unwrap();
-    let cfg = ScanConfig::new(dir.path().join("ds"), plan, calib, obj_text(&mesh));
-    (cfg, mesh, dir)
 }
 
 fn client<L: ByteLink>(link: L) -> RigClient<L> {
