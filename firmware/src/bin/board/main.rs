@@ -10,11 +10,17 @@
 #![no_std]
 #![no_main]
 
+// The timed-exposure path is driven by the core's exposure window (ExposureWindow, landing with
+// the rig profile); until then captures use the software edges.
+#[allow(dead_code)]
+mod exposure;
+mod galvo_map;
 mod inputs;
 mod outputs;
 mod pins;
 mod pulse_train;
 mod rig;
+mod safety;
 mod stepper;
 
 use core::sync::atomic::{AtomicU32, Ordering};
@@ -29,16 +35,22 @@ use embassy_stm32::{bind_interrupts, interrupt, peripherals};
 use embassy_time::{Duration, Timer};
 use static_cell::StaticCell;
 
-use crate::outputs::{CameraTrigger, Galvo, Lasers, force_lasers_off};
+use crate::galvo_map::{GalvoMap, GalvoOutput};
+use crate::outputs::{CameraTiming, Galvo, force_lasers_off};
 use crate::pins::Board;
-use crate::stepper::StepGen;
+use crate::stepper::{StepGen, StepperIo};
 
 bind_interrupts!(struct Irqs {
     USART2 => usart::BufferedInterruptHandler<peripherals::USART2>;
     TIM2 => stepper::StepInterrupt;
-    EXTI4 => exti::InterruptHandler<interrupt::typelevel::EXTI4>;
-    EXTI9_5 => exti::InterruptHandler<interrupt::typelevel::EXTI9_5>;
-    EXTI15_10 => exti::InterruptHandler<interrupt::typelevel::EXTI15_10>;
+    TIM8_CC => outputs::TriggerInterrupt;
+    // The laser cut-off runs first, in the interrupt, then embassy wakes the input tasks.
+    EXTI4 => inputs::SafetyCut<interrupt::typelevel::EXTI4>,
+        exti::InterruptHandler<interrupt::typelevel::EXTI4>;
+    EXTI9_5 => inputs::SafetyCut<interrupt::typelevel::EXTI9_5>,
+        exti::InterruptHandler<interrupt::typelevel::EXTI9_5>;
+    EXTI15_10 => inputs::SafetyCut<interrupt::typelevel::EXTI15_10>,
+        exti::InterruptHandler<interrupt::typelevel::EXTI15_10>;
 });
 
 /// Link baud rate: `SUBSURF_BAUD` at build time, 921600 by default (`subsurf rig --baud` must match).
@@ -67,6 +79,30 @@ const fn parse_baud(text: Option<&str>) -> u32 {
     value
 }
 
+/// Galvo output path: the external SPI DAC, or the internal DAC with `SUBSURF_GALVO=internal` at
+/// build time.
+const GALVO_OUTPUT: GalvoOutput = match option_env!("SUBSURF_GALVO") {
+    Some(v) if const_eq(v, "internal") => GalvoOutput::InternalDac,
+    Some(v) if const_eq(v, "spi") => GalvoOutput::ExternalSpi,
+    None => GalvoOutput::ExternalSpi,
+    Some(_) => panic!("SUBSURF_GALVO must be `spi` or `internal`"),
+};
+
+const fn const_eq(a: &str, b: &str) -> bool {
+    let (a, b) = (a.as_bytes(), b.as_bytes());
+    if a.len() != b.len() {
+        return false;
+    }
+    let mut i = 0;
+    while i < a.len() {
+        if a[i] != b[i] {
+            return false;
+        }
+        i += 1;
+    }
+    true
+}
+
 /// Watchdog timeout: a hung executor or a stalled rig task resets the chip after this long.
 const WATCHDOG_TIMEOUT_US: u32 = 500_000;
 /// Incremented by the rig task every loop; the watchdog task only pets while it moves.
@@ -76,9 +112,17 @@ pub static RIG_ALIVE: AtomicU32 = AtomicU32::new(0);
 async fn main(spawner: Spawner) {
     let p = embassy_stm32::init(clock_config());
     let board = Board::new(p);
-    // First thing after the clocks: laser enables and the camera trigger driven low.
-    let lasers = Lasers::new(board.laser_r, board.laser_g, board.laser_b);
-    let trigger = CameraTrigger::new(board.camera_trigger);
+    // First thing after the clocks: laser enables parked at their inactive level, trigger idle.
+    let camera = CameraTiming::new(
+        board.camera_timer,
+        board.laser_r,
+        board.camera_trigger,
+        board.laser_g,
+        board.laser_b,
+        3,
+        false,
+        false,
+    );
     defmt::info!(
         "subsurf firmware {} on STM32F446RE, link {} baud",
         env!("CARGO_PKG_VERSION"),
@@ -89,8 +133,35 @@ async fn main(spawner: Spawner) {
     watchdog.unleash();
     spawner.spawn(defmt::unwrap!(watchdog_task(watchdog)));
 
-    let stepper = StepGen::new(board.step_timer, board.step, board.dir, board.enable);
-    let galvo = Galvo::new(board.dac, board.galvo_x, board.galvo_y);
+    let mut stepper = StepGen::new(
+        board.step_timer,
+        board.step,
+        board.dir,
+        board.enable,
+        StepperIo {
+            pulse_us: 5,
+            step_active_low: false,
+            invert_dir: false,
+            enable_active_low: true,
+        },
+    );
+    // Holding torque from here on keeps the position.
+    stepper.set_enabled(true);
+    let galvo = match GALVO_OUTPUT {
+        GalvoOutput::ExternalSpi => Galvo::external(
+            board.galvo_spi,
+            board.galvo_sck,
+            board.galvo_mosi,
+            board.galvo_sync,
+            GalvoMap::for_output(GALVO_OUTPUT),
+        ),
+        GalvoOutput::InternalDac => Galvo::internal(
+            board.dac,
+            board.galvo_x,
+            board.galvo_y,
+            GalvoMap::for_output(GALVO_OUTPUT),
+        ),
+    };
 
     let estop = ExtiInput::new(board.estop, board.estop_exti, Pull::Up, Irqs);
     let interlock = ExtiInput::new(board.interlock, board.interlock_exti, Pull::Up, Irqs);
@@ -115,7 +186,7 @@ async fn main(spawner: Spawner) {
         link_config,
     ));
 
-    let hardware = rig::Hardware::new(stepper, galvo, lasers, trigger);
+    let hardware = rig::Hardware::new(stepper, galvo, camera);
     spawner.spawn(defmt::unwrap!(rig::run(link, hardware)));
 }
 

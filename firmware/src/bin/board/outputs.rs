@@ -1,99 +1,352 @@
-//! Laser enables, camera trigger and galvo DAC: the board's actuators besides the stepper.
+//! Laser enables and camera trigger (TIM8, hardware-timed exposures) and the galvo DAC (external
+//! SPI DAC or the internal one): the board's actuators besides the stepper.
+//!
+//! Lasers R/G/B and the trigger are TIM8 channels 1, 3, 4 and 2 (PC6, PC8, PC9, PC7, see `pins`).
+//! A timed exposure ([`CameraTiming::start`]) runs TIM8 once in one-pulse mode: the laser channel in
+//! PWM mode 2 and the trigger "active on match", whose compare interrupt ([`TriggerInterrupt`])
+//! moves it to "inactive on match" for the falling edge; the plan comes from `exposure.rs`, which a
+//! host test checks against a tick-exact timer model. Outside a timed exposure the same channels
+//! are driven by the forced-active/forced-inactive output modes. A laser pin is in
+//! alternate-function mode only while its channel may emit; [`force_lasers_off`] puts every laser
+//! pin back to a GPIO output at its inactive level, whatever the timer is doing.
+use core::sync::atomic::{AtomicBool, AtomicU8, Ordering};
+
 use embassy_stm32::Peri;
 use embassy_stm32::dac::{Dac, DualValue};
-use embassy_stm32::gpio::{Level, Output, Speed};
+use embassy_stm32::gpio::{Level, Output, OutputType, Speed};
+use embassy_stm32::interrupt::typelevel::{Handler, Interrupt, TIM8_CC};
 use embassy_stm32::mode::Blocking;
+use embassy_stm32::pac;
+use embassy_stm32::pac::timer::vals::{Ocm, Urs};
 use embassy_stm32::peripherals as p;
+use embassy_stm32::spi::{self, Spi};
+use embassy_stm32::time::Hertz;
+use embassy_stm32::timer::low_level::Timer;
+use embassy_stm32::timer::simple_pwm::PwmPin;
+use embassy_stm32::timer::{Ch1, Ch2, Ch3, Ch4};
+use embassy_time::{Duration, block_for};
 
-use crate::pins::LASER_PINS;
+use crate::exposure::Plan;
+use crate::galvo_map::{GalvoMap, Slew, ad5689_frames};
+use crate::pins::{LASER_PINS, LASER_TIMER_CHANNELS, TRIGGER_TIMER_CHANNEL};
+use crate::safety::{bsrr_inactive, moder_alternate, moder_output};
 
-/// Largest galvo DAC code (12-bit DAC).
-pub const GALVO_MAX: u16 = 4095;
+/// Laser enables are active low (from the rig profile; read by the fault paths).
+static LASER_ACTIVE_LOW: AtomicBool = AtomicBool::new(false);
+/// Trigger channel state for the compare interrupt: 1 = rising edge armed, 0 = idle.
+static TRIGGER_PHASE: AtomicU8 = AtomicU8::new(0);
+/// Compare value of the trigger's falling edge in the running exposure.
+static TRIGGER_OFF_CCR: core::sync::atomic::AtomicU16 = core::sync::atomic::AtomicU16::new(0);
 
-/// Drive every laser enable low through the GPIO registers, whoever owns the pins. Used by every
-/// fault path (panic, HardFault, e-stop and interlock edges) before anything else happens.
+/// Drive every laser enable to its inactive level and take the pins from the timer, through the
+/// GPIO registers only: safe from any interrupt or fault handler, whoever owns the pins. Used by
+/// every fault path (panic, HardFault, e-stop and interlock interrupts) before anything else.
 pub fn force_lasers_off() {
+    let active_low = LASER_ACTIVE_LOW.load(Ordering::Relaxed);
     for (port, pin) in LASER_PINS {
-        port.bsrr().write(|w| w.set_br(pin, true));
+        // Output data first (takes effect the moment the pin becomes an output), then the mode.
+        port.bsrr()
+            .write_value(pac::gpio::regs::Bsrr(bsrr_inactive(pin, active_low)));
+        port.moder().modify(|w| w.0 = moder_output(w.0, pin));
     }
 }
 
-/// The laser enable outputs (R, G, B = channels 0, 1, 2), low from construction on.
-pub struct Lasers {
-    channels: [Output<'static>; 3],
+/// Hand laser pin `channel` to the timer (its output now decides the level).
+fn connect_laser(channel: usize) {
+    if let Some(&(port, pin)) = LASER_PINS.get(channel) {
+        port.moder().modify(|w| w.0 = moder_alternate(w.0, pin));
+    }
 }
 
-impl Lasers {
-    /// Take the pins and drive them low at once.
+fn set_ocm(channel: usize, mode: Ocm) {
+    pac::TIM8
+        .ccmr_output(channel / 2)
+        .modify(|w| w.set_ocm(channel % 2, mode));
+}
+
+/// The camera trigger's compare interrupt: at the rising edge, schedule the falling one.
+pub struct TriggerInterrupt;
+
+impl Handler<TIM8_CC> for TriggerInterrupt {
+    unsafe fn on_interrupt() {
+        let tim = pac::TIM8;
+        let ch = TRIGGER_TIMER_CHANNEL;
+        if !tim.sr().read().ccif(ch) {
+            return;
+        }
+        tim.sr().modify(|w| w.set_ccif(ch, false));
+        if TRIGGER_PHASE.swap(0, Ordering::SeqCst) == 1 {
+            tim.ccr(ch)
+                .write(|w| w.set_ccr(TRIGGER_OFF_CCR.load(Ordering::SeqCst)));
+            set_ocm(ch, Ocm::INACTIVE_ON_MATCH);
+        }
+    }
+}
+
+/// Lasers and camera trigger on TIM8.
+pub struct CameraTiming {
+    _timer: Timer<'static, p::TIM8>,
+    _r: PwmPin<'static, p::TIM8, Ch1>,
+    _trigger: PwmPin<'static, p::TIM8, Ch2>,
+    _g: PwmPin<'static, p::TIM8, Ch3>,
+    _b: PwmPin<'static, p::TIM8, Ch4>,
+    channels: u8,
+    /// A timed exposure is (or was last) running.
+    timed: bool,
+}
+
+impl CameraTiming {
+    /// Take TIM8 and the four pins; lasers parked at their inactive level on GPIO, trigger idle.
+    #[allow(clippy::too_many_arguments)]
     pub fn new(
-        r: Peri<'static, p::PB10>,
-        g: Peri<'static, p::PA8>,
-        b: Peri<'static, p::PA9>,
+        tim: Peri<'static, p::TIM8>,
+        laser_r: Peri<'static, p::PC6>,
+        trigger: Peri<'static, p::PC7>,
+        laser_g: Peri<'static, p::PC8>,
+        laser_b: Peri<'static, p::PC9>,
+        channels: u8,
+        laser_active_low: bool,
+        trigger_active_low: bool,
     ) -> Self {
+        LASER_ACTIVE_LOW.store(laser_active_low, Ordering::SeqCst);
+        let timer = Timer::new(tim);
+        let r = PwmPin::new(laser_r, OutputType::PushPull);
+        let g = PwmPin::new(laser_g, OutputType::PushPull);
+        let b = PwmPin::new(laser_b, OutputType::PushPull);
+        // The pins are alternate-function now, with the timer's outputs still disabled: park the
+        // lasers on GPIO at once.
+        force_lasers_off();
+        let trigger = PwmPin::new(trigger, OutputType::PushPull);
+        let tim = pac::TIM8;
+        tim.cr1().modify(|w| {
+            w.set_opm(true);
+            w.set_urs(Urs::COUNTER_ONLY);
+        });
+        for ch in 0..4 {
+            set_ocm(ch, Ocm::FORCE_INACTIVE);
+        }
+        tim.ccer().modify(|w| {
+            for ch in LASER_TIMER_CHANNELS {
+                w.set_ccp(ch, laser_active_low);
+                w.set_cce(ch, true);
+            }
+            w.set_ccp(TRIGGER_TIMER_CHANNEL, trigger_active_low);
+            w.set_cce(TRIGGER_TIMER_CHANNEL, true);
+        });
+        tim.bdtr().modify(|w| w.set_moe(true));
+        tim.dier()
+            .modify(|w| w.set_ccie(TRIGGER_TIMER_CHANNEL, true));
+        TIM8_CC::unpend();
+        // SAFETY: the handler is bound in `main`; it shares only atomics with this driver.
+        unsafe { TIM8_CC::enable() };
         Self {
-            channels: [
-                Output::new(r, Level::Low, Speed::Low),
-                Output::new(g, Level::Low, Speed::Low),
-                Output::new(b, Level::Low, Speed::Low),
-            ],
+            _timer: timer,
+            _r: r,
+            _trigger: trigger,
+            _g: g,
+            _b: b,
+            channels: channels.min(3),
+            timed: false,
         }
     }
 
-    /// Number of channels.
-    pub const fn count(&self) -> u8 {
-        3
+    /// Laser channels wired.
+    pub fn channels(&self) -> u8 {
+        self.channels
     }
 
-    /// Switch one channel; unknown channels are ignored (the core validated them).
-    pub fn set(&mut self, channel: u8, on: bool) {
-        if let Some(out) = self.channels.get_mut(usize::from(channel)) {
-            out.set_level(if on { Level::High } else { Level::Low });
+    /// Stop a timed exposure (outputs keep their levels until changed).
+    fn stop_timer(&mut self) {
+        pac::TIM8.cr1().modify(|w| w.set_cen(false));
+        TRIGGER_PHASE.store(0, Ordering::SeqCst);
+        self.timed = false;
+    }
+
+    /// Software control: bit `i` of `mask` = laser channel `i` on. Ends any timed exposure.
+    pub fn set_lasers(&mut self, mask: u8) {
+        self.stop_timer();
+        for (i, ch) in LASER_TIMER_CHANNELS.into_iter().enumerate() {
+            let on = i < usize::from(self.channels) && mask & (1 << i) != 0;
+            if on {
+                set_ocm(ch, Ocm::FORCE_ACTIVE);
+                connect_laser(i);
+            } else {
+                set_ocm(ch, Ocm::FORCE_INACTIVE);
+            }
+        }
+        if mask == 0 {
+            force_lasers_off();
         }
     }
-}
 
-/// Camera trigger output (high = trigger).
-pub struct CameraTrigger {
-    out: Output<'static>,
-}
-
-impl CameraTrigger {
-    /// Take the pin, low.
-    pub fn new(pin: Peri<'static, p::PC7>) -> Self {
-        Self {
-            out: Output::new(pin, Level::Low, Speed::VeryHigh),
+    /// Software control of the trigger line.
+    pub fn set_trigger(&mut self, high: bool) {
+        if self.timed && pac::TIM8.cr1().read().cen() {
+            // The timer owns the edges of the running exposure.
+            return;
         }
+        set_ocm(
+            TRIGGER_TIMER_CHANNEL,
+            if high {
+                Ocm::FORCE_ACTIVE
+            } else {
+                Ocm::FORCE_INACTIVE
+            },
+        );
     }
 
-    /// Raise or drop the trigger line.
-    pub fn set(&mut self, high: bool) {
-        self.out
-            .set_level(if high { Level::High } else { Level::Low });
+    /// Whether a timed exposure is still running.
+    #[allow(dead_code)] // used with the core's exposure window
+    pub fn timed_running(&self) -> bool {
+        self.timed && pac::TIM8.cr1().read().cen()
+    }
+
+    #[allow(dead_code)] // used with the core's exposure window
+    /// Run one timed exposure now per `plan`: laser channels `mask` on from now (forced active)
+    /// until the timer's match turns them off, the trigger pulse on its matches.
+    pub fn start(&mut self, plan: &Plan, mask: u8) {
+        self.stop_timer();
+        let tim = pac::TIM8;
+        tim.psc().write_value(plan.psc);
+        tim.arr().write(|w| w.set_arr(plan.arr));
+        tim.ccr(TRIGGER_TIMER_CHANNEL)
+            .write(|w| w.set_ccr(plan.trigger_ccr));
+        set_ocm(TRIGGER_TIMER_CHANNEL, Ocm::FORCE_INACTIVE);
+        TRIGGER_OFF_CCR.store(plan.trigger_off_ccr, Ordering::SeqCst);
+        tim.cnt().write(|w| w.set_cnt(0));
+        // Load PSC/ARR (no update interrupt: URS = counter only), clear stale flags.
+        tim.egr().write(|w| w.set_ug(true));
+        tim.sr().write_value(pac::timer::regs::SrAdv(0));
+        for (i, ch) in LASER_TIMER_CHANNELS.into_iter().enumerate() {
+            tim.ccr(ch).write(|w| w.set_ccr(plan.laser_off_ccr));
+            if i < usize::from(self.channels) && mask & (1 << i) != 0 {
+                // On now; the match mode keeps that level until the counter reaches the end.
+                set_ocm(ch, Ocm::FORCE_ACTIVE);
+                connect_laser(i);
+                set_ocm(ch, Ocm::INACTIVE_ON_MATCH);
+            } else {
+                set_ocm(ch, Ocm::FORCE_INACTIVE);
+            }
+        }
+        set_ocm(TRIGGER_TIMER_CHANNEL, Ocm::ACTIVE_ON_MATCH);
+        TRIGGER_PHASE.store(1, Ordering::SeqCst);
+        self.timed = true;
+        tim.cr1().modify(|w| w.set_cen(true));
     }
 }
 
-/// The two galvo axes on DAC1 (X = PA4, Y = PA5), updated together.
+/// SPI clock for the external DAC (APB1 42 MHz / 4; the AD5689R takes up to 50 MHz).
+const SPI_HZ: u32 = 10_000_000;
+/// Boot ramp: largest DAC step per write, and the pause between writes.
+const RAMP_STEP_16: u16 = 1_024;
+const RAMP_PAUSE: Duration = Duration::from_millis(1);
+
+/// `map`, or the documented one for its output if it is unusable.
+fn checked(map: GalvoMap) -> GalvoMap {
+    if map.is_valid() {
+        map
+    } else {
+        defmt::warn!("galvo map out of range; using the documented one");
+        GalvoMap::for_output(map.output)
+    }
+}
+
+/// The DAC behind the galvo inputs.
+enum GalvoDacPath {
+    /// AD5689R on SPI2 with /SYNC on a GPIO.
+    Spi {
+        spi: Spi<'static, Blocking, spi::mode::Master>,
+        sync: Output<'static>,
+    },
+    /// DAC1 channels 1 and 2 (PA4, PA5).
+    Internal(Dac<'static, Blocking>),
+}
+
+/// The two galvo axes, updated together.
 pub struct Galvo {
-    dac: Dac<'static, Blocking>,
+    dac: GalvoDacPath,
+    map: GalvoMap,
+    slew: Slew,
 }
 
 impl Galvo {
-    /// Take the DAC and both pins; the mirrors start centred.
-    pub fn new(
+    /// The external 16-bit DAC: SPI mode 1, MSB first; the DAC powers up at mid-scale, so nothing
+    /// is written until the first command (which the boot ramp brings there smoothly).
+    pub fn external(
+        spi: Peri<'static, p::SPI2>,
+        sck: Peri<'static, p::PB13>,
+        mosi: Peri<'static, p::PB15>,
+        sync: Peri<'static, p::PB12>,
+        map: GalvoMap,
+    ) -> Self {
+        let map = checked(map);
+        let mut config = spi::Config::default();
+        config.mode = spi::MODE_1;
+        config.frequency = Hertz(SPI_HZ);
+        let spi = Spi::new_blocking_txonly(spi, sck, mosi, config);
+        Self {
+            dac: GalvoDacPath::Spi {
+                spi,
+                sync: Output::new(sync, Level::High, Speed::VeryHigh),
+            },
+            slew: Slew::new(map.centre(), RAMP_STEP_16),
+            map,
+        }
+    }
+
+    /// The internal DAC fallback: both channels start at the centre of their linear window.
+    pub fn internal(
         dac: Peri<'static, p::DAC1>,
         x: Peri<'static, p::PA4>,
         y: Peri<'static, p::PA5>,
+        map: GalvoMap,
     ) -> Self {
-        let mut galvo = Self {
-            dac: Dac::new_blocking(dac, x, y),
-        };
-        galvo.set(GALVO_MAX / 2, GALVO_MAX / 2);
-        galvo
+        let map = checked(map);
+        let mut dac = Dac::new_blocking(dac, x, y);
+        let (cx, cy) = map.centre();
+        dac.set(DualValue::Bit12Right(cx, cy));
+        Self {
+            dac: GalvoDacPath::Internal(dac),
+            // The same angle per write as the 16-bit ramp.
+            slew: Slew::new(map.centre(), RAMP_STEP_16 / 16),
+            map,
+        }
     }
 
-    /// Set both axes at once (codes are clamped to the 12-bit range).
+    /// Largest protocol code.
+    pub fn max_code(&self) -> u16 {
+        self.map.galvo_max
+    }
+
+    fn write(&mut self, (a, b): (u16, u16)) {
+        match &mut self.dac {
+            GalvoDacPath::Spi { spi, sync } => {
+                for frame in ad5689_frames(a, b) {
+                    sync.set_low();
+                    if spi.blocking_write(&frame).is_err() {
+                        defmt::warn!("galvo DAC write failed");
+                    }
+                    sync.set_high();
+                }
+            }
+            GalvoDacPath::Internal(dac) => dac.set(DualValue::Bit12Right(a, b)),
+        }
+    }
+
+    /// Set both axes (protocol codes, clamped). The first command after boot is ramped from the
+    /// centre in small steps; later ones go straight out (the core waits the settle time).
     pub fn set(&mut self, x: u16, y: u16) {
-        self.dac
-            .set(DualValue::Bit12Right(x.min(GALVO_MAX), y.min(GALVO_MAX)));
+        let target = self.map.dac_codes(x, y);
+        // Bounded: the ramp ends after full scale / step writes; afterwards one write.
+        for _ in 0..=u32::from(u16::MAX) {
+            let ramping = self.slew.ramping();
+            let Some(next) = self.slew.next(target) else {
+                return;
+            };
+            self.write(next);
+            if ramping && next != target {
+                block_for(RAMP_PAUSE);
+            }
+        }
     }
 }

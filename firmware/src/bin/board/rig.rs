@@ -2,10 +2,14 @@
 //! and its own deadlines, and implements the core's hardware traits on the board's drivers.
 //!
 //! Timing: every deadline the core asks for is run with `now` = that deadline, so each step the
-//! core emits carries its scheduled time. Steps go to the hardware step generator with exactly the
-//! scheduled spacing, one fixed [`STEP_PIPELINE_US`] later than scheduled (the queue that absorbs
-//! the task's wake-up latency). Once the core reports a move finished, requests are held back until
-//! the last queued step has left the timer, so nothing (a laser, a capture) overlaps a moving motor.
+//! core emits carries its scheduled time. Steps go to the hardware step generator with their
+//! absolute target, one fixed [`STEP_PIPELINE_US`] after the scheduled time (the queue that absorbs
+//! the task's wake-up latency). While a move runs the task wakes at most every
+//! [`crate::pulse_train::BATCH_US`] and queues every step due meanwhile, so the executor wakes once
+//! per batch, not once per step; the timer interrupt expands the queued segments. A step that
+//! missed its time (the timer ran dry mid-motion) is a stall: the motion is stopped and the core
+//! halted. Once the core reports a move finished, requests are held back until the last queued
+//! step has left the timer, so nothing (a laser, a capture) overlaps a moving motor.
 use core::sync::atomic::Ordering;
 
 use embassy_futures::select::{Either, Either3, select, select3};
@@ -23,8 +27,8 @@ use subsurf_protocol::{
 };
 
 use crate::inputs;
-use crate::outputs::{self, GALVO_MAX, Galvo, Lasers};
-use crate::pulse_train::interval_for;
+use crate::outputs::{CameraTiming, Galvo};
+use crate::pulse_train::batch_wake;
 use crate::stepper::{self, StepGen};
 
 /// The rig task wakes at least this often (the watchdog task expects it).
@@ -32,19 +36,22 @@ pub const MAX_SLEEP: Duration = Duration::from_millis(50);
 
 /// Steps leave the timer this long after the core scheduled them (the first step of a motion is
 /// started this far ahead; later ones keep their exact spacing).
-pub const STEP_PIPELINE_US: u32 = 1_000;
+pub const STEP_PIPELINE_US: u64 = 1_000;
 
 /// What this board announces: a 200-step motor at 1/16 microstepping through a 5:1 belt
-/// (16 000 steps per turntable revolution), the 12-bit DAC, three laser channels.
-pub const CAPABILITIES: Capabilities = Capabilities {
-    steps_per_rev: 16_000,
-    galvo_max: GALVO_MAX,
-    laser_channels: 3,
-    max_speed: 20_000,
-    max_accel: 200_000,
-    max_exposure_us: 2_000_000,
-    max_program_points: MAX_PROGRAM_POINTS as u16,
-};
+/// (16 000 steps per turntable revolution), three laser channels; `galvo_max` comes from the galvo
+/// output in use.
+pub fn capabilities(galvo_max: u16, laser_channels: u8) -> Capabilities {
+    Capabilities {
+        steps_per_rev: 16_000,
+        galvo_max,
+        laser_channels,
+        max_speed: 40_000,
+        max_accel: 400_000,
+        max_exposure_us: 2_000_000,
+        max_program_points: MAX_PROGRAM_POINTS as u16,
+    }
+}
 
 /// Settings at power-on (the host may change them with `SetConfig`).
 pub const CONFIG: Config = Config {
@@ -79,56 +86,39 @@ fn sample_inputs() -> Inputs {
 pub struct Hardware {
     pub stepper: StepGen,
     pub galvo: Galvo,
-    pub lasers: Lasers,
-    pub trigger: outputs::CameraTrigger,
+    pub camera: CameraTiming,
     /// Core time of the call in progress (set before every call into the core).
     pub now: Micros,
-    /// Scheduled time of the previous step.
-    last_step_at: Micros,
+    /// Steps that missed their time since the last check.
+    stalls: u32,
+    /// The motion in progress stalled: its remaining steps are not emitted.
+    stalled: bool,
 }
 
 impl Hardware {
-    pub fn new(
-        stepper: StepGen,
-        galvo: Galvo,
-        lasers: Lasers,
-        trigger: outputs::CameraTrigger,
-    ) -> Self {
+    pub fn new(stepper: StepGen, galvo: Galvo, camera: CameraTiming) -> Self {
         Self {
             stepper,
             galvo,
-            lasers,
-            trigger,
+            camera,
             now: 0,
-            last_step_at: 0,
+            stalls: 0,
+            stalled: false,
         }
     }
 }
 
 impl Stepper for Hardware {
     fn step(&mut self, forward: bool) {
-        if sample_inputs().estop {
-            // The e-stop task already stopped the timer; do not restart it before the core has
-            // seen the e-stop and halted the motion.
+        if sample_inputs().estop || self.stalled {
+            // The EXTI interrupt already stopped the timer; do not restart it before the core
+            // has seen the e-stop and halted the motion.
             return;
         }
-        let interval = interval_for(
-            self.now,
-            self.last_step_at,
-            self.stepper.is_running(),
-            STEP_PIPELINE_US,
-            now_us().saturating_sub(self.now),
-        );
-        self.last_step_at = self.now;
-        // The queue holds 12.8 ms of steps at full speed and the pipeline keeps 1 ms in it, so a
-        // full queue means the timer stopped draining: give up after ~1 s rather than hang.
-        for _ in 0..1_000 {
-            if self.stepper.push(interval, forward) {
-                return;
-            }
-            embassy_time::block_for(Duration::from_millis(1));
-        }
-        defmt::error!("step queue stuck; step dropped");
+        // Never blocks: a step that cannot be placed on time counts as a stall.
+        self.stepper
+            .push(self.now.saturating_add(STEP_PIPELINE_US), forward, now_us());
+        self.stalls = self.stalls.saturating_add(self.stepper.take_stalls());
     }
 }
 
@@ -144,16 +134,13 @@ impl LaserOutputs for Hardware {
         // interlock open; the pins are checked again here, at the last moment.
         let inputs = sample_inputs();
         let allowed = !inputs.estop && inputs.interlock_closed;
-        for channel in 0..self.lasers.count() {
-            self.lasers
-                .set(channel, allowed && mask & (1 << channel) != 0);
-        }
+        self.camera.set_lasers(if allowed { mask } else { 0 });
     }
 }
 
 impl CameraTrigger for Hardware {
     fn set_trigger(&mut self, high: bool) {
-        self.trigger.set(high);
+        self.camera.set_trigger(high);
     }
 }
 
@@ -205,12 +192,33 @@ fn run_due(rig: &mut Rig<Hardware>) {
     }
 }
 
+/// Stop the motion after a step stall: the motor is off its schedule, so the core halts it (as a
+/// `Stop` would) and the host sees the halt.
+fn check_stalls(rig: &mut Rig<Hardware>) {
+    let stalls = core::mem::take(&mut rig.hw_mut().stalls);
+    if stalls > 0 {
+        let queued = rig.hw().stepper.queued_segments();
+        stepper::force_stop();
+        defmt::error!(
+            "step stall: {} steps missed their time ({} segments queued); motion halted",
+            stalls,
+            queued
+        );
+        rig.hw_mut().stalled = true;
+    }
+    if !rig.moving() {
+        rig.hw_mut().stalled = false;
+    }
+}
+
 /// The rig task.
 #[embassy_executor::task]
 pub async fn run(link: BufferedUart<'static>, hw: Hardware) {
     let (mut tx, mut rx): (BufferedUartTx<'static>, BufferedUartRx<'static>) = link.split();
     static RIG: StaticCell<Rig<Hardware>> = StaticCell::new();
-    let rig = RIG.init_with(|| Rig::new(hw, CAPABILITIES, CONFIG, now_us()));
+    let caps = capabilities(hw.galvo.max_code(), hw.camera.channels());
+    let rig = RIG.init_with(|| Rig::new(hw, caps, CONFIG, now_us()));
+    let mut last_wake = now_us();
     let mut rx_buf = [0u8; 64];
     let mut frame = [0u8; MAX_FRAME];
     let mut last_fault = None;
@@ -238,19 +246,22 @@ pub async fn run(link: BufferedUart<'static>, hw: Hardware) {
         }
 
         let now = now_us();
-        let wake = rig
-            .poll_timeout()
-            .unwrap_or(Micros::MAX)
-            .min(now.saturating_add(MAX_SLEEP.as_micros()));
+        let deadline = rig.poll_timeout().unwrap_or(Micros::MAX);
+        // While a move runs, take its steps in batches (one wake per batch, not per step).
+        let is_step = rig.moving() && rig.next_step_due() == Some(deadline);
+        let wake =
+            batch_wake(deadline, is_step, last_wake).min(now.saturating_add(MAX_SLEEP.as_micros()));
         let woke = select3(
             rx.read(&mut rx_buf),
             Timer::at(Instant::from_micros(wake)),
             inputs::CHANGED.wait(),
         )
         .await;
+        last_wake = now_us();
         // Deadlines that came while we slept run first, each at its own time: handling bytes at
         // the later wall-clock time first would make the core emit the missed steps as a burst.
         run_due(rig);
+        check_stalls(rig);
         match woke {
             Either3::First(Ok(n)) => {
                 let now = now_us();
