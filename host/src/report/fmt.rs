@@ -72,7 +72,7 @@ pub fn count(n: usize) -> String {
     let s = n.to_string();
     let mut out = String::with_capacity(s.len() + s.len() / 3);
     for (k, ch) in s.chars().enumerate() {
-        if k > 0 && (s.len() - k) % 3 == 0 {
+        if k > 0 && (s.len() - k).is_multiple_of(3) {
             out.push(',');
         }
         out.push(ch);
@@ -147,7 +147,7 @@ mod tests {
         assert_eq!(sig(-0.5, 2), "-0.50");
         assert_eq!(sig(0.0, 3), "0.00");
         assert_eq!(sig(f64::NAN, 3), "NaN");
-        assert_eq!(log_e(0.014_999_999_999_999_999), "0.0150");
+        assert_eq!(log_e(0.014_999_999_999), "0.0150");
     }
 
     #[test]
