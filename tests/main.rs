@@ -13,6 +13,8 @@ mod fixture;
 mod harness;
 mod render_common;
 
+mod architecture;
+
 mod acquire_faults;
 mod acquire_kill;
 mod acquire_link;

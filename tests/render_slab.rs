@@ -4,7 +4,8 @@
 use subsurf::fit::{FitOptions, fit_expsum};
 use subsurf::model::Material;
 use subsurf::render::{
-    Falloffs, HierarchyParams, Occluder, Quality, Transport, VertexModel, irradiance, vertex_areas,
+    Falloffs, HierarchyParams, Quality, Transport, VertexModel, irradiance, shadow_scene,
+    vertex_areas,
 };
 
 /// A flat disk of radius `radius` in z = 0, graded towards its centre: a centre vertex and rings
@@ -66,7 +67,7 @@ fn a_fitted_homogeneous_slab_reproduces_the_dipoles_total_diffuse_reflectance() 
         // Uniform light at normal incidence: E = 1 everywhere (Fresnel relative to normal = 1).
         // Only the centre vertex is a receiver: the slab is large, so edges do not matter there.
         model.validate().unwrap();
-        let occ = Occluder::new(&model.positions, &model.faces).unwrap();
+        let occ = shadow_scene(&model.positions, &model.faces).unwrap();
         let e = irradiance(
             &model.positions,
             &model.normals,

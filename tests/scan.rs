@@ -3,7 +3,8 @@
 use std::path::{Path, PathBuf};
 
 use subsurf::dataset::{
-    Dataset, DatasetWriter, FrameChannel, FrameSpec, LaserRay, select_frames, write_pfm,
+    Dataset, DatasetWriter, FrameChannel, FrameSpec, LaserRay, ScanSpec, obj_bytes, select_frames,
+    write_pfm,
 };
 use subsurf::evaluate::evaluate_frames;
 use subsurf::fit::FitOptions;
@@ -43,8 +44,8 @@ fn slab_scan(
         6.0,
     );
     let sim = SimScene::new(mesh.clone(), cams.clone(), field, spot).unwrap();
-    let mut w =
-        DatasetWriter::create(dir, &mesh, cams, Some(floor), sensor.saturation, true).unwrap();
+    let header = ScanSpec::new(cams, Some(floor), sensor.saturation);
+    let (mut w, _) = DatasetWriter::open(dir, "slab_scan", header, &obj_bytes(&mesh)).unwrap();
     let origin = [0.0, 0.0, 850.0];
     for (k, target) in mesh.positions.iter().chain(extra).enumerate() {
         // Aim a hair inside the slab so rays at edge vertices do not graze past the boundary.
@@ -64,7 +65,7 @@ fn slab_scan(
             laser: Some(laser),
             galvo: None,
         };
-        w.add_frame(spec, &img).unwrap();
+        w.add_image(spec, &img, true).unwrap();
     }
     w.finish().unwrap();
     sim

@@ -6,6 +6,7 @@
 #![warn(missing_docs)]
 
 pub mod calib;
+pub mod curves;
 pub mod dataset;
 pub mod evaluate;
 pub mod flash;

@@ -286,7 +286,7 @@ impl<'a> Context<'a> {
         Ok(Context {
             ds,
             scene: Scene::new(ds.mesh.clone())?,
-            cams: ds.spec.cameras.iter().map(Camera::new).collect(),
+            cams: ds.spec.cameras.clone(),
             vis: Mutex::new(HashMap::new()),
             opts,
         })

@@ -5,10 +5,7 @@
 //! Pure: takes an image and geometry, returns data. Frames without a spot on the object are a
 //! [`RegistrationOutcome`], not an error.
 use crate::dataset::{FrameSpec, Image};
-use crate::geometry::{
-    Camera, Hit, Scene, V3, add_scaled, dist, dot, normalize, sub, turntable_to_world,
-    world_to_turntable,
-};
+use crate::geometry::{Camera, Hit, Scene, V3, dist};
 
 /// Cosine of the largest angle between the surface normal at the laser's hit and the direction
 /// to the camera at which the spot still counts as seen. Beyond it (and when the hit is
@@ -265,34 +262,15 @@ fn solve4(mut a: [[f64; 4]; 4], mut b: [f64; 4]) -> Option<[f64; 4]> {
     x.iter().all(|v| v.is_finite()).then_some(x)
 }
 
-/// Whether the camera can see the point `hit` (object frame, turntable at `deg`): in the image,
-/// facing the camera by more than [`SPOT_COS_MIN`] (interpolated vertex normal, as shading
-/// sees it) and unoccluded.
+/// Whether the camera can see the point `hit` (object frame, turntable at `deg`): the one
+/// visibility rule ([`Scene::sees`]) with the interpolated vertex normal (as shading sees it) and
+/// the grazing limit [`SPOT_COS_MIN`]. The scan planner predicts registration with this very
+/// function, so a plan's "seen" is processing's "registered".
 pub fn spot_visible(scene: &Scene, camera: &Camera, deg: f64, hit: &Hit) -> bool {
-    let t = scene.mesh.triangles[hit.triangle as usize];
-    let w = scene.barycentric(hit.triangle, hit.point);
-    let mut n = [0.0; 3];
-    for k in 0..3 {
-        n = add_scaled(n, w[k], scene.mesh.normals[t[k] as usize]);
-    }
-    let c_obj = world_to_turntable(camera.center(), deg);
-    let (n, facing) = match (normalize(n), normalize(sub(c_obj, hit.point))) {
-        (Some(n), Some(to_cam)) => (n, dot(n, to_cam)),
-        _ => return false,
-    };
-    facing > SPOT_COS_MIN
-        && camera
-            .project(turntable_to_world(hit.point, deg))
-            .is_some_and(|[u, v]| camera.inside(u, v))
-        && scene.unoccluded(lift_off(scene, hit.point, n), c_obj)
-}
-
-/// `p` moved off the surface along the normal `n` by far less than any feature of the mesh
-/// (1e-5 of its diagonal) — but more than the sideways nudge `Scene::cast` retries a missed ray
-/// with, so that retry cannot start under the surface and report `p`'s own triangle as an
-/// occluder (which happens for grazing rays).
-pub fn lift_off(scene: &Scene, p: V3, n: V3) -> V3 {
-    add_scaled(p, 1e-5 * scene.mesh.diagonal(), n)
+    scene
+        .normal_at(hit.triangle, hit.point)
+        .and_then(|n| scene.sees(camera, deg, hit.point, n, SPOT_COS_MIN))
+        .is_some()
 }
 
 /// Registers one frame: detect the spot, back-project it onto the mesh at the frame's turntable

@@ -9,8 +9,9 @@
 //! first square (black). `cols + rows` must be odd so a half turn is distinguishable; every
 //! failure says what was not found.
 
+use super::CalibError;
 use super::target::{ChessboardTarget, Pose, TargetView};
-use super::{CalibError, CameraModel};
+use crate::geometry::Camera;
 use nalgebra::{Matrix6, Vector3, Vector6};
 use std::collections::{HashMap, VecDeque};
 
@@ -58,10 +59,21 @@ impl Gray {
     }
 }
 
+/// The camera `subsurf calib simulate` renders its chessboard images with: 320×240 pixels,
+/// f = 400 px, 600 mm from the platter centre at 35° elevation, looking at it with `+z` up.
+pub fn simulated_camera() -> Camera {
+    let el = 35f64.to_radians();
+    let eye = [0.0, -600.0 * el.cos(), 600.0 * el.sin()];
+    // Never degenerate: the eye is 600 mm from the target and off the z axis.
+    Camera::look_at(eye, [0.0; 3], [0.0, 0.0, 1.0], 400.0, 320, 240).unwrap_or_else(|| {
+        unreachable!("a fixed camera 600 mm off the platter centre is never degenerate")
+    })
+}
+
 /// Renders the board (printed side towards `−z` of the board frame, black first square) seen
 /// by `camera` (intrinsics only; no distortion) at `pose` (camera ← board), 4×4 supersampled.
 /// A white margin of 0.6 squares surrounds the squares; beyond it the background is 0.3.
-pub fn render_board(camera: &CameraModel, target: &ChessboardTarget, pose: &Pose) -> Gray {
+pub fn render_board(camera: &Camera, target: &ChessboardTarget, pose: &Pose) -> Gray {
     let (w, h) = (camera.width as usize, camera.height as usize);
     let rt = pose.r.transpose();
     let s = target.square_mm;
@@ -467,8 +479,9 @@ mod tests {
     use super::*;
     use nalgebra::{Matrix3, Rotation3};
 
-    fn cam() -> CameraModel {
-        let mut c = super::super::look_at_camera([0.0, -1.0, 0.0], [0.0; 3], 320, 240, 400.0);
+    fn cam() -> Camera {
+        let mut c =
+            Camera::look_at([0.0, -1.0, 0.0], [0.0; 3], [0.0, 0.0, 1.0], 400.0, 320, 240).unwrap();
         c.cx = 161.3;
         c.cy = 118.7;
         c
@@ -541,14 +554,7 @@ mod tests {
             rows: 6,
             square_mm: 30.0,
         };
-        let el = 35f64.to_radians();
-        let c = super::super::look_at_camera(
-            [0.0, -600.0 * el.cos(), 600.0 * el.sin()],
-            [0.0; 3],
-            320,
-            240,
-            400.0,
-        );
+        let c = simulated_camera();
         let mut views = Vec::new();
         for ax in [
             [0.4, 0.1, 0.0],

@@ -16,6 +16,8 @@ pub use galvo::{GalvoModel, GalvoObservation, fit_galvo};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
+use crate::geometry::Camera;
+
 /// The format string of `calib.json`.
 pub const CALIB_FORMAT: &str = "subsurf-calib/1";
 
@@ -53,92 +55,6 @@ pub enum CalibError {
     NotConverged(String),
 }
 
-/// An OpenCV pinhole camera, exactly the `cameras[]` entry of `scan.json`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct CameraModel {
-    /// Image width in pixels.
-    pub width: u32,
-    /// Image height in pixels.
-    pub height: u32,
-    /// Focal length in pixels (x).
-    pub fx: f64,
-    /// Focal length in pixels (y).
-    pub fy: f64,
-    /// Principal point (x), pixel centres at integers.
-    pub cx: f64,
-    /// Principal point (y).
-    pub cy: f64,
-    /// OpenCV distortion `[k1, k2, p1, p2, k3]`.
-    #[serde(default)]
-    pub distortion: [f64; 5],
-    /// World → camera, 4x4 row-major (x right, y down, z forward).
-    pub camera_from_world: [[f64; 4]; 4],
-}
-
-impl CameraModel {
-    /// The camera centre in the world frame (`-Rᵀ t`).
-    pub fn centre_world(&self) -> [f64; 3] {
-        let m = &self.camera_from_world;
-        let t = [m[0][3], m[1][3], m[2][3]];
-        let mut c = [0.0; 3];
-        for (i, ci) in c.iter_mut().enumerate() {
-            *ci = -(m[0][i] * t[0] + m[1][i] * t[1] + m[2][i] * t[2]);
-        }
-        c
-    }
-
-    /// World point → camera coordinates.
-    pub fn to_camera(&self, p: [f64; 3]) -> [f64; 3] {
-        let m = &self.camera_from_world;
-        let mut q = [0.0; 3];
-        for (i, qi) in q.iter_mut().enumerate() {
-            *qi = m[i][0] * p[0] + m[i][1] * p[1] + m[i][2] * p[2] + m[i][3];
-        }
-        q
-    }
-
-    /// Camera coordinates → pixel, with OpenCV distortion; `None` behind the camera.
-    pub fn project_camera(&self, q: [f64; 3]) -> Option<[f64; 2]> {
-        if q[2] <= 1e-9 {
-            return None;
-        }
-        let (x, y) = (q[0] / q[2], q[1] / q[2]);
-        let [k1, k2, p1, p2, k3] = self.distortion;
-        let r2 = x * x + y * y;
-        let radial = 1.0 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2;
-        let xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
-        let yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
-        Some([self.fx * xd + self.cx, self.fy * yd + self.cy])
-    }
-
-    /// World point → pixel; `None` behind the camera.
-    pub fn project(&self, p: [f64; 3]) -> Option<[f64; 2]> {
-        self.project_camera(self.to_camera(p))
-    }
-
-    /// Whether a pixel position lies on the sensor.
-    pub fn in_image(&self, uv: [f64; 2]) -> bool {
-        uv[0] >= -0.5
-            && uv[1] >= -0.5
-            && uv[0] < self.width as f64 - 0.5
-            && uv[1] < self.height as f64 - 0.5
-    }
-
-    fn validate(&self) -> Result<(), CalibError> {
-        let finite = [self.fx, self.fy, self.cx, self.cy]
-            .iter()
-            .chain(self.distortion.iter())
-            .chain(self.camera_from_world.iter().flatten())
-            .all(|v| v.is_finite());
-        if !finite || self.fx <= 0.0 || self.fy <= 0.0 || self.width == 0 || self.height == 0 {
-            return Err(CalibError::Invalid(
-                "camera: intrinsics must be finite, focal lengths and image size positive".into(),
-            ));
-        }
-        Ok(())
-    }
-}
-
 /// The measured turntable axis, in camera coordinates (mm), as found by
 /// [`fit_turntable_axis`]. The world frame is built from it, so scans only use it indirectly
 /// through `camera_from_world`; it is kept for inspection and re-use.
@@ -155,8 +71,9 @@ pub struct TurntableAxis {
 pub struct Calibration {
     /// Always [`CALIB_FORMAT`].
     pub format: String,
-    /// The camera, extrinsics in the world (turntable) frame.
-    pub camera: CameraModel,
+    /// The camera (the one camera model, exactly `scan.json`'s), extrinsics in the world
+    /// (turntable) frame.
+    pub camera: Camera,
     /// The turntable axis as measured, if it was.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub turntable: Option<TurntableAxis>,
@@ -201,7 +118,9 @@ impl Calibration {
                 self.format
             )));
         }
-        self.camera.validate()?;
+        self.camera
+            .check()
+            .map_err(|m| CalibError::Invalid(format!("camera: {m}")))?;
         self.galvo.validate()
     }
 
@@ -222,7 +141,14 @@ impl Calibration {
             centre[2] + 600.0 * el.sin(),
         ];
         let f = 0.5 * size as f64 * 600.0 / (radius * 1.15);
-        let camera = look_at_camera(eye, centre, size, size, f);
+        let mut camera = Camera::look_at(eye, centre, [0.0, 0.0, 1.0], f, size, size)
+            .unwrap_or_else(|| {
+                // Only a non-finite centre or radius gets here: a camera that sees nothing.
+                Camera::look_at([0.0, -1.0, 0.0], [0.0; 3], [0.0, 0.0, 1.0], f, size, size)
+                    .expect("a fixed, non-degenerate view")
+            });
+        // A calibration always states its distortion model (zero here).
+        camera.distortion = Some(vec![0.0; 5]);
         let origin = [0.0, -600.0, 500.0];
         let d = sub(centre, origin);
         let half = (1.2 * radius / dot(d, d).sqrt()).atan();
@@ -233,37 +159,6 @@ impl Calibration {
             turntable: None,
             galvo,
         }
-    }
-}
-
-/// A camera at `eye` looking at `target` with the world `+z` up in the image.
-pub fn look_at_camera(
-    eye: [f64; 3],
-    target: [f64; 3],
-    width: u32,
-    height: u32,
-    f: f64,
-) -> CameraModel {
-    let z = normalize(sub(target, eye));
-    let x = normalize(cross(z, [0.0, 0.0, 1.0]));
-    let y = cross(z, x);
-    let r = [x, y, z];
-    let t = [-dot(x, eye), -dot(y, eye), -dot(z, eye)];
-    let mut m = [[0.0; 4]; 4];
-    for i in 0..3 {
-        m[i][..3].copy_from_slice(&r[i]);
-        m[i][3] = t[i];
-    }
-    m[3][3] = 1.0;
-    CameraModel {
-        width,
-        height,
-        fx: f,
-        fy: f,
-        cx: (width as f64 - 1.0) / 2.0,
-        cy: (height as f64 - 1.0) / 2.0,
-        distortion: [0.0; 5],
-        camera_from_world: m,
     }
 }
 
@@ -304,7 +199,7 @@ mod tests {
         assert_eq!(c.galvo.max_code, back.galvo.max_code);
         let uv = c.camera.project([0.0, 0.0, 10.0]).unwrap();
         assert!((uv[0] - 63.5).abs() < 1e-9 && (uv[1] - 63.5).abs() < 1e-9);
-        let cw = c.camera.centre_world();
+        let cw = c.camera.center();
         assert!((cw[1] + 600.0 * 35f64.to_radians().cos()).abs() < 1e-9);
         let (o, d) = c.galvo.ray([32768, 32768]);
         let to_centre = normalize(sub([0.0, 0.0, 10.0], o));

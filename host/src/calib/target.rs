@@ -6,8 +6,9 @@
 //! first (homographies → `B = K⁻ᵀK⁻¹` → `K` → poses), then Levenberg–Marquardt over `fx, fy, cx,
 //! cy, k1, k2` and every pose by reprojection error.
 
+use super::CalibError;
 use super::lsq::minimize;
-use super::{CalibError, CameraModel};
+use crate::geometry::Camera;
 use nalgebra::{DMatrix, DVector, Matrix3, Rotation3, SVD, Vector3};
 use serde::{Deserialize, Serialize};
 
@@ -424,20 +425,15 @@ pub fn fit_turntable(
 }
 
 /// Builds the camera model from an intrinsics fit and a turntable fit.
-pub fn camera_model(
-    width: u32,
-    height: u32,
-    intr: &IntrinsicsFit,
-    axis: &TurntableFit,
-) -> CameraModel {
-    CameraModel {
+pub fn camera_model(width: u32, height: u32, intr: &IntrinsicsFit, axis: &TurntableFit) -> Camera {
+    Camera {
         width,
         height,
         fx: intr.k[0],
         fy: intr.k[1],
         cx: intr.k[2],
         cy: intr.k[3],
-        distortion: intr.distortion,
+        distortion: Some(intr.distortion.to_vec()),
         camera_from_world: axis.camera_from_world,
     }
 }

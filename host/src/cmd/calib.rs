@@ -3,11 +3,11 @@
 use anyhow::{Context, bail};
 use std::path::{Path, PathBuf};
 
-use subsurf::calib::detect::{Gray, detect_chessboard, render_board};
+use subsurf::calib::detect::{Gray, detect_chessboard, render_board, simulated_camera};
 use subsurf::calib::target::{
     ChessboardTarget, Pose, TargetView, camera_model, fit_intrinsics, fit_turntable,
 };
-use subsurf::calib::{Calibration, GalvoObservation, fit_galvo, look_at_camera};
+use subsurf::calib::{Calibration, GalvoObservation, fit_galvo};
 use subsurf::scan::frame::LinearImage;
 
 /// Calibrate the rig; every failure says what was not found.
@@ -180,7 +180,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 c.camera.height = h;
                 (c.camera.fx, c.camera.fy, c.camera.cx, c.camera.cy) =
                     (intr.k[0], intr.k[1], intr.k[2], intr.k[3]);
-                c.camera.distortion = intr.distortion;
+                c.camera.distortion = Some(intr.distortion.to_vec());
             }
             c.save(&calib)?;
             println!("written to {}", calib.display());
@@ -220,10 +220,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             let d = opencv_matrix(&text, "distortion_coefficients").unwrap_or_default();
             let mut c = load_or_builtin(&calib)?;
             (c.camera.fx, c.camera.fy, c.camera.cx, c.camera.cy) = (k[0], k[4], k[2], k[5]);
-            c.camera.distortion = [0.0; 5];
+            let mut distortion = [0.0; 5];
             for (i, v) in d.iter().take(5).enumerate() {
-                c.camera.distortion[i] = *v;
+                distortion[i] = *v;
             }
+            c.camera.distortion = Some(distortion.to_vec());
             if let Some(w) = opencv_scalar(&text, "image_width") {
                 c.camera.width = w as u32;
             }
@@ -270,14 +271,7 @@ fn simulate_target(out: &Path) -> anyhow::Result<()> {
         rows: 6,
         square_mm: 30.0,
     };
-    let el = 35f64.to_radians();
-    let cam = look_at_camera(
-        [0.0, -600.0 * el.cos(), 600.0 * el.sin()],
-        [0.0; 3],
-        320,
-        240,
-        400.0,
-    );
+    let cam = simulated_camera();
     let save = |name: &str, g: &Gray| -> anyhow::Result<PathBuf> {
         let img = LinearImage {
             width: g.width,

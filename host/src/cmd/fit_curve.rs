@@ -1,11 +1,11 @@
 //! `subsurf fit-curve`: fit one fall-off curve (or many, `--batch`) from a CSV file.
 
-use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
 use rayon::prelude::*;
 use serde_json::{Value, json};
+use subsurf::curves::{Curve, parse};
 use subsurf::fit::dipole::{DipoleFit, DipoleOptions, fit_dipole};
 use subsurf::fit::{ExpFit, FitFailure, FitOptions, Objective, Preset, Solver, Terms, fit_expsum};
 use subsurf::model::{MAX_TERMS, Term};
@@ -101,92 +101,6 @@ pub struct Args {
     pub max_iterations: Option<usize>,
 }
 
-/// One curve read from the file: its id and per-channel samples.
-#[derive(Debug, Clone)]
-struct Curve {
-    id: Option<String>,
-    r: Vec<f64>,
-    channels: Vec<Vec<f64>>,
-}
-
-/// Parses the CSV; every error names the 1-based line.
-fn parse(text: &str, batch: bool) -> anyhow::Result<Vec<Curve>> {
-    let mut header: Option<usize> = None;
-    let mut curves: Vec<Curve> = Vec::new();
-    let mut index: HashMap<String, usize> = HashMap::new();
-    for (i, raw) in text.lines().enumerate() {
-        let line_no = i + 1;
-        let line = raw.split('#').next().unwrap_or("").trim();
-        if line.is_empty() {
-            continue;
-        }
-        let fields: Vec<&str> = line.split(',').map(str::trim).collect();
-        let Some(channels) = header else {
-            let cols: Vec<String> = fields.iter().map(|f| f.to_ascii_lowercase()).collect();
-            let rest = if batch {
-                if cols.first().map(String::as_str) != Some("id") {
-                    bail!(
-                        "line {line_no}: --batch needs a header starting with `id`, got `{line}`"
-                    );
-                }
-                &cols[1..]
-            } else {
-                &cols[..]
-            };
-            header = Some(match rest {
-                [r, v] if r == "r" && v == "value" => 1,
-                [r, a, b, c] if r == "r" && a == "r_value" && b == "g_value" && c == "b_value" => 3,
-                _ => bail!(
-                    "line {line_no}: expected header `{}r,value` or `{}r,r_value,g_value,b_value`, got `{line}`",
-                    if batch { "id," } else { "" },
-                    if batch { "id," } else { "" }
-                ),
-            });
-            continue;
-        };
-        let expected = channels + 1 + usize::from(batch);
-        if fields.len() != expected {
-            bail!(
-                "line {line_no}: expected {expected} columns, got {}",
-                fields.len()
-            );
-        }
-        let (id, nums) = if batch {
-            (Some(fields[0].to_string()), &fields[1..])
-        } else {
-            (None, &fields[..])
-        };
-        let mut values = Vec::with_capacity(nums.len());
-        for (col, f) in nums.iter().enumerate() {
-            let v: f64 = f.parse().with_context(|| {
-                format!(
-                    "line {line_no}: column {} is not a number: `{f}`",
-                    col + 1 + usize::from(batch)
-                )
-            })?;
-            values.push(v);
-        }
-        let key = id.clone().unwrap_or_default();
-        let at = *index.entry(key).or_insert_with(|| {
-            curves.push(Curve {
-                id,
-                r: Vec::new(),
-                channels: vec![Vec::new(); channels],
-            });
-            curves.len() - 1
-        });
-        let c = &mut curves[at];
-        c.r.push(values[0]);
-        for (ch, v) in values[1..].iter().enumerate() {
-            c.channels[ch].push(*v);
-        }
-    }
-    if header.is_none() {
-        bail!("no header line found (expected `r,value` or `r,r_value,g_value,b_value`)");
-    }
-    Ok(curves)
-}
-
 fn fit_options(args: &Args) -> anyhow::Result<FitOptions> {
     let mut o = match args.preset {
         Some(PresetArg::Draft) => Preset::Draft.options(),
@@ -195,6 +109,8 @@ fn fit_options(args: &Args) -> anyhow::Result<FitOptions> {
         None => FitOptions::default(),
     };
     o.require_convergence = false;
+    // Users fit whatever they measured: with few samples, fit the order they determine.
+    o.reduce_order = true;
     o.objective = match args.objective {
         ObjectiveArg::Log => Objective::Log,
         ObjectiveArg::Linear => Objective::Linear,
@@ -260,8 +176,10 @@ fn expsum_json(fit: &Result<ExpFit, FitFailure>) -> Value {
             "log_e": f.log_e,
             "iterations": f.iterations,
             "converged": f.converged,
+            "stalled": f.stalled,
             "samples": f.samples,
             "order": f.order,
+            "reduced_from": f.reduced_from,
         }),
         Err(e) => json!({"converged": false, "error": e.to_string()}),
     }
@@ -279,6 +197,7 @@ fn dipole_json(fit: &Result<DipoleFit, FitFailure>) -> Value {
             "log_e": f.log_e,
             "iterations": f.iterations,
             "converged": f.converged,
+            "stalled": f.stalled,
             "samples": f.samples,
         }),
         Err(e) => json!({"converged": false, "error": e.to_string()}),
@@ -312,6 +231,18 @@ fn curve_json(curve: &Curve, model: &str, per_channel: Vec<Value>) -> Value {
     obj
 }
 
+/// "converged", "stalled" (no step reduces the cost at a non-stationary point) or "not
+/// converged" (iteration limit).
+fn status(v: &Value) -> &'static str {
+    if v["converged"] == true {
+        "converged"
+    } else if v["stalled"] == true {
+        "STALLED (not a minimum)"
+    } else {
+        "NOT converged (iteration limit)"
+    }
+}
+
 fn describe(curve: &Curve, v: &Value) -> String {
     let id = curve
         .id
@@ -333,22 +264,32 @@ fn describe(curve: &Curve, v: &Value) -> String {
                     )
                 })
                 .collect();
+            let reduced = match v["reduced_from"].as_u64() {
+                Some(asked) => format!(
+                    " (order reduced from {asked} to {}: {} samples determine at most {} term{})",
+                    terms.len(),
+                    v["samples"]["used"],
+                    terms.len(),
+                    if terms.len() == 1 { "" } else { "s" }
+                ),
+                None => String::new(),
+            };
             format!(
-                "R_d(r) = {}; log E {:.4e}; {} iterations; converged {}",
+                "R_d(r) = {}; log E {:.4e}; {} iterations; {}{reduced}",
                 t.join(" + "),
                 v["log_e"].as_f64().unwrap_or(f64::NAN),
                 v["iterations"],
-                v["converged"]
+                status(v)
             )
         } else {
             format!(
-                "dipole sigma_s' {:.6e}, sigma_a {:.6e}, eta {}, scale {:.4e}; log E {:.4e}; converged {}",
+                "dipole sigma_s' {:.6e}, sigma_a {:.6e}, eta {}, scale {:.4e}; log E {:.4e}; {}",
                 v["sigma_s_prime"].as_f64().unwrap_or(f64::NAN),
                 v["sigma_a"].as_f64().unwrap_or(f64::NAN),
                 v["eta"],
                 v["scale"].as_f64().unwrap_or(f64::NAN),
                 v["log_e"].as_f64().unwrap_or(f64::NAN),
-                v["converged"]
+                status(v)
             )
         }
     };
@@ -549,35 +490,4 @@ fn plot(
     root.present()
         .with_context(|| format!("writing {}", path.display()))?;
     Ok(())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn parse_errors_name_the_line() {
-        let e = parse("# c\nr,value\n1,2\n3\n", false)
-            .unwrap_err()
-            .to_string();
-        assert!(e.contains("line 4"), "{e}");
-        let e = format!("{:#}", parse("r,value\n1,abc\n", false).unwrap_err());
-        assert!(e.contains("line 2") && e.contains("abc"), "{e}");
-        let e = parse("x,y\n", false).unwrap_err().to_string();
-        assert!(e.contains("line 1"), "{e}");
-        let e = parse("r,value\n", true).unwrap_err().to_string();
-        assert!(e.contains("line 1") && e.contains("id"), "{e}");
-        assert!(parse("# only comments\n", false).is_err());
-    }
-
-    #[test]
-    fn parse_groups_batch_ids_and_keeps_nan() {
-        let c = parse("id,r,value # header\na,0,1\nb,0,2\na,1,NaN\n", true).unwrap();
-        assert_eq!(c.len(), 2);
-        assert_eq!(c[0].id.as_deref(), Some("a"));
-        assert_eq!(c[0].r, vec![0.0, 1.0]);
-        assert!(c[0].channels[0][1].is_nan());
-        let rgb = parse("r,r_value,g_value,b_value\n0,1,2,3\n", false).unwrap();
-        assert_eq!(rgb[0].channels.len(), 3);
-    }
 }

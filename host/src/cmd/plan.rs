@@ -130,7 +130,7 @@ pub fn make_plan(a: &PlanArgs, r: &Resolved) -> anyhow::Result<(ScanPlan, PlanSc
         } else {
             a.exposure.clone()
         },
-        channel: "rgb".into(),
+        channel: subsurf::dataset::FrameChannel::Rgb,
     };
     let plan = if let Some(p) = &a.plan {
         load_plan(p)?

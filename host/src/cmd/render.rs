@@ -71,7 +71,7 @@ pub fn resolve_camera(spec: &str, size: (u32, u32), model: &VertexModel) -> Resu
             eye,
             target,
             fov_deg,
-        } => Camera::look_at(eye, target, [0.0, 0.0, 1.0], fov_deg, size.0, size.1)?,
+        } => Camera::look_at_fov(eye, target, [0.0, 0.0, 1.0], fov_deg, size.0, size.1)?,
         CameraSpec::File { path, index } => {
             let text = std::fs::read_to_string(&path)
                 .with_context(|| format!("reading {}", path.display()))?;

@@ -1,5 +1,5 @@
 //! Frame images: linear float OpenEXR (half or float, RGB or one channel) and PFM.
-use std::io::{BufRead, BufReader, Read, Write};
+use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
 
 /// Why an image could not be read or written.
@@ -232,12 +232,8 @@ fn read_pfm(path: &Path) -> Result<Image, ImageError> {
     })
 }
 
-/// Writes a PFM (little-endian, rows bottom to top as the format requires).
-pub fn write_pfm(path: &Path, img: &Image) -> Result<(), ImageError> {
-    let io = |source| ImageError::Io {
-        path: path.to_path_buf(),
-        source,
-    };
+/// A PFM's bytes (little-endian, rows bottom to top as the format requires).
+pub fn encode_pfm(img: &Image) -> Result<Vec<u8>, ImageError> {
     if img.channels != 1 && img.channels != 3 {
         return Err(ImageError::Format(format!(
             "PFM holds 1 or 3 channels, image has {}",
@@ -246,25 +242,32 @@ pub fn write_pfm(path: &Path, img: &Image) -> Result<(), ImageError> {
     }
     let mut out = Vec::with_capacity(img.data.len() * 4 + 32);
     let magic = if img.channels == 3 { "PF" } else { "Pf" };
-    write!(out, "{magic}\n{} {}\n-1.0\n", img.width, img.height).map_err(io)?;
+    out.extend_from_slice(format!("{magic}\n{} {}\n-1.0\n", img.width, img.height).as_bytes());
     let row = img.width * img.channels;
     for j in (0..img.height).rev() {
         for v in &img.data[j * row..(j + 1) * row] {
             out.extend_from_slice(&v.to_le_bytes());
         }
     }
-    std::fs::write(path, out).map_err(io)
+    Ok(out)
 }
 
-/// Writes a float32 OpenEXR: channels R, G, B for a three-channel image, Y for one channel.
-pub fn write_exr(path: &Path, img: &Image) -> Result<(), ImageError> {
-    use exr::prelude::*;
-    let exr_err = |e: exr::error::Error| ImageError::Exr {
+/// Writes a PFM ([`encode_pfm`]).
+pub fn write_pfm(path: &Path, img: &Image) -> Result<(), ImageError> {
+    let bytes = encode_pfm(img)?;
+    std::fs::write(path, bytes).map_err(|source| ImageError::Io {
         path: path.to_path_buf(),
-        message: e.to_string(),
-    };
+        source,
+    })
+}
+
+/// A float32 OpenEXR's bytes: channels R, G, B for a three-channel image, Y for one channel.
+pub fn encode_exr(img: &Image) -> Result<Vec<u8>, ImageError> {
+    use exr::prelude::*;
+    let exr_err = |e: exr::error::Error| ImageError::Format(format!("cannot encode EXR: {e}"));
     let (w, c) = (img.width, img.channels);
     let size = (img.width, img.height);
+    let mut out = std::io::Cursor::new(Vec::new());
     match c {
         3 => {
             let channels = SpecificChannels::rgb(|p: Vec2<usize>| {
@@ -273,8 +276,8 @@ pub fn write_exr(path: &Path, img: &Image) -> Result<(), ImageError> {
             });
             exr::image::Image::from_channels(size, channels)
                 .write()
-                .to_file(path)
-                .map_err(exr_err)
+                .to_buffered(&mut out)
+                .map_err(exr_err)?;
         }
         1 => {
             let channels = SpecificChannels::build()
@@ -282,13 +285,25 @@ pub fn write_exr(path: &Path, img: &Image) -> Result<(), ImageError> {
                 .with_pixel_fn(|p: Vec2<usize>| (img.data[p.y() * w + p.x()],));
             exr::image::Image::from_channels(size, channels)
                 .write()
-                .to_file(path)
-                .map_err(exr_err)
+                .to_buffered(&mut out)
+                .map_err(exr_err)?;
         }
-        _ => Err(ImageError::Format(format!(
-            "EXR writer takes 1 or 3 channels, image has {c}"
-        ))),
+        _ => {
+            return Err(ImageError::Format(format!(
+                "EXR writer takes 1 or 3 channels, image has {c}"
+            )));
+        }
     }
+    Ok(out.into_inner())
+}
+
+/// Writes a float32 OpenEXR ([`encode_exr`]).
+pub fn write_exr(path: &Path, img: &Image) -> Result<(), ImageError> {
+    let bytes = encode_exr(img)?;
+    std::fs::write(path, bytes).map_err(|source| ImageError::Io {
+        path: path.to_path_buf(),
+        source,
+    })
 }
 
 #[cfg(test)]

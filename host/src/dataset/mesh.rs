@@ -237,8 +237,8 @@ pub fn load_obj(path: &Path) -> Result<(Mesh, MeshReport), MeshError> {
     Ok((mesh, report))
 }
 
-/// Writes the mesh as OBJ (positions with nine decimals, 1-based faces).
-pub fn write_obj(path: &Path, mesh: &Mesh) -> Result<(), MeshError> {
+/// The OBJ text of `mesh` (positions to 1e-9 mm, 1-based faces), as the dataset writers write it.
+pub fn obj_bytes(mesh: &Mesh) -> Vec<u8> {
     use std::fmt::Write as _;
     let mut s = String::with_capacity(mesh.positions.len() * 40 + mesh.triangles.len() * 24);
     s.push_str("# subsurf mesh, object frame, mm\n");
@@ -248,7 +248,12 @@ pub fn write_obj(path: &Path, mesh: &Mesh) -> Result<(), MeshError> {
     for t in &mesh.triangles {
         let _ = writeln!(s, "f {} {} {}", t[0] + 1, t[1] + 1, t[2] + 1);
     }
-    std::fs::write(path, s).map_err(|source| MeshError::Io {
+    s.into_bytes()
+}
+
+/// Writes the mesh as OBJ (positions with nine decimals, 1-based faces).
+pub fn write_obj(path: &Path, mesh: &Mesh) -> Result<(), MeshError> {
+    std::fs::write(path, obj_bytes(mesh)).map_err(|source| MeshError::Io {
         path: path.to_path_buf(),
         source,
     })

@@ -1,5 +1,7 @@
 //! Scan datasets (`docs/scan-format.md`, `subsurf-scan/1`): reading and validating `scan.json`, the
-//! OBJ mesh and the frame images, and writing the same format.
+//! OBJ mesh and the frame images, and writing the same format. [`ScanSpec`] / [`FrameSpec`] are
+//! the one `scan.json` type set and [`DatasetWriter`] the one (crash-safe) writer: `subsurf scan`
+//! and `subsurf simulate` both write through them, `subsurf fit` reads them.
 //!
 //! Contract: a dataset made by any program that follows the format loads without change; unknown
 //! keys are ignored; every path a dataset names is confined to the dataset directory. Frames are
@@ -8,13 +10,15 @@ use std::path::{Component, Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
+use crate::geometry::Camera;
+
 mod image;
 mod mesh;
 mod writer;
 
-pub use image::{Image, ImageError, read_image, write_exr, write_pfm};
-pub use mesh::{Mesh, MeshError, MeshReport, load_obj, write_obj};
-pub use writer::DatasetWriter;
+pub use image::{Image, ImageError, encode_exr, encode_pfm, read_image, write_exr, write_pfm};
+pub use mesh::{Mesh, MeshError, MeshReport, load_obj, obj_bytes, write_obj};
+pub use writer::{DatasetWriter, STATE_DIR, WriteError};
 
 /// The only format string this version reads and writes.
 pub const FORMAT: &str = "subsurf-scan/1";
@@ -59,28 +63,6 @@ pub enum DatasetError {
         /// The cause.
         source: ImageError,
     },
-}
-
-/// One camera: OpenCV pinhole intrinsics, optional distortion, world-to-camera extrinsics.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct CameraSpec {
-    /// Image width in pixels.
-    pub width: u32,
-    /// Image height in pixels.
-    pub height: u32,
-    /// Focal length in pixels along x.
-    pub fx: f64,
-    /// Focal length in pixels along y.
-    pub fy: f64,
-    /// Principal point x (pixel centres at integer coordinates).
-    pub cx: f64,
-    /// Principal point y.
-    pub cy: f64,
-    /// OpenCV distortion `[k1, k2, p1, p2, k3]` (`k3` may be left out).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub distortion: Option<Vec<f64>>,
-    /// Row-major 4x4 matrix taking world points to camera coordinates.
-    pub camera_from_world: [[f64; 4]; 4],
 }
 
 /// The laser ray of a frame in the world frame, as the galvo calibration predicts it.
@@ -142,7 +124,8 @@ pub struct FrameSpec {
     /// The laser ray the rig's calibration predicts (a prior, not ground truth).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub laser: Option<LaserRay>,
-    /// Galvo DAC codes used.
+    /// Galvo DAC codes used (the project's rig writes 16-bit codes; other programs may write
+    /// wider ones).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub galvo: Option<[u32; 2]>,
 }
@@ -163,8 +146,8 @@ pub struct ScanSpec {
     /// sensor clipped. Absent: only infinite pixels count as saturated.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub saturation: Option<f64>,
-    /// The cameras.
-    pub cameras: Vec<CameraSpec>,
+    /// The cameras (the one camera model, [`crate::geometry::Camera`]).
+    pub cameras: Vec<Camera>,
     /// The frames, in capture order.
     pub frames: Vec<FrameSpec>,
 }
@@ -192,6 +175,20 @@ fn finite_all(v: &[f64]) -> bool {
 }
 
 impl ScanSpec {
+    /// The dataset-level part of a new `scan.json` (no frames yet): this version's format and
+    /// units, the mesh as `object.obj`.
+    pub fn new(cameras: Vec<Camera>, noise_floor: Option<f64>, saturation: Option<f64>) -> Self {
+        ScanSpec {
+            format: FORMAT.into(),
+            units: "mm".into(),
+            mesh: "object.obj".into(),
+            noise_floor,
+            saturation,
+            cameras,
+            frames: Vec::new(),
+        }
+    }
+
     /// Checks every rule of the contract that does not need the file system.
     pub fn validate(&self) -> Result<(), DatasetError> {
         let bad = |m: String| Err(DatasetError::Invalid(m));
@@ -215,27 +212,7 @@ impl ScanSpec {
             return bad("no cameras".into());
         }
         for (i, c) in self.cameras.iter().enumerate() {
-            if c.width == 0 || c.height == 0 {
-                return bad(format!("camera {i}: zero image size"));
-            }
-            if !(finite_all(&[c.fx, c.fy, c.cx, c.cy]) && c.fx > 0.0 && c.fy > 0.0) {
-                return bad(format!(
-                    "camera {i}: focal lengths must be positive and finite"
-                ));
-            }
-            if let Some(d) = &c.distortion
-                && (!(4..=5).contains(&d.len()) || !finite_all(d))
-            {
-                return bad(format!(
-                    "camera {i}: distortion must be 4 or 5 finite numbers"
-                ));
-            }
-            let m = &c.camera_from_world;
-            if !m.iter().all(|r| finite_all(r)) || m[3] != [0.0, 0.0, 0.0, 1.0] {
-                return bad(format!(
-                    "camera {i}: camera_from_world must be finite with last row [0,0,0,1]"
-                ));
-            }
+            c.check().or_else(|m| bad(format!("camera {i}: {m}")))?;
         }
         if self.frames.is_empty() {
             return bad("no frames".into());

@@ -1,14 +1,15 @@
-//! Rig geometry: the OpenCV pinhole camera with distortion, the turntable, ray casting against the
-//! mesh (BVH of `parry3d-f64`), vertex visibility and mesh adjacency.
+//! Rig geometry: the one camera model ([`Camera`], exactly the `scan.json` camera), the turntable,
+//! and the one [`Scene`]: ray casts against the mesh (BVH of `parry3d-f64`), interpolated normals,
+//! lift-off, occlusion, the visibility rule (its grazing threshold a parameter) and adjacency.
 //!
 //! Frames (see `docs/scan-format.md`): the object frame is the turntable at angle 0; a mesh point
 //! `p` sits in the world at `R_z(θ)·p`. Everything here is plain `[f64; 3]`; parry's glam types
-//! stay inside [`Scene`].
+//! stay inside [`Scene`]: nothing else in the workspace builds a parry mesh.
 use parry3d_f64::math::Vector as PVec;
 use parry3d_f64::query::{Ray, RayCast};
 use parry3d_f64::shape::TriMesh;
 
-use crate::dataset::{CameraSpec, Mesh};
+use crate::dataset::Mesh;
 
 mod camera;
 pub use camera::Camera;
@@ -92,7 +93,8 @@ pub enum GeometryError {
     Bvh(String),
 }
 
-/// The mesh ready for queries: BVH, normals, adjacency (compressed rows).
+/// The mesh ready for queries: BVH, normals, adjacency (compressed rows). The one place a ray
+/// meets the mesh: processing, the scan planner, the simulator and the renderer all cast here.
 pub struct Scene {
     /// The mesh (object frame).
     pub mesh: Mesh,
@@ -100,6 +102,8 @@ pub struct Scene {
     adj_start: Vec<u32>,
     adj: Vec<u32>,
     eps: f64,
+    /// [`Scene::lift_off`]'s distance: 1e-5 of the mesh's diagonal.
+    lift: f64,
 }
 
 impl std::fmt::Debug for Scene {
@@ -138,13 +142,15 @@ impl Scene {
             adj.extend(l);
             adj_start.push(adj.len() as u32);
         }
-        let eps = (mesh.diagonal() * 1e-7).max(1e-9);
+        let diagonal = mesh.diagonal();
+        let eps = (diagonal * 1e-7).max(1e-9);
         Ok(Scene {
             mesh,
             bvh,
             adj_start,
             adj,
             eps,
+            lift: 1e-5 * diagonal,
         })
     }
 
@@ -231,27 +237,58 @@ impl Scene {
         self.cast(start, d, len - 200.0 * self.eps).is_none()
     }
 
-    /// Vertices of the mesh the camera sees at turntable angle `deg`: in front of the camera,
-    /// inside the image, facing it at less than the grazing limit (`cos_min` = cosine of the
-    /// largest accepted angle between normal and view direction), and not occluded.
+    /// Unit normal at point `p` of triangle `tri`: the vertex normals interpolated
+    /// barycentrically, as shading sees it; `None` where they cancel.
+    pub fn normal_at(&self, tri: u32, p: V3) -> Option<V3> {
+        let t = self.mesh.triangles[tri as usize];
+        let w = self.barycentric(tri, p);
+        let mut n = [0.0; 3];
+        for k in 0..3 {
+            n = add_scaled(n, w[k], self.mesh.normals[t[k] as usize]);
+        }
+        normalize(n)
+    }
+
+    /// `p` moved off the surface along the normal `n` by far less than any feature of the mesh
+    /// (1e-5 of its diagonal) — but more than the sideways nudge [`Scene::cast`] retries a missed
+    /// ray with, so that retry cannot start under the surface and report `p`'s own triangle as an
+    /// occluder (which happens for grazing rays).
+    pub fn lift_off(&self, p: V3, n: V3) -> V3 {
+        add_scaled(p, self.lift, n)
+    }
+
+    /// The visibility rule, the one every stage uses (registration's spot, the samples' x_o, the
+    /// scan planner's prediction): the camera sees the surface point `p` (object frame, unit
+    /// normal `n`) at turntable angle `deg` when `p` faces the camera with `cos θ >= cos_min`
+    /// (θ between `n` and the direction to the camera centre), projects inside the image, and
+    /// nothing occludes the segment from `p` lifted off the surface ([`Scene::lift_off`]) to the
+    /// camera centre. Returns where `p` lands in the image.
+    pub fn sees(&self, cam: &Camera, deg: f64, p: V3, n: V3, cos_min: f64) -> Option<[f64; 2]> {
+        let c_obj = world_to_turntable(cam.center(), deg);
+        let to_cam = normalize(sub(c_obj, p))?;
+        let facing = dot(n, to_cam);
+        if facing.is_nan() || facing < cos_min {
+            return None;
+        }
+        let [u, v] = cam.project(turntable_to_world(p, deg))?;
+        if !cam.inside(u, v) {
+            return None;
+        }
+        self.unoccluded(self.lift_off(p, n), c_obj)
+            .then_some([u, v])
+    }
+
+    /// Vertices of the mesh the camera sees at turntable angle `deg` by the rule of
+    /// [`Scene::sees`] with grazing limit `cos_min`.
     pub fn visible_vertices(&self, cam: &Camera, deg: f64, cos_min: f64) -> Vec<Visible> {
         use rayon::prelude::*;
-        let c_obj = world_to_turntable(cam.center(), deg);
         (0..self.mesh.positions.len())
             .into_par_iter()
             .filter_map(|i| {
                 let p = self.mesh.positions[i];
                 let n = self.mesh.normals[i];
-                let to_cam = normalize(sub(c_obj, p))?;
-                let facing = dot(n, to_cam);
-                if facing.is_nan() || facing < cos_min {
-                    return None;
-                }
-                let [u, v] = cam.project(turntable_to_world(p, deg))?;
-                if !cam.inside(u, v) {
-                    return None;
-                }
-                self.unoccluded(p, c_obj).then_some(Visible {
+                let [u, v] = self.sees(cam, deg, p, n, cos_min)?;
+                Some(Visible {
                     vertex: i as u32,
                     u,
                     v,
@@ -259,11 +296,23 @@ impl Scene {
             })
             .collect()
     }
-}
 
-/// Builds the camera model of a camera description.
-pub fn camera(spec: &CameraSpec) -> Camera {
-    Camera::new(spec)
+    /// A shadow ray: is the ray from `p` lifted off the surface along `n`, towards the unit
+    /// direction `dir`, free of the mesh for `distance` mm (infinite: for ever)? One BVH query,
+    /// no retry: lighting calls it once per vertex and light.
+    pub fn unblocked(&self, p: V3, n: V3, dir: V3, distance: f64) -> bool {
+        let o = self.lift_off(p, n);
+        let ray = Ray::new(
+            PVec::new(o[0], o[1], o[2]),
+            PVec::new(dir[0], dir[1], dir[2]),
+        );
+        let max = if distance.is_finite() {
+            distance - 2.0 * self.lift
+        } else {
+            f64::MAX
+        };
+        !self.bvh.intersects_local_ray(&ray, max)
+    }
 }
 
 #[cfg(test)]
@@ -330,7 +379,7 @@ mod tests {
         m.triangles.push([base, base + 1, base + 2]);
         let (m, _) = Mesh::new(m.positions, m.triangles);
         let s = Scene::new(m).unwrap();
-        let spec = CameraSpec {
+        let spec = Camera {
             width: 200,
             height: 200,
             fx: 1000.0,
@@ -345,13 +394,13 @@ mod tests {
                 [0.0, 0.0, 0.0, 1.0],
             ],
         };
-        let cam = camera(&spec);
+        let cam = spec.clone();
         let vis = s.visible_vertices(&cam, 0.0, 0.1);
         let ids: Vec<u32> = vis.iter().map(|v| v.vertex).collect();
         assert!(!ids.contains(&12), "centre vertex is under the roof");
         assert!(ids.contains(&0));
         // Seen from the side (camera on +x looking along -x), the flat grid is grazing.
-        let side = CameraSpec {
+        let side = Camera {
             camera_from_world: [
                 [0.0, 1.0, 0.0, 0.0],
                 [0.0, 0.0, -1.0, 0.0],
@@ -360,7 +409,7 @@ mod tests {
             ],
             ..spec
         };
-        let vis = s.visible_vertices(&camera(&side), 0.0, 0.1);
+        let vis = s.visible_vertices(&side, 0.0, 0.1);
         assert!(vis.iter().all(|v| v.vertex >= 25));
     }
 }

@@ -103,7 +103,7 @@ pub fn surface_panels(
         }
     }
     let cam = Camera::framing(lo, hi, direction, pw, view_h)?;
-    let eye = cam.centre();
+    let eye = cam.center();
     let shade: Vec<f64> = positions
         .iter()
         .zip(normals)

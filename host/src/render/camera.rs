@@ -1,52 +1,32 @@
-//! Cameras: the OpenCV pinhole model of `docs/scan-format.md`, or a look-at camera.
+//! Framing helpers: the renderer builds the one camera model ([`Camera`], exactly the `scan.json`
+//! camera of `crate::geometry`) from a field of view, from the object's bounds, or from JSON, and
+//! parses the command line's camera specification. No projection lives here.
 
-use serde::Deserialize;
+use crate::geometry::Camera;
 
 use super::RenderError;
 
-/// A pinhole camera with optional OpenCV distortion `[k1, k2, p1, p2, k3]`. Camera coordinates:
-/// x right, y down, z forward; pixel centres at integer coordinates (as in the scan format).
-#[derive(Clone, Debug, PartialEq, Deserialize)]
-pub struct Camera {
-    /// Image width, pixels.
-    pub width: u32,
-    /// Image height, pixels.
-    pub height: u32,
-    /// Focal length in pixels, x.
-    pub fx: f64,
-    /// Focal length in pixels, y.
-    pub fy: f64,
-    /// Principal point, x.
-    pub cx: f64,
-    /// Principal point, y.
-    pub cy: f64,
-    /// OpenCV distortion `[k1, k2, p1, p2, k3]`.
-    #[serde(default)]
-    pub distortion: [f64; 5],
-    /// Row-major 4x4 matrix taking world (= object frame at turntable angle 0) points to camera
-    /// coordinates.
-    pub camera_from_world: [[f64; 4]; 4],
-}
-
 fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
 }
 fn norm(a: [f64; 3]) -> Option<[f64; 3]> {
     let l = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
     (l > 1e-12 && l.is_finite()).then(|| a.map(|x| x / l))
 }
 
+fn check_size(width: u32, height: u32) -> Result<(), RenderError> {
+    if width == 0 || height == 0 || width > 16384 || height > 16384 {
+        return Err(RenderError::Camera(
+            "image size must be 1..=16384 pixels per side".into(),
+        ));
+    }
+    Ok(())
+}
+
 impl Camera {
     /// A camera at `eye` looking at `target` with `up` pointing up in the image, vertical field of
-    /// view `fov_y_deg`.
-    pub fn look_at(
+    /// view `fov_y_deg` ([`Camera::look_at`] with the focal length of that field of view).
+    pub fn look_at_fov(
         eye: [f64; 3],
         target: [f64; 3],
         up: [f64; 3],
@@ -55,32 +35,14 @@ impl Camera {
         height: u32,
     ) -> Result<Self, RenderError> {
         let bad = |s: &str| RenderError::Camera(s.to_string());
-        if width == 0 || height == 0 || width > 16384 || height > 16384 {
-            return Err(bad("image size must be 1..=16384 pixels per side"));
-        }
+        check_size(width, height)?;
         if !(fov_y_deg > 0.0 && fov_y_deg < 179.0) {
             return Err(bad("field of view must be in (0, 179) degrees"));
         }
-        let z = norm(sub(target, eye)).ok_or_else(|| bad("eye and target coincide"))?;
-        let x = norm(cross(z, up)).ok_or_else(|| bad("up is parallel to the view direction"))?;
-        let y = cross(z, x);
-        let t = |r: [f64; 3]| -(r[0] * eye[0] + r[1] * eye[1] + r[2] * eye[2]);
+        norm(sub(target, eye)).ok_or_else(|| bad("eye and target coincide"))?;
         let f = 0.5 * height as f64 / (0.5 * fov_y_deg.to_radians()).tan();
-        Ok(Self {
-            width,
-            height,
-            fx: f,
-            fy: f,
-            cx: 0.5 * (width as f64 - 1.0),
-            cy: 0.5 * (height as f64 - 1.0),
-            distortion: [0.0; 5],
-            camera_from_world: [
-                [x[0], x[1], x[2], t(x)],
-                [y[0], y[1], y[2], t(y)],
-                [z[0], z[1], z[2], t(z)],
-                [0.0, 0.0, 0.0, 1.0],
-            ],
-        })
+        Camera::look_at(eye, target, up, f, width, height)
+            .ok_or_else(|| bad("up is parallel to the view direction"))
     }
 
     /// A look-at camera from `direction` (pointing from the object to the eye) that frames the
@@ -111,7 +73,7 @@ impl Camera {
         } else {
             [0.0, 0.0, 1.0]
         };
-        Self::look_at(eye, c, up, fov, width, height)
+        Self::look_at_fov(eye, c, up, fov, width, height)
     }
 
     /// Reads one camera from JSON: a scan-format camera object, or a whole `scan.json` (then
@@ -129,55 +91,13 @@ impl Camera {
         };
         let cam: Camera =
             serde_json::from_value(obj).map_err(|e| bad(format!("invalid camera: {e}")))?;
-        cam.check()?;
+        cam.check_for_render()?;
         Ok(cam)
     }
 
-    fn check(&self) -> Result<(), RenderError> {
-        let bad = |s: &str| Err(RenderError::Camera(s.to_string()));
-        if self.width == 0 || self.height == 0 || self.width > 16384 || self.height > 16384 {
-            return bad("image size must be 1..=16384 pixels per side");
-        }
-        let nums = [self.fx, self.fy, self.cx, self.cy];
-        if nums
-            .iter()
-            .chain(self.distortion.iter())
-            .chain(self.camera_from_world.iter().flatten())
-            .any(|x| !x.is_finite())
-        {
-            return bad("non-finite number");
-        }
-        if !(self.fx > 0.0 && self.fy > 0.0) {
-            return bad("focal lengths must be positive");
-        }
-        Ok(())
-    }
-
-    /// World point → camera coordinates.
-    pub fn to_camera(&self, p: [f64; 3]) -> [f64; 3] {
-        let m = &self.camera_from_world;
-        let r = |k: usize| m[k][0] * p[0] + m[k][1] * p[1] + m[k][2] * p[2] + m[k][3];
-        [r(0), r(1), r(2)]
-    }
-
-    /// The same camera as the scan-processing code sees it: projection and distortion have one
-    /// definition, [`crate::geometry::Camera`], shared with registration and sampling.
-    pub fn geometry(&self) -> crate::geometry::Camera {
-        crate::geometry::Camera::new(&crate::dataset::CameraSpec {
-            width: self.width,
-            height: self.height,
-            fx: self.fx,
-            fy: self.fy,
-            cx: self.cx,
-            cy: self.cy,
-            distortion: Some(self.distortion.to_vec()),
-            camera_from_world: self.camera_from_world,
-        })
-    }
-
-    /// The camera centre in world coordinates.
-    pub fn centre(&self) -> [f64; 3] {
-        self.geometry().center()
+    fn check_for_render(&self) -> Result<(), RenderError> {
+        check_size(self.width, self.height)?;
+        self.check().map_err(RenderError::Camera)
     }
 }
 
@@ -268,18 +188,18 @@ mod tests {
 
     #[test]
     fn look_at_puts_the_target_at_the_principal_point_and_up_up() {
-        let c =
-            Camera::look_at([0.0, -100.0, 0.0], [0.0; 3], [0.0, 0.0, 1.0], 40.0, 64, 48).unwrap();
-        let g = c.geometry();
+        let c = Camera::look_at_fov([0.0, -100.0, 0.0], [0.0; 3], [0.0, 0.0, 1.0], 40.0, 64, 48)
+            .unwrap();
+        let g = &c;
         let p = g.project([0.0; 3]).unwrap();
         assert!((p[0] - 31.5).abs() < 1e-9 && (p[1] - 23.5).abs() < 1e-9);
         let up = g.project([0.0, 0.0, 10.0]).unwrap();
         assert!(up[1] < 23.5, "+z appears above the centre");
         let right = g.project([10.0, 0.0, 0.0]).unwrap();
         assert!(right[0] > 31.5, "+x appears to the right seen from -y");
-        let e = c.centre();
+        let e = c.center();
         assert!((e[1] + 100.0).abs() < 1e-9 && e[0].abs() < 1e-9);
-        assert!(Camera::look_at([0.0; 3], [0.0; 3], [0.0, 0.0, 1.0], 40.0, 8, 8).is_err());
+        assert!(Camera::look_at_fov([0.0; 3], [0.0; 3], [0.0, 0.0, 1.0], 40.0, 8, 8).is_err());
     }
 
     #[test]
@@ -319,7 +239,7 @@ mod tests {
         let text = r#"{"format":"subsurf-scan/1","cameras":[{"width":128,"height":128,"fx":3200.0,
             "fy":3200.0,"cx":63.5,"cy":63.5,"camera_from_world":[[1,0,0,0],[0,-1,0,0],[0,0,-1,600],[0,0,0,1]]}]}"#;
         let c = Camera::from_json(text, 0).unwrap();
-        let p = c.geometry().project([0.0, 0.0, 0.0]).unwrap();
+        let p = c.project([0.0, 0.0, 0.0]).unwrap();
         assert_eq!(p, [63.5, 63.5]);
         assert!(Camera::from_json(text, 1).is_err());
         assert!(Camera::from_json("{]", 0).is_err());

@@ -1,78 +1,21 @@
 //! Irradiance `E(x_i)` at every vertex, with shadows, and the area `A(x_i)` each vertex stands for.
 
-use parry3d_f64::math::Vector;
-use parry3d_f64::query::{Ray, RayCast};
-use parry3d_f64::shape::TriMesh;
 use rayon::prelude::*;
 
 use super::RenderError;
 use super::fresnel::relative_transmittance;
 use super::light::Light;
+use crate::dataset::Mesh;
+use crate::geometry::Scene;
 
-/// The mesh as an occluder for shadow rays: parry's BVH over the non-degenerate triangles.
-/// Our `[f64; 3]` points become parry's glamx vectors only here.
-pub struct Occluder {
-    mesh: TriMesh,
-    /// Offset of shadow-ray origins along the normal, mm, so a vertex does not shadow itself.
-    epsilon: f64,
-}
-
-impl Occluder {
-    /// Builds the BVH. Degenerate (zero-area) triangles are left out; a mesh with none left is an
-    /// error.
-    pub fn new(positions: &[[f64; 3]], faces: &[[u32; 3]]) -> Result<Self, RenderError> {
-        let vertices: Vec<Vector> = positions
-            .iter()
-            .map(|p| Vector::new(p[0], p[1], p[2]))
-            .collect();
-        let n = positions.len();
-        let indices: Vec<[u32; 3]> = faces
-            .iter()
-            .copied()
-            .filter(|f| f.iter().all(|&i| (i as usize) < n) && triangle_area(positions, *f) > 0.0)
-            .collect();
-        if indices.is_empty() {
-            return Err(RenderError::Degenerate);
-        }
-        let (lo, hi) = bounds(positions);
-        let diag =
-            ((hi[0] - lo[0]).powi(2) + (hi[1] - lo[1]).powi(2) + (hi[2] - lo[2]).powi(2)).sqrt();
-        let mesh = TriMesh::new(vertices, indices).map_err(|_| RenderError::Degenerate)?;
-        Ok(Self {
-            mesh,
-            epsilon: 1e-5 * diag.max(1e-9),
-        })
+/// The mesh as shadow rays see it: the one [`Scene`] (its BVH, lift-off and shadow ray
+/// [`Scene::unblocked`]) over the non-degenerate triangles; a mesh with none left is an error.
+pub fn shadow_scene(positions: &[[f64; 3]], faces: &[[u32; 3]]) -> Result<Scene, RenderError> {
+    let (mesh, _) = Mesh::new(positions.to_vec(), faces.to_vec());
+    if mesh.triangles.is_empty() {
+        return Err(RenderError::Degenerate);
     }
-
-    /// True when nothing blocks the segment from `x` (pushed off the surface along `normal`)
-    /// towards `dir` for `distance` mm.
-    pub fn unblocked(&self, x: [f64; 3], normal: [f64; 3], dir: [f64; 3], distance: f64) -> bool {
-        let e = self.epsilon;
-        let origin = Vector::new(
-            x[0] + normal[0] * e,
-            x[1] + normal[1] * e,
-            x[2] + normal[2] * e,
-        );
-        let ray = Ray::new(origin, Vector::new(dir[0], dir[1], dir[2]));
-        let max = if distance.is_finite() {
-            distance - 2.0 * e
-        } else {
-            f64::MAX
-        };
-        !self.mesh.intersects_local_ray(&ray, max)
-    }
-}
-
-fn bounds(p: &[[f64; 3]]) -> ([f64; 3], [f64; 3]) {
-    let mut lo = [f64::INFINITY; 3];
-    let mut hi = [f64::NEG_INFINITY; 3];
-    for q in p {
-        for k in 0..3 {
-            lo[k] = lo[k].min(q[k]);
-            hi[k] = hi[k].max(q[k]);
-        }
-    }
-    (lo, hi)
+    Scene::new(mesh).map_err(|_| RenderError::Degenerate)
 }
 
 fn triangle_area(p: &[[f64; 3]], f: [u32; 3]) -> f64 {
@@ -113,7 +56,7 @@ pub fn irradiance(
     positions: &[[f64; 3]],
     normals: &[[f64; 3]],
     lights: &[Light],
-    occluder: &Occluder,
+    scene: &Scene,
     eta: Option<f64>,
 ) -> Vec<[f64; 3]> {
     positions
@@ -127,7 +70,7 @@ pub fn irradiance(
                 };
                 let l = inc.to_light;
                 let cos = n[0] * l[0] + n[1] * l[1] + n[2] * l[2];
-                if cos <= 0.0 || !occluder.unblocked(x, n, l, inc.distance) {
+                if cos <= 0.0 || !scene.unblocked(x, n, l, inc.distance) {
                     continue;
                 }
                 let t = eta.map_or(1.0, |eta| relative_transmittance(eta, cos));
@@ -172,7 +115,7 @@ mod tests {
     #[test]
     fn the_upper_plate_shadows_the_lower_one() {
         let (p, n, f) = two_plates();
-        let occ = Occluder::new(&p, &f).unwrap();
+        let occ = shadow_scene(&p, &f).unwrap();
         let lights = ["dir:0,0,-1".parse().unwrap()];
         let e = irradiance(&p, &n, &lights, &occ, None);
         for v in 0..4 {
@@ -194,7 +137,7 @@ mod tests {
     fn a_mesh_of_only_degenerate_triangles_is_refused() {
         let p = vec![[0.0; 3], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]];
         assert!(matches!(
-            Occluder::new(&p, &[[0, 1, 2]]),
+            shadow_scene(&p, &[[0, 1, 2]]),
             Err(RenderError::Degenerate)
         ));
     }

@@ -4,16 +4,16 @@
 //! dipole:
 //!
 //! 1. [`irradiance`]: the irradiance `E(x_i)` at every vertex from point, spot and directional
-//!    [`Light`]s, shadowed by ray casts against the mesh (parry's BVH), with Fresnel transmission
+//!    [`Light`]s, shadowed by ray casts against the mesh ([`crate::geometry::Scene`]), with Fresnel transmission
 //!    into the surface, and the area `A(x_i)` each vertex stands for.
 //! 2. [`Transport`]: the radiant exitance `B(x_o) = Σ_i R_d(x_i → x_o) E(x_i) A(x_i)` with the
 //!    parameters of the source vertex `x_i` (Eq. 1/3/5/9), either as the exact O(N²) sum (the
 //!    reference) or hierarchically (an octree of irradiance samples, clusters used where they subtend
 //!    a small solid angle, plus a distance cutoff where the fall-off's remaining energy drops below a
 //!    tolerance). Outgoing radiance adds `alpha(x_o)` (Eq. 2) and Fresnel transmission out.
-//! 3. [`Camera`] + [`rasterise`]: a z-buffered image of the per-vertex radiance through an OpenCV
-//!    camera (as in `docs/scan-format.md`) or a look-at camera, saved as a tone-mapped PNG and a
-//!    linear EXR.
+//! 3. [`rasterise`]: a z-buffered image of the per-vertex radiance through the one camera model
+//!    ([`crate::geometry::Camera`], as in `docs/scan-format.md`; `camera` only frames it: look-at,
+//!    automatic framing, JSON), saved as a tone-mapped PNG and a linear EXR.
 //!
 //! Everything here is pure computation on in-memory data except [`save_png`] / [`save_exr`].
 
@@ -29,11 +29,13 @@ mod scene;
 pub mod synthetic;
 mod vertex_model;
 
-pub use camera::{Camera, CameraSpec, DEFAULT_VIEW};
+/// The one camera model, re-exported: the renderer draws through it, `camera` only frames it.
+pub use crate::geometry::Camera;
+pub use camera::{CameraSpec, DEFAULT_VIEW};
 pub use falloff::{Falloffs, segment_weights, tail_cutoff};
 pub use fresnel::{fresnel_transmittance, relative_transmittance};
 pub use hierarchy::{HierarchyParams, Quality, Transport, TransportStats};
-pub use irradiance::{Occluder, irradiance, vertex_areas};
+pub use irradiance::{irradiance, shadow_scene, vertex_areas};
 pub use light::Light;
 pub use output::{
     ImageStats, SHOULDER_CLIP, SHOULDER_KNEE, ToneMapping, WHITE_QUANTILE, auto_exposure,

@@ -3,7 +3,7 @@
 //! Hand-written (about 60 lines) because the crates that rasterise pull in a GPU stack; this one
 //! needs only the OpenCV projection with distortion, applied to the vertices.
 
-use super::camera::Camera;
+use crate::geometry::Camera;
 
 /// A linear RGB image with a coverage mask (pixels where the object is seen).
 #[derive(Clone, Debug, PartialEq)]
@@ -32,10 +32,12 @@ pub fn rasterise(
     let mut covered = vec![false; w * h];
     // Depth as 1/z: larger is nearer; linear in screen space.
     let mut inv_z = vec![0.0f64; w * h];
-    let g = camera.geometry();
     let proj: Vec<Option<([f64; 2], f64)>> = positions
         .iter()
-        .map(|&p| g.project(p).map(|uv| (uv, camera.to_camera(p)[2])))
+        .map(|&p| {
+            let c = camera.to_camera(p);
+            camera.project_camera(c).map(|uv| (uv, c[2]))
+        })
         .collect();
     for f in faces {
         let Some(idx) = f
@@ -103,7 +105,7 @@ mod tests {
     #[test]
     fn a_quad_fills_its_projection_and_the_nearer_quad_wins() {
         let cam =
-            Camera::look_at([0.0, 0.0, 10.0], [0.0; 3], [0.0, 1.0, 0.0], 60.0, 32, 32).unwrap();
+            Camera::look_at_fov([0.0, 0.0, 10.0], [0.0; 3], [0.0, 1.0, 0.0], 60.0, 32, 32).unwrap();
         let mut p = Vec::new();
         let mut f = Vec::new();
         let mut v = Vec::new();

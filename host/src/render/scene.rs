@@ -3,14 +3,14 @@
 use std::time::Instant;
 
 use super::RenderError;
-use super::camera::Camera;
 use super::falloff::Falloffs;
 use super::fresnel::relative_transmittance;
 use super::hierarchy::{HierarchyParams, Quality, Transport, TransportStats};
-use super::irradiance::{Occluder, irradiance, vertex_areas};
+use super::irradiance::{irradiance, shadow_scene, vertex_areas};
 use super::light::Light;
 use super::raster::{Image, rasterise};
 use super::vertex_model::VertexModel;
+use crate::geometry::Camera;
 
 /// How `B(x_o)` is summed.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -86,12 +86,12 @@ pub fn light_transport(
         });
     }
     let t0 = Instant::now();
-    let occluder = Occluder::new(&model.positions, &model.faces)?;
+    let scene = shadow_scene(&model.positions, &model.faces)?;
     let e = irradiance(
         &model.positions,
         &model.normals,
         lights,
-        &occluder,
+        &scene,
         options.eta,
     );
     let areas = vertex_areas(&model.positions, &model.faces);
@@ -139,7 +139,7 @@ pub fn render(
         seconds: [t_e, t_b],
     } = light_transport(model, lights, options)?;
     let t0 = Instant::now();
-    let eye = camera.centre();
+    let eye = camera.center();
     let radiance: Vec<[f64; 3]> = (0..model.len())
         .map(|v| {
             let x = model.positions[v];

@@ -1,5 +1,5 @@
 //! The scan driver: home, then per turntable angle run the rig's queued capture program, collect
-//! each triggered image from the camera, and commit it to the dataset (see [`super::journal`]).
+//! each triggered image from the camera, and commit it to the dataset (see [`crate::dataset::DatasetWriter`]).
 //!
 //! Faults: a link error ends the session with [`ScanError::Link`] (the caller reconnects and
 //! calls again: [`run_with_reconnect`] does that with back-off), a rig halt (emergency stop,
@@ -10,9 +10,9 @@
 
 use super::camera::{Camera, CameraError, Shot, Timing};
 use super::frame::{Bracket, LinearImage, MergeOptions, merge_hdr};
-use super::journal::{DatasetHeader, DatasetWriter, FrameEntry, JournalError, LaserRay};
 use super::plan::{ScanPlan, angle_steps};
 use crate::calib::Calibration;
+use crate::dataset::{DatasetWriter, FrameSpec, LaserRay, ScanSpec, WriteError};
 use crate::link::ByteLink;
 use crate::rig::{RigClient, RigClientError};
 use indicatif::ProgressBar;
@@ -63,7 +63,7 @@ pub enum ScanError {
     },
     /// Writing the dataset failed (disk full, permissions, another scan in the directory).
     #[error(transparent)]
-    Journal(#[from] JournalError),
+    Journal(#[from] WriteError),
     /// The plan does not fit the rig.
     #[error("the plan does not fit the rig: {0}")]
     Plan(String),
@@ -214,12 +214,11 @@ impl<'a> Scan<'a> {
         if cfg.plan.exposures_s.is_empty() {
             return Err(ScanError::Plan("no exposure times".into()));
         }
-        let header = DatasetHeader {
-            mesh: "object.obj".into(),
-            noise_floor: cfg.noise_floor,
-            saturation: frame_saturation(camera.saturation(), &cfg.plan.exposures_s),
-            cameras: vec![cfg.calib.camera.clone()],
-        };
+        let header = ScanSpec::new(
+            vec![cfg.calib.camera.clone()],
+            Some(cfg.noise_floor),
+            frame_saturation(camera.saturation(), &cfg.plan.exposures_s),
+        );
         let (mut writer, done) = DatasetWriter::open(
             &cfg.out,
             &cfg.identity(&camera.describe()),
@@ -635,14 +634,14 @@ impl<'a> Scan<'a> {
             message: e.to_string(),
         })?;
         let (origin, direction) = self.cfg.calib.galvo.ray(f.galvo);
-        let entry = FrameEntry {
+        let entry = FrameSpec {
             image: DatasetWriter::image_name(f.index),
             camera: 0,
             turntable_deg: deg,
             exposure_s,
-            channel: self.cfg.plan.channel.clone(),
-            laser: LaserRay { origin, direction },
-            galvo: f.galvo,
+            channel: self.cfg.plan.channel,
+            laser: Some(LaserRay { origin, direction }),
+            galvo: Some(f.galvo.map(u32::from)),
         };
         self.writer.commit(entry, &bytes)?;
         self.written += 1;

@@ -1,5 +1,6 @@
 //! Scanning: plan what to capture, drive the rig and a camera, and write a scan dataset
-//! (`docs/scan-format.md`) that survives crashes and resumes.
+//! (`docs/scan-format.md`) that survives crashes and resumes (through the one writer,
+//! `crate::dataset::DatasetWriter`).
 //!
 //! Dependencies point one way: `scan` uses `calib`, the rig client and the dataset writer; no
 //! other module calls into `scan` except the commands and the demo.
@@ -7,7 +8,6 @@
 pub mod camera;
 pub mod driver;
 pub mod frame;
-pub mod journal;
 pub mod plan;
 pub mod setup;
 pub mod simcam;

@@ -7,12 +7,15 @@
 //! covers the most still-uncovered vertices, until the requested fraction is covered.
 //!
 //! Coverage of a plan is predicted by casting each target's laser ray at the mesh
-//! ([`PlanScene::laser_hit`]); a spot counts only where the camera sees it.
+//! ([`PlanScene::laser_hit`]); a spot counts only where processing will register it: the camera
+//! sees it by registration's own rule ([`crate::registration::spot_visible`], the one visibility
+//! rule of [`crate::geometry::Scene::sees`] with registration's grazing limit
+//! [`crate::registration::SPOT_COS_MIN`]), so the plan predicts exactly the frames the fit uses.
 
-use crate::calib::{Calibration, cross, dot, normalize, sub};
-use parry3d_f64::math::Vector as PVec;
-use parry3d_f64::query::{Ray, RayCast};
-use parry3d_f64::shape::TriMesh;
+use crate::calib::Calibration;
+use crate::dataset::{FrameChannel, Mesh};
+use crate::geometry::{Scene, cross, dot, normalize, sub, turntable_to_world, world_to_turntable};
+use crate::registration::spot_visible;
 use serde::{Deserialize, Serialize};
 
 /// The format string of a saved plan.
@@ -56,8 +59,8 @@ pub struct ScanPlan {
     pub target_mm: f64,
     /// Exposure times of one frame; more than one means HDR bracketing.
     pub exposures_s: Vec<f64>,
-    /// The laser channel lit, as in `frames[].channel` (`rgb`, `r`, `g`, `b`).
-    pub channel: String,
+    /// The laser channel lit, as `frames[].channel` writes it.
+    pub channel: FrameChannel,
     /// Angles in the order they are visited.
     pub angles: Vec<AnglePlan>,
 }
@@ -111,8 +114,8 @@ pub struct PlanOptions {
     pub coverage: f64,
     /// Exposure times per frame (s).
     pub exposures_s: Vec<f64>,
-    /// Laser channel (`rgb`, `r`, `g`, `b`).
-    pub channel: String,
+    /// Laser channel.
+    pub channel: FrameChannel,
 }
 
 impl Default for PlanOptions {
@@ -123,7 +126,7 @@ impl Default for PlanOptions {
             target_mm: 4.0,
             coverage: 1.0,
             exposures_s: vec![0.02],
-            channel: "rgb".into(),
+            channel: FrameChannel::Rgb,
         }
     }
 }
@@ -156,9 +159,6 @@ impl PlanOptions {
                 "exposures must be positive seconds".into(),
             ));
         }
-        if !matches!(self.channel.as_str(), "rgb" | "r" | "g" | "b") {
-            return Err(PlanError::Options("channel must be rgb, r, g or b".into()));
-        }
         Ok(())
     }
 
@@ -170,27 +170,16 @@ impl PlanOptions {
     }
 }
 
-/// The object, camera and laser, for predicting what a target hits and who sees it.
+/// The object, camera and laser, for predicting what a target hits and who sees it: the one
+/// [`Scene`] (ray casts, normals, visibility) and the calibration.
 pub struct PlanScene {
-    mesh: TriMesh,
-    vertices: Vec<[f64; 3]>,
-    normals: Vec<[f64; 3]>,
+    scene: Scene,
     calib: Calibration,
-    /// Cosine of the most grazing view still counted as seen (80°).
-    min_cos: f64,
-}
-
-fn rot_z(deg: f64, p: [f64; 3]) -> [f64; 3] {
-    let (s, c) = deg.to_radians().sin_cos();
-    [c * p[0] - s * p[1], s * p[0] + c * p[1], p[2]]
-}
-
-fn pv(p: [f64; 3]) -> PVec {
-    PVec::new(p[0], p[1], p[2])
 }
 
 impl PlanScene {
-    /// Builds the ray-casting structure (a BVH, in `parry3d-f64`) over the mesh (object frame, mm).
+    /// Builds the scene (its BVH is `parry3d-f64`'s, inside [`Scene`]) over the mesh (object
+    /// frame, mm); degenerate and duplicate faces are dropped as in a dataset.
     pub fn new(
         vertices: &[[f64; 3]],
         triangles: &[[u32; 3]],
@@ -211,96 +200,36 @@ impl PlanScene {
                 "a triangle refers to a missing vertex".into(),
             ));
         }
-        let mut normals = vec![[0.0; 3]; vertices.len()];
-        for t in triangles {
-            let [a, b, c] = t.map(|i| vertices[i as usize]);
-            let n = cross(sub(b, a), sub(c, a));
-            for &i in t {
-                let m = &mut normals[i as usize];
-                *m = [m[0] + n[0], m[1] + n[1], m[2] + n[2]];
-            }
+        let (mesh, _) = Mesh::new(vertices.to_vec(), triangles.to_vec());
+        if mesh.triangles.is_empty() {
+            return Err(PlanError::Mesh("no usable triangle".into()));
         }
-        for n in &mut normals {
-            if dot(*n, *n) > 0.0 {
-                *n = normalize(*n);
-            }
-        }
-        let mesh = TriMesh::new(
-            vertices.iter().map(|v| pv(*v)).collect(),
-            triangles.to_vec(),
-        )
-        .map_err(|e| PlanError::Mesh(format!("{e:?}")))?;
+        let scene = Scene::new(mesh).map_err(|e| PlanError::Mesh(e.to_string()))?;
         Ok(PlanScene {
-            mesh,
-            vertices: vertices.to_vec(),
-            normals,
+            scene,
             calib: calib.clone(),
-            min_cos: 80f64.to_radians().cos(),
         })
     }
 
     /// Mesh vertices (object frame).
     pub fn vertices(&self) -> &[[f64; 3]] {
-        &self.vertices
-    }
-
-    /// First hit of a ray given in the object frame: (distance, point, geometric normal).
-    fn cast(&self, o: [f64; 3], d: [f64; 3], max: f64) -> Option<(f64, [f64; 3], [f64; 3])> {
-        let hit = self
-            .mesh
-            .cast_local_ray_and_get_normal(&Ray::new(pv(o), pv(d)), max, true)?;
-        let t = hit.time_of_impact;
-        let n = [hit.normal.x, hit.normal.y, hit.normal.z];
-        Some((t, [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]], n))
-    }
-
-    /// Whether the camera sees object-frame point `p` (normal `n`) at turntable angle `deg`:
-    /// in the image, facing the camera within 80°, not occluded.
-    pub fn sees(&self, deg: f64, p: [f64; 3], n: [f64; 3]) -> bool {
-        let cam = &self.calib.camera;
-        let w = rot_z(deg, p);
-        let Some(uv) = cam.project(w) else {
-            return false;
-        };
-        if !cam.in_image(uv) {
-            return false;
-        }
-        let c_obj = rot_z(-deg, cam.centre_world());
-        let to_cam = sub(c_obj, p);
-        let dist = dot(to_cam, to_cam).sqrt();
-        let dir = [to_cam[0] / dist, to_cam[1] / dist, to_cam[2] / dist];
-        if dot(dir, n) < self.min_cos {
-            return false;
-        }
-        let eps = 1e-3 * (1.0 + dist);
-        let start = [
-            p[0] + eps * dir[0],
-            p[1] + eps * dir[1],
-            p[2] + eps * dir[2],
-        ];
-        self.cast(start, dir, dist - 2.0 * eps).is_none()
-    }
-
-    /// Per vertex: whether the camera sees it at turntable angle `deg`.
-    pub fn visible(&self, deg: f64) -> Vec<bool> {
-        self.vertices
-            .iter()
-            .zip(&self.normals)
-            .map(|(p, n)| self.sees(deg, *p, *n))
-            .collect()
+        &self.scene.mesh.positions
     }
 
     /// The laser spot x_i (object frame) for `codes` at angle `deg`, if the beam hits the object
-    /// where the camera sees it.
+    /// where processing will register it: it lights the side it enters (not grazing, within
+    /// ~87° of the face normal) and the camera sees it ([`spot_visible`]).
     pub fn laser_hit(&self, deg: f64, codes: [u16; 2]) -> Option<[f64; 3]> {
         let (o, d) = self.calib.galvo.ray(codes);
-        let (o, d) = (rot_z(-deg, o), rot_z(-deg, d));
-        let (_, p, n) = self.cast(o, d, 1e6)?;
-        // The beam must light the side it enters (not graze) and the camera must see the spot.
+        let hit = self.scene.cast_world(o, d, deg)?;
+        let t = self.scene.mesh.triangles[hit.triangle as usize];
+        let [a, b, c] = t.map(|i| self.scene.mesh.positions[i as usize]);
+        let n = normalize(cross(sub(b, a), sub(c, a)))?;
+        let d = normalize(world_to_turntable(d, deg))?;
         if -dot(n, d) < 0.05 {
             return None;
         }
-        self.sees(deg, p, n).then_some(p)
+        spot_visible(&self.scene, &self.calib.camera, deg, &hit).then_some(hit.point)
     }
 
     /// The galvo code window (`[x0, y0, x1, y1]`, inclusive) covering the object at all angles,
@@ -310,8 +239,8 @@ impl PlanScene {
         let r = g.world_from_galvo;
         let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
         for &deg in angles {
-            for v in &self.vertices {
-                let w = sub(rot_z(deg, *v), g.origin);
+            for v in self.vertices() {
+                let w = sub(turntable_to_world(*v, deg), g.origin);
                 // galvo-frame direction = Rᵀ w
                 let q = [
                     r[0][0] * w[0] + r[1][0] * w[1] + r[2][0] * w[2],
@@ -404,7 +333,7 @@ fn cover_sets(
     targets: &[[u16; 2]],
     target_mm: f64,
 ) -> CoverSets {
-    let n = scene.vertices.len();
+    let n = scene.vertices().len();
     let words = n.div_ceil(64);
     let r2 = target_mm * target_mm;
     let mut sets = Vec::new();
@@ -414,7 +343,7 @@ fn cover_sets(
                 continue;
             };
             let mut bits = vec![0u64; words];
-            for (i, v) in scene.vertices.iter().enumerate() {
+            for (i, v) in scene.vertices().iter().enumerate() {
                 let d = sub(*v, x);
                 if dot(d, d) <= r2 {
                     bits[i / 64] |= 1 << (i % 64);
@@ -464,7 +393,7 @@ pub fn predict_coverage(scene: &PlanScene, plan: &ScanPlan, candidate_raster: us
     Coverage {
         covered: count(&covered),
         coverable: count(&coverable),
-        vertices: scene.vertices.len(),
+        vertices: scene.vertices().len(),
         useful_frames: useful,
     }
 }
@@ -475,7 +404,7 @@ fn new_plan(planner: &str, opts: &PlanOptions, angles: Vec<AnglePlan>) -> ScanPl
         planner: planner.into(),
         target_mm: opts.target_mm,
         exposures_s: opts.exposures_s.clone(),
-        channel: opts.channel.clone(),
+        channel: opts.channel,
         angles,
     }
 }

@@ -7,8 +7,8 @@
 
 use super::camera::{Camera, CameraError, Shot, Timing};
 use super::frame::LinearImage;
-use crate::calib::{Calibration, CameraModel};
-use crate::dataset::{CameraSpec, LaserRay, Mesh};
+use crate::calib::Calibration;
+use crate::dataset::{LaserRay, Mesh};
 use crate::simulate::{Field, Sensor, SimScene, Spot, render_frame};
 
 /// The simulated camera.
@@ -17,20 +17,6 @@ pub struct SimCamera {
     calib: Calibration,
     sensor: Sensor,
     seed: u64,
-}
-
-/// Converts the calibration's camera to the dataset's description.
-pub fn camera_spec(c: &CameraModel) -> CameraSpec {
-    CameraSpec {
-        width: c.width,
-        height: c.height,
-        fx: c.fx,
-        fy: c.fy,
-        cx: c.cx,
-        cy: c.cy,
-        distortion: Some(c.distortion.to_vec()),
-        camera_from_world: c.camera_from_world,
-    }
 }
 
 impl SimCamera {
@@ -43,13 +29,8 @@ impl SimCamera {
         sensor: Sensor,
         seed: u64,
     ) -> Result<Self, CameraError> {
-        let scene = SimScene::new(
-            mesh,
-            vec![camera_spec(&calib.camera)],
-            field,
-            Spot::default(),
-        )
-        .map_err(|e| CameraError::Spec(format!("sim: {e}")))?;
+        let scene = SimScene::new(mesh, vec![calib.camera.clone()], field, Spot::default())
+            .map_err(|e| CameraError::Spec(format!("sim: {e}")))?;
         Ok(SimCamera {
             scene,
             calib: calib.clone(),

@@ -13,11 +13,11 @@ use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
 
 use crate::dataset::{
-    CameraSpec, DatasetError, DatasetWriter, FrameChannel, FrameSpec, Image, LaserRay,
+    DatasetWriter, FrameChannel, FrameSpec, Image, LaserRay, ScanSpec, WriteError, obj_bytes,
 };
 use crate::geometry::{
-    Camera, GeometryError, Scene, V3, add_scaled, cross, dot, normalize, sub, turntable_to_world,
-    world_to_turntable,
+    Camera, GeometryError, Scene, V3, add_scaled, cross, dist, dot, normalize, sub,
+    turntable_to_world, world_to_turntable,
 };
 use crate::modelfile::{
     ColourMode, ModelFile, ModelFileError, ModelShape, VertexModel, VertexStatus,
@@ -36,9 +36,9 @@ pub enum SimError {
     /// Building the scene failed.
     #[error(transparent)]
     Geometry(#[from] GeometryError),
-    /// Writing the dataset failed.
+    /// Writing the dataset failed (disk full, another capture in the folder).
     #[error(transparent)]
-    Dataset(#[from] DatasetError),
+    Write(#[from] WriteError),
     /// Writing the ground-truth model failed.
     #[error(transparent)]
     Model(#[from] ModelFileError),
@@ -131,9 +131,8 @@ struct GBuffer {
 pub struct SimScene {
     /// The mesh and its ray-casting structure.
     pub scene: Scene,
-    /// Camera descriptions (as written to `scan.json`).
-    pub cameras: Vec<CameraSpec>,
-    cams: Vec<Camera>,
+    /// The cameras (as written to `scan.json`).
+    pub cameras: Vec<Camera>,
     /// The material.
     pub field: Field,
     /// The spot.
@@ -165,18 +164,16 @@ impl SimScene {
     /// A scene of a mesh seen by `cameras`.
     pub fn new(
         mesh: crate::dataset::Mesh,
-        cameras: Vec<CameraSpec>,
+        cameras: Vec<Camera>,
         field: Field,
         spot: Spot,
     ) -> Result<SimScene, SimError> {
         if cameras.is_empty() {
             return Err(SimError::Invalid("no cameras".into()));
         }
-        let cams = cameras.iter().map(Camera::new).collect();
         Ok(SimScene {
             scene: Scene::new(mesh)?,
             cameras,
-            cams,
             field,
             spot,
             gbuffers: Mutex::new(Vec::new()),
@@ -190,7 +187,7 @@ impl SimScene {
         {
             return b.clone();
         }
-        let c = &self.cams[cam];
+        let c = &self.cameras[cam];
         let (w, h) = (c.width as usize, c.height as usize);
         let mut x_o = vec![None; w * h];
         let mut alpha = vec![[0.0; 3]; w * h];
@@ -220,13 +217,25 @@ impl SimScene {
 
     /// Normal of the surface at a hit point (interpolated vertex normals).
     fn normal_at(&self, tri: u32, p: V3) -> V3 {
-        let t = self.scene.mesh.triangles[tri as usize];
-        let w = self.scene.barycentric(tri, p);
-        let mut n = [0.0; 3];
-        for k in 0..3 {
-            n = add_scaled(n, w[k], self.scene.mesh.normals[t[k] as usize]);
-        }
-        normalize(n).unwrap_or([0.0, 0.0, 1.0])
+        self.scene.normal_at(tri, p).unwrap_or([0.0, 0.0, 1.0])
+    }
+
+    /// Whether camera `cam` at turntable angle `deg` sees the spot's reflection at `spot`
+    /// (object frame, surface normal `n`). The simulator's own rule, as a camera sees: the spot
+    /// faces the camera and the camera's ray towards it meets no surface before it (a z-buffer
+    /// test). Deliberately not registration's rule ([`Scene::sees`] with its lift-off), which the
+    /// simulated scans exist to check.
+    fn spot_seen(&self, cam: &Camera, deg: f64, spot: V3, n: V3) -> bool {
+        let c_obj = world_to_turntable(cam.center(), deg);
+        let facing = normalize(sub(c_obj, spot)).is_some_and(|d| dot(d, n) > 0.0);
+        // A misregistered spot sits in the tangent plane, a hair off a curved surface.
+        let tol = 1e-3 * self.scene.mesh.diagonal();
+        let d_spot = dist(c_obj, spot);
+        facing
+            && self
+                .scene
+                .cast(c_obj, sub(spot, c_obj), f64::MAX)
+                .is_none_or(|h| h.t >= d_spot - tol)
     }
 }
 
@@ -252,8 +261,8 @@ pub fn render_frame_truth(
     sensor: &Sensor,
     seed: u64,
 ) -> (Image, FrameTruth) {
-    let camera = camera.min(sim.cams.len() - 1);
-    let cam = &sim.cams[camera];
+    let camera = camera.min(sim.cameras.len() - 1);
+    let cam = &sim.cameras[camera];
     let (w, h) = (cam.width as usize, cam.height as usize);
     let mut img = Image::new(w, h, 3);
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
@@ -293,13 +302,8 @@ pub fn render_frame_truth(
                 }
             }
         }
-        // First-surface reflection, visible only if the spot faces the camera unoccluded.
-        let c_obj = world_to_turntable(cam.center(), turntable_deg);
-        let facing = normalize(sub(c_obj, spot)).is_some_and(|d| dot(d, n_i) > 0.0);
-        if facing
-            && sim
-                .scene
-                .unoccluded(crate::registration::lift_off(&sim.scene, spot, n_i), c_obj)
+        // First-surface reflection, visible only if the camera sees the spot.
+        if sim.spot_seen(cam, turntable_deg, spot, n_i)
             && let Some([su, sv]) = cam.project(turntable_to_world(spot, turntable_deg))
         {
             let s = sim.spot.sigma_px.max(0.05);
@@ -473,32 +477,37 @@ impl SimConfig {
     }
 }
 
-fn look_at(center: V3, target: V3, size: u32, fov_radius: f64) -> CameraSpec {
+fn look_at(center: V3, target: V3, size: u32, fov_radius: f64) -> Camera {
     let fwd = normalize(sub(target, center)).unwrap_or([0.0, 0.0, -1.0]);
     let up = if fwd[2].abs() > 0.99 {
         [0.0, 1.0, 0.0]
     } else {
         [0.0, 0.0, 1.0]
     };
-    let x = normalize(cross(fwd, up)).unwrap_or([1.0, 0.0, 0.0]);
-    let y = cross(fwd, x);
-    let dist = crate::geometry::dist(center, target);
-    let f = 0.5 * size as f64 * dist / (fov_radius * 1.15);
-    let row = |a: V3| [a[0], a[1], a[2], -dot(a, center)];
-    CameraSpec {
-        width: size,
-        height: size,
-        fx: f,
-        fy: f,
-        cx: (size as f64 - 1.0) / 2.0,
-        cy: (size as f64 - 1.0) / 2.0,
-        distortion: None,
-        camera_from_world: [row(x), row(y), row(fwd), [0.0, 0.0, 0.0, 1.0]],
-    }
+    let f = 0.5 * size as f64 * dist(center, target) / (fov_radius * 1.15);
+    Camera::look_at(center, target, up, f, size, size).unwrap_or_else(|| {
+        // `center == target` (or not finite): straight down, +y up.
+        let row = |a: V3| [a[0], a[1], a[2], -dot(a, center)];
+        Camera {
+            width: size,
+            height: size,
+            fx: f,
+            fy: f,
+            cx: (size as f64 - 1.0) / 2.0,
+            cy: (size as f64 - 1.0) / 2.0,
+            distortion: None,
+            camera_from_world: [
+                row([1.0, 0.0, 0.0]),
+                row([0.0, -1.0, 0.0]),
+                row([0.0, 0.0, -1.0]),
+                [0.0, 0.0, 0.0, 1.0],
+            ],
+        }
+    })
 }
 
 /// The camera descriptions of a rig for an object with bounding sphere `(centre, radius)`.
-pub fn rig_cameras(rig: &CameraRig, centre: V3, radius: f64) -> Vec<CameraSpec> {
+pub fn rig_cameras(rig: &CameraRig, centre: V3, radius: f64) -> Vec<Camera> {
     match *rig {
         CameraRig::TopDown {
             distance,
@@ -652,13 +661,18 @@ pub fn simulate(
     let (centre, radius) = cfg.object.bounds();
     let cameras = rig_cameras(&cfg.cameras, centre, radius);
     let sim = SimScene::new(mesh.clone(), cameras.clone(), cfg.field.clone(), cfg.spot)?;
-    let mut writer = DatasetWriter::create(
+    // The one crash-safe writer; the configuration identifies the capture, so running the same
+    // simulation again into the same folder resumes it (frames are seeded by index).
+    let identity = serde_json::to_string_pretty(cfg).map_err(std::io::Error::other)?;
+    let (mut writer, done) = DatasetWriter::open(
         out,
-        &mesh,
-        cameras.clone(),
-        Some(cfg.noise_floor),
-        cfg.sensor.saturation,
-        cfg.pfm,
+        &identity,
+        ScanSpec::new(
+            cameras.clone(),
+            Some(cfg.noise_floor),
+            cfg.sensor.saturation,
+        ),
+        &obj_bytes(&mesh),
     )?;
     let mut plan = Vec::new();
     for &deg in &cfg.turntable_deg {
@@ -683,7 +697,7 @@ pub fn simulate(
                 render_frame_truth(&sim, *cam, *deg, ray, &cfg.sensor, seed)
             })
             .collect();
-        for ((deg, ray, cam), (img, truth)) in batch.iter().zip(rendered) {
+        for (k, ((deg, ray, cam), (img, truth))) in (b * 16..).zip(batch.iter().zip(rendered)) {
             let spec = FrameSpec {
                 image: String::new(),
                 camera: *cam,
@@ -696,7 +710,9 @@ pub fn simulate(
                 }),
                 galvo: None,
             };
-            let k = writer.add_frame(spec, &img)?;
+            if k >= done {
+                writer.add_image(spec, &img, cfg.pfm)?;
+            }
             without_hit += usize::from(truth.x_i.is_none());
             truths.push(FrameTruthJson {
                 frame: k,
@@ -708,7 +724,7 @@ pub fn simulate(
             progress.inc(1);
         }
     }
-    let frames = writer.frame_count();
+    let frames = writer.done();
     writer.finish()?;
     let truth_model = ground_truth_model(&mesh, &cfg.field);
     truth_model.write(&out.join("ground-truth.ply"))?;
@@ -751,7 +767,7 @@ mod tests {
         };
         let (img, truth) = render_frame_truth(&sim, 0, 0.0, &laser, &Sensor::ideal(), 1);
         let x_i = truth.x_i.unwrap();
-        let [u, v] = Camera::new(&sim.cameras[0]).project(x_i).unwrap();
+        let [u, v] = sim.cameras[0].project(x_i).unwrap();
         // Brightest pixel is the spot's.
         let (mut best, mut at) = (0.0, 0);
         for k in 0..img.width * img.height {

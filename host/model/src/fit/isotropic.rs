@@ -595,7 +595,19 @@ fn linear_specialised(
         }
         best = better(better(best, Some(full)), restarted);
     }
-    best.map(|b| lm::Outcome { iterations, ..b })
+    // The last digits by Gauss–Newton on all 2n parameters (see `polish_gauss_newton`).
+    best.map(|b| {
+        let before = b.iterations;
+        let b = if b.converged {
+            lm::polish_gauss_newton(&Linear { r: rn, s: sn, n }, b)
+        } else {
+            b
+        };
+        lm::Outcome {
+            iterations: iterations + (b.iterations - before),
+            ..b
+        }
+    })
 }
 
 /// Weighted line fit y ≈ a + b·x; `None` if degenerate.
@@ -786,6 +798,8 @@ pub(crate) struct Raw {
     pub model: ExpSum,
     pub iterations: usize,
     pub converged: bool,
+    /// The solver stalled at a non-stationary point.
+    pub stalled: bool,
     /// Σ(ln R_d − ln s)² for the log objective: the solver's final cost (exact fits) or the
     /// estimate from the bin statistics (fast mode).
     pub rss_estimate: Option<f64>,
@@ -949,6 +963,7 @@ pub(crate) fn fit_fixed(
         model,
         iterations,
         converged: out.converged,
+        stalled: out.stalled,
         rss_estimate,
     })
 }

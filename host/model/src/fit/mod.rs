@@ -86,6 +86,11 @@ pub struct FitOptions {
     /// Whether a fit that hit the iteration limit is a failure ([`FitFailure::NotConverged`]) or
     /// returned with `converged = false`.
     pub require_convergence: bool,
+    /// Few samples: with fewer usable samples (or distinct distances) than 2n, fit the order
+    /// they determine, n' = ⌊samples / 2⌋ (2 samples determine one term), instead of failing,
+    /// and say so in [`ExpFit::reduced_from`]. Off by default: per-vertex fitting keeps one
+    /// order and interpolates vertices with too few samples; `subsurf fit-curve` turns it on.
+    pub reduce_order: bool,
 }
 
 impl Default for FitOptions {
@@ -99,6 +104,7 @@ impl Default for FitOptions {
             subsample: 1,
             start: None,
             require_convergence: true,
+            reduce_order: false,
         }
     }
 }
@@ -230,6 +236,12 @@ pub struct ExpFit {
     pub samples: SampleReport,
     /// The order selection, for [`Terms::Auto`].
     pub order: Option<OrderChoice>,
+    /// The order asked for, when [`FitOptions::reduce_order`] lowered it to what the samples
+    /// determine (`model.n()` is the order fitted); `None` when the order is the one asked for.
+    pub reduced_from: Option<usize>,
+    /// The solver stopped at a point that is not stationary (every step rejected, gradient not
+    /// zero): reported, never counted as converged.
+    pub stalled: bool,
 }
 
 /// Why a fit produced no model. A failure is data: callers (e.g. per-vertex fitting) count and
@@ -253,13 +265,16 @@ pub enum FitFailure {
         /// Distinct distances needed.
         needed: usize,
     },
-    /// The solver hit its iteration limit (and convergence was required).
-    #[error("not converged after {iterations} iterations (log E {log_e})")]
+    /// The solver hit its iteration limit or stalled (and convergence was required).
+    #[error("{} after {iterations} iterations (log E {log_e})", not_converged_kind(*.stalled))]
     NotConverged {
         /// Iterations used.
         iterations: usize,
         /// log E of the last iterate.
         log_e: f64,
+        /// The solver stalled (no step reduced the cost, yet the gradient is not zero) rather
+        /// than running out of iterations.
+        stalled: bool,
     },
     /// The solver produced NaN or infinity.
     #[error("the fit produced non-finite values")]
@@ -278,10 +293,24 @@ pub enum FitFailure {
     },
 }
 
+fn not_converged_kind(stalled: bool) -> &'static str {
+    if stalled {
+        "stalled (no step reduces the cost, yet the gradient is not zero)"
+    } else {
+        "not converged"
+    }
+}
+
 /// Samples needed for n terms: 2n parameters plus at least two degrees of freedom (and never
 /// fewer than 4, so one to three samples always fail).
 pub fn samples_needed(n: usize) -> usize {
     (2 * n + 2).max(4)
+}
+
+/// The largest order the samples determine: ⌊k / 2⌋ for k samples at distinct distances
+/// (2n parameters need 2n equations), at most [`MAX_TERMS`].
+pub fn determined_order(r: &[f64]) -> usize {
+    samples::distinct_distances(r, 2 * MAX_TERMS) / 2
 }
 
 /// RMS of ln(R_d(r)/s) (Eq. 8 with alpha = 1 and t = 0) and, for `Objective::Linear`, Σ(R_d − s)².
@@ -318,6 +347,11 @@ pub fn fit_expsum(r: &[f64], s: &[f64], options: &FitOptions) -> Result<ExpFit, 
                 });
             }
             let mut fits: Vec<(usize, Result<ExpFit, FitFailure>)> = Vec::new();
+            let max = if options.reduce_order {
+                max.min(determined_order(&cr)).max(1)
+            } else {
+                max
+            };
             for n in 1..=max {
                 let f = fit_order(&cr, &cs, n, options, report);
                 let stop = matches!(
@@ -373,11 +407,32 @@ fn fit_order(
             reason: "start values must have as many terms as the fit",
         });
     }
-    let needed = samples_needed(n);
-    if r.len() < needed {
+    let requested = n;
+    let n = if options.reduce_order {
+        n.min(determined_order(r))
+    } else {
+        n
+    };
+    let needed = if options.reduce_order {
+        2 * n.max(1)
+    } else {
+        samples_needed(n)
+    };
+    if n == 0 && r.len() >= 2 {
+        return Err(FitFailure::TooFewDistances {
+            distinct: samples::distinct_distances(r, 2),
+            needed: 2,
+        });
+    }
+    if n == 0 || r.len() < needed {
         return Err(FitFailure::TooFewSamples {
             usable: r.len(),
             needed,
+        });
+    }
+    if n < requested && options.start.is_some() {
+        return Err(FitFailure::InvalidOptions {
+            reason: "start values were given for more terms than the samples determine",
         });
     }
     let distinct = samples::distinct_distances(r, 2 * n);
@@ -412,6 +467,7 @@ fn fit_order(
         return Err(FitFailure::NotConverged {
             iterations: raw.iterations,
             log_e,
+            stalled: raw.stalled,
         });
     }
     Ok(ExpFit {
@@ -422,6 +478,8 @@ fn fit_order(
         converged: raw.converged,
         samples: report,
         order: None,
+        reduced_from: (n < requested).then_some(requested),
+        stalled: raw.stalled,
     })
 }
 

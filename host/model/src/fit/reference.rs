@@ -95,5 +95,6 @@ pub(crate) fn minimize<P: Problem>(
         cost,
         iterations: report.number_of_evaluations,
         converged: report.termination.was_successful(),
+        stalled: false,
     })
 }

@@ -8,8 +8,13 @@ fn model(terms: &[(f64, f64)]) -> ExpSum {
     ExpSum::new(terms.iter().map(|&(c, d)| Term { c, d }).collect()).unwrap()
 }
 
-fn lanczos() -> (Vec<f64>, Vec<f64>) {
-    let text = include_str!("../../../tests/data/lanczos1.csv");
+/// NIST StRD Lanczos1–3 (the same three decays, data to 13, 6 and 5 digits).
+fn nist_data(which: usize) -> (Vec<f64>, Vec<f64>) {
+    let text = match which {
+        1 => include_str!("../../../../tests/data/lanczos1.csv"),
+        2 => include_str!("../../../../tests/data/lanczos2.csv"),
+        _ => include_str!("../../../../tests/data/lanczos3.csv"),
+    };
     text.lines()
         .filter(|l| !l.starts_with('#') && !l.starts_with('r'))
         .map(|l| {
@@ -19,13 +24,45 @@ fn lanczos() -> (Vec<f64>, Vec<f64>) {
         .unzip()
 }
 
-const CERTIFIED: [f64; 6] = [
-    9.5100000027E-02,
-    1.0000000001E+00,
-    8.6070000013E-01,
-    3.0000000002E+00,
-    1.5575999998E+00,
-    5.0000000001E+00,
+fn lanczos() -> (Vec<f64>, Vec<f64>) {
+    nist_data(1)
+}
+
+/// NIST's certified values b1..b6 of Lanczos1, 2 and 3.
+const NIST_CERTIFIED: [[f64; 6]; 3] = [
+    [
+        9.5100000027E-02,
+        1.0000000001E+00,
+        8.6070000013E-01,
+        3.0000000002E+00,
+        1.5575999998E+00,
+        5.0000000001E+00,
+    ],
+    [
+        9.6251029939E-02,
+        1.0057332849E+00,
+        8.6424689056E-01,
+        3.0078283915E+00,
+        1.5529016879E+00,
+        5.0028798100E+00,
+    ],
+    [
+        8.6816414977E-02,
+        9.5498101505E-01,
+        8.4400777463E-01,
+        2.9515951832E+00,
+        1.5825685901E+00,
+        4.9863565084E+00,
+    ],
+];
+
+/// NIST's certified residual sums of squares of Lanczos1, 2 and 3.
+const NIST_RSS: [f64; 3] = [1.4307867721E-25, 2.2299428125E-11, 1.6117193594E-08];
+
+/// NIST's two published start vectors of the Lanczos problems.
+const NIST_STARTS: [[f64; 6]; 2] = [
+    [1.2, 0.3, 5.6, 5.5, 6.5, 7.6],
+    [0.5, 0.7, 3.6, 4.2, 4.0, 6.3],
 ];
 
 fn nist_vector(m: &ExpSum) -> Vec<f64> {
@@ -43,35 +80,52 @@ fn start(v: [f64; 6]) -> Vec<Term> {
     v.chunks(2).map(|p| Term { c: p[0], d: -p[1] }).collect()
 }
 
+/// Issue 13: the linear objective from both NIST starts reaches ≥ 9 certified digits on
+/// Lanczos1 and 2 and ≥ 8 on Lanczos3 (the hardest of the family), with NIST's residual sum of
+/// squares; and never fewer digits than the reference crate from the same start.
 #[test]
-fn lanczos1_linear_objective_both_starts_both_solvers() {
-    let (r, s) = lanczos();
-    for st in [
-        [1.2, 0.3, 5.6, 5.5, 6.5, 7.6],
-        [0.5, 0.7, 3.6, 4.2, 4.0, 6.3],
-    ] {
-        for solver in [Solver::Specialised, Solver::Reference] {
-            let opts = FitOptions {
-                objective: Objective::Linear,
-                solver,
-                start: Some(start(st)),
-                ..FitOptions::default()
+fn nist_lanczos_family_linear_objective_both_starts() {
+    for which in 1..=3 {
+        let (r, s) = nist_data(which);
+        let want = NIST_CERTIFIED[which - 1];
+        let need = if which == 3 { 8.0 } else { 9.0 };
+        for st in NIST_STARTS {
+            let fit_with = |solver| {
+                fit_expsum(
+                    &r,
+                    &s,
+                    &FitOptions {
+                        objective: Objective::Linear,
+                        solver,
+                        start: Some(start(st)),
+                        ..FitOptions::default()
+                    },
+                )
             };
-            let fit = match fit_expsum(&r, &s, &opts) {
-                Ok(f) => f,
-                Err(e) => {
-                    eprintln!("{solver:?} {st:?}: {e:?}");
-                    continue;
-                }
-            };
-            let dg = digits(&nist_vector(&fit.model), &CERTIFIED);
+            let fit = fit_with(Solver::Specialised)
+                .unwrap_or_else(|e| panic!("Lanczos{which} from {st:?}: {e}"));
+            let dg = digits(&nist_vector(&fit.model), &want);
+            let rss = NIST_RSS[which - 1];
             eprintln!(
-                "{solver:?} {st:?}: {dg:.2} digits, rss {:e}, it {}",
+                "Lanczos{which} {st:?}: {dg:.2} digits, rss {:e} (certified {rss:e}), it {}",
                 fit.rss, fit.iterations
             );
-            if solver == Solver::Specialised {
-                assert!(dg >= 9.0, "{dg}");
-                assert!(fit.rss < 1.5e-25);
+            assert!(fit.converged && !fit.stalled);
+            assert!(dg >= need, "Lanczos{which} from {st:?}: {dg:.2} digits");
+            // The certified RSS to 6 digits (Lanczos1's is rounding noise: within 10 %).
+            let rss_tol = if which == 1 { 0.1 } else { 1e-6 };
+            assert!(
+                (fit.rss / rss - 1.0).abs() < rss_tol,
+                "Lanczos{which}: rss {:e}",
+                fit.rss
+            );
+            if let Ok(reference) = fit_with(Solver::Reference) {
+                let dr = digits(&nist_vector(&reference.model), &want);
+                eprintln!("  reference crate: {dr:.2} digits");
+                assert!(
+                    dg >= dr.min(10.0) - 0.3,
+                    "specialised {dg} < reference {dr}"
+                );
             }
         }
     }
@@ -87,6 +141,7 @@ fn lanczos1_log_objective_recovers_generating_values() {
     );
     eprintln!("log: {dg:.2} digits, it {}", fit.iterations);
     assert!(dg >= 9.0, "{dg}");
+    assert!(fit.converged && !fit.stalled);
 }
 
 /// Deterministic pseudo-random numbers (SplitMix64) so tests need no RNG state.
@@ -175,11 +230,19 @@ fn noisy_fit_fast_mode_close_to_exact() {
             },
         )
         .unwrap();
+        let ratio = fast.log_e / exact.log_e;
         eprintln!(
-            "bins {bins}: it {} log_e {} ratio {}",
-            fast.iterations,
-            fast.log_e,
-            fast.log_e / exact.log_e
+            "bins {bins}: it {} log_e {} ratio {ratio}",
+            fast.iterations, fast.log_e
+        );
+        // The binned estimate of log E is close to the exact fit's for every bin count, and
+        // its rates are those of the exact fit to the noise level.
+        assert!((ratio - 1.0).abs() < 0.02, "bins {bins}: ratio {ratio}");
+        assert!(fast.converged, "bins {bins}");
+        assert!(
+            max_rel_err(&fast.model, &exact.model) < 0.1,
+            "bins {bins}: {:?}",
+            fast.model
         );
     }
     // The fast mode's default knob: log E on all samples within 1 % of the exact fit, and its
@@ -249,7 +312,7 @@ fn distances_to_1e4_with_underflowing_terms() {
 }
 
 #[test]
-fn one_to_three_samples_fail_cleanly() {
+fn one_to_three_samples_fail_cleanly_without_order_reduction() {
     for count in 1..=3 {
         let r: Vec<f64> = (0..count).map(|i| i as f64).collect();
         let s: Vec<f64> = r.iter().map(|v| (-v).exp()).collect();
@@ -281,6 +344,148 @@ fn one_to_three_samples_fail_cleanly() {
         fit_expsum(&[], &[], &FitOptions::default()),
         Err(FitFailure::TooFewSamples { usable: 0, .. })
     ));
+}
+
+/// Issue 13: with `reduce_order`, k samples fit n' = min(n, ⌊k/2⌋) terms, the fit says so, and
+/// the samples are honoured exactly where they determine the model.
+#[test]
+fn few_samples_order_falls_to_what_they_determine() {
+    let truth = model(&[(0.3, -0.5), (2.0, -3.0)]);
+    let opts = |n| FitOptions {
+        terms: Terms::Fixed(n),
+        reduce_order: true,
+        ..FitOptions::default()
+    };
+    // One sample determines nothing.
+    assert!(matches!(
+        fit_expsum(&[1.0], &[0.5], &opts(3)),
+        Err(FitFailure::TooFewSamples {
+            usable: 1,
+            needed: 2
+        })
+    ));
+    // Two samples at one distance determine nothing either.
+    assert!(matches!(
+        fit_expsum(&[1.0, 1.0], &[0.5, 0.6], &opts(1)),
+        Err(FitFailure::TooFewDistances { distinct: 1, .. })
+    ));
+    for count in 2..=9usize {
+        let r: Vec<f64> = (0..count).map(|i| 0.4 * i as f64).collect();
+        let s: Vec<f64> = r.iter().map(|&v| truth.eval(v)).collect();
+        for n in 1..=4usize {
+            let fit = fit_expsum(&r, &s, &opts(n))
+                .unwrap_or_else(|e| panic!("{count} samples, n = {n}: {e}"));
+            let want = n.min(count / 2);
+            assert_eq!(fit.model.n(), want, "{count} samples, n = {n}");
+            assert_eq!(fit.reduced_from, (want < n).then_some(n));
+            assert!(fit.model.validate().is_ok());
+            if want == 2 {
+                // Two terms from ≥ 4 exact samples: the generating model.
+                assert!(
+                    max_rel_err(&fit.model, &truth) < 1e-6,
+                    "{count}: {:?}",
+                    fit.model
+                );
+            }
+            if 2 * want == count {
+                // As many parameters as samples: the fit passes through every sample.
+                assert!(fit.log_e < 1e-8, "{count} samples, n = {n}: {}", fit.log_e);
+            }
+        }
+    }
+    // n = 1 from two samples is the line through them in log space.
+    let fit = fit_expsum(&[0.5, 2.5], &[0.8, 0.1], &opts(3)).unwrap();
+    let d = (0.1f64 / 0.8).ln() / 2.0;
+    assert!(
+        (fit.model.terms[0].d / d - 1.0).abs() < 1e-9,
+        "{:?}",
+        fit.model
+    );
+    assert!((fit.model.eval(0.5) / 0.8 - 1.0).abs() < 1e-9);
+    assert_eq!(fit.reduced_from, Some(3));
+    // Automatic order never asks for more than the samples determine.
+    let auto = FitOptions {
+        terms: Terms::Auto {
+            max: 4,
+            tolerance: 0.0,
+        },
+        reduce_order: true,
+        ..FitOptions::default()
+    };
+    let r = [0.0, 0.5, 1.0, 1.5, 2.0];
+    let s: Vec<f64> = r.iter().map(|&v| truth.eval(v)).collect();
+    let fit = fit_expsum(&r, &s, &auto).unwrap();
+    assert!(fit.model.n() <= 2);
+    assert!(fit.order.unwrap().candidates.len() <= 2);
+}
+
+/// The issue's benchmark curves in small: 3 well-separated terms, rates uniform in 0.2–8/mm
+/// (consecutive rates ≥ 2× apart), amplitudes c_k = λ_k²·10^U(−½,½), distances R·u² with
+/// R = 10/λ_1, 1 % log-normal noise. `bench/scipy_compare.py` draws the same kind of curves.
+fn random_curve(seed: &mut u64, samples: usize) -> (ExpSum, Vec<f64>, Vec<f64>) {
+    let rates = loop {
+        let mut l: Vec<f64> = (0..3).map(|_| 0.2 + 7.8 * uniform(seed)).collect();
+        l.sort_by(f64::total_cmp);
+        if l[1] >= 2.0 * l[0] && l[2] >= 2.0 * l[1] {
+            break l;
+        }
+    };
+    let truth = model(
+        &rates
+            .iter()
+            .map(|&l| (l * l * 10f64.powf(uniform(seed) - 0.5), -l))
+            .collect::<Vec<_>>(),
+    );
+    let r_max = 10.0 / rates[0];
+    let r: Vec<f64> = (0..samples)
+        .map(|_| r_max * uniform(seed).powi(2))
+        .collect();
+    let s: Vec<f64> = r
+        .iter()
+        .map(|&x| {
+            let (u1, u2) = (uniform(seed).max(1e-300), uniform(seed));
+            let g = (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos();
+            truth.eval(x) * (0.01 * g).exp()
+        })
+        .collect();
+    (truth, r, s)
+}
+
+/// Issue 13: from no start but the automatic one, random well-separated 3-term curves with 1 %
+/// noise converge (< 0.2 % not converged: none of 400) to the noise level.
+#[test]
+fn random_curves_converge_from_the_automatic_start() {
+    let mut seed = 2026u64;
+    let (mut failed, mut sum_log_e, mut sum_it, count) = (0, 0.0, 0, 400);
+    for i in 0..count {
+        let (truth, r, s) = random_curve(&mut seed, 300);
+        match fit_expsum(&r, &s, &FitOptions::default()) {
+            Ok(fit) => {
+                sum_log_e += fit.log_e;
+                sum_it += fit.iterations;
+                // At the noise level: a wrong basin shows as a log E well above 1 %.
+                assert!(
+                    fit.log_e < 0.0115,
+                    "curve {i}: {:?} vs {:?}",
+                    fit.model,
+                    truth
+                );
+            }
+            Err(e) => {
+                eprintln!("curve {i}: {e} ({truth:?})");
+                failed += 1;
+            }
+        }
+    }
+    eprintln!(
+        "{failed} of {count} not converged, mean log E {}, mean iterations {}",
+        sum_log_e / count as f64,
+        sum_it as f64 / count as f64
+    );
+    assert!(
+        (failed as f64) < 0.002 * count as f64,
+        "{failed} of {count}"
+    );
 }
 
 #[test]

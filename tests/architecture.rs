@@ -1,0 +1,82 @@
+//! The architecture invariants of ARCHITECTURE.md that a test can check, checked on the source
+//! text (rust-analyzer's "tidy" style): where a dependency may be named, what a crate never does.
+use std::path::{Path, PathBuf};
+
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+/// Every `.rs` file under `dir` (relative to the workspace root), with its text.
+fn sources(dir: &str) -> Vec<(String, String)> {
+    let mut out = Vec::new();
+    let mut stack = vec![root().join(dir)];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap().flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                stack.push(p);
+            } else if p.extension().is_some_and(|x| x == "rs") {
+                let rel = p.strip_prefix(root()).unwrap().display().to_string();
+                out.push((rel, std::fs::read_to_string(&p).unwrap()));
+            }
+        }
+    }
+    assert!(!out.is_empty(), "no sources under {dir}");
+    out
+}
+
+/// Files under `dir` whose code (comments left out) contains `needle`.
+fn naming(dir: &str, needle: &str) -> Vec<String> {
+    sources(dir)
+        .into_iter()
+        .filter(|(_, text)| {
+            text.lines()
+                .map(str::trim_start)
+                .filter(|l| !l.starts_with("//"))
+                .any(|l| l.contains(needle))
+        })
+        .map(|(path, _)| path)
+        .collect()
+}
+
+#[test]
+fn only_the_scene_builds_a_parry_mesh() {
+    let users = naming("host/src", "parry3d_f64");
+    assert_eq!(users, ["host/src/geometry/mod.rs"], "{users:?}");
+}
+
+#[test]
+fn the_model_crate_touches_no_files_ports_or_probes() {
+    for needle in ["std::fs", "File::", "serialport", "probe_rs", "indicatif"] {
+        let users = naming("host/model/src", needle);
+        assert!(users.is_empty(), "{needle} in {users:?}");
+    }
+}
+
+#[test]
+fn the_firmware_core_never_imports_embassy() {
+    let core: Vec<String> = naming("firmware/src", "embassy")
+        .into_iter()
+        .filter(|p| !p.contains("/src/bin/"))
+        .collect();
+    assert!(core.is_empty(), "{core:?}");
+}
+
+#[test]
+fn registration_selection_and_samples_touch_no_files() {
+    for f in ["registration.rs", "selection.rs", "samples.rs"] {
+        let text = std::fs::read_to_string(root().join("host/src").join(f)).unwrap();
+        for needle in ["std::fs", "File::", "fs::write", "fs::read"] {
+            assert!(!text.contains(needle), "{f} names {needle}");
+        }
+    }
+}
+
+#[test]
+fn one_camera_type_and_one_dataset_writer() {
+    // The camera model is defined once (geometry) and the writer once (dataset).
+    let cameras = naming("host/src", "pub struct Camera {");
+    assert_eq!(cameras, ["host/src/geometry/camera.rs"], "{cameras:?}");
+    let writers = naming("host/src", "pub struct DatasetWriter");
+    assert_eq!(writers, ["host/src/dataset/writer.rs"], "{writers:?}");
+}
