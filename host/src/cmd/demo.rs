@@ -12,14 +12,14 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result, anyhow};
-use indicatif::{ProgressBar, ProgressStyle};
 use subsurf::calib::Calibration;
 use subsurf::dataset::Dataset;
 use subsurf::evaluate::evaluate_frames;
 use subsurf::fit::{FitOptions, Preset, Terms};
 use subsurf::modelfile::ModelFile;
-use subsurf::pipeline::{Context as FitContext, FitReport, PipelineOptions, fit_dataset};
-use subsurf::registration::RegistrationOutcome;
+use subsurf::pipeline::{
+    Context as FitContext, FitReport, PipelineOptions, fit_dataset, register_one,
+};
 use subsurf::render::{
     self, Camera, Image, Light, RenderOptions, ToneMapping, VertexModel, auto_exposure,
     relative_pixel_error,
@@ -32,6 +32,8 @@ use subsurf::scan::setup::{
     BUILTIN_RADIUS_MM, GROUND_TRUTH_FILE, builtin_image_size, builtin_object, builtin_target_mm,
     camera_from_spec, obj_text, sim_exposures_s, sim_field, sim_noise_floor, write_ground_truth,
 };
+
+use super::progress::Bar;
 
 /// Run the whole chain on the simulated rig and write the results into one folder.
 #[derive(Debug, clap::Args)]
@@ -61,11 +63,9 @@ pub struct Args {
     picture: u32,
 }
 
-fn bar(len: u64, msg: &str) -> ProgressBar {
-    let p = ProgressBar::new(len);
-    if let Ok(style) = ProgressStyle::with_template("{msg:>12} {bar:40} {pos}/{len} {elapsed}") {
-        p.set_style(style);
-    }
+fn bar(len: u64, msg: &str) -> Bar {
+    let p = Bar::with_template("{msg:>12} {bar:40} {pos}/{len} {elapsed}");
+    p.set_length(len);
     p.set_message(msg.to_string());
     p
 }
@@ -371,10 +371,10 @@ pub fn run_demo(args: &Args) -> Result<Vec<PathBuf>> {
     // The training frame whose x_i has the most green samples.
     let mut best: Option<(usize, Vec<f64>, Vec<f64>)> = None;
     for &k in train.iter().step_by(3) {
-        let Ok(RegistrationOutcome::Registered { x_i, .. }) = ctx.register(k) else {
+        let Ok(reg) = register_one(&ctx, k) else {
             continue;
         };
-        let Ok((samples, _)) = ctx.samples(k, x_i) else {
+        let Ok((samples, _)) = ctx.samples(&reg) else {
             continue;
         };
         let (r, s): (Vec<f64>, Vec<f64>) = samples
@@ -389,12 +389,13 @@ pub fn run_demo(args: &Args) -> Result<Vec<PathBuf>> {
     let mut falloff = None;
     if let Some((k, r, s)) = best.filter(|b| b.1.len() >= 8) {
         let f = out.join("falloff.png");
+        let fits = subsurf::evaluate::compare_falloff(&r, &s, 1.3);
         let sum = subsurf::plot::falloff_figure(
             &f,
             &format!("Fall-off of frame {k}'s x_i (green)"),
             &r,
             &s,
-            1.3,
+            &fits,
         )?;
         written.push(f.clone());
         falloff = Some((f, k, sum));
