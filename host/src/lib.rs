@@ -19,6 +19,7 @@ pub mod plot;
 pub mod progress;
 pub mod registration;
 pub mod render;
+pub mod report;
 pub mod rig;
 pub mod samples;
 pub mod scan;

@@ -15,7 +15,7 @@ pub struct Args {
     /// The model (PLY written by `subsurf fit`).
     #[arg(long)]
     pub model: PathBuf,
-    /// The scan dataset directory.
+    /// The scan dataset: its folder or its `scan.json`.
     #[arg(long)]
     pub scan: PathBuf,
     /// Frames to evaluate, e.g. `3,17,40-59` (default: all).
@@ -64,7 +64,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         });
         println!("{out}");
     } else {
-        let f = |v: Option<f64>| v.map_or("-".to_string(), |x| format!("{x:.4}"));
+        let f = |v: Option<f64>| subsurf::report::fmt::opt(v, subsurf::report::fmt::log_e);
         println!(
             "{evaluated} frames evaluated, {} skipped",
             evals.len() - evaluated

@@ -35,7 +35,7 @@ pub enum PresetArg {
 /// Fit the per-vertex subsurface-scattering model to a scan (section 5).
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// The scan dataset directory.
+    /// The scan dataset: its folder or its `scan.json`.
     #[arg(long)]
     pub scan: PathBuf,
     /// Output model (binary PLY).
@@ -216,7 +216,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 .map(|k| format!(
                     "m = {}: {}",
                     k.order,
-                    k.log_e.map_or("failed".into(), |v| format!("{v:.4}"))
+                    k.log_e.map_or("failed".into(), subsurf::report::fmt::log_e)
                 ))
                 .collect::<Vec<_>>()
                 .join(", ")
@@ -244,48 +244,43 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     std::fs::write(&report_path, serde_json::to_string_pretty(&json)?)
         .with_context(|| format!("writing {}", report_path.display()))?;
     let drawn = drawn?;
-    let r = &out.report;
-    let f = |v: Option<f64>| v.map_or("-".to_string(), |x| format!("{x:.4}"));
+    for line in subsurf::report::fit::summary_lines(&out.report) {
+        println!("{line}");
+    }
     println!(
-        "{} vertices: {} fitted, {} interpolated, {} without model; failures {:?}",
-        r.vertices, r.vertices_fitted, r.vertices_interpolated, r.vertices_no_model, r.failures
-    );
-    println!(
-        "frames: {} selected, {} registered, {} no spot, {} off object, {} laser mismatch, {} unreadable; {} fits",
-        r.frames.selected,
-        r.frames.registered,
-        r.frames.no_spot,
-        r.frames.spot_off_object,
-        r.frames.laser_mismatch,
-        r.frames.unreadable,
-        r.frames.fitted
-    );
-    println!(
-        "log E(x_i) mean r/g/b {} {} {}, median {} {} {}",
-        f(r.log_e.mean[0]),
-        f(r.log_e.mean[1]),
-        f(r.log_e.mean[2]),
-        f(r.log_e.median[0]),
-        f(r.log_e.median[1]),
-        f(r.log_e.median[2])
-    );
-    println!(
-        "alpha (Eq. 6): {} rounds on alpha-divided samples, last RMS change of ln alpha {:.2e}; {} vertices from samples, {} interpolated",
-        r.alpha.rounds, r.alpha.last_change, r.alpha.from_samples, r.alpha.interpolated
-    );
-    let stages: Vec<String> = r
-        .stage_seconds
-        .iter()
-        .map(|(k, v)| format!("{k} {v:.2}s"))
-        .collect();
-    println!(
-        "stages: {}; peak RSS {} MiB; model {} ({:.2} MB); report {}",
-        stages.join(", "),
-        r.peak_rss_mib.map_or("-".into(), |m| format!("{m:.0}")),
+        "model {} ({}); report {}",
         args.out.display(),
-        bytes as f64 / 1e6,
+        subsurf::report::fmt::bytes(bytes),
         report_path.display()
     );
+    // The same figures for people: fit-report.md (terminals) and a self-contained
+    // fit-report.html (pictures embedded), beside fit-report.json.
+    let figures = drawn
+        .iter()
+        .zip([
+            "log E(x_i) per vertex (Eq. 8)",
+            "the model: alpha, reflectance, reach, status",
+        ])
+        .map(|(p, c)| subsurf::report::Figure {
+            path: p.clone(),
+            caption: c.into(),
+        })
+        .collect();
+    let inputs = subsurf::report::fit::FitInputs {
+        scan: &args.scan,
+        model: &args.out,
+        model_bytes: bytes,
+        pictures: figures,
+    };
+    let stem = report_path
+        .file_stem()
+        .map_or_else(|| "fit-report".into(), |s| s.to_string_lossy().into_owned());
+    let dir = report_path
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty())
+        .unwrap_or_else(|| std::path::Path::new("."));
+    let [md, html] = subsurf::report::fit::fit_report(&out.report, &inputs).write(dir, &stem)?;
+    println!("wrote {} and {}", md.display(), html.display());
     for p in &drawn {
         println!("wrote {}", p.display());
     }
