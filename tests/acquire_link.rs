@@ -2,7 +2,6 @@
 //! longer than the rig's heartbeat timeout. The scan reconnects, handshakes again and completes;
 //! the rig's own laser log shows the laser went off within the heartbeat timeout of the drop.
 use crate::fixture::{Planner, rig_scan};
-use indicatif::ProgressBar;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use subsurf::dataset::Dataset;
@@ -112,13 +111,7 @@ fn scan_survives_the_pty_closing_and_the_rig_turns_the_laser_off_in_time() {
                 std::thread::sleep(Duration::from_millis(2));
             }
         });
-        run_with_reconnect(
-            &cfg,
-            &mut connect,
-            camera.as_mut(),
-            &ProgressBar::hidden(),
-            40,
-        )
+        run_with_reconnect(&cfg, &mut connect, camera.as_mut(), &(), 40)
     })
     .unwrap();
     assert!(summary.reconnects >= 1, "{summary:?}");

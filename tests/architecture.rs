@@ -54,6 +54,15 @@ fn the_model_crate_touches_no_files_ports_or_probes() {
 }
 
 #[test]
+fn only_the_binary_draws_progress_bars() {
+    let users: Vec<String> = naming("host/src", "indicatif")
+        .into_iter()
+        .filter(|p| !p.starts_with("host/src/cmd/"))
+        .collect();
+    assert!(users.is_empty(), "{users:?}");
+}
+
+#[test]
 fn the_firmware_core_never_imports_embassy() {
     let core: Vec<String> = naming("firmware/src", "embassy")
         .into_iter()

@@ -1,16 +1,35 @@
-//! `subsurf demo` at a reduced size: it leaves a report, rendered PNGs, a fall-off plot and an
-//! error map, every one a real picture.
+//! `subsurf demo` at a reduced size: it leaves a report (Markdown and self-contained HTML),
+//! ground-truth and model renders with their difference, a fall-off plot, an error map and model
+//! maps, every one a real picture, no render clipped; the HTML report (and `subsurf fit`'s) opens
+//! in headless Chromium with every picture loaded.
 
+use std::path::{Path, PathBuf};
 use std::process::Command;
+use std::sync::OnceLock;
 
 use subsurf::render::image_stats;
 
-#[test]
-fn demo_leaves_report_renders_falloff_plot_and_error_map() {
-    let dir = tempfile::tempdir().unwrap();
-    let out = dir.path().join("demo");
+fn subsurf(args: &[&str]) -> String {
     let o = Command::new(env!("CARGO_BIN_EXE_subsurf"))
-        .args([
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(
+        o.status.success(),
+        "subsurf {args:?}: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    String::from_utf8(o.stdout).unwrap()
+}
+
+/// The demo's output folder, made once for all tests of this file (a coarse 2 mm plan on a small
+/// camera, so it takes seconds).
+fn demo() -> &'static (PathBuf, String) {
+    static OUT: OnceLock<(PathBuf, String)> = OnceLock::new();
+    OUT.get_or_init(|| {
+        let out = Path::new(env!("CARGO_TARGET_TMPDIR")).join("demo-test");
+        let _ = std::fs::remove_dir_all(&out);
+        let stdout = subsurf(&[
             "demo",
             "--size",
             "48",
@@ -18,24 +37,69 @@ fn demo_leaves_report_renders_falloff_plot_and_error_map() {
             "3",
             "--raster",
             "8",
+            "--target-mm",
+            "2",
             "--picture",
             "96",
             "--out",
-        ])
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let stdout = String::from_utf8_lossy(&o.stdout);
+            out.to_str().unwrap(),
+        ]);
+        (out, stdout)
+    })
+}
+
+/// Longest run of digits in `text` (a number printed with 16 digits is a formatting defect).
+fn longest_digit_run(text: &str) -> usize {
+    text.split(|c: char| !c.is_ascii_digit())
+        .map(str::len)
+        .max()
+        .unwrap_or(0)
+}
+
+/// Share of the object's pixels (not the renderer's background grey) with a channel at 255.
+fn clipped_share(png: &Path) -> f64 {
+    let img = image::open(png).unwrap().to_rgb8();
+    let object: Vec<[u8; 3]> = img
+        .pixels()
+        .map(|p| p.0)
+        .filter(|p| *p != [24, 24, 28])
+        .collect();
+    assert!(!object.is_empty(), "{} shows no object", png.display());
+    object.iter().filter(|p| p.contains(&255)).count() as f64 / object.len() as f64
+}
+
+#[test]
+fn demo_leaves_report_renders_differences_falloff_plot_and_maps() {
+    let (out, stdout) = demo();
     assert!(stdout.contains("demo results in"), "{stdout}");
     let report = std::fs::read_to_string(out.join("report.md")).unwrap();
-    assert!(
-        report.contains("## Scan") && report.contains("## Fit"),
-        "{report}"
-    );
+    for section in [
+        "## Ground truth, model, difference",
+        "## Held-out against in-sample error",
+        "## Speed and accuracy",
+        "## Fall-off",
+        "## The model",
+        "## Scan",
+    ] {
+        assert!(report.contains(section), "{section} missing:\n{report}");
+    }
+    for held in [
+        "fitted (exact), held out",
+        "ground truth, held out",
+        "draft",
+    ] {
+        assert!(report.contains(held), "{held} missing:\n{report}");
+    }
+    for text in [&report, stdout] {
+        assert!(!text.contains("Some(") && !text.contains("None"), "{text}");
+        assert!(longest_digit_run(text) <= 7, "{text}");
+    }
     for (name, w, h) in [
         ("render-key-light.png", 96, 96),
         ("render-back-light.png", 96, 96),
+        ("render-truth-key-light.png", 96, 96),
+        ("render-truth-back-light.png", 96, 96),
+        ("render-difference-key-light.png", 260, 154),
         ("falloff.png", 800, 520),
         ("error-map.png", 720, 414),
         ("model.png", 1200, 374),
@@ -47,5 +111,200 @@ fn demo_leaves_report_renders_falloff_plot_and_error_map() {
             "{name} looks blank: {s:?}"
         );
     }
+    // No render burns out: the issue's limit on clipped pixels of the lit object, measured on
+    // the PNGs themselves.
+    for name in [
+        "render-key-light.png",
+        "render-back-light.png",
+        "render-truth-key-light.png",
+        "render-truth-back-light.png",
+    ] {
+        let c = clipped_share(&out.join(name));
+        assert!(c <= 0.005, "{name}: {:.2} % clipped", 100.0 * c);
+        // The linear EXR beside it keeps the real radiance.
+        let exr = image::open(out.join(name).with_extension("exr"))
+            .unwrap()
+            .to_rgb32f();
+        assert!(exr.pixels().any(|p| p.0[1] > 0.0), "{name}: empty EXR");
+    }
     assert!(out.join("model.ply").exists() && out.join("fit-report.json").exists());
+    assert!(out.join("scan/ground-truth.ply").exists());
+    let html = std::fs::read_to_string(out.join("report.html")).unwrap();
+    let pictures = report.matches("![").count();
+    assert!(pictures >= 9, "{report}");
+    assert_eq!(
+        html.matches("<img src=\"data:image/png;base64,").count(),
+        pictures,
+        "every picture embedded"
+    );
+    assert!(!html.contains("Some("), "{html}");
+}
+
+/// `--scan` takes the dataset's folder or its `scan.json`; `fit` writes its report as HTML too,
+/// and `evaluate` prints numbers for people.
+#[test]
+fn fit_and_evaluate_take_the_scan_json_and_print_formatted_numbers() {
+    let (out, _) = demo();
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path().join("model.ply");
+    let manifest = out.join("scan/scan.json");
+    let printed = subsurf(&[
+        "fit",
+        "--scan",
+        manifest.to_str().unwrap(),
+        "--out",
+        model.to_str().unwrap(),
+    ]);
+    assert!(printed.contains("vertices"), "{printed}");
+    let evaluated = subsurf(&[
+        "evaluate",
+        "--model",
+        model.to_str().unwrap(),
+        "--scan",
+        manifest.to_str().unwrap(),
+    ]);
+    let by_folder = subsurf(&[
+        "evaluate",
+        "--model",
+        model.to_str().unwrap(),
+        "--scan",
+        out.join("scan").to_str().unwrap(),
+    ]);
+    assert_eq!(evaluated, by_folder);
+    for text in [&printed, &evaluated] {
+        assert!(!text.contains("Some(") && !text.contains("None"), "{text}");
+        assert!(longest_digit_run(text) <= 7, "{text}");
+    }
+    let html = std::fs::read_to_string(dir.path().join("fit-report.html")).unwrap();
+    assert_eq!(html.matches("src=\"data:image/png;base64,").count(), 2);
+    assert!(dir.path().join("fit-report.md").exists());
+    if let Some(chrome) = chromium() {
+        check_in_browser(&chrome, &dir.path().join("fit-report.html"), 2);
+    }
+}
+
+/// The demo's report.html in a real browser: every picture decoded, the page not blank.
+#[test]
+fn report_html_shows_its_pictures_in_headless_chromium() {
+    let (out, _) = demo();
+    let Some(chrome) = chromium() else {
+        return;
+    };
+    let pictures = std::fs::read_to_string(out.join("report.md"))
+        .unwrap()
+        .matches("![")
+        .count();
+    check_in_browser(&chrome, &out.join("report.html"), pictures);
+}
+
+/// A Chromium to test with: `$SUBSURF_CHROMIUM`, or `chromium`, `chromium-browser`,
+/// `google-chrome` on the PATH. In CI (`CI` set) a missing browser fails the test; elsewhere the
+/// browser checks are skipped, and the test says so.
+fn chromium() -> Option<PathBuf> {
+    let names = [
+        "chromium",
+        "chromium-browser",
+        "google-chrome",
+        "google-chrome-stable",
+    ];
+    let from_env = std::env::var_os("SUBSURF_CHROMIUM").map(PathBuf::from);
+    let on_path = std::env::var_os("PATH").and_then(|paths| {
+        std::env::split_paths(&paths)
+            .flat_map(|d| names.iter().map(move |n| d.join(n)))
+            .find(|p| p.is_file())
+    });
+    let found = from_env.or(on_path);
+    if found.is_none() {
+        let ci = std::env::var_os("CI").is_some_and(|v| !v.is_empty());
+        assert!(
+            !ci,
+            "CI is set but no Chromium was found ({names:?} on PATH or $SUBSURF_CHROMIUM): \
+             .ci/run installs Debian's chromium"
+        );
+        eprintln!(
+            "SKIPPED the headless-browser check of report.html: no Chromium found ({names:?} on \
+             PATH or $SUBSURF_CHROMIUM) and CI is not set"
+        );
+    }
+    found
+}
+
+/// Runs headless Chromium on `page` with `args` (sandbox off: CI runs as root), at most two
+/// minutes.
+fn run_chromium(chrome: &Path, profile: &Path, args: &[String]) -> String {
+    let o = Command::new("timeout")
+        .arg("120")
+        .arg(chrome)
+        .args([
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--disable-dev-shm-usage",
+            "--no-first-run",
+            "--hide-scrollbars",
+        ])
+        .arg(format!("--user-data-dir={}", profile.display()))
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(
+        o.status.success(),
+        "{} {args:?}: {}",
+        chrome.display(),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+/// Loads `page` (a copy with a probe script that names, in the title, how many of its images
+/// decoded) and checks all `images` did; then takes a screenshot of the page itself and checks
+/// it is not blank.
+fn check_in_browser(chrome: &Path, page: &Path, images: usize) {
+    let tmp = tempfile::tempdir().unwrap();
+    let html = std::fs::read_to_string(page).unwrap();
+    let probe_script = "<script>\nfunction probe() {\n  const all = Array.from(document.images);\n  \
+        const done = all.filter(i => i.complete && i.naturalWidth > 0).length;\n  \
+        document.title = 'IMAGES ' + done + ' OF ' + all.length;\n  \
+        if (done < all.length) setTimeout(probe, 50);\n}\n\
+        window.addEventListener('load', probe);\n</script>\n</body>";
+    assert!(html.contains("</body>"), "{html}");
+    // Pictures are data: URIs, so the copy works from anywhere.
+    let probe = tmp.path().join("probe.html");
+    std::fs::write(&probe, html.replace("</body>", probe_script)).unwrap();
+    let dom = run_chromium(
+        chrome,
+        &tmp.path().join("profile-dom"),
+        &[
+            "--virtual-time-budget=20000".into(),
+            "--dump-dom".into(),
+            format!("file://{}", probe.display()),
+        ],
+    );
+    let want = format!("<title>IMAGES {images} OF {images}</title>");
+    assert!(
+        dom.contains(&want),
+        "{}: not every image loaded (want {want}): {}",
+        page.display(),
+        dom.lines()
+            .find(|l| l.contains("<title>"))
+            .unwrap_or("no title")
+    );
+    let shot = tmp.path().join("shot.png");
+    run_chromium(
+        chrome,
+        &tmp.path().join("profile-shot"),
+        &[
+            "--window-size=1280,2000".into(),
+            "--virtual-time-budget=20000".into(),
+            format!("--screenshot={}", shot.display()),
+            format!("file://{}", page.display()),
+        ],
+    );
+    let s = image_stats(&shot).unwrap_or_else(|e| panic!("screenshot of {}: {e}", page.display()));
+    assert_eq!((s.width, s.height), (1280, 2000), "{s:?}");
+    assert!(
+        s.distinct_colours > 200 && s.luma_std > 10.0,
+        "the screenshot of {} looks blank: {s:?}",
+        page.display()
+    );
 }

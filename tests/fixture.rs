@@ -57,7 +57,7 @@ pub fn small_slab() -> &'static Path {
             .unwrap();
         let dir = tmp.path().join("small-slab");
         let cfg = SimConfig::for_object(SimObject::Slab { size: 8.0, n: 9 }, 64, 1, 4);
-        simulate(&cfg, &dir, &indicatif::ProgressBar::hidden()).unwrap();
+        simulate(&cfg, &dir, &()).unwrap();
         (tmp, dir)
     })
     .1

@@ -18,7 +18,8 @@ fn figure_3_falloff_with_both_fits() {
         .map(|&x| (3.0 * skin.r_d(x) + d.r_d(x)) * (1.0 + 0.01 * (1.3 * x).sin()))
         .collect();
     let png = dir.path().join("f.png");
-    let sum = plot::falloff_figure(&png, "marble", &r, &s, 1.3).unwrap();
+    let fits = subsurf::evaluate::compare_falloff(&r, &s, 1.3);
+    let sum = plot::falloff_figure(&png, "marble", &r, &s, &fits).unwrap();
     assert_eq!(sum.samples, 300);
     // Figure 3's point: the sum of exponentials follows the measured fall-off where the dipole
     // cannot (its log E at least twice the sum's).
@@ -35,7 +36,7 @@ fn figure_3_falloff_with_both_fits() {
             "x",
             &[1.0, 2.0],
             &[0.0, -1.0],
-            1.3
+            &subsurf::evaluate::compare_falloff(&[1.0, 2.0], &[0.0, -1.0], 1.3)
         )
         .is_err()
     );

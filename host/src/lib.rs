@@ -16,14 +16,17 @@ pub mod link;
 pub mod modelfile;
 pub mod pipeline;
 pub mod plot;
+pub mod progress;
 pub mod registration;
 pub mod render;
+pub mod report;
 pub mod rig;
 pub mod samples;
 pub mod scan;
 pub mod selection;
 pub mod sim;
 pub mod simulate;
+pub mod util;
 
 /// The model and its fitting live in the `subsurf-model` crate (no files, no rig); re-exported
 /// here so `subsurf::model` and `subsurf::fit` name them as before.

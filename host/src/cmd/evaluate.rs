@@ -7,13 +7,15 @@ use subsurf::evaluate::evaluate_frames;
 use subsurf::modelfile::ModelFile;
 use subsurf::pipeline::PipelineOptions;
 
+use super::progress::Bar;
+
 /// Print mean and median log E (Eq. 8, Table 1) of a model on frames of a scan.
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// The model (PLY written by `subsurf fit`).
     #[arg(long)]
     pub model: PathBuf,
-    /// The scan dataset directory.
+    /// The scan dataset: its folder or its `scan.json`.
     #[arg(long)]
     pub scan: PathBuf,
     /// Frames to evaluate, e.g. `3,17,40-59` (default: all).
@@ -44,9 +46,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut opts = PipelineOptions::for_dataset(&ds);
     opts.samples.exclusion_radius_mm = args.exclusion_radius;
     let bar = if args.json {
-        indicatif::ProgressBar::hidden()
+        Bar::hidden()
     } else {
-        indicatif::ProgressBar::new(0)
+        Bar(indicatif::ProgressBar::new(0))
     };
     let (evals, stats) = evaluate_frames(&ds, &model, &frames, &opts, &bar)?;
     bar.finish_and_clear();
@@ -62,7 +64,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         });
         println!("{out}");
     } else {
-        let f = |v: Option<f64>| v.map_or("-".to_string(), |x| format!("{x:.4}"));
+        let f = |v: Option<f64>| subsurf::report::fmt::opt(v, subsurf::report::fmt::log_e);
         println!(
             "{evaluated} frames evaluated, {} skipped",
             evals.len() - evaluated

@@ -13,7 +13,7 @@ pub struct Args {
     /// The model (PLY written by `subsurf fit`).
     #[arg(long)]
     pub model: PathBuf,
-    /// The scan dataset directory.
+    /// The scan dataset: its folder or its `scan.json`.
     #[arg(long)]
     pub scan: PathBuf,
     /// Frame index.

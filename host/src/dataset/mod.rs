@@ -252,11 +252,21 @@ pub struct Dataset {
 }
 
 impl Dataset {
-    /// Opens `dir/scan.json`, validates it, checks that every named file exists inside `dir`, and
-    /// loads the mesh. Images are not read here.
+    /// Opens a dataset given as its folder (`dir/scan.json` is read) or as its manifest file
+    /// itself (`dir/scan.json`, or any JSON file: its folder is the dataset's): users pass either,
+    /// and every `--scan` goes through here. Validates the manifest, checks that every named file
+    /// exists inside the folder, and loads the mesh. Images are not read here.
     pub fn open(dir: impl AsRef<Path>) -> Result<Dataset, DatasetError> {
-        let dir = dir.as_ref().to_path_buf();
-        let path = dir.join("scan.json");
+        let given = dir.as_ref();
+        let (dir, path) = if given.is_file() {
+            let parent = given
+                .parent()
+                .filter(|p| !p.as_os_str().is_empty())
+                .unwrap_or_else(|| Path::new("."));
+            (parent.to_path_buf(), given.to_path_buf())
+        } else {
+            (given.to_path_buf(), given.join("scan.json"))
+        };
         let text = std::fs::read_to_string(&path).map_err(|source| DatasetError::Io {
             path: path.clone(),
             source,
@@ -381,6 +391,42 @@ mod tests {
                 "{bad}"
             );
         }
+    }
+
+    #[test]
+    fn a_dataset_opens_from_its_folder_or_its_scan_json() {
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path().join("scan");
+        std::fs::create_dir_all(dir.join("frames")).unwrap();
+        std::fs::write(
+            dir.join("object.obj"),
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+        )
+        .unwrap();
+        let img = Image {
+            width: 4,
+            height: 4,
+            channels: 3,
+            data: vec![0.5; 48],
+        };
+        write_pfm(&dir.join("frames/0.pfm"), &img).unwrap();
+        std::fs::write(
+            dir.join("scan.json"),
+            r#"{"format": "subsurf-scan/1", "units": "mm", "mesh": "object.obj",
+              "cameras": [{"width": 4, "height": 4, "fx": 10.0, "fy": 10.0, "cx": 1.5, "cy": 1.5,
+                "camera_from_world": [[1,0,0,0],[0,1,0,0],[0,0,1,50],[0,0,0,1]]}],
+              "frames": [{"image": "frames/0.pfm", "turntable_deg": 0.0}]}"#,
+        )
+        .unwrap();
+        let by_dir = Dataset::open(&dir).unwrap();
+        let by_file = Dataset::open(dir.join("scan.json")).unwrap();
+        assert_eq!(by_dir.dir, dir);
+        assert_eq!(by_file.dir, dir);
+        assert_eq!(by_file.spec, by_dir.spec);
+        by_file.read_frame(0).unwrap();
+        // A folder without a manifest still says which file it looked for.
+        let e = Dataset::open(tmp.path()).unwrap_err();
+        assert!(e.to_string().contains("scan.json"), "{e}");
     }
 
     #[test]

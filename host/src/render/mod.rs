@@ -37,7 +37,10 @@ pub use fresnel::{fresnel_transmittance, relative_transmittance};
 pub use hierarchy::{HierarchyParams, Quality, Transport, TransportStats};
 pub use irradiance::{irradiance, shadow_scene, vertex_areas};
 pub use light::Light;
-pub use output::{ImageStats, image_stats, save_exr, save_png, tone_map};
+pub use output::{
+    ImageStats, SHOULDER_CLIP, SHOULDER_KNEE, ToneMapping, WHITE_QUANTILE, auto_exposure,
+    image_stats, save_exr, save_png, shoulder, tone_map, tone_map_with,
+};
 pub use raster::{Image, rasterise};
 pub use scene::{
     Method, RenderOptions, RenderOutput, Transported, light_transport, relative_pixel_error, render,

@@ -30,6 +30,22 @@ pub const VERTEX_SPACING_PER_MEAN_FREE_PATH: f64 = 1.0;
 /// the laser spot's reflection (a Gaussian of 0.8 px) stays inside the exclusion radius.
 pub const PIXEL_FOOTPRINT_PER_MEAN_FREE_PATH: f64 = 0.5;
 
+/// Target spacing of the laser positions x_i of a fidelity scan of the built-in object, against
+/// the shortest mean free path. A vertex takes the model of its closest x_i, and a frame the fit
+/// never saw is predicted from the vertex models around its x_i, so the lights must sit closer
+/// than the distance over which the fit at one x_i stops describing its neighbours. Measured with
+/// `scan --sim` + `fit` (every fifth frame held out, host/tests/scan_fit.rs): a 2 mm plan (8.8
+/// mean free paths, the coverage preview) gives held-out log E 0.026–0.043, 0.4 mm (1.8) gives
+/// 0.009–0.012, within 1.5x of the ground truth's own floor.
+pub const TARGET_SPACING_PER_MEAN_FREE_PATH: f64 = 1.75;
+
+/// The coverage planner's target distance (mm) for a scan of the built-in object whose model is
+/// to predict frames it did not see: [`TARGET_SPACING_PER_MEAN_FREE_PATH`] mean free paths of
+/// the material the `sim` camera renders (0.40 mm for the default marble).
+pub fn builtin_target_mm() -> f64 {
+    TARGET_SPACING_PER_MEAN_FREE_PATH / sim_field().steepest_falloff()
+}
+
 /// Signal-to-noise ratio of one pixel at the simulated scan's noise floor: log E (Eq. 8)
 /// compares logarithms, and a sample at SNR `k` carries about `1/k` of noise in its log, so
 /// samples fainter than SNR 50 (2 %) would make the noise, not the model, the error.

@@ -1,0 +1,261 @@
+//! What a fit did, for people: the tables of `fit-report.json` formatted, shared by `subsurf fit`
+//! (its `fit-report.html`/`.md`) and `subsurf demo`.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use super::fmt;
+use super::{Figure, Report, Table};
+use crate::pipeline::FitReport;
+
+/// A map of reasons (serialized as snake_case) to counts as `high error 3, no data 12`, or
+/// `none`.
+pub fn reasons<K: serde::Serialize>(counts: &BTreeMap<K, usize>) -> String {
+    let parts: Vec<String> = counts
+        .iter()
+        .filter(|(_, n)| **n > 0)
+        .map(|(k, n)| {
+            let name = serde_json::to_value(k)
+                .ok()
+                .and_then(|v| v.as_str().map(fmt::words))
+                .unwrap_or_else(|| "other".into());
+            format!("{name} {}", fmt::count(*n))
+        })
+        .collect();
+    if parts.is_empty() {
+        "none".into()
+    } else {
+        parts.join(", ")
+    }
+}
+
+/// Vertices, frames and samples of a fit as a two-column table.
+pub fn counts_table(r: &FitReport) -> Table {
+    let mut t = Table::new(["", "count"]);
+    let f = &r.frames;
+    t.row(["vertices".to_string(), fmt::count(r.vertices)])
+        .row([
+            "  with their own fit".to_string(),
+            fmt::count(r.vertices_fitted),
+        ])
+        .row([
+            "  interpolated from neighbours".to_string(),
+            fmt::count(r.vertices_interpolated),
+        ])
+        .row([
+            "  without a model".to_string(),
+            fmt::count(r.vertices_no_model),
+        ])
+        .row(["frames selected".to_string(), fmt::count(f.selected)])
+        .row([
+            "  registered (x_i on the object)".to_string(),
+            fmt::count(f.registered),
+        ])
+        .row(["  used by a fit".to_string(), fmt::count(f.fitted)])
+        .row([
+            "  no spot / off object / laser mismatch / unreadable".to_string(),
+            format!(
+                "{} / {} / {} / {}",
+                fmt::count(f.no_spot),
+                fmt::count(f.spot_off_object),
+                fmt::count(f.laser_mismatch),
+                fmt::count(f.unreadable)
+            ),
+        ])
+        .row([
+            "channel samples used".to_string(),
+            fmt::count(r.samples.used as usize),
+        ])
+        .row([
+            "  dropped: below noise / clipped / near x_i".to_string(),
+            format!(
+                "{} / {} / {}",
+                fmt::count(r.samples.below_noise as usize),
+                fmt::count(r.samples.saturated as usize),
+                fmt::count(r.samples.excluded as usize)
+            ),
+        ]);
+    t
+}
+
+/// log E(x_i) (Eq. 8) of the fitted light positions, per channel: the in-sample error.
+pub fn log_e_table(r: &FitReport) -> Table {
+    let mut t = Table::new(["log E(x_i), Eq. 8", "red", "green", "blue"]);
+    let row = |name: &str, v: [Option<f64>; 3]| {
+        let mut cells = vec![name.to_string()];
+        cells.extend(v.map(|x| fmt::opt(x, fmt::log_e)));
+        cells
+    };
+    t.row(row("mean", r.log_e.mean));
+    t.row(row("median", r.log_e.median));
+    t
+}
+
+/// Wall time per stage.
+pub fn stages_table(r: &FitReport) -> Table {
+    let mut t = Table::new(["stage", "wall time"]);
+    for (k, v) in &r.stage_seconds {
+        t.row([k.clone(), fmt::seconds(*v)]);
+    }
+    t
+}
+
+/// The lines `subsurf fit` prints after a fit.
+pub fn summary_lines(r: &FitReport) -> Vec<String> {
+    let f = &r.frames;
+    vec![
+        format!(
+            "{} vertices: {} fitted, {} interpolated, {} without model; failed before \
+             interpolation: {}",
+            fmt::count(r.vertices),
+            fmt::count(r.vertices_fitted),
+            fmt::count(r.vertices_interpolated),
+            fmt::count(r.vertices_no_model),
+            reasons(&r.failures)
+        ),
+        format!(
+            "frames: {} selected, {} registered, {} no spot, {} off object, {} laser mismatch, \
+             {} unreadable; {} used by fits",
+            fmt::count(f.selected),
+            fmt::count(f.registered),
+            fmt::count(f.no_spot),
+            fmt::count(f.spot_off_object),
+            fmt::count(f.laser_mismatch),
+            fmt::count(f.unreadable),
+            fmt::count(f.fitted)
+        ),
+        format!(
+            "log E(x_i) (Eq. 8, in-sample) r / g / b: mean {}, median {}",
+            fmt::rgb(r.log_e.mean, fmt::log_e),
+            fmt::rgb(r.log_e.median, fmt::log_e)
+        ),
+        format!(
+            "alpha (Eq. 6): {} rounds on alpha-divided samples, last RMS change of ln alpha {}; \
+             {} vertices from samples, {} interpolated",
+            r.alpha.rounds,
+            fmt::sig(r.alpha.last_change, 2),
+            fmt::count(r.alpha.from_samples),
+            fmt::count(r.alpha.interpolated)
+        ),
+        format!(
+            "stages: {}; peak RSS {}",
+            r.stage_seconds
+                .iter()
+                .map(|(k, v)| format!("{k} {}", fmt::seconds(*v)))
+                .collect::<Vec<_>>()
+                .join(", "),
+            fmt::opt(r.peak_rss_mib, |m| format!("{} MiB", fmt::sig(m, 3)))
+        ),
+    ]
+}
+
+/// Where a fit came from and went to, for its report.
+#[derive(Clone, Debug)]
+pub struct FitInputs<'a> {
+    /// The scan dataset.
+    pub scan: &'a Path,
+    /// The model file written.
+    pub model: &'a Path,
+    /// Its size.
+    pub model_bytes: u64,
+    /// Pictures drawn beside the report (error map, model viewer).
+    pub pictures: Vec<Figure>,
+}
+
+/// The report of `subsurf fit`.
+pub fn fit_report(r: &FitReport, inputs: &FitInputs<'_>) -> Report {
+    let mut rep = Report::new("subsurf fit");
+    rep.paragraph(format!(
+        "Scan `{}` → model `{}` ({}). {} of {} vertices have their own fit, {} are interpolated \
+         from neighbours, {} have no model. Failed fits before interpolation: {}. Terms dropped \
+         because the samples do not support them: {}.",
+        inputs.scan.display(),
+        inputs.model.display(),
+        fmt::bytes(inputs.model_bytes),
+        fmt::count(r.vertices_fitted),
+        fmt::count(r.vertices),
+        fmt::count(r.vertices_interpolated),
+        fmt::count(r.vertices_no_model),
+        reasons(&r.failures),
+        reasons(&r.terms_dropped),
+    ));
+    rep.heading("Error");
+    rep.table(
+        log_e_table(r),
+        Some(format!(
+            "In-sample: each fitted light position x_i on its own samples ({} positions). A \
+             model is judged by its error on frames it did not see: `subsurf fit \
+             --exclude-frames` then `subsurf evaluate --frames`.",
+            fmt::count(r.log_e.count)
+        )),
+    );
+    rep.heading("Data");
+    rep.table(counts_table(r), None);
+    rep.paragraph(format!(
+        "Modulation texture alpha (Eq. 6): {} fit rounds on alpha-divided samples, last RMS \
+         change of ln alpha {}; {} vertices from their samples, {} interpolated, {} at 1.",
+        r.alpha.rounds,
+        fmt::sig(r.alpha.last_change, 2),
+        fmt::count(r.alpha.from_samples),
+        fmt::count(r.alpha.interpolated),
+        fmt::count(r.alpha.default_one)
+    ));
+    rep.heading("Time");
+    rep.table(
+        stages_table(r),
+        Some(format!(
+            "Peak memory {}.",
+            fmt::opt(r.peak_rss_mib, |m| format!("{} MiB", fmt::sig(m, 3)))
+        )),
+    );
+    if !inputs.pictures.is_empty() {
+        rep.heading("Pictures");
+        rep.figures(inputs.pictures.clone());
+    }
+    rep
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pipeline::FailReason;
+
+    #[test]
+    fn fit_summaries_have_no_debug_values_or_long_digit_runs() {
+        let mut r = FitReport {
+            vertices: 12_345,
+            vertices_fitted: 12_000,
+            ..FitReport::default()
+        };
+        r.failures.insert(FailReason::HighError, 3);
+        r.failures.insert(FailReason::NoData, 342);
+        r.log_e.mean = [Some(0.046_712_345_678_901), None, Some(0.012)];
+        r.log_e.median = [Some(0.04), Some(0.1), Some(0.012)];
+        r.alpha.last_change = 0.001_234_567_891;
+        r.stage_seconds.insert("fit".into(), 1.234_567_891);
+        let lines = summary_lines(&r).join("\n");
+        assert!(lines.contains("12,345 vertices"), "{lines}");
+        assert!(lines.contains("no data 342, high error 3"), "{lines}");
+        assert!(lines.contains("mean 0.0467 / – / 0.0120"), "{lines}");
+        let md = fit_report(
+            &r,
+            &FitInputs {
+                scan: Path::new("scan"),
+                model: Path::new("model.ply"),
+                model_bytes: 123_456,
+                pictures: Vec::new(),
+            },
+        )
+        .to_markdown(Path::new("."));
+        for text in [&lines, &md] {
+            assert!(!text.contains("Some("), "{text}");
+            assert!(!text.contains("None"), "{text}");
+            let longest = text
+                .split(|c: char| !c.is_ascii_digit())
+                .map(str::len)
+                .max()
+                .unwrap_or(0);
+            assert!(longest <= 6, "{text}");
+        }
+    }
+}
