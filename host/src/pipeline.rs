@@ -11,13 +11,16 @@ use std::collections::{BTreeMap, HashMap};
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
+use crate::baseline::Baseline;
 use crate::dataset::{Dataset, DatasetError};
 use crate::geometry::{Camera, GeometryError, Scene, V3, Visible, add_scaled, normalize};
 use crate::model::{
     AlphaAccumulator, Anisotropic, ColourModel, ExpSum, IntensityWindow, LogEAccumulator,
     TangentFrame,
 };
-use crate::modelfile::{ColourMode, ModelFile, ModelShape, VertexModel, VertexStatus, params_of};
+use crate::modelfile::{
+    BaselineParams, ColourMode, ModelFile, ModelShape, VertexModel, VertexStatus, params_of,
+};
 use crate::registration::{RegistrationOutcome, SpotOptions, register_frame};
 use crate::samples::{Sample, SampleCounts, SampleOptions, frame_samples};
 use crate::selection::{Light, select};
@@ -230,6 +233,8 @@ pub struct FitReport {
     pub terms_dropped: BTreeMap<TermDropped, usize>,
     /// Where each vertex's alpha(x_o) (Eq. 6) comes from.
     pub alpha: AlphaReport,
+    /// The homogeneous baseline (one isotropic fall-off for all x_i, [`crate::baseline`]).
+    pub baseline: Option<BaselineReport>,
     /// The log E(x_i) acceptance threshold applied: `max_log_e`, or `outlier_factor` × the
     /// median fit's log E (at least [`OUTLIER_MIN_LOG_E`]) if lower.
     pub max_log_e: f64,
@@ -239,6 +244,44 @@ pub struct FitReport {
     pub peak_rss_mib: Option<f64>,
     /// The options used.
     pub options: Option<PipelineOptions>,
+}
+
+/// The homogeneous baseline in the report.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct BaselineReport {
+    /// Terms n of the fit.
+    pub terms: usize,
+    /// Parameters in the model file's order (m = 1).
+    pub params: Vec<f64>,
+    /// `[r_min, r_max]` of the pooled samples, mm.
+    pub r_range: [f64; 2],
+    /// Channel samples pooled (every k-th of a group's samples above [`BASELINE_POOL`]).
+    pub samples: usize,
+    /// Table-1 statistics of log E(x_i) (Eq. 8, alpha = 1) of the baseline on the fitted light
+    /// positions: compare with `log_e`.
+    pub log_e: LogEStats,
+}
+
+/// At most this many samples per channel of one light position go into the baseline's pooled fit
+/// (evenly strided), so its cost does not grow with the image size.
+pub const BASELINE_POOL: usize = 2000;
+
+/// One alpha round (Eq. 6) in the report.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct AlphaRound {
+    /// Round (0 = the fit on the samples as captured).
+    pub round: usize,
+    /// Training objective after the round's fit: sum over the fitted samples of
+    /// (ln alpha + ln R_d − ln s)^2 with the alpha it was fitted against.
+    pub objective: f64,
+    /// The same objective of the previous round's fits with this round's alpha (what the round
+    /// had to beat); equals `objective` for round 0.
+    pub previous: f64,
+    /// Light positions whose new fit was worse than their previous one and kept the previous.
+    pub fits_kept_previous: usize,
+    /// Whether the round lowered the objective and was kept (a round that does not is
+    /// discarded and the rounds stop).
+    pub kept: bool,
 }
 
 /// Where the vertices' alpha(x_o) (Eq. 6) come from.
@@ -255,6 +298,10 @@ pub struct AlphaReport {
     /// RMS change of ln alpha(x_o) in the last round (0 when no extra round ran): below
     /// `alpha_tolerance` when the rounds converged.
     pub last_change: f64,
+    /// Whether the rounds stopped because alpha converged (RMS change below the tolerance).
+    pub converged: bool,
+    /// Every round: its training objective and whether it was kept.
+    pub round_log: Vec<AlphaRound>,
 }
 
 /// Peak resident set size of this process (`VmHWM`), MiB.
@@ -364,6 +411,7 @@ struct Reg {
 /// Per-channel samples of one light-position group: (r, s, vertex, φ).
 type ChannelSamples = [Vec<(f64, f64, u32, Option<f64>)>; 3];
 
+#[derive(Clone)]
 struct GroupFit {
     model: ColourModel,
     terms: usize,
@@ -751,7 +799,28 @@ pub fn fit_dataset(
     // Round 0 fits the samples as captured; each further round divides them by the previous
     // round's alpha(x_o) (Eq. 6) and refits, so the modulation texture is not mistaken for
     // noise by the fit of R_d. Every round re-reads the frames (memory does not grow with them).
-    let fit_round = |alpha_div: Option<&[[f64; 3]]>, round: usize| -> FitState {
+    //
+    // The rounds are a block coordinate descent on the log objective
+    // O(R_d, alpha) = sum (ln alpha + ln R_d − ln s)^2 (+ the alpha prior): Eq. 6 in log space is
+    // the exact minimiser over alpha for fixed R_d, and a light position whose refit is worse
+    // than its previous fit (LM finds a local minimum) keeps the previous one, so no round can
+    // increase O. A round that does not lower it is discarded and the rounds stop.
+    let sq_err = |m: &ColourModel, data: &ChannelSamples| -> f64 {
+        let mut o = 0.0;
+        for (ch, d) in data.iter().enumerate() {
+            for &(r, s, _, phi) in d {
+                let e = m.ln_eval(r, phi)[ch] - s.ln();
+                if e.is_finite() {
+                    o += e * e;
+                }
+            }
+        }
+        o
+    };
+    let fit_round = |alpha_div: Option<&[[f64; 3]]>,
+                     round: usize,
+                     prev: Option<&[Option<GroupFit>]>|
+     -> FitState {
         progress.set_message(format!("fit (round {})", round + 1));
         progress.set_length(keys.len() as u64);
         progress.set_position(0);
@@ -759,6 +828,7 @@ pub fn fit_dataset(
             .enumerate()
             .fold(FitState::default, |mut st, (idx, key)| {
                 let mut dropped = Vec::new();
+                let old = prev.and_then(|p| p.get(idx).cloned().flatten());
                 let out = load(key).and_then(|(mut data, counts)| {
                     if let Some(a) = alpha_div {
                         for (ch, d) in data.iter_mut().enumerate() {
@@ -767,28 +837,48 @@ pub fn fit_dataset(
                             }
                         }
                     }
-                    let (model, terms) = fit_samples(&data, &opts.model, fitter, &mut dropped)?;
-                    let r_range = data
-                        .iter()
-                        .flatten()
-                        .fold([f64::INFINITY, 0.0], |[lo, hi], x| {
-                            [lo.min(x.0), hi.max(x.0)]
-                        });
-                    Ok((
-                        GroupFit {
-                            model,
-                            terms,
-                            r_range,
+                    let new = fit_samples(&data, &opts.model, fitter, &mut dropped).map(
+                        |(model, terms)| {
+                            let r_range = data
+                                .iter()
+                                .flatten()
+                                .fold([f64::INFINITY, 0.0], |[lo, hi], x| {
+                                    [lo.min(x.0), hi.max(x.0)]
+                                });
+                            GroupFit {
+                                model,
+                                terms,
+                                r_range,
+                            }
                         },
-                        data,
-                        counts,
-                    ))
+                    );
+                    let o_old = old.as_ref().map(|g| sq_err(&g.model, &data));
+                    let (g, o_new, kept_old) = match (new, o_old) {
+                        (Ok(g), Some(oo)) => {
+                            let on = sq_err(&g.model, &data);
+                            if on <= oo {
+                                (g, on, false)
+                            } else {
+                                (old.clone().expect("o_old implies old"), oo, true)
+                            }
+                        }
+                        (Ok(g), None) => {
+                            let on = sq_err(&g.model, &data);
+                            (g, on, false)
+                        }
+                        (Err(_), Some(oo)) => (old.clone().expect("o_old implies old"), oo, true),
+                        (Err(e), None) => return Err(e),
+                    };
+                    Ok((g, data, counts, o_new, o_old.unwrap_or(o_new), kept_old))
                 });
                 for why in dropped {
                     *st.dropped.entry(why).or_default() += 1;
                 }
                 match out {
-                    Ok((g, data, counts)) => {
+                    Ok((g, data, counts, o_new, o_old, kept_old)) => {
+                        st.objective += o_new;
+                        st.objective_prev += o_old;
+                        st.kept_previous += kept_old as usize;
                         // Eq. 6 contributions are folded right away so the samples can be dropped.
                         if st.alpha.is_empty() {
                             st.alpha = vec![[AlphaAccumulator::default(); 3]; nv];
@@ -797,8 +887,8 @@ pub fn fit_dataset(
                             for &(r, s, v, phi) in d {
                                 // Eq. 6 compares the captured sample with R_d.
                                 let s = alpha_div.map_or(s, |a| s * a[v as usize][ch]);
-                                let rd = g.model.ln_eval(r, phi)[ch].exp();
-                                st.alpha[v as usize][ch].add(s, rd, &opts.alpha_window);
+                                let ln_rd = g.model.ln_eval(r, phi)[ch];
+                                st.alpha[v as usize][ch].add_ln(s, ln_rd, &opts.alpha_window);
                             }
                         }
                         st.counts.add(&counts);
@@ -811,19 +901,52 @@ pub fn fit_dataset(
             })
             .reduce(FitState::default, FitState::merge)
     };
-    let mut state = fit_round(None, 0);
+    let by_index = |st: &FitState| -> Vec<Option<GroupFit>> {
+        let mut v: Vec<Option<GroupFit>> = vec![None; keys.len()];
+        for (idx, f) in &st.fits {
+            if let Ok(g) = f {
+                v[*idx] = Some(g.clone());
+            }
+        }
+        v
+    };
+    let mut state = fit_round(None, 0, None);
+    let mut round_log = vec![AlphaRound {
+        round: 0,
+        objective: state.objective,
+        previous: state.objective,
+        fits_kept_previous: 0,
+        kept: true,
+    }];
     let mut rounds = 0;
     let mut last_change = 0.0;
+    let mut converged = false;
     let mut previous: Option<Vec<[f64; 3]>> = None;
     for round in 1..=opts.alpha_rounds {
         let (a, _) = alpha_texture(&state.alpha, nv, &ctx.scene);
         if let Some(prev) = &previous {
             last_change = rms_ln_change(prev, &a);
             if last_change < opts.alpha_tolerance {
+                converged = true;
                 break;
             }
         }
-        state = fit_round(Some(&a), round);
+        let prev_fits = by_index(&state);
+        let next = fit_round(Some(&a), round, Some(&prev_fits));
+        let kept = next.objective < next.objective_prev * (1.0 - 1e-9);
+        round_log.push(AlphaRound {
+            round,
+            objective: next.objective,
+            previous: next.objective_prev,
+            fits_kept_previous: next.kept_previous,
+            kept,
+        });
+        if !kept {
+            // No gain: the previous state (its fits and their Eq. 6) stands.
+            converged = true;
+            break;
+        }
+        state = next;
         rounds = round;
         previous = Some(a);
     }
@@ -832,6 +955,7 @@ pub fn fit_dataset(
         alpha,
         counts,
         dropped,
+        ..
     } = state;
     report.samples = counts;
     report.terms_dropped = dropped;
@@ -839,34 +963,99 @@ pub fn fit_dataset(
     let (alpha, mut alpha_report) = alpha_texture(&alpha, nv, &ctx.scene);
     if let Some(prev) = &previous {
         last_change = rms_ln_change(prev, &alpha);
+        converged |= last_change < opts.alpha_tolerance;
     }
     alpha_report.rounds = rounds;
     alpha_report.last_change = last_change;
+    alpha_report.converged = converged || opts.alpha_rounds == 0;
+    alpha_report.round_log = round_log;
     report.alpha = alpha_report;
+
+    // The homogeneous baseline: one isotropic fall-off (m = 1, the model's colour mode) fitted
+    // to every fitted light position's samples pooled, as captured (alpha = 1).
+    let pooled: ChannelSamples = keys
+        .par_iter()
+        .map(|key| {
+            let mut out: ChannelSamples = Default::default();
+            if let Ok((data, _)) = load(key) {
+                for (ch, d) in data.iter().enumerate() {
+                    let step = d.len().div_ceil(BASELINE_POOL).max(1);
+                    out[ch].extend(d.iter().step_by(step).map(|x| (x.0, x.1, x.2, None)));
+                }
+            }
+            out
+        })
+        .reduce(ChannelSamples::default, |mut a, b| {
+            for (x, y) in a.iter_mut().zip(b) {
+                x.extend(y);
+            }
+            a
+        });
+    let baseline_choice = ModelChoice {
+        colour: opts.model.colour,
+        segments: 1,
+    };
+    let baseline = fit_samples(&pooled, &baseline_choice, fitter, &mut Vec::new())
+        .ok()
+        .and_then(|(model, terms)| {
+            let r_range = pooled
+                .iter()
+                .flatten()
+                .fold([f64::INFINITY, 0.0], |[lo, hi], x| {
+                    [lo.min(x.0), hi.max(x.0)]
+                });
+            let (params, _, _) = params_of(&model).ok()?;
+            params.iter().all(|p| p.is_finite()).then_some((
+                Baseline { model, r_range },
+                BaselineParams {
+                    terms,
+                    params,
+                    r_range,
+                },
+                pooled.iter().map(Vec::len).sum::<usize>(),
+            ))
+        });
+    drop(pooled);
     stage("fit", &mut t, &mut report);
 
     // Eq. 8 with alpha: read the fitted frames again (cheaper in memory than keeping samples).
     progress.set_message("error");
     progress.set_length(keys.len() as u64);
     progress.set_position(0);
-    let errors: Vec<Option<[f64; 3]>> = fits
+    let both: Vec<(Option<[f64; 3]>, Option<[f64; 3]>)> = fits
         .par_iter()
         .map(|(idx, f)| {
             let out = f.as_ref().ok().and_then(|g| {
                 let (data, _) = load(&keys[*idx]).ok()?;
                 let mut acc = [LogEAccumulator::default(); 3];
+                let mut base = [LogEAccumulator::default(); 3];
                 for (ch, d) in data.iter().enumerate() {
                     for &(r, s, v, phi) in d {
                         let ln = alpha[v as usize][ch].ln() + g.model.ln_eval(r, phi)[ch];
                         acc[ch].add_ln(ln, s, opts.error_threshold);
+                        if let Some((b, _, _)) = &baseline {
+                            base[ch].add_ln(b.model.ln_eval(r, None)[ch], s, opts.error_threshold);
+                        }
                     }
                 }
-                Some(acc.map(|a| a.log_e().unwrap_or(f64::NAN)))
+                Some((
+                    acc.map(|a| a.log_e().unwrap_or(f64::NAN)),
+                    base.map(|a| a.log_e().unwrap_or(f64::NAN)),
+                ))
             });
             progress.inc(1);
-            out
+            (out.map(|o| o.0), out.map(|o| o.1))
         })
         .collect();
+    let errors: Vec<Option<[f64; 3]>> = both.iter().map(|b| b.0).collect();
+    let base_log_e: Vec<[f64; 3]> = both.iter().filter_map(|b| b.1).collect();
+    report.baseline = baseline.as_ref().map(|(_, p, n)| BaselineReport {
+        terms: p.terms,
+        params: p.params.clone(),
+        r_range: p.r_range,
+        samples: *n,
+        log_e: LogEStats::of(&base_log_e),
+    });
     stage("error", &mut t, &mut report);
 
     // Per-vertex outcome.
@@ -1046,6 +1235,7 @@ pub fn fit_dataset(
         normals: ds.mesh.normals.clone(),
         triangles: ds.mesh.triangles.clone(),
         vertices,
+        baseline: baseline.map(|(_, p, _)| p),
     };
     Ok(FitOutput { model, report })
 }
@@ -1283,6 +1473,12 @@ impl CurveGrid {
 #[derive(Default)]
 struct FitState {
     fits: Vec<(usize, Result<GroupFit, FailReason>)>,
+    /// Training objective of this round's fits (see `fit_round`).
+    objective: f64,
+    /// The same of the previous round's fits.
+    objective_prev: f64,
+    /// Light positions that kept their previous fit.
+    kept_previous: usize,
     alpha: Vec<[AlphaAccumulator; 3]>,
     counts: SampleCounts,
     dropped: BTreeMap<TermDropped, usize>,
@@ -1301,6 +1497,9 @@ impl FitState {
             }
         }
         self.counts.add(&other.counts);
+        self.objective += other.objective;
+        self.objective_prev += other.objective_prev;
+        self.kept_previous += other.kept_previous;
         for (k, v) in other.dropped {
             *self.dropped.entry(k).or_default() += v;
         }

@@ -91,6 +91,11 @@ pub struct Args {
     /// Override the dataset's noise floor.
     #[arg(long)]
     pub noise_floor: Option<f64>,
+    /// Validate first: hold out a spread of frames (whole turntable angles when the scan has at
+    /// least 4), fit the rest, report held-out Table-1 statistics next to the in-sample ones and
+    /// the homogeneous baseline's, then fit on everything (`docs/validation.md`).
+    #[arg(long)]
+    pub validate: bool,
     /// Do not draw the PNGs beside the report (`<report>-error-map.png`: log E(x_i) per vertex,
     /// Eq. 8; `<report>-model.png`: alpha, reflectance, reach and vertex status).
     #[arg(long)]
@@ -186,6 +191,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         indicatif::ProgressStyle::with_template("{msg:>12} {bar:40} {pos}/{len} {eta}")
             .context("progress style")?,
     );
+    let validation = if args.validate {
+        let holdout = subsurf::validate::holdout(&ds, &frames);
+        let v = fit_dataset(&ds, &holdout.training, &opts, &fit, &bar)
+            .with_context(|| format!("validation fit of {}", args.scan.display()))?;
+        let v = subsurf::validate::judge(&ds, &v.model, holdout, v.report.log_e, &opts, &bar)
+            .context("judging the validation fit on the held-out frames")?;
+        Some(v)
+    } else {
+        None
+    };
     let mut segments_choice = None;
     let out = if segment_ladder.len() == 1 {
         fit_dataset(&ds, &frames, &opts, &fit, &bar)
@@ -231,6 +246,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     json["model_bytes"] = bytes.into();
     json["model"] = args.out.display().to_string().into();
     json["fit_options"] = serde_json::to_value(&fit)?;
+    if let Some(v) = &validation {
+        json["validation"] = serde_json::to_value(v)?;
+    }
     if let Some(c) = &segments_choice {
         json["segments_choice"] = serde_json::to_value(c)?;
         println!(
@@ -295,10 +313,64 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         f(r.log_e.median[1]),
         f(r.log_e.median[2])
     );
+    if let Some(b) = &r.baseline {
+        println!(
+            "homogeneous baseline (one isotropic fall-off for every x_i, {} terms, {} samples, r {:.2}..{:.2} mm): log E(x_i) mean r/g/b {} {} {}",
+            b.terms,
+            b.samples,
+            b.r_range[0],
+            b.r_range[1],
+            f(b.log_e.mean[0]),
+            f(b.log_e.mean[1]),
+            f(b.log_e.mean[2])
+        );
+    }
     println!(
-        "alpha (Eq. 6): {} rounds on alpha-divided samples, last RMS change of ln alpha {:.2e}; {} vertices from samples, {} interpolated",
-        r.alpha.rounds, r.alpha.last_change, r.alpha.from_samples, r.alpha.interpolated
+        "alpha (Eq. 6): {} rounds kept, {}, last RMS change of ln alpha {:.2e}; {} vertices from samples, {} interpolated",
+        r.alpha.rounds,
+        if r.alpha.converged {
+            "converged"
+        } else {
+            "not converged (round limit)"
+        },
+        r.alpha.last_change,
+        r.alpha.from_samples,
+        r.alpha.interpolated
     );
+    for k in &r.alpha.round_log {
+        println!(
+            "  round {}: training objective {:.6e} (previous fits {:.6e}; {} light positions kept their previous fit) {}",
+            k.round,
+            k.objective,
+            k.previous,
+            k.fits_kept_previous,
+            if k.kept { "kept" } else { "discarded" }
+        );
+    }
+    if let Some(v) = &validation {
+        println!(
+            "validation: {} frames held out ({}), {} evaluated; {}",
+            v.holdout.frames.len(),
+            subsurf::validate::frame_list(&v.holdout.frames),
+            v.evaluated,
+            v.holdout.rule
+        );
+        println!("  mean log E(x_i)          red      green    blue");
+        let row = |name: &str, st: &subsurf::pipeline::LogEStats| {
+            println!(
+                "  {name:<22} {:8} {:8} {:8}",
+                f(st.mean[0]),
+                f(st.mean[1]),
+                f(st.mean[2])
+            )
+        };
+        row("held out (trust this)", &v.held_out);
+        if let Some(b) = &v.baseline_held_out {
+            row("baseline, held out", b);
+        }
+        row("in-sample", &v.in_sample);
+        println!("  (then fitted on all {} frames)", r.frames.selected);
+    }
     let stages: Vec<String> = r
         .stage_seconds
         .iter()
