@@ -10,7 +10,7 @@
 //! 3-term fits fell to 10^-4 of the measured values (held-out mean log E, green, 5.4 without
 //! alpha); the pooled fit, which has seen every distance some frame reached, predicts them within
 //! a factor 2 (0.82 on its own), and the local model with this fallback beyond r_max gives 0.44.
-use crate::model::ColourModel;
+use crate::model::{ColourModel, Support};
 
 /// Length (as a fraction of the local model's r_max) over which prediction beyond r_max moves
 /// from the local model to the baseline: weight exp(−(r − r_max) / (`FALLBACK_SCALE`·r_max)) on
@@ -30,9 +30,9 @@ pub struct Baseline {
 
 /// How much the local model at distance `r` is trusted against the baseline: 1 up to its
 /// sampled `r_max` (or when its range is unknown), then decaying (see [`FALLBACK_SCALE`]).
-pub fn local_weight(r_range: [f32; 2], r: f64) -> f64 {
-    let (lo, hi) = (r_range[0] as f64, r_range[1] as f64);
-    if !(hi > lo && hi > 0.0) || r <= hi {
+pub fn local_weight(support: Support, r: f64) -> f64 {
+    let hi = support.r_max;
+    if !support.is_known() || r <= hi {
         1.0
     } else {
         (-(r - hi) / (FALLBACK_SCALE * hi)).exp()
@@ -43,7 +43,7 @@ pub fn local_weight(r_range: [f32; 2], r: f64) -> f64 {
 /// [`local_weight`].
 pub fn with_fallback(
     local: [f64; 3],
-    r_range: [f32; 2],
+    support: Support,
     r: f64,
     phi: Option<f64>,
     baseline: Option<&Baseline>,
@@ -51,7 +51,7 @@ pub fn with_fallback(
     let Some(b) = baseline else {
         return local;
     };
-    let w = local_weight(r_range, r);
+    let w = local_weight(support, r);
     if w >= 1.0 {
         return local;
     }
@@ -81,7 +81,7 @@ mod tests {
             r_range: [0.5, 25.0],
         };
         let local = shared(1.0, -2.0);
-        let range = [0.5f32, 8.0];
+        let range = Support::new(0.5, 8.0);
         let at = |r: f64| with_fallback(local.ln_eval(r, None), range, r, None, Some(&b))[1];
         assert_eq!(at(3.0), local.ln_eval(3.0, None)[1]);
         assert_eq!(at(8.0), local.ln_eval(8.0, None)[1]);
@@ -95,6 +95,6 @@ mod tests {
             with_fallback(local.ln_eval(30.0, None), range, 30.0, None, None),
             local.ln_eval(30.0, None)
         );
-        assert_eq!(local_weight([0.0, 0.0], 30.0), 1.0);
+        assert_eq!(local_weight(Support::UNKNOWN, 30.0), 1.0);
     }
 }

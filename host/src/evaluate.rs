@@ -3,10 +3,10 @@
 //! predictions of ln R_d are blended, see [`ModelAt`]).
 use crate::dataset::{Dataset, Image};
 use crate::geometry::V3;
-use crate::model::{ColourModel, LogEAccumulator, TangentFrame};
+use crate::model::{ColourModel, LogEAccumulator, Support, TangentFrame, ln_eval_supported};
 use crate::modelfile::{ModelFile, VertexStatus, model_of};
-use crate::pipeline::{Context, LogEStats, PipelineError, PipelineOptions};
-use crate::registration::RegistrationOutcome;
+use crate::pipeline::{Context, LogEStats, PipelineError, PipelineOptions, register_one};
+use crate::progress::Progress;
 
 /// Why a model cannot be evaluated on a dataset.
 #[derive(Debug, thiserror::Error)]
@@ -40,10 +40,9 @@ pub struct Corner {
     pub weight: f64,
     /// The corner vertex's colour model (Eq. 9, or Eq. 3 per channel).
     pub model: ColourModel,
-    /// The corner's sampled distance range `[r_min, r_max]` (see [`VertexModel::r_range`]).
-    ///
-    /// [`VertexModel::r_range`]: crate::modelfile::VertexModel::r_range
-    pub r_range: [f32; 2],
+    /// Where the corner's model is claimed: its sampled distance range (see
+    /// [`crate::model::support`]).
+    pub support: Support,
 }
 
 /// The model at a light position x_i between vertices: the corners of the triangle holding x_i.
@@ -52,7 +51,7 @@ pub struct Corner {
 /// parametrisation: two 3-term fits of nearly the same curve can have unrelated terms), so
 /// blending parameters is meaningless. What is blended is each corner's *prediction*:
 /// ln R_d(x_i → x_o) = Σ_k w_k · ln R_d^(k)(|x_o − x_i|), each corner evaluated only where its
-/// samples were ([`ln_eval_supported`]).
+/// samples were (the model's support rule, [`crate::model::support`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct ModelAt {
     /// Corners with a model, weights summing to 1.
@@ -68,14 +67,14 @@ impl ModelAt {
     /// ln R_d per channel at distance r and direction φ from x_i (Eq. 9, blended over corners).
     ///
     /// A corner whose samples did not reach down to r (r below its r_min) only extrapolates
-    /// there, so its barycentric weight is damped by [`support_weight`]: where another corner
+    /// there, so its barycentric weight is damped by [`Support::weight`]: where another corner
     /// was sampled, that corner decides; where none was, all extrapolate together. Beyond a
     /// corner's r_max its prediction moves towards the homogeneous baseline, if the model has one.
     pub fn ln_eval(&self, r: f64, phi: Option<f64>) -> [f64; 3] {
         let mut out = [0.0; 3];
         let mut total = 0.0;
         for c in &self.corners {
-            let w = c.weight * support_weight(c.r_range, r);
+            let w = c.weight * c.support.weight(r);
             if w <= 0.0 {
                 continue;
             }
@@ -104,48 +103,13 @@ impl ModelAt {
 impl ModelAt {
     fn corner_ln(&self, c: &Corner, r: f64, phi: Option<f64>) -> [f64; 3] {
         crate::baseline::with_fallback(
-            ln_eval_supported(&c.model, c.r_range, r, phi),
-            c.r_range,
+            ln_eval_supported(&c.model, c.support, r, phi),
+            c.support,
             r,
             phi,
             self.baseline.as_ref(),
         )
     }
-}
-
-/// How much a model is trusted at distance r: 1 inside its sampled range (or without a known
-/// range), decaying as exp(−(r_min − r) / (0.1·r_min)) below it.
-pub fn support_weight(r_range: [f32; 2], r: f64) -> f64 {
-    let (lo, hi) = (r_range[0] as f64, r_range[1] as f64);
-    if !(hi > lo && lo > 0.0) || r >= lo {
-        1.0
-    } else {
-        (-(lo - r) / (0.1 * lo)).exp()
-    }
-}
-
-/// ln R_d per channel of one vertex model, claimed only where its samples were: for r below
-/// r_min, ln R_d continues linearly with its slope at r_min (an exponential through the nearest
-/// sample), so terms steeper than the samples resolve cannot explode at small distances. At and
-/// beyond r_min, or without a known range, the model itself.
-pub fn ln_eval_supported(
-    model: &ColourModel,
-    r_range: [f32; 2],
-    r: f64,
-    phi: Option<f64>,
-) -> [f64; 3] {
-    let (lo, hi) = (r_range[0] as f64, r_range[1] as f64);
-    if !(hi > lo && lo > 0.0) || r >= lo {
-        return model.ln_eval(r, phi);
-    }
-    // One-sided difference: ln R_d is smooth and slowly curved at the scale h.
-    let h = 1e-4 * lo;
-    let a = model.ln_eval(lo, phi);
-    let b = model.ln_eval(lo + h, phi);
-    [0, 1, 2].map(|c| {
-        let slope = ((b[c] - a[c]) / h).min(0.0);
-        a[c] + slope * (r - lo)
-    })
 }
 
 /// The corners of triangle `tri` that have a model, weighted barycentrically at `x_i` (weights
@@ -165,7 +129,7 @@ pub fn model_at(ctx: &Context, model: &ModelFile, tri: u32, x_i: V3) -> Option<M
         corners.push(Corner {
             weight: w[k].max(0.0),
             model: m,
-            r_range: v.r_range,
+            support: v.support(),
         });
     }
     if corners.is_empty() {
@@ -211,21 +175,13 @@ pub struct FrameEval {
     pub skipped: Option<String>,
 }
 
-fn registered(ctx: &Context, k: usize) -> Result<(V3, u32), String> {
-    match ctx.register(k) {
-        Ok(RegistrationOutcome::Registered { x_i, triangle, .. }) => Ok((x_i, triangle)),
-        Ok(other) => Err(format!("not registered: {other:?}")),
-        Err(e) => Err(e.to_string()),
-    }
-}
-
 /// Evaluates `model` on the frames `frames` of `ds` (each frame read once, in parallel).
 pub fn evaluate_frames(
     ds: &Dataset,
     model: &ModelFile,
     frames: &[usize],
     opts: &PipelineOptions,
-    progress: &indicatif::ProgressBar,
+    progress: &dyn Progress,
 ) -> Result<(Vec<FrameEval>, LogEStats), EvaluateError> {
     use rayon::prelude::*;
     if model.positions.len() != ds.mesh.positions.len() {
@@ -235,7 +191,7 @@ pub fn evaluate_frames(
         });
     }
     let ctx = Context::new(ds, *opts)?;
-    progress.set_length(frames.len() as u64);
+    progress.start("evaluate", frames.len() as u64);
     let evals: Vec<FrameEval> = frames
         .par_iter()
         .map(|&k| {
@@ -263,9 +219,10 @@ fn evaluate_one(
     k: usize,
     opts: &PipelineOptions,
 ) -> Result<FrameEval, String> {
-    let (x_i, tri) = registered(ctx, k)?;
-    let at = model_at(ctx, model, tri, x_i).ok_or("no model at x_i")?;
-    let (samples, _) = ctx.samples(k, x_i).map_err(|e| e.to_string())?;
+    let reg = register_one(ctx, k)?;
+    let x_i = reg.x_i;
+    let at = model_at(ctx, model, reg.triangle, x_i).ok_or("no model at x_i")?;
+    let (samples, _) = ctx.samples(&reg).map_err(|e| e.to_string())?;
     let mut acc = [LogEAccumulator::default(); 3];
     for s in &samples {
         let x_o = ctx.ds.mesh.positions[s.vertex as usize];
@@ -308,9 +265,9 @@ pub fn predict_frame(
         });
     }
     let ctx = Context::new(ds, *opts)?;
-    let (x_i, tri) =
-        registered(&ctx, k).map_err(|reason| EvaluateError::Frame { frame: k, reason })?;
-    let at = model_at(&ctx, model, tri, x_i).ok_or(EvaluateError::Frame {
+    let reg = register_one(&ctx, k).map_err(|reason| EvaluateError::Frame { frame: k, reason })?;
+    let x_i = reg.x_i;
+    let at = model_at(&ctx, model, reg.triangle, x_i).ok_or(EvaluateError::Frame {
         frame: k,
         reason: "no model at x_i".into(),
     })?;
@@ -340,4 +297,32 @@ pub fn predict_frame(
         }
     });
     Ok(img)
+}
+
+/// Figure 3's comparison on the samples `(r, s)` of one lit point: the sum of exponentials
+/// (Eq. 1, n = 3, log objective) and the dipole (relative index `eta`, free scale), each `None`
+/// where its fit failed.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FalloffComparison {
+    /// The sum of exponentials.
+    pub expsum: Option<crate::fit::ExpFit>,
+    /// The dipole.
+    pub dipole: Option<crate::fit::dipole::DipoleFit>,
+}
+
+/// Fits both models of Figure 3 to the samples `(r, s)` (see [`FalloffComparison`]).
+pub fn compare_falloff(r: &[f64], s: &[f64], eta: f64) -> FalloffComparison {
+    use crate::fit::dipole::{DipoleOptions, fit_dipole};
+    FalloffComparison {
+        expsum: crate::fit::fit_expsum(r, s, &crate::fit::FitOptions::default()).ok(),
+        dipole: fit_dipole(
+            r,
+            s,
+            &DipoleOptions {
+                eta,
+                ..Default::default()
+            },
+        )
+        .ok(),
+    }
 }

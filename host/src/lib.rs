@@ -16,6 +16,7 @@ pub mod link;
 pub mod modelfile;
 pub mod pipeline;
 pub mod plot;
+pub mod progress;
 pub mod registration;
 pub mod render;
 pub mod rig;
@@ -24,6 +25,7 @@ pub mod scan;
 pub mod selection;
 pub mod sim;
 pub mod simulate;
+pub mod util;
 pub mod validate;
 
 /// The model and its fitting live in the `subsurf-model` crate (no files, no rig); re-exported

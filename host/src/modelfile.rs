@@ -91,10 +91,17 @@ pub struct VertexModel {
     /// Parameters in the order of `docs/model-format.md`.
     pub params: Vec<f64>,
     /// `[r_min, r_max]` (mm): the distances |x_o − x_i| the fit's samples covered. The model is
-    /// only claimed inside it; below r_min evaluation continues ln R_d linearly
-    /// ([`crate::evaluate::ln_eval_supported`]). `r_max <= r_min` (e.g. `[0, 0]`, what files
-    /// without the properties read as) means unknown: the model is used as is everywhere.
+    /// claimed as [`crate::model::support`] says (below r_min ln R_d continues linearly).
+    /// `r_max <= r_min` (e.g. `[0, 0]`, what files without the properties read as) means
+    /// unknown: the model is used as is everywhere.
     pub r_range: [f32; 2],
+}
+
+impl VertexModel {
+    /// Where this vertex's model is claimed (its sampled range).
+    pub fn support(&self) -> crate::model::Support {
+        crate::model::Support::new(self.r_range[0] as f64, self.r_range[1] as f64)
+    }
 }
 
 /// The sampled range of a model without one (ground truth, old files): used as is everywhere.

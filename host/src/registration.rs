@@ -71,6 +71,9 @@ pub enum RegistrationOutcome {
         triangle: u32,
         /// Distance to the hit of the frame's `laser` ray, if the frame has one and it hits.
         laser_disagreement_mm: Option<f64>,
+        /// The spot x_i was found at: later stages exclude its light from the samples with it
+        /// rather than detecting it again.
+        spot: Spot,
     },
     /// No pixel is bright enough to be the spot.
     NoSpot,
@@ -307,22 +310,22 @@ pub fn register_frame(
     camera: &Camera,
     scene: &Scene,
     opts: &SpotOptions,
-) -> (RegistrationOutcome, Option<Spot>) {
+) -> RegistrationOutcome {
     if let Some(l) = &frame.laser
         && let Some(h) = scene.cast_world(l.origin, l.direction, frame.turntable_deg)
         && !spot_visible(scene, camera, frame.turntable_deg, &h)
     {
-        return (RegistrationOutcome::NoSpot, None);
+        return RegistrationOutcome::NoSpot;
     }
     let min_peak = opts.min_peak * frame.exposure_s;
     let Some(spot) = detect_spot(img, min_peak, opts.saturation) else {
-        return (RegistrationOutcome::NoSpot, None);
+        return RegistrationOutcome::NoSpot;
     };
     let Some((o, d)) = camera.ray(spot.u, spot.v) else {
-        return (RegistrationOutcome::SpotOffObject, Some(spot));
+        return RegistrationOutcome::SpotOffObject;
     };
     let Some(hit) = scene.cast_world(o, d, frame.turntable_deg) else {
-        return (RegistrationOutcome::SpotOffObject, Some(spot));
+        return RegistrationOutcome::SpotOffObject;
     };
     let x_i = hit.point;
     let mut disagreement = None;
@@ -330,23 +333,18 @@ pub fn register_frame(
         let lh = scene.cast_world(l.origin, l.direction, frame.turntable_deg);
         disagreement = lh.map(|h| dist(h.point, x_i));
         if disagreement.is_none_or(|dd| dd > opts.laser_tolerance_mm) {
-            return (
-                RegistrationOutcome::LaserMismatch {
-                    x_i,
-                    disagreement_mm: disagreement,
-                },
-                Some(spot),
-            );
+            return RegistrationOutcome::LaserMismatch {
+                x_i,
+                disagreement_mm: disagreement,
+            };
         }
     }
-    (
-        RegistrationOutcome::Registered {
-            x_i,
-            triangle: hit.triangle,
-            laser_disagreement_mm: disagreement,
-        },
-        Some(spot),
-    )
+    RegistrationOutcome::Registered {
+        x_i,
+        triangle: hit.triangle,
+        laser_disagreement_mm: disagreement,
+        spot,
+    }
 }
 
 #[cfg(test)]

@@ -9,6 +9,7 @@
 //! was measured there on the built-in sphere).
 use crate::dataset::{FrameSpec, Image};
 use crate::geometry::{V3, Visible, dist};
+use crate::registration::Spot;
 
 /// Largest share of a sample's value the laser spot's light (the Gaussian fitted by
 /// [`crate::registration::detect_spot`], at the nearest corner of the sample's bilinear
@@ -85,19 +86,22 @@ impl SampleCounts {
 }
 
 /// The samples of one frame for the vertices `visible` from its camera, with light at `x_i`.
+/// `spot` is the laser spot registration found in `img` (never detected here again); its light
+/// is excluded from the samples when it is unclipped (see [`SPOT_SHARE`]).
 pub fn frame_samples(
     img: &Image,
     frame: &FrameSpec,
     visible: &[Visible],
     positions: &[V3],
     x_i: V3,
+    spot: Option<&Spot>,
     opts: &SampleOptions,
 ) -> (Vec<Sample>, SampleCounts) {
     let mut counts = SampleCounts::default();
     let mut out = Vec::with_capacity(visible.len());
     let chans = frame.channel.channels();
     let sat = opts.saturation.map(|s| s * 0.999).unwrap_or(f64::INFINITY);
-    let spot = spot_light(img, opts);
+    let spot = spot.and_then(|s| spot_light(s, img.channels));
     for vis in visible {
         let x_o = positions[vis.vertex as usize];
         let r = dist(x_o, x_i);
@@ -173,11 +177,11 @@ impl SpotLight {
     }
 }
 
-/// The spot's light, when the spot is unclipped: only then are its peak and width measured (a
-/// clipped spot's width comes from its ring, which the scattered light around it widens, and its
-/// peak is unknown). Scans that need the exclusion bracket the spot (HDR), as `scan --sim` does.
-fn spot_light(img: &Image, opts: &SampleOptions) -> Option<SpotLight> {
-    let spot = crate::registration::detect_spot(img, 0.0, opts.saturation)?;
+/// The spot's light in an image of `channels` channels, when the spot is unclipped: only then
+/// are its peak and width measured (a clipped spot's width comes from its ring, which the
+/// scattered light around it widens, and its peak is unknown). Scans that need the exclusion
+/// bracket the spot (HDR), as `scan --sim` does.
+fn spot_light(spot: &Spot, channels: usize) -> Option<SpotLight> {
     (!spot.saturated
         && spot.sigma_px.is_finite()
         && spot.sigma_px > 0.0
@@ -186,7 +190,7 @@ fn spot_light(img: &Image, opts: &SampleOptions) -> Option<SpotLight> {
         u: spot.u,
         v: spot.v,
         sigma_px: spot.sigma_px,
-        peak: spot.peak_fit / img.channels.max(1) as f64,
+        peak: spot.peak_fit / channels.max(1) as f64,
     })
 }
 
@@ -236,7 +240,9 @@ mod tests {
             saturation: Some(40.0),
             cos_min: 0.2,
         };
-        let (s, c) = frame_samples(&img, &frame, &vis, &pos, [0.0; 3], &opts);
+        let spot = crate::registration::detect_spot(&img, 0.0, opts.saturation);
+        assert!(spot.is_some_and(|s| !s.saturated && (s.u - 14.0).abs() < 0.5));
+        let (s, c) = frame_samples(&img, &frame, &vis, &pos, [0.0; 3], spot.as_ref(), &opts);
         assert_eq!(s.len(), 2);
         assert_eq!(s[0].value, [0.5, 0.5, 0.5]);
         assert_eq!(s[1].valid, 0b101);

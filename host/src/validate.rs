@@ -159,7 +159,7 @@ pub fn judge(
     holdout: Holdout,
     in_sample: LogEStats,
     opts: &PipelineOptions,
-    progress: &indicatif::ProgressBar,
+    progress: &dyn crate::progress::Progress,
 ) -> Result<Validation, EvaluateError> {
     let (per_frame, held_out) = evaluate_frames(ds, model, &holdout.frames, opts, progress)?;
     let baseline_held_out = match baseline_only(model) {

@@ -1,6 +1,5 @@
 //! Faults during a simulated scan: emergency stop, Ctrl-C, a camera that times out. Each one
 //! stops with the laser off and a clear message, and the same scan resumes to completion.
-use indicatif::ProgressBar;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
@@ -78,7 +77,7 @@ fn emergency_stop_halts_with_the_laser_off_and_the_scan_resumes() {
         pressed: false,
     };
     let mut rig = client(link);
-    let err = run(&cfg, &mut rig, camera.as_mut(), &ProgressBar::hidden()).unwrap_err();
+    let err = run(&cfg, &mut rig, camera.as_mut(), &()).unwrap_err();
     let msg = err.to_string();
     assert!(matches!(err, ScanError::RigHalted { .. }), "{msg}");
     assert!(
@@ -92,7 +91,7 @@ fn emergency_stop_halts_with_the_laser_off_and_the_scan_resumes() {
     // Released: the same scan resumes and completes.
     link.inner.rig_mut().set_estop(false);
     let mut rig = client(link.inner);
-    let s = run(&cfg, &mut rig, camera.as_mut(), &ProgressBar::hidden()).unwrap();
+    let s = run(&cfg, &mut rig, camera.as_mut(), &()).unwrap();
     assert_eq!(s.resumed_from, done);
     assert_eq!(
         Dataset::open(&cfg.out).unwrap().spec.frames.len(),
@@ -151,13 +150,13 @@ fn ctrl_c_stops_cleanly_with_the_laser_off() {
         fails: 0,
     };
     let mut rig = client(SimLink::clean(VirtualRig::new(SimParams::default())));
-    let err = run(&cfg, &mut rig, &mut camera, &ProgressBar::hidden()).unwrap_err();
+    let err = run(&cfg, &mut rig, &mut camera, &()).unwrap_err();
     assert!(matches!(err, ScanError::Interrupted { .. }), "{err}");
     assert_eq!(rig.link().rig().status().lasers, 0);
     assert!(!rig.link().rig().status().armed);
     stop.store(false, Ordering::Relaxed);
     camera.stop_after = None;
-    let s = run(&cfg, &mut rig, &mut camera, &ProgressBar::hidden()).unwrap();
+    let s = run(&cfg, &mut rig, &mut camera, &()).unwrap();
     assert!(s.resumed_from >= 4, "{s:?}");
 }
 
@@ -172,7 +171,7 @@ fn a_camera_timeout_is_retried_then_fails_the_frame_clearly() {
         fails: 1,
     };
     let mut rig = client(SimLink::clean(VirtualRig::new(SimParams::default())));
-    let s = run(&cfg, &mut rig, &mut camera, &ProgressBar::hidden()).unwrap();
+    let s = run(&cfg, &mut rig, &mut camera, &()).unwrap();
     assert_eq!(s.camera_retries, 1);
     assert_eq!(s.frames_written, cfg.plan.frame_count());
 
@@ -185,7 +184,7 @@ fn a_camera_timeout_is_retried_then_fails_the_frame_clearly() {
         fails: 100,
     };
     let mut rig = client(SimLink::clean(VirtualRig::new(SimParams::default())));
-    let err = run(&cfg, &mut rig, &mut camera, &ProgressBar::hidden()).unwrap_err();
+    let err = run(&cfg, &mut rig, &mut camera, &()).unwrap_err();
     let msg = err.to_string();
     assert!(
         msg.contains("frame 2 failed after 3 attempts") && msg.contains("no image"),

@@ -1,7 +1,6 @@
 //! Link drop-out: the pseudo-terminal to the simulated rig is closed mid-scan and reopened after
 //! longer than the rig's heartbeat timeout. The scan reconnects, handshakes again and completes;
 //! the rig's own laser log shows the laser went off within the heartbeat timeout of the drop.
-use indicatif::ProgressBar;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use subsurf::calib::Calibration;
@@ -105,14 +104,7 @@ fn scan_survives_the_pty_closing_and_the_rig_turns_the_laser_off_in_time() {
         };
         RigClient::connect(link, ClientConfig::default())
     };
-    let summary = run_with_reconnect(
-        &cfg,
-        &mut connect,
-        camera.as_mut(),
-        &ProgressBar::hidden(),
-        40,
-    )
-    .unwrap();
+    let summary = run_with_reconnect(&cfg, &mut connect, camera.as_mut(), &(), 40).unwrap();
     assert!(summary.reconnects >= 1, "{summary:?}");
     assert_eq!(summary.frames_total, cfg.plan.frame_count());
     let ds = Dataset::open(&cfg.out).unwrap();

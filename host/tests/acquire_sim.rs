@@ -1,6 +1,5 @@
 //! End-to-end simulated scans through the library: plan → `scan::run` over the in-process
 //! simulated rig (virtual time) with the simulated camera → a dataset the reader accepts.
-use indicatif::ProgressBar;
 use subsurf::calib::Calibration;
 use subsurf::dataset::Dataset;
 use subsurf::rig::{ClientConfig, RigClient};
@@ -45,7 +44,7 @@ fn simulated_scan_writes_a_readable_dataset_in_the_planned_time() {
     let params = SimParams::default();
     let link = SimLink::clean(VirtualRig::new(params));
     let mut rig = RigClient::connect_with_seq(link, ClientConfig::default(), 9).unwrap();
-    let summary = run(&cfg, &mut rig, camera.as_mut(), &ProgressBar::hidden()).unwrap();
+    let summary = run(&cfg, &mut rig, camera.as_mut(), &()).unwrap();
     assert_eq!(summary.frames_written, cfg.plan.frame_count());
     let ds = Dataset::open(&cfg.out).unwrap();
     assert_eq!(ds.spec.frames.len(), cfg.plan.frame_count());
@@ -83,7 +82,7 @@ fn hdr_brackets_merge_into_radiance_frames() {
     .unwrap();
     let link = SimLink::clean(VirtualRig::new(SimParams::default()));
     let mut rig = RigClient::connect_with_seq(link, ClientConfig::default(), 9).unwrap();
-    run(&cfg, &mut rig, camera.as_mut(), &ProgressBar::hidden()).unwrap();
+    run(&cfg, &mut rig, camera.as_mut(), &()).unwrap();
     let ds = Dataset::open(&cfg.out).unwrap();
     assert_eq!(ds.spec.frames.len(), 3);
     assert!(ds.spec.frames.iter().all(|f| f.exposure_s == 1.0));

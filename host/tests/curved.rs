@@ -14,10 +14,6 @@ use subsurf::modelfile::{ModelFile, VertexStatus, model_of};
 use subsurf::pipeline::{MIN_DECAY, PipelineOptions, fit_dataset};
 use subsurf::simulate::{SimConfig, SimObject, simulate};
 
-fn hidden() -> indicatif::ProgressBar {
-    indicatif::ProgressBar::hidden()
-}
-
 #[test]
 fn noise_free_sphere_predicts_held_out_frames_near_the_floor() {
     let tmp = tempfile::tempdir().unwrap();
@@ -37,7 +33,7 @@ fn noise_free_sphere_predicts_held_out_frames_near_the_floor() {
     cfg.noise_floor = 1e-9;
     cfg.field.anisotropy = 0.0;
     cfg.field.heterogeneity = 0.0;
-    simulate(&cfg, tmp.path(), &hidden()).expect("simulate");
+    simulate(&cfg, tmp.path(), &()).expect("simulate");
     let ds = Dataset::open(tmp.path()).unwrap();
     let n = ds.spec.frames.len();
     let held: Vec<usize> = (3..n).step_by(7).collect();
@@ -48,7 +44,7 @@ fn noise_free_sphere_predicts_held_out_frames_near_the_floor() {
         .join(",");
     let train = select_frames(n, None, Some(&list)).unwrap();
     let opts = PipelineOptions::for_dataset(&ds);
-    let out = fit_dataset(&ds, &train, &opts, &FitOptions::default(), &hidden()).expect("fit");
+    let out = fit_dataset(&ds, &train, &opts, &FitOptions::default(), &()).expect("fit");
     assert_eq!(out.report.vertices_no_model, 0, "{:?}", out.report.failures);
 
     // Only supported terms, and the sampled range of every fitted vertex is recorded.
@@ -68,9 +64,9 @@ fn noise_free_sphere_predicts_held_out_frames_near_the_floor() {
     out.model.write(&p).unwrap();
     let model = ModelFile::read(&p).unwrap();
 
-    let (_, fitted) = evaluate_frames(&ds, &model, &held, &opts, &hidden()).unwrap();
+    let (_, fitted) = evaluate_frames(&ds, &model, &held, &opts, &()).unwrap();
     let truth = ModelFile::read(&tmp.path().join("ground-truth.ply")).unwrap();
-    let (_, floor) = evaluate_frames(&ds, &truth, &held, &opts, &hidden()).unwrap();
+    let (_, floor) = evaluate_frames(&ds, &truth, &held, &opts, &()).unwrap();
     for c in 0..3 {
         let (f, g) = (fitted.mean[c].unwrap(), floor.mean[c].unwrap());
         eprintln!("channel {c}: held-out mean log E fitted {f:.4}, ground truth {g:.4}");

@@ -18,10 +18,6 @@ const SEGMENTS: usize = 8;
 const R1: f64 = 2.0;
 const R2: f64 = 5.0;
 
-fn hidden() -> indicatif::ProgressBar {
-    indicatif::ProgressBar::hidden()
-}
-
 /// Decay length in one direction: 1 / (mean fall-off rate of ln R_d between `R1` and `R2`), a
 /// range the samples cover well (the steepest terms are unresolved below the vertex spacing and
 /// gone beyond a few mm).
@@ -72,7 +68,7 @@ fn anisotropic_fit_beats_isotropic_and_recovers_the_axis() {
     let strength = cfg.field.params_at([0.0; 3], [0.0, 0.0, 1.0]).anisotropy;
     assert!(strength > 0.5, "anisotropy strength {strength}");
     cfg.spot.radiance = 2000.0;
-    simulate(&cfg, tmp.path(), &hidden()).expect("simulate");
+    simulate(&cfg, tmp.path(), &()).expect("simulate");
     let ds = Dataset::open(tmp.path()).unwrap();
     let n_frames = ds.spec.frames.len();
     // Every 5th laser position is held out of the fits.
@@ -93,10 +89,10 @@ fn anisotropic_fit_beats_isotropic_and_recovers_the_axis() {
             terms: Terms::Fixed(terms),
             ..FitOptions::default()
         };
-        let out = fit_dataset(&ds, &train, &o, &fo, &hidden()).expect("fit");
+        let out = fit_dataset(&ds, &train, &o, &fo, &()).expect("fit");
         assert_eq!(out.report.vertices_no_model, 0, "{:?}", out.report);
         assert_eq!(out.model.shape.segments, segments);
-        let (_, st) = evaluate_frames(&ds, &out.model, &held, &o, &hidden()).unwrap();
+        let (_, st) = evaluate_frames(&ds, &out.model, &held, &o, &()).unwrap();
         let (fit, pred) = (out.report.log_e.mean[0].unwrap(), st.mean[0].unwrap());
         eprintln!("m = {segments}, n = {terms}: in-sample log E {fit:.4}, held-out {pred:.4}");
         (out.model, fit, pred)

@@ -7,7 +7,7 @@ use subsurf::simulate::{SimConfig, SimObject, simulate};
 
 fn small_slab(dir: &Path) {
     let cfg = SimConfig::for_object(SimObject::Slab { size: 20.0, n: 20 }, 64, 1, 8);
-    simulate(&cfg, dir, &indicatif::ProgressBar::hidden()).expect("simulate");
+    simulate(&cfg, dir, &()).expect("simulate");
 }
 
 fn fit(scan: &Path, out: &Path, extra: &[&str]) -> String {

@@ -19,14 +19,7 @@ fn shared(name: &str) -> Option<PathBuf> {
 
 fn fit(ds: &Dataset, frames: &[usize]) -> FitOutput {
     let opts = PipelineOptions::for_dataset(ds);
-    fit_dataset(
-        ds,
-        frames,
-        &opts,
-        &FitOptions::default(),
-        &indicatif::ProgressBar::hidden(),
-    )
-    .expect("fit")
+    fit_dataset(ds, frames, &opts, &FitOptions::default(), &()).expect("fit")
 }
 
 #[test]
@@ -66,7 +59,7 @@ fn torus_predicts_held_out_turntable_angles_and_alpha_rounds_only_descend() {
     // Held out: at least 4 frames (96, 98, 100, 102 show the spot), within the 0.94
     // (1.25x the outside renderer's best per-x_i case, 0.75) and not above the baseline alone.
     let opts = PipelineOptions::for_dataset(&ds);
-    let bar = indicatif::ProgressBar::hidden();
+    let bar = ();
     let (evals, stats) = evaluate_frames(&ds, &out.model, &held, &opts, &bar).unwrap();
     let evaluated = evals.iter().filter(|e| e.skipped.is_none()).count();
     assert!(evaluated >= 4, "{evals:?}");

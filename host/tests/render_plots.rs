@@ -18,7 +18,8 @@ fn figure_3_falloff_with_both_fits() {
         .map(|&x| d.r_d(x) * (1.0 + 0.2 * (1.3 * x).sin()))
         .collect();
     let png = dir.path().join("f.png");
-    let sum = plot::falloff_figure(&png, "marble", &r, &s, 1.3).unwrap();
+    let fits = subsurf::evaluate::compare_falloff(&r, &s, 1.3);
+    let sum = plot::falloff_figure(&png, "marble", &r, &s, &fits).unwrap();
     assert_eq!(sum.samples, 300);
     assert!(sum.expsum_log_e.unwrap() > 0.0 && sum.dipole_log_e.is_some());
     assert_picture(&png, 800, 520);
@@ -29,7 +30,7 @@ fn figure_3_falloff_with_both_fits() {
             "x",
             &[1.0, 2.0],
             &[0.0, -1.0],
-            1.3
+            &subsurf::evaluate::compare_falloff(&[1.0, 2.0], &[0.0, -1.0], 1.3)
         )
         .is_err()
     );

@@ -14,12 +14,8 @@ use subsurf::simulate::{
     CameraRig, Field, Sensor, SimObject, SimScene, Spot, render_frame_truth, rig_cameras,
 };
 
-fn hidden() -> indicatif::ProgressBar {
-    indicatif::ProgressBar::hidden()
-}
-
 fn fit(ds: &Dataset, frames: &[usize], opts: &PipelineOptions) -> FitOutput {
-    fit_dataset(ds, frames, opts, &FitOptions::default(), &hidden()).expect("fit")
+    fit_dataset(ds, frames, opts, &FitOptions::default(), &()).expect("fit")
 }
 
 /// A slab scan seen from straight above, the laser aimed at every vertex (those frames first, in
@@ -157,7 +153,7 @@ fn noise_free_scan_recovers_the_ground_truth() {
     let median = rel[rel.len() / 2];
     assert!(median < 1e-3, "median relative parameter error {median}");
     let held_frames: Vec<usize> = (nv..nv + held.len()).collect();
-    let (evals, stats) = evaluate_frames(&ds, &out.model, &held_frames, &opts, &hidden()).unwrap();
+    let (evals, stats) = evaluate_frames(&ds, &out.model, &held_frames, &opts, &()).unwrap();
     assert!(evals.iter().all(|e| e.skipped.is_none()), "{evals:?}");
     for c in 0..3 {
         let m = stats.mean[c].unwrap();
@@ -211,9 +207,9 @@ fn noisy_scan_with_deprived_vertices_gives_every_vertex_a_model() {
     }
     assert!(out.model.vertices.iter().all(|v| !v.params.is_empty()));
     // Held-out frames: at deprived vertices (interpolated models) and between fitted vertices.
-    let (_, interp) = evaluate_frames(&ds, &out.model, &deprived, &opts, &hidden()).unwrap();
+    let (_, interp) = evaluate_frames(&ds, &out.model, &deprived, &opts, &()).unwrap();
     let fitted_frames: Vec<usize> = (nv..nv + held.len()).collect();
-    let (_, fitted) = evaluate_frames(&ds, &out.model, &fitted_frames, &opts, &hidden()).unwrap();
+    let (_, fitted) = evaluate_frames(&ds, &out.model, &fitted_frames, &opts, &()).unwrap();
     for c in 0..3 {
         let (a, b) = (interp.mean[c].unwrap(), fitted.mean[c].unwrap());
         assert!(a <= 2.0 * b, "channel {c}: interpolated {a} vs fitted {b}");
@@ -225,7 +221,7 @@ fn small_scan(dir: &Path, pfm: bool) {
     let object = SimObject::Slab { size: 8.0, n: 9 };
     let mut cfg = subsurf::simulate::SimConfig::for_object(object, 64, 1, 4);
     cfg.pfm = pfm;
-    subsurf::simulate::simulate(&cfg, dir, &hidden()).unwrap();
+    subsurf::simulate::simulate(&cfg, dir, &()).unwrap();
 }
 
 #[test]

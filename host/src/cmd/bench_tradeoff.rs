@@ -23,6 +23,8 @@ use subsurf::scan::setup::{
 };
 use subsurf::simulate::{CameraRig, Sensor, SimConfig, SimObject, simulate};
 
+use super::progress::Bar;
+
 /// Scan, fit and render settings of the whole chain against the exact result.
 #[derive(Debug, clap::Args)]
 pub struct TradeoffBench {
@@ -218,13 +220,9 @@ impl Row {
     }
 }
 
-fn hidden_or_bar(len: u64, msg: &str) -> indicatif::ProgressBar {
-    let p = indicatif::ProgressBar::new(len);
-    if let Ok(style) =
-        indicatif::ProgressStyle::with_template("{msg:>14} {bar:40} {pos}/{len} {elapsed}")
-    {
-        p.set_style(style);
-    }
+fn hidden_or_bar(len: u64, msg: &str) -> Bar {
+    let p = Bar::with_template("{msg:>14} {bar:40} {pos}/{len} {elapsed}");
+    p.set_length(len);
     p.set_message(msg.to_string());
     p
 }
@@ -286,11 +284,10 @@ fn run_chain(b: &TradeoffBench, sizes: &Sizes) -> Result<Vec<Row>> {
             truth = render_image(&gt, sizes.render_px, None).map(|(i, _)| i);
         }
         for &preset in &sizes.presets {
-            let mut opts = PipelineOptions::for_dataset(&ds);
-            opts.model.segments = preset.segments();
+            let (opts, fit) = PipelineOptions::for_dataset(&ds).with_preset(Some(preset));
             let p = hidden_or_bar(0, &format!("fit {}", preset.name()));
             let t = Instant::now();
-            let fitted = fit_dataset(&ds, &frames, &opts, &preset.options(), &p)
+            let fitted = fit_dataset(&ds, &frames, &opts, &fit, &p)
                 .with_context(|| format!("fitting scan {di} with preset {}", preset.name()))?;
             let fit_s = t.elapsed().as_secs_f64();
             p.finish_and_clear();

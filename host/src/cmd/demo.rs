@@ -9,18 +9,18 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result, anyhow};
-use indicatif::{ProgressBar, ProgressStyle};
 use subsurf::calib::Calibration;
 use subsurf::dataset::{Dataset, select_frames};
 use subsurf::fit::{FitOptions, Terms};
 use subsurf::link::SerialLink;
-use subsurf::pipeline::{Context as FitContext, PipelineOptions, fit_dataset};
-use subsurf::registration::RegistrationOutcome;
+use subsurf::pipeline::{Context as FitContext, PipelineOptions, fit_dataset, register_one};
 use subsurf::render::{self, Camera, Light, RenderOptions, VertexModel};
 use subsurf::rig::{ClientConfig, RigClient};
 use subsurf::scan::driver::{ScanConfig, run};
 use subsurf::scan::plan::{PlanOptions, PlanScene, coverage_plan};
 use subsurf::scan::setup::{builtin_object, camera_from_spec, obj_text};
+
+use super::progress::Bar;
 
 /// Run the whole chain on the simulated rig and write the results into one folder.
 #[derive(Debug, clap::Args)]
@@ -42,11 +42,9 @@ pub struct Args {
     picture: u32,
 }
 
-fn bar(len: u64, msg: &str) -> ProgressBar {
-    let p = ProgressBar::new(len);
-    if let Ok(style) = ProgressStyle::with_template("{msg:>10} {bar:40} {pos}/{len} {elapsed}") {
-        p.set_style(style);
-    }
+fn bar(len: u64, msg: &str) -> Bar {
+    let p = Bar::with_template("{msg:>10} {bar:40} {pos}/{len} {elapsed}");
+    p.set_length(len);
     p.set_message(msg.to_string());
     p
 }
@@ -208,10 +206,10 @@ pub fn run_demo(args: &Args) -> Result<Vec<PathBuf>> {
     // The frame whose x_i has the most green samples.
     let mut best: Option<(usize, Vec<f64>, Vec<f64>)> = None;
     for k in 0..ds.spec.frames.len() {
-        let Ok(RegistrationOutcome::Registered { x_i, .. }) = ctx.register(k) else {
+        let Ok(reg) = register_one(&ctx, k) else {
             continue;
         };
-        let Ok((samples, _)) = ctx.samples(k, x_i) else {
+        let Ok((samples, _)) = ctx.samples(&reg) else {
             continue;
         };
         let (r, s): (Vec<f64>, Vec<f64>) = samples
@@ -226,12 +224,13 @@ pub fn run_demo(args: &Args) -> Result<Vec<PathBuf>> {
     let mut plotted = false;
     if let Some((k, r, s)) = best.filter(|b| b.1.len() >= 8) {
         let f = out.join("falloff.png");
+        let fits = subsurf::evaluate::compare_falloff(&r, &s, 1.3);
         let sum = subsurf::plot::falloff_figure(
             &f,
             &format!("Fall-off of frame {k}'s x_i (green)"),
             &r,
             &s,
-            1.3,
+            &fits,
         )?;
         writeln!(
             report,

@@ -7,6 +7,8 @@ use subsurf::evaluate::evaluate_frames;
 use subsurf::modelfile::ModelFile;
 use subsurf::pipeline::PipelineOptions;
 
+use super::progress::Bar;
+
 /// Print mean and median log E (Eq. 8, Table 1) of a model on frames of a scan.
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -44,9 +46,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut opts = PipelineOptions::for_dataset(&ds);
     opts.samples.exclusion_radius_mm = args.exclusion_radius;
     let bar = if args.json {
-        indicatif::ProgressBar::hidden()
+        Bar::hidden()
     } else {
-        indicatif::ProgressBar::new(0)
+        Bar(indicatif::ProgressBar::new(0))
     };
     let (evals, stats) = evaluate_frames(&ds, &model, &frames, &opts, &bar)?;
     bar.finish_and_clear();

@@ -4,9 +4,11 @@ use std::path::PathBuf;
 
 use anyhow::{Context, anyhow};
 use subsurf::dataset::{Dataset, select_frames};
-use subsurf::fit::{FitOptions, Preset, Terms};
+use subsurf::fit::{Preset, Terms};
 use subsurf::modelfile::ColourMode;
-use subsurf::pipeline::{ModelChoice, PipelineOptions, fit_dataset};
+use subsurf::pipeline::{MAX_SEGMENTS, PipelineOptions, Segments, fit_scan};
+
+use super::progress::Bar;
 
 /// Colour handling.
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
@@ -17,16 +19,16 @@ pub enum Colour {
     PerChannel,
 }
 
-/// Solver presets of the fitting engine.
+/// Speed/accuracy presets ([`PipelineOptions::with_preset`]: the same in `bench tradeoff`).
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
 pub enum PresetArg {
-    /// Exact fit on all samples (default).
+    /// Exact fit on all samples, n = 3, isotropic (default).
     Exact,
-    /// Fast previews (binned, subsampled).
+    /// Fast previews (binned, subsampled), isotropic.
     Draft,
-    /// Binned sufficient statistics.
+    /// Binned sufficient statistics, 4 direction segments.
     Balanced,
-    /// Exact, automatic order.
+    /// Exact, automatic order, 8 direction segments.
     Best,
 }
 
@@ -53,15 +55,16 @@ pub struct Args {
     pub colour: Colour,
     /// Direction segments m (Eq. 3); 1 = isotropic; `auto` fits m = 1, 2, 4, 8 and keeps the
     /// smallest whose mean log E is within --segments-tolerance of the best (the choice is
-    /// written to the report as `segments_choice`).
-    #[arg(long, default_value = "1")]
-    pub segments: String,
+    /// written to the report as `segments_choice`). Default: the preset's (1 for exact).
+    #[arg(long)]
+    pub segments: Option<String>,
     /// Relative log E tolerance of `--segments auto` (0.05 = within 5 % of the best).
     #[arg(long, default_value_t = 0.05)]
     pub segments_tolerance: f64,
     /// Exponential terms n (Eq. 1), or `auto` for the smallest order within 1 % of the best.
-    #[arg(long, default_value = "3")]
-    pub terms: String,
+    /// Default: the preset's (3 for exact).
+    #[arg(long)]
+    pub terms: Option<String>,
     /// Solver preset.
     #[arg(long, value_enum, default_value = "exact")]
     pub preset: PresetArg,
@@ -135,12 +138,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         args.exclude_frames.as_deref(),
     )
     .map_err(|e| anyhow!(e))?;
-    let mut opts = PipelineOptions::for_dataset(&ds);
+    let preset = match args.preset {
+        PresetArg::Exact => None,
+        PresetArg::Draft => Some(Preset::Draft),
+        PresetArg::Balanced => Some(Preset::Balanced),
+        PresetArg::Best => Some(Preset::Best),
+    };
+    let (mut opts, mut fit) = PipelineOptions::for_dataset(&ds).with_preset(preset);
     if let Some(f) = args.noise_floor {
-        opts.samples.noise_floor = f;
-        opts.spot.min_peak = 10.0 * f;
-        opts.alpha_window.t2 = 10.0 * f;
-        opts.error_threshold = f;
+        opts = opts.with_noise_floor(f);
     }
     opts.samples.exclusion_radius_mm = args.exclusion_radius;
     opts.max_select_mm = args.max_distance;
@@ -149,51 +155,45 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     opts.alpha_rounds = args.alpha_rounds;
     opts.alpha_tolerance = args.alpha_tolerance;
     opts.spot.laser_tolerance_mm = args.laser_tolerance;
-    // `--segments auto`: the ladder of m to try; a number: just that m.
-    let segment_ladder: Vec<usize> = match args.segments.as_str() {
-        "auto" => vec![1, 2, 4, 8],
-        m => vec![
+    opts.model.colour = match args.colour {
+        Colour::Shared => ColourMode::Shared,
+        Colour::PerChannel => ColourMode::PerChannel,
+    };
+    let segments = match args.segments.as_deref() {
+        None => Segments::Fixed(opts.model.segments),
+        Some("auto") => Segments::Auto {
+            tolerance: args.segments_tolerance,
+        },
+        Some(m) => Segments::Fixed(
             m.parse()
                 .ok()
-                .filter(|m| (1..=64).contains(m))
-                .ok_or_else(|| anyhow!("--segments must be 1..=64 or auto, got {m:?}"))?,
-        ],
-    };
-    if !(args.segments_tolerance >= 0.0 && args.segments_tolerance.is_finite()) {
-        anyhow::bail!("--segments-tolerance must be finite and >= 0");
-    }
-    opts.model = ModelChoice {
-        colour: match args.colour {
-            Colour::Shared => ColourMode::Shared,
-            Colour::PerChannel => ColourMode::PerChannel,
-        },
-        segments: segment_ladder[0],
-    };
-    let mut fit = match args.preset {
-        PresetArg::Exact => FitOptions::default(),
-        PresetArg::Draft => Preset::Draft.options(),
-        PresetArg::Balanced => Preset::Balanced.options(),
-        PresetArg::Best => Preset::Best.options(),
-    };
-    fit.terms = match args.terms.as_str() {
-        "auto" => Terms::Auto {
-            max: subsurf::model::MAX_TERMS,
-            tolerance: 0.01,
-        },
-        n => Terms::Fixed(
-            n.parse()
-                .ok()
-                .filter(|n| (1..=subsurf::model::MAX_TERMS).contains(n))
-                .ok_or_else(|| anyhow!("--terms must be 1..=4 or auto, got {n:?}"))?,
+                .filter(|m| (1..=MAX_SEGMENTS).contains(m))
+                .ok_or_else(|| {
+                    anyhow!("--segments must be 1..={MAX_SEGMENTS} or auto, got {m:?}")
+                })?,
         ),
     };
-    let bar = indicatif::ProgressBar::new(0).with_style(
-        indicatif::ProgressStyle::with_template("{msg:>12} {bar:40} {pos}/{len} {eta}")
-            .context("progress style")?,
-    );
+    match args.terms.as_deref() {
+        None => {}
+        Some("auto") => {
+            fit.terms = Terms::Auto {
+                max: subsurf::model::MAX_TERMS,
+                tolerance: 0.01,
+            }
+        }
+        Some(n) => {
+            fit.terms = Terms::Fixed(
+                n.parse()
+                    .ok()
+                    .filter(|n| (1..=subsurf::model::MAX_TERMS).contains(n))
+                    .ok_or_else(|| anyhow!("--terms must be 1..=4 or auto, got {n:?}"))?,
+            )
+        }
+    }
+    let bar = Bar::with_template("{msg:>12} {bar:40} {pos}/{len} {eta}");
     let validation = if args.validate {
         let holdout = subsurf::validate::holdout(&ds, &frames);
-        let v = fit_dataset(&ds, &holdout.training, &opts, &fit, &bar)
+        let v = fit_scan(&ds, &holdout.training, &opts, segments, &fit, &bar)
             .with_context(|| format!("validation fit of {}", args.scan.display()))?;
         let v = subsurf::validate::judge(&ds, &v.model, holdout, v.report.log_e, &opts, &bar)
             .context("judging the validation fit on the held-out frames")?;
@@ -201,33 +201,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     } else {
         None
     };
-    let mut segments_choice = None;
-    let out = if segment_ladder.len() == 1 {
-        fit_dataset(&ds, &frames, &opts, &fit, &bar)
-            .with_context(|| format!("fitting {}", args.scan.display()))?
-    } else {
-        // One whole fit per m; the choice rule is the library's (`fit::choose_order`) on the
-        // mean over channels of the Table-1 mean log E(x_i).
-        let mut runs = Vec::new();
-        for &m in &segment_ladder {
-            opts.model.segments = m;
-            let run = fit_dataset(&ds, &frames, &opts, &fit, &bar);
-            let log_e = run.as_ref().ok().and_then(|o| {
-                let means: Vec<f64> = o.report.log_e.mean.iter().flatten().copied().collect();
-                (!means.is_empty()).then(|| means.iter().sum::<f64>() / means.len() as f64)
-            });
-            runs.push((m, log_e, run));
-        }
-        let candidates: Vec<(usize, Option<f64>)> = runs.iter().map(|(m, e, _)| (*m, *e)).collect();
-        let choice = subsurf::fit::choose_order(&candidates, args.segments_tolerance);
-        let chosen = choice.as_ref().map_or(1, |c| c.chosen);
-        segments_choice = choice;
-        let (_, _, run) = runs
-            .into_iter()
-            .find(|(m, _, _)| *m == chosen)
-            .ok_or_else(|| anyhow!("no segment count was fitted"))?;
-        run.with_context(|| format!("fitting {}", args.scan.display()))?
-    };
+    let out = fit_scan(&ds, &frames, &opts, segments, &fit, &bar)
+        .with_context(|| format!("fitting {}", args.scan.display()))?;
     bar.finish_and_clear();
     let report_dir = args.report.as_deref().and_then(std::path::Path::parent);
     for dir in [args.out.parent(), report_dir].into_iter().flatten() {
@@ -249,8 +224,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if let Some(v) = &validation {
         json["validation"] = serde_json::to_value(v)?;
     }
-    if let Some(c) = &segments_choice {
-        json["segments_choice"] = serde_json::to_value(c)?;
+    if let Some(c) = &out.report.segments_choice {
         println!(
             "segments: m = {} chosen (tolerance {}); candidates {}",
             c.chosen,
@@ -282,7 +256,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     // Peak memory of the whole process, after the model (and pictures) were written; the
     // pipeline's own `peak_rss_mib` is taken at its end.
-    if let Some(m) = subsurf::pipeline::peak_rss_mib() {
+    if let Some(m) = subsurf::util::peak_rss_mib() {
         json["process_peak_rss_mib"] = m.into();
     }
     std::fs::write(&report_path, serde_json::to_string_pretty(&json)?)

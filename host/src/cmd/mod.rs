@@ -16,6 +16,7 @@ mod plot;
 mod ports;
 mod predict;
 mod probes;
+mod progress;
 mod render;
 mod rig;
 mod scan;

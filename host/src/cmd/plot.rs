@@ -106,7 +106,8 @@ pub fn run(args: Args) -> Result<()> {
         What::Falloff(a) => {
             let (r, s) = read_csv(&a.csv)?;
             let title = format!("Fall-off of one x_i: {}", a.csv.display());
-            let sum = subsurf::plot::falloff_figure(&a.out, &title, &r, &s, a.eta)?;
+            let fits = subsurf::evaluate::compare_falloff(&r, &s, a.eta);
+            let sum = subsurf::plot::falloff_figure(&a.out, &title, &r, &s, &fits)?;
             println!(
                 "{} samples; log E: sum of exponentials {}, dipole {}",
                 sum.samples,

@@ -15,6 +15,7 @@ use subsurf::scan::setup::{
 };
 
 use super::plan::{PlanArgs, make_plan, resolve};
+use super::progress::Bar;
 
 /// Scan an object: home, then per turntable angle run the rig's capture program and write each
 /// camera image to the dataset. Re-running the same command resumes an interrupted scan.
@@ -98,9 +99,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         Duration::from_secs_f64(args.camera_timeout.max(0.01)),
     )?;
     let progress = if args.quiet {
-        ProgressBar::hidden()
+        Bar::hidden()
     } else {
-        let p = ProgressBar::new(cfg.plan.frame_count() as u64);
+        let p = Bar(ProgressBar::new(cfg.plan.frame_count() as u64));
         p.set_style(
             ProgressStyle::with_template(
                 "{bar:30} {pos}/{len} frames  {per_sec}  ETA {eta}  {msg}",

@@ -97,10 +97,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     cfg.seed = args.seed;
     cfg.field.seed = args.seed;
     cfg.pfm = args.pfm;
-    let bar = indicatif::ProgressBar::new(0).with_style(
-        indicatif::ProgressStyle::with_template("simulate {bar:40} {pos}/{len} frames {eta}")
-            .context("progress style")?,
-    );
+    let bar = super::progress::Bar::with_template("simulate {bar:40} {pos}/{len} frames {eta}");
     let t = std::time::Instant::now();
     let summary = simulate(&cfg, &args.out, &bar)
         .with_context(|| format!("simulating into {}", args.out.display()))?;

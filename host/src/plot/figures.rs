@@ -1,12 +1,12 @@
 //! The paper's figures as one call each: Figure 3 (fall-off of one `x_i` with the exponential
-//! and dipole fits) and Figures 4/5 (per-`x_i` error maps over the surface).
+//! and dipole fits) and Figures 4/5 (per-`x_i` error maps over the surface). Figures draw what
+//! they are given: the fits come from [`crate::evaluate::compare_falloff`], never from here.
 
 use std::path::Path;
 
 use super::surface::{MeshView, Panel, PanelData, surface_panels};
 use super::{Curve, PlotError, falloff_plot};
-use crate::fit::dipole::{DipoleOptions, fit_dipole};
-use crate::fit::{FitOptions, fit_expsum};
+use crate::evaluate::FalloffComparison;
 use crate::render::VertexModel;
 
 /// What Figure 3 showed: both fits' log E (Eq. 8) on the plotted samples.
@@ -20,15 +20,15 @@ pub struct FalloffSummary {
     pub dipole_log_e: Option<f64>,
 }
 
-/// Figure 3: fits the sum of exponentials (n = 3, log objective) and the dipole (relative index
-/// `eta`, free scale) to the samples `(r, s)` of one lit point and plots all three on a log scale.
-/// A fit that fails is left out of the picture (and reported as `None`), not an error.
+/// Figure 3: the samples `(r, s)` of one lit point and both fits to them (the sum of
+/// exponentials and the dipole, see [`crate::evaluate::compare_falloff`]) on a log scale. A fit
+/// that failed is left out of the picture (and reported as `None`), not an error.
 pub fn falloff_figure(
     path: &Path,
     title: &str,
     r: &[f64],
     s: &[f64],
-    eta: f64,
+    fits: &FalloffComparison,
 ) -> Result<FalloffSummary, PlotError> {
     let rmax = r
         .iter()
@@ -37,8 +37,8 @@ pub fn falloff_figure(
         .fold(0.0, f64::max);
     let grid: Vec<f64> = (0..200).map(|k| rmax * k as f64 / 199.0).collect();
     let mut curves = Vec::new();
-    let expsum = fit_expsum(r, s, &FitOptions::default()).ok();
-    if let Some(f) = &expsum {
+    let (expsum, dipole) = (&fits.expsum, &fits.dipole);
+    if let Some(f) = expsum {
         curves.push(Curve {
             name: format!(
                 "sum of exponentials, n = {} (log E {:.3})",
@@ -48,16 +48,7 @@ pub fn falloff_figure(
             points: grid.iter().map(|&x| (x, f.model.eval(x))).collect(),
         });
     }
-    let dipole = fit_dipole(
-        r,
-        s,
-        &DipoleOptions {
-            eta,
-            ..Default::default()
-        },
-    )
-    .ok();
-    if let Some(f) = &dipole {
+    if let Some(f) = dipole {
         curves.push(Curve {
             name: format!("dipole (log E {:.3})", f.log_e),
             points: grid
@@ -70,8 +61,8 @@ pub fn falloff_figure(
     falloff_plot(path, title, &pts, &curves, (800, 520))?;
     Ok(FalloffSummary {
         samples: pts.len(),
-        expsum_log_e: expsum.map(|f| f.log_e),
-        dipole_log_e: dipole.map(|f| f.log_e),
+        expsum_log_e: expsum.as_ref().map(|f| f.log_e),
+        dipole_log_e: dipole.as_ref().map(|f| f.log_e),
     })
 }
 

@@ -4,7 +4,7 @@
 //! a huge `c` with a tiny exponential neither overflows nor underflows before the product is formed.
 
 use super::vertex_model::{ColourMode, VertexModel, VertexStatus};
-use crate::model::{TangentFrame, hat_weights};
+use crate::model::{Support, TangentFrame, hat_weights};
 
 /// Per-vertex fall-off parameters (Eq. 1/3/5/9) in a layout made for inner loops.
 #[derive(Clone, Debug)]
@@ -20,9 +20,9 @@ pub struct Falloffs {
     scale: Vec<[f64; 3]>,
     /// False for vertices without a model: they emit nothing.
     active: Vec<bool>,
-    /// Per vertex: below this distance (mm) R_d continues exponentially from its value and
-    /// slope here ([`VertexModel::r_min`]); 0 = the model everywhere.
-    r_min: Vec<f64>,
+    /// Per vertex: where its model is claimed ([`crate::model::support`]; below r_min R_d
+    /// continues exponentially from its value and slope there).
+    support: Vec<Support>,
 }
 
 impl Falloffs {
@@ -65,7 +65,7 @@ impl Falloffs {
             d,
             scale,
             active,
-            r_min: model.r_min.clone(),
+            support: model.support.clone(),
         }
     }
 
@@ -98,17 +98,18 @@ impl Falloffs {
 
     /// `R_d(x_i → x_o)` per channel at distance `r` (mm), blended over direction segments with the
     /// weights `w_l(x_i, x_o)` of Eq. 3 (`w` has one entry per segment; ignored when `m = 1`).
-    /// Below the source's `r_min` the fall-off is `R_d(r_min) e^{g (r − r_min)}` with `g` the
-    /// logarithmic slope at `r_min` (never rising), as `evaluate::ln_eval_supported` predicts.
+    /// Below the source's `r_min` the fall-off continues as the model's support rule says
+    /// ([`crate::model::support`]).
     #[inline]
     pub fn eval(&self, i: usize, r: f64, w: &[f64]) -> [f64; 3] {
-        let lo = self.r_min[i];
-        if r >= lo {
+        let support = self.support[i];
+        let a = support.anchor(r);
+        if a == r {
             return self.eval_model(i, r, w).map(|(f, _)| f);
         }
-        self.eval_model(i, lo, w).map(|(f, df)| {
+        self.eval_model(i, a, w).map(|(f, df)| {
             if f > 0.0 {
-                f * ((df / f).min(0.0) * (r - lo)).exp()
+                support.extend(r, f.ln(), df / f).exp()
             } else {
                 f
             }
@@ -149,12 +150,13 @@ impl Falloffs {
     /// Below the source's `r_min` it continues linearly in `ln` with its slope there (as
     /// [`Falloffs::eval`]).
     pub fn ln_eval_mean(&self, i: usize, r: f64) -> [f64; 3] {
-        let lo = self.r_min[i];
-        if r >= lo {
+        let support = self.support[i];
+        let a = support.anchor(r);
+        if a == r {
             return self.ln_eval_mean_model(i, r).map(|(l, _)| l);
         }
-        self.ln_eval_mean_model(i, lo)
-            .map(|(l, g)| l + g.min(0.0) * (r - lo))
+        self.ln_eval_mean_model(i, a)
+            .map(|(l, g)| support.extend(r, l, g))
     }
 
     /// The log-sum-exp of [`Falloffs::ln_eval_mean`] without the support range, and its
@@ -191,19 +193,20 @@ impl Falloffs {
     /// the disk of radius `ρ` around itself. Used for the `x_o = x_i` term, where the point sum would
     /// put all of a vertex's own area at distance 0 and overestimate sharp fall-offs.
     pub fn disk_integral(&self, i: usize, rho: f64) -> [f64; 3] {
-        let lo = self.r_min[i];
-        if lo <= 0.0 {
+        let support = self.support[i];
+        if !support.is_known() {
             return self.disk_integral_model(i, rho);
         }
+        let lo = support.r_min;
         // Below r_min the fall-off is one exponential through the model's value and slope at
-        // r_min (see `eval`), averaged over segments like the model part.
+        // r_min (the support rule, see `eval`), averaged over segments like the model part.
         let w = vec![1.0 / self.m as f64; self.m];
         let at = self.eval_model(i, lo, &w);
         let inner = |r: f64| {
             at.map(|(f, df)| {
                 if f > 0.0 {
-                    let g = (df / f).min(0.0);
-                    exp_disk(f * (-g * lo).exp(), g, r)
+                    let (ln_c, g) = support.below(f.ln(), df / f);
+                    exp_disk(ln_c.exp(), g, r)
                 } else {
                     0.0
                 }
@@ -398,7 +401,7 @@ mod tests {
         );
         let free = Falloffs::new(&model);
         assert!(free.eval(0, 0.1, &[1.0])[0] > 1e5);
-        model.r_min = vec![1.0; 3];
+        model.support = vec![Support::new(1.0, 5.0); 3];
         let f = Falloffs::new(&model);
         // At and beyond r_min: the model.
         for r in [1.0, 2.5] {

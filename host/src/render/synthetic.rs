@@ -80,7 +80,7 @@ pub fn from_field(
         status: vec![VertexStatus::Fitted; n],
         log_e: vec![f64::NAN; n],
         params,
-        r_min: vec![0.0; n],
+        support: vec![crate::model::Support::UNKNOWN; n],
         positions,
         normals,
         faces,

@@ -1,6 +1,7 @@
 //! The per-vertex model as the renderer needs it: exactly the data of `docs/model-format.md`.
 
 use super::RenderError;
+use crate::model::Support;
 use crate::modelfile::{ColourMode as FileColour, ModelFile, VertexStatus as FileStatus};
 
 /// How colour is modelled (the `comment colour` header line of the model file).
@@ -58,11 +59,10 @@ pub struct VertexModel {
     pub log_e: Vec<f64>,
     /// Flat parameters, [`VertexModel::param_len`] per vertex, in the model file's order.
     pub params: Vec<f64>,
-    /// Per vertex: the smallest distance its fit sampled (mm, `r_min` of `docs/model-format.md`).
-    /// Below it R_d continues as the exponential with the model's value and slope at `r_min`
-    /// (as `evaluate::ln_eval_supported`), because terms steeper than the samples resolve are not
-    /// determined by them and would explode near the source. 0 = the model is used everywhere.
-    pub r_min: Vec<f64>,
+    /// Per vertex: the distances its fit sampled (`r_min`, `r_max` of `docs/model-format.md`),
+    /// where its model is claimed ([`crate::model::support`]: below r_min R_d continues as the
+    /// exponential with the model's value and slope there). [`Support::UNKNOWN`]: everywhere.
+    pub support: Vec<Support>,
     /// Triangles as vertex indices.
     pub faces: Vec<[u32; 3]>,
 }
@@ -127,7 +127,7 @@ impl VertexModel {
             status: vec![VertexStatus::Fitted; n],
             log_e: vec![f64::NAN; n],
             params,
-            r_min: vec![0.0; n],
+            support: vec![Support::UNKNOWN; n],
             faces,
         }
     }
@@ -193,15 +193,7 @@ impl VertexModel {
             status,
             log_e: file.vertices.iter().map(|v| f64::from(v.log_e)).collect(),
             params,
-            // Only a real range (r_max > r_min > 0) limits the model; [0, 0] means unknown.
-            r_min: file
-                .vertices
-                .iter()
-                .map(|v| {
-                    let [lo, hi] = v.r_range.map(f64::from);
-                    if hi > lo && lo > 0.0 { lo } else { 0.0 }
-                })
-                .collect(),
+            support: file.vertices.iter().map(|v| v.support()).collect(),
             faces: file.triangles.clone(),
         }
     }
@@ -227,7 +219,7 @@ impl VertexModel {
             ("alpha", self.alpha.len()),
             ("status", self.status.len()),
             ("log_e", self.log_e.len()),
-            ("r_min", self.r_min.len()),
+            ("support", self.support.len()),
         ] {
             if found != n {
                 return Err(RenderError::Length {
@@ -266,8 +258,11 @@ impl VertexModel {
                     return Err(bad("alpha", a));
                 }
             }
-            if !(self.r_min[v].is_finite() && self.r_min[v] >= 0.0) {
-                return Err(bad("r_min", self.r_min[v]));
+            let sup = self.support[v];
+            for r in [sup.r_min, sup.r_max] {
+                if !(r.is_finite() && r >= 0.0) {
+                    return Err(bad("sampled range", r));
+                }
             }
             if self.status[v] == VertexStatus::NoModel {
                 continue;

@@ -14,8 +14,8 @@ use super::journal::{DatasetHeader, DatasetWriter, FrameEntry, JournalError, Las
 use super::plan::{ScanPlan, angle_steps};
 use crate::calib::Calibration;
 use crate::link::ByteLink;
+use crate::progress::Progress;
 use crate::rig::{RigClient, RigClientError};
-use indicatif::ProgressBar;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -255,7 +255,7 @@ impl<'a> Scan<'a> {
         &mut self,
         rig: &mut RigClient<L>,
         camera: &mut dyn Camera,
-        progress: &ProgressBar,
+        progress: &dyn Progress,
     ) -> Result<(), ScanError> {
         let t0 = rig.status().map_err(classify)?.uptime_us;
         let result = self.session_inner(rig, camera, progress);
@@ -281,7 +281,7 @@ impl<'a> Scan<'a> {
         &mut self,
         rig: &mut RigClient<L>,
         camera: &mut dyn Camera,
-        progress: &ProgressBar,
+        progress: &dyn Progress,
     ) -> Result<(), ScanError> {
         let caps = rig.hello().capabilities;
         progress.set_length(self.frames.len() as u64);
@@ -342,7 +342,7 @@ impl<'a> Scan<'a> {
             self.check_stop()?;
             let first = self.frames[self.done()];
             let steps = angle_steps(first.turntable_deg, spr);
-            progress.set_message(format!("turntable → {:.1}°", first.turntable_deg));
+            progress.set_message(&format!("turntable → {:.1}°", first.turntable_deg));
             rig.start_move(MoveTarget::Absolute(steps as i32), speed, accel)
                 .map_err(|e| self.halted_or(e))?;
             let s = rig
@@ -350,7 +350,7 @@ impl<'a> Scan<'a> {
                 .map_err(|e| self.halted_or(e))?;
             let deg = s.position as f64 * 360.0 / spr.max(1) as f64;
             rig.arm().map_err(|e| self.halted_or(e))?;
-            progress.set_message(format!("{deg:.1}°"));
+            progress.set_message(&format!("{deg:.1}°"));
             // The rest of this angle, in program-sized chunks.
             let max_pts = (caps.max_program_points as usize)
                 .min(self.cfg.chunk_points)
@@ -400,7 +400,7 @@ impl<'a> Scan<'a> {
         &mut self,
         rig: &mut RigClient<L>,
         camera: &mut dyn Camera,
-        progress: &ProgressBar,
+        progress: &dyn Progress,
         chunk: &[super::plan::PlannedFrame],
         deg: f64,
         exposures_us: &[u32],
@@ -450,7 +450,7 @@ impl<'a> Scan<'a> {
                             source: err,
                         });
                     }
-                    progress.println(format!(
+                    progress.println(&format!(
                         "frame {}: {err}; retrying ({attempts}/{})",
                         chunk[next].index, self.cfg.camera_retries
                     ));
@@ -480,7 +480,7 @@ impl<'a> Scan<'a> {
         &mut self,
         rig: &mut RigClient<L>,
         camera: &mut dyn Camera,
-        progress: &ProgressBar,
+        progress: &dyn Progress,
         last_bracket: bool,
         rest: &[super::plan::PlannedFrame],
         b: usize,
@@ -560,7 +560,7 @@ impl<'a> Scan<'a> {
         &mut self,
         rig: &mut RigClient<L>,
         camera: &mut dyn Camera,
-        progress: &ProgressBar,
+        progress: &dyn Progress,
         last_bracket: bool,
         rest: &[super::plan::PlannedFrame],
         b: usize,
@@ -726,7 +726,7 @@ pub fn run<L: ByteLink>(
     cfg: &ScanConfig,
     rig: &mut RigClient<L>,
     camera: &mut dyn Camera,
-    progress: &ProgressBar,
+    progress: &dyn Progress,
 ) -> Result<ScanSummary, ScanError> {
     let mut scan = Scan::open(cfg, camera)?;
     match scan.session(rig, camera, progress) {
@@ -745,7 +745,7 @@ pub fn run_with_reconnect<L: ByteLink>(
     cfg: &ScanConfig,
     connect: &mut dyn FnMut() -> Result<RigClient<L>, RigClientError>,
     camera: &mut dyn Camera,
-    progress: &ProgressBar,
+    progress: &dyn Progress,
     max_reconnects: u32,
 ) -> Result<ScanSummary, ScanError> {
     let mut scan = Scan::open(cfg, camera)?;
@@ -769,7 +769,7 @@ pub fn run_with_reconnect<L: ByteLink>(
             Ok(()) => return scan.finish(reconnects),
             Err(e) if e.is_link() && reconnects < max_reconnects => {
                 reconnects += 1;
-                progress.println(format!(
+                progress.println(&format!(
                     "{e}; reconnecting in {backoff:?} (attempt {reconnects}/{max_reconnects})"
                 ));
                 if cfg.stop.load(Ordering::Relaxed) {

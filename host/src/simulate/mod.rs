@@ -646,7 +646,7 @@ pub fn ground_truth_model(mesh: &crate::dataset::Mesh, field: &Field) -> ModelFi
 pub fn simulate(
     cfg: &SimConfig,
     out: &Path,
-    progress: &indicatif::ProgressBar,
+    progress: &dyn crate::progress::Progress,
 ) -> Result<SimSummary, SimError> {
     use rayon::prelude::*;
     let mesh = cfg.object.mesh();

@@ -15,6 +15,8 @@
 //! - [`alpha`]: the modulation texture alpha(x_o), Eq. 2, estimated by Eq. 6.
 //! - [`error`]: reconstruction error E (Eq. 7), log E(x_i) (Eq. 8) and the Table-1 mean.
 //! - [`dipole`]: the dipole diffusion approximation and the published measured materials.
+//! - [`support`]: where a fitted model is claimed (below r_min, above r_max): one rule for every
+//!   user of a model.
 
 pub mod alpha;
 pub mod aniso;
@@ -22,6 +24,7 @@ pub mod colour;
 pub mod dipole;
 pub mod error;
 pub mod expsum;
+pub mod support;
 
 pub use alpha::{AlphaAccumulator, IntensityWindow};
 pub use aniso::{Anisotropic, TangentFrame, hat_weights};
@@ -29,6 +32,7 @@ pub use colour::ColourModel;
 pub use dipole::{Dipole, MATERIALS, Material};
 pub use error::{LogEAccumulator, reconstruction_error, table1_mean};
 pub use expsum::{ExpSum, MAX_TERMS, Term};
+pub use support::{Support, ln_eval_supported};
 
 /// Why a model value was rejected. Models are data; this is what `validate` reports.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]

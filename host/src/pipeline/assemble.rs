@@ -1,0 +1,72 @@
+//! Stage `assemble`: the model file (`docs/model-format.md`) from the vertices' own fits, the
+//! interpolated ones and alpha(x_o), with the vertex counts of the report.
+//!
+//! Owns the per-vertex status; never fits, never reads frames.
+use crate::dataset::Dataset;
+use crate::modelfile::{ModelFile, ModelShape, NO_RANGE, VertexModel, VertexStatus};
+
+use super::error::OwnFit;
+use super::interpolate::Refit;
+use super::report::FitReport;
+
+/// The model: every vertex fitted, interpolated or without a model, in mesh order.
+pub fn model_file(
+    ds: &Dataset,
+    shape: ModelShape,
+    own: &[Option<OwnFit>],
+    refits: &[Option<Refit>],
+    alpha: &[[f64; 3]],
+    report: &mut FitReport,
+) -> ModelFile {
+    let vertices = own
+        .iter()
+        .zip(refits)
+        .zip(alpha)
+        .map(|((own, refit), a)| {
+            let alpha = a.map(|x| x as f32);
+            match (own, refit) {
+                (Some(o), _) => {
+                    report.vertices_fitted += 1;
+                    VertexModel {
+                        alpha,
+                        status: VertexStatus::Fitted,
+                        log_e: o.log_e,
+                        terms: o.terms as u8,
+                        params: o.params.clone(),
+                        r_range: o.r_range.map(|x| x as f32),
+                    }
+                }
+                (None, Some(r)) => {
+                    report.vertices_interpolated += 1;
+                    VertexModel {
+                        alpha,
+                        status: VertexStatus::Interpolated,
+                        log_e: f32::NAN,
+                        terms: r.terms as u8,
+                        params: r.params.clone(),
+                        r_range: r.r_range.map(|x| x as f32),
+                    }
+                }
+                (None, None) => {
+                    report.vertices_no_model += 1;
+                    VertexModel {
+                        alpha,
+                        status: VertexStatus::NoModel,
+                        log_e: f32::NAN,
+                        terms: 0,
+                        params: Vec::new(),
+                        r_range: NO_RANGE,
+                    }
+                }
+            }
+        })
+        .collect();
+    ModelFile {
+        shape,
+        positions: ds.mesh.positions.clone(),
+        normals: ds.mesh.normals.clone(),
+        triangles: ds.mesh.triangles.clone(),
+        vertices,
+        baseline: None,
+    }
+}

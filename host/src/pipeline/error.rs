@@ -1,0 +1,184 @@
+//! Stage `error` (section 5, Eq. 8): log E(x_i) of every group's fit with alpha, measured on the
+//! frames read again (cheaper in memory than keeping the samples), and the acceptance of each
+//! fit: too few samples, above `max_log_e`, or an outlier against the median fit fails, and its
+//! vertices go to the `interpolate` stage.
+//!
+//! Owns the acceptance rule and the Table-1 statistics of the run; never refits.
+use std::collections::BTreeMap;
+
+use rayon::prelude::*;
+
+use crate::model::{ColourModel, LogEAccumulator};
+use crate::modelfile::{ModelShape, params_of};
+use crate::progress::Progress;
+
+use super::fit::Fitted;
+use super::load::Context;
+use super::register::RegisteredFrame;
+use super::report::{FailReason, FitReport, LogEStats};
+use super::select::{Groups, group_samples};
+use super::{OUTLIER_MIN_LOG_E, PipelineError, PipelineOptions};
+
+/// A vertex's own accepted fit.
+#[derive(Debug, Clone)]
+pub struct OwnFit {
+    /// Parameters in the model file's order.
+    pub params: Vec<f64>,
+    /// Its order n.
+    pub terms: usize,
+    /// log E(x_i) of the fit, mean over channels.
+    pub log_e: f32,
+    /// The model.
+    pub model: ColourModel,
+    /// Sampled distance range.
+    pub r_range: [f64; 2],
+}
+
+/// log E(x_i) (Eq. 8, with alpha) per channel of every group's fit; `None` where the group has
+/// no fit or its frames could not be read. Second: the same of the homogeneous baseline
+/// (alpha = 1) on the group's samples, when there is one.
+pub fn log_e_of_fits(
+    ctx: &Context,
+    regs: &[RegisteredFrame],
+    groups: &Groups,
+    fitted: &Fitted,
+    progress: &dyn Progress,
+) -> (Vec<Option<[f64; 3]>>, Vec<[f64; 3]>) {
+    progress.start("error", groups.keys.len() as u64);
+    let threshold = ctx.opts.error_threshold;
+    let baseline = fitted.baseline.as_ref().map(|b| &b.baseline.model);
+    let both: Vec<Option<([f64; 3], [f64; 3])>> = fitted
+        .fits
+        .par_iter()
+        .zip(&groups.keys)
+        .map(|(f, key)| {
+            let out = f.as_ref().ok().and_then(|g| {
+                let (data, _) = group_samples(ctx, regs, key).ok()?;
+                let mut acc = [LogEAccumulator::default(); 3];
+                let mut base = [LogEAccumulator::default(); 3];
+                for (ch, d) in data.iter().enumerate() {
+                    for x in d {
+                        let ln = fitted.alpha[x.vertex as usize][ch].ln()
+                            + g.model.ln_eval(x.r, x.phi)[ch];
+                        acc[ch].add_ln(ln, x.s, threshold);
+                        if let Some(b) = baseline {
+                            base[ch].add_ln(b.ln_eval(x.r, None)[ch], x.s, threshold);
+                        }
+                    }
+                }
+                Some((
+                    acc.map(|a| a.log_e().unwrap_or(f64::NAN)),
+                    base.map(|a| a.log_e().unwrap_or(f64::NAN)),
+                ))
+            });
+            progress.inc(1);
+            out
+        })
+        .collect();
+    (
+        both.iter().map(|b| b.map(|b| b.0)).collect(),
+        both.iter().flatten().map(|b| b.1).collect(),
+    )
+}
+
+/// The mean over the channels with a value.
+fn channel_mean(le: &[f64; 3]) -> Option<f64> {
+    let f: Vec<f64> = le.iter().copied().filter(|x| x.is_finite()).collect();
+    (!f.is_empty()).then(|| f.iter().sum::<f64>() / f.len() as f64)
+}
+
+/// The acceptance threshold: `max_log_e`, lowered to `outlier_factor` × the median fit's log E
+/// (at least [`OUTLIER_MIN_LOG_E`]). A fit far worse than the typical one (e.g. x_i
+/// misregistered near a silhouette, so every distance is wrong) is a failure.
+fn acceptance_threshold(errors: &[Option<[f64; 3]>], opts: &PipelineOptions) -> f64 {
+    let mut means: Vec<f64> = errors
+        .iter()
+        .flatten()
+        .map(|le| channel_mean(le).unwrap_or(0.0))
+        .filter(|m| m.is_finite())
+        .collect();
+    means.sort_by(f64::total_cmp);
+    match means.get(means.len() / 2) {
+        Some(&median) if median > 0.0 => opts
+            .max_log_e
+            .min((opts.outlier_factor * median).max(OUTLIER_MIN_LOG_E)),
+        _ => opts.max_log_e,
+    }
+}
+
+/// Each vertex's own fit, where its group's fit is accepted, and the shape of the model. Counts
+/// failures by reason, the orders, the threshold and the Table-1 statistics into `report`.
+pub fn accept(
+    groups: &Groups,
+    fitted: &Fitted,
+    errors: &[Option<[f64; 3]>],
+    opts: &PipelineOptions,
+    report: &mut FitReport,
+) -> Result<(Vec<Option<OwnFit>>, ModelShape), PipelineError> {
+    let shape_terms = fitted
+        .fits
+        .iter()
+        .filter_map(|f| f.as_ref().ok().map(|g| g.terms))
+        .max()
+        .unwrap_or(0);
+    if shape_terms == 0 {
+        let mut reasons: BTreeMap<FailReason, usize> = BTreeMap::new();
+        for e in fitted.fits.iter().filter_map(|f| f.as_ref().err()) {
+            *reasons.entry(*e).or_default() += 1;
+        }
+        return Err(PipelineError::NothingFitted(format!(
+            "{} registered frames of {} selected; failed fits by reason: {:?}",
+            report.frames.registered, report.frames.selected, reasons
+        )));
+    }
+    let shape = ModelShape {
+        terms: shape_terms,
+        segments: opts.model.segments,
+        colour: opts.model.colour,
+    };
+    let max_log_e = acceptance_threshold(errors, opts);
+    report.max_log_e = max_log_e;
+    let nv = groups.no_data.len();
+    let mut own: Vec<Option<OwnFit>> = vec![None; nv];
+    let mut vertex_fail: Vec<Option<FailReason>> = groups
+        .no_data
+        .iter()
+        .map(|&n| n.then_some(FailReason::NoData))
+        .collect();
+    let mut light_log_e = Vec::new();
+    for ((f, err), verts) in fitted.fits.iter().zip(errors).zip(&groups.members) {
+        let outcome = match (f, err) {
+            (Err(e), _) => Err(*e),
+            (Ok(_), None) => Err(FailReason::FrameUnreadable),
+            (Ok(g), Some(le)) => match channel_mean(le) {
+                None => Err(FailReason::TooFewSamples),
+                Some(mean) if mean > max_log_e => Err(FailReason::HighError),
+                Some(mean) => match params_of(&g.model) {
+                    Ok((p, n, _)) if p.iter().all(|x| x.is_finite()) => {
+                        light_log_e.push(*le);
+                        *report.orders.entry(n).or_default() += 1;
+                        Ok(OwnFit {
+                            params: p,
+                            terms: n,
+                            log_e: mean as f32,
+                            model: g.model.clone(),
+                            r_range: g.r_range,
+                        })
+                    }
+                    _ => Err(FailReason::NonPhysical),
+                },
+            },
+        };
+        for &v in verts {
+            match &outcome {
+                Ok(o) => own[v as usize] = Some(o.clone()),
+                Err(e) => vertex_fail[v as usize] = Some(*e),
+            }
+        }
+    }
+    report.log_e = LogEStats::of(&light_log_e);
+    for r in vertex_fail.iter().flatten() {
+        *report.failures.entry(*r).or_default() += 1;
+    }
+    Ok((own, shape))
+}

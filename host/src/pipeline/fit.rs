@@ -1,0 +1,667 @@
+//! Stage `fit` (sections 4.2 and 5, Eq. 1/3/5/9 and Eq. 6): one model per selection group, and
+//! the modulation texture alpha(x_o) by rounds of fitting samples divided by the previous
+//! round's alpha.
+//!
+//! Owns the choice of model order (terms the samples do not support are dropped) and the alpha
+//! rounds; streams the groups (samples are dropped once their Eq. 6 contributions are folded in),
+//! so memory does not grow with the frame count. Never reads images itself (the `select` stage
+//! does) and never judges a fit (the `error` stage does).
+use std::collections::BTreeMap;
+
+use rayon::prelude::*;
+
+use crate::geometry::Scene;
+use crate::model::{AlphaAccumulator, Anisotropic, ColourModel, ExpSum};
+use crate::baseline::Baseline;
+use crate::modelfile::{BaselineParams, ColourMode, params_of};
+use crate::progress::Progress;
+use crate::samples::SampleCounts;
+
+use super::ModelChoice;
+use super::load::Context;
+use super::register::RegisteredFrame;
+use super::report::{AlphaReport, AlphaRound, BASELINE_POOL, FailReason, TermDropped};
+use super::select::{ChannelSamples, GroupSample, Groups, group_samples};
+
+/// Fits Eq. 1 to samples `s` at distances `r`. `terms = Some(n)` forces n terms; `None` uses the
+/// fitter's own setting (which may choose the order automatically).
+pub trait Fitter: Sync {
+    /// One isotropic fall-off fit.
+    fn fit(&self, r: &[f64], s: &[f64], terms: Option<usize>) -> Result<ExpSum, FailReason>;
+}
+
+/// The fitting engine's Levenberg–Marquardt (`crate::fit`) as the pipeline's solver.
+impl Fitter for crate::fit::FitOptions {
+    fn fit(&self, r: &[f64], s: &[f64], terms: Option<usize>) -> Result<ExpSum, FailReason> {
+        use crate::fit::{FitFailure, Terms, fit_expsum};
+        let mut o;
+        let opts = match terms {
+            Some(n) if self.terms != Terms::Fixed(n) => {
+                o = self.clone();
+                o.terms = Terms::Fixed(n);
+                o.start = None;
+                &o
+            }
+            _ => self,
+        };
+        match fit_expsum(r, s, opts) {
+            Ok(f) => Ok(f.model),
+            Err(FitFailure::TooFewSamples { .. } | FitFailure::TooFewDistances { .. }) => {
+                Err(FailReason::TooFewSamples)
+            }
+            Err(FitFailure::NotConverged { .. }) => Err(FailReason::NotConverged),
+            Err(_) => Err(FailReason::NonPhysical),
+        }
+    }
+}
+
+/// Smallest total decay |d|·(r_max − r_min) of a supported term (see [`TermDropped`]).
+pub const MIN_DECAY: f64 = 0.1;
+/// Share c·e^{d·r} / R_d(r) above which a sample counts as supporting a term.
+pub const MIN_SHARE: f64 = 0.05;
+/// Distinct sampled distances a term needs as support (see [`TermDropped`]).
+pub const MIN_SUPPORT: usize = 4;
+
+/// How much faster than the isotropic fit's steepest term a direction segment's steepest term
+/// may decay (Eq. 3): light travelling 4x less far across the veins than the isotropic mean is
+/// far beyond the anisotropy of the materials in the paper (and of the simulator's, at most
+/// 1 / (1 - 0.6) = 2.5 along against across).
+pub const SEGMENT_MAX_RATE_RATIO: f64 = 4.0;
+
+/// The first term of `f` the sample distances `r` do not support, if any.
+pub fn unsupported_term(f: &ExpSum, r: &[f64]) -> Option<TermDropped> {
+    let (lo, hi) = r
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
+            (a.min(x), b.max(x))
+        });
+    if hi.partial_cmp(&lo).is_none_or(|o| o.is_lt()) {
+        return None;
+    }
+    if f.terms.iter().any(|t| -t.d * (hi - lo) < MIN_DECAY) {
+        return Some(TermDropped::NonDecaying);
+    }
+    if f.n() < 2 {
+        return None;
+    }
+    let mut rs: Vec<f64> = r.to_vec();
+    rs.sort_by(f64::total_cmp);
+    rs.dedup_by(|a, b| (*a - *b).abs() <= 1e-9 * b.abs().max(1.0));
+    let ln_min_share = MIN_SHARE.ln();
+    for t in &f.terms {
+        let ln_c = t.c.ln();
+        let support = rs
+            .iter()
+            .filter(|&&x| ln_c + t.d * x - f.ln_eval(x) >= ln_min_share)
+            .count();
+        if support < MIN_SUPPORT {
+            return Some(TermDropped::Unresolved);
+        }
+    }
+    None
+}
+
+/// Fits Eq. 1 and drops unsupported terms: while [`unsupported_term`] finds one, refit with one
+/// term fewer. `dropped` collects why.
+fn fit_supported(
+    fitter: &dyn Fitter,
+    r: &[f64],
+    s: &[f64],
+    terms: Option<usize>,
+    dropped: &mut Vec<TermDropped>,
+) -> Result<ExpSum, FailReason> {
+    let mut f = fitter.fit(r, s, terms)?;
+    loop {
+        match unsupported_term(&f, r) {
+            None => return Ok(f),
+            Some(why) => {
+                if f.n() <= 1 {
+                    return Err(FailReason::NonPhysical);
+                }
+                dropped.push(why);
+                f = fitter.fit(r, s, Some(f.n() - 1))?;
+            }
+        }
+    }
+}
+
+/// Fits every sample set with one common order: the first set chooses n (as `terms` says, with
+/// unsupported terms dropped), the others are fitted with n, and n is lowered until every set
+/// supports all its terms.
+pub(crate) fn fit_common_order(
+    fitter: &dyn Fitter,
+    sets: &[(Vec<f64>, Vec<f64>)],
+    terms: Option<usize>,
+    dropped: &mut Vec<TermDropped>,
+) -> Result<Vec<ExpSum>, FailReason> {
+    let (r0, s0) = sets.first().ok_or(FailReason::TooFewSamples)?;
+    let first = fit_supported(fitter, r0, s0, terms, dropped)?;
+    let mut n = first.n();
+    let mut out = vec![first];
+    'order: loop {
+        out.truncate(1);
+        for (r, s) in &sets[1..] {
+            let f = fit_supported(fitter, r, s, Some(n), dropped)?;
+            if f.n() < n {
+                n = f.n();
+                out[0] = fit_supported(fitter, r0, s0, Some(n), dropped)?;
+                if out[0].n() < n {
+                    n = out[0].n();
+                }
+                continue 'order;
+            }
+            out.push(f);
+        }
+        return Ok(out);
+    }
+}
+
+/// A direction segment's fit with the isotropic order, or the isotropic fall-off where the
+/// segment's fit fails or has a term that never decays. (A sector holds a fraction of the
+/// samples, so the support rule for steep terms would reject most segments; the isotropic fit
+/// already chose an order the samples support, and evaluation never extrapolates below the
+/// sampled range.)
+///
+/// A segment whose steepest term decays more than [`SEGMENT_MAX_RATE_RATIO`] times faster than
+/// the isotropic fit's steepest one is not a direction effect but a term fitted to a handful of
+/// near samples; it also keeps the slope at r_min so steep that the continuation below r_min
+/// (the model's support rule) explodes towards r = 0.
+fn fit_segment(fitter: &dyn Fitter, r: &[f64], s: &[f64], iso: &ExpSum) -> ExpSum {
+    let steepest = |f: &ExpSum| f.terms.iter().map(|t| -t.d).fold(0.0, f64::max);
+    match fitter.fit(r, s, Some(iso.n())) {
+        Ok(f)
+            if f.n() == iso.n()
+                && unsupported_term(&f, r) != Some(TermDropped::NonDecaying)
+                && steepest(&f) <= SEGMENT_MAX_RATE_RATIO * steepest(iso) =>
+        {
+            f
+        }
+        _ => iso.clone(),
+    }
+}
+
+/// The model variant fitted to one group's samples, its order and the terms dropped on the way.
+fn fit_samples(
+    data: &ChannelSamples,
+    choice: &ModelChoice,
+    fitter: &dyn Fitter,
+    dropped: &mut Vec<TermDropped>,
+) -> Result<(ColourModel, usize), FailReason> {
+    let rs = |c: usize, sel: &dyn Fn(Option<f64>) -> bool| -> (Vec<f64>, Vec<f64>) {
+        data[c]
+            .iter()
+            .filter(|x| sel(x.phi))
+            .map(|x| (x.r, x.s))
+            .unzip()
+    };
+    let all = |_: Option<f64>| true;
+    let m = choice.segments.max(1);
+    let sector = |l: usize| {
+        move |phi: Option<f64>| {
+            phi.is_some_and(|p| (p * m as f64 / std::f64::consts::TAU).round() as usize % m == l)
+        }
+    };
+    let invalid = |_| FailReason::NonPhysical;
+    match choice.colour {
+        ColourMode::PerChannel => {
+            let sets: Vec<(Vec<f64>, Vec<f64>)> = (0..3).map(|c| rs(c, &all)).collect();
+            let isos = fit_common_order(fitter, &sets, None, dropped)?;
+            let n = isos[0].n();
+            let mut chans = Vec::with_capacity(3);
+            for (c, iso) in isos.into_iter().enumerate() {
+                let mut segs = Vec::with_capacity(m);
+                for l in 0..m {
+                    if m == 1 {
+                        segs.push(iso.clone());
+                        continue;
+                    }
+                    let (r, s) = rs(c, &sector(l));
+                    segs.push(fit_segment(fitter, &r, &s, &iso));
+                }
+                chans.push(Anisotropic { segments: segs });
+            }
+            let channels: [Anisotropic; 3] =
+                chans.try_into().map_err(|_| FailReason::NonPhysical)?;
+            let model = ColourModel::PerChannel { channels };
+            model.validate().map_err(invalid)?;
+            Ok((model, n))
+        }
+        ColourMode::Shared => {
+            // Eq. 9 by block coordinate descent on the log objective: fit the red fall-off, set
+            // ln s_c to the mean residual of channel c, refit the fall-off to all channels divided
+            // by their scales, update the scales. Exact on noise-free data.
+            let (r, s) = rs(0, &all);
+            let red = fit_supported(fitter, &r, &s, None, dropped)?;
+            let scales = |f: &ExpSum| -> Result<[f64; 3], FailReason> {
+                let mut out = [1.0; 3];
+                for (c, o) in out.iter_mut().enumerate().skip(1) {
+                    let d = &data[c];
+                    if d.is_empty() {
+                        return Err(FailReason::TooFewSamples);
+                    }
+                    let mean =
+                        d.iter().map(|x| x.s.ln() - f.ln_eval(x.r)).sum::<f64>() / d.len() as f64;
+                    *o = mean.exp();
+                }
+                if out.iter().all(|v| v.is_finite() && *v > 0.0) {
+                    Ok(out)
+                } else {
+                    Err(FailReason::NonPhysical)
+                }
+            };
+            let pooled = |sc: &[f64; 3], sel: &dyn Fn(Option<f64>) -> bool| {
+                let mut r = Vec::new();
+                let mut s = Vec::new();
+                for c in 0..3 {
+                    for x in data[c].iter().filter(|x| sel(x.phi)) {
+                        r.push(x.r);
+                        s.push(x.s / sc[c]);
+                    }
+                }
+                (r, s)
+            };
+            let sc = scales(&red)?;
+            let (r, s) = pooled(&sc, &all);
+            let iso = fit_supported(fitter, &r, &s, Some(red.n()), dropped)?;
+            let n = iso.n();
+            let sc = scales(&iso)?;
+            let mut segs = Vec::with_capacity(m);
+            if m == 1 {
+                segs.push(iso);
+            } else {
+                for l in 0..m {
+                    let (r, s) = pooled(&sc, &sector(l));
+                    segs.push(fit_segment(fitter, &r, &s, &iso));
+                }
+            }
+            let model = ColourModel::Shared {
+                falloff: Anisotropic { segments: segs },
+                s_g: sc[1],
+                s_b: sc[2],
+            };
+            model.validate().map_err(invalid)?;
+            Ok((model, n))
+        }
+    }
+}
+
+/// One group's model.
+#[derive(Debug, Clone)]
+pub struct GroupFit {
+    /// The model (validated).
+    pub model: ColourModel,
+    /// Its order n.
+    pub terms: usize,
+    /// Sampled distance range `[r_min, r_max]` of the fit.
+    pub r_range: [f64; 2],
+}
+
+/// What the fit stage produced.
+#[derive(Debug, Clone)]
+pub struct Fitted {
+    /// Per group (in [`Groups`] order): its model, or why it has none.
+    pub fits: Vec<Result<GroupFit, FailReason>>,
+    /// alpha(x_o) per vertex and channel (Eq. 6), from the last round.
+    pub alpha: Vec<[f64; 3]>,
+    /// Where alpha came from, and how the rounds ended.
+    pub alpha_report: AlphaReport,
+    /// Samples of the last round.
+    pub counts: SampleCounts,
+    /// Terms dropped in the last round, by reason.
+    pub dropped: BTreeMap<TermDropped, usize>,
+    /// The homogeneous baseline, if its fit succeeded.
+    pub baseline: Option<FittedBaseline>,
+}
+
+/// One round's results, folded over the groups in parallel.
+#[derive(Default)]
+struct RoundState {
+    fits: Vec<(usize, Result<GroupFit, FailReason>)>,
+    alpha: Vec<[AlphaAccumulator; 3]>,
+    counts: SampleCounts,
+    dropped: BTreeMap<TermDropped, usize>,
+    /// Training objective of this round's fits (see [`fit_groups`]).
+    objective: f64,
+    /// The same of the previous round's fits.
+    objective_prev: f64,
+    /// Groups that kept their previous fit.
+    kept_previous: usize,
+}
+
+impl RoundState {
+    fn merge(mut self, mut other: RoundState) -> RoundState {
+        self.fits.append(&mut other.fits);
+        if self.alpha.is_empty() {
+            self.alpha = other.alpha;
+        } else if !other.alpha.is_empty() {
+            for (a, b) in self.alpha.iter_mut().zip(&other.alpha) {
+                for c in 0..3 {
+                    a[c].merge(&b[c]);
+                }
+            }
+        }
+        self.counts.add(&other.counts);
+        self.objective += other.objective;
+        self.objective_prev += other.objective_prev;
+        self.kept_previous += other.kept_previous;
+        for (k, v) in other.dropped {
+            *self.dropped.entry(k).or_default() += v;
+        }
+        self
+    }
+}
+
+/// Sum over a group's (alpha-divided) samples of (ln R_d − ln s)^2: its share of the training
+/// objective.
+fn sq_err(m: &ColourModel, data: &ChannelSamples) -> f64 {
+    let mut o = 0.0;
+    for (ch, d) in data.iter().enumerate() {
+        for x in d {
+            let e = m.ln_eval(x.r, x.phi)[ch] - x.s.ln();
+            if e.is_finite() {
+                o += e * e;
+            }
+        }
+    }
+    o
+}
+
+/// Fits every group, then runs the alpha rounds (Eq. 6): round 0 fits the samples as captured;
+/// each further round divides them by the previous round's alpha(x_o) and refits, so the
+/// modulation texture is not mistaken for noise by the fit of R_d, until alpha changes by less
+/// than `alpha_tolerance` or `alpha_rounds` extra rounds ran. Every round re-reads the frames.
+///
+/// The rounds are a block coordinate descent on the training objective
+/// O(R_d, alpha) = Σ (ln alpha + ln R_d − ln s)^2: Eq. 6 in log space is its minimiser over alpha
+/// for fixed R_d (up to the prior of [`crate::model::ALPHA_PRIOR`]), and a group whose refit is
+/// worse than its previous fit against the same alpha (LM finds local minima) keeps the previous
+/// one. A round that does not lower O is discarded and the rounds stop; the report lists every
+/// round (`AlphaReport::round_log`).
+pub fn fit_groups(
+    ctx: &Context,
+    regs: &[RegisteredFrame],
+    groups: &Groups,
+    fitter: &dyn Fitter,
+    progress: &dyn Progress,
+) -> Fitted {
+    let opts = &ctx.opts;
+    let nv = ctx.ds.mesh.positions.len();
+    let fit_round = |alpha_div: Option<&[[f64; 3]]>,
+                     round: usize,
+                     prev: Option<&[Option<GroupFit>]>|
+     -> RoundState {
+        progress.start(
+            &format!("fit (round {})", round + 1),
+            groups.keys.len() as u64,
+        );
+        let mut state = groups
+            .keys
+            .par_iter()
+            .enumerate()
+            .fold(RoundState::default, |mut st, (idx, key)| {
+                let mut dropped = Vec::new();
+                let old = prev.and_then(|p| p.get(idx).cloned().flatten());
+                let out = group_samples(ctx, regs, key).and_then(|(mut data, counts)| {
+                    if let Some(a) = alpha_div {
+                        for (ch, d) in data.iter_mut().enumerate() {
+                            for x in d.iter_mut() {
+                                x.s /= a[x.vertex as usize][ch];
+                            }
+                        }
+                    }
+                    let new = fit_samples(&data, &opts.model, fitter, &mut dropped).map(
+                        |(model, terms)| {
+                            let r_range = data
+                                .iter()
+                                .flatten()
+                                .fold([f64::INFINITY, 0.0], |[lo, hi], x| {
+                                    [lo.min(x.r), hi.max(x.r)]
+                                });
+                            GroupFit {
+                                model,
+                                terms,
+                                r_range,
+                            }
+                        },
+                    );
+                    let o_old = old.as_ref().map(|g| sq_err(&g.model, &data));
+                    let (g, o_new, kept_old) = match (new, old, o_old) {
+                        (Ok(g), Some(old), Some(oo)) => {
+                            let on = sq_err(&g.model, &data);
+                            if on <= oo {
+                                (g, on, false)
+                            } else {
+                                (old, oo, true)
+                            }
+                        }
+                        (Err(_), Some(old), Some(oo)) => (old, oo, true),
+                        (Ok(g), _, _) => {
+                            let on = sq_err(&g.model, &data);
+                            (g, on, false)
+                        }
+                        (Err(e), _, _) => return Err(e),
+                    };
+                    Ok((g, data, counts, o_new, o_old.unwrap_or(o_new), kept_old))
+                });
+                for why in dropped {
+                    *st.dropped.entry(why).or_default() += 1;
+                }
+                match out {
+                    Ok((g, data, counts, o_new, o_old, kept_old)) => {
+                        st.objective += o_new;
+                        st.objective_prev += o_old;
+                        st.kept_previous += kept_old as usize;
+                        // Eq. 6 contributions are folded right away so the samples can be dropped.
+                        if st.alpha.is_empty() {
+                            st.alpha = vec![[AlphaAccumulator::default(); 3]; nv];
+                        }
+                        for (ch, d) in data.iter().enumerate() {
+                            for x in d {
+                                // Eq. 6 compares the captured sample with R_d.
+                                let s = alpha_div.map_or(x.s, |a| x.s * a[x.vertex as usize][ch]);
+                                let ln_rd = g.model.ln_eval(x.r, x.phi)[ch];
+                                st.alpha[x.vertex as usize][ch].add_ln(
+                                    s,
+                                    ln_rd,
+                                    &opts.alpha_window,
+                                );
+                            }
+                        }
+                        st.counts.add(&counts);
+                        st.fits.push((idx, Ok(g)));
+                    }
+                    Err(e) => st.fits.push((idx, Err(e))),
+                }
+                progress.inc(1);
+                st
+            })
+            .reduce(RoundState::default, RoundState::merge);
+        state.fits.sort_by_key(|f| f.0);
+        state
+    };
+    let by_index = |st: &RoundState| -> Vec<Option<GroupFit>> {
+        let mut v: Vec<Option<GroupFit>> = vec![None; groups.keys.len()];
+        for (idx, f) in &st.fits {
+            if let Ok(g) = f {
+                v[*idx] = Some(g.clone());
+            }
+        }
+        v
+    };
+    let mut state = fit_round(None, 0, None);
+    let mut round_log = vec![AlphaRound {
+        round: 0,
+        objective: state.objective,
+        previous: state.objective,
+        fits_kept_previous: 0,
+        kept: true,
+    }];
+    let mut rounds = 0;
+    let mut last_change = 0.0;
+    let mut converged = false;
+    let mut previous: Option<Vec<[f64; 3]>> = None;
+    for round in 1..=opts.alpha_rounds {
+        let (a, _) = alpha_texture(&state.alpha, nv, &ctx.scene);
+        if let Some(prev) = &previous {
+            last_change = rms_ln_change(prev, &a);
+            if last_change < opts.alpha_tolerance {
+                converged = true;
+                break;
+            }
+        }
+        let prev_fits = by_index(&state);
+        let next = fit_round(Some(&a), round, Some(&prev_fits));
+        let kept = next.objective < next.objective_prev * (1.0 - 1e-9);
+        round_log.push(AlphaRound {
+            round,
+            objective: next.objective,
+            previous: next.objective_prev,
+            fits_kept_previous: next.kept_previous,
+            kept,
+        });
+        if !kept {
+            // No gain: the previous state (its fits and their Eq. 6) stands.
+            converged = true;
+            break;
+        }
+        state = next;
+        rounds = round;
+        previous = Some(a);
+    }
+    let (alpha, mut alpha_report) = alpha_texture(&state.alpha, nv, &ctx.scene);
+    if let Some(prev) = &previous {
+        last_change = rms_ln_change(prev, &alpha);
+        converged |= last_change < opts.alpha_tolerance;
+    }
+    alpha_report.rounds = rounds;
+    alpha_report.last_change = last_change;
+    alpha_report.converged = converged || opts.alpha_rounds == 0;
+    alpha_report.round_log = round_log;
+    let baseline = fit_baseline(ctx, regs, groups, fitter);
+    Fitted {
+        fits: state.fits.into_iter().map(|(_, f)| f).collect(),
+        alpha,
+        alpha_report,
+        counts: state.counts,
+        dropped: state.dropped,
+        baseline,
+    }
+}
+
+/// The homogeneous baseline: one isotropic fall-off (m = 1, the model's colour mode) fitted to
+/// every group's samples pooled as captured (alpha = 1), at most [`BASELINE_POOL`] per channel
+/// and group (evenly strided). `None` if that fit fails.
+fn fit_baseline(
+    ctx: &Context,
+    regs: &[RegisteredFrame],
+    groups: &Groups,
+    fitter: &dyn Fitter,
+) -> Option<FittedBaseline> {
+    let pooled: ChannelSamples = groups
+        .keys
+        .par_iter()
+        .map(|key| {
+            let mut out: ChannelSamples = Default::default();
+            if let Ok((data, _)) = group_samples(ctx, regs, key) {
+                for (ch, d) in data.into_iter().enumerate() {
+                    let step = d.len().div_ceil(BASELINE_POOL).max(1);
+                    out[ch].extend(d.into_iter().step_by(step).map(|x| GroupSample {
+                        phi: None,
+                        ..x
+                    }));
+                }
+            }
+            out
+        })
+        .reduce(ChannelSamples::default, |mut a, b| {
+            for (x, y) in a.iter_mut().zip(b) {
+                x.extend(y);
+            }
+            a
+        });
+    let choice = ModelChoice {
+        colour: ctx.opts.model.colour,
+        segments: 1,
+    };
+    let (model, terms) = fit_samples(&pooled, &choice, fitter, &mut Vec::new()).ok()?;
+    let r_range = pooled
+        .iter()
+        .flatten()
+        .fold([f64::INFINITY, 0.0], |[lo, hi], x| [lo.min(x.r), hi.max(x.r)]);
+    let (params, _, _) = params_of(&model).ok()?;
+    params.iter().all(|p| p.is_finite()).then(|| FittedBaseline {
+        baseline: Baseline { model, r_range },
+        params: BaselineParams {
+            terms,
+            params,
+            r_range,
+        },
+        samples: pooled.iter().map(Vec::len).sum(),
+    })
+}
+
+/// The baseline of a run: for prediction, for the model file, and how many samples it pooled.
+#[derive(Debug, Clone)]
+pub struct FittedBaseline {
+    /// As prediction uses it.
+    pub baseline: Baseline,
+    /// As the model file stores it.
+    pub params: BaselineParams,
+    /// Channel samples pooled.
+    pub samples: usize,
+}
+
+/// RMS over vertices and channels of the change of ln alpha(x_o) between two rounds.
+fn rms_ln_change(a: &[[f64; 3]], b: &[[f64; 3]]) -> f64 {
+    let (sum, n) = a
+        .iter()
+        .zip(b)
+        .flat_map(|(x, y)| x.iter().zip(y).map(|(p, q)| (p.ln() - q.ln()).powi(2)))
+        .filter(|d| d.is_finite())
+        .fold((0.0, 0usize), |(s, n), d| (s + d, n + 1));
+    if n == 0 { 0.0 } else { (sum / n as f64).sqrt() }
+}
+
+/// Eq. 6 per vertex from the accumulated samples; vertices no fitted frame saw (Eq. 6's X is
+/// empty: not visible from any camera at any selected turntable angle) take the harmonic
+/// interpolation of ln alpha from their mesh neighbours, and 1 where no neighbour has data.
+fn alpha_texture(
+    acc: &[[AlphaAccumulator; 3]],
+    nv: usize,
+    scene: &Scene,
+) -> (Vec<[f64; 3]>, AlphaReport) {
+    let own: Vec<Option<Vec<f64>>> = (0..nv)
+        .map(|v| {
+            let a = acc.get(v)?;
+            let vals: Vec<Option<f64>> = a
+                .iter()
+                .map(|c| c.alpha().filter(|x| x.is_finite() && *x > 0.0))
+                .collect();
+            // A channel without samples in the window takes the vertex's other channels' mean.
+            let known: Vec<f64> = vals.iter().flatten().map(|x| x.ln()).collect();
+            if known.is_empty() {
+                return None;
+            }
+            let mean = known.iter().sum::<f64>() / known.len() as f64;
+            Some(vals.iter().map(|x| x.map_or(mean, f64::ln)).collect())
+        })
+        .collect();
+    let filled = crate::interpolate::harmonic(&own, |v| scene.neighbours(v), 500);
+    let mut rep = AlphaReport::default();
+    let alpha = (0..nv)
+        .map(|v| {
+            if own[v].is_some() {
+                rep.from_samples += 1;
+            } else if filled[v].is_some() {
+                rep.interpolated += 1;
+            } else {
+                rep.default_one += 1;
+            }
+            match &filled[v] {
+                Some(l) if l.len() == 3 => [l[0].exp(), l[1].exp(), l[2].exp()],
+                _ => [1.0; 3],
+            }
+        })
+        .collect();
+    (alpha, rep)
+}

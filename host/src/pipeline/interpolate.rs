@@ -1,0 +1,234 @@
+//! Stage `interpolate` (section 5: "vertices for which no stable fit could be achieved were
+//! filtered out and interpolated from neighboring vertices"): a model for every vertex without
+//! an accepted fit of its own.
+//!
+//! Neighbouring fits are not term-aligned, so what is interpolated is each fitted vertex's curve
+//! ln R_d(r) (per segment and, for per-channel models, per channel) on a common distance grid,
+//! with ln s_g, ln s_b and the sampled range; the interpolated curve is then refitted
+//! (term-aligned by construction) with the most common order. Where that refit fails, the
+//! nearest fitted vertex's model stands in. Owns no samples: it sees only accepted models.
+use rayon::prelude::*;
+
+use crate::geometry::Scene;
+use crate::model::{Anisotropic, ColourModel, ExpSum, Support};
+use crate::modelfile::{ColourMode, ModelShape, params_of};
+
+use super::error::OwnFit;
+use super::fit::{Fitter, fit_common_order};
+use super::report::TermDropped;
+
+/// An interpolated vertex's refit: parameters, order, sampled range.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Refit {
+    /// Parameters in the model file's order.
+    pub params: Vec<f64>,
+    /// Order n.
+    pub terms: usize,
+    /// Sampled range of the interpolated curve.
+    pub r_range: [f64; 2],
+}
+
+/// A model for every vertex without its own (`None` for vertices with one, and for vertices
+/// not connected to any fitted vertex). `common_n` is the order refits use at most.
+pub fn fill(
+    scene: &Scene,
+    own: &[Option<OwnFit>],
+    shape: &ModelShape,
+    common_n: usize,
+    fitter: &dyn Fitter,
+) -> Vec<Option<Refit>> {
+    let grid = CurveGrid::of(own.iter().flatten().map(|o| o.r_range));
+    let known: Vec<Option<Vec<f64>>> = own
+        .iter()
+        .map(|o| o.as_ref().map(|o| grid.encode(&o.model, o.r_range)))
+        .collect();
+    let filled = crate::interpolate::harmonic(&known, |v| scene.neighbours(v), 2000);
+    (0..own.len())
+        .into_par_iter()
+        .map(|v| {
+            if own[v].is_some() {
+                return None;
+            }
+            let enc = filled[v].as_ref()?;
+            let mut dropped = Vec::new();
+            let refit = grid
+                .decode(enc, shape, common_n, fitter, &mut dropped)
+                .and_then(|(m, range)| match params_of(&m) {
+                    Ok((p, n, _)) if p.iter().all(|x| x.is_finite()) => Some(Refit {
+                        params: p,
+                        terms: n,
+                        r_range: range,
+                    }),
+                    _ => None,
+                });
+            // Where the interpolated curve cannot be refitted, the nearest fitted vertex's own
+            // model (breadth-first over the mesh) stands in.
+            refit.or_else(|| {
+                nearest_fitted(v, own, |w| scene.neighbours(w)).map(|o| Refit {
+                    params: o.params.clone(),
+                    terms: o.terms,
+                    r_range: o.r_range,
+                })
+            })
+        })
+        .collect()
+}
+
+/// The fitted vertex nearest to `v` in mesh hops (breadth-first), if any is connected.
+fn nearest_fitted<'a, 'n>(
+    v: usize,
+    own: &'a [Option<OwnFit>],
+    neighbours: impl Fn(usize) -> &'n [u32],
+) -> Option<&'a OwnFit> {
+    let mut seen = std::collections::HashSet::from([v]);
+    let mut frontier = vec![v];
+    while !frontier.is_empty() {
+        let mut next = Vec::new();
+        for &u in &frontier {
+            for &w in neighbours(u) {
+                let w = w as usize;
+                if w < own.len() && seen.insert(w) {
+                    if let Some(o) = &own[w] {
+                        return Some(o);
+                    }
+                    next.push(w);
+                }
+            }
+        }
+        frontier = next;
+    }
+    None
+}
+
+/// The distance grid on which fitted curves ln R_d(r) are interpolated between vertices.
+struct CurveGrid {
+    r: Vec<f64>,
+}
+
+/// Points of [`CurveGrid`] and of each refit.
+const GRID_POINTS: usize = 32;
+/// Points of the refit of an interpolated curve, spread over its sampled range.
+const REFIT_POINTS: usize = 24;
+
+impl CurveGrid {
+    /// Spans every fitted vertex's sampled range.
+    fn of(ranges: impl Iterator<Item = [f64; 2]>) -> CurveGrid {
+        let (mut lo, mut hi) = (f64::INFINITY, 0.0f64);
+        for [a, b] in ranges {
+            lo = lo.min(a);
+            hi = hi.max(b);
+        }
+        if !(lo.is_finite() && hi > lo) {
+            (lo, hi) = (0.5, 10.0);
+        }
+        let r = (0..GRID_POINTS)
+            .map(|k| lo + (hi - lo) * k as f64 / (GRID_POINTS - 1) as f64)
+            .collect();
+        CurveGrid { r }
+    }
+
+    /// ln R_d of `f` at `r` under the model's support rule ([`crate::model::support`]).
+    fn ln_supported(f: &ExpSum, support: Support, r: f64) -> f64 {
+        let a = support.anchor(r);
+        support.extend(r, f.ln_eval(a), f.ln_slope(a))
+    }
+
+    /// The fall-off curves of a model: per channel (per-channel models) and segment.
+    fn curves(m: &ColourModel) -> Vec<&ExpSum> {
+        match m {
+            ColourModel::Shared { falloff, .. } => falloff.segments.iter().collect(),
+            ColourModel::PerChannel { channels } => {
+                channels.iter().flat_map(|c| c.segments.iter()).collect()
+            }
+        }
+    }
+
+    /// `[ln r_min, ln r_max, (ln s_g, ln s_b), ln R_d on the grid for every curve]`.
+    fn encode(&self, m: &ColourModel, range: [f64; 2]) -> Vec<f64> {
+        let mut out = vec![range[0].max(1e-6).ln(), range[1].max(1e-6).ln()];
+        if let ColourModel::Shared { s_g, s_b, .. } = m {
+            out.push(s_g.ln());
+            out.push(s_b.ln());
+        }
+        for f in Self::curves(m) {
+            let support = Support::new(range[0], range[1]);
+            out.extend(self.r.iter().map(|&r| Self::ln_supported(f, support, r)));
+        }
+        out
+    }
+
+    /// ln R_d of curve `k` of an encoding at `r` (piecewise linear between grid points; the end
+    /// segments continue linearly).
+    fn ln_at(&self, enc: &[f64], head: usize, k: usize, r: f64) -> f64 {
+        let g = &enc[head + k * self.r.len()..head + (k + 1) * self.r.len()];
+        let n = self.r.len();
+        let step = (self.r[n - 1] - self.r[0]) / (n - 1) as f64;
+        let x = ((r - self.r[0]) / step).clamp(0.0, (n - 1) as f64);
+        let i = (x.floor() as usize).min(n - 2);
+        let t = (r - self.r[i]) / step;
+        g[i] + (g[i + 1] - g[i]) * t
+    }
+
+    /// Refits an interpolated encoding: the model (term-aligned by construction, order at most
+    /// `n`) and its range. `None` if a refit fails.
+    fn decode(
+        &self,
+        enc: &[f64],
+        shape: &ModelShape,
+        n: usize,
+        fitter: &dyn Fitter,
+        dropped: &mut Vec<TermDropped>,
+    ) -> Option<(ColourModel, [f64; 2])> {
+        let range = [enc[0].exp(), enc[1].exp()];
+        if range[1].partial_cmp(&range[0]) != Some(std::cmp::Ordering::Greater) {
+            return None;
+        }
+        let head = if shape.colour == ColourMode::Shared {
+            4
+        } else {
+            2
+        };
+        let curves = match shape.colour {
+            ColourMode::Shared => shape.segments,
+            ColourMode::PerChannel => 3 * shape.segments,
+        };
+        if enc.len() != head + curves * self.r.len() {
+            return None;
+        }
+        let rs: Vec<f64> = (0..REFIT_POINTS)
+            .map(|k| range[0] + (range[1] - range[0]) * k as f64 / (REFIT_POINTS - 1) as f64)
+            .collect();
+        let sets: Vec<(Vec<f64>, Vec<f64>)> = (0..curves)
+            .map(|k| {
+                let s = rs
+                    .iter()
+                    .map(|&r| self.ln_at(enc, head, k, r).exp())
+                    .collect();
+                (rs.clone(), s)
+            })
+            .collect();
+        // Lower the order when a refit fails (not converged on a smooth curve, e.g.).
+        let fits = (1..=n.max(1))
+            .rev()
+            .find_map(|n| fit_common_order(fitter, &sets, Some(n), dropped).ok())?;
+        let m = shape.segments;
+        let model = match shape.colour {
+            ColourMode::Shared => ColourModel::Shared {
+                falloff: Anisotropic { segments: fits },
+                s_g: enc[2].exp(),
+                s_b: enc[3].exp(),
+            },
+            ColourMode::PerChannel => {
+                let mut it = fits.into_iter();
+                let mut ch = || Anisotropic {
+                    segments: it.by_ref().take(m).collect(),
+                };
+                ColourModel::PerChannel {
+                    channels: [ch(), ch(), ch()],
+                }
+            }
+        };
+        model.validate().ok()?;
+        Some((model, range))
+    }
+}

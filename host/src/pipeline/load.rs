@@ -1,0 +1,114 @@
+//! Stage `load` (section 5: "the acquired data"): the dataset's mesh prepared for ray casts
+//! (BVH, adjacency), its cameras, and reading a frame's image as samples.
+//!
+//! Owns every read of a frame image; never keeps an image beyond the call that read it, so memory
+//! does not grow with the frame count (frames are read again by later passes instead).
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+
+use crate::dataset::{Dataset, DatasetError};
+use crate::geometry::{Camera, Scene, V3, Visible, add_scaled, normalize};
+use crate::registration::{RegistrationOutcome, register_frame};
+use crate::samples::{Sample, SampleCounts, frame_samples};
+
+use super::register::RegisteredFrame;
+use super::{PipelineError, PipelineOptions};
+
+/// Visible vertices per (camera, turntable angle bits).
+type VisCache = HashMap<(usize, u64), Arc<Vec<Visible>>>;
+
+/// Shared state of one run: scene, cameras, cached visibility.
+pub struct Context<'a> {
+    /// The dataset.
+    pub ds: &'a Dataset,
+    /// Mesh with BVH.
+    pub scene: Scene,
+    cams: Vec<Camera>,
+    vis: Mutex<VisCache>,
+    /// Options.
+    pub opts: PipelineOptions,
+}
+
+impl<'a> Context<'a> {
+    /// Prepares the mesh and cameras of `ds`.
+    pub fn new(ds: &'a Dataset, opts: PipelineOptions) -> Result<Context<'a>, PipelineError> {
+        Ok(Context {
+            ds,
+            scene: Scene::new(ds.mesh.clone())?,
+            cams: ds.spec.cameras.iter().map(Camera::new).collect(),
+            vis: Mutex::new(HashMap::new()),
+            opts,
+        })
+    }
+
+    /// The camera model of camera `k`.
+    pub fn camera(&self, k: usize) -> &Camera {
+        &self.cams[k]
+    }
+
+    /// Visible vertices of camera `cam` at turntable angle `deg` (cached: frames share angles).
+    pub fn visible(&self, cam: usize, deg: f64) -> Arc<Vec<Visible>> {
+        let key = (cam, deg.to_bits());
+        if let Ok(m) = self.vis.lock()
+            && let Some(v) = m.get(&key)
+        {
+            return v.clone();
+        }
+        let v = Arc::new(self.scene.visible_vertices(
+            &self.cams[cam],
+            deg,
+            self.opts.samples.cos_min,
+        ));
+        if let Ok(mut m) = self.vis.lock() {
+            if m.len() >= 256 {
+                m.clear();
+            }
+            m.insert(key, v.clone());
+        }
+        v
+    }
+
+    /// Registers frame `k`: reads its image, detects the spot, back-projects it (the `register`
+    /// stage calls this; see [`super::register`]).
+    pub fn register(&self, k: usize) -> Result<RegistrationOutcome, DatasetError> {
+        let img = self.ds.read_frame(k)?;
+        let f = &self.ds.spec.frames[k];
+        Ok(register_frame(
+            &img,
+            f,
+            &self.cams[f.camera],
+            &self.scene,
+            &self.opts.spot,
+        ))
+    }
+
+    /// The samples of a registered frame (reads its image again; the spot is registration's).
+    pub fn samples(
+        &self,
+        reg: &RegisteredFrame,
+    ) -> Result<(Vec<Sample>, SampleCounts), DatasetError> {
+        let img = self.ds.read_frame(reg.frame)?;
+        let f = &self.ds.spec.frames[reg.frame];
+        let vis = self.visible(f.camera, f.turntable_deg);
+        Ok(frame_samples(
+            &img,
+            f,
+            &vis,
+            &self.ds.mesh.positions,
+            reg.x_i,
+            Some(&reg.spot),
+            &self.opts.samples,
+        ))
+    }
+
+    /// Interpolated unit normal at a point of triangle `tri`.
+    pub fn normal_at(&self, tri: u32, p: V3) -> V3 {
+        let t = self.scene.mesh.triangles[tri as usize];
+        let w = self.scene.barycentric(tri, p);
+        let mut n = [0.0; 3];
+        for k in 0..3 {
+            n = add_scaled(n, w[k], self.scene.mesh.normals[t[k] as usize]);
+        }
+        normalize(n).unwrap_or([0.0, 0.0, 1.0])
+    }
+}

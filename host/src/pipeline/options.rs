@@ -1,0 +1,129 @@
+//! Every setting of the pipeline, and the policies that derive them: defaults from a dataset's
+//! noise floor and saturation, the speed/accuracy presets, the direction-segment choice.
+use crate::dataset::Dataset;
+use crate::fit::{FitOptions, Preset};
+use crate::model::IntensityWindow;
+use crate::modelfile::ColourMode;
+use crate::registration::SpotOptions;
+use crate::samples::SampleOptions;
+
+/// Which model variant each vertex gets.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct ModelChoice {
+    /// Shared colour (Eq. 5/9) or per channel (Eq. 3).
+    pub colour: ColourMode,
+    /// Direction segments m (Eq. 3); 1 = isotropic (Eq. 9, the paper's choice for objects).
+    pub segments: usize,
+}
+
+/// Every setting of the pipeline.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct PipelineOptions {
+    /// Spot detection and the laser cross-check.
+    pub spot: SpotOptions,
+    /// Sample extraction.
+    pub samples: SampleOptions,
+    /// A vertex whose closest x_i is farther than this (mm) has no data.
+    pub max_select_mm: f64,
+    /// The model variant.
+    pub model: ModelChoice,
+    /// Fits with log E(x_i) (Eq. 8, mean over channels) above this fail.
+    pub max_log_e: f64,
+    /// Fits with log E(x_i) above this multiple of the median over all fits (and above
+    /// [`super::OUTLIER_MIN_LOG_E`]) fail too: outliers, interpolated from neighbours;
+    /// `f64::INFINITY` disables the rule.
+    pub outlier_factor: f64,
+    /// Eq. 6 window [t2, t1] for alpha(x_o).
+    pub alpha_window: IntensityWindow,
+    /// Eq. 8 threshold t.
+    pub error_threshold: f64,
+    /// At most this many extra fit rounds on samples divided by the previous round's alpha(x_o)
+    /// (Eq. 6); 0 fits once and treats the modulation texture as noise.
+    pub alpha_rounds: usize,
+    /// The rounds stop early once alpha has converged: the RMS change of ln alpha(x_o) over the
+    /// vertices between two rounds is below this. Fit and Eq. 6 are a block coordinate descent
+    /// that converges linearly, so a fixed small round count leaves part of the modulation
+    /// texture in the fall-off (measured on the built-in scan: held-out log E 0.026 after one
+    /// round, 0.014 after four); the tolerance pays only for the rounds the data need.
+    pub alpha_tolerance: f64,
+}
+
+impl PipelineOptions {
+    /// Defaults for a dataset: noise floor and saturation from `scan.json`.
+    pub fn for_dataset(ds: &Dataset) -> PipelineOptions {
+        let floor = ds.spec.noise_floor.unwrap_or(0.0);
+        PipelineOptions {
+            spot: SpotOptions {
+                min_peak: 0.0,
+                saturation: ds.spec.saturation,
+                laser_tolerance_mm: 2.0,
+            },
+            samples: SampleOptions {
+                saturation: ds.spec.saturation,
+                ..SampleOptions::default()
+            },
+            max_select_mm: 2.0,
+            model: ModelChoice {
+                colour: ColourMode::Shared,
+                segments: 1,
+            },
+            max_log_e: 1.0,
+            outlier_factor: 3.0,
+            alpha_window: IntensityWindow {
+                t2: 0.0,
+                t1: f64::INFINITY,
+            },
+            error_threshold: 0.0,
+            alpha_rounds: 8,
+            alpha_tolerance: 2e-3,
+        }
+        .with_noise_floor(floor)
+    }
+
+    /// Every setting that follows from the radiance noise floor: samples below it are dropped,
+    /// a spot must be 10× above it, Eq. 6 uses samples 10× above it (t2) and Eq. 8 compares
+    /// samples above it (t).
+    pub fn with_noise_floor(mut self, floor: f64) -> PipelineOptions {
+        self.samples.noise_floor = floor;
+        self.spot.min_peak = 10.0 * floor;
+        self.alpha_window.t2 = 10.0 * floor;
+        self.error_threshold = floor;
+        self
+    }
+
+    /// The model variant and the solver settings of a speed/accuracy preset: the one definition
+    /// `subsurf fit --preset` and `subsurf bench tradeoff` share. `None` is the exact default:
+    /// all samples, n = 3 ([`FitOptions::default`]), isotropic.
+    pub fn with_preset(mut self, preset: Option<Preset>) -> (PipelineOptions, FitOptions) {
+        match preset {
+            None => {
+                self.model.segments = 1;
+                (self, FitOptions::default())
+            }
+            Some(p) => {
+                self.model.segments = p.segments();
+                (self, p.options())
+            }
+        }
+    }
+}
+
+/// How many direction segments m (Eq. 3) the fit uses.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Segments {
+    /// Exactly m.
+    Fixed(usize),
+    /// "Model only what the scene requires": one whole fit per m of [`SEGMENT_LADDER`], keeping
+    /// the smallest m whose mean log E is within `tolerance` (relative) of the best
+    /// ([`crate::fit::choose_order`]).
+    Auto {
+        /// Relative tolerance, e.g. 0.05 = within 5 % of the best.
+        tolerance: f64,
+    },
+}
+
+/// The values of m `--segments auto` tries, in order.
+pub const SEGMENT_LADDER: [usize; 4] = [1, 2, 4, 8];
+
+/// The largest m any fit accepts (the model file and the renderer hold up to it).
+pub const MAX_SEGMENTS: usize = 64;

@@ -1,0 +1,99 @@
+//! Stage `register` (sections 4.1 and 5): the laser spot of every frame, found once, and its
+//! light position x_i on the mesh.
+//!
+//! Owns spot detection for the whole run: a [`RegisteredFrame`] carries the spot, and every later
+//! stage (samples of every fit round, the error pass, evaluation) uses that one instead of
+//! detecting it again. Never keeps an image.
+use rayon::prelude::*;
+
+use crate::geometry::V3;
+use crate::progress::Progress;
+use crate::registration::{RegistrationOutcome, Spot};
+
+use super::load::Context;
+use super::report::FrameCounts;
+
+/// A frame whose spot lies on the object: its light position x_i and the spot it was found at.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RegisteredFrame {
+    /// Frame index in the dataset.
+    pub frame: usize,
+    /// The light position x_i (object frame, mm).
+    pub x_i: V3,
+    /// Triangle of the mesh that holds x_i.
+    pub triangle: u32,
+    /// The spot in the frame's image (its light is excluded from the samples).
+    pub spot: Spot,
+    /// Bit c set = the frame measured colour channel c.
+    pub channels: u8,
+}
+
+impl RegisteredFrame {
+    /// The registered frame of an outcome, if registration found the spot on the object.
+    fn of(ctx: &Context, k: usize, outcome: &RegistrationOutcome) -> Option<RegisteredFrame> {
+        let RegistrationOutcome::Registered {
+            x_i,
+            triangle,
+            spot,
+            ..
+        } = *outcome
+        else {
+            return None;
+        };
+        let channels = ctx.ds.spec.frames[k].channel.channels();
+        Some(RegisteredFrame {
+            frame: k,
+            x_i,
+            triangle,
+            spot,
+            channels: channels.iter().fold(0u8, |m, c| m | (1 << c)),
+        })
+    }
+}
+
+/// Registers frame `k` alone (evaluation, prediction, pictures); the reason as text if the frame
+/// is not registered or cannot be read.
+pub fn register_one(ctx: &Context, k: usize) -> Result<RegisteredFrame, String> {
+    let outcome = ctx.register(k).map_err(|e| e.to_string())?;
+    RegisteredFrame::of(ctx, k, &outcome).ok_or_else(|| format!("not registered: {outcome:?}"))
+}
+
+/// Registers the frames `frames` in parallel (one image per worker at a time), in frame order;
+/// frames that are not registered are counted in `counts` by reason.
+pub fn register_frames(
+    ctx: &Context,
+    frames: &[usize],
+    counts: &mut FrameCounts,
+    progress: &dyn Progress,
+) -> Vec<RegisteredFrame> {
+    progress.start("registration", frames.len() as u64);
+    let outcomes: Vec<_> = frames
+        .par_iter()
+        .map(|&k| {
+            let r = ctx.register(k).map_err(|e| e.to_string());
+            progress.inc(1);
+            (k, r)
+        })
+        .collect();
+    let mut out = Vec::new();
+    for (k, r) in outcomes {
+        match r {
+            Ok(o) => match o {
+                RegistrationOutcome::Registered { .. } => {
+                    counts.registered += 1;
+                    out.extend(RegisteredFrame::of(ctx, k, &o));
+                }
+                RegistrationOutcome::NoSpot => counts.no_spot += 1,
+                RegistrationOutcome::SpotOffObject => counts.spot_off_object += 1,
+                RegistrationOutcome::LaserMismatch { .. } => counts.laser_mismatch += 1,
+            },
+            Err(e) => {
+                counts.unreadable += 1;
+                if counts.unreadable_errors.len() < 10 {
+                    counts.unreadable_errors.push(e);
+                }
+            }
+        }
+    }
+    out
+}

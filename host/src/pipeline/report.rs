@@ -1,0 +1,231 @@
+//! What a run found: `fit-report.json` and the per-vertex failure reasons it counts.
+use std::collections::BTreeMap;
+
+use crate::fit::OrderChoice;
+use crate::samples::SampleCounts;
+
+use super::PipelineOptions;
+
+/// Why a vertex has no fitted model of its own.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FailReason {
+    /// No light position within the selection distance (for every needed channel).
+    NoData,
+    /// Too few usable samples, or at too few distances.
+    TooFewSamples,
+    /// The solver did not converge.
+    NotConverged,
+    /// log E(x_i) (Eq. 8) above the acceptance threshold.
+    HighError,
+    /// The fit gave non-finite or non-physical parameters (c <= 0, d >= 0, s <= 0).
+    NonPhysical,
+    /// The selected frame's image could not be read.
+    FrameUnreadable,
+}
+
+/// Why a fitted exponential term was dropped ("model only what the scene requires"): the
+/// samples do not support it, so the fit is repeated with one term fewer.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TermDropped {
+    /// The term hardly decays over the sampled distances (|d|·(r_max − r_min) below
+    /// [`super::MIN_DECAY`]): it is indistinguishable from a constant there and would never
+    /// decay beyond (fits produce d ≈ −1e−16 such terms).
+    NonDecaying,
+    /// The term carries at least [`super::MIN_SHARE`] of R_d at fewer than
+    /// [`super::MIN_SUPPORT`] distinct sampled distances: typically a fall-off steeper than the
+    /// spacing of the samples near x_i resolves, which the fit places below the smallest
+    /// sampled distance, where it explodes.
+    Unresolved,
+}
+
+/// Frames by what registration concluded.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct FrameCounts {
+    /// Frames in the dataset.
+    pub total: usize,
+    /// Frames selected for this run (`--frames`/`--exclude-frames`).
+    pub selected: usize,
+    /// Frames with x_i on the object.
+    pub registered: usize,
+    /// Frames without a bright enough spot.
+    pub no_spot: usize,
+    /// Frames whose spot is not on the mesh.
+    pub spot_off_object: usize,
+    /// Frames whose spot disagrees with the laser ray (flagged, not used).
+    pub laser_mismatch: usize,
+    /// Frames whose image could not be read.
+    pub unreadable: usize,
+    /// The first few read errors, verbatim.
+    pub unreadable_errors: Vec<String>,
+    /// Frames some vertex selected (fits run).
+    pub fitted: usize,
+}
+
+/// Table-1 statistics of log E(x_i) over the fitted light positions, per channel.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct LogEStats {
+    /// Number of light positions with a value.
+    pub count: usize,
+    /// Mean per channel (Table 1).
+    pub mean: [Option<f64>; 3],
+    /// Median per channel.
+    pub median: [Option<f64>; 3],
+}
+
+impl LogEStats {
+    /// Statistics of per-light values `[r, g, b]` (NaN = missing).
+    pub fn of(values: &[[f64; 3]]) -> LogEStats {
+        let mut st = LogEStats {
+            count: values.len(),
+            ..LogEStats::default()
+        };
+        for c in 0..3 {
+            let mut v: Vec<f64> = values
+                .iter()
+                .map(|x| x[c])
+                .filter(|x| x.is_finite())
+                .collect();
+            if v.is_empty() {
+                continue;
+            }
+            v.sort_by(f64::total_cmp);
+            st.mean[c] = Some(v.iter().sum::<f64>() / v.len() as f64);
+            let m = v.len() / 2;
+            st.median[c] = Some(if v.len() % 2 == 1 {
+                v[m]
+            } else {
+                0.5 * (v[m - 1] + v[m])
+            });
+        }
+        st
+    }
+
+    /// The mean over channels of the per-channel means (`None` if no channel has one): the
+    /// single figure `--segments auto` compares.
+    pub fn mean_over_channels(&self) -> Option<f64> {
+        let means: Vec<f64> = self.mean.iter().flatten().copied().collect();
+        (!means.is_empty()).then(|| means.iter().sum::<f64>() / means.len() as f64)
+    }
+}
+
+/// `fit-report.json`.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct FitReport {
+    /// Vertices of the mesh.
+    pub vertices: usize,
+    /// Vertices with their own fit.
+    pub vertices_fitted: usize,
+    /// Vertices interpolated from neighbours.
+    pub vertices_interpolated: usize,
+    /// Vertices left without a model (not connected to any fitted vertex).
+    pub vertices_no_model: usize,
+    /// Failed vertices by reason (before interpolation).
+    pub failures: BTreeMap<FailReason, usize>,
+    /// Frames.
+    pub frames: FrameCounts,
+    /// Mesh problems found on loading.
+    pub mesh: crate::dataset::MeshReport,
+    /// Samples kept and dropped in the fit stage.
+    pub samples: SampleCounts,
+    /// log E(x_i) (Eq. 8, with alpha) over fitted light positions.
+    pub log_e: LogEStats,
+    /// Number of fitted light positions per chosen model order n.
+    pub orders: BTreeMap<usize, usize>,
+    /// Terms dropped because the samples do not support them, by reason (each drop refits
+    /// with one term fewer; counted in the last fit round, not in interpolation refits).
+    pub terms_dropped: BTreeMap<TermDropped, usize>,
+    /// Where each vertex's alpha(x_o) (Eq. 6) comes from.
+    pub alpha: AlphaReport,
+    /// The homogeneous baseline (one isotropic fall-off for all x_i, [`crate::baseline`]).
+    pub baseline: Option<BaselineReport>,
+    /// The log E(x_i) acceptance threshold applied: `max_log_e`, or `outlier_factor` × the
+    /// median fit's log E (at least [`super::OUTLIER_MIN_LOG_E`]) if lower.
+    pub max_log_e: f64,
+    /// Wall time per stage, seconds.
+    pub stage_seconds: BTreeMap<String, f64>,
+    /// Peak resident memory of the process, MiB (Linux; `None` elsewhere).
+    pub peak_rss_mib: Option<f64>,
+    /// The options used.
+    pub options: Option<PipelineOptions>,
+    /// With `--segments auto` ([`super::Segments::Auto`]): every m tried and the one chosen.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub segments_choice: Option<OrderChoice>,
+}
+
+/// The homogeneous baseline in the report.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct BaselineReport {
+    /// Terms n of the fit.
+    pub terms: usize,
+    /// Parameters in the model file's order (m = 1).
+    pub params: Vec<f64>,
+    /// `[r_min, r_max]` of the pooled samples, mm.
+    pub r_range: [f64; 2],
+    /// Channel samples pooled (every k-th of a group's samples above [`BASELINE_POOL`]).
+    pub samples: usize,
+    /// Table-1 statistics of log E(x_i) (Eq. 8, alpha = 1) of the baseline on the fitted light
+    /// positions: compare with `log_e`.
+    pub log_e: LogEStats,
+}
+
+/// At most this many samples per channel of one light position go into the baseline's pooled fit
+/// (evenly strided), so its cost does not grow with the image size.
+pub const BASELINE_POOL: usize = 2000;
+
+/// One alpha round (Eq. 6) in the report.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct AlphaRound {
+    /// Round (0 = the fit on the samples as captured).
+    pub round: usize,
+    /// Training objective after the round's fit: sum over the fitted samples of
+    /// (ln alpha + ln R_d − ln s)^2 with the alpha it was fitted against.
+    pub objective: f64,
+    /// The same objective of the previous round's fits with this round's alpha (what the round
+    /// had to beat); equals `objective` for round 0.
+    pub previous: f64,
+    /// Light positions whose new fit was worse than their previous one and kept the previous.
+    pub fits_kept_previous: usize,
+    /// Whether the round lowered the objective and was kept (a round that does not is
+    /// discarded and the rounds stop).
+    pub kept: bool,
+}
+
+/// Where the vertices' alpha(x_o) (Eq. 6) come from.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct AlphaReport {
+    /// Eq. 6 from the vertex's own samples in the intensity window.
+    pub from_samples: usize,
+    /// No sample in the window (never seen by a fitted frame): interpolated from neighbours.
+    pub interpolated: usize,
+    /// Neither: alpha = 1.
+    pub default_one: usize,
+    /// Fit rounds on alpha-divided samples that were run (at most `alpha_rounds`).
+    pub rounds: usize,
+    /// RMS change of ln alpha(x_o) in the last round (0 when no extra round ran): below
+    /// `alpha_tolerance` when the rounds converged.
+    pub last_change: f64,
+    /// Whether the rounds stopped because alpha converged (RMS change below the tolerance) or a
+    /// round no longer lowered the objective.
+    pub converged: bool,
+    /// Every round: its training objective and whether it was kept.
+    pub round_log: Vec<AlphaRound>,
+}
+
+/// Wall time per stage, into the report.
+pub(crate) struct StageClock(std::time::Instant);
+
+impl StageClock {
+    pub(crate) fn start() -> StageClock {
+        StageClock(std::time::Instant::now())
+    }
+
+    /// Records the time since the last lap as stage `name`.
+    pub(crate) fn lap(&mut self, name: &str, report: &mut FitReport) {
+        report
+            .stage_seconds
+            .insert(name.to_string(), self.0.elapsed().as_secs_f64());
+        self.0 = std::time::Instant::now();
+    }
+}
