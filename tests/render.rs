@@ -230,6 +230,7 @@ fn torus_model_file() -> subsurf::modelfile::ModelFile {
         normals: t.normals.clone(),
         triangles: t.faces.clone(),
         vertices,
+        baseline: None,
     }
 }
 

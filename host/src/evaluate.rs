@@ -58,6 +58,9 @@ pub struct ModelAt {
     pub corners: Vec<Corner>,
     /// Tangent frame at x_i (for anisotropic models).
     pub frame: TangentFrame,
+    /// The model's homogeneous baseline, which prediction falls back towards beyond a corner's
+    /// sampled distances ([`crate::baseline::with_fallback`]).
+    pub baseline: Option<crate::baseline::Baseline>,
 }
 
 impl ModelAt {
@@ -65,7 +68,8 @@ impl ModelAt {
     ///
     /// A corner whose samples did not reach down to r (r below its r_min) only extrapolates
     /// there, so its barycentric weight is damped by [`Support::weight`]: where another corner
-    /// was sampled, that corner decides; where none was, all extrapolate together.
+    /// was sampled, that corner decides; where none was, all extrapolate together. Beyond a
+    /// corner's r_max its prediction moves towards the homogeneous baseline, if the model has one.
     pub fn ln_eval(&self, r: f64, phi: Option<f64>) -> [f64; 3] {
         let mut out = [0.0; 3];
         let mut total = 0.0;
@@ -75,7 +79,7 @@ impl ModelAt {
                 continue;
             }
             total += w;
-            let l = ln_eval_supported(&c.model, c.support, r, phi);
+            let l = self.corner_ln(c, r, phi);
             for k in 0..3 {
                 out[k] += w * l[k];
             }
@@ -86,13 +90,25 @@ impl ModelAt {
             // Every weight underflowed (far below every r_min): plain barycentric blend.
             let mut out = [0.0; 3];
             for c in &self.corners {
-                let l = ln_eval_supported(&c.model, c.support, r, phi);
+                let l = self.corner_ln(c, r, phi);
                 for k in 0..3 {
                     out[k] += c.weight * l[k];
                 }
             }
             out
         }
+    }
+}
+
+impl ModelAt {
+    fn corner_ln(&self, c: &Corner, r: f64, phi: Option<f64>) -> [f64; 3] {
+        crate::baseline::with_fallback(
+            ln_eval_supported(&c.model, c.support, r, phi),
+            c.support,
+            r,
+            phi,
+            self.baseline.as_ref(),
+        )
     }
 }
 
@@ -129,7 +145,15 @@ pub fn model_at(ctx: &Context, model: &ModelFile, tri: u32, x_i: V3) -> Option<M
         };
     }
     let frame = TangentFrame::from_normal(ctx.normal_at(tri, x_i)).ok()?;
-    Some(ModelAt { corners, frame })
+    let baseline = model
+        .baseline
+        .as_ref()
+        .and_then(|b| b.baseline(model.shape.colour));
+    Some(ModelAt {
+        corners,
+        frame,
+        baseline,
+    })
 }
 
 /// alpha(x_o) (Eq. 2) at a vertex.

@@ -5,6 +5,7 @@
 //! become a model (`model`, `fit`), and the model is rendered and judged (`render`, `plot`).
 #![warn(missing_docs)]
 
+pub mod baseline;
 pub mod calib;
 pub mod curves;
 pub mod dataset;
@@ -27,6 +28,7 @@ pub mod selection;
 pub mod sim;
 pub mod simulate;
 pub mod util;
+pub mod validate;
 
 /// The model and its fitting live in the `subsurf-model` crate (no files, no rig); re-exported
 /// here so `subsurf::model` and `subsurf::fit` name them as before.

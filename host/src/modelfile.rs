@@ -120,6 +120,76 @@ pub struct ModelFile {
     pub triangles: Vec<[u32; 3]>,
     /// One model per vertex.
     pub vertices: Vec<VertexModel>,
+    /// The homogeneous baseline (one isotropic fall-off for the whole object, `docs/model-format.md`,
+    /// [`crate::baseline`]); `None` in files written without one.
+    pub baseline: Option<BaselineParams>,
+}
+
+/// The homogeneous baseline as the file holds it (header line `comment baseline <n> <r_min>
+/// <r_max> <params...>`): the parameters of one isotropic (m = 1) vertex model in the file's
+/// colour mode.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BaselineParams {
+    /// Terms n.
+    pub terms: usize,
+    /// Parameters in the order of a vertex's `params` with m = 1.
+    pub params: Vec<f64>,
+    /// `[r_min, r_max]` of the pooled samples, mm.
+    pub r_range: [f64; 2],
+}
+
+impl BaselineParams {
+    /// The colour model, validated.
+    pub fn model(
+        &self,
+        colour: ColourMode,
+    ) -> Result<crate::model::ColourModel, crate::model::ModelError> {
+        let shape = ModelShape {
+            terms: self.terms,
+            segments: 1,
+            colour,
+        };
+        model_of(&shape, self.terms, &self.params)
+    }
+
+    /// The baseline as prediction uses it.
+    pub fn baseline(&self, colour: ColourMode) -> Option<crate::baseline::Baseline> {
+        Some(crate::baseline::Baseline {
+            model: self.model(colour).ok()?,
+            r_range: self.r_range,
+        })
+    }
+
+    fn header_line(&self) -> String {
+        let mut l = format!(
+            "comment baseline {} {} {}",
+            self.terms, self.r_range[0], self.r_range[1]
+        );
+        for p in &self.params {
+            l.push_str(&format!(" {p}"));
+        }
+        l.push('\n');
+        l
+    }
+
+    fn parse(words: &[&str], colour: Option<ColourMode>) -> Option<BaselineParams> {
+        let terms: usize = words.first()?.parse().ok()?;
+        let nums: Vec<f64> = words[1..]
+            .iter()
+            .map(|w| w.parse().ok())
+            .collect::<Option<_>>()?;
+        if nums.len() < 2 || nums.iter().any(|x| !x.is_finite()) {
+            return None;
+        }
+        let b = BaselineParams {
+            terms,
+            params: nums[2..].to_vec(),
+            r_range: [nums[0], nums[1]],
+        };
+        // Checked against the colour mode once the header is read (it may come later).
+        let _ = colour;
+        Some(b)
+    }
 }
 
 impl ModelFile {
@@ -155,6 +225,11 @@ impl ModelFile {
                 ));
             }
         }
+        if let Some(b) = &self.baseline {
+            if b.r_range.iter().any(|r| !r.is_finite()) || b.model(self.shape.colour).is_err() {
+                return bad("invalid baseline".into());
+            }
+        }
         for t in &self.triangles {
             if t.iter().any(|&i| i as usize >= n) {
                 return bad("triangle index out of range".into());
@@ -173,7 +248,7 @@ impl ModelFile {
         let mut out = Vec::with_capacity(self.positions.len() * 120 + self.triangles.len() * 13);
         let header = format!(
             "ply\nformat binary_little_endian 1.0\ncomment {MODEL_FORMAT}\ncomment terms {}\n\
-             comment segments {}\ncomment colour {colour}\nelement vertex {}\n\
+             comment segments {}\ncomment colour {colour}\n{}element vertex {}\n\
              property double x\nproperty double y\nproperty double z\n\
              property double nx\nproperty double ny\nproperty double nz\n\
              property float alpha_r\nproperty float alpha_g\nproperty float alpha_b\n\
@@ -183,6 +258,9 @@ impl ModelFile {
              property list uchar int vertex_indices\nend_header\n",
             self.shape.terms,
             self.shape.segments,
+            self.baseline
+                .as_ref()
+                .map_or(String::new(), BaselineParams::header_line),
             self.positions.len(),
             self.triangles.len()
         );
@@ -237,6 +315,7 @@ impl ModelFile {
         let mut line = String::new();
         let mut elements: Vec<(String, usize, Vec<Prop>)> = Vec::new();
         let (mut terms, mut segments, mut colour, mut magic) = (None, None, None, false);
+        let mut baseline = None;
         let mut first = true;
         loop {
             line.clear();
@@ -259,6 +338,12 @@ impl ModelFile {
                 ["comment", "segments", n] => segments = n.parse().ok(),
                 ["comment", "colour", "shared"] => colour = Some(ColourMode::Shared),
                 ["comment", "colour", "per-channel"] => colour = Some(ColourMode::PerChannel),
+                ["comment", "baseline", rest @ ..] => {
+                    baseline = Some(
+                        BaselineParams::parse(rest, colour)
+                            .ok_or_else(|| fmt(format!("bad baseline line {:?}", line.trim())))?,
+                    )
+                }
                 ["comment", ..] | ["obj_info", ..] => {}
                 ["element", name, n] => {
                     let n: usize = n
@@ -313,7 +398,13 @@ impl ModelFile {
             normals: Vec::new(),
             triangles: Vec::new(),
             vertices: Vec::new(),
+            baseline: None,
         };
+        if let Some(b) = baseline {
+            b.model(shape.colour)
+                .map_err(|e| fmt(format!("baseline: {e}")))?;
+            m.baseline = Some(b);
+        }
         for (name, count, props) in &elements {
             if count.saturating_mul(props.len()) > body.len() {
                 return Err(fmt(format!(
@@ -591,7 +682,27 @@ mod tests {
                 v(VertexStatus::Interpolated, 2),
                 v(VertexStatus::NoModel, 0),
             ],
+            baseline: None,
         }
+    }
+
+    #[test]
+    fn the_baseline_round_trips_in_the_header() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.ply");
+        let mut m = sample();
+        m.baseline = Some(BaselineParams {
+            terms: 2,
+            params: vec![0.9, 0.8, 0.123456789012345, -0.1, 1.0 / 3.0, -2.5],
+            r_range: [0.5, 21.25],
+        });
+        m.write(&p).unwrap();
+        let back = ModelFile::read(&p).unwrap();
+        assert_eq!(back.baseline, m.baseline);
+        // Files without one read as before.
+        m.baseline = None;
+        m.write(&p).unwrap();
+        assert_eq!(ModelFile::read(&p).unwrap().baseline, None);
     }
 
     #[test]

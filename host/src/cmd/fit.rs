@@ -94,6 +94,11 @@ pub struct Args {
     /// Override the dataset's noise floor.
     #[arg(long)]
     pub noise_floor: Option<f64>,
+    /// Validate first: hold out a spread of frames (whole turntable angles when the scan has at
+    /// least 4), fit the rest, report held-out Table-1 statistics next to the in-sample ones and
+    /// the homogeneous baseline's, then fit on everything (`docs/validation.md`).
+    #[arg(long)]
+    pub validate: bool,
     /// Do not draw the PNGs beside the report (`<report>-error-map.png`: log E(x_i) per vertex,
     /// Eq. 8; `<report>-model.png`: alpha, reflectance, reach and vertex status).
     #[arg(long)]
@@ -186,6 +191,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
     }
     let bar = Bar::with_template("{msg:>12} {bar:40} {pos}/{len} {eta}");
+    let validation = if args.validate {
+        let holdout = subsurf::validate::holdout(&ds, &frames);
+        let v = fit_scan(&ds, &holdout.training, &opts, segments, &fit, &bar)
+            .with_context(|| format!("validation fit of {}", args.scan.display()))?;
+        let v = subsurf::validate::judge(&ds, &v.model, holdout, v.report.log_e, &opts, &bar)
+            .context("judging the validation fit on the held-out frames")?;
+        Some(v)
+    } else {
+        None
+    };
     let out = fit_scan(&ds, &frames, &opts, segments, &fit, &bar)
         .with_context(|| format!("fitting {}", args.scan.display()))?;
     bar.finish_and_clear();
@@ -206,6 +221,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     json["model_bytes"] = bytes.into();
     json["model"] = args.out.display().to_string().into();
     json["fit_options"] = serde_json::to_value(&fit)?;
+    if let Some(v) = &validation {
+        json["validation"] = serde_json::to_value(v)?;
+    }
     if let Some(c) = &out.report.segments_choice {
         println!(
             "segments: m = {} chosen (tolerance {}); candidates {}",
@@ -246,6 +264,54 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let drawn = drawn?;
     for line in subsurf::report::fit::summary_lines(&out.report) {
         println!("{line}");
+    }
+    let r = &out.report;
+    let f = |v: Option<f64>| v.map_or("-".to_string(), |x| format!("{x:.4}"));
+    if let Some(b) = &r.baseline {
+        println!(
+            "homogeneous baseline (one isotropic fall-off for every x_i, {} terms, {} samples, r {:.2}..{:.2} mm): log E(x_i) mean r/g/b {} {} {}",
+            b.terms,
+            b.samples,
+            b.r_range[0],
+            b.r_range[1],
+            f(b.log_e.mean[0]),
+            f(b.log_e.mean[1]),
+            f(b.log_e.mean[2])
+        );
+    }
+    for k in &r.alpha.round_log {
+        println!(
+            "  round {}: training objective {:.6e} (previous fits {:.6e}; {} light positions kept their previous fit) {}",
+            k.round,
+            k.objective,
+            k.previous,
+            k.fits_kept_previous,
+            if k.kept { "kept" } else { "discarded" }
+        );
+    }
+    if let Some(v) = &validation {
+        println!(
+            "validation: {} frames held out ({}), {} evaluated; {}",
+            v.holdout.frames.len(),
+            subsurf::validate::frame_list(&v.holdout.frames),
+            v.evaluated,
+            v.holdout.rule
+        );
+        println!("  mean log E(x_i)          red      green    blue");
+        let row = |name: &str, st: &subsurf::pipeline::LogEStats| {
+            println!(
+                "  {name:<22} {:8} {:8} {:8}",
+                f(st.mean[0]),
+                f(st.mean[1]),
+                f(st.mean[2])
+            )
+        };
+        row("held out (trust this)", &v.held_out);
+        if let Some(b) = &v.baseline_held_out {
+            row("baseline, held out", b);
+        }
+        row("in-sample", &v.in_sample);
+        println!("  (then fitted on all {} frames)", r.frames.selected);
     }
     println!(
         "model {} ({}); report {}",

@@ -67,5 +67,6 @@ pub fn model_file(
         normals: ds.mesh.normals.clone(),
         triangles: ds.mesh.triangles.clone(),
         vertices,
+        baseline: None,
     }
 }

@@ -35,17 +35,19 @@ pub struct OwnFit {
 }
 
 /// log E(x_i) (Eq. 8, with alpha) per channel of every group's fit; `None` where the group has
-/// no fit or its frames could not be read.
+/// no fit or its frames could not be read. Second: the same of the homogeneous baseline
+/// (alpha = 1) on the group's samples, when there is one.
 pub fn log_e_of_fits(
     ctx: &Context,
     regs: &[RegisteredFrame],
     groups: &Groups,
     fitted: &Fitted,
     progress: &dyn Progress,
-) -> Vec<Option<[f64; 3]>> {
+) -> (Vec<Option<[f64; 3]>>, Vec<[f64; 3]>) {
     progress.start("error", groups.keys.len() as u64);
     let threshold = ctx.opts.error_threshold;
-    fitted
+    let baseline = fitted.baseline.as_ref().map(|b| &b.baseline.model);
+    let both: Vec<Option<([f64; 3], [f64; 3])>> = fitted
         .fits
         .par_iter()
         .zip(&groups.keys)
@@ -53,19 +55,30 @@ pub fn log_e_of_fits(
             let out = f.as_ref().ok().and_then(|g| {
                 let (data, _) = group_samples(ctx, regs, key).ok()?;
                 let mut acc = [LogEAccumulator::default(); 3];
+                let mut base = [LogEAccumulator::default(); 3];
                 for (ch, d) in data.iter().enumerate() {
                     for x in d {
                         let ln = fitted.alpha[x.vertex as usize][ch].ln()
                             + g.model.ln_eval(x.r, x.phi)[ch];
                         acc[ch].add_ln(ln, x.s, threshold);
+                        if let Some(b) = baseline {
+                            base[ch].add_ln(b.ln_eval(x.r, None)[ch], x.s, threshold);
+                        }
                     }
                 }
-                Some(acc.map(|a| a.log_e().unwrap_or(f64::NAN)))
+                Some((
+                    acc.map(|a| a.log_e().unwrap_or(f64::NAN)),
+                    base.map(|a| a.log_e().unwrap_or(f64::NAN)),
+                ))
             });
             progress.inc(1);
             out
         })
-        .collect()
+        .collect();
+    (
+        both.iter().map(|b| b.map(|b| b.0)).collect(),
+        both.iter().flatten().map(|b| b.1).collect(),
+    )
 }
 
 /// The mean over the channels with a value.

@@ -12,15 +12,16 @@ use rayon::prelude::*;
 
 use crate::geometry::Scene;
 use crate::model::{AlphaAccumulator, Anisotropic, ColourModel, ExpSum};
-use crate::modelfile::ColourMode;
+use crate::baseline::Baseline;
+use crate::modelfile::{BaselineParams, ColourMode, params_of};
 use crate::progress::Progress;
 use crate::samples::SampleCounts;
 
 use super::ModelChoice;
 use super::load::Context;
 use super::register::RegisteredFrame;
-use super::report::{AlphaReport, FailReason, TermDropped};
-use super::select::{ChannelSamples, Groups, group_samples};
+use super::report::{AlphaReport, AlphaRound, BASELINE_POOL, FailReason, TermDropped};
+use super::select::{ChannelSamples, GroupSample, Groups, group_samples};
 
 /// Fits Eq. 1 to samples `s` at distances `r`. `terms = Some(n)` forces n terms; `None` uses the
 /// fitter's own setting (which may choose the order automatically).
@@ -308,6 +309,8 @@ pub struct Fitted {
     pub counts: SampleCounts,
     /// Terms dropped in the last round, by reason.
     pub dropped: BTreeMap<TermDropped, usize>,
+    /// The homogeneous baseline, if its fit succeeded.
+    pub baseline: Option<FittedBaseline>,
 }
 
 /// One round's results, folded over the groups in parallel.
@@ -317,6 +320,12 @@ struct RoundState {
     alpha: Vec<[AlphaAccumulator; 3]>,
     counts: SampleCounts,
     dropped: BTreeMap<TermDropped, usize>,
+    /// Training objective of this round's fits (see [`fit_groups`]).
+    objective: f64,
+    /// The same of the previous round's fits.
+    objective_prev: f64,
+    /// Groups that kept their previous fit.
+    kept_previous: usize,
 }
 
 impl RoundState {
@@ -332,6 +341,9 @@ impl RoundState {
             }
         }
         self.counts.add(&other.counts);
+        self.objective += other.objective;
+        self.objective_prev += other.objective_prev;
+        self.kept_previous += other.kept_previous;
         for (k, v) in other.dropped {
             *self.dropped.entry(k).or_default() += v;
         }
@@ -339,10 +351,32 @@ impl RoundState {
     }
 }
 
+/// Sum over a group's (alpha-divided) samples of (ln R_d − ln s)^2: its share of the training
+/// objective.
+fn sq_err(m: &ColourModel, data: &ChannelSamples) -> f64 {
+    let mut o = 0.0;
+    for (ch, d) in data.iter().enumerate() {
+        for x in d {
+            let e = m.ln_eval(x.r, x.phi)[ch] - x.s.ln();
+            if e.is_finite() {
+                o += e * e;
+            }
+        }
+    }
+    o
+}
+
 /// Fits every group, then runs the alpha rounds (Eq. 6): round 0 fits the samples as captured;
 /// each further round divides them by the previous round's alpha(x_o) and refits, so the
 /// modulation texture is not mistaken for noise by the fit of R_d, until alpha changes by less
 /// than `alpha_tolerance` or `alpha_rounds` extra rounds ran. Every round re-reads the frames.
+///
+/// The rounds are a block coordinate descent on the training objective
+/// O(R_d, alpha) = Σ (ln alpha + ln R_d − ln s)^2: Eq. 6 in log space is its minimiser over alpha
+/// for fixed R_d (up to the prior of [`crate::model::ALPHA_PRIOR`]), and a group whose refit is
+/// worse than its previous fit against the same alpha (LM finds local minima) keeps the previous
+/// one. A round that does not lower O is discarded and the rounds stop; the report lists every
+/// round (`AlphaReport::round_log`).
 pub fn fit_groups(
     ctx: &Context,
     regs: &[RegisteredFrame],
@@ -352,7 +386,10 @@ pub fn fit_groups(
 ) -> Fitted {
     let opts = &ctx.opts;
     let nv = ctx.ds.mesh.positions.len();
-    let fit_round = |alpha_div: Option<&[[f64; 3]]>, round: usize| -> RoundState {
+    let fit_round = |alpha_div: Option<&[[f64; 3]]>,
+                     round: usize,
+                     prev: Option<&[Option<GroupFit>]>|
+     -> RoundState {
         progress.start(
             &format!("fit (round {})", round + 1),
             groups.keys.len() as u64,
@@ -363,6 +400,7 @@ pub fn fit_groups(
             .enumerate()
             .fold(RoundState::default, |mut st, (idx, key)| {
                 let mut dropped = Vec::new();
+                let old = prev.and_then(|p| p.get(idx).cloned().flatten());
                 let out = group_samples(ctx, regs, key).and_then(|(mut data, counts)| {
                     if let Some(a) = alpha_div {
                         for (ch, d) in data.iter_mut().enumerate() {
@@ -371,28 +409,48 @@ pub fn fit_groups(
                             }
                         }
                     }
-                    let (model, terms) = fit_samples(&data, &opts.model, fitter, &mut dropped)?;
-                    let r_range = data
-                        .iter()
-                        .flatten()
-                        .fold([f64::INFINITY, 0.0], |[lo, hi], x| {
-                            [lo.min(x.r), hi.max(x.r)]
-                        });
-                    Ok((
-                        GroupFit {
-                            model,
-                            terms,
-                            r_range,
+                    let new = fit_samples(&data, &opts.model, fitter, &mut dropped).map(
+                        |(model, terms)| {
+                            let r_range = data
+                                .iter()
+                                .flatten()
+                                .fold([f64::INFINITY, 0.0], |[lo, hi], x| {
+                                    [lo.min(x.r), hi.max(x.r)]
+                                });
+                            GroupFit {
+                                model,
+                                terms,
+                                r_range,
+                            }
                         },
-                        data,
-                        counts,
-                    ))
+                    );
+                    let o_old = old.as_ref().map(|g| sq_err(&g.model, &data));
+                    let (g, o_new, kept_old) = match (new, old, o_old) {
+                        (Ok(g), Some(old), Some(oo)) => {
+                            let on = sq_err(&g.model, &data);
+                            if on <= oo {
+                                (g, on, false)
+                            } else {
+                                (old, oo, true)
+                            }
+                        }
+                        (Err(_), Some(old), Some(oo)) => (old, oo, true),
+                        (Ok(g), _, _) => {
+                            let on = sq_err(&g.model, &data);
+                            (g, on, false)
+                        }
+                        (Err(e), _, _) => return Err(e),
+                    };
+                    Ok((g, data, counts, o_new, o_old.unwrap_or(o_new), kept_old))
                 });
                 for why in dropped {
                     *st.dropped.entry(why).or_default() += 1;
                 }
                 match out {
-                    Ok((g, data, counts)) => {
+                    Ok((g, data, counts, o_new, o_old, kept_old)) => {
+                        st.objective += o_new;
+                        st.objective_prev += o_old;
+                        st.kept_previous += kept_old as usize;
                         // Eq. 6 contributions are folded right away so the samples can be dropped.
                         if st.alpha.is_empty() {
                             st.alpha = vec![[AlphaAccumulator::default(); 3]; nv];
@@ -401,8 +459,12 @@ pub fn fit_groups(
                             for x in d {
                                 // Eq. 6 compares the captured sample with R_d.
                                 let s = alpha_div.map_or(x.s, |a| x.s * a[x.vertex as usize][ch]);
-                                let rd = g.model.ln_eval(x.r, x.phi)[ch].exp();
-                                st.alpha[x.vertex as usize][ch].add(s, rd, &opts.alpha_window);
+                                let ln_rd = g.model.ln_eval(x.r, x.phi)[ch];
+                                st.alpha[x.vertex as usize][ch].add_ln(
+                                    s,
+                                    ln_rd,
+                                    &opts.alpha_window,
+                                );
                             }
                         }
                         st.counts.add(&counts);
@@ -417,35 +479,136 @@ pub fn fit_groups(
         state.fits.sort_by_key(|f| f.0);
         state
     };
-    let mut state = fit_round(None, 0);
+    let by_index = |st: &RoundState| -> Vec<Option<GroupFit>> {
+        let mut v: Vec<Option<GroupFit>> = vec![None; groups.keys.len()];
+        for (idx, f) in &st.fits {
+            if let Ok(g) = f {
+                v[*idx] = Some(g.clone());
+            }
+        }
+        v
+    };
+    let mut state = fit_round(None, 0, None);
+    let mut round_log = vec![AlphaRound {
+        round: 0,
+        objective: state.objective,
+        previous: state.objective,
+        fits_kept_previous: 0,
+        kept: true,
+    }];
     let mut rounds = 0;
     let mut last_change = 0.0;
+    let mut converged = false;
     let mut previous: Option<Vec<[f64; 3]>> = None;
     for round in 1..=opts.alpha_rounds {
         let (a, _) = alpha_texture(&state.alpha, nv, &ctx.scene);
         if let Some(prev) = &previous {
             last_change = rms_ln_change(prev, &a);
             if last_change < opts.alpha_tolerance {
+                converged = true;
                 break;
             }
         }
-        state = fit_round(Some(&a), round);
+        let prev_fits = by_index(&state);
+        let next = fit_round(Some(&a), round, Some(&prev_fits));
+        let kept = next.objective < next.objective_prev * (1.0 - 1e-9);
+        round_log.push(AlphaRound {
+            round,
+            objective: next.objective,
+            previous: next.objective_prev,
+            fits_kept_previous: next.kept_previous,
+            kept,
+        });
+        if !kept {
+            // No gain: the previous state (its fits and their Eq. 6) stands.
+            converged = true;
+            break;
+        }
+        state = next;
         rounds = round;
         previous = Some(a);
     }
     let (alpha, mut alpha_report) = alpha_texture(&state.alpha, nv, &ctx.scene);
     if let Some(prev) = &previous {
         last_change = rms_ln_change(prev, &alpha);
+        converged |= last_change < opts.alpha_tolerance;
     }
     alpha_report.rounds = rounds;
     alpha_report.last_change = last_change;
+    alpha_report.converged = converged || opts.alpha_rounds == 0;
+    alpha_report.round_log = round_log;
+    let baseline = fit_baseline(ctx, regs, groups, fitter);
     Fitted {
         fits: state.fits.into_iter().map(|(_, f)| f).collect(),
         alpha,
         alpha_report,
         counts: state.counts,
         dropped: state.dropped,
+        baseline,
     }
+}
+
+/// The homogeneous baseline: one isotropic fall-off (m = 1, the model's colour mode) fitted to
+/// every group's samples pooled as captured (alpha = 1), at most [`BASELINE_POOL`] per channel
+/// and group (evenly strided). `None` if that fit fails.
+fn fit_baseline(
+    ctx: &Context,
+    regs: &[RegisteredFrame],
+    groups: &Groups,
+    fitter: &dyn Fitter,
+) -> Option<FittedBaseline> {
+    let pooled: ChannelSamples = groups
+        .keys
+        .par_iter()
+        .map(|key| {
+            let mut out: ChannelSamples = Default::default();
+            if let Ok((data, _)) = group_samples(ctx, regs, key) {
+                for (ch, d) in data.into_iter().enumerate() {
+                    let step = d.len().div_ceil(BASELINE_POOL).max(1);
+                    out[ch].extend(d.into_iter().step_by(step).map(|x| GroupSample {
+                        phi: None,
+                        ..x
+                    }));
+                }
+            }
+            out
+        })
+        .reduce(ChannelSamples::default, |mut a, b| {
+            for (x, y) in a.iter_mut().zip(b) {
+                x.extend(y);
+            }
+            a
+        });
+    let choice = ModelChoice {
+        colour: ctx.opts.model.colour,
+        segments: 1,
+    };
+    let (model, terms) = fit_samples(&pooled, &choice, fitter, &mut Vec::new()).ok()?;
+    let r_range = pooled
+        .iter()
+        .flatten()
+        .fold([f64::INFINITY, 0.0], |[lo, hi], x| [lo.min(x.r), hi.max(x.r)]);
+    let (params, _, _) = params_of(&model).ok()?;
+    params.iter().all(|p| p.is_finite()).then(|| FittedBaseline {
+        baseline: Baseline { model, r_range },
+        params: BaselineParams {
+            terms,
+            params,
+            r_range,
+        },
+        samples: pooled.iter().map(Vec::len).sum(),
+    })
+}
+
+/// The baseline of a run: for prediction, for the model file, and how many samples it pooled.
+#[derive(Debug, Clone)]
+pub struct FittedBaseline {
+    /// As prediction uses it.
+    pub baseline: Baseline,
+    /// As the model file stores it.
+    pub params: BaselineParams,
+    /// Channel samples pooled.
+    pub samples: usize,
 }
 
 /// RMS over vertices and channels of the change of ln alpha(x_o) between two rounds.

@@ -35,7 +35,10 @@ pub use fit::{
 pub use load::Context;
 pub use options::{MAX_SEGMENTS, ModelChoice, PipelineOptions, SEGMENT_LADDER, Segments};
 pub use register::{RegisteredFrame, register_one};
-pub use report::{AlphaReport, FailReason, FitReport, FrameCounts, LogEStats, TermDropped};
+pub use report::{
+    AlphaReport, AlphaRound, BASELINE_POOL, BaselineReport, FailReason, FitReport, FrameCounts,
+    LogEStats, TermDropped,
+};
 
 /// A fit within this log E (3 % RMS) is never an outlier, however good the typical fit is
 /// (noise-free scans: log E ~ 1e-4 with relative spread far above `outlier_factor`).
@@ -110,7 +113,14 @@ pub fn fit_dataset(
     report.alpha = fitted.alpha_report.clone();
     clock.lap("fit", &mut report);
     // log E(x_i) (Eq. 8) with alpha; fits above the threshold fail.
-    let errors = error::log_e_of_fits(&ctx, &regs, &groups, &fitted, progress);
+    let (errors, baseline_log_e) = error::log_e_of_fits(&ctx, &regs, &groups, &fitted, progress);
+    report.baseline = fitted.baseline.as_ref().map(|b| report::BaselineReport {
+        terms: b.params.terms,
+        params: b.params.params.clone(),
+        r_range: b.params.r_range,
+        samples: b.samples,
+        log_e: LogEStats::of(&baseline_log_e),
+    });
     clock.lap("error", &mut report);
     let (own, shape) = error::accept(&groups, &fitted, &errors, opts, &mut report)?;
     // Failed vertices are interpolated from their neighbours, refitted with the common order.
@@ -120,7 +130,8 @@ pub fn fit_dataset(
         .max_by_key(|(_, c)| **c)
         .map_or(shape.terms, |(n, _)| *n);
     let refits = interpolate::fill(&ctx.scene, &own, &shape, common_n, fitter);
-    let model = assemble::model_file(ds, shape, &own, &refits, &fitted.alpha, &mut report);
+    let mut model = assemble::model_file(ds, shape, &own, &refits, &fitted.alpha, &mut report);
+    model.baseline = fitted.baseline.as_ref().map(|b| b.params.clone());
     clock.lap("interpolate", &mut report);
     report.peak_rss_mib = crate::util::peak_rss_mib();
     Ok(FitOutput { model, report })

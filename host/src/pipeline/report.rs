@@ -138,6 +138,8 @@ pub struct FitReport {
     pub terms_dropped: BTreeMap<TermDropped, usize>,
     /// Where each vertex's alpha(x_o) (Eq. 6) comes from.
     pub alpha: AlphaReport,
+    /// The homogeneous baseline (one isotropic fall-off for all x_i, [`crate::baseline`]).
+    pub baseline: Option<BaselineReport>,
     /// The log E(x_i) acceptance threshold applied: `max_log_e`, or `outlier_factor` × the
     /// median fit's log E (at least [`super::OUTLIER_MIN_LOG_E`]) if lower.
     pub max_log_e: f64,
@@ -150,6 +152,44 @@ pub struct FitReport {
     /// With `--segments auto` ([`super::Segments::Auto`]): every m tried and the one chosen.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub segments_choice: Option<OrderChoice>,
+}
+
+/// The homogeneous baseline in the report.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct BaselineReport {
+    /// Terms n of the fit.
+    pub terms: usize,
+    /// Parameters in the model file's order (m = 1).
+    pub params: Vec<f64>,
+    /// `[r_min, r_max]` of the pooled samples, mm.
+    pub r_range: [f64; 2],
+    /// Channel samples pooled (every k-th of a group's samples above [`BASELINE_POOL`]).
+    pub samples: usize,
+    /// Table-1 statistics of log E(x_i) (Eq. 8, alpha = 1) of the baseline on the fitted light
+    /// positions: compare with `log_e`.
+    pub log_e: LogEStats,
+}
+
+/// At most this many samples per channel of one light position go into the baseline's pooled fit
+/// (evenly strided), so its cost does not grow with the image size.
+pub const BASELINE_POOL: usize = 2000;
+
+/// One alpha round (Eq. 6) in the report.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct AlphaRound {
+    /// Round (0 = the fit on the samples as captured).
+    pub round: usize,
+    /// Training objective after the round's fit: sum over the fitted samples of
+    /// (ln alpha + ln R_d − ln s)^2 with the alpha it was fitted against.
+    pub objective: f64,
+    /// The same objective of the previous round's fits with this round's alpha (what the round
+    /// had to beat); equals `objective` for round 0.
+    pub previous: f64,
+    /// Light positions whose new fit was worse than their previous one and kept the previous.
+    pub fits_kept_previous: usize,
+    /// Whether the round lowered the objective and was kept (a round that does not is
+    /// discarded and the rounds stop).
+    pub kept: bool,
 }
 
 /// Where the vertices' alpha(x_o) (Eq. 6) come from.
@@ -166,6 +206,11 @@ pub struct AlphaReport {
     /// RMS change of ln alpha(x_o) in the last round (0 when no extra round ran): below
     /// `alpha_tolerance` when the rounds converged.
     pub last_change: f64,
+    /// Whether the rounds stopped because alpha converged (RMS change below the tolerance) or a
+    /// round no longer lowered the objective.
+    pub converged: bool,
+    /// Every round: its training objective and whether it was kept.
+    pub round_log: Vec<AlphaRound>,
 }
 
 /// Wall time per stage, into the report.

@@ -643,6 +643,7 @@ pub fn ground_truth_model(mesh: &crate::dataset::Mesh, field: &Field) -> ModelFi
                 r_range: crate::modelfile::NO_RANGE,
             })
             .collect(),
+        baseline: None,
     }
 }
 

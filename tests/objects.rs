@@ -1,0 +1,94 @@
+//! Curved objects (issue 11): the model of a turntable scan predicts frames it never saw, never
+//! worse than the homogeneous baseline, and the alpha rounds (Eq. 6) never increase the training
+//! objective. On the outside renderer's sample-torus (`shared/data/`, beside the repository).
+use std::path::PathBuf;
+
+use subsurf::dataset::Dataset;
+use subsurf::evaluate::evaluate_frames;
+use subsurf::fit::FitOptions;
+use subsurf::pipeline::{FitOutput, PipelineOptions, fit_dataset};
+
+/// `shared/data/<name>` in the nearest ancestor of the crate that has it (CI clones `shared/`
+/// beside the repository; worktrees sit deeper).
+fn shared(name: &str) -> Option<PathBuf> {
+    let here = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    here.ancestors()
+        .map(|a| a.join("shared/data").join(name))
+        .find(|d| d.join("scan.json").is_file())
+}
+
+fn fit(ds: &Dataset, frames: &[usize]) -> FitOutput {
+    let opts = PipelineOptions::for_dataset(ds);
+    fit_dataset(ds, frames, &opts, &FitOptions::default(), &()).expect("fit")
+}
+
+#[test]
+fn torus_predicts_held_out_turntable_angles_and_alpha_rounds_only_descend() {
+    let Some(dir) = shared("sample-torus") else {
+        eprintln!("SKIPPED: shared/data/sample-torus is absent");
+        return;
+    };
+    let ds = Dataset::open(&dir).expect("sample-torus opens");
+    let held: Vec<usize> = (96..104).collect();
+    let training: Vec<usize> = (0..96).collect();
+    let out = fit(&ds, &training);
+    let r = &out.report;
+
+    // The alpha rounds: every step (Eq. 6 given R_d, then the fit given alpha) lowers the
+    // training objective, and the rounds end converged within the limit.
+    let log = &r.alpha.round_log;
+    assert!(!log.is_empty());
+    for w in log.windows(2) {
+        let (a, b) = (&w[0], &w[1]);
+        assert!(
+            b.previous <= a.objective * (1.0 + 1e-12),
+            "the Eq. 6 step raised the objective: {log:?}"
+        );
+        if b.kept {
+            assert!(b.objective <= b.previous, "{log:?}");
+        }
+    }
+    assert!(r.alpha.converged, "{:?}", r.alpha);
+
+    // The baseline is in the report and the per-vertex model beats it in-sample.
+    let base = r.baseline.as_ref().expect("baseline");
+    let own_g = r.log_e.mean[1].unwrap();
+    let base_g = base.log_e.mean[1].unwrap();
+    assert!(own_g < base_g, "in-sample {own_g} vs baseline {base_g}");
+
+    // Held out: at least 4 frames (96, 98, 100, 102 show the spot), within the issue's 0.94
+    // (1.25x the outside renderer's best per-x_i case, 0.75) and not above the baseline alone.
+    let opts = PipelineOptions::for_dataset(&ds);
+    let bar = ();
+    let (evals, stats) = evaluate_frames(&ds, &out.model, &held, &opts, &bar).unwrap();
+    let evaluated = evals.iter().filter(|e| e.skipped.is_none()).count();
+    assert!(evaluated >= 4, "{evals:?}");
+    let held_g = stats.mean[1].unwrap();
+    assert!(held_g <= 0.94, "held-out mean log E (green) {held_g}");
+    let only = subsurf::validate::baseline_only(&out.model).expect("baseline-only model");
+    let (_, base_stats) = evaluate_frames(&ds, &only, &held, &opts, &bar).unwrap();
+    let base_held = base_stats.mean[1].unwrap();
+    assert!(
+        held_g <= base_held,
+        "held out {held_g} above the baseline's {base_held}"
+    );
+}
+
+#[test]
+fn validation_holds_out_whole_turntable_angles() {
+    let Some(dir) = shared("sample-torus") else {
+        eprintln!("SKIPPED: shared/data/sample-torus is absent");
+        return;
+    };
+    let ds = Dataset::open(&dir).expect("sample-torus opens");
+    let frames: Vec<usize> = (0..96).collect();
+    let h = subsurf::validate::holdout(&ds, &frames);
+    // 8 angles: the 2nd and 6th (45 and 225 degrees), 12 frames each.
+    assert_eq!(h.frames.len(), 24, "{h:?}");
+    for &k in &h.frames {
+        let a = ds.spec.frames[k].turntable_deg;
+        assert!(a == 45.0 || a == 225.0, "{k}: {a}");
+    }
+    assert_eq!(h.training.len() + h.frames.len(), frames.len());
+    assert!(h.training.iter().all(|k| !h.frames.contains(k)));
+}
