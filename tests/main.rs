@@ -26,6 +26,7 @@ mod fit_curve;
 mod fit_pictures;
 mod fit_scale;
 mod flash;
+mod objects;
 mod render;
 mod render_plots;
 mod render_slab;

@@ -225,10 +225,10 @@ impl ModelFile {
                 ));
             }
         }
-        if let Some(b) = &self.baseline {
-            if b.r_range.iter().any(|r| !r.is_finite()) || b.model(self.shape.colour).is_err() {
-                return bad("invalid baseline".into());
-            }
+        if let Some(b) = &self.baseline
+            && (b.r_range.iter().any(|r| !r.is_finite()) || b.model(self.shape.colour).is_err())
+        {
+            return bad("invalid baseline".into());
         }
         for t in &self.triangles {
             if t.iter().any(|&i| i as usize >= n) {

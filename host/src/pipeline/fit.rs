@@ -10,9 +10,9 @@ use std::collections::BTreeMap;
 
 use rayon::prelude::*;
 
+use crate::baseline::Baseline;
 use crate::geometry::Scene;
 use crate::model::{AlphaAccumulator, Anisotropic, ColourModel, ExpSum};
-use crate::baseline::Baseline;
 use crate::modelfile::{BaselineParams, ColourMode, params_of};
 use crate::progress::Progress;
 use crate::samples::SampleCounts;
@@ -565,10 +565,11 @@ fn fit_baseline(
             if let Ok((data, _)) = group_samples(ctx, regs, key) {
                 for (ch, d) in data.into_iter().enumerate() {
                     let step = d.len().div_ceil(BASELINE_POOL).max(1);
-                    out[ch].extend(d.into_iter().step_by(step).map(|x| GroupSample {
-                        phi: None,
-                        ..x
-                    }));
+                    out[ch].extend(
+                        d.into_iter()
+                            .step_by(step)
+                            .map(|x| GroupSample { phi: None, ..x }),
+                    );
                 }
             }
             out
@@ -587,17 +588,22 @@ fn fit_baseline(
     let r_range = pooled
         .iter()
         .flatten()
-        .fold([f64::INFINITY, 0.0], |[lo, hi], x| [lo.min(x.r), hi.max(x.r)]);
+        .fold([f64::INFINITY, 0.0], |[lo, hi], x| {
+            [lo.min(x.r), hi.max(x.r)]
+        });
     let (params, _, _) = params_of(&model).ok()?;
-    params.iter().all(|p| p.is_finite()).then(|| FittedBaseline {
-        baseline: Baseline { model, r_range },
-        params: BaselineParams {
-            terms,
-            params,
-            r_range,
-        },
-        samples: pooled.iter().map(Vec::len).sum(),
-    })
+    params
+        .iter()
+        .all(|p| p.is_finite())
+        .then(|| FittedBaseline {
+            baseline: Baseline { model, r_range },
+            params: BaselineParams {
+                terms,
+                params,
+                r_range,
+            },
+            samples: pooled.iter().map(Vec::len).sum(),
+        })
 }
 
 /// The baseline of a run: for prediction, for the model file, and how many samples it pooled.
