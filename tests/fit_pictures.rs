@@ -92,7 +92,8 @@ fn fit_writes_an_error_map_and_a_model_picture_beside_the_report() {
         );
     }
 
-    // --no-pictures: the model and report only (in a directory `fit` creates).
+    // --no-pictures: the model and the reports only, no PNG (in a directory `fit` creates); the
+    // report's Markdown and HTML faces carry no pictures then.
     let quiet = tmp.path().join("quiet");
     fit(&scan, &quiet.join("model.ply"), &["--no-pictures"]);
     let mut names: Vec<String> = std::fs::read_dir(&quiet)
@@ -100,5 +101,18 @@ fn fit_writes_an_error_map_and_a_model_picture_beside_the_report() {
         .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
         .collect();
     names.sort();
-    assert_eq!(names, ["fit-report.json", "model.ply"]);
+    assert_eq!(
+        names,
+        [
+            "fit-report.html",
+            "fit-report.json",
+            "fit-report.md",
+            "model.ply"
+        ]
+    );
+    let html = std::fs::read_to_string(quiet.join("fit-report.html")).unwrap();
+    assert!(
+        !html.contains("data:image/png"),
+        "no pictures were asked for"
+    );
 }
