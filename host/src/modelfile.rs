@@ -7,7 +7,11 @@ use std::io::{BufRead, BufReader, Read, Write};
 use std::path::{Path, PathBuf};
 
 /// The magic comment that marks a subsurf model.
-pub const MODEL_FORMAT: &str = "subsurf-model/1";
+pub const MODEL_FORMAT: &str = "subsurf-model/2";
+
+/// Earlier formats still read: version 1 wrote the `params` count as `uchar`, which wrapped for
+/// models of more than 255 values (shared colour with n = 3 and m = 64 has 386).
+const OLD_FORMATS: [&str; 1] = ["subsurf-model/1"];
 
 /// Why a model file could not be read or written.
 #[derive(Debug, thiserror::Error)]
@@ -103,6 +107,10 @@ impl VertexModel {
         crate::model::Support::new(self.r_range[0] as f64, self.r_range[1] as f64)
     }
 }
+
+/// `log_e` as written for a vertex without a fit of its own (interpolated, no model): log E is
+/// never negative, so -1 says "none" while every number in the file stays finite.
+pub const NO_LOG_E: f32 = -1.0;
 
 /// The sampled range of a model without one (ground truth, old files): used as is everywhere.
 pub const NO_RANGE: [f32; 2] = [0.0, 0.0];
@@ -238,9 +246,57 @@ impl ModelFile {
         Ok(())
     }
 
-    /// Writes the binary PLY.
+    /// Writes the binary PLY, then reads it back and compares before it reports success: a file
+    /// that cannot be read back (the fate of version 1's wrapped counts) is never left behind as
+    /// if it were the fit. The bytes go to a temporary file beside `path`, renamed over it only
+    /// after the read-back matched.
     pub fn write(&self, path: &Path) -> Result<(), ModelFileError> {
+        let out = self.to_bytes()?;
+        let io = |source| ModelFileError::Io {
+            path: path.to_path_buf(),
+            source,
+        };
+        let mut tmp_name = path.file_name().unwrap_or_default().to_os_string();
+        tmp_name.push(".partial");
+        let tmp = path.with_file_name(tmp_name);
+        let mut f = std::fs::File::create(&tmp).map_err(io)?;
+        f.write_all(&out).map_err(io)?;
+        f.sync_all().map_err(io)?;
+        drop(f);
+        let back = ModelFile::read(&tmp).and_then(|m| m.to_bytes());
+        match back {
+            Ok(b) if b == out => std::fs::rename(&tmp, path).map_err(io),
+            Ok(_) => {
+                let _ = std::fs::remove_file(&tmp);
+                Err(ModelFileError::Format {
+                    path: path.to_path_buf(),
+                    message: "the written model reads back differently; nothing was written".into(),
+                })
+            }
+            Err(e) => {
+                let _ = std::fs::remove_file(&tmp);
+                Err(e)
+            }
+        }
+    }
+
+    /// The file's bytes (`docs/model-format.md`).
+    pub fn to_bytes(&self) -> Result<Vec<u8>, ModelFileError> {
         self.check()?;
+        if let Some(v) = self
+            .vertices
+            .iter()
+            .find(|v| v.params.len() > u16::MAX as usize)
+        {
+            return Err(ModelFileError::Format {
+                path: std::path::PathBuf::new(),
+                message: format!(
+                    "{} parameters in one vertex: at most {}",
+                    v.params.len(),
+                    u16::MAX
+                ),
+            });
+        }
         let colour = match self.shape.colour {
             ColourMode::Shared => "shared",
             ColourMode::PerChannel => "per-channel",
@@ -253,7 +309,7 @@ impl ModelFile {
              property double nx\nproperty double ny\nproperty double nz\n\
              property float alpha_r\nproperty float alpha_g\nproperty float alpha_b\n\
              property uchar status\nproperty float log_e\nproperty uchar terms\n\
-             property list uchar double params\n\
+             property list ushort double params\n\
              property float r_min\nproperty float r_max\nelement face {}\n\
              property list uchar int vertex_indices\nend_header\n",
             self.shape.terms,
@@ -273,9 +329,17 @@ impl ModelFile {
                 out.extend_from_slice(&a.to_le_bytes());
             }
             out.push(v.status as u8);
-            out.extend_from_slice(&v.log_e.to_le_bytes());
+            // Every number in the file is finite: a vertex without its own fit (log E is a
+            // non-negative error) is written as the documented -1, read back as NaN ("none").
+            let log_e = if v.log_e.is_finite() {
+                v.log_e
+            } else {
+                NO_LOG_E
+            };
+            out.extend_from_slice(&log_e.to_le_bytes());
             out.push(v.terms);
-            out.push(v.params.len() as u8);
+            // Checked above: at most u16::MAX values.
+            out.extend_from_slice(&(v.params.len() as u16).to_le_bytes());
             for p in &v.params {
                 out.extend_from_slice(&p.to_le_bytes());
             }
@@ -289,14 +353,7 @@ impl ModelFile {
                 out.extend_from_slice(&(*i as i32).to_le_bytes());
             }
         }
-        let mut f = std::fs::File::create(path).map_err(|source| ModelFileError::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
-        f.write_all(&out).map_err(|source| ModelFileError::Io {
-            path: path.to_path_buf(),
-            source,
-        })
+        Ok(out)
     }
 
     /// Reads a model written by [`ModelFile::write`] (properties are looked up by name, so a
@@ -333,7 +390,7 @@ impl ModelFile {
             match words.as_slice() {
                 ["format", "binary_little_endian", "1.0"] => {}
                 ["format", ..] => return Err(fmt("only binary_little_endian PLY is read".into())),
-                ["comment", m] if *m == MODEL_FORMAT => magic = true,
+                ["comment", m] if *m == MODEL_FORMAT || OLD_FORMATS.contains(m) => magic = true,
                 ["comment", "terms", n] => terms = n.parse().ok(),
                 ["comment", "segments", n] => segments = n.parse().ok(),
                 ["comment", "colour", "shared"] => colour = Some(ColourMode::Shared),
@@ -458,7 +515,11 @@ impl ModelFile {
                                 one("alpha_b")? as f32,
                             ],
                             status,
-                            log_e: one("log_e")? as f32,
+                            // Version 2 writes NO_LOG_E (-1) where version 1 wrote NaN: both
+                            // mean "no fit of its own".
+                            log_e: Some(one("log_e")? as f32)
+                                .filter(|x| *x >= 0.0)
+                                .unwrap_or(f32::NAN),
                             terms,
                             params,
                             // Older files have no sampled range: unknown.
@@ -686,6 +747,97 @@ mod tests {
         }
     }
 
+    /// The largest model the CLI allows (per-channel colour, n = MAX_TERMS, m = MAX_SEGMENTS)
+    /// writes, reads back and compares equal (version 1 wrapped its 8-bit count here).
+    #[test]
+    fn the_largest_model_the_cli_allows_round_trips() {
+        let shape = ModelShape {
+            terms: crate::model::MAX_TERMS,
+            segments: crate::pipeline::MAX_SEGMENTS,
+            colour: ColourMode::PerChannel,
+        };
+        let count = shape.param_count(shape.terms);
+        assert!(count > 255, "{count}");
+        let mut m = sample();
+        m.shape = shape;
+        for v in &mut m.vertices {
+            if v.status != VertexStatus::NoModel {
+                v.terms = shape.terms as u8;
+                v.params = (0..count).map(|k| (k as f64 + 1.0) * 0.25).collect();
+            }
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("big.ply");
+        m.write(&p).unwrap();
+        let back = ModelFile::read(&p).unwrap();
+        assert_eq!(back.vertices[0].params, m.vertices[0].params);
+        assert_eq!(back.to_bytes().unwrap(), m.to_bytes().unwrap());
+        // Every number in the file is finite: the interpolated vertex's log E reads back as NaN
+        // ("none") from the written -1.
+        assert!(back.vertices[1].log_e.is_nan());
+        let bytes = std::fs::read(&p).unwrap();
+        let header_end = bytes
+            .windows(11)
+            .position(|w| w == b"end_header\n")
+            .unwrap()
+            + 11;
+        let vertex_bytes = &bytes[header_end..];
+        let log_e_at = 6 * 8 + 3 * 4 + 1;
+        let le = f32::from_le_bytes(vertex_bytes[log_e_at..log_e_at + 4].try_into().unwrap());
+        assert_eq!(le, 0.02);
+        // Nothing but the model is left in the folder (the read-back used a temporary file).
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+
+    /// Files of version 1 (`uchar` counts) still read.
+    #[test]
+    fn version_1_files_still_read() {
+        let m = sample();
+        let mut out = Vec::new();
+        out.extend_from_slice(
+            b"ply\nformat binary_little_endian 1.0\ncomment subsurf-model/1\ncomment terms 3\n\
+              comment segments 1\ncomment colour shared\nelement vertex 3\n\
+              property double x\nproperty double y\nproperty double z\n\
+              property double nx\nproperty double ny\nproperty double nz\n\
+              property float alpha_r\nproperty float alpha_g\nproperty float alpha_b\n\
+              property uchar status\nproperty float log_e\nproperty uchar terms\n\
+              property list uchar double params\n\
+              property float r_min\nproperty float r_max\nelement face 1\n\
+              property list uchar int vertex_indices\nend_header\n",
+        );
+        for (i, v) in m.vertices.iter().enumerate() {
+            for x in m.positions[i].iter().chain(&m.normals[i]) {
+                out.extend_from_slice(&x.to_le_bytes());
+            }
+            for a in v.alpha {
+                out.extend_from_slice(&a.to_le_bytes());
+            }
+            out.push(v.status as u8);
+            out.extend_from_slice(&v.log_e.to_le_bytes());
+            out.push(v.terms);
+            out.push(v.params.len() as u8);
+            for x in &v.params {
+                out.extend_from_slice(&x.to_le_bytes());
+            }
+            for r in v.r_range {
+                out.extend_from_slice(&r.to_le_bytes());
+            }
+        }
+        out.push(3);
+        for i in [0i32, 1, 2] {
+            out.extend_from_slice(&i.to_le_bytes());
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("v1.ply");
+        std::fs::write(&p, &out).unwrap();
+        let back = ModelFile::read(&p).unwrap();
+        assert_eq!(back.vertices.len(), 3);
+        for (a, b) in back.vertices.iter().zip(&m.vertices) {
+            assert_eq!(a.params, b.params);
+            assert_eq!(a.status, b.status);
+        }
+    }
+
     #[test]
     fn the_baseline_round_trips_in_the_header() {
         let dir = tempfile::tempdir().unwrap();
@@ -740,7 +892,7 @@ mod tests {
         let mut old = old_header.into_bytes();
         let mut at = end;
         for v in &m.vertices {
-            let len = 6 * 8 + 3 * 4 + 1 + 4 + 1 + 1 + 8 * v.params.len();
+            let len = 6 * 8 + 3 * 4 + 1 + 4 + 1 + 2 + 8 * v.params.len();
             old.extend_from_slice(&bytes[at..at + len]);
             at += len + 8;
         }
