@@ -333,10 +333,12 @@ fn errors(model: &ExpSum, r: &[f64], s: &[f64], objective: Objective) -> (f64, f
 
 /// Fits Eq. 1 to samples s(x_i, x_o) at distances r = |x_o − x_i|.
 pub fn fit_expsum(r: &[f64], s: &[f64], options: &FitOptions) -> Result<ExpFit, FitFailure> {
-    let (mut cr, mut cs, report) = clean(r, s);
+    let (mut cr, mut cs, mut report) = clean(r, s);
     if options.subsample > 1 {
         cr = cr.into_iter().step_by(options.subsample).collect();
         cs = cs.into_iter().step_by(options.subsample).collect();
+        report.skipped_subsample = report.used - cr.len();
+        report.used = cr.len();
     }
     match options.terms {
         Terms::Fixed(n) => fit_order(&cr, &cs, n, options, report),

@@ -16,6 +16,21 @@ pub struct SampleReport {
     pub dropped_non_positive: usize,
     /// Dropped: negative distance.
     pub dropped_negative_distance: usize,
+    /// Usable but left out by `FitOptions::subsample` (every k-th usable sample is fitted).
+    #[serde(default)]
+    pub skipped_subsample: usize,
+}
+
+impl SampleReport {
+    /// Every input sample counted exactly once: used, dropped by a rule, or skipped by
+    /// subsampling.
+    pub fn accounted(&self) -> usize {
+        self.used
+            + self.dropped_non_finite
+            + self.dropped_non_positive
+            + self.dropped_negative_distance
+            + self.skipped_subsample
+    }
 }
 
 /// Keeps samples with finite r ≥ 0 and finite s > 0; returns them with the account.

@@ -537,6 +537,21 @@ fn bad_samples_are_dropped_counted_and_ignored() {
     assert_eq!(rep.dropped_non_positive, 2);
     assert_eq!(rep.dropped_non_finite, 5);
     assert_eq!(rep.dropped_negative_distance, 1);
+    assert_eq!(rep.accounted(), rep.input);
+    // Subsampling: the samples left out are counted, and the account still adds up.
+    let sub = fit_expsum(
+        &r2,
+        &s2,
+        &FitOptions {
+            subsample: 3,
+            ..opts.clone()
+        },
+    )
+    .unwrap()
+    .samples;
+    assert_eq!(sub.used, 100);
+    assert_eq!(sub.skipped_subsample, 200);
+    assert_eq!(sub.accounted(), sub.input);
 }
 
 #[test]
