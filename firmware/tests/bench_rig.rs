@@ -6,55 +6,15 @@ use subsurf_firmware::rig::Micros;
 use subsurf_firmware::sim::{SimCamera, SimParams, SimRig};
 use subsurf_protocol::*;
 
-/// A minimal host over the unframed core.
-struct Host {
-    sim: SimRig,
-    seq: Seq,
-    events: Vec<Event>,
-}
+mod common;
+use common::Host;
 
 impl Host {
-    fn new(params: SimParams) -> Self {
-        let mut h = Self::without_hello(params);
-        let hello = h.call(Command::Hello {
-            protocol_version: PROTOCOL_VERSION,
-        });
-        assert!(matches!(hello, Ok(Response::Hello(_))), "{hello:?}");
-        h
-    }
-
-    fn without_hello(params: SimParams) -> Self {
-        Self {
-            sim: SimRig::new(params),
-            seq: 0,
-            events: Vec::new(),
-        }
-    }
-
-    fn send(&mut self, seq: Seq, command: Command) -> Result<Response, RigError> {
-        let now = self.sim.now();
-        self.sim
-            .rig_mut()
-            .handle_request(now, Request { seq, command });
-        let mut replies = self.collect();
+    /// One request with an explicit `seq`; its single reply's result.
+    fn send_one(&mut self, seq: Seq, command: Command) -> Result<Response, RigError> {
+        let mut replies = self.send(seq, command);
         assert_eq!(replies.len(), 1);
         replies.remove(0).result
-    }
-
-    fn collect(&mut self) -> Vec<Reply> {
-        let mut replies = Vec::new();
-        while let Some(msg) = self.sim.rig_mut().poll_message() {
-            match msg {
-                RigMessage::Reply(r) => replies.push(r),
-                RigMessage::Event(e) => self.events.push(e),
-            }
-        }
-        replies
-    }
-
-    fn call(&mut self, command: Command) -> Result<Response, RigError> {
-        self.seq += 1;
-        self.send(self.seq, command)
     }
 
     /// Let `dt` pass with a heartbeat every 100 ms.
@@ -212,16 +172,16 @@ fn a_rebooted_rig_refuses_everything_until_hello_and_says_so_by_nonce() {
         accel: 10_000,
     });
     assert_eq!(
-        rebooted.send(seq, retransmitted.clone()),
+        rebooted.send_one(seq, retransmitted.clone()),
         Err(RigError::NoSession)
     );
     assert_eq!(
-        rebooted.send(seq + 1, Command::Status),
+        rebooted.send_one(seq + 1, Command::Status),
         Err(RigError::NoSession)
     );
     rebooted.advance_without_heartbeat(1_000_000);
     assert_eq!(rebooted.sim.hw().steps(), 0, "the move did not run twice");
-    let Ok(Response::Hello(hello)) = rebooted.send(
+    let Ok(Response::Hello(hello)) = rebooted.send_one(
         seq + 2,
         Command::Hello {
             protocol_version: PROTOCOL_VERSION,
@@ -232,7 +192,7 @@ fn a_rebooted_rig_refuses_everything_until_hello_and_says_so_by_nonce() {
     assert_eq!(hello.boot_nonce, params.boot_nonce);
     assert_ne!(hello.boot_nonce, before);
     assert!(
-        matches!(rebooted.send(seq + 3, Command::Status), Ok(Response::Status(s)) if s.boot_nonce == hello.boot_nonce && !s.homed)
+        matches!(rebooted.send_one(seq + 3, Command::Status), Ok(Response::Status(s)) if s.boot_nonce == hello.boot_nonce && !s.homed)
     );
 }
 

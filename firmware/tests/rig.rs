@@ -4,54 +4,10 @@ use subsurf_firmware::rig::{FIRMWARE_VERSION, Micros};
 use subsurf_firmware::sim::{SimParams, SimRig};
 use subsurf_protocol::*;
 
-/// A minimal host: numbered requests, collected events.
-struct Host {
-    sim: SimRig,
-    seq: Seq,
-    events: Vec<Event>,
-}
+mod common;
+use common::Host;
 
 impl Host {
-    fn new(params: SimParams) -> Self {
-        let mut h = Self {
-            sim: SimRig::new(params),
-            seq: 0,
-            events: Vec::new(),
-        };
-        let hello = h.call(Command::Hello {
-            protocol_version: PROTOCOL_VERSION,
-        });
-        assert!(matches!(hello, Ok(Response::Hello(_))));
-        h
-    }
-
-    fn send(&mut self, seq: Seq, command: Command) -> Vec<Reply> {
-        let now = self.sim.now();
-        self.sim
-            .rig_mut()
-            .handle_request(now, Request { seq, command });
-        self.collect()
-    }
-
-    fn collect(&mut self) -> Vec<Reply> {
-        let mut replies = Vec::new();
-        while let Some(msg) = self.sim.rig_mut().poll_message() {
-            match msg {
-                RigMessage::Reply(r) => replies.push(r),
-                RigMessage::Event(e) => self.events.push(e),
-            }
-        }
-        replies
-    }
-
-    fn call(&mut self, command: Command) -> Result<Response, RigError> {
-        self.seq += 1;
-        let replies = self.send(self.seq, command);
-        assert_eq!(replies.len(), 1);
-        assert_eq!(replies[0].seq, self.seq);
-        replies[0].result.clone()
-    }
-
     fn advance(&mut self, dt: Micros) {
         let t = self.sim.now() + dt;
         self.sim.advance_to(t);
