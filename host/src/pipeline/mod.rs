@@ -110,6 +110,11 @@ pub fn fit_dataset(
     let fitted = fit::fit_groups(&ctx, &regs, &groups, fitter, progress);
     report.samples = fitted.counts;
     report.terms_dropped = fitted.dropped.clone();
+    report.segment_fallbacks = fitted
+        .fits
+        .iter()
+        .filter(|f| f.as_ref().is_ok_and(|g| g.isotropic_fallback))
+        .count();
     report.alpha = fitted.alpha_report.clone();
     clock.lap("fit", &mut report);
     // log E(x_i) (Eq. 8) with alpha; fits above the threshold fail.

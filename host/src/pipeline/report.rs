@@ -136,6 +136,10 @@ pub struct FitReport {
     /// Terms dropped because the samples do not support them, by reason (each drop refits
     /// with one term fewer; counted in the last fit round, not in interpolation refits).
     pub terms_dropped: BTreeMap<TermDropped, usize>,
+    /// Light positions fitted isotropically (their m segments equal) because the joint Eq. 3
+    /// fit at m > 1 failed (a direction segment with too few samples for n terms) or gave an
+    /// implausible segment (see `pipeline::fit`), in the last fit round.
+    pub segment_fallbacks: usize,
     /// Where each vertex's alpha(x_o) (Eq. 6) comes from.
     pub alpha: AlphaReport,
     /// The homogeneous baseline (one isotropic fall-off for all x_i, [`crate::baseline`]).

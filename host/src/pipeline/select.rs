@@ -22,6 +22,9 @@ pub struct GroupSample {
     pub s: f64,
     /// The vertex x_o.
     pub vertex: u32,
+    /// The registered frame (index into the registered frames) the sample was read from: with
+    /// `vertex`, it identifies one observation, whose channels form one row of the joint fit.
+    pub frame: u32,
     /// Direction of x_o around x_i in the tangent frame at x_i (Eq. 3); `None` at x_i itself.
     pub phi: Option<f64>,
 }
@@ -95,6 +98,7 @@ pub fn group_samples(
                         r: x.r,
                         s: x.value[ch],
                         vertex: x.vertex,
+                        frame: l,
                         phi,
                     });
                 }

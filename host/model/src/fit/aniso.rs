@@ -658,10 +658,21 @@ fn fit_joint(
                 .filter(|(a, b)| a.is_finite() && b.is_finite())
                 .map(|(a, b)| b - a)
                 .collect();
-            if diffs.is_empty() {
-                return Err(FitFailure::TooFewSamples { usable: 0, needed });
-            }
-            theta.push(diffs.iter().sum::<f64>() / diffs.len() as f64);
+            let start = if diffs.is_empty() {
+                // No row holds both channels (they came from different frames): the difference
+                // of the channel means.
+                let mean = |y: &[f64]| {
+                    let v: Vec<f64> = y.iter().copied().filter(|v| v.is_finite()).collect();
+                    (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+                };
+                match (mean(&ys[0]), mean(&ys[ch])) {
+                    (Some(a), Some(b)) => b - a,
+                    _ => return Err(FitFailure::TooFewSamples { usable: 0, needed }),
+                }
+            } else {
+                diffs.iter().sum::<f64>() / diffs.len() as f64
+            };
+            theta.push(start);
         }
     }
     let empty: &[f64] = &[];
