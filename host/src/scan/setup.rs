@@ -7,7 +7,6 @@ use super::simcam::SimCamera;
 use crate::calib::Calibration;
 use crate::dataset::Mesh;
 use crate::simulate::{Field, Sensor, SimObject, Spot};
-use std::fmt::Write as _;
 use std::path::Path;
 use std::time::Duration;
 use subsurf_protocol::RigProfile;
@@ -113,18 +112,6 @@ pub fn sim_noise_floor(exposure_s: f64) -> f64 {
         ..sim_sensor()
     }
     .radiance_at_snr(FLOOR_SNR)
-}
-
-/// The mesh as Wavefront OBJ text (deterministic: equal meshes give equal bytes).
-pub fn obj_text(mesh: &Mesh) -> Vec<u8> {
-    let mut s = String::from("# subsurf scan object (mm, object frame)\n");
-    for p in &mesh.positions {
-        let _ = writeln!(s, "v {} {} {}", p[0], p[1], p[2]);
-    }
-    for t in &mesh.triangles {
-        let _ = writeln!(s, "f {} {} {}", t[0] + 1, t[1] + 1, t[2] + 1);
-    }
-    s.into_bytes()
 }
 
 /// The rig's timing from its profile, for the move speed and acceleration and capture interval
