@@ -264,7 +264,7 @@ pub fn run_demo(args: &Args) -> Result<Vec<PathBuf>> {
         (
             "key-light",
             "key light",
-            super::render::default_lights(&truth),
+            Light::defaults_for(truth.bounds()),
         ),
         (
             "back-light",

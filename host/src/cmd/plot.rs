@@ -7,7 +7,7 @@ use clap::Subcommand;
 use subsurf::curves::Curve;
 use subsurf::render::{CameraSpec, VertexModel};
 
-use super::render::{builtin, load_model};
+use super::models::{builtin, load_model};
 
 /// Draw a figure.
 #[derive(Debug, clap::Args)]
