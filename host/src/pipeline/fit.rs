@@ -279,7 +279,8 @@ fn segments_plausible(model: &ColourModel, iso: &ColourModel) -> bool {
         .into_iter()
         .zip(falloffs(iso))
         .all(|(a, i)| {
-            let limit = SEGMENT_MAX_RATE_RATIO * i.segments.iter().map(steepest).fold(0.0, f64::max);
+            let limit =
+                SEGMENT_MAX_RATE_RATIO * i.segments.iter().map(steepest).fold(0.0, f64::max);
             a.segments.iter().all(|f| steepest(f) <= limit)
         })
 }
@@ -852,17 +853,32 @@ mod tests {
 
     fn truth() -> Anisotropic {
         let seg = |c: f64, d: f64| {
-            ExpSum::new(vec![Term { c, d }, Term { c: 0.1 * c, d: 0.3 * d }]).unwrap()
+            ExpSum::new(vec![
+                Term { c, d },
+                Term {
+                    c: 0.1 * c,
+                    d: 0.3 * d,
+                },
+            ])
+            .unwrap()
         };
         Anisotropic {
-            segments: vec![seg(1.0, -2.0), seg(2.0, -1.0), seg(1.0, -2.0), seg(2.0, -1.0)],
+            segments: vec![
+                seg(1.0, -2.0),
+                seg(2.0, -1.0),
+                seg(1.0, -2.0),
+                seg(2.0, -1.0),
+            ],
         }
     }
 
     #[test]
     fn rows_join_the_channels_of_one_observation() {
         let mut data: ChannelSamples = Default::default();
-        data[0] = vec![sample(0, 7, 1.0, Some(0.5), 3.0), sample(1, 7, 2.0, None, 5.0)];
+        data[0] = vec![
+            sample(0, 7, 1.0, Some(0.5), 3.0),
+            sample(1, 7, 2.0, None, 5.0),
+        ];
         data[1] = vec![sample(0, 7, 1.0, Some(0.5), 2.0)];
         data[2] = vec![sample(1, 7, 2.0, None, 4.0)];
         let rows = ColourRows::of(&data);
@@ -881,7 +897,9 @@ mod tests {
     #[test]
     fn the_pipeline_fit_recovers_hat_blended_data() {
         let truth = truth();
-        let phis: Vec<f64> = (0..32).map(|k| k as f64 * std::f64::consts::TAU / 32.0).collect();
+        let phis: Vec<f64> = (0..32)
+            .map(|k| k as f64 * std::f64::consts::TAU / 32.0)
+            .collect();
         let data = samples_of(&truth, &phis);
         let choice = ModelChoice {
             colour: ColourMode::Shared,
@@ -897,7 +915,10 @@ mod tests {
             for r in [0.5, 2.0, 5.0, 8.0] {
                 let want = truth.ln_eval(r, Some(p));
                 let got = model.ln_eval(r, Some(p));
-                assert!((got[0] - want).abs() < 1e-5, "r {r} phi {p}: {got:?} vs {want}");
+                assert!(
+                    (got[0] - want).abs() < 1e-5,
+                    "r {r} phi {p}: {got:?} vs {want}"
+                );
                 assert!((got[1] - want - 0.5f64.ln()).abs() < 1e-5);
             }
         }
@@ -909,7 +930,9 @@ mod tests {
     fn a_segment_without_samples_falls_back_to_isotropic() {
         let truth = truth();
         // Directions only in the first half turn: segments 5..7 of 8 have no samples.
-        let phis: Vec<f64> = (0..16).map(|k| k as f64 * std::f64::consts::PI / 16.0).collect();
+        let phis: Vec<f64> = (0..16)
+            .map(|k| k as f64 * std::f64::consts::PI / 16.0)
+            .collect();
         let data = samples_of(&truth, &phis);
         let fitter = FitOptions::default();
         for colour in [ColourMode::Shared, ColourMode::PerChannel] {
@@ -944,6 +967,9 @@ mod tests {
             stalled: true,
         };
         assert_eq!(FailReason::from(stalled), FailReason::NotConverged);
-        assert_eq!(FailReason::from(FitFailure::NonFinite), FailReason::NonPhysical);
+        assert_eq!(
+            FailReason::from(FitFailure::NonFinite),
+            FailReason::NonPhysical
+        );
     }
 }
