@@ -32,13 +32,15 @@ pub trait Fitter: Sync {
     fn fit(&self, r: &[f64], s: &[f64], terms: Option<usize>) -> Result<ExpSum, FailReason>;
     /// The joint fit of n terms and m direction segments (Eq. 3, every row weighted over the
     /// segments by the hat weights evaluation uses) and the colour model (Eq. 5/9 shared, or
-    /// per channel) to `rows`.
+    /// per channel) to `rows`; the segments of the bit mask `anchored` are held at the
+    /// isotropic fit.
     fn fit_colour(
         &self,
         rows: &ColourRows,
         n: usize,
         m: usize,
         colour: ColourMode,
+        anchored: u64,
     ) -> Result<ColourModel, FailReason>;
 }
 
@@ -57,9 +59,9 @@ impl From<crate::fit::FitFailure> for FailReason {
 }
 
 /// The fitting engine's Levenberg–Marquardt (`crate::fit`) as the pipeline's solver: Eq. 1 by
-/// `fit_expsum`, the joint Eq. 3/5/9 fit by `aniso::fit_colour` with the same solver, iteration
-/// limit and distance bins (as direction bins of the joint solve), every k-th row with
-/// `subsample = k`.
+/// `fit_expsum`, the joint Eq. 3/5/9 fit by `aniso::fit_colour` with the same solver and
+/// distance bins (as direction bins of the joint solve), [`JOINT_ITERATIONS`] times the
+/// iteration limit (it solves for m times the parameters), every k-th row with `subsample = k`.
 impl Fitter for crate::fit::FitOptions {
     fn fit(&self, r: &[f64], s: &[f64], terms: Option<usize>) -> Result<ExpSum, FailReason> {
         use crate::fit::{Terms, fit_expsum};
@@ -82,6 +84,7 @@ impl Fitter for crate::fit::FitOptions {
         n: usize,
         m: usize,
         colour: ColourMode,
+        anchored: u64,
     ) -> Result<ColourModel, FailReason> {
         use crate::fit::aniso::{AnisoOptions, fit_colour};
         let opts = AnisoOptions {
@@ -89,9 +92,10 @@ impl Fitter for crate::fit::FitOptions {
             segments: m,
             shared: colour == ColourMode::Shared,
             solver: self.solver,
-            max_iterations: self.max_iterations,
+            max_iterations: self.max_iterations * if m > 1 { JOINT_ITERATIONS } else { 1 },
             bins: self.bins,
             direction_bins: self.bins,
+            anchored,
         };
         let k = self.subsample.max(1);
         let sub;
@@ -109,6 +113,9 @@ impl Fitter for crate::fit::FitOptions {
         Ok(fit.model)
     }
 }
+
+/// The joint fit at m > 1 segments may take this many times the isotropic fit's iterations.
+pub const JOINT_ITERATIONS: usize = 4;
 
 /// A light position's samples as rows of the joint fit: one row per observation (frame, x_o),
 /// with its distance r, direction φ (NaN: none, at x_i) and the value of each channel (NaN: that
@@ -266,23 +273,25 @@ pub(crate) fn fit_common_order(
     }
 }
 
-/// Whether a joint fit's direction segments are plausible beside the isotropic fit `iso` of
-/// the same samples: no segment's steepest term decays more than [`SEGMENT_MAX_RATE_RATIO`] times
-/// faster than the isotropic fit's steepest one; such a segment is not a direction effect but a
-/// term fitted to a handful of near samples, and its slope at r_min makes the continuation below
-/// r_min (the model's support rule) explode towards r = 0. (A segment's slowest term may decay
-/// little over the sampled distances: the joint fit shares every sample between two segments,
-/// and beyond r_max prediction moves to the baseline.)
-fn segments_plausible(model: &ColourModel, iso: &ColourModel) -> bool {
+/// The joint fit's direction segments (bit l = segment l) that are implausible beside the
+/// isotropic fit `iso` of the same samples: a segment whose steepest term decays more than
+/// [`SEGMENT_MAX_RATE_RATIO`] times faster than the isotropic fit's steepest one. Such a segment
+/// is not a direction effect but a term fitted to a handful of near samples, and its slope at
+/// r_min makes the continuation below r_min (the model's support rule) explode towards r = 0.
+/// (A segment's slowest term may decay little over the sampled distances: the joint fit shares
+/// every sample between two segments, and beyond r_max prediction moves to the baseline.)
+fn implausible_segments(model: &ColourModel, iso: &ColourModel) -> u64 {
     let steepest = |f: &ExpSum| f.terms.iter().map(|t| -t.d).fold(0.0, f64::max);
-    falloffs(model)
-        .into_iter()
-        .zip(falloffs(iso))
-        .all(|(a, i)| {
-            let limit =
-                SEGMENT_MAX_RATE_RATIO * i.segments.iter().map(steepest).fold(0.0, f64::max);
-            a.segments.iter().all(|f| steepest(f) <= limit)
-        })
+    let mut mask = 0u64;
+    for (a, i) in falloffs(model).into_iter().zip(falloffs(iso)) {
+        let limit = SEGMENT_MAX_RATE_RATIO * i.segments.iter().map(steepest).fold(0.0, f64::max);
+        for (l, f) in a.segments.iter().enumerate() {
+            if steepest(f) > limit {
+                mask |= 1 << l;
+            }
+        }
+    }
+    mask
 }
 
 /// The fall-offs of a colour model: the shared one, or one per channel.
@@ -313,8 +322,9 @@ fn repeat_segments(model: ColourModel, m: usize) -> ColourModel {
 
 /// Fits one light position's samples with n terms and m direction segments: THE Eq. 3/5/9 fit
 /// (the joint fit with the hat weights evaluation and rendering use, `Fitter::fit_colour`).
-/// The model is validated. Fails (typically `TooFewSamples`) when a direction segment has fewer
-/// samples than n terms need.
+/// The model is validated. A direction segment with fewer samples of its own than n terms need
+/// is held at the isotropic fit of all samples (`aniso::ANCHOR_WEIGHT`); the fit fails
+/// (`TooFewSamples`) when no segment has enough.
 pub fn fit_at(
     data: &ChannelSamples,
     colour: ColourMode,
@@ -322,7 +332,19 @@ pub fn fit_at(
     m: usize,
     fitter: &dyn Fitter,
 ) -> Result<ColourModel, FailReason> {
-    let model = fitter.fit_colour(&ColourRows::of(data), n, m.max(1), colour)?;
+    fit_anchored(data, colour, n, m, 0, fitter)
+}
+
+/// [`fit_at`] with the segments of the bit mask `anchored` held at the isotropic fit.
+fn fit_anchored(
+    data: &ChannelSamples,
+    colour: ColourMode,
+    n: usize,
+    m: usize,
+    anchored: u64,
+    fitter: &dyn Fitter,
+) -> Result<ColourModel, FailReason> {
+    let model = fitter.fit_colour(&ColourRows::of(data), n, m.max(1), colour, anchored)?;
     model.validate().map_err(|_| FailReason::NonPhysical)?;
     Ok(model)
 }
@@ -395,8 +417,8 @@ fn isotropic_order(
 enum FitPath {
     /// The joint fit at (n, m).
     Joint,
-    /// Isotropic (all m segments equal): the joint fit at m failed (a segment with too few
-    /// samples) or was implausible ([`segments_plausible`]).
+    /// Isotropic (all m segments equal): the joint fit at m failed (no segment with samples of
+    /// its own, or the solve did not converge) or was implausible ([`implausible_segments`]).
     Isotropic,
 }
 
@@ -412,9 +434,19 @@ fn fit_samples(
 ) -> Result<(ColourModel, usize, FitPath), FailReason> {
     let (iso, n) = isotropic_order(data, choice.colour, fitter, dropped)?;
     let m = choice.segments.max(1);
-    let joint = fit_at(data, choice.colour, n, m, fitter);
+    // Segments the joint fit made implausible are held at the isotropic fit and the rest
+    // refitted, once.
+    let mut joint = fit_at(data, choice.colour, n, m, fitter);
+    if m > 1
+        && let Ok(model) = &joint
+    {
+        let bad = implausible_segments(model, &iso);
+        if bad != 0 {
+            joint = fit_anchored(data, choice.colour, n, m, bad, fitter);
+        }
+    }
     if let Ok(model) = joint
-        && (m == 1 || segments_plausible(&model, &iso))
+        && (m == 1 || implausible_segments(&model, &iso) == 0)
     {
         return Ok((model, n, FitPath::Joint));
     }
@@ -924,27 +956,38 @@ mod tests {
         }
     }
 
-    /// A direction segment without samples makes the joint fit at m impossible; the light
-    /// position keeps an isotropic model (m equal segments) instead of losing its fit.
+    /// Direction segments without samples of their own are held at the isotropic fit; where no
+    /// segment has samples of its own (no directions at all) the joint fit at m is impossible and
+    /// the light position keeps an isotropic model (m equal segments) instead of losing its fit.
     #[test]
-    fn a_segment_without_samples_falls_back_to_isotropic() {
+    fn segments_without_samples_are_anchored_or_fall_back_to_isotropic() {
         let truth = truth();
         // Directions only in the first half turn: segments 5..7 of 8 have no samples.
-        let phis: Vec<f64> = (0..16)
-            .map(|k| k as f64 * std::f64::consts::PI / 16.0)
-            .collect();
-        let data = samples_of(&truth, &phis);
+        let phis: Vec<f64> = (0..16).map(|k| k as f64 * std::f64::consts::PI / 16.0).collect();
+        let half = samples_of(&truth, &phis);
+        let mut none = half.clone();
+        for d in none.iter_mut() {
+            for x in d.iter_mut() {
+                x.phi = None;
+            }
+        }
         let fitter = FitOptions::default();
         for colour in [ColourMode::Shared, ColourMode::PerChannel] {
-            assert_eq!(
-                fit_at(&data, colour, 2, 8, &fitter),
-                Err(FailReason::TooFewSamples)
-            );
             let choice = ModelChoice {
                 colour,
                 segments: 8,
             };
-            let (model, _, path) = fit_samples(&data, &choice, &fitter, &mut Vec::new()).unwrap();
+            let (model, _, path) = fit_samples(&half, &choice, &fitter, &mut Vec::new()).unwrap();
+            assert_eq!(path, FitPath::Joint);
+            for f in falloffs(&model) {
+                let (a, b) = (&f.segments[5], &f.segments[6]);
+                assert!((a.ln_eval(2.0) - b.ln_eval(2.0)).abs() < 1e-3);
+            }
+            assert_eq!(
+                fit_at(&none, colour, 2, 8, &fitter),
+                Err(FailReason::TooFewSamples)
+            );
+            let (model, _, path) = fit_samples(&none, &choice, &fitter, &mut Vec::new()).unwrap();
             assert_eq!(path, FitPath::Isotropic);
             for f in falloffs(&model) {
                 assert_eq!(f.segments.len(), 8);

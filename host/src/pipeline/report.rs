@@ -137,8 +137,8 @@ pub struct FitReport {
     /// with one term fewer; counted in the last fit round, not in interpolation refits).
     pub terms_dropped: BTreeMap<TermDropped, usize>,
     /// Light positions fitted isotropically (their m segments equal) because the joint Eq. 3
-    /// fit at m > 1 failed (a direction segment with too few samples for n terms) or gave an
-    /// implausible segment (see `pipeline::fit`), in the last fit round.
+    /// fit at m > 1 failed (no direction segment with enough samples of its own, or the solve
+    /// did not converge) or gave an implausible segment (see `pipeline::fit`), in the last round.
     pub segment_fallbacks: usize,
     /// Where each vertex's alpha(x_o) (Eq. 6) comes from.
     pub alpha: AlphaReport,

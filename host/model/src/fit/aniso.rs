@@ -39,6 +39,11 @@ pub struct AnisoOptions {
     /// [`super::bins`]) instead of the samples. `None` = every sample. log E is always measured
     /// on every sample.
     pub direction_bins: Option<usize>,
+    /// Segments (bit l = segment l) held at the isotropic fit of all samples whatever their
+    /// samples, as segments without enough samples of their own are (see [`ANCHOR_WEIGHT`]): a
+    /// caller that judged a segment's own fit implausible refits with it anchored.
+    #[serde(default)]
+    pub anchored: u64,
 }
 
 impl Default for AnisoOptions {
@@ -51,6 +56,7 @@ impl Default for AnisoOptions {
             max_iterations: 200,
             bins: Some(64),
             direction_bins: None,
+            anchored: 0,
         }
     }
 }
@@ -70,6 +76,44 @@ pub struct ColourFit {
     pub converged: bool,
     /// Samples used and dropped per channel.
     pub samples: [SampleReport; 3],
+    /// Direction segments (over the channels' fits) with fewer own samples than n terms need,
+    /// held at the isotropic fit of all samples ([`ANCHOR_WEIGHT`]) instead of failing the fit.
+    pub anchored: usize,
+}
+
+/// Weight of the rows that hold a direction segment without enough samples of its own at the
+/// isotropic fit (residual = weight × parameter change, against ln-radiance residuals of order
+/// 0.1 per sample): strong enough that such a segment stays where the other segments' data put
+/// it, as a segment without data should; the neighbours still fit their own samples.
+pub const ANCHOR_WEIGHT: f64 = 1e3;
+
+/// A problem with extra rows `ANCHOR_WEIGHT · (θ_p − target)` for the anchored parameters.
+struct Anchored<'a, P> {
+    inner: &'a P,
+    anchor: &'a [(usize, f64)],
+}
+
+impl<P: Problem> Problem for Anchored<'_, P> {
+    fn params(&self) -> usize {
+        self.inner.params()
+    }
+    fn rows(&self) -> usize {
+        self.inner.rows() + self.anchor.len()
+    }
+    fn eval<F: FnMut(f64, &[usize], &[f64])>(&self, theta: &[f64], jac: bool, mut row: F) -> bool {
+        if !self.inner.eval(theta, jac, &mut row) {
+            return false;
+        }
+        for &(p, target) in self.anchor {
+            let res = ANCHOR_WEIGHT * (theta[p] - target);
+            if jac {
+                row(res, &[p], &[ANCHOR_WEIGHT]);
+            } else {
+                row(res, &[], &[]);
+            }
+        }
+        true
+    }
 }
 
 /// The joint log-objective problem over m segments × n terms (+ two channel scales when shared).
@@ -421,7 +465,7 @@ pub fn fit_colour(
     let mut channels = Vec::with_capacity(3);
     let mut log_e = [0.0; 3];
     let mut samples = [SampleReport::default(); 3];
-    let (mut rss, mut iterations, mut converged) = (0.0, 0, true);
+    let (mut rss, mut iterations, mut converged, mut anchored) = (0.0, 0, true, 0);
     for ch in 0..3 {
         let f = fit_joint(r, phi, [s[ch], &[], &[]], 1, options)?;
         let ColourModel::Shared { falloff, .. } = f.model else {
@@ -433,6 +477,7 @@ pub fn fit_colour(
         rss += f.rss;
         iterations += f.iterations;
         converged &= f.converged;
+        anchored += f.anchored;
     }
     let channels: [Anisotropic; 3] = channels.try_into().map_err(|_| FitFailure::NonFinite)?;
     Ok(ColourFit {
@@ -442,6 +487,7 @@ pub fn fit_colour(
         iterations,
         converged,
         samples,
+        anchored,
     })
 }
 
@@ -590,13 +636,25 @@ fn fit_joint(
             per_seg[l].1.push(y.exp());
         }
     }
-    for seg in &per_seg {
-        if seg.0.len() < needed {
-            return Err(FitFailure::TooFewSamples {
-                usable: seg.0.len(),
-                needed,
-            });
-        }
+    // A segment with fewer own samples than n terms need is anchored at the isotropic fit; at
+    // least one segment must have its own.
+    let starved: Vec<bool> = per_seg.iter().map(|seg| seg.0.len() < needed).collect();
+    if starved.iter().all(|&s| s) {
+        return Err(FitFailure::TooFewSamples {
+            usable: per_seg.iter().map(|seg| seg.0.len()).max().unwrap_or(0),
+            needed,
+        });
+    }
+    let starved: Vec<bool> = starved
+        .iter()
+        .enumerate()
+        .map(|(l, &s)| s || (m > 1 && options.anchored >> l & 1 == 1))
+        .collect();
+    if starved.iter().all(|&s| s) {
+        return Err(FitFailure::TooFewSamples {
+            usable: per_seg.iter().map(|seg| seg.0.len()).max().unwrap_or(0),
+            needed,
+        });
     }
     if scale_r.is_nan() || scale_r <= 0.0 {
         return Err(FitFailure::TooFewDistances {
@@ -614,8 +672,16 @@ fn fit_joint(
     let mut iterations = 0;
     let mut global: Option<ExpSum> = None;
     let mut seg_models = Vec::with_capacity(m);
-    for seg in &per_seg {
-        match fit_expsum(&seg.0, &seg.1, &iso) {
+    for (seg, &starved) in per_seg.iter().zip(&starved) {
+        let own = if starved {
+            Err(FitFailure::TooFewSamples {
+                usable: seg.0.len(),
+                needed,
+            })
+        } else {
+            fit_expsum(&seg.0, &seg.1, &iso)
+        };
+        match own {
             Ok(f) => {
                 iterations += f.iterations;
                 seg_models.push(f.model);
@@ -675,6 +741,10 @@ fn fit_joint(
             theta.push(start);
         }
     }
+    let anchor: Vec<(usize, f64)> = (0..m)
+        .filter(|&l| starved[l])
+        .flat_map(|l| (2 * l * n..2 * (l + 1) * n).map(|p| (p, theta[p])))
+        .collect();
     let empty: &[f64] = &[];
     let problem = AnisoProblem {
         r: &rn,
@@ -708,12 +778,28 @@ fn fit_joint(
                 ftol: 1e-6,
                 ..settings
             };
+            let binned = Anchored {
+                inner: &binned,
+                anchor: &anchor,
+            };
             lm::minimize(&binned, &theta, &fast)
         }
-        (_, Solver::Specialised) => lm::minimize(&problem, &theta, &settings),
-        (_, Solver::Reference) => {
-            super::reference::minimize(&problem, &theta, options.max_iterations)
-        }
+        (_, Solver::Specialised) => lm::minimize(
+            &Anchored {
+                inner: &problem,
+                anchor: &anchor,
+            },
+            &theta,
+            &settings,
+        ),
+        (_, Solver::Reference) => super::reference::minimize(
+            &Anchored {
+                inner: &problem,
+                anchor: &anchor,
+            },
+            &theta,
+            options.max_iterations,
+        ),
     }
     .ok_or(FitFailure::NonFinite)?;
     iterations += out.iterations;
@@ -781,6 +867,7 @@ fn fit_joint(
         iterations,
         converged: out.converged,
         samples,
+        anchored: anchor.len() / (2 * n),
     })
 }
 
@@ -1031,10 +1118,11 @@ pub(crate) mod tests {
     }
 
     #[test]
-    fn empty_segment_fails_cleanly() {
+    fn empty_segments_are_anchored_at_the_isotropic_fit() {
         let t = truth(4);
         let (r, phi, s) = samples(&t, 400, 0.0, 3);
-        // Keep only directions near segment 0 and 1.
+        // Keep only directions near segment 0 and 1: segments 2 and 3 have no samples of their
+        // own and are held at the isotropic fit, the same for both.
         let keep: Vec<usize> = (0..r.len()).filter(|&j| phi[j] < 2.0).collect();
         let pick = |v: &[f64]| keep.iter().map(|&j| v[j]).collect::<Vec<_>>();
         let opts = AnisoOptions {
@@ -1042,13 +1130,27 @@ pub(crate) mod tests {
             segments: 4,
             ..AnisoOptions::default()
         };
-        let e = fit_colour(
+        let f = fit_colour(
             &pick(&r),
             &pick(&phi),
             [&pick(&s[0]), &pick(&s[1]), &pick(&s[2])],
             &opts,
-        );
-        assert!(matches!(e, Err(FitFailure::TooFewSamples { .. })));
+        )
+        .unwrap();
+        assert_eq!(f.anchored, 2);
+        let ColourModel::Shared { falloff, .. } = &f.model else {
+            panic!("shared")
+        };
+        for r in [0.5, 2.0, 5.0] {
+            let (a, b) = (falloff.segments[2].ln_eval(r), falloff.segments[3].ln_eval(r));
+            assert!((a - b).abs() < 1e-3, "r {r}: {a} vs {b}");
+        }
+        // No segment with samples of its own: nothing to fit directions with.
+        let nan = vec![f64::NAN; r.len()];
+        assert!(matches!(
+            fit_colour(&r, &nan, [&s[0], &s[1], &s[2]], &opts),
+            Err(FitFailure::TooFewSamples { .. })
+        ));
         assert!(matches!(
             fit_colour(&r, &phi[..10], [&s[0], &s[1], &s[2]], &opts),
             Err(FitFailure::InvalidOptions { .. })
