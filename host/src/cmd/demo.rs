@@ -164,8 +164,7 @@ pub fn run_demo(args: &Args) -> Result<Vec<PathBuf>> {
         calib.clone(),
         subsurf::dataset::obj_bytes(&mesh),
     );
-    let longest = exposures.iter().copied().fold(0.0, f64::max);
-    cfg.noise_floor = sim_noise_floor(longest);
+    cfg.noise_floor = sim_noise_floor(&exposures);
     let mut camera = camera_from_spec("sim", &mesh, &calib, 7, std::time::Duration::from_secs(10))?;
     let p = bar(cfg.plan.frame_count() as u64, "scan");
     let summary = run(&cfg, &mut rig, camera.as_mut(), &p)?;
