@@ -541,6 +541,73 @@ mod tests {
     }
 
     #[test]
+    fn with_a_baseline_the_fall_off_takes_its_shape_below_r_min_and_its_tail_beyond_r_max() {
+        let mut model = VertexModel::homogeneous(
+            vec![[0.0; 3]; 3],
+            vec![[0.0, 0.0, 1.0]; 3],
+            vec![[0, 1, 2]],
+            [1.0, 1.0],
+            &[(1e6, -20.0), (0.5, -0.5)],
+        );
+        model.support = vec![Support::new(1.0, 5.0); 3];
+        let free = Falloffs::new(&model);
+        let base = crate::baseline::Baseline {
+            model: crate::model::ColourModel::Shared {
+                falloff: crate::model::Anisotropic {
+                    segments: vec![
+                        crate::model::ExpSum::new(vec![
+                            crate::model::Term { c: 4.0, d: -6.0 },
+                            crate::model::Term { c: 0.2, d: -0.2 },
+                        ])
+                        .unwrap(),
+                    ],
+                },
+                s_g: 1.0,
+                s_b: 1.0,
+            },
+            r_range: [0.2, 30.0],
+        };
+        let b = |r: f64| base.model.ln_eval(r, None)[0];
+        model.baseline = Some(base.clone());
+        let f = Falloffs::new(&model);
+        // Inside the range: the model, untouched.
+        for r in [1.0, 2.5, 5.0] {
+            assert_eq!(f.eval(0, r, &[1.0]), free.eval(0, r, &[1.0]));
+        }
+        // Below r_min: the model's value at r_min times the baseline's rise, in both evaluations.
+        let at = free.eval(0, 1.0, &[1.0])[0];
+        for r in [0.0, 0.3, 0.9] {
+            let want = at.ln() + b(r) - b(1.0);
+            let got = f.eval(0, r, &[1.0])[0].ln();
+            assert!((got - want).abs() < 1e-9, "r {r}: {got} vs {want}");
+            assert!((f.ln_eval_mean(0, r)[0] - want).abs() < 1e-9);
+        }
+        // Beyond r_max: towards the baseline (log-space blend), all of it far out.
+        let far = 5.0 + 40.0 * crate::baseline::FALLBACK_SCALE * 5.0;
+        assert!((f.eval(0, far, &[1.0])[0].ln() - b(far)).abs() < 1e-6 * far);
+        let mid = 7.0;
+        let w = crate::baseline::local_weight(Support::new(1.0, 5.0), mid);
+        let want = w * free.eval(0, mid, &[1.0])[0].ln() + (1.0 - w) * b(mid);
+        assert!((f.eval(0, mid, &[1.0])[0].ln() - want).abs() < 1e-9);
+        assert!((f.ln_eval_mean(0, mid)[0] - want).abs() < 1e-9);
+        // The cutoff reaches at least as far as the baseline's tail needs.
+        assert!(f.cutoff(0, 1e-3) >= free.cutoff(0, 1e-3));
+        // The self-term disk integral matches a numerical integral of `eval`.
+        for rho in [0.5, 2.0] {
+            let steps = 200_000;
+            let dr = rho / steps as f64;
+            let num: f64 = (0..steps)
+                .map(|k| {
+                    let r = (k as f64 + 0.5) * dr;
+                    f.eval(0, r, &[1.0])[0] * 2.0 * std::f64::consts::PI * r * dr
+                })
+                .sum();
+            let got = f.disk_integral(0, rho)[0];
+            assert!((got / num - 1.0).abs() < 1e-6, "rho {rho}: {got} vs {num}");
+        }
+    }
+
+    #[test]
     fn tail_cutoff_leaves_the_requested_fraction() {
         let terms = [(1.0, -2.0), (0.01, -0.2)];
         let total: f64 = terms.iter().map(|&(c, d)| c / (d * d)).sum();
