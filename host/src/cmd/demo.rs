@@ -30,7 +30,7 @@ use subsurf::scan::driver::{ScanConfig, run};
 use subsurf::scan::plan::{PlanOptions, PlanScene, coverage_plan};
 use subsurf::scan::setup::{
     BUILTIN_RADIUS_MM, GROUND_TRUTH_FILE, builtin_image_size, builtin_object, builtin_target_mm,
-    camera_from_spec, obj_text, sim_exposures_s, sim_field, sim_noise_floor, write_ground_truth,
+    camera_from_spec, sim_exposures_s, sim_field, sim_noise_floor, write_ground_truth,
 };
 
 use super::progress::Bar;
@@ -160,9 +160,13 @@ pub fn run_demo(args: &Args) -> Result<Vec<PathBuf>> {
         std::fs::remove_dir_all(&scan_dir)
             .with_context(|| format!("clearing {}", scan_dir.display()))?;
     }
-    let mut cfg = ScanConfig::new(scan_dir.clone(), plan, calib.clone(), obj_text(&mesh));
-    let longest = exposures.iter().copied().fold(0.0, f64::max);
-    cfg.noise_floor = sim_noise_floor(longest);
+    let mut cfg = ScanConfig::new(
+        scan_dir.clone(),
+        plan,
+        calib.clone(),
+        subsurf::dataset::obj_bytes(&mesh),
+    );
+    cfg.noise_floor = sim_noise_floor(&exposures);
     let mut camera = camera_from_spec("sim", &mesh, &calib, 7, std::time::Duration::from_secs(10))?;
     let p = bar(cfg.plan.frame_count() as u64, "scan");
     let summary = run(&cfg, &mut rig, camera.as_mut(), &p)?;
@@ -263,7 +267,7 @@ pub fn run_demo(args: &Args) -> Result<Vec<PathBuf>> {
         (
             "key-light",
             "key light",
-            super::render::default_lights(&truth),
+            Light::defaults_for(truth.bounds()),
         ),
         (
             "back-light",
