@@ -81,7 +81,10 @@ pub fn ln_predict(
     match baseline {
         Some(b) if support.is_known() && r < support.r_min => {
             let at = local.ln_eval(support.r_min, phi);
-            let (b_r, b_at) = (b.model.ln_eval(r, None), b.model.ln_eval(support.r_min, None));
+            let (b_r, b_at) = (
+                b.model.ln_eval(r, None),
+                b.model.ln_eval(support.r_min, None),
+            );
             [0, 1, 2].map(|c| at[c] + (b_r[c] - b_at[c]).max(0.0))
         }
         _ => with_fallback(
@@ -105,9 +108,11 @@ pub fn channel_terms(b: &Baseline) -> [Vec<(f64, f64)>; 3] {
             .collect()
     };
     match &b.model {
-        ColourModel::Shared { falloff, s_g, s_b } => {
-            [terms(falloff, 1.0), terms(falloff, *s_g), terms(falloff, *s_b)]
-        }
+        ColourModel::Shared { falloff, s_g, s_b } => [
+            terms(falloff, 1.0),
+            terms(falloff, *s_g),
+            terms(falloff, *s_b),
+        ],
         ColourModel::PerChannel { channels } => [0, 1, 2].map(|c| terms(&channels[c], 1.0)),
     }
 }

@@ -170,7 +170,11 @@ impl Falloffs {
             let f = self.eval_model(i, r, w).map(|(f, _)| f);
             if self.baseline.is_some() && support.is_known() && r > support.r_max {
                 return self
-                    .fall_back(i, r, f.map(|f| if f > 0.0 { f.ln() } else { f64::NEG_INFINITY }))
+                    .fall_back(
+                        i,
+                        r,
+                        f.map(|f| if f > 0.0 { f.ln() } else { f64::NEG_INFINITY }),
+                    )
                     .map(f64::exp);
             }
             return f;
