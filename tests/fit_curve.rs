@@ -297,7 +297,9 @@ fn default_bins_match_the_exact_fit() {
         args.extend_from_slice(extra);
         let (ok, out, err) = fit_curve(&args);
         assert!(ok, "{err}");
-        out.lines().map(|l| serde_json::from_str(l).unwrap()).collect()
+        out.lines()
+            .map(|l| serde_json::from_str(l).unwrap())
+            .collect()
     };
     let (auto, exact) = (run(&[]), run(&["--bins", "exact"]));
     for (k, curve) in samples.iter().enumerate() {

@@ -217,18 +217,24 @@ impl Parser {
             return Ok(());
         }
         let fields: Vec<&str> = line.split(',').map(str::trim).collect();
-        self.channels = Some(header(&fields, self.batch).ok_or_else(|| CurvesError::Header {
-            line: line_no,
-            prefix: if self.batch { "id," } else { "" },
-            got: line.to_string(),
-        })?);
+        self.channels = Some(
+            header(&fields, self.batch).ok_or_else(|| CurvesError::Header {
+                line: line_no,
+                prefix: if self.batch { "id," } else { "" },
+                got: line.to_string(),
+            })?,
+        );
         Ok(())
     }
 
     /// Index of the curve of `id` (a new one for an id not seen yet).
     fn curve_for(&mut self, line_no: usize, id: &[u8], ch: usize) -> Result<usize, CurvesError> {
         if let Some(k) = self.last
-            && self.curves[k].id.as_deref().map_or(b"" as &[u8], str::as_bytes) == id
+            && self.curves[k]
+                .id
+                .as_deref()
+                .map_or(b"" as &[u8], str::as_bytes)
+                == id
         {
             return Ok(k);
         }
@@ -262,6 +268,9 @@ fn strip_comment(line: &str) -> &str {
     .trim()
 }
 
+/// A data row: the id's bytes (empty outside batch files) and the values by column.
+type Row<'a> = (&'a [u8], [f64; MAX_COLUMNS]);
+
 /// Spaces and tabs (and the `\r` of CRLF files) around fields.
 fn is_blank(b: u8) -> bool {
     b == b' ' || b == b'\t' || b == b'\r'
@@ -270,7 +279,7 @@ fn is_blank(b: u8) -> bool {
 /// A well-formed row without a comment: `expected` comma-separated fields, numbers after the id,
 /// ASCII blanks around fields. One pass over the bytes, no allocation. `None` for anything
 /// else, which [`slow_row`] then reads or rejects.
-fn fast_row(line: &[u8], batch: bool, expected: usize) -> Option<(&[u8], [f64; MAX_COLUMNS])> {
+fn fast_row(line: &[u8], batch: bool, expected: usize) -> Option<Row<'_>> {
     let mut values = [0.0f64; MAX_COLUMNS];
     let mut at = 0;
     let mut id: &[u8] = &[];
@@ -326,7 +335,7 @@ fn slow_row(
     raw: &[u8],
     batch: bool,
     expected: usize,
-) -> Result<Option<(&[u8], [f64; MAX_COLUMNS])>, CurvesError> {
+) -> Result<Option<Row<'_>>, CurvesError> {
     let text = std::str::from_utf8(raw).map_err(|_| CurvesError::NotText { line: line_no })?;
     let line = strip_comment(text);
     if line.is_empty() {
@@ -356,7 +365,10 @@ fn slow_row(
             field: fields[col].to_string(),
         })?;
     }
-    Ok(Some((if batch { fields[0].as_bytes() } else { &[] }, values)))
+    Ok(Some((
+        if batch { fields[0].as_bytes() } else { &[] },
+        values,
+    )))
 }
 
 /// A whole field as f64 (correctly rounded, by the `fast-float2` crate), `None` if it is not
@@ -615,7 +627,9 @@ mod tests {
         // Errors name the line, wherever the reads split.
         for step in [1, 5, 1000] {
             let bad = "id,r,value\na,0,1\na,1,x2\n";
-            let e = read(Trickle(bad.as_bytes(), step), true).unwrap_err().to_string();
+            let e = read(Trickle(bad.as_bytes(), step), true)
+                .unwrap_err()
+                .to_string();
             assert!(e.contains("line 3") && e.contains("x2"), "{e}");
             let e = read(Trickle(b"id,r,value\n\xff,0,1\n", step), true)
                 .unwrap_err()
