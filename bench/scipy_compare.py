@@ -8,7 +8,9 @@ amplitudes c_k = rate_k^2 * 10^U(-1/2, 1/2), distances R*u^2 (u uniform, R = 10 
 host/model/src/fit/tests.rs, at the issue's size (2,000 curves of 2,000 samples).
 
 subsurf: `RAYON_NUM_THREADS=1 subsurf fit-curve FILE --batch --terms 3 --objective log --json`,
-timed as a whole process (reading and parsing the CSV, fitting, writing JSON).
+timed as a whole process (reading and parsing the CSV, fitting, writing JSON) by the CPU time
+(user + sys) the child used, from getrusage(RUSAGE_CHILDREN) before and after: the machine is
+shared, and wall time would count waiting for a core. Wall time is printed beside it.
 scipy: least_squares(method="lm") on the same log residuals ln(sum c_k exp(-l_k r)) - ln s, over
 (ln c_k, ln l_k) with the analytic Jacobian, from one naive start (rates 0.5, 2, 6 /mm, amplitudes
 max(s)/3), timed over the fits only (the curves are already in memory).
@@ -17,6 +19,7 @@ max(s)/3), timed over the fits only (the curves are already in memory).
 import argparse
 import json
 import os
+import resource
 import shlex
 import subprocess
 import sys
@@ -100,9 +103,12 @@ def main():
         cmd = [a.subsurf, "fit-curve", path, "--batch", "--terms", "3", "--objective", "log",
                "--json"] + shlex.split(a.subsurf_args)
         env = dict(os.environ, RAYON_NUM_THREADS="1")
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.perf_counter()
         out = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True).stdout
-        t_subsurf = time.perf_counter() - t0
+        wall_subsurf = time.perf_counter() - t0
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        t_subsurf = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     rows = [json.loads(line) for line in out.splitlines()]
     assert len(rows) == a.curves, len(rows)
     # log E of subsurf's model measured on the samples here (the fast mode reports an estimate).
@@ -139,13 +145,14 @@ def main():
     mean_sp = np.nanmean(sp_log_e)
     print(f"subsurf command: {' '.join(cmd[:1] + ['fit-curve', 'FILE'] + cmd[3:])}")
     print(f"curves: {a.curves} x {a.samples} samples, seed {a.seed}, CSV {size / 1e6:.1f} MB")
-    print(f"subsurf: {t_subsurf:.2f} s wall for {a.curves} curves (parse + fit + JSON) = "
+    print(f"subsurf: {t_subsurf:.3f} s CPU ({wall_subsurf:.3f} s wall, load "
+          f"{os.getloadavg()[0]:.2f}) for {a.curves} curves (parse + fit + JSON) = "
           f"{rate_ss:.0f} fits/s; not converged {int((~ss_conv).sum())} "
           f"({100 * (~ss_conv).mean():.2f} %); mean iterations {ss_it.mean():.1f}")
     print(f"scipy:   {t_scipy:.2f} s CPU for {k} curves (fits only) = {rate_sp:.1f} fits/s; "
           f"not converged {int((~sp_conv).sum())} ({100 * (~sp_conv).mean():.2f} %); "
           f"mean evaluations {sp_nfev.mean():.1f}")
-    print(f"speed-up: {rate_ss / rate_sp:.0f}x")
+    print(f"speed-up (CPU time): {rate_ss / rate_sp:.0f}x")
     print(f"mean log E over the {k} curves both fitted: subsurf {mean_ss:.6f}, scipy "
           f"{mean_sp:.6f}, ratio {mean_ss / mean_sp:.4f}")
     worse = int((ss_log_e[both] > sp_log_e * 1.02).sum())

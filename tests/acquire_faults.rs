@@ -5,11 +5,11 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 use subsurf::dataset::Dataset;
+use subsurf::dataset::Image;
 use subsurf::link::{ByteLink, LinkError};
 use subsurf::rig::{ClientConfig, RigClient};
 use subsurf::scan::camera::{Camera, CameraError, Shot, Timing};
 use subsurf::scan::driver::{ScanConfig, ScanError, run};
-use subsurf::scan::frame::LinearImage;
 use subsurf::scan::plan::PlanOptions;
 use subsurf::scan::setup::camera_from_spec;
 use subsurf::sim::{SimLink, SimParams, VirtualRig};
@@ -111,7 +111,7 @@ impl Camera for Flaky {
     fn is_quick(&self) -> bool {
         true
     }
-    fn capture(&mut self, shot: &Shot) -> Result<LinearImage, CameraError> {
+    fn capture(&mut self, shot: &Shot) -> Result<Image, CameraError> {
         self.shots += 1;
         if let Some((n, stop)) = &self.stop_after
             && self.shots >= *n

@@ -89,3 +89,21 @@ fn one_camera_type_and_one_dataset_writer() {
     let writers = naming("host/src", "pub struct DatasetWriter");
     assert_eq!(writers, ["host/src/dataset/writer.rs"], "{writers:?}");
 }
+
+#[test]
+fn one_image_codec_one_obj_writer_one_projection() {
+    // EXR is encoded and decoded in one place (dataset::image, the `exr` crate), OBJ text is
+    // written in one place (dataset::obj_bytes), lens distortion is applied in one place
+    // (geometry::Camera).
+    for (needle, owner) in [
+        ("exr::", "host/src/dataset/image.rs"),
+        ("ImageFormat::OpenExr", ""),
+        ("pub struct LinearImage", ""),
+        ("\"v {", "host/src/dataset/mesh.rs"),
+        ("fn distort", "host/src/geometry/camera.rs"),
+    ] {
+        let users = naming("host/src", needle);
+        let want: Vec<&str> = [owner].into_iter().filter(|o| !o.is_empty()).collect();
+        assert_eq!(users, want, "{needle}");
+    }
+}

@@ -12,7 +12,7 @@ use subsurf::calib::Calibration;
 use subsurf::dataset::Mesh;
 use subsurf::scan::driver::ScanConfig;
 use subsurf::scan::plan::{PlanOptions, PlanScene, coverage_plan, dense_raster};
-use subsurf::scan::setup::{builtin_object, obj_text};
+use subsurf::scan::setup::builtin_object;
 use subsurf::simulate::{SimConfig, SimObject, simulate};
 
 /// Which planner [`rig_scan`] plans with.
@@ -42,7 +42,12 @@ pub fn rig_scan(
     }
     .unwrap();
     let dir = tempfile::tempdir().unwrap();
-    let cfg = ScanConfig::new(dir.path().join("ds"), plan, calib, obj_text(&mesh));
+    let cfg = ScanConfig::new(
+        dir.path().join("ds"),
+        plan,
+        calib,
+        subsurf::dataset::obj_bytes(&mesh),
+    );
     (cfg, mesh, dir)
 }
 

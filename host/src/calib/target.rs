@@ -143,12 +143,33 @@ fn pose_from_h(k: &Matrix3<f64>, h: &Matrix3<f64>) -> Option<Pose> {
     Some(Pose { r, t: lambda * h3 })
 }
 
-fn project(k: &[f64], dist: [f64; 2], pose: &Pose, b: [f64; 2]) -> [f64; 2] {
+/// The camera of an intrinsics fit `k = [fx, fy, cx, cy]`, `dist = [k1, k2]`: the one camera
+/// model ([`Camera`], OpenCV distortion), in its own frame (extrinsics are the board poses).
+fn intrinsics_camera(k: &[f64], dist: [f64; 2]) -> Camera {
+    Camera {
+        width: 1,
+        height: 1,
+        fx: k[0],
+        fy: k[1],
+        cx: k[2],
+        cy: k[3],
+        distortion: Some(vec![dist[0], dist[1], 0.0, 0.0, 0.0]),
+        camera_from_world: [
+            [1.0, 0.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0, 0.0],
+            [0.0, 0.0, 1.0, 0.0],
+            [0.0, 0.0, 0.0, 1.0],
+        ],
+    }
+}
+
+/// Pixel of board point `b` (mm, z = 0) seen with `pose` through `camera`
+/// ([`Camera::project_camera`]); NaN behind the camera, which the least-squares solver rejects.
+fn project(camera: &Camera, pose: &Pose, b: [f64; 2]) -> [f64; 2] {
     let p = pose.r * Vector3::new(b[0], b[1], 0.0) + pose.t;
-    let (x, y) = (p[0] / p[2], p[1] / p[2]);
-    let r2 = x * x + y * y;
-    let s = 1.0 + dist[0] * r2 + dist[1] * r2 * r2;
-    [k[0] * x * s + k[2], k[1] * y * s + k[3]]
+    camera
+        .project_camera([p[0], p[1], p[2]])
+        .unwrap_or([f64::NAN; 2])
 }
 
 /// Intrinsics (`fx, fy, cx, cy, k1, k2`) and the board pose of every view (Zhang's method).
@@ -216,10 +237,11 @@ pub fn fit_intrinsics(views: &[TargetView]) -> Result<IntrinsicsFit, CalibError>
     };
     let residual = |p: &DVector<f64>| {
         let mut r = Vec::new();
+        let camera = intrinsics_camera(&[p[0], p[1], p[2], p[3]], [p[4], p[5]]);
         for (i, v) in usable.iter().enumerate() {
             let pose = pose_of(p, i);
             for (b, px) in v.board.iter().zip(&v.pixels) {
-                let q = project(&[p[0], p[1], p[2], p[3]], [p[4], p[5]], &pose, *b);
+                let q = project(&camera, &pose, *b);
                 r.push(q[0] - px[0]);
                 r.push(q[1] - px[1]);
             }
@@ -382,8 +404,7 @@ pub fn fit_turntable(
         let q = init.point + e1 * p[8] + e2 * p[9];
         (r, t, a, q)
     };
-    let k = intr.k;
-    let dist = [intr.distortion[0], intr.distortion[1]];
+    let camera = intrinsics_camera(&intr.k, [intr.distortion[0], intr.distortion[1]]);
     let residual = |p: &DVector<f64>| {
         let (r, t, a, q) = model(p);
         let mut res = Vec::new();
@@ -398,7 +419,7 @@ pub fn fit_turntable(
                 t: rot * (t - q) + q,
             };
             for (b, px) in v.board.iter().zip(&v.pixels) {
-                let pr = project(&k, dist, &pose, *b);
+                let pr = project(&camera, &pose, *b);
                 res.push(pr[0] - px[0]);
                 res.push(pr[1] - px[1]);
             }
@@ -455,11 +476,12 @@ mod tests {
         seed: u32,
     ) -> TargetView {
         let mut s = seed;
+        let camera = intrinsics_camera(k, dist);
         let board = t.points();
         let pixels = board
             .iter()
             .map(|b| {
-                let mut q = project(k, dist, pose, *b);
+                let mut q = project(&camera, pose, *b);
                 for c in &mut q {
                     s = s.wrapping_mul(1_103_515_245).wrapping_add(12345);
                     *c += 0.2 * ((s >> 8) as f64 / (1u32 << 24) as f64 - 0.5);

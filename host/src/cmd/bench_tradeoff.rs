@@ -17,7 +17,7 @@ use subsurf::fit::Preset;
 use subsurf::modelfile::ModelFile;
 use subsurf::pipeline::{PipelineOptions, fit_dataset};
 use subsurf::plot::TradeoffPoint;
-use subsurf::render::{self, Camera, Image, Method, Quality, RenderOptions, VertexModel};
+use subsurf::render::{self, Camera, Image, Light, Method, Quality, RenderOptions, VertexModel};
 use subsurf::scan::setup::{
     builtin_object, sim_exposures_s, sim_field, sim_noise_floor, sim_sensor, sim_spot,
 };
@@ -151,7 +151,7 @@ fn scan_config(sizes: &Sizes, d: Density, seed: u64, half_step: bool) -> SimConf
         exposure_s: exposure,
         ..sim_sensor()
     };
-    cfg.noise_floor = sim_noise_floor(exposure);
+    cfg.noise_floor = sim_noise_floor(&[exposure]);
     if let CameraRig::Orbit { count, .. } = &mut cfg.cameras {
         *count = 1;
     }
@@ -378,7 +378,7 @@ fn render_image(
         method: quality.map_or(Method::Exact, |q| Method::Hierarchical(q.params())),
         ..RenderOptions::default()
     };
-    let lights = super::render::default_lights(model);
+    let lights = Light::defaults_for(model.bounds());
     let r = render::render(model, &lights, &cam, &opts).map_err(|e| e.to_string())?;
     Ok((r.image, t.elapsed().as_secs_f64()))
 }

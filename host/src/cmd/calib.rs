@@ -8,7 +8,7 @@ use subsurf::calib::target::{
     ChessboardTarget, Pose, TargetView, camera_model, fit_intrinsics, fit_turntable,
 };
 use subsurf::calib::{Calibration, GalvoObservation, fit_galvo};
-use subsurf::scan::frame::LinearImage;
+use subsurf::dataset::{Image, encode_exr};
 
 /// Calibrate the rig; every failure says what was not found.
 #[derive(Debug, clap::Args)]
@@ -106,8 +106,8 @@ fn load_or_builtin(path: &Path) -> anyhow::Result<Calibration> {
 
 fn detect(path: &Path, t: &ChessboardTarget) -> anyhow::Result<(TargetView, u32, u32)> {
     let bytes = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
-    let img = LinearImage::from_bytes(&bytes)
-        .with_context(|| format!("{} is not an image", path.display()))?;
+    let img =
+        Image::decode(&bytes).with_context(|| format!("{} is not an image", path.display()))?;
     let g = Gray::from_linear(img.width, img.height, img.channels, &img.data);
     let view = detect_chessboard(&g, t).with_context(|| format!("in {}", path.display()))?;
     Ok((view, img.width as u32, img.height as u32))
@@ -273,14 +273,14 @@ fn simulate_target(out: &Path) -> anyhow::Result<()> {
     };
     let cam = simulated_camera();
     let save = |name: &str, g: &Gray| -> anyhow::Result<PathBuf> {
-        let img = LinearImage {
+        let img = Image {
             width: g.width,
             height: g.height,
             channels: 1,
             data: g.data.clone(),
         };
         let p = out.join(name);
-        std::fs::write(&p, img.to_exr()?)
+        std::fs::write(&p, encode_exr(&img)?)
             .with_context(|| format!("cannot write {}", p.display()))?;
         Ok(p)
     };

@@ -11,6 +11,7 @@ mod evaluate;
 mod fit;
 mod fit_curve;
 mod flash;
+mod models;
 mod plan;
 mod plot;
 mod ports;

@@ -9,7 +9,7 @@ use subsurf::scan::plan::{
     PlanOptions, PlanScene, RigTiming, ScanPlan, coverage_plan, dense_for_target, dense_raster,
     estimate_duration, predict_coverage,
 };
-use subsurf::scan::setup::{builtin_image_size, builtin_object, rig_timing, sim_exposures_s};
+use subsurf::scan::setup::{builtin_calibration, builtin_object, rig_timing, scan_exposures_s};
 
 /// Which planner.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -47,8 +47,8 @@ pub struct PlanArgs {
     /// Fraction of coverable vertices to cover (coverage planner).
     #[arg(long, default_value_t = 1.0)]
     pub coverage: f64,
-    /// Exposure time(s) in seconds; several (comma-separated) = HDR bracketing. Default 0.05,
-    /// or with the built-in object the simulated camera's (`sim_exposure_s`).
+    /// Exposure time(s) in seconds; several (comma-separated) = HDR bracketing. Default
+    /// `scan::setup::scan_exposures_s`: 0.05, or with the built-in object the simulated camera's.
     #[arg(long, value_delimiter = ',')]
     pub exposure: Vec<f64>,
     /// Built-in calibration's image size (pixels, square), when no --calib is given. Default:
@@ -100,11 +100,7 @@ pub fn resolve(a: &PlanArgs) -> anyhow::Result<Resolved> {
     };
     let calib = match &a.calib {
         Some(p) => Calibration::load(p)?,
-        None if builtin => {
-            let (centre, radius) = builtin_object().bounds();
-            let size = a.size.unwrap_or_else(builtin_image_size);
-            Calibration::builtin_for(centre, radius, size)
-        }
+        None if builtin => builtin_calibration(a.size),
         None => bail!("--calib calib.json is required with --mesh (run `subsurf calib` first)"),
     };
     Ok(Resolved {
@@ -122,15 +118,7 @@ pub fn make_plan(a: &PlanArgs, r: &Resolved) -> anyhow::Result<(ScanPlan, PlanSc
         raster: a.raster,
         target_mm: a.target_mm,
         coverage: a.coverage,
-        exposures_s: if a.exposure.is_empty() {
-            if r.builtin {
-                sim_exposures_s()
-            } else {
-                vec![0.05]
-            }
-        } else {
-            a.exposure.clone()
-        },
+        exposures_s: scan_exposures_s(&a.exposure, r.builtin),
         channel: subsurf::dataset::FrameChannel::Rgb,
     };
     let plan = if let Some(p) = &a.plan {

@@ -4,9 +4,10 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use clap::Subcommand;
+use subsurf::curves::Curve;
 use subsurf::render::{CameraSpec, VertexModel};
 
-use super::render::{builtin, load_model};
+use super::models::{builtin, load_model};
 
 /// Draw a figure.
 #[derive(Debug, clap::Args)]
@@ -28,7 +29,8 @@ enum What {
 
 #[derive(Debug, clap::Args)]
 struct FalloffArgs {
-    /// CSV with a header and columns `r,value` (`#` comments allowed), as for `fit-curve`.
+    /// CSV as for `fit-curve`: header `r,value` (or `r,r_value,g_value,b_value`: the first
+    /// channel is drawn), `#` comments allowed.
     csv: PathBuf,
     /// Relative refractive index of the dipole.
     #[arg(long, default_value_t = 1.3)]
@@ -68,37 +70,19 @@ fn view(spec: &str) -> Result<[f64; 3]> {
     }
 }
 
-/// Reads `r,value` rows; the first non-comment line is a header if it does not parse.
+/// The first curve of a fall-off file in `fit-curve`'s format ([`subsurf::curves`]): `r` and its
+/// first channel.
 fn read_csv(path: &std::path::Path) -> Result<(Vec<f64>, Vec<f64>)> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-    let (mut r, mut s) = (Vec::new(), Vec::new());
-    let mut first = true;
-    for (k, line) in text.lines().enumerate() {
-        let line = line.trim();
-        if line.is_empty() || line.starts_with('#') {
-            continue;
-        }
-        let cols: Vec<&str> = line.split(',').map(str::trim).collect();
-        let parsed = (cols.len() >= 2).then(|| (cols[0].parse::<f64>(), cols[1].parse::<f64>()));
-        match parsed {
-            Some((Ok(a), Ok(b))) => {
-                r.push(a);
-                s.push(b);
-            }
-            _ if first => {}
-            _ => bail!(
-                "{}:{}: expected `r,value`, found `{line}`",
-                path.display(),
-                k + 1
-            ),
-        }
-        first = false;
+    let curves =
+        subsurf::curves::parse(&text, false).with_context(|| path.display().to_string())?;
+    match curves.into_iter().next() {
+        Some(Curve {
+            r, mut channels, ..
+        }) if !r.is_empty() && !channels.is_empty() => Ok((r, channels.swap_remove(0))),
+        _ => bail!("{}: no samples", path.display()),
     }
-    if r.is_empty() {
-        bail!("{}: no samples", path.display());
-    }
-    Ok((r, s))
 }
 
 pub fn run(args: Args) -> Result<()> {

@@ -3,6 +3,8 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
+
+use super::models::{builtin, load_model};
 use subsurf::render::{
     self, Camera, CameraSpec, Light, Method, Quality, RenderOptions, VertexModel,
 };
@@ -81,60 +83,13 @@ pub fn resolve_camera(spec: &str, size: (u32, u32), model: &VertexModel) -> Resu
     })
 }
 
-/// The default lighting: a warm key light above front-left and a dim cool fill from the right,
-/// placed relative to the object's size.
-pub fn default_lights(model: &VertexModel) -> Vec<Light> {
-    let (lo, hi) = model.bounds();
-    let c = [0, 1, 2].map(|k| 0.5 * (lo[k] + hi[k]));
-    let r = (0..3)
-        .map(|k| (hi[k] - lo[k]).powi(2))
-        .sum::<f64>()
-        .sqrt()
-        .max(1e-3);
-    let d = 3.0 * r;
-    let i = d * d; // irradiance ≈ 1 at the object
-    vec![
-        Light::Point {
-            position: [c[0] - 0.6 * d, c[1] - 0.7 * d, c[2] + 0.8 * d],
-            intensity: [i, 0.95 * i, 0.85 * i],
-        },
-        Light::Directional {
-            direction: [-0.8, 0.3, -0.5],
-            irradiance: [0.15, 0.17, 0.2],
-        },
-    ]
-}
-
-/// Loads the model named by `--builtin`.
-pub fn builtin(name: &str) -> Result<VertexModel> {
-    match name.split_once(':') {
-        None if name == "torus" => Ok(render::synthetic::marble_torus(160, 64)),
-        Some(("torus", dims)) => {
-            let (a, b) = dims.split_once(',').context("torus:NU,NV")?;
-            Ok(render::synthetic::marble_torus(a.parse()?, b.parse()?))
-        }
-        _ => bail!("unknown built-in model `{name}` (known: torus, torus:NU,NV)"),
-    }
-}
-
-/// Reads a model file into the renderer's form and checks it.
-pub fn load_model(path: &std::path::Path) -> Result<VertexModel> {
-    let file = subsurf::modelfile::ModelFile::read(path)
-        .with_context(|| format!("reading model {}", path.display()))?;
-    let model = VertexModel::from_model_file(&file);
-    model
-        .validate()
-        .with_context(|| format!("model {}", path.display()))?;
-    Ok(model)
-}
-
 pub fn run(args: Args) -> Result<()> {
     let model = match &args.model {
         Some(p) => load_model(p)?,
         None => builtin(&args.builtin)?,
     };
     let lights = if args.lights.is_empty() {
-        default_lights(&model)
+        Light::defaults_for(model.bounds())
     } else {
         args.lights
             .iter()

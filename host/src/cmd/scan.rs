@@ -11,7 +11,7 @@ use subsurf::rig::{ClientConfig, RigClient};
 use subsurf::scan::driver::{ScanConfig, ScanError, run_with_reconnect};
 use subsurf::scan::plan::estimate_duration;
 use subsurf::scan::setup::{
-    GROUND_TRUTH_FILE, camera_from_spec, obj_text, rig_timing, sim_noise_floor, write_ground_truth,
+    GROUND_TRUTH_FILE, camera_from_spec, rig_timing, sim_noise_floor, write_ground_truth,
 };
 
 use super::plan::{PlanArgs, make_plan, resolve};
@@ -71,12 +71,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     let r = resolve(&args.plan)?;
     let (plan, _scene, _opts) = make_plan(&args.plan, &r)?;
-    let mut cfg = ScanConfig::new(args.out.clone(), plan, r.calib.clone(), obj_text(&r.mesh));
+    let mut cfg = ScanConfig::new(
+        args.out.clone(),
+        plan,
+        r.calib.clone(),
+        subsurf::dataset::obj_bytes(&r.mesh),
+    );
     if args.camera == "sim" {
-        // The simulated sensor's noise is known: the floor is where a pixel's SNR drops to
-        // FLOOR_SNR at the scan's longest exposure.
-        let longest = cfg.plan.exposures_s.iter().copied().fold(0.0, f64::max);
-        cfg.noise_floor = sim_noise_floor(longest);
+        cfg.noise_floor = sim_noise_floor(&cfg.plan.exposures_s);
     }
     cfg.laser_channel = args.laser_channel;
     cfg.move_speed = args.plan.speed;

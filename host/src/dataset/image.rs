@@ -1,5 +1,8 @@
-//! Frame images: linear float OpenEXR (half or float, RGB or one channel) and PFM.
-use std::io::{BufRead, BufReader, Read};
+//! The one image type ([`Image`], linear float) and its one encoder and decoder: OpenEXR
+//! through the `exr` crate (half or float, RGB or one channel), PFM, and anything else the
+//! `image` crate decodes (16-bit PNG/TIFF from a camera). Frames of a dataset, images a camera
+//! delivers to `subsurf scan`, HDR merges, predictions and renders all use these.
+use std::io::{BufRead, BufReader, Read, Seek};
 use std::path::{Path, PathBuf};
 
 /// Why an image could not be read or written.
@@ -22,9 +25,13 @@ pub enum ImageError {
         /// The decoder's message.
         message: String,
     },
-    /// The file decoded but its content does not fit the contract.
+    /// The file decoded but its content does not fit the contract, or an image's size, channel
+    /// count and data disagree.
     #[error("{0}")]
     Format(String),
+    /// In-memory bytes that no decoder reads (see [`Image::decode`]).
+    #[error("not a readable image: {0}")]
+    Decode(String),
 }
 
 /// A linear float image, row-major, channels interleaved (1 or 3).
@@ -49,6 +56,43 @@ impl Image {
             channels,
             data: vec![0.0; width * height * channels],
         }
+    }
+
+    /// `Ok` when the size, channel count (1 or 3) and data length agree.
+    pub fn check(&self) -> Result<(), ImageError> {
+        if !(self.channels == 1 || self.channels == 3)
+            || self.width == 0
+            || self.height == 0
+            || self.data.len() != self.width * self.height * self.channels
+        {
+            return Err(ImageError::Format(format!(
+                "image shape {}x{}x{} with {} samples",
+                self.width,
+                self.height,
+                self.channels,
+                self.data.len()
+            )));
+        }
+        Ok(())
+    }
+
+    /// Decodes an image held in memory: OpenEXR (by its magic number) as [`read_image`] reads
+    /// it (R, G, B or one channel kept as one), anything else the `image` crate decodes (16-bit
+    /// PNG/TIFF, ...) as linear RGB float, integer formats scaled to `[0, 1]` (they must already
+    /// be linear).
+    pub fn decode(bytes: &[u8]) -> Result<Image, ImageError> {
+        if bytes.starts_with(&EXR_MAGIC) {
+            return decode_exr(std::io::Cursor::new(bytes), "image")
+                .map_err(|e| ImageError::Decode(e.to_string()));
+        }
+        let img = image::load_from_memory(bytes).map_err(|e| ImageError::Decode(e.to_string()))?;
+        let rgb = img.to_rgb32f();
+        Ok(Image {
+            width: rgb.width() as usize,
+            height: rgb.height() as usize,
+            channels: 3,
+            data: rgb.into_raw(),
+        })
     }
 
     /// The value of pixel column `i`, row `j`, channel `c`.
@@ -111,20 +155,50 @@ pub fn read_image(path: &Path) -> Result<Image, ImageError> {
     }
 }
 
+/// The first four bytes of every OpenEXR file.
+const EXR_MAGIC: [u8; 4] = [0x76, 0x2f, 0x31, 0x01];
+
 fn read_exr(path: &Path) -> Result<Image, ImageError> {
-    use exr::prelude::*;
-    let exr_err = |e: exr::error::Error| ImageError::Exr {
+    let file = std::fs::File::open(path).map_err(|source| ImageError::Io {
         path: path.to_path_buf(),
-        message: e.to_string(),
-    };
+        source,
+    })?;
+    decode_exr(BufReader::new(file), &path.display().to_string()).map_err(|e| match e {
+        ExrError::Codec(message) => ImageError::Exr {
+            path: path.to_path_buf(),
+            message,
+        },
+        ExrError::Content(m) => ImageError::Format(m),
+    })
+}
+
+/// Why [`decode_exr`] failed: the decoder, or the content.
+enum ExrError {
+    Codec(String),
+    Content(String),
+}
+
+impl std::fmt::Display for ExrError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ExrError::Codec(m) => write!(f, "not a readable OpenEXR image: {m}"),
+            ExrError::Content(m) => f.write_str(m),
+        }
+    }
+}
+
+/// An OpenEXR image's first valid layer: R, G, B if present, else Y, else its only channel.
+/// `name` (the file, or "image") goes into the content errors.
+fn decode_exr(source: impl Read + Seek + Send, name: &str) -> Result<Image, ExrError> {
+    use exr::prelude::*;
     let img = read()
         .no_deep_data()
         .largest_resolution_level()
         .all_channels()
         .first_valid_layer()
         .all_attributes()
-        .from_file(path)
-        .map_err(exr_err)?;
+        .from_buffered(source)
+        .map_err(|e| ExrError::Codec(e.to_string()))?;
     let layer = &img.layer_data;
     let (w, h) = (layer.size.width(), layer.size.height());
     let chans = &layer.channel_data.list;
@@ -142,9 +216,8 @@ fn read_exr(path: &Path) -> Result<Image, ImageError> {
             } else if chans.len() == 1 {
                 vec![0]
             } else {
-                return Err(ImageError::Format(format!(
-                    "{}: channels {:?} are neither R,G,B nor one channel",
-                    path.display(),
+                return Err(ExrError::Content(format!(
+                    "{name}: channels {:?} are neither R,G,B nor one channel",
                     chans.iter().map(|c| c.name.to_string()).collect::<Vec<_>>()
                 )));
             }
@@ -155,9 +228,8 @@ fn read_exr(path: &Path) -> Result<Image, ImageError> {
     for (k, &ci) in picked.iter().enumerate() {
         let samples = &chans[ci].sample_data;
         if samples.len() != w * h {
-            return Err(ImageError::Format(format!(
-                "{}: channel holds {} samples, expected {}",
-                path.display(),
+            return Err(ExrError::Content(format!(
+                "{name}: channel holds {} samples, expected {}",
                 samples.len(),
                 w * h
             )));
@@ -234,12 +306,7 @@ fn read_pfm(path: &Path) -> Result<Image, ImageError> {
 
 /// A PFM's bytes (little-endian, rows bottom to top as the format requires).
 pub fn encode_pfm(img: &Image) -> Result<Vec<u8>, ImageError> {
-    if img.channels != 1 && img.channels != 3 {
-        return Err(ImageError::Format(format!(
-            "PFM holds 1 or 3 channels, image has {}",
-            img.channels
-        )));
-    }
+    img.check()?;
     let mut out = Vec::with_capacity(img.data.len() * 4 + 32);
     let magic = if img.channels == 3 { "PF" } else { "Pf" };
     out.extend_from_slice(format!("{magic}\n{} {}\n-1.0\n", img.width, img.height).as_bytes());
@@ -262,8 +329,12 @@ pub fn write_pfm(path: &Path, img: &Image) -> Result<(), ImageError> {
 }
 
 /// A float32 OpenEXR's bytes: channels R, G, B for a three-channel image, Y for one channel.
+/// The one EXR encoder (scan frames, simulated frames, predictions, renders). Written in one
+/// thread with a fixed encoding, so equal images always give equal bytes (a resumed scan is
+/// byte-identical to an uninterrupted one).
 pub fn encode_exr(img: &Image) -> Result<Vec<u8>, ImageError> {
     use exr::prelude::*;
+    img.check()?;
     let exr_err = |e: exr::error::Error| ImageError::Format(format!("cannot encode EXR: {e}"));
     let (w, c) = (img.width, img.channels);
     let size = (img.width, img.height);
@@ -276,6 +347,7 @@ pub fn encode_exr(img: &Image) -> Result<Vec<u8>, ImageError> {
             });
             exr::image::Image::from_channels(size, channels)
                 .write()
+                .non_parallel()
                 .to_buffered(&mut out)
                 .map_err(exr_err)?;
         }
@@ -285,6 +357,7 @@ pub fn encode_exr(img: &Image) -> Result<Vec<u8>, ImageError> {
                 .with_pixel_fn(|p: Vec2<usize>| (img.data[p.y() * w + p.x()],));
             exr::image::Image::from_channels(size, channels)
                 .write()
+                .non_parallel()
                 .to_buffered(&mut out)
                 .map_err(exr_err)?;
         }
@@ -333,6 +406,42 @@ mod tests {
                 assert_eq!(read_image(&p).unwrap(), img, "{name} {c}");
             }
         }
+    }
+
+    #[test]
+    fn encoding_is_deterministic_and_decode_reads_it_back() {
+        for c in [1, 3] {
+            let img = ramp(9, 4, c);
+            let a = encode_exr(&img).unwrap();
+            assert_eq!(a, encode_exr(&img).unwrap());
+            assert_eq!(Image::decode(&a).unwrap(), img, "{c} channels");
+        }
+        // Anything else goes to the `image` crate, as linear RGB.
+        let mut png = Vec::new();
+        image::DynamicImage::ImageRgb16(image::ImageBuffer::from_pixel(
+            3,
+            2,
+            image::Rgb([0u16, 32768, 65535]),
+        ))
+        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+        .unwrap();
+        let back = Image::decode(&png).unwrap();
+        assert_eq!((back.width, back.height, back.channels), (3, 2, 3));
+        assert_eq!(back.data[2], 1.0);
+    }
+
+    #[test]
+    fn bad_shapes_and_bytes_are_errors_not_panics() {
+        let mut img = ramp(4, 4, 3);
+        img.data.pop();
+        assert!(encode_exr(&img).is_err());
+        assert!(encode_pfm(&img).is_err());
+        assert!(encode_exr(&Image::new(2, 2, 2)).is_err());
+        let good = encode_exr(&ramp(4, 4, 3)).unwrap();
+        for cut in [0, 3, 4, 20, good.len() / 2, good.len() - 1] {
+            assert!(Image::decode(&good[..cut]).is_err(), "cut at {cut}");
+        }
+        assert!(Image::decode(b"not an image").is_err());
     }
 
     #[test]

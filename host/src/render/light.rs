@@ -133,6 +133,31 @@ pub(crate) struct Incidence {
 }
 
 impl Light {
+    /// The default lighting of a render of an object with bounding box `(lo, hi)`: a warm key
+    /// light above front-left and a dim cool fill from the right, placed relative to the
+    /// object's size (irradiance about 1 at the object). `subsurf render` without `--light`,
+    /// the demo and `bench tradeoff` light with it.
+    pub fn defaults_for((lo, hi): ([f64; 3], [f64; 3])) -> Vec<Light> {
+        let c = [0, 1, 2].map(|k| 0.5 * (lo[k] + hi[k]));
+        let r = (0..3)
+            .map(|k| (hi[k] - lo[k]).powi(2))
+            .sum::<f64>()
+            .sqrt()
+            .max(1e-3);
+        let d = 3.0 * r;
+        let i = d * d; // irradiance ≈ 1 at the object
+        vec![
+            Light::Point {
+                position: [c[0] - 0.6 * d, c[1] - 0.7 * d, c[2] + 0.8 * d],
+                intensity: [i, 0.95 * i, 0.85 * i],
+            },
+            Light::Directional {
+                direction: [-0.8, 0.3, -0.5],
+                irradiance: [0.15, 0.17, 0.2],
+            },
+        ]
+    }
+
     pub(crate) fn incidence(&self, x: [f64; 3]) -> Option<Incidence> {
         let towards = |p: [f64; 3]| {
             let v = [p[0] - x[0], p[1] - x[1], p[2] - x[2]];

@@ -117,4 +117,7 @@ pub enum RenderError {
         /// The encoder's error.
         source: image::ImageError,
     },
+    /// Writing a linear OpenEXR failed.
+    #[error("{0}")]
+    Exr(crate::dataset::ImageError),
 }

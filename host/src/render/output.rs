@@ -160,17 +160,16 @@ pub fn save_png(
     Ok(info)
 }
 
-/// Saves the linear radiance as a float32 RGB OpenEXR (uncovered pixels are 0).
+/// Saves the linear radiance as a float32 RGB OpenEXR (uncovered pixels are 0), through the one
+/// EXR encoder ([`crate::dataset::write_exr`]).
 pub fn save_exr(img: &Image, path: &Path) -> Result<(), RenderError> {
-    let flat: Vec<f32> = img.pixels.iter().flat_map(|p| *p).collect();
-    let buf = image::Rgb32FImage::from_raw(img.width, img.height, flat)
-        .ok_or_else(|| RenderError::Camera("image buffer size mismatch".into()))?;
-    image::DynamicImage::ImageRgb32F(buf)
-        .save_with_format(path, image::ImageFormat::OpenExr)
-        .map_err(|source| RenderError::Image {
-            path: path.to_path_buf(),
-            source,
-        })
+    let linear = crate::dataset::Image {
+        width: img.width as usize,
+        height: img.height as usize,
+        channels: 3,
+        data: img.pixels.iter().flat_map(|p| *p).collect(),
+    };
+    crate::dataset::write_exr(path, &linear).map_err(RenderError::Exr)
 }
 
 /// What a test needs to know to say an image is a real picture: its size and how much it varies.

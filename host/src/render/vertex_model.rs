@@ -63,6 +63,11 @@ pub struct VertexModel {
     /// where its model is claimed ([`crate::model::support`]: below r_min R_d continues as the
     /// exponential with the model's value and slope there). [`Support::UNKNOWN`]: everywhere.
     pub support: Vec<Support>,
+    /// The model's homogeneous baseline ([`crate::baseline`]): beyond a source's r_max the
+    /// fall-off moves towards it, as in evaluation ([`crate::baseline::with_fallback`]), so a
+    /// vertex whose samples stopped short does not render its own extrapolated tail. `None`: each
+    /// vertex's model everywhere (files without a baseline, ground truth).
+    pub baseline: Option<crate::baseline::Baseline>,
     /// Triangles as vertex indices.
     pub faces: Vec<[u32; 3]>,
 }
@@ -128,6 +133,7 @@ impl VertexModel {
             log_e: vec![f64::NAN; n],
             params,
             support: vec![Support::UNKNOWN; n],
+            baseline: None,
             faces,
         }
     }
@@ -238,6 +244,10 @@ impl VertexModel {
             log_e: file.vertices.iter().map(|v| f64::from(v.log_e)).collect(),
             params,
             support: file.vertices.iter().map(|v| v.support()).collect(),
+            baseline: file
+                .baseline
+                .as_ref()
+                .and_then(|b| b.baseline(file.shape.colour)),
             faces: file.triangles.clone(),
         }
     }

@@ -6,7 +6,7 @@
 //! switches the laser off). HDR comes from [`super::frame::merge_hdr`] over exposure brackets
 //! when the camera is not HDR itself.
 
-use super::frame::LinearImage;
+use crate::dataset::Image;
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -115,7 +115,7 @@ pub trait Camera: Send {
         Ok(())
     }
     /// The image of `shot`; for host-timed cameras this performs the exposure.
-    fn capture(&mut self, shot: &Shot) -> Result<LinearImage, CameraError>;
+    fn capture(&mut self, shot: &Shot) -> Result<Image, CameraError>;
 }
 
 /// `dir:PATH`: a camera program writes each triggered image into a folder, named with the
@@ -200,7 +200,7 @@ impl Camera for DirCamera {
     fn timing(&self) -> Timing {
         Timing::RigTriggered
     }
-    fn capture(&mut self, shot: &Shot) -> Result<LinearImage, CameraError> {
+    fn capture(&mut self, shot: &Shot) -> Result<Image, CameraError> {
         let start = Instant::now();
         loop {
             let fresh: Vec<PathBuf> = self
@@ -253,7 +253,7 @@ impl Camera for DirCamera {
                         path: p.display().to_string(),
                         message: e.to_string(),
                     })?;
-                    return LinearImage::from_bytes(&bytes).map_err(|e| CameraError::Image {
+                    return Image::decode(&bytes).map_err(|e| CameraError::Image {
                         camera: self.describe(),
                         path: p.display().to_string(),
                         message: e.to_string(),
@@ -306,7 +306,7 @@ impl Camera for CmdCamera {
     fn timing(&self) -> Timing {
         Timing::HostTimed
     }
-    fn capture(&mut self, shot: &Shot) -> Result<LinearImage, CameraError> {
+    fn capture(&mut self, shot: &Shot) -> Result<Image, CameraError> {
         let out = self
             .scratch
             .path()
@@ -368,7 +368,7 @@ impl Camera for CmdCamera {
             path: out.display().to_string(),
             message: format!("the command did not write it ({e})"),
         })?;
-        LinearImage::from_bytes(&bytes).map_err(|e| CameraError::Image {
+        Image::decode(&bytes).map_err(|e| CameraError::Image {
             camera: self.describe(),
             path: out.display().to_string(),
             message: e.to_string(),
@@ -394,9 +394,9 @@ mod tests {
     }
 
     fn exr(v: f32) -> Vec<u8> {
-        let mut i = LinearImage::zeros(2, 2, 3);
+        let mut i = Image::new(2, 2, 3);
         i.data.fill(v);
-        i.to_exr().unwrap()
+        crate::dataset::encode_exr(&i).unwrap()
     }
 
     #[test]

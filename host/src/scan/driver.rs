@@ -9,10 +9,10 @@
 //! and leaves a dataset the same command resumes.
 
 use super::camera::{Camera, CameraError, Shot, Timing};
-use super::frame::{Bracket, LinearImage, MergeOptions, merge_hdr};
+use super::frame::{Bracket, MergeOptions, merge_hdr};
 use super::plan::{ScanPlan, angle_steps};
 use crate::calib::Calibration;
-use crate::dataset::{DatasetWriter, FrameSpec, LaserRay, ScanSpec, WriteError};
+use crate::dataset::{DatasetWriter, FrameSpec, Image, LaserRay, ScanSpec, WriteError, encode_exr};
 use crate::link::ByteLink;
 use crate::progress::Progress;
 use crate::rig::{RigClient, RigClientError};
@@ -662,7 +662,7 @@ impl<'a> Scan<'a> {
             brackets.clear();
             (merged, 1.0)
         };
-        let bytes = image.to_exr().map_err(|e| ScanError::Image {
+        let bytes = encode_exr(&image).map_err(|e| ScanError::Image {
             frame: f.index,
             message: e.to_string(),
         })?;
@@ -765,7 +765,7 @@ fn fetch<L: ByteLink>(
     rig: &mut RigClient<L>,
     camera: &mut dyn Camera,
     shot: &Shot,
-) -> Result<Result<LinearImage, CameraError>, ScanError> {
+) -> Result<Result<Image, CameraError>, ScanError> {
     if camera.is_quick() {
         return Ok(camera.capture(shot));
     }

@@ -1,100 +1,9 @@
-//! Linear float images, their OpenEXR encoding, and HDR merging of exposure brackets.
+//! HDR merging of exposure brackets. Images are the one image type, [`crate::dataset::Image`]
+//! (linear, black level removed), encoded by [`crate::dataset::encode_exr`].
 
 use serde::{Deserialize, Serialize};
 
-/// A linear image, black level removed: `channels` interleaved `f32` per pixel (1 or 3).
-#[derive(Debug, Clone, PartialEq)]
-pub struct LinearImage {
-    /// Width in pixels.
-    pub width: usize,
-    /// Height in pixels.
-    pub height: usize,
-    /// 1 (grey) or 3 (RGB).
-    pub channels: usize,
-    /// Row-major interleaved samples.
-    pub data: Vec<f32>,
-}
-
-/// Why an image could not be encoded, decoded or merged.
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum ImageError {
-    /// Size or channel count does not match the data, or brackets disagree.
-    #[error("image shape: {0}")]
-    Shape(String),
-    /// The EXR/other codec failed.
-    #[error("image codec: {0}")]
-    Codec(String),
-}
-
-impl LinearImage {
-    /// A black image.
-    pub fn zeros(width: usize, height: usize, channels: usize) -> Self {
-        LinearImage {
-            width,
-            height,
-            channels,
-            data: vec![0.0; width * height * channels],
-        }
-    }
-
-    fn check(&self) -> Result<(), ImageError> {
-        if !(self.channels == 1 || self.channels == 3)
-            || self.width == 0
-            || self.height == 0
-            || self.data.len() != self.width * self.height * self.channels
-        {
-            return Err(ImageError::Shape(format!(
-                "{}x{}x{} with {} samples",
-                self.width,
-                self.height,
-                self.channels,
-                self.data.len()
-            )));
-        }
-        Ok(())
-    }
-
-    /// RGB float32 OpenEXR bytes (grey is written to all three channels). Written in one thread
-    /// with a fixed encoding so equal images always give equal bytes.
-    pub fn to_exr(&self) -> Result<Vec<u8>, ImageError> {
-        use exr::prelude::*;
-        self.check()?;
-        let (w, c) = (self.width, self.channels);
-        let px = |x: usize, y: usize| {
-            let i = (y * w + x) * c;
-            if c == 3 {
-                (self.data[i], self.data[i + 1], self.data[i + 2])
-            } else {
-                (self.data[i], self.data[i], self.data[i])
-            }
-        };
-        let image = Image::from_channels(
-            (self.width, self.height),
-            SpecificChannels::rgb(|Vec2(x, y)| px(x, y)),
-        );
-        let mut buf = std::io::Cursor::new(Vec::new());
-        image
-            .write()
-            .non_parallel()
-            .to_buffered(&mut buf)
-            .map_err(|e| ImageError::Codec(e.to_string()))?;
-        Ok(buf.into_inner())
-    }
-
-    /// Reads any image the `image` crate decodes (EXR, PFM-free formats, 16-bit PNG/TIFF) as
-    /// linear RGB float. Integer formats are scaled to `[0, 1]`; they must already be linear.
-    pub fn from_bytes(bytes: &[u8]) -> Result<Self, ImageError> {
-        let img = image::load_from_memory(bytes).map_err(|e| ImageError::Codec(e.to_string()))?;
-        let rgb = img.to_rgb32f();
-        Ok(LinearImage {
-            width: rgb.width() as usize,
-            height: rgb.height() as usize,
-            channels: 3,
-            data: rgb.into_raw(),
-        })
-    }
-}
+use crate::dataset::{Image, ImageError};
 
 /// One exposure of a bracket.
 #[derive(Debug, Clone)]
@@ -102,7 +11,7 @@ pub struct Bracket {
     /// Exposure time (s).
     pub exposure_s: f64,
     /// The image as the sensor gave it (linear, black level removed).
-    pub image: LinearImage,
+    pub image: Image,
 }
 
 /// How to merge brackets.
@@ -122,19 +31,19 @@ pub struct MergeOptions {
 /// per read noise) and saturated samples never count. A sample saturated in every exposure takes
 /// the shortest exposure's value (a lower bound, like the camera would report). Hand-written:
 /// the merge is a few lines and no maintained crate does linear-sensor weighting.
-pub fn merge_hdr(brackets: &[Bracket], opts: &MergeOptions) -> Result<LinearImage, ImageError> {
+pub fn merge_hdr(brackets: &[Bracket], opts: &MergeOptions) -> Result<Image, ImageError> {
     let first = brackets
         .first()
-        .ok_or_else(|| ImageError::Shape("no exposures to merge".into()))?;
+        .ok_or_else(|| ImageError::Format("no exposures to merge".into()))?;
     for b in brackets {
         b.image.check()?;
         if (b.image.width, b.image.height, b.image.channels)
             != (first.image.width, first.image.height, first.image.channels)
         {
-            return Err(ImageError::Shape("brackets differ in size".into()));
+            return Err(ImageError::Format("brackets differ in size".into()));
         }
         if !(b.exposure_s.is_finite() && b.exposure_s > 0.0) {
-            return Err(ImageError::Shape("exposure must be positive".into()));
+            return Err(ImageError::Format("exposure must be positive".into()));
         }
     }
     let shortest = brackets
@@ -143,7 +52,7 @@ pub fn merge_hdr(brackets: &[Bracket], opts: &MergeOptions) -> Result<LinearImag
         .unwrap_or(first);
     let sat = 0.98 * opts.saturation;
     let floor = opts.noise_floor.max(0.0);
-    let mut out = LinearImage::zeros(first.image.width, first.image.height, first.image.channels);
+    let mut out = Image::new(first.image.width, first.image.height, first.image.channels);
     for (i, o) in out.data.iter_mut().enumerate() {
         let (mut num, mut den) = (0.0f64, 0.0f64);
         for b in brackets {
@@ -180,18 +89,6 @@ mod tests {
     use super::*;
 
     #[test]
-    fn exr_round_trips_and_is_deterministic() {
-        let mut img = LinearImage::zeros(5, 3, 3);
-        for (k, v) in img.data.iter_mut().enumerate() {
-            *v = k as f32 * 0.25;
-        }
-        let a = img.to_exr().unwrap();
-        assert_eq!(a, img.to_exr().unwrap());
-        let back = LinearImage::from_bytes(&a).unwrap();
-        assert_eq!(back, img);
-    }
-
-    #[test]
     fn merge_recovers_radiance_across_saturation() {
         // Radiances spanning 1:10^4; the sensor saturates at 1.0.
         let radiance = [0.5f32, 5.0, 50.0, 500.0, 4000.0];
@@ -200,7 +97,7 @@ mod tests {
             .iter()
             .map(|&e| Bracket {
                 exposure_s: e,
-                image: LinearImage {
+                image: Image {
                     width: 5,
                     height: 1,
                     channels: 1,

@@ -7,7 +7,6 @@ use super::simcam::SimCamera;
 use crate::calib::Calibration;
 use crate::dataset::Mesh;
 use crate::simulate::{Field, Sensor, SimObject, Spot};
-use std::fmt::Write as _;
 use std::path::Path;
 use std::time::Duration;
 use subsurf_protocol::RigProfile;
@@ -73,6 +72,29 @@ pub fn builtin_image_size() -> u32 {
     size.div_ceil(16) * 16
 }
 
+/// The calibration of a scan of the built-in object when no `calib.json` is given:
+/// [`Calibration::builtin_for`] framing [`builtin_object`], `size` pixels per side (default
+/// [`builtin_image_size`]).
+pub fn builtin_calibration(size: Option<u32>) -> Calibration {
+    let (centre, radius) = builtin_object().bounds();
+    Calibration::builtin_for(centre, radius, size.unwrap_or_else(builtin_image_size))
+}
+
+/// Exposure (s) of a scan of a user's object when none is given.
+pub const DEFAULT_EXPOSURE_S: f64 = 0.05;
+
+/// A scan's exposure bracket (s): `given` when not empty; else, for the built-in object, the
+/// `sim` camera's bracket ([`sim_exposures_s`]); else [`DEFAULT_EXPOSURE_S`].
+pub fn scan_exposures_s(given: &[f64], builtin: bool) -> Vec<f64> {
+    if !given.is_empty() {
+        given.to_vec()
+    } else if builtin {
+        sim_exposures_s()
+    } else {
+        vec![DEFAULT_EXPOSURE_S]
+    }
+}
+
 /// Exposure bracket of a `--camera sim` scan (s), shortest first (merged per frame by
 /// `scan::frame::merge_hdr`, section 5's HDR capture):
 /// - the spot exposure keeps the laser spot's reflection unclipped (at half the clipping
@@ -105,26 +127,14 @@ pub fn sim_spot() -> Spot {
     }
 }
 
-/// `noise_floor` of a `--camera sim` scan (radiance): where one pixel's SNR drops to
-/// [`FLOOR_SNR`] at `exposure_s` (the longest exposure of the scan).
-pub fn sim_noise_floor(exposure_s: f64) -> f64 {
+/// `noise_floor` of a `--camera sim` scan (radiance) with the exposure bracket `exposures_s`:
+/// where one pixel's SNR drops to [`FLOOR_SNR`] at the longest exposure.
+pub fn sim_noise_floor(exposures_s: &[f64]) -> f64 {
     Sensor {
-        exposure_s,
+        exposure_s: exposures_s.iter().copied().fold(0.0, f64::max),
         ..sim_sensor()
     }
     .radiance_at_snr(FLOOR_SNR)
-}
-
-/// The mesh as Wavefront OBJ text (deterministic: equal meshes give equal bytes).
-pub fn obj_text(mesh: &Mesh) -> Vec<u8> {
-    let mut s = String::from("# subsurf scan object (mm, object frame)\n");
-    for p in &mesh.positions {
-        let _ = writeln!(s, "v {} {} {}", p[0], p[1], p[2]);
-    }
-    for t in &mesh.triangles {
-        let _ = writeln!(s, "f {} {} {}", t[0] + 1, t[1] + 1, t[2] + 1);
-    }
-    s.into_bytes()
 }
 
 /// The rig's timing from its profile, for the move speed and acceleration and capture interval

@@ -6,8 +6,8 @@
 //! the same images, however often it is interrupted and resumed.
 
 use super::camera::{Camera, CameraError, Shot, Timing};
-use super::frame::LinearImage;
 use crate::calib::Calibration;
+use crate::dataset::Image;
 use crate::dataset::{LaserRay, Mesh};
 use crate::simulate::{Field, Sensor, SimScene, Spot, render_frame};
 
@@ -59,7 +59,7 @@ impl Camera for SimCamera {
     fn saturation(&self) -> f32 {
         self.sensor.saturation.map_or(f32::INFINITY, |s| s as f32)
     }
-    fn capture(&mut self, shot: &Shot) -> Result<LinearImage, CameraError> {
+    fn capture(&mut self, shot: &Shot) -> Result<Image, CameraError> {
         let (origin, direction) = self.calib.galvo.ray(shot.galvo);
         let sensor = Sensor {
             exposure_s: shot.exposure_s,
@@ -69,19 +69,13 @@ impl Camera for SimCamera {
             .seed
             .wrapping_mul(0x9E37_79B9_7F4A_7C15)
             .wrapping_add((shot.frame as u64) << 8 | shot.bracket as u64);
-        let img = render_frame(
+        Ok(render_frame(
             &self.scene,
             0,
             shot.turntable_deg,
             &LaserRay { origin, direction },
             &sensor,
             seed,
-        );
-        Ok(LinearImage {
-            width: img.width,
-            height: img.height,
-            channels: img.channels,
-            data: img.data,
-        })
+        ))
     }
 }
