@@ -27,10 +27,8 @@ fn noise_free_sphere_predicts_held_out_frames_near_the_floor() {
         256,
         2,
         8,
-    );
-    cfg.sensor = subsurf::simulate::Sensor::ideal();
-    cfg.spot.radiance = 1e4;
-    cfg.noise_floor = 1e-9;
+    )
+    .noise_free();
     cfg.field.anisotropy = 0.0;
     cfg.field.heterogeneity = 0.0;
     simulate(&cfg, tmp.path(), &()).expect("simulate");

@@ -3,7 +3,7 @@
 //! predictions of ln R_d are blended, see [`ModelAt`]).
 use crate::dataset::{Dataset, Image};
 use crate::geometry::V3;
-use crate::model::{ColourModel, LogEAccumulator, Support, TangentFrame, ln_eval_supported};
+use crate::model::{ColourModel, LogEAccumulator, Support, TangentFrame};
 use crate::modelfile::{ModelFile, VertexStatus, model_of};
 use crate::pipeline::{Context, LogEStats, PipelineError, PipelineOptions, register_one};
 use crate::progress::Progress;
@@ -102,13 +102,7 @@ impl ModelAt {
 
 impl ModelAt {
     fn corner_ln(&self, c: &Corner, r: f64, phi: Option<f64>) -> [f64; 3] {
-        crate::baseline::with_fallback(
-            ln_eval_supported(&c.model, c.support, r, phi),
-            c.support,
-            r,
-            phi,
-            self.baseline.as_ref(),
-        )
+        crate::baseline::ln_predict(&c.model, c.support, r, phi, self.baseline.as_ref())
     }
 }
 

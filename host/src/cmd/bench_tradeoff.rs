@@ -151,7 +151,7 @@ fn scan_config(sizes: &Sizes, d: Density, seed: u64, half_step: bool) -> SimConf
         exposure_s: exposure,
         ..sim_sensor()
     };
-    cfg.noise_floor = sim_noise_floor(exposure);
+    cfg.noise_floor = sim_noise_floor(&[exposure]);
     if let CameraRig::Orbit { count, .. } = &mut cfg.cameras {
         *count = 1;
     }

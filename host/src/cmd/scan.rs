@@ -78,10 +78,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         subsurf::dataset::obj_bytes(&r.mesh),
     );
     if args.camera == "sim" {
-        // The simulated sensor's noise is known: the floor is where a pixel's SNR drops to
-        // FLOOR_SNR at the scan's longest exposure.
-        let longest = cfg.plan.exposures_s.iter().copied().fold(0.0, f64::max);
-        cfg.noise_floor = sim_noise_floor(longest);
+        cfg.noise_floor = sim_noise_floor(&cfg.plan.exposures_s);
     }
     cfg.laser_channel = args.laser_channel;
     cfg.move_speed = args.plan.speed;

@@ -83,9 +83,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         *count = n.max(1);
     }
     if args.noise_free {
-        cfg.sensor = subsurf::simulate::Sensor::ideal();
-        cfg.spot.radiance = 1e4;
-        cfg.noise_floor = 1e-9;
+        cfg = cfg.noise_free();
     }
     cfg.sensor.misregistration_mm = args.misregistration;
     if let Some(a) = args.anisotropy {

@@ -4,6 +4,7 @@
 //! a huge `c` with a tiny exponential neither overflows nor underflows before the product is formed.
 
 use super::vertex_model::{ColourMode, VertexModel, VertexStatus};
+use crate::baseline::{Baseline, channel_terms, local_weight};
 use crate::model::{Support, TangentFrame, hat_weights};
 
 /// Per-vertex fall-off parameters (Eq. 1/3/5/9) in a layout made for inner loops.
@@ -23,6 +24,11 @@ pub struct Falloffs {
     /// Per vertex: where its model is claimed ([`crate::model::support`]; below r_min R_d
     /// continues exponentially from its value and slope there).
     support: Vec<Support>,
+    /// The model's homogeneous baseline: beyond a source's r_max its fall-off moves towards it
+    /// (the rule of evaluation, [`crate::baseline::with_fallback`]).
+    baseline: Option<Baseline>,
+    /// The baseline's terms `(c, d)` per channel ([`crate::baseline::channel_terms`]).
+    base_terms: Option<[Vec<(f64, f64)>; 3]>,
 }
 
 impl Falloffs {
@@ -66,6 +72,62 @@ impl Falloffs {
             scale,
             active,
             support: model.support.clone(),
+            baseline: model.baseline.clone(),
+            base_terms: model.baseline.as_ref().map(channel_terms),
+        }
+    }
+
+    /// ln of the baseline per channel at `r` (log-sum-exp: finite where every term underflows).
+    #[inline]
+    fn ln_base(terms: &[Vec<(f64, f64)>; 3], r: f64) -> [f64; 3] {
+        [0, 1, 2].map(|c| {
+            let mx = terms[c]
+                .iter()
+                .map(|&(k, d)| k.ln() + d * r)
+                .fold(f64::NEG_INFINITY, f64::max);
+            if mx == f64::NEG_INFINITY {
+                return mx;
+            }
+            mx + terms[c]
+                .iter()
+                .map(|&(k, d)| (k.ln() + d * r - mx).exp())
+                .sum::<f64>()
+                .ln()
+        })
+    }
+
+    /// Below a source's r_min: the baseline's rise from r_min to `r` per channel,
+    /// ln B(r) − ln B(r_min) (the rule of [`crate::baseline::ln_predict`]), or `None` without a
+    /// baseline (then the support rule's slope extension applies).
+    #[inline]
+    fn base_rise(&self, i: usize, r: f64) -> Option<[f64; 3]> {
+        let t = self.base_terms.as_ref()?;
+        let lo = self.support[i].r_min;
+        let (a, b) = (Self::ln_base(t, r), Self::ln_base(t, lo));
+        Some([0, 1, 2].map(|c| {
+            let x = a[c] - b[c];
+            if x.is_finite() { x.max(0.0) } else { 0.0 }
+        }))
+    }
+
+    /// Blends a source's prediction `ln_local` at `r` towards the baseline beyond its r_max, in
+    /// log space ([`crate::baseline::with_fallback`]; the weight is 1 inside its range).
+    #[inline]
+    fn fall_back(&self, i: usize, r: f64, ln_local: [f64; 3]) -> [f64; 3] {
+        let support = self.support[i];
+        match &self.baseline {
+            Some(b) if support.is_known() && r > support.r_max => {
+                let w = local_weight(support, r);
+                let base = b.model.ln_eval(r, None);
+                [0, 1, 2].map(|c| {
+                    if ln_local[c] == f64::NEG_INFINITY {
+                        ln_local[c]
+                    } else {
+                        w * ln_local[c] + (1.0 - w) * base[c]
+                    }
+                })
+            }
+            _ => ln_local,
         }
     }
 
@@ -105,9 +167,23 @@ impl Falloffs {
         let support = self.support[i];
         let a = support.anchor(r);
         if a == r {
-            return self.eval_model(i, r, w).map(|(f, _)| f);
+            let f = self.eval_model(i, r, w).map(|(f, _)| f);
+            if self.baseline.is_some() && support.is_known() && r > support.r_max {
+                return self
+                    .fall_back(
+                        i,
+                        r,
+                        f.map(|f| if f > 0.0 { f.ln() } else { f64::NEG_INFINITY }),
+                    )
+                    .map(f64::exp);
+            }
+            return f;
         }
-        self.eval_model(i, a, w).map(|(f, df)| {
+        let at = self.eval_model(i, a, w);
+        if let Some(rise) = self.base_rise(i, r) {
+            return [0, 1, 2].map(|c| at[c].0 * rise[c].exp());
+        }
+        at.map(|(f, df)| {
             if f > 0.0 {
                 support.extend(r, f.ln(), df / f).exp()
             } else {
@@ -153,10 +229,13 @@ impl Falloffs {
         let support = self.support[i];
         let a = support.anchor(r);
         if a == r {
-            return self.ln_eval_mean_model(i, r).map(|(l, _)| l);
+            return self.fall_back(i, r, self.ln_eval_mean_model(i, r).map(|(l, _)| l));
         }
-        self.ln_eval_mean_model(i, a)
-            .map(|(l, g)| support.extend(r, l, g))
+        let at = self.ln_eval_mean_model(i, a);
+        if let Some(rise) = self.base_rise(i, r) {
+            return [0, 1, 2].map(|c| at[c].0 + rise[c]);
+        }
+        at.map(|(l, g)| support.extend(r, l, g))
     }
 
     /// The log-sum-exp of [`Falloffs::ln_eval_mean`] without the support range, and its
@@ -202,7 +281,19 @@ impl Falloffs {
         // r_min (the support rule, see `eval`), averaged over segments like the model part.
         let w = vec![1.0 / self.m as f64; self.m];
         let at = self.eval_model(i, lo, &w);
-        let inner = |r: f64| {
+        let base_at = self.base_terms.as_ref().map(|t| Self::ln_base(t, lo));
+        let inner = |r: f64| -> [f64; 3] {
+            if let (Some(t), Some(b_lo)) = (&self.base_terms, base_at) {
+                // The baseline's shape through the model's value at r_min
+                // ([`crate::baseline::ln_predict`]): Σ_k s·c_k e^{d_k r}, s = R(r_min) / B(r_min).
+                return [0, 1, 2].map(|c| {
+                    let s = (at[c].0.max(0.0).ln() - b_lo[c]).exp();
+                    if !s.is_finite() {
+                        return 0.0;
+                    }
+                    t[c].iter().map(|&(k, d)| exp_disk(s * k, d, r)).sum()
+                });
+            }
             at.map(|(f, df)| {
                 if f > 0.0 {
                     let (ln_c, g) = support.below(f.ln(), df / f);
@@ -258,6 +349,19 @@ impl Falloffs {
                 terms.push((self.lnc[k].exp(), self.d[k]));
             }
             r = r.max(tail_cutoff(&terms, tol));
+        }
+        // Beyond r_max the fall-off moves towards the baseline, whose tail may reach further.
+        if let Some(b) = &self.baseline
+            && self.support[i].is_known()
+        {
+            let falloffs: Vec<&crate::model::Anisotropic> = match &b.model {
+                crate::model::ColourModel::Shared { falloff, .. } => vec![falloff],
+                crate::model::ColourModel::PerChannel { channels } => channels.iter().collect(),
+            };
+            for seg in falloffs.iter().flat_map(|a| &a.segments) {
+                let terms: Vec<(f64, f64)> = seg.terms.iter().map(|t| (t.c, t.d)).collect();
+                r = r.max(tail_cutoff(&terms, tol));
+            }
         }
         r
     }
@@ -425,6 +529,73 @@ mod tests {
                 want.ln()
             );
         }
+        // The self-term disk integral matches a numerical integral of `eval`.
+        for rho in [0.5, 2.0] {
+            let steps = 200_000;
+            let dr = rho / steps as f64;
+            let num: f64 = (0..steps)
+                .map(|k| {
+                    let r = (k as f64 + 0.5) * dr;
+                    f.eval(0, r, &[1.0])[0] * 2.0 * std::f64::consts::PI * r * dr
+                })
+                .sum();
+            let got = f.disk_integral(0, rho)[0];
+            assert!((got / num - 1.0).abs() < 1e-6, "rho {rho}: {got} vs {num}");
+        }
+    }
+
+    #[test]
+    fn with_a_baseline_the_fall_off_takes_its_shape_below_r_min_and_its_tail_beyond_r_max() {
+        let mut model = VertexModel::homogeneous(
+            vec![[0.0; 3]; 3],
+            vec![[0.0, 0.0, 1.0]; 3],
+            vec![[0, 1, 2]],
+            [1.0, 1.0],
+            &[(1e6, -20.0), (0.5, -0.5)],
+        );
+        model.support = vec![Support::new(1.0, 5.0); 3];
+        let free = Falloffs::new(&model);
+        let base = crate::baseline::Baseline {
+            model: crate::model::ColourModel::Shared {
+                falloff: crate::model::Anisotropic {
+                    segments: vec![
+                        crate::model::ExpSum::new(vec![
+                            crate::model::Term { c: 4.0, d: -6.0 },
+                            crate::model::Term { c: 0.2, d: -0.2 },
+                        ])
+                        .unwrap(),
+                    ],
+                },
+                s_g: 1.0,
+                s_b: 1.0,
+            },
+            r_range: [0.2, 30.0],
+        };
+        let b = |r: f64| base.model.ln_eval(r, None)[0];
+        model.baseline = Some(base.clone());
+        let f = Falloffs::new(&model);
+        // Inside the range: the model, untouched.
+        for r in [1.0, 2.5, 5.0] {
+            assert_eq!(f.eval(0, r, &[1.0]), free.eval(0, r, &[1.0]));
+        }
+        // Below r_min: the model's value at r_min times the baseline's rise, in both evaluations.
+        let at = free.eval(0, 1.0, &[1.0])[0];
+        for r in [0.0, 0.3, 0.9] {
+            let want = at.ln() + b(r) - b(1.0);
+            let got = f.eval(0, r, &[1.0])[0].ln();
+            assert!((got - want).abs() < 1e-9, "r {r}: {got} vs {want}");
+            assert!((f.ln_eval_mean(0, r)[0] - want).abs() < 1e-9);
+        }
+        // Beyond r_max: towards the baseline (log-space blend), all of it far out.
+        let far = 5.0 + 40.0 * crate::baseline::FALLBACK_SCALE * 5.0;
+        assert!((f.eval(0, far, &[1.0])[0].ln() - b(far)).abs() < 1e-6 * far);
+        let mid = 7.0;
+        let w = crate::baseline::local_weight(Support::new(1.0, 5.0), mid);
+        let want = w * free.eval(0, mid, &[1.0])[0].ln() + (1.0 - w) * b(mid);
+        assert!((f.eval(0, mid, &[1.0])[0].ln() - want).abs() < 1e-9);
+        assert!((f.ln_eval_mean(0, mid)[0] - want).abs() < 1e-9);
+        // The cutoff reaches at least as far as the baseline's tail needs.
+        assert!(f.cutoff(0, 1e-3) >= free.cutoff(0, 1e-3));
         // The self-term disk integral matches a numerical integral of `eval`.
         for rho in [0.5, 2.0] {
             let steps = 200_000;

@@ -81,6 +81,7 @@ pub fn from_field(
         log_e: vec![f64::NAN; n],
         params,
         support: vec![crate::model::Support::UNKNOWN; n],
+        baseline: None,
         positions,
         normals,
         faces,

@@ -127,11 +127,11 @@ pub fn sim_spot() -> Spot {
     }
 }
 
-/// `noise_floor` of a `--camera sim` scan (radiance): where one pixel's SNR drops to
-/// [`FLOOR_SNR`] at `exposure_s` (the longest exposure of the scan).
-pub fn sim_noise_floor(exposure_s: f64) -> f64 {
+/// `noise_floor` of a `--camera sim` scan (radiance) with the exposure bracket `exposures_s`:
+/// where one pixel's SNR drops to [`FLOOR_SNR`] at the longest exposure.
+pub fn sim_noise_floor(exposures_s: &[f64]) -> f64 {
     Sensor {
-        exposure_s,
+        exposure_s: exposures_s.iter().copied().fold(0.0, f64::max),
         ..sim_sensor()
     }
     .radiance_at_snr(FLOOR_SNR)

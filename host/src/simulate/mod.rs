@@ -424,6 +424,15 @@ pub struct SimConfig {
 }
 
 impl SimConfig {
+    /// The same scan without noise (`subsurf simulate --noise-free`): an ideal sensor, a spot far
+    /// above the scattered light, and a noise floor only rounding stays under.
+    pub fn noise_free(mut self) -> SimConfig {
+        self.sensor = Sensor::ideal();
+        self.spot.radiance = 1e4;
+        self.noise_floor = 1e-9;
+        self
+    }
+
     /// A default scan of `object`: realistic sensor, marble field, three orbiting cameras of
     /// `size` pixels, `angles` turntable steps and an `n × n` raster.
     pub fn for_object(object: SimObject, size: u32, angles: usize, n: usize) -> SimConfig {
@@ -639,6 +648,7 @@ pub fn ground_truth_model(mesh: &crate::dataset::Mesh, field: &Field) -> ModelFi
                 status: VertexStatus::Fitted,
                 log_e: 0.0,
                 terms: 3,
+                segments: 1,
                 params: field.params_at(*p, *n).model_params(),
                 r_range: crate::modelfile::NO_RANGE,
             })

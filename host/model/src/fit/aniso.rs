@@ -1142,7 +1142,10 @@ pub(crate) mod tests {
             panic!("shared")
         };
         for r in [0.5, 2.0, 5.0] {
-            let (a, b) = (falloff.segments[2].ln_eval(r), falloff.segments[3].ln_eval(r));
+            let (a, b) = (
+                falloff.segments[2].ln_eval(r),
+                falloff.segments[3].ln_eval(r),
+            );
             assert!((a - b).abs() < 1e-3, "r {r}: {a} vs {b}");
         }
         // No segment with samples of its own: nothing to fit directions with.
