@@ -85,6 +85,9 @@ fn anisotropic_fit_beats_isotropic_and_recovers_the_axis() {
     let run = |segments: usize, terms: usize| -> (ModelFile, f64, f64) {
         let mut o = opts;
         o.model.segments = segments;
+        // Eq. 3 itself at this m: every light position at the fixed order (the per-vertex choice
+        // of n and m is `subsurf_model::order`'s, tested there and in `objects`).
+        o.order = None;
         let fo = FitOptions {
             terms: Terms::Fixed(terms),
             ..FitOptions::default()

@@ -215,6 +215,7 @@ fn torus_model_file() -> subsurf::modelfile::ModelFile {
                 status,
                 log_e: 0.01,
                 terms: terms as u8,
+                segments: if terms > 0 { m as u8 } else { 0 },
                 params,
                 r_range: subsurf::modelfile::NO_RANGE,
             }

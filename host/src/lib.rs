@@ -32,4 +32,4 @@ pub mod validate;
 
 /// The model and its fitting live in the `subsurf-model` crate (no files, no rig); re-exported
 /// here so `subsurf::model` and `subsurf::fit` name them as before.
-pub use subsurf_model::{fit, model};
+pub use subsurf_model::{fit, model, order};

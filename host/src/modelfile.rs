@@ -1,4 +1,4 @@
-//! The model file (`docs/model-format.md`, `subsurf-model/1`): a binary little-endian PLY holding
+//! The model file (`docs/model-format.md`, `subsurf-model/3`): a binary little-endian PLY holding
 //! the mesh and, per vertex, the fitted parameters of the light position `x_i` (Eq. 1/3/5/9), the
 //! modulation texture `alpha(x_o)` (Eq. 2/6), a status and the fit's `log E(x_i)` (Eq. 8).
 //!
@@ -7,11 +7,12 @@ use std::io::{BufRead, BufReader, Read, Write};
 use std::path::{Path, PathBuf};
 
 /// The magic comment that marks a subsurf model.
-pub const MODEL_FORMAT: &str = "subsurf-model/2";
+pub const MODEL_FORMAT: &str = "subsurf-model/3";
 
 /// Earlier formats still read: version 1 wrote the `params` count as `uchar`, which wrapped for
-/// models of more than 255 values (shared colour with n = 3 and m = 64 has 386).
-const OLD_FORMATS: [&str; 1] = ["subsurf-model/1"];
+/// models of more than 255 values (shared colour with n = 3 and m = 64 has 386); versions 1 and 2
+/// have no per-vertex `segments` (every vertex has the header's m).
+const OLD_FORMATS: [&str; 2] = ["subsurf-model/1", "subsurf-model/2"];
 
 /// Why a model file could not be read or written.
 #[derive(Debug, thiserror::Error)]
@@ -60,11 +61,16 @@ pub struct ModelShape {
 }
 
 impl ModelShape {
-    /// Number of parameters of a vertex that uses `n` terms.
+    /// Number of parameters of a vertex that uses `n` terms and the header's m segments.
     pub fn param_count(&self, n: usize) -> usize {
+        self.param_count_m(n, self.segments)
+    }
+
+    /// Number of parameters of a vertex that uses `n` terms and `m` segments.
+    pub fn param_count_m(&self, n: usize, m: usize) -> usize {
         match self.colour {
-            ColourMode::Shared => 2 + 2 * n * self.segments,
-            ColourMode::PerChannel => 3 * 2 * n * self.segments,
+            ColourMode::Shared => 2 + 2 * n * m,
+            ColourMode::PerChannel => 3 * 2 * n * m,
         }
     }
 }
@@ -92,6 +98,9 @@ pub struct VertexModel {
     pub log_e: f32,
     /// Number of exponential terms this vertex uses (0 for [`VertexStatus::NoModel`]).
     pub terms: u8,
+    /// Direction segments m this vertex uses, 1..= the header's m (0 for
+    /// [`VertexStatus::NoModel`]); files before version 3 read as the header's m.
+    pub segments: u8,
     /// Parameters in the order of `docs/model-format.md`.
     pub params: Vec<f64>,
     /// `[r_min, r_max]` (mm): the distances |x_o − x_i| the fit's samples covered. The model is
@@ -212,14 +221,18 @@ impl ModelFile {
             return bad(format!("unsupported shape {:?}", self.shape));
         }
         for (i, v) in self.vertices.iter().enumerate() {
+            let m = v.segments as usize;
             let want = if v.status == VertexStatus::NoModel {
                 0
             } else {
-                self.shape.param_count(v.terms as usize)
+                self.shape.param_count_m(v.terms as usize, m)
             };
-            if v.params.len() != want || v.terms as usize > self.shape.terms {
+            if v.params.len() != want
+                || v.terms as usize > self.shape.terms
+                || (v.status != VertexStatus::NoModel && !(1..=self.shape.segments).contains(&m))
+            {
                 return bad(format!(
-                    "vertex {i}: {} parameters for {} terms",
+                    "vertex {i}: {} parameters for {} terms and {m} segments",
                     v.params.len(),
                     v.terms
                 ));
@@ -309,7 +322,7 @@ impl ModelFile {
              property double nx\nproperty double ny\nproperty double nz\n\
              property float alpha_r\nproperty float alpha_g\nproperty float alpha_b\n\
              property uchar status\nproperty float log_e\nproperty uchar terms\n\
-             property list ushort double params\n\
+             property uchar segments\nproperty list ushort double params\n\
              property float r_min\nproperty float r_max\nelement face {}\n\
              property list uchar int vertex_indices\nend_header\n",
             self.shape.terms,
@@ -338,6 +351,7 @@ impl ModelFile {
             };
             out.extend_from_slice(&log_e.to_le_bytes());
             out.push(v.terms);
+            out.push(v.segments);
             // Checked above: at most u16::MAX values.
             out.extend_from_slice(&(v.params.len() as u16).to_le_bytes());
             for p in &v.params {
@@ -508,6 +522,12 @@ impl ModelFile {
                             Some(v) => v.first().copied().unwrap_or(0.0) as u8,
                             None => shape.terms as u8,
                         };
+                        // Before version 3 every vertex has the header's m.
+                        let segments = match get("segments") {
+                            Some(v) => v.first().copied().unwrap_or(0.0) as u8,
+                            None if status == VertexStatus::NoModel => 0,
+                            None => shape.segments.min(u8::MAX as usize) as u8,
+                        };
                         m.vertices.push(VertexModel {
                             alpha: [
                                 one("alpha_r")? as f32,
@@ -521,6 +541,7 @@ impl ModelFile {
                                 .filter(|x| *x >= 0.0)
                                 .unwrap_or(f32::NAN),
                             terms,
+                            segments,
                             params,
                             // Older files have no sampled range: unknown.
                             r_range: match (get("r_min"), get("r_max")) {
@@ -656,19 +677,21 @@ pub fn params_of(
     Ok((out, n.unwrap_or(0), m))
 }
 
-/// The colour model of a vertex's parameters (validated: c > 0, d < 0, finite, scales > 0).
+/// The colour model of a vertex's parameters (validated: c > 0, d < 0, finite, scales > 0). The
+/// vertex's m (1..=`shape.segments`) follows from the number of parameters and `terms`.
 pub fn model_of(
     shape: &ModelShape,
     terms: usize,
     params: &[f64],
 ) -> Result<crate::model::ColourModel, crate::model::ModelError> {
     use crate::model::{Anisotropic, ColourModel, ExpSum, ModelError, Term};
-    if params.len() != shape.param_count(terms) || terms == 0 {
+    let segments = (1..=shape.segments).find(|&m| shape.param_count_m(terms, m) == params.len());
+    let (Some(segments), true) = (segments, terms > 0) else {
         return Err(ModelError::TermCount {
             got: terms,
             max: crate::model::MAX_TERMS,
         });
-    }
+    };
     let aniso = |p: &[f64]| -> Result<Anisotropic, ModelError> {
         let segments = p
             .chunks_exact(2 * terms)
@@ -691,7 +714,7 @@ pub fn model_of(
             s_b: params[1],
         },
         ColourMode::PerChannel => {
-            let k = 2 * terms * shape.segments;
+            let k = 2 * terms * segments;
             ColourModel::PerChannel {
                 channels: [
                     aniso(&params[..k])?,
@@ -724,6 +747,11 @@ mod tests {
                 f32::NAN
             },
             terms,
+            segments: if status == VertexStatus::NoModel {
+                0
+            } else {
+                1
+            },
             params: if status == VertexStatus::NoModel {
                 vec![]
             } else {
@@ -763,6 +791,7 @@ mod tests {
         for v in &mut m.vertices {
             if v.status != VertexStatus::NoModel {
                 v.terms = shape.terms as u8;
+                v.segments = shape.segments as u8;
                 v.params = (0..count).map(|k| (k as f64 + 1.0) * 0.25).collect();
             }
         }
@@ -787,6 +816,46 @@ mod tests {
         assert_eq!(le, 0.02);
         // Nothing but the model is left in the folder (the read-back used a temporary file).
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+
+    /// Version 3: each vertex has its own m (at most the header's), written, read back and
+    /// turned into the model it describes; a vertex whose count disagrees with its m is refused.
+    #[test]
+    fn per_vertex_segments_round_trip() {
+        let mut m = sample();
+        m.shape.segments = 4;
+        let (a, b) = m.vertices[..2].split_at_mut(1);
+        let (fitted, interp) = (&mut a[0], &mut b[0]);
+        fitted.segments = 4;
+        fitted.params = (0..m.shape.param_count_m(3, 4))
+            .map(|k| {
+                if k < 2 {
+                    1.0
+                } else if k % 2 == 0 {
+                    0.5
+                } else {
+                    -0.5 - k as f64
+                }
+            })
+            .collect();
+        interp.segments = 1;
+        interp.params = vec![1.0, 1.0, 0.3, -0.2, 0.7, -1.0];
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.ply");
+        m.write(&p).unwrap();
+        let back = ModelFile::read(&p).unwrap();
+        assert_eq!(back.to_bytes().unwrap(), m.to_bytes().unwrap());
+        for v in &back.vertices[..2] {
+            let model = model_of(&back.shape, v.terms as usize, &v.params).unwrap();
+            let (_, n, segs) = params_of(&model).unwrap();
+            assert_eq!((n, segs), (v.terms as usize, v.segments as usize));
+        }
+        let mut bad = m.clone();
+        bad.vertices[1].segments = 2;
+        assert!(bad.check().is_err());
+        bad.vertices[1].segments = 8;
+        bad.vertices[1].params = vec![1.0; bad.shape.param_count_m(2, 8)];
+        assert!(bad.check().is_err(), "more segments than the header's");
     }
 
     /// Files of version 1 (`uchar` counts) still read.
@@ -892,7 +961,7 @@ mod tests {
         let mut old = old_header.into_bytes();
         let mut at = end;
         for v in &m.vertices {
-            let len = 6 * 8 + 3 * 4 + 1 + 4 + 1 + 2 + 8 * v.params.len();
+            let len = 6 * 8 + 3 * 4 + 1 + 4 + 1 + 1 + 2 + 8 * v.params.len();
             old.extend_from_slice(&bytes[at..at + len]);
             at += len + 8;
         }

@@ -61,10 +61,15 @@ pub struct Args {
     /// Relative log E tolerance of `--segments auto` (0.05 = within 5 % of the best).
     #[arg(long, default_value_t = 0.05)]
     pub segments_tolerance: f64,
-    /// Exponential terms n (Eq. 1), or `auto` for the smallest order within 1 % of the best.
-    /// Default: the preset's (3 for exact).
+    /// Exponential terms n (Eq. 1): the largest n a light position may use (each chooses its
+    /// own n and m, see `--fixed-order`), or `auto` for the smallest order within 1 % of the
+    /// best. Default: the preset's (3 for exact).
     #[arg(long)]
     pub terms: Option<String>,
+    /// Fit every light position at the largest n and m (`--terms`, `--segments`) instead of
+    /// choosing each one's order from its samples (AICc, `subsurf_model::order`).
+    #[arg(long)]
+    pub fixed_order: bool,
     /// Solver preset.
     #[arg(long, value_enum, default_value = "exact")]
     pub preset: PresetArg,
@@ -154,6 +159,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     opts.outlier_factor = args.outlier_factor;
     opts.alpha_rounds = args.alpha_rounds;
     opts.alpha_tolerance = args.alpha_tolerance;
+    if args.fixed_order {
+        opts.order = None;
+    }
     opts.spot.laser_tolerance_mm = args.laser_tolerance;
     opts.model.colour = match args.colour {
         Colour::Shared => ColourMode::Shared,

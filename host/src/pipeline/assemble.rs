@@ -7,7 +7,20 @@ use crate::modelfile::{ModelFile, ModelShape, NO_RANGE, VertexModel, VertexStatu
 
 use super::error::OwnFit;
 use super::interpolate::Refit;
-use super::report::FitReport;
+use super::report::{FitReport, ModelSize};
+
+/// The numbers `model` stores and those of the same model with every vertex at n = `max_terms`
+/// (the file's largest n when unknown) and m = `max_segments`.
+pub fn model_size(model: &ModelFile, max_terms: Option<usize>, max_segments: usize) -> ModelSize {
+    let n = max_terms.unwrap_or(model.shape.terms);
+    let with_model = model.vertices.iter().filter(|v| !v.params.is_empty());
+    ModelSize {
+        numbers: with_model.clone().map(|v| v.params.len()).sum(),
+        fixed_numbers: with_model.count() * model.shape.param_count_m(n, max_segments),
+        max_terms: n,
+        max_segments,
+    }
+}
 
 /// The model: every vertex fitted, interpolated or without a model, in mesh order.
 pub fn model_file(
@@ -32,6 +45,7 @@ pub fn model_file(
                         status: VertexStatus::Fitted,
                         log_e: o.log_e,
                         terms: o.terms as u8,
+                        segments: o.segments as u8,
                         params: o.params.clone(),
                         r_range: o.r_range.map(|x| x as f32),
                     }
@@ -43,6 +57,7 @@ pub fn model_file(
                         status: VertexStatus::Interpolated,
                         log_e: f32::NAN,
                         terms: r.terms as u8,
+                        segments: r.segments as u8,
                         params: r.params.clone(),
                         r_range: r.r_range.map(|x| x as f32),
                     }
@@ -54,6 +69,7 @@ pub fn model_file(
                         status: VertexStatus::NoModel,
                         log_e: f32::NAN,
                         terms: 0,
+                        segments: 0,
                         params: Vec::new(),
                         r_range: NO_RANGE,
                     }

@@ -15,7 +15,7 @@ use crate::progress::Progress;
 use super::fit::Fitted;
 use super::load::Context;
 use super::register::RegisteredFrame;
-use super::report::{FailReason, FitReport, LogEStats};
+use super::report::{FailReason, FitReport, LogEStats, OrderCount};
 use super::select::{Groups, group_samples};
 use super::{OUTLIER_MIN_LOG_E, PipelineError, PipelineOptions};
 
@@ -26,6 +26,8 @@ pub struct OwnFit {
     pub params: Vec<f64>,
     /// Its order n.
     pub terms: usize,
+    /// Its direction segments m.
+    pub segments: usize,
     /// log E(x_i) of the fit, mean over channels.
     pub log_e: f32,
     /// The model.
@@ -146,6 +148,8 @@ pub fn accept(
         .map(|&n| n.then_some(FailReason::NoData))
         .collect();
     let mut light_log_e = Vec::new();
+    // (n, m) -> (light positions, vertices).
+    let mut chosen: BTreeMap<(usize, usize), (usize, usize)> = BTreeMap::new();
     for ((f, err), verts) in fitted.fits.iter().zip(errors).zip(&groups.members) {
         let outcome = match (f, err) {
             (Err(e), _) => Err(*e),
@@ -154,12 +158,16 @@ pub fn accept(
                 None => Err(FailReason::TooFewSamples),
                 Some(mean) if mean > max_log_e => Err(FailReason::HighError),
                 Some(mean) => match params_of(&g.model) {
-                    Ok((p, n, _)) if p.iter().all(|x| x.is_finite()) => {
+                    Ok((p, n, m)) if p.iter().all(|x| x.is_finite()) => {
                         light_log_e.push(*le);
                         *report.orders.entry(n).or_default() += 1;
+                        let e = chosen.entry((n, m)).or_default();
+                        e.0 += 1;
+                        e.1 += verts.len();
                         Ok(OwnFit {
                             params: p,
                             terms: n,
+                            segments: m,
                             log_e: mean as f32,
                             model: g.model.clone(),
                             r_range: g.r_range,
@@ -177,6 +185,17 @@ pub fn accept(
         }
     }
     report.log_e = LogEStats::of(&light_log_e);
+    report.chosen_orders = chosen
+        .into_iter()
+        .map(
+            |((terms, segments), (light_positions, vertices))| OrderCount {
+                terms,
+                segments,
+                light_positions,
+                vertices,
+            },
+        )
+        .collect();
     for r in vertex_fail.iter().flatten() {
         *report.failures.entry(*r).or_default() += 1;
     }

@@ -24,6 +24,8 @@ pub struct Refit {
     pub params: Vec<f64>,
     /// Order n.
     pub terms: usize,
+    /// Direction segments m (the run's for refits; the stand-in's own otherwise).
+    pub segments: usize,
     /// Sampled range of the interpolated curve.
     pub r_range: [f64; 2],
 }
@@ -40,7 +42,10 @@ pub fn fill(
     let grid = CurveGrid::of(own.iter().flatten().map(|o| o.r_range));
     let known: Vec<Option<Vec<f64>>> = own
         .iter()
-        .map(|o| o.as_ref().map(|o| grid.encode(&o.model, o.r_range)))
+        .map(|o| {
+            o.as_ref()
+                .map(|o| grid.encode(&o.model, o.r_range, shape.segments))
+        })
         .collect();
     let filled = crate::interpolate::harmonic(&known, |v| scene.neighbours(v), 2000);
     (0..own.len())
@@ -54,9 +59,10 @@ pub fn fill(
             let refit = grid
                 .decode(enc, shape, common_n, fitter, &mut dropped)
                 .and_then(|(m, range)| match params_of(&m) {
-                    Ok((p, n, _)) if p.iter().all(|x| x.is_finite()) => Some(Refit {
+                    Ok((p, n, m)) if p.iter().all(|x| x.is_finite()) => Some(Refit {
                         params: p,
                         terms: n,
+                        segments: m,
                         r_range: range,
                     }),
                     _ => None,
@@ -67,6 +73,7 @@ pub fn fill(
                 nearest_fitted(v, own, |w| scene.neighbours(w)).map(|o| Refit {
                     params: o.params.clone(),
                     terms: o.terms,
+                    segments: o.segments,
                     r_range: o.r_range,
                 })
             })
@@ -133,26 +140,29 @@ impl CurveGrid {
         support.extend(r, f.ln_eval(a), f.ln_slope(a))
     }
 
-    /// The fall-off curves of a model: per channel (per-channel models) and segment.
-    fn curves(m: &ColourModel) -> Vec<&ExpSum> {
+    /// The fall-off curves of a model: per channel (per-channel models) and segment, on the
+    /// run's `segments` (a light position that chose fewer is widened exactly,
+    /// [`crate::order::widen`]), so every vertex's encoding has one length.
+    fn curves(m: &ColourModel, segments: usize) -> Vec<ExpSum> {
+        use crate::order::widen;
         match m {
-            ColourModel::Shared { falloff, .. } => falloff.segments.iter().collect(),
+            ColourModel::Shared { falloff, .. } => widen(falloff, segments),
             ColourModel::PerChannel { channels } => {
-                channels.iter().flat_map(|c| c.segments.iter()).collect()
+                channels.iter().flat_map(|c| widen(c, segments)).collect()
             }
         }
     }
 
     /// `[ln r_min, ln r_max, (ln s_g, ln s_b), ln R_d on the grid for every curve]`.
-    fn encode(&self, m: &ColourModel, range: [f64; 2]) -> Vec<f64> {
+    fn encode(&self, m: &ColourModel, range: [f64; 2], segments: usize) -> Vec<f64> {
         let mut out = vec![range[0].max(1e-6).ln(), range[1].max(1e-6).ln()];
         if let ColourModel::Shared { s_g, s_b, .. } = m {
             out.push(s_g.ln());
             out.push(s_b.ln());
         }
-        for f in Self::curves(m) {
+        for f in Self::curves(m, segments) {
             let support = Support::new(range[0], range[1]);
-            out.extend(self.r.iter().map(|&r| Self::ln_supported(f, support, r)));
+            out.extend(self.r.iter().map(|&r| Self::ln_supported(&f, support, r)));
         }
         out
     }

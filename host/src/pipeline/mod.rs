@@ -37,7 +37,7 @@ pub use options::{MAX_SEGMENTS, ModelChoice, PipelineOptions, SEGMENT_LADDER, Se
 pub use register::{RegisteredFrame, register_one};
 pub use report::{
     AlphaReport, AlphaRound, BASELINE_POOL, BaselineReport, FailReason, FitReport, FrameCounts,
-    LogEStats, TermDropped,
+    LogEStats, ModelSize, OrderCount, TermDropped,
 };
 
 /// A fit within this log E (3 % RMS) is never an outlier, however good the typical fit is
@@ -123,15 +123,21 @@ pub fn fit_dataset(
     });
     clock.lap("error", &mut report);
     let (own, shape) = error::accept(&groups, &fitted, &errors, opts, &mut report)?;
-    // Failed vertices are interpolated from their neighbours, refitted with the common order.
-    let common_n = report
-        .orders
-        .iter()
-        .max_by_key(|(_, c)| **c)
-        .map_or(shape.terms, |(n, _)| *n);
+    // Failed vertices are interpolated from their neighbours, refitted with the common order;
+    // with the order chosen per light position, with the largest order chosen (the blend of
+    // neighbours' curves of different orders needs it; unsupported terms are still dropped).
+    let common_n = match opts.order {
+        Some(_) => shape.terms,
+        None => report
+            .orders
+            .iter()
+            .max_by_key(|(_, c)| **c)
+            .map_or(shape.terms, |(n, _)| *n),
+    };
     let refits = interpolate::fill(&ctx.scene, &own, &shape, common_n, fitter);
     let mut model = assemble::model_file(ds, shape, &own, &refits, &fitted.alpha, &mut report);
     model.baseline = fitted.baseline.as_ref().map(|b| b.params.clone());
+    report.model_size = assemble::model_size(&model, fitter.max_terms(), opts.model.segments);
     clock.lap("interpolate", &mut report);
     report.peak_rss_mib = crate::util::peak_rss_mib();
     Ok(FitOutput { model, report })

@@ -25,8 +25,12 @@ pub struct PipelineOptions {
     pub samples: SampleOptions,
     /// A vertex whose closest x_i is farther than this (mm) has no data.
     pub max_select_mm: f64,
-    /// The model variant.
+    /// The model variant; its `segments` is the largest m a light position may use.
     pub model: ModelChoice,
+    /// "Model only what the scene requires", per light position: n (up to the fitter's) and m
+    /// (up to `model.segments`) chosen by [`crate::order::choose`]; `None` fits every light
+    /// position at the maximum order (unsupported terms still dropped).
+    pub order: Option<crate::order::OrderRule>,
     /// Fits with log E(x_i) (Eq. 8, mean over channels) above this fail.
     pub max_log_e: f64,
     /// Fits with log E(x_i) above this multiple of the median over all fits (and above
@@ -67,6 +71,7 @@ impl PipelineOptions {
                 colour: ColourMode::Shared,
                 segments: 1,
             },
+            order: Some(crate::order::OrderRule::default()),
             max_log_e: 1.0,
             outlier_factor: 3.0,
             alpha_window: IntensityWindow {

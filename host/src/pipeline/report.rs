@@ -133,6 +133,12 @@ pub struct FitReport {
     pub log_e: LogEStats,
     /// Number of fitted light positions per chosen model order n.
     pub orders: BTreeMap<usize, usize>,
+    /// The histogram of the orders chosen per light position ([`crate::order`]): accepted fits
+    /// and the vertices that use them, per (n, m).
+    pub chosen_orders: Vec<OrderCount>,
+    /// The numbers the model stores, against the same model with every vertex at the maximum
+    /// order.
+    pub model_size: ModelSize,
     /// Terms dropped because the samples do not support them, by reason (each drop refits
     /// with one term fewer; counted in the last fit round, not in interpolation refits).
     pub terms_dropped: BTreeMap<TermDropped, usize>,
@@ -152,6 +158,34 @@ pub struct FitReport {
     /// With `--segments auto` ([`super::Segments::Auto`]): every m tried and the one chosen.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub segments_choice: Option<OrderChoice>,
+}
+
+/// Light positions (accepted fits) and their vertices that chose one order (n, m).
+#[derive(Debug, Clone, Default, PartialEq, Eq, serde::Serialize)]
+pub struct OrderCount {
+    /// Terms n.
+    pub terms: usize,
+    /// Direction segments m.
+    pub segments: usize,
+    /// Accepted fits with this order.
+    pub light_positions: usize,
+    /// Vertices with their own fit of this order.
+    pub vertices: usize,
+}
+
+/// What choosing the order per light position saved: parameters stored in the model file's
+/// `params` (all vertices with a model, interpolated ones included) against every such vertex
+/// at the maximum order (`max_terms`, `max_segments`).
+#[derive(Debug, Clone, Default, PartialEq, Eq, serde::Serialize)]
+pub struct ModelSize {
+    /// Numbers stored.
+    pub numbers: usize,
+    /// Numbers a model with every vertex at the maximum order stores.
+    pub fixed_numbers: usize,
+    /// The maximum n (`--terms`, or the preset's).
+    pub max_terms: usize,
+    /// The maximum m (`--segments`, or the preset's).
+    pub max_segments: usize,
 }
 
 /// The homogeneous baseline in the report.

@@ -139,20 +139,64 @@ impl VertexModel {
     }
 
     /// The renderer's view of a model file. Vertices that use fewer than the file's `n` terms are
-    /// padded with `c = 0` terms so every vertex has the same layout.
+    /// padded with `c = 0` terms so every vertex has the same layout; a vertex with fewer than
+    /// the file's m segments is widened to m exactly ([`crate::order::widen`]: its curves at the
+    /// m directions, up to 2n terms each), so the renderer's Eq. 3 blend equals its own model.
     pub fn from_model_file(file: &ModelFile) -> Self {
         let shape = file.shape;
-        let (n, m) = (shape.terms, shape.segments);
+        let m = shape.segments;
         let colour = match shape.colour {
             FileColour::Shared => ColourMode::Shared,
             FileColour::PerChannel => ColourMode::PerChannel,
         };
+        // Per vertex with fewer segments than the file's: scales and the widened curves
+        // (`[c, d, …]` per curve).
+        type Widened = (Vec<f64>, Vec<Vec<f64>>);
+        let widened: Vec<Option<Widened>> = file
+            .vertices
+            .iter()
+            .map(|v| {
+                if v.status == FileStatus::NoModel || v.segments as usize >= m {
+                    return None;
+                }
+                let model = crate::modelfile::model_of(&shape, v.terms as usize, &v.params).ok()?;
+                let (head, blocks) = match &model {
+                    crate::model::ColourModel::Shared { falloff, s_g, s_b } => {
+                        (vec![*s_g, *s_b], vec![falloff])
+                    }
+                    crate::model::ColourModel::PerChannel { channels } => {
+                        (Vec::new(), channels.iter().collect())
+                    }
+                };
+                let curves = blocks
+                    .into_iter()
+                    .flat_map(|a| crate::order::widen(a, m))
+                    .map(|e| e.terms.iter().flat_map(|t| [t.c, t.d]).collect())
+                    .collect();
+                Some((head, curves))
+            })
+            .collect();
+        let n = widened
+            .iter()
+            .flatten()
+            .flat_map(|(_, c)| c.iter().map(|t: &Vec<f64>| t.len() / 2))
+            .fold(shape.terms, usize::max);
         let len = param_len(colour, n, m);
         let blocks = if colour == ColourMode::Shared { 1 } else { 3 };
         let mut params = Vec::with_capacity(file.vertices.len() * len);
-        for v in &file.vertices {
+        for (v, wide) in file.vertices.iter().zip(&widened) {
             let k = v.terms as usize;
             let head = if colour == ColourMode::Shared { 2 } else { 0 };
+            if let Some((scales, curves)) = wide {
+                params.extend_from_slice(scales);
+                for c in curves {
+                    params.extend_from_slice(c);
+                    for _ in c.len() / 2..n {
+                        params.extend([0.0, -1.0]);
+                    }
+                }
+                continue;
+            }
             if v.status == FileStatus::NoModel
                 || k == 0
                 || k > n

@@ -648,6 +648,7 @@ pub fn ground_truth_model(mesh: &crate::dataset::Mesh, field: &Field) -> ModelFi
                 status: VertexStatus::Fitted,
                 log_e: 0.0,
                 terms: 3,
+                segments: 1,
                 params: field.params_at(*p, *n).model_params(),
                 r_range: crate::modelfile::NO_RANGE,
             })
