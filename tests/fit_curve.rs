@@ -243,6 +243,77 @@ fn dipole_recovers_jensen_ketchup_through_the_binary() {
     }
 }
 
+/// `--bins auto` (the default) fits large curves on 64 bins' statistics: log E measured on every
+/// sample is the exact fit's (`--bins exact`) to 1e-4; a bad `--bins` is refused clearly.
+#[test]
+fn default_bins_match_the_exact_fit() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut text = String::from("id,r,value\n");
+    let mut seed = 5u64;
+    let mut uniform = || {
+        seed = seed
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        (seed >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let mut samples: Vec<Vec<(f64, f64)>> = Vec::new();
+    for (id, terms) in [
+        [(0.3, 0.4), (2.0, 1.5), (40.0, 6.0)],
+        [(1.0, 0.25), (5.0, 1.0), (9.0, 3.0)],
+    ]
+    .iter()
+    .enumerate()
+    {
+        let mut curve = Vec::new();
+        for _ in 0..1500 {
+            let r = 10.0 / terms[0].1 * uniform().powi(2);
+            let v: f64 = terms.iter().map(|(c, l)| c * (-l * r).exp()).sum();
+            let noise = 0.02 * (uniform() - 0.5);
+            let v = v * noise.exp();
+            text += &format!("{id},{r:.10e},{v:.10e}\n");
+            curve.push((r, v));
+        }
+        samples.push(curve);
+    }
+    let p = write(&dir, "big.csv", &text);
+    let log_e = |v: &Value, curve: &[(f64, f64)]| -> f64 {
+        let terms: Vec<(f64, f64)> = v["terms"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|t| (t["c"].as_f64().unwrap(), t["d"].as_f64().unwrap()))
+            .collect();
+        let sq: f64 = curve
+            .iter()
+            .map(|(r, s)| {
+                let rd: f64 = terms.iter().map(|(c, d)| c * (d * r).exp()).sum();
+                (rd.ln() - s.ln()).powi(2)
+            })
+            .sum();
+        (sq / curve.len() as f64).sqrt()
+    };
+    let run = |extra: &[&str]| -> Vec<Value> {
+        let mut args = vec![p.to_str().unwrap(), "--batch", "--json"];
+        args.extend_from_slice(extra);
+        let (ok, out, err) = fit_curve(&args);
+        assert!(ok, "{err}");
+        out.lines()
+            .map(|l| serde_json::from_str(l).unwrap())
+            .collect()
+    };
+    let (auto, exact) = (run(&[]), run(&["--bins", "exact"]));
+    for (k, curve) in samples.iter().enumerate() {
+        assert_eq!(auto[k]["converged"], true, "{}", auto[k]);
+        let (a, e) = (log_e(&auto[k], curve), log_e(&exact[k], curve));
+        assert!(a <= e * (1.0 + 1e-4), "curve {k}: auto {a} exact {e}");
+        // The exact fit reports log E on the samples; the binned one its estimate.
+        assert!((exact[k]["log_e"].as_f64().unwrap() / e - 1.0).abs() < 1e-9);
+        assert!((auto[k]["log_e"].as_f64().unwrap() / a - 1.0).abs() < 0.01);
+    }
+    let (ok, _, err) = fit_curve(&[p.to_str().unwrap(), "--batch", "--bins", "lots"]);
+    assert!(!ok && err.contains("--bins"), "{err}");
+}
+
 #[test]
 fn bad_files_name_the_line() {
     let dir = tempfile::tempdir().unwrap();

@@ -7,13 +7,14 @@
 //! drops.
 //!
 //! Lives in the host library rather than in `subsurf-model` because it is a file format, and the
-//! model crate's contract is to know no files. It parses a `&str` (no I/O), so callers read the
-//! file and keep the context of where it came from.
+//! model crate's contract is to know no files. [`parse`] reads a `&str`; [`read`] streams from
+//! any reader through a ~1 MiB buffer (`fit-curve` reads its file that way, so a large batch is
+//! never held twice); callers keep the context of where the text came from.
 //!
-//! Hand-written rather than with the `csv` crate: the format is four fixed numeric columns, and
-//! `fit-curve --batch` parses millions of rows on the path the throughput target is
-//! measured on (BENCHMARKS.md); one pass over each line with no per-row allocation keeps parsing a
-//! small part of that budget.
+//! Hand-written rather than with the `csv` crate (numbers by `fast-float2`, with a short-decimal
+//! fast path): the format is four fixed numeric columns, and `fit-curve --batch` parses millions
+//! of rows on the path the throughput target is measured on (BENCHMARKS.md); one pass
+//! over each line's bytes with no per-row allocation keeps parsing a small part of that budget.
 
 use std::collections::HashMap;
 
@@ -64,6 +65,12 @@ pub enum CurvesError {
         /// The field as found.
         field: String,
     },
+    /// A line that is not UTF-8 text.
+    #[error("line {line}: not UTF-8 text")]
+    NotText {
+        /// 1-based line number.
+        line: usize,
+    },
     /// No header line at all.
     #[error("no header line found (expected `r,value` or `r,r_value,g_value,b_value`)")]
     NoHeader,
@@ -75,90 +82,307 @@ const MAX_COLUMNS: usize = 5;
 /// Parses a curve file's text. `batch`: the first column is an id and each id is a curve;
 /// otherwise the whole file is one curve (id `None`).
 pub fn parse(text: &str, batch: bool) -> Result<Vec<Curve>, CurvesError> {
-    let prefix = if batch { "id," } else { "" };
-    let mut channels: Option<usize> = None;
-    let mut curves: Vec<Curve> = Vec::new();
-    let mut index: HashMap<String, usize> = HashMap::new();
-    // Rows of one id usually come together: remember the last one and skip the map lookup.
-    let mut last: Option<usize> = None;
-    for (i, raw) in text.lines().enumerate() {
-        let line_no = i + 1;
-        let line = match raw.find('#') {
-            Some(at) => &raw[..at],
-            None => raw,
+    let mut p = Parser::new(batch);
+    for (i, line) in text.as_bytes().split(|&b| b == b'\n').enumerate() {
+        p.line(i + 1, line)?;
+    }
+    p.finish()
+}
+
+/// Why a curve file could not be read: the reader failed, or its text is not a curve file.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum ReadError {
+    /// The reader failed (after `line` complete lines).
+    #[error("reading after line {line}: {source}")]
+    Io {
+        /// Complete lines read before the failure.
+        line: usize,
+        /// The reader's error.
+        source: std::io::Error,
+    },
+    /// The text is not a curve file.
+    #[error(transparent)]
+    Curves(#[from] CurvesError),
+}
+
+/// Bytes read at a time by [`read`].
+const CHUNK: usize = 1 << 20;
+
+/// Parses a curve file from a reader as it streams in (a buffer of ~1 MiB, never the whole
+/// file): the same format and errors as [`parse`]. The data can be large (`fit-curve --batch`
+/// on millions of rows), so only the parsed numbers are held.
+pub fn read(mut reader: impl std::io::Read, batch: bool) -> Result<Vec<Curve>, ReadError> {
+    let mut p = Parser::new(batch);
+    let mut buf: Vec<u8> = vec![0; CHUNK];
+    // buf[..filled] holds unprocessed bytes: the tail of an incomplete line, then fresh data.
+    let (mut filled, mut line_no) = (0usize, 0usize);
+    loop {
+        if filled == buf.len() {
+            // One line longer than the buffer: grow it.
+            buf.resize(buf.len() * 2, 0);
         }
-        .trim();
-        if line.is_empty() {
-            continue;
-        }
-        let mut fields = [""; MAX_COLUMNS];
-        let mut count = 0;
-        for f in line.split(',') {
-            if count < MAX_COLUMNS {
-                fields[count] = f.trim();
+        let got = match reader.read(&mut buf[filled..]) {
+            Ok(k) => k,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+            Err(source) => {
+                return Err(ReadError::Io {
+                    line: line_no,
+                    source,
+                });
             }
-            count += 1;
-        }
-        let Some(ch) = channels else {
-            channels = Some(
-                header(&fields[..count.min(MAX_COLUMNS)], batch).ok_or_else(|| {
-                    CurvesError::Header {
-                        line: line_no,
-                        prefix,
-                        got: line.to_string(),
-                    }
-                })?,
-            );
-            continue;
         };
-        let first = usize::from(batch);
+        let scanned = filled;
+        filled += got;
+        if got == 0 {
+            // End of input: the last line needs no newline.
+            if filled > 0 {
+                p.line(line_no + 1, &buf[..filled])?;
+            }
+            return Ok(p.finish()?);
+        }
+        // Complete lines in buf[..filled]; only the fresh bytes can hold new newlines.
+        let mut start = 0;
+        let mut from = scanned;
+        while let Some(at) = memchr::memchr(b'\n', &buf[from..filled]) {
+            let end = from + at;
+            line_no += 1;
+            p.line(line_no, &buf[start..end])?;
+            start = end + 1;
+            from = start;
+        }
+        buf.copy_within(start..filled, 0);
+        filled -= start;
+    }
+}
+
+/// The parsing state shared by [`parse`] and [`read`]: the header's channel count once seen, the
+/// curves so far, and where each id went.
+struct Parser {
+    batch: bool,
+    channels: Option<usize>,
+    curves: Vec<Curve>,
+    index: HashMap<String, usize>,
+    /// Rows of one id usually come together: the last curve written, to skip the map lookup.
+    last: Option<usize>,
+}
+
+impl Parser {
+    fn new(batch: bool) -> Self {
+        Self {
+            batch,
+            channels: None,
+            curves: Vec::new(),
+            index: HashMap::new(),
+            last: None,
+        }
+    }
+
+    fn finish(self) -> Result<Vec<Curve>, CurvesError> {
+        if self.channels.is_none() {
+            return Err(CurvesError::NoHeader);
+        }
+        Ok(self.curves)
+    }
+
+    /// One line (without its `\n`; a `\r` before it is whitespace), 1-based number `line_no`.
+    fn line(&mut self, line_no: usize, raw: &[u8]) -> Result<(), CurvesError> {
+        let Some(ch) = self.channels else {
+            return self.header_line(line_no, raw);
+        };
+        let first = usize::from(self.batch);
         let expected = ch + 1 + first;
-        if count != expected {
-            return Err(CurvesError::Columns {
-                line: line_no,
-                expected,
-                got: count,
-            });
-        }
-        let mut values = [0.0f64; MAX_COLUMNS];
-        for col in first..expected {
-            values[col] = parse_f64(fields[col]).ok_or_else(|| CurvesError::NotANumber {
-                line: line_no,
-                column: col + 1,
-                field: fields[col].to_string(),
-            })?;
-        }
-        let id = if batch { Some(fields[0]) } else { None };
-        let at = match last {
-            Some(k) if curves[k].id.as_deref() == id => k,
-            _ => {
-                let key = id.unwrap_or("");
-                let k = match index.get(key) {
-                    Some(&k) => k,
-                    None => {
-                        curves.push(Curve {
-                            id: id.map(str::to_string),
-                            r: Vec::new(),
-                            channels: vec![Vec::new(); ch],
-                        });
-                        index.insert(key.to_string(), curves.len() - 1);
-                        curves.len() - 1
-                    }
-                };
-                last = Some(k);
-                k
-            }
+        // The fast path reads well-formed rows; anything else (blank lines, comments, errors,
+        // unusual spacing) goes through the general path, which also words the errors.
+        let (id, values) = match fast_row(raw, self.batch, expected) {
+            Some(row) => row,
+            None => match slow_row(line_no, raw, self.batch, expected)? {
+                Some(row) => row,
+                None => return Ok(()),
+            },
         };
-        let c = &mut curves[at];
+        let at = self.curve_for(line_no, id, ch)?;
+        let c = &mut self.curves[at];
         c.r.push(values[first]);
         for (dst, v) in c.channels.iter_mut().zip(&values[first + 1..expected]) {
             dst.push(*v);
         }
+        Ok(())
     }
-    if channels.is_none() {
-        return Err(CurvesError::NoHeader);
+
+    fn header_line(&mut self, line_no: usize, raw: &[u8]) -> Result<(), CurvesError> {
+        let text = String::from_utf8_lossy(raw);
+        let line = strip_comment(&text);
+        if line.is_empty() {
+            return Ok(());
+        }
+        let fields: Vec<&str> = line.split(',').map(str::trim).collect();
+        self.channels = Some(
+            header(&fields, self.batch).ok_or_else(|| CurvesError::Header {
+                line: line_no,
+                prefix: if self.batch { "id," } else { "" },
+                got: line.to_string(),
+            })?,
+        );
+        Ok(())
     }
-    Ok(curves)
+
+    /// Index of the curve of `id` (a new one for an id not seen yet).
+    fn curve_for(&mut self, line_no: usize, id: &[u8], ch: usize) -> Result<usize, CurvesError> {
+        if let Some(k) = self.last
+            && self.curves[k]
+                .id
+                .as_deref()
+                .map_or(b"" as &[u8], str::as_bytes)
+                == id
+        {
+            return Ok(k);
+        }
+        let key = std::str::from_utf8(id).map_err(|_| CurvesError::NotText { line: line_no })?;
+        let k = match self.index.get(key) {
+            Some(&k) => k,
+            None => {
+                // Curves of a batch are usually alike: room for as many rows as the last one
+                // had saves the vectors' regrowth (a measurable part of parsing large files).
+                let rows = self.last.map_or(0, |k| self.curves[k].r.len());
+                self.curves.push(Curve {
+                    id: self.batch.then(|| key.to_string()),
+                    r: Vec::with_capacity(rows),
+                    channels: (0..ch).map(|_| Vec::with_capacity(rows)).collect(),
+                });
+                self.index.insert(key.to_string(), self.curves.len() - 1);
+                self.curves.len() - 1
+            }
+        };
+        self.last = Some(k);
+        Ok(k)
+    }
+}
+
+/// The line up to a `#`, trimmed.
+fn strip_comment(line: &str) -> &str {
+    match line.find('#') {
+        Some(at) => &line[..at],
+        None => line,
+    }
+    .trim()
+}
+
+/// A data row: the id's bytes (empty outside batch files) and the values by column.
+type Row<'a> = (&'a [u8], [f64; MAX_COLUMNS]);
+
+/// Spaces and tabs (and the `\r` of CRLF files) around fields.
+fn is_blank(b: u8) -> bool {
+    b == b' ' || b == b'\t' || b == b'\r'
+}
+
+/// A well-formed row without a comment: `expected` comma-separated fields, numbers after the id,
+/// ASCII blanks around fields. One pass over the bytes, no allocation. `None` for anything
+/// else, which [`slow_row`] then reads or rejects.
+fn fast_row(line: &[u8], batch: bool, expected: usize) -> Option<Row<'_>> {
+    let mut values = [0.0f64; MAX_COLUMNS];
+    let mut at = 0;
+    let mut id: &[u8] = &[];
+    let mut col = 0;
+    if batch {
+        let comma = memchr::memchr(b',', line)?;
+        id = trim_blank(&line[..comma]);
+        if id.is_empty() || id.contains(&b'#') {
+            return None;
+        }
+        at = comma + 1;
+        col = 1;
+    }
+    while col < expected {
+        while at < line.len() && is_blank(line[at]) {
+            at += 1;
+        }
+        let (v, used) = number_prefix(&line[at..])?;
+        values[col] = v;
+        at += used;
+        while at < line.len() && is_blank(line[at]) {
+            at += 1;
+        }
+        col += 1;
+        if col < expected {
+            if line.get(at) != Some(&b',') {
+                return None;
+            }
+            at += 1;
+        }
+    }
+    (at == line.len()).then_some((id, values))
+}
+
+fn trim_blank(mut b: &[u8]) -> &[u8] {
+    while let [first, rest @ ..] = b
+        && is_blank(*first)
+    {
+        b = rest;
+    }
+    while let [rest @ .., last] = b
+        && is_blank(*last)
+    {
+        b = rest;
+    }
+    b
+}
+
+/// The general reading of a data row: comments, blank lines (`Ok(None)`), Unicode spacing, and
+/// the errors naming the line.
+fn slow_row(
+    line_no: usize,
+    raw: &[u8],
+    batch: bool,
+    expected: usize,
+) -> Result<Option<Row<'_>>, CurvesError> {
+    let text = std::str::from_utf8(raw).map_err(|_| CurvesError::NotText { line: line_no })?;
+    let line = strip_comment(text);
+    if line.is_empty() {
+        return Ok(None);
+    }
+    let mut fields = [""; MAX_COLUMNS];
+    let mut count = 0;
+    for f in line.split(',') {
+        if count < MAX_COLUMNS {
+            fields[count] = f.trim();
+        }
+        count += 1;
+    }
+    if count != expected {
+        return Err(CurvesError::Columns {
+            line: line_no,
+            expected,
+            got: count,
+        });
+    }
+    let first = usize::from(batch);
+    let mut values = [0.0f64; MAX_COLUMNS];
+    for col in first..expected {
+        values[col] = parse_f64(fields[col]).ok_or_else(|| CurvesError::NotANumber {
+            line: line_no,
+            column: col + 1,
+            field: fields[col].to_string(),
+        })?;
+    }
+    Ok(Some((
+        if batch { fields[0].as_bytes() } else { &[] },
+        values,
+    )))
+}
+
+/// A whole field as f64 (correctly rounded, by the `fast-float2` crate), `None` if it is not
+/// one number.
+fn parse_f64(s: &str) -> Option<f64> {
+    fast_float2::parse(s).ok()
+}
+
+/// The number at the start of `b` and the bytes it takes, correctly rounded (the value
+/// `fast-float2` gives): [`plain_decimal`] for the common short decimals, the crate for
+/// everything else.
+#[inline]
+fn number_prefix(b: &[u8]) -> Option<(f64, usize)> {
+    plain_decimal(b).or_else(|| fast_float2::parse_partial::<f64, _>(b).ok())
 }
 
 /// Exact powers of ten representable in f64 (10^22 is the largest).
@@ -167,14 +391,15 @@ const POW10: [f64; 23] = [
     1e17, 1e18, 1e19, 1e20, 1e21, 1e22,
 ];
 
-/// A decimal number as f64, correctly rounded (identical to `str::parse::<f64>`). The common
-/// case of CSV data, at most 19 significant digits with a mantissa up to 2^53 and a power of ten
-/// within ±22, takes Clinger's fast path: mantissa and power of ten are both exact in f64, so one
-/// multiplication or division rounds correctly. Everything else (NaN, inf, long or extreme
-/// numbers) goes to the standard library. Hand-written because the general parser's per-call
-/// validation and dispatch are a measurable part of `fit-curve --batch` on millions of rows.
-fn parse_f64(s: &str) -> Option<f64> {
-    let b = s.as_bytes();
+/// A decimal `[+-]digits[.digits][e[+-]digits]` at the start of `b` with at most 19
+/// significant digits, a mantissa up to 2^53 and a power of ten within ±22 (what `%.10g`
+/// writes): Clinger's fast path, where mantissa and power of ten are both exact in f64 so one
+/// multiplication or division rounds correctly. `None` for anything else (the caller then asks
+/// `fast-float2`). Hand-written because this inlined loop over the bytes is about twice as fast
+/// as the crate's general entry point on the rows `fit-curve --batch` reads by the million
+/// (BENCHMARKS.md); a test checks it against the standard library.
+#[inline]
+fn plain_decimal(b: &[u8]) -> Option<(f64, usize)> {
     let mut i = 0;
     let neg = match b.first() {
         Some(b'-') => {
@@ -210,7 +435,10 @@ fn parse_f64(s: &str) -> Option<f64> {
             i += 1;
         }
     }
-    if any && i < b.len() && (b[i] == b'e' || b[i] == b'E') {
+    if !any {
+        return None;
+    }
+    if i < b.len() && (b[i] == b'e' || b[i] == b'E') {
         i += 1;
         let eneg = match b.get(i) {
             Some(b'-') => {
@@ -229,13 +457,13 @@ fn parse_f64(s: &str) -> Option<f64> {
             edigits += 1;
             i += 1;
         }
-        if edigits == 0 {
-            return s.parse().ok();
+        if edigits == 0 || (i < b.len() && b[i].is_ascii_digit()) {
+            return None;
         }
         exp10 += if eneg { -e } else { e };
     }
-    if !any || i != b.len() || digits > 19 || mantissa > (1u64 << 53) || exp10.abs() > 22 {
-        return s.parse().ok();
+    if digits > 19 || mantissa > (1u64 << 53) || exp10.abs() > 22 {
+        return None;
     }
     let m = mantissa as f64;
     let v = if exp10 >= 0 {
@@ -243,7 +471,7 @@ fn parse_f64(s: &str) -> Option<f64> {
     } else {
         m / POW10[(-exp10) as usize]
     };
-    Some(if neg { -v } else { v })
+    Some((if neg { -v } else { v }, i))
 }
 
 /// Channels a header announces, or `None` if it is not a known header.
@@ -350,13 +578,63 @@ mod tests {
             }
         }
         for c in &cases {
-            let (a, b) = (parse_f64(c), c.parse::<f64>().ok());
-            assert_eq!(a.map(f64::to_bits), b.map(f64::to_bits), "{c}");
+            let want = c.parse::<f64>().ok().map(f64::to_bits);
+            assert_eq!(parse_f64(c).map(f64::to_bits), want, "{c}");
+            // The row parser's prefix reading, as a whole field and followed by a comma.
+            let whole = number_prefix(c.as_bytes()).filter(|p| p.1 == c.len());
+            assert_eq!(whole.map(|p| p.0.to_bits()), want, "{c}");
+            let then = format!("{c},7");
+            let prefix = number_prefix(then.as_bytes()).filter(|p| p.1 == c.len());
+            assert_eq!(prefix.map(|p| p.0.to_bits()), want, "{c},");
         }
         for bad in [
             "", "-", ".", "e5", "1e", "1.2.3", "1e5x", "abc", "--1", "1 2",
         ] {
             assert_eq!(parse_f64(bad), None, "{bad}");
+            assert!(
+                number_prefix(bad.as_bytes()).is_none_or(|p| p.1 < bad.len()),
+                "{bad}"
+            );
+        }
+    }
+
+    /// A reader that hands out a few bytes at a time, so lines straddle every read.
+    struct Trickle<'a>(&'a [u8], usize);
+    impl std::io::Read for Trickle<'_> {
+        fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+            let k = self.1.min(buf.len()).min(self.0.len());
+            buf[..k].copy_from_slice(&self.0[..k]);
+            self.0 = &self.0[k..];
+            Ok(k)
+        }
+    }
+
+    #[test]
+    fn streaming_read_is_parse() {
+        let text = "# c\r\nid,r,value\r\na,0,1 # x\r\n\r\nb, 1e-3 ,2.5\na,1,NaN\nb,+2,-0\nb,3,4";
+        for step in [1, 3, 7, 1000] {
+            let streamed = read(Trickle(text.as_bytes(), step), true).unwrap();
+            assert_eq!(streamed.len(), 2);
+            assert_eq!(streamed[1].r, vec![1e-3, 2.0, 3.0]);
+            assert_eq!(streamed[1].channels[0], vec![2.5, -0.0, 4.0]);
+            let parsed = parse(text, true).unwrap();
+            assert_eq!(format!("{streamed:?}"), format!("{parsed:?}"), "{step}");
+        }
+        // A line longer than the read buffer.
+        let long = format!("r,value\n{}1,2\n3,4\n", " ".repeat(3 * CHUNK));
+        let c = read(long.as_bytes(), false).unwrap();
+        assert_eq!(c[0].r, vec![1.0, 3.0]);
+        // Errors name the line, wherever the reads split.
+        for step in [1, 5, 1000] {
+            let bad = "id,r,value\na,0,1\na,1,x2\n";
+            let e = read(Trickle(bad.as_bytes(), step), true)
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("line 3") && e.contains("x2"), "{e}");
+            let e = read(Trickle(b"id,r,value\n\xff,0,1\n", step), true)
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("line 2") && e.contains("UTF-8"), "{e}");
         }
     }
 

@@ -5,7 +5,9 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, bail};
 use rayon::prelude::*;
 use serde_json::{Value, json};
-use subsurf::curves::{Curve, parse};
+use std::io::Write;
+
+use subsurf::curves::{Curve, read};
 use subsurf::fit::dipole::{DipoleFit, DipoleOptions, fit_dipole};
 use subsurf::fit::{ExpFit, FitFailure, FitOptions, Objective, Preset, Solver, Terms, fit_expsum};
 use subsurf::model::{MAX_TERMS, Term};
@@ -87,9 +89,14 @@ pub struct Args {
     /// Relative log E tolerance of --terms auto.
     #[arg(long, default_value_t = 0.05)]
     pub tolerance: f64,
-    /// Fast mode: fit this many distance bins' sufficient statistics.
-    #[arg(long)]
-    pub bins: Option<usize>,
+    /// Speed/accuracy: `auto` (default) fits the sufficient statistics of 64 distance bins
+    /// instead of the samples for every curve with at least 1,000 samples (its log E is within
+    /// 1e-5 of the exact fit's on the scipy comparison of BENCHMARKS.md, and the reported log E
+    /// is computed from the bin statistics: exact up to a cubic term per bin), and the exact fit
+    /// on all samples below that; `exact` always fits every sample (several times slower on
+    /// large curves); a number N always fits N bins (fewer = faster, less exact).
+    #[arg(long, default_value = "auto")]
+    pub bins: String,
     /// Start from a preset's settings (explicit flags still apply on top).
     #[arg(long, value_enum)]
     pub preset: Option<PresetArg>,
@@ -136,8 +143,10 @@ fn fit_options(args: &Args) -> anyhow::Result<FitOptions> {
             Terms::Fixed(n)
         };
     }
-    if args.bins.is_some() {
-        o.bins = args.bins;
+    match bins_arg(&args.bins)? {
+        BinsArg::Auto => {}
+        BinsArg::Exact => o.bins = None,
+        BinsArg::Fixed(n) => o.bins = Some(n),
     }
     if let Some(m) = args.max_iterations {
         o.max_iterations = m;
@@ -166,6 +175,49 @@ fn fit_options(args: &Args) -> anyhow::Result<FitOptions> {
         o.start = Some(terms);
     }
     Ok(o)
+}
+
+/// `--bins`: automatic, exact, or a fixed bin count.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum BinsArg {
+    Auto,
+    Exact,
+    Fixed(usize),
+}
+
+/// Curves with at least this many samples are fitted on bins by `--bins auto`.
+const AUTO_BINS_MIN_SAMPLES: usize = 1_000;
+
+/// Bins of `--bins auto`: on the scipy comparison (BENCHMARKS.md) 64 bins reproduce the exact
+/// fit's log E to 1e-5 on every curve (32 bins: 1.4e-3, 16 bins: up to 2x on curves whose
+/// fastest term falls off within the first bin).
+const AUTO_BINS: usize = 64;
+
+fn bins_arg(s: &str) -> anyhow::Result<BinsArg> {
+    if s.eq_ignore_ascii_case("auto") {
+        return Ok(BinsArg::Auto);
+    }
+    if s.eq_ignore_ascii_case("exact") {
+        return Ok(BinsArg::Exact);
+    }
+    match s.parse::<usize>() {
+        Ok(n) if n >= 1 => Ok(BinsArg::Fixed(n)),
+        _ => bail!("--bins must be auto, exact or a bin count >= 1, got `{s}`"),
+    }
+}
+
+/// The options for one curve: `--bins auto` picks bins or the exact fit by its size.
+fn curve_options<'a>(
+    options: &'a FitOptions,
+    binned: &'a FitOptions,
+    auto: bool,
+    samples: usize,
+) -> &'a FitOptions {
+    if auto && samples >= AUTO_BINS_MIN_SAMPLES {
+        binned
+    } else {
+        options
+    }
 }
 
 fn expsum_json(fit: &Result<ExpFit, FitFailure>) -> Value {
@@ -311,10 +363,9 @@ fn describe(curve: &Curve, v: &Value) -> String {
 
 /// Runs the command.
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let text = std::fs::read_to_string(&args.input)
-        .with_context(|| format!("reading {}", args.input.display()))?;
-    let curves =
-        parse(&text, args.batch).with_context(|| format!("in {}", args.input.display()))?;
+    let file = std::fs::File::open(&args.input)
+        .with_context(|| format!("opening {}", args.input.display()))?;
+    let curves = read(file, args.batch).with_context(|| format!("in {}", args.input.display()))?;
     let options = fit_options(&args)?;
     let dipole_options = DipoleOptions {
         eta: args.eta,
@@ -328,14 +379,21 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             args.eta
         );
     }
+    // `--bins auto` without a preset (presets choose their own bins): large curves on bins.
+    let auto = bins_arg(&args.bins)? == BinsArg::Auto && args.preset.is_none();
+    let binned = FitOptions {
+        bins: Some(AUTO_BINS),
+        ..options.clone()
+    };
     let outputs: Vec<Value> = curves
         .par_iter()
         .map(|curve| match args.model {
             ModelKind::Expsum => {
+                let o = curve_options(&options, &binned, auto, curve.r.len());
                 let per: Vec<Value> = curve
                     .channels
                     .iter()
-                    .map(|s| expsum_json(&fit_expsum(&curve.r, s, &options)))
+                    .map(|s| expsum_json(&fit_expsum(&curve.r, s, o)))
                     .collect();
                 curve_json(curve, "expsum", per)
             }
@@ -349,13 +407,18 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             }
         })
         .collect();
+    // One buffered writer: a batch prints thousands of lines.
+    let mut out = std::io::BufWriter::new(std::io::stdout().lock());
     for (curve, v) in curves.iter().zip(&outputs) {
         if args.json {
-            println!("{}", serde_json::to_string(v)?);
+            serde_json::to_writer(&mut out, v)?;
+            writeln!(out)?;
         } else {
-            println!("{}", describe(curve, v));
+            writeln!(out, "{}", describe(curve, v))?;
         }
     }
+    out.flush().context("writing the output")?;
+    drop(out);
     if let Some(path) = &args.plot {
         let curve = curves
             .first()

@@ -875,12 +875,15 @@ pub(crate) fn fit_fixed(
             };
             // The binned fit only approximates the exact one (its log E differs in the 3rd–5th
             // digit), so iterating it to machine precision buys nothing.
+            // Relative tests count the scatter the bins' cost leaves out (see
+            // `Settings::cost_offset`): with 1 % noise most of the objective is scatter.
             let binned_settings = Settings {
                 ftol: if bins.is_some() {
                     FAST_FTOL
                 } else {
                     POLISH_FTOL
                 },
+                cost_offset: prefit_bins.iter().map(|b| b.scatter).sum(),
                 ..settings
             };
             let mut pre: Option<lm::Outcome> = None;

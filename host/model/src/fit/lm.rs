@@ -46,6 +46,11 @@ pub(crate) struct Settings {
     /// Longest step taken in one iteration, a trust-region bound on top of the damping. The
     /// parameters are logarithms, so 1.0 means no c_k or d_k changes by more than a factor e.
     pub max_step: f64,
+    /// A constant part of the objective that no parameter changes (≥ 0): the binned fast mode's
+    /// Σ scatter (see [`super::bins`]), which the binned cost leaves out. The relative tests
+    /// (`ftol`, [`STATIONARY_RTOL`]) are relative to cost + offset, the objective's true size;
+    /// without it they would demand digits of a small remainder that log E never shows.
+    pub cost_offset: f64,
 }
 
 impl Default for Settings {
@@ -55,6 +60,7 @@ impl Default for Settings {
             ftol: 1e-15,
             xtol: 1e-13,
             max_step: 4.0,
+            cost_offset: 0.0,
         }
     }
 }
@@ -220,7 +226,7 @@ pub(crate) fn minimize<P: Problem>(
             nu *= 2.0;
             if mu > 1e30 {
                 // Not even a heavily damped system factors: stalled unless stationary.
-                converged = stationary(&cur, &theta, &mut step, &mut scratch);
+                converged = stationary(&cur, &theta, settings.cost_offset, &mut step, &mut scratch);
                 stalled = !converged;
                 break;
             }
@@ -255,13 +261,13 @@ pub(crate) fn minimize<P: Problem>(
             std::mem::swap(&mut theta, &mut candidate);
             mu *= (1.0f64 / 3.0).max(1.0 - (2.0 * rho - 1.0).powi(3));
             nu = 2.0;
+            let size = cur.cost + actual + settings.cost_offset;
             if cur.cost == 0.0
-                || actual <= settings.ftol * (cur.cost + actual)
-                    && predicted <= settings.ftol * (cur.cost + actual)
+                || actual <= settings.ftol * size && predicted <= settings.ftol * size
             {
                 // The cost stopped falling; a heavily damped step does that far from a minimum
                 // too, so it counts only where the gradient vanishes.
-                converged = stationary(&cur, &theta, &mut step, &mut scratch);
+                converged = stationary(&cur, &theta, settings.cost_offset, &mut step, &mut scratch);
             }
         } else {
             mu *= nu;
@@ -269,7 +275,7 @@ pub(crate) fn minimize<P: Problem>(
         }
         if step_norm <= settings.xtol * (theta_norm + settings.xtol) && !converged {
             // θ no longer moves: a minimum only if the gradient says so.
-            if stationary(&cur, &theta, &mut step, &mut scratch) {
+            if stationary(&cur, &theta, settings.cost_offset, &mut step, &mut scratch) {
                 converged = true;
             } else if mu > 1e30 || step_norm == 0.0 {
                 stalled = true;
@@ -279,7 +285,7 @@ pub(crate) fn minimize<P: Problem>(
         if mu > 1e30 && !converged {
             // No step direction reduces the cost any more: a minimum to machine precision only
             // if the point is stationary; otherwise the run stalled.
-            converged = stationary(&cur, &theta, &mut step, &mut scratch);
+            converged = stationary(&cur, &theta, settings.cost_offset, &mut step, &mut scratch);
             stalled = !converged;
             break;
         }
@@ -370,8 +376,15 @@ pub(crate) fn polish_gauss_newton<P: Problem>(problem: &P, outcome: Outcome) -> 
 /// holds when that predicted decrease is at most [`STATIONARY_RTOL`] of the cost, or below what
 /// rounding θ to f64 can change (ε²·Σ_i (JᵀJ)_ii·(1 + |θ_i|)², times a safety factor): a
 /// zero-residual fit such as NIST Lanczos1 ends there. Scale-free in the residuals and, through
-/// the Jacobi scaling of the solve, in the parameters.
-fn stationary(cur: &Normal, theta: &[f64], x: &mut [f64], scratch: &mut [f64]) -> bool {
+/// the Jacobi scaling of the solve, in the parameters. `cost_offset`: see
+/// [`Settings::cost_offset`].
+fn stationary(
+    cur: &Normal,
+    theta: &[f64],
+    cost_offset: f64,
+    x: &mut [f64],
+    scratch: &mut [f64],
+) -> bool {
     let p = theta.len();
     if cur.cost == 0.0 {
         return true;
@@ -400,7 +413,7 @@ fn stationary(cur: &Normal, theta: &[f64], x: &mut [f64], scratch: &mut [f64]) -
             })
             .sum()
     };
-    decrease.is_finite() && decrease <= STATIONARY_RTOL * cur.cost + floor
+    decrease.is_finite() && decrease <= STATIONARY_RTOL * (cur.cost + cost_offset) + floor
 }
 
 /// Relative decrease of the cost that the Gauss–Newton model may still promise at a point called

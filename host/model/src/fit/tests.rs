@@ -488,6 +488,46 @@ fn random_curves_converge_from_the_automatic_start() {
     );
 }
 
+/// The fast path `subsurf fit-curve --bins auto` takes on large curves (64 bins' statistics):
+/// on the curves at the benchmark's size, log E measured on every sample is the exact
+/// fit's to 1e-4 (BENCHMARKS.md: 1e-5 on all 2,000 curves of the scipy comparison), and the log
+/// E it reports from the bin statistics is within 1 % of that.
+#[test]
+fn sixty_four_bins_give_the_exact_fits_log_e_on_random_curves() {
+    let mut seed = 13u64;
+    for i in 0..6 {
+        let (truth, r, s) = random_curve(&mut seed, 2000);
+        let exact = fit_expsum(&r, &s, &FitOptions::default()).unwrap();
+        let fast = fit_expsum(
+            &r,
+            &s,
+            &FitOptions {
+                bins: Some(64),
+                ..FitOptions::default()
+            },
+        )
+        .unwrap();
+        let (_, on_samples) = errors(&fast.model, &r, &s, Objective::Log);
+        let ratio = on_samples / exact.log_e;
+        eprintln!(
+            "curve {i}: exact {} in {} it, 64 bins {on_samples} in {} it (reported {}), ratio {ratio}",
+            exact.log_e, exact.iterations, fast.iterations, fast.log_e
+        );
+        assert!(fast.converged, "curve {i}: {truth:?}");
+        assert!(
+            ratio <= 1.0 + 1e-4,
+            "curve {i}: ratio {ratio}, {:?} vs {:?}",
+            fast.model,
+            exact.model
+        );
+        assert!(
+            (fast.log_e / on_samples - 1.0).abs() < 0.01,
+            "curve {i}: reported {} measured {on_samples}",
+            fast.log_e
+        );
+    }
+}
+
 #[test]
 fn all_samples_at_one_distance_fail_cleanly() {
     let r = vec![2.0; 50];
