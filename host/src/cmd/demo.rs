@@ -607,11 +607,10 @@ pub fn run_demo(args: &Args) -> Result<Vec<PathBuf>> {
     rep.table(subsurf::report::fit::counts_table(&shown_fit.report), None);
     rep.paragraph(format!(
         "Failed fits before interpolation: {}. Terms dropped because the samples do not support \
-         them: {}. Alpha (Eq. 6): {} fit rounds, last RMS change of ln alpha {}.",
+         them: {}. Alpha (Eq. 6): {}.",
         subsurf::report::fit::reasons(&shown_fit.report.failures),
         subsurf::report::fit::reasons(&shown_fit.report.terms_dropped),
-        shown_fit.report.alpha.rounds,
-        fmt::sig(shown_fit.report.alpha.last_change, 2)
+        subsurf::report::fit::alpha_summary(&shown_fit.report.alpha)
     ));
 
     rep.heading("Scan");

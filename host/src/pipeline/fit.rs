@@ -551,7 +551,7 @@ fn sq_err(m: &ColourModel, data: &ChannelSamples) -> f64 {
 ///
 /// The rounds are a block coordinate descent on the training objective
 /// O(R_d, alpha) = Σ (ln alpha + ln R_d − ln s)^2: Eq. 6 in log space is its minimiser over alpha
-/// for fixed R_d (up to the prior of [`crate::model::ALPHA_PRIOR`]), and a group whose refit is
+/// for fixed R_d (up to the shrinkage of [`crate::model::empirical_prior`]), and a group whose refit is
 /// worse than its previous fit against the same alpha (LM finds local minima) keeps the previous
 /// one. A round that does not lower O is discarded and the rounds stop; the report lists every
 /// round (`AlphaReport::round_log`).
@@ -827,12 +827,20 @@ fn alpha_texture(
     nv: usize,
     scene: &Scene,
 ) -> (Vec<[f64; 3]>, AlphaReport) {
+    // Eq. 6's shrinkage per channel from the texels' own spread against the noise.
+    let prior: [f64; 3] =
+        [0, 1, 2].map(|ch| crate::model::empirical_prior(acc.iter().map(|a| &a[ch])));
     let own: Vec<Option<Vec<f64>>> = (0..nv)
         .map(|v| {
             let a = acc.get(v)?;
             let vals: Vec<Option<f64>> = a
                 .iter()
-                .map(|c| c.alpha().filter(|x| x.is_finite() && *x > 0.0))
+                .zip(prior)
+                .map(|(c, p)| {
+                    c.ln_alpha_shrunk(p)
+                        .map(f64::exp)
+                        .filter(|x| x.is_finite() && *x > 0.0)
+                })
                 .collect();
             // A channel without samples in the window takes the vertex's other channels' mean.
             let known: Vec<f64> = vals.iter().flatten().map(|x| x.ln()).collect();
@@ -844,7 +852,10 @@ fn alpha_texture(
         })
         .collect();
     let filled = crate::interpolate::harmonic(&own, |v| scene.neighbours(v), 500);
-    let mut rep = AlphaReport::default();
+    let mut rep = AlphaReport {
+        prior,
+        ..AlphaReport::default()
+    };
     let alpha = (0..nv)
         .map(|v| {
             if own[v].is_some() {

@@ -248,6 +248,9 @@ pub struct AlphaReport {
     pub converged: bool,
     /// Every round: its training objective and whether it was kept.
     pub round_log: Vec<AlphaRound>,
+    /// Per channel, the pseudo-samples at alpha = 1 Eq. 6 was shrunk with in the last round
+    /// (noise over texture variance, [`crate::model::empirical_prior`]).
+    pub prior: [f64; 3],
 }
 
 /// Wall time per stage, into the report.

@@ -191,10 +191,8 @@ pub fn summary_lines(r: &FitReport) -> Vec<String> {
             model_size_line(r)
         ),
         format!(
-            "alpha (Eq. 6): {} rounds on alpha-divided samples, last RMS change of ln alpha {}; \
-             {} vertices from samples, {} interpolated",
-            r.alpha.rounds,
-            fmt::sig(r.alpha.last_change, 2),
+            "alpha (Eq. 6): {}; {} vertices from samples, {} interpolated",
+            alpha_summary(&r.alpha),
             fmt::count(r.alpha.from_samples),
             fmt::count(r.alpha.interpolated)
         ),
@@ -265,10 +263,9 @@ pub fn fit_report(r: &FitReport, inputs: &FitInputs<'_>) -> Report {
     rep.heading("Data");
     rep.table(counts_table(r), None);
     rep.paragraph(format!(
-        "Modulation texture alpha (Eq. 6): {} fit rounds on alpha-divided samples, last RMS \
-         change of ln alpha {}; {} vertices from their samples, {} interpolated, {} at 1.",
-        r.alpha.rounds,
-        fmt::sig(r.alpha.last_change, 2),
+        "Modulation texture alpha (Eq. 6): {}; {} vertices from their samples, {} \
+         interpolated, {} at 1.",
+        alpha_summary(&r.alpha),
         fmt::count(r.alpha.from_samples),
         fmt::count(r.alpha.interpolated),
         fmt::count(r.alpha.default_one)
@@ -286,6 +283,31 @@ pub fn fit_report(r: &FitReport, inputs: &FitInputs<'_>) -> Report {
         rep.figures(inputs.pictures.clone());
     }
     rep
+}
+
+/// The alpha rounds in one sentence: how many ran, whether they converged, and how much each
+/// texel was shrunk towards alpha = 1 ([`crate::model::empirical_prior`]).
+pub fn alpha_summary(a: &crate::pipeline::AlphaReport) -> String {
+    let prior = |p: f64| {
+        if p >= crate::model::ALPHA_PRIOR_MAX {
+            "all (no texture above the noise)".to_string()
+        } else {
+            fmt::sig(p, 2)
+        }
+    };
+    format!(
+        "{} fit rounds on alpha-divided samples, {} (last RMS change of ln alpha {}); each texel \
+         shrunk towards 1 by r / g / b {} pseudo-samples (the noise within a texel over the \
+         texture's variance between texels)",
+        a.rounds,
+        if a.converged {
+            "converged"
+        } else {
+            "NOT converged within the round limit"
+        },
+        fmt::sig(a.last_change, 2),
+        a.prior.map(prior).join(" / ")
+    )
 }
 
 #[cfg(test)]

@@ -26,7 +26,7 @@ pub mod error;
 pub mod expsum;
 pub mod support;
 
-pub use alpha::{AlphaAccumulator, IntensityWindow};
+pub use alpha::{ALPHA_PRIOR, ALPHA_PRIOR_MAX, AlphaAccumulator, IntensityWindow, empirical_prior};
 pub use aniso::{Anisotropic, TangentFrame, hat_weights};
 pub use colour::ColourModel;
 pub use dipole::{Dipole, MATERIALS, Material};
