@@ -148,8 +148,8 @@ pub fn accept(
         .map(|&n| n.then_some(FailReason::NoData))
         .collect();
     let mut light_log_e = Vec::new();
-    // (n, m) -> (light positions, vertices).
-    let mut chosen: BTreeMap<(usize, usize), (usize, usize)> = BTreeMap::new();
+    // (n, m) -> (light positions, vertices, light positions on the baseline's fall-off).
+    let mut chosen: BTreeMap<(usize, usize), (usize, usize, usize)> = BTreeMap::new();
     for ((f, err), verts) in fitted.fits.iter().zip(errors).zip(&groups.members) {
         let outcome = match (f, err) {
             (Err(e), _) => Err(*e),
@@ -164,6 +164,7 @@ pub fn accept(
                         let e = chosen.entry((n, m)).or_default();
                         e.0 += 1;
                         e.1 += verts.len();
+                        e.2 += g.on_baseline as usize;
                         Ok(OwnFit {
                             params: p,
                             terms: n,
@@ -188,11 +189,12 @@ pub fn accept(
     report.chosen_orders = chosen
         .into_iter()
         .map(
-            |((terms, segments), (light_positions, vertices))| OrderCount {
+            |((terms, segments), (light_positions, vertices, on_baseline))| OrderCount {
                 terms,
                 segments,
                 light_positions,
                 vertices,
+                on_baseline,
             },
         )
         .collect();

@@ -175,6 +175,9 @@ pub struct OrderCount {
     pub light_positions: usize,
     /// Vertices with their own fit of this order.
     pub vertices: usize,
+    /// Of the light positions, those whose model is the homogeneous baseline's fall-off with
+    /// their own channel scales (the smallest candidate of the choice, 3 parameters).
+    pub on_baseline: usize,
 }
 
 /// What choosing the order per light position saved: parameters stored in the model file's

@@ -97,6 +97,7 @@ pub fn orders_table(r: &FitReport) -> Table {
         "terms n",
         "segments m",
         "light positions",
+        "  of which the baseline's curve",
         "vertices with their own fit",
     ]);
     for c in &r.chosen_orders {
@@ -104,6 +105,7 @@ pub fn orders_table(r: &FitReport) -> Table {
             c.terms.to_string(),
             c.segments.to_string(),
             fmt::count(c.light_positions),
+            fmt::count(c.on_baseline),
             fmt::count(c.vertices),
         ]);
     }
@@ -176,10 +178,11 @@ pub fn summary_lines(r: &FitReport) -> Vec<String> {
                     .iter()
                     .map(|c| {
                         format!(
-                            "{}, {}: {}",
+                            "{}, {}: {} ({} on the baseline's curve)",
                             c.terms,
                             c.segments,
-                            fmt::count(c.light_positions)
+                            fmt::count(c.light_positions),
+                            fmt::count(c.on_baseline)
                         )
                     })
                     .collect::<Vec<_>>()
@@ -252,7 +255,8 @@ pub fn fit_report(r: &FitReport, inputs: &FitInputs<'_>) -> Report {
             "\"Model only what the scene requires\": each light position's terms n and direction \
              segments m are chosen from its own samples (corrected Akaike \
              information criterion on the log residuals: fewer samples, smaller models; the \
-             smallest model within 2 of the best). {}.",
+             smallest model within 2 of the best; the smallest candidate is the homogeneous \
+             baseline's curve with the position's own channel scales). {}.",
             model_size_line(r)
         )),
     );
