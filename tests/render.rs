@@ -3,7 +3,7 @@
 use crate::render_common::{assert_picture, fails, framed, ok, subsurf};
 use subsurf::render::{self, HierarchyParams, Light, Method, Quality, RenderOptions};
 
-fn small_torus() -> render::VertexModel {
+fn small_torus() -> subsurf::modelfile::ModelFile {
     render::synthetic::marble_torus(48, 20)
 }
 
@@ -192,7 +192,7 @@ fn torus_model_file() -> subsurf::modelfile::ModelFile {
     let m = 4;
     let vertices = (0..t.len())
         .map(|v| {
-            let p = t.vertex_params(v);
+            let p = &t.vertices[v].params;
             let (status, terms) = match v {
                 5 => (VertexStatus::NoModel, 0),
                 7 => (VertexStatus::Interpolated, 3),
@@ -211,7 +211,7 @@ fn torus_model_file() -> subsurf::modelfile::ModelFile {
                 }
             }
             VertexModel {
-                alpha: t.alpha[v].map(|a| a as f32),
+                alpha: t.vertices[v].alpha,
                 status,
                 log_e: 0.01,
                 terms: terms as u8,
@@ -229,18 +229,19 @@ fn torus_model_file() -> subsurf::modelfile::ModelFile {
         },
         positions: t.positions.clone(),
         normals: t.normals.clone(),
-        triangles: t.faces.clone(),
+        triangles: t.triangles.clone(),
         vertices,
         baseline: None,
+        frame: subsurf::model::FrameRule::CURRENT,
     }
 }
 
 #[test]
 fn model_files_render_anisotropic_and_partial_models() {
     let file = torus_model_file();
-    let model = render::VertexModel::from_model_file(&file);
-    model.validate().unwrap();
-    assert_eq!(model.status[5], render::VertexStatus::NoModel);
+    let model = file.clone();
+    render::validate(&model).unwrap();
+    assert_eq!(model.vertices[5].status, subsurf::modelfile::VertexStatus::NoModel);
     let lights: Vec<Light> = vec!["point:-60,-80,90:20000,20000,20000".parse().unwrap()];
     let exact = render::light_transport(
         &model,
@@ -308,11 +309,10 @@ fn a_fall_off_too_large_to_represent_is_an_error_not_an_image_of_infinities() {
     let lights: Vec<Light> = vec!["dir:0,0,-1".parse().unwrap()];
     assert!(render::render(&model, &lights, &camera, &RenderOptions::default()).is_ok());
     // Valid by the model's rules (c > 0 finite, d < 0), but 1e300 · E · A overflows.
-    let k = model.param_len();
-    for v in 0..model.len() {
-        model.params[v * k + 2] = 1e300;
+    for v in &mut model.vertices {
+        v.params[2] = 1e300;
     }
-    model.validate().unwrap();
+    render::validate(&model).unwrap();
     let err = render::render(&model, &lights, &camera, &RenderOptions::default()).unwrap_err();
     assert!(
         matches!(err, render::RenderError::InvalidValue { .. }),
