@@ -75,7 +75,7 @@ fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
 fn normalized(a: [f64; 3]) -> Option<[f64; 3]> {
     // Scale first so that tiny and huge vectors normalise without under/overflow.
     let m = a[0].abs().max(a[1].abs()).max(a[2].abs());
-    if !(m.is_finite() && m > 0.0) {
+    if !(a.iter().all(|x| x.is_finite()) && m > 0.0) {
         return None;
     }
     let s = [a[0] / m, a[1] / m, a[2] / m];
