@@ -241,7 +241,10 @@ fn model_files_render_anisotropic_and_partial_models() {
     let file = torus_model_file();
     let model = file.clone();
     render::validate(&model).unwrap();
-    assert_eq!(model.vertices[5].status, subsurf::modelfile::VertexStatus::NoModel);
+    assert_eq!(
+        model.vertices[5].status,
+        subsurf::modelfile::VertexStatus::NoModel
+    );
     let lights: Vec<Light> = vec!["point:-60,-80,90:20000,20000,20000".parse().unwrap()];
     let exact = render::light_transport(
         &model,

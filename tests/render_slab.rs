@@ -1,12 +1,11 @@
 //! Done-when: a homogeneous model fitted to a dipole material reproduces the dipole's total
 //! diffuse reflectance on a large flat slab under uniform light within 2%.
 
-use subsurf::modelfile::ModelFile;
 use subsurf::fit::{FitOptions, fit_expsum};
 use subsurf::model::Material;
+use subsurf::modelfile::ModelFile;
 use subsurf::render::{
-    Falloffs, HierarchyParams, Quality, Transport, irradiance, shadow_scene,
-    vertex_areas,
+    Falloffs, HierarchyParams, Quality, Transport, irradiance, shadow_scene, vertex_areas,
 };
 
 /// A flat disk of radius `radius` in z = 0, graded towards its centre: a centre vertex and rings

@@ -1028,14 +1028,20 @@ mod tests {
         let v3 = ModelFile::read(&p).unwrap();
         assert_eq!(v3.frame, FrameRule::ReferenceAxis);
         for (a, b) in v3.vertices.iter().zip(&back.vertices) {
-            assert_eq!((&a.params, a.status, a.r_range), (&b.params, b.status, b.r_range));
+            assert_eq!(
+                (&a.params, a.status, a.r_range),
+                (&b.params, b.status, b.r_range)
+            );
         }
         let n = [0.95, 0.1, 0.3];
         assert_eq!(
             v3.frame_at(n).unwrap(),
             TangentFrame::with_rule(FrameRule::ReferenceAxis, n).unwrap()
         );
-        assert_eq!(back.frame_at(n).unwrap(), TangentFrame::from_normal(n).unwrap());
+        assert_eq!(
+            back.frame_at(n).unwrap(),
+            TangentFrame::from_normal(n).unwrap()
+        );
         assert_ne!(v3.frame_at(n), back.frame_at(n));
         // An unknown rule is refused, not guessed.
         let bad = String::from_utf8(bytes[..end].to_vec())

@@ -21,8 +21,7 @@ use subsurf::pipeline::{
     Context as FitContext, FitReport, PipelineOptions, fit_dataset, register_one,
 };
 use subsurf::render::{
-    self, Camera, Image, Light, RenderOptions, ToneMapping, auto_exposure,
-    relative_pixel_error,
+    self, Camera, Image, Light, RenderOptions, ToneMapping, auto_exposure, relative_pixel_error,
 };
 use subsurf::report::{Figure, Report, Table, fmt};
 use subsurf::rig::{ClientConfig, RigClient};

@@ -5,9 +5,7 @@ use std::path::PathBuf;
 use anyhow::{Context, Result, bail};
 
 use super::models::{builtin, load_model};
-use subsurf::render::{
-    self, Camera, CameraSpec, Light, Method, Quality, RenderOptions,
-};
+use subsurf::render::{self, Camera, CameraSpec, Light, Method, Quality, RenderOptions};
 
 /// Render a model under point, spot and directional lights.
 #[derive(Debug, clap::Args)]

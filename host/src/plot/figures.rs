@@ -78,7 +78,8 @@ pub fn error_maps(
     let Some((_, first)) = models.first() else {
         return Err(PlotError::Empty("no model".into()));
     };
-    let log_e = |m: &ModelFile| -> Vec<f64> { m.vertices.iter().map(|v| f64::from(v.log_e)).collect() };
+    let log_e =
+        |m: &ModelFile| -> Vec<f64> { m.vertices.iter().map(|v| f64::from(v.log_e)).collect() };
     let mut all: Vec<f64> = models
         .iter()
         .flat_map(|(_, m)| log_e(m))

@@ -790,20 +790,31 @@ mod tests {
             let x_i = positions[i];
             for l in 0..m {
                 let phi = std::f64::consts::TAU * l as f64 / m as f64;
-                let x_o = [0, 1, 2].map(|k| x_i[k] + 2.0 * (phi.cos() * fit.t[k] + phi.sin() * fit.b[k]));
+                let x_o =
+                    [0, 1, 2].map(|k| x_i[k] + 2.0 * (phi.cos() * fit.t[k] + phi.sin() * fit.b[k]));
                 // The fit bins this sample into segment l ...
                 let (_, got) = fit.polar(x_i, x_o);
                 let w = hat_weights(got.unwrap(), m);
-                assert!(w.iter().any(|&(k, x)| k == l && (x - 1.0).abs() < 1e-9), "{w:?}");
+                assert!(
+                    w.iter().any(|&(k, x)| k == l && (x - 1.0).abs() < 1e-9),
+                    "{w:?}"
+                );
                 // ... evaluation reads segment l there ...
-                let model = crate::modelfile::model_of(&read.shape, 1, &read.vertices[i].params).unwrap();
+                let model =
+                    crate::modelfile::model_of(&read.shape, 1, &read.vertices[i].params).unwrap();
                 let (r, phi_eval) = eval.polar(x_i, x_o);
                 let ln = model.ln_eval(r, phi_eval)[0];
-                assert!((ln - (-(1.0 + l as f64) * 2.0)).abs() < 1e-6, "eval {ln} at l {l}");
+                assert!(
+                    (ln - (-(1.0 + l as f64) * 2.0)).abs() < 1e-6,
+                    "eval {ln} at l {l}"
+                );
                 // ... and so does the renderer.
                 let mut ws = vec![0.0; m];
                 segment_weights(&t.frames[i], x_i, x_o, &mut ws);
-                assert!((ws[l] - 1.0).abs() < 1e-9, "render weights {ws:?} for l {l}");
+                assert!(
+                    (ws[l] - 1.0).abs() < 1e-9,
+                    "render weights {ws:?} for l {l}"
+                );
             }
         }
         // The same file as format 3: read with the old rule, rendered in the old frame.

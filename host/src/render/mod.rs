@@ -40,6 +40,7 @@ pub use fresnel::{fresnel_transmittance, relative_transmittance};
 pub use hierarchy::{HierarchyParams, Quality, Transport, TransportStats};
 pub use irradiance::{irradiance, shadow_scene, vertex_areas};
 pub use light::Light;
+pub use model::validate;
 pub use output::{
     ImageStats, SHOULDER_CLIP, SHOULDER_KNEE, ToneMapping, WHITE_QUANTILE, auto_exposure,
     image_stats, save_exr, save_png, shoulder, tone_map, tone_map_with,
@@ -48,7 +49,6 @@ pub use raster::{Image, rasterise};
 pub use scene::{
     Method, RenderOptions, RenderOutput, Transported, light_transport, relative_pixel_error, render,
 };
-pub use model::validate;
 
 /// Why a render could not be made. Every variant names the offending input.
 #[non_exhaustive]

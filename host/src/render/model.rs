@@ -97,9 +97,7 @@ pub fn validate(model: &ModelFile) -> Result<(), RenderError> {
             }
         }
     }
-    model
-        .check()
-        .map_err(|e| RenderError::Shape(e.to_string()))
+    model.check().map_err(|e| RenderError::Shape(e.to_string()))
 }
 
 /// Every vertex's parameters in one layout, as the renderer's inner loops read them.

@@ -9,8 +9,8 @@ use super::hierarchy::{HierarchyParams, Quality, Transport, TransportStats};
 use super::irradiance::{irradiance, shadow_scene, vertex_areas};
 use super::light::Light;
 use super::raster::{Image, rasterise};
-use crate::modelfile::ModelFile;
 use crate::geometry::Camera;
+use crate::modelfile::ModelFile;
 
 /// How `B(x_o)` is summed.
 #[derive(Clone, Copy, Debug, PartialEq)]
