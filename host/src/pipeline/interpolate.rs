@@ -153,7 +153,7 @@ impl SegmentTurns {
 /// segment l of `x`.
 fn turn_segments(x: &[f64], head: usize, chunk: usize, m: usize, k: usize) -> Vec<f64> {
     let mut out = x.to_vec();
-    if k % m.max(1) == 0 || chunk == 0 || x.len() < head {
+    if k.is_multiple_of(m.max(1)) || chunk == 0 || x.len() < head {
         return out;
     }
     let block = chunk * m;
