@@ -107,3 +107,39 @@ fn one_image_codec_one_obj_writer_one_projection() {
         assert_eq!(users, want, "{needle}");
     }
 }
+
+#[test]
+fn one_vertex_model_type_set_and_one_tangent_frame_rule() {
+    // The per-vertex model is the model file's type set (`modelfile`): the renderer, the plots
+    // and evaluation take `ModelFile`; no second vertex-model, status or colour-mode type.
+    for needle in [
+        "pub struct VertexModel",
+        "pub enum VertexStatus",
+        "pub enum ColourMode",
+        "pub struct ModelFile",
+    ] {
+        let owners = naming("host/src", needle);
+        assert_eq!(owners, ["host/src/modelfile.rs"], "{needle}: {owners:?}");
+    }
+    assert!(naming("host/model/src", "pub struct VertexModel").is_empty());
+    // Eq. 3's directions come from one frame function (`TangentFrame::with_rule`, the model
+    // crate): nobody else builds a frame from its parts or has a reference-axis rule.
+    for dir in ["host/src", "tests"] {
+        let builders: Vec<String> = sources(dir)
+            .into_iter()
+            .filter(|(_, text)| {
+                text.lines()
+                    .map(str::trim_start)
+                    .filter(|l| !l.starts_with("//"))
+                    .any(|l| l.contains("TangentFrame {") && !l.contains("-> TangentFrame {"))
+            })
+            .map(|(path, _)| path)
+            .collect();
+        assert!(
+            builders.is_empty(),
+            "frames built outside the model crate: {builders:?}"
+        );
+    }
+    let rules = naming("host", "abs() > 0.9 {");
+    assert_eq!(rules, ["host/model/src/model/aniso.rs"], "{rules:?}");
+}

@@ -3,7 +3,7 @@
 use crate::render_common::{assert_picture, fails, framed, ok, subsurf};
 use subsurf::render::{self, HierarchyParams, Light, Method, Quality, RenderOptions};
 
-fn small_torus() -> render::VertexModel {
+fn small_torus() -> subsurf::modelfile::ModelFile {
     render::synthetic::marble_torus(48, 20)
 }
 
@@ -192,7 +192,7 @@ fn torus_model_file() -> subsurf::modelfile::ModelFile {
     let m = 4;
     let vertices = (0..t.len())
         .map(|v| {
-            let p = t.vertex_params(v);
+            let p = &t.vertices[v].params;
             let (status, terms) = match v {
                 5 => (VertexStatus::NoModel, 0),
                 7 => (VertexStatus::Interpolated, 3),
@@ -211,7 +211,7 @@ fn torus_model_file() -> subsurf::modelfile::ModelFile {
                 }
             }
             VertexModel {
-                alpha: t.alpha[v].map(|a| a as f32),
+                alpha: t.vertices[v].alpha,
                 status,
                 log_e: 0.01,
                 terms: terms as u8,
@@ -229,18 +229,22 @@ fn torus_model_file() -> subsurf::modelfile::ModelFile {
         },
         positions: t.positions.clone(),
         normals: t.normals.clone(),
-        triangles: t.faces.clone(),
+        triangles: t.triangles.clone(),
         vertices,
         baseline: None,
+        frame: subsurf::model::FrameRule::CURRENT,
     }
 }
 
 #[test]
 fn model_files_render_anisotropic_and_partial_models() {
     let file = torus_model_file();
-    let model = render::VertexModel::from_model_file(&file);
-    model.validate().unwrap();
-    assert_eq!(model.status[5], render::VertexStatus::NoModel);
+    let model = file.clone();
+    render::validate(&model).unwrap();
+    assert_eq!(
+        model.vertices[5].status,
+        subsurf::modelfile::VertexStatus::NoModel
+    );
     let lights: Vec<Light> = vec!["point:-60,-80,90:20000,20000,20000".parse().unwrap()];
     let exact = render::light_transport(
         &model,
@@ -308,14 +312,88 @@ fn a_fall_off_too_large_to_represent_is_an_error_not_an_image_of_infinities() {
     let lights: Vec<Light> = vec!["dir:0,0,-1".parse().unwrap()];
     assert!(render::render(&model, &lights, &camera, &RenderOptions::default()).is_ok());
     // Valid by the model's rules (c > 0 finite, d < 0), but 1e300 · E · A overflows.
-    let k = model.param_len();
-    for v in 0..model.len() {
-        model.params[v * k + 2] = 1e300;
+    for v in &mut model.vertices {
+        v.params[2] = 1e300;
     }
-    model.validate().unwrap();
+    render::validate(&model).unwrap();
     let err = render::render(&model, &lights, &camera, &RenderOptions::default()).unwrap_err();
     assert!(
         matches!(err, render::RenderError::InvalidValue { .. }),
         "{err}"
     );
+}
+
+/// On a curved scan, the three stages that use Eq. 3's directions measure them in one frame:
+/// the fit's samples (the `select` stage's φ at each registered x_i), evaluation's model at that
+/// x_i (`evaluate::model_at`, the model file's rule at x_i's interpolated normal), and the
+/// renderer's source frame at a vertex (`Falloffs::frame_at`, the vertex normal: x_i's own normal
+/// when x_i is the vertex) against the fit's frame at that point. (With the model file's rule set
+/// to the old one, the first comparison fails: checked.)
+#[test]
+fn fit_evaluation_and_render_share_the_tangent_frame_on_a_curved_scan() {
+    use subsurf::dataset::Dataset;
+    use subsurf::evaluate::model_at;
+    use subsurf::model::TangentFrame;
+    use subsurf::modelfile::ModelFile;
+    use subsurf::pipeline::{Context, PipelineOptions, register_one, select::group_samples};
+    use subsurf::simulate::{SimConfig, SimObject, simulate};
+    let tmp = tempfile::tempdir().unwrap();
+    let cfg = SimConfig::for_object(
+        SimObject::Sphere {
+            radius: 10.0,
+            rings: 12,
+        },
+        128,
+        2,
+        4,
+    )
+    .noise_free();
+    simulate(&cfg, tmp.path(), &()).expect("simulate");
+    let ds = Dataset::open(tmp.path()).unwrap();
+    let ctx = Context::new(&ds, PipelineOptions::for_dataset(&ds)).unwrap();
+    let regs: Vec<_> = (0..ds.spec.frames.len())
+        .filter_map(|k| register_one(&ctx, k).ok())
+        .collect();
+    assert!(regs.len() >= 8, "{} registered frames", regs.len());
+    let model = ModelFile::homogeneous(
+        ds.mesh.positions.clone(),
+        ds.mesh.normals.clone(),
+        ds.mesh.triangles.clone(),
+        [1.0, 1.0],
+        &[(1.0, -1.0)],
+    );
+    let mut compared = 0;
+    let mut tilted = 0;
+    for (i, reg) in regs.iter().enumerate() {
+        let key = [i as u32; 3];
+        let (samples, _) = group_samples(&ctx, &regs, &key).unwrap();
+        let at = model_at(&ctx, &model, reg.triangle, reg.x_i).unwrap();
+        if at.frame.n[2].abs() < 0.9 {
+            tilted += 1;
+        }
+        for s in &samples[0] {
+            let x_o = ds.mesh.positions[s.vertex as usize];
+            assert_eq!(s.phi, at.frame.polar(reg.x_i, x_o).1, "frame {}", reg.frame);
+            compared += 1;
+        }
+    }
+    assert!(
+        compared > 100 && tilted > 2,
+        "{compared} samples, {tilted} tilted x_i"
+    );
+    // The renderer's frame at vertex v is the fit's frame at x_i = v.
+    let falloffs = render::Falloffs::new(&model);
+    for (t, tri) in ds.mesh.triangles.iter().enumerate().step_by(7) {
+        let v = tri[0] as usize;
+        let fit = TangentFrame::from_normal(ctx.normal_at(t as u32, ds.mesh.positions[v])).unwrap();
+        let rendered = falloffs.frame_at(model.normals[v]);
+        for (a, b) in [(fit.t, rendered.t), (fit.b, rendered.b)] {
+            for k in 0..3 {
+                assert!(
+                    (a[k] - b[k]).abs() < 1e-9,
+                    "vertex {v}: {fit:?} vs {rendered:?}"
+                );
+            }
+        }
+    }
 }

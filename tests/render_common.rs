@@ -5,7 +5,8 @@
 use std::path::Path;
 use std::process::Command;
 
-use subsurf::render::{self, Camera, VertexModel, image_stats};
+use subsurf::modelfile::ModelFile;
+use subsurf::render::{self, Camera, image_stats};
 
 /// A picture someone can look at: it decodes, has the right size, many colours, real contrast.
 pub fn assert_picture(path: &Path, width: u32, height: u32) {
@@ -51,7 +52,7 @@ pub fn fails(cmd: &mut Command) -> String {
 }
 
 /// A camera framing `model` from the default view.
-pub fn framed(model: &VertexModel, width: u32, height: u32) -> Camera {
+pub fn framed(model: &ModelFile, width: u32, height: u32) -> Camera {
     let (lo, hi) = model.bounds();
     Camera::framing(lo, hi, render::DEFAULT_VIEW, width, height).expect("camera")
 }

@@ -49,10 +49,10 @@ fn error_maps_and_model_viewer() {
     let mut aniso = iso.clone();
     for v in 0..iso.len() {
         let p = iso.positions[v];
-        iso.log_e[v] = 0.04 + 0.02 * (0.2 * p[0]).sin();
-        aniso.log_e[v] = 0.02 + 0.01 * (0.2 * p[0]).sin();
+        iso.vertices[v].log_e = (0.04 + 0.02 * (0.2 * p[0]).sin()) as f32;
+        aniso.vertices[v].log_e = (0.02 + 0.01 * (0.2 * p[0]).sin()) as f32;
     }
-    iso.log_e[3] = f64::NAN;
+    iso.vertices[3].log_e = f32::NAN;
     let png = dir.path().join("e.png");
     plot::error_maps(
         &png,
@@ -66,7 +66,7 @@ fn error_maps_and_model_viewer() {
     .unwrap();
     assert_picture(&png, 600, 320 + 34);
     let png = dir.path().join("m.png");
-    iso.status[10] = render::VertexStatus::Interpolated;
+    iso.vertices[10].status = subsurf::modelfile::VertexStatus::Interpolated;
     plot::model_viewer(&png, &iso, render::DEFAULT_VIEW, (240, 300)).unwrap();
     assert_picture(&png, 4 * 240, 300 + 34);
 }

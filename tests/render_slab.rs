@@ -3,9 +3,9 @@
 
 use subsurf::fit::{FitOptions, fit_expsum};
 use subsurf::model::Material;
+use subsurf::modelfile::ModelFile;
 use subsurf::render::{
-    Falloffs, HierarchyParams, Quality, Transport, VertexModel, irradiance, shadow_scene,
-    vertex_areas,
+    Falloffs, HierarchyParams, Quality, Transport, irradiance, shadow_scene, vertex_areas,
 };
 
 /// A flat disk of radius `radius` in z = 0, graded towards its centre: a centre vertex and rings
@@ -63,11 +63,11 @@ fn a_fitted_homogeneous_slab_reproduces_the_dipoles_total_diffuse_reflectance() 
 
         let (positions, faces) = graded_slab(1.5 * reach, 1e-3 / dipole.sigma_t_prime(), 1.04, 48);
         let normals = vec![[0.0, 0.0, 1.0]; positions.len()];
-        let model = VertexModel::homogeneous(positions, normals, faces, [1.0, 1.0], &terms);
+        let model = ModelFile::homogeneous(positions, normals, faces, [1.0, 1.0], &terms);
         // Uniform light at normal incidence: E = 1 everywhere (Fresnel relative to normal = 1).
         // Only the centre vertex is a receiver: the slab is large, so edges do not matter there.
-        model.validate().unwrap();
-        let occ = shadow_scene(&model.positions, &model.faces).unwrap();
+        subsurf::render::validate(&model).unwrap();
+        let occ = shadow_scene(&model.positions, &model.triangles).unwrap();
         let e = irradiance(
             &model.positions,
             &model.normals,
@@ -76,7 +76,7 @@ fn a_fitted_homogeneous_slab_reproduces_the_dipoles_total_diffuse_reflectance() 
             Some(1.3),
         );
         assert!((e[0][0] - 1.0).abs() < 1e-12);
-        let areas = vertex_areas(&model.positions, &model.faces);
+        let areas = vertex_areas(&model.positions, &model.triangles);
         let falloffs = Falloffs::new(&model);
         let t = Transport::new(&model.positions, &model.normals, &falloffs, &e, &areas);
         let want = dipole.total_reflectance();

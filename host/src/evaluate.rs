@@ -138,7 +138,8 @@ pub fn model_at(ctx: &Context, model: &ModelFile, tri: u32, x_i: V3) -> Option<M
             1.0 / n
         };
     }
-    let frame = TangentFrame::from_normal(ctx.normal_at(tri, x_i)).ok()?;
+    // The frame the corners' segments were fitted in (the file's rule) at x_i's own normal.
+    let frame = model.frame_at(ctx.normal_at(tri, x_i))?;
     let baseline = model
         .baseline
         .as_ref()

@@ -1,50 +1,12 @@
-//! Interpolation of failed vertices from their mesh neighbours (section 5: "vertices for which no
-//! stable fit could be achieved were filtered out and interpolated from neighboring vertices").
+//! Harmonic interpolation over the mesh graph, for what is missing at some vertices (section 5:
+//! "vertices for which no stable fit could be achieved were filtered out and interpolated from
+//! neighboring vertices"; the pipeline's failed vertices, and alpha where no frame saw a texel).
 //!
-//! Harmonic interpolation over the mesh graph: every unknown vertex becomes the mean of its
-//! neighbours, with fitted vertices held fixed, solved by Gauss–Seidel sweeps from a
-//! breadth-first initial guess. Parameters are interpolated in log space (ln c, ln −d, ln s), so
-//! the result always satisfies c > 0, d < 0, s > 0.
-use crate::modelfile::{ColourMode, ModelShape};
-
-/// Maps a vertex's parameters to log space (see the module doc).
-pub fn to_log(shape: &ModelShape, params: &[f64]) -> Vec<f64> {
-    let skip = if shape.colour == ColourMode::Shared {
-        2
-    } else {
-        0
-    };
-    params
-        .iter()
-        .enumerate()
-        .map(|(k, &p)| {
-            if k < skip || (k - skip) % 2 == 0 {
-                p.ln()
-            } else {
-                (-p).ln()
-            }
-        })
-        .collect()
-}
-
-/// Inverse of [`to_log`].
-pub fn from_log(shape: &ModelShape, logs: &[f64]) -> Vec<f64> {
-    let skip = if shape.colour == ColourMode::Shared {
-        2
-    } else {
-        0
-    };
-    logs.iter()
-        .enumerate()
-        .map(|(k, &l)| {
-            if k < skip || (k - skip) % 2 == 0 {
-                l.exp()
-            } else {
-                -l.exp()
-            }
-        })
-        .collect()
-}
+//! Every unknown vertex becomes the mean of its neighbours, known vertices held fixed, solved by
+//! Gauss–Seidel sweeps from a breadth-first initial guess. Vectors that hold one entry per
+//! direction segment (Eq. 3) are only averaged in one frame: [`harmonic_aligned`] lets the caller
+//! re-express a neighbour's vector in the frame of the vertex it is averaged into, so curves are
+//! never averaged across a turn of the tangent frame.
 
 /// Fills every `None` in `values` with the harmonic interpolation of the `Some` values over the
 /// graph given by `neighbours`. Vertices not connected to any known vertex stay `None`. All known
@@ -52,6 +14,18 @@ pub fn from_log(shape: &ModelShape, logs: &[f64]) -> Vec<f64> {
 pub fn harmonic<'a>(
     values: &[Option<Vec<f64>>],
     neighbours: impl Fn(usize) -> &'a [u32],
+    sweeps: usize,
+) -> Vec<Option<Vec<f64>>> {
+    harmonic_aligned(values, neighbours, |_, _, _| None, sweeps)
+}
+
+/// [`harmonic`] where `align(v, w, x)` re-expresses neighbour `w`'s vector `x` for vertex `v`
+/// (`None`: use it as it is). The pipeline turns a neighbour's direction segments into `v`'s
+/// tangent frame with it.
+pub fn harmonic_aligned<'a>(
+    values: &[Option<Vec<f64>>],
+    neighbours: impl Fn(usize) -> &'a [u32],
+    align: impl Fn(usize, usize, &[f64]) -> Option<Vec<f64>>,
     sweeps: usize,
 ) -> Vec<Option<Vec<f64>>> {
     let n = values.len();
@@ -74,7 +48,7 @@ pub fn harmonic<'a>(
             }
         }
         for &w in &next {
-            out[w] = mean_of(&out, neighbours(w));
+            out[w] = mean_of(&out, w, neighbours(w), &align);
             order.push(w);
         }
         frontier = next;
@@ -82,7 +56,7 @@ pub fn harmonic<'a>(
     for _ in 0..sweeps {
         let mut change: f64 = 0.0;
         for &v in &order {
-            if let Some(m) = mean_of(&out, neighbours(v)) {
+            if let Some(m) = mean_of(&out, v, neighbours(v), &align) {
                 if let Some(old) = &out[v] {
                     for (a, b) in old.iter().zip(&m) {
                         change = change.max((a - b).abs());
@@ -98,16 +72,23 @@ pub fn harmonic<'a>(
     out
 }
 
-fn mean_of(vals: &[Option<Vec<f64>>], nb: &[u32]) -> Option<Vec<f64>> {
+fn mean_of(
+    vals: &[Option<Vec<f64>>],
+    v: usize,
+    nb: &[u32],
+    align: &impl Fn(usize, usize, &[f64]) -> Option<Vec<f64>>,
+) -> Option<Vec<f64>> {
     let mut acc: Option<Vec<f64>> = None;
     let mut count = 0.0;
     for &w in nb {
-        if let Some(Some(v)) = vals.get(w as usize) {
+        if let Some(Some(x)) = vals.get(w as usize) {
+            let aligned = align(v, w as usize, x);
+            let x = aligned.as_deref().unwrap_or(x);
             match &mut acc {
-                None => acc = Some(v.clone()),
-                Some(a) if a.len() == v.len() => {
-                    for (x, y) in a.iter_mut().zip(v) {
-                        *x += y;
+                None => acc = Some(x.to_vec()),
+                Some(a) if a.len() == x.len() => {
+                    for (s, y) in a.iter_mut().zip(x) {
+                        *s += y;
                     }
                 }
                 Some(_) => continue,
@@ -138,17 +119,19 @@ mod tests {
     }
 
     #[test]
-    fn log_space_round_trips_and_keeps_signs() {
-        let shape = ModelShape {
-            terms: 2,
-            segments: 1,
-            colour: ColourMode::Shared,
-        };
-        let p = vec![0.8, 0.5, 2.0, -3.0, 0.1, -0.2];
-        let l = to_log(&shape, &p);
-        let back = from_log(&shape, &l);
-        for (a, b) in p.iter().zip(&back) {
-            assert!((a - b).abs() < 1e-12);
-        }
+    fn aligned_neighbours_are_averaged_in_the_receiving_vertex_s_frame() {
+        // 0 - 1 - 2 with vertex 2's two-entry vector stored in a frame turned by one entry: its
+        // alignment swaps the entries, so the middle vertex averages like with like.
+        let adj: Vec<Vec<u32>> = vec![vec![1], vec![0, 2], vec![1]];
+        let vals = vec![Some(vec![1.0, 3.0]), None, Some(vec![3.0, 1.0])];
+        let plain = harmonic(&vals, |v| &adj[v], 100);
+        assert_eq!(plain[1], Some(vec![2.0, 2.0]));
+        let aligned = harmonic_aligned(
+            &vals,
+            |v| &adj[v],
+            |_, w, x| (w == 2).then(|| vec![x[1], x[0]]),
+            100,
+        );
+        assert_eq!(aligned[1], Some(vec![1.0, 3.0]));
     }
 }

@@ -1,18 +1,27 @@
-//! The model file (`docs/model-format.md`, `subsurf-model/3`): a binary little-endian PLY holding
+//! The model file (`docs/model-format.md`, `subsurf-model/4`): a binary little-endian PLY holding
 //! the mesh and, per vertex, the fitted parameters of the light position `x_i` (Eq. 1/3/5/9), the
-//! modulation texture `alpha(x_o)` (Eq. 2/6), a status and the fit's `log E(x_i)` (Eq. 8).
+//! modulation texture `alpha(x_o)` (Eq. 2/6), a status and the fit's `log E(x_i)` (Eq. 8), plus
+//! the tangent-frame rule its Eq. 3 segments are defined in.
+//!
+//! [`ModelFile`] is the one per-vertex model type: what the pipeline assembles, what evaluation
+//! reads, and what the renderer and the plots take (the renderer prepares its inner-loop layout
+//! from it in `render::Falloffs`, it keeps no model type of its own).
 //!
 //! Writing refuses non-finite parameters, so every number in a written model is finite.
 use std::io::{BufRead, BufReader, Read, Write};
 use std::path::{Path, PathBuf};
 
 /// The magic comment that marks a subsurf model.
-pub const MODEL_FORMAT: &str = "subsurf-model/3";
+pub const MODEL_FORMAT: &str = "subsurf-model/4";
 
 /// Earlier formats still read: version 1 wrote the `params` count as `uchar`, which wrapped for
 /// models of more than 255 values (shared colour with n = 3 and m = 64 has 386); versions 1 and 2
-/// have no per-vertex `segments` (every vertex has the header's m).
-const OLD_FORMATS: [&str; 2] = ["subsurf-model/1", "subsurf-model/2"];
+/// have no per-vertex `segments` (every vertex has the header's m); versions 1–3 have no
+/// `comment frame` line: their segments are in the frame of [`FrameRule::ReferenceAxis`], and they
+/// read with it, so they evaluate and render exactly as before.
+const OLD_FORMATS: [&str; 3] = ["subsurf-model/1", "subsurf-model/2", "subsurf-model/3"];
+
+pub use crate::model::FrameRule;
 
 /// Why a model file could not be read or written.
 #[derive(Debug, thiserror::Error)]
@@ -140,6 +149,10 @@ pub struct ModelFile {
     /// The homogeneous baseline (one isotropic fall-off for the whole object, `docs/model-format.md`,
     /// [`crate::baseline`]); `None` in files written without one.
     pub baseline: Option<BaselineParams>,
+    /// The rule of the tangent frame (Eq. 3) the segments are defined in (`comment frame`):
+    /// [`FrameRule::MinimalRotation`] for every fit since version 4, [`FrameRule::ReferenceAxis`]
+    /// for files before it.
+    pub frame: FrameRule,
 }
 
 /// The homogeneous baseline as the file holds it (header line `comment baseline <n> <r_min>
@@ -210,6 +223,74 @@ impl BaselineParams {
 }
 
 impl ModelFile {
+    /// The tangent frame of the model at a light position with normal `normal` (x_i's own
+    /// normal: the vertex normal at a vertex, the interpolated one between vertices), by the
+    /// file's rule; `None` for a degenerate normal.
+    pub fn frame_at(&self, normal: [f64; 3]) -> Option<crate::model::TangentFrame> {
+        crate::model::TangentFrame::with_rule(self.frame, normal).ok()
+    }
+
+    /// Number of vertices.
+    pub fn len(&self) -> usize {
+        self.positions.len()
+    }
+
+    /// True when the model has no vertices.
+    pub fn is_empty(&self) -> bool {
+        self.positions.is_empty()
+    }
+
+    /// Axis-aligned bounding box of the vertices, `(min, max)`, mm.
+    pub fn bounds(&self) -> ([f64; 3], [f64; 3]) {
+        let mut lo = [f64::INFINITY; 3];
+        let mut hi = [f64::NEG_INFINITY; 3];
+        for q in &self.positions {
+            for k in 0..3 {
+                lo[k] = lo[k].min(q[k]);
+                hi[k] = hi[k].max(q[k]);
+            }
+        }
+        (lo, hi)
+    }
+
+    /// A homogeneous model: every vertex gets the same shared-colour isotropic fall-off
+    /// `(1, s_g, s_b) Σ_k c_k e^{d_k r}` (Eq. 9) and `alpha = 1`, no sampled range (the model
+    /// everywhere). Used for slabs, renders of known materials and tests.
+    pub fn homogeneous(
+        positions: Vec<[f64; 3]>,
+        normals: Vec<[f64; 3]>,
+        triangles: Vec<[u32; 3]>,
+        scales: [f64; 2],
+        terms: &[(f64, f64)],
+    ) -> Self {
+        let mut params = vec![scales[0], scales[1]];
+        for &(c, d) in terms {
+            params.extend([c, d]);
+        }
+        let one = VertexModel {
+            alpha: [1.0; 3],
+            status: VertexStatus::Fitted,
+            log_e: f32::NAN,
+            terms: terms.len().min(u8::MAX as usize) as u8,
+            segments: 1,
+            params,
+            r_range: NO_RANGE,
+        };
+        Self {
+            shape: ModelShape {
+                terms: terms.len(),
+                segments: 1,
+                colour: ColourMode::Shared,
+            },
+            vertices: vec![one; positions.len()],
+            positions,
+            normals,
+            triangles,
+            baseline: None,
+            frame: FrameRule::CURRENT,
+        }
+    }
+
     /// Checks sizes and finiteness (the invariant of every written file).
     pub fn check(&self) -> Result<(), ModelFileError> {
         let n = self.positions.len();
@@ -317,7 +398,7 @@ impl ModelFile {
         let mut out = Vec::with_capacity(self.positions.len() * 120 + self.triangles.len() * 13);
         let header = format!(
             "ply\nformat binary_little_endian 1.0\ncomment {MODEL_FORMAT}\ncomment terms {}\n\
-             comment segments {}\ncomment colour {colour}\n{}element vertex {}\n\
+             comment segments {}\ncomment colour {colour}\ncomment frame {}\n{}element vertex {}\n\
              property double x\nproperty double y\nproperty double z\n\
              property double nx\nproperty double ny\nproperty double nz\n\
              property float alpha_r\nproperty float alpha_g\nproperty float alpha_b\n\
@@ -327,6 +408,7 @@ impl ModelFile {
              property list uchar int vertex_indices\nend_header\n",
             self.shape.terms,
             self.shape.segments,
+            self.frame.name(),
             self.baseline
                 .as_ref()
                 .map_or(String::new(), BaselineParams::header_line),
@@ -387,6 +469,8 @@ impl ModelFile {
         let mut elements: Vec<(String, usize, Vec<Prop>)> = Vec::new();
         let (mut terms, mut segments, mut colour, mut magic) = (None, None, None, false);
         let mut baseline = None;
+        // Files before version 4 have no `comment frame`: their rule.
+        let mut frame = FrameRule::ReferenceAxis;
         let mut first = true;
         loop {
             line.clear();
@@ -409,6 +493,10 @@ impl ModelFile {
                 ["comment", "segments", n] => segments = n.parse().ok(),
                 ["comment", "colour", "shared"] => colour = Some(ColourMode::Shared),
                 ["comment", "colour", "per-channel"] => colour = Some(ColourMode::PerChannel),
+                ["comment", "frame", name] => {
+                    frame = FrameRule::from_name(name)
+                        .ok_or_else(|| fmt(format!("unknown tangent-frame rule {name:?}")))?
+                }
                 ["comment", "baseline", rest @ ..] => {
                     baseline = Some(
                         BaselineParams::parse(rest, colour)
@@ -470,6 +558,7 @@ impl ModelFile {
             triangles: Vec::new(),
             vertices: Vec::new(),
             baseline: None,
+            frame,
         };
         if let Some(b) = baseline {
             b.model(shape.colour)
@@ -772,6 +861,7 @@ mod tests {
                 v(VertexStatus::NoModel, 0),
             ],
             baseline: None,
+            frame: FrameRule::MinimalRotation,
         }
     }
 
@@ -905,6 +995,62 @@ mod tests {
             assert_eq!(a.params, b.params);
             assert_eq!(a.status, b.status);
         }
+        assert_eq!(back.frame, FrameRule::ReferenceAxis);
+    }
+
+    /// Version 4 records the frame rule; a version-3 file (no `comment frame`) reads with the
+    /// rule it was fitted in, so its segments point where they did: at a normal on the old
+    /// rule's seam side its frame is the old one, not the new.
+    #[test]
+    fn the_frame_rule_round_trips_and_version_3_files_keep_theirs() {
+        use crate::model::TangentFrame;
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.ply");
+        let m = sample();
+        m.write(&p).unwrap();
+        let back = ModelFile::read(&p).unwrap();
+        assert_eq!(back.frame, FrameRule::MinimalRotation);
+        let bytes = std::fs::read(&p).unwrap();
+        let end = bytes
+            .windows(11)
+            .position(|w| w == b"end_header\n")
+            .unwrap()
+            + 11;
+        let header = String::from_utf8(bytes[..end].to_vec()).unwrap();
+        assert!(header.contains("comment subsurf-model/4\n"));
+        assert!(header.contains("comment frame minimal-rotation\n"));
+        let old_header = header
+            .replace("comment subsurf-model/4\n", "comment subsurf-model/3\n")
+            .replace("comment frame minimal-rotation\n", "");
+        let mut old = old_header.into_bytes();
+        old.extend_from_slice(&bytes[end..]);
+        std::fs::write(&p, &old).unwrap();
+        let v3 = ModelFile::read(&p).unwrap();
+        assert_eq!(v3.frame, FrameRule::ReferenceAxis);
+        for (a, b) in v3.vertices.iter().zip(&back.vertices) {
+            assert_eq!(
+                (&a.params, a.status, a.r_range),
+                (&b.params, b.status, b.r_range)
+            );
+        }
+        let n = [0.95, 0.1, 0.3];
+        assert_eq!(
+            v3.frame_at(n).unwrap(),
+            TangentFrame::with_rule(FrameRule::ReferenceAxis, n).unwrap()
+        );
+        assert_eq!(
+            back.frame_at(n).unwrap(),
+            TangentFrame::from_normal(n).unwrap()
+        );
+        assert_ne!(v3.frame_at(n), back.frame_at(n));
+        // An unknown rule is refused, not guessed.
+        let bad = String::from_utf8(bytes[..end].to_vec())
+            .unwrap()
+            .replace("minimal-rotation", "sideways");
+        let mut b = bad.into_bytes();
+        b.extend_from_slice(&bytes[end..]);
+        std::fs::write(&p, &b).unwrap();
+        assert!(ModelFile::read(&p).is_err());
     }
 
     #[test]

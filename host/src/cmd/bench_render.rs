@@ -44,7 +44,7 @@ pub fn bench_render(b: RenderBench) -> Result<()> {
     println!(
         "model: marble torus, {} vertices, {} faces; image {}x{}; {} rayon threads",
         model.len(),
-        model.faces.len(),
+        model.triangles.len(),
         b.size,
         b.size,
         rayon::current_num_threads()

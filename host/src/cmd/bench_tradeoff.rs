@@ -17,7 +17,7 @@ use subsurf::fit::Preset;
 use subsurf::modelfile::ModelFile;
 use subsurf::pipeline::{PipelineOptions, fit_dataset};
 use subsurf::plot::TradeoffPoint;
-use subsurf::render::{self, Camera, Image, Light, Method, Quality, RenderOptions, VertexModel};
+use subsurf::render::{self, Camera, Image, Light, Method, Quality, RenderOptions};
 use subsurf::scan::setup::{
     builtin_object, sim_exposures_s, sim_field, sim_noise_floor, sim_sensor, sim_spot,
 };
@@ -280,7 +280,6 @@ fn run_chain(b: &TradeoffBench, sizes: &Sizes) -> Result<Vec<Row>> {
         if di == 0 {
             // Every scan is of the same object and material: one ground truth for all.
             let gt = ModelFile::read(&dir.join("ground-truth.ply")).context("ground truth")?;
-            let gt = VertexModel::from_model_file(&gt);
             truth = render_image(&gt, sizes.render_px, None).map(|(i, _)| i);
         }
         for &preset in &sizes.presets {
@@ -301,12 +300,12 @@ fn run_chain(b: &TradeoffBench, sizes: &Sizes) -> Result<Vec<Row>> {
             } else {
                 means.iter().sum::<f64>() / means.len() as f64
             };
-            let model = VertexModel::from_model_file(&fitted.model);
-            model.validate().context("fitted model")?;
+            let model = &fitted.model;
+            render::validate(model).context("fitted model")?;
             for &q in &sizes.qualities {
                 // A model the renderer refuses is a measured outcome of that configuration (a row
                 // without an error figure), not a reason to stop the benchmark.
-                let r = render_image(&model, sizes.render_px, q);
+                let r = render_image(model, sizes.render_px, q);
                 let render_s = r.as_ref().map_or(f64::NAN, |(_, s)| *s);
                 let image = r.map(|(i, _)| i);
                 rows.push(Row {
@@ -367,7 +366,7 @@ fn num(value: f64, digits: usize, unit: &str) -> String {
 /// Renders `model` under the default lights from the default view, exactly (`None`) or at a
 /// quality; the image and its wall time (seconds), or why the renderer refused.
 fn render_image(
-    model: &VertexModel,
+    model: &ModelFile,
     px: u32,
     quality: Option<Quality>,
 ) -> Result<(Image, f64), String> {

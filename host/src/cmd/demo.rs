@@ -21,8 +21,7 @@ use subsurf::pipeline::{
     Context as FitContext, FitReport, PipelineOptions, fit_dataset, register_one,
 };
 use subsurf::render::{
-    self, Camera, Image, Light, RenderOptions, ToneMapping, VertexModel, auto_exposure,
-    relative_pixel_error,
+    self, Camera, Image, Light, RenderOptions, ToneMapping, auto_exposure, relative_pixel_error,
 };
 use subsurf::report::{Figure, Report, Table, fmt};
 use subsurf::rig::{ClientConfig, RigClient};
@@ -254,9 +253,9 @@ pub fn run_demo(args: &Args) -> Result<Vec<PathBuf>> {
         out.join("fit-report.json"),
         serde_json::to_string_pretty(&fits[shown].report)?,
     )?;
-    let model = VertexModel::from_model_file(&fits[shown].model);
-    model.validate()?;
-    let truth = VertexModel::from_model_file(&truth_file);
+    let model = fits[shown].model.clone();
+    render::validate(&model)?;
+    let truth = &truth_file;
 
     // 4. Ground truth and model under the same lights, the same camera, the same exposure
     //    (chosen from the ground truth's image), and their difference.
@@ -301,7 +300,7 @@ pub fn run_demo(args: &Args) -> Result<Vec<PathBuf>> {
     let mut clip_max: f64 = 0.0;
     let mut key_truth: Option<Image> = None;
     for (slug, light_name, light) in &lights {
-        let rt = render::render(&truth, light, &cam, &ropts)?;
+        let rt = render::render(truth, light, &cam, &ropts)?;
         let rm = render::render(&model, light, &cam, &ropts)?;
         let exposure = auto_exposure(&rt.image);
         let mut save = |name: String, img: &Image, secs: f64, what: &str| -> Result<ToneMapping> {
@@ -365,8 +364,7 @@ pub fn run_demo(args: &Args) -> Result<Vec<PathBuf>> {
     // Every preset's model under the key light against the truth: the render column of the trade.
     if let (Some(kt), Some((_, _, key))) = (&key_truth, lights.first()) {
         for f in &mut fits {
-            let vm = VertexModel::from_model_file(&f.model);
-            let r = render::render(&vm, key, &cam, &ropts)?;
+            let r = render::render(&f.model, key, &cam, &ropts)?;
             f.render_s = r.seconds.iter().sum();
             f.render_error = relative_pixel_error(&r.image, kt, 1e-3);
         }
@@ -409,12 +407,12 @@ pub fn run_demo(args: &Args) -> Result<Vec<PathBuf>> {
         falloff = Some((f, k, sum));
     }
     let e = out.join("error-map.png");
-    let draft_vm = VertexModel::from_model_file(&fits[0].model);
+    let draft_vm = &fits[0].model;
     subsurf::plot::error_maps(
         &e,
         &[
             ("exact preset (shown)".into(), &model),
-            ("draft preset".into(), &draft_vm),
+            ("draft preset".into(), draft_vm),
         ],
         render::DEFAULT_VIEW,
         (360, 380),

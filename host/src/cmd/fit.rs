@@ -125,11 +125,10 @@ fn pictures(
         .map_or_else(|| "fit".into(), |s| s.to_string_lossy().into_owned());
     let error_png = report.with_file_name(format!("{stem}-error-map.png"));
     let model_png = report.with_file_name(format!("{stem}-model.png"));
-    let vm = subsurf::render::VertexModel::from_model_file(model);
     let view = subsurf::render::DEFAULT_VIEW;
-    subsurf::plot::error_maps(&error_png, &[("fit".to_string(), &vm)], view, ERROR_PANEL)
+    subsurf::plot::error_maps(&error_png, &[("fit".to_string(), model)], view, ERROR_PANEL)
         .with_context(|| format!("drawing {}", error_png.display()))?;
-    subsurf::plot::model_viewer(&model_png, &vm, view, MODEL_PANEL)
+    subsurf::plot::model_viewer(&model_png, model, view, MODEL_PANEL)
         .with_context(|| format!("drawing {}", model_png.display()))?;
     Ok(vec![error_png, model_png])
 }

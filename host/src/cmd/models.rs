@@ -1,10 +1,11 @@
 //! The model inputs `render` and `plot` share: a model file, or a built-in model by name.
 
 use anyhow::{Context, Result, bail};
-use subsurf::render::{self, VertexModel};
+use subsurf::modelfile::ModelFile;
+use subsurf::render;
 
 /// Loads the model named by `--builtin`.
-pub fn builtin(name: &str) -> Result<VertexModel> {
+pub fn builtin(name: &str) -> Result<ModelFile> {
     match name.split_once(':') {
         None if name == "torus" => Ok(render::synthetic::marble_torus(160, 64)),
         Some(("torus", dims)) => {
@@ -15,13 +16,10 @@ pub fn builtin(name: &str) -> Result<VertexModel> {
     }
 }
 
-/// Reads a model file into the renderer's form and checks it.
-pub fn load_model(path: &std::path::Path) -> Result<VertexModel> {
-    let file = subsurf::modelfile::ModelFile::read(path)
-        .with_context(|| format!("reading model {}", path.display()))?;
-    let model = VertexModel::from_model_file(&file);
-    model
-        .validate()
-        .with_context(|| format!("model {}", path.display()))?;
+/// Reads a model file and checks it as the renderer needs it.
+pub fn load_model(path: &std::path::Path) -> Result<ModelFile> {
+    let model =
+        ModelFile::read(path).with_context(|| format!("reading model {}", path.display()))?;
+    render::validate(&model).with_context(|| format!("model {}", path.display()))?;
     Ok(model)
 }

@@ -5,7 +5,8 @@ use std::path::PathBuf;
 use anyhow::{Context, Result, bail};
 use clap::Subcommand;
 use subsurf::curves::Curve;
-use subsurf::render::{CameraSpec, VertexModel};
+use subsurf::modelfile::ModelFile;
+use subsurf::render::CameraSpec;
 
 use super::models::{builtin, load_model};
 
@@ -103,7 +104,7 @@ pub fn run(args: Args) -> Result<()> {
             println!("wrote {}", a.out.display());
         }
         What::Error(a) => {
-            let mut models: Vec<(String, VertexModel)> = Vec::new();
+            let mut models: Vec<(String, ModelFile)> = Vec::new();
             for spec in &a.models {
                 let (label, path) = match spec.split_once('=') {
                     Some((l, p)) => (l.to_string(), PathBuf::from(p)),
@@ -111,7 +112,7 @@ pub fn run(args: Args) -> Result<()> {
                 };
                 models.push((label, load_model(&path)?));
             }
-            let refs: Vec<(String, &VertexModel)> =
+            let refs: Vec<(String, &ModelFile)> =
                 models.iter().map(|(l, m)| (l.clone(), m)).collect();
             subsurf::plot::error_maps(&a.out, &refs, view(&a.view)?, (420, 420))?;
             println!("wrote {}", a.out.display());

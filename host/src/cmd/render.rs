@@ -5,9 +5,7 @@ use std::path::PathBuf;
 use anyhow::{Context, Result, bail};
 
 use super::models::{builtin, load_model};
-use subsurf::render::{
-    self, Camera, CameraSpec, Light, Method, Quality, RenderOptions, VertexModel,
-};
+use subsurf::render::{self, Camera, CameraSpec, Light, Method, Quality, RenderOptions};
 
 /// Render a model under point, spot and directional lights.
 #[derive(Debug, clap::Args)]
@@ -62,7 +60,11 @@ pub fn parse_size(s: &str) -> Result<(u32, u32)> {
 }
 
 /// Resolves a camera spec, reading the JSON file if it names one.
-pub fn resolve_camera(spec: &str, size: (u32, u32), model: &VertexModel) -> Result<Camera> {
+pub fn resolve_camera(
+    spec: &str,
+    size: (u32, u32),
+    model: &subsurf::modelfile::ModelFile,
+) -> Result<Camera> {
     let spec: CameraSpec = spec.parse()?;
     Ok(match spec {
         CameraSpec::Auto(dir) => {

@@ -84,5 +84,7 @@ pub fn model_file(
         triangles: ds.mesh.triangles.clone(),
         vertices,
         baseline: None,
+        // Every fit measures directions with `TangentFrame::from_normal` (the `select` stage).
+        frame: crate::model::FrameRule::CURRENT,
     }
 }

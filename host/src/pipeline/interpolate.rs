@@ -7,10 +7,17 @@
 //! with ln s_g, ln s_b and the sampled range; the interpolated curve is then refitted
 //! (term-aligned by construction) with the most common order. Where that refit fails, the
 //! nearest fitted vertex's model stands in. Owns no samples: it sees only accepted models.
+//!
+//! Segment l of a vertex points along φ_l in its own tangent frame (Eq. 3). Curves are never
+//! averaged across a turn of the frame: a neighbour's segments are re-indexed into the receiving
+//! vertex's frame by the whole number of segments its frame is turned
+//! ([`crate::model::TangentFrame::twist`], [`crate::interpolate::harmonic_aligned`]), so what is
+//! averaged points at most half a segment apart; under the continuous frame rule that is a
+//! no-op between neighbours except near the rule's singular normal −z.
 use rayon::prelude::*;
 
 use crate::geometry::Scene;
-use crate::model::{Anisotropic, ColourModel, ExpSum, Support};
+use crate::model::{Anisotropic, ColourModel, ExpSum, Support, TangentFrame};
 use crate::modelfile::{ColourMode, ModelShape, params_of};
 
 use super::error::OwnFit;
@@ -47,7 +54,21 @@ pub fn fill(
                 .map(|o| grid.encode(&o.model, o.r_range, shape.segments))
         })
         .collect();
-    let filled = crate::interpolate::harmonic(&known, |v| scene.neighbours(v), 2000);
+    let turns = SegmentTurns::new(scene, shape.segments);
+    let head = if shape.colour == ColourMode::Shared {
+        4
+    } else {
+        2
+    };
+    let filled = crate::interpolate::harmonic_aligned(
+        &known,
+        |v| scene.neighbours(v),
+        |v, w, x| {
+            let k = turns.shift(v, w, shape.segments);
+            (k != 0).then(|| turn_segments(x, head, grid.r.len(), shape.segments, k))
+        },
+        2000,
+    );
     (0..own.len())
         .into_par_iter()
         .map(|v| {
@@ -70,23 +91,89 @@ pub fn fill(
             // Where the interpolated curve cannot be refitted, the nearest fitted vertex's own
             // model (breadth-first over the mesh) stands in.
             refit.or_else(|| {
-                nearest_fitted(v, own, |w| scene.neighbours(w)).map(|o| Refit {
-                    params: o.params.clone(),
-                    terms: o.terms,
-                    segments: o.segments,
-                    r_range: o.r_range,
+                nearest_fitted(v, own, |w| scene.neighbours(w)).map(|(w, o)| {
+                    // Its segments, re-indexed into v's frame.
+                    let k = turns.shift(v, w, o.segments);
+                    let head = if shape.colour == ColourMode::Shared {
+                        2
+                    } else {
+                        0
+                    };
+                    Refit {
+                        params: turn_segments(&o.params, head, 2 * o.terms, o.segments, k),
+                        terms: o.terms,
+                        segments: o.segments,
+                        r_range: o.r_range,
+                    }
                 })
             })
         })
         .collect()
 }
 
-/// The fitted vertex nearest to `v` in mesh hops (breadth-first), if any is connected.
+/// The tangent frames (Eq. 3, the fit's rule) at every vertex normal, to compare neighbours'.
+struct SegmentTurns {
+    frames: Vec<Option<TangentFrame>>,
+}
+
+impl SegmentTurns {
+    fn new(scene: &Scene, segments: usize) -> Self {
+        Self::of_normals(&scene.mesh.normals, segments)
+    }
+
+    fn of_normals(normals: &[[f64; 3]], segments: usize) -> Self {
+        let frames = if segments > 1 {
+            normals
+                .iter()
+                .map(|&n| TangentFrame::from_normal(n).ok())
+                .collect()
+        } else {
+            Vec::new()
+        };
+        SegmentTurns { frames }
+    }
+
+    /// By how many whole segments (of `m`) vertex `w`'s frame is turned in `v`'s: `w`'s segment
+    /// l points nearest to `v`'s segment l + k.
+    fn shift(&self, v: usize, w: usize, m: usize) -> usize {
+        if m <= 1 {
+            return 0;
+        }
+        let (Some(Some(a)), Some(Some(b))) = (self.frames.get(v), self.frames.get(w)) else {
+            return 0;
+        };
+        a.twist(b).map_or(0, |d| {
+            ((d / (std::f64::consts::TAU / m as f64)).round() as i64).rem_euclid(m as i64) as usize
+        })
+    }
+}
+
+/// `x` (`head` values, then blocks of `m` segments of `chunk` values each: per channel, or one
+/// block) with the segments of every block turned by `k`: segment l + k of the result is
+/// segment l of `x`.
+fn turn_segments(x: &[f64], head: usize, chunk: usize, m: usize, k: usize) -> Vec<f64> {
+    let mut out = x.to_vec();
+    if k.is_multiple_of(m.max(1)) || chunk == 0 || x.len() < head {
+        return out;
+    }
+    let block = chunk * m;
+    for b in 0..(x.len() - head) / block {
+        for l in 0..m {
+            let to = head + b * block + ((l + k) % m) * chunk;
+            let from = head + b * block + l * chunk;
+            out[to..to + chunk].copy_from_slice(&x[from..from + chunk]);
+        }
+    }
+    out
+}
+
+/// The fitted vertex nearest to `v` in mesh hops (breadth-first), if any is connected, and its
+/// index.
 fn nearest_fitted<'a, 'n>(
     v: usize,
     own: &'a [Option<OwnFit>],
     neighbours: impl Fn(usize) -> &'n [u32],
-) -> Option<&'a OwnFit> {
+) -> Option<(usize, &'a OwnFit)> {
     let mut seen = std::collections::HashSet::from([v]);
     let mut frontier = vec![v];
     while !frontier.is_empty() {
@@ -96,7 +183,7 @@ fn nearest_fitted<'a, 'n>(
                 let w = w as usize;
                 if w < own.len() && seen.insert(w) {
                     if let Some(o) = &own[w] {
-                        return Some(o);
+                        return Some((w, o));
                     }
                     next.push(w);
                 }
@@ -240,5 +327,43 @@ impl CurveGrid {
         };
         model.validate().ok()?;
         Some((model, range))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn turning_segments_reindexes_every_block() {
+        // head 1, two blocks of m = 4 segments of 2 values.
+        let x: Vec<f64> = (0..17).map(f64::from).collect();
+        let t = turn_segments(&x, 1, 2, 4, 1);
+        assert_eq!(t[0], 0.0);
+        // Block 0: segment 0 (values 1, 2) moves to segment 1; segment 3 (7, 8) to segment 0.
+        assert_eq!(&t[1..9], &[7.0, 8.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0]);
+        assert_eq!(&t[9..17], &[15.0, 16.0, 9.0, 10.0, 11.0, 12.0, 13.0, 14.0]);
+        assert_eq!(turn_segments(&x, 1, 2, 4, 0), x);
+        assert_eq!(turn_segments(&turn_segments(&x, 1, 2, 4, 3), 1, 2, 4, 1), x);
+    }
+
+    /// Neighbours on the lit surface share their frame (no shift); across the rule's singular
+    /// normal −z the frame turns by half a circle, and the segments are re-indexed by m/2.
+    #[test]
+    fn segments_shift_only_where_the_frame_turns() {
+        let e = 1e-3;
+        let normals = [
+            [0.0, 0.0, 1.0],
+            [0.05, 0.02, 1.0],
+            [0.92, 0.3, 0.25],
+            [0.89, 0.3, 0.34],
+            [e, 0.0, -1.0],
+            [0.0, e, -1.0],
+        ];
+        let turns = SegmentTurns::of_normals(&normals, 8);
+        assert_eq!(turns.shift(0, 1, 8), 0);
+        assert_eq!(turns.shift(2, 3, 8), 0, "no seam at |n_x| = 0.9");
+        assert_eq!(turns.shift(4, 5, 8), 4);
+        assert_eq!(turns.shift(4, 5, 1), 0);
     }
 }

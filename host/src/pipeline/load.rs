@@ -7,7 +7,7 @@ use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
 use crate::dataset::{Dataset, DatasetError};
-use crate::geometry::{Camera, Scene, V3, Visible, add_scaled, normalize};
+use crate::geometry::{Camera, Scene, V3, Visible};
 use crate::registration::{RegistrationOutcome, register_frame};
 use crate::samples::{Sample, SampleCounts, frame_samples};
 
@@ -101,14 +101,10 @@ impl<'a> Context<'a> {
         ))
     }
 
-    /// Interpolated unit normal at a point of triangle `tri`.
+    /// Interpolated unit normal at a point of triangle `tri` ([`crate::geometry::Scene::normal_at`],
+    /// the one interpolation: x_i's normal, which its tangent frame is built from); +z where it
+    /// degenerates.
     pub fn normal_at(&self, tri: u32, p: V3) -> V3 {
-        let t = self.scene.mesh.triangles[tri as usize];
-        let w = self.scene.barycentric(tri, p);
-        let mut n = [0.0; 3];
-        for k in 0..3 {
-            n = add_scaled(n, w[k], self.scene.mesh.normals[t[k] as usize]);
-        }
-        normalize(n).unwrap_or([0.0, 0.0, 1.0])
+        self.scene.normal_at(tri, p).unwrap_or([0.0, 0.0, 1.0])
     }
 }

@@ -7,7 +7,7 @@ use std::path::Path;
 use super::surface::{MeshView, Panel, PanelData, surface_panels};
 use super::{Curve, PlotError, falloff_plot};
 use crate::evaluate::FalloffComparison;
-use crate::render::VertexModel;
+use crate::modelfile::ModelFile;
 
 /// What Figure 3 showed: both fits' log E (Eq. 8) on the plotted samples.
 #[derive(Clone, Debug, PartialEq)]
@@ -71,16 +71,18 @@ pub fn falloff_figure(
 /// the mesh. Vertices without a fit are grey.
 pub fn error_maps(
     path: &Path,
-    models: &[(String, &VertexModel)],
+    models: &[(String, &ModelFile)],
     direction: [f64; 3],
     panel_size: (u32, u32),
 ) -> Result<(), PlotError> {
     let Some((_, first)) = models.first() else {
         return Err(PlotError::Empty("no model".into()));
     };
+    let log_e =
+        |m: &ModelFile| -> Vec<f64> { m.vertices.iter().map(|v| f64::from(v.log_e)).collect() };
     let mut all: Vec<f64> = models
         .iter()
-        .flat_map(|(_, m)| m.log_e.iter().copied())
+        .flat_map(|(_, m)| log_e(m))
         .filter(|v| v.is_finite())
         .collect();
     if all.is_empty() {
@@ -96,12 +98,13 @@ pub fn error_maps(
                 "model `{name}` has a different mesh"
             )));
         }
-        let fitted = m.log_e.iter().filter(|v| v.is_finite()).collect::<Vec<_>>();
+        let values = log_e(m);
+        let fitted = values.iter().filter(|v| v.is_finite()).collect::<Vec<_>>();
         let mean = fitted.iter().copied().sum::<f64>() / fitted.len().max(1) as f64;
         panels.push(Panel {
             title: format!("{name}: mean log E {mean:.4}"),
             data: PanelData::Scalar {
-                values: m.log_e.clone(),
+                values,
                 range: (lo, hi),
                 label: "log E(x_i), Eq. 8".into(),
             },
@@ -110,7 +113,7 @@ pub fn error_maps(
     let mesh = MeshView {
         positions: &first.positions,
         normals: &first.normals,
-        faces: &first.faces,
+        faces: &first.triangles,
     };
     surface_panels(
         path,

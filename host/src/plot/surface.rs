@@ -6,7 +6,8 @@ use std::path::Path;
 use plotters::prelude::*;
 
 use super::{PlotError, draw_err, register_font};
-use crate::render::{Camera, VertexModel, VertexStatus, rasterise};
+use crate::modelfile::{ColourMode, ModelFile, VertexStatus};
+use crate::render::{Camera, rasterise};
 
 /// Viridis, as 9 stops interpolated linearly (hand-written: a 10-line table instead of turning on
 /// a plotters feature the workspace does not enable).
@@ -228,15 +229,15 @@ pub fn surface_panels(
 /// vertices were fitted, interpolated or have no model.
 pub fn model_viewer(
     path: &Path,
-    model: &VertexModel,
+    model: &ModelFile,
     direction: [f64; 3],
     panel_size: (u32, u32),
 ) -> Result<(), PlotError> {
-    model.validate()?;
+    crate::render::validate(model)?;
     let falloffs = crate::render::Falloffs::new(model);
     let total: Vec<f64> = (0..model.len())
         .map(|v| {
-            if model.status[v] == VertexStatus::NoModel {
+            if model.vertices[v].status == VertexStatus::NoModel {
                 f64::NAN
             } else {
                 falloffs.disk_integral(v, f64::INFINITY)[1]
@@ -245,13 +246,13 @@ pub fn model_viewer(
         .collect();
     let reach: Vec<f64> = (0..model.len())
         .map(|v| {
-            if model.status[v] == VertexStatus::NoModel {
+            if model.vertices[v].status == VertexStatus::NoModel {
                 return f64::NAN;
             }
-            let p = model.vertex_params(v);
-            let terms = match model.colour {
-                crate::render::ColourMode::Shared => &p[2..],
-                crate::render::ColourMode::PerChannel => p,
+            let p = &model.vertices[v].params[..];
+            let terms = match model.shape.colour {
+                ColourMode::Shared => p.get(2..).unwrap_or(&[]),
+                ColourMode::PerChannel => p,
             };
             terms
                 .chunks_exact(2)
@@ -273,16 +274,20 @@ pub fn model_viewer(
             (lo - 0.5, lo + 0.5)
         }
     };
-    let amax = model
-        .alpha
+    let alpha: Vec<[f64; 3]> = model
+        .vertices
+        .iter()
+        .map(|v| v.alpha.map(f64::from))
+        .collect();
+    let amax = alpha
         .iter()
         .flat_map(|a| a.iter())
         .fold(0.0f64, |m, &x| m.max(x))
         .max(1e-12);
     let status: Vec<f64> = model
-        .status
+        .vertices
         .iter()
-        .map(|s| match s {
+        .map(|v| match v.status {
             VertexStatus::Fitted => 0.0,
             VertexStatus::Interpolated => 1.0,
             VertexStatus::NoModel => 2.0,
@@ -291,7 +296,7 @@ pub fn model_viewer(
     let panels = vec![
         Panel {
             title: "alpha(x_o), Eq. 6".into(),
-            data: PanelData::Rgb(model.alpha.iter().map(|a| a.map(|x| x / amax)).collect()),
+            data: PanelData::Rgb(alpha.iter().map(|a| a.map(|x| x / amax)).collect()),
         },
         Panel {
             title: "total diffuse reflectance (G)".into(),
@@ -324,7 +329,7 @@ pub fn model_viewer(
         MeshView {
             positions: &model.positions,
             normals: &model.normals,
-            faces: &model.faces,
+            faces: &model.triangles,
         },
         &panels,
         direction,

@@ -3,9 +3,10 @@
 //! Each term `c_kl e^{d_kl r}` is stored as `(ln c_kl, d_kl)` and evaluated as `e^{ln c + d r}`, so
 //! a huge `c` with a tiny exponential neither overflows nor underflows before the product is formed.
 
-use super::vertex_model::{ColourMode, VertexModel, VertexStatus};
+use super::model::uniform_params;
 use crate::baseline::{Baseline, channel_terms, local_weight};
-use crate::model::{Support, TangentFrame, hat_weights};
+use crate::model::{FrameRule, Support, TangentFrame, hat_weights};
+use crate::modelfile::{ColourMode, ModelFile, VertexStatus};
 
 /// Per-vertex fall-off parameters (Eq. 1/3/5/9) in a layout made for inner loops.
 #[derive(Clone, Debug)]
@@ -32,13 +33,17 @@ pub struct Falloffs {
     /// Per vertex: ln B(r_min) per channel, the baseline at the vertex's r_min (empty without a
     /// baseline), so that a fall-off below r_min costs one baseline evaluation, not two.
     base_at_r_min: Vec<[f64; 3]>,
+    /// The rule of the tangent frame the segments are defined in (the model file's).
+    frame_rule: FrameRule,
 }
 
 impl Falloffs {
-    /// Prepares the fall-offs of a (validated) model.
-    pub fn new(model: &VertexModel) -> Self {
-        let (n, m) = (model.terms, model.segments);
-        let shared = model.colour == ColourMode::Shared;
+    /// Prepares the fall-offs of a (validated, [`super::validate`]) model.
+    pub fn new(model: &ModelFile) -> Self {
+        let colour = model.shape.colour;
+        let uniform = uniform_params(model);
+        let (n, m) = (uniform.terms, uniform.segments);
+        let shared = colour == ColourMode::Shared;
         let blocks = if shared { 1 } else { 3 };
         let nv = model.len();
         let mut lnc = Vec::with_capacity(nv * blocks * n * m);
@@ -46,8 +51,8 @@ impl Falloffs {
         let mut scale = Vec::with_capacity(nv);
         let mut active = Vec::with_capacity(nv);
         for v in 0..nv {
-            let p = model.vertex_params(v);
-            let on = model.status[v] != VertexStatus::NoModel;
+            let p = uniform.vertex(v, colour);
+            let on = model.vertices[v].status != VertexStatus::NoModel;
             let terms = if shared {
                 scale.push([1.0, p[0], p[1]]);
                 &p[2..]
@@ -66,13 +71,11 @@ impl Falloffs {
             }
             active.push(on);
         }
-        let base_terms = model.baseline.as_ref().map(channel_terms);
+        let support: Vec<Support> = model.vertices.iter().map(|v| v.support()).collect();
+        let baseline = model.baseline.as_ref().and_then(|b| b.baseline(colour));
+        let base_terms = baseline.as_ref().map(channel_terms);
         let base_at_r_min = match &base_terms {
-            Some(t) => model
-                .support
-                .iter()
-                .map(|s| Self::ln_base(t, s.r_min))
-                .collect(),
+            Some(t) => support.iter().map(|s| Self::ln_base(t, s.r_min)).collect(),
             None => Vec::new(),
         };
         Self {
@@ -83,11 +86,19 @@ impl Falloffs {
             d,
             scale,
             active,
-            support: model.support.clone(),
-            baseline: model.baseline.clone(),
+            support,
+            baseline,
             base_terms,
             base_at_r_min,
+            frame_rule: model.frame,
         }
+    }
+
+    /// The tangent frame (Eq. 3) of the source with unit normal `normal` (the vertex normal: x_i's
+    /// own normal when x_i is the vertex), by the model's rule; a degenerate normal falls back to
+    /// the frame of +z rather than failing the render.
+    pub fn frame_at(&self, normal: [f64; 3]) -> TangentFrame {
+        TangentFrame::with_rule(self.frame_rule, normal).unwrap_or(TangentFrame::OF_PLUS_Z)
     }
 
     /// ln of the baseline per channel at `r` (log-sum-exp: finite where every term underflows).
@@ -464,7 +475,7 @@ mod tests {
 
     #[test]
     fn disk_integral_to_infinity_is_the_total_reflectance() {
-        let model = VertexModel::homogeneous(
+        let model = ModelFile::homogeneous(
             vec![[0.0; 3]; 3],
             vec![[0.0, 0.0, 1.0]; 3],
             vec![[0, 1, 2]],
@@ -487,7 +498,7 @@ mod tests {
 
     #[test]
     fn log_eval_matches_direct_eval_and_survives_underflow() {
-        let model = VertexModel::homogeneous(
+        let model = ModelFile::homogeneous(
             vec![[0.0; 3]; 3],
             vec![[0.0, 0.0, 1.0]; 3],
             vec![[0, 1, 2]],
@@ -508,7 +519,7 @@ mod tests {
     #[test]
     fn below_r_min_the_fall_off_continues_with_its_slope_there() {
         // A steep term the samples (r >= 1) did not resolve: huge at r -> 0 as a model.
-        let mut model = VertexModel::homogeneous(
+        let mut model = ModelFile::homogeneous(
             vec![[0.0; 3]; 3],
             vec![[0.0, 0.0, 1.0]; 3],
             vec![[0, 1, 2]],
@@ -517,7 +528,9 @@ mod tests {
         );
         let free = Falloffs::new(&model);
         assert!(free.eval(0, 0.1, &[1.0])[0] > 1e5);
-        model.support = vec![Support::new(1.0, 5.0); 3];
+        for v in &mut model.vertices {
+            v.r_range = [1.0, 5.0];
+        }
         let f = Falloffs::new(&model);
         // At and beyond r_min: the model.
         for r in [1.0, 2.5] {
@@ -563,33 +576,25 @@ mod tests {
 
     #[test]
     fn with_a_baseline_the_fall_off_takes_its_shape_below_r_min_and_its_tail_beyond_r_max() {
-        let mut model = VertexModel::homogeneous(
+        let mut model = ModelFile::homogeneous(
             vec![[0.0; 3]; 3],
             vec![[0.0, 0.0, 1.0]; 3],
             vec![[0, 1, 2]],
             [1.0, 1.0],
             &[(1e6, -20.0), (0.5, -0.5)],
         );
-        model.support = vec![Support::new(1.0, 5.0); 3];
+        for v in &mut model.vertices {
+            v.r_range = [1.0, 5.0];
+        }
         let free = Falloffs::new(&model);
-        let base = crate::baseline::Baseline {
-            model: crate::model::ColourModel::Shared {
-                falloff: crate::model::Anisotropic {
-                    segments: vec![
-                        crate::model::ExpSum::new(vec![
-                            crate::model::Term { c: 4.0, d: -6.0 },
-                            crate::model::Term { c: 0.2, d: -0.2 },
-                        ])
-                        .unwrap(),
-                    ],
-                },
-                s_g: 1.0,
-                s_b: 1.0,
-            },
+        let stored = crate::modelfile::BaselineParams {
+            terms: 2,
+            params: vec![1.0, 1.0, 4.0, -6.0, 0.2, -0.2],
             r_range: [0.2, 30.0],
         };
+        let base = stored.baseline(ColourMode::Shared).unwrap();
         let b = |r: f64| base.model.ln_eval(r, None)[0];
-        model.baseline = Some(base.clone());
+        model.baseline = Some(stored);
         let f = Falloffs::new(&model);
         // Inside the range: the model, untouched.
         for r in [1.0, 2.5, 5.0] {

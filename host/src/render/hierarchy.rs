@@ -118,18 +118,9 @@ impl<'a> Transport<'a> {
             .map(|a| (a / std::f64::consts::PI).sqrt())
             .collect();
         let frames = if falloffs.segments() > 1 {
-            // A validated model has unit normals; a degenerate one falls back to +z rather than
-            // failing the render.
-            normals
-                .iter()
-                .map(|&n| {
-                    TangentFrame::from_normal(n).unwrap_or(TangentFrame {
-                        t: [1.0, 0.0, 0.0],
-                        b: [0.0, 1.0, 0.0],
-                        n: [0.0, 0.0, 1.0],
-                    })
-                })
-                .collect()
+            // The model at source x_i = vertex i is evaluated in the frame of x_i's own normal,
+            // by the model's rule: the frame its segments were fitted in.
+            normals.iter().map(|&n| falloffs.frame_at(n)).collect()
         } else {
             Vec::new()
         };
@@ -627,10 +618,11 @@ fn box_distance(x: [f64; 3], lo: [f64; 3], hi: [f64; 3]) -> f64 {
 #[allow(clippy::needless_range_loop, clippy::type_complexity)]
 mod tests {
     use super::*;
-    use crate::render::{VertexModel, vertex_areas};
+    use crate::modelfile::{ModelFile, VertexStatus};
+    use crate::render::vertex_areas;
 
     /// A wavy sheet with a heterogeneous model: fall-off rate and colour vary over the surface.
-    fn sheet(nx: usize) -> (VertexModel, Vec<[f64; 3]>) {
+    fn sheet(nx: usize) -> (ModelFile, Vec<[f64; 3]>) {
         let mut p = Vec::new();
         let mut nrm = Vec::new();
         for j in 0..nx {
@@ -652,10 +644,9 @@ mod tests {
             }
         }
         let mut m =
-            VertexModel::homogeneous(p.clone(), nrm, f, [0.6, 0.3], &[(1.0, -2.0), (0.1, -0.4)]);
-        let pl = m.param_len();
+            ModelFile::homogeneous(p.clone(), nrm, f, [0.6, 0.3], &[(1.0, -2.0), (0.1, -0.4)]);
         for v in 0..m.len() {
-            let q = &mut m.params[v * pl..(v + 1) * pl];
+            let q = &mut m.vertices[v].params;
             let s = 1.0 + 0.5 * (0.7 * p[v][0]).sin() * (0.5 * p[v][1]).cos();
             q[3] *= s;
             q[5] *= s;
@@ -670,7 +661,7 @@ mod tests {
     fn hierarchical_converges_to_the_exact_sum() {
         let (m, e) = sheet(24);
         let f = Falloffs::new(&m);
-        let a = vertex_areas(&m.positions, &m.faces);
+        let a = vertex_areas(&m.positions, &m.triangles);
         let t = Transport::new(&m.positions, &m.normals, &f, &e, &a);
         let rec: Vec<usize> = (0..m.len()).collect();
         let exact = t.exact(&rec);
@@ -720,9 +711,12 @@ mod tests {
                 e[v] = [0.0; 3];
             }
         }
-        m.status[1] = crate::render::VertexStatus::NoModel;
+        let none = &mut m.vertices[1];
+        none.status = VertexStatus::NoModel;
+        (none.terms, none.segments) = (0, 0);
+        none.params.clear();
         let f = Falloffs::new(&m);
-        let a = vertex_areas(&m.positions, &m.faces);
+        let a = vertex_areas(&m.positions, &m.triangles);
         let t = Transport::new(&m.positions, &m.normals, &f, &e, &a);
         assert_eq!(t.source_count(), m.len() / 2 - 1);
         let b = t.exact(&[0, 1, 3]);
@@ -735,5 +729,104 @@ mod tests {
         let t = Transport::new(&m.positions, &m.normals, &f, &dark, &a);
         let (h, _) = t.hierarchical(Quality::Draft.params(), &[0, 5]);
         assert_eq!(h, vec![[0.0; 3]; 2]);
+    }
+
+    /// Fit, evaluation and rendering measure Eq. 3's directions in one frame: the fit's
+    /// (`TangentFrame::from_normal` at x_i's normal, the `select` stage), evaluation's (the model
+    /// file's rule at x_i's normal, `ModelFile::frame_at`, after a write and read back) and the
+    /// renderer's (each source's frame from its vertex normal) are the same frame, for normals all
+    /// over the sphere (the old rule's seam at |n_x| = 0.9 included), and the direction of the
+    /// fit's segment l gets all of the renderer's weight on segment l. A file of format 3 renders
+    /// in its old frame.
+    #[test]
+    fn fit_evaluation_and_render_agree_on_a_segments_direction() {
+        use crate::model::{FrameRule, hat_weights};
+        use crate::render::segment_weights;
+        let m = 8;
+        let normals: Vec<[f64; 3]> = (0..40)
+            .map(|k| {
+                let z = -0.95 + 1.9 * k as f64 / 39.0;
+                let a = 2.4 * k as f64;
+                let s = (1.0 - z * z).sqrt();
+                [s * a.cos(), s * a.sin(), z]
+            })
+            .chain([[0.92, 0.3, 0.25], [0.89, 0.3, 0.34], [0.0, 0.0, 1.0]])
+            .map(|n: [f64; 3]| {
+                let l = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+                n.map(|x| x / l)
+            })
+            .collect();
+        let nv = normals.len();
+        let positions: Vec<[f64; 3]> = (0..nv).map(|k| [k as f64 * 5.0, 0.0, 0.0]).collect();
+        let mut file = ModelFile::homogeneous(
+            positions.clone(),
+            normals.clone(),
+            vec![[0, 1, 2]],
+            [1.0, 1.0],
+            &[(1.0, -1.0)],
+        );
+        file.shape.segments = m;
+        for v in &mut file.vertices {
+            v.segments = m as u8;
+            v.params = [1.0, 1.0]
+                .into_iter()
+                .chain((0..m).flat_map(|l| [1.0, -1.0 - l as f64]))
+                .collect();
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("m.ply");
+        file.write(&path).unwrap();
+        let read = ModelFile::read(&path).unwrap();
+        assert_eq!(read.frame, FrameRule::CURRENT);
+        let e = vec![[1.0; 3]; nv];
+        let areas = vec![1.0; nv];
+        let f = Falloffs::new(&read);
+        let t = Transport::new(&read.positions, &read.normals, &f, &e, &areas);
+        for (i, &n) in normals.iter().enumerate() {
+            let fit = TangentFrame::from_normal(n).unwrap();
+            let eval = read.frame_at(n).unwrap();
+            assert_eq!(fit, eval, "normal {n:?}");
+            assert_eq!(fit, t.frames[i], "normal {n:?}");
+            let x_i = positions[i];
+            for l in 0..m {
+                let phi = std::f64::consts::TAU * l as f64 / m as f64;
+                let x_o =
+                    [0, 1, 2].map(|k| x_i[k] + 2.0 * (phi.cos() * fit.t[k] + phi.sin() * fit.b[k]));
+                // The fit bins this sample into segment l ...
+                let (_, got) = fit.polar(x_i, x_o);
+                let w = hat_weights(got.unwrap(), m);
+                assert!(
+                    w.iter().any(|&(k, x)| k == l && (x - 1.0).abs() < 1e-9),
+                    "{w:?}"
+                );
+                // ... evaluation reads segment l there ...
+                let model =
+                    crate::modelfile::model_of(&read.shape, 1, &read.vertices[i].params).unwrap();
+                let (r, phi_eval) = eval.polar(x_i, x_o);
+                let ln = model.ln_eval(r, phi_eval)[0];
+                assert!(
+                    (ln - (-(1.0 + l as f64) * 2.0)).abs() < 1e-6,
+                    "eval {ln} at l {l}"
+                );
+                // ... and so does the renderer.
+                let mut ws = vec![0.0; m];
+                segment_weights(&t.frames[i], x_i, x_o, &mut ws);
+                assert!(
+                    (ws[l] - 1.0).abs() < 1e-9,
+                    "render weights {ws:?} for l {l}"
+                );
+            }
+        }
+        // The same file as format 3: read with the old rule, rendered in the old frame.
+        let mut old = file.clone();
+        old.frame = FrameRule::ReferenceAxis;
+        let f_old = Falloffs::new(&old);
+        let t_old = Transport::new(&old.positions, &old.normals, &f_old, &e, &areas);
+        let seam = nv - 3;
+        assert_eq!(
+            t_old.frames[seam],
+            TangentFrame::with_rule(FrameRule::ReferenceAxis, normals[seam]).unwrap()
+        );
+        assert_ne!(t_old.frames[seam], t.frames[seam]);
     }
 }

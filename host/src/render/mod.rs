@@ -1,4 +1,7 @@
-//! Rendering the fitted model: relighting a per-vertex empirical BSSRDF (paper §3, §5.1).
+//! Rendering the fitted model: relighting a per-vertex empirical BSSRDF (paper §3, §5.1). The model
+//! is the model file's type, [`crate::modelfile::ModelFile`] (the renderer has none of its own);
+//! each source's Eq. 3 directions are in the tangent frame of its vertex normal by the file's
+//! frame rule, the frame its segments were fitted in.
 //!
 //! The pipeline is the one of Jensen & Buhler 2002, with the paper's empirical `R_d` in place of the
 //! dipole:
@@ -23,11 +26,11 @@ mod fresnel;
 mod hierarchy;
 mod irradiance;
 mod light;
+mod model;
 mod output;
 mod raster;
 mod scene;
 pub mod synthetic;
-mod vertex_model;
 
 /// The one camera model, re-exported: the renderer draws through it, `camera` only frames it.
 pub use crate::geometry::Camera;
@@ -37,6 +40,7 @@ pub use fresnel::{fresnel_transmittance, relative_transmittance};
 pub use hierarchy::{HierarchyParams, Quality, Transport, TransportStats};
 pub use irradiance::{irradiance, shadow_scene, vertex_areas};
 pub use light::Light;
+pub use model::validate;
 pub use output::{
     ImageStats, SHOULDER_CLIP, SHOULDER_KNEE, ToneMapping, WHITE_QUANTILE, auto_exposure,
     image_stats, save_exr, save_png, shoulder, tone_map, tone_map_with,
@@ -45,7 +49,6 @@ pub use raster::{Image, rasterise};
 pub use scene::{
     Method, RenderOptions, RenderOutput, Transported, light_transport, relative_pixel_error, render,
 };
-pub use vertex_model::{ColourMode, VertexModel, VertexStatus};
 
 /// Why a render could not be made. Every variant names the offending input.
 #[non_exhaustive]

@@ -9,8 +9,8 @@ use super::hierarchy::{HierarchyParams, Quality, Transport, TransportStats};
 use super::irradiance::{irradiance, shadow_scene, vertex_areas};
 use super::light::Light;
 use super::raster::{Image, rasterise};
-use super::vertex_model::VertexModel;
 use crate::geometry::Camera;
+use crate::modelfile::ModelFile;
 
 /// How `B(x_o)` is summed.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -72,11 +72,11 @@ pub struct Transported {
 
 /// Irradiance and transport only: `E(x_i)` and `B(x_o)` for every vertex of a model.
 pub fn light_transport(
-    model: &VertexModel,
+    model: &ModelFile,
     lights: &[Light],
     options: &RenderOptions,
 ) -> Result<Transported, RenderError> {
-    model.validate()?;
+    super::validate(model)?;
     if let Some(eta) = options.eta
         && !(eta > 0.0 && eta.is_finite())
     {
@@ -86,7 +86,7 @@ pub fn light_transport(
         });
     }
     let t0 = Instant::now();
-    let scene = shadow_scene(&model.positions, &model.faces)?;
+    let scene = shadow_scene(&model.positions, &model.triangles)?;
     let e = irradiance(
         &model.positions,
         &model.normals,
@@ -94,7 +94,7 @@ pub fn light_transport(
         &scene,
         options.eta,
     );
-    let areas = vertex_areas(&model.positions, &model.faces);
+    let areas = vertex_areas(&model.positions, &model.triangles);
     let t1 = Instant::now();
     let falloffs = Falloffs::new(model);
     let transport = Transport::new(&model.positions, &model.normals, &falloffs, &e, &areas);
@@ -127,7 +127,7 @@ pub fn light_transport(
 /// Fresnel factor relative to normal incidence), `B(x_o) = Σ_i R_d(x_i → x_o) E(x_i) A(x_i)` with
 /// the parameters of `x_i`.
 pub fn render(
-    model: &VertexModel,
+    model: &ModelFile,
     lights: &[Light],
     camera: &Camera,
     options: &RenderOptions,
@@ -150,7 +150,7 @@ pub fn render(
             let ft = options
                 .eta
                 .map_or(1.0, |eta| relative_transmittance(eta, cos.max(0.0)));
-            let a = model.alpha[v];
+            let a = model.vertices[v].alpha.map(f64::from);
             [0, 1, 2].map(|c| a[c] * ft * b[v][c] / std::f64::consts::PI)
         })
         .collect();
@@ -167,7 +167,7 @@ pub fn render(
             value: c,
         });
     }
-    let image = rasterise(camera, &model.positions, &model.faces, &radiance);
+    let image = rasterise(camera, &model.positions, &model.triangles, &radiance);
     let t_r = t0.elapsed().as_secs_f64();
     Ok(RenderOutput {
         image,

@@ -1,6 +1,6 @@
 //! Built-in heterogeneous test objects with a known model, for benchmarks, tests and the demo.
 
-use super::vertex_model::{ColourMode, VertexModel, VertexStatus};
+use crate::modelfile::{ColourMode, ModelFile, ModelShape, NO_RANGE, VertexModel, VertexStatus};
 
 /// Marble-like veins: a smooth pseudo-random field in [0, 1] with thin bright bands.
 fn veins(p: [f64; 3]) -> f64 {
@@ -16,7 +16,7 @@ fn veins(p: [f64; 3]) -> f64 {
 /// A torus (major radius 30 mm, minor 12 mm, axis +z) of `nu × nv` vertices whose scattering
 /// varies like veined marble: the fall-off rate (Eq. 1, n = 2 plus a slow third term), the
 /// channel scales (Eq. 9) and `alpha` change along the veins. Non-convex, so it shadows itself.
-pub fn marble_torus(nu: usize, nv: usize) -> VertexModel {
+pub fn marble_torus(nu: usize, nv: usize) -> ModelFile {
     let (big, small) = (30.0, 12.0);
     let nu = nu.max(3);
     let nv = nv.max(3);
@@ -51,15 +51,13 @@ pub fn from_field(
     positions: Vec<[f64; 3]>,
     normals: Vec<[f64; 3]>,
     faces: Vec<[u32; 3]>,
-) -> VertexModel {
-    let n = positions.len();
-    let mut params = Vec::with_capacity(n * 8);
-    let mut alpha = Vec::with_capacity(n);
+) -> ModelFile {
+    let mut vertices = Vec::with_capacity(positions.len());
     for p in &positions {
         let v = veins(*p);
         // Veins scatter less far (faster fall-off) and are warmer.
         let rate = 1.0 + 1.5 * v;
-        params.extend([
+        let params = vec![
             0.85 - 0.25 * v,
             0.7 - 0.3 * v,
             0.6,
@@ -68,23 +66,30 @@ pub fn from_field(
             -0.8 * rate,
             0.01,
             -0.25 * rate,
-        ]);
+        ];
         let a = 0.9 + 0.1 * (0.7 * p[0]).sin() * (0.6 * p[1]).cos();
-        alpha.push([a; 3]);
+        vertices.push(VertexModel {
+            alpha: [a as f32; 3],
+            status: VertexStatus::Fitted,
+            log_e: f32::NAN,
+            terms: 3,
+            segments: 1,
+            params,
+            r_range: NO_RANGE,
+        });
     }
-    VertexModel {
-        terms: 3,
-        segments: 1,
-        colour: ColourMode::Shared,
-        alpha,
-        status: vec![VertexStatus::Fitted; n],
-        log_e: vec![f64::NAN; n],
-        params,
-        support: vec![crate::model::Support::UNKNOWN; n],
-        baseline: None,
+    ModelFile {
+        shape: ModelShape {
+            terms: 3,
+            segments: 1,
+            colour: ColourMode::Shared,
+        },
         positions,
         normals,
-        faces,
+        triangles: faces,
+        vertices,
+        baseline: None,
+        frame: crate::model::FrameRule::CURRENT,
     }
 }
 
@@ -95,8 +100,8 @@ mod tests {
     #[test]
     fn the_torus_is_a_valid_model_of_the_requested_size() {
         let m = marble_torus(20, 10);
-        m.validate().unwrap();
+        crate::render::validate(&m).unwrap();
         assert_eq!(m.len(), 200);
-        assert_eq!(m.faces.len(), 400);
+        assert_eq!(m.triangles.len(), 400);
     }
 }

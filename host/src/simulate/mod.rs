@@ -654,6 +654,7 @@ pub fn ground_truth_model(mesh: &crate::dataset::Mesh, field: &Field) -> ModelFi
             })
             .collect(),
         baseline: None,
+        frame: crate::model::FrameRule::CURRENT,
     }
 }
 

@@ -5,14 +5,51 @@ use serde::{Deserialize, Serialize};
 
 use super::{ExpSum, ModelError, log_sum_exp};
 
+/// Which rule builds the [`TangentFrame`] from a normal. A model file records the rule its
+/// segments were fitted in (`docs/model-format.md`), so a reader evaluates every file in the frame
+/// it was fitted in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum FrameRule {
+    /// The minimal rotation taking world +z to n (Rodrigues' rotation about z × n) applied to +x
+    /// and +y. Continuous in n everywhere except at n = −z, the face that rests on the platter;
+    /// so neighbouring vertices get nearly the same frame, and nothing jumps on the lit surface.
+    /// The rule of every fit since model format 4.
+    #[default]
+    MinimalRotation,
+    /// The rule of model formats 1–3, kept to read their files exactly: reference world +X, or
+    /// world +Y when |n_x| > 0.9, projected into the tangent plane. It jumps along |n_x| = 0.9,
+    /// a seam across the lit surface of curved objects.
+    ReferenceAxis,
+}
+
+impl FrameRule {
+    /// The rule every fit uses now ([`TangentFrame::from_normal`]); model files record it.
+    pub const CURRENT: FrameRule = FrameRule::MinimalRotation;
+
+    /// The rule's name as the model file header writes it (`comment frame <name>`).
+    pub fn name(self) -> &'static str {
+        match self {
+            FrameRule::MinimalRotation => "minimal-rotation",
+            FrameRule::ReferenceAxis => "reference-axis",
+        }
+    }
+
+    /// The rule named `name` ([`FrameRule::name`]).
+    pub fn from_name(name: &str) -> Option<Self> {
+        [FrameRule::MinimalRotation, FrameRule::ReferenceAxis]
+            .into_iter()
+            .find(|r| r.name() == name)
+    }
+}
+
 /// An orthonormal frame (t, b, n) at a surface point; directions around x_i are angles
 /// φ = atan2(v·b, v·t) of the tangent-plane projection v of x_o − x_i.
 ///
-/// The rule (deterministic, shared by fitting and rendering): n is the normalised normal; the
-/// reference axis is world +X, or world +Y when |n_x| > 0.9; t is the reference projected into the
-/// tangent plane and normalised; b = n × t. So segment 0 points as close to +X as the surface
-/// allows, neighbouring vertices get nearly the same frame, and the frame only jumps where the
-/// normal crosses |n_x| = 0.9.
+/// The one definition of Eq. 3's directions for fitting, evaluation, interpolation and rendering:
+/// [`TangentFrame::from_normal`] (the current rule, [`FrameRule::MinimalRotation`]: t and b are
+/// +x and +y rotated by the smallest rotation taking +z to n), or [`TangentFrame::with_rule`] for a
+/// file fitted under an older rule. b = n × t always.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct TangentFrame {
     /// Tangent, direction φ = 0.
@@ -38,7 +75,7 @@ fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
 fn normalized(a: [f64; 3]) -> Option<[f64; 3]> {
     // Scale first so that tiny and huge vectors normalise without under/overflow.
     let m = a[0].abs().max(a[1].abs()).max(a[2].abs());
-    if !(m.is_finite() && m > 0.0) {
+    if !(a.iter().all(|x| x.is_finite()) && m > 0.0) {
         return None;
     }
     let s = [a[0] / m, a[1] / m, a[2] / m];
@@ -47,23 +84,51 @@ fn normalized(a: [f64; 3]) -> Option<[f64; 3]> {
 }
 
 impl TangentFrame {
-    /// The frame at a point with normal `normal` (any non-zero finite length), by the rule above.
+    /// The frame at n = +z, the same under every rule (t = +x, b = +y): where a caller needs some
+    /// frame for a degenerate normal.
+    pub const OF_PLUS_Z: TangentFrame = TangentFrame {
+        t: [1.0, 0.0, 0.0],
+        b: [0.0, 1.0, 0.0],
+        n: [0.0, 0.0, 1.0],
+    };
+
+    /// The frame at a point with normal `normal` (any non-zero finite length) by the current rule,
+    /// [`FrameRule::MinimalRotation`]: the one every fit uses.
     pub fn from_normal(normal: [f64; 3]) -> Result<Self, ModelError> {
+        Self::with_rule(FrameRule::CURRENT, normal)
+    }
+
+    /// The frame at a point with normal `normal` by `rule` (for models fitted under it).
+    pub fn with_rule(rule: FrameRule, normal: [f64; 3]) -> Result<Self, ModelError> {
         let n = normalized(normal).ok_or(ModelError::BadNormal)?;
-        let reference = if n[0].abs() > 0.9 {
-            [0.0, 1.0, 0.0]
-        } else {
-            [1.0, 0.0, 0.0]
+        let t = match rule {
+            FrameRule::MinimalRotation => minimal_rotation_tangent(n),
+            FrameRule::ReferenceAxis => {
+                let reference = if n[0].abs() > 0.9 {
+                    [0.0, 1.0, 0.0]
+                } else {
+                    [1.0, 0.0, 0.0]
+                };
+                let k = dot(reference, n);
+                normalized([
+                    reference[0] - k * n[0],
+                    reference[1] - k * n[1],
+                    reference[2] - k * n[2],
+                ])
+                .ok_or(ModelError::BadNormal)?
+            }
         };
-        let k = dot(reference, n);
-        let t = normalized([
-            reference[0] - k * n[0],
-            reference[1] - k * n[1],
-            reference[2] - k * n[2],
-        ])
-        .ok_or(ModelError::BadNormal)?;
         let b = cross(n, t);
         Ok(Self { t, b, n })
+    }
+
+    /// The angle (radians, in (−π, π]) by which `other`'s tangent is turned about this frame's
+    /// normal from this frame's tangent, after projecting it into this tangent plane: how far
+    /// `other`'s segment l points from this frame's segment l. Near 0 for neighbouring points
+    /// under a continuous rule; `None` when `other.t` is parallel to this normal.
+    pub fn twist(&self, other: &TangentFrame) -> Option<f64> {
+        let (u, w) = (dot(other.t, self.t), dot(other.t, self.b));
+        (u.hypot(w) > 1e-9).then(|| w.atan2(u))
     }
 
     /// Distance r = |x_o − x_i| and direction φ ∈ [0, 2π) of x_o around x_i in this frame; φ is
@@ -84,6 +149,22 @@ impl TangentFrame {
         }
         (r, Some(phi))
     }
+}
+
+/// t = R·x̂ for the rotation R about z × n that takes +z to the unit normal n = (a, b, c)
+/// (Rodrigues): t = (1 − a²/(1 + c), −ab/(1 + c), −a). 1 + c is formed as (a² + b²)/(1 − c) for
+/// c < 0, so t stays accurate up to the singular point n = −z; there (a = b = 0) the limit depends
+/// on the direction of approach, and the rotation by π about +y is taken (t = −x, b = +y).
+fn minimal_rotation_tangent(n: [f64; 3]) -> [f64; 3] {
+    let [a, b, c] = n;
+    let side = a * a + b * b;
+    let one_plus_c = if c >= 0.0 { 1.0 + c } else { side / (1.0 - c) };
+    if one_plus_c <= 0.0 || side == 0.0 && c < 0.0 {
+        return [-1.0, 0.0, 0.0];
+    }
+    let k = 1.0 / one_plus_c;
+    let t = [1.0 - a * a * k, -a * b * k, -a];
+    normalized(t).unwrap_or([-1.0, 0.0, 0.0])
 }
 
 /// Eq. 3 hat-function weights w_l(φ) for m segments centred at φ_l = 2π·l/m: linear interpolation
@@ -184,10 +265,94 @@ mod tests {
             assert_eq!(f, TangentFrame::from_normal(n).unwrap());
         }
         let f = TangentFrame::from_normal([0.0, 0.0, 2.0]).unwrap();
-        assert_eq!(f.t, [1.0, 0.0, 0.0]);
-        assert_eq!(f.b, [0.0, 1.0, 0.0]);
+        assert_eq!(f, TangentFrame::OF_PLUS_Z);
+        assert_eq!(
+            TangentFrame::with_rule(FrameRule::ReferenceAxis, [0.0, 0.0, 2.0]).unwrap(),
+            TangentFrame::OF_PLUS_Z
+        );
         assert!(TangentFrame::from_normal([0.0, 0.0, 0.0]).is_err());
         assert!(TangentFrame::from_normal([f64::NAN, 0.0, 1.0]).is_err());
+    }
+
+    /// A unit vector from two uniform numbers (uniform on the sphere).
+    fn unit(u: f64, v: f64) -> [f64; 3] {
+        let z = 2.0 * u - 1.0;
+        let s = (1.0 - z * z).max(0.0).sqrt();
+        let a = std::f64::consts::TAU * v;
+        [s * a.cos(), s * a.sin(), z]
+    }
+
+    fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {
+        (a[0] - b[0]).hypot(a[1] - b[1]).hypot(a[2] - b[2])
+    }
+
+    /// The largest |Δt| + |Δb| over a few small steps from `n` (step length `eps`).
+    fn largest_step(rule: FrameRule, n: [f64; 3], eps: f64) -> f64 {
+        let f = TangentFrame::with_rule(rule, n).unwrap();
+        let mut worst = 0.0f64;
+        for d in [
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [0.0, 0.0, 1.0],
+            [-0.6, 0.8, 0.0],
+            [0.0, -0.6, -0.8],
+        ] {
+            let g = TangentFrame::with_rule(rule, [0, 1, 2].map(|k| n[k] + eps * d[k])).unwrap();
+            worst = worst.max(dist(f.t, g.t) + dist(f.b, g.b));
+        }
+        worst
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig { cases: 2000, ..Default::default() })]
+
+        /// The frame is continuous: a change ε of the normal turns t and b by at most
+        /// 4ε/|n + z| (each), everywhere but at the one singular point n = −z, where |n + z|,
+        /// the chord to it, goes to 0 (near it the frame turns with twice the azimuth).
+        #[test]
+        fn the_frame_is_continuous_away_from_minus_z(u in 0.0f64..1.0, v in 0.0f64..1.0) {
+            let n = unit(u, v);
+            let chord = dist(n, [0.0, 0.0, -1.0]);
+            proptest::prop_assume!(chord > 1e-3);
+            let f = TangentFrame::from_normal(n).unwrap();
+            proptest::prop_assert!((dot(f.t, f.t) - 1.0).abs() < 1e-12);
+            proptest::prop_assert!(dot(f.t, f.n).abs() < 1e-12 && dot(f.b, f.n).abs() < 1e-12);
+            proptest::prop_assert!(dist(f.b, cross(f.n, f.t)) < 1e-15);
+            let eps = 1e-7;
+            let step = largest_step(FrameRule::MinimalRotation, n, eps);
+            proptest::prop_assert!(step <= 2.0 * 4.0 * eps / chord, "n {:?}: step {}", n, step);
+        }
+    }
+
+    /// The same check finds the seam of the rule of model formats 1–3 (so the property test can
+    /// fail), and the new rule has none there.
+    #[test]
+    fn the_old_rule_jumps_at_its_seam_and_the_new_one_does_not() {
+        let n = [0.9, 0.3, 0.0f64.max((1.0f64 - 0.81 - 0.09).sqrt())];
+        let eps = 1e-7;
+        assert!(largest_step(FrameRule::ReferenceAxis, n, eps) > 0.5);
+        assert!(largest_step(FrameRule::MinimalRotation, n, eps) < 1e-5);
+        // The two rules agree where both have +z: on a slab's top face nothing changes.
+        assert_eq!(
+            TangentFrame::with_rule(FrameRule::ReferenceAxis, [0.0, 0.0, 1.0]).unwrap(),
+            TangentFrame::from_normal([0.0, 0.0, 1.0]).unwrap()
+        );
+        // At the singular point itself the frame is defined (the rotation by π about +y).
+        let f = TangentFrame::from_normal([0.0, 0.0, -1.0]).unwrap();
+        assert_eq!((f.t, f.b), ([-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]));
+        for r in [FrameRule::MinimalRotation, FrameRule::ReferenceAxis] {
+            assert_eq!(FrameRule::from_name(r.name()), Some(r));
+        }
+    }
+
+    #[test]
+    fn twist_measures_the_turn_between_frames() {
+        let f = TangentFrame::from_normal([0.0, 0.0, 1.0]).unwrap();
+        let g = TangentFrame::from_normal([0.01, 0.0, 1.0]).unwrap();
+        assert!(f.twist(&g).unwrap().abs() < 1e-4);
+        let old = TangentFrame::with_rule(FrameRule::ReferenceAxis, [0.91, 0.3, 0.28]).unwrap();
+        let old2 = TangentFrame::with_rule(FrameRule::ReferenceAxis, [0.89, 0.3, 0.34]).unwrap();
+        assert!(old.twist(&old2).unwrap().abs() > 0.5);
     }
 
     #[test]

@@ -27,7 +27,7 @@ pub mod expsum;
 pub mod support;
 
 pub use alpha::{ALPHA_PRIOR, ALPHA_PRIOR_MAX, AlphaAccumulator, IntensityWindow, empirical_prior};
-pub use aniso::{Anisotropic, TangentFrame, hat_weights};
+pub use aniso::{Anisotropic, FrameRule, TangentFrame, hat_weights};
 pub use colour::ColourModel;
 pub use dipole::{Dipole, MATERIALS, Material};
 pub use error::{LogEAccumulator, reconstruction_error, table1_mean};
