@@ -16,6 +16,10 @@ pub struct ModelChoice {
     pub segments: usize,
 }
 
+/// Eq. 6's upper threshold t1 as a share of a light position's brightest sample (per channel):
+/// PLACEHOLDER
+pub const ALPHA_T1_SHARE: f64 = 0.1;
+
 /// Every setting of the pipeline.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
 pub struct PipelineOptions {
@@ -25,6 +29,11 @@ pub struct PipelineOptions {
     pub samples: SampleOptions,
     /// A vertex whose closest x_i is farther than this (mm) has no data.
     pub max_select_mm: f64,
+    /// Frames whose x_i agree within this distance (mm) are one light position and are fitted
+    /// together (section 5: "all images in which a particular location on the object was
+    /// illuminated"); `None`: half the mesh's median edge length
+    /// ([`super::select::default_pool_mm`]); 0 pools only identical x_i.
+    pub pool_mm: Option<f64>,
     /// The model variant; its `segments` is the largest m a light position may use.
     pub model: ModelChoice,
     /// "Model only what the scene requires", per light position: n (up to the fitter's) and m
@@ -37,7 +46,8 @@ pub struct PipelineOptions {
     /// [`super::OUTLIER_MIN_LOG_E`]) fail too: outliers, interpolated from neighbours;
     /// `f64::INFINITY` disables the rule.
     pub outlier_factor: f64,
-    /// Eq. 6 window [t2, t1] for alpha(x_o).
+    /// Eq. 6 window (t2, t1) for alpha(x_o): t2 from the noise floor, t1 relative to each light
+    /// position's brightest sample ([`ALPHA_T1_SHARE`]).
     pub alpha_window: IntensityWindow,
     /// Eq. 8 threshold t.
     pub error_threshold: f64,
@@ -67,6 +77,7 @@ impl PipelineOptions {
                 ..SampleOptions::default()
             },
             max_select_mm: 2.0,
+            pool_mm: None,
             model: ModelChoice {
                 colour: ColourMode::Shared,
                 segments: 1,
@@ -77,6 +88,7 @@ impl PipelineOptions {
             alpha_window: IntensityWindow {
                 t2: 0.0,
                 t1: f64::INFINITY,
+                t1_share: ALPHA_T1_SHARE,
             },
             error_threshold: 0.0,
             alpha_rounds: 8,
