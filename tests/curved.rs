@@ -69,10 +69,12 @@ fn noise_free_sphere_predicts_held_out_frames_near_the_floor() {
         let (f, g) = (fitted.mean[c].unwrap(), floor.mean[c].unwrap());
         eprintln!("channel {c}: held-out mean log E fitted {f:.4}, ground truth {g:.4}");
         // Since samples lit by the laser spot's light and grazing samples are dropped (scanfit,
-        // samples.rs), the floor is ~0.0015 instead of ~0.02 and the fit's own error (~0.035)
-        // dominates: the bound is on the fitted model, the floor must stay far below it.
+        // samples.rs), the floor is ~0.0015 instead of ~0.02 and the fit's own error dominates:
+        // the bound is on the fitted model, the floor must stay well below it. (Pooling the three
+        // cameras' views of each spot, issue 16, brought the fit from ~0.0062 to ~0.0050 on the
+        // same scan through the CLI, so the floor is now a quarter of it, no longer less.)
         assert!(
-            f < 0.05 && g < 0.25 * f,
+            f < 0.05 && g < 0.4 * f,
             "channel {c}: fitted {f} vs ground truth {g}"
         );
         let (fm, gm) = (fitted.median[c].unwrap(), floor.median[c].unwrap());
@@ -122,7 +124,10 @@ fn every_view_of_a_spot_is_pooled_into_its_light_position() {
         pooled.samples.pooled, pooled.samples.used
     );
     // Three cameras per spot: light positions of (mostly) three frames each.
-    assert!(p.tolerance_mm > 0.0 && p.tolerance_mm <= 0.5 * 2.0);
+    // Half the median edge, at most the selection distance.
+    assert!(
+        p.tolerance_mm > 0.0 && p.tolerance_mm <= PipelineOptions::for_dataset(&ds).max_select_mm
+    );
     assert!(
         p.light_positions > 0 && 2 * p.light_positions <= p.frames,
         "{p:?}"
