@@ -98,7 +98,8 @@ pub struct Args {
     #[arg(long, default_value_t = 2e-3)]
     pub alpha_tolerance: f64,
     /// Eq. 6's upper threshold t1 as a share of each light position's brightest sample: brighter
-    /// samples (near x_i, not yet multiple scattering) do not enter alpha ("inf": none).
+    /// samples (near x_i, not yet multiple scattering) do not enter alpha ("inf", the default:
+    /// none).
     #[arg(long, default_value_t = subsurf::pipeline::ALPHA_T1_SHARE)]
     pub alpha_t1_share: f64,
     /// Largest disagreement between detected spot and laser ray (mm).
