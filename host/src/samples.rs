@@ -72,6 +72,10 @@ pub struct SampleCounts {
     /// Within the exclusion radius of x_i, or lit by the laser spot's light in the image by
     /// more than [`SPOT_SHARE`].
     pub excluded: u64,
+    /// Of the channel samples fitted, those taken from a light position's frames other than its
+    /// anchor (other views of the same x_i, pooled by the `select` stage; before pooling,
+    /// selection dropped them). Counted by the pipeline, not by [`frame_samples`].
+    pub pooled: u64,
 }
 
 impl SampleCounts {
@@ -82,6 +86,7 @@ impl SampleCounts {
         self.saturated += o.saturated;
         self.non_finite += o.non_finite;
         self.excluded += o.excluded;
+        self.pooled += o.pooled;
     }
 }
 

@@ -79,6 +79,10 @@ pub struct Args {
     /// A vertex whose closest x_i is farther than this has no data (mm).
     #[arg(long, default_value_t = 2.0)]
     pub max_distance: f64,
+    /// Frames whose laser spots x_i lie within this distance (mm) are one light position, fitted
+    /// together (default: half the mesh's median edge length; 0: only identical x_i).
+    #[arg(long)]
+    pub pool_distance: Option<f64>,
     /// Fits with log E (Eq. 8) above this are failures, interpolated from neighbours.
     #[arg(long, default_value_t = 1.0)]
     pub max_log_e: f64,
@@ -93,6 +97,11 @@ pub struct Args {
     /// Convergence of the alpha rounds: RMS change of ln alpha between rounds.
     #[arg(long, default_value_t = 2e-3)]
     pub alpha_tolerance: f64,
+    /// Eq. 6's upper threshold t1 as a share of each light position's brightest sample: brighter
+    /// samples (near x_i, not yet multiple scattering) do not enter alpha ("inf", the default:
+    /// none).
+    #[arg(long, default_value_t = subsurf::pipeline::ALPHA_T1_SHARE)]
+    pub alpha_t1_share: f64,
     /// Largest disagreement between detected spot and laser ray (mm).
     #[arg(long, default_value_t = 2.0)]
     pub laser_tolerance: f64,
@@ -154,10 +163,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     opts.samples.exclusion_radius_mm = args.exclusion_radius;
     opts.max_select_mm = args.max_distance;
+    opts.pool_mm = args.pool_distance;
     opts.max_log_e = args.max_log_e;
     opts.outlier_factor = args.outlier_factor;
     opts.alpha_rounds = args.alpha_rounds;
     opts.alpha_tolerance = args.alpha_tolerance;
+    opts.alpha_window.t1_share = args.alpha_t1_share;
     if args.fixed_order {
         opts.order = None;
     }

@@ -837,15 +837,16 @@ pub fn fit_groups(
                             st.alpha = vec![[AlphaAccumulator::default(); 3]; nv];
                         }
                         for (ch, d) in data.iter().enumerate() {
+                            // Eq. 6 compares the captured sample with R_d.
+                            let captured = |x: &GroupSample| {
+                                alpha_div.map_or(x.s, |a| x.s * a[x.vertex as usize][ch])
+                            };
+                            // t1 relative to this light position's brightest sample.
+                            let s_max = d.iter().map(captured).fold(0.0, f64::max);
+                            let window = opts.alpha_window.for_light(s_max);
                             for x in d {
-                                // Eq. 6 compares the captured sample with R_d.
-                                let s = alpha_div.map_or(x.s, |a| x.s * a[x.vertex as usize][ch]);
                                 let ln_rd = g.model.ln_eval(x.r, x.phi)[ch];
-                                st.alpha[x.vertex as usize][ch].add_ln(
-                                    s,
-                                    ln_rd,
-                                    &opts.alpha_window,
-                                );
+                                st.alpha[x.vertex as usize][ch].add_ln(captured(x), ln_rd, &window);
                             }
                         }
                         st.counts.add(&counts);

@@ -195,14 +195,51 @@ fn nearest_fitted<'a, 'n>(
 }
 
 /// The distance grid on which fitted curves ln R_d(r) are interpolated between vertices.
+///
+/// Spaced geometrically from the smallest sampled distance (see [`spread`]): a near term
+/// c·e^{d·r} with |d| of several per mm changes ln R_d by |d|·Δr between grid points, so an even
+/// grid over the whole object's range (0.6 mm steps over 20 mm at 32 points) cut it to one or
+/// two points and the refit lost it; geometric steps are 0.04 mm at 0.5 mm and grow with r as
+/// the slower terms take over.
 struct CurveGrid {
     r: Vec<f64>,
 }
 
-/// Points of [`CurveGrid`] and of each refit.
-const GRID_POINTS: usize = 32;
-/// Points of the refit of an interpolated curve, spread over its sampled range.
+/// Points of [`CurveGrid`].
+const GRID_POINTS: usize = 48;
+/// Points of the refit of an interpolated curve, per half (see [`refit_points`]).
 const REFIT_POINTS: usize = 24;
+
+/// The distances at which an interpolated curve is refitted over its sampled range: the union
+/// of [`REFIT_POINTS`] spaced like the grid (the near terms, dense at r_min) and as many evenly
+/// spaced (the tail, where a light position's samples lie: their number grows with r).
+fn refit_points(range: [f64; 2]) -> Vec<f64> {
+    let [lo, hi] = range;
+    let mut rs = spread(lo, hi, REFIT_POINTS);
+    rs.extend((1..REFIT_POINTS - 1).map(|k| lo + (hi - lo) * k as f64 / (REFIT_POINTS - 1) as f64));
+    rs.sort_by(f64::total_cmp);
+    rs.dedup_by(|a, b| (*a - *b).abs() <= 1e-9 * b.abs().max(1.0));
+    rs
+}
+
+/// `points` distances from `lo` to `hi` whose steps grow geometrically away from `lo`:
+/// r_k = lo + h·((1 + (hi − lo)/h)^{k/(points−1)} − 1) with h = max(lo, (hi − lo)/1000), the
+/// geometric series lo·(hi/lo)^{k/(points−1)} when lo > 0 (equal steps in ln r, the scale on
+/// which the terms of Eq. 1 separate), kept finite when lo = 0.
+fn spread(lo: f64, hi: f64, points: usize) -> Vec<f64> {
+    let h = lo.max((hi - lo) / 1000.0).max(1e-9);
+    let q = 1.0 + (hi - lo) / h;
+    let last = (points.max(2) - 1) as f64;
+    (0..points.max(2))
+        .map(|k| {
+            if k as f64 == last {
+                hi
+            } else {
+                lo + h * (q.powf(k as f64 / last) - 1.0)
+            }
+        })
+        .collect()
+}
 
 impl CurveGrid {
     /// Spans every fitted vertex's sampled range.
@@ -212,13 +249,12 @@ impl CurveGrid {
             lo = lo.min(a);
             hi = hi.max(b);
         }
-        if !(lo.is_finite() && hi > lo) {
+        if !(lo.is_finite() && lo >= 0.0 && hi > lo) {
             (lo, hi) = (0.5, 10.0);
         }
-        let r = (0..GRID_POINTS)
-            .map(|k| lo + (hi - lo) * k as f64 / (GRID_POINTS - 1) as f64)
-            .collect();
-        CurveGrid { r }
+        CurveGrid {
+            r: spread(lo, hi, GRID_POINTS),
+        }
     }
 
     /// ln R_d of `f` at `r` under the model's support rule ([`crate::model::support`]).
@@ -257,12 +293,10 @@ impl CurveGrid {
     /// ln R_d of curve `k` of an encoding at `r` (piecewise linear between grid points; the end
     /// segments continue linearly).
     fn ln_at(&self, enc: &[f64], head: usize, k: usize, r: f64) -> f64 {
-        let g = &enc[head + k * self.r.len()..head + (k + 1) * self.r.len()];
         let n = self.r.len();
-        let step = (self.r[n - 1] - self.r[0]) / (n - 1) as f64;
-        let x = ((r - self.r[0]) / step).clamp(0.0, (n - 1) as f64);
-        let i = (x.floor() as usize).min(n - 2);
-        let t = (r - self.r[i]) / step;
+        let g = &enc[head + k * n..head + (k + 1) * n];
+        let i = self.r.partition_point(|&x| x <= r).clamp(1, n - 1) - 1;
+        let t = (r - self.r[i]) / (self.r[i + 1] - self.r[i]);
         g[i] + (g[i + 1] - g[i]) * t
     }
 
@@ -292,9 +326,7 @@ impl CurveGrid {
         if enc.len() != head + curves * self.r.len() {
             return None;
         }
-        let rs: Vec<f64> = (0..REFIT_POINTS)
-            .map(|k| range[0] + (range[1] - range[0]) * k as f64 / (REFIT_POINTS - 1) as f64)
-            .collect();
+        let rs = refit_points(range);
         let sets: Vec<(Vec<f64>, Vec<f64>)> = (0..curves)
             .map(|k| {
                 let s = rs
@@ -333,6 +365,8 @@ impl CurveGrid {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::fit::FitOptions;
+    use crate::model::Term;
 
     #[test]
     fn turning_segments_reindexes_every_block() {
@@ -365,5 +399,62 @@ mod tests {
         assert_eq!(turns.shift(2, 3, 8), 0, "no seam at |n_x| = 0.9");
         assert_eq!(turns.shift(4, 5, 8), 4);
         assert_eq!(turns.shift(4, 5, 1), 0);
+    }
+
+    /// A steep near term (decaying e-fold every 0.17 mm, the larger part of R_d below 1 mm)
+    /// survives the failed-vertex path: encoded on the grid of an object whose sampled
+    /// distances reach 20 mm, decoded and refitted, ln R_d is kept within 2 % over the vertex's
+    /// range, near x_i included. On an even 32-point grid (0.63 mm steps) the near term had two
+    /// grid points and two refit points, and the refit dropped it as unresolved.
+    #[test]
+    fn a_steep_near_term_survives_the_refit() {
+        let truth = ExpSum::new(vec![
+            Term { c: 20.0, d: -6.0 },
+            Term { c: 1.0, d: -1.0 },
+            Term { c: 0.05, d: -0.2 },
+        ])
+        .unwrap();
+        let model = ColourModel::Shared {
+            falloff: Anisotropic {
+                segments: vec![truth.clone()],
+            },
+            s_g: 0.5,
+            s_b: 0.25,
+        };
+        let range = [0.5, 15.0];
+        let grid = CurveGrid::of([range, [0.6, 20.0]].into_iter());
+        let shape = ModelShape {
+            terms: 3,
+            segments: 1,
+            colour: ColourMode::Shared,
+        };
+        let enc = grid.encode(&model, range, 1);
+        let mut dropped = Vec::new();
+        let (refit, got_range) = grid
+            .decode(&enc, &shape, 3, &FitOptions::default(), &mut dropped)
+            .unwrap();
+        assert!((got_range[0] - 0.5).abs() < 1e-9 && (got_range[1] - 15.0).abs() < 1e-9);
+        assert!(dropped.is_empty(), "{dropped:?}");
+        for r in [0.5, 0.6, 0.75, 0.9, 1.1, 1.5, 2.0, 5.0, 10.0, 15.0] {
+            let want = truth.ln_eval(r);
+            let got = refit.ln_eval(r, None);
+            assert!((got[0] - want).abs() < 0.02, "r {r}: {} vs {want}", got[0]);
+            assert!((got[2] - want - 0.25f64.ln()).abs() < 0.02);
+        }
+    }
+
+    #[test]
+    fn the_grid_is_dense_near_the_smallest_distance_and_spans_the_range() {
+        let g = spread(0.5, 20.0, GRID_POINTS);
+        assert_eq!(g.len(), GRID_POINTS);
+        assert_eq!((g[0], g[GRID_POINTS - 1]), (0.5, 20.0));
+        assert!(g.windows(2).all(|w| w[1] > w[0]));
+        assert!(g[1] - g[0] < 0.05);
+        // Equal steps in ln r.
+        let q = g[1] / g[0];
+        assert!(g.windows(2).all(|w| (w[1] / w[0] - q).abs() < 1e-9));
+        // From zero: finite, increasing.
+        let z = spread(0.0, 10.0, 8);
+        assert!(z[0] == 0.0 && z.windows(2).all(|w| w[1] > w[0]));
     }
 }

@@ -33,7 +33,9 @@ pub use fit::{
     Fitter, MIN_DECAY, MIN_SHARE, MIN_SUPPORT, SEGMENT_MAX_RATE_RATIO, unsupported_term,
 };
 pub use load::Context;
-pub use options::{MAX_SEGMENTS, ModelChoice, PipelineOptions, SEGMENT_LADDER, Segments};
+pub use options::{
+    ALPHA_T1_SHARE, MAX_SEGMENTS, ModelChoice, PipelineOptions, SEGMENT_LADDER, Segments,
+};
 pub use register::{RegisteredFrame, register_one};
 pub use report::{
     AlphaReport, AlphaRound, BASELINE_POOL, BaselineReport, FailReason, FitReport, FrameCounts,
@@ -86,6 +88,12 @@ pub fn fit_dataset(
             opts.model.segments
         )));
     }
+    let share = opts.alpha_window.t1_share;
+    if share.is_nan() || share <= 0.0 {
+        return Err(PipelineError::Invalid(format!(
+            "the Eq. 6 t1 share must be > 0 (inf: none), got {share}"
+        )));
+    }
     let mut report = FitReport {
         options: Some(*opts),
         mesh: ds.mesh_report.clone(),
@@ -104,7 +112,8 @@ pub fn fit_dataset(
     clock.lap("registration", &mut report);
     // "We select for each vertex in the mesh the closest light position x_i."
     let groups = select::select_groups(&ctx, &regs);
-    report.frames.fitted = groups.keys.len();
+    report.frames.fitted = groups.pooling.frames;
+    report.frames.pooling = groups.pooling;
     clock.lap("selection", &mut report);
     // Fit R_d per x_i (Eq. 1/3/5/9), with the modulation texture alpha (Eq. 6) in rounds.
     let fitted = fit::fit_groups(&ctx, &regs, &groups, fitter, progress);

@@ -16,6 +16,20 @@ pub struct ModelChoice {
     pub segments: usize,
 }
 
+/// Eq. 6's upper threshold t1 as a share of a light position's brightest sample (per channel,
+/// [`crate::model::IntensityWindow::for_light`]), by default none: t1 is meant to keep the near
+/// field of x_i (single scattering, first-surface light, "dominated by multiple scattering",
+/// section 4.2) out of alpha, but on every scan measured it either made no difference above the
+/// noise or made prediction worse, so it is off until a scan shows it pays (`--alpha-t1-share`).
+/// Held-out mean log E r / g / b, without t1 against share 0.3 / 0.1:
+/// sample-torus 0.385 / 0.568 / 0.360 against 0.385 / 0.564 / 0.357 and 0.392 / 0.570 / 0.356
+/// (0.03 and below left no sample in its window: its light positions span less than 1.5 decades
+/// above t2); sample-slab `--segments 8` 0.164 / 0.139 / 0.151 against 0.164 / 0.139 / 0.153;
+/// the anisotropic simulated slab of `fit_aniso` (red, m = 8) 0.232 against 0.343 with 0.3, its
+/// in-sample error 0.267 against 0.366 — in a simulation the near field is multiple scattering
+/// blurred by the pixels, and alpha needs it.
+pub const ALPHA_T1_SHARE: f64 = f64::INFINITY;
+
 /// Every setting of the pipeline.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
 pub struct PipelineOptions {
@@ -25,6 +39,11 @@ pub struct PipelineOptions {
     pub samples: SampleOptions,
     /// A vertex whose closest x_i is farther than this (mm) has no data.
     pub max_select_mm: f64,
+    /// Frames whose x_i agree within this distance (mm) are one light position and are fitted
+    /// together (section 5: "all images in which a particular location on the object was
+    /// illuminated"); `None`: half the mesh's median edge length
+    /// ([`super::select::default_pool_mm`]); 0 pools only identical x_i.
+    pub pool_mm: Option<f64>,
     /// The model variant; its `segments` is the largest m a light position may use.
     pub model: ModelChoice,
     /// "Model only what the scene requires", per light position: n (up to the fitter's) and m
@@ -37,7 +56,8 @@ pub struct PipelineOptions {
     /// [`super::OUTLIER_MIN_LOG_E`]) fail too: outliers, interpolated from neighbours;
     /// `f64::INFINITY` disables the rule.
     pub outlier_factor: f64,
-    /// Eq. 6 window [t2, t1] for alpha(x_o).
+    /// Eq. 6 window (t2, t1) for alpha(x_o): t2 from the noise floor, t1 relative to each light
+    /// position's brightest sample ([`ALPHA_T1_SHARE`]).
     pub alpha_window: IntensityWindow,
     /// Eq. 8 threshold t.
     pub error_threshold: f64,
@@ -67,6 +87,7 @@ impl PipelineOptions {
                 ..SampleOptions::default()
             },
             max_select_mm: 2.0,
+            pool_mm: None,
             model: ModelChoice {
                 colour: ColourMode::Shared,
                 segments: 1,
@@ -77,6 +98,7 @@ impl PipelineOptions {
             alpha_window: IntensityWindow {
                 t2: 0.0,
                 t1: f64::INFINITY,
+                t1_share: ALPHA_T1_SHARE,
             },
             error_threshold: 0.0,
             alpha_rounds: 8,

@@ -59,8 +59,11 @@ pub struct FrameCounts {
     pub unreadable: usize,
     /// The first few read errors, verbatim.
     pub unreadable_errors: Vec<String>,
-    /// Frames some vertex selected (fits run).
+    /// Registered frames whose samples some fit uses (every frame of a light position some
+    /// vertex selected).
     pub fitted: usize,
+    /// How the registered frames were pooled into light positions.
+    pub pooling: super::select::Pooling,
 }
 
 /// Table-1 statistics of log E(x_i) over the fitted light positions, per channel.

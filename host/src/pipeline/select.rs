@@ -1,13 +1,17 @@
-//! Stage `select` (section 5: "we select for each vertex in the mesh the closest light position
-//! x_i"): vertices that chose the same registered frame per channel form a group and share one
-//! fit; a group's samples are read from those frames.
+//! Stage `select` (section 5: "data is then collected from all images in which a particular
+//! location on the object was illuminated yielding an incident light position x_i [...] we select
+//! for each vertex in the mesh the closest light position x_i"): registered frames whose x_i agree
+//! within the pooling tolerance form one light position ([`crate::selection::pool`]); vertices
+//! that chose the same light position per channel form a group and share one fit; a group's
+//! samples are read from every frame of its light positions.
 //!
 //! Owns which samples a fit sees (and in which direction φ around x_i each lies); never fits.
 use std::collections::BTreeMap;
 
+use crate::geometry::{Scene, dist};
 use crate::model::TangentFrame;
 use crate::samples::SampleCounts;
-use crate::selection::{Light, select};
+use crate::selection::{Light, pool, select};
 
 use super::load::Context;
 use super::register::RegisteredFrame;
@@ -32,18 +36,76 @@ pub struct GroupSample {
 /// A group's samples per colour channel r, g, b.
 pub type ChannelSamples = [Vec<GroupSample>; 3];
 
-/// The selection: groups of vertices sharing their closest light per channel.
+/// The light positions a group selected, per channel: the registered frames pooled into each.
+#[derive(Debug, Clone, Default, PartialEq, Eq, PartialOrd, Ord)]
+pub struct GroupKey {
+    /// Per channel: indices into the registered frames of the light position that channel
+    /// selected (every member frame; a frame contributes only the channels it measured).
+    pub frames: [Vec<u32>; 3],
+    /// Per channel: the member frame whose x_i is closest to the light position's mean (for the
+    /// red channel's, the tangent frame at x_i is taken there).
+    pub anchors: [u32; 3],
+}
+
+/// The selection: groups of vertices sharing their closest light position per channel.
 #[derive(Debug, Clone, Default)]
 pub struct Groups {
-    /// Per group: the index into the registered frames of its light, per channel.
-    pub keys: Vec<[u32; 3]>,
+    /// Per group: the frames of its light positions, per channel.
+    pub keys: Vec<GroupKey>,
     /// Per group: its vertices.
     pub members: Vec<Vec<u32>>,
     /// Per vertex: no light within the selection distance for some channel.
     pub no_data: Vec<bool>,
+    /// How the registered frames were pooled into light positions.
+    pub pooling: Pooling,
 }
 
-/// Selects for every vertex its closest registered light per channel (within
+/// What pooling did (reported in `fit-report.json`, `frames.pooling`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct Pooling {
+    /// Frames whose x_i lie within this distance (mm) of a light position's first frame joined it.
+    pub tolerance_mm: f64,
+    /// Light positions some group uses.
+    pub light_positions: usize,
+    /// Registered frames some group uses.
+    pub frames: usize,
+    /// Of those, frames that share their light position with another frame (before pooling,
+    /// selection kept only the frame closest to each vertex and dropped the others' samples).
+    pub pooled_frames: usize,
+}
+
+/// The default pooling tolerance: half the mesh's median edge length, at most `max_select_mm`.
+///
+/// The model lives on the mesh's vertices, so the mesh resolves light positions only to about
+/// an edge: frames whose x_i are closer than half an edge would be selected by the same or
+/// adjacent vertices, each fitting a share of the samples of what is, at the model's resolution,
+/// one light position. Every sample keeps its own frame's x_i for |x_o − x_i|, so pooling moves
+/// no distance; it only moves where the joint fit is stored, by less than the selection
+/// already does (a vertex takes its closest x_i up to `max_select_mm` away). On sample-torus
+/// (edges 0.6–2.0 mm, median ~1.3) the inner ring is lit from three turntable angles at points
+/// 0.23–0.25 mm apart, pooled; the next-closest spots are 1.29 mm apart (an edge) and stay apart.
+pub fn default_pool_mm(scene: &Scene, max_select_mm: f64) -> f64 {
+    let pos = &scene.mesh.positions;
+    let mut edges: Vec<f64> = (0..pos.len())
+        .flat_map(|v| {
+            scene
+                .neighbours(v)
+                .iter()
+                .filter(move |&&w| (w as usize) > v)
+                .map(move |&w| dist(pos[v], pos[w as usize]))
+        })
+        .filter(|e| e.is_finite())
+        .collect();
+    if edges.is_empty() {
+        return 0.0;
+    }
+    let mid = edges.len() / 2;
+    let (_, median, _) = edges.select_nth_unstable_by(mid, f64::total_cmp);
+    (0.5 * *median).min(max_select_mm).max(0.0)
+}
+
+/// Pools the registered frames into light positions (tolerance `pool_mm`, else
+/// [`default_pool_mm`]), selects for every vertex its closest light position per channel (within
 /// `max_select_mm`) and groups the vertices by that choice, in a deterministic order.
 pub fn select_groups(ctx: &Context, regs: &[RegisteredFrame]) -> Groups {
     let lights: Vec<Light> = regs
@@ -54,7 +116,20 @@ pub fn select_groups(ctx: &Context, regs: &[RegisteredFrame]) -> Groups {
             channels: r.channels,
         })
         .collect();
-    let sel = select(&ctx.ds.mesh.positions, &lights, ctx.opts.max_select_mm);
+    let tolerance_mm = ctx
+        .opts
+        .pool_mm
+        .unwrap_or_else(|| default_pool_mm(&ctx.scene, ctx.opts.max_select_mm));
+    let pooled = pool(&lights, tolerance_mm);
+    let positions: Vec<Light> = pooled
+        .iter()
+        .map(|p| Light {
+            frame: p.anchor as usize,
+            x_i: p.x_i,
+            channels: p.channels,
+        })
+        .collect();
+    let sel = select(&ctx.ds.mesh.positions, &positions, ctx.opts.max_select_mm);
     let mut groups: BTreeMap<[u32; 3], Vec<u32>> = BTreeMap::new();
     let mut no_data = vec![false; sel.len()];
     for (v, s) in sel.iter().enumerate() {
@@ -63,37 +138,64 @@ pub fn select_groups(ctx: &Context, regs: &[RegisteredFrame]) -> Groups {
             _ => no_data[v] = true,
         }
     }
-    let (keys, members) = groups.into_iter().unzip();
+    let mut used = vec![false; pooled.len()];
+    let mut keys = Vec::with_capacity(groups.len());
+    let mut members = Vec::with_capacity(groups.len());
+    for (key, verts) in groups {
+        for &l in &key {
+            used[l as usize] = true;
+        }
+        keys.push(GroupKey {
+            frames: key.map(|l| pooled[l as usize].members.clone()),
+            anchors: key.map(|l| pooled[l as usize].anchor),
+        });
+        members.push(verts);
+    }
+    let used_lights = pooled.iter().zip(&used).filter(|(_, u)| **u);
+    let pooling = Pooling {
+        tolerance_mm,
+        light_positions: used_lights.clone().count(),
+        frames: used_lights.clone().map(|(p, _)| p.members.len()).sum(),
+        pooled_frames: used_lights
+            .map(|(p, _)| p.members.len())
+            .filter(|&n| n > 1)
+            .sum(),
+    };
     Groups {
         keys,
         members,
         no_data,
+        pooling,
     }
 }
 
-/// The samples of the group with lights `key`: each distinct frame read once, channel c taken
-/// from the frame channel c selected, directions φ in the tangent frame at the red light's x_i.
+/// The samples of the group with light positions `key`: each distinct frame read once, channel
+/// c taken from the frames of the light position channel c selected (every view of that x_i,
+/// each sample at the distance from its own frame's x_i), directions φ in the tangent frame at
+/// the red light position's anchor. `SampleCounts::pooled` counts the channel samples taken
+/// from frames other than a light position's anchor.
 pub fn group_samples(
     ctx: &Context,
     regs: &[RegisteredFrame],
-    key: &[u32; 3],
+    key: &GroupKey,
 ) -> Result<(ChannelSamples, SampleCounts), FailReason> {
     let mut data: ChannelSamples = Default::default();
     let mut counts = SampleCounts::default();
-    let red = regs[key[0] as usize];
+    let red = regs[key.anchors[0] as usize];
     let frame = TangentFrame::from_normal(ctx.normal_at(red.triangle, red.x_i))
         .map_err(|_| FailReason::NonPhysical)?;
-    let mut distinct = key.to_vec();
+    let mut distinct: Vec<u32> = key.frames.iter().flatten().copied().collect();
     distinct.sort_unstable();
     distinct.dedup();
     for l in distinct {
         let reg = &regs[l as usize];
         let (s, c) = ctx.samples(reg).map_err(|_| FailReason::FrameUnreadable)?;
         counts.add(&c);
+        let takes: [bool; 3] = [0, 1, 2].map(|ch| key.frames[ch].contains(&l));
         for x in s {
             let (_, phi) = frame.polar(reg.x_i, ctx.ds.mesh.positions[x.vertex as usize]);
             for (ch, slot) in data.iter_mut().enumerate() {
-                if key[ch] == l && x.valid & (1 << ch) != 0 {
+                if takes[ch] && x.valid & (1 << ch) != 0 {
                     slot.push(GroupSample {
                         r: x.r,
                         s: x.value[ch],
@@ -101,6 +203,7 @@ pub fn group_samples(
                         frame: l,
                         phi,
                     });
+                    counts.pooled += u64::from(key.anchors[ch] != l);
                 }
             }
         }

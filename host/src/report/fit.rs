@@ -53,6 +53,14 @@ pub fn counts_table(r: &FitReport) -> Table {
         ])
         .row(["  used by a fit".to_string(), fmt::count(f.fitted)])
         .row([
+            "  light positions / frames sharing one".to_string(),
+            format!(
+                "{} / {}",
+                fmt::count(f.pooling.light_positions),
+                fmt::count(f.pooling.pooled_frames)
+            ),
+        ])
+        .row([
             "  no spot / off object / laser mismatch / unreadable".to_string(),
             format!(
                 "{} / {} / {} / {}",
@@ -65,6 +73,10 @@ pub fn counts_table(r: &FitReport) -> Table {
         .row([
             "channel samples used".to_string(),
             fmt::count(r.samples.used as usize),
+        ])
+        .row([
+            "  from other views of an x_i (pooled)".to_string(),
+            fmt::count(r.samples.pooled as usize),
         ])
         .row([
             "  dropped: below noise / clipped / near x_i".to_string(),

@@ -5,18 +5,51 @@ use serde::{Deserialize, Serialize};
 
 /// The window X = {x_o | t1 > s(x_i, x_o) > t2} of Eq. 6: samples dominated by multiple
 /// scattering, bright enough that camera noise is small, not saturated.
+///
+/// Section 4.2: "using all samples X within a medium intensity range [...] The scattering
+/// behavior of these samples is dominated by multiple scattering and camera noise is still at a
+/// minimum." t2 bounds the noise from below, so it is absolute (a multiple of the camera's noise
+/// floor). t1 bounds from above the samples whose light is not yet multiple scattering: single
+/// scattering and first-surface light near x_i, and the laser spot's own light spread in the
+/// image. How bright those are scales with the light reaching x_i, which varies from light
+/// position to light position (the laser's incidence on a curved object, the albedo at x_i), so
+/// t1 is taken relative to each light position's brightest sample per channel:
+/// t1(x_i) = min(`t1`, `t1_share` · max_o s(x_i, x_o)) ([`IntensityWindow::for_light`]).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct IntensityWindow {
-    /// Lower threshold t2 (exclusive).
+    /// Lower threshold t2 (exclusive), absolute radiance.
     pub t2: f64,
-    /// Upper threshold t1 (exclusive).
+    /// Upper threshold t1 (exclusive), absolute radiance (`f64::INFINITY`: none).
     pub t1: f64,
+    /// Upper threshold t1 relative to the light position's brightest sample in the channel
+    /// (`f64::INFINITY`: none); see [`IntensityWindow::for_light`].
+    #[serde(default = "no_share")]
+    pub t1_share: f64,
+}
+
+fn no_share() -> f64 {
+    f64::INFINITY
 }
 
 impl IntensityWindow {
     /// Whether sample value s lies strictly inside (t2, t1).
     pub fn contains(&self, s: f64) -> bool {
         s > self.t2 && s < self.t1
+    }
+
+    /// The absolute window of one light position whose brightest sample (in the channel) is
+    /// `s_max`: t1 lowered to `t1_share · s_max`. A non-finite or non-positive `s_max` leaves
+    /// the window as it is.
+    pub fn for_light(&self, s_max: f64) -> IntensityWindow {
+        let rel = self.t1_share * s_max;
+        IntensityWindow {
+            t1: if s_max.is_finite() && s_max > 0.0 && rel.is_finite() {
+                self.t1.min(rel)
+            } else {
+                self.t1
+            },
+            ..*self
+        }
     }
 }
 
@@ -164,7 +197,11 @@ mod tests {
 
     #[test]
     fn geometric_mean_of_ratios_inside_window_only_shrunk_to_one() {
-        let w = IntensityWindow { t2: 0.1, t1: 10.0 };
+        let w = IntensityWindow {
+            t2: 0.1,
+            t1: 10.0,
+            t1_share: f64::INFINITY,
+        };
         let a = alpha(
             [
                 (1.0, 0.5),
@@ -190,6 +227,7 @@ mod tests {
         let w = IntensityWindow {
             t2: 0.0,
             t1: f64::INFINITY,
+            t1_share: f64::INFINITY,
         };
         // A small deterministic generator (no rand dependency in this crate): xorshift + Box-Muller.
         let mut state = 0x9e37_79b9_7f4a_7c15u64;
@@ -239,11 +277,41 @@ mod tests {
         assert_eq!(empirical_prior(std::iter::empty()), ALPHA_PRIOR);
     }
 
+    /// Both sides of Eq. 6's window: t2 absolute, t1 the smaller of the absolute bound and the
+    /// share of the light position's brightest sample.
+    #[test]
+    fn the_window_has_both_thresholds() {
+        let w = IntensityWindow {
+            t2: 0.01,
+            t1: 5.0,
+            t1_share: 0.1,
+        };
+        let bright = w.for_light(20.0);
+        assert_eq!(bright.t1, 2.0);
+        assert!(bright.contains(1.9) && !bright.contains(2.0) && !bright.contains(0.01));
+        // A dim light position: the absolute bound is above its share, its share applies.
+        assert_eq!(w.for_light(1.0).t1, 0.1 * 1.0);
+        // A very bright one: the absolute bound applies.
+        assert_eq!(w.for_light(1000.0).t1, 5.0);
+        // No brightest sample: unchanged.
+        assert_eq!(w.for_light(f64::NAN), w);
+        assert_eq!(w.for_light(0.0), w);
+        let off = IntensityWindow {
+            t1_share: f64::INFINITY,
+            ..w
+        };
+        assert_eq!(off.for_light(20.0).t1, 5.0);
+        // Reports written before t1_share read with it off.
+        let old: IntensityWindow = serde_json::from_str(r#"{"t2":0.5,"t1":2.0}"#).unwrap();
+        assert_eq!(old.t1_share, f64::INFINITY);
+    }
+
     #[test]
     fn many_samples_recover_a_constant_ratio_and_underflow_is_fine() {
         let w = IntensityWindow {
             t2: 0.0,
             t1: f64::INFINITY,
+            t1_share: f64::INFINITY,
         };
         let mut acc = AlphaAccumulator::default();
         for _ in 0..100_000 {
