@@ -69,12 +69,10 @@ fn noise_free_sphere_predicts_held_out_frames_near_the_floor() {
         let (f, g) = (fitted.mean[c].unwrap(), floor.mean[c].unwrap());
         eprintln!("channel {c}: held-out mean log E fitted {f:.4}, ground truth {g:.4}");
         // Since samples lit by the laser spot's light and grazing samples are dropped (scanfit,
-        // samples.rs), the floor is ~0.0015 instead of ~0.02. The fit's own error dominates (it
-        // was ~0.035; with every view of an x_i pooled into one light position and the curve
-        // grid of the interpolation dense near x_i, ~0.006): the bound is on the fitted model,
-        // the floor must stay below it and tiny.
+        // samples.rs), the floor is ~0.0015 instead of ~0.02 and the fit's own error (~0.035)
+        // dominates: the bound is on the fitted model, the floor must stay far below it.
         assert!(
-            f < 0.05 && g <= f && g < 0.005,
+            f < 0.05 && g < 0.25 * f,
             "channel {c}: fitted {f} vs ground truth {g}"
         );
         let (fm, gm) = (fitted.median[c].unwrap(), floor.median[c].unwrap());
