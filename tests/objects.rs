@@ -96,16 +96,27 @@ fn validation_holds_out_whole_turntable_angles() {
 }
 
 /// A sparse simulated turntable scan (`subsurf simulate --object torus --vertices 600 --angles 4
-/// --raster 5 --size 96 --anisotropy 0`: four angles, 25 laser targets each, most missing the
-/// ring), whole turntable angles held out (`validate::holdout`). The fitted model, with each
-/// light position's order chosen from its samples, must predict the held-out frames about as
-/// well as the homogeneous baseline alone (see the bound below), and stay within 2.5x of the floor (the ground truth's own
-/// error on the same frames, from pixel noise and registration; isotropic material, so the
-/// ground-truth model is exact). Before the baseline became the smallest candidate of the
-/// per-vertex order choice, the fit predicted the held-out angle worse than the baseline alone
-/// (red 0.215 against 0.188; floor 0.183).
+/// --raster 5 --size 96 --anisotropy 0`, with the field's own seed 1: four angles, 25 laser
+/// targets each, most missing the ring), whole turntable angles held out (`validate::holdout`).
+/// The fitted model, with each light position's order chosen from its samples, must predict the
+/// held-out frames no worse than the homogeneous baseline alone (issue 11: "never worse than the
+/// simplest honest model"), and stay within 2.5x of the floor (the ground truth's own error on
+/// the same frames, from pixel noise and registration; isotropic material, so the ground-truth
+/// model is exact).
+///
+/// Why it was worse (1.09x/1.08x/1.10x the baseline, r/g/b): four of every five vertices of a
+/// turntable scan this sparse have no light position of their own and are interpolated, and the
+/// interpolation's refit lost the near term: on an even distance grid over the whole object's
+/// range the term that carries R_d below 2 mm had two grid points and was dropped as
+/// unresolved, so an interpolated vertex kept one or two terms, a straight line in ln R_d that
+/// was 0.7 too high at 4 mm (measured frame by frame against the ground truth; the fitted
+/// vertices, the alpha texture (Eq. 6 shrank it to 1 here) and the fallback beyond r_max were
+/// not it). With the geometric curve grid of `pipeline::interpolate` the fitted model is below
+/// the baseline on every channel (0.96x/0.99x/0.99x); beyond 2 mm from x_i its squared log
+/// error is a fifth below the baseline's, and what is left is the laser spot's glow within 2 mm,
+/// which no subsurface model describes (the ground truth is further off there than either).
 #[test]
-fn sparse_simulated_torus_is_near_the_baseline_and_the_floor() {
+fn sparse_simulated_torus_is_no_worse_than_the_baseline_and_near_the_floor() {
     use subsurf::modelfile::ModelFile;
     use subsurf::simulate::{SimConfig, SimObject, simulate};
     let tmp = tempfile::tempdir().unwrap();
@@ -157,14 +168,7 @@ fn sparse_simulated_torus_is_near_the_baseline_and_the_floor() {
         })
         .collect();
     for (c, &(f, b, g)) in rows.iter().enumerate() {
-        // Issue 11 asks for f <= b. Not met on this scan: measured r/g/b 0.204/0.216/0.243
-        // against the baseline's 0.188/0.192/0.220 (1.09x/1.13x/1.10x; floor 0.183/0.202/0.238;
-        // red was 0.215 before the baseline became a candidate of the order choice). The bound
-        // holds the gap where it is until its cause is found.
-        assert!(
-            f <= 1.15 * b,
-            "channel {c}: fitted {f} above 1.15x the baseline's {b}"
-        );
+        assert!(f <= b, "channel {c}: fitted {f} above the baseline's {b}");
         assert!(f <= 2.5 * g, "channel {c}: fitted {f} vs floor {g}");
     }
 }

@@ -282,6 +282,19 @@ pub fn spot_visible(scene: &Scene, camera: &Camera, deg: f64, hit: &Hit) -> bool
 /// A frame whose `laser` ray hits the mesh where the camera cannot see it ([`spot_visible`]) has
 /// [`RegistrationOutcome::NoSpot`]: whatever is brightest in it is scattered light, not the spot,
 /// and would be registered up to the laser tolerance away from the true x_i.
+///
+/// Measured on `shared/data/sample-torus` (issue 11): of its 96 training frames 24 have a laser
+/// ray that misses the mesh and 16 a hit the camera cannot see — none of them for the grazing
+/// limit (cos θ = 0.64 at every one) but because the near tube hides the hit: the line of sight
+/// from the camera meets the near tube 16.8 mm before the hit. Their brightest pixel is the spot's
+/// glow past the near tube's limb and back-projects within 0.32–0.35 mm of the laser's hit (the
+/// registered frames: median 0.16 mm, at most 0.37 mm), so they *could* be registered, with x_i
+/// either from the glow or from the laser ray. Both made the model worse: held-out mean log E
+/// (frames 96–103, green) 0.568 without them, 0.637 with x_i from the laser ray, 0.642 with x_i
+/// from the glow; the homogeneous baseline's in-sample log E rose from 0.66 to 1.03, i.e. their
+/// samples (the far tube seen past the near one's silhouette, next to a half-hidden spot whose
+/// light the spot exclusion cannot model) disagree with every other frame's. So a hidden hit
+/// stays `NoSpot`.
 pub fn register_frame(
     img: &Image,
     frame: &FrameSpec,
