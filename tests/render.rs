@@ -335,7 +335,10 @@ fn fit_evaluation_and_render_share_the_tangent_frame_on_a_curved_scan() {
     use subsurf::evaluate::model_at;
     use subsurf::model::TangentFrame;
     use subsurf::modelfile::ModelFile;
-    use subsurf::pipeline::{Context, PipelineOptions, register_one, select::group_samples};
+    use subsurf::pipeline::{
+        Context, PipelineOptions, register_one,
+        select::{GroupKey, group_samples},
+    };
     use subsurf::simulate::{SimConfig, SimObject, simulate};
     let tmp = tempfile::tempdir().unwrap();
     let cfg = SimConfig::for_object(
@@ -365,7 +368,11 @@ fn fit_evaluation_and_render_share_the_tangent_frame_on_a_curved_scan() {
     let mut compared = 0;
     let mut tilted = 0;
     for (i, reg) in regs.iter().enumerate() {
-        let key = [i as u32; 3];
+        // One frame per light position: the anchor is the frame itself.
+        let key = GroupKey {
+            frames: std::array::from_fn(|_| vec![i as u32]),
+            anchors: [i as u32; 3],
+        };
         let (samples, _) = group_samples(&ctx, &regs, &key).unwrap();
         let at = model_at(&ctx, &model, reg.triangle, reg.x_i).unwrap();
         if at.frame.n[2].abs() < 0.9 {
