@@ -207,20 +207,8 @@ struct CurveGrid {
 
 /// Points of [`CurveGrid`].
 const GRID_POINTS: usize = 48;
-/// Points of the refit of an interpolated curve, per half (see [`refit_points`]).
-const REFIT_POINTS: usize = 24;
-
-/// The distances at which an interpolated curve is refitted over its sampled range: the union
-/// of [`REFIT_POINTS`] spaced like the grid (the near terms, dense at r_min) and as many evenly
-/// spaced (the tail, where a light position's samples lie: their number grows with r).
-fn refit_points(range: [f64; 2]) -> Vec<f64> {
-    let [lo, hi] = range;
-    let mut rs = spread(lo, hi, REFIT_POINTS);
-    rs.extend((1..REFIT_POINTS - 1).map(|k| lo + (hi - lo) * k as f64 / (REFIT_POINTS - 1) as f64));
-    rs.sort_by(f64::total_cmp);
-    rs.dedup_by(|a, b| (*a - *b).abs() <= 1e-9 * b.abs().max(1.0));
-    rs
-}
+/// Points of the refit of an interpolated curve, spread over its sampled range like the grid.
+const REFIT_POINTS: usize = 32;
 
 /// `points` distances from `lo` to `hi` whose steps grow geometrically away from `lo`:
 /// r_k = lo + h·((1 + (hi − lo)/h)^{k/(points−1)} − 1) with h = max(lo, (hi − lo)/1000), the
@@ -326,7 +314,7 @@ impl CurveGrid {
         if enc.len() != head + curves * self.r.len() {
             return None;
         }
-        let rs = refit_points(range);
+        let rs = spread(range[0], range[1], REFIT_POINTS);
         let sets: Vec<(Vec<f64>, Vec<f64>)> = (0..curves)
             .map(|k| {
                 let s = rs
