@@ -83,8 +83,12 @@ const MAX_COLUMNS: usize = 5;
 /// otherwise the whole file is one curve (id `None`).
 pub fn parse(text: &str, batch: bool) -> Result<Vec<Curve>, CurvesError> {
     let mut p = Parser::new(batch);
-    for (i, line) in text.as_bytes().split(|&b| b == b'\n').enumerate() {
-        p.line(i + 1, line)?;
+    let bytes = text.as_bytes();
+    // Complete lines in one block, then the last line (no newline after it) on its own.
+    let complete = memchr::memrchr(b'\n', bytes).map_or(0, |at| at + 1);
+    let lines = p.block(0, &bytes[..complete])?;
+    if complete < bytes.len() {
+        p.line(lines + 1, &bytes[complete..])?;
     }
     p.finish()
 }
@@ -142,15 +146,11 @@ pub fn read(mut reader: impl std::io::Read, batch: bool) -> Result<Vec<Curve>, R
             return Ok(p.finish()?);
         }
         // Complete lines in buf[..filled]; only the fresh bytes can hold new newlines.
-        let mut start = 0;
-        let mut from = scanned;
-        while let Some(at) = memchr::memchr(b'\n', &buf[from..filled]) {
-            let end = from + at;
-            line_no += 1;
-            p.line(line_no, &buf[start..end])?;
-            start = end + 1;
-            from = start;
-        }
+        let start = match memchr::memrchr(b'\n', &buf[scanned..filled]) {
+            Some(at) => scanned + at + 1,
+            None => 0,
+        };
+        line_no += p.block(line_no, &buf[..start])?;
         buf.copy_within(start..filled, 0);
         filled -= start;
     }
@@ -165,6 +165,11 @@ struct Parser {
     index: HashMap<String, usize>,
     /// Rows of one id usually come together: the last curve written, to skip the map lookup.
     last: Option<usize>,
+    /// The last curve's id followed by `,` as the low bytes of a little-endian word, the mask
+    /// of those bytes and their count, when they fit in one word (ids of up to 7 bytes): a row
+    /// of that curve is then recognised by one load and one compare. Outside batch files the
+    /// key is empty (mask 0) and matches every row.
+    key: Option<(u64, u64, usize)>,
 }
 
 impl Parser {
@@ -175,6 +180,7 @@ impl Parser {
             curves: Vec::new(),
             index: HashMap::new(),
             last: None,
+            key: None,
         }
     }
 
@@ -185,26 +191,80 @@ impl Parser {
         Ok(self.curves)
     }
 
-    /// One line (without its `\n`; a `\r` before it is whitespace), 1-based number `line_no`.
+    /// Every line of `text`, which holds complete lines only (each ends in `\n`), the first one
+    /// numbered `line_no + 1`; returns how many there were. Data rows in the usual form (no
+    /// blanks, no comment) are read in one pass over their bytes, which also finds the end of
+    /// the line: a row of the last curve by one compare of its id ([`Parser::key`]), its numbers
+    /// by [`fast_values`]. Everything else goes through [`Parser::line`].
+    fn block(&mut self, line_no: usize, text: &[u8]) -> Result<usize, CurvesError> {
+        let (mut at, mut count) = (0, 0);
+        while at < text.len() {
+            count += 1;
+            if let Some(ch) = self.channels {
+                if let Some(k) = self.last
+                    && let Some((key, mask, len)) = self.key
+                    && word(text, at) & mask == key
+                    && let Some((values, next)) = fast_values(text, at + len, ch + 1)
+                {
+                    let c = &mut self.curves[k];
+                    c.r.push(values[0]);
+                    for (dst, v) in c.channels.iter_mut().zip(&values[1..]) {
+                        dst.push(*v);
+                    }
+                    at = next;
+                    continue;
+                }
+                if let Some((id, from)) = fast_id(text, at, self.batch)
+                    && let Some((values, next)) = fast_values(text, from, ch + 1)
+                {
+                    let k = self.curve_for(line_no + count, id, ch)?;
+                    let c = &mut self.curves[k];
+                    c.r.push(values[0]);
+                    for (dst, v) in c.channels.iter_mut().zip(&values[1..]) {
+                        dst.push(*v);
+                    }
+                    at = next;
+                    continue;
+                }
+            }
+            let end = memchr::memchr(b'\n', &text[at..]).map_or(text.len(), |k| at + k);
+            self.line(line_no + count, &text[at..end])?;
+            at = end + 1;
+        }
+        Ok(count)
+    }
+
+    /// One line (without its `\n`; a `\r` before it is whitespace), 1-based number `line_no`,
+    /// by the general path: the header, comments, blank lines, unusual spacing and errors.
     fn line(&mut self, line_no: usize, raw: &[u8]) -> Result<(), CurvesError> {
         let Some(ch) = self.channels else {
             return self.header_line(line_no, raw);
         };
+        let expected = ch + 1 + usize::from(self.batch);
+        match slow_row(line_no, raw, self.batch, expected)? {
+            Some((id, values)) => self.push(line_no, id, &values, ch),
+            None => Ok(()),
+        }
+    }
+
+    /// Appends a data row to its id's curve.
+    #[inline]
+    fn push(
+        &mut self,
+        line_no: usize,
+        id: &[u8],
+        values: &[f64; MAX_COLUMNS],
+        ch: usize,
+    ) -> Result<(), CurvesError> {
         let first = usize::from(self.batch);
-        let expected = ch + 1 + first;
-        // The fast path reads well-formed rows; anything else (blank lines, comments, errors,
-        // unusual spacing) goes through the general path, which also words the errors.
-        let (id, values) = match fast_row(raw, self.batch, expected) {
-            Some(row) => row,
-            None => match slow_row(line_no, raw, self.batch, expected)? {
-                Some(row) => row,
-                None => return Ok(()),
-            },
-        };
         let at = self.curve_for(line_no, id, ch)?;
         let c = &mut self.curves[at];
         c.r.push(values[first]);
-        for (dst, v) in c.channels.iter_mut().zip(&values[first + 1..expected]) {
+        for (dst, v) in c
+            .channels
+            .iter_mut()
+            .zip(&values[first + 1..first + 1 + ch])
+        {
             dst.push(*v);
         }
         Ok(())
@@ -255,6 +315,18 @@ impl Parser {
             }
         };
         self.last = Some(k);
+        // The key of [`Parser::block`]'s one-compare path: the id and its comma in one word
+        // (outside batch files there is no id and every row is this curve's).
+        let key_len = if self.batch { id.len() + 1 } else { 0 };
+        self.key = (key_len <= 8).then(|| {
+            let mut bytes = [0u8; 8];
+            bytes[..id.len()].copy_from_slice(id);
+            if self.batch {
+                bytes[id.len()] = b',';
+            }
+            let mask = u64::MAX.checked_shr(64 - 8 * key_len as u32).unwrap_or(0);
+            (u64::from_le_bytes(bytes) & mask, mask, key_len)
+        });
         Ok(k)
     }
 }
@@ -271,61 +343,43 @@ fn strip_comment(line: &str) -> &str {
 /// A data row: the id's bytes (empty outside batch files) and the values by column.
 type Row<'a> = (&'a [u8], [f64; MAX_COLUMNS]);
 
-/// Spaces and tabs (and the `\r` of CRLF files) around fields.
-fn is_blank(b: u8) -> bool {
-    b == b' ' || b == b'\t' || b == b'\r'
+/// The id of a batch row in the usual form at `text[at..]` (no blanks, no `#`, followed by a
+/// comma) and where its first number starts; outside batch files an empty id at `at`.
+#[inline]
+fn fast_id(text: &[u8], at: usize, batch: bool) -> Option<(&[u8], usize)> {
+    if !batch {
+        return Some((&[], at));
+    }
+    let mut i = at;
+    while i < text.len() && !matches!(text[i], b',' | b'\n' | b'#' | b' ' | b'\t' | b'\r') {
+        i += 1;
+    }
+    (i > at && text.get(i) == Some(&b',')).then(|| (&text[at..i], i + 1))
 }
 
-/// A well-formed row without a comment: `expected` comma-separated fields, numbers after the id,
-/// ASCII blanks around fields. One pass over the bytes, no allocation. `None` for anything
-/// else, which [`slow_row`] then reads or rejects.
-fn fast_row(line: &[u8], batch: bool, expected: usize) -> Option<Row<'_>> {
-    let mut values = [0.0f64; MAX_COLUMNS];
-    let mut at = 0;
-    let mut id: &[u8] = &[];
-    let mut col = 0;
-    if batch {
-        let comma = memchr::memchr(b',', line)?;
-        id = trim_blank(&line[..comma]);
-        if id.is_empty() || id.contains(&b'#') {
-            return None;
-        }
-        at = comma + 1;
-        col = 1;
-    }
-    while col < expected {
-        while at < line.len() && is_blank(line[at]) {
-            at += 1;
-        }
-        let (v, used) = number_prefix(&line[at..])?;
-        values[col] = v;
-        at += used;
-        while at < line.len() && is_blank(line[at]) {
-            at += 1;
-        }
-        col += 1;
-        if col < expected {
-            if line.get(at) != Some(&b',') {
+/// `count` numbers at `text[at..]` separated by commas, with no blanks, ended by `\n` or
+/// `\r\n`: the values and where the next line starts. `None` for anything else, which the
+/// general path ([`slow_row`]) then reads or rejects.
+#[inline]
+fn fast_values(text: &[u8], at: usize, count: usize) -> Option<([f64; 4], usize)> {
+    let mut values = [0.0f64; 4];
+    let mut i = at;
+    for (col, v) in values.iter_mut().enumerate().take(count) {
+        if col > 0 {
+            if text.get(i) != Some(&b',') {
                 return None;
             }
-            at += 1;
+            i += 1;
         }
+        let (x, used) = number_prefix(text.get(i..)?)?;
+        *v = x;
+        i += used;
     }
-    (at == line.len()).then_some((id, values))
-}
-
-fn trim_blank(mut b: &[u8]) -> &[u8] {
-    while let [first, rest @ ..] = b
-        && is_blank(*first)
-    {
-        b = rest;
+    match text.get(i..) {
+        Some([b'\n', ..]) => Some((values, i + 1)),
+        Some([b'\r', b'\n', ..]) => Some((values, i + 2)),
+        _ => None,
     }
-    while let [rest @ .., last] = b
-        && is_blank(*last)
-    {
-        b = rest;
-    }
-    b
 }
 
 /// The general reading of a data row: comments, blank lines (`Ok(None)`), Unicode spacing, and
@@ -378,11 +432,11 @@ fn parse_f64(s: &str) -> Option<f64> {
 }
 
 /// The number at the start of `b` and the bytes it takes, correctly rounded (the value
-/// `fast-float2` gives): [`plain_decimal`] for the common short decimals, the crate for
+/// `fast-float2` gives): [`short_decimal`] for the common short decimals, the crate for
 /// everything else.
 #[inline]
 fn number_prefix(b: &[u8]) -> Option<(f64, usize)> {
-    plain_decimal(b).or_else(|| fast_float2::parse_partial::<f64, _>(b).ok())
+    short_decimal(b).or_else(|| fast_float2::parse_partial::<f64, _>(b).ok())
 }
 
 /// Exact powers of ten representable in f64 (10^22 is the largest).
@@ -391,78 +445,106 @@ const POW10: [f64; 23] = [
     1e17, 1e18, 1e19, 1e20, 1e21, 1e22,
 ];
 
-/// A decimal `[+-]digits[.digits][e[+-]digits]` at the start of `b` with at most 19
-/// significant digits, a mantissa up to 2^53 and a power of ten within ±22 (what `%.10g`
-/// writes): Clinger's fast path, where mantissa and power of ten are both exact in f64 so one
-/// multiplication or division rounds correctly. `None` for anything else (the caller then asks
-/// `fast-float2`). Hand-written because this inlined loop over the bytes is about twice as fast
-/// as the crate's general entry point on the rows `fit-curve --batch` reads by the million
-/// (BENCHMARKS.md); a test checks it against the standard library.
+/// Powers of ten as integers, for joining digit groups.
+const POW10_INT: [u64; 9] = [
+    1,
+    10,
+    100,
+    1_000,
+    10_000,
+    100_000,
+    1_000_000,
+    10_000_000,
+    100_000_000,
+];
+
+/// The eight bytes at `b[i..]` as a little-endian word; bytes past the end read as 0 (not a
+/// digit).
+#[inline(always)]
+fn word(b: &[u8], i: usize) -> u64 {
+    match b.get(i..i + 8) {
+        Some(w) => u64::from_le_bytes(w.try_into().unwrap_or_default()),
+        None => {
+            let mut w = [0u8; 8];
+            let tail = b.get(i..).unwrap_or_default();
+            w[..tail.len()].copy_from_slice(tail);
+            u64::from_le_bytes(w)
+        }
+    }
+}
+
+/// The leading ASCII digits of a little-endian word (SWAR, no branches): their count (0 to 8)
+/// and their value. A byte is a digit when neither b − '0' nor b + (0x7f − '9') sets its top
+/// bit; subtraction borrows only move towards later bytes, so the digits before the first
+/// non-digit are read exactly. They are moved to the top of the word (the vacated low bytes
+/// are leading zeros) and combined in three multiplications: pairs, quadruples, all eight.
+#[inline(always)]
+fn leading_digits(w: u64) -> (u64, usize) {
+    let below = w.wrapping_sub(0x3030_3030_3030_3030);
+    let above = w.wrapping_add(0x4646_4646_4646_4646);
+    let count = ((below | above) & 0x8080_8080_8080_8080).trailing_zeros() as usize / 8;
+    // Shift by 64 − 8·count; count = 0 (a shift by 64) leaves nothing.
+    let v = below.checked_shl(64 - 8 * count as u32).unwrap_or(0);
+    let v = v.wrapping_mul(10).wrapping_add(v >> 8);
+    let v = ((v & 0x0000_00ff_0000_00ff).wrapping_mul(0x000f_4240_0000_0064))
+        .wrapping_add(((v >> 16) & 0x0000_00ff_0000_00ff).wrapping_mul(0x0000_2710_0000_0001))
+        >> 32;
+    (v, count)
+}
+
+/// A decimal `[-]digits[.digits][e[+-]digits]` at the start of `b` with at most 7 digits before
+/// the point, at most 15 after it and 19 in all, a mantissa up to 2^53 and a power of ten within
+/// ±22 (what `%.10g` and `{:e}` write): Clinger's fast path, where mantissa and power of ten are
+/// both exact in f64 so one multiplication or division rounds correctly. `None` for anything
+/// else (the caller then asks `fast-float2`). Hand-written because `fit-curve --batch` reads
+/// numbers by the million (BENCHMARKS.md): the digit groups are read a word at a time by
+/// [`leading_digits`], and the lengths that vary from number to number (digits before and after
+/// the point, whether an exponent follows) select values instead of steering branches, which
+/// would mispredict on every other number. A test checks it against the standard library.
 #[inline]
-fn plain_decimal(b: &[u8]) -> Option<(f64, usize)> {
-    let mut i = 0;
-    let neg = match b.first() {
-        Some(b'-') => {
-            i = 1;
-            true
-        }
-        Some(b'+') => {
-            i = 1;
-            false
-        }
-        _ => false,
-    };
-    let (mut mantissa, mut digits, mut exp10, mut any) = (0u64, 0u32, 0i32, false);
-    while i < b.len() && b[i].is_ascii_digit() {
-        let d = u64::from(b[i] - b'0');
-        if digits > 0 || d != 0 {
-            digits += 1;
-            mantissa = mantissa.wrapping_mul(10).wrapping_add(d);
-        }
-        any = true;
-        i += 1;
-    }
-    if i < b.len() && b[i] == b'.' {
-        i += 1;
-        while i < b.len() && b[i].is_ascii_digit() {
-            let d = u64::from(b[i] - b'0');
-            if digits > 0 || d != 0 {
-                digits += 1;
-                mantissa = mantissa.wrapping_mul(10).wrapping_add(d);
-            }
-            exp10 -= 1;
-            any = true;
-            i += 1;
-        }
-    }
-    if !any {
+fn short_decimal(b: &[u8]) -> Option<(f64, usize)> {
+    let neg = b.first() == Some(&b'-');
+    let mut i = usize::from(neg);
+    let (int, n1) = leading_digits(word(b, i));
+    if n1 == 8 {
         return None;
     }
-    if i < b.len() && (b[i] == b'e' || b[i] == b'E') {
-        i += 1;
-        let eneg = match b.get(i) {
-            Some(b'-') => {
-                i += 1;
-                true
-            }
-            Some(b'+') => {
-                i += 1;
-                false
-            }
-            _ => false,
-        };
-        let (mut e, mut edigits) = (0i32, 0);
-        while i < b.len() && b[i].is_ascii_digit() && edigits < 6 {
-            e = e * 10 + i32::from(b[i] - b'0');
-            edigits += 1;
-            i += 1;
-        }
-        if edigits == 0 || (i < b.len() && b[i].is_ascii_digit()) {
-            return None;
-        }
-        exp10 += if eneg { -e } else { e };
+    i += n1;
+    let dot = b.get(i) == Some(&b'.');
+    let j = i + 1;
+    let (f1, n2) = leading_digits(word(b, j));
+    let (f2, n3) = leading_digits(word(b, j + 8));
+    // The second word counts only after eight digits in the first; nothing counts without a
+    // point.
+    let n2 = if dot { n2 } else { 0 };
+    let (f2, n3) = if n2 == 8 { (f2, n3) } else { (0, 0) };
+    if n3 == 8 {
+        return None;
     }
-    if digits > 19 || mantissa > (1u64 << 53) || exp10.abs() > 22 {
+    let frac = n2 + n3;
+    // Wrapping: more than 19 digits are refused just below (and then nothing wrapped before).
+    let mantissa = int
+        .wrapping_mul(POW10_INT[n2])
+        .wrapping_add(f1 * u64::from(dot))
+        .wrapping_mul(POW10_INT[n3])
+        .wrapping_add(f2);
+    let digits = n1 + frac;
+    if digits == 0 || digits > 19 {
+        return None;
+    }
+    i = if dot { j + frac } else { i };
+    // Exponent: e, an optional sign, 1 to 7 digits.
+    let has_e = matches!(b.get(i), Some(b'e' | b'E'));
+    let sign = b.get(i + 1).copied().unwrap_or(0);
+    let k = i + 1 + usize::from(sign == b'-' || sign == b'+');
+    let (e, ne) = leading_digits(word(b, k));
+    if has_e && (ne == 0 || ne == 8) {
+        return None;
+    }
+    let e = if sign == b'-' { -(e as i64) } else { e as i64 };
+    let exp10 = if has_e { e } else { 0 } - frac as i64;
+    i = if has_e { k + ne } else { i };
+    if mantissa > (1u64 << 53) || exp10.abs() > 22 {
         return None;
     }
     let m = mantissa as f64;
@@ -561,6 +643,16 @@ mod tests {
             "-inf",
             "00012.5000",
             "3.141592653589793238462643383279",
+            "12.09039342",
+            "0.6002071621",
+            "5.096327544e-05",
+            "1.e5",
+            "-.5e-3",
+            "5e+0000007",
+            "5e00000007",
+            "0.00000000000000000000001",
+            "123456789.5",
+            "1234567.123456789012345",
         ]
         .iter()
         .map(|s| s.to_string())
@@ -576,6 +668,13 @@ mod tests {
                 cases.push(format!("{v:.9e}"));
                 cases.push(format!("{}", (seed >> 40) as f64 / 1e7));
             }
+            // Every split of digits around the point that the word-at-a-time reader sees (0 to
+            // 17 after it, 1 to 9 before it), with and without exponents.
+            let x = (seed >> 11) as f64 / (1u64 << 53) as f64 * 10f64.powi((seed % 9) as i32);
+            let k = (seed >> 5) as usize % 18;
+            cases.push(format!("{x:.k$}"));
+            cases.push(format!("-{x:.k$}e-{}", seed % 30));
+            cases.push(format!("{x:.k$}E+{}", seed % 25));
         }
         for c in &cases {
             let want = c.parse::<f64>().ok().map(f64::to_bits);
@@ -588,7 +687,7 @@ mod tests {
             assert_eq!(prefix.map(|p| p.0.to_bits()), want, "{c},");
         }
         for bad in [
-            "", "-", ".", "e5", "1e", "1.2.3", "1e5x", "abc", "--1", "1 2",
+            "", "-", ".", "e5", "1e", "1.2.3", "1e5x", "abc", "--1", "1 2", "-.", "1e-", "+-1",
         ] {
             assert_eq!(parse_f64(bad), None, "{bad}");
             assert!(
@@ -653,6 +752,17 @@ mod tests {
             rgb[0].channels,
             vec![vec![1.0, 4.0], vec![2.0, 5.0], vec![3.0, 6.0]]
         );
+        // Ids longer than one word, ids that are prefixes of others, rows of an id apart.
+        let c = parse(
+            "id,r,value\nlong-identifier,0,1\nlong-identifier,1,2\n1,0,3\n12,0,4\n1,1,5\nlong-identifier,2,6\n",
+            true,
+        )
+        .unwrap();
+        let ids: Vec<_> = c.iter().map(|c| c.id.as_deref().unwrap()).collect();
+        assert_eq!(ids, ["long-identifier", "1", "12"]);
+        assert_eq!(c[0].channels[0], vec![1.0, 2.0, 6.0]);
+        assert_eq!(c[1].channels[0], vec![3.0, 5.0]);
+        assert_eq!(c[2].channels[0], vec![4.0]);
         // Header words in any case.
         assert_eq!(
             parse("ID,R,Value\n7,1,2\n", true).unwrap()[0].id.as_deref(),

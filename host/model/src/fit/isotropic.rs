@@ -751,7 +751,12 @@ fn nnls_amplitudes(bins: &[Bin], rates: &[f64], amps: &mut [f64]) {
                 continue;
             }
             let wgt = b.n / (v * v);
-            let e: Vec<f64> = idx.iter().map(|&k| (-rates[k] * b.r).exp()).collect();
+            // n ≤ MAX_TERMS: the exponentials of one bin on the stack (this loop runs for every
+            // bin of every start candidate of every curve).
+            let mut e = [0.0f64; crate::model::MAX_TERMS];
+            for (ei, &k) in e.iter_mut().zip(&idx) {
+                *ei = (-rates[k] * b.r).exp();
+            }
             for i in 0..m {
                 rhs[i] += wgt * e[i] * v;
                 for j in 0..m {
