@@ -11,10 +11,11 @@
 //! any reader through a ~1 MiB buffer (`fit-curve` reads its file that way, so a large batch is
 //! never held twice); callers keep the context of where the text came from.
 //!
-//! Hand-written rather than with the `csv` crate (numbers by `fast-float2`, with a short-decimal
-//! fast path): the format is four fixed numeric columns, and `fit-curve --batch` parses millions
-//! of rows on the path the throughput target is measured on (BENCHMARKS.md); one pass
-//! over each line's bytes with no per-row allocation keeps parsing a small part of that budget.
+//! Hand-written rather than with the `csv` crate (numbers by `fast-float2`): the format is four
+//! fixed numeric columns, and `fit-curve --batch` parses millions of rows on the path the
+//! issue's throughput target is measured on (BENCHMARKS.md); one pass over the bytes of a block
+//! of lines, with no per-row allocation and no per-row search for the newline, keeps parsing
+//! within about half of that budget.
 
 use std::collections::HashMap;
 
@@ -431,35 +432,16 @@ fn parse_f64(s: &str) -> Option<f64> {
     fast_float2::parse(s).ok()
 }
 
-/// The number at the start of `b` and the bytes it takes, correctly rounded (the value
-/// `fast-float2` gives): [`short_decimal`] for the common short decimals, the crate for
-/// everything else.
+/// The number at the start of `b` and the bytes it takes, correctly rounded, by `fast-float2`.
+/// (A hand-written word-at-a-time reader for short decimals and the byte loop before it were
+/// both slower than the crate on the scipy comparison's 8 million numbers: 0.25 and 0.24 s
+/// against 0.215 s for reading the whole file, BENCHMARKS.md.)
 #[inline]
 fn number_prefix(b: &[u8]) -> Option<(f64, usize)> {
-    short_decimal(b).or_else(|| fast_float2::parse_partial::<f64, _>(b).ok())
+    fast_float2::parse_partial::<f64, _>(b).ok()
 }
 
-/// Exact powers of ten representable in f64 (10^22 is the largest).
-const POW10: [f64; 23] = [
-    1e0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9, 1e10, 1e11, 1e12, 1e13, 1e14, 1e15, 1e16,
-    1e17, 1e18, 1e19, 1e20, 1e21, 1e22,
-];
-
-/// Powers of ten as integers, for joining digit groups.
-const POW10_INT: [u64; 9] = [
-    1,
-    10,
-    100,
-    1_000,
-    10_000,
-    100_000,
-    1_000_000,
-    10_000_000,
-    100_000_000,
-];
-
-/// The eight bytes at `b[i..]` as a little-endian word; bytes past the end read as 0 (not a
-/// digit).
+/// The eight bytes at `b[i..]` as a little-endian word; bytes past the end read as 0.
 #[inline(always)]
 fn word(b: &[u8], i: usize) -> u64 {
     match b.get(i..i + 8) {
@@ -471,89 +453,6 @@ fn word(b: &[u8], i: usize) -> u64 {
             u64::from_le_bytes(w)
         }
     }
-}
-
-/// The leading ASCII digits of a little-endian word (SWAR, no branches): their count (0 to 8)
-/// and their value. A byte is a digit when neither b − '0' nor b + (0x7f − '9') sets its top
-/// bit; subtraction borrows only move towards later bytes, so the digits before the first
-/// non-digit are read exactly. They are moved to the top of the word (the vacated low bytes
-/// are leading zeros) and combined in three multiplications: pairs, quadruples, all eight.
-#[inline(always)]
-fn leading_digits(w: u64) -> (u64, usize) {
-    let below = w.wrapping_sub(0x3030_3030_3030_3030);
-    let above = w.wrapping_add(0x4646_4646_4646_4646);
-    let count = ((below | above) & 0x8080_8080_8080_8080).trailing_zeros() as usize / 8;
-    // Shift by 64 − 8·count; count = 0 (a shift by 64) leaves nothing.
-    let v = below.checked_shl(64 - 8 * count as u32).unwrap_or(0);
-    let v = v.wrapping_mul(10).wrapping_add(v >> 8);
-    let v = ((v & 0x0000_00ff_0000_00ff).wrapping_mul(0x000f_4240_0000_0064))
-        .wrapping_add(((v >> 16) & 0x0000_00ff_0000_00ff).wrapping_mul(0x0000_2710_0000_0001))
-        >> 32;
-    (v, count)
-}
-
-/// A decimal `[-]digits[.digits][e[+-]digits]` at the start of `b` with at most 7 digits before
-/// the point, at most 15 after it and 19 in all, a mantissa up to 2^53 and a power of ten within
-/// ±22 (what `%.10g` and `{:e}` write): Clinger's fast path, where mantissa and power of ten are
-/// both exact in f64 so one multiplication or division rounds correctly. `None` for anything
-/// else (the caller then asks `fast-float2`). Hand-written because `fit-curve --batch` reads
-/// numbers by the million (BENCHMARKS.md): the digit groups are read a word at a time by
-/// [`leading_digits`], and the lengths that vary from number to number (digits before and after
-/// the point, whether an exponent follows) select values instead of steering branches, which
-/// would mispredict on every other number. A test checks it against the standard library.
-#[inline]
-fn short_decimal(b: &[u8]) -> Option<(f64, usize)> {
-    let neg = b.first() == Some(&b'-');
-    let mut i = usize::from(neg);
-    let (int, n1) = leading_digits(word(b, i));
-    if n1 == 8 {
-        return None;
-    }
-    i += n1;
-    let dot = b.get(i) == Some(&b'.');
-    let j = i + 1;
-    let (f1, n2) = leading_digits(word(b, j));
-    let (f2, n3) = leading_digits(word(b, j + 8));
-    // The second word counts only after eight digits in the first; nothing counts without a
-    // point.
-    let n2 = if dot { n2 } else { 0 };
-    let (f2, n3) = if n2 == 8 { (f2, n3) } else { (0, 0) };
-    if n3 == 8 {
-        return None;
-    }
-    let frac = n2 + n3;
-    // Wrapping: more than 19 digits are refused just below (and then nothing wrapped before).
-    let mantissa = int
-        .wrapping_mul(POW10_INT[n2])
-        .wrapping_add(f1 * u64::from(dot))
-        .wrapping_mul(POW10_INT[n3])
-        .wrapping_add(f2);
-    let digits = n1 + frac;
-    if digits == 0 || digits > 19 {
-        return None;
-    }
-    i = if dot { j + frac } else { i };
-    // Exponent: e, an optional sign, 1 to 7 digits.
-    let has_e = matches!(b.get(i), Some(b'e' | b'E'));
-    let sign = b.get(i + 1).copied().unwrap_or(0);
-    let k = i + 1 + usize::from(sign == b'-' || sign == b'+');
-    let (e, ne) = leading_digits(word(b, k));
-    if has_e && (ne == 0 || ne == 8) {
-        return None;
-    }
-    let e = if sign == b'-' { -(e as i64) } else { e as i64 };
-    let exp10 = if has_e { e } else { 0 } - frac as i64;
-    i = if has_e { k + ne } else { i };
-    if mantissa > (1u64 << 53) || exp10.abs() > 22 {
-        return None;
-    }
-    let m = mantissa as f64;
-    let v = if exp10 >= 0 {
-        m * POW10[exp10 as usize]
-    } else {
-        m / POW10[(-exp10) as usize]
-    };
-    Some((if neg { -v } else { v }, i))
 }
 
 /// Channels a header announces, or `None` if it is not a known header.
@@ -668,8 +567,8 @@ mod tests {
                 cases.push(format!("{v:.9e}"));
                 cases.push(format!("{}", (seed >> 40) as f64 / 1e7));
             }
-            // Every split of digits around the point that the word-at-a-time reader sees (0 to
-            // 17 after it, 1 to 9 before it), with and without exponents.
+            // Digits split every way around the point (0 to 17 after it, 1 to 9 before it),
+            // with and without exponents.
             let x = (seed >> 11) as f64 / (1u64 << 53) as f64 * 10f64.powi((seed % 9) as i32);
             let k = (seed >> 5) as usize % 18;
             cases.push(format!("{x:.k$}"));
