@@ -864,7 +864,7 @@ pub(crate) fn fit_fixed(
             s.iter().map(|&v| ln_positive(v) - level).collect(),
         )
     };
-    let candidates = match start {
+    let given = match start {
         Some(terms) => {
             let mut t = Vec::with_capacity(2 * n);
             for term in terms {
@@ -876,11 +876,15 @@ pub(crate) fn fit_fixed(
                     reason: "start values must be n terms with c > 0 and d < 0",
                 });
             }
-            vec![t]
+            Some(t)
         }
-        None => starts(&prefit_bins, n),
+        None => None,
     };
-    let theta0 = candidates[0].clone();
+    // The best start candidate by cost, for the solvers that run from one start.
+    let theta0 = || match &given {
+        Some(t) => t.clone(),
+        None => starts(&prefit_bins, n).swap_remove(0),
+    };
     let settings = Settings {
         max_iterations,
         ..Settings::default()
@@ -909,17 +913,26 @@ pub(crate) fn fit_fixed(
                 ..settings
             };
             let mut pre: Option<lm::Outcome> = None;
-            for cand in &candidates {
+            // One run; whether it converged with every term alive.
+            let mut run = |cand: &[f64]| -> bool {
                 let Some(o) = lm::minimize(&binned, cand, &binned_settings) else {
-                    continue;
+                    return false;
                 };
                 iterations += o.iterations;
                 let healthy = o.converged && !has_dead_term(&o.theta, n);
                 if pre.as_ref().is_none_or(|p| o.cost < p.cost) {
                     pre = Some(o);
                 }
-                if healthy {
-                    break;
+                healthy
+            };
+            // The peeled start first: it almost always converges with every term alive, so the
+            // other candidates of [`starts`] are built and scored only when it does not.
+            let first = given.clone().unwrap_or_else(|| peel(&prefit_bins, n));
+            if !run(&first) && given.is_none() {
+                for cand in starts(&prefit_bins, n) {
+                    if cand != first && run(&cand) {
+                        break;
+                    }
                 }
             }
             if bins.is_some() {
@@ -931,7 +944,7 @@ pub(crate) fn fit_fixed(
                 // Every run's iterations are counted above already.
                 pre.map(|o| lm::Outcome { iterations: 0, ..o })
             } else {
-                let theta1 = pre.map_or_else(|| theta0.clone(), |o| o.theta);
+                let theta1 = pre.map_or(first, |o| o.theta);
                 let (rn, y) = per_sample();
                 // The pre-fit lands next to the optimum: a relative cost change of 1e-10 per
                 // step already leaves log E exact to ~10 digits.
@@ -944,17 +957,17 @@ pub(crate) fn fit_fixed(
         }
         (Objective::Log, Solver::Reference) => {
             let (rn, y) = per_sample();
-            super::reference::minimize(&LogExact { r: &rn, y: &y, n }, &theta0, max_iterations)
+            super::reference::minimize(&LogExact { r: &rn, y: &y, n }, &theta0(), max_iterations)
         }
         (Objective::Linear, Solver::Specialised) => {
             let (rn, y) = per_sample();
             let sn: Vec<f64> = y.iter().map(|v| v.exp()).collect();
-            linear_specialised(&rn, &sn, n, &theta0, &settings)
+            linear_specialised(&rn, &sn, n, &theta0(), &settings)
         }
         (Objective::Linear, Solver::Reference) => {
             let (rn, y) = per_sample();
             let sn: Vec<f64> = y.iter().map(|v| v.exp()).collect();
-            super::reference::minimize(&Linear { r: &rn, s: &sn, n }, &theta0, max_iterations)
+            super::reference::minimize(&Linear { r: &rn, s: &sn, n }, &theta0(), max_iterations)
         }
     };
     let out = out.ok_or(FitFailure::NonFinite)?;
