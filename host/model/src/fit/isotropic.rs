@@ -205,6 +205,14 @@ trait LogRows {
     );
     /// Residual rows per point (for the reference adapter's dense matrices).
     fn rows_per_point(&self, j: usize) -> usize;
+    /// JᵀJ, Jᵀres and the cost in one pass (the solver's hot path): [`log_normal`] unless an
+    /// objective has a faster form of the same sums.
+    fn normal(&self, theta: &[f64], jtj: &mut [f64], jtr: &mut [f64]) -> Option<f64>
+    where
+        Self: Sized,
+    {
+        log_normal(self, self.terms(), theta, jtj, jtr)
+    }
 }
 
 /// Splits θ into amplitudes a_k = ln c_k and rates d_k = −exp(b_k).
@@ -353,6 +361,14 @@ impl LogRows for LogBinned<'_> {
     fn terms(&self) -> usize {
         self.n
     }
+    fn normal(&self, theta: &[f64], jtj: &mut [f64], jtr: &mut [f64]) -> Option<f64> {
+        match self.n {
+            1 => binned_normal_n::<1>(self.bins, theta, jtj, jtr),
+            2 => binned_normal_n::<2>(self.bins, theta, jtj, jtr),
+            3 => binned_normal_n::<3>(self.bins, theta, jtj, jtr),
+            _ => binned_normal_n::<4>(self.bins, theta, jtj, jtr),
+        }
+    }
     fn points(&self) -> usize {
         self.bins.len()
     }
@@ -409,6 +425,134 @@ impl LogRows for LogBinned<'_> {
     }
 }
 
+/// [`LogBinned`]'s normal equations (the same rows as its [`LogRows::rows`], which the tests
+/// compare), a block of [`CHUNK`] bins at a time in structure-of-arrays form: every quantity
+/// of a bin (weights, g, h, the Jacobian of v, the three rows U·∂v) is an array over the block,
+/// so each step is a loop of constant length over independent bins, which the compiler
+/// vectorises, and JᵀJ gathers one partial sum per entry and bin lane instead of one serial
+/// chain per entry. This is the fast mode's whole fit (`fit-curve --batch`, BENCHMARKS.md).
+#[allow(clippy::needless_range_loop)] // index loops over parallel arrays vectorise
+fn binned_normal_n<const N: usize>(
+    bins: &[Bin],
+    theta: &[f64],
+    jtj: &mut [f64],
+    jtr: &mut [f64],
+) -> Option<f64> {
+    let p = 2 * N;
+    let (a, d) = split(theta, N);
+    let mut acc = [[[0.0f64; CHUNK]; 8]; 8];
+    let mut grad = [[0.0f64; CHUNK]; 8];
+    let mut cost = [0.0f64; CHUNK];
+    for block in bins.chunks(CHUNK) {
+        // Padding lanes (a short last block) have U = 0 and z = 0: zero rows, zero residuals.
+        let (mut r, mut y) = ([0.0f64; CHUNK], [0.0f64; CHUNK]);
+        let mut u = [[0.0f64; CHUNK]; 6];
+        let mut z = [[0.0f64; CHUNK]; 3];
+        for (j, b) in block.iter().enumerate() {
+            r[j] = b.r;
+            y[j] = b.y;
+            for i in 0..6 {
+                u[i][j] = b.u[i];
+            }
+            for i in 0..3 {
+                z[i][j] = b.z[i];
+            }
+        }
+        // ln R_d and the weights w_k = c_k e^{d_k r} / R_d (the log-sum-exp kernel's).
+        let mut w = [[0.0f64; CHUNK]; 4];
+        let mut m = [f64::NEG_INFINITY; CHUNK];
+        for k in 0..N {
+            for j in 0..CHUNK {
+                w[k][j] = a[k] + d[k] * r[j];
+                m[j] = m[j].max(w[k][j]);
+            }
+        }
+        let mut sum = [0.0f64; CHUNK];
+        for k in 0..N {
+            for j in 0..CHUNK {
+                w[k][j] = exp_nonpositive(w[k][j] - m[j]);
+                sum[j] += w[k][j];
+            }
+        }
+        let mut v = [[0.0f64; CHUNK]; 3];
+        let (mut g, mut h) = ([0.0f64; CHUNK], [0.0f64; CHUNK]);
+        let mut inv = [0.0f64; CHUNK];
+        for j in 0..CHUNK {
+            inv[j] = 1.0 / sum[j];
+            v[0][j] = m[j] + ln_positive(sum[j]) - y[j];
+        }
+        for k in 0..N {
+            for j in 0..CHUNK {
+                w[k][j] *= inv[j];
+                g[j] += w[k][j] * d[k];
+                h[j] += w[k][j] * d[k] * d[k];
+            }
+        }
+        for j in 0..CHUNK {
+            h[j] -= g[j] * g[j];
+            v[1][j] = g[j];
+            v[2][j] = 0.5 * h[j];
+        }
+        // Jacobian of v (see `LogRows::rows` of LogBinned), then the rows U·∂v.
+        let mut jv = [[[0.0f64; CHUNK]; 8]; 3];
+        for k in 0..N {
+            for j in 0..CHUNK {
+                let dk = d[k] - g[j];
+                let e = dk * dk - h[j];
+                let wk = w[k][j];
+                jv[0][2 * k][j] = wk;
+                jv[0][2 * k + 1][j] = wk * r[j] * d[k];
+                jv[1][2 * k][j] = wk * dk;
+                jv[1][2 * k + 1][j] = wk * (1.0 + r[j] * dk) * d[k];
+                jv[2][2 * k][j] = 0.5 * wk * e;
+                jv[2][2 * k + 1][j] = 0.5 * wk * (2.0 * dk + r[j] * e) * d[k];
+            }
+        }
+        // Row i of U·(∂v, v − z): U = [[u0, u1, u2], [0, u3, u4], [0, 0, u5]].
+        let mut rows = [[[0.0f64; CHUNK]; 8]; 3];
+        let mut res = [[0.0f64; CHUNK]; 3];
+        for c in 0..p {
+            for j in 0..CHUNK {
+                rows[0][c][j] =
+                    u[0][j] * jv[0][c][j] + u[1][j] * jv[1][c][j] + u[2][j] * jv[2][c][j];
+                rows[1][c][j] = u[3][j] * jv[1][c][j] + u[4][j] * jv[2][c][j];
+                rows[2][c][j] = u[5][j] * jv[2][c][j];
+            }
+        }
+        for j in 0..CHUNK {
+            res[0][j] = u[0][j] * v[0][j] + u[1][j] * v[1][j] + u[2][j] * v[2][j] - z[0][j];
+            res[1][j] = u[3][j] * v[1][j] + u[4][j] * v[2][j] - z[1][j];
+            res[2][j] = u[5][j] * v[2][j] - z[2][j];
+        }
+        for i in 0..3 {
+            for j in 0..CHUNK {
+                cost[j] += res[i][j] * res[i][j];
+            }
+            for c in 0..p {
+                for j in 0..CHUNK {
+                    grad[c][j] += rows[i][c][j] * res[i][j];
+                }
+                for c2 in c..p {
+                    for j in 0..CHUNK {
+                        acc[c][c2][j] += rows[i][c][j] * rows[i][c2][j];
+                    }
+                }
+            }
+        }
+    }
+    let lane_sum = |x: &[f64; CHUNK]| x.iter().sum::<f64>();
+    for i in 0..p {
+        jtr[i] = lane_sum(&grad[i]);
+        for k in i..p {
+            let s = lane_sum(&acc[i][k]);
+            jtj[i * p + k] = s;
+            jtj[k * p + i] = s;
+        }
+    }
+    let cost = lane_sum(&cost);
+    (cost.is_finite() && jtr[..p].iter().all(|v| v.is_finite())).then_some(cost)
+}
+
 /// Every log objective is a [`Problem`] through its rows: the one-pass normal equations for the
 /// solver, the generic row evaluation for the reference solver and the tests.
 impl<O: LogRows> Problem for O {
@@ -421,7 +565,7 @@ impl<O: LogRows> Problem for O {
         jtj: &mut [f64],
         jtr: &mut [f64],
     ) -> Option<Option<f64>> {
-        Some(log_normal(self, self.terms(), theta, jtj, jtr))
+        Some(self.normal(theta, jtj, jtr))
     }
     fn rows(&self) -> usize {
         (0..self.points()).map(|j| self.rows_per_point(j)).sum()
