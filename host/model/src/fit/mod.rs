@@ -400,7 +400,9 @@ fn clean_or_borrow<'a>(
     r: &'a [f64],
     s: &'a [f64],
 ) -> (Cow<'a, [f64]>, Cow<'a, [f64]>, SampleReport) {
-    // Comparisons are false for NaN: finite r >= 0 and finite s > 0, without branches.
+    // Comparisons are false for NaN: finite r >= 0 and finite s > 0, without branches (`&`,
+    // not the short-circuiting `Range::contains`).
+    #[allow(clippy::manual_range_contains)]
     let usable = r.len() == s.len()
         && r.iter().zip(s).fold(true, |ok, (&ri, &si)| {
             ok & (ri >= 0.0) & (ri < f64::INFINITY) & (si > 0.0) & (si < f64::INFINITY)
