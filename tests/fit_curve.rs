@@ -184,6 +184,38 @@ fn batch_fits_every_id_and_rgb_gives_channels() {
     }
 }
 
+/// Curves are fitted as the file streams in (a block at a time); a file larger than a block
+/// whose ids alternate row by row is read again whole: its output is that of the same rows
+/// sorted by id, curve for curve.
+#[test]
+fn interleaved_ids_in_a_large_file_fit_like_sorted_ones() {
+    let dir = tempfile::tempdir().unwrap();
+    let (mut apart, mut sorted) = (String::from("id,r,value\n"), String::from("id,r,value\n"));
+    let mut rows: [Vec<String>; 2] = [Vec::new(), Vec::new()];
+    for k in 0..40_000 {
+        let r = 5.0 * k as f64 / 40_000.0;
+        for (id, rows) in rows.iter_mut().enumerate() {
+            let v = (1.0 + id as f64) * (-r).exp() + 3.0 * (-4.0 * r).exp();
+            let row = format!("{id},{r:.10e},{v:.10e}\n");
+            apart += &row;
+            rows.push(row);
+        }
+    }
+    for r in &rows {
+        sorted += &r.concat();
+    }
+    assert!(apart.len() > 2 << 20, "larger than the reader's block");
+    let run = |name: &str, text: &str| {
+        let p = write(&dir, name, text);
+        let (ok, out, err) = fit_curve(&[p.to_str().unwrap(), "--batch", "--terms", "2", "--json"]);
+        assert!(ok, "{err}");
+        out
+    };
+    let (a, s) = (run("apart.csv", &apart), run("sorted.csv", &sorted));
+    assert_eq!(a.lines().count(), 2);
+    assert_eq!(a, s);
+}
+
 #[test]
 fn auto_terms_and_dipole_json() {
     let dir = tempfile::tempdir().unwrap();

@@ -11,12 +11,13 @@
 //! any reader through a ~1 MiB buffer (`fit-curve` reads its file that way, so a large batch is
 //! never held twice); callers keep the context of where the text came from.
 //!
-//! Hand-written rather than with the `csv` crate (numbers by `fast-float2`, with a short-decimal
-//! fast path): the format is four fixed numeric columns, and `fit-curve --batch` parses millions
-//! of rows on the path the throughput target is measured on (BENCHMARKS.md); one pass
-//! over each line's bytes with no per-row allocation keeps parsing a small part of that budget.
+//! Hand-written rather than with the `csv` crate (numbers by `fast-float2`): the format is four
+//! fixed numeric columns, and `fit-curve --batch` parses millions of rows on the path the
+//! issue's throughput target is measured on (BENCHMARKS.md); one pass over the bytes of a block
+//! of lines, with no per-row allocation and no per-row search for the newline, keeps parsing
+//! within about half of that budget.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 
 /// One curve of a file: its id (batch files) and its samples per channel.
 #[derive(Debug, Clone, PartialEq)]
@@ -83,8 +84,12 @@ const MAX_COLUMNS: usize = 5;
 /// otherwise the whole file is one curve (id `None`).
 pub fn parse(text: &str, batch: bool) -> Result<Vec<Curve>, CurvesError> {
     let mut p = Parser::new(batch);
-    for (i, line) in text.as_bytes().split(|&b| b == b'\n').enumerate() {
-        p.line(i + 1, line)?;
+    let bytes = text.as_bytes();
+    // Complete lines in one block, then the last line (no newline after it) on its own.
+    let complete = memchr::memrchr(b'\n', bytes).map_or(0, |at| at + 1);
+    let lines = p.block(0, &bytes[..complete])?;
+    if complete < bytes.len() {
+        p.line(lines + 1, &bytes[complete..])?;
     }
     p.finish()
 }
@@ -112,8 +117,78 @@ const CHUNK: usize = 1 << 20;
 /// Parses a curve file from a reader as it streams in (a buffer of ~1 MiB, never the whole
 /// file): the same format and errors as [`parse`]. The data can be large (`fit-curve --batch`
 /// on millions of rows), so only the parsed numbers are held.
-pub fn read(mut reader: impl std::io::Read, batch: bool) -> Result<Vec<Curve>, ReadError> {
+pub fn read(reader: impl std::io::Read, batch: bool) -> Result<Vec<Curve>, ReadError> {
     let mut p = Parser::new(batch);
+    stream(reader, &mut p, |_| Ok(false))?;
+    Ok(p.finish()?)
+}
+
+/// How [`read_groups`] ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Grouped {
+    /// Every curve was handed out once, complete, in the order of the file.
+    Complete,
+    /// An id came back after its curve had been handed out (the rows of an id are not
+    /// contiguous): the groups handed out so far are not the file's curves, and the caller
+    /// should read the file again with [`read`]. Reading stopped there.
+    Interleaved,
+}
+
+/// [`read`] for batch files whose curves come one after the other (each id's rows together,
+/// as `fit-curve --batch` files usually are): complete curves are handed to `each` as soon as
+/// the next curve has begun, a block of input (~1 MiB) at a time, instead of all at the end.
+/// Memory then holds a block's curves rather than the whole file's, and a curve's numbers are
+/// still in cache when `each` fits them (at the scipy comparison's size that saves the ~8 % of
+/// the command's time that the page faults and cache misses of 64 MB of parsed numbers cost,
+/// BENCHMARKS.md). Files where an id's rows are apart are detected ([`Grouped::Interleaved`]).
+pub fn read_groups(
+    reader: impl std::io::Read,
+    batch: bool,
+    mut each: impl FnMut(Vec<Curve>),
+) -> Result<Grouped, ReadError> {
+    let mut p = Parser::new(batch);
+    p.handed_out = Some(HashSet::new());
+    let interleaved = stream(reader, &mut p, |p| {
+        if p.interleaved {
+            return Ok(true);
+        }
+        // Every curve but the last is complete: a later row of its id would be interleaved.
+        let last = p.curves.pop();
+        let done = std::mem::take(&mut p.curves);
+        p.index.clear();
+        if let Some(handed) = &mut p.handed_out {
+            handed.extend(done.iter().filter_map(|c| c.id.clone()));
+        }
+        if let Some(c) = last {
+            if let Some(id) = &c.id {
+                p.index.insert(id.clone(), 0);
+            }
+            p.last = Some(0);
+            p.curves.push(c);
+        }
+        if !done.is_empty() {
+            each(done);
+        }
+        Ok(false)
+    })?;
+    if interleaved || p.interleaved {
+        return Ok(Grouped::Interleaved);
+    }
+    let rest = p.finish()?;
+    if !rest.is_empty() {
+        each(rest);
+    }
+    Ok(Grouped::Complete)
+}
+
+/// The reading loop of [`read`] and [`read_groups`]: feeds the parser block by block and calls
+/// `after_block` after each block of complete lines; `Ok(true)` from it stops reading (and is
+/// returned).
+fn stream(
+    mut reader: impl std::io::Read,
+    p: &mut Parser,
+    mut after_block: impl FnMut(&mut Parser) -> Result<bool, CurvesError>,
+) -> Result<bool, ReadError> {
     let mut buf: Vec<u8> = vec![0; CHUNK];
     // buf[..filled] holds unprocessed bytes: the tail of an incomplete line, then fresh data.
     let (mut filled, mut line_no) = (0usize, 0usize);
@@ -139,20 +214,19 @@ pub fn read(mut reader: impl std::io::Read, batch: bool) -> Result<Vec<Curve>, R
             if filled > 0 {
                 p.line(line_no + 1, &buf[..filled])?;
             }
-            return Ok(p.finish()?);
+            return Ok(false);
         }
         // Complete lines in buf[..filled]; only the fresh bytes can hold new newlines.
-        let mut start = 0;
-        let mut from = scanned;
-        while let Some(at) = memchr::memchr(b'\n', &buf[from..filled]) {
-            let end = from + at;
-            line_no += 1;
-            p.line(line_no, &buf[start..end])?;
-            start = end + 1;
-            from = start;
-        }
+        let start = match memchr::memrchr(b'\n', &buf[scanned..filled]) {
+            Some(at) => scanned + at + 1,
+            None => 0,
+        };
+        line_no += p.block(line_no, &buf[..start])?;
         buf.copy_within(start..filled, 0);
         filled -= start;
+        if start > 0 && after_block(p)? {
+            return Ok(true);
+        }
     }
 }
 
@@ -165,6 +239,14 @@ struct Parser {
     index: HashMap<String, usize>,
     /// Rows of one id usually come together: the last curve written, to skip the map lookup.
     last: Option<usize>,
+    /// [`read_groups`]: the ids of the curves handed out already, and whether one came back.
+    handed_out: Option<HashSet<String>>,
+    interleaved: bool,
+    /// The last curve's id followed by `,` as the low bytes of a little-endian word, the mask
+    /// of those bytes and their count, when they fit in one word (ids of up to 7 bytes): a row
+    /// of that curve is then recognised by one load and one compare. Outside batch files the
+    /// key is empty (mask 0) and matches every row.
+    key: Option<(u64, u64, usize)>,
 }
 
 impl Parser {
@@ -175,6 +257,9 @@ impl Parser {
             curves: Vec::new(),
             index: HashMap::new(),
             last: None,
+            key: None,
+            handed_out: None,
+            interleaved: false,
         }
     }
 
@@ -185,26 +270,80 @@ impl Parser {
         Ok(self.curves)
     }
 
-    /// One line (without its `\n`; a `\r` before it is whitespace), 1-based number `line_no`.
+    /// Every line of `text`, which holds complete lines only (each ends in `\n`), the first one
+    /// numbered `line_no + 1`; returns how many there were. Data rows in the usual form (no
+    /// blanks, no comment) are read in one pass over their bytes, which also finds the end of
+    /// the line: a row of the last curve by one compare of its id ([`Parser::key`]), its numbers
+    /// by [`fast_values`]. Everything else goes through [`Parser::line`].
+    fn block(&mut self, line_no: usize, text: &[u8]) -> Result<usize, CurvesError> {
+        let (mut at, mut count) = (0, 0);
+        while at < text.len() {
+            count += 1;
+            if let Some(ch) = self.channels {
+                if let Some(k) = self.last
+                    && let Some((key, mask, len)) = self.key
+                    && word(text, at) & mask == key
+                    && let Some((values, next)) = fast_values(text, at + len, ch + 1)
+                {
+                    let c = &mut self.curves[k];
+                    c.r.push(values[0]);
+                    for (dst, v) in c.channels.iter_mut().zip(&values[1..]) {
+                        dst.push(*v);
+                    }
+                    at = next;
+                    continue;
+                }
+                if let Some((id, from)) = fast_id(text, at, self.batch)
+                    && let Some((values, next)) = fast_values(text, from, ch + 1)
+                {
+                    let k = self.curve_for(line_no + count, id, ch)?;
+                    let c = &mut self.curves[k];
+                    c.r.push(values[0]);
+                    for (dst, v) in c.channels.iter_mut().zip(&values[1..]) {
+                        dst.push(*v);
+                    }
+                    at = next;
+                    continue;
+                }
+            }
+            let end = memchr::memchr(b'\n', &text[at..]).map_or(text.len(), |k| at + k);
+            self.line(line_no + count, &text[at..end])?;
+            at = end + 1;
+        }
+        Ok(count)
+    }
+
+    /// One line (without its `\n`; a `\r` before it is whitespace), 1-based number `line_no`,
+    /// by the general path: the header, comments, blank lines, unusual spacing and errors.
     fn line(&mut self, line_no: usize, raw: &[u8]) -> Result<(), CurvesError> {
         let Some(ch) = self.channels else {
             return self.header_line(line_no, raw);
         };
+        let expected = ch + 1 + usize::from(self.batch);
+        match slow_row(line_no, raw, self.batch, expected)? {
+            Some((id, values)) => self.push(line_no, id, &values, ch),
+            None => Ok(()),
+        }
+    }
+
+    /// Appends a data row to its id's curve.
+    #[inline]
+    fn push(
+        &mut self,
+        line_no: usize,
+        id: &[u8],
+        values: &[f64; MAX_COLUMNS],
+        ch: usize,
+    ) -> Result<(), CurvesError> {
         let first = usize::from(self.batch);
-        let expected = ch + 1 + first;
-        // The fast path reads well-formed rows; anything else (blank lines, comments, errors,
-        // unusual spacing) goes through the general path, which also words the errors.
-        let (id, values) = match fast_row(raw, self.batch, expected) {
-            Some(row) => row,
-            None => match slow_row(line_no, raw, self.batch, expected)? {
-                Some(row) => row,
-                None => return Ok(()),
-            },
-        };
         let at = self.curve_for(line_no, id, ch)?;
         let c = &mut self.curves[at];
         c.r.push(values[first]);
-        for (dst, v) in c.channels.iter_mut().zip(&values[first + 1..expected]) {
+        for (dst, v) in c
+            .channels
+            .iter_mut()
+            .zip(&values[first + 1..first + 1 + ch])
+        {
             dst.push(*v);
         }
         Ok(())
@@ -242,6 +381,9 @@ impl Parser {
         let k = match self.index.get(key) {
             Some(&k) => k,
             None => {
+                if self.handed_out.as_ref().is_some_and(|h| h.contains(key)) {
+                    self.interleaved = true;
+                }
                 // Curves of a batch are usually alike: room for as many rows as the last one
                 // had saves the vectors' regrowth (a measurable part of parsing large files).
                 let rows = self.last.map_or(0, |k| self.curves[k].r.len());
@@ -255,6 +397,18 @@ impl Parser {
             }
         };
         self.last = Some(k);
+        // The key of [`Parser::block`]'s one-compare path: the id and its comma in one word
+        // (outside batch files there is no id and every row is this curve's).
+        let key_len = if self.batch { id.len() + 1 } else { 0 };
+        self.key = (key_len <= 8).then(|| {
+            let mut bytes = [0u8; 8];
+            bytes[..id.len()].copy_from_slice(id);
+            if self.batch {
+                bytes[id.len()] = b',';
+            }
+            let mask = u64::MAX.checked_shr(64 - 8 * key_len as u32).unwrap_or(0);
+            (u64::from_le_bytes(bytes) & mask, mask, key_len)
+        });
         Ok(k)
     }
 }
@@ -271,61 +425,43 @@ fn strip_comment(line: &str) -> &str {
 /// A data row: the id's bytes (empty outside batch files) and the values by column.
 type Row<'a> = (&'a [u8], [f64; MAX_COLUMNS]);
 
-/// Spaces and tabs (and the `\r` of CRLF files) around fields.
-fn is_blank(b: u8) -> bool {
-    b == b' ' || b == b'\t' || b == b'\r'
+/// The id of a batch row in the usual form at `text[at..]` (no blanks, no `#`, followed by a
+/// comma) and where its first number starts; outside batch files an empty id at `at`.
+#[inline]
+fn fast_id(text: &[u8], at: usize, batch: bool) -> Option<(&[u8], usize)> {
+    if !batch {
+        return Some((&[], at));
+    }
+    let mut i = at;
+    while i < text.len() && !matches!(text[i], b',' | b'\n' | b'#' | b' ' | b'\t' | b'\r') {
+        i += 1;
+    }
+    (i > at && text.get(i) == Some(&b',')).then(|| (&text[at..i], i + 1))
 }
 
-/// A well-formed row without a comment: `expected` comma-separated fields, numbers after the id,
-/// ASCII blanks around fields. One pass over the bytes, no allocation. `None` for anything
-/// else, which [`slow_row`] then reads or rejects.
-fn fast_row(line: &[u8], batch: bool, expected: usize) -> Option<Row<'_>> {
-    let mut values = [0.0f64; MAX_COLUMNS];
-    let mut at = 0;
-    let mut id: &[u8] = &[];
-    let mut col = 0;
-    if batch {
-        let comma = memchr::memchr(b',', line)?;
-        id = trim_blank(&line[..comma]);
-        if id.is_empty() || id.contains(&b'#') {
-            return None;
-        }
-        at = comma + 1;
-        col = 1;
-    }
-    while col < expected {
-        while at < line.len() && is_blank(line[at]) {
-            at += 1;
-        }
-        let (v, used) = number_prefix(&line[at..])?;
-        values[col] = v;
-        at += used;
-        while at < line.len() && is_blank(line[at]) {
-            at += 1;
-        }
-        col += 1;
-        if col < expected {
-            if line.get(at) != Some(&b',') {
+/// `count` numbers at `text[at..]` separated by commas, with no blanks, ended by `\n` or
+/// `\r\n`: the values and where the next line starts. `None` for anything else, which the
+/// general path ([`slow_row`]) then reads or rejects.
+#[inline]
+fn fast_values(text: &[u8], at: usize, count: usize) -> Option<([f64; 4], usize)> {
+    let mut values = [0.0f64; 4];
+    let mut i = at;
+    for (col, v) in values.iter_mut().enumerate().take(count) {
+        if col > 0 {
+            if text.get(i) != Some(&b',') {
                 return None;
             }
-            at += 1;
+            i += 1;
         }
+        let (x, used) = number_prefix(text.get(i..)?)?;
+        *v = x;
+        i += used;
     }
-    (at == line.len()).then_some((id, values))
-}
-
-fn trim_blank(mut b: &[u8]) -> &[u8] {
-    while let [first, rest @ ..] = b
-        && is_blank(*first)
-    {
-        b = rest;
+    match text.get(i..) {
+        Some([b'\n', ..]) => Some((values, i + 1)),
+        Some([b'\r', b'\n', ..]) => Some((values, i + 2)),
+        _ => None,
     }
-    while let [rest @ .., last] = b
-        && is_blank(*last)
-    {
-        b = rest;
-    }
-    b
 }
 
 /// The general reading of a data row: comments, blank lines (`Ok(None)`), Unicode spacing, and
@@ -377,101 +513,27 @@ fn parse_f64(s: &str) -> Option<f64> {
     fast_float2::parse(s).ok()
 }
 
-/// The number at the start of `b` and the bytes it takes, correctly rounded (the value
-/// `fast-float2` gives): [`plain_decimal`] for the common short decimals, the crate for
-/// everything else.
+/// The number at the start of `b` and the bytes it takes, correctly rounded, by `fast-float2`.
+/// (A hand-written word-at-a-time reader for short decimals and the byte loop before it were
+/// both slower than the crate on the scipy comparison's 8 million numbers: 0.25 and 0.24 s
+/// against 0.215 s for reading the whole file, BENCHMARKS.md.)
 #[inline]
 fn number_prefix(b: &[u8]) -> Option<(f64, usize)> {
-    plain_decimal(b).or_else(|| fast_float2::parse_partial::<f64, _>(b).ok())
+    fast_float2::parse_partial::<f64, _>(b).ok()
 }
 
-/// Exact powers of ten representable in f64 (10^22 is the largest).
-const POW10: [f64; 23] = [
-    1e0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9, 1e10, 1e11, 1e12, 1e13, 1e14, 1e15, 1e16,
-    1e17, 1e18, 1e19, 1e20, 1e21, 1e22,
-];
-
-/// A decimal `[+-]digits[.digits][e[+-]digits]` at the start of `b` with at most 19
-/// significant digits, a mantissa up to 2^53 and a power of ten within ±22 (what `%.10g`
-/// writes): Clinger's fast path, where mantissa and power of ten are both exact in f64 so one
-/// multiplication or division rounds correctly. `None` for anything else (the caller then asks
-/// `fast-float2`). Hand-written because this inlined loop over the bytes is about twice as fast
-/// as the crate's general entry point on the rows `fit-curve --batch` reads by the million
-/// (BENCHMARKS.md); a test checks it against the standard library.
-#[inline]
-fn plain_decimal(b: &[u8]) -> Option<(f64, usize)> {
-    let mut i = 0;
-    let neg = match b.first() {
-        Some(b'-') => {
-            i = 1;
-            true
-        }
-        Some(b'+') => {
-            i = 1;
-            false
-        }
-        _ => false,
-    };
-    let (mut mantissa, mut digits, mut exp10, mut any) = (0u64, 0u32, 0i32, false);
-    while i < b.len() && b[i].is_ascii_digit() {
-        let d = u64::from(b[i] - b'0');
-        if digits > 0 || d != 0 {
-            digits += 1;
-            mantissa = mantissa.wrapping_mul(10).wrapping_add(d);
-        }
-        any = true;
-        i += 1;
-    }
-    if i < b.len() && b[i] == b'.' {
-        i += 1;
-        while i < b.len() && b[i].is_ascii_digit() {
-            let d = u64::from(b[i] - b'0');
-            if digits > 0 || d != 0 {
-                digits += 1;
-                mantissa = mantissa.wrapping_mul(10).wrapping_add(d);
-            }
-            exp10 -= 1;
-            any = true;
-            i += 1;
+/// The eight bytes at `b[i..]` as a little-endian word; bytes past the end read as 0.
+#[inline(always)]
+fn word(b: &[u8], i: usize) -> u64 {
+    match b.get(i..i + 8) {
+        Some(w) => u64::from_le_bytes(w.try_into().unwrap_or_default()),
+        None => {
+            let mut w = [0u8; 8];
+            let tail = b.get(i..).unwrap_or_default();
+            w[..tail.len()].copy_from_slice(tail);
+            u64::from_le_bytes(w)
         }
     }
-    if !any {
-        return None;
-    }
-    if i < b.len() && (b[i] == b'e' || b[i] == b'E') {
-        i += 1;
-        let eneg = match b.get(i) {
-            Some(b'-') => {
-                i += 1;
-                true
-            }
-            Some(b'+') => {
-                i += 1;
-                false
-            }
-            _ => false,
-        };
-        let (mut e, mut edigits) = (0i32, 0);
-        while i < b.len() && b[i].is_ascii_digit() && edigits < 6 {
-            e = e * 10 + i32::from(b[i] - b'0');
-            edigits += 1;
-            i += 1;
-        }
-        if edigits == 0 || (i < b.len() && b[i].is_ascii_digit()) {
-            return None;
-        }
-        exp10 += if eneg { -e } else { e };
-    }
-    if digits > 19 || mantissa > (1u64 << 53) || exp10.abs() > 22 {
-        return None;
-    }
-    let m = mantissa as f64;
-    let v = if exp10 >= 0 {
-        m * POW10[exp10 as usize]
-    } else {
-        m / POW10[(-exp10) as usize]
-    };
-    Some((if neg { -v } else { v }, i))
 }
 
 /// Channels a header announces, or `None` if it is not a known header.
@@ -561,6 +623,16 @@ mod tests {
             "-inf",
             "00012.5000",
             "3.141592653589793238462643383279",
+            "12.09039342",
+            "0.6002071621",
+            "5.096327544e-05",
+            "1.e5",
+            "-.5e-3",
+            "5e+0000007",
+            "5e00000007",
+            "0.00000000000000000000001",
+            "123456789.5",
+            "1234567.123456789012345",
         ]
         .iter()
         .map(|s| s.to_string())
@@ -576,6 +648,13 @@ mod tests {
                 cases.push(format!("{v:.9e}"));
                 cases.push(format!("{}", (seed >> 40) as f64 / 1e7));
             }
+            // Digits split every way around the point (0 to 17 after it, 1 to 9 before it),
+            // with and without exponents.
+            let x = (seed >> 11) as f64 / (1u64 << 53) as f64 * 10f64.powi((seed % 9) as i32);
+            let k = (seed >> 5) as usize % 18;
+            cases.push(format!("{x:.k$}"));
+            cases.push(format!("-{x:.k$}e-{}", seed % 30));
+            cases.push(format!("{x:.k$}E+{}", seed % 25));
         }
         for c in &cases {
             let want = c.parse::<f64>().ok().map(f64::to_bits);
@@ -588,7 +667,7 @@ mod tests {
             assert_eq!(prefix.map(|p| p.0.to_bits()), want, "{c},");
         }
         for bad in [
-            "", "-", ".", "e5", "1e", "1.2.3", "1e5x", "abc", "--1", "1 2",
+            "", "-", ".", "e5", "1e", "1.2.3", "1e5x", "abc", "--1", "1 2", "-.", "1e-", "+-1",
         ] {
             assert_eq!(parse_f64(bad), None, "{bad}");
             assert!(
@@ -638,6 +717,49 @@ mod tests {
         }
     }
 
+    /// `read_groups` hands out the curves of `read`, complete and in order, whatever the block
+    /// boundaries, and says when an id comes back after its curve was handed out.
+    #[test]
+    fn grouped_reading_is_read_or_says_interleaved() {
+        let mut text = String::from("# c\nid,r,value\n");
+        for id in ["a", "b", "long-identifier", "c"] {
+            for k in 0..50 {
+                text += &format!("{id},{k},{}\n", k + 1);
+            }
+        }
+        text += "d,0,1"; // no newline at the end
+        let whole = read(text.as_bytes(), true).unwrap();
+        for step in [1, 7, 64, 100_000] {
+            let mut got: Vec<Curve> = Vec::new();
+            let mut calls = 0;
+            let end = read_groups(Trickle(text.as_bytes(), step), true, |g| {
+                calls += 1;
+                got.extend(g);
+            })
+            .unwrap();
+            assert_eq!(end, Grouped::Complete);
+            assert_eq!(got, whole, "{step}");
+            assert!(step > 1000 || calls > 1, "{step}: {calls}");
+        }
+        // Single-curve files are one group at the end.
+        let single = "r,value\n0,1\n1,2\n";
+        let mut got = Vec::new();
+        let end = read_groups(Trickle(single.as_bytes(), 3), false, |g| got.extend(g)).unwrap();
+        assert_eq!(
+            (end, got),
+            (Grouped::Complete, read(single.as_bytes(), false).unwrap())
+        );
+        // An id whose rows are apart, noticed once its first curve has been handed out.
+        let apart = format!("{text}\na,99,1\n");
+        let end = read_groups(Trickle(apart.as_bytes(), 5), true, |_| {}).unwrap();
+        assert_eq!(end, Grouped::Interleaved);
+        // Errors name the line as `read` does.
+        let e = read_groups(Trickle(b"id,r,value\na,0,1\nb,1,x\n", 4), true, |_| {})
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("line 3"), "{e}");
+    }
+
     #[test]
     fn groups_batch_ids_and_keeps_nan() {
         let c = parse("id,r,value # header\na,0,1\nb,0,2\na,1,NaN\n", true).unwrap();
@@ -653,6 +775,17 @@ mod tests {
             rgb[0].channels,
             vec![vec![1.0, 4.0], vec![2.0, 5.0], vec![3.0, 6.0]]
         );
+        // Ids longer than one word, ids that are prefixes of others, rows of an id apart.
+        let c = parse(
+            "id,r,value\nlong-identifier,0,1\nlong-identifier,1,2\n1,0,3\n12,0,4\n1,1,5\nlong-identifier,2,6\n",
+            true,
+        )
+        .unwrap();
+        let ids: Vec<_> = c.iter().map(|c| c.id.as_deref().unwrap()).collect();
+        assert_eq!(ids, ["long-identifier", "1", "12"]);
+        assert_eq!(c[0].channels[0], vec![1.0, 2.0, 6.0]);
+        assert_eq!(c[1].channels[0], vec![3.0, 5.0]);
+        assert_eq!(c[2].channels[0], vec![4.0]);
         // Header words in any case.
         assert_eq!(
             parse("ID,R,Value\n7,1,2\n", true).unwrap()[0].id.as_deref(),

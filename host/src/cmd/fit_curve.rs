@@ -7,7 +7,7 @@ use rayon::prelude::*;
 use serde_json::{Value, json};
 use std::io::Write;
 
-use subsurf::curves::{Curve, read};
+use subsurf::curves::{Curve, Grouped, read, read_groups};
 use subsurf::fit::dipole::{DipoleFit, DipoleOptions, fit_dipole};
 use subsurf::fit::{ExpFit, FitFailure, FitOptions, Objective, Preset, Solver, Terms, fit_expsum};
 use subsurf::model::{MAX_TERMS, Term};
@@ -363,9 +363,6 @@ fn describe(curve: &Curve, v: &Value) -> String {
 
 /// Runs the command.
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let file = std::fs::File::open(&args.input)
-        .with_context(|| format!("opening {}", args.input.display()))?;
-    let curves = read(file, args.batch).with_context(|| format!("in {}", args.input.display()))?;
     let options = fit_options(&args)?;
     let dipole_options = DipoleOptions {
         eta: args.eta,
@@ -385,9 +382,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         bins: Some(AUTO_BINS),
         ..options.clone()
     };
-    let outputs: Vec<Value> = curves
-        .par_iter()
-        .map(|curve| match args.model {
+    // One curve's output line: fitted, then written as JSON or as text.
+    let fit_one = |curve: &Curve| -> anyhow::Result<String> {
+        let v = match args.model {
             ModelKind::Expsum => {
                 let o = curve_options(&options, &binned, auto, curve.r.len());
                 let per: Vec<Value> = curve
@@ -405,25 +402,62 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                     .collect();
                 curve_json(curve, "dipole", per)
             }
+        };
+        Ok(if args.json {
+            serde_json::to_string(&v)?
+        } else {
+            describe(curve, &v)
         })
-        .collect();
+    };
+    let open = || {
+        std::fs::File::open(&args.input)
+            .with_context(|| format!("opening {}", args.input.display()))
+    };
+    // Curves are fitted as they are read, a block of the file at a time (see
+    // `curves::read_groups`); the output is written once the whole file has been read, so a
+    // file whose ids are interleaved is read again whole and fitted from scratch.
+    let mut lines: Vec<String> = Vec::new();
+    let mut first: Option<Curve> = None;
+    let mut failed: Option<anyhow::Error> = None;
+    let grouped = read_groups(open()?, args.batch, |group| {
+        if failed.is_some() {
+            return;
+        }
+        if first.is_none() && args.plot.is_some() {
+            first = group.first().cloned();
+        }
+        match group
+            .par_iter()
+            .map(&fit_one)
+            .collect::<anyhow::Result<Vec<_>>>()
+        {
+            Ok(l) => lines.extend(l),
+            Err(e) => failed = Some(e),
+        }
+    })
+    .with_context(|| format!("in {}", args.input.display()))?;
+    if let Some(e) = failed {
+        return Err(e);
+    }
+    if grouped == Grouped::Interleaved {
+        let curves =
+            read(open()?, args.batch).with_context(|| format!("in {}", args.input.display()))?;
+        lines = curves
+            .par_iter()
+            .map(&fit_one)
+            .collect::<anyhow::Result<Vec<_>>>()?;
+        first = curves.into_iter().next();
+    }
     // One buffered writer: a batch prints thousands of lines.
     let mut out = std::io::BufWriter::new(std::io::stdout().lock());
-    for (curve, v) in curves.iter().zip(&outputs) {
-        if args.json {
-            serde_json::to_writer(&mut out, v)?;
-            writeln!(out)?;
-        } else {
-            writeln!(out, "{}", describe(curve, v))?;
-        }
+    for line in &lines {
+        writeln!(out, "{line}")?;
     }
     out.flush().context("writing the output")?;
     drop(out);
     if let Some(path) = &args.plot {
-        let curve = curves
-            .first()
-            .context("nothing to plot: the file has no samples")?;
-        plot(path, curve, &args, &options, &dipole_options)?;
+        let curve = first.context("nothing to plot: the file has no samples")?;
+        plot(path, &curve, &args, &options, &dipole_options)?;
     }
     Ok(())
 }

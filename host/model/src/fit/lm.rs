@@ -124,6 +124,9 @@ fn build<P: Problem>(problem: &P, theta: &[f64], out: &mut Normal) -> bool {
     ok && cost.is_finite() && jtr.iter().all(|v| v.is_finite())
 }
 
+/// Parameters up to which per-iteration scratch vectors live on the stack.
+const STACK_PARAMS: usize = 64;
+
 /// Solves (A + mu·D)x = b by Cholesky, D = diag(A) floored; `false` if not positive definite.
 fn solve_damped(a: &[f64], b: &[f64], mu: f64, x: &mut [f64], l: &mut [f64]) -> bool {
     let p = b.len();
@@ -133,10 +136,19 @@ fn solve_damped(a: &[f64], b: &[f64], mu: f64, x: &mut [f64], l: &mut [f64]) -> 
     for i in 0..p {
         l[i * p + i] += mu * a[i * p + i].max(floor);
     }
-    // Jacobi-scaled Cholesky: factor S A S with S = diag(1/sqrt(a_ii)) for conditioning.
-    let s: Vec<f64> = (0..p)
-        .map(|i| 1.0 / l[i * p + i].max(floor).sqrt())
-        .collect();
+    // Jacobi-scaled Cholesky: factor S A S with S = diag(1/sqrt(a_ii)) for conditioning. S on
+    // the stack for the usual sizes (this runs in every iteration of every fit).
+    let mut stack = [0.0f64; STACK_PARAMS];
+    let mut heap = Vec::new();
+    let s: &mut [f64] = if p <= STACK_PARAMS {
+        &mut stack[..p]
+    } else {
+        heap.resize(p, 0.0);
+        &mut heap
+    };
+    for i in 0..p {
+        s[i] = 1.0 / l[i * p + i].max(floor).sqrt();
+    }
     for i in 0..p {
         for j in 0..p {
             l[i * p + j] *= s[i] * s[j];
@@ -218,9 +230,12 @@ pub(crate) fn minimize<P: Problem>(
     let mut iterations = 0;
     let mut converged = cur.cost == 0.0;
     let mut stalled = false;
+    let mut neg_g = vec![0.0; p];
     while !converged && iterations < settings.max_iterations {
         iterations += 1;
-        let neg_g: Vec<f64> = cur.jtr.iter().map(|v| -v).collect();
+        for (ng, g) in neg_g.iter_mut().zip(&cur.jtr) {
+            *ng = -g;
+        }
         if !solve_damped(&cur.jtj, &neg_g, mu, &mut step, &mut scratch) {
             mu *= nu;
             nu *= 2.0;

@@ -22,6 +22,8 @@ mod lm;
 mod reference;
 pub mod samples;
 
+use std::borrow::Cow;
+
 use serde::{Deserialize, Serialize};
 
 use crate::model::{ExpSum, MAX_TERMS, Term};
@@ -333,15 +335,16 @@ fn errors(model: &ExpSum, r: &[f64], s: &[f64], objective: Objective) -> (f64, f
 
 /// Fits Eq. 1 to samples s(x_i, x_o) at distances r = |x_o − x_i|.
 pub fn fit_expsum(r: &[f64], s: &[f64], options: &FitOptions) -> Result<ExpFit, FitFailure> {
-    let (mut cr, mut cs, mut report) = clean(r, s);
+    let (mut cr, mut cs, mut report) = clean_or_borrow(r, s);
     if options.subsample > 1 {
-        cr = cr.into_iter().step_by(options.subsample).collect();
-        cs = cs.into_iter().step_by(options.subsample).collect();
+        cr = Cow::Owned(cr.iter().step_by(options.subsample).copied().collect());
+        cs = Cow::Owned(cs.iter().step_by(options.subsample).copied().collect());
         report.skipped_subsample = report.used - cr.len();
         report.used = cr.len();
     }
+    let (cr, cs) = (&*cr, &*cs);
     match options.terms {
-        Terms::Fixed(n) => fit_order(&cr, &cs, n, options, report),
+        Terms::Fixed(n) => fit_order(cr, cs, n, options, report),
         Terms::Auto { max, tolerance } => {
             if !((1..=MAX_TERMS).contains(&max) && tolerance >= 0.0 && tolerance.is_finite()) {
                 return Err(FitFailure::InvalidOptions {
@@ -350,12 +353,12 @@ pub fn fit_expsum(r: &[f64], s: &[f64], options: &FitOptions) -> Result<ExpFit, 
             }
             let mut fits: Vec<(usize, Result<ExpFit, FitFailure>)> = Vec::new();
             let max = if options.reduce_order {
-                max.min(determined_order(&cr)).max(1)
+                max.min(determined_order(cr)).max(1)
             } else {
                 max
             };
             for n in 1..=max {
-                let f = fit_order(&cr, &cs, n, options, report);
+                let f = fit_order(cr, cs, n, options, report);
                 let stop = matches!(
                     f,
                     Err(FitFailure::TooFewSamples { .. } | FitFailure::TooFewDistances { .. })
@@ -388,6 +391,32 @@ pub fn fit_expsum(r: &[f64], s: &[f64], options: &FitOptions) -> Result<ExpFit, 
             }
         }
     }
+}
+
+/// [`clean`] without the copy when every sample is usable (the common case: a batch of
+/// measured curves passes through here by the thousand, and copying each one is a measurable
+/// part of `fit-curve --batch`); the same samples and report either way.
+fn clean_or_borrow<'a>(
+    r: &'a [f64],
+    s: &'a [f64],
+) -> (Cow<'a, [f64]>, Cow<'a, [f64]>, SampleReport) {
+    // Comparisons are false for NaN: finite r >= 0 and finite s > 0, without branches (`&`,
+    // not the short-circuiting `Range::contains`).
+    #[allow(clippy::manual_range_contains)]
+    let usable = r.len() == s.len()
+        && r.iter().zip(s).fold(true, |ok, (&ri, &si)| {
+            ok & (ri >= 0.0) & (ri < f64::INFINITY) & (si > 0.0) & (si < f64::INFINITY)
+        });
+    if usable {
+        let report = SampleReport {
+            input: r.len(),
+            used: r.len(),
+            ..SampleReport::default()
+        };
+        return (Cow::Borrowed(r), Cow::Borrowed(s), report);
+    }
+    let (cr, cs, report) = clean(r, s);
+    (Cow::Owned(cr), Cow::Owned(cs), report)
 }
 
 fn fit_order(

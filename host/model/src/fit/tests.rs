@@ -813,11 +813,18 @@ fn specialised_normal_equations_match_generic_rows() {
         .map(|v| (-2.0 * v + (17.0 * v).sin() * 0.1).exp())
         .collect();
     let binned = bin_samples(&r, &s, 37);
-    let p = LogBinned {
-        bins: &binned.bins,
-        n: 3,
-    };
-    assert_normal_equations_match_rows(&p, &theta);
+    // Every term count (the block-wise binned form is monomorphised per n), 37 bins: two full
+    // blocks and a padded one.
+    for n in 1..=4 {
+        let theta: Vec<f64> = (0..n)
+            .flat_map(|k| [0.2 - 0.4 * k as f64, 0.1 + 0.9 * k as f64])
+            .collect();
+        let p = LogBinned {
+            bins: &binned.bins,
+            n,
+        };
+        assert_normal_equations_match_rows(&p, &theta);
+    }
 }
 
 #[test]
