@@ -784,7 +784,10 @@ fn has_dead_term(theta: &[f64], n: usize) -> bool {
 /// geometrically (factor 3 and 8 apart) around the overall fall-off rate, each with amplitudes
 /// from the non-negative least-squares fit.
 pub(crate) fn starts(bins: &[Bin], n: usize) -> Vec<Vec<f64>> {
-    let mut out = vec![peel(bins, n)];
+    let mut out = vec![peel(bins, n, false)];
+    if n > 1 {
+        out.push(peel(bins, n, true));
+    }
     if n > 1 {
         let pts: Vec<(f64, f64, f64)> = bins.iter().map(|b| (b.r, b.y, b.n)).collect();
         let rho = line_fit(&pts).map_or(1.0, |(_, b)| (-b).max(0.5));
@@ -819,23 +822,36 @@ pub(crate) fn starts(bins: &[Bin], n: usize) -> Vec<Vec<f64>> {
 
 /// Start values by peeling the tail in log space: the slowest term is a line through ln s over
 /// the farthest group of bins; it is subtracted and the next group gives the next term, up to the
-/// fastest term near x_i, in n equal groups of bins. (Splitting only the bins where the remainder
-/// is still 5 % of the signal halved the iterations on the scipy comparison's curves, 8.6 to 4.5,
-/// but led the pipeline's per-vertex fits to other minima: the anisotropic simulated slab's
-/// in-sample log E 0.267 -> 0.324, the sparse simulated torus's held-out blue above the
-/// homogeneous baseline. Kept as it was.) Rates are forced to grow by ≥ 1.5× per term (well separated, ordered),
+/// fastest term near x_i. With `visible`, the groups of the faster terms split only the bins
+/// where the remainder is still a visible part of the signal: on the scipy comparison's curves
+/// (BENCHMARKS.md) that halved the iterations (a mean of 8.6 to 4.5), because n equal groups put
+/// the middle term's group where the slowest term's tail swamps it. Without it, n equal groups:
+/// alone, the visible-range start led some of the pipeline's per-vertex fits to other minima
+/// (the anisotropic simulated slab's in-sample log E 0.267 -> 0.324), so [`starts`] offers both
+/// and the lower start cost goes first. Rates are forced to grow by ≥ 1.5× per term (well separated, ordered),
 /// then the amplitudes are re-solved by non-negative least squares with relative weights for
 /// those rates. Returns θ in normalised units.
-pub(crate) fn peel(bins: &[Bin], n: usize) -> Vec<f64> {
+pub(crate) fn peel(bins: &[Bin], n: usize, visible: bool) -> Vec<f64> {
+    /// Share of the signal that the remaining terms must carry for a bin to count in their
+    /// groups.
+    const PEEL_VISIBLE: f64 = 0.05;
     let nb = bins.len();
     let mut resid: Vec<f64> = bins.iter().map(|b| b.y.exp()).collect();
     let mut rates = vec![0.0f64; n];
     let mut amps = vec![0.0f64; n];
     let mut prev_rate: f64 = 0.0;
+    // Bins [0, end) are still to be explained by terms 0..=k.
+    let mut end = nb;
     for k in (0..n).rev() {
-        // Group k of n contiguous groups (k = 0 nearest).
-        let lo = nb * k / n;
-        let hi = (nb * (k + 1) / n).max(lo + 1).min(nb);
+        // The farthest of k + 1 contiguous groups of [0, end) (k = 0: all of it).
+        let (lo, hi) = if visible {
+            let lo = end * k / (k + 1);
+            (lo, end.max(lo + 1).min(nb))
+        } else {
+            // Group k of n equal groups (k = 0 nearest).
+            let lo = nb * k / n;
+            (lo, (nb * (k + 1) / n).max(lo + 1).min(nb))
+        };
         let pts: Vec<(f64, f64, f64)> = (lo..hi)
             .filter(|&i| resid[i] > 0.0 && resid[i].is_finite())
             .map(|i| (bins[i].r, resid[i].ln(), bins[i].n))
@@ -869,6 +885,15 @@ pub(crate) fn peel(bins: &[Bin], n: usize) -> Vec<f64> {
         for i in 0..lo {
             resid[i] -= amps[k] * (-rate * bins[i].r).exp();
         }
+        // The faster terms only matter where what is left is a visible part of the signal
+        // (5 %, far above the noise of a bin's mean): their groups split that range, not all
+        // nearer bins, where the slower terms' tails would swamp them.
+        end = (0..lo)
+            .rev()
+            .find(|&i| resid[i] > PEEL_VISIBLE * bins[i].y.exp())
+            .map_or(lo, |i| i + 1)
+            .max(2 * k)
+            .min(lo);
     }
     nnls_amplitudes(bins, &rates, &mut amps);
     let mut theta = Vec::with_capacity(2 * n);
