@@ -30,6 +30,17 @@ pub struct Curve {
     pub channels: Vec<Vec<f64>>,
 }
 
+impl Curve {
+    /// Appends one row: `row[0]` is r, the rest one value per channel.
+    #[inline]
+    fn push_row(&mut self, row: &[f64]) {
+        self.r.push(row[0]);
+        for (dst, v) in self.channels.iter_mut().zip(&row[1..]) {
+            dst.push(*v);
+        }
+    }
+}
+
 /// Why a curve file cannot be read. Every error about a row names its 1-based line.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[non_exhaustive]
@@ -285,11 +296,7 @@ impl Parser {
                     && word(text, at) & mask == key
                     && let Some((values, next)) = fast_values(text, at + len, ch + 1)
                 {
-                    let c = &mut self.curves[k];
-                    c.r.push(values[0]);
-                    for (dst, v) in c.channels.iter_mut().zip(&values[1..]) {
-                        dst.push(*v);
-                    }
+                    self.curves[k].push_row(&values[..=ch]);
                     at = next;
                     continue;
                 }
@@ -297,11 +304,7 @@ impl Parser {
                     && let Some((values, next)) = fast_values(text, from, ch + 1)
                 {
                     let k = self.curve_for(line_no + count, id, ch)?;
-                    let c = &mut self.curves[k];
-                    c.r.push(values[0]);
-                    for (dst, v) in c.channels.iter_mut().zip(&values[1..]) {
-                        dst.push(*v);
-                    }
+                    self.curves[k].push_row(&values[..=ch]);
                     at = next;
                     continue;
                 }
@@ -337,15 +340,7 @@ impl Parser {
     ) -> Result<(), CurvesError> {
         let first = usize::from(self.batch);
         let at = self.curve_for(line_no, id, ch)?;
-        let c = &mut self.curves[at];
-        c.r.push(values[first]);
-        for (dst, v) in c
-            .channels
-            .iter_mut()
-            .zip(&values[first + 1..first + 1 + ch])
-        {
-            dst.push(*v);
-        }
+        self.curves[at].push_row(&values[first..=first + ch]);
         Ok(())
     }
 
