@@ -14,25 +14,37 @@ use subsurf::modelfile::{ModelFile, VertexStatus, model_of};
 use subsurf::pipeline::{MIN_DECAY, PipelineOptions, fit_dataset};
 use subsurf::simulate::{SimConfig, SimObject, simulate};
 
-#[test]
-fn noise_free_sphere_predicts_held_out_frames_near_the_floor() {
+/// A noise-free simulated sphere of radius 10 mm (`rings` rings, `size` px cameras, 2 turntable
+/// angles, a `raster` x `raster` laser raster) of a homogeneous isotropic material (alpha
+/// texture kept), in a temporary directory that lives as long as the returned guard.
+fn isotropic_noise_free_sphere(
+    rings: usize,
+    size: u32,
+    raster: usize,
+) -> (tempfile::TempDir, Dataset) {
     let tmp = tempfile::tempdir().unwrap();
-    // `subsurf simulate --object sphere --vertices 800 --size 256 --angles 2 --raster 8
-    //  --noise-free --anisotropy 0 --heterogeneity 0` (alpha texture ±10 % kept).
     let mut cfg = SimConfig::for_object(
         SimObject::Sphere {
             radius: 10.0,
-            rings: 20,
+            rings,
         },
-        256,
+        size,
         2,
-        8,
+        raster,
     )
     .noise_free();
     cfg.field.anisotropy = 0.0;
     cfg.field.heterogeneity = 0.0;
     simulate(&cfg, tmp.path(), &()).expect("simulate");
     let ds = Dataset::open(tmp.path()).unwrap();
+    (tmp, ds)
+}
+
+#[test]
+fn noise_free_sphere_predicts_held_out_frames_near_the_floor() {
+    // `subsurf simulate --object sphere --vertices 800 --size 256 --angles 2 --raster 8
+    //  --noise-free --anisotropy 0 --heterogeneity 0` (alpha texture ±10 % kept).
+    let (tmp, ds) = isotropic_noise_free_sphere(20, 256, 8);
     let n = ds.spec.frames.len();
     let held: Vec<usize> = (3..n).step_by(7).collect();
     let list = held
@@ -90,21 +102,7 @@ fn noise_free_sphere_predicts_held_out_frames_near_the_floor() {
 /// the views agree and more of them must not predict held-out frames worse.
 #[test]
 fn every_view_of_a_spot_is_pooled_into_its_light_position() {
-    let tmp = tempfile::tempdir().unwrap();
-    let mut cfg = SimConfig::for_object(
-        SimObject::Sphere {
-            radius: 10.0,
-            rings: 14,
-        },
-        128,
-        2,
-        5,
-    )
-    .noise_free();
-    cfg.field.anisotropy = 0.0;
-    cfg.field.heterogeneity = 0.0;
-    simulate(&cfg, tmp.path(), &()).expect("simulate");
-    let ds = Dataset::open(tmp.path()).unwrap();
+    let (_tmp, ds) = isotropic_noise_free_sphere(14, 128, 5);
     let n = ds.spec.frames.len();
     let held: Vec<usize> = (1..n).step_by(7).collect();
     let train: Vec<usize> = (0..n).filter(|k| !held.contains(k)).collect();
