@@ -233,6 +233,7 @@ fn torus_model_file() -> subsurf::modelfile::ModelFile {
         vertices,
         baseline: None,
         frame: subsurf::model::FrameRule::CURRENT,
+        face_alpha: None,
     }
 }
 

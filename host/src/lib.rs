@@ -13,6 +13,7 @@ pub mod evaluate;
 pub mod flash;
 pub mod geometry;
 pub mod interpolate;
+pub mod lattice;
 pub mod link;
 pub mod modelfile;
 pub mod pipeline;

@@ -1,7 +1,8 @@
-//! The model file (`docs/model-format.md`, `subsurf-model/4`): a binary little-endian PLY holding
+//! The model file (`docs/model-format.md`, `subsurf-model/5`): a binary little-endian PLY holding
 //! the mesh and, per vertex, the fitted parameters of the light position `x_i` (Eq. 1/3/5/9), the
 //! modulation texture `alpha(x_o)` (Eq. 2/6), a status and the fit's `log E(x_i)` (Eq. 8), plus
-//! the tangent-frame rule its Eq. 3 segments are defined in.
+//! the tangent-frame rule its Eq. 3 segments are defined in, and optionally alpha finer than the
+//! mesh (the per-face lattice of [`crate::lattice`], element `face_alpha`).
 //!
 //! [`ModelFile`] is the one per-vertex model type: what the pipeline assembles, what evaluation
 //! reads, and what the renderer and the plots take (the renderer prepares its inner-loop layout
@@ -12,14 +13,20 @@ use std::io::{BufRead, BufReader, Read, Write};
 use std::path::{Path, PathBuf};
 
 /// The magic comment that marks a subsurf model.
-pub const MODEL_FORMAT: &str = "subsurf-model/4";
+pub const MODEL_FORMAT: &str = "subsurf-model/5";
 
 /// Earlier formats still read: version 1 wrote the `params` count as `uchar`, which wrapped for
 /// models of more than 255 values (shared colour with n = 3 and m = 64 has 386); versions 1 and 2
 /// have no per-vertex `segments` (every vertex has the header's m); versions 1–3 have no
 /// `comment frame` line: their segments are in the frame of [`FrameRule::ReferenceAxis`], and they
-/// read with it, so they evaluate and render exactly as before.
-const OLD_FORMATS: [&str; 3] = ["subsurf-model/1", "subsurf-model/2", "subsurf-model/3"];
+/// read with it, so they evaluate and render exactly as before; versions 1–4 have no `face_alpha`
+/// element (alpha at the vertices only).
+const OLD_FORMATS: [&str; 4] = [
+    "subsurf-model/1",
+    "subsurf-model/2",
+    "subsurf-model/3",
+    "subsurf-model/4",
+];
 
 pub use crate::model::FrameRule;
 
@@ -153,6 +160,10 @@ pub struct ModelFile {
     /// [`FrameRule::MinimalRotation`] for every fit since version 4, [`FrameRule::ReferenceAxis`]
     /// for files before it.
     pub frame: FrameRule,
+    /// alpha finer than the mesh (section 5's "higher resolution texture"): per face, ln alpha
+    /// relative to the interpolated vertex alphas ([`crate::lattice::FaceAlpha`]); `None` in
+    /// files without the `face_alpha` element (alpha at the vertices only).
+    pub face_alpha: Option<crate::lattice::FaceAlpha>,
 }
 
 /// The homogeneous baseline as the file holds it (header line `comment baseline <n> <r_min>
@@ -230,6 +241,30 @@ impl ModelFile {
         crate::model::TangentFrame::with_rule(self.frame, normal).ok()
     }
 
+    /// alpha(x_o) (Eq. 2/6) per channel at barycentric coordinates `bary` of triangle `tri`:
+    /// the barycentric interpolation of the corners' vertex alphas, times exp of the face
+    /// lattice's detail there when the model has one (`docs/model-format.md`). `[1; 3]` for a
+    /// triangle outside the mesh.
+    pub fn alpha_at(&self, tri: usize, bary: [f64; 3]) -> [f64; 3] {
+        let Some(t) = self.triangles.get(tri) else {
+            return [1.0; 3];
+        };
+        let mut a = [0.0; 3];
+        for (j, &v) in t.iter().enumerate() {
+            let av = self.vertices.get(v as usize).map_or([1.0; 3], |m| m.alpha);
+            for c in 0..3 {
+                a[c] += bary[j] * av[c] as f64;
+            }
+        }
+        if let Some(fa) = &self.face_alpha {
+            let d = fa.detail_at(tri, bary);
+            for c in 0..3 {
+                a[c] *= d[c].exp();
+            }
+        }
+        a
+    }
+
     /// Number of vertices.
     pub fn len(&self) -> usize {
         self.positions.len()
@@ -288,6 +323,7 @@ impl ModelFile {
             triangles,
             baseline: None,
             frame: FrameRule::CURRENT,
+            face_alpha: None,
         }
     }
 
@@ -336,6 +372,15 @@ impl ModelFile {
             if t.iter().any(|&i| i as usize >= n) {
                 return bad("triangle index out of range".into());
             }
+        }
+        if let Some(fa) = &self.face_alpha
+            && fa.faces() != self.triangles.len()
+        {
+            return bad(format!(
+                "face alpha for {} faces, the mesh has {}",
+                fa.faces(),
+                self.triangles.len()
+            ));
         }
         Ok(())
     }
@@ -405,7 +450,7 @@ impl ModelFile {
              property uchar status\nproperty float log_e\nproperty uchar terms\n\
              property uchar segments\nproperty list ushort double params\n\
              property float r_min\nproperty float r_max\nelement face {}\n\
-             property list uchar int vertex_indices\nend_header\n",
+             property list uchar int vertex_indices\n{}end_header\n",
             self.shape.terms,
             self.shape.segments,
             self.frame.name(),
@@ -413,7 +458,17 @@ impl ModelFile {
                 .as_ref()
                 .map_or(String::new(), BaselineParams::header_line),
             self.positions.len(),
-            self.triangles.len()
+            self.triangles.len(),
+            if self.face_alpha.is_some() {
+                format!(
+                    "element face_alpha {}\nproperty uchar level\n\
+                     property list ushort float detail_r\nproperty list ushort float detail_g\n\
+                     property list ushort float detail_b\n",
+                    self.triangles.len()
+                )
+            } else {
+                String::new()
+            }
         );
         out.extend_from_slice(header.as_bytes());
         for (i, v) in self.vertices.iter().enumerate() {
@@ -447,6 +502,19 @@ impl ModelFile {
             out.push(3);
             for i in t {
                 out.extend_from_slice(&(*i as i32).to_le_bytes());
+            }
+        }
+        if let Some(fa) = &self.face_alpha {
+            for f in 0..fa.faces() {
+                out.push(fa.level(f));
+                let d = fa.face_detail(f);
+                for c in 0..3 {
+                    // At most 45 points (level 8): the ushort count cannot wrap.
+                    out.extend_from_slice(&(d.len() as u16).to_le_bytes());
+                    for p in d {
+                        out.extend_from_slice(&p[c].to_le_bytes());
+                    }
+                }
             }
         }
         Ok(out)
@@ -559,7 +627,10 @@ impl ModelFile {
             vertices: Vec::new(),
             baseline: None,
             frame,
+            face_alpha: None,
         };
+        let (mut levels, mut detail) = (Vec::new(), Vec::new());
+        let mut face_alpha_seen = false;
         if let Some(b) = baseline {
             b.model(shape.colour)
                 .map_err(|e| fmt(format!("baseline: {e}")))?;
@@ -642,9 +713,32 @@ impl ModelFile {
                             },
                         });
                     }
+                    "face_alpha" => {
+                        face_alpha_seen = true;
+                        let level = one("level")?;
+                        if !(1.0..=crate::lattice::MAX_LEVEL as f64).contains(&level) {
+                            return Err(fmt(format!("face_alpha level {level} out of range")));
+                        }
+                        let level = level as u8;
+                        let want = crate::lattice::point_count(level);
+                        let ch = |k: &str| -> Result<&Vec<f64>, ModelFileError> {
+                            get(k)
+                                .filter(|v| v.len() == want)
+                                .ok_or_else(|| fmt(format!("face_alpha {k}: want {want} values")))
+                        };
+                        let (dr, dg, db) = (ch("detail_r")?, ch("detail_g")?, ch("detail_b")?);
+                        levels.push(level);
+                        for p in 0..want {
+                            detail.push([dr[p] as f32, dg[p] as f32, db[p] as f32]);
+                        }
+                    }
                     "face" => {
                         let idx = get("vertex_indices")
                             .ok_or_else(|| fmt("face has no vertex_indices".into()))?;
+                        // face_alpha is per triangle: a polygon would become several.
+                        if idx.len() != 3 && elements.iter().any(|e| e.0 == "face_alpha") {
+                            return Err(fmt("face_alpha needs a triangle mesh".into()));
+                        }
                         // Triangulate polygons as a fan.
                         for k in 1..idx.len().saturating_sub(1) {
                             m.triangles
@@ -654,6 +748,12 @@ impl ModelFile {
                     _ => {}
                 }
             }
+        }
+        if face_alpha_seen {
+            m.face_alpha = Some(
+                crate::lattice::FaceAlpha::new(levels, detail)
+                    .map_err(|e| fmt(format!("face_alpha: {e}")))?,
+            );
         }
         m.check().map_err(|e| fmt(e.to_string()))?;
         Ok(m)
@@ -862,7 +962,93 @@ mod tests {
             ],
             baseline: None,
             frame: FrameRule::MinimalRotation,
+            face_alpha: None,
         }
+    }
+
+    /// A face lattice of `level` on the sample's one triangle, with detail at every non-corner
+    /// point.
+    fn lattice(level: u8) -> crate::lattice::FaceAlpha {
+        use crate::lattice::{is_corner, points};
+        let d = points(level)
+            .map(|(n, i, j)| {
+                if is_corner(level, i, j) {
+                    [0.0; 3]
+                } else {
+                    let x = n as f32 * 0.01;
+                    [x, -x, 0.5 * x]
+                }
+            })
+            .collect();
+        crate::lattice::FaceAlpha::new(vec![level], d).unwrap()
+    }
+
+    /// alpha finer than the mesh (format 5): the finest lattice round-trips exactly, alpha at a
+    /// corner is the vertex's and between lattice points it carries the detail; a version 4
+    /// file (no element) reads with alpha at the vertices only; a damaged lattice is refused.
+    #[test]
+    fn face_alpha_round_trips_and_version_4_files_still_read() {
+        let mut m = sample();
+        m.face_alpha = Some(lattice(crate::lattice::MAX_LEVEL));
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("fa.ply");
+        m.write(&p).unwrap();
+        let back = ModelFile::read(&p).unwrap();
+        assert_eq!(back.face_alpha, m.face_alpha);
+        assert_eq!(back.to_bytes().unwrap(), m.to_bytes().unwrap());
+        assert_eq!(
+            back.alpha_at(0, [1.0, 0.0, 0.0]),
+            [1.0, 0.9f32 as f64, 1.1f32 as f64]
+        );
+        let k = crate::lattice::MAX_LEVEL;
+        let mid = crate::lattice::point_bary(k, 3, 2);
+        let d =
+            back.face_alpha.as_ref().unwrap().face_detail(0)[crate::lattice::point_index(k, 3, 2)];
+        let a = back.alpha_at(0, mid);
+        assert!((a[0] - (d[0] as f64).exp()).abs() < 1e-6, "{a:?} {d:?}");
+        assert!((a[1] - 0.9f32 as f64 * (d[1] as f64).exp()).abs() < 1e-6);
+
+        // Version 4: the same bytes without the element and with the old magic.
+        let mut v4 = sample();
+        v4.face_alpha = None;
+        let bytes = String::from_utf8_lossy(&v4.to_bytes().unwrap()).into_owned();
+        assert!(bytes.contains("subsurf-model/5"));
+        let mut old = v4.to_bytes().unwrap();
+        let at = old
+            .windows(15)
+            .position(|w| w == b"subsurf-model/5")
+            .unwrap();
+        old[at + 14] = b'4';
+        let p4 = dir.path().join("v4.ply");
+        std::fs::write(&p4, &old).unwrap();
+        let back4 = ModelFile::read(&p4).unwrap();
+        assert_eq!(back4.face_alpha, None);
+        assert_eq!(
+            back4.alpha_at(0, [0.2, 0.3, 0.5]),
+            v4.alpha_at(0, [0.2, 0.3, 0.5])
+        );
+
+        // A lattice for another mesh is refused before anything is written.
+        let mut wrong = sample();
+        wrong.face_alpha = Some(crate::lattice::FaceAlpha::flat(2));
+        assert!(wrong.write(&dir.path().join("wrong.ply")).is_err());
+        assert!(!dir.path().join("wrong.ply").exists());
+
+        // A damaged level byte (0) is refused with a clear error.
+        let mut bytes = std::fs::read(&p).unwrap();
+        let header_end = bytes
+            .windows(11)
+            .position(|w| w == b"end_header\n")
+            .unwrap()
+            + 11;
+        let face_alpha_at = bytes.len() - (1 + 3 * (2 + 4 * crate::lattice::point_count(k)));
+        assert!(face_alpha_at > header_end);
+        assert_eq!(bytes[face_alpha_at], k);
+        bytes[face_alpha_at] = 0;
+        let bad = dir.path().join("bad.ply");
+        std::fs::write(&bad, &bytes).unwrap();
+        let e = ModelFile::read(&bad).unwrap_err().to_string();
+        assert!(e.contains("face_alpha"), "{e}");
     }
 
     /// The largest model the CLI allows (per-channel colour, n = MAX_TERMS, m = MAX_SEGMENTS)
@@ -1017,10 +1203,13 @@ mod tests {
             .unwrap()
             + 11;
         let header = String::from_utf8(bytes[..end].to_vec()).unwrap();
-        assert!(header.contains("comment subsurf-model/4\n"));
+        assert!(header.contains(&format!("comment {MODEL_FORMAT}\n")));
         assert!(header.contains("comment frame minimal-rotation\n"));
         let old_header = header
-            .replace("comment subsurf-model/4\n", "comment subsurf-model/3\n")
+            .replace(
+                &format!("comment {MODEL_FORMAT}\n"),
+                "comment subsurf-model/3\n",
+            )
             .replace("comment frame minimal-rotation\n", "");
         let mut old = old_header.into_bytes();
         old.extend_from_slice(&bytes[end..]);

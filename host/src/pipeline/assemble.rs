@@ -86,5 +86,6 @@ pub fn model_file(
         baseline: None,
         // Every fit measures directions with `TangentFrame::from_normal` (the `select` stage).
         frame: crate::model::FrameRule::CURRENT,
+        face_alpha: None,
     }
 }

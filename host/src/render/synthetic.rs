@@ -90,6 +90,7 @@ pub fn from_field(
         vertices,
         baseline: None,
         frame: crate::model::FrameRule::CURRENT,
+        face_alpha: None,
     }
 }
 

@@ -655,6 +655,7 @@ pub fn ground_truth_model(mesh: &crate::dataset::Mesh, field: &Field) -> ModelFi
             .collect(),
         baseline: None,
         frame: crate::model::FrameRule::CURRENT,
+        face_alpha: None,
     }
 }
 
