@@ -276,15 +276,11 @@ pub fn predict_frame(
         let Some(hit) = ctx.scene.cast_world(o, d, f.turntable_deg) else {
             return;
         };
-        let t = ctx.scene.mesh.triangles[hit.triangle as usize];
-        let bw = ctx.scene.barycentric(hit.triangle, hit.point);
-        let mut a = [0.0; 3];
-        for j in 0..3 {
-            let av = alpha_of(model, t[j] as usize);
-            for c in 0..3 {
-                a[c] += bw[j] * av[c];
-            }
-        }
+        // alpha(x_o) at the pixel's surface point: vertex alphas and the face lattice's detail.
+        let a = model.alpha_at(
+            hit.triangle as usize,
+            ctx.scene.barycentric(hit.triangle, hit.point),
+        );
         let (r, phi) = at.frame.polar(x_i, hit.point);
         let ln = at.ln_eval(r, phi);
         for c in 0..3 {

@@ -124,6 +124,7 @@ pub fn baseline_only(model: &ModelFile) -> Option<ModelFile> {
     let mut out = model.clone();
     out.shape.terms = out.shape.terms.max(b.terms);
     out.baseline = None;
+    out.face_alpha = None;
     for v in &mut out.vertices {
         v.alpha = [1.0; 3];
         v.status = VertexStatus::Interpolated;
