@@ -51,6 +51,16 @@ pub struct Args {
     /// Heterogeneity (log-amplitude of the marble veins on the parameters).
     #[arg(long)]
     pub heterogeneity: Option<f64>,
+    /// Log-amplitude of the modulation texture alpha(x_o) (Eq. 2) along the veins: ln alpha
+    /// spans this much (0.8x green, 1.2x blue); 0 = alpha is 1. At most 10. Default 0.2.
+    #[arg(long)]
+    pub alpha_amplitude: Option<f64>,
+    /// Wavelength of the marble veins, mm (default 25). The one pattern drives alpha, the
+    /// parameters (--heterogeneity) and the anisotropy's strength; below about two mesh edge
+    /// lengths alpha varies finer than the mesh (a texture the face lattice of `fit
+    /// --alpha-lattice` can hold; ground-truth.ply holds it at level 8).
+    #[arg(long)]
+    pub vein_wavelength: Option<f64>,
     /// Seed of the noise and the vein pattern.
     #[arg(long, default_value_t = 7)]
     pub seed: u64,
@@ -91,6 +101,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     if let Some(h) = args.heterogeneity {
         cfg.field.heterogeneity = h;
+    }
+    if let Some(a) = args.alpha_amplitude {
+        cfg.field.alpha_amplitude = a;
+    }
+    if let Some(w) = args.vein_wavelength {
+        cfg.field.vein_wavelength = w;
     }
     cfg.seed = args.seed;
     cfg.field.seed = args.seed;

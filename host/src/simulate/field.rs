@@ -19,9 +19,12 @@ pub struct Field {
     /// Strength of direction dependence in `[0, 1)`: light travels `1 / (1 - a)` times further
     /// along the veins than across them. 0 = isotropic (exactly Eq. 9).
     pub anisotropy: f64,
-    /// Log-amplitude of the modulation texture alpha(x_o) (Eq. 2); 0 = alpha is 1.
+    /// Log-amplitude of the modulation texture alpha(x_o) (Eq. 2); 0 = alpha is 1. ln alpha is
+    /// this times the vein value − 0.5 (× 0.8 green, × 1.2 blue), so it spans the amplitude.
     pub alpha_amplitude: f64,
-    /// Vein wavelength, mm.
+    /// Vein wavelength, mm: the period of the one vein pattern, which drives alpha (by
+    /// `alpha_amplitude`), the parameters (by `heterogeneity`) and the anisotropy's strength
+    /// (by `anisotropy`). Below about two mesh edge lengths alpha varies finer than the mesh.
     pub vein_wavelength: f64,
     /// Seed of the vein pattern.
     pub seed: u64,
@@ -103,7 +106,38 @@ fn hash01(seed: u64, k: u64) -> f64 {
     (z >> 11) as f64 / (1u64 << 53) as f64
 }
 
+/// The largest |alpha amplitude| a simulation takes: alpha stays within e^±6 (channel 3 has
+/// 1.2 times the amplitude over a vein value in ±0.5), far inside f32 and the sensor's range.
+pub const MAX_ALPHA_AMPLITUDE: f64 = 10.0;
+
 impl Field {
+    /// Checks what the pattern needs: a finite positive vein wavelength, a finite alpha
+    /// amplitude of at most [`MAX_ALPHA_AMPLITUDE`], finite heterogeneity and anisotropy (clamped to
+    /// [0, 0.95] where used).
+    pub fn check(&self) -> Result<(), super::SimError> {
+        let bad = |what: String| Err(super::SimError::Invalid(what));
+        if !(self.vein_wavelength.is_finite() && self.vein_wavelength > 0.0) {
+            return bad(format!(
+                "vein wavelength {} mm is not positive",
+                self.vein_wavelength
+            ));
+        }
+        if !(self.alpha_amplitude.is_finite() && self.alpha_amplitude.abs() <= MAX_ALPHA_AMPLITUDE)
+        {
+            return bad(format!(
+                "alpha amplitude {} outside ±{MAX_ALPHA_AMPLITUDE}",
+                self.alpha_amplitude
+            ));
+        }
+        if !self.heterogeneity.is_finite() {
+            return bad(format!("heterogeneity {}", self.heterogeneity));
+        }
+        if !self.anisotropy.is_finite() {
+            return bad(format!("anisotropy {}", self.anisotropy));
+        }
+        Ok(())
+    }
+
     /// Marble pattern in `[0, 1]`: a sine along a seeded direction, warped by a few octaves.
     pub fn vein(&self, p: V3) -> f64 {
         use std::f64::consts::TAU;
