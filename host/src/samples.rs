@@ -1,6 +1,11 @@
 //! Samples s(x_i, x_o) of one frame (section 4.1/5): for each vertex x_o the camera sees, the
 //! pixel value at its projection (bilinear) divided by the exposure, per channel.
 //!
+//! The same rules read samples at any surface points, not only vertices: pass the points'
+//! positions and [`crate::geometry::Scene::visible_points`] (the lattice points of alpha finer
+//! than the mesh, [`crate::geometry::SurfacePoints`]); then `Sample::vertex` is the index into
+//! that point array.
+//!
 //! A sample is dropped — and counted — when it is below the noise floor, clipped, non-finite, or
 //! closer to x_i than the exclusion radius (first-surface reflection and single scattering
 //! dominate there, section 5), or when the laser spot's own light, spread in the image (optics,
@@ -48,7 +53,8 @@ impl Default for SampleOptions {
 /// One vertex's value in one frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Sample {
-    /// The vertex x_o.
+    /// The vertex x_o: the index into the `positions` [`frame_samples`] was given (mesh
+    /// vertices, or the points of a [`crate::geometry::SurfacePoints`]).
     pub vertex: u32,
     /// `|x_o - x_i|`, mm (Eq. 1).
     pub r: f64,
@@ -91,6 +97,9 @@ impl SampleCounts {
 }
 
 /// The samples of one frame for the vertices `visible` from its camera, with light at `x_i`.
+/// `visible[..].vertex` indexes `positions`: the mesh's vertices, or any surface points (the
+/// lattice points of [`crate::geometry::SurfacePoints`] with
+/// [`crate::geometry::Scene::visible_points`]), read by the same rules.
 /// `spot` is the laser spot registration found in `img` (never detected here again); its light
 /// is excluded from the samples when it is unclipped (see [`SPOT_SHARE`]).
 pub fn frame_samples(
@@ -273,5 +282,85 @@ mod tests {
         // Half-way between pixel centres: the mean of the two.
         assert!((l.raw_at(2.5, 0.0) - 0.5 * (g(4.0) + g(9.0))).abs() < 1e-12);
         assert!(l.raw_at(30.0, 0.0) < 1e-100);
+    }
+
+    /// Samples at surface points between the vertices (a face lattice) are read by the same
+    /// function and rules: each value is the bilinear pixel at the point's projection over the
+    /// exposure, points within the exclusion radius of x_i are dropped and counted, and
+    /// `Sample::vertex` indexes the point array.
+    #[test]
+    fn surface_points_are_sampled_by_the_same_rules() {
+        use crate::dataset::Mesh;
+        use crate::geometry::{Camera, Scene, SurfacePoints};
+        // A flat 4 x 4 mm patch under a camera looking straight down.
+        let mut pos = Vec::new();
+        for j in 0..3 {
+            for i in 0..3 {
+                pos.push([2.0 * i as f64 - 2.0, 2.0 * j as f64 - 2.0, 0.0]);
+            }
+        }
+        let tris = vec![
+            [0, 1, 4],
+            [0, 4, 3],
+            [1, 2, 5],
+            [1, 5, 4],
+            [3, 4, 7],
+            [3, 7, 6],
+            [4, 5, 8],
+            [4, 8, 7],
+        ];
+        let scene = Scene::new(Mesh::new(pos, tris).0).unwrap();
+        let cam = Camera {
+            width: 64,
+            height: 64,
+            fx: 500.0,
+            fy: 500.0,
+            cx: 31.5,
+            cy: 31.5,
+            distortion: None,
+            camera_from_world: [
+                [1.0, 0.0, 0.0, 0.0],
+                [0.0, -1.0, 0.0, 0.0],
+                [0.0, 0.0, -1.0, 100.0],
+                [0.0, 0.0, 0.0, 1.0],
+            ],
+        };
+        let pts = SurfacePoints::lattice(&scene.mesh, &[4; 8]).unwrap();
+        let vis = scene.visible_points(&pts, &cam, 0.0, 0.5);
+        assert_eq!(vis.len(), pts.len());
+        // Raw value 1 + 0.01 u + 0.02 v in every channel: bilinear reads it exactly.
+        let mut img = Image::new(64, 64, 3);
+        for j in 0..64 {
+            for i in 0..64 {
+                let x = 1.0 + 0.01 * i as f32 + 0.02 * j as f32;
+                img.data[(j * 64 + i) * 3..][..3].copy_from_slice(&[x, x, x]);
+            }
+        }
+        let frame = FrameSpec {
+            image: String::new(),
+            camera: 0,
+            turntable_deg: 0.0,
+            exposure_s: 2.0,
+            channel: FrameChannel::Rgb,
+            laser: None,
+            galvo: None,
+        };
+        let opts = SampleOptions::default();
+        let x_i = [0.1, 0.1, 0.0];
+        let (s, c) = frame_samples(&img, &frame, &vis, &pts.positions, x_i, None, &opts);
+        let near = pts
+            .positions
+            .iter()
+            .filter(|p| dist(**p, x_i) < opts.exclusion_radius_mm)
+            .count();
+        assert!(near > 0);
+        assert_eq!(c.excluded, 3 * near as u64);
+        assert_eq!(s.len() + near, pts.len());
+        for x in &s {
+            let v = vis.iter().find(|v| v.vertex == x.vertex).unwrap();
+            let want = (1.0 + 0.01 * v.u + 0.02 * v.v) / 2.0;
+            assert!((x.value[1] - want).abs() < 1e-5, "{} vs {want}", x.value[1]);
+            assert!((x.r - dist(pts.positions[x.vertex as usize], x_i)).abs() < 1e-12);
+        }
     }
 }

@@ -12,7 +12,9 @@ use parry3d_f64::shape::TriMesh;
 use crate::dataset::Mesh;
 
 mod camera;
+mod surface;
 pub use camera::Camera;
+pub use surface::SurfacePoints;
 
 /// A 3-vector in millimetres.
 pub type V3 = [f64; 3];
@@ -73,10 +75,12 @@ pub struct Hit {
     pub triangle: u32,
 }
 
-/// A vertex seen by a camera, with where it lands in the image.
+/// A vertex seen by a camera, with where it lands in the image. Also a surface point of a
+/// [`SurfacePoints`] ([`Scene::visible_points`]): then `vertex` is the index into that point
+/// array, not a mesh vertex.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Visible {
-    /// Vertex index.
+    /// Vertex index (for [`Scene::visible_points`]: surface-point index).
     pub vertex: u32,
     /// Pixel column coordinate (pixel centres at integers).
     pub u: f64,
@@ -297,6 +301,33 @@ impl Scene {
             .collect()
     }
 
+    /// Surface points of `pts` the camera sees at turntable angle `deg`, by exactly the rule of
+    /// [`Scene::sees`] with grazing limit `cos_min` at each point's position and interpolated
+    /// normal; `Visible::vertex` is the point's index in `pts`. Every point is tested on its own
+    /// (no shortcut from the corners' visibility: a face whose corners are hidden can show its
+    /// interior past a thin occluder); the facing and projection tests come before the one ray
+    /// cast, so points facing away cost no ray.
+    pub fn visible_points(
+        &self,
+        pts: &SurfacePoints,
+        cam: &Camera,
+        deg: f64,
+        cos_min: f64,
+    ) -> Vec<Visible> {
+        use rayon::prelude::*;
+        (0..pts.len())
+            .into_par_iter()
+            .filter_map(|i| {
+                let [u, v] = self.sees(cam, deg, pts.positions[i], pts.normals[i], cos_min)?;
+                Some(Visible {
+                    vertex: i as u32,
+                    u,
+                    v,
+                })
+            })
+            .collect()
+    }
+
     /// A shadow ray: is the ray from `p` lifted off the surface along `n`, towards the unit
     /// direction `dir`, free of the mesh for `distance` mm (infinite: for ever)? One BVH query,
     /// no retry: lighting calls it once per vertex and light.
@@ -411,5 +442,75 @@ mod tests {
         };
         let vis = s.visible_vertices(&side, 0.0, 0.1);
         assert!(vis.iter().all(|v| v.vertex >= 25));
+    }
+
+    /// Surface points obey exactly the vertices' rule: at level 1 (the corners) the visible
+    /// points are the visible vertices of each face, at the same pixels; between the vertices,
+    /// points under the roof are hidden and points outside it seen.
+    #[test]
+    fn surface_points_are_visible_by_the_vertices_rule() {
+        let mut m = grid(5, 1.0);
+        let base = m.positions.len() as u32;
+        m.positions
+            .extend([[-1.2, -1.2, 1.0], [1.2, -1.2, 1.0], [0.0, 1.4, 1.0]]);
+        m.triangles.push([base, base + 1, base + 2]);
+        let (m, _) = Mesh::new(m.positions, m.triangles);
+        let s = Scene::new(m).unwrap();
+        let cam = Camera {
+            width: 200,
+            height: 200,
+            fx: 1000.0,
+            fy: 1000.0,
+            cx: 99.5,
+            cy: 99.5,
+            distortion: None,
+            camera_from_world: [
+                [1.0, 0.0, 0.0, 0.0],
+                [0.0, -1.0, 0.0, 0.0],
+                [0.0, 0.0, -1.0, 100.0],
+                [0.0, 0.0, 0.0, 1.0],
+            ],
+        };
+        let faces = s.mesh.triangles.len();
+        let corners = SurfacePoints::lattice(&s.mesh, &vec![1; faces]).unwrap();
+        let verts = s.visible_vertices(&cam, 0.0, 0.1);
+        let pts = s.visible_points(&corners, &cam, 0.0, 0.1);
+        for f in 0..faces {
+            for p in corners.face_points(f) {
+                let vx = s.mesh.triangles[f][match corners.bary[p] {
+                    [1.0, _, _] => 0,
+                    [_, 1.0, _] => 1,
+                    _ => 2,
+                }];
+                let want = verts.iter().find(|v| v.vertex == vx);
+                let got = pts.iter().find(|v| v.vertex == p as u32);
+                assert_eq!(
+                    want.map(|v| (v.u, v.v)),
+                    got.map(|v| (v.u, v.v)),
+                    "face {f}"
+                );
+            }
+        }
+        let fine = SurfacePoints::lattice(&s.mesh, &vec![4; faces]).unwrap();
+        let seen: Vec<bool> = {
+            let mut b = vec![false; fine.len()];
+            for v in s.visible_points(&fine, &cam, 0.0, 0.1) {
+                b[v.vertex as usize] = true;
+            }
+            b
+        };
+        let (mut hidden, mut shown) = (0, 0);
+        for (p, &x) in fine.positions.iter().enumerate() {
+            if fine.face[p] as usize == faces - 1 {
+                assert!(seen[p], "the roof is seen");
+            } else if x[0].abs() < 0.4 && x[1].abs() < 0.4 {
+                assert!(!seen[p], "under the roof: {x:?}");
+                hidden += 1;
+            } else if x[0].abs() > 1.5 || x[1].abs() > 1.5 {
+                assert!(seen[p], "outside the roof: {x:?}");
+                shown += 1;
+            }
+        }
+        assert!(hidden >= 9 && shown > 100, "{hidden} {shown}");
     }
 }

@@ -7,7 +7,7 @@ use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
 use crate::dataset::{Dataset, DatasetError};
-use crate::geometry::{Camera, Scene, V3, Visible};
+use crate::geometry::{Camera, Scene, SurfacePoints, V3, Visible};
 use crate::registration::{RegistrationOutcome, register_frame};
 use crate::samples::{Sample, SampleCounts, frame_samples};
 
@@ -95,6 +95,41 @@ impl<'a> Context<'a> {
             f,
             &vis,
             &self.ds.mesh.positions,
+            reg.x_i,
+            Some(&reg.spot),
+            &self.opts.samples,
+        ))
+    }
+
+    /// Surface points of `pts` the camera of frame `k` sees (the rule of [`Context::visible`]
+    /// at each point: [`Scene::visible_points`]); not cached: the caller reads all frames of
+    /// one view with it.
+    pub fn visible_points(&self, pts: &SurfacePoints, k: usize) -> Vec<Visible> {
+        let f = &self.ds.spec.frames[k];
+        self.scene.visible_points(
+            pts,
+            &self.cams[f.camera],
+            f.turntable_deg,
+            self.opts.samples.cos_min,
+        )
+    }
+
+    /// The samples of a registered frame at the surface points `pts` of which `visible` (from
+    /// [`Context::visible_points`] for this frame's view) are seen, by the same rules as the
+    /// vertices' ([`Context::samples`], `frame_samples`); `Sample::vertex` indexes `pts`.
+    pub fn point_samples(
+        &self,
+        reg: &RegisteredFrame,
+        pts: &SurfacePoints,
+        visible: &[Visible],
+    ) -> Result<(Vec<Sample>, SampleCounts), DatasetError> {
+        let img = self.ds.read_frame(reg.frame)?;
+        let f = &self.ds.spec.frames[reg.frame];
+        Ok(frame_samples(
+            &img,
+            f,
+            visible,
+            &pts.positions,
             reg.x_i,
             Some(&reg.spot),
             &self.opts.samples,
