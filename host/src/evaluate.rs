@@ -20,6 +20,17 @@ pub enum EvaluateError {
         /// Vertices in the dataset's mesh.
         mesh: usize,
     },
+    /// Evaluation at surface points needs the model's faces to be the dataset mesh's.
+    #[error("the model's faces ({model}) are not the dataset mesh's ({mesh}): not the same mesh")]
+    FaceMismatch {
+        /// Faces in the model.
+        model: usize,
+        /// Faces in the dataset's mesh.
+        mesh: usize,
+    },
+    /// The surface-point level is outside 1..=8.
+    #[error("surface points: {0}")]
+    Level(crate::lattice::LatticeError),
     /// Preparing the dataset failed.
     #[error(transparent)]
     Pipeline(#[from] PipelineError),
@@ -156,6 +167,50 @@ fn alpha_of(model: &ModelFile, v: usize) -> [f64; 3] {
     model.vertices[v].alpha.map(|a| a as f64)
 }
 
+/// Where a model is compared with a frame's pixels.
+///
+/// Why more than the vertices: alpha finer than the mesh (a face lattice, section 5) has detail
+/// 0 at the vertices by construction, so an evaluation at vertex projections cannot see it, and
+/// a model with a lattice and one without score the same there. At surface points the lattice
+/// is what is judged.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(tag = "at", rename_all = "kebab-case")]
+pub enum EvalPoints {
+    /// The mesh's vertices (one sample per vertex a frame sees).
+    Vertices,
+    /// The lattice points of level `level` on every face ([`crate::geometry::SurfacePoints`]):
+    /// the (k+1)(k+2)/2 points of barycentric coordinates (i/k, j/k, 1 − (i+j)/k) per face,
+    /// corners and edge points repeated for each face holding them. The level is fixed by the
+    /// caller, not by any model's lattice, so every model compared is judged at the same points.
+    Surface {
+        /// Lattice level k, 1..=[`crate::lattice::MAX_LEVEL`].
+        level: u8,
+    },
+}
+
+/// Surface points seen per view (camera, turntable angle bits).
+type Views = std::collections::HashMap<(usize, u64), Vec<crate::geometry::Visible>>;
+
+/// The points samples are compared at: the mesh's vertices, or surface points.
+enum PointSet {
+    Vertices,
+    Surface(crate::geometry::SurfacePoints),
+}
+
+impl PointSet {
+    /// Position of point `p` and alpha(x_o) there (vertex alpha, or [`ModelFile::alpha_at`]
+    /// at the point's face and barycentric coordinates: the face lattice's detail included).
+    fn at(&self, ctx: &Context, model: &ModelFile, p: usize) -> (V3, [f64; 3]) {
+        match self {
+            PointSet::Vertices => (ctx.ds.mesh.positions[p], alpha_of(model, p)),
+            PointSet::Surface(pts) => (
+                pts.positions[p],
+                model.alpha_at(pts.face[p] as usize, pts.bary[p]),
+            ),
+        }
+    }
+}
+
 /// Table-1 statistics of one frame.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct FrameEval {
@@ -170,12 +225,28 @@ pub struct FrameEval {
     pub skipped: Option<String>,
 }
 
-/// Evaluates `model` on the frames `frames` of `ds` (each frame read once, in parallel).
+/// Evaluates `model` on the frames `frames` of `ds` at the vertices (each frame read once, in
+/// parallel): [`evaluate_frames_at`] with [`EvalPoints::Vertices`].
 pub fn evaluate_frames(
     ds: &Dataset,
     model: &ModelFile,
     frames: &[usize],
     opts: &PipelineOptions,
+    progress: &dyn Progress,
+) -> Result<(Vec<FrameEval>, LogEStats), EvaluateError> {
+    evaluate_frames_at(ds, model, frames, opts, EvalPoints::Vertices, progress)
+}
+
+/// Evaluates `model` on the frames `frames` of `ds` at the points `at` (each frame read once,
+/// in parallel): per frame, log E (Eq. 8) over the samples at those points, read by the rules of
+/// the fit's samples (`samples::frame_samples`), against alpha(x_o) · R_d(x_i → x_o) with alpha
+/// from [`ModelFile::alpha_at`].
+pub fn evaluate_frames_at(
+    ds: &Dataset,
+    model: &ModelFile,
+    frames: &[usize],
+    opts: &PipelineOptions,
+    at: EvalPoints,
     progress: &dyn Progress,
 ) -> Result<(Vec<FrameEval>, LogEStats), EvaluateError> {
     use rayon::prelude::*;
@@ -186,11 +257,40 @@ pub fn evaluate_frames(
         });
     }
     let ctx = Context::new(ds, *opts)?;
+    let points = match at {
+        EvalPoints::Vertices => PointSet::Vertices,
+        EvalPoints::Surface { level } => {
+            if model.triangles != ds.mesh.triangles {
+                return Err(EvaluateError::FaceMismatch {
+                    model: model.triangles.len(),
+                    mesh: ds.mesh.triangles.len(),
+                });
+            }
+            let levels = vec![level; ds.mesh.triangles.len()];
+            PointSet::Surface(
+                crate::geometry::SurfacePoints::lattice(&ds.mesh, &levels)
+                    .map_err(EvaluateError::Level)?,
+            )
+        }
+    };
+    // Surface points' visibility per view (camera, turntable angle), computed once: frames of
+    // one view share it, and a ray per point per frame would dominate.
+    let mut views: Views = Views::new();
+    if let PointSet::Surface(pts) = &points {
+        for &k in frames {
+            let Some(f) = ds.spec.frames.get(k) else {
+                continue;
+            };
+            views
+                .entry((f.camera, f.turntable_deg.to_bits()))
+                .or_insert_with(|| ctx.visible_points(pts, k));
+        }
+    }
     progress.start("evaluate", frames.len() as u64);
     let evals: Vec<FrameEval> = frames
         .par_iter()
         .map(|&k| {
-            let r = evaluate_one(&ctx, model, k, opts);
+            let r = evaluate_one(&ctx, model, k, opts, &points, &views);
             progress.inc(1);
             r.unwrap_or_else(|reason| FrameEval {
                 frame: k,
@@ -213,17 +313,28 @@ fn evaluate_one(
     model: &ModelFile,
     k: usize,
     opts: &PipelineOptions,
+    points: &PointSet,
+    views: &Views,
 ) -> Result<FrameEval, String> {
     let reg = register_one(ctx, k)?;
     let x_i = reg.x_i;
     let at = model_at(ctx, model, reg.triangle, x_i).ok_or("no model at x_i")?;
-    let (samples, _) = ctx.samples(&reg).map_err(|e| e.to_string())?;
+    let (samples, _) = match points {
+        PointSet::Vertices => ctx.samples(&reg),
+        PointSet::Surface(pts) => {
+            let f = &ctx.ds.spec.frames[k];
+            let vis = views
+                .get(&(f.camera, f.turntable_deg.to_bits()))
+                .map_or(&[][..], |v| &v[..]);
+            ctx.point_samples(&reg, pts, vis)
+        }
+    }
+    .map_err(|e| e.to_string())?;
     let mut acc = [LogEAccumulator::default(); 3];
     for s in &samples {
-        let x_o = ctx.ds.mesh.positions[s.vertex as usize];
+        let (x_o, a) = points.at(ctx, model, s.vertex as usize);
         let (r, phi) = at.frame.polar(x_i, x_o);
         let ln = at.ln_eval(r, phi);
-        let a = alpha_of(model, s.vertex as usize);
         for c in 0..3 {
             if s.valid & (1 << c) != 0 {
                 acc[c].add_ln(a[c].ln() + ln[c], s.value[c], opts.error_threshold);

@@ -3,7 +3,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, anyhow};
 use subsurf::dataset::{Dataset, select_frames};
-use subsurf::evaluate::evaluate_frames;
+use subsurf::evaluate::{EvalPoints, evaluate_frames_at};
 use subsurf::modelfile::ModelFile;
 use subsurf::pipeline::PipelineOptions;
 
@@ -30,6 +30,24 @@ pub struct Args {
     /// Samples closer than this to x_i (mm) are not compared.
     #[arg(long, default_value_t = 0.5)]
     pub exclusion_radius: f64,
+    /// Where the model is compared with the pixels: at the mesh's vertices, or at surface points
+    /// (the lattice points of level --surface-level on every face), which is where alpha finer
+    /// than the mesh (a model's face lattice) can be judged: at vertices its detail is 0.
+    #[arg(long, value_enum, default_value = "vertices")]
+    pub at: At,
+    /// Lattice level k of the surface points with --at surface (1..=8): (k+1)(k+2)/2 points per
+    /// face. Fixed here, not by any model, so models compared at the same k see the same points.
+    #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u8).range(1..=8))]
+    pub surface_level: u8,
+}
+
+/// Where `evaluate` compares.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum At {
+    /// The mesh's vertices.
+    Vertices,
+    /// The lattice points of level --surface-level on every face.
+    Surface,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -50,12 +68,19 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     } else {
         Bar(indicatif::ProgressBar::new(0))
     };
-    let (evals, stats) = evaluate_frames(&ds, &model, &frames, &opts, &bar)?;
+    let points = match args.at {
+        At::Vertices => EvalPoints::Vertices,
+        At::Surface => EvalPoints::Surface {
+            level: args.surface_level,
+        },
+    };
+    let (evals, stats) = evaluate_frames_at(&ds, &model, &frames, &opts, points, &bar)?;
     bar.finish_and_clear();
     let rgb = |v: [Option<f64>; 3]| v.map(|x| x.map_or(serde_json::Value::Null, |x| x.into()));
     let evaluated = evals.iter().filter(|e| e.skipped.is_none()).count();
     if args.json {
         let out = serde_json::json!({
+            "points": points,
             "frames": evaluated,
             "skipped": evals.len() - evaluated,
             "mean_log_e": rgb(stats.mean),
@@ -65,8 +90,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         println!("{out}");
     } else {
         let f = |v: Option<f64>| subsurf::report::fmt::opt(v, subsurf::report::fmt::log_e);
+        let at = match points {
+            EvalPoints::Vertices => "at the vertices".to_string(),
+            EvalPoints::Surface { level } => format!("at surface points of level {level}"),
+        };
         println!(
-            "{evaluated} frames evaluated, {} skipped",
+            "{evaluated} frames evaluated {at}, {} skipped",
             evals.len() - evaluated
         );
         println!("            red      green    blue");
