@@ -99,19 +99,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         *count = n.max(1);
     }
     if let Some(mm) = args.top_down {
-        if !(mm.is_finite() && mm > 0.0) {
-            anyhow::bail!("--top-down {mm}: the pixel footprint must be positive");
-        }
-        cfg.cameras = subsurf::simulate::CameraRig::TopDown {
-            distance: 400.0,
-            mm_per_pixel: mm,
-            size: args.size,
-        };
-        let half_view = 0.5 * args.size as f64 * mm;
-        let (_, radius) = object.bounds();
-        if let subsurf::simulate::LaserRig::Raster { span, .. } = &mut cfg.laser {
-            *span = span.min(0.85 * half_view / radius);
-        }
+        cfg = cfg
+            .top_down(mm)
+            .map_err(|e| anyhow::anyhow!("--top-down: {e}"))?;
     }
     if args.noise_free {
         cfg = cfg.noise_free();
