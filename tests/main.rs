@@ -35,3 +35,4 @@ mod rig_cli;
 mod rig_link;
 mod scan;
 mod scan_fit;
+mod texture;
