@@ -102,6 +102,12 @@ pub struct Args {
     /// none).
     #[arg(long, default_value_t = subsurf::pipeline::ALPHA_T1_SHARE)]
     pub alpha_t1_share: f64,
+    /// alpha finer than the mesh (section 5's "higher resolution texture"): `auto` estimates
+    /// Eq. 6 per point of a per-face lattice whose level follows the pixel footprint (at most
+    /// 8) and writes it (`face_alpha`) where the images show detail above the noise; a number
+    /// 1..=8 caps the level; `off` keeps alpha per vertex only.
+    #[arg(long, default_value = "auto")]
+    pub alpha_lattice: subsurf::pipeline::AlphaLattice,
     /// Largest disagreement between detected spot and laser ray (mm).
     #[arg(long, default_value_t = 2.0)]
     pub laser_tolerance: f64,
@@ -169,6 +175,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     opts.alpha_rounds = args.alpha_rounds;
     opts.alpha_tolerance = args.alpha_tolerance;
     opts.alpha_window.t1_share = args.alpha_t1_share;
+    opts.alpha_lattice = args.alpha_lattice;
     if args.fixed_order {
         opts.order = None;
     }

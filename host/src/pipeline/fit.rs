@@ -660,6 +660,10 @@ pub struct GroupFit {
     /// The joint fit at m > 1 segments failed or was implausible, so the model is isotropic
     /// (its m segments equal).
     pub isotropic_fallback: bool,
+    /// Per channel, the brightest sample as captured (before any division by alpha): the
+    /// reference of Eq. 6's t1 ([`crate::model::IntensityWindow::for_light`]), kept so the
+    /// lattice pass ([`super::lattice`]) uses this light position's very window.
+    pub s_max: [f64; 3],
 }
 
 /// What the fit stage produced.
@@ -771,6 +775,9 @@ pub fn fit_groups(
                 let mut dropped = Vec::new();
                 let old = prev.and_then(|p| p.get(idx).cloned().flatten());
                 let out = group_samples(ctx, regs, key).and_then(|(mut data, counts)| {
+                    let s_max = data
+                        .each_ref()
+                        .map(|d| d.iter().map(|x| x.s).fold(0.0, f64::max));
                     if let Some(a) = alpha_div {
                         for (ch, d) in data.iter_mut().enumerate() {
                             for x in d.iter_mut() {
@@ -803,6 +810,7 @@ pub fn fit_groups(
                             on_baseline,
                             r_range,
                             isotropic_fallback: path == FitPath::Isotropic,
+                            s_max,
                         }
                     });
                     let o_old = old.as_ref().map(|g| sq_err(&g.model, &data));

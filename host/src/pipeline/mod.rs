@@ -7,6 +7,7 @@
 //! - [`select`]: the closest x_i per vertex and channel; vertices that chose the same lights
 //!   form a group and share one fit; a group's samples.
 //! - [`fit`]: one model per group (Eq. 1/3/5/9), with the alpha rounds (Eq. 6).
+//! - [`lattice`]: alpha finer than the mesh, Eq. 6 per point of a per-face lattice (section 5).
 //! - [`error`]: log E(x_i) (Eq. 8) of every fit with alpha, and which fits are accepted.
 //! - [`interpolate`]: a model for every vertex without an accepted fit, from its neighbours.
 //! - [`assemble`]: the model file and the vertex counts.
@@ -18,6 +19,7 @@ pub mod assemble;
 pub mod error;
 pub mod fit;
 pub mod interpolate;
+pub mod lattice;
 pub mod load;
 mod options;
 pub mod register;
@@ -34,7 +36,8 @@ pub use fit::{
 };
 pub use load::Context;
 pub use options::{
-    ALPHA_T1_SHARE, MAX_SEGMENTS, ModelChoice, PipelineOptions, SEGMENT_LADDER, Segments,
+    ALPHA_T1_SHARE, AlphaLattice, MAX_SEGMENTS, ModelChoice, PipelineOptions, SEGMENT_LADDER,
+    Segments,
 };
 pub use register::{RegisteredFrame, register_one};
 pub use report::{
@@ -126,6 +129,12 @@ pub fn fit_dataset(
         .count();
     report.alpha = fitted.alpha_report.clone();
     clock.lap("fit", &mut report);
+    // alpha finer than the mesh (section 5): Eq. 6 per lattice point, with the final fits.
+    let lattice = lattice::fit_lattice(&ctx, &regs, &groups, &fitted, progress);
+    if opts.alpha_lattice.max_level().is_some() {
+        report.alpha.lattice = Some(lattice.report);
+    }
+    clock.lap("lattice", &mut report);
     // log E(x_i) (Eq. 8) with alpha; fits above the threshold fail.
     let (errors, baseline_log_e) = error::log_e_of_fits(&ctx, &regs, &groups, &fitted, progress);
     report.baseline = fitted.baseline.as_ref().map(|b| report::BaselineReport {
@@ -151,6 +160,7 @@ pub fn fit_dataset(
     let refits = interpolate::fill(&ctx.scene, &own, &shape, common_n, fitter);
     let mut model = assemble::model_file(ds, shape, &own, &refits, &fitted.alpha, &mut report);
     model.baseline = fitted.baseline.as_ref().map(|b| b.params.clone());
+    model.face_alpha = lattice.face_alpha;
     report.model_size = assemble::model_size(&model, fitter.max_terms(), opts.model.segments);
     clock.lap("interpolate", &mut report);
     report.peak_rss_mib = crate::util::peak_rss_mib();

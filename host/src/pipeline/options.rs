@@ -70,6 +70,57 @@ pub struct PipelineOptions {
     /// texture in the fall-off (measured on the built-in scan: held-out log E 0.026 after one
     /// round, 0.014 after four); the tolerance pays only for the rounds the data need.
     pub alpha_tolerance: f64,
+    /// alpha finer than the mesh (section 5: "the modulation texture alpha(x_o) is determined
+    /// as higher resolution texture"): Eq. 6 per point of a per-face lattice after the rounds
+    /// ([`super::lattice`]), written as the model file's `face_alpha` where the images support it.
+    pub alpha_lattice: AlphaLattice,
+}
+
+/// Whether and how finely alpha is estimated between the vertices (`subsurf fit --alpha-lattice`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum AlphaLattice {
+    /// Per vertex only: no lattice pass, no `face_alpha` element (the behaviour before format 5).
+    Off,
+    /// Each face's level from the pixel footprint ([`super::lattice::face_levels`]), at most
+    /// [`crate::lattice::MAX_LEVEL`].
+    Auto,
+    /// As `Auto`, at most this level (1..=[`crate::lattice::MAX_LEVEL`]).
+    Max(u8),
+}
+
+impl AlphaLattice {
+    /// The largest level a face may get; `None` when off.
+    pub fn max_level(self) -> Option<u8> {
+        match self {
+            AlphaLattice::Off => None,
+            AlphaLattice::Auto => Some(crate::lattice::MAX_LEVEL),
+            AlphaLattice::Max(k) => Some(k.clamp(1, crate::lattice::MAX_LEVEL)),
+        }
+    }
+}
+
+impl std::str::FromStr for AlphaLattice {
+    type Err = String;
+
+    /// `auto`, `off`, or a level 1..=8.
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "auto" => Ok(AlphaLattice::Auto),
+            "off" => Ok(AlphaLattice::Off),
+            k => k
+                .parse::<u8>()
+                .ok()
+                .filter(|k| (1..=crate::lattice::MAX_LEVEL).contains(k))
+                .map(AlphaLattice::Max)
+                .ok_or_else(|| {
+                    format!(
+                        "--alpha-lattice must be auto, off or a level 1..={}, got {s:?}",
+                        crate::lattice::MAX_LEVEL
+                    )
+                }),
+        }
+    }
 }
 
 impl PipelineOptions {
@@ -103,6 +154,7 @@ impl PipelineOptions {
             error_threshold: 0.0,
             alpha_rounds: 8,
             alpha_tolerance: 2e-3,
+            alpha_lattice: AlphaLattice::Auto,
         }
         .with_noise_floor(floor)
     }

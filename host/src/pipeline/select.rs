@@ -8,9 +8,9 @@
 //! Owns which samples a fit sees (and in which direction φ around x_i each lies); never fits.
 use std::collections::BTreeMap;
 
-use crate::geometry::{Scene, dist};
+use crate::geometry::{Scene, V3, dist};
 use crate::model::TangentFrame;
-use crate::samples::SampleCounts;
+use crate::samples::{Sample, SampleCounts};
 use crate::selection::{Light, pool, select};
 
 use super::load::Context;
@@ -24,7 +24,7 @@ pub struct GroupSample {
     pub r: f64,
     /// s(x_i, x_o), radiance.
     pub s: f64,
-    /// The vertex x_o.
+    /// The vertex x_o (in the lattice pass, [`super::lattice`]: the surface point's index).
     pub vertex: u32,
     /// The registered frame (index into the registered frames) the sample was read from: with
     /// `vertex`, it identifies one observation, whose channels form one row of the joint fit.
@@ -181,32 +181,75 @@ pub fn group_samples(
 ) -> Result<(ChannelSamples, SampleCounts), FailReason> {
     let mut data: ChannelSamples = Default::default();
     let mut counts = SampleCounts::default();
-    let red = regs[key.anchors[0] as usize];
-    let frame = TangentFrame::from_normal(ctx.normal_at(red.triangle, red.x_i))
-        .map_err(|_| FailReason::NonPhysical)?;
-    let mut distinct: Vec<u32> = key.frames.iter().flatten().copied().collect();
-    distinct.sort_unstable();
-    distinct.dedup();
-    for l in distinct {
+    let frame = group_frame(ctx, regs, key)?;
+    for l in group_frames(key) {
         let reg = &regs[l as usize];
         let (s, c) = ctx.samples(reg).map_err(|_| FailReason::FrameUnreadable)?;
         counts.add(&c);
-        let takes: [bool; 3] = [0, 1, 2].map(|ch| key.frames[ch].contains(&l));
-        for x in s {
-            let (_, phi) = frame.polar(reg.x_i, ctx.ds.mesh.positions[x.vertex as usize]);
-            for (ch, slot) in data.iter_mut().enumerate() {
-                if takes[ch] && x.valid & (1 << ch) != 0 {
-                    slot.push(GroupSample {
-                        r: x.r,
-                        s: x.value[ch],
-                        vertex: x.vertex,
-                        frame: l,
-                        phi,
-                    });
-                    counts.pooled += u64::from(key.anchors[ch] != l);
-                }
+        add_frame_samples(
+            &mut data,
+            &mut counts,
+            key,
+            l,
+            reg,
+            &frame,
+            &s,
+            &ctx.ds.mesh.positions,
+        );
+    }
+    Ok((data, counts))
+}
+
+/// The tangent frame a group's directions φ are measured in (Eq. 3): at the red light
+/// position's anchor x_i, from the interpolated normal there.
+pub fn group_frame(
+    ctx: &Context,
+    regs: &[RegisteredFrame],
+    key: &GroupKey,
+) -> Result<TangentFrame, FailReason> {
+    let red = regs[key.anchors[0] as usize];
+    TangentFrame::from_normal(ctx.normal_at(red.triangle, red.x_i))
+        .map_err(|_| FailReason::NonPhysical)
+}
+
+/// The distinct registered frames of a group's light positions, ascending.
+pub fn group_frames(key: &GroupKey) -> Vec<u32> {
+    let mut distinct: Vec<u32> = key.frames.iter().flatten().copied().collect();
+    distinct.sort_unstable();
+    distinct.dedup();
+    distinct
+}
+
+/// Adds registered frame `l`'s samples `s` (read at `positions`: the mesh's vertices, or surface
+/// points, whose index `Sample::vertex` is) to a group's channel samples: channel c when `l`
+/// belongs to the light position channel c selected, at the distance from `l`'s own x_i, in
+/// direction φ of `frame` ([`group_frame`]). The one rule [`group_samples`] and the lattice
+/// pass ([`super::lattice`]) measure samples by.
+#[allow(clippy::too_many_arguments)]
+pub fn add_frame_samples(
+    data: &mut ChannelSamples,
+    counts: &mut SampleCounts,
+    key: &GroupKey,
+    l: u32,
+    reg: &RegisteredFrame,
+    frame: &TangentFrame,
+    s: &[Sample],
+    positions: &[V3],
+) {
+    let takes: [bool; 3] = [0, 1, 2].map(|ch| key.frames[ch].contains(&l));
+    for x in s {
+        let (_, phi) = frame.polar(reg.x_i, positions[x.vertex as usize]);
+        for (ch, slot) in data.iter_mut().enumerate() {
+            if takes[ch] && x.valid & (1 << ch) != 0 {
+                slot.push(GroupSample {
+                    r: x.r,
+                    s: x.value[ch],
+                    vertex: x.vertex,
+                    frame: l,
+                    phi,
+                });
+                counts.pooled += u64::from(key.anchors[ch] != l);
             }
         }
     }
-    Ok((data, counts))
 }

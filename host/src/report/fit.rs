@@ -208,6 +208,7 @@ pub fn summary_lines(r: &FitReport) -> Vec<String> {
             fmt::count(r.alpha.from_samples),
             fmt::count(r.alpha.interpolated)
         ),
+        format!("alpha finer than the mesh: {}", lattice_summary(&r.alpha)),
         format!(
             "stages: {}; peak RSS {}",
             r.stage_seconds
@@ -282,6 +283,10 @@ pub fn fit_report(r: &FitReport, inputs: &FitInputs<'_>) -> Report {
         fmt::count(r.alpha.interpolated),
         fmt::count(r.alpha.default_one)
     ));
+    rep.paragraph(format!(
+        "Alpha finer than the mesh (section 5, a per-face lattice, `face_alpha`): {}.",
+        lattice_summary(&r.alpha)
+    ));
     rep.heading("Time");
     rep.table(
         stages_table(r),
@@ -319,6 +324,44 @@ pub fn alpha_summary(a: &crate::pipeline::AlphaReport) -> String {
         },
         fmt::sig(a.last_change, 2),
         a.prior.map(prior).join(" / ")
+    )
+}
+
+/// The lattice pass in one sentence: whether a lattice was written, its levels, the points
+/// with data, the prior and the RMS detail per channel ([`crate::pipeline::lattice`]).
+pub fn lattice_summary(a: &crate::pipeline::AlphaReport) -> String {
+    let Some(l) = &a.lattice else {
+        return "off (alpha per vertex only)".into();
+    };
+    let levels = |m: &std::collections::BTreeMap<u8, usize>| {
+        m.iter()
+            .map(|(k, n)| format!("{} at {k}", fmt::count(*n)))
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    let prior = |p: f64| {
+        if p >= crate::model::ALPHA_PRIOR_MAX {
+            "cap".to_string()
+        } else {
+            fmt::sig(p, 2)
+        }
+    };
+    format!(
+        "{}; faces by level (rule, at most {}): {}; {} points between the vertices, with data \
+         r / g / b {}; detail shrunk by {} pseudo-samples, RMS detail (ln alpha) {}",
+        if l.written {
+            format!("written, faces by level {}", levels(&l.levels))
+        } else {
+            "not written (no detail above the noise: the images do not support a texture finer \
+             than the mesh)"
+                .to_string()
+        },
+        l.max_level,
+        levels(&l.levels_by_rule),
+        fmt::count(l.points),
+        l.points_with_data.map(fmt::count).join(" / "),
+        l.prior.map(prior).join(" / "),
+        l.rms_detail.map(|x| fmt::sig(x, 2)).join(" / ")
     )
 }
 
