@@ -6,7 +6,7 @@ use subsurf::dataset::Dataset;
 use subsurf::evaluate::{EvalPoints, evaluate_frames_at};
 use subsurf::fit::FitOptions;
 use subsurf::modelfile::ModelFile;
-use subsurf::pipeline::{PipelineOptions, fit_dataset};
+use subsurf::pipeline::{AlphaLattice, PipelineOptions, fit_dataset};
 use subsurf::simulate::{SimConfig, SimObject, simulate};
 
 /// The scene: the slab's top face as a coarse mesh (9 × 9 vertices, 2.5 mm edges), one camera
@@ -56,9 +56,23 @@ fn a_texture_finer_than_the_mesh_is_judged_at_surface_points() {
     let held: Vec<usize> = (0..n).filter(|k| k % 5 == 1).collect();
     let training: Vec<usize> = (0..n).filter(|k| k % 5 != 1).collect();
     let opts = PipelineOptions::for_dataset(&ds);
-    let vertex_only = fit_dataset(&ds, &training, &opts, &FitOptions::default(), &())
-        .expect("fit")
-        .model;
+    let fit = |lattice: AlphaLattice| {
+        let o = PipelineOptions {
+            alpha_lattice: lattice,
+            ..opts
+        };
+        fit_dataset(&ds, &training, &o, &FitOptions::default(), &())
+            .expect("fit")
+            .model
+    };
+    let with_lattice = fit(AlphaLattice::Auto);
+    let vertex_only = fit(AlphaLattice::Off);
+    assert!(vertex_only.face_alpha.is_none());
+    let fa = with_lattice
+        .face_alpha
+        .as_ref()
+        .expect("the fit wrote a lattice");
+    assert!(!fa.is_flat());
 
     let surface = EvalPoints::Surface { level: 4 };
     let judge = |m: &ModelFile, at: EvalPoints| {
@@ -69,6 +83,7 @@ fn a_texture_finer_than_the_mesh_is_judged_at_surface_points() {
     };
     let rows = [
         ("ground truth", &truth),
+        ("lattice (auto)", &with_lattice),
         ("vertex alpha only", &vertex_only),
     ]
     .map(|(name, m)| {
@@ -76,13 +91,35 @@ fn a_texture_finer_than_the_mesh_is_judged_at_surface_points() {
         eprintln!("{name:>18}: held-out mean log E at vertices {v:.4?}, at surface points (level 4) {s:.4?}");
         (v, s)
     });
-    let [(gt_v, gt_s), (vo_v, vo_s)] = rows;
+    let [(gt_v, gt_s), (la_v, la_s), (vo_v, vo_s)] = rows;
+    // Measured (dev and release alike, the scan is seeded): at surface points the lattice fit
+    // 0.130 / 0.116 / 0.151 (r / g / b), the vertex-only fit 0.280 / 0.229 / 0.332, the ground
+    // truth 0.117 / 0.125 / 0.152; at the vertices both fits 0.083 / 0.087 / 0.087 (the same
+    // vertex models: the lattice pass runs after them and has no detail at corners), the
+    // ground truth 0.088 / 0.100 / 0.117 (the fits' vertex alphas absorb the bilinear reads).
     for c in 0..3 {
+        // The texture shows at surface points: without a lattice the error doubles.
         assert!(
             vo_s[c] > 1.5 * gt_s[c],
-            "channel {c}: the texture is visible at surface points"
+            "channel {c}: {vo_s:?} vs truth {gt_s:?}"
         );
-        assert!(vo_v[c] < 1.5 * gt_v[c], "channel {c}");
+        // The lattice fit recovers it: under 0.6 of the vertex-only error (measured
+        // 0.47 / 0.51 / 0.45) and within 25 % of the ground truth (measured 1.11 / 0.93 / 0.99).
+        assert!(la_s[c] < 0.6 * vo_s[c], "channel {c}: {la_s:?} vs {vo_s:?}");
+        assert!(
+            la_s[c] < 1.25 * gt_s[c],
+            "channel {c}: {la_s:?} vs truth {gt_s:?}"
+        );
+        // At the vertices the two fits agree (within 2 %, measured equal) and are not worse
+        // than the ground truth by more than the noise.
+        assert!(
+            (la_v[c] - vo_v[c]).abs() <= 0.02 * vo_v[c],
+            "channel {c}: {la_v:?} vs {vo_v:?}"
+        );
+        assert!(
+            vo_v[c] < 1.5 * gt_v[c],
+            "channel {c}: {vo_v:?} vs truth {gt_v:?}"
+        );
     }
 
     // The point set is the option's, and a bad level or another mesh is refused.
