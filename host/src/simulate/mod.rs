@@ -855,10 +855,8 @@ mod tests {
         let at_point = |f: usize, w: [f64; 3]| {
             let t = m.triangles[f];
             let mut x = [0.0; 3];
-            for c in 0..3 {
-                for d in 0..3 {
-                    x[d] += w[c] * m.positions[t[c] as usize][d];
-                }
+            for (wc, v) in w.iter().zip(t) {
+                x = crate::geometry::add_scaled(x, *wc, m.positions[v as usize]);
             }
             x
         };
