@@ -315,17 +315,41 @@ impl Scene {
         cos_min: f64,
     ) -> Vec<Visible> {
         use rayon::prelude::*;
-        (0..pts.len())
+        (0..pts.len() as u32)
             .into_par_iter()
-            .filter_map(|i| {
-                let [u, v] = self.sees(cam, deg, pts.positions[i], pts.normals[i], cos_min)?;
-                Some(Visible {
-                    vertex: i as u32,
-                    u,
-                    v,
-                })
-            })
+            .filter_map(|i| self.sees_point(pts, i, cam, deg, cos_min))
             .collect()
+    }
+
+    /// [`Scene::visible_points`] over the points `which` of `pts` only (indices into `pts`, in
+    /// the order given): for callers that need a subset (the lattice pass skips the corners,
+    /// which are the vertices).
+    pub fn visible_points_of(
+        &self,
+        pts: &SurfacePoints,
+        which: &[u32],
+        cam: &Camera,
+        deg: f64,
+        cos_min: f64,
+    ) -> Vec<Visible> {
+        use rayon::prelude::*;
+        which
+            .par_iter()
+            .filter_map(|&i| self.sees_point(pts, i, cam, deg, cos_min))
+            .collect()
+    }
+
+    fn sees_point(
+        &self,
+        pts: &SurfacePoints,
+        i: u32,
+        cam: &Camera,
+        deg: f64,
+        cos_min: f64,
+    ) -> Option<Visible> {
+        let k = i as usize;
+        let [u, v] = self.sees(cam, deg, *pts.positions.get(k)?, pts.normals[k], cos_min)?;
+        Some(Visible { vertex: i, u, v })
     }
 
     /// A shadow ray: is the ray from `p` lifted off the surface along `n`, towards the unit

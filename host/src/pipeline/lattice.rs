@@ -222,17 +222,22 @@ pub fn fit_lattice(
             })
         })
         .collect();
-    report.points = corner.iter().filter(|c| !**c).count();
+    // The points between the corners: only they are read (a corner is a vertex).
+    let between: Vec<u32> = (0..pts.len() as u32)
+        .filter(|&p| !corner[p as usize])
+        .collect();
+    report.points = between.len();
 
     let mut acc = vec![[AlphaAccumulator::default(); 3]; pts.len()];
     progress.start("alpha lattice", users.len() as u64);
     for ((cam, deg), frames) in &by_view {
-        let vis: Vec<Visible> = ctx
-            .scene
-            .visible_points(&pts, ctx.camera(*cam), f64::from_bits(*deg), cos_min)
-            .into_iter()
-            .filter(|v| !corner[v.vertex as usize])
-            .collect();
+        let vis: Vec<Visible> = ctx.scene.visible_points_of(
+            &pts,
+            &between,
+            ctx.camera(*cam),
+            f64::from_bits(*deg),
+            cos_min,
+        );
         // Per frame: (point, channel, group, s, ln R_d + ln of the interpolated vertex alpha).
         type Contribution = (u32, u8, u32, f64, f64);
         let per_frame: Vec<Option<Vec<Contribution>>> = frames

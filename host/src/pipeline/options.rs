@@ -206,3 +206,25 @@ pub const SEGMENT_LADDER: [usize; 4] = [1, 2, 4, 8];
 
 /// The largest m any fit accepts (the model file and the renderer hold up to it).
 pub const MAX_SEGMENTS: usize = 64;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `--alpha-lattice`: auto and a cap estimate, off does not; levels outside 1..=8 are refused.
+    #[test]
+    fn alpha_lattice_parses_auto_off_and_levels() {
+        assert_eq!("auto".parse(), Ok(AlphaLattice::Auto));
+        assert_eq!("off".parse(), Ok(AlphaLattice::Off));
+        assert_eq!("3".parse(), Ok(AlphaLattice::Max(3)));
+        for bad in ["0", "9", "-1", "fine", ""] {
+            assert!(bad.parse::<AlphaLattice>().is_err(), "{bad}");
+        }
+        assert_eq!(
+            AlphaLattice::Auto.max_level(),
+            Some(crate::lattice::MAX_LEVEL)
+        );
+        assert_eq!(AlphaLattice::Max(3).max_level(), Some(3));
+        assert_eq!(AlphaLattice::Off.max_level(), None);
+    }
+}
