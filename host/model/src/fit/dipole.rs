@@ -115,20 +115,19 @@ struct Sums {
 /// ln R_d and its gradient for one parameter point, with the per-θ constants computed once
 /// (Jensen et al. 2001, Eq. 4–5 of that paper; names as in [`Dipole::ln_r_d`]).
 ///
-/// Per sample it costs two square roots, one exp and one ln: with d_i = sqrt(r² + z_i²),
-/// u_i = sigma_tr·d_i and T_i = z_i(1 + u_i)e^{−u_i}/d_i³ the two sources,
-/// ln R_d = ln(alpha'/4π) + ln z_r − u_r + ln P with P = e^{u_r}(T_r + T_v)/z_r
-/// = (1 + u_r)/d_r³ + (z_v/z_r)(1 + u_v)e^{−(u_v − u_r)}/d_v³. The exponent u_v − u_r =
-/// sigma_tr(z_v² − z_r²)/(d_v + d_r) is ≥ 0 and free of cancellation, so P is the log-sum-exp
-/// of the two sources with the real one factored out: no overflow, and the virtual source can
-/// only add (P is bounded by (1 + z_v/z_r) times the first term). Where d³ itself leaves the
-/// range of f64 (distances or depths beyond 1e±100) the same sum is taken in logs instead.
+/// Per sample it costs two square roots, one exp, one ln and (with the gradient) four
+/// divisions: with d_i = sqrt(r² + z_i²), u_i = sigma_tr·d_i and T_i = z_i(1 + u_i)e^{−u_i}/d_i³
+/// the two sources, ln R_d = ln(alpha'/4π) + ln z_r − u_r + ln P with
+/// P = e^{u_r}(T_r + T_v)/z_r = (1 + u_r)/d_r³ + (z_v/z_r)(1 + u_v)e^{−(u_v − u_r)}/d_v³. The
+/// exponent u_v − u_r is ≥ 0 (z_v > z_r), so P is the log-sum-exp of the two sources with the
+/// real one factored out: no overflow, and the virtual source can only add (P is at most
+/// (1 + z_v/z_r) times the first term). Its rounding, about ε·u_v absolute, is the one the
+/// two separate exponents of [`Dipole::ln_r_d`] have. Where d³ itself leaves the range of f64
+/// (distances or depths beyond about 1e±100) the same sum is taken in logs instead.
 struct DipoleEval {
     sigma_tr: f64,
     /// z_r², z_v².
     z2: [f64; 2],
-    /// z_v² − z_r².
-    dz2: f64,
     /// z_v / z_r.
     ratio: f64,
     /// ln(alpha'/4π) + ln z_r.
@@ -138,6 +137,15 @@ struct DipoleEval {
     g: [f64; 2],
     h: [f64; 2],
     c: [f64; 2],
+}
+
+/// One sample's sources (see [`DipoleEval`]): d_i², u_i, 1/d_i², T_r·e^{u_r}/z_r and P.
+struct Sources {
+    d2: [f64; 2],
+    u: [f64; 2],
+    i2: [f64; 2],
+    tr: f64,
+    p: f64,
 }
 
 impl DipoleEval {
@@ -153,7 +161,6 @@ impl DipoleEval {
         let out = Self {
             sigma_tr,
             z2: [z_r * z_r, z_v * z_v],
-            dz2: z_v * z_v - z_r * z_r,
             ratio: z_v / z_r,
             c0,
             g: [alpha, q],
@@ -169,10 +176,37 @@ impl DipoleEval {
             .then_some(out)
     }
 
+    /// The two sources at distance r, up to the shared factor (see the type's comment).
+    #[inline]
+    fn sources(&self, r: f64) -> Sources {
+        let r2 = r * r;
+        let (d2r, d2v) = (r2 + self.z2[0], r2 + self.z2[1]);
+        let (dr, dv) = (d2r.sqrt(), d2v.sqrt());
+        let (ur, uv) = (self.sigma_tr * dr, self.sigma_tr * dv);
+        let du = uv - ur;
+        let (ir, iv) = (1.0 / dr, 1.0 / dv);
+        let (i2r, i2v) = (ir * ir, iv * iv);
+        let tr = (1.0 + ur) * i2r * ir;
+        let tv = self.ratio * (1.0 + uv) * (-du).exp() * i2v * iv;
+        Sources {
+            d2: [d2r, d2v],
+            u: [ur, uv],
+            i2: [i2r, i2v],
+            tr,
+            p: tr + tv,
+        }
+    }
+
     /// ln R_d(r) alone.
     #[inline]
     fn value(&self, r: f64) -> f64 {
-        self.terms(r).0
+        let s = self.sources(r);
+        let ln_p = if s.p.is_normal() && s.tr.is_normal() {
+            s.p.ln()
+        } else {
+            self.terms_wide(s.d2, s.u).0
+        };
+        self.c0 - s.u[0] + ln_p
     }
 
     /// ln R_d(r) and the source sums A = Σ_i w_i(f_i + 3)ζ_i, B = Σ_i w_i f_i that its gradient
@@ -180,38 +214,47 @@ impl DipoleEval {
     /// f_i = u_i²/(1 + u_i), ζ_i = z_i²/d_i². Derivation: with t = sigma_t' and z ∝ 1/t,
     /// ∂ln z = −∂ln t, ∂ln d = −ζ·∂ln t and
     /// ∂ln T = ∂ln z − f·(∂ln sigma_tr + ∂ln d) − 3·∂ln d = −∂ln t(1 − (f + 3)ζ) − f·∂ln sigma_tr;
-    /// the sources combine with their shares, and ln alpha' adds its own derivative.
+    /// the sources combine with their shares, and ln alpha' adds its own derivative. One
+    /// division serves both f_i.
     #[inline]
     fn terms(&self, r: f64) -> (f64, f64, f64) {
-        let r2 = r * r;
-        let (d2r, d2v) = (r2 + self.z2[0], r2 + self.z2[1]);
-        let (dr, dv) = (d2r.sqrt(), d2v.sqrt());
-        let (ur, uv) = (self.sigma_tr * dr, self.sigma_tr * dv);
-        let du = self.sigma_tr * self.dz2 / (dr + dv);
-        let (d3r, d3v) = (d2r * dr, d2v * dv);
-        let tr = (1.0 + ur) / d3r;
-        let tv = self.ratio * (1.0 + uv) * (-du).exp() / d3v;
-        let p = tr + tv;
-        let (ln_p, wr) = if p.is_normal() && tr.is_normal() {
-            (p.ln(), tr / p)
-        } else {
-            self.wide(d2r, d2v, ur, uv, du)
-        };
+        let s = self.sources(r);
+        let [ur, uv] = s.u;
+        let q = 1.0 / ((1.0 + ur) * (1.0 + uv));
+        let wr = s.tr / s.p;
         let wv = 1.0 - wr;
-        let (fr, fv) = (ur * ur / (1.0 + ur), uv * uv / (1.0 + uv));
-        let (zr, zv) = (self.z2[0] / d2r, self.z2[1] / d2v);
-        let a = wr * (fr + 3.0) * zr + wv * (fv + 3.0) * zv;
-        let b = wr * fr + wv * fv;
+        // u²/(1 + u) with the other source's factor cancelling: u·(u/(1 + u)).
+        let (fr, fv) = (ur * (ur * ((1.0 + uv) * q)), uv * (uv * ((1.0 + ur) * q)));
+        let (zr, zv) = (self.z2[0] * s.i2[0], self.z2[1] * s.i2[1]);
+        let fast = s.p.is_normal() && s.tr.is_normal() && q.is_normal() && s.i2[0].is_finite();
+        let (ln_p, a, b) = if fast {
+            (
+                s.p.ln(),
+                wr * (fr + 3.0) * zr + wv * (fv + 3.0) * zv,
+                wr * fr + wv * fv,
+            )
+        } else {
+            self.terms_wide(s.d2, s.u)
+        };
         (self.c0 - ur + ln_p, a, b)
     }
 
-    /// ln P and the real source's share T_r/(T_r + T_v) of [`DipoleEval::terms`] in logs, for
-    /// d³ outside the range of f64: ρ = T_v/T_r from ratios that stay in range,
-    /// (z_v/z_r)·((1 + u_v)/(1 + u_r))·(d_r²/d_v²)^1.5·e^{−du}.
+    /// ln P and the source sums (A, B) of [`DipoleEval::terms`] where d³ or (1 + u_r)(1 + u_v)
+    /// leave the range of f64, from ratios that stay in range: ρ = T_v/T_r =
+    /// (z_v/z_r)·((1 + u_v)/(1 + u_r))·(d_r²/d_v²)^1.5·e^{−(u_v − u_r)}, ln P =
+    /// ln(1 + u_r) − 1.5·ln d_r² + ln(1 + ρ), and each quotient divided on its own.
     #[cold]
-    fn wide(&self, d2r: f64, d2v: f64, ur: f64, uv: f64, du: f64) -> (f64, f64) {
-        let rho = self.ratio * ((1.0 + uv) / (1.0 + ur)) * (d2r / d2v).powf(1.5) * (-du).exp();
-        (ur.ln_1p() - 1.5 * d2r.ln() + rho.ln_1p(), 1.0 / (1.0 + rho))
+    fn terms_wide(&self, [d2r, d2v]: [f64; 2], [ur, uv]: [f64; 2]) -> (f64, f64, f64) {
+        let rho = self.ratio * ((1.0 + uv) / (1.0 + ur)) * (d2r / d2v).powf(1.5) * (ur - uv).exp();
+        let wr = 1.0 / (1.0 + rho);
+        let wv = 1.0 - wr;
+        let (fr, fv) = (ur * (ur / (1.0 + ur)), uv * (uv / (1.0 + uv)));
+        let (zr, zv) = (self.z2[0] / d2r, self.z2[1] / d2v);
+        (
+            ur.ln_1p() - 1.5 * d2r.ln() + rho.ln_1p(),
+            wr * (fr + 3.0) * zr + wv * (fv + 3.0) * zv,
+            wr * fr + wv * fv,
+        )
     }
 
     /// ∂ln R_d/∂(ln sigma_s', ln sigma_a) from the source sums of [`DipoleEval::terms`].
