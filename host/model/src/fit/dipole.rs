@@ -290,8 +290,8 @@ impl<'a> DipoleProblem<'a> {
         self.w.map_or(m, |w| m.min(w.len()))
     }
 
-    /// First pass: e_j (and A_j, B_j with `terms`) into `out`, and their weighted sums; `None`
-    /// if θ is infeasible or anything is non-finite.
+    /// First pass: e_j (and A_j, B_j with `terms`) into the scratch buffer, and their weighted
+    /// sums; `None` if θ is infeasible or anything is non-finite.
     fn first_pass(
         &self,
         theta: &[f64],
@@ -373,7 +373,11 @@ impl<'a> DipoleProblem<'a> {
     /// The fitted ln k at θ (0 when absolute); `None` if infeasible. Looked up when θ was one
     /// of the last few points evaluated.
     fn ln_k(&self, theta: &[f64]) -> Option<f64> {
-        let mut scratch = self.scratch.borrow_mut();
+        self.with_scratch(|scratch| self.ln_k_in(theta, scratch))
+    }
+
+    /// [`DipoleProblem::ln_k`] in `scratch`.
+    fn ln_k_in(&self, theta: &[f64], scratch: &mut Scratch) -> Option<f64> {
         let hit = scratch
             .recent
             .iter()
@@ -382,15 +386,19 @@ impl<'a> DipoleProblem<'a> {
         if let Some((_, e0)) = hit {
             return Some(-e0);
         }
-        let (_, sums) = self.first_pass(theta, false, &mut scratch)?;
+        let (_, sums) = self.first_pass(theta, false, scratch)?;
         let k = -self.shifts(&sums).0;
         k.is_finite().then_some(k)
     }
 
     /// Σ res² at θ, infinite where infeasible.
     fn cost(&self, theta: &[f64]) -> f64 {
-        let mut scratch = self.scratch.borrow_mut();
-        let Some((_, sums)) = self.first_pass(theta, false, &mut scratch) else {
+        self.with_scratch(|scratch| self.cost_in(theta, scratch))
+    }
+
+    /// [`DipoleProblem::cost`] in `scratch`.
+    fn cost_in(&self, theta: &[f64], scratch: &mut Scratch) -> f64 {
+        let Some((_, sums)) = self.first_pass(theta, false, scratch) else {
             return f64::INFINITY;
         };
         let buf = &scratch.terms;
@@ -418,9 +426,41 @@ impl Problem for DipoleProblem<'_> {
     fn rows(&self) -> usize {
         self.len()
     }
-    fn eval<F: FnMut(f64, &[usize], &[f64])>(&self, theta: &[f64], jac: bool, mut row: F) -> bool {
-        let mut scratch = self.scratch.borrow_mut();
-        let Some((ev, sums)) = self.first_pass(theta, jac, &mut scratch) else {
+    fn eval<F: FnMut(f64, &[usize], &[f64])>(&self, theta: &[f64], jac: bool, row: F) -> bool {
+        self.with_scratch(|scratch| self.eval_rows(theta, jac, scratch, row))
+    }
+
+    /// One evaluation of the model per sample and θ for cost, gradient and JᵀJ together.
+    fn normal_equations(
+        &self,
+        theta: &[f64],
+        jtj: &mut [f64],
+        jtr: &mut [f64],
+    ) -> Option<Option<f64>> {
+        Some(self.with_scratch(|scratch| self.normal(theta, jtj, jtr, scratch)))
+    }
+}
+
+impl DipoleProblem<'_> {
+    /// Runs `f` on the shared scratch buffer, or on a buffer of its own where the shared one is
+    /// in use (a row callback of [`Problem::eval`] that evaluates this problem again): never a
+    /// panic.
+    fn with_scratch<T>(&self, f: impl FnOnce(&mut Scratch) -> T) -> T {
+        match self.scratch.try_borrow_mut() {
+            Ok(mut shared) => f(&mut shared),
+            Err(_) => f(&mut Scratch::default()),
+        }
+    }
+
+    /// The rows of [`Problem::eval`], evaluated in `scratch`.
+    fn eval_rows<F: FnMut(f64, &[usize], &[f64])>(
+        &self,
+        theta: &[f64],
+        jac: bool,
+        scratch: &mut Scratch,
+        mut row: F,
+    ) -> bool {
+        let Some((ev, sums)) = self.first_pass(theta, jac, scratch) else {
             return false;
         };
         let buf = &scratch.terms;
@@ -445,17 +485,15 @@ impl Problem for DipoleProblem<'_> {
         true
     }
 
-    /// One evaluation of the model per sample and θ for cost, gradient and JᵀJ together.
-    fn normal_equations(
+    /// The normal equations of [`Problem::normal_equations`]; `None` if θ is infeasible.
+    fn normal(
         &self,
         theta: &[f64],
         jtj: &mut [f64],
         jtr: &mut [f64],
-    ) -> Option<Option<f64>> {
-        let mut scratch = self.scratch.borrow_mut();
-        let Some((ev, sums)) = self.first_pass(theta, true, &mut scratch) else {
-            return Some(None);
-        };
+        scratch: &mut Scratch,
+    ) -> Option<f64> {
+        let (ev, sums) = self.first_pass(theta, true, scratch)?;
         let buf = &scratch.terms;
         let (e0, a0, b0) = self.shifts(&sums);
         let (mut cost, mut g0r, mut g1r, mut g00, mut g01, mut g11) =
@@ -480,7 +518,7 @@ impl Problem for DipoleProblem<'_> {
         let ok = [cost, g0r, g1r, g00, g01, g11]
             .iter()
             .all(|v| v.is_finite());
-        Some(ok.then_some(cost))
+        ok.then_some(cost)
     }
 }
 
@@ -862,6 +900,20 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// A row callback may evaluate the same problem again (the scratch buffer is then its own).
+    #[test]
+    fn rows_may_evaluate_the_problem_again() {
+        let r = jensen_r();
+        let truth = Material::by_name("marble").unwrap().dipole(0).unwrap();
+        let y: Vec<f64> = r.iter().map(|&x| truth.ln_r_d(x)).collect();
+        let p = DipoleProblem::new(&r, &y, None, truth.eta, false);
+        let theta = [truth.sigma_s_prime.ln(), truth.sigma_a.ln() + 0.1];
+        let mut inner = Vec::new();
+        assert!(p.eval(&theta, true, |_, _, _| inner.push(p.cost(&theta))));
+        assert_eq!(inner.len(), r.len());
+        assert!(inner.iter().all(|&c| c == p.cost(&theta) && c > 0.0));
     }
 
     /// Where d³ leaves the range of f64 (depths of 1e-120, distances of 1e110) the evaluator
