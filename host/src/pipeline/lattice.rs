@@ -6,7 +6,7 @@
 //! One more pass over the fitted frames reads samples at the lattice points
 //! ([`crate::geometry::SurfacePoints`], the very sample rules of the vertices) and folds, per
 //! point and channel, ln(s / R_d) with each light position's final model R_d (r and φ measured
-//! exactly as the group's samples, [`super::select::add_frame_samples`]), in the light position's
+//! exactly as the group's samples, [`super::select::frame_observations`]), in the light position's
 //! Eq. 6 window, into an [`AlphaAccumulator`]. The accumulator is centred on the interpolated
 //! vertex alpha: it holds ln(s / R_d) − ln(Σ w_j alpha_j), so its shrunk mean is the *detail*
 //! the file stores, and the empirical-Bayes prior ([`empirical_prior`]) measures the spread of
@@ -31,12 +31,11 @@ use crate::geometry::{Camera, Scene, SurfacePoints, Visible, dist, dot, normaliz
 use crate::lattice::{FaceAlpha, is_corner, points};
 use crate::model::{ALPHA_PRIOR_MAX, AlphaAccumulator, empirical_prior};
 use crate::progress::Progress;
-use crate::samples::SampleCounts;
 
 use super::fit::Fitted;
 use super::load::Context;
 use super::register::RegisteredFrame;
-use super::select::{ChannelSamples, Groups, add_frame_samples, group_frame, group_frames};
+use super::select::{Groups, frame_observations, group_frame, group_frames};
 
 /// What the lattice pass found (`fit-report.json`: `alpha.lattice`).
 #[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
@@ -251,27 +250,22 @@ pub fn fit_lattice(
                         else {
                             continue;
                         };
-                        let mut data: ChannelSamples = Default::default();
-                        add_frame_samples(
-                            &mut data,
-                            &mut SampleCounts::default(),
-                            &groups.keys[gi],
-                            l,
-                            reg,
-                            tf,
-                            &s,
-                            &pts.positions,
-                        );
-                        for (ch, d) in data.iter().enumerate() {
-                            for x in d {
-                                let ln_rd = g.model.ln_eval(x.r, x.phi)[ch];
-                                out.push((
-                                    x.vertex,
-                                    ch as u8,
-                                    gi as u32,
-                                    x.s,
-                                    ln_rd + ln_ref[x.vertex as usize][ch],
-                                ));
+                        for (x, phi, takes) in
+                            frame_observations(&groups.keys[gi], l, reg, tf, &s, &pts.positions)
+                        {
+                            // One evaluation of R_d for all channels of the observation.
+                            let ln_rd = g.model.ln_eval(x.r, phi);
+                            let p = x.vertex as usize;
+                            for ch in 0..3 {
+                                if takes & (1 << ch) != 0 {
+                                    out.push((
+                                        x.vertex,
+                                        ch as u8,
+                                        gi as u32,
+                                        x.value[ch],
+                                        ln_rd[ch] + ln_ref[p][ch],
+                                    ));
+                                }
                             }
                         }
                     }
