@@ -475,6 +475,45 @@ mod tests {
         assert_eq!(ModelFile::read(&p).unwrap().face_alpha, Some(fa));
     }
 
+    /// The level rule: a flat patch of 2 mm edges (2.83 mm diagonals) seen from 400 mm at
+    /// f = 1000 px (0.4 mm per pixel) asks for round(2.83 / 0.4) = 7; seen at 60° from the
+    /// normal the footprint doubles (round(2.83 / 0.8) = 4) and the finer view wins; capped by
+    /// the maximum; a view that does not see the face gives it level 1.
+    #[test]
+    fn levels_follow_the_pixel_footprint() {
+        use crate::dataset::Mesh;
+        let pos = vec![
+            [0.0, 0.0, 0.0],
+            [2.0, 0.0, 0.0],
+            [2.0, 2.0, 0.0],
+            [0.0, 2.0, 0.0],
+        ];
+        let mesh = Mesh::new(pos, vec![[0, 1, 2], [0, 2, 3]]).0;
+        let scene = Scene::new(mesh).unwrap();
+        let at = |eye: [f64; 3]| {
+            Camera::look_at(eye, [1.0, 1.0, 0.0], [0.0, 1.0, 0.0], 1000.0, 512, 512).unwrap()
+        };
+        let top = at([1.0, 1.0, 400.0]);
+        let (s60, c60) = 60f64.to_radians().sin_cos();
+        let tilted = at([1.0 + 400.0 * s60, 1.0, 400.0 * c60]);
+        let f = pixel_footprint(&top, 0.0, [1.0, 1.0, 0.0], [0.0, 0.0, 1.0]).unwrap();
+        assert!((f - 0.4).abs() < 1e-9, "{f}");
+        let f = pixel_footprint(&tilted, 0.0, [1.0, 1.0, 0.0], [0.0, 0.0, 1.0]).unwrap();
+        assert!((f - 0.8).abs() < 1e-9, "{f}");
+        assert_eq!(face_levels(&scene, &[(&top, 0.0)], 0.4, 8), vec![7, 7]);
+        assert_eq!(face_levels(&scene, &[(&tilted, 0.0)], 0.4, 8), vec![4, 4]);
+        assert_eq!(
+            face_levels(&scene, &[(&tilted, 0.0), (&top, 0.0)], 0.4, 8),
+            vec![7, 7]
+        );
+        assert_eq!(face_levels(&scene, &[(&top, 0.0)], 0.4, 5), vec![5, 5]);
+        // The tilted view is beyond a grazing limit of cos 0.6: no view sees the faces.
+        assert_eq!(face_levels(&scene, &[(&tilted, 0.0)], 0.6, 8), vec![1, 1]);
+        // From below, the faces face away.
+        let below = at([1.0, 1.0, -400.0]);
+        assert_eq!(face_levels(&scene, &[(&below, 0.0)], 0.4, 8), vec![1, 1]);
+    }
+
     /// Without a texture (alpha = 1 everywhere) the lattice's spread is noise: nothing is written.
     #[test]
     fn no_texture_no_lattice() {
