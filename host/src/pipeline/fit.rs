@@ -683,6 +683,11 @@ pub struct Fitted {
     pub baseline: Option<FittedBaseline>,
 }
 
+/// Most parallel tasks a fit round folds the light positions in ([`fit_groups`]): each holds
+/// its own alpha accumulators (one per vertex and channel), so their number bounds the memory
+/// (32 × 72 bytes per vertex), and it depends on the scan alone, never on the thread count.
+const FOLD_CHUNKS: usize = 32;
+
 /// One round's results, folded over the groups in parallel.
 #[derive(Default)]
 struct RoundState {
@@ -767,105 +772,120 @@ pub fn fit_groups(
             &format!("fit (round {})", round + 1),
             groups.keys.len() as u64,
         );
+        // Groups are folded in fixed chunks, sequentially within a chunk, and the chunks merged
+        // in order: the float sums (alpha, objective) then associate the same way on every
+        // run and with any number of threads, so a fit is repeatable bit for bit (rayon's
+        // `fold` splits where work stealing happens to, and later alpha rounds would inherit
+        // the rounding differences).
+        let step = |mut st: RoundState, (idx, key): (usize, &super::select::GroupKey)| {
+            let mut dropped = Vec::new();
+            let old = prev.and_then(|p| p.get(idx).cloned().flatten());
+            let out = group_samples(ctx, regs, key).and_then(|(mut data, counts)| {
+                let s_max = data
+                    .each_ref()
+                    .map(|d| d.iter().map(|x| x.s).fold(0.0, f64::max));
+                if let Some(a) = alpha_div {
+                    for (ch, d) in data.iter_mut().enumerate() {
+                        for x in d.iter_mut() {
+                            x.s /= a[x.vertex as usize][ch];
+                        }
+                    }
+                }
+                // Round 0 chooses each light position's order; later rounds keep it.
+                let at = old.as_ref().map(|g| (g.terms, g.segments, g.on_baseline));
+                let new = fit_order(
+                    &data,
+                    &opts.model,
+                    fitter,
+                    opts.order,
+                    base_model,
+                    at,
+                    &mut dropped,
+                )
+                .map(|(model, terms, segments, on_baseline, path)| {
+                    let r_range = data
+                        .iter()
+                        .flatten()
+                        .fold([f64::INFINITY, 0.0], |[lo, hi], x| {
+                            [lo.min(x.r), hi.max(x.r)]
+                        });
+                    GroupFit {
+                        model,
+                        terms,
+                        segments,
+                        on_baseline,
+                        r_range,
+                        isotropic_fallback: path == FitPath::Isotropic,
+                        s_max,
+                    }
+                });
+                let o_old = old.as_ref().map(|g| sq_err(&g.model, &data));
+                let (g, o_new, kept_old) = match (new, old, o_old) {
+                    (Ok(g), Some(old), Some(oo)) => {
+                        let on = sq_err(&g.model, &data);
+                        if on <= oo {
+                            (g, on, false)
+                        } else {
+                            (old, oo, true)
+                        }
+                    }
+                    (Err(_), Some(old), Some(oo)) => (old, oo, true),
+                    (Ok(g), _, _) => {
+                        let on = sq_err(&g.model, &data);
+                        (g, on, false)
+                    }
+                    (Err(e), _, _) => return Err(e),
+                };
+                Ok((g, data, counts, o_new, o_old.unwrap_or(o_new), kept_old))
+            });
+            for why in dropped {
+                *st.dropped.entry(why).or_default() += 1;
+            }
+            match out {
+                Ok((g, data, counts, o_new, o_old, kept_old)) => {
+                    st.objective += o_new;
+                    st.objective_prev += o_old;
+                    st.kept_previous += kept_old as usize;
+                    // Eq. 6 contributions are folded right away so the samples can be dropped.
+                    if st.alpha.is_empty() {
+                        st.alpha = vec![[AlphaAccumulator::default(); 3]; nv];
+                    }
+                    for (ch, d) in data.iter().enumerate() {
+                        // Eq. 6 compares the captured sample with R_d.
+                        let captured = |x: &GroupSample| {
+                            alpha_div.map_or(x.s, |a| x.s * a[x.vertex as usize][ch])
+                        };
+                        // t1 relative to this light position's brightest sample.
+                        let s_max = d.iter().map(captured).fold(0.0, f64::max);
+                        let window = opts.alpha_window.for_light(s_max);
+                        for x in d {
+                            let ln_rd = g.model.ln_eval(x.r, x.phi)[ch];
+                            st.alpha[x.vertex as usize][ch].add_ln(captured(x), ln_rd, &window);
+                        }
+                    }
+                    st.counts.add(&counts);
+                    st.fits.push((idx, Ok(g)));
+                }
+                Err(e) => st.fits.push((idx, Err(e))),
+            }
+            progress.inc(1);
+            st
+        };
+        let chunk = groups.keys.len().div_ceil(FOLD_CHUNKS).max(1);
         let mut state = groups
             .keys
-            .par_iter()
+            .par_chunks(chunk)
             .enumerate()
-            .fold(RoundState::default, |mut st, (idx, key)| {
-                let mut dropped = Vec::new();
-                let old = prev.and_then(|p| p.get(idx).cloned().flatten());
-                let out = group_samples(ctx, regs, key).and_then(|(mut data, counts)| {
-                    let s_max = data
-                        .each_ref()
-                        .map(|d| d.iter().map(|x| x.s).fold(0.0, f64::max));
-                    if let Some(a) = alpha_div {
-                        for (ch, d) in data.iter_mut().enumerate() {
-                            for x in d.iter_mut() {
-                                x.s /= a[x.vertex as usize][ch];
-                            }
-                        }
-                    }
-                    // Round 0 chooses each light position's order; later rounds keep it.
-                    let at = old.as_ref().map(|g| (g.terms, g.segments, g.on_baseline));
-                    let new = fit_order(
-                        &data,
-                        &opts.model,
-                        fitter,
-                        opts.order,
-                        base_model,
-                        at,
-                        &mut dropped,
-                    )
-                    .map(|(model, terms, segments, on_baseline, path)| {
-                        let r_range = data
-                            .iter()
-                            .flatten()
-                            .fold([f64::INFINITY, 0.0], |[lo, hi], x| {
-                                [lo.min(x.r), hi.max(x.r)]
-                            });
-                        GroupFit {
-                            model,
-                            terms,
-                            segments,
-                            on_baseline,
-                            r_range,
-                            isotropic_fallback: path == FitPath::Isotropic,
-                            s_max,
-                        }
-                    });
-                    let o_old = old.as_ref().map(|g| sq_err(&g.model, &data));
-                    let (g, o_new, kept_old) = match (new, old, o_old) {
-                        (Ok(g), Some(old), Some(oo)) => {
-                            let on = sq_err(&g.model, &data);
-                            if on <= oo {
-                                (g, on, false)
-                            } else {
-                                (old, oo, true)
-                            }
-                        }
-                        (Err(_), Some(old), Some(oo)) => (old, oo, true),
-                        (Ok(g), _, _) => {
-                            let on = sq_err(&g.model, &data);
-                            (g, on, false)
-                        }
-                        (Err(e), _, _) => return Err(e),
-                    };
-                    Ok((g, data, counts, o_new, o_old.unwrap_or(o_new), kept_old))
-                });
-                for why in dropped {
-                    *st.dropped.entry(why).or_default() += 1;
-                }
-                match out {
-                    Ok((g, data, counts, o_new, o_old, kept_old)) => {
-                        st.objective += o_new;
-                        st.objective_prev += o_old;
-                        st.kept_previous += kept_old as usize;
-                        // Eq. 6 contributions are folded right away so the samples can be dropped.
-                        if st.alpha.is_empty() {
-                            st.alpha = vec![[AlphaAccumulator::default(); 3]; nv];
-                        }
-                        for (ch, d) in data.iter().enumerate() {
-                            // Eq. 6 compares the captured sample with R_d.
-                            let captured = |x: &GroupSample| {
-                                alpha_div.map_or(x.s, |a| x.s * a[x.vertex as usize][ch])
-                            };
-                            // t1 relative to this light position's brightest sample.
-                            let s_max = d.iter().map(captured).fold(0.0, f64::max);
-                            let window = opts.alpha_window.for_light(s_max);
-                            for x in d {
-                                let ln_rd = g.model.ln_eval(x.r, x.phi)[ch];
-                                st.alpha[x.vertex as usize][ch].add_ln(captured(x), ln_rd, &window);
-                            }
-                        }
-                        st.counts.add(&counts);
-                        st.fits.push((idx, Ok(g)));
-                    }
-                    Err(e) => st.fits.push((idx, Err(e))),
-                }
-                progress.inc(1);
-                st
+            .map(|(c, keys)| {
+                keys.iter()
+                    .enumerate()
+                    .fold(RoundState::default(), |st, (j, key)| {
+                        step(st, (c * chunk + j, key))
+                    })
             })
-            .reduce(RoundState::default, RoundState::merge);
+            .collect::<Vec<_>>()
+            .into_iter()
+            .fold(RoundState::default(), RoundState::merge);
         state.fits.sort_by_key(|f| f.0);
         state
     };
