@@ -31,6 +31,15 @@ pub struct Curve {
 }
 
 impl Curve {
+    /// Appends one row of `N` numbers: r, then one value per channel (`N` − 1 channels).
+    #[inline(always)]
+    fn push_values<const N: usize>(&mut self, row: &[f64; N]) {
+        self.r.push(row[0]);
+        for (dst, v) in self.channels.iter_mut().zip(&row[1..]) {
+            dst.push(*v);
+        }
+    }
+
     /// Appends one row: `row[0]` is r, the rest one value per channel.
     #[inline]
     fn push_row(&mut self, row: &[f64]) {
@@ -288,26 +297,62 @@ impl Parser {
     /// by [`fast_values`]. Everything else goes through [`Parser::line`].
     fn block(&mut self, line_no: usize, text: &[u8]) -> Result<usize, CurvesError> {
         let (mut at, mut count) = (0, 0);
+        // Up to the header, by the general path.
+        while at < text.len() && self.channels.is_none() {
+            count += 1;
+            let end = memchr::memchr(b'\n', &text[at..]).map_or(text.len(), |k| at + k);
+            self.line(line_no + count, &text[at..end])?;
+            at = end + 1;
+        }
+        match self.channels {
+            Some(1) => self.rows::<2>(line_no, text, at, count),
+            Some(_) => self.rows::<4>(line_no, text, at, count),
+            None => Ok(count),
+        }
+    }
+
+    /// [`Parser::block`] after the header, for rows of `N` numbers (r and the channels): one
+    /// loop per row width, so a row's numbers stay in registers from the parse to the curve's
+    /// vectors (with the width a run-time value they went through an array on the stack, whose
+    /// two 8-byte stores then a 16-byte load stalled store forwarding on every row).
+    fn rows<const N: usize>(
+        &mut self,
+        line_no: usize,
+        text: &[u8],
+        mut at: usize,
+        mut count: usize,
+    ) -> Result<usize, CurvesError> {
+        let ch = N - 1;
         while at < text.len() {
             count += 1;
-            if let Some(ch) = self.channels {
-                if let Some(k) = self.last
-                    && let Some((key, mask, len)) = self.key
-                    && word(text, at) & mask == key
-                    && let Some((values, next)) = fast_values(text, at + len, ch + 1)
-                {
-                    self.curves[k].push_row(&values[..=ch]);
+            if let Some(k) = self.last
+                && let Some((key, mask, len)) = self.key
+                && word(text, at) & mask == key
+            {
+                // One channel, the common case: the two numbers as scalars, not an array.
+                if N == 2 {
+                    if let Some((r, v, next)) = fast_pair(text, at + len) {
+                        let c = &mut self.curves[k];
+                        c.r.push(r);
+                        if let Some(dst) = c.channels.first_mut() {
+                            dst.push(v);
+                        }
+                        at = next;
+                        continue;
+                    }
+                } else if let Some((values, next)) = fast_values::<N>(text, at + len) {
+                    self.curves[k].push_values(&values);
                     at = next;
                     continue;
                 }
-                if let Some((id, from)) = fast_id(text, at, self.batch)
-                    && let Some((values, next)) = fast_values(text, from, ch + 1)
-                {
-                    let k = self.curve_for(line_no + count, id, ch)?;
-                    self.curves[k].push_row(&values[..=ch]);
-                    at = next;
-                    continue;
-                }
+            }
+            if let Some((id, from)) = fast_id(text, at, self.batch)
+                && let Some((values, next)) = fast_values::<N>(text, from)
+            {
+                let k = self.curve_for(line_no + count, id, ch)?;
+                self.curves[k].push_values(&values);
+                at = next;
+                continue;
             }
             let end = memchr::memchr(b'\n', &text[at..]).map_or(text.len(), |k| at + k);
             self.line(line_no + count, &text[at..end])?;
@@ -434,27 +479,44 @@ fn fast_id(text: &[u8], at: usize, batch: bool) -> Option<(&[u8], usize)> {
     (i > at && text.get(i) == Some(&b',')).then(|| (&text[at..i], i + 1))
 }
 
-/// `count` numbers at `text[at..]` separated by commas, with no blanks, ended by `\n` or
-/// `\r\n`: the values and where the next line starts. `None` for anything else, which the
-/// general path ([`slow_row`]) then reads or rejects.
-#[inline]
-fn fast_values(text: &[u8], at: usize, count: usize) -> Option<([f64; 4], usize)> {
-    let mut values = [0.0f64; 4];
+/// `N` numbers at `text[at..]` separated by commas, with no blanks, ended by `\n` or `\r\n`:
+/// the values and where the next line starts. `None` for anything else, which the general path
+/// ([`slow_row`]) then reads or rejects.
+#[inline(always)]
+fn fast_values<const N: usize>(text: &[u8], at: usize) -> Option<([f64; N], usize)> {
+    let mut values = [0.0f64; N];
     let mut i = at;
-    for (col, v) in values.iter_mut().enumerate().take(count) {
-        if col > 0 {
+    for (col, v) in values.iter_mut().enumerate() {
+        let (x, used) = number_prefix(text.get(i..)?)?;
+        *v = x;
+        i += used;
+        if col + 1 < N {
             if text.get(i) != Some(&b',') {
                 return None;
             }
             i += 1;
         }
-        let (x, used) = number_prefix(text.get(i..)?)?;
-        *v = x;
-        i += used;
     }
     match text.get(i..) {
         Some([b'\n', ..]) => Some((values, i + 1)),
         Some([b'\r', b'\n', ..]) => Some((values, i + 2)),
+        _ => None,
+    }
+}
+
+/// [`fast_values`] for two numbers, returned as scalars.
+#[inline(always)]
+fn fast_pair(text: &[u8], at: usize) -> Option<(f64, f64, usize)> {
+    let (x, used) = number_prefix(text.get(at..)?)?;
+    let i = at + used;
+    if text.get(i) != Some(&b',') {
+        return None;
+    }
+    let (y, used) = number_prefix(text.get(i + 1..)?)?;
+    let j = i + 1 + used;
+    match text.get(j..) {
+        Some([b'\n', ..]) => Some((x, y, j + 1)),
+        Some([b'\r', b'\n', ..]) => Some((x, y, j + 2)),
         _ => None,
     }
 }
@@ -508,13 +570,132 @@ fn parse_f64(s: &str) -> Option<f64> {
     fast_float2::parse(s).ok()
 }
 
-/// The number at the start of `b` and the bytes it takes, correctly rounded, by `fast-float2`.
-/// (A hand-written word-at-a-time reader for short decimals and the byte loop before it were
-/// both slower than the crate on the scipy comparison's 8 million numbers: 0.25 and 0.24 s
-/// against 0.215 s for reading the whole file, BENCHMARKS.md.)
+/// The number at the start of `b` and the bytes it takes, correctly rounded: the usual CSV
+/// shapes by [`short_decimal`], everything else (and whatever it declines) by `fast-float2`,
+/// whose longest-valid-prefix reading this keeps.
 #[inline]
-fn number_prefix(b: &[u8]) -> Option<(f64, usize)> {
+pub(crate) fn number_prefix(b: &[u8]) -> Option<(f64, usize)> {
+    if let Some(x) = short_decimal(b) {
+        return Some(x);
+    }
     fast_float2::parse_partial::<f64, _>(b).ok()
+}
+
+/// `0x01` in every byte of a word.
+const ONES: u64 = 0x0101_0101_0101_0101;
+
+/// Exact powers of ten as f64 (10^22 is the largest exact one): Clinger's fast path.
+const POW10_F64: [f64; 23] = [
+    1e0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9, 1e10, 1e11, 1e12, 1e13, 1e14, 1e15, 1e16,
+    1e17, 1e18, 1e19, 1e20, 1e21, 1e22,
+];
+
+/// The run of decimal digits at the start of the word `w` (little-endian, the first byte
+/// lowest): its length (0 to 8) and its value.
+///
+/// Why a word at a time: the digits of `%.10g` numbers come in runs of 1 to 10, and a byte loop
+/// turns each run into a chain of data-dependent branches. Here a run costs a fixed handful of
+/// operations: the length from the first non-digit byte (one add, one `tzcnt`), the value by
+/// the three-multiply conversion of eight digits (the digits shifted to the word's high end,
+/// zeros before them).
+#[inline(always)]
+fn digit_run(w: u64) -> (usize, u64) {
+    let t = w ^ (0x30 * ONES);
+    // A byte is a digit iff t < 10: then t + 0x76 < 0x80, and no carry leaves a digit byte, so
+    // the lowest flagged byte is the first non-digit (bytes after it may be flagged or not).
+    let flags = (t.wrapping_add(0x76 * ONES) | t) & (0x80 * ONES);
+    let len = (flags.trailing_zeros() / 8) as usize;
+    // The digits to the high end (len = 0: shift by 64, masked to 0 below).
+    let v = t.wrapping_shl(64 - 8 * len as u32) & 0u64.wrapping_sub(u64::from(len != 0));
+    let v = eight_digits(v);
+    (len, v)
+}
+
+/// `0x01` in every byte of a 16-byte window.
+const ONES16: u128 = u128::MAX / 0xff;
+
+/// The value of eight decimal digits, one per byte of `v` (0 to 9 each, the first digit in the
+/// lowest byte): three multiplies instead of a chain of eight.
+#[inline(always)]
+fn eight_digits(v: u64) -> u64 {
+    let v = v.wrapping_mul(10).wrapping_add(v >> 8);
+    ((v & 0x0000_00ff_0000_00ff).wrapping_mul(100 + (1_000_000 << 32))
+        + ((v >> 16) & 0x0000_00ff_0000_00ff).wrapping_mul(1 + (10_000 << 32)))
+        >> 32
+}
+
+/// A plain decimal at the start of `b`: `-`? digits? (`.` digits?)? with at least one digit and
+/// at most 15 bytes after the sign, then optionally (`e`|`E`) (`+`|`-`)? and 1–4 digits, whose
+/// decimal exponent q (the written one minus the fraction's digits) is within ±22. Then the
+/// mantissa M < 10^15 < 2^53 and 10^|q| are exact doubles, and one correctly rounded multiply
+/// or divide gives the correctly rounded value (Clinger's fast path, the value `fast-float2`
+/// returns for it too). `None` for anything else (the caller falls back to `fast-float2`),
+/// including text too near the end of `b` for the word reads.
+///
+/// Why: the `%.10g` numbers of a `fit-curve --batch` file (BENCHMARKS.md) are all of this
+/// shape; `fast-float2` spends ~185 instructions on each (callgrind). Here the mantissa is read
+/// as one 16-byte window without a loop: the bytes that are not digits flagged all at once, the
+/// point and the end found from the flags, the point cut out by a shift, and the digits (right
+/// aligned in the window) converted eight at a time.
+#[inline(always)]
+fn short_decimal(b: &[u8]) -> Option<(f64, usize)> {
+    // Sign, the 16-byte window, an exponent of up to 7 bytes.
+    if b.len() < 32 {
+        return None;
+    }
+    let neg = b[0] == b'-';
+    let s = usize::from(neg);
+    let x = (u128::from(word(b, s + 8)) << 64 | u128::from(word(b, s))) ^ (0x30 * ONES16);
+    // Bit 7 of every byte that is not a digit (a digit byte is < 10 here; the low seven bits
+    // plus 0x76 cannot carry into the next byte).
+    let flags = (((x & (0x7f * ONES16)) + 0x76 * ONES16) | x) & (0x80 * ONES16);
+    let p = (flags.trailing_zeros() / 8) as usize;
+    if p >= 16 {
+        return None;
+    }
+    let dot = (x >> (8 * p)) as u8 == b'.' ^ 0x30;
+    // The end of the mantissa: the first byte that is neither a digit nor that point.
+    let rest = flags & !(u128::from(dot) << (8 * p + 7));
+    let e = (rest.trailing_zeros() / 8) as usize;
+    if e >= 16 {
+        return None;
+    }
+    let digits = e - usize::from(dot);
+    if digits == 0 {
+        return None;
+    }
+    // The digits together in bytes [0, digits): the fraction shifted down over the point.
+    let below = (1u128 << (8 * p)) - 1;
+    let upper = if dot { x >> 8 } else { x };
+    let joined = (x & below) | (upper & !below);
+    // Right-aligned in the window (zeros before them), then eight digits at a time: the low
+    // word holds the leading eight.
+    let aligned = joined << (8 * (16 - digits));
+    let mant = eight_digits(aligned as u64) * 100_000_000 + eight_digits((aligned >> 64) as u64);
+    // Fraction digits (none without a point: then e = p).
+    let mut q = -((e - p - usize::from(dot)) as i64);
+    let mut end = s + e;
+    if b[end] | 0x20 == b'e' {
+        let mut j = end + 1;
+        let eneg = b[j] == b'-';
+        j += usize::from(eneg || b[j] == b'+');
+        let (ne, ev) = digit_run(word(b, j));
+        if ne == 0 || ne > 4 {
+            return None;
+        }
+        q += if eneg { -(ev as i64) } else { ev as i64 };
+        end = j + ne;
+    }
+    if !(-22..=22).contains(&q) {
+        return None;
+    }
+    let m = mant as f64;
+    let v = if q >= 0 {
+        m * POW10_F64[q as usize]
+    } else {
+        m / POW10_F64[(-q) as usize]
+    };
+    Some((if neg { -v } else { v }, end))
 }
 
 /// The eight bytes at `b[i..]` as a little-endian word; bytes past the end read as 0.
@@ -554,6 +735,8 @@ fn header(fields: &[&str], batch: bool) -> Option<usize> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use proptest::prelude::Strategy;
+    use proptest::prop_oneof;
 
     #[test]
     fn errors_name_the_line() {
@@ -660,6 +843,10 @@ mod tests {
             let then = format!("{c},7");
             let prefix = number_prefix(then.as_bytes()).filter(|p| p.1 == c.len());
             assert_eq!(prefix.map(|p| p.0.to_bits()), want, "{c},");
+            // Inside a block, with room for [`short_decimal`]'s word reads.
+            let row = format!("{c},7\n{PAD}");
+            let prefix = number_prefix(row.as_bytes()).filter(|p| p.1 == c.len());
+            assert_eq!(prefix.map(|p| p.0.to_bits()), want, "{c}, in a block");
         }
         for bad in [
             "", "-", ".", "e5", "1e", "1.2.3", "1e5x", "abc", "--1", "1 2", "-.", "1e-", "+-1",
@@ -670,6 +857,79 @@ mod tests {
                 "{bad}"
             );
         }
+    }
+
+    /// What follows a number inside a block: more rows, enough for the word reads.
+    const PAD: &str = "0,12.09039342,5.096327544e-05\n0,1,2\n";
+
+    /// Text around a number in every shape the CSV reader may meet: short and long digit runs,
+    /// points anywhere, exponents of any length, signs, and what may follow.
+    fn decimal_text() -> impl Strategy<Value = String> {
+        let number = prop_oneof![
+            "[-+]?[0-9]{0,20}(\\.[0-9]{0,20})?([eE][-+]?[0-9]{0,6})?",
+            "-?[0-9]{1,4}\\.[0-9]{1,12}([eE][-+][0-9]{2})?",
+            "-?[0-9]{0,3}\\.?[0-9]{0,3}([eE][-+]?[0-9]{1,3})?",
+            "-?(0|00|[1-9][0-9]{0,15})(\\.[0-9]{0,16})?(e-?[0-9]{1,2})?",
+            "-?[0-9.eE+-]{0,10}|inf|-inf|NaN|nan|infinity",
+        ];
+        let tail = "[,\\n\\r.eE+0-9x -]{0,3}";
+        (number, tail, 0usize..3).prop_map(|(n, t, pads)| format!("{n}{t}{}", PAD.repeat(pads)))
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(20_000))]
+        /// The row parser's number reading is `fast-float2`'s longest-prefix reading, bit for
+        /// bit and byte for byte, and on whole fields the standard library's; where
+        /// [`short_decimal`] answers at all, it answers the same.
+        #[test]
+        fn number_prefix_is_fast_float_and_std(text in decimal_text()) {
+            let b = text.as_bytes();
+            let want = fast_float2::parse_partial::<f64, _>(b).ok().map(|(v, k)| (v.to_bits(), k));
+            let got = number_prefix(b).map(|(v, k)| (v.to_bits(), k));
+            proptest::prop_assert_eq!(got, want, "{:?}", text);
+            if let Some((v, k)) = short_decimal(b) {
+                proptest::prop_assert_eq!(Some((v.to_bits(), k)), want, "{:?}", text);
+            }
+            if let Some((_, k)) = want
+                && matches!(b.get(k), None | Some(b',' | b'\n'))
+            {
+                let field = &text[..k];
+                let std = field.parse::<f64>().ok().map(f64::to_bits);
+                proptest::prop_assert_eq!(got.map(|g| g.0), std, "{:?}", field);
+            }
+        }
+    }
+
+    /// [`short_decimal`] reads the shapes `%.10g` writes (so the comparison above is not
+    /// vacuous) and declines what it cannot read exactly.
+    #[test]
+    fn short_decimal_takes_the_usual_shapes() {
+        for (text, v, k) in [
+            ("12.09039342", 12.09039342, 11),
+            ("5.096327544e-05", 5.096327544e-05, 15),
+            ("0.6002071621", 0.6002071621, 12),
+            ("-3", -3.0, 2),
+            ("5.", 5.0, 2),
+            (".5", 0.5, 2),
+            ("-0", -0.0, 2),
+            ("1.5E+3", 1500.0, 6),
+            ("1.2.3", 1.2, 3),
+            ("999999999999999", 999_999_999_999_999.0, 15),
+        ] {
+            let row = format!("{text},{PAD}");
+            let got = short_decimal(row.as_bytes());
+            assert_eq!(got.map(|(x, n)| (x.to_bits(), n)), Some((f64::to_bits(v), k)), "{text}");
+        }
+        for text in [
+            "", "-", ".", "+1", "inf", "NaN", "1e", "1e+", "1e400", "1e-23", "1e23",
+            "1234567890123456", "0.000000000000001", "1e12345",
+        ] {
+            let row = format!("{text},{PAD}");
+            assert_eq!(short_decimal(row.as_bytes()), None, "{text}");
+        }
+        // Too near the end of the text for the word reads: the crate's reading.
+        assert_eq!(short_decimal(b"1.5,2\n"), None);
+        assert_eq!(number_prefix(b"1.5,2\n"), Some((1.5, 3)));
     }
 
     /// A reader that hands out a few bytes at a time, so lines straddle every read.
