@@ -611,8 +611,18 @@ fn digit_run(w: u64) -> (usize, u64) {
     (len, v)
 }
 
-/// `0x01` in every byte of a 16-byte window.
-const ONES16: u128 = u128::MAX / 0xff;
+/// Powers of ten as integers, to append a run of up to eight digits to a mantissa.
+const POW10_U64: [u64; 9] = [
+    1,
+    10,
+    100,
+    1_000,
+    10_000,
+    100_000,
+    1_000_000,
+    10_000_000,
+    100_000_000,
+];
 
 /// The value of eight decimal digits, one per byte of `v` (0 to 9 each, the first digit in the
 /// lowest byte): three multiplies instead of a chain of eight.
@@ -624,8 +634,8 @@ fn eight_digits(v: u64) -> u64 {
         >> 32
 }
 
-/// A plain decimal at the start of `b`: `-`? digits? (`.` digits?)? with at least one digit and
-/// at most 15 bytes after the sign, then optionally (`e`|`E`) (`+`|`-`)? and 1–4 digits, whose
+/// A plain decimal at the start of `b`: `-`? digits? (`.` digits?)? with at least one digit, at
+/// most 7 before the point and at most 15 bytes after the sign, then optionally (`e`|`E`) (`+`|`-`)? and 1–4 digits, whose
 /// decimal exponent q (the written one minus the fraction's digits) is within ±22. Then the
 /// mantissa M < 10^15 < 2^53 and 10^|q| are exact doubles, and one correctly rounded multiply
 /// or divide gives the correctly rounded value (Clinger's fast path, the value `fast-float2`
@@ -634,9 +644,9 @@ fn eight_digits(v: u64) -> u64 {
 ///
 /// Why: the `%.10g` numbers of a `fit-curve --batch` file (BENCHMARKS.md) are all of this
 /// shape; `fast-float2` spends ~185 instructions on each (callgrind). Here the mantissa is read
-/// as one 16-byte window without a loop: the bytes that are not digits flagged all at once, the
-/// point and the end found from the flags, the point cut out by a shift, and the digits (right
-/// aligned in the window) converted eight at a time.
+/// as one 16-byte window (two words) without a loop: the bytes that are not digits flagged all
+/// at once, the point and the end found from the flags, the point cut out by shifts, and the
+/// digits converted eight at a time.
 #[inline(always)]
 fn short_decimal(b: &[u8]) -> Option<(f64, usize)> {
     // Sign, the 16-byte window, an exponent of up to 7 bytes.
@@ -645,18 +655,27 @@ fn short_decimal(b: &[u8]) -> Option<(f64, usize)> {
     }
     let neg = b[0] == b'-';
     let s = usize::from(neg);
-    let x = (u128::from(word(b, s + 8)) << 64 | u128::from(word(b, s))) ^ (0x30 * ONES16);
+    // The window as two words of digit values (bytes 0–9 where there are digits).
+    let t0 = word(b, s) ^ (0x30 * ONES);
+    let t1 = word(b, s + 8) ^ (0x30 * ONES);
     // Bit 7 of every byte that is not a digit (a digit byte is < 10 here; the low seven bits
     // plus 0x76 cannot carry into the next byte).
-    let flags = (((x & (0x7f * ONES16)) + 0x76 * ONES16) | x) & (0x80 * ONES16);
-    let p = (flags.trailing_zeros() / 8) as usize;
-    if p >= 16 {
+    let nondigit = |t: u64| (((t & (0x7f * ONES)) + 0x76 * ONES) | t) & (0x80 * ONES);
+    let (f0, f1) = (nondigit(t0), nondigit(t1));
+    // The first non-digit, at p: in the first word (at most 7 integer digits).
+    if f0 == 0 {
         return None;
     }
-    let dot = (x >> (8 * p)) as u8 == b'.' ^ 0x30;
-    // The end of the mantissa: the first byte that is neither a digit nor that point.
-    let rest = flags & !(u128::from(dot) << (8 * p + 7));
-    let e = (rest.trailing_zeros() / 8) as usize;
+    let first = f0 & f0.wrapping_neg();
+    let p = (f0.trailing_zeros() / 8) as usize;
+    let dot = (t0 >> (8 * p)) as u8 == b'.' ^ 0x30;
+    // The end of the mantissa, at e: the first non-digit that is not that point.
+    let rest = if dot { f0 ^ first } else { f0 };
+    let e = if rest != 0 {
+        (rest.trailing_zeros() / 8) as usize
+    } else {
+        8 + (f1.trailing_zeros() / 8) as usize
+    };
     if e >= 16 {
         return None;
     }
@@ -664,14 +683,20 @@ fn short_decimal(b: &[u8]) -> Option<(f64, usize)> {
     if digits == 0 {
         return None;
     }
-    // The digits together in bytes [0, digits): the fraction shifted down over the point.
-    let below = (1u128 << (8 * p)) - 1;
-    let upper = if dot { x >> 8 } else { x };
-    let joined = (x & below) | (upper & !below);
-    // Right-aligned in the window (zeros before them), then eight digits at a time: the low
-    // word holds the leading eight.
-    let aligned = joined << (8 * (16 - digits));
-    let mant = eight_digits(aligned as u64) * 100_000_000 + eight_digits((aligned >> 64) as u64);
+    // The digits together in bytes [0, digits) of (j0, j1): the bytes after the point moved
+    // down over it (`below` masks the bytes before it, from its flag bit).
+    let below = (first - 1) >> 7;
+    let (j0, j1) = if dot {
+        ((t0 & below) | ((t0 >> 8 | t1 << 56) & !below), t1 >> 8)
+    } else {
+        (t0, t1)
+    };
+    // Eight digits at a time, right-aligned in a word (zeros before them).
+    let mant = if digits <= 8 {
+        eight_digits(j0 << (8 * (8 - digits)))
+    } else {
+        eight_digits(j0) * POW10_U64[digits - 8] + eight_digits(j1 << (8 * (16 - digits)))
+    };
     // Fraction digits (none without a point: then e = p).
     let mut q = -((e - p - usize::from(dot)) as i64);
     let mut end = s + e;
@@ -914,7 +939,8 @@ mod tests {
             ("-0", -0.0, 2),
             ("1.5E+3", 1500.0, 6),
             ("1.2.3", 1.2, 3),
-            ("999999999999999", 999_999_999_999_999.0, 15),
+            ("9999999.9999999", 9_999_999.999_999_9, 15),
+            ("1234567", 1_234_567.0, 7),
         ] {
             let row = format!("{text},{PAD}");
             let got = short_decimal(row.as_bytes());
@@ -922,7 +948,7 @@ mod tests {
         }
         for text in [
             "", "-", ".", "+1", "inf", "NaN", "1e", "1e+", "1e400", "1e-23", "1e23",
-            "1234567890123456", "0.000000000000001", "1e12345",
+            "1234567890123456", "0.000000000000001", "12345678", "12345678.5", "1e12345",
         ] {
             let row = format!("{text},{PAD}");
             assert_eq!(short_decimal(row.as_bytes()), None, "{text}");
