@@ -324,28 +324,38 @@ impl Parser {
     ) -> Result<usize, CurvesError> {
         let ch = N - 1;
         while at < text.len() {
-            count += 1;
+            // The rows of the last curve, in a loop of their own: its key and vectors stay in
+            // registers.
             if let Some(k) = self.last
                 && let Some((key, mask, len)) = self.key
-                && word(text, at) & mask == key
+                && let Some(c) = self.curves.get_mut(k)
             {
-                // One channel, the common case: the two numbers as scalars, not an array.
                 if N == 2 {
-                    if let Some((r, v, next)) = fast_pair(text, at + len) {
-                        let c = &mut self.curves[k];
-                        c.r.push(r);
-                        if let Some(dst) = c.channels.first_mut() {
+                    // One channel, the common case: the two numbers as scalars.
+                    if let Some(dst) = c.channels.first_mut() {
+                        while word(text, at) & mask == key
+                            && let Some((r, v, next)) = fast_pair(text, at + len)
+                        {
+                            c.r.push(r);
                             dst.push(v);
+                            count += 1;
+                            at = next;
                         }
-                        at = next;
-                        continue;
                     }
-                } else if let Some((values, next)) = fast_values::<N>(text, at + len) {
-                    self.curves[k].push_values(&values);
-                    at = next;
-                    continue;
+                } else {
+                    while word(text, at) & mask == key
+                        && let Some((values, next)) = fast_values::<N>(text, at + len)
+                    {
+                        c.push_values(&values);
+                        count += 1;
+                        at = next;
+                    }
+                }
+                if at >= text.len() {
+                    break;
                 }
             }
+            count += 1;
             if let Some((id, from)) = fast_id(text, at, self.batch)
                 && let Some((values, next)) = fast_values::<N>(text, from)
             {
@@ -668,7 +678,7 @@ fn short_decimal(b: &[u8]) -> Option<(f64, usize)> {
     }
     let first = f0 & f0.wrapping_neg();
     let p = (f0.trailing_zeros() / 8) as usize;
-    let dot = (t0 >> (8 * p)) as u8 == b'.' ^ 0x30;
+    let dot = b[s + p] == b'.';
     // The end of the mantissa, at e: the first non-digit that is not that point.
     let rest = if dot { f0 ^ first } else { f0 };
     let e = if rest != 0 {
@@ -714,7 +724,8 @@ fn short_decimal(b: &[u8]) -> Option<(f64, usize)> {
     if !(-22..=22).contains(&q) {
         return None;
     }
-    let m = mant as f64;
+    // mant < 10^15: the signed conversion is one instruction, the unsigned one a sequence.
+    let m = mant as i64 as f64;
     let v = if q >= 0 {
         m * POW10_F64[q as usize]
     } else {
