@@ -357,16 +357,31 @@ impl LogRows for LogExact<'_> {
     }
 }
 
+impl LogBinned<'_> {
+    /// The binned cost alone (the residuals of [`binned_normal_n`] without the Jacobian):
+    /// scoring the start candidates, four per fit, took 6 % of `fit-curve --batch` through the
+    /// generic row evaluation (perf, BENCHMARKS.md).
+    fn cost(&self, theta: &[f64]) -> Option<f64> {
+        let (mut jtj, mut jtr) = ([0.0; 0], [0.0; 0]);
+        match self.n {
+            1 => binned_normal_n::<1, 2, false>(self.bins, theta, &mut jtj, &mut jtr),
+            2 => binned_normal_n::<2, 4, false>(self.bins, theta, &mut jtj, &mut jtr),
+            3 => binned_normal_n::<3, 6, false>(self.bins, theta, &mut jtj, &mut jtr),
+            _ => binned_normal_n::<4, 8, false>(self.bins, theta, &mut jtj, &mut jtr),
+        }
+    }
+}
+
 impl LogRows for LogBinned<'_> {
     fn terms(&self) -> usize {
         self.n
     }
     fn normal(&self, theta: &[f64], jtj: &mut [f64], jtr: &mut [f64]) -> Option<f64> {
         match self.n {
-            1 => binned_normal_n::<1, 2>(self.bins, theta, jtj, jtr),
-            2 => binned_normal_n::<2, 4>(self.bins, theta, jtj, jtr),
-            3 => binned_normal_n::<3, 6>(self.bins, theta, jtj, jtr),
-            _ => binned_normal_n::<4, 8>(self.bins, theta, jtj, jtr),
+            1 => binned_normal_n::<1, 2, true>(self.bins, theta, jtj, jtr),
+            2 => binned_normal_n::<2, 4, true>(self.bins, theta, jtj, jtr),
+            3 => binned_normal_n::<3, 6, true>(self.bins, theta, jtj, jtr),
+            _ => binned_normal_n::<4, 8, true>(self.bins, theta, jtj, jtr),
         }
     }
     fn points(&self) -> usize {
@@ -432,7 +447,7 @@ impl LogRows for LogBinned<'_> {
 /// vectorises, and JᵀJ gathers one partial sum per entry and bin lane instead of one serial
 /// chain per entry. This is the fast mode's whole fit (`fit-curve --batch`, BENCHMARKS.md).
 #[allow(clippy::needless_range_loop)] // index loops over parallel arrays vectorise
-fn binned_normal_n<const N: usize, const P: usize>(
+fn binned_normal_n<const N: usize, const P: usize, const JAC: bool>(
     bins: &[Bin],
     theta: &[f64],
     jtj: &mut [f64],
@@ -500,6 +515,20 @@ fn binned_normal_n<const N: usize, const P: usize>(
             v[1][j] = g[j];
             v[2][j] = 0.5 * h[j];
         }
+        let mut res = [[0.0f64; CHUNK]; 3];
+        for j in 0..CHUNK {
+            res[0][j] = u[0][j] * v[0][j] + u[1][j] * v[1][j] + u[2][j] * v[2][j] - z[0][j];
+            res[1][j] = u[3][j] * v[1][j] + u[4][j] * v[2][j] - z[1][j];
+            res[2][j] = u[5][j] * v[2][j] - z[2][j];
+        }
+        for i in 0..3 {
+            for j in 0..CHUNK {
+                cost[j] += res[i][j] * res[i][j];
+            }
+        }
+        if !JAC {
+            continue;
+        }
         // The rows U·∂v straight from the Jacobian of v (see `LogRows::rows` of LogBinned):
         // U = [[u0, u1, u2], [0, u3, u4], [0, 0, u5]].
         for k in 0..N {
@@ -520,16 +549,7 @@ fn binned_normal_n<const N: usize, const P: usize>(
                 }
             }
         }
-        let mut res = [[0.0f64; CHUNK]; 3];
-        for j in 0..CHUNK {
-            res[0][j] = u[0][j] * v[0][j] + u[1][j] * v[1][j] + u[2][j] * v[2][j] - z[0][j];
-            res[1][j] = u[3][j] * v[1][j] + u[4][j] * v[2][j] - z[1][j];
-            res[2][j] = u[5][j] * v[2][j] - z[2][j];
-        }
         for i in 0..3 {
-            for j in 0..CHUNK {
-                cost[j] += res[i][j] * res[i][j];
-            }
             for c in 0..p {
                 for j in 0..CHUNK {
                     grad[c][j] += rows[i][c][j] * res[i][j];
@@ -543,6 +563,10 @@ fn binned_normal_n<const N: usize, const P: usize>(
         }
     }
     let lane_sum = |x: &[f64; CHUNK]| x.iter().sum::<f64>();
+    if !JAC {
+        let cost = lane_sum(&cost);
+        return cost.is_finite().then_some(cost);
+    }
     for i in 0..p {
         jtr[i] = lane_sum(&grad[i]);
         for k in i..p {
@@ -808,15 +832,7 @@ pub(crate) fn starts(bins: &[Bin], n: usize) -> Vec<Vec<f64>> {
         }
     }
     let problem = LogBinned { bins, n };
-    let cost = |t: &Vec<f64>| {
-        let mut c = 0.0;
-        let ok = problem.eval(t, false, |r, _, _| c += r * r);
-        if ok && c.is_finite() {
-            c
-        } else {
-            f64::INFINITY
-        }
-    };
+    let cost = |t: &Vec<f64>| problem.cost(t).unwrap_or(f64::INFINITY);
     let mut scored: Vec<(f64, Vec<f64>)> = out.into_iter().map(|t| (cost(&t), t)).collect();
     scored.sort_by(|a, b| a.0.total_cmp(&b.0));
     scored.into_iter().map(|(_, t)| t).collect()
