@@ -955,11 +955,29 @@ mod tests {
         ] {
             let row = format!("{text},{PAD}");
             let got = short_decimal(row.as_bytes());
-            assert_eq!(got.map(|(x, n)| (x.to_bits(), n)), Some((f64::to_bits(v), k)), "{text}");
+            assert_eq!(
+                got.map(|(x, n)| (x.to_bits(), n)),
+                Some((f64::to_bits(v), k)),
+                "{text}"
+            );
         }
         for text in [
-            "", "-", ".", "+1", "inf", "NaN", "1e", "1e+", "1e400", "1e-23", "1e23",
-            "1234567890123456", "0.000000000000001", "12345678", "12345678.5", "1e12345",
+            "",
+            "-",
+            ".",
+            "+1",
+            "inf",
+            "NaN",
+            "1e",
+            "1e+",
+            "1e400",
+            "1e-23",
+            "1e23",
+            "1234567890123456",
+            "0.000000000000001",
+            "12345678",
+            "12345678.5",
+            "1e12345",
         ] {
             let row = format!("{text},{PAD}");
             assert_eq!(short_decimal(row.as_bytes()), None, "{text}");

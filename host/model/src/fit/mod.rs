@@ -405,6 +405,7 @@ fn clean_or_borrow<'a>(
     // NaN): written as `x < inf` the compiler turned the test into scalar bit arithmetic,
     // ~20 instructions a sample (3 % of `fit-curve --batch`, perf); as float arithmetic it
     // vectorises.
+    #[allow(clippy::eq_op)] // x − x is the finiteness test, not a mistake
     let usable = r.len() == s.len()
         && r.iter().zip(s).fold(true, |ok, (&ri, &si)| {
             ok & (ri >= 0.0) & (ri - ri == 0.0) & (si > 0.0) & (si - si == 0.0)
