@@ -602,13 +602,10 @@ const POW10_F64: [f64; 23] = [
 ];
 
 /// The run of decimal digits at the start of the word `w` (little-endian, the first byte
-/// lowest): its length (0 to 8) and its value.
-///
-/// Why a word at a time: the digits of `%.10g` numbers come in runs of 1 to 10, and a byte loop
-/// turns each run into a chain of data-dependent branches. Here a run costs a fixed handful of
-/// operations: the length from the first non-digit byte (one add, one `tzcnt`), the value by
-/// the three-multiply conversion of eight digits (the digits shifted to the word's high end,
-/// zeros before them).
+/// lowest): its length (0 to 8) and its value. [`short_decimal`] reads exponents with it: a
+/// fixed handful of operations instead of a loop with a data-dependent branch per digit (the
+/// length from the first non-digit byte, the value by [`eight_digits`] on the digits shifted
+/// to the word's high end, zeros before them).
 #[inline(always)]
 fn digit_run(w: u64) -> (usize, u64) {
     let t = w ^ (0x30 * ONES);
@@ -646,8 +643,9 @@ fn eight_digits(v: u64) -> u64 {
 }
 
 /// A plain decimal at the start of `b`: `-`? digits? (`.` digits?)? with at least one digit, at
-/// most 7 before the point and at most 15 bytes after the sign, then optionally (`e`|`E`) (`+`|`-`)? and 1–4 digits, whose
-/// decimal exponent q (the written one minus the fraction's digits) is within ±22. Then the
+/// most 7 before the point and at most 15 bytes after the sign, then optionally (`e`|`E`)
+/// (`+`|`-`)? and 1–4 digits, whose decimal exponent q (the written one minus the fraction's
+/// digits) is within ±22. Then the
 /// mantissa M < 10^15 < 2^53 and 10^|q| are exact doubles, and one correctly rounded multiply
 /// or divide gives the correctly rounded value (Clinger's fast path, the value `fast-float2`
 /// returns for it too). `None` for anything else (the caller falls back to `fast-float2`),
