@@ -11,11 +11,12 @@
 //! any reader through a ~1 MiB buffer (`fit-curve` reads its file that way, so a large batch is
 //! never held twice); callers keep the context of where the text came from.
 //!
-//! Hand-written rather than with the `csv` crate (numbers by `fast-float2`): the format is four
-//! fixed numeric columns, and `fit-curve --batch` parses millions of rows on the path the
-//! issue's throughput target is measured on (BENCHMARKS.md); one pass over the bytes of a block
-//! of lines, with no per-row allocation and no per-row search for the newline, keeps parsing
-//! within about half of that budget.
+//! Hand-written rather than with the `csv` crate: the format is four fixed numeric columns, and
+//! `fit-curve --batch` parses millions of rows on the path the throughput target is
+//! measured on (BENCHMARKS.md). One pass over the bytes of a block of lines, with no per-row
+//! allocation and no per-row search for the newline; plain decimals by `short_decimal` (a
+//! word-at-a-time reader with Clinger's exact fast path, ~1/3 fewer instructions a row than
+//! `fast-float2`), every other number shape by `fast-float2`, to the same bits.
 
 use std::collections::{HashMap, HashSet};
 
@@ -31,6 +32,15 @@ pub struct Curve {
 }
 
 impl Curve {
+    /// Appends one row of `N` numbers: r, then one value per channel (`N` − 1 channels).
+    #[inline(always)]
+    fn push_values<const N: usize>(&mut self, row: &[f64; N]) {
+        self.r.push(row[0]);
+        for (dst, v) in self.channels.iter_mut().zip(&row[1..]) {
+            dst.push(*v);
+        }
+    }
+
     /// Appends one row: `row[0]` is r, the rest one value per channel.
     #[inline]
     fn push_row(&mut self, row: &[f64]) {
@@ -288,26 +298,72 @@ impl Parser {
     /// by [`fast_values`]. Everything else goes through [`Parser::line`].
     fn block(&mut self, line_no: usize, text: &[u8]) -> Result<usize, CurvesError> {
         let (mut at, mut count) = (0, 0);
-        while at < text.len() {
+        // Up to the header, by the general path.
+        while at < text.len() && self.channels.is_none() {
             count += 1;
-            if let Some(ch) = self.channels {
-                if let Some(k) = self.last
-                    && let Some((key, mask, len)) = self.key
-                    && word(text, at) & mask == key
-                    && let Some((values, next)) = fast_values(text, at + len, ch + 1)
-                {
-                    self.curves[k].push_row(&values[..=ch]);
-                    at = next;
-                    continue;
+            let end = memchr::memchr(b'\n', &text[at..]).map_or(text.len(), |k| at + k);
+            self.line(line_no + count, &text[at..end])?;
+            at = end + 1;
+        }
+        match self.channels {
+            Some(1) => self.rows::<2>(line_no, text, at, count),
+            Some(_) => self.rows::<4>(line_no, text, at, count),
+            None => Ok(count),
+        }
+    }
+
+    /// [`Parser::block`] after the header, for rows of `N` numbers (r and the channels): one
+    /// loop per row width, so a row's numbers stay in registers from the parse to the curve's
+    /// vectors (with the width a run-time value they went through an array on the stack, whose
+    /// two 8-byte stores then a 16-byte load stalled store forwarding on every row).
+    fn rows<const N: usize>(
+        &mut self,
+        line_no: usize,
+        text: &[u8],
+        mut at: usize,
+        mut count: usize,
+    ) -> Result<usize, CurvesError> {
+        let ch = N - 1;
+        while at < text.len() {
+            // The rows of the last curve, in a loop of their own: its key and vectors stay in
+            // registers.
+            if let Some(k) = self.last
+                && let Some((key, mask, len)) = self.key
+                && let Some(c) = self.curves.get_mut(k)
+            {
+                if N == 2 {
+                    // One channel, the common case: the two numbers as scalars.
+                    if let Some(dst) = c.channels.first_mut() {
+                        while word(text, at) & mask == key
+                            && let Some((r, v, next)) = fast_pair(text, at + len)
+                        {
+                            c.r.push(r);
+                            dst.push(v);
+                            count += 1;
+                            at = next;
+                        }
+                    }
+                } else {
+                    while word(text, at) & mask == key
+                        && let Some((values, next)) = fast_values::<N>(text, at + len)
+                    {
+                        c.push_values(&values);
+                        count += 1;
+                        at = next;
+                    }
                 }
-                if let Some((id, from)) = fast_id(text, at, self.batch)
-                    && let Some((values, next)) = fast_values(text, from, ch + 1)
-                {
-                    let k = self.curve_for(line_no + count, id, ch)?;
-                    self.curves[k].push_row(&values[..=ch]);
-                    at = next;
-                    continue;
+                if at >= text.len() {
+                    break;
                 }
+            }
+            count += 1;
+            if let Some((id, from)) = fast_id(text, at, self.batch)
+                && let Some((values, next)) = fast_values::<N>(text, from)
+            {
+                let k = self.curve_for(line_no + count, id, ch)?;
+                self.curves[k].push_values(&values);
+                at = next;
+                continue;
             }
             let end = memchr::memchr(b'\n', &text[at..]).map_or(text.len(), |k| at + k);
             self.line(line_no + count, &text[at..end])?;
@@ -434,27 +490,44 @@ fn fast_id(text: &[u8], at: usize, batch: bool) -> Option<(&[u8], usize)> {
     (i > at && text.get(i) == Some(&b',')).then(|| (&text[at..i], i + 1))
 }
 
-/// `count` numbers at `text[at..]` separated by commas, with no blanks, ended by `\n` or
-/// `\r\n`: the values and where the next line starts. `None` for anything else, which the
-/// general path ([`slow_row`]) then reads or rejects.
-#[inline]
-fn fast_values(text: &[u8], at: usize, count: usize) -> Option<([f64; 4], usize)> {
-    let mut values = [0.0f64; 4];
+/// `N` numbers at `text[at..]` separated by commas, with no blanks, ended by `\n` or `\r\n`:
+/// the values and where the next line starts. `None` for anything else, which the general path
+/// ([`slow_row`]) then reads or rejects.
+#[inline(always)]
+fn fast_values<const N: usize>(text: &[u8], at: usize) -> Option<([f64; N], usize)> {
+    let mut values = [0.0f64; N];
     let mut i = at;
-    for (col, v) in values.iter_mut().enumerate().take(count) {
-        if col > 0 {
+    for (col, v) in values.iter_mut().enumerate() {
+        let (x, used) = number_prefix(text.get(i..)?)?;
+        *v = x;
+        i += used;
+        if col + 1 < N {
             if text.get(i) != Some(&b',') {
                 return None;
             }
             i += 1;
         }
-        let (x, used) = number_prefix(text.get(i..)?)?;
-        *v = x;
-        i += used;
     }
     match text.get(i..) {
         Some([b'\n', ..]) => Some((values, i + 1)),
         Some([b'\r', b'\n', ..]) => Some((values, i + 2)),
+        _ => None,
+    }
+}
+
+/// [`fast_values`] for two numbers, returned as scalars.
+#[inline(always)]
+fn fast_pair(text: &[u8], at: usize) -> Option<(f64, f64, usize)> {
+    let (x, used) = number_prefix(text.get(at..)?)?;
+    let i = at + used;
+    if text.get(i) != Some(&b',') {
+        return None;
+    }
+    let (y, used) = number_prefix(text.get(i + 1..)?)?;
+    let j = i + 1 + used;
+    match text.get(j..) {
+        Some([b'\n', ..]) => Some((x, y, j + 1)),
+        Some([b'\r', b'\n', ..]) => Some((x, y, j + 2)),
         _ => None,
     }
 }
@@ -508,13 +581,156 @@ fn parse_f64(s: &str) -> Option<f64> {
     fast_float2::parse(s).ok()
 }
 
-/// The number at the start of `b` and the bytes it takes, correctly rounded, by `fast-float2`.
-/// (A hand-written word-at-a-time reader for short decimals and the byte loop before it were
-/// both slower than the crate on the scipy comparison's 8 million numbers: 0.25 and 0.24 s
-/// against 0.215 s for reading the whole file, BENCHMARKS.md.)
+/// The number at the start of `b` and the bytes it takes, correctly rounded: the usual CSV
+/// shapes by [`short_decimal`], everything else (and whatever it declines) by `fast-float2`,
+/// whose longest-valid-prefix reading this keeps.
 #[inline]
-fn number_prefix(b: &[u8]) -> Option<(f64, usize)> {
+pub(crate) fn number_prefix(b: &[u8]) -> Option<(f64, usize)> {
+    if let Some(x) = short_decimal(b) {
+        return Some(x);
+    }
     fast_float2::parse_partial::<f64, _>(b).ok()
+}
+
+/// `0x01` in every byte of a word.
+const ONES: u64 = 0x0101_0101_0101_0101;
+
+/// Exact powers of ten as f64 (10^22 is the largest exact one): Clinger's fast path.
+const POW10_F64: [f64; 23] = [
+    1e0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9, 1e10, 1e11, 1e12, 1e13, 1e14, 1e15, 1e16,
+    1e17, 1e18, 1e19, 1e20, 1e21, 1e22,
+];
+
+/// The run of decimal digits at the start of the word `w` (little-endian, the first byte
+/// lowest): its length (0 to 8) and its value. [`short_decimal`] reads exponents with it: a
+/// fixed handful of operations instead of a loop with a data-dependent branch per digit (the
+/// length from the first non-digit byte, the value by [`eight_digits`] on the digits shifted
+/// to the word's high end, zeros before them).
+#[inline(always)]
+fn digit_run(w: u64) -> (usize, u64) {
+    let t = w ^ (0x30 * ONES);
+    // A byte is a digit iff t < 10: then t + 0x76 < 0x80, and no carry leaves a digit byte, so
+    // the lowest flagged byte is the first non-digit (bytes after it may be flagged or not).
+    let flags = (t.wrapping_add(0x76 * ONES) | t) & (0x80 * ONES);
+    let len = (flags.trailing_zeros() / 8) as usize;
+    // The digits to the high end (len = 0: shift by 64, masked to 0 below).
+    let v = t.wrapping_shl(64 - 8 * len as u32) & 0u64.wrapping_sub(u64::from(len != 0));
+    let v = eight_digits(v);
+    (len, v)
+}
+
+/// Powers of ten as integers, to append a run of up to eight digits to a mantissa.
+const POW10_U64: [u64; 9] = [
+    1,
+    10,
+    100,
+    1_000,
+    10_000,
+    100_000,
+    1_000_000,
+    10_000_000,
+    100_000_000,
+];
+
+/// The value of eight decimal digits, one per byte of `v` (0 to 9 each, the first digit in the
+/// lowest byte): three multiplies instead of a chain of eight.
+#[inline(always)]
+fn eight_digits(v: u64) -> u64 {
+    let v = v.wrapping_mul(10).wrapping_add(v >> 8);
+    ((v & 0x0000_00ff_0000_00ff).wrapping_mul(100 + (1_000_000 << 32))
+        + ((v >> 16) & 0x0000_00ff_0000_00ff).wrapping_mul(1 + (10_000 << 32)))
+        >> 32
+}
+
+/// A plain decimal at the start of `b`: `-`? digits? (`.` digits?)? with at least one digit, at
+/// most 7 before the point and at most 15 bytes after the sign, then optionally (`e`|`E`)
+/// (`+`|`-`)? and 1–4 digits, whose decimal exponent q (the written one minus the fraction's
+/// digits) is within ±22. Then the
+/// mantissa M < 10^15 < 2^53 and 10^|q| are exact doubles, and one correctly rounded multiply
+/// or divide gives the correctly rounded value (Clinger's fast path, the value `fast-float2`
+/// returns for it too). `None` for anything else (the caller falls back to `fast-float2`),
+/// including text too near the end of `b` for the word reads.
+///
+/// Why: the `%.10g` numbers of a `fit-curve --batch` file (BENCHMARKS.md) are all of this
+/// shape; `fast-float2` spends ~185 instructions on each (callgrind). Here the mantissa is read
+/// as one 16-byte window (two words) without a loop: the bytes that are not digits flagged all
+/// at once, the point and the end found from the flags, the point cut out by shifts, and the
+/// digits converted eight at a time.
+#[inline(always)]
+fn short_decimal(b: &[u8]) -> Option<(f64, usize)> {
+    // Sign, the 16-byte window, an exponent of up to 7 bytes.
+    if b.len() < 32 {
+        return None;
+    }
+    let neg = b[0] == b'-';
+    let s = usize::from(neg);
+    // The window as two words of digit values (bytes 0–9 where there are digits).
+    let t0 = word(b, s) ^ (0x30 * ONES);
+    let t1 = word(b, s + 8) ^ (0x30 * ONES);
+    // Bit 7 of every byte that is not a digit (a digit byte is < 10 here; the low seven bits
+    // plus 0x76 cannot carry into the next byte).
+    let nondigit = |t: u64| (((t & (0x7f * ONES)) + 0x76 * ONES) | t) & (0x80 * ONES);
+    let (f0, f1) = (nondigit(t0), nondigit(t1));
+    // The first non-digit, at p: in the first word (at most 7 integer digits).
+    if f0 == 0 {
+        return None;
+    }
+    let first = f0 & f0.wrapping_neg();
+    let p = (f0.trailing_zeros() / 8) as usize;
+    let dot = b[s + p] == b'.';
+    // The end of the mantissa, at e: the first non-digit that is not that point.
+    let rest = if dot { f0 ^ first } else { f0 };
+    let e = if rest != 0 {
+        (rest.trailing_zeros() / 8) as usize
+    } else {
+        8 + (f1.trailing_zeros() / 8) as usize
+    };
+    if e >= 16 {
+        return None;
+    }
+    let digits = e - usize::from(dot);
+    if digits == 0 {
+        return None;
+    }
+    // The digits together in bytes [0, digits) of (j0, j1): the bytes after the point moved
+    // down over it (`below` masks the bytes before it, from its flag bit).
+    let below = (first - 1) >> 7;
+    let (j0, j1) = if dot {
+        ((t0 & below) | ((t0 >> 8 | t1 << 56) & !below), t1 >> 8)
+    } else {
+        (t0, t1)
+    };
+    // Eight digits at a time, right-aligned in a word (zeros before them).
+    let mant = if digits <= 8 {
+        eight_digits(j0 << (8 * (8 - digits)))
+    } else {
+        eight_digits(j0) * POW10_U64[digits - 8] + eight_digits(j1 << (8 * (16 - digits)))
+    };
+    // Fraction digits (none without a point: then e = p).
+    let mut q = -((e - p - usize::from(dot)) as i64);
+    let mut end = s + e;
+    if b[end] | 0x20 == b'e' {
+        let mut j = end + 1;
+        let eneg = b[j] == b'-';
+        j += usize::from(eneg || b[j] == b'+');
+        let (ne, ev) = digit_run(word(b, j));
+        if ne == 0 || ne > 4 {
+            return None;
+        }
+        q += if eneg { -(ev as i64) } else { ev as i64 };
+        end = j + ne;
+    }
+    if !(-22..=22).contains(&q) {
+        return None;
+    }
+    // mant < 10^15: the signed conversion is one instruction, the unsigned one a sequence.
+    let m = mant as i64 as f64;
+    let v = if q >= 0 {
+        m * POW10_F64[q as usize]
+    } else {
+        m / POW10_F64[(-q) as usize]
+    };
+    Some((if neg { -v } else { v }, end))
 }
 
 /// The eight bytes at `b[i..]` as a little-endian word; bytes past the end read as 0.
@@ -554,6 +770,8 @@ fn header(fields: &[&str], batch: bool) -> Option<usize> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use proptest::prelude::Strategy;
+    use proptest::prop_oneof;
 
     #[test]
     fn errors_name_the_line() {
@@ -660,6 +878,10 @@ mod tests {
             let then = format!("{c},7");
             let prefix = number_prefix(then.as_bytes()).filter(|p| p.1 == c.len());
             assert_eq!(prefix.map(|p| p.0.to_bits()), want, "{c},");
+            // Inside a block, with room for [`short_decimal`]'s word reads.
+            let row = format!("{c},7\n{PAD}");
+            let prefix = number_prefix(row.as_bytes()).filter(|p| p.1 == c.len());
+            assert_eq!(prefix.map(|p| p.0.to_bits()), want, "{c}, in a block");
         }
         for bad in [
             "", "-", ".", "e5", "1e", "1.2.3", "1e5x", "abc", "--1", "1 2", "-.", "1e-", "+-1",
@@ -670,6 +892,98 @@ mod tests {
                 "{bad}"
             );
         }
+    }
+
+    /// What follows a number inside a block: more rows, enough for the word reads.
+    const PAD: &str = "0,12.09039342,5.096327544e-05\n0,1,2\n";
+
+    /// Text around a number in every shape the CSV reader may meet: short and long digit runs,
+    /// points anywhere, exponents of any length, signs, and what may follow.
+    fn decimal_text() -> impl Strategy<Value = String> {
+        let number = prop_oneof![
+            "[-+]?[0-9]{0,20}(\\.[0-9]{0,20})?([eE][-+]?[0-9]{0,6})?",
+            "-?[0-9]{1,4}\\.[0-9]{1,12}([eE][-+][0-9]{2})?",
+            "-?[0-9]{0,3}\\.?[0-9]{0,3}([eE][-+]?[0-9]{1,3})?",
+            "-?(0|00|[1-9][0-9]{0,15})(\\.[0-9]{0,16})?(e-?[0-9]{1,2})?",
+            "-?[0-9.eE+-]{0,10}|inf|-inf|NaN|nan|infinity",
+        ];
+        let tail = "[,\\n\\r.eE+0-9x -]{0,3}";
+        (number, tail, 0usize..3).prop_map(|(n, t, pads)| format!("{n}{t}{}", PAD.repeat(pads)))
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(20_000))]
+        /// The row parser's number reading is `fast-float2`'s longest-prefix reading, bit for
+        /// bit and byte for byte, and on whole fields the standard library's; where
+        /// [`short_decimal`] answers at all, it answers the same.
+        #[test]
+        fn number_prefix_is_fast_float_and_std(text in decimal_text()) {
+            let b = text.as_bytes();
+            let want = fast_float2::parse_partial::<f64, _>(b).ok().map(|(v, k)| (v.to_bits(), k));
+            let got = number_prefix(b).map(|(v, k)| (v.to_bits(), k));
+            proptest::prop_assert_eq!(got, want, "{:?}", text);
+            if let Some((v, k)) = short_decimal(b) {
+                proptest::prop_assert_eq!(Some((v.to_bits(), k)), want, "{:?}", text);
+            }
+            if let Some((_, k)) = want
+                && matches!(b.get(k), None | Some(b',' | b'\n'))
+            {
+                let field = &text[..k];
+                let std = field.parse::<f64>().ok().map(f64::to_bits);
+                proptest::prop_assert_eq!(got.map(|g| g.0), std, "{:?}", field);
+            }
+        }
+    }
+
+    /// [`short_decimal`] reads the shapes `%.10g` writes (so the comparison above is not
+    /// vacuous) and declines what it cannot read exactly.
+    #[test]
+    fn short_decimal_takes_the_usual_shapes() {
+        for (text, v, k) in [
+            ("12.09039342", 12.09039342, 11),
+            ("5.096327544e-05", 5.096327544e-05, 15),
+            ("0.6002071621", 0.6002071621, 12),
+            ("-3", -3.0, 2),
+            ("5.", 5.0, 2),
+            (".5", 0.5, 2),
+            ("-0", -0.0, 2),
+            ("1.5E+3", 1500.0, 6),
+            ("1.2.3", 1.2, 3),
+            ("9999999.9999999", 9_999_999.999_999_9, 15),
+            ("1234567", 1_234_567.0, 7),
+        ] {
+            let row = format!("{text},{PAD}");
+            let got = short_decimal(row.as_bytes());
+            assert_eq!(
+                got.map(|(x, n)| (x.to_bits(), n)),
+                Some((f64::to_bits(v), k)),
+                "{text}"
+            );
+        }
+        for text in [
+            "",
+            "-",
+            ".",
+            "+1",
+            "inf",
+            "NaN",
+            "1e",
+            "1e+",
+            "1e400",
+            "1e-23",
+            "1e23",
+            "1234567890123456",
+            "0.000000000000001",
+            "12345678",
+            "12345678.5",
+            "1e12345",
+        ] {
+            let row = format!("{text},{PAD}");
+            assert_eq!(short_decimal(row.as_bytes()), None, "{text}");
+        }
+        // Too near the end of the text for the word reads: the crate's reading.
+        assert_eq!(short_decimal(b"1.5,2\n"), None);
+        assert_eq!(number_prefix(b"1.5,2\n"), Some((1.5, 3)));
     }
 
     /// A reader that hands out a few bytes at a time, so lines straddle every read.

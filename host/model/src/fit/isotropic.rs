@@ -357,16 +357,31 @@ impl LogRows for LogExact<'_> {
     }
 }
 
+impl LogBinned<'_> {
+    /// The binned cost alone (the residuals of [`binned_normal_n`] without the Jacobian):
+    /// scoring the start candidates, four per fit, took 6 % of `fit-curve --batch` through the
+    /// generic row evaluation (perf, BENCHMARKS.md).
+    fn cost(&self, theta: &[f64]) -> Option<f64> {
+        let (mut jtj, mut jtr) = ([0.0; 0], [0.0; 0]);
+        match self.n {
+            1 => binned_normal_n::<1, 2, false>(self.bins, theta, &mut jtj, &mut jtr),
+            2 => binned_normal_n::<2, 4, false>(self.bins, theta, &mut jtj, &mut jtr),
+            3 => binned_normal_n::<3, 6, false>(self.bins, theta, &mut jtj, &mut jtr),
+            _ => binned_normal_n::<4, 8, false>(self.bins, theta, &mut jtj, &mut jtr),
+        }
+    }
+}
+
 impl LogRows for LogBinned<'_> {
     fn terms(&self) -> usize {
         self.n
     }
     fn normal(&self, theta: &[f64], jtj: &mut [f64], jtr: &mut [f64]) -> Option<f64> {
         match self.n {
-            1 => binned_normal_n::<1>(self.bins, theta, jtj, jtr),
-            2 => binned_normal_n::<2>(self.bins, theta, jtj, jtr),
-            3 => binned_normal_n::<3>(self.bins, theta, jtj, jtr),
-            _ => binned_normal_n::<4>(self.bins, theta, jtj, jtr),
+            1 => binned_normal_n::<1, 2, true>(self.bins, theta, jtj, jtr),
+            2 => binned_normal_n::<2, 4, true>(self.bins, theta, jtj, jtr),
+            3 => binned_normal_n::<3, 6, true>(self.bins, theta, jtj, jtr),
+            _ => binned_normal_n::<4, 8, true>(self.bins, theta, jtj, jtr),
         }
     }
     fn points(&self) -> usize {
@@ -432,23 +447,31 @@ impl LogRows for LogBinned<'_> {
 /// vectorises, and JᵀJ gathers one partial sum per entry and bin lane instead of one serial
 /// chain per entry. This is the fast mode's whole fit (`fit-curve --batch`, BENCHMARKS.md).
 #[allow(clippy::needless_range_loop)] // index loops over parallel arrays vectorise
-fn binned_normal_n<const N: usize>(
+fn binned_normal_n<const N: usize, const P: usize, const JAC: bool>(
     bins: &[Bin],
     theta: &[f64],
     jtj: &mut [f64],
     jtr: &mut [f64],
 ) -> Option<f64> {
-    let p = 2 * N;
+    // P = 2N (the parameters), a parameter of its own because array lengths cannot be 2·N
+    // on stable Rust: arrays sized for N = 4 whatever N was, zeroed on every call and block,
+    // were 38 % of this function's instructions (memset) on the scipy comparison (callgrind).
+    debug_assert_eq!(P, 2 * N);
+    let p = P;
     let (a, d) = split(theta, N);
-    let mut acc = [[[0.0f64; CHUNK]; 8]; 8];
-    let mut grad = [[0.0f64; CHUNK]; 8];
+    let mut acc = [[[0.0f64; CHUNK]; P]; P];
+    let mut grad = [[0.0f64; CHUNK]; P];
     let mut cost = [0.0f64; CHUNK];
+    // Per-block arrays, set up once: every lane is written in each block (padding lanes of a
+    // short last block get U = 0 and z = 0: zero rows, zero residuals).
+    let (mut r, mut y) = ([0.0f64; CHUNK], [0.0f64; CHUNK]);
+    let mut u = [[0.0f64; CHUNK]; 6];
+    let mut z = [[0.0f64; CHUNK]; 3];
+    let mut w = [[0.0f64; CHUNK]; N];
+    let mut rows = [[[0.0f64; CHUNK]; P]; 3];
     for block in bins.chunks(CHUNK) {
-        // Padding lanes (a short last block) have U = 0 and z = 0: zero rows, zero residuals.
-        let (mut r, mut y) = ([0.0f64; CHUNK], [0.0f64; CHUNK]);
-        let mut u = [[0.0f64; CHUNK]; 6];
-        let mut z = [[0.0f64; CHUNK]; 3];
-        for (j, b) in block.iter().enumerate() {
+        for j in 0..CHUNK {
+            let b = block.get(j).copied().unwrap_or_default();
             r[j] = b.r;
             y[j] = b.y;
             for i in 0..6 {
@@ -459,7 +482,6 @@ fn binned_normal_n<const N: usize>(
             }
         }
         // ln R_d and the weights w_k = c_k e^{d_k r} / R_d (the log-sum-exp kernel's).
-        let mut w = [[0.0f64; CHUNK]; 4];
         let mut m = [f64::NEG_INFINITY; CHUNK];
         for k in 0..N {
             for j in 0..CHUNK {
@@ -493,32 +515,7 @@ fn binned_normal_n<const N: usize>(
             v[1][j] = g[j];
             v[2][j] = 0.5 * h[j];
         }
-        // Jacobian of v (see `LogRows::rows` of LogBinned), then the rows U·∂v.
-        let mut jv = [[[0.0f64; CHUNK]; 8]; 3];
-        for k in 0..N {
-            for j in 0..CHUNK {
-                let dk = d[k] - g[j];
-                let e = dk * dk - h[j];
-                let wk = w[k][j];
-                jv[0][2 * k][j] = wk;
-                jv[0][2 * k + 1][j] = wk * r[j] * d[k];
-                jv[1][2 * k][j] = wk * dk;
-                jv[1][2 * k + 1][j] = wk * (1.0 + r[j] * dk) * d[k];
-                jv[2][2 * k][j] = 0.5 * wk * e;
-                jv[2][2 * k + 1][j] = 0.5 * wk * (2.0 * dk + r[j] * e) * d[k];
-            }
-        }
-        // Row i of U·(∂v, v − z): U = [[u0, u1, u2], [0, u3, u4], [0, 0, u5]].
-        let mut rows = [[[0.0f64; CHUNK]; 8]; 3];
         let mut res = [[0.0f64; CHUNK]; 3];
-        for c in 0..p {
-            for j in 0..CHUNK {
-                rows[0][c][j] =
-                    u[0][j] * jv[0][c][j] + u[1][j] * jv[1][c][j] + u[2][j] * jv[2][c][j];
-                rows[1][c][j] = u[3][j] * jv[1][c][j] + u[4][j] * jv[2][c][j];
-                rows[2][c][j] = u[5][j] * jv[2][c][j];
-            }
-        }
         for j in 0..CHUNK {
             res[0][j] = u[0][j] * v[0][j] + u[1][j] * v[1][j] + u[2][j] * v[2][j] - z[0][j];
             res[1][j] = u[3][j] * v[1][j] + u[4][j] * v[2][j] - z[1][j];
@@ -528,6 +525,31 @@ fn binned_normal_n<const N: usize>(
             for j in 0..CHUNK {
                 cost[j] += res[i][j] * res[i][j];
             }
+        }
+        if !JAC {
+            continue;
+        }
+        // The rows U·∂v straight from the Jacobian of v (see `LogRows::rows` of LogBinned):
+        // U = [[u0, u1, u2], [0, u3, u4], [0, 0, u5]].
+        for k in 0..N {
+            for j in 0..CHUNK {
+                let dk = d[k] - g[j];
+                let e = dk * dk - h[j];
+                let wk = w[k][j];
+                let ja = [wk, wk * dk, 0.5 * wk * e];
+                let jb = [
+                    wk * r[j] * d[k],
+                    wk * (1.0 + r[j] * dk) * d[k],
+                    0.5 * wk * (2.0 * dk + r[j] * e) * d[k],
+                ];
+                for (c, jv) in [(2 * k, ja), (2 * k + 1, jb)] {
+                    rows[0][c][j] = u[0][j] * jv[0] + u[1][j] * jv[1] + u[2][j] * jv[2];
+                    rows[1][c][j] = u[3][j] * jv[1] + u[4][j] * jv[2];
+                    rows[2][c][j] = u[5][j] * jv[2];
+                }
+            }
+        }
+        for i in 0..3 {
             for c in 0..p {
                 for j in 0..CHUNK {
                     grad[c][j] += rows[i][c][j] * res[i][j];
@@ -541,6 +563,10 @@ fn binned_normal_n<const N: usize>(
         }
     }
     let lane_sum = |x: &[f64; CHUNK]| x.iter().sum::<f64>();
+    if !JAC {
+        let cost = lane_sum(&cost);
+        return cost.is_finite().then_some(cost);
+    }
     for i in 0..p {
         jtr[i] = lane_sum(&grad[i]);
         for k in i..p {
@@ -806,15 +832,7 @@ pub(crate) fn starts(bins: &[Bin], n: usize) -> Vec<Vec<f64>> {
         }
     }
     let problem = LogBinned { bins, n };
-    let cost = |t: &Vec<f64>| {
-        let mut c = 0.0;
-        let ok = problem.eval(t, false, |r, _, _| c += r * r);
-        if ok && c.is_finite() {
-            c
-        } else {
-            f64::INFINITY
-        }
-    };
+    let cost = |t: &Vec<f64>| problem.cost(t).unwrap_or(f64::INFINITY);
     let mut scored: Vec<(f64, Vec<f64>)> = out.into_iter().map(|t| (cost(&t), t)).collect();
     scored.sort_by(|a, b| a.0.total_cmp(&b.0));
     scored.into_iter().map(|(_, t)| t).collect()
