@@ -284,7 +284,16 @@ mod tests {
         };
         let spot = crate::registration::detect_spot(&img, 0.0, opts.saturation);
         assert!(spot.is_some_and(|s| !s.saturated && (s.u - 14.0).abs() < 0.5));
-        let (s, c) = frame_samples(&img, &frame, &vis, &pos, [0.0; 3], spot.as_ref(), None, &opts);
+        let (s, c) = frame_samples(
+            &img,
+            &frame,
+            &vis,
+            &pos,
+            [0.0; 3],
+            spot.as_ref(),
+            None,
+            &opts,
+        );
         assert_eq!(s.len(), 2);
         assert_eq!(s[0].value, [0.5, 0.5, 0.5]);
         assert_eq!(s[1].valid, 0b101);
@@ -356,7 +365,16 @@ mod tests {
         let x_i = [10.0, 10.0, 0.0];
         let positions = &scene.mesh.positions;
         let read = |o: &SampleOptions| {
-            frame_samples(&img, &frame, &vis, positions, x_i, None, Some((&scene, &map)), o)
+            frame_samples(
+                &img,
+                &frame,
+                &vis,
+                positions,
+                x_i,
+                None,
+                Some((&scene, &map)),
+                o,
+            )
         };
         let (s, c) = read(&opts);
         assert_eq!(s.len(), 1);

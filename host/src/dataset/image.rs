@@ -127,7 +127,12 @@ impl Image {
 /// `None` outside the image. The one definition of the neighbourhood, shared with the coverage
 /// check of samples ([`crate::geometry::Scene::covers`]), which must test exactly the pixels
 /// the value is made of.
-pub fn bilinear_taps(width: usize, height: usize, u: f64, v: f64) -> Option<[(usize, usize, f64); 4]> {
+pub fn bilinear_taps(
+    width: usize,
+    height: usize,
+    u: f64,
+    v: f64,
+) -> Option<[(usize, usize, f64); 4]> {
     if width == 0
         || height == 0
         || !(u >= -0.5 && v >= -0.5 && u < width as f64 - 0.5 && v < height as f64 - 0.5)

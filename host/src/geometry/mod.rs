@@ -545,7 +545,9 @@ mod tests {
         let eye = [target[0] + 100.0 * sn, target[1], 100.0 * cs];
         let tilted = Camera::look_at(eye, target, [0.0, 0.0, 1.0], 1000.0, 200, 200).unwrap();
         let map = CoverageMap::new(&tilted, 0.0, 0.5);
-        let [u, v] = flat.sees(&tilted, 0.0, target, up, 0.5).expect("seen at 55°");
+        let [u, v] = flat
+            .sees(&tilted, 0.0, target, up, 0.5)
+            .expect("seen at 55°");
         assert!(flat.covers(&map, u, v, target), "grazing but covered");
         // A point 2 mm off the surface (11 footprints nearer) is not what those pixels see.
         assert!(!flat.covers(&map, u, v, [target[0], target[1], 2.0]));
