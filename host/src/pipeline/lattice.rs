@@ -6,7 +6,7 @@
 //! One more pass over the fitted frames reads samples at the lattice points
 //! ([`crate::geometry::SurfacePoints`], the very sample rules of the vertices) and folds, per
 //! point and channel, ln(s / R_d) with each light position's final model R_d (r and φ measured
-//! exactly as the group's samples, [`super::select::add_frame_samples`]), in the light position's
+//! exactly as the group's samples, [`super::select::frame_observations`]), in the light position's
 //! Eq. 6 window, into an [`AlphaAccumulator`]. The accumulator is centred on the interpolated
 //! vertex alpha: it holds ln(s / R_d) − ln(Σ w_j alpha_j), so its shrunk mean is the *detail*
 //! the file stores, and the empirical-Bayes prior ([`empirical_prior`]) measures the spread of
@@ -31,12 +31,11 @@ use crate::geometry::{Camera, Scene, SurfacePoints, Visible, dist, dot, normaliz
 use crate::lattice::{FaceAlpha, is_corner, points};
 use crate::model::{ALPHA_PRIOR_MAX, AlphaAccumulator, empirical_prior};
 use crate::progress::Progress;
-use crate::samples::SampleCounts;
 
 use super::fit::Fitted;
 use super::load::Context;
 use super::register::RegisteredFrame;
-use super::select::{ChannelSamples, Groups, add_frame_samples, group_frame, group_frames};
+use super::select::{Groups, frame_observations, group_frame, group_frames};
 
 /// What the lattice pass found (`fit-report.json`: `alpha.lattice`).
 #[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
@@ -251,27 +250,22 @@ pub fn fit_lattice(
                         else {
                             continue;
                         };
-                        let mut data: ChannelSamples = Default::default();
-                        add_frame_samples(
-                            &mut data,
-                            &mut SampleCounts::default(),
-                            &groups.keys[gi],
-                            l,
-                            reg,
-                            tf,
-                            &s,
-                            &pts.positions,
-                        );
-                        for (ch, d) in data.iter().enumerate() {
-                            for x in d {
-                                let ln_rd = g.model.ln_eval(x.r, x.phi)[ch];
-                                out.push((
-                                    x.vertex,
-                                    ch as u8,
-                                    gi as u32,
-                                    x.s,
-                                    ln_rd + ln_ref[x.vertex as usize][ch],
-                                ));
+                        for (x, phi, takes) in
+                            frame_observations(&groups.keys[gi], l, reg, tf, &s, &pts.positions)
+                        {
+                            // One evaluation of R_d for all channels of the observation.
+                            let ln_rd = g.model.ln_eval(x.r, phi);
+                            let p = x.vertex as usize;
+                            for ch in 0..3 {
+                                if takes & (1 << ch) != 0 {
+                                    out.push((
+                                        x.vertex,
+                                        ch as u8,
+                                        gi as u32,
+                                        x.value[ch],
+                                        ln_rd[ch] + ln_ref[p][ch],
+                                    ));
+                                }
                             }
                         }
                     }
@@ -479,6 +473,45 @@ mod tests {
         let p = dir.path().join("m.ply");
         out.model.write(&p).unwrap();
         assert_eq!(ModelFile::read(&p).unwrap().face_alpha, Some(fa));
+    }
+
+    /// The level rule: a flat patch of 2 mm edges (2.83 mm diagonals) seen from 400 mm at
+    /// f = 1000 px (0.4 mm per pixel) asks for round(2.83 / 0.4) = 7; seen at 60° from the
+    /// normal the footprint doubles (round(2.83 / 0.8) = 4) and the finer view wins; capped by
+    /// the maximum; a view that does not see the face gives it level 1.
+    #[test]
+    fn levels_follow_the_pixel_footprint() {
+        use crate::dataset::Mesh;
+        let pos = vec![
+            [0.0, 0.0, 0.0],
+            [2.0, 0.0, 0.0],
+            [2.0, 2.0, 0.0],
+            [0.0, 2.0, 0.0],
+        ];
+        let mesh = Mesh::new(pos, vec![[0, 1, 2], [0, 2, 3]]).0;
+        let scene = Scene::new(mesh).unwrap();
+        let at = |eye: [f64; 3]| {
+            Camera::look_at(eye, [1.0, 1.0, 0.0], [0.0, 1.0, 0.0], 1000.0, 512, 512).unwrap()
+        };
+        let top = at([1.0, 1.0, 400.0]);
+        let (s60, c60) = 60f64.to_radians().sin_cos();
+        let tilted = at([1.0 + 400.0 * s60, 1.0, 400.0 * c60]);
+        let f = pixel_footprint(&top, 0.0, [1.0, 1.0, 0.0], [0.0, 0.0, 1.0]).unwrap();
+        assert!((f - 0.4).abs() < 1e-9, "{f}");
+        let f = pixel_footprint(&tilted, 0.0, [1.0, 1.0, 0.0], [0.0, 0.0, 1.0]).unwrap();
+        assert!((f - 0.8).abs() < 1e-9, "{f}");
+        assert_eq!(face_levels(&scene, &[(&top, 0.0)], 0.4, 8), vec![7, 7]);
+        assert_eq!(face_levels(&scene, &[(&tilted, 0.0)], 0.4, 8), vec![4, 4]);
+        assert_eq!(
+            face_levels(&scene, &[(&tilted, 0.0), (&top, 0.0)], 0.4, 8),
+            vec![7, 7]
+        );
+        assert_eq!(face_levels(&scene, &[(&top, 0.0)], 0.4, 5), vec![5, 5]);
+        // The tilted view is beyond a grazing limit of cos 0.6: no view sees the faces.
+        assert_eq!(face_levels(&scene, &[(&tilted, 0.0)], 0.6, 8), vec![1, 1]);
+        // From below, the faces face away.
+        let below = at([1.0, 1.0, -400.0]);
+        assert_eq!(face_levels(&scene, &[(&below, 0.0)], 0.4, 8), vec![1, 1]);
     }
 
     /// Without a texture (alpha = 1 everywhere) the lattice's spread is noise: nothing is written.

@@ -221,10 +221,8 @@ pub fn group_frames(key: &GroupKey) -> Vec<u32> {
 }
 
 /// Adds registered frame `l`'s samples `s` (read at `positions`: the mesh's vertices, or surface
-/// points, whose index `Sample::vertex` is) to a group's channel samples: channel c when `l`
-/// belongs to the light position channel c selected, at the distance from `l`'s own x_i, in
-/// direction φ of `frame` ([`group_frame`]). The one rule [`group_samples`] and the lattice
-/// pass ([`super::lattice`]) measure samples by.
+/// points, whose index `Sample::vertex` is) to a group's channel samples, as
+/// [`frame_observations`] measures them.
 #[allow(clippy::too_many_arguments)]
 pub fn add_frame_samples(
     data: &mut ChannelSamples,
@@ -236,11 +234,9 @@ pub fn add_frame_samples(
     s: &[Sample],
     positions: &[V3],
 ) {
-    let takes: [bool; 3] = [0, 1, 2].map(|ch| key.frames[ch].contains(&l));
-    for x in s {
-        let (_, phi) = frame.polar(reg.x_i, positions[x.vertex as usize]);
+    for (x, phi, takes) in frame_observations(key, l, reg, frame, s, positions) {
         for (ch, slot) in data.iter_mut().enumerate() {
-            if takes[ch] && x.valid & (1 << ch) != 0 {
+            if takes & (1 << ch) != 0 {
                 slot.push(GroupSample {
                     r: x.r,
                     s: x.value[ch],
@@ -252,4 +248,29 @@ pub fn add_frame_samples(
             }
         }
     }
+}
+
+/// How a group measures registered frame `l`'s samples `s` (read at `positions`): per sample,
+/// its direction φ in `frame` ([`group_frame`]) around `l`'s own x_i (its distance `Sample::r`
+/// is from that x_i too), and the channels the group takes from it (bit c: `l` belongs to the
+/// light position channel c selected and the sample's channel c is valid). The one rule
+/// [`group_samples`] and the lattice pass ([`super::lattice`]) measure samples by.
+pub fn frame_observations<'a>(
+    key: &GroupKey,
+    l: u32,
+    reg: &'a RegisteredFrame,
+    frame: &'a TangentFrame,
+    s: &'a [Sample],
+    positions: &'a [V3],
+) -> impl Iterator<Item = (&'a Sample, Option<f64>, u8)> + 'a {
+    let takes = (0..3).fold(0u8, |m, ch| {
+        m | (u8::from(key.frames[ch].contains(&l)) << ch)
+    });
+    s.iter().filter_map(move |x| {
+        let t = takes & x.valid;
+        (t != 0).then(|| {
+            let (_, phi) = frame.polar(reg.x_i, positions[x.vertex as usize]);
+            (x, phi, t)
+        })
+    })
 }

@@ -889,7 +889,7 @@ mod tests {
     }
 
     proptest::proptest! {
-        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(128))]
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(1024))]
 
         /// Whatever subset of the events arrives, duplicated anywhere, the caller gets each one
         /// exactly once and in order; those older than the rig's history are counted as gone
@@ -929,10 +929,23 @@ mod tests {
             proptest::prop_assert_eq!(delivered_seqs.len() as u64 + stats.gone_events, u64::from(n));
             let lost = fate[..n as usize].iter().filter(|f| **f < 3).count() as u64;
             proptest::prop_assert_eq!(stats.lost_events, lost);
-            if kept >= REPLAY_BATCH as u32 * 2 {
-                // A history of a couple of batches is enough when replies are never lost.
-                proptest::prop_assert_eq!(stats.gone_events, 0, "{:?}", stats);
+            // Exactly the events the rig no longer held when the client learnt of them are gone
+            // (replies are never lost here): a run of losses is revealed by the next arrival i,
+            // when the history starts at i + 1 − kept, or by the final status, when it starts
+            // at n − kept; whatever of the run lies before that start is gone, the rest replayed.
+            let mut gone = 0u64;
+            let mut run: Option<u32> = None;
+            for i in 0..n {
+                if fate[i as usize] < 3 {
+                    run.get_or_insert(i);
+                } else if let Some(start) = run.take() {
+                    gone += u64::from((i + 1).saturating_sub(kept).saturating_sub(start));
+                }
             }
+            if let Some(start) = run {
+                gone += u64::from(n.saturating_sub(kept).saturating_sub(start));
+            }
+            proptest::prop_assert_eq!(stats.gone_events, gone, "{:?}", stats);
         }
     }
 
