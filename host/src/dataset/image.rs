@@ -106,41 +106,52 @@ impl Image {
     /// neighbourhoods.
     /// `None` outside the image.
     pub fn bilinear(&self, u: f64, v: f64, c: usize) -> Option<(f64, f64)> {
-        if !(u >= -0.5 && v >= -0.5 && u < self.width as f64 - 0.5 && v < self.height as f64 - 0.5)
-        {
-            return None;
-        }
+        let taps = bilinear_taps(self.width, self.height, u, v)?;
         let c = if self.channels == 1 { 0 } else { c };
-        let u = u.clamp(0.0, (self.width - 1) as f64);
-        let v = v.clamp(0.0, (self.height - 1) as f64);
-        let i0 = (u.floor() as usize).min(self.width.saturating_sub(2));
-        let j0 = (v.floor() as usize).min(self.height.saturating_sub(2));
-        let i1 = (i0 + 1).min(self.width - 1);
-        let j1 = (j0 + 1).min(self.height - 1);
-        let (fu, fv) = (u - i0 as f64, v - j0 as f64);
-        let p = [
-            self.get(i0, j0, c) as f64,
-            self.get(i1, j0, c) as f64,
-            self.get(i0, j1, c) as f64,
-            self.get(i1, j1, c) as f64,
-        ];
-        let w = [
-            (1.0 - fu) * (1.0 - fv),
-            fu * (1.0 - fv),
-            (1.0 - fu) * fv,
-            fu * fv,
-        ];
         // Pixels with zero weight take no part: neither their value (a NaN there must not poison
         // an exact hit on a pixel centre) nor their clipping.
         let (mut val, mut max) = (0.0, f64::NEG_INFINITY);
-        for (pk, wk) in p.iter().zip(w) {
+        for (i, j, wk) in taps {
             if wk > 0.0 {
+                let pk = self.get(i, j, c) as f64;
                 val += wk * pk;
-                max = max.max(*pk);
+                max = max.max(pk);
             }
         }
         Some((val, max))
     }
+}
+
+/// The four pixel centres `(column, row, weight)` a bilinear read at `(u, v)` of a
+/// `width × height` image weights ([`Image::bilinear`]; weights sum to 1, some may be 0), or
+/// `None` outside the image. The one definition of the neighbourhood, shared with the coverage
+/// check of samples ([`crate::geometry::Scene::covers`]), which must test exactly the pixels
+/// the value is made of.
+pub fn bilinear_taps(
+    width: usize,
+    height: usize,
+    u: f64,
+    v: f64,
+) -> Option<[(usize, usize, f64); 4]> {
+    if width == 0
+        || height == 0
+        || !(u >= -0.5 && v >= -0.5 && u < width as f64 - 0.5 && v < height as f64 - 0.5)
+    {
+        return None;
+    }
+    let u = u.clamp(0.0, (width - 1) as f64);
+    let v = v.clamp(0.0, (height - 1) as f64);
+    let i0 = (u.floor() as usize).min(width.saturating_sub(2));
+    let j0 = (v.floor() as usize).min(height.saturating_sub(2));
+    let i1 = (i0 + 1).min(width - 1);
+    let j1 = (j0 + 1).min(height - 1);
+    let (fu, fv) = (u - i0 as f64, v - j0 as f64);
+    Some([
+        (i0, j0, (1.0 - fu) * (1.0 - fv)),
+        (i1, j0, fu * (1.0 - fv)),
+        (i0, j1, (1.0 - fu) * fv),
+        (i1, j1, fu * fv),
+    ])
 }
 
 /// Reads an `.exr` or `.pfm` image (by extension; anything else is tried as EXR).

@@ -12,8 +12,10 @@ use parry3d_f64::shape::TriMesh;
 use crate::dataset::Mesh;
 
 mod camera;
+mod coverage;
 mod surface;
 pub use camera::Camera;
+pub use coverage::CoverageMap;
 pub use surface::SurfacePoints;
 
 /// A 3-vector in millimetres.
@@ -352,6 +354,31 @@ impl Scene {
         Some(Visible { vertex: i, u, v })
     }
 
+    /// Do the four pixel centres a bilinear read at `(u, v)` weights (those with a non-zero
+    /// weight, [`crate::dataset::bilinear_taps`]) all see the surface at `x_o` (object frame) in
+    /// the view of `map`? Each centre's ray must hit the mesh within the map's tolerance of
+    /// `x_o`'s own distance from the camera (in pixel footprints at `x_o`, see
+    /// [`CoverageMap::new`]); a centre seeing the background or another surface makes the read
+    /// a mix, not a sample of `x_o` (section 5's s(x_i, x_o)). `false` outside the image.
+    pub fn covers(&self, map: &CoverageMap, u: f64, v: f64, x_o: V3) -> bool {
+        let cam = &map.cam;
+        let Some(taps) =
+            crate::dataset::bilinear_taps(cam.width as usize, cam.height as usize, u, v)
+        else {
+            return false;
+        };
+        let t0 = dist(map.centre, x_o);
+        let footprint = t0 / cam.fx.min(cam.fy);
+        let tol = map.tolerance_px * footprint;
+        taps.iter().filter(|tap| tap.2 > 0.0).all(|&(i, j, _)| {
+            let t = map.depth(i, j, || {
+                let (o, d) = cam.ray(i as f64, j as f64)?;
+                Some(self.cast_world(o, d, map.deg)?.t)
+            });
+            (t - t0).abs() <= tol
+        })
+    }
+
     /// A shadow ray: is the ray from `p` lifted off the surface along `n`, towards the unit
     /// direction `dir`, free of the mesh for `distance` mm (infinite: for ever)? One BVH query,
     /// no retry: lighting calls it once per vertex and light.
@@ -466,6 +493,64 @@ mod tests {
         };
         let vis = s.visible_vertices(&side, 0.0, 0.1);
         assert!(vis.iter().all(|v| v.vertex >= 25));
+    }
+
+    /// A sample's bilinear neighbourhood must see the surface at the sample point: beside an
+    /// occluding roof (the point itself visible, one row of its neighbourhood on the roof 1 mm
+    /// = 10 pixel footprints nearer) and on an open mesh's boundary (half the neighbourhood on
+    /// the background) it is not covered; in the middle of a face it is, and so is a face seen
+    /// at 55° from its normal (inside the grazing limit cos 0.5: depth changes by tan 55° = 1.4
+    /// footprints per pixel there).
+    #[test]
+    fn a_neighbourhood_is_covered_only_by_the_surface_at_the_point() {
+        let mut m = grid(5, 1.0);
+        let base = m.positions.len() as u32;
+        m.positions
+            .extend([[-0.6, -0.6, 1.0], [0.6, -0.6, 1.0], [0.0, 0.7, 1.0]]);
+        m.triangles.push([base, base + 1, base + 2]);
+        let (m, _) = Mesh::new(m.positions, m.triangles);
+        let s = Scene::new(m).unwrap();
+        let cam = Camera {
+            width: 200,
+            height: 200,
+            fx: 1000.0,
+            fy: 1000.0,
+            cx: 99.5,
+            cy: 99.5,
+            distortion: None,
+            camera_from_world: [
+                [1.0, 0.0, 0.0, 0.0],
+                [0.0, -1.0, 0.0, 0.0],
+                [0.0, 0.0, -1.0, 100.0],
+                [0.0, 0.0, 0.0, 1.0],
+            ],
+        };
+        let map = CoverageMap::new(&cam, 0.0, 0.5);
+        let up = [0.0, 0.0, 1.0];
+        let at = |p: V3| {
+            let uv = s.sees(&cam, 0.0, p, up, 0.5).expect("the point is seen");
+            s.covers(&map, uv[0], uv[1], p)
+        };
+        // Beside the roof: seen, but row 105 of its neighbourhood (v = 105.7) sees the roof.
+        assert!(!at([0.0, -0.62, 0.0]), "occluding limb");
+        // On the boundary (u = 119.5): columns 120 and beyond see the background.
+        assert!(!at([2.0, 1.3, 0.0]), "open boundary");
+        // Inside a face, away from both.
+        assert!(at([1.3, 1.3, 0.0]), "middle of a face");
+        assert!(at([-1.25, 1.45, 0.0]), "middle of a face");
+
+        let flat = Scene::new(grid(41, 0.25)).unwrap();
+        let target = [0.3, 0.2, 0.0];
+        let (sn, cs) = 55f64.to_radians().sin_cos();
+        let eye = [target[0] + 100.0 * sn, target[1], 100.0 * cs];
+        let tilted = Camera::look_at(eye, target, [0.0, 0.0, 1.0], 1000.0, 200, 200).unwrap();
+        let map = CoverageMap::new(&tilted, 0.0, 0.5);
+        let [u, v] = flat
+            .sees(&tilted, 0.0, target, up, 0.5)
+            .expect("seen at 55°");
+        assert!(flat.covers(&map, u, v, target), "grazing but covered");
+        // A point 2 mm off the surface (11 footprints nearer) is not what those pixels see.
+        assert!(!flat.covers(&map, u, v, [target[0], target[1], 2.0]));
     }
 
     /// Surface points obey exactly the vertices' rule: at level 1 (the corners) the visible

@@ -7,7 +7,7 @@ use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
 use crate::dataset::{Dataset, DatasetError};
-use crate::geometry::{Camera, Scene, SurfacePoints, V3, Visible};
+use crate::geometry::{Camera, CoverageMap, Scene, SurfacePoints, V3, Visible};
 use crate::registration::{RegistrationOutcome, register_frame};
 use crate::samples::{Sample, SampleCounts, frame_samples};
 
@@ -17,6 +17,13 @@ use super::{PipelineError, PipelineOptions};
 /// Visible vertices per (camera, turntable angle bits).
 type VisCache = HashMap<(usize, u64), Arc<Vec<Visible>>>;
 
+/// Coverage maps per (camera, turntable angle bits), with their total pixel count.
+type CoverageCache = (HashMap<(usize, u64), Arc<CoverageMap>>, usize);
+
+/// Pixels the coverage cache holds at most (4 bytes each: 256 MiB) before it starts over; the
+/// scans in use (128 × 128, 12–64 views) stay far below.
+const COVERAGE_PIXELS: usize = 1 << 26;
+
 /// Shared state of one run: scene, cameras, cached visibility.
 pub struct Context<'a> {
     /// The dataset.
@@ -25,6 +32,7 @@ pub struct Context<'a> {
     pub scene: Scene,
     cams: Vec<Camera>,
     vis: Mutex<VisCache>,
+    cov: Mutex<CoverageCache>,
     /// Options.
     pub opts: PipelineOptions,
 }
@@ -37,6 +45,7 @@ impl<'a> Context<'a> {
             scene: Scene::new(ds.mesh.clone())?,
             cams: ds.spec.cameras.clone(),
             vis: Mutex::new(HashMap::new()),
+            cov: Mutex::new((HashMap::new(), 0)),
             opts,
         })
     }
@@ -68,6 +77,34 @@ impl<'a> Context<'a> {
         v
     }
 
+    /// The coverage map of camera `cam` at turntable angle `deg` ([`Scene::covers`]), one per
+    /// view, shared by every frame of it (its pixels are cast once, on demand).
+    pub fn coverage(&self, cam: usize, deg: f64) -> Arc<CoverageMap> {
+        let key = (cam, deg.to_bits());
+        let Ok(mut m) = self.cov.lock() else {
+            return Arc::new(CoverageMap::new(
+                &self.cams[cam],
+                deg,
+                self.opts.samples.cos_min,
+            ));
+        };
+        if let Some(v) = m.0.get(&key) {
+            return v.clone();
+        }
+        let map = Arc::new(CoverageMap::new(
+            &self.cams[cam],
+            deg,
+            self.opts.samples.cos_min,
+        ));
+        if m.1 + map.pixels() > COVERAGE_PIXELS {
+            m.0.clear();
+            m.1 = 0;
+        }
+        m.1 += map.pixels();
+        m.0.insert(key, map.clone());
+        map
+    }
+
     /// Registers frame `k`: reads its image, detects the spot, back-projects it (the `register`
     /// stage calls this; see [`super::register`]).
     pub fn register(&self, k: usize) -> Result<RegistrationOutcome, DatasetError> {
@@ -90,6 +127,7 @@ impl<'a> Context<'a> {
         let img = self.ds.read_frame(reg.frame)?;
         let f = &self.ds.spec.frames[reg.frame];
         let vis = self.visible(f.camera, f.turntable_deg);
+        let cov = self.coverage(f.camera, f.turntable_deg);
         Ok(frame_samples(
             &img,
             f,
@@ -97,6 +135,7 @@ impl<'a> Context<'a> {
             &self.ds.mesh.positions,
             reg.x_i,
             Some(&reg.spot),
+            Some((&self.scene, &cov)),
             &self.opts.samples,
         ))
     }
@@ -125,6 +164,7 @@ impl<'a> Context<'a> {
     ) -> Result<(Vec<Sample>, SampleCounts), DatasetError> {
         let img = self.ds.read_frame(reg.frame)?;
         let f = &self.ds.spec.frames[reg.frame];
+        let cov = self.coverage(f.camera, f.turntable_deg);
         Ok(frame_samples(
             &img,
             f,
@@ -132,6 +172,7 @@ impl<'a> Context<'a> {
             &pts.positions,
             reg.x_i,
             Some(&reg.spot),
+            Some((&self.scene, &cov)),
             &self.opts.samples,
         ))
     }

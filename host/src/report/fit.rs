@@ -79,12 +79,13 @@ pub fn counts_table(r: &FitReport) -> Table {
             fmt::count(r.samples.pooled as usize),
         ])
         .row([
-            "  dropped: below noise / clipped / near x_i".to_string(),
+            "  dropped: below noise / clipped / near x_i / uncovered".to_string(),
             format!(
-                "{} / {} / {}",
+                "{} / {} / {} / {}",
                 fmt::count(r.samples.below_noise as usize),
                 fmt::count(r.samples.saturated as usize),
-                fmt::count(r.samples.excluded as usize)
+                fmt::count(r.samples.excluded as usize),
+                fmt::count(r.samples.uncovered as usize)
             ),
         ]);
     t
