@@ -30,11 +30,11 @@ pub struct Args {
     /// Samples closer than this to x_i (mm) are not compared.
     #[arg(long, default_value_t = 0.5)]
     pub exclusion_radius: f64,
-    /// Keep samples whose bilinear neighbourhood is not covered by the surface at x_o (a pixel
-    /// centre seeing the background or another surface, `samples.uncovered`): only to compare
-    /// with the reads before the check.
+    /// Drop samples whose bilinear neighbourhood is not covered by the surface at x_o (a pixel
+    /// centre seeing the background or another surface, counted as `samples.uncovered`). Off by
+    /// default: it helps simulated scans seen past open boundaries, not the outside datasets.
     #[arg(long)]
-    pub no_coverage_check: bool,
+    pub coverage_check: bool,
     /// Where the model is compared with the pixels: at the mesh's vertices, or at surface points
     /// (the lattice points of level --surface-level on every face), which is where alpha finer
     /// than the mesh (a model's face lattice) can be judged: at vertices its detail is 0.
@@ -68,7 +68,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     .map_err(|e| anyhow!(e))?;
     let mut opts = PipelineOptions::for_dataset(&ds);
     opts.samples.exclusion_radius_mm = args.exclusion_radius;
-    opts.samples.coverage = !args.no_coverage_check;
+    opts.samples.coverage = args.coverage_check;
     let bar = if args.json {
         Bar::hidden()
     } else {

@@ -114,11 +114,11 @@ pub struct Args {
     /// Override the dataset's noise floor.
     #[arg(long)]
     pub noise_floor: Option<f64>,
-    /// Keep samples whose bilinear neighbourhood is not covered by the surface at x_o (a pixel
-    /// centre seeing the background or another surface, `samples.uncovered`): only to compare
-    /// with the reads before the check.
+    /// Drop samples whose bilinear neighbourhood is not covered by the surface at x_o (a pixel
+    /// centre seeing the background or another surface, counted as `samples.uncovered`). Off by
+    /// default: it helps simulated scans seen past open boundaries, not the outside datasets.
     #[arg(long)]
-    pub no_coverage_check: bool,
+    pub coverage_check: bool,
     /// Validate first: hold out a spread of frames (whole turntable angles when the scan has at
     /// least 4), fit the rest, report held-out Table-1 statistics next to the in-sample ones and
     /// the homogeneous baseline's, then fit on everything (`docs/validation.md`).
@@ -173,7 +173,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         opts = opts.with_noise_floor(f);
     }
     opts.samples.exclusion_radius_mm = args.exclusion_radius;
-    opts.samples.coverage = !args.no_coverage_check;
+    opts.samples.coverage = args.coverage_check;
     opts.max_select_mm = args.max_distance;
     opts.pool_mm = args.pool_distance;
     opts.max_log_e = args.max_log_e;
