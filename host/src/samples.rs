@@ -350,7 +350,10 @@ mod tests {
                 [0.0, 0.0, 0.0, 1.0],
             ],
         };
-        let opts = SampleOptions::default();
+        let opts = SampleOptions {
+            coverage: true,
+            ..SampleOptions::default()
+        };
         let vis = scene.visible_vertices(&cam, 0.0, opts.cos_min);
         assert_eq!(vis.len(), 9);
         let mut img = Image::new(64, 64, 3);
