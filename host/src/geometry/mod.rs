@@ -420,6 +420,34 @@ mod tests {
         Mesh::new(pos, tris).0
     }
 
+    /// A 5 × 5 grid of 1 mm at z = 0 with a triangular roof at z = 1 over its centre.
+    fn roofed_grid(roof: [V3; 3]) -> Scene {
+        let mut m = grid(5, 1.0);
+        let base = m.positions.len() as u32;
+        m.positions.extend(roof);
+        m.triangles.push([base, base + 1, base + 2]);
+        Scene::new(Mesh::new(m.positions, m.triangles).0).unwrap()
+    }
+
+    /// A 200 × 200 pixel camera 100 mm above the origin looking down, 0.1 mm per pixel there.
+    fn looking_down() -> Camera {
+        Camera {
+            width: 200,
+            height: 200,
+            fx: 1000.0,
+            fy: 1000.0,
+            cx: 99.5,
+            cy: 99.5,
+            distortion: None,
+            camera_from_world: [
+                [1.0, 0.0, 0.0, 0.0],
+                [0.0, -1.0, 0.0, 0.0],
+                [0.0, 0.0, -1.0, 100.0],
+                [0.0, 0.0, 0.0, 1.0],
+            ],
+        }
+    }
+
     #[test]
     fn turntable_rotates_counter_clockwise() {
         let p = turntable_to_world([1.0, 0.0, 2.0], 90.0);
@@ -454,28 +482,8 @@ mod tests {
     #[test]
     fn occluded_and_grazing_vertices_are_not_visible() {
         // A grid at z=0 and a small roof at z=1 over its centre.
-        let mut m = grid(5, 1.0);
-        let base = m.positions.len() as u32;
-        m.positions
-            .extend([[-0.6, -0.6, 1.0], [0.6, -0.6, 1.0], [0.0, 0.7, 1.0]]);
-        m.triangles.push([base, base + 1, base + 2]);
-        let (m, _) = Mesh::new(m.positions, m.triangles);
-        let s = Scene::new(m).unwrap();
-        let spec = Camera {
-            width: 200,
-            height: 200,
-            fx: 1000.0,
-            fy: 1000.0,
-            cx: 99.5,
-            cy: 99.5,
-            distortion: None,
-            camera_from_world: [
-                [1.0, 0.0, 0.0, 0.0],
-                [0.0, -1.0, 0.0, 0.0],
-                [0.0, 0.0, -1.0, 100.0],
-                [0.0, 0.0, 0.0, 1.0],
-            ],
-        };
+        let s = roofed_grid([[-0.6, -0.6, 1.0], [0.6, -0.6, 1.0], [0.0, 0.7, 1.0]]);
+        let spec = looking_down();
         let cam = spec.clone();
         let vis = s.visible_vertices(&cam, 0.0, 0.1);
         let ids: Vec<u32> = vis.iter().map(|v| v.vertex).collect();
@@ -503,28 +511,8 @@ mod tests {
     /// footprints per pixel there).
     #[test]
     fn a_neighbourhood_is_covered_only_by_the_surface_at_the_point() {
-        let mut m = grid(5, 1.0);
-        let base = m.positions.len() as u32;
-        m.positions
-            .extend([[-0.6, -0.6, 1.0], [0.6, -0.6, 1.0], [0.0, 0.7, 1.0]]);
-        m.triangles.push([base, base + 1, base + 2]);
-        let (m, _) = Mesh::new(m.positions, m.triangles);
-        let s = Scene::new(m).unwrap();
-        let cam = Camera {
-            width: 200,
-            height: 200,
-            fx: 1000.0,
-            fy: 1000.0,
-            cx: 99.5,
-            cy: 99.5,
-            distortion: None,
-            camera_from_world: [
-                [1.0, 0.0, 0.0, 0.0],
-                [0.0, -1.0, 0.0, 0.0],
-                [0.0, 0.0, -1.0, 100.0],
-                [0.0, 0.0, 0.0, 1.0],
-            ],
-        };
+        let s = roofed_grid([[-0.6, -0.6, 1.0], [0.6, -0.6, 1.0], [0.0, 0.7, 1.0]]);
+        let cam = looking_down();
         let map = CoverageMap::new(&cam, 0.0, 0.5);
         let up = [0.0, 0.0, 1.0];
         let at = |p: V3| {
@@ -558,28 +546,8 @@ mod tests {
     /// points under the roof are hidden and points outside it seen.
     #[test]
     fn surface_points_are_visible_by_the_vertices_rule() {
-        let mut m = grid(5, 1.0);
-        let base = m.positions.len() as u32;
-        m.positions
-            .extend([[-1.2, -1.2, 1.0], [1.2, -1.2, 1.0], [0.0, 1.4, 1.0]]);
-        m.triangles.push([base, base + 1, base + 2]);
-        let (m, _) = Mesh::new(m.positions, m.triangles);
-        let s = Scene::new(m).unwrap();
-        let cam = Camera {
-            width: 200,
-            height: 200,
-            fx: 1000.0,
-            fy: 1000.0,
-            cx: 99.5,
-            cy: 99.5,
-            distortion: None,
-            camera_from_world: [
-                [1.0, 0.0, 0.0, 0.0],
-                [0.0, -1.0, 0.0, 0.0],
-                [0.0, 0.0, -1.0, 100.0],
-                [0.0, 0.0, 0.0, 1.0],
-            ],
-        };
+        let s = roofed_grid([[-1.2, -1.2, 1.0], [1.2, -1.2, 1.0], [0.0, 1.4, 1.0]]);
+        let cam = looking_down();
         let faces = s.mesh.triangles.len();
         let corners = SurfacePoints::lattice(&s.mesh, &vec![1; faces]).unwrap();
         let verts = s.visible_vertices(&cam, 0.0, 0.1);
