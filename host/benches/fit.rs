@@ -63,21 +63,9 @@ impl Measurement for ThreadCpuTime {
 
 type Crit = Criterion<ThreadCpuTime>;
 
-/// SplitMix64 uniform numbers: identical data on every run and for both solvers.
-struct Rng(u64);
-impl Rng {
-    fn uniform(&mut self) -> f64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
-    }
-    fn gauss(&mut self) -> f64 {
-        let (u1, u2) = (self.uniform().max(1e-300), self.uniform());
-        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
-    }
-}
+#[path = "../model/examples/support/splitmix.rs"]
+mod splitmix;
+use splitmix::Rng;
 
 fn marble_like() -> ExpSum {
     ExpSum::new(vec![

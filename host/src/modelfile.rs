@@ -921,6 +921,15 @@ pub fn model_of(
 mod tests {
     use super::*;
 
+    /// The offset of the first byte after `end_header\n`.
+    fn header_end(bytes: &[u8]) -> usize {
+        bytes
+            .windows(11)
+            .position(|w| w == b"end_header\n")
+            .expect("a PLY header")
+            + 11
+    }
+
     fn sample() -> ModelFile {
         let shape = ModelShape {
             terms: 3,
@@ -1036,11 +1045,7 @@ mod tests {
 
         // A damaged level byte (0) is refused with a clear error.
         let mut bytes = std::fs::read(&p).unwrap();
-        let header_end = bytes
-            .windows(11)
-            .position(|w| w == b"end_header\n")
-            .unwrap()
-            + 11;
+        let header_end = header_end(&bytes);
         let face_alpha_at = bytes.len() - (1 + 3 * (2 + 4 * crate::lattice::point_count(k)));
         assert!(face_alpha_at > header_end);
         assert_eq!(bytes[face_alpha_at], k);
@@ -1081,11 +1086,7 @@ mod tests {
         // ("none") from the written -1.
         assert!(back.vertices[1].log_e.is_nan());
         let bytes = std::fs::read(&p).unwrap();
-        let header_end = bytes
-            .windows(11)
-            .position(|w| w == b"end_header\n")
-            .unwrap()
-            + 11;
+        let header_end = header_end(&bytes);
         let vertex_bytes = &bytes[header_end..];
         let log_e_at = 6 * 8 + 3 * 4 + 1;
         let le = f32::from_le_bytes(vertex_bytes[log_e_at..log_e_at + 4].try_into().unwrap());
@@ -1197,11 +1198,7 @@ mod tests {
         let back = ModelFile::read(&p).unwrap();
         assert_eq!(back.frame, FrameRule::MinimalRotation);
         let bytes = std::fs::read(&p).unwrap();
-        let end = bytes
-            .windows(11)
-            .position(|w| w == b"end_header\n")
-            .unwrap()
-            + 11;
+        let end = header_end(&bytes);
         let header = String::from_utf8(bytes[..end].to_vec()).unwrap();
         assert!(header.contains(&format!("comment {MODEL_FORMAT}\n")));
         assert!(header.contains("comment frame minimal-rotation\n"));
@@ -1286,11 +1283,7 @@ mod tests {
         let m = sample();
         m.write(&p).unwrap();
         let bytes = std::fs::read(&p).unwrap();
-        let end = bytes
-            .windows(11)
-            .position(|w| w == b"end_header\n")
-            .unwrap()
-            + 11;
+        let end = header_end(&bytes);
         let header = String::from_utf8(bytes[..end].to_vec()).unwrap();
         let old_header = header.replace("property float r_min\nproperty float r_max\n", "");
         let mut old = old_header.into_bytes();

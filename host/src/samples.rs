@@ -308,14 +308,13 @@ mod tests {
         assert_eq!(c.used, 5);
     }
 
-    /// A sample is used only where every pixel centre its bilinear read weights sees the surface
-    /// at x_o: on an open 4 × 4 mm patch seen from above, the eight vertices on its boundary
-    /// (their neighbourhoods reach past the edge, into the background) are dropped and counted as
-    /// `uncovered`, the one in the middle is kept; with the check off all nine are read.
-    #[test]
-    fn samples_whose_neighbourhood_leaves_the_surface_are_dropped() {
+    /// A flat open 4 × 4 mm patch (3 × 3 vertices, 2 mm apart) at z = 0 and a 64 × 64 pixel
+    /// camera 100 mm above it looking down at 0.2 mm per pixel: the vertices land half-way
+    /// between pixel centres (u, v = 21.5, 31.5, 41.5), so each read weights four centres;
+    /// those beyond ±2 mm see nothing.
+    fn patch_seen_from_above() -> (crate::geometry::Scene, crate::geometry::Camera) {
         use crate::dataset::Mesh;
-        use crate::geometry::{Camera, CoverageMap, Scene};
+        use crate::geometry::{Camera, Scene};
         let mut pos = Vec::new();
         for j in 0..3 {
             for i in 0..3 {
@@ -333,8 +332,6 @@ mod tests {
             [4, 8, 7],
         ];
         let scene = Scene::new(Mesh::new(pos, tris).0).unwrap();
-        // 0.2 mm per pixel: the vertices land half-way between pixel centres (u, v = 21.5,
-        // 31.5, 41.5), so each read weights four centres; those beyond ±2 mm see nothing.
         let cam = Camera {
             width: 64,
             height: 64,
@@ -350,6 +347,17 @@ mod tests {
                 [0.0, 0.0, 0.0, 1.0],
             ],
         };
+        (scene, cam)
+    }
+
+    /// A sample is used only where every pixel centre its bilinear read weights sees the surface
+    /// at x_o: on an open 4 × 4 mm patch seen from above, the eight vertices on its boundary
+    /// (their neighbourhoods reach past the edge, into the background) are dropped and counted as
+    /// `uncovered`, the one in the middle is kept; with the check off all nine are read.
+    #[test]
+    fn samples_whose_neighbourhood_leaves_the_surface_are_dropped() {
+        use crate::geometry::CoverageMap;
+        let (scene, cam) = patch_seen_from_above();
         let opts = SampleOptions {
             coverage: true,
             ..SampleOptions::default()
@@ -417,41 +425,9 @@ mod tests {
     /// `Sample::vertex` indexes the point array.
     #[test]
     fn surface_points_are_sampled_by_the_same_rules() {
-        use crate::dataset::Mesh;
-        use crate::geometry::{Camera, Scene, SurfacePoints};
+        use crate::geometry::SurfacePoints;
         // A flat 4 x 4 mm patch under a camera looking straight down.
-        let mut pos = Vec::new();
-        for j in 0..3 {
-            for i in 0..3 {
-                pos.push([2.0 * i as f64 - 2.0, 2.0 * j as f64 - 2.0, 0.0]);
-            }
-        }
-        let tris = vec![
-            [0, 1, 4],
-            [0, 4, 3],
-            [1, 2, 5],
-            [1, 5, 4],
-            [3, 4, 7],
-            [3, 7, 6],
-            [4, 5, 8],
-            [4, 8, 7],
-        ];
-        let scene = Scene::new(Mesh::new(pos, tris).0).unwrap();
-        let cam = Camera {
-            width: 64,
-            height: 64,
-            fx: 500.0,
-            fy: 500.0,
-            cx: 31.5,
-            cy: 31.5,
-            distortion: None,
-            camera_from_world: [
-                [1.0, 0.0, 0.0, 0.0],
-                [0.0, -1.0, 0.0, 0.0],
-                [0.0, 0.0, -1.0, 100.0],
-                [0.0, 0.0, 0.0, 1.0],
-            ],
-        };
+        let (scene, cam) = patch_seen_from_above();
         let pts = SurfacePoints::lattice(&scene.mesh, &[4; 8]).unwrap();
         let vis = scene.visible_points(&pts, &cam, 0.0, 0.5);
         assert_eq!(vis.len(), pts.len());

@@ -16,23 +16,9 @@ use subsurf_model::fit::Solver;
 use subsurf_model::fit::dipole::{DipoleOptions, fit_dipole};
 use subsurf_model::model::{MATERIALS, Material};
 
-/// SplitMix64 with Box–Muller, as in `host/benches/fit.rs`.
-struct Rng(u64);
-
-impl Rng {
-    fn uniform(&mut self) -> f64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
-    }
-
-    fn gauss(&mut self) -> f64 {
-        let (u1, u2) = (self.uniform().max(1e-300), self.uniform());
-        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
-    }
-}
+#[path = "support/splitmix.rs"]
+mod splitmix;
+use splitmix::Rng;
 
 fn table() -> Result<(), String> {
     let r: Vec<f64> = (0..140).map(|k| 0.05 * 1.04f64.powi(k)).collect();
