@@ -446,8 +446,43 @@ impl LogRows for LogBinned<'_> {
 /// so each step is a loop of constant length over independent bins, which the compiler
 /// vectorises, and JᵀJ gathers one partial sum per entry and bin lane instead of one serial
 /// chain per entry. This is the fast mode's whole fit (`fit-curve --batch`, BENCHMARKS.md).
-#[allow(clippy::needless_range_loop)] // index loops over parallel arrays vectorise
 fn binned_normal_n<const N: usize, const P: usize, const JAC: bool>(
+    bins: &[Bin],
+    theta: &[f64],
+    jtj: &mut [f64],
+    jtr: &mut [f64],
+) -> Option<f64> {
+    super::simd::wide(BinnedNormal::<N, P, JAC> {
+        bins,
+        theta,
+        jtj,
+        jtr,
+    })
+}
+
+/// The arguments of [`binned_normal_kernel`] as a [`super::simd::Kernel`].
+struct BinnedNormal<'a, const N: usize, const P: usize, const JAC: bool> {
+    bins: &'a [Bin],
+    theta: &'a [f64],
+    jtj: &'a mut [f64],
+    jtr: &'a mut [f64],
+}
+
+impl<const N: usize, const P: usize, const JAC: bool> super::simd::Kernel
+    for BinnedNormal<'_, N, P, JAC>
+{
+    type Output = Option<f64>;
+    #[inline(always)]
+    fn run(self) -> Option<f64> {
+        binned_normal_kernel::<N, P, JAC>(self.bins, self.theta, self.jtj, self.jtr)
+    }
+}
+
+/// The body of [`binned_normal_n`], inlined into its SIMD dispatch (and called directly, for
+/// the baseline, by the test that compares the two).
+#[inline(always)]
+#[allow(clippy::needless_range_loop)] // index loops over parallel arrays vectorise
+pub(crate) fn binned_normal_kernel<const N: usize, const P: usize, const JAC: bool>(
     bins: &[Bin],
     theta: &[f64],
     jtj: &mut [f64],

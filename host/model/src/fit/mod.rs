@@ -21,6 +21,7 @@ mod isotropic;
 mod lm;
 mod reference;
 pub mod samples;
+mod simd;
 
 use std::borrow::Cow;
 
