@@ -130,8 +130,38 @@ pub(crate) fn bin_samples_aux(
     bin_inner::<true>(r, s, aux, count)
 }
 
-/// The binning pass, monomorphised so the isotropic path carries no auxiliary sums.
+/// The binning pass, monomorphised so the isotropic path carries no auxiliary sums, and run
+/// under the SIMD dispatch (the logarithms and bin indices of a block vectorise to the CPU's
+/// width, see [`super::simd`]).
 fn bin_inner<const AUX: bool>(
+    r: &[f64],
+    s: &[f64],
+    aux: &[f64],
+    count: usize,
+) -> (Binned, Vec<f64>) {
+    super::simd::wide(BinPass::<AUX> { r, s, aux, count })
+}
+
+/// The arguments of [`bin_kernel`] as a [`super::simd::Kernel`].
+struct BinPass<'a, const AUX: bool> {
+    r: &'a [f64],
+    s: &'a [f64],
+    aux: &'a [f64],
+    count: usize,
+}
+
+impl<const AUX: bool> super::simd::Kernel for BinPass<'_, AUX> {
+    type Output = (Binned, Vec<f64>);
+    #[inline(always)]
+    fn run(self) -> Self::Output {
+        bin_kernel::<AUX>(self.r, self.s, self.aux, self.count)
+    }
+}
+
+/// The body of [`bin_inner`], inlined into its SIMD dispatch (and called directly, for the
+/// baseline, by the test that compares the two).
+#[inline(always)]
+pub(crate) fn bin_kernel<const AUX: bool>(
     r: &[f64],
     s: &[f64],
     aux: &[f64],
