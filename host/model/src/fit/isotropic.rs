@@ -364,10 +364,10 @@ impl LogBinned<'_> {
     fn cost(&self, theta: &[f64]) -> Option<f64> {
         let (mut jtj, mut jtr) = ([0.0; 0], [0.0; 0]);
         match self.n {
-            1 => binned_normal_n::<1, 2, false>(self.bins, theta, &mut jtj, &mut jtr),
-            2 => binned_normal_n::<2, 4, false>(self.bins, theta, &mut jtj, &mut jtr),
-            3 => binned_normal_n::<3, 6, false>(self.bins, theta, &mut jtj, &mut jtr),
-            _ => binned_normal_n::<4, 8, false>(self.bins, theta, &mut jtj, &mut jtr),
+            1 => binned_normal_n::<1, 2, 3, false>(self.bins, theta, &mut jtj, &mut jtr),
+            2 => binned_normal_n::<2, 4, 10, false>(self.bins, theta, &mut jtj, &mut jtr),
+            3 => binned_normal_n::<3, 6, 21, false>(self.bins, theta, &mut jtj, &mut jtr),
+            _ => binned_normal_n::<4, 8, 36, false>(self.bins, theta, &mut jtj, &mut jtr),
         }
     }
 }
@@ -378,10 +378,10 @@ impl LogRows for LogBinned<'_> {
     }
     fn normal(&self, theta: &[f64], jtj: &mut [f64], jtr: &mut [f64]) -> Option<f64> {
         match self.n {
-            1 => binned_normal_n::<1, 2, true>(self.bins, theta, jtj, jtr),
-            2 => binned_normal_n::<2, 4, true>(self.bins, theta, jtj, jtr),
-            3 => binned_normal_n::<3, 6, true>(self.bins, theta, jtj, jtr),
-            _ => binned_normal_n::<4, 8, true>(self.bins, theta, jtj, jtr),
+            1 => binned_normal_n::<1, 2, 3, true>(self.bins, theta, jtj, jtr),
+            2 => binned_normal_n::<2, 4, 10, true>(self.bins, theta, jtj, jtr),
+            3 => binned_normal_n::<3, 6, 21, true>(self.bins, theta, jtj, jtr),
+            _ => binned_normal_n::<4, 8, 36, true>(self.bins, theta, jtj, jtr),
         }
     }
     fn points(&self) -> usize {
@@ -446,13 +446,13 @@ impl LogRows for LogBinned<'_> {
 /// so each step is a loop of constant length over independent bins, which the compiler
 /// vectorises, and JᵀJ gathers one partial sum per entry and bin lane instead of one serial
 /// chain per entry. This is the fast mode's whole fit (`fit-curve --batch`, BENCHMARKS.md).
-fn binned_normal_n<const N: usize, const P: usize, const JAC: bool>(
+fn binned_normal_n<const N: usize, const P: usize, const T: usize, const JAC: bool>(
     bins: &[Bin],
     theta: &[f64],
     jtj: &mut [f64],
     jtr: &mut [f64],
 ) -> Option<f64> {
-    super::simd::wide(BinnedNormal::<N, P, JAC> {
+    super::simd::wide(BinnedNormal::<N, P, T, JAC> {
         bins,
         theta,
         jtj,
@@ -461,20 +461,20 @@ fn binned_normal_n<const N: usize, const P: usize, const JAC: bool>(
 }
 
 /// The arguments of [`binned_normal_kernel`] as a [`super::simd::Kernel`].
-struct BinnedNormal<'a, const N: usize, const P: usize, const JAC: bool> {
+struct BinnedNormal<'a, const N: usize, const P: usize, const T: usize, const JAC: bool> {
     bins: &'a [Bin],
     theta: &'a [f64],
     jtj: &'a mut [f64],
     jtr: &'a mut [f64],
 }
 
-impl<const N: usize, const P: usize, const JAC: bool> super::simd::Kernel
-    for BinnedNormal<'_, N, P, JAC>
+impl<const N: usize, const P: usize, const T: usize, const JAC: bool> super::simd::Kernel
+    for BinnedNormal<'_, N, P, T, JAC>
 {
     type Output = Option<f64>;
     #[inline(always)]
     fn run(self) -> Option<f64> {
-        binned_normal_kernel::<N, P, JAC>(self.bins, self.theta, self.jtj, self.jtr)
+        binned_normal_kernel::<N, P, T, JAC>(self.bins, self.theta, self.jtj, self.jtr)
     }
 }
 
@@ -482,7 +482,12 @@ impl<const N: usize, const P: usize, const JAC: bool> super::simd::Kernel
 /// the baseline, by the test that compares the two).
 #[inline(always)]
 #[allow(clippy::needless_range_loop)] // index loops over parallel arrays vectorise
-pub(crate) fn binned_normal_kernel<const N: usize, const P: usize, const JAC: bool>(
+pub(crate) fn binned_normal_kernel<
+    const N: usize,
+    const P: usize,
+    const T: usize,
+    const JAC: bool,
+>(
     bins: &[Bin],
     theta: &[f64],
     jtj: &mut [f64],
@@ -491,10 +496,11 @@ pub(crate) fn binned_normal_kernel<const N: usize, const P: usize, const JAC: bo
     // P = 2N (the parameters), a parameter of its own because array lengths cannot be 2·N
     // on stable Rust: arrays sized for N = 4 whatever N was, zeroed on every call and block,
     // were 38 % of this function's instructions (memset) on the scipy comparison (callgrind).
-    debug_assert_eq!(P, 2 * N);
+    // T = P(P + 1)/2, the entries of JᵀJ's upper triangle, likewise.
+    debug_assert!(P == 2 * N && T == P * (P + 1) / 2);
     let p = P;
     let (a, d) = split(theta, N);
-    let mut acc = [[[0.0f64; CHUNK]; P]; P];
+    let mut acc = [[0.0f64; CHUNK]; T];
     let mut grad = [[0.0f64; CHUNK]; P];
     let mut cost = [0.0f64; CHUNK];
     // Per-block arrays, set up once: every lane is written in each block (padding lanes of a
@@ -584,16 +590,29 @@ pub(crate) fn binned_normal_kernel<const N: usize, const P: usize, const JAC: bo
                 }
             }
         }
-        for i in 0..3 {
-            for c in 0..p {
+        // The three rows' contributions to an entry are added in row order (the order of the
+        // rows' emission, so the sums match `LogRows::rows` bit for bit) in one pass per entry:
+        // one load and store of each partial sum per block instead of three.
+        for c in 0..p {
+            for j in 0..CHUNK {
+                let mut s = grad[c][j];
+                s += rows[0][c][j] * res[0][j];
+                s += rows[1][c][j] * res[1][j];
+                s += rows[2][c][j] * res[2][j];
+                grad[c][j] = s;
+            }
+        }
+        let mut t = 0;
+        for c in 0..p {
+            for c2 in c..p {
                 for j in 0..CHUNK {
-                    grad[c][j] += rows[i][c][j] * res[i][j];
+                    let mut s = acc[t][j];
+                    s += rows[0][c][j] * rows[0][c2][j];
+                    s += rows[1][c][j] * rows[1][c2][j];
+                    s += rows[2][c][j] * rows[2][c2][j];
+                    acc[t][j] = s;
                 }
-                for c2 in c..p {
-                    for j in 0..CHUNK {
-                        acc[c][c2][j] += rows[i][c][j] * rows[i][c2][j];
-                    }
-                }
+                t += 1;
             }
         }
     }
@@ -602,10 +621,12 @@ pub(crate) fn binned_normal_kernel<const N: usize, const P: usize, const JAC: bo
         let cost = lane_sum(&cost);
         return cost.is_finite().then_some(cost);
     }
+    let mut t = 0;
     for i in 0..p {
         jtr[i] = lane_sum(&grad[i]);
         for k in i..p {
-            let s = lane_sum(&acc[i][k]);
+            let s = lane_sum(&acc[t]);
+            t += 1;
             jtj[i * p + k] = s;
             jtj[k * p + i] = s;
         }
