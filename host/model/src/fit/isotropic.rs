@@ -361,7 +361,7 @@ impl LogBinned<'_> {
     /// The binned cost alone (the residuals of [`binned_normal_n`] without the Jacobian):
     /// scoring the start candidates, four per fit, took 6 % of `fit-curve --batch` through the
     /// generic row evaluation (perf, BENCHMARKS.md).
-    fn cost(&self, theta: &[f64]) -> Option<f64> {
+    pub(crate) fn cost(&self, theta: &[f64]) -> Option<f64> {
         let (mut jtj, mut jtr) = ([0.0; 0], [0.0; 0]);
         match self.n {
             1 => binned_normal_n::<1, 2, 3, false>(self.bins, theta, &mut jtj, &mut jtr),
