@@ -268,6 +268,28 @@ struct Parser {
     /// of that curve is then recognised by one load and one compare. Outside batch files the
     /// key is empty (mask 0) and matches every row.
     key: Option<(u64, u64, usize)>,
+    /// Whether [`Parser::block`] may read rows with the vector reader ([`simd`]) where the CPU
+    /// has one; off only in tests, which compare it with the portable reader.
+    vector: bool,
+    /// The vector reader's index of the separators ahead ([`SepIndex`]).
+    seps: SepIndex,
+}
+
+/// Where the commas and newlines are in a window of the block being read, found 64 bytes at a
+/// time by the vector reader ([`simd::pairs`]): with the field boundaries known beforehand,
+/// the rows are read independently of each other (each row's start no longer waits for the
+/// previous row's numbers to be scanned), so the processor overlaps them.
+#[derive(Default)]
+#[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
+struct SepIndex {
+    /// Positions relative to `from`, in order; entries past `n` are scratch.
+    seps: Vec<u32>,
+    /// Where the window starts in the block.
+    from: usize,
+    /// Entries found.
+    n: usize,
+    /// The first entry not yet consumed.
+    cur: usize,
 }
 
 impl Parser {
@@ -281,6 +303,8 @@ impl Parser {
             key: None,
             handed_out: None,
             interleaved: false,
+            vector: true,
+            seps: SepIndex::default(),
         }
     }
 
@@ -298,6 +322,9 @@ impl Parser {
     /// by [`fast_values`]. Everything else goes through [`Parser::line`].
     fn block(&mut self, line_no: usize, text: &[u8]) -> Result<usize, CurvesError> {
         let (mut at, mut count) = (0, 0);
+        // A new block: the separator index of the last one is stale.
+        self.seps.n = 0;
+        self.seps.cur = 0;
         // Up to the header, by the general path.
         while at < text.len() && self.channels.is_none() {
             count += 1;
@@ -306,22 +333,64 @@ impl Parser {
             at = end + 1;
         }
         match self.channels {
-            Some(1) => self.rows::<2>(line_no, text, at, count),
-            Some(_) => self.rows::<4>(line_no, text, at, count),
+            Some(1) => self.rows_on_cpu::<2>(line_no, text, at, count),
+            Some(_) => self.rows_on_cpu::<4>(line_no, text, at, count),
             None => Ok(count),
         }
+    }
+
+    /// [`Parser::rows`] with the best number reader this CPU has: on x86-64 the vector reader
+    /// ([`simd::Sse`]), compiled for AVX2 (VEX encoding, BMI's bit scans) where the CPU has it,
+    /// else for SSE4.1; elsewhere, or without SSE4.1, the portable one. Both read the same
+    /// numbers to the same bits (the tests hold them to it), so the output never depends on
+    /// the machine. Detection is one cached load per block.
+    fn rows_on_cpu<const N: usize>(
+        &mut self,
+        line_no: usize,
+        text: &[u8],
+        at: usize,
+        count: usize,
+    ) -> Result<usize, CurvesError> {
+        #[cfg(target_arch = "x86_64")]
+        if self.vector {
+            if let Some(v3) = pulp::x86::V3::try_new() {
+                return v3.vectorize(simd::Rows::<N> {
+                    parser: self,
+                    line_no,
+                    text,
+                    at,
+                    count,
+                    reader: simd::Sse(*v3),
+                });
+            }
+            if let Some(v2) = pulp::x86::V2::try_new() {
+                return v2.vectorize(simd::Rows::<N> {
+                    parser: self,
+                    line_no,
+                    text,
+                    at,
+                    count,
+                    reader: simd::Sse(v2),
+                });
+            }
+        }
+        self.rows::<N, _>(line_no, text, at, count, Portable)
     }
 
     /// [`Parser::block`] after the header, for rows of `N` numbers (r and the channels): one
     /// loop per row width, so a row's numbers stay in registers from the parse to the curve's
     /// vectors (with the width a run-time value they went through an array on the stack, whose
     /// two 8-byte stores then a 16-byte load stalled store forwarding on every row).
-    fn rows<const N: usize>(
+    /// Inlined into [`Parser::rows_on_cpu`]'s callers so that it is compiled once per reader
+    /// and instruction set.
+    #[inline(always)]
+    fn rows<const N: usize, R: Reader>(
         &mut self,
         line_no: usize,
         text: &[u8],
         mut at: usize,
         mut count: usize,
+        reader: R,
     ) -> Result<usize, CurvesError> {
         let ch = N - 1;
         while at < text.len() {
@@ -334,18 +403,34 @@ impl Parser {
                 if N == 2 {
                     // One channel, the common case: the two numbers as scalars.
                     if let Some(dst) = c.channels.first_mut() {
-                        while word(text, at) & mask == key
-                            && let Some((r, v, next)) = fast_pair(text, at + len)
-                        {
-                            c.r.push(r);
-                            dst.push(v);
-                            count += 1;
+                        loop {
+                            // As many rows as the reader takes from its separator index (none
+                            // for the portable one), then one row by the reader alone: a row
+                            // the index path declined, or the last ones of the block.
+                            let (rows, next) = reader.pairs(
+                                text,
+                                at,
+                                (key, mask, len),
+                                (&mut c.r, &mut *dst),
+                                &mut self.seps,
+                            );
+                            count += rows;
                             at = next;
+                            if word(text, at) & mask == key
+                                && let Some((r, v, next)) = fast_pair(text, at + len, reader)
+                            {
+                                c.r.push(r);
+                                dst.push(v);
+                                count += 1;
+                                at = next;
+                            } else {
+                                break;
+                            }
                         }
                     }
                 } else {
                     while word(text, at) & mask == key
-                        && let Some((values, next)) = fast_values::<N>(text, at + len)
+                        && let Some((values, next)) = fast_values::<N, R>(text, at + len, reader)
                     {
                         c.push_values(&values);
                         count += 1;
@@ -358,7 +443,7 @@ impl Parser {
             }
             count += 1;
             if let Some((id, from)) = fast_id(text, at, self.batch)
-                && let Some((values, next)) = fast_values::<N>(text, from)
+                && let Some((values, next)) = fast_values::<N, R>(text, from, reader)
             {
                 let k = self.curve_for(line_no + count, id, ch)?;
                 self.curves[k].push_values(&values);
@@ -494,11 +579,15 @@ fn fast_id(text: &[u8], at: usize, batch: bool) -> Option<(&[u8], usize)> {
 /// the values and where the next line starts. `None` for anything else, which the general path
 /// ([`slow_row`]) then reads or rejects.
 #[inline(always)]
-fn fast_values<const N: usize>(text: &[u8], at: usize) -> Option<([f64; N], usize)> {
+fn fast_values<const N: usize, R: Reader>(
+    text: &[u8],
+    at: usize,
+    reader: R,
+) -> Option<([f64; N], usize)> {
     let mut values = [0.0f64; N];
     let mut i = at;
     for (col, v) in values.iter_mut().enumerate() {
-        let (x, used) = number_prefix(text.get(i..)?)?;
+        let (x, used) = reader.number(text.get(i..)?)?;
         *v = x;
         i += used;
         if col + 1 < N {
@@ -517,13 +606,13 @@ fn fast_values<const N: usize>(text: &[u8], at: usize) -> Option<([f64; N], usiz
 
 /// [`fast_values`] for two numbers, returned as scalars.
 #[inline(always)]
-fn fast_pair(text: &[u8], at: usize) -> Option<(f64, f64, usize)> {
-    let (x, used) = number_prefix(text.get(at..)?)?;
+fn fast_pair(text: &[u8], at: usize, reader: impl Reader) -> Option<(f64, f64, usize)> {
+    let (x, used) = reader.number(text.get(at..)?)?;
     let i = at + used;
     if text.get(i) != Some(&b',') {
         return None;
     }
-    let (y, used) = number_prefix(text.get(i + 1..)?)?;
+    let (y, used) = reader.number(text.get(i + 1..)?)?;
     let j = i + 1 + used;
     match text.get(j..) {
         Some([b'\n', ..]) => Some((x, y, j + 1)),
@@ -579,6 +668,40 @@ fn slow_row(
 /// one number.
 fn parse_f64(s: &str) -> Option<f64> {
     fast_float2::parse(s).ok()
+}
+
+/// How the row loop ([`Parser::rows`]) reads a number at the start of `b`: the value and the
+/// bytes it takes, always [`number_prefix`]'s answer (the same bits, the same length).
+trait Reader: Copy {
+    fn number(self, b: &[u8]) -> Option<(f64, usize)>;
+
+    /// Rows of one curve of one value (`id,r,value` with the id and comma given as `key`, a
+    /// masked little-endian word and its length, as [`Parser::key`]) from `text[at..]`, pushed
+    /// to `dst`: how many and where the next line starts. Only rows read exactly as
+    /// [`fast_pair`] reads them; it may stop anywhere before (the portable reader takes none:
+    /// the row loop then goes row by row).
+    #[inline(always)]
+    fn pairs(
+        self,
+        _text: &[u8],
+        at: usize,
+        _key: (u64, u64, usize),
+        _dst: (&mut Vec<f64>, &mut Vec<f64>),
+        _index: &mut SepIndex,
+    ) -> (usize, usize) {
+        (0, at)
+    }
+}
+
+/// The portable reader: [`number_prefix`] itself.
+#[derive(Clone, Copy)]
+struct Portable;
+
+impl Reader for Portable {
+    #[inline(always)]
+    fn number(self, b: &[u8]) -> Option<(f64, usize)> {
+        number_prefix(b)
+    }
 }
 
 /// The number at the start of `b` and the bytes it takes, correctly rounded: the usual CSV
@@ -744,6 +867,505 @@ fn word(b: &[u8], i: usize) -> u64 {
             w[..tail.len()].copy_from_slice(tail);
             u64::from_le_bytes(w)
         }
+    }
+}
+
+/// The vector number reader of x86-64 (SSE4.1, and AVX2's encoding where the CPU has it), by
+/// the `pulp` crate's safe intrinsics, which the workspace's `unsafe_code = "deny"` requires.
+///
+/// Why by hand: reading the numbers was a third of `fit-curve --batch`'s time, and scalar
+/// readers had run out of levers (BENCHMARKS.md "Second pass": word-at-a-time readers stay
+/// bound by their chains of shifts and multiplies). Here a plain decimal's mantissa is one
+/// 16-byte load: the digit and point bytes flagged by two compares and read out as bit masks,
+/// the point and the end from those masks, the point squeezed out and the digits right-aligned
+/// by one byte shuffle, the (up to 15) digits converted together by three multiply-adds and a
+/// pack. Then the same exact fast path as [`short_decimal`] (Clinger: M < 10^15 < 2^53 and
+/// |q| ≤ 22, one correctly rounded multiply or divide), so the bits are those `fast-float2`
+/// gives; every other shape goes to [`number_prefix`].
+#[cfg(target_arch = "x86_64")]
+mod simd {
+    use super::{
+        CurvesError, POW10_F64, Parser, Reader, SepIndex, digit_run, number_prefix, word,
+    };
+    use core::arch::x86_64::__m128i;
+    use pulp::x86::V2;
+
+    /// The vector reader: [`decimal`], else [`number_prefix`]. Holds the token that proves
+    /// the CPU has SSE4.1.
+    #[derive(Clone, Copy)]
+    pub(super) struct Sse(pub(super) V2);
+
+    impl Reader for Sse {
+        #[inline(always)]
+        fn number(self, b: &[u8]) -> Option<(f64, usize)> {
+            match decimal(self.0, b) {
+                Some(x) => Some(x),
+                None => number_prefix(b),
+            }
+        }
+
+        #[inline(always)]
+        fn pairs(
+            self,
+            text: &[u8],
+            at: usize,
+            key: (u64, u64, usize),
+            dst: (&mut Vec<f64>, &mut Vec<f64>),
+            index: &mut SepIndex,
+        ) -> (usize, usize) {
+            pairs(self.0, text, at, key, dst, index)
+        }
+    }
+
+    /// Bytes of text indexed at a time: the index (4 bytes an entry) and the text stay in the
+    /// first-level cache, and a curve change costs at most one re-index of this much.
+    const WINDOW: usize = 4096;
+
+    /// The commas and newlines of 64 bytes as a bit mask (bit k for byte k).
+    #[inline(always)]
+    fn separators(simd: V2, chunk: &[u8; 64]) -> u64 {
+        let sse2 = simd.sse2;
+        let mut m = 0u64;
+        for (k, part) in chunk.chunks_exact(16).enumerate() {
+            let bytes: [u8; 16] = part.try_into().unwrap_or_default();
+            let x: __m128i = pulp::cast(bytes);
+            let hit = sse2._mm_or_si128(
+                sse2._mm_cmpeq_epi8(x, sse2._mm_set1_epi8(b',' as i8)),
+                sse2._mm_cmpeq_epi8(x, sse2._mm_set1_epi8(b'\n' as i8)),
+            );
+            m |= u64::from(sse2._mm_movemask_epi8(hit) as u16) << (16 * k);
+        }
+        m
+    }
+
+    /// Indexes the separators of `text[from..]` in whole 64-byte chunks, starting below
+    /// `limit` (so every load ends inside `text` when `limit` + 64 <= `text.len()`), at most
+    /// [`WINDOW`] bytes. Positions are written eight at a time whatever the count (a chunk of
+    /// these rows holds 4 to 7), so the loop has no branch on the data.
+    #[inline(always)]
+    fn build(simd: V2, text: &[u8], from: usize, limit: usize, ix: &mut SepIndex) {
+        if ix.seps.len() < WINDOW + 128 {
+            ix.seps.resize(WINDOW + 128, 0);
+        }
+        let to = (from + WINDOW).min(limit);
+        let (mut n, mut base) = (0, from);
+        while base < to {
+            let Some(chunk) = text.get(base..base + 64).and_then(|c| c.try_into().ok()) else {
+                break;
+            };
+            let mut m = separators(simd, chunk);
+            let count = m.count_ones() as usize;
+            let rel = (base - from) as u32;
+            let Some(out) = ix.seps.get_mut(n..n + 64) else {
+                break;
+            };
+            for slot in &mut out[..8] {
+                *slot = rel + m.trailing_zeros();
+                m &= m.wrapping_sub(1);
+            }
+            if count > 8 {
+                for slot in &mut out[8..count] {
+                    *slot = rel + m.trailing_zeros();
+                    m &= m.wrapping_sub(1);
+                }
+            }
+            n += count;
+            base += 64;
+        }
+        ix.from = from;
+        ix.n = n;
+        ix.cur = 0;
+    }
+
+    /// What a plain decimal field of `len` bytes (after the sign) with its point at `p` (`p` =
+    /// `len`: no point) needs: the shuffle that squeezes the point out and right-aligns the
+    /// digits, the digit mask its bytes must show, and the power of ten to divide by.
+    #[derive(Clone, Copy)]
+    struct Shape {
+        shuffle: [u8; 16],
+        digits: u32,
+        /// 0 where the shape is not a number [`field`] reads this way (no digit, or more
+        /// than 15): no digit mask matches it.
+        valid: u32,
+        divisor: f64,
+    }
+
+    /// [`Shape`]s by (`len`, `p`), `p` <= `len` <= 16, built at compile time.
+    static SHAPES: [[Shape; 17]; 17] = shapes();
+
+    const fn shapes() -> [[Shape; 17]; 17] {
+        let none = Shape {
+            shuffle: [0x80; 16],
+            digits: 0,
+            valid: 0,
+            divisor: 1.0,
+        };
+        let mut table = [[none; 17]; 17];
+        let mut len = 0;
+        while len <= 16 {
+            let mut p = 0;
+            while p <= len {
+                let dot = p < len;
+                let n = len - dot as usize;
+                if n >= 1 && n <= 15 {
+                    let mut shuffle = [0x80u8; 16];
+                    let mut t = 0;
+                    while t < n {
+                        let from = if dot && t >= p { t + 1 } else { t };
+                        shuffle[16 - n + t] = from as u8;
+                        t += 1;
+                    }
+                    let all = (1u32 << len) - 1;
+                    let frac = if dot { len - p - 1 } else { 0 };
+                    table[len][p] = Shape {
+                        shuffle,
+                        digits: if dot { all & !(1u32 << p) } else { all },
+                        valid: 1,
+                        divisor: POW10_F64[frac],
+                    };
+                }
+                p += 1;
+            }
+            len += 1;
+        }
+        table
+    }
+
+    /// The number that is exactly `text[start..end]` (a field whose ends the index gave).
+    /// Plain decimals (`-`? digits with at most one point, 1 to 15 digits, 16 bytes at most
+    /// after the sign: every field `%.10g` writes without an exponent) by one table entry
+    /// ([`SHAPES`]): the shape is the field's length and its point's position, so one compare
+    /// of the digit mask checks it, one shuffle aligns its digits and the fraction's power of
+    /// ten is a division by an exact double (q <= 0: Clinger's fast path, always a division,
+    /// by 1 for integers). Anything else by [`field_general`].
+    #[inline(always)]
+    fn field(simd: V2, text: &[u8; 128], start: usize, end: usize) -> Option<f64> {
+        let neg = *text.get(start)? == b'-';
+        let a = start + usize::from(neg);
+        let len = end.checked_sub(a)?;
+        if len > 16 {
+            return None;
+        }
+        let window: [u8; 16] = text.get(a..a + 16)?.try_into().ok()?;
+        let x: __m128i = pulp::cast(window);
+        let (sse2, ssse3, sse4_1) = (simd.sse2, simd.ssse3, simd.sse4_1);
+        let d = sse2._mm_sub_epi8(x, sse2._mm_set1_epi8(b'0' as i8));
+        let is_digit = sse2._mm_cmpeq_epi8(sse2._mm_min_epu8(d, sse2._mm_set1_epi8(9)), d);
+        let is_dot = sse2._mm_cmpeq_epi8(x, sse2._mm_set1_epi8(b'.' as i8));
+        let digit = sse2._mm_movemask_epi8(is_digit) as u32;
+        let dots = sse2._mm_movemask_epi8(is_dot) as u32;
+        let p = (dots.trailing_zeros() as usize).min(len);
+        let shape = &SHAPES[len][p];
+        if shape.valid == 0 || digit & ((1u32 << len) - 1) != shape.digits {
+            return field_general(simd, text, start, end);
+        }
+        let digits_right = ssse3._mm_shuffle_epi8(d, pulp::cast(shape.shuffle));
+        let pairs = ssse3._mm_maddubs_epi16(
+            digits_right,
+            pulp::cast([10u8, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1]),
+        );
+        let fours = sse2._mm_madd_epi16(pairs, pulp::cast([100i16, 1, 100, 1, 100, 1, 100, 1]));
+        let fours = sse4_1._mm_packus_epi32(fours, fours);
+        let eights = sse2._mm_madd_epi16(
+            fours,
+            pulp::cast([10_000i16, 1, 10_000, 1, 10_000, 1, 10_000, 1]),
+        );
+        let [high, low, _, _]: [u32; 4] = pulp::cast(eights);
+        let mant = u64::from(high) * 100_000_000 + u64::from(low);
+        let v = mant as i64 as f64 / shape.divisor;
+        Some(if neg { -v } else { v })
+    }
+
+    /// [`field`] for every shape: the number that is exactly `text[start..end]`, in
+    /// the shapes of [`decimal`] with at most 3 exponent digits and 16 bytes after the sign;
+    /// `None` for anything else. Knowing the end beforehand, no scan for it is needed: the
+    /// digit, point and exponent-letter bytes are three masks, and the shape is checked
+    /// against them with a few bit operations.
+    #[inline(always)]
+    fn field_general(simd: V2, text: &[u8; 128], start: usize, end: usize) -> Option<f64> {
+        let neg = *text.get(start)? == b'-';
+        let a = start + usize::from(neg);
+        let len = end.checked_sub(a)? as u32;
+        if len > 16 {
+            return None;
+        }
+        let window: [u8; 16] = text.get(a..a + 16)?.try_into().ok()?;
+        let x: __m128i = pulp::cast(window);
+        let (sse2, ssse3, sse4_1) = (simd.sse2, simd.ssse3, simd.sse4_1);
+        let d = sse2._mm_sub_epi8(x, sse2._mm_set1_epi8(b'0' as i8));
+        let is_digit = sse2._mm_cmpeq_epi8(sse2._mm_min_epu8(d, sse2._mm_set1_epi8(9)), d);
+        let is_dot = sse2._mm_cmpeq_epi8(x, sse2._mm_set1_epi8(b'.' as i8));
+        let is_e = sse2._mm_cmpeq_epi8(
+            sse2._mm_or_si128(x, sse2._mm_set1_epi8(0x20)),
+            sse2._mm_set1_epi8(b'e' as i8),
+        );
+        let digit = sse2._mm_movemask_epi8(is_digit) as u32;
+        let dots = sse2._mm_movemask_epi8(is_dot) as u32;
+        let es = sse2._mm_movemask_epi8(is_e) as u32;
+        // The mantissa is bytes [0, k): up to the exponent letter or the end.
+        let k = (es | 1 << len).trailing_zeros();
+        let mantissa = (1u32 << k) - 1;
+        let point = dots & mantissa;
+        let dot = point != 0;
+        // At most one point, every other byte of the mantissa a digit, 1 to 15 digits.
+        if point & point.wrapping_sub(1) != 0 || digit & mantissa != mantissa ^ point {
+            return None;
+        }
+        let digits = k - u32::from(dot);
+        if digits == 0 || digits > 15 {
+            return None;
+        }
+        let p = if dot { point.trailing_zeros() } else { 16 };
+        // Digit t (from 0) sits at byte t, or t + 1 from the point on; right-aligned, byte j
+        // takes digit j − 16 + digits (negative, so zero, before the first).
+        let t = sse2._mm_add_epi8(pulp::cast(FROM_END), sse2._mm_set1_epi8(digits as i8));
+        let after = sse2._mm_cmpgt_epi8(t, sse2._mm_set1_epi8(p as i8 - 1));
+        let digits_right = ssse3._mm_shuffle_epi8(d, sse2._mm_sub_epi8(t, after));
+        let pairs = ssse3._mm_maddubs_epi16(
+            digits_right,
+            pulp::cast([10u8, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1]),
+        );
+        let fours = sse2._mm_madd_epi16(pairs, pulp::cast([100i16, 1, 100, 1, 100, 1, 100, 1]));
+        let fours = sse4_1._mm_packus_epi32(fours, fours);
+        let eights = sse2._mm_madd_epi16(
+            fours,
+            pulp::cast([10_000i16, 1, 10_000, 1, 10_000, 1, 10_000, 1]),
+        );
+        let [high, low, _, _]: [u32; 4] = pulp::cast(eights);
+        let mant = u64::from(high) * 100_000_000 + u64::from(low);
+        let mut q = if dot { p as i32 + 1 - k as i32 } else { 0 };
+        if k < len {
+            // (`e`|`E`) (`+`|`-`)? and 1 to 3 digits up to the end.
+            let sign = *text.get(a + k as usize + 1)?;
+            let eneg = sign == b'-';
+            let from = k + 1 + u32::from(eneg || sign == b'+');
+            let run = (1u32 << len) - (1u32 << from.min(len));
+            if from >= len || len - from > 3 || digit & run != run {
+                return None;
+            }
+            let mut ev = 0i32;
+            for &c in text.get(a + from as usize..a + len as usize)? {
+                ev = ev * 10 + i32::from(c - b'0');
+            }
+            q += if eneg { -ev } else { ev };
+        }
+        if !(-22..=22).contains(&q) {
+            return None;
+        }
+        let m = mant as i64 as f64;
+        let v = if q >= 0 {
+            m * POW10_F64[q as usize]
+        } else {
+            m / POW10_F64[(-q) as usize]
+        };
+        Some(if neg { -v } else { v })
+    }
+
+    /// [`Reader::pairs`] by the separator index: a row's id comma, its comma and its newline
+    /// are the next entries of the index, so where its numbers are is known before they are
+    /// read; the row is taken when the id matches `key`, the separators are a comma and a
+    /// newline, and each field is exactly one number of [`decimal`]'s shapes. Anything else
+    /// (and rows within 64 bytes of the end of `text`) stops it.
+    #[inline(always)]
+    pub(super) fn pairs(
+        simd: V2,
+        text: &[u8],
+        at: usize,
+        key: (u64, u64, usize),
+        dst: (&mut Vec<f64>, &mut Vec<f64>),
+        ix: &mut SepIndex,
+    ) -> (usize, usize) {
+        // Batch rows have the id's comma first.
+        if key.2 > 0 {
+            pairs_with::<1>(simd, text, at, key, dst, ix)
+        } else {
+            pairs_with::<0>(simd, text, at, key, dst, ix)
+        }
+    }
+
+    /// Rows read at a time into arrays before they are appended to the curve's vectors: the
+    /// vectors' lengths then stay out of the row loop.
+    const BATCH: usize = 16;
+
+    /// [`pairs`] for rows with `SKIP` separators before the numbers (1: the id's comma).
+    #[inline(always)]
+    fn pairs_with<const SKIP: usize>(
+        simd: V2,
+        text: &[u8],
+        mut at: usize,
+        (key, mask, len): (u64, u64, usize),
+        (r, v): (&mut Vec<f64>, &mut Vec<f64>),
+        ix: &mut SepIndex,
+    ) -> (usize, usize) {
+        // Every row starts below `limit`, so the 128 bytes from its start are in `text`.
+        let Some(limit) = text.len().checked_sub(128) else {
+            return (0, at);
+        };
+        let (mut rows, mut held, mut fresh) = (0, 0, false);
+        let (mut xs, mut ys) = ([0.0f64; BATCH], [0.0f64; BATCH]);
+        'windows: loop {
+            let from = ix.from;
+            let seps = ix.seps.get(..ix.n).unwrap_or_default();
+            let mut cur = ix.cur;
+            // Past the rows consumed by another path since the last call.
+            while cur < seps.len() && seps[cur] as usize + from < at {
+                cur += 1;
+            }
+            while at < limit && word(text, at) & mask == key {
+                let Some(s) = seps.get(cur..cur + SKIP + 2) else {
+                    // Out of the window: index the next one from this row (unless that was
+                    // just done: a line longer than the window).
+                    if fresh {
+                        break;
+                    }
+                    build(simd, text, at, limit, ix);
+                    fresh = true;
+                    continue 'windows;
+                };
+                fresh = false;
+                let Some(row) = text.get(at..at + 128).and_then(|t| <&[u8; 128]>::try_from(t).ok())
+                else {
+                    break;
+                };
+                // Offsets in the row: the separators must lie in its first 96 bytes.
+                let rel = |k: usize| (s[k] as usize + from).wrapping_sub(at);
+                let (s1, s2) = (rel(SKIP), rel(SKIP + 1));
+                if (SKIP == 1 && rel(0) + 1 != len)
+                    || s2 >= 96
+                    || s1 >= s2
+                    || row[s1] != b','
+                    || row[s2] != b'\n'
+                {
+                    break;
+                }
+                let (Some(x), Some(y)) = (field(simd, row, len, s1), field(simd, row, s1 + 1, s2))
+                else {
+                    break;
+                };
+                xs[held % BATCH] = x;
+                ys[held % BATCH] = y;
+                held += 1;
+                if held == BATCH {
+                    r.extend_from_slice(&xs);
+                    v.extend_from_slice(&ys);
+                    held = 0;
+                }
+                rows += 1;
+                at += s2 + 1;
+                cur += SKIP + 2;
+            }
+            ix.cur = cur;
+            break;
+        }
+        r.extend_from_slice(&xs[..held]);
+        v.extend_from_slice(&ys[..held]);
+        (rows, at)
+    }
+
+    /// [`Parser::rows`] with the vector reader, as the job `pulp` compiles for the CPU's
+    /// instruction set: a type with an `#[inline(always)]` call rather than a closure, whose
+    /// body (compiled apart, without the target features) would call every intrinsic as a
+    /// function.
+    pub(super) struct Rows<'a, const N: usize> {
+        pub(super) parser: &'a mut Parser,
+        pub(super) line_no: usize,
+        pub(super) text: &'a [u8],
+        pub(super) at: usize,
+        pub(super) count: usize,
+        pub(super) reader: Sse,
+    }
+
+    impl<const N: usize> pulp::NullaryFnOnce for Rows<'_, N> {
+        type Output = Result<usize, CurvesError>;
+
+        #[inline(always)]
+        fn call(self) -> Self::Output {
+            self.parser
+                .rows::<N, Sse>(self.line_no, self.text, self.at, self.count, self.reader)
+        }
+    }
+
+    /// Byte j holds j − 16 (as i8): added to the digit count, the index of the digit that goes
+    /// to byte j when the digits are right-aligned (negative, so zero, before the first).
+    const FROM_END: [i8; 16] = [
+        -16, -15, -14, -13, -12, -11, -10, -9, -8, -7, -6, -5, -4, -3, -2, -1,
+    ];
+
+    /// A plain decimal at the start of `b`: `-`? digits? (`.` digits?)? with 1 to 15 digits,
+    /// 15 bytes at most after the sign, then optionally (`e`|`E`) (`+`|`-`)? and 1–4 digits,
+    /// the decimal exponent q (the written one minus the fraction's digits) within ±22: the
+    /// value and the bytes it takes. `None` for anything else, and when `b` has fewer than 32
+    /// bytes (the loads need 16 after the sign and a word at the exponent).
+    #[inline(always)]
+    pub(super) fn decimal(simd: V2, b: &[u8]) -> Option<(f64, usize)> {
+        if b.len() < 32 {
+            return None;
+        }
+        let neg = b[0] == b'-';
+        let s = usize::from(neg);
+        let window: [u8; 16] = b.get(s..s + 16)?.try_into().ok()?;
+        let x: __m128i = pulp::cast(window);
+        let (sse2, ssse3, sse4_1) = (simd.sse2, simd.ssse3, simd.sse4_1);
+        // Digit values (bytes 0–9 where there are digits) and the masks of digits and points.
+        let d = sse2._mm_sub_epi8(x, sse2._mm_set1_epi8(b'0' as i8));
+        let is_digit = sse2._mm_cmpeq_epi8(sse2._mm_min_epu8(d, sse2._mm_set1_epi8(9)), d);
+        let is_dot = sse2._mm_cmpeq_epi8(x, sse2._mm_set1_epi8(b'.' as i8));
+        // Non-digits, with every bit from 16 up set: the scans below end at 16 at the latest.
+        let nondigit = !(sse2._mm_movemask_epi8(is_digit) as u32);
+        let dots = sse2._mm_movemask_epi8(is_dot) as u32;
+        // The first non-digit, at p; if it is a point, the end is the next one.
+        let first = nondigit & nondigit.wrapping_neg();
+        let dot = dots & first != 0;
+        let p = nondigit.trailing_zeros();
+        let e = if dot { nondigit ^ first } else { nondigit }.trailing_zeros();
+        let digits = e - u32::from(dot);
+        if e >= 16 || digits == 0 {
+            return None;
+        }
+        // Byte j of the shuffle takes the digit k = j − 16 + digits, which sits at byte k, or
+        // k + 1 at and after the point (no point: p = 16, never reached); k < 0 gives 0.
+        let k = sse2._mm_add_epi8(pulp::cast(FROM_END), sse2._mm_set1_epi8(digits as i8));
+        let p_or_16 = if dot { p } else { 16 };
+        let after = sse2._mm_cmpgt_epi8(k, sse2._mm_set1_epi8(p_or_16 as i8 - 1));
+        let digits_right = ssse3._mm_shuffle_epi8(d, sse2._mm_sub_epi8(k, after));
+        // Pairs, fours, then eights of digits: the first eight in lane 0, the last in lane 1.
+        let pairs = ssse3._mm_maddubs_epi16(
+            digits_right,
+            pulp::cast([10u8, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1]),
+        );
+        let fours = sse2._mm_madd_epi16(pairs, pulp::cast([100i16, 1, 100, 1, 100, 1, 100, 1]));
+        let fours = sse4_1._mm_packus_epi32(fours, fours);
+        let eights = sse2._mm_madd_epi16(
+            fours,
+            pulp::cast([10_000i16, 1, 10_000, 1, 10_000, 1, 10_000, 1]),
+        );
+        let [high, low, _, _]: [u32; 4] = pulp::cast(eights);
+        let mant = u64::from(high) * 100_000_000 + u64::from(low);
+        // Fraction digits (none without a point).
+        let mut q = -(if dot { e - p - 1 } else { 0 } as i64);
+        let mut end = s + e as usize;
+        if b[end] | 0x20 == b'e' {
+            let mut j = end + 1;
+            let eneg = b[j] == b'-';
+            j += usize::from(eneg || b[j] == b'+');
+            let (ne, ev) = digit_run(word(b, j));
+            if ne == 0 || ne > 4 {
+                return None;
+            }
+            q += if eneg { -(ev as i64) } else { ev as i64 };
+            end = j + ne;
+        }
+        if !(-22..=22).contains(&q) {
+            return None;
+        }
+        // mant < 10^15: the signed conversion is one instruction, the unsigned one a sequence.
+        let m = mant as i64 as f64;
+        let v = if q >= 0 {
+            m * POW10_F64[q as usize]
+        } else {
+            m / POW10_F64[(-q) as usize]
+        };
+        Some((if neg { -v } else { v }, end))
     }
 }
 
