@@ -1175,12 +1175,89 @@ mod simd {
         dst: (&mut Vec<f64>, &mut Vec<f64>),
         ix: &mut SepIndex,
     ) -> (usize, usize) {
+        if SCAN {
+            let _ = ix;
+            return pairs_scan(simd, text, at, key, dst);
+        }
         // Batch rows have the id's comma first.
         if key.2 > 0 {
             pairs_with::<1>(simd, text, at, key, dst, ix)
         } else {
             pairs_with::<0>(simd, text, at, key, dst, ix)
         }
+    }
+
+    const SCAN: bool = true;
+
+    /// The separators (commas and newlines) and the commas among the 16 bytes at `row[at..]`,
+    /// as bit masks.
+    #[inline(always)]
+    fn seps16(simd: V2, row: &[u8; 128], at: usize) -> Option<(u32, u32)> {
+        let sse2 = simd.sse2;
+        let window: [u8; 16] = row.get(at..at + 16)?.try_into().ok()?;
+        let x: __m128i = pulp::cast(window);
+        let comma = sse2._mm_cmpeq_epi8(x, sse2._mm_set1_epi8(b',' as i8));
+        let newline = sse2._mm_cmpeq_epi8(x, sse2._mm_set1_epi8(b'\n' as i8));
+        let seps = sse2._mm_movemask_epi8(sse2._mm_or_si128(comma, newline)) as u32;
+        Some((seps, sse2._mm_movemask_epi8(comma) as u32))
+    }
+
+    #[inline(always)]
+    fn pairs_scan(
+        simd: V2,
+        text: &[u8],
+        mut at: usize,
+        (key, mask, len): (u64, u64, usize),
+        (r, v): (&mut Vec<f64>, &mut Vec<f64>),
+    ) -> (usize, usize) {
+        let Some(limit) = text.len().checked_sub(128) else {
+            return (0, at);
+        };
+        let (mut rows, mut held) = (0, 0);
+        let (mut xs, mut ys) = ([0.0f64; BATCH], [0.0f64; BATCH]);
+        while at < limit {
+            let Some(row) = text.get(at..at + 128).and_then(|t| <&[u8; 128]>::try_from(t).ok())
+            else {
+                break;
+            };
+            let head: [u8; 8] = row[..8].try_into().unwrap_or_default();
+            if u64::from_le_bytes(head) & mask != key || len > 16 {
+                break;
+            }
+            // The 32 bytes after the id at once: both separators of the row are found from
+            // one mask, so the next row's start waits on one load and one scan, not two.
+            let (Some((seps_lo, commas_lo)), Some((seps_hi, commas_hi))) =
+                (seps16(simd, row, len), seps16(simd, row, len + 16))
+            else {
+                break;
+            };
+            let seps = seps_lo | seps_hi << 16;
+            let commas = commas_lo | commas_hi << 16;
+            let rest = seps & seps.wrapping_sub(1);
+            // The first separator a comma, the second a newline (not a comma).
+            if rest == 0 || commas & seps & seps.wrapping_neg() == 0 || commas & rest & rest.wrapping_neg() != 0 {
+                break;
+            }
+            let s1 = len + seps.trailing_zeros() as usize;
+            let s2 = len + rest.trailing_zeros() as usize;
+            let (Some(x), Some(y)) = (field(simd, row, len, s1), field(simd, row, s1 + 1, s2))
+            else {
+                break;
+            };
+            xs[held % BATCH] = x;
+            ys[held % BATCH] = y;
+            held += 1;
+            if held == BATCH {
+                r.extend_from_slice(&xs);
+                v.extend_from_slice(&ys);
+                held = 0;
+            }
+            rows += 1;
+            at += s2 + 1;
+        }
+        r.extend_from_slice(&xs[..held]);
+        v.extend_from_slice(&ys[..held]);
+        (rows, at)
     }
 
     /// Rows read at a time into arrays before they are appended to the curve's vectors: the
