@@ -271,25 +271,6 @@ struct Parser {
     /// Whether [`Parser::block`] may read rows with the vector reader ([`simd`]) where the CPU
     /// has one; off only in tests, which compare it with the portable reader.
     vector: bool,
-    /// The vector reader's index of the separators ahead ([`SepIndex`]).
-    seps: SepIndex,
-}
-
-/// Where the commas and newlines are in a window of the block being read, found 64 bytes at a
-/// time by the vector reader ([`simd::pairs`]): with the field boundaries known beforehand,
-/// the rows are read independently of each other (each row's start no longer waits for the
-/// previous row's numbers to be scanned), so the processor overlaps them.
-#[derive(Default)]
-#[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
-struct SepIndex {
-    /// Positions relative to `from`, in order; entries past `n` are scratch.
-    seps: Vec<u32>,
-    /// Where the window starts in the block.
-    from: usize,
-    /// Entries found.
-    n: usize,
-    /// The first entry not yet consumed.
-    cur: usize,
 }
 
 impl Parser {
@@ -304,7 +285,6 @@ impl Parser {
             handed_out: None,
             interleaved: false,
             vector: true,
-            seps: SepIndex::default(),
         }
     }
 
@@ -322,9 +302,6 @@ impl Parser {
     /// by [`fast_values`]. Everything else goes through [`Parser::line`].
     fn block(&mut self, line_no: usize, text: &[u8]) -> Result<usize, CurvesError> {
         let (mut at, mut count) = (0, 0);
-        // A new block: the separator index of the last one is stale.
-        self.seps.n = 0;
-        self.seps.cur = 0;
         // Up to the header, by the general path.
         while at < text.len() && self.channels.is_none() {
             count += 1;
@@ -412,7 +389,6 @@ impl Parser {
                                 at,
                                 (key, mask, len),
                                 (&mut c.r, &mut *dst),
-                                &mut self.seps,
                             );
                             count += rows;
                             at = next;
@@ -687,7 +663,6 @@ trait Reader: Copy {
         at: usize,
         _key: (u64, u64, usize),
         _dst: (&mut Vec<f64>, &mut Vec<f64>),
-        _index: &mut SepIndex,
     ) -> (usize, usize) {
         (0, at)
     }
@@ -885,7 +860,7 @@ fn word(b: &[u8], i: usize) -> u64 {
 #[cfg(target_arch = "x86_64")]
 mod simd {
     use super::{
-        CurvesError, POW10_F64, Parser, Reader, SepIndex, digit_run, number_prefix, word,
+        CurvesError, POW10_F64, Parser, Reader, digit_run, number_prefix, word,
     };
     use core::arch::x86_64::__m128i;
     use pulp::x86::V2;
@@ -911,70 +886,9 @@ mod simd {
             at: usize,
             key: (u64, u64, usize),
             dst: (&mut Vec<f64>, &mut Vec<f64>),
-            index: &mut SepIndex,
         ) -> (usize, usize) {
-            pairs(self.0, text, at, key, dst, index)
+            pairs(self.0, text, at, key, dst)
         }
-    }
-
-    /// Bytes of text indexed at a time: the index (4 bytes an entry) and the text stay in the
-    /// first-level cache, and a curve change costs at most one re-index of this much.
-    const WINDOW: usize = 4096;
-
-    /// The commas and newlines of 64 bytes as a bit mask (bit k for byte k).
-    #[inline(always)]
-    fn separators(simd: V2, chunk: &[u8; 64]) -> u64 {
-        let sse2 = simd.sse2;
-        let mut m = 0u64;
-        for (k, part) in chunk.chunks_exact(16).enumerate() {
-            let bytes: [u8; 16] = part.try_into().unwrap_or_default();
-            let x: __m128i = pulp::cast(bytes);
-            let hit = sse2._mm_or_si128(
-                sse2._mm_cmpeq_epi8(x, sse2._mm_set1_epi8(b',' as i8)),
-                sse2._mm_cmpeq_epi8(x, sse2._mm_set1_epi8(b'\n' as i8)),
-            );
-            m |= u64::from(sse2._mm_movemask_epi8(hit) as u16) << (16 * k);
-        }
-        m
-    }
-
-    /// Indexes the separators of `text[from..]` in whole 64-byte chunks, starting below
-    /// `limit` (so every load ends inside `text` when `limit` + 64 <= `text.len()`), at most
-    /// [`WINDOW`] bytes. Positions are written eight at a time whatever the count (a chunk of
-    /// these rows holds 4 to 7), so the loop has no branch on the data.
-    #[inline(always)]
-    fn build(simd: V2, text: &[u8], from: usize, limit: usize, ix: &mut SepIndex) {
-        if ix.seps.len() < WINDOW + 128 {
-            ix.seps.resize(WINDOW + 128, 0);
-        }
-        let to = (from + WINDOW).min(limit);
-        let (mut n, mut base) = (0, from);
-        while base < to {
-            let Some(chunk) = text.get(base..base + 64).and_then(|c| c.try_into().ok()) else {
-                break;
-            };
-            let mut m = separators(simd, chunk);
-            let count = m.count_ones() as usize;
-            let rel = (base - from) as u32;
-            let Some(out) = ix.seps.get_mut(n..n + 64) else {
-                break;
-            };
-            for slot in &mut out[..8] {
-                *slot = rel + m.trailing_zeros();
-                m &= m.wrapping_sub(1);
-            }
-            if count > 8 {
-                for slot in &mut out[8..count] {
-                    *slot = rel + m.trailing_zeros();
-                    m &= m.wrapping_sub(1);
-                }
-            }
-            n += count;
-            base += 64;
-        }
-        ix.from = from;
-        ix.n = n;
-        ix.cur = 0;
     }
 
     /// What a plain decimal field of `len` bytes (after the sign) with its point at `p` (`p` =
@@ -1161,34 +1075,6 @@ mod simd {
         Some(if neg { -v } else { v })
     }
 
-    /// [`Reader::pairs`] by the separator index: a row's id comma, its comma and its newline
-    /// are the next entries of the index, so where its numbers are is known before they are
-    /// read; the row is taken when the id matches `key`, the separators are a comma and a
-    /// newline, and each field is exactly one number of [`decimal`]'s shapes. Anything else
-    /// (and rows within 64 bytes of the end of `text`) stops it.
-    #[inline(always)]
-    pub(super) fn pairs(
-        simd: V2,
-        text: &[u8],
-        at: usize,
-        key: (u64, u64, usize),
-        dst: (&mut Vec<f64>, &mut Vec<f64>),
-        ix: &mut SepIndex,
-    ) -> (usize, usize) {
-        if SCAN {
-            let _ = ix;
-            return pairs_scan(simd, text, at, key, dst);
-        }
-        // Batch rows have the id's comma first.
-        if key.2 > 0 {
-            pairs_with::<1>(simd, text, at, key, dst, ix)
-        } else {
-            pairs_with::<0>(simd, text, at, key, dst, ix)
-        }
-    }
-
-    const SCAN: bool = true;
-
     /// The separators (commas and newlines) and the commas among the 16 bytes at `row[at..]`,
     /// as bit masks.
     #[inline(always)]
@@ -1202,8 +1088,15 @@ mod simd {
         Some((seps, sse2._mm_movemask_epi8(comma) as u32))
     }
 
+    /// [`Reader::pairs`] for the vector reader: the rows of one curve while each is its id
+    /// (`key`), then exactly two fields, each one number of [`field`]'s shapes (else of
+    /// [`field_general`]'s), ended by a comma and a newline. The 32 bytes after the id are
+    /// scanned for separators at once, so a row's start depends on the previous row through
+    /// one load and one scan (the numbers' conversion overlaps the next rows), and every read
+    /// is inside a 128-byte window of the row (rows that start in the last 128 bytes of `text`
+    /// are left to the caller). Stops at the first row that is not so.
     #[inline(always)]
-    fn pairs_scan(
+    pub(super) fn pairs(
         simd: V2,
         text: &[u8],
         mut at: usize,
@@ -1221,11 +1114,11 @@ mod simd {
                 break;
             };
             let head: [u8; 8] = row[..8].try_into().unwrap_or_default();
-            if u64::from_le_bytes(head) & mask != key || len > 16 {
+            // (The key is at most one word: the bound lets the compiler drop bounds checks.)
+            if u64::from_le_bytes(head) & mask != key || len > 8 {
                 break;
             }
-            // The 32 bytes after the id at once: both separators of the row are found from
-            // one mask, so the next row's start waits on one load and one scan, not two.
+            // Both separators of the row from one mask of the 32 bytes after the id.
             let (Some((seps_lo, commas_lo)), Some((seps_hi, commas_hi))) =
                 (seps16(simd, row, len), seps16(simd, row, len + 16))
             else {
@@ -1235,7 +1128,10 @@ mod simd {
             let commas = commas_lo | commas_hi << 16;
             let rest = seps & seps.wrapping_sub(1);
             // The first separator a comma, the second a newline (not a comma).
-            if rest == 0 || commas & seps & seps.wrapping_neg() == 0 || commas & rest & rest.wrapping_neg() != 0 {
+            if rest == 0
+                || commas & seps & seps.wrapping_neg() == 0
+                || commas & rest & rest.wrapping_neg() != 0
+            {
                 break;
             }
             let s1 = len + seps.trailing_zeros() as usize;
@@ -1263,81 +1159,6 @@ mod simd {
     /// Rows read at a time into arrays before they are appended to the curve's vectors: the
     /// vectors' lengths then stay out of the row loop.
     const BATCH: usize = 16;
-
-    /// [`pairs`] for rows with `SKIP` separators before the numbers (1: the id's comma).
-    #[inline(always)]
-    fn pairs_with<const SKIP: usize>(
-        simd: V2,
-        text: &[u8],
-        mut at: usize,
-        (key, mask, len): (u64, u64, usize),
-        (r, v): (&mut Vec<f64>, &mut Vec<f64>),
-        ix: &mut SepIndex,
-    ) -> (usize, usize) {
-        // Every row starts below `limit`, so the 128 bytes from its start are in `text`.
-        let Some(limit) = text.len().checked_sub(128) else {
-            return (0, at);
-        };
-        let (mut rows, mut held, mut fresh) = (0, 0, false);
-        let (mut xs, mut ys) = ([0.0f64; BATCH], [0.0f64; BATCH]);
-        'windows: loop {
-            let from = ix.from;
-            let seps = ix.seps.get(..ix.n).unwrap_or_default();
-            let mut cur = ix.cur;
-            // Past the rows consumed by another path since the last call.
-            while cur < seps.len() && seps[cur] as usize + from < at {
-                cur += 1;
-            }
-            while at < limit && word(text, at) & mask == key {
-                let Some(s) = seps.get(cur..cur + SKIP + 2) else {
-                    // Out of the window: index the next one from this row (unless that was
-                    // just done: a line longer than the window).
-                    if fresh {
-                        break;
-                    }
-                    build(simd, text, at, limit, ix);
-                    fresh = true;
-                    continue 'windows;
-                };
-                fresh = false;
-                let Some(row) = text.get(at..at + 128).and_then(|t| <&[u8; 128]>::try_from(t).ok())
-                else {
-                    break;
-                };
-                // Offsets in the row: the separators must lie in its first 96 bytes.
-                let rel = |k: usize| (s[k] as usize + from).wrapping_sub(at);
-                let (s1, s2) = (rel(SKIP), rel(SKIP + 1));
-                if (SKIP == 1 && rel(0) + 1 != len)
-                    || s2 >= 96
-                    || s1 >= s2
-                    || row[s1] != b','
-                    || row[s2] != b'\n'
-                {
-                    break;
-                }
-                let (Some(x), Some(y)) = (field(simd, row, len, s1), field(simd, row, s1 + 1, s2))
-                else {
-                    break;
-                };
-                xs[held % BATCH] = x;
-                ys[held % BATCH] = y;
-                held += 1;
-                if held == BATCH {
-                    r.extend_from_slice(&xs);
-                    v.extend_from_slice(&ys);
-                    held = 0;
-                }
-                rows += 1;
-                at += s2 + 1;
-                cur += SKIP + 2;
-            }
-            ix.cur = cur;
-            break;
-        }
-        r.extend_from_slice(&xs[..held]);
-        v.extend_from_slice(&ys[..held]);
-        (rows, at)
-    }
 
     /// [`Parser::rows`] with the vector reader, as the job `pulp` compiles for the CPU's
     /// instruction set: a type with an `#[inline(always)]` call rather than a closure, whose
