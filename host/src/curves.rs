@@ -268,9 +268,21 @@ struct Parser {
     /// of that curve is then recognised by one load and one compare. Outside batch files the
     /// key is empty (mask 0) and matches every row.
     key: Option<(u64, u64, usize)>,
-    /// Whether [`Parser::block`] may read rows with the vector reader ([`simd`]) where the CPU
-    /// has one; off only in tests, which compare it with the portable reader.
-    vector: bool,
+    /// Which row readers [`Parser::block`] may use: the best the CPU has, except in tests,
+    /// which compare them.
+    readers: Readers,
+}
+
+/// The row readers [`Parser::block`] may choose from (tests pick one to compare them).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(not(test), allow(dead_code))]
+enum Readers {
+    /// The best the CPU has: AVX2, SSE4.1 or the portable reader.
+    Best,
+    /// SSE4.1 at most (what x86-64 CPUs without AVX2 run).
+    Sse41,
+    /// The portable reader only.
+    Portable,
 }
 
 impl Parser {
@@ -284,7 +296,7 @@ impl Parser {
             key: None,
             handed_out: None,
             interleaved: false,
-            vector: true,
+            readers: Readers::Best,
         }
     }
 
@@ -329,8 +341,8 @@ impl Parser {
         count: usize,
     ) -> Result<usize, CurvesError> {
         #[cfg(target_arch = "x86_64")]
-        if self.vector {
-            if let Some(v3) = pulp::x86::V3::try_new() {
+        if self.readers != Readers::Portable {
+            if let Some(v3) = pulp::x86::V3::try_new().filter(|_| self.readers == Readers::Best) {
                 return v3.vectorize(simd::Rows::<N> {
                     parser: self,
                     line_no,
@@ -384,12 +396,8 @@ impl Parser {
                             // As many rows as the reader takes from its separator index (none
                             // for the portable one), then one row by the reader alone: a row
                             // the index path declined, or the last ones of the block.
-                            let (rows, next) = reader.pairs(
-                                text,
-                                at,
-                                (key, mask, len),
-                                (&mut c.r, &mut *dst),
-                            );
+                            let (rows, next) =
+                                reader.pairs(text, at, (key, mask, len), (&mut c.r, &mut *dst));
                             count += rows;
                             at = next;
                             if word(text, at) & mask == key
@@ -859,9 +867,7 @@ fn word(b: &[u8], i: usize) -> u64 {
 /// gives; every other shape goes to [`number_prefix`].
 #[cfg(target_arch = "x86_64")]
 mod simd {
-    use super::{
-        CurvesError, POW10_F64, Parser, Reader, digit_run, number_prefix, word,
-    };
+    use super::{CurvesError, POW10_F64, Parser, Reader, digit_run, number_prefix, word};
     use core::arch::x86_64::__m128i;
     use pulp::x86::V2;
 
@@ -953,7 +959,7 @@ mod simd {
     /// ten is a division by an exact double (q <= 0: Clinger's fast path, always a division,
     /// by 1 for integers). Anything else by [`field_general`].
     #[inline(always)]
-    fn field(simd: V2, text: &[u8; 128], start: usize, end: usize) -> Option<f64> {
+    pub(super) fn field(simd: V2, text: &[u8; 128], start: usize, end: usize) -> Option<f64> {
         let neg = *text.get(start)? == b'-';
         let a = start + usize::from(neg);
         let len = end.checked_sub(a)?;
@@ -1109,7 +1115,9 @@ mod simd {
         let (mut rows, mut held) = (0, 0);
         let (mut xs, mut ys) = ([0.0f64; BATCH], [0.0f64; BATCH]);
         while at < limit {
-            let Some(row) = text.get(at..at + 128).and_then(|t| <&[u8; 128]>::try_from(t).ok())
+            let Some(row) = text
+                .get(at..at + 128)
+                .and_then(|t| <&[u8; 128]>::try_from(t).ok())
             else {
                 break;
             };
@@ -1504,6 +1512,174 @@ mod tests {
         // Too near the end of the text for the word reads: the crate's reading.
         assert_eq!(short_decimal(b"1.5,2\n"), None);
         assert_eq!(number_prefix(b"1.5,2\n"), Some((1.5, 3)));
+    }
+
+    /// The vector readers' two ways of reading a number, each where it answers at all,
+    /// against the portable [`number_prefix`] (itself held to `fast-float2` above): a number
+    /// at the start of a text ([`simd::decimal`], what the vector reader's `number` uses) and
+    /// a field whose end is known ([`simd::field`], what its row loop uses).
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn vector_numbers_are_number_prefix() {
+        let Some(v2) = pulp::x86::V2::try_new() else {
+            return;
+        };
+        let mut runner = proptest::test_runner::TestRunner::new(
+            proptest::test_runner::Config::with_cases(20_000),
+        );
+        runner
+            .run(&decimal_text(), |text| {
+                let b = text.as_bytes();
+                let want = number_prefix(b).map(|(v, k)| (v.to_bits(), k));
+                if let Some((v, k)) = simd::decimal(v2, b) {
+                    proptest::prop_assert_eq!(Some((v.to_bits(), k)), want, "{:?}", text);
+                }
+                proptest::prop_assert_eq!(
+                    simd::Sse(v2).number(b).map(|(v, k)| (v.to_bits(), k)),
+                    want,
+                    "{:?}",
+                    text
+                );
+                // The text up to its first separator as a field of a row, whose reading is
+                // the portable reader's when the whole field is one number.
+                let field = text.split([',', '\n']).next().unwrap_or_default();
+                if field.len() <= 60 {
+                    let mut row = [b'0'; 128];
+                    row[..2].copy_from_slice(b"7,");
+                    row[2..2 + field.len()].copy_from_slice(field.as_bytes());
+                    row[2 + field.len()] = b'\n';
+                    let whole = number_prefix(&row[2..])
+                        .filter(|p| p.1 == field.len())
+                        .map(|p| p.0.to_bits());
+                    if let Some(v) = simd::field(v2, &row, 2, 2 + field.len()) {
+                        proptest::prop_assert_eq!(Some(v.to_bits()), whole, "{:?}", field);
+                    }
+                }
+                Ok(())
+            })
+            .unwrap();
+    }
+
+    /// The vector readers read the usual shapes themselves (so the comparisons above and
+    /// below are not vacuous): on this machine (every x86-64 test machine has SSE4.1) the
+    /// number and field readers answer for `%.10g`'s shapes, and the row loop takes every
+    /// row of a block but those in its last 128 bytes.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn vector_reader_takes_the_usual_shapes() {
+        let v2 = pulp::x86::V2::try_new().expect("an x86-64 machine with SSE4.1");
+        for (text, v) in [
+            ("12.09039342", 12.09039342f64),
+            ("5.096327544e-05", 5.096327544e-05),
+            ("0.6002071621", 0.6002071621),
+            ("0.0005610659461", 0.0005610659461),
+            ("139.2325188", 139.2325188),
+            ("-3", -3.0),
+            ("5.", 5.0),
+            (".5", 0.5),
+            ("-0", -0.0),
+            ("1.5E+3", 1500.0),
+            ("123456789012345", 123_456_789_012_345.0),
+        ] {
+            let padded = format!("{text},{PAD}{PAD}");
+            assert_eq!(
+                simd::decimal(v2, padded.as_bytes()).map(|(x, k)| (x.to_bits(), k)),
+                Some((v.to_bits(), text.len())),
+                "{text}"
+            );
+            let mut row = [b'0'; 128];
+            row[..2].copy_from_slice(b"0,");
+            row[2..2 + text.len()].copy_from_slice(text.as_bytes());
+            row[2 + text.len()] = b'\n';
+            assert_eq!(
+                simd::field(v2, &row, 2, 2 + text.len()).map(f64::to_bits),
+                Some(v.to_bits()),
+                "{text}"
+            );
+        }
+        let row = "17,12.09039342,5.096327544e-05\n";
+        let text = row.repeat(100);
+        let key = (u64::from_le_bytes(*b"17,\0\0\0\0\0"), 0xff_ffff, 3);
+        let (mut r, mut v) = (Vec::new(), Vec::new());
+        let (rows, at) = simd::pairs(v2, text.as_bytes(), 0, key, (&mut r, &mut v));
+        let expected = (text.len() - 128).div_ceil(row.len());
+        assert_eq!((rows, at), (expected, expected * row.len()));
+        assert_eq!(r, vec![12.09039342; rows]);
+        assert_eq!(v, vec![5.096327544e-05; rows]);
+    }
+
+    /// [`read`] with the given row readers, the text handed out `step` bytes at a time.
+    fn read_with(
+        text: &[u8],
+        batch: bool,
+        readers: Readers,
+        step: usize,
+    ) -> Result<Vec<Curve>, String> {
+        let mut p = Parser::new(batch);
+        p.readers = readers;
+        stream(Trickle(text, step), &mut p, |_| Ok(false)).map_err(|e| e.to_string())?;
+        p.finish().map_err(|e| e.to_string())
+    }
+
+    /// A curve file of rows in the shapes the readers meet: the usual `%.10g` numbers mostly,
+    /// any decimal, odd values and text sometimes, ids that repeat (rows of a curve together)
+    /// or not, and now and then a CRLF, a comment, a blank line, spaces or a wrong column count.
+    fn curve_file() -> impl Strategy<Value = (bool, String)> {
+        let number = prop_oneof![
+            8 => "-?[0-9]{1,4}\\.[0-9]{1,12}(e-0[1-9])?",
+            2 => "[-+]?[0-9]{0,17}(\\.[0-9]{0,17})?([eE][-+]?[0-9]{0,4})?",
+            1 => "inf|NaN|-0|0|1e400|1e-400|x|-|\\.|1\\.2\\.3",
+        ];
+        let end = prop_oneof![
+            20 => proptest::strategy::Just("\n"),
+            1 => proptest::strategy::Just("\r\n"),
+            1 => proptest::strategy::Just(" # c\n"),
+            1 => proptest::strategy::Just("\n\n"),
+            1 => proptest::strategy::Just(",5\n"),
+        ];
+        let id = prop_oneof![6 => "[0-2]", 1 => "[a-z]{1,9}", 1 => " 1"];
+        let row = (id, number.clone(), number, end);
+        (proptest::bool::ANY, proptest::collection::vec(row, 0..300)).prop_map(|(batch, rows)| {
+            let mut text = String::from(if batch { "id,r,value\n" } else { "r,value\n" });
+            for (id, r, v, end) in rows {
+                if batch {
+                    text += &format!("{id},");
+                }
+                text += &format!("{r},{v}{end}");
+            }
+            (batch, text)
+        })
+    }
+
+    /// Every number of the curves as its bits (NaN compared as bits too).
+    type Bits = Vec<(Option<String>, Vec<u64>, Vec<Vec<u64>>)>;
+
+    fn bits(curves: &[Curve]) -> Bits {
+        let b = |x: &Vec<f64>| x.iter().map(|v| v.to_bits()).collect();
+        curves
+            .iter()
+            .map(|c| (c.id.clone(), b(&c.r), c.channels.iter().map(b).collect()))
+            .collect()
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(2_000))]
+        /// Whole files read by the vector readers (AVX2 where the machine has it, SSE4.1) are
+        /// the portable reader's: the same curves bit for bit, or the same error, whether
+        /// the text arrives at once or in pieces.
+        #[test]
+        fn vector_rows_are_portable_rows((batch, text) in curve_file()) {
+            for step in [usize::MAX, 97] {
+                let want = read_with(text.as_bytes(), batch, Readers::Portable, step);
+                for readers in [Readers::Best, Readers::Sse41] {
+                    let got = read_with(text.as_bytes(), batch, readers, step);
+                    match (&got, &want) {
+                        (Ok(g), Ok(w)) => proptest::prop_assert_eq!(bits(g), bits(w)),
+                        _ => proptest::prop_assert_eq!(&got, &want),
+                    }
+                }
+            }
+        }
     }
 
     /// A reader that hands out a few bytes at a time, so lines straddle every read.
