@@ -14,9 +14,13 @@
 //! Hand-written rather than with the `csv` crate: the format is four fixed numeric columns, and
 //! `fit-curve --batch` parses millions of rows on the path the throughput target is
 //! measured on (BENCHMARKS.md). One pass over the bytes of a block of lines, with no per-row
-//! allocation and no per-row search for the newline; plain decimals by `short_decimal` (a
-//! word-at-a-time reader with Clinger's exact fast path, ~1/3 fewer instructions a row than
-//! `fast-float2`), every other number shape by `fast-float2`, to the same bits.
+//! allocation and no per-row search for the newline. On x86-64 the rows of a curve are read by
+//! a vector reader (`simd`: SSE4.1, AVX2's encoding where the CPU has it, chosen at run time):
+//! a row's two separators from one 32-byte compare, each field's digits converted by a shuffle
+//! and three multiply-adds. Elsewhere, and for the rows it declines, plain decimals by
+//! `short_decimal` (a word-at-a-time reader, ~1/3 fewer instructions a row than `fast-float2`).
+//! Both end in Clinger's exact fast path; every other number shape is read by `fast-float2`,
+//! to the same bits, so the result never depends on the reader or the machine.
 
 use std::collections::{HashMap, HashSet};
 
@@ -858,13 +862,23 @@ fn word(b: &[u8], i: usize) -> u64 {
 ///
 /// Why by hand: reading the numbers was a third of `fit-curve --batch`'s time, and scalar
 /// readers had run out of levers (BENCHMARKS.md "Second pass": word-at-a-time readers stay
-/// bound by their chains of shifts and multiplies). Here a plain decimal's mantissa is one
-/// 16-byte load: the digit and point bytes flagged by two compares and read out as bit masks,
-/// the point and the end from those masks, the point squeezed out and the digits right-aligned
-/// by one byte shuffle, the (up to 15) digits converted together by three multiply-adds and a
-/// pack. Then the same exact fast path as [`short_decimal`] (Clinger: M < 10^15 < 2^53 and
+/// bound by their chains of shifts and multiplies, and each row's start waited on the
+/// previous row's numbers being scanned). Here:
+/// - the row loop ([`pairs`]) finds a row's comma and newline from one compare of the 32
+///   bytes after its id, so the next row starts after one load and one scan while the
+///   numbers' conversion overlaps the following rows;
+/// - a field whose ends are known ([`field`]) is one 16-byte load: the digit and point bytes
+///   flagged by two compares and read out as bit masks, its shape (length, point position)
+///   one entry of a compile-time table ([`SHAPES`]) holding the digit mask to expect, the
+///   shuffle that squeezes the point out and right-aligns the digits, and the power of ten;
+///   the (up to 15) digits converted together by three multiply-adds and a pack;
+/// - a number at the start of a text ([`decimal`], for the rows the loop declines) by the
+///   same masks, its end found from them.
+///
+/// Every path ends in the exact fast path of [`short_decimal`] (Clinger: M < 10^15 < 2^53 and
 /// |q| ≤ 22, one correctly rounded multiply or divide), so the bits are those `fast-float2`
-/// gives; every other shape goes to [`number_prefix`].
+/// gives; every other shape goes to [`number_prefix`]. No FMA anywhere: the results must
+/// be the portable reader's bit for bit.
 #[cfg(target_arch = "x86_64")]
 mod simd {
     use super::{CurvesError, POW10_F64, Parser, Reader, digit_run, number_prefix, word};
