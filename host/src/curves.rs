@@ -917,10 +917,9 @@ mod simd {
     #[derive(Clone, Copy)]
     struct Shape {
         shuffle: [u8; 16],
+        /// `u32::MAX` where the shape is not a number [`field`] reads this way (no digit, or
+        /// more than 15): no digit mask of a field of at most 16 bytes is that.
         digits: u32,
-        /// 0 where the shape is not a number [`field`] reads this way (no digit, or more
-        /// than 15): no digit mask matches it.
-        valid: u32,
         divisor: f64,
     }
 
@@ -930,8 +929,7 @@ mod simd {
     const fn shapes() -> [[Shape; 17]; 17] {
         let none = Shape {
             shuffle: [0x80; 16],
-            digits: 0,
-            valid: 0,
+            digits: u32::MAX,
             divisor: 1.0,
         };
         let mut table = [[none; 17]; 17];
@@ -954,7 +952,6 @@ mod simd {
                     table[len][p] = Shape {
                         shuffle,
                         digits: if dot { all & !(1u32 << p) } else { all },
-                        valid: 1,
                         divisor: POW10_F64[frac],
                     };
                 }
@@ -990,7 +987,7 @@ mod simd {
         let dots = sse2._mm_movemask_epi8(is_dot) as u32;
         let p = (dots.trailing_zeros() as usize).min(len);
         let shape = &SHAPES[len][p];
-        if shape.valid == 0 || digit & ((1u32 << len) - 1) != shape.digits {
+        if digit & ((1u32 << len) - 1) != shape.digits {
             return field_general(simd, text, start, end);
         }
         let digits_right = ssse3._mm_shuffle_epi8(d, pulp::cast(shape.shuffle));
@@ -1158,8 +1155,10 @@ mod simd {
             }
             let s1 = len + seps.trailing_zeros() as usize;
             let s2 = len + rest.trailing_zeros() as usize;
-            let (Some(x), Some(y)) = (field(simd, row, len, s1), field(simd, row, s1 + 1, s2))
-            else {
+            let Some(x) = field(simd, row, len, s1) else {
+                break;
+            };
+            let Some(y) = field(simd, row, s1 + 1, s2) else {
                 break;
             };
             xs[held % BATCH] = x;
