@@ -971,13 +971,25 @@ mod simd {
     /// by 1 for integers). Anything else by [`field_general`].
     #[inline(always)]
     pub(super) fn field(simd: V2, text: &[u8; 128], start: usize, end: usize) -> Option<f64> {
-        let neg = *text.get(start)? == b'-';
-        let a = start + usize::from(neg);
-        let len = end.checked_sub(a)?;
+        if *text.get(start)? == b'-' {
+            // Rare in these files, so on a branch of its own: the magnitude (with no second
+            // sign), negated (exactly: a sign flip, −0 for 0).
+            if matches!(text.get(start + 1), Some(b'-' | b'+')) {
+                return None;
+            }
+            return magnitude(simd, text, start + 1, end).map(|v| -v);
+        }
+        magnitude(simd, text, start, end)
+    }
+
+    /// [`field`] without a sign: `text[start]` is not `-`.
+    #[inline(always)]
+    fn magnitude(simd: V2, text: &[u8; 128], start: usize, end: usize) -> Option<f64> {
+        let len = end.checked_sub(start)?;
         if len > 16 {
             return None;
         }
-        let window: [u8; 16] = text.get(a..a + 16)?.try_into().ok()?;
+        let window: [u8; 16] = text.get(start..start + 16)?.try_into().ok()?;
         let x: __m128i = pulp::cast(window);
         let (sse2, ssse3, sse4_1) = (simd.sse2, simd.ssse3, simd.sse4_1);
         let d = sse2._mm_sub_epi8(x, sse2._mm_set1_epi8(b'0' as i8));
@@ -1003,8 +1015,7 @@ mod simd {
         );
         let [high, low, _, _]: [u32; 4] = pulp::cast(eights);
         let mant = u64::from(high) * 100_000_000 + u64::from(low);
-        let v = mant as i64 as f64 / shape.divisor;
-        Some(if neg { -v } else { v })
+        Some(mant as i64 as f64 / shape.divisor)
     }
 
     /// [`field`] for every shape: the number that is exactly `text[start..end]`, in
