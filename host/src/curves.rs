@@ -911,7 +911,7 @@ mod simd {
         }
     }
 
-    /// What a plain decimal field of `len` bytes (after the sign) with its point at `p` (`p` =
+    /// What a plain decimal field of `len` bytes (after the sign) with its point at `p` (`p` >=
     /// `len`: no point) needs: the shuffle that squeezes the point out and right-aligns the
     /// digits, the digit mask its bytes must show, and the power of ten to divide by.
     #[derive(Clone, Copy)]
@@ -923,7 +923,7 @@ mod simd {
         divisor: f64,
     }
 
-    /// [`Shape`]s by (`len`, `p`), `p` <= `len` <= 16, built at compile time.
+    /// [`Shape`]s by (`len`, `p`), `len` and `p` <= 16, built at compile time.
     static SHAPES: [[Shape; 17]; 17] = shapes();
 
     const fn shapes() -> [[Shape; 17]; 17] {
@@ -935,8 +935,9 @@ mod simd {
         let mut table = [[none; 17]; 17];
         let mut len = 0;
         while len <= 16 {
+            // A point at or past the end (the next field's, or none: `p` = 16) is no point.
             let mut p = 0;
-            while p <= len {
+            while p <= 16 {
                 let dot = p < len;
                 let n = len - dot as usize;
                 if n >= 1 && n <= 15 {
@@ -997,7 +998,7 @@ mod simd {
         let is_dot = sse2._mm_cmpeq_epi8(x, sse2._mm_set1_epi8(b'.' as i8));
         let digit = sse2._mm_movemask_epi8(is_digit) as u32;
         let dots = sse2._mm_movemask_epi8(is_dot) as u32;
-        let p = (dots.trailing_zeros() as usize).min(len);
+        let p = (dots | 1 << 16).trailing_zeros() as usize;
         let shape = &SHAPES[len][p];
         if digit & ((1u32 << len) - 1) != shape.digits {
             return field_general(simd, text, start, end);
