@@ -398,9 +398,9 @@ impl Parser {
                     // One channel, the common case: the two numbers as scalars.
                     if let Some(dst) = c.channels.first_mut() {
                         loop {
-                            // As many rows as the reader takes from its separator index (none
-                            // for the portable one), then one row by the reader alone: a row
-                            // the index path declined, or the last ones of the block.
+                            // As many rows as the reader's row loop takes (none for the
+                            // portable one), then one row by the reader alone: a row that loop
+                            // declined, or the last ones of the block.
                             let (rows, next) =
                                 reader.pairs(text, at, (key, mask, len), (&mut c.r, &mut *dst));
                             count += rows;
@@ -964,7 +964,7 @@ mod simd {
         table
     }
 
-    /// The number that is exactly `text[start..end]` (a field whose ends the index gave).
+    /// The number that is exactly `text[start..end]` (a field whose ends the row's scan found).
     /// Plain decimals (`-`? digits with at most one point, 1 to 15 digits, 16 bytes at most
     /// after the sign: every field `%.10g` writes without an exponent) by one table entry
     /// ([`SHAPES`]): the shape is the field's length and its point's position, so one compare
