@@ -14,9 +14,13 @@
 //! Hand-written rather than with the `csv` crate: the format is four fixed numeric columns, and
 //! `fit-curve --batch` parses millions of rows on the path the throughput target is
 //! measured on (BENCHMARKS.md). One pass over the bytes of a block of lines, with no per-row
-//! allocation and no per-row search for the newline; plain decimals by `short_decimal` (a
-//! word-at-a-time reader with Clinger's exact fast path, ~1/3 fewer instructions a row than
-//! `fast-float2`), every other number shape by `fast-float2`, to the same bits.
+//! allocation and no per-row search for the newline. On x86-64 the rows of a curve are read by
+//! a vector reader (`simd`: SSE4.1, AVX2's encoding where the CPU has it, chosen at run time):
+//! a row's two separators from one 32-byte compare, each field's digits converted by a shuffle
+//! and three multiply-adds. Elsewhere, and for the rows it declines, plain decimals by
+//! `short_decimal` (a word-at-a-time reader, ~1/3 fewer instructions a row than `fast-float2`).
+//! Both end in Clinger's exact fast path; every other number shape is read by `fast-float2`,
+//! to the same bits, so the result never depends on the reader or the machine.
 
 use std::collections::{HashMap, HashSet};
 
@@ -268,6 +272,22 @@ struct Parser {
     /// of that curve is then recognised by one load and one compare. Outside batch files the
     /// key is empty (mask 0) and matches every row.
     key: Option<(u64, u64, usize)>,
+    /// Which row readers [`Parser::block`] may use: the best the CPU has, except in tests,
+    /// which compare them. (Only x86-64 has a reader to choose.)
+    #[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
+    readers: Readers,
+}
+
+/// The row readers [`Parser::block`] may choose from (tests pick one to compare them).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(not(test), allow(dead_code))]
+enum Readers {
+    /// The best the CPU has: AVX2, SSE4.1 or the portable reader.
+    Best,
+    /// SSE4.1 at most (what x86-64 CPUs without AVX2 run).
+    Sse41,
+    /// The portable reader only.
+    Portable,
 }
 
 impl Parser {
@@ -281,6 +301,7 @@ impl Parser {
             key: None,
             handed_out: None,
             interleaved: false,
+            readers: Readers::Best,
         }
     }
 
@@ -306,22 +327,64 @@ impl Parser {
             at = end + 1;
         }
         match self.channels {
-            Some(1) => self.rows::<2>(line_no, text, at, count),
-            Some(_) => self.rows::<4>(line_no, text, at, count),
+            Some(1) => self.rows_on_cpu::<2>(line_no, text, at, count),
+            Some(_) => self.rows_on_cpu::<4>(line_no, text, at, count),
             None => Ok(count),
         }
+    }
+
+    /// [`Parser::rows`] with the best number reader this CPU has: on x86-64 the vector reader
+    /// ([`simd::Sse`]), compiled for AVX2 (VEX encoding, BMI's bit scans) where the CPU has it,
+    /// else for SSE4.1; elsewhere, or without SSE4.1, the portable one. Both read the same
+    /// numbers to the same bits (the tests hold them to it), so the output never depends on
+    /// the machine. Detection is one cached load per block.
+    fn rows_on_cpu<const N: usize>(
+        &mut self,
+        line_no: usize,
+        text: &[u8],
+        at: usize,
+        count: usize,
+    ) -> Result<usize, CurvesError> {
+        #[cfg(target_arch = "x86_64")]
+        if self.readers != Readers::Portable {
+            if let Some(v3) = pulp::x86::V3::try_new().filter(|_| self.readers == Readers::Best) {
+                return v3.vectorize(simd::Rows::<N> {
+                    parser: self,
+                    line_no,
+                    text,
+                    at,
+                    count,
+                    reader: simd::Sse(*v3),
+                });
+            }
+            if let Some(v2) = pulp::x86::V2::try_new() {
+                return v2.vectorize(simd::Rows::<N> {
+                    parser: self,
+                    line_no,
+                    text,
+                    at,
+                    count,
+                    reader: simd::Sse(v2),
+                });
+            }
+        }
+        self.rows::<N, _>(line_no, text, at, count, Portable)
     }
 
     /// [`Parser::block`] after the header, for rows of `N` numbers (r and the channels): one
     /// loop per row width, so a row's numbers stay in registers from the parse to the curve's
     /// vectors (with the width a run-time value they went through an array on the stack, whose
     /// two 8-byte stores then a 16-byte load stalled store forwarding on every row).
-    fn rows<const N: usize>(
+    /// Inlined into [`Parser::rows_on_cpu`]'s callers so that it is compiled once per reader
+    /// and instruction set.
+    #[inline(always)]
+    fn rows<const N: usize, R: Reader>(
         &mut self,
         line_no: usize,
         text: &[u8],
         mut at: usize,
         mut count: usize,
+        reader: R,
     ) -> Result<usize, CurvesError> {
         let ch = N - 1;
         while at < text.len() {
@@ -334,18 +397,29 @@ impl Parser {
                 if N == 2 {
                     // One channel, the common case: the two numbers as scalars.
                     if let Some(dst) = c.channels.first_mut() {
-                        while word(text, at) & mask == key
-                            && let Some((r, v, next)) = fast_pair(text, at + len)
-                        {
-                            c.r.push(r);
-                            dst.push(v);
-                            count += 1;
+                        loop {
+                            // As many rows as the reader's row loop takes (none for the
+                            // portable one), then one row by the reader alone: a row that loop
+                            // declined, or the last ones of the block.
+                            let (rows, next) =
+                                reader.pairs(text, at, (key, mask, len), (&mut c.r, &mut *dst));
+                            count += rows;
                             at = next;
+                            if word(text, at) & mask == key
+                                && let Some((r, v, next)) = fast_pair(text, at + len, reader)
+                            {
+                                c.r.push(r);
+                                dst.push(v);
+                                count += 1;
+                                at = next;
+                            } else {
+                                break;
+                            }
                         }
                     }
                 } else {
                     while word(text, at) & mask == key
-                        && let Some((values, next)) = fast_values::<N>(text, at + len)
+                        && let Some((values, next)) = fast_values::<N, R>(text, at + len, reader)
                     {
                         c.push_values(&values);
                         count += 1;
@@ -358,7 +432,7 @@ impl Parser {
             }
             count += 1;
             if let Some((id, from)) = fast_id(text, at, self.batch)
-                && let Some((values, next)) = fast_values::<N>(text, from)
+                && let Some((values, next)) = fast_values::<N, R>(text, from, reader)
             {
                 let k = self.curve_for(line_no + count, id, ch)?;
                 self.curves[k].push_values(&values);
@@ -494,11 +568,15 @@ fn fast_id(text: &[u8], at: usize, batch: bool) -> Option<(&[u8], usize)> {
 /// the values and where the next line starts. `None` for anything else, which the general path
 /// ([`slow_row`]) then reads or rejects.
 #[inline(always)]
-fn fast_values<const N: usize>(text: &[u8], at: usize) -> Option<([f64; N], usize)> {
+fn fast_values<const N: usize, R: Reader>(
+    text: &[u8],
+    at: usize,
+    reader: R,
+) -> Option<([f64; N], usize)> {
     let mut values = [0.0f64; N];
     let mut i = at;
     for (col, v) in values.iter_mut().enumerate() {
-        let (x, used) = number_prefix(text.get(i..)?)?;
+        let (x, used) = reader.number(text.get(i..)?)?;
         *v = x;
         i += used;
         if col + 1 < N {
@@ -517,13 +595,13 @@ fn fast_values<const N: usize>(text: &[u8], at: usize) -> Option<([f64; N], usiz
 
 /// [`fast_values`] for two numbers, returned as scalars.
 #[inline(always)]
-fn fast_pair(text: &[u8], at: usize) -> Option<(f64, f64, usize)> {
-    let (x, used) = number_prefix(text.get(at..)?)?;
+fn fast_pair(text: &[u8], at: usize, reader: impl Reader) -> Option<(f64, f64, usize)> {
+    let (x, used) = reader.number(text.get(at..)?)?;
     let i = at + used;
     if text.get(i) != Some(&b',') {
         return None;
     }
-    let (y, used) = number_prefix(text.get(i + 1..)?)?;
+    let (y, used) = reader.number(text.get(i + 1..)?)?;
     let j = i + 1 + used;
     match text.get(j..) {
         Some([b'\n', ..]) => Some((x, y, j + 1)),
@@ -579,6 +657,39 @@ fn slow_row(
 /// one number.
 fn parse_f64(s: &str) -> Option<f64> {
     fast_float2::parse(s).ok()
+}
+
+/// How the row loop ([`Parser::rows`]) reads a number at the start of `b`: the value and the
+/// bytes it takes, always [`number_prefix`]'s answer (the same bits, the same length).
+trait Reader: Copy {
+    fn number(self, b: &[u8]) -> Option<(f64, usize)>;
+
+    /// Rows of one curve of one value (`id,r,value` with the id and comma given as `key`, a
+    /// masked little-endian word and its length, as [`Parser::key`]) from `text[at..]`, pushed
+    /// to `dst`: how many and where the next line starts. Only rows read exactly as
+    /// [`fast_pair`] reads them; it may stop anywhere before (the portable reader takes none:
+    /// the row loop then goes row by row).
+    #[inline(always)]
+    fn pairs(
+        self,
+        _text: &[u8],
+        at: usize,
+        _key: (u64, u64, usize),
+        _dst: (&mut Vec<f64>, &mut Vec<f64>),
+    ) -> (usize, usize) {
+        (0, at)
+    }
+}
+
+/// The portable reader: [`number_prefix`] itself.
+#[derive(Clone, Copy)]
+struct Portable;
+
+impl Reader for Portable {
+    #[inline(always)]
+    fn number(self, b: &[u8]) -> Option<(f64, usize)> {
+        number_prefix(b)
+    }
 }
 
 /// The number at the start of `b` and the bytes it takes, correctly rounded: the usual CSV
@@ -744,6 +855,449 @@ fn word(b: &[u8], i: usize) -> u64 {
             w[..tail.len()].copy_from_slice(tail);
             u64::from_le_bytes(w)
         }
+    }
+}
+
+/// The vector number reader of x86-64 (SSE4.1, and AVX2's encoding where the CPU has it), by
+/// the `pulp` crate's safe intrinsics, which the workspace's `unsafe_code = "deny"` requires.
+///
+/// Why by hand: reading the numbers was a third of `fit-curve --batch`'s time, and scalar
+/// readers had run out of levers (BENCHMARKS.md "Second pass": word-at-a-time readers stay
+/// bound by their chains of shifts and multiplies, and each row's start waited on the
+/// previous row's numbers being scanned). Here:
+/// - the row loop ([`pairs`]) finds a row's comma and newline from one compare of the 32
+///   bytes after its id, so the next row starts after one load and one scan while the
+///   numbers' conversion overlaps the following rows;
+/// - a field whose ends are known ([`field`]) is one 16-byte load: the digit and point bytes
+///   flagged by two compares and read out as bit masks, its shape (length, point position)
+///   one entry of a compile-time table ([`SHAPES`]) holding the digit mask to expect, the
+///   shuffle that squeezes the point out and right-aligns the digits, and the power of ten;
+///   the (up to 15) digits converted together by three multiply-adds and a pack;
+/// - a number at the start of a text ([`decimal`], for the rows the loop declines) by the
+///   same masks, its end found from them.
+///
+/// Every path ends in the exact fast path of [`short_decimal`] (Clinger: M < 10^15 < 2^53 and
+/// |q| ≤ 22, one correctly rounded multiply or divide), so the bits are those `fast-float2`
+/// gives; every other shape goes to [`number_prefix`]. No FMA anywhere: the results must
+/// be the portable reader's bit for bit.
+#[cfg(target_arch = "x86_64")]
+mod simd {
+    use super::{CurvesError, POW10_F64, Parser, Reader, digit_run, number_prefix, word};
+    use core::arch::x86_64::__m128i;
+    use pulp::x86::V2;
+
+    /// The vector reader: [`decimal`], else [`number_prefix`]. Holds the token that proves
+    /// the CPU has SSE4.1.
+    #[derive(Clone, Copy)]
+    pub(super) struct Sse(pub(super) V2);
+
+    impl Reader for Sse {
+        #[inline(always)]
+        fn number(self, b: &[u8]) -> Option<(f64, usize)> {
+            match decimal(self.0, b) {
+                Some(x) => Some(x),
+                None => number_prefix(b),
+            }
+        }
+
+        #[inline(always)]
+        fn pairs(
+            self,
+            text: &[u8],
+            at: usize,
+            key: (u64, u64, usize),
+            dst: (&mut Vec<f64>, &mut Vec<f64>),
+        ) -> (usize, usize) {
+            pairs(self.0, text, at, key, dst)
+        }
+    }
+
+    /// What a plain decimal field of `len` bytes (after the sign) with its point at `p` (`p` >=
+    /// `len`: no point) needs: the shuffle that squeezes the point out and right-aligns the
+    /// digits, the digit mask its bytes must show, and the power of ten to divide by.
+    #[derive(Clone, Copy)]
+    struct Shape {
+        shuffle: [u8; 16],
+        /// `u32::MAX` where the shape is not a number [`field`] reads this way (no digit, or
+        /// more than 15): no digit mask of a field of at most 16 bytes is that.
+        digits: u32,
+        divisor: f64,
+    }
+
+    /// [`Shape`]s by (`len`, `p`), `len` and `p` <= 16, built at compile time.
+    static SHAPES: [[Shape; 17]; 17] = shapes();
+
+    const fn shapes() -> [[Shape; 17]; 17] {
+        let none = Shape {
+            shuffle: [0x80; 16],
+            digits: u32::MAX,
+            divisor: 1.0,
+        };
+        let mut table = [[none; 17]; 17];
+        let mut len = 0;
+        while len <= 16 {
+            // A point at or past the end (the next field's, or none: `p` = 16) is no point.
+            let mut p = 0;
+            while p <= 16 {
+                let dot = p < len;
+                let n = len - dot as usize;
+                if n >= 1 && n <= 15 {
+                    let mut shuffle = [0x80u8; 16];
+                    let mut t = 0;
+                    while t < n {
+                        let from = if dot && t >= p { t + 1 } else { t };
+                        shuffle[16 - n + t] = from as u8;
+                        t += 1;
+                    }
+                    let all = (1u32 << len) - 1;
+                    let frac = if dot { len - p - 1 } else { 0 };
+                    table[len][p] = Shape {
+                        shuffle,
+                        digits: if dot { all & !(1u32 << p) } else { all },
+                        divisor: POW10_F64[frac],
+                    };
+                }
+                p += 1;
+            }
+            len += 1;
+        }
+        table
+    }
+
+    /// The number that is exactly `text[start..end]` (a field whose ends the row's scan found).
+    /// Plain decimals (`-`? digits with at most one point, 1 to 15 digits, 16 bytes at most
+    /// after the sign: every field `%.10g` writes without an exponent) by one table entry
+    /// ([`SHAPES`]): the shape is the field's length and its point's position, so one compare
+    /// of the digit mask checks it, one shuffle aligns its digits and the fraction's power of
+    /// ten is a division by an exact double (q <= 0: Clinger's fast path, always a division,
+    /// by 1 for integers). Anything else by [`field_general`].
+    #[inline(always)]
+    pub(super) fn field(simd: V2, text: &[u8; 128], start: usize, end: usize) -> Option<f64> {
+        if *text.get(start)? == b'-' {
+            // Rare in these files, so on a branch of its own: the magnitude (with no second
+            // sign), negated (exactly: a sign flip, −0 for 0).
+            if matches!(text.get(start + 1), Some(b'-' | b'+')) {
+                return None;
+            }
+            return magnitude(simd, text, start + 1, end).map(|v| -v);
+        }
+        magnitude(simd, text, start, end)
+    }
+
+    /// [`field`] without a sign: `text[start]` is not `-`.
+    #[inline(always)]
+    fn magnitude(simd: V2, text: &[u8; 128], start: usize, end: usize) -> Option<f64> {
+        let len = end.checked_sub(start)?;
+        if len > 16 {
+            return None;
+        }
+        let window: [u8; 16] = text.get(start..start + 16)?.try_into().ok()?;
+        let x: __m128i = pulp::cast(window);
+        let (sse2, ssse3, sse4_1) = (simd.sse2, simd.ssse3, simd.sse4_1);
+        let d = sse2._mm_sub_epi8(x, sse2._mm_set1_epi8(b'0' as i8));
+        let is_digit = sse2._mm_cmpeq_epi8(sse2._mm_min_epu8(d, sse2._mm_set1_epi8(9)), d);
+        let is_dot = sse2._mm_cmpeq_epi8(x, sse2._mm_set1_epi8(b'.' as i8));
+        let digit = sse2._mm_movemask_epi8(is_digit) as u32;
+        let dots = sse2._mm_movemask_epi8(is_dot) as u32;
+        let p = (dots | 1 << 16).trailing_zeros() as usize;
+        let shape = &SHAPES[len][p];
+        if digit & ((1u32 << len) - 1) != shape.digits {
+            return field_general(simd, text, start, end);
+        }
+        let digits_right = ssse3._mm_shuffle_epi8(d, pulp::cast(shape.shuffle));
+        let pairs = ssse3._mm_maddubs_epi16(
+            digits_right,
+            pulp::cast([10u8, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1]),
+        );
+        let fours = sse2._mm_madd_epi16(pairs, pulp::cast([100i16, 1, 100, 1, 100, 1, 100, 1]));
+        let fours = sse4_1._mm_packus_epi32(fours, fours);
+        let eights = sse2._mm_madd_epi16(
+            fours,
+            pulp::cast([10_000i16, 1, 10_000, 1, 10_000, 1, 10_000, 1]),
+        );
+        let [high, low, _, _]: [u32; 4] = pulp::cast(eights);
+        let mant = u64::from(high) * 100_000_000 + u64::from(low);
+        Some(mant as i64 as f64 / shape.divisor)
+    }
+
+    /// [`field`] for every shape: the number that is exactly `text[start..end]`, in
+    /// the shapes of [`decimal`] with at most 3 exponent digits and 16 bytes after the sign;
+    /// `None` for anything else. Knowing the end beforehand, no scan for it is needed: the
+    /// digit, point and exponent-letter bytes are three masks, and the shape is checked
+    /// against them with a few bit operations.
+    #[inline(always)]
+    fn field_general(simd: V2, text: &[u8; 128], start: usize, end: usize) -> Option<f64> {
+        let neg = *text.get(start)? == b'-';
+        let a = start + usize::from(neg);
+        let len = end.checked_sub(a)? as u32;
+        if len > 16 {
+            return None;
+        }
+        let window: [u8; 16] = text.get(a..a + 16)?.try_into().ok()?;
+        let x: __m128i = pulp::cast(window);
+        let (sse2, ssse3, sse4_1) = (simd.sse2, simd.ssse3, simd.sse4_1);
+        let d = sse2._mm_sub_epi8(x, sse2._mm_set1_epi8(b'0' as i8));
+        let is_digit = sse2._mm_cmpeq_epi8(sse2._mm_min_epu8(d, sse2._mm_set1_epi8(9)), d);
+        let is_dot = sse2._mm_cmpeq_epi8(x, sse2._mm_set1_epi8(b'.' as i8));
+        let is_e = sse2._mm_cmpeq_epi8(
+            sse2._mm_or_si128(x, sse2._mm_set1_epi8(0x20)),
+            sse2._mm_set1_epi8(b'e' as i8),
+        );
+        let digit = sse2._mm_movemask_epi8(is_digit) as u32;
+        let dots = sse2._mm_movemask_epi8(is_dot) as u32;
+        let es = sse2._mm_movemask_epi8(is_e) as u32;
+        // The mantissa is bytes [0, k): up to the exponent letter or the end.
+        let k = (es | 1 << len).trailing_zeros();
+        let mantissa = (1u32 << k) - 1;
+        let point = dots & mantissa;
+        let dot = point != 0;
+        // At most one point, every other byte of the mantissa a digit, 1 to 15 digits.
+        if point & point.wrapping_sub(1) != 0 || digit & mantissa != mantissa ^ point {
+            return None;
+        }
+        let digits = k - u32::from(dot);
+        if digits == 0 || digits > 15 {
+            return None;
+        }
+        let p = if dot { point.trailing_zeros() } else { 16 };
+        // Digit t (from 0) sits at byte t, or t + 1 from the point on; right-aligned, byte j
+        // takes digit j − 16 + digits (negative, so zero, before the first).
+        let t = sse2._mm_add_epi8(pulp::cast(FROM_END), sse2._mm_set1_epi8(digits as i8));
+        let after = sse2._mm_cmpgt_epi8(t, sse2._mm_set1_epi8(p as i8 - 1));
+        let digits_right = ssse3._mm_shuffle_epi8(d, sse2._mm_sub_epi8(t, after));
+        let pairs = ssse3._mm_maddubs_epi16(
+            digits_right,
+            pulp::cast([10u8, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1]),
+        );
+        let fours = sse2._mm_madd_epi16(pairs, pulp::cast([100i16, 1, 100, 1, 100, 1, 100, 1]));
+        let fours = sse4_1._mm_packus_epi32(fours, fours);
+        let eights = sse2._mm_madd_epi16(
+            fours,
+            pulp::cast([10_000i16, 1, 10_000, 1, 10_000, 1, 10_000, 1]),
+        );
+        let [high, low, _, _]: [u32; 4] = pulp::cast(eights);
+        let mant = u64::from(high) * 100_000_000 + u64::from(low);
+        let mut q = if dot { p as i32 + 1 - k as i32 } else { 0 };
+        if k < len {
+            // (`e`|`E`) (`+`|`-`)? and 1 to 3 digits up to the end.
+            let sign = *text.get(a + k as usize + 1)?;
+            let eneg = sign == b'-';
+            let from = k + 1 + u32::from(eneg || sign == b'+');
+            let run = (1u32 << len) - (1u32 << from.min(len));
+            if from >= len || len - from > 3 || digit & run != run {
+                return None;
+            }
+            let mut ev = 0i32;
+            for &c in text.get(a + from as usize..a + len as usize)? {
+                ev = ev * 10 + i32::from(c - b'0');
+            }
+            q += if eneg { -ev } else { ev };
+        }
+        if !(-22..=22).contains(&q) {
+            return None;
+        }
+        let m = mant as i64 as f64;
+        let v = if q >= 0 {
+            m * POW10_F64[q as usize]
+        } else {
+            m / POW10_F64[(-q) as usize]
+        };
+        Some(if neg { -v } else { v })
+    }
+
+    /// The separators (commas and newlines) and the commas among the 16 bytes at `row[at..]`,
+    /// as bit masks.
+    #[inline(always)]
+    fn seps16(simd: V2, row: &[u8; 128], at: usize) -> Option<(u32, u32)> {
+        let sse2 = simd.sse2;
+        let window: [u8; 16] = row.get(at..at + 16)?.try_into().ok()?;
+        let x: __m128i = pulp::cast(window);
+        let comma = sse2._mm_cmpeq_epi8(x, sse2._mm_set1_epi8(b',' as i8));
+        let newline = sse2._mm_cmpeq_epi8(x, sse2._mm_set1_epi8(b'\n' as i8));
+        let seps = sse2._mm_movemask_epi8(sse2._mm_or_si128(comma, newline)) as u32;
+        Some((seps, sse2._mm_movemask_epi8(comma) as u32))
+    }
+
+    /// [`Reader::pairs`] for the vector reader: the rows of one curve while each is its id
+    /// (`key`), then exactly two fields, each one number of [`field`]'s shapes (else of
+    /// [`field_general`]'s), ended by a comma and a newline. The 32 bytes after the id are
+    /// scanned for separators at once, so a row's start depends on the previous row through
+    /// one load and one scan (the numbers' conversion overlaps the next rows), and every read
+    /// is inside a 128-byte window of the row (rows that start in the last 128 bytes of `text`
+    /// are left to the caller). Stops at the first row that is not so.
+    #[inline(always)]
+    pub(super) fn pairs(
+        simd: V2,
+        text: &[u8],
+        mut at: usize,
+        (key, mask, len): (u64, u64, usize),
+        (r, v): (&mut Vec<f64>, &mut Vec<f64>),
+    ) -> (usize, usize) {
+        let Some(limit) = text.len().checked_sub(128) else {
+            return (0, at);
+        };
+        let (mut rows, mut held) = (0, 0);
+        let (mut xs, mut ys) = ([0.0f64; BATCH], [0.0f64; BATCH]);
+        while at < limit {
+            let Some(row) = text
+                .get(at..at + 128)
+                .and_then(|t| <&[u8; 128]>::try_from(t).ok())
+            else {
+                break;
+            };
+            let head: [u8; 8] = row[..8].try_into().unwrap_or_default();
+            // (The key is at most one word: the bound lets the compiler drop bounds checks.)
+            if u64::from_le_bytes(head) & mask != key || len > 8 {
+                break;
+            }
+            // Both separators of the row from one mask of the 32 bytes after the id.
+            let (Some((seps_lo, commas_lo)), Some((seps_hi, commas_hi))) =
+                (seps16(simd, row, len), seps16(simd, row, len + 16))
+            else {
+                break;
+            };
+            let seps = seps_lo | seps_hi << 16;
+            let commas = commas_lo | commas_hi << 16;
+            let rest = seps & seps.wrapping_sub(1);
+            // The first separator a comma, the second a newline (not a comma).
+            if rest == 0
+                || commas & seps & seps.wrapping_neg() == 0
+                || commas & rest & rest.wrapping_neg() != 0
+            {
+                break;
+            }
+            let s1 = len + seps.trailing_zeros() as usize;
+            let s2 = len + rest.trailing_zeros() as usize;
+            let Some(x) = field(simd, row, len, s1) else {
+                break;
+            };
+            let Some(y) = field(simd, row, s1 + 1, s2) else {
+                break;
+            };
+            xs[held % BATCH] = x;
+            ys[held % BATCH] = y;
+            held += 1;
+            if held == BATCH {
+                r.extend_from_slice(&xs);
+                v.extend_from_slice(&ys);
+                held = 0;
+            }
+            rows += 1;
+            at += s2 + 1;
+        }
+        r.extend_from_slice(&xs[..held]);
+        v.extend_from_slice(&ys[..held]);
+        (rows, at)
+    }
+
+    /// Rows read at a time into arrays before they are appended to the curve's vectors: the
+    /// vectors' lengths then stay out of the row loop.
+    const BATCH: usize = 16;
+
+    /// [`Parser::rows`] with the vector reader, as the job `pulp` compiles for the CPU's
+    /// instruction set: a type with an `#[inline(always)]` call rather than a closure, whose
+    /// body (compiled apart, without the target features) would call every intrinsic as a
+    /// function.
+    pub(super) struct Rows<'a, const N: usize> {
+        pub(super) parser: &'a mut Parser,
+        pub(super) line_no: usize,
+        pub(super) text: &'a [u8],
+        pub(super) at: usize,
+        pub(super) count: usize,
+        pub(super) reader: Sse,
+    }
+
+    impl<const N: usize> pulp::NullaryFnOnce for Rows<'_, N> {
+        type Output = Result<usize, CurvesError>;
+
+        #[inline(always)]
+        fn call(self) -> Self::Output {
+            self.parser
+                .rows::<N, Sse>(self.line_no, self.text, self.at, self.count, self.reader)
+        }
+    }
+
+    /// Byte j holds j − 16 (as i8): added to the digit count, the index of the digit that goes
+    /// to byte j when the digits are right-aligned (negative, so zero, before the first).
+    const FROM_END: [i8; 16] = [
+        -16, -15, -14, -13, -12, -11, -10, -9, -8, -7, -6, -5, -4, -3, -2, -1,
+    ];
+
+    /// A plain decimal at the start of `b`: `-`? digits? (`.` digits?)? with 1 to 15 digits,
+    /// 15 bytes at most after the sign, then optionally (`e`|`E`) (`+`|`-`)? and 1–4 digits,
+    /// the decimal exponent q (the written one minus the fraction's digits) within ±22: the
+    /// value and the bytes it takes. `None` for anything else, and when `b` has fewer than 32
+    /// bytes (the loads need 16 after the sign and a word at the exponent).
+    #[inline(always)]
+    pub(super) fn decimal(simd: V2, b: &[u8]) -> Option<(f64, usize)> {
+        if b.len() < 32 {
+            return None;
+        }
+        let neg = b[0] == b'-';
+        let s = usize::from(neg);
+        let window: [u8; 16] = b.get(s..s + 16)?.try_into().ok()?;
+        let x: __m128i = pulp::cast(window);
+        let (sse2, ssse3, sse4_1) = (simd.sse2, simd.ssse3, simd.sse4_1);
+        // Digit values (bytes 0–9 where there are digits) and the masks of digits and points.
+        let d = sse2._mm_sub_epi8(x, sse2._mm_set1_epi8(b'0' as i8));
+        let is_digit = sse2._mm_cmpeq_epi8(sse2._mm_min_epu8(d, sse2._mm_set1_epi8(9)), d);
+        let is_dot = sse2._mm_cmpeq_epi8(x, sse2._mm_set1_epi8(b'.' as i8));
+        // Non-digits, with every bit from 16 up set: the scans below end at 16 at the latest.
+        let nondigit = !(sse2._mm_movemask_epi8(is_digit) as u32);
+        let dots = sse2._mm_movemask_epi8(is_dot) as u32;
+        // The first non-digit, at p; if it is a point, the end is the next one.
+        let first = nondigit & nondigit.wrapping_neg();
+        let dot = dots & first != 0;
+        let p = nondigit.trailing_zeros();
+        let e = if dot { nondigit ^ first } else { nondigit }.trailing_zeros();
+        let digits = e - u32::from(dot);
+        if e >= 16 || digits == 0 {
+            return None;
+        }
+        // Byte j of the shuffle takes the digit k = j − 16 + digits, which sits at byte k, or
+        // k + 1 at and after the point (no point: p = 16, never reached); k < 0 gives 0.
+        let k = sse2._mm_add_epi8(pulp::cast(FROM_END), sse2._mm_set1_epi8(digits as i8));
+        let p_or_16 = if dot { p } else { 16 };
+        let after = sse2._mm_cmpgt_epi8(k, sse2._mm_set1_epi8(p_or_16 as i8 - 1));
+        let digits_right = ssse3._mm_shuffle_epi8(d, sse2._mm_sub_epi8(k, after));
+        // Pairs, fours, then eights of digits: the first eight in lane 0, the last in lane 1.
+        let pairs = ssse3._mm_maddubs_epi16(
+            digits_right,
+            pulp::cast([10u8, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1]),
+        );
+        let fours = sse2._mm_madd_epi16(pairs, pulp::cast([100i16, 1, 100, 1, 100, 1, 100, 1]));
+        let fours = sse4_1._mm_packus_epi32(fours, fours);
+        let eights = sse2._mm_madd_epi16(
+            fours,
+            pulp::cast([10_000i16, 1, 10_000, 1, 10_000, 1, 10_000, 1]),
+        );
+        let [high, low, _, _]: [u32; 4] = pulp::cast(eights);
+        let mant = u64::from(high) * 100_000_000 + u64::from(low);
+        // Fraction digits (none without a point).
+        let mut q = -(if dot { e - p - 1 } else { 0 } as i64);
+        let mut end = s + e as usize;
+        if b[end] | 0x20 == b'e' {
+            let mut j = end + 1;
+            let eneg = b[j] == b'-';
+            j += usize::from(eneg || b[j] == b'+');
+            let (ne, ev) = digit_run(word(b, j));
+            if ne == 0 || ne > 4 {
+                return None;
+            }
+            q += if eneg { -(ev as i64) } else { ev as i64 };
+            end = j + ne;
+        }
+        if !(-22..=22).contains(&q) {
+            return None;
+        }
+        // mant < 10^15: the signed conversion is one instruction, the unsigned one a sequence.
+        let m = mant as i64 as f64;
+        let v = if q >= 0 {
+            m * POW10_F64[q as usize]
+        } else {
+            m / POW10_F64[(-q) as usize]
+        };
+        Some((if neg { -v } else { v }, end))
     }
 }
 
@@ -984,6 +1538,174 @@ mod tests {
         // Too near the end of the text for the word reads: the crate's reading.
         assert_eq!(short_decimal(b"1.5,2\n"), None);
         assert_eq!(number_prefix(b"1.5,2\n"), Some((1.5, 3)));
+    }
+
+    /// The vector readers' two ways of reading a number, each where it answers at all,
+    /// against the portable [`number_prefix`] (itself held to `fast-float2` above): a number
+    /// at the start of a text ([`simd::decimal`], what the vector reader's `number` uses) and
+    /// a field whose end is known ([`simd::field`], what its row loop uses).
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn vector_numbers_are_number_prefix() {
+        let Some(v2) = pulp::x86::V2::try_new() else {
+            return;
+        };
+        let mut runner = proptest::test_runner::TestRunner::new(
+            proptest::test_runner::Config::with_cases(20_000),
+        );
+        runner
+            .run(&decimal_text(), |text| {
+                let b = text.as_bytes();
+                let want = number_prefix(b).map(|(v, k)| (v.to_bits(), k));
+                if let Some((v, k)) = simd::decimal(v2, b) {
+                    proptest::prop_assert_eq!(Some((v.to_bits(), k)), want, "{:?}", text);
+                }
+                proptest::prop_assert_eq!(
+                    simd::Sse(v2).number(b).map(|(v, k)| (v.to_bits(), k)),
+                    want,
+                    "{:?}",
+                    text
+                );
+                // The text up to its first separator as a field of a row, whose reading is
+                // the portable reader's when the whole field is one number.
+                let field = text.split([',', '\n']).next().unwrap_or_default();
+                if field.len() <= 60 {
+                    let mut row = [b'0'; 128];
+                    row[..2].copy_from_slice(b"7,");
+                    row[2..2 + field.len()].copy_from_slice(field.as_bytes());
+                    row[2 + field.len()] = b'\n';
+                    let whole = number_prefix(&row[2..])
+                        .filter(|p| p.1 == field.len())
+                        .map(|p| p.0.to_bits());
+                    if let Some(v) = simd::field(v2, &row, 2, 2 + field.len()) {
+                        proptest::prop_assert_eq!(Some(v.to_bits()), whole, "{:?}", field);
+                    }
+                }
+                Ok(())
+            })
+            .unwrap();
+    }
+
+    /// The vector readers read the usual shapes themselves (so the comparisons above and
+    /// below are not vacuous): on this machine (every x86-64 test machine has SSE4.1) the
+    /// number and field readers answer for `%.10g`'s shapes, and the row loop takes every
+    /// row of a block but those in its last 128 bytes.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn vector_reader_takes_the_usual_shapes() {
+        let v2 = pulp::x86::V2::try_new().expect("an x86-64 machine with SSE4.1");
+        for (text, v) in [
+            ("12.09039342", 12.09039342f64),
+            ("5.096327544e-05", 5.096327544e-05),
+            ("0.6002071621", 0.6002071621),
+            ("0.0005610659461", 0.0005610659461),
+            ("139.2325188", 139.2325188),
+            ("-3", -3.0),
+            ("5.", 5.0),
+            (".5", 0.5),
+            ("-0", -0.0),
+            ("1.5E+3", 1500.0),
+            ("123456789012345", 123_456_789_012_345.0),
+        ] {
+            let padded = format!("{text},{PAD}{PAD}");
+            assert_eq!(
+                simd::decimal(v2, padded.as_bytes()).map(|(x, k)| (x.to_bits(), k)),
+                Some((v.to_bits(), text.len())),
+                "{text}"
+            );
+            let mut row = [b'0'; 128];
+            row[..2].copy_from_slice(b"0,");
+            row[2..2 + text.len()].copy_from_slice(text.as_bytes());
+            row[2 + text.len()] = b'\n';
+            assert_eq!(
+                simd::field(v2, &row, 2, 2 + text.len()).map(f64::to_bits),
+                Some(v.to_bits()),
+                "{text}"
+            );
+        }
+        let row = "17,12.09039342,5.096327544e-05\n";
+        let text = row.repeat(100);
+        let key = (u64::from_le_bytes(*b"17,\0\0\0\0\0"), 0xff_ffff, 3);
+        let (mut r, mut v) = (Vec::new(), Vec::new());
+        let (rows, at) = simd::pairs(v2, text.as_bytes(), 0, key, (&mut r, &mut v));
+        let expected = (text.len() - 128).div_ceil(row.len());
+        assert_eq!((rows, at), (expected, expected * row.len()));
+        assert_eq!(r, vec![12.09039342; rows]);
+        assert_eq!(v, vec![5.096327544e-05; rows]);
+    }
+
+    /// [`read`] with the given row readers, the text handed out `step` bytes at a time.
+    fn read_with(
+        text: &[u8],
+        batch: bool,
+        readers: Readers,
+        step: usize,
+    ) -> Result<Vec<Curve>, String> {
+        let mut p = Parser::new(batch);
+        p.readers = readers;
+        stream(Trickle(text, step), &mut p, |_| Ok(false)).map_err(|e| e.to_string())?;
+        p.finish().map_err(|e| e.to_string())
+    }
+
+    /// A curve file of rows in the shapes the readers meet: the usual `%.10g` numbers mostly,
+    /// any decimal, odd values and text sometimes, ids that repeat (rows of a curve together)
+    /// or not, and now and then a CRLF, a comment, a blank line, spaces or a wrong column count.
+    fn curve_file() -> impl Strategy<Value = (bool, String)> {
+        let number = prop_oneof![
+            8 => "-?[0-9]{1,4}\\.[0-9]{1,12}(e-0[1-9])?",
+            2 => "[-+]?[0-9]{0,17}(\\.[0-9]{0,17})?([eE][-+]?[0-9]{0,4})?",
+            1 => "inf|NaN|-0|0|1e400|1e-400|x|-|\\.|1\\.2\\.3",
+        ];
+        let end = prop_oneof![
+            20 => proptest::strategy::Just("\n"),
+            1 => proptest::strategy::Just("\r\n"),
+            1 => proptest::strategy::Just(" # c\n"),
+            1 => proptest::strategy::Just("\n\n"),
+            1 => proptest::strategy::Just(",5\n"),
+        ];
+        let id = prop_oneof![6 => "[0-2]", 1 => "[a-z]{1,9}", 1 => " 1"];
+        let row = (id, number.clone(), number, end);
+        (proptest::bool::ANY, proptest::collection::vec(row, 0..300)).prop_map(|(batch, rows)| {
+            let mut text = String::from(if batch { "id,r,value\n" } else { "r,value\n" });
+            for (id, r, v, end) in rows {
+                if batch {
+                    text += &format!("{id},");
+                }
+                text += &format!("{r},{v}{end}");
+            }
+            (batch, text)
+        })
+    }
+
+    /// Every number of the curves as its bits (NaN compared as bits too).
+    type Bits = Vec<(Option<String>, Vec<u64>, Vec<Vec<u64>>)>;
+
+    fn bits(curves: &[Curve]) -> Bits {
+        let b = |x: &Vec<f64>| x.iter().map(|v| v.to_bits()).collect();
+        curves
+            .iter()
+            .map(|c| (c.id.clone(), b(&c.r), c.channels.iter().map(b).collect()))
+            .collect()
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(2_000))]
+        /// Whole files read by the vector readers (AVX2 where the machine has it, SSE4.1) are
+        /// the portable reader's: the same curves bit for bit, or the same error, whether
+        /// the text arrives at once or in pieces.
+        #[test]
+        fn vector_rows_are_portable_rows((batch, text) in curve_file()) {
+            for step in [usize::MAX, 97] {
+                let want = read_with(text.as_bytes(), batch, Readers::Portable, step);
+                for readers in [Readers::Best, Readers::Sse41] {
+                    let got = read_with(text.as_bytes(), batch, readers, step);
+                    match (&got, &want) {
+                        (Ok(g), Ok(w)) => proptest::prop_assert_eq!(bits(g), bits(w)),
+                        _ => proptest::prop_assert_eq!(&got, &want),
+                    }
+                }
+            }
+        }
     }
 
     /// A reader that hands out a few bytes at a time, so lines straddle every read.
