@@ -91,6 +91,60 @@ impl Bin {
     }
 }
 
+impl Bin {
+    /// The bin's centred sums over its samples, (Σx², Σx³, Σx⁴, Σxy, Σx²y, Σy²) with
+    /// x = r − r̄, y = ln s − ȳ, read back from U, z and the scatter (M = UᵀU, Σφy = Uᵀz,
+    /// Σy² = scatter + |z|²). Exact where [`Bin::from_centred`] kept every direction; a bin
+    /// whose spread it dropped as rounding gives zeros there, as its statistics say.
+    fn centred_sums(&self) -> [f64; 6] {
+        let (u, z) = (&self.u, &self.z);
+        [
+            u[1] * u[1] + u[3] * u[3],
+            u[1] * u[2] + u[3] * u[4],
+            u[2] * u[2] + u[4] * u[4] + u[5] * u[5],
+            u[1] * z[0] + u[3] * z[1],
+            u[2] * z[0] + u[4] * z[1] + u[5] * z[2],
+            self.scatter + z[0] * z[0] + z[1] * z[1] + z[2] * z[2],
+        ]
+    }
+
+    /// One bin holding the samples of `bins` (consecutive bins of one binning): their sums add
+    /// once moved to the common centre by the parallel-axis rules (X = x + δ, Y = y + η with
+    /// δ, η the offsets of a bin's means from the merged ones, and Σx = Σy = 0 in each bin).
+    /// `None` for no samples.
+    pub fn merged(bins: &[Bin]) -> Option<Bin> {
+        let n: f64 = bins.iter().map(|b| b.n).sum();
+        if !(n > 0.0) {
+            return None;
+        }
+        let r = bins.iter().map(|b| b.n * b.r).sum::<f64>() / n;
+        let y = bins.iter().map(|b| b.n * b.y).sum::<f64>() / n;
+        let mut t = [0.0f64; 6];
+        for b in bins {
+            let [sx2, sx3, sx4, sxy, sx2y, syy] = b.centred_sums();
+            let (dx, dy, m) = (b.r - r, b.y - y, b.n);
+            let dx2 = dx * dx;
+            t[0] += sx2 + m * dx2;
+            t[1] += sx3 + 3.0 * dx * sx2 + m * dx2 * dx;
+            t[2] += sx4 + 4.0 * dx * sx3 + 6.0 * dx2 * sx2 + m * dx2 * dx2;
+            t[3] += sxy + m * dx * dy;
+            t[4] += sx2y + dy * sx2 + 2.0 * dx * sxy + m * dx2 * dy;
+            t[5] += syy + m * dy * dy;
+        }
+        let [c2, c3, c4, cxy, cx2y, cyy] = t.map(|v| v / n);
+        Some(Bin::from_centred(n, r, y, c2, c3, c4, cxy, cx2y, cyy))
+    }
+}
+
+/// `bins` with every `factor` consecutive bins merged into one ([`Bin::merged`]): the coarse
+/// level of the isotropic fit's coarse-to-fine solve, exact statistics of the same samples on
+/// fewer, wider bins.
+pub fn coarsen(bins: &[Bin], factor: usize) -> Vec<Bin> {
+    bins.chunks(factor.max(1))
+        .filter_map(Bin::merged)
+        .collect()
+}
+
 /// Samples binned and normalised for the isotropic fits.
 #[derive(Debug, Clone, Default)]
 pub struct Binned {

@@ -6,7 +6,7 @@
 //! exp(L)). The constraints c_k > 0, d_k < 0 of Eq. 1 hold for every finite θ, and huge or tiny
 //! units only move L and R, never the conditioning of the solve.
 
-use super::bins::{Bin, bin_samples};
+use super::bins::{Bin, bin_samples, coarsen};
 use super::lm::{self, Problem, Settings};
 use super::{FitFailure, Objective, Solver};
 use crate::model::expsum::sort_terms;
@@ -810,6 +810,13 @@ fn has_dead_term(theta: &[f64], n: usize) -> bool {
 /// geometrically (factor 3 and 8 apart) around the overall fall-off rate, each with amplitudes
 /// from the non-negative least-squares fit.
 pub(crate) fn starts(bins: &[Bin], n: usize) -> Vec<Vec<f64>> {
+    starts_scored(bins, bins, n)
+}
+
+/// [`starts`] built from `bins` but ranked by the binned cost on `score` (statistics of the
+/// same samples, e.g. the coarse level of [`fit_fixed`]'s coarse-to-fine solve, where the
+/// ranking costs a quarter of the work).
+pub(crate) fn starts_scored(bins: &[Bin], score: &[Bin], n: usize) -> Vec<Vec<f64>> {
     let mut out = vec![peel(bins, n, false)];
     if n > 1 {
         out.push(peel(bins, n, true));
@@ -831,7 +838,7 @@ pub(crate) fn starts(bins: &[Bin], n: usize) -> Vec<Vec<f64>> {
             );
         }
     }
-    let problem = LogBinned { bins, n };
+    let problem = LogBinned { bins: score, n };
     let cost = |t: &Vec<f64>| problem.cost(t).unwrap_or(f64::INFINITY);
     let mut scored: Vec<(f64, Vec<f64>)> = out.into_iter().map(|t| (cost(&t), t)).collect();
     scored.sort_by(|a, b| a.0.total_cmp(&b.0));
@@ -986,6 +993,17 @@ const FAST_FTOL: f64 = 1e-6;
 /// Convergence tolerance (relative cost reduction) of the exact polish after the binned pre-fit.
 const POLISH_FTOL: f64 = 1e-10;
 
+/// Fine bins merged into one bin of the coarse level of the binned fit ([`fit_fixed`]).
+const COARSE_MERGE: usize = 4;
+
+/// Fewest (non-empty) fine bins for which the binned fit has a coarse level: below that the
+/// coarse bins would be too few and too wide for their quadratic model.
+const COARSE_MIN_BINS: usize = 48;
+
+/// Convergence tolerance of the coarse level's runs: they only bring the start next to the
+/// minimum, which the fine level then finds.
+const COARSE_FTOL: f64 = 1e-4;
+
 /// Bins of the pre-fit that gives the exact log fit its start (and of the start values).
 pub(crate) const PREFIT_BINS: usize = 64;
 
@@ -1086,9 +1104,31 @@ pub(crate) fn fit_fixed(
                 cost_offset: prefit_bins.iter().map(|b| b.scatter).sum(),
                 ..settings
             };
+            // The coarse level: every COARSE_MERGE bins merged (exact statistics of the same
+            // samples), where the candidates are ranked and each run takes its first steps.
+            let coarse_bins = (given.is_none() && prefit_bins.len() >= COARSE_MIN_BINS)
+                .then(|| coarsen(&prefit_bins, COARSE_MERGE));
+            let coarse = coarse_bins.as_deref().map(|bins| LogBinned { bins, n });
+            let coarse_settings = Settings {
+                ftol: COARSE_FTOL,
+                cost_offset: coarse_bins
+                    .as_deref()
+                    .map_or(0.0, |b| b.iter().map(|b| b.scatter).sum()),
+                ..settings
+            };
             let mut pre: Option<lm::Outcome> = None;
             // One run; whether it converged with every term alive.
             let mut run = |cand: &[f64]| -> bool {
+                // Coarse to fine: the run on the coarse bins only brings the start next to the
+                // minimum; the fine run from there decides the fit, so its minimum is the
+                // fine objective's.
+                let coarse_run = coarse
+                    .as_ref()
+                    .and_then(|c| lm::minimize(c, cand, &coarse_settings));
+                if let Some(o) = &coarse_run {
+                    iterations += o.iterations;
+                }
+                let cand = coarse_run.as_ref().map_or(cand, |o| &o.theta[..]);
                 let Some(o) = lm::minimize(&binned, cand, &binned_settings) else {
                     return false;
                 };
@@ -1105,7 +1145,11 @@ pub(crate) fn fit_fixed(
             // test, where another candidate starts lower.)
             let candidates = match &given {
                 Some(t) => vec![t.clone()],
-                None => starts(&prefit_bins, n),
+                None => starts_scored(
+                    &prefit_bins,
+                    coarse_bins.as_deref().unwrap_or(&prefit_bins),
+                    n,
+                ),
             };
             let first = candidates[0].clone();
             for cand in &candidates {
