@@ -140,9 +140,7 @@ impl Bin {
 /// level of the isotropic fit's coarse-to-fine solve, exact statistics of the same samples on
 /// fewer, wider bins.
 pub fn coarsen(bins: &[Bin], factor: usize) -> Vec<Bin> {
-    bins.chunks(factor.max(1))
-        .filter_map(Bin::merged)
-        .collect()
+    bins.chunks(factor.max(1)).filter_map(Bin::merged).collect()
 }
 
 /// Samples binned and normalised for the isotropic fits.
