@@ -361,6 +361,55 @@ mod tests {
         }
     }
 
+    /// Merging every 4 of 64 bins gives the statistics of binning the same samples into 16
+    /// (the same edges: (4k/64)² = (k/16)²): counts, means, and the quadratic objective of every
+    /// bin.
+    #[test]
+    fn merged_bins_are_the_coarser_binning() {
+        let mut x = 0x9e37_79b9_7f4a_7c15u64;
+        let mut uniform = || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            (x >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let r: Vec<f64> = (0..3000).map(|_| 40.0 * uniform().powi(2)).collect();
+        let s: Vec<f64> = r
+            .iter()
+            .map(|&v| (2.0 * (-3.0 * v).exp() + (-0.2 * v).exp()) * (1.0 + 0.05 * uniform()))
+            .collect();
+        let fine = bin_samples(&r, &s, 64);
+        let coarse = bin_samples(&r, &s, 16);
+        let merged = coarsen(&fine.bins, 4);
+        assert_eq!(merged.len(), coarse.bins.len());
+        assert!(merged.len() == 16);
+        for (m, c) in merged.iter().zip(&coarse.bins) {
+            assert_eq!(m.n, c.n);
+            assert!(
+                (m.r - c.r).abs() < 1e-13 && (m.y - c.y).abs() < 1e-12,
+                "{m:?} {c:?}"
+            );
+            for v in [[0.1, -0.3, 2.0], [-0.2, 1.5, -4.0], [0.0, 0.0, 0.0]] {
+                let (a, b) = (quadratic_cost(m, v), quadratic_cost(c, v));
+                assert!((a - b).abs() < 1e-9 * (1.0 + b), "{a} {b}");
+            }
+        }
+        assert!(Bin::merged(&[]).is_none());
+        // One bin alone: its sums read back from U, z and the scatter give it again.
+        for b in &fine.bins {
+            let m = Bin::merged(&[*b]).unwrap();
+            assert!(m.n == b.n, "{m:?} {b:?}");
+            assert!(
+                (m.r - b.r).abs() <= 1e-15 && (m.y - b.y).abs() <= 1e-14,
+                "{m:?} {b:?}"
+            );
+            for (p, q) in m.u.iter().chain(&m.z).zip(b.u.iter().chain(&b.z)) {
+                assert!((p - q).abs() <= 1e-10 * (1.0 + q.abs()), "{m:?} {b:?}");
+            }
+            assert!((m.scatter - b.scatter).abs() <= 1e-12 * (1.0 + b.scatter));
+        }
+    }
+
     #[test]
     fn one_distance_is_one_bin() {
         let binned = bin_samples(&[2.0; 5], &[1.0; 5], 8);
