@@ -114,7 +114,7 @@ impl Bin {
     /// `None` for no samples.
     pub fn merged(bins: &[Bin]) -> Option<Bin> {
         let n: f64 = bins.iter().map(|b| b.n).sum();
-        if !(n > 0.0) {
+        if n.is_nan() || n <= 0.0 {
             return None;
         }
         let r = bins.iter().map(|b| b.n * b.r).sum::<f64>() / n;
