@@ -91,6 +91,58 @@ impl Bin {
     }
 }
 
+impl Bin {
+    /// The bin's centred sums over its samples, (Σx², Σx³, Σx⁴, Σxy, Σx²y, Σy²) with
+    /// x = r − r̄, y = ln s − ȳ, read back from U, z and the scatter (M = UᵀU, Σφy = Uᵀz,
+    /// Σy² = scatter + |z|²). Exact where [`Bin::from_centred`] kept every direction; a bin
+    /// whose spread it dropped as rounding gives zeros there, as its statistics say.
+    fn centred_sums(&self) -> [f64; 6] {
+        let (u, z) = (&self.u, &self.z);
+        [
+            u[1] * u[1] + u[3] * u[3],
+            u[1] * u[2] + u[3] * u[4],
+            u[2] * u[2] + u[4] * u[4] + u[5] * u[5],
+            u[1] * z[0] + u[3] * z[1],
+            u[2] * z[0] + u[4] * z[1] + u[5] * z[2],
+            self.scatter + z[0] * z[0] + z[1] * z[1] + z[2] * z[2],
+        ]
+    }
+
+    /// One bin holding the samples of `bins` (consecutive bins of one binning): their sums add
+    /// once moved to the common centre by the parallel-axis rules (X = x + δ, Y = y + η with
+    /// δ, η the offsets of a bin's means from the merged ones, and Σx = Σy = 0 in each bin).
+    /// `None` for no samples.
+    pub fn merged(bins: &[Bin]) -> Option<Bin> {
+        let n: f64 = bins.iter().map(|b| b.n).sum();
+        if n.is_nan() || n <= 0.0 {
+            return None;
+        }
+        let r = bins.iter().map(|b| b.n * b.r).sum::<f64>() / n;
+        let y = bins.iter().map(|b| b.n * b.y).sum::<f64>() / n;
+        let mut t = [0.0f64; 6];
+        for b in bins {
+            let [sx2, sx3, sx4, sxy, sx2y, syy] = b.centred_sums();
+            let (dx, dy, m) = (b.r - r, b.y - y, b.n);
+            let dx2 = dx * dx;
+            t[0] += sx2 + m * dx2;
+            t[1] += sx3 + 3.0 * dx * sx2 + m * dx2 * dx;
+            t[2] += sx4 + 4.0 * dx * sx3 + 6.0 * dx2 * sx2 + m * dx2 * dx2;
+            t[3] += sxy + m * dx * dy;
+            t[4] += sx2y + dy * sx2 + 2.0 * dx * sxy + m * dx2 * dy;
+            t[5] += syy + m * dy * dy;
+        }
+        let [c2, c3, c4, cxy, cx2y, cyy] = t.map(|v| v / n);
+        Some(Bin::from_centred(n, r, y, c2, c3, c4, cxy, cx2y, cyy))
+    }
+}
+
+/// `bins` with every `factor` consecutive bins merged into one ([`Bin::merged`]): the coarse
+/// level of the isotropic fit's coarse-to-fine solve, exact statistics of the same samples on
+/// fewer, wider bins.
+pub fn coarsen(bins: &[Bin], factor: usize) -> Vec<Bin> {
+    bins.chunks(factor.max(1)).filter_map(Bin::merged).collect()
+}
+
 /// Samples binned and normalised for the isotropic fits.
 #[derive(Debug, Clone, Default)]
 pub struct Binned {
@@ -348,6 +400,55 @@ mod tests {
                     "{got} {direct}"
                 );
             }
+        }
+    }
+
+    /// Merging every 4 of 64 bins gives the statistics of binning the same samples into 16
+    /// (the same edges: (4k/64)² = (k/16)²): counts, means, and the quadratic objective of every
+    /// bin.
+    #[test]
+    fn merged_bins_are_the_coarser_binning() {
+        let mut x = 0x9e37_79b9_7f4a_7c15u64;
+        let mut uniform = || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            (x >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let r: Vec<f64> = (0..3000).map(|_| 40.0 * uniform().powi(2)).collect();
+        let s: Vec<f64> = r
+            .iter()
+            .map(|&v| (2.0 * (-3.0 * v).exp() + (-0.2 * v).exp()) * (1.0 + 0.05 * uniform()))
+            .collect();
+        let fine = bin_samples(&r, &s, 64);
+        let coarse = bin_samples(&r, &s, 16);
+        let merged = coarsen(&fine.bins, 4);
+        assert_eq!(merged.len(), coarse.bins.len());
+        assert!(merged.len() == 16);
+        for (m, c) in merged.iter().zip(&coarse.bins) {
+            assert_eq!(m.n, c.n);
+            assert!(
+                (m.r - c.r).abs() < 1e-13 && (m.y - c.y).abs() < 1e-12,
+                "{m:?} {c:?}"
+            );
+            for v in [[0.1, -0.3, 2.0], [-0.2, 1.5, -4.0], [0.0, 0.0, 0.0]] {
+                let (a, b) = (quadratic_cost(m, v), quadratic_cost(c, v));
+                assert!((a - b).abs() < 1e-9 * (1.0 + b), "{a} {b}");
+            }
+        }
+        assert!(Bin::merged(&[]).is_none());
+        // One bin alone: its sums read back from U, z and the scatter give it again.
+        for b in &fine.bins {
+            let m = Bin::merged(&[*b]).unwrap();
+            assert!(m.n == b.n, "{m:?} {b:?}");
+            assert!(
+                (m.r - b.r).abs() <= 1e-15 && (m.y - b.y).abs() <= 1e-14,
+                "{m:?} {b:?}"
+            );
+            for (p, q) in m.u.iter().chain(&m.z).zip(b.u.iter().chain(&b.z)) {
+                assert!((p - q).abs() <= 1e-10 * (1.0 + q.abs()), "{m:?} {b:?}");
+            }
+            assert!((m.scatter - b.scatter).abs() <= 1e-12 * (1.0 + b.scatter));
         }
     }
 

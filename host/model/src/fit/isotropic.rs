@@ -6,7 +6,7 @@
 //! exp(L)). The constraints c_k > 0, d_k < 0 of Eq. 1 hold for every finite θ, and huge or tiny
 //! units only move L and R, never the conditioning of the solve.
 
-use super::bins::{Bin, bin_samples};
+use super::bins::{Bin, bin_samples, coarsen};
 use super::lm::{self, Problem, Settings};
 use super::{FitFailure, Objective, Solver};
 use crate::model::expsum::sort_terms;
@@ -866,12 +866,26 @@ fn has_dead_term(theta: &[f64], n: usize) -> bool {
 /// geometrically (factor 3 and 8 apart) around the overall fall-off rate, each with amplitudes
 /// from the non-negative least-squares fit.
 pub(crate) fn starts(bins: &[Bin], n: usize) -> Vec<Vec<f64>> {
+    starts_scored(bins, bins, n)
+}
+
+/// [`starts`] built from `bins` (the peeling's line fits), with the amplitudes' NNLS and the
+/// ranking by binned cost on `score`: statistics of the same samples, e.g. the coarse level of
+/// [`fit_fixed`]'s coarse-to-fine solve, where both cost a quarter of the work (10 % of the
+/// instructions of `fit-curve --batch` on 64 bins).
+pub(crate) fn starts_scored(bins: &[Bin], score: &[Bin], n: usize) -> Vec<Vec<f64>> {
     // Each bin's mean level e^ȳ, used by both peels and every amplitude fit: computed once here
     // instead of in each (libm `exp` was 4 % of `fit-curve --batch`, perf).
     let levels: Vec<f64> = bins.iter().map(|b| b.y.exp()).collect();
-    let mut out = vec![peel(bins, &levels, n, false)];
+    let score_levels: Vec<f64> = if std::ptr::eq(score, bins) {
+        levels.clone()
+    } else {
+        score.iter().map(|b| b.y.exp()).collect()
+    };
+    let nnls = (score, score_levels.as_slice());
+    let mut out = vec![peel(bins, &levels, nnls, n, false)];
     if n > 1 {
-        out.push(peel(bins, &levels, n, true));
+        out.push(peel(bins, &levels, nnls, n, true));
     }
     if n > 1 {
         let pts: Vec<(f64, f64, f64)> = bins.iter().map(|b| (b.r, b.y, b.n)).collect();
@@ -881,7 +895,7 @@ pub(crate) fn starts(bins: &[Bin], n: usize) -> Vec<Vec<f64>> {
                 .map(|k| rho * q.powf(k as f64 - (n - 1) as f64 / 2.0))
                 .collect();
             let mut amps: Vec<f64> = vec![(bins.first().map_or(0.0, |b| b.y)).exp() / n as f64; n];
-            nnls_amplitudes(bins, &levels, &rates, &mut amps);
+            nnls_amplitudes(score, &score_levels, &rates, &mut amps);
             let cmax = amps.iter().cloned().fold(0.0, f64::max).max(1e-300);
             out.push(
                 (0..n)
@@ -890,7 +904,7 @@ pub(crate) fn starts(bins: &[Bin], n: usize) -> Vec<Vec<f64>> {
             );
         }
     }
-    let problem = LogBinned { bins, n };
+    let problem = LogBinned { bins: score, n };
     let cost = |t: &Vec<f64>| problem.cost(t).unwrap_or(f64::INFINITY);
     let mut scored: Vec<(f64, Vec<f64>)> = out.into_iter().map(|t| (cost(&t), t)).collect();
     scored.sort_by(|a, b| a.0.total_cmp(&b.0));
@@ -907,8 +921,16 @@ pub(crate) fn starts(bins: &[Bin], n: usize) -> Vec<Vec<f64>> {
 /// (the anisotropic simulated slab's in-sample log E 0.267 -> 0.324), so [`starts`] offers both
 /// and the lower start cost goes first. Rates are forced to grow by ≥ 1.5× per term (well separated, ordered),
 /// then the amplitudes are re-solved by non-negative least squares with relative weights for
-/// those rates. `levels` are the bins' e^ȳ. Returns θ in normalised units.
-pub(crate) fn peel(bins: &[Bin], levels: &[f64], n: usize, visible: bool) -> Vec<f64> {
+/// those rates over `nnls.0` (statistics of the same samples: `bins` itself, or the coarse
+/// level of [`fit_fixed`], where the exponentials of the NNLS cost a quarter), whose e^ȳ are
+/// `nnls.1`. `levels` are the e^ȳ of `bins`. Returns θ in normalised units.
+pub(crate) fn peel(
+    bins: &[Bin],
+    levels: &[f64],
+    nnls: (&[Bin], &[f64]),
+    n: usize,
+    visible: bool,
+) -> Vec<f64> {
     /// Share of the signal that the remaining terms must carry for a bin to count in their
     /// groups.
     const PEEL_VISIBLE: f64 = 0.05;
@@ -972,7 +994,7 @@ pub(crate) fn peel(bins: &[Bin], levels: &[f64], n: usize, visible: bool) -> Vec
             .max(2 * k)
             .min(lo);
     }
-    nnls_amplitudes(bins, levels, &rates, &mut amps);
+    nnls_amplitudes(nnls.0, nnls.1, &rates, &mut amps);
     let mut theta = Vec::with_capacity(2 * n);
     let cmax = amps.iter().cloned().fold(0.0, f64::max).max(1e-300);
     for k in 0..n {
@@ -1076,6 +1098,22 @@ const FAST_FTOL: f64 = 1e-6;
 /// Convergence tolerance (relative cost reduction) of the exact polish after the binned pre-fit.
 const POLISH_FTOL: f64 = 1e-10;
 
+/// Fine bins merged into one bin of the coarse level of the binned fit ([`fit_fixed`]).
+const COARSE_MERGE: usize = 4;
+
+/// Fewest (non-empty) fine bins for which the binned fit has a coarse level: below that the
+/// coarse bins would be too few and too wide for their quadratic model.
+const COARSE_MIN_BINS: usize = 48;
+
+/// Convergence tolerance of the coarse level's runs: they only bring the start next to the
+/// minimum, which the fine level then finds. (The runs stop at a stationary point anyway, see
+/// `lm::stationary`; 1e-4 took 0.4 more coarse iterations a curve for the same fits.)
+const COARSE_FTOL: f64 = 1e-2;
+
+/// Initial damping of the fine level's run from the coarse minimum, which is inside the region
+/// where Gauss–Newton converges (see [`Settings::initial_damping`]).
+const FINE_DAMPING: f64 = 1e-6;
+
 /// Bins of the pre-fit that gives the exact log fit its start (and of the start values).
 pub(crate) const PREFIT_BINS: usize = 64;
 
@@ -1176,10 +1214,47 @@ pub(crate) fn fit_fixed(
                 cost_offset: prefit_bins.iter().map(|b| b.scatter).sum(),
                 ..settings
             };
+            // Coarse to fine: every COARSE_MERGE bins merged (exact statistics of the same
+            // samples on a quarter of the bins) are where the candidates get their amplitudes
+            // and ranking and each run takes its first steps, a quarter of the work per step;
+            // the fine bins then take the last 1–2 steps (BENCHMARKS.md, "Third pass"). A
+            // given start skips it (it is meant to be used as it is).
+            let coarse_bins = (given.is_none() && prefit_bins.len() >= COARSE_MIN_BINS)
+                .then(|| coarsen(&prefit_bins, COARSE_MERGE));
+            let coarse = coarse_bins.as_deref().map(|bins| LogBinned { bins, n });
+            let coarse_settings = Settings {
+                ftol: COARSE_FTOL,
+                cost_offset: coarse_bins
+                    .as_deref()
+                    .map_or(0.0, |b| b.iter().map(|b| b.scatter).sum()),
+                ..settings
+            };
             let mut pre: Option<lm::Outcome> = None;
             // One run; whether it converged with every term alive.
             let mut run = |cand: &[f64]| -> bool {
-                let Some(o) = lm::minimize(&binned, cand, &binned_settings) else {
+                // Coarse to fine: the run on the coarse bins only brings the start next to the
+                // minimum; the fine run from there decides the fit, so its minimum is the
+                // fine objective's.
+                let coarse_run = coarse
+                    .as_ref()
+                    .and_then(|c| lm::minimize(c, cand, &coarse_settings));
+                if let Some(o) = &coarse_run {
+                    iterations += o.iterations;
+                }
+                let cand = coarse_run.as_ref().map_or(cand, |o| &o.theta[..]);
+                // From the coarse minimum, Gauss–Newton steps converge at once: little damping,
+                // and no trial step whose decrease only rounding could show (mean fine
+                // iterations on the scipy comparison's curves 2.5 -> 1.25, same minima).
+                let fine_settings = if coarse_run.is_some() {
+                    Settings {
+                        initial_damping: FINE_DAMPING,
+                        stop_on_predicted: true,
+                        ..binned_settings
+                    }
+                } else {
+                    binned_settings
+                };
+                let Some(o) = lm::minimize(&binned, cand, &fine_settings) else {
                     return false;
                 };
                 iterations += o.iterations;
@@ -1195,7 +1270,11 @@ pub(crate) fn fit_fixed(
             // test, where another candidate starts lower.)
             let candidates = match &given {
                 Some(t) => vec![t.clone()],
-                None => starts(&prefit_bins, n),
+                None => starts_scored(
+                    &prefit_bins,
+                    coarse_bins.as_deref().unwrap_or(&prefit_bins),
+                    n,
+                ),
             };
             let first = candidates[0].clone();
             for cand in &candidates {

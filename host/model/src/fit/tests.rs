@@ -528,6 +528,52 @@ fn sixty_four_bins_give_the_exact_fits_log_e_on_random_curves() {
     }
 }
 
+/// The coarse-to-fine binned fit (candidates and first steps on 16 merged bins, the last on
+/// the 64) ends at a minimum of the 64 bins' objective: restarted from its result on the 64
+/// bins alone (a given start skips the coarse level), the solve moves log E by < 1e-6
+/// relative and the parameters by little, and on every sample log E is the exact fit's.
+#[test]
+fn coarse_to_fine_ends_at_the_fine_bins_minimum() {
+    let mut seed = 7u64;
+    let fast = FitOptions {
+        bins: Some(64),
+        ..FitOptions::default()
+    };
+    for i in 0..8 {
+        let (truth, r, s) = random_curve(&mut seed, 2000);
+        let fit = fit_expsum(&r, &s, &fast).unwrap();
+        let again = fit_expsum(
+            &r,
+            &s,
+            &FitOptions {
+                start: Some(fit.model.terms.clone()),
+                ..fast.clone()
+            },
+        )
+        .unwrap();
+        let exact = fit_expsum(&r, &s, &FitOptions::default()).unwrap();
+        let (_, on_samples) = errors(&fit.model, &r, &s, Objective::Log);
+        eprintln!(
+            "curve {i}: {} in {} it; restarted {} in {} it; exact {}",
+            fit.log_e, fit.iterations, again.log_e, again.iterations, exact.log_e
+        );
+        assert!(fit.converged && again.converged, "curve {i}: {truth:?}");
+        assert!(
+            (again.log_e / fit.log_e - 1.0).abs() < 1e-6,
+            "curve {i}: {} vs {}",
+            again.log_e,
+            fit.log_e
+        );
+        assert!(
+            max_rel_err(&again.model, &fit.model) < 1e-2,
+            "curve {i}: {:?} vs {:?}",
+            again.model,
+            fit.model
+        );
+        assert!(on_samples <= exact.log_e * (1.0 + 1e-4), "curve {i}");
+    }
+}
+
 #[test]
 fn all_samples_at_one_distance_fail_cleanly() {
     let r = vec![2.0; 50];
