@@ -426,11 +426,21 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         if first.is_none() && args.plot.is_some() {
             first = group.first().cloned();
         }
-        match group
-            .par_iter()
-            .map(&fit_one)
-            .collect::<anyhow::Result<Vec<_>>>()
-        {
+        // On one thread the block's curves are fitted right here: handing each block to
+        // rayon's single worker and waiting for it cost two context switches a block (~4 % of
+        // `fit-curve --batch`'s CPU time on a VM, perf), for no parallelism.
+        let fitted = if rayon::current_num_threads() <= 1 {
+            group
+                .iter()
+                .map(&fit_one)
+                .collect::<anyhow::Result<Vec<_>>>()
+        } else {
+            group
+                .par_iter()
+                .map(&fit_one)
+                .collect::<anyhow::Result<Vec<_>>>()
+        };
+        match fitted {
             Ok(l) => lines.extend(l),
             Err(e) => failed = Some(e),
         }
