@@ -818,8 +818,22 @@ fn short_decimal(b: &[u8]) -> Option<(f64, usize)> {
         eight_digits(j0) * POW10_U64[digits - 8] + eight_digits(j1 << (8 * (16 - digits)))
     };
     // Fraction digits (none without a point: then e = p).
-    let mut q = -((e - p - usize::from(dot)) as i64);
-    let mut end = s + e;
+    let q = -((e - p - usize::from(dot)) as i64);
+    exponent_and_value(b, mant, q, s + e, neg)
+}
+
+/// The end of a plain decimal read by [`short_decimal`] or the vector reader: an optional
+/// exponent at `b[end..]` (`e`|`E`, sign, 1–4 digits) added to the fraction's exponent `q`, then
+/// Clinger's fast path for the mantissa `mant` (< 10^15) when |q| ≤ 22; `None` otherwise (the
+/// caller falls back to `fast-float2`). Returns the value and the end of the number.
+#[inline(always)]
+fn exponent_and_value(
+    b: &[u8],
+    mant: u64,
+    mut q: i64,
+    mut end: usize,
+    neg: bool,
+) -> Option<(f64, usize)> {
     if b[end] | 0x20 == b'e' {
         let mut j = end + 1;
         let eneg = b[j] == b'-';
@@ -831,17 +845,25 @@ fn short_decimal(b: &[u8]) -> Option<(f64, usize)> {
         q += if eneg { -(ev as i64) } else { ev as i64 };
         end = j + ne;
     }
+    let v = clinger(mant, q)?;
+    Some((if neg { -v } else { v }, end))
+}
+
+/// mant · 10^q correctly rounded for mant < 10^15 (< 2^53) and |q| ≤ 22, where both are exact
+/// doubles and one multiply or divide rounds once (Clinger's fast path, the value `fast-float2`
+/// returns too); `None` for |q| > 22.
+#[inline(always)]
+fn clinger(mant: u64, q: i64) -> Option<f64> {
     if !(-22..=22).contains(&q) {
         return None;
     }
     // mant < 10^15: the signed conversion is one instruction, the unsigned one a sequence.
     let m = mant as i64 as f64;
-    let v = if q >= 0 {
+    Some(if q >= 0 {
         m * POW10_F64[q as usize]
     } else {
         m / POW10_F64[(-q) as usize]
-    };
-    Some((if neg { -v } else { v }, end))
+    })
 }
 
 /// The eight bytes at `b[i..]` as a little-endian word; bytes past the end read as 0.
@@ -882,7 +904,7 @@ fn word(b: &[u8], i: usize) -> u64 {
 /// be the portable reader's bit for bit.
 #[cfg(target_arch = "x86_64")]
 mod simd {
-    use super::{CurvesError, POW10_F64, Parser, Reader, digit_run, number_prefix, word};
+    use super::{CurvesError, POW10_F64, Parser, Reader, number_prefix};
     use core::arch::x86_64::__m128i;
     use pulp::x86::V2;
 
@@ -993,7 +1015,7 @@ mod simd {
         }
         let window: [u8; 16] = text.get(start..start + 16)?.try_into().ok()?;
         let x: __m128i = pulp::cast(window);
-        let (sse2, ssse3, sse4_1) = (simd.sse2, simd.ssse3, simd.sse4_1);
+        let (sse2, ssse3) = (simd.sse2, simd.ssse3);
         let d = sse2._mm_sub_epi8(x, sse2._mm_set1_epi8(b'0' as i8));
         let is_digit = sse2._mm_cmpeq_epi8(sse2._mm_min_epu8(d, sse2._mm_set1_epi8(9)), d);
         let is_dot = sse2._mm_cmpeq_epi8(x, sse2._mm_set1_epi8(b'.' as i8));
@@ -1005,18 +1027,7 @@ mod simd {
             return field_general(simd, text, start, end);
         }
         let digits_right = ssse3._mm_shuffle_epi8(d, pulp::cast(shape.shuffle));
-        let pairs = ssse3._mm_maddubs_epi16(
-            digits_right,
-            pulp::cast([10u8, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1]),
-        );
-        let fours = sse2._mm_madd_epi16(pairs, pulp::cast([100i16, 1, 100, 1, 100, 1, 100, 1]));
-        let fours = sse4_1._mm_packus_epi32(fours, fours);
-        let eights = sse2._mm_madd_epi16(
-            fours,
-            pulp::cast([10_000i16, 1, 10_000, 1, 10_000, 1, 10_000, 1]),
-        );
-        let [high, low, _, _]: [u32; 4] = pulp::cast(eights);
-        let mant = u64::from(high) * 100_000_000 + u64::from(low);
+        let mant = mantissa_of(simd, digits_right);
         Some(mant as i64 as f64 / shape.divisor)
     }
 
@@ -1035,7 +1046,7 @@ mod simd {
         }
         let window: [u8; 16] = text.get(a..a + 16)?.try_into().ok()?;
         let x: __m128i = pulp::cast(window);
-        let (sse2, ssse3, sse4_1) = (simd.sse2, simd.ssse3, simd.sse4_1);
+        let sse2 = simd.sse2;
         let d = sse2._mm_sub_epi8(x, sse2._mm_set1_epi8(b'0' as i8));
         let is_digit = sse2._mm_cmpeq_epi8(sse2._mm_min_epu8(d, sse2._mm_set1_epi8(9)), d);
         let is_dot = sse2._mm_cmpeq_epi8(x, sse2._mm_set1_epi8(b'.' as i8));
@@ -1060,23 +1071,8 @@ mod simd {
             return None;
         }
         let p = if dot { point.trailing_zeros() } else { 16 };
-        // Digit t (from 0) sits at byte t, or t + 1 from the point on; right-aligned, byte j
-        // takes digit j − 16 + digits (negative, so zero, before the first).
-        let t = sse2._mm_add_epi8(pulp::cast(FROM_END), sse2._mm_set1_epi8(digits as i8));
-        let after = sse2._mm_cmpgt_epi8(t, sse2._mm_set1_epi8(p as i8 - 1));
-        let digits_right = ssse3._mm_shuffle_epi8(d, sse2._mm_sub_epi8(t, after));
-        let pairs = ssse3._mm_maddubs_epi16(
-            digits_right,
-            pulp::cast([10u8, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1]),
-        );
-        let fours = sse2._mm_madd_epi16(pairs, pulp::cast([100i16, 1, 100, 1, 100, 1, 100, 1]));
-        let fours = sse4_1._mm_packus_epi32(fours, fours);
-        let eights = sse2._mm_madd_epi16(
-            fours,
-            pulp::cast([10_000i16, 1, 10_000, 1, 10_000, 1, 10_000, 1]),
-        );
-        let [high, low, _, _]: [u32; 4] = pulp::cast(eights);
-        let mant = u64::from(high) * 100_000_000 + u64::from(low);
+        let digits_right = right_aligned(simd, d, digits, p);
+        let mant = mantissa_of(simd, digits_right);
         let mut q = if dot { p as i32 + 1 - k as i32 } else { 0 };
         if k < len {
             // (`e`|`E`) (`+`|`-`)? and 1 to 3 digits up to the end.
@@ -1093,15 +1089,7 @@ mod simd {
             }
             q += if eneg { -ev } else { ev };
         }
-        if !(-22..=22).contains(&q) {
-            return None;
-        }
-        let m = mant as i64 as f64;
-        let v = if q >= 0 {
-            m * POW10_F64[q as usize]
-        } else {
-            m / POW10_F64[(-q) as usize]
-        };
+        let v = super::clinger(mant, i64::from(q))?;
         Some(if neg { -v } else { v })
     }
 
@@ -1223,6 +1211,38 @@ mod simd {
         -16, -15, -14, -13, -12, -11, -10, -9, -8, -7, -6, -5, -4, -3, -2, -1,
     ];
 
+    /// The digit values `d` (bytes 0–9) moved to the right end of the register with the point
+    /// squeezed out: byte j takes digit t = j − 16 + `digits`, which sits at byte t, or t + 1 at
+    /// and after the point at byte `p` (no point: `p` = 16, never reached); t < 0 gives 0. One
+    /// `pshufb` whose control is computed, for shapes the table of [`SHAPES`] does not hold.
+    #[inline(always)]
+    fn right_aligned(simd: V2, d: __m128i, digits: u32, p: u32) -> __m128i {
+        let (sse2, ssse3) = (simd.sse2, simd.ssse3);
+        let t = sse2._mm_add_epi8(pulp::cast(FROM_END), sse2._mm_set1_epi8(digits as i8));
+        let after = sse2._mm_cmpgt_epi8(t, sse2._mm_set1_epi8(p as i8 - 1));
+        ssse3._mm_shuffle_epi8(d, sse2._mm_sub_epi8(t, after))
+    }
+
+    /// The integer of 16 right-aligned digit values (at most 15 non-zero: < 10^15): pairs,
+    /// fours, then eights of digits by multiply-adds, the first eight in lane 0, the last in
+    /// lane 1.
+    #[inline(always)]
+    fn mantissa_of(simd: V2, digits_right: __m128i) -> u64 {
+        let (sse2, ssse3, sse4_1) = (simd.sse2, simd.ssse3, simd.sse4_1);
+        let pairs = ssse3._mm_maddubs_epi16(
+            digits_right,
+            pulp::cast([10u8, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1]),
+        );
+        let fours = sse2._mm_madd_epi16(pairs, pulp::cast([100i16, 1, 100, 1, 100, 1, 100, 1]));
+        let fours = sse4_1._mm_packus_epi32(fours, fours);
+        let eights = sse2._mm_madd_epi16(
+            fours,
+            pulp::cast([10_000i16, 1, 10_000, 1, 10_000, 1, 10_000, 1]),
+        );
+        let [high, low, _, _]: [u32; 4] = pulp::cast(eights);
+        u64::from(high) * 100_000_000 + u64::from(low)
+    }
+
     /// A plain decimal at the start of `b`: `-`? digits? (`.` digits?)? with 1 to 15 digits,
     /// 15 bytes at most after the sign, then optionally (`e`|`E`) (`+`|`-`)? and 1–4 digits,
     /// the decimal exponent q (the written one minus the fraction's digits) within ±22: the
@@ -1237,7 +1257,7 @@ mod simd {
         let s = usize::from(neg);
         let window: [u8; 16] = b.get(s..s + 16)?.try_into().ok()?;
         let x: __m128i = pulp::cast(window);
-        let (sse2, ssse3, sse4_1) = (simd.sse2, simd.ssse3, simd.sse4_1);
+        let sse2 = simd.sse2;
         // Digit values (bytes 0–9 where there are digits) and the masks of digits and points.
         let d = sse2._mm_sub_epi8(x, sse2._mm_set1_epi8(b'0' as i8));
         let is_digit = sse2._mm_cmpeq_epi8(sse2._mm_min_epu8(d, sse2._mm_set1_epi8(9)), d);
@@ -1254,50 +1274,11 @@ mod simd {
         if e >= 16 || digits == 0 {
             return None;
         }
-        // Byte j of the shuffle takes the digit k = j − 16 + digits, which sits at byte k, or
-        // k + 1 at and after the point (no point: p = 16, never reached); k < 0 gives 0.
-        let k = sse2._mm_add_epi8(pulp::cast(FROM_END), sse2._mm_set1_epi8(digits as i8));
-        let p_or_16 = if dot { p } else { 16 };
-        let after = sse2._mm_cmpgt_epi8(k, sse2._mm_set1_epi8(p_or_16 as i8 - 1));
-        let digits_right = ssse3._mm_shuffle_epi8(d, sse2._mm_sub_epi8(k, after));
-        // Pairs, fours, then eights of digits: the first eight in lane 0, the last in lane 1.
-        let pairs = ssse3._mm_maddubs_epi16(
-            digits_right,
-            pulp::cast([10u8, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1, 10, 1]),
-        );
-        let fours = sse2._mm_madd_epi16(pairs, pulp::cast([100i16, 1, 100, 1, 100, 1, 100, 1]));
-        let fours = sse4_1._mm_packus_epi32(fours, fours);
-        let eights = sse2._mm_madd_epi16(
-            fours,
-            pulp::cast([10_000i16, 1, 10_000, 1, 10_000, 1, 10_000, 1]),
-        );
-        let [high, low, _, _]: [u32; 4] = pulp::cast(eights);
-        let mant = u64::from(high) * 100_000_000 + u64::from(low);
+        let digits_right = right_aligned(simd, d, digits, if dot { p } else { 16 });
+        let mant = mantissa_of(simd, digits_right);
         // Fraction digits (none without a point).
-        let mut q = -(if dot { e - p - 1 } else { 0 } as i64);
-        let mut end = s + e as usize;
-        if b[end] | 0x20 == b'e' {
-            let mut j = end + 1;
-            let eneg = b[j] == b'-';
-            j += usize::from(eneg || b[j] == b'+');
-            let (ne, ev) = digit_run(word(b, j));
-            if ne == 0 || ne > 4 {
-                return None;
-            }
-            q += if eneg { -(ev as i64) } else { ev as i64 };
-            end = j + ne;
-        }
-        if !(-22..=22).contains(&q) {
-            return None;
-        }
-        // mant < 10^15: the signed conversion is one instruction, the unsigned one a sequence.
-        let m = mant as i64 as f64;
-        let v = if q >= 0 {
-            m * POW10_F64[q as usize]
-        } else {
-            m / POW10_F64[(-q) as usize]
-        };
-        Some((if neg { -v } else { v }, end))
+        let q = -(if dot { e - p - 1 } else { 0 } as i64);
+        super::exponent_and_value(b, mant, q, s + e as usize, neg)
     }
 }
 
