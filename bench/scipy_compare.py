@@ -167,8 +167,7 @@ def main():
           f"not converged {int((~sp_conv).sum())} ({100 * (~sp_conv).mean():.2f} %); "
           f"mean evaluations {sp_nfev.mean():.1f}")
     print(f"speed-up (CPU time): {rate_ss / rate_sp:.0f}x (subsurf's median run; its slowest "
-          f"{t_scipy / k * a.curves / cpus[-1]:.0f}x, its fastest "
-          f"{t_scipy / k * a.curves / cpus[0]:.0f}x)")
+          f"{a.curves / cpus[-1] / rate_sp:.0f}x, its fastest {a.curves / cpus[0] / rate_sp:.0f}x)")
     print(f"mean log E over the {k} curves both fitted: subsurf {mean_ss:.6f}, scipy "
           f"{mean_sp:.6f}, ratio {mean_ss / mean_sp:.4f}")
     worse = int((ss_log_e[both] > sp_log_e * 1.02).sum())
