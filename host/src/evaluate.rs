@@ -5,8 +5,10 @@ use crate::dataset::{Dataset, Image};
 use crate::geometry::V3;
 use crate::model::{ColourModel, LogEAccumulator, Support, TangentFrame};
 use crate::modelfile::{ModelFile, VertexStatus, model_of};
+use crate::pipeline::extract::StoreOptions;
 use crate::pipeline::{Context, LogEStats, PipelineError, PipelineOptions, register_one};
 use crate::progress::Progress;
+use crate::store::StorePoints;
 
 /// Why a model cannot be evaluated on a dataset.
 #[derive(Debug, thiserror::Error)]
@@ -188,29 +190,6 @@ pub enum EvalPoints {
     },
 }
 
-/// Surface points seen per view (camera, turntable angle bits).
-type Views = std::collections::HashMap<(usize, u64), Vec<crate::geometry::Visible>>;
-
-/// The points samples are compared at: the mesh's vertices, or surface points.
-enum PointSet {
-    Vertices,
-    Surface(crate::geometry::SurfacePoints),
-}
-
-impl PointSet {
-    /// Position of point `p` and alpha(x_o) there (vertex alpha, or [`ModelFile::alpha_at`]
-    /// at the point's face and barycentric coordinates: the face lattice's detail included).
-    fn at(&self, ctx: &Context, model: &ModelFile, p: usize) -> (V3, [f64; 3]) {
-        match self {
-            PointSet::Vertices => (ctx.ds.mesh.positions[p], alpha_of(model, p)),
-            PointSet::Surface(pts) => (
-                pts.positions[p],
-                model.alpha_at(pts.face[p] as usize, pts.bary[p]),
-            ),
-        }
-    }
-}
-
 /// Table-1 statistics of one frame.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct FrameEval {
@@ -237,10 +216,11 @@ pub fn evaluate_frames(
     evaluate_frames_at(ds, model, frames, opts, EvalPoints::Vertices, progress)
 }
 
-/// Evaluates `model` on the frames `frames` of `ds` at the points `at` (each frame read once,
-/// in parallel): per frame, log E (Eq. 8) over the samples at those points, read by the rules of
-/// the fit's samples (`samples::frame_samples`), against alpha(x_o) · R_d(x_i → x_o) with alpha
-/// from [`ModelFile::alpha_at`].
+/// Evaluates `model` on the frames `frames` of `ds` at the points `at`, each frame decoded once
+/// (the one pass of [`crate::pipeline::extract`], through the dataset's sample cache): per
+/// frame, log E (Eq. 8) over the samples at those points, read by the rules of the fit's samples
+/// (`samples::frame_samples`), against alpha(x_o) · R_d(x_i → x_o) with alpha from
+/// [`ModelFile::alpha_at`].
 pub fn evaluate_frames_at(
     ds: &Dataset,
     model: &ModelFile,
@@ -249,16 +229,31 @@ pub fn evaluate_frames_at(
     at: EvalPoints,
     progress: &dyn Progress,
 ) -> Result<(Vec<FrameEval>, LogEStats), EvaluateError> {
-    use rayon::prelude::*;
-    if model.positions.len() != ds.mesh.positions.len() {
-        return Err(EvaluateError::MeshMismatch {
-            model: model.positions.len(),
-            mesh: ds.mesh.positions.len(),
-        });
-    }
+    evaluate_frames_stored(
+        ds,
+        model,
+        frames,
+        opts,
+        at,
+        &StoreOptions::default(),
+        progress,
+    )
+}
+
+/// [`evaluate_frames_at`] with the sample store's settings `store` (memory budget, cache).
+pub fn evaluate_frames_stored(
+    ds: &Dataset,
+    model: &ModelFile,
+    frames: &[usize],
+    opts: &PipelineOptions,
+    at: EvalPoints,
+    store: &StoreOptions,
+    progress: &dyn Progress,
+) -> Result<(Vec<FrameEval>, LogEStats), EvaluateError> {
+    check_mesh(ds, model)?;
     let ctx = Context::new(ds, *opts)?;
     let points = match at {
-        EvalPoints::Vertices => PointSet::Vertices,
+        EvalPoints::Vertices => None,
         EvalPoints::Surface { level } => {
             if model.triangles != ds.mesh.triangles {
                 return Err(EvaluateError::FaceMismatch {
@@ -267,30 +262,45 @@ pub fn evaluate_frames_at(
                 });
             }
             let levels = vec![level; ds.mesh.triangles.len()];
-            PointSet::Surface(
-                crate::geometry::SurfacePoints::lattice(&ds.mesh, &levels)
-                    .map_err(EvaluateError::Level)?,
-            )
+            Some(StorePoints::new(&ds.mesh, levels, None).map_err(EvaluateError::Level)?)
         }
     };
-    // Surface points' visibility per view (camera, turntable angle), computed once: frames of
-    // one view share it, and a ray per point per frame would dominate.
-    let mut views: Views = Views::new();
-    if let PointSet::Surface(pts) = &points {
-        for &k in frames {
-            let Some(f) = ds.spec.frames.get(k) else {
-                continue;
-            };
-            views
-                .entry((f.camera, f.turntable_deg.to_bits()))
-                .or_insert_with(|| ctx.visible_points(pts, k));
-        }
+    let held = crate::pipeline::extract::extract(&ctx, frames, points, store, progress)?;
+    let ctx = ctx.with_store(held);
+    evaluate_in(&ctx, model, frames, at, progress)
+}
+
+fn check_mesh(ds: &Dataset, model: &ModelFile) -> Result<(), EvaluateError> {
+    if model.positions.len() != ds.mesh.positions.len() {
+        return Err(EvaluateError::MeshMismatch {
+            model: model.positions.len(),
+            mesh: ds.mesh.positions.len(),
+        });
     }
+    Ok(())
+}
+
+/// Evaluates `model` on the frames `frames` of a run whose sample store holds them (at the
+/// vertices, or at its lattice points for [`EvalPoints::Surface`]): no frame is read. The
+/// held-out frames of `subsurf fit --validate` are judged so, from the fit's own store.
+pub fn evaluate_in(
+    ctx: &Context,
+    model: &ModelFile,
+    frames: &[usize],
+    at: EvalPoints,
+    progress: &dyn Progress,
+) -> Result<(Vec<FrameEval>, LogEStats), EvaluateError> {
+    use rayon::prelude::*;
+    check_mesh(ctx.ds, model)?;
+    let set = match at {
+        EvalPoints::Vertices => crate::store::PointSet::Vertices,
+        EvalPoints::Surface { .. } => crate::store::PointSet::Lattice,
+    };
     progress.start("evaluate", frames.len() as u64);
     let evals: Vec<FrameEval> = frames
         .par_iter()
         .map(|&k| {
-            let r = evaluate_one(&ctx, model, k, opts, &points, &views);
+            let r = evaluate_one(ctx, model, k, set);
             progress.inc(1);
             r.unwrap_or_else(|reason| FrameEval {
                 frame: k,
@@ -312,32 +322,38 @@ fn evaluate_one(
     ctx: &Context,
     model: &ModelFile,
     k: usize,
-    opts: &PipelineOptions,
-    points: &PointSet,
-    views: &Views,
+    set: crate::store::PointSet,
 ) -> Result<FrameEval, String> {
     let reg = register_one(ctx, k)?;
     let x_i = reg.x_i;
     let at = model_at(ctx, model, reg.triangle, x_i).ok_or("no model at x_i")?;
-    let (samples, _) = match points {
-        PointSet::Vertices => ctx.samples(&reg),
-        PointSet::Surface(pts) => {
-            let f = &ctx.ds.spec.frames[k];
-            let vis = views
-                .get(&(f.camera, f.turntable_deg.to_bits()))
-                .map_or(&[][..], |v| &v[..]);
-            ctx.point_samples(&reg, pts, vis)
+    let store = ctx.store().ok_or("no sample store")?;
+    let fs = store
+        .samples(k, set)
+        .map_err(|e| e.to_string())?
+        .ok_or("no samples at these points")?;
+    let (positions, points) = match set {
+        crate::store::PointSet::Vertices => (&ctx.ds.mesh.positions, None),
+        crate::store::PointSet::Lattice => {
+            let p = store.points().ok_or("no surface points in the store")?;
+            (&p.points.positions, Some(&p.points))
         }
-    }
-    .map_err(|e| e.to_string())?;
+    };
     let mut acc = [LogEAccumulator::default(); 3];
-    for s in &samples {
-        let (x_o, a) = points.at(ctx, model, s.vertex as usize);
+    for s in fs.samples.iter() {
+        let p = s.vertex as usize;
+        let (x_o, a) = match points {
+            None => (positions[p], alpha_of(model, p)),
+            Some(pts) => (
+                pts.positions[p],
+                model.alpha_at(pts.face[p] as usize, pts.bary[p]),
+            ),
+        };
         let (r, phi) = at.frame.polar(x_i, x_o);
         let ln = at.ln_eval(r, phi);
         for c in 0..3 {
             if s.valid & (1 << c) != 0 {
-                acc[c].add_ln(a[c].ln() + ln[c], s.value[c], opts.error_threshold);
+                acc[c].add_ln(a[c].ln() + ln[c], s.value[c], ctx.opts.error_threshold);
             }
         }
     }

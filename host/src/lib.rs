@@ -28,6 +28,7 @@ pub mod scan;
 pub mod selection;
 pub mod sim;
 pub mod simulate;
+pub mod store;
 pub mod util;
 pub mod validate;
 

@@ -8,9 +8,9 @@
 //! positions, distances and viewing angles no training frame had — so whole turntable angles are
 //! held out when the scan has enough of them ([`holdout`]).
 use crate::dataset::Dataset;
-use crate::evaluate::{EvaluateError, FrameEval, evaluate_frames};
+use crate::evaluate::{EvalPoints, EvaluateError, FrameEval, evaluate_in};
 use crate::modelfile::{ColourMode, ModelFile, VertexStatus};
-use crate::pipeline::{LogEStats, PipelineOptions};
+use crate::pipeline::{Context, LogEStats};
 
 /// A scan with at least this many distinct turntable angles has whole angles held out.
 pub const MIN_ANGLES_FOR_ANGLE_HOLDOUT: usize = 4;
@@ -153,18 +153,20 @@ pub struct Validation {
     pub per_frame: Vec<FrameEval>,
 }
 
-/// Judges `model` (fitted on `holdout.training`) on the held-out frames, beside the baseline.
+/// Judges `model` (fitted on `holdout.training`) on the held-out frames, beside the baseline,
+/// from the run's sample store (`ctx`, [`crate::pipeline::prepare`] of the training and held-out
+/// frames): no frame is read again.
 pub fn judge(
-    ds: &Dataset,
+    ctx: &Context,
     model: &ModelFile,
     holdout: Holdout,
     in_sample: LogEStats,
-    opts: &PipelineOptions,
     progress: &dyn crate::progress::Progress,
 ) -> Result<Validation, EvaluateError> {
-    let (per_frame, held_out) = evaluate_frames(ds, model, &holdout.frames, opts, progress)?;
+    let at = EvalPoints::Vertices;
+    let (per_frame, held_out) = evaluate_in(ctx, model, &holdout.frames, at, progress)?;
     let baseline_held_out = match baseline_only(model) {
-        Some(b) => Some(evaluate_frames(ds, &b, &holdout.frames, opts, progress)?.1),
+        Some(b) => Some(evaluate_in(ctx, &b, &holdout.frames, at, progress)?.1),
         None => None,
     };
     Ok(Validation {

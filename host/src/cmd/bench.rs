@@ -28,6 +28,9 @@ enum Bench {
     /// Scan processing at scale: `subsurf fit` on simulated scans over a grid of vertex and
     /// frame counts (stage times, peak RSS, growth), one dataset on disk at a time.
     FitScale(super::bench_fit::FitScaleBench),
+    /// One read of the frames: `subsurf fit` wall time against one decode pass over the same
+    /// frames, measured in the same run, with the ratio, peak RSS and frame reads.
+    OnePass(super::bench_one_pass::OnePassBench),
 }
 
 #[derive(Debug, clap::Args)]
@@ -52,6 +55,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         Bench::Render(a) => super::bench_render::bench_render(a),
         Bench::Tradeoff(a) => super::bench_tradeoff::bench_tradeoff(a),
         Bench::FitScale(a) => super::bench_fit::bench_fit_scale(a),
+        Bench::OnePass(a) => super::bench_one_pass::bench_one_pass(a),
     }
 }
 

@@ -17,9 +17,7 @@ use subsurf::dataset::Dataset;
 use subsurf::evaluate::evaluate_frames;
 use subsurf::fit::{FitOptions, Preset, Terms};
 use subsurf::modelfile::ModelFile;
-use subsurf::pipeline::{
-    Context as FitContext, FitReport, PipelineOptions, fit_dataset, register_one,
-};
+use subsurf::pipeline::{FitReport, PipelineOptions, fit_dataset, register_one};
 use subsurf::render::{
     self, Camera, Image, Light, RenderOptions, ToneMapping, auto_exposure, relative_pixel_error,
 };
@@ -373,17 +371,19 @@ pub fn run_demo(args: &Args) -> Result<Vec<PathBuf>> {
 
     // 5. Pictures: Figure 3 from one scanned frame, error maps, model viewer.
     let tp = Instant::now();
-    let ctx = FitContext::new(&ds, opts)?;
+    // The fits' run (its sample store from the dataset's cache: no frame is decoded again).
+    let ctx = subsurf::pipeline::prepare(&ds, &train, &opts, &Default::default(), &())?;
     // The training frame whose x_i has the most green samples.
     let mut best: Option<(usize, Vec<f64>, Vec<f64>)> = None;
     for &k in train.iter().step_by(3) {
         let Ok(reg) = register_one(&ctx, k) else {
             continue;
         };
-        let Ok((samples, _)) = ctx.samples(&reg) else {
+        let Ok(fs) = ctx.samples(&reg) else {
             continue;
         };
-        let (r, s): (Vec<f64>, Vec<f64>) = samples
+        let (r, s): (Vec<f64>, Vec<f64>) = fs
+            .samples
             .iter()
             .filter(|s| s.valid & 2 != 0)
             .map(|s| (s.r, s.value[1]))

@@ -3,7 +3,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, anyhow};
 use subsurf::dataset::{Dataset, select_frames};
-use subsurf::evaluate::{EvalPoints, evaluate_frames_at};
+use subsurf::evaluate::{EvalPoints, evaluate_frames_stored};
 use subsurf::modelfile::ModelFile;
 use subsurf::pipeline::PipelineOptions;
 
@@ -44,6 +44,13 @@ pub struct Args {
     /// face. Fixed here, not by any model, so models compared at the same k see the same points.
     #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u8).range(1..=8))]
     pub surface_level: u8,
+    /// Memory for the sample store (MiB), as `subsurf fit --memory`.
+    #[arg(long, default_value_t = (subsurf::store::DEFAULT_BUDGET >> 20) as u64)]
+    pub memory: u64,
+    /// Where the sample store's files go (`dataset`, a directory, `off`), as `subsurf fit
+    /// --cache`: a store of a fit that holds these frames serves the evaluation.
+    #[arg(long, default_value = "dataset")]
+    pub cache: subsurf::pipeline::Cache,
 }
 
 /// Where `evaluate` compares.
@@ -80,7 +87,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             level: args.surface_level,
         },
     };
-    let (evals, stats) = evaluate_frames_at(&ds, &model, &frames, &opts, points, &bar)?;
+    let store = subsurf::pipeline::StoreOptions {
+        budget: usize::try_from(args.memory.saturating_mul(1 << 20)).unwrap_or(usize::MAX),
+        cache: args.cache.clone(),
+    };
+    let (evals, stats) = evaluate_frames_stored(&ds, &model, &frames, &opts, points, &store, &bar)?;
     bar.finish_and_clear();
     let rgb = |v: [Option<f64>; 3]| v.map(|x| x.map_or(serde_json::Value::Null, |x| x.into()));
     let evaluated = evals.iter().filter(|e| e.skipped.is_none()).count();

@@ -6,7 +6,9 @@ use anyhow::{Context, anyhow};
 use subsurf::dataset::{Dataset, select_frames};
 use subsurf::fit::{Preset, Terms};
 use subsurf::modelfile::ColourMode;
-use subsurf::pipeline::{MAX_SEGMENTS, PipelineOptions, Segments, fit_scan};
+use subsurf::pipeline::{
+    MAX_SEGMENTS, PipelineOptions, Segments, StoreOptions, fit_scan_in, prepare,
+};
 
 use super::progress::Bar;
 
@@ -124,6 +126,14 @@ pub struct Args {
     /// the homogeneous baseline's, then fit on everything (`docs/validation.md`).
     #[arg(long)]
     pub validate: bool,
+    /// Memory for the sample store (MiB): the samples of every frame are read once and kept in
+    /// memory up to this, the rest read back from the store's files per use.
+    #[arg(long, default_value_t = (subsurf::store::DEFAULT_BUDGET >> 20) as u64)]
+    pub memory: u64,
+    /// Where the sample store's files go: `dataset` (`.subsurf-cache/` in the dataset, reused by
+    /// later fits of the same frames with the same extraction options), a directory, or `off`.
+    #[arg(long, default_value = "dataset")]
+    pub cache: subsurf::pipeline::Cache,
     /// Do not draw the PNGs beside the report (`<report>-error-map.png`: log E(x_i) per vertex,
     /// Eq. 8; `<report>-model.png`: alpha, reflectance, reach and vertex status).
     #[arg(long)]
@@ -222,17 +232,25 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
     }
     let bar = Bar::with_template("{msg:>12} {bar:40} {pos}/{len} {eta}");
+    let store = StoreOptions {
+        budget: usize::try_from(args.memory.saturating_mul(1 << 20)).unwrap_or(usize::MAX),
+        cache: args.cache.clone(),
+    };
+    // One pass over the frames: the validation fit, its held-out frames and the fit on
+    // everything all read the samples from it.
+    let run = prepare(&ds, &frames, &opts, &store, &bar)
+        .with_context(|| format!("reading the frames of {}", args.scan.display()))?;
     let validation = if args.validate {
         let holdout = subsurf::validate::holdout(&ds, &frames);
-        let v = fit_scan(&ds, &holdout.training, &opts, segments, &fit, &bar)
+        let v = fit_scan_in(&run, &holdout.training, segments, &fit, &bar)
             .with_context(|| format!("validation fit of {}", args.scan.display()))?;
-        let v = subsurf::validate::judge(&ds, &v.model, holdout, v.report.log_e, &opts, &bar)
+        let v = subsurf::validate::judge(&run, &v.model, holdout, v.report.log_e, &bar)
             .context("judging the validation fit on the held-out frames")?;
         Some(v)
     } else {
         None
     };
-    let out = fit_scan(&ds, &frames, &opts, segments, &fit, &bar)
+    let out = fit_scan_in(&run, &frames, segments, &fit, &bar)
         .with_context(|| format!("fitting {}", args.scan.display()))?;
     bar.finish_and_clear();
     let report_dir = args.report.as_deref().and_then(std::path::Path::parent);
@@ -289,6 +307,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     // pipeline's own `peak_rss_mib` is taken at its end.
     if let Some(m) = subsurf::util::peak_rss_mib() {
         json["process_peak_rss_mib"] = m.into();
+    }
+    if let Some(c) = subsurf::util::cpu_seconds() {
+        json["process_cpu_s"] = c.into();
     }
     std::fs::write(&report_path, serde_json::to_string_pretty(&json)?)
         .with_context(|| format!("writing {}", report_path.display()))?;

@@ -3,6 +3,7 @@ use clap::{Parser, Subcommand};
 
 mod bench;
 mod bench_fit;
+mod bench_one_pass;
 mod bench_render;
 mod bench_tradeoff;
 mod calib;

@@ -240,6 +240,18 @@ impl ScanSpec {
     }
 }
 
+/// How often this process read the frames' images ([`Dataset::read_frame`]): a fit reads each
+/// frame once (the extraction pass), or none when the sample cache serves.
+#[derive(Debug, Clone, Default, PartialEq, Eq, serde::Serialize)]
+pub struct FrameReads {
+    /// Reads in all.
+    pub total: u64,
+    /// Frames read at least once.
+    pub frames: usize,
+    /// The most reads of one frame.
+    pub most: u32,
+}
+
 /// An opened, validated dataset: its description and mesh; frames are read on demand.
 #[derive(Debug, Clone)]
 pub struct Dataset {
@@ -251,6 +263,8 @@ pub struct Dataset {
     pub mesh: Mesh,
     /// What loading the mesh found (degenerate and duplicate faces).
     pub mesh_report: MeshReport,
+    /// Reads of each frame's image by this process (shared by clones).
+    reads: std::sync::Arc<Vec<std::sync::atomic::AtomicU32>>,
 }
 
 impl Dataset {
@@ -287,12 +301,33 @@ impl Dataset {
             }
         }
         let (mesh, mesh_report) = load_obj(&mesh_path)?;
+        let reads = (0..spec.frames.len()).map(|_| Default::default()).collect();
         Ok(Dataset {
             dir,
             spec,
             mesh,
             mesh_report,
+            reads: std::sync::Arc::new(reads),
         })
+    }
+
+    /// How often each frame's image was read by this process, per frame.
+    pub fn frame_read_counts(&self) -> Vec<u32> {
+        use std::sync::atomic::Ordering;
+        self.reads
+            .iter()
+            .map(|r| r.load(Ordering::Relaxed))
+            .collect()
+    }
+
+    /// [`Dataset::frame_read_counts`] summed up.
+    pub fn frame_reads(&self) -> FrameReads {
+        let c = self.frame_read_counts();
+        FrameReads {
+            total: c.iter().map(|&n| u64::from(n)).sum(),
+            frames: c.iter().filter(|&&n| n > 0).count(),
+            most: c.iter().copied().max().unwrap_or(0),
+        }
     }
 
     /// Reads frame `k`'s image, checking that its size matches its camera.
@@ -304,6 +339,9 @@ impl Dataset {
             ))
         })?;
         let path = confined_path(&self.dir, &f.image)?;
+        if let Some(n) = self.reads.get(k) {
+            n.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        }
         let img = read_image(&path).map_err(|source| DatasetError::Frame { frame: k, source })?;
         let cam = &self.spec.cameras[f.camera];
         if img.width != cam.width as usize || img.height != cam.height as usize {

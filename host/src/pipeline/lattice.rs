@@ -27,7 +27,7 @@ use std::collections::BTreeMap;
 
 use rayon::prelude::*;
 
-use crate::geometry::{Camera, Scene, SurfacePoints, Visible, dist, dot, normalize, sub};
+use crate::geometry::{Camera, Scene, SurfacePoints, dist, dot, normalize, sub};
 use crate::lattice::{FaceAlpha, is_corner, points};
 use crate::model::{ALPHA_PRIOR_MAX, AlphaAccumulator, empirical_prior};
 use crate::progress::Progress;
@@ -158,7 +158,14 @@ pub fn fit_lattice(
     };
     report.max_level = max_level;
     let mesh = &ctx.ds.mesh;
-    let cos_min = ctx.opts.samples.cos_min;
+    // The points were chosen and sampled by the extraction pass ([`super::extract::fit_points`]).
+    let Some(sp) = ctx.store().and_then(|s| s.points()) else {
+        return Lattice {
+            face_alpha: None,
+            report,
+        };
+    };
+    let (rule, pts) = (&sp.levels, &sp.points);
     // Per registered frame, the groups (with a model) that read it; per group its tangent frame.
     let mut users: BTreeMap<u32, Vec<usize>> = BTreeMap::new();
     for (gi, key) in groups.keys.iter().enumerate() {
@@ -173,7 +180,8 @@ pub fn fit_lattice(
         .iter()
         .map(|k| group_frame(ctx, regs, k).ok())
         .collect();
-    // The views (camera, turntable angle) of those frames, each with its frames.
+    // The views (camera, turntable angle) of those frames, each with its frames: a view's frames
+    // are folded in frame order, views in order, so the sums are the same on every run.
     let mut by_view: BTreeMap<(usize, u64), Vec<u32>> = BTreeMap::new();
     for &l in users.keys() {
         let f = &ctx.ds.spec.frames[regs[l as usize].frame];
@@ -182,21 +190,7 @@ pub fn fit_lattice(
             .or_default()
             .push(l);
     }
-    let views: Vec<(&Camera, f64)> = by_view
-        .keys()
-        .map(|&(c, d)| (ctx.camera(c), f64::from_bits(d)))
-        .collect();
-    let rule = face_levels(&ctx.scene, &views, cos_min, max_level);
-    let pts = match SurfacePoints::lattice(mesh, &rule) {
-        Ok(p) => p,
-        Err(_) => {
-            return Lattice {
-                face_alpha: None,
-                report,
-            };
-        }
-    };
-    for &k in &rule {
+    for &k in rule {
         *report.levels_by_rule.entry(k).or_default() += 1;
     }
     // Per point: a corner (detail 0 by definition, not estimated), and ln of the interpolated
@@ -221,29 +215,23 @@ pub fn fit_lattice(
             })
         })
         .collect();
-    // The points between the corners: only they are read (a corner is a vertex).
-    let between: Vec<u32> = (0..pts.len() as u32)
-        .filter(|&p| !corner[p as usize])
-        .collect();
-    report.points = between.len();
+    // The points between the corners: only they are sampled (a corner is a vertex).
+    report.points = sp.which.len();
 
     let mut acc = vec![[AlphaAccumulator::default(); 3]; pts.len()];
     progress.start("alpha lattice", users.len() as u64);
-    for ((cam, deg), frames) in &by_view {
-        let vis: Vec<Visible> = ctx.scene.visible_points_of(
-            &pts,
-            &between,
-            ctx.camera(*cam),
-            f64::from_bits(*deg),
-            cos_min,
-        );
+    // A few frames per worker at a time, folded in frame order: memory holds their
+    // contributions, not a view's.
+    let chunk = 2 * rayon::current_num_threads().max(1);
+    for frames in by_view.values().flat_map(|f| f.chunks(chunk)) {
         // Per frame: (point, channel, group, s, ln R_d + ln of the interpolated vertex alpha).
         type Contribution = (u32, u8, u32, f64, f64);
         let per_frame: Vec<Option<Vec<Contribution>>> = frames
             .par_iter()
             .map(|&l| {
                 let reg = &regs[l as usize];
-                let out = ctx.point_samples(reg, &pts, &vis).ok().map(|(s, _)| {
+                let out = ctx.lattice_samples(reg).ok().flatten().map(|fs| {
+                    let s = &fs.samples;
                     let mut out = Vec::new();
                     for &gi in users.get(&l).map_or(&[][..], |v| v) {
                         let (Some(Ok(g)), Some(Some(tf))) = (fitted.fits.get(gi), tangent.get(gi))
@@ -251,7 +239,7 @@ pub fn fit_lattice(
                             continue;
                         };
                         for (x, phi, takes) in
-                            frame_observations(&groups.keys[gi], l, reg, tf, &s, &pts.positions)
+                            frame_observations(&groups.keys[gi], l, reg, tf, s, &pts.positions)
                         {
                             // One evaluation of R_d for all channels of the observation.
                             let ln_rd = g.model.ln_eval(x.r, phi);
@@ -291,7 +279,7 @@ pub fn fit_lattice(
             }
         }
     }
-    finish(&pts, &corner, &acc, &mut report)
+    finish(pts, &corner, &acc, &mut report)
 }
 
 /// The detail from the accumulators: the prior per channel, the shrunk detail where the channel

@@ -1,15 +1,18 @@
 //! Stage `load` (section 5: "the acquired data"): the dataset's mesh prepared for ray casts
-//! (BVH, adjacency), its cameras, and reading a frame's image as samples.
+//! (BVH, adjacency), its cameras, the sample store of the run ([`super::extract`]) and reading a
+//! frame's image as samples.
 //!
-//! Owns every read of a frame image; never keeps an image beyond the call that read it, so memory
-//! does not grow with the frame count (frames are read again by later passes instead).
+//! Owns every read of a frame image; never keeps an image beyond the call that read it. With a
+//! store ([`Context::with_store`]) a frame it holds is never read again: its registration and
+//! samples come from the store.
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
 use crate::dataset::{Dataset, DatasetError};
 use crate::geometry::{Camera, CoverageMap, Scene, SurfacePoints, V3, Visible};
 use crate::registration::{RegistrationOutcome, register_frame};
-use crate::samples::{Sample, SampleCounts, frame_samples};
+use crate::samples::{SampleCounts, frame_samples};
+use crate::store::{FrameSamples, PointSet, SampleStore, StoreError};
 
 use super::register::RegisteredFrame;
 use super::{PipelineError, PipelineOptions};
@@ -24,15 +27,30 @@ type CoverageCache = (HashMap<(usize, u64), Arc<CoverageMap>>, usize);
 /// scans in use (128 × 128, 12–64 views) stay far below.
 const COVERAGE_PIXELS: usize = 1 << 26;
 
-/// Shared state of one run: scene, cameras, cached visibility.
+/// Why a frame's samples could not be had.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum SamplesError {
+    /// Its image could not be read.
+    #[error(transparent)]
+    Dataset(#[from] DatasetError),
+    /// The store could not give them (a spilled frame's file).
+    #[error(transparent)]
+    Store(#[from] StoreError),
+}
+
+/// Shared state of one run: scene, cameras, cached visibility, the sample store. Cheap to
+/// derive for other fit settings ([`Context::with_options`]): the scene, caches and store are
+/// shared.
 pub struct Context<'a> {
     /// The dataset.
     pub ds: &'a Dataset,
     /// Mesh with BVH.
-    pub scene: Scene,
-    cams: Vec<Camera>,
-    vis: Mutex<VisCache>,
-    cov: Mutex<CoverageCache>,
+    pub scene: Arc<Scene>,
+    cams: Arc<Vec<Camera>>,
+    vis: Arc<Mutex<VisCache>>,
+    cov: Arc<Mutex<CoverageCache>>,
+    store: Option<Arc<SampleStore>>,
     /// Options.
     pub opts: PipelineOptions,
 }
@@ -42,10 +60,42 @@ impl<'a> Context<'a> {
     pub fn new(ds: &'a Dataset, opts: PipelineOptions) -> Result<Context<'a>, PipelineError> {
         Ok(Context {
             ds,
-            scene: Scene::new(ds.mesh.clone())?,
-            cams: ds.spec.cameras.clone(),
-            vis: Mutex::new(HashMap::new()),
-            cov: Mutex::new((HashMap::new(), 0)),
+            scene: Arc::new(Scene::new(ds.mesh.clone())?),
+            cams: Arc::new(ds.spec.cameras.clone()),
+            vis: Arc::new(Mutex::new(HashMap::new())),
+            cov: Arc::new(Mutex::new((HashMap::new(), 0))),
+            store: None,
+            opts,
+        })
+    }
+
+    /// This context with the sample store `store`: the frames it holds are never read again.
+    pub fn with_store(mut self, store: SampleStore) -> Context<'a> {
+        self.store = Some(Arc::new(store));
+        self
+    }
+
+    /// The run's sample store, if it has one.
+    pub fn store(&self) -> Option<&SampleStore> {
+        self.store.as_deref()
+    }
+
+    /// The same run (scene, caches, store) with other fit settings. The extraction settings
+    /// (spot detection, sample rules) cannot change: the store and the visibility caches were
+    /// made with them.
+    pub fn with_options(&self, opts: PipelineOptions) -> Result<Context<'a>, PipelineError> {
+        if opts.spot != self.opts.spot || opts.samples != self.opts.samples {
+            return Err(PipelineError::Invalid(
+                "a derived run must keep the extraction settings of its store".into(),
+            ));
+        }
+        Ok(Context {
+            ds: self.ds,
+            scene: self.scene.clone(),
+            cams: self.cams.clone(),
+            vis: self.vis.clone(),
+            cov: self.cov.clone(),
+            store: self.store.clone(),
             opts,
         })
     }
@@ -107,37 +157,100 @@ impl<'a> Context<'a> {
 
     /// Registers frame `k`: reads its image, detects the spot, back-projects it (the `register`
     /// stage calls this; see [`super::register`]).
-    pub fn register(&self, k: usize) -> Result<RegistrationOutcome, DatasetError> {
-        let img = self.ds.read_frame(k)?;
-        let f = &self.ds.spec.frames[k];
-        Ok(register_frame(
-            &img,
-            f,
-            &self.cams[f.camera],
-            &self.scene,
-            &self.opts.spot,
-        ))
+    ///
+    /// With a store that holds frame `k`, its outcome is the store's (the image is not read).
+    /// The error is why the image could not be read.
+    pub fn register(&self, k: usize) -> Result<RegistrationOutcome, String> {
+        if let Some(r) = self.store().and_then(|s| s.record(k)) {
+            return r.outcome.clone();
+        }
+        let img = self.ds.read_frame(k).map_err(|e| e.to_string())?;
+        Ok(self.register_image(&img, k))
     }
 
-    /// The samples of a registered frame (reads its image again; the spot is registration's).
-    pub fn samples(
-        &self,
-        reg: &RegisteredFrame,
-    ) -> Result<(Vec<Sample>, SampleCounts), DatasetError> {
+    /// Registers frame `k` from its image `img` (the rule of [`Context::register`]).
+    pub fn register_image(&self, img: &crate::dataset::Image, k: usize) -> RegistrationOutcome {
+        let f = &self.ds.spec.frames[k];
+        register_frame(img, f, &self.cams[f.camera], &self.scene, &self.opts.spot)
+    }
+
+    /// The samples of a registered frame at the vertices: from the store when it holds the
+    /// frame, else read from its image (the spot is registration's).
+    pub fn samples(&self, reg: &RegisteredFrame) -> Result<FrameSamples, SamplesError> {
+        if let Some(store) = self.store()
+            && store.record(reg.frame).is_some()
+        {
+            return Ok(store
+                .samples(reg.frame, PointSet::Vertices)?
+                .unwrap_or_default());
+        }
         let img = self.ds.read_frame(reg.frame)?;
-        let f = &self.ds.spec.frames[reg.frame];
+        let (samples, counts) = self.vertex_samples(&img, reg.frame, reg.x_i, &reg.spot);
+        Ok(FrameSamples {
+            samples: Arc::new(samples),
+            counts,
+        })
+    }
+
+    /// Samples of frame `k`'s image `img` at the vertices it sees, with light at `x_i` and the
+    /// laser spot `spot` ([`frame_samples`] with this run's rules).
+    pub fn vertex_samples(
+        &self,
+        img: &crate::dataset::Image,
+        k: usize,
+        x_i: V3,
+        spot: &crate::registration::Spot,
+    ) -> (Vec<crate::samples::Sample>, SampleCounts) {
+        let f = &self.ds.spec.frames[k];
         let vis = self.visible(f.camera, f.turntable_deg);
         let cov = self.coverage(f.camera, f.turntable_deg);
-        Ok(frame_samples(
-            &img,
+        frame_samples(
+            img,
             f,
             &vis,
             &self.ds.mesh.positions,
-            reg.x_i,
-            Some(&reg.spot),
+            x_i,
+            Some(spot),
             Some((&self.scene, &cov)),
             &self.opts.samples,
-        ))
+        )
+    }
+
+    /// Samples of frame `k`'s image `img` at the surface points `pts` of which `visible` are seen
+    /// (by the vertices' rules, [`Context::vertex_samples`]); `Sample::vertex` indexes `pts`.
+    pub fn surface_samples(
+        &self,
+        img: &crate::dataset::Image,
+        k: usize,
+        x_i: V3,
+        spot: &crate::registration::Spot,
+        pts: &SurfacePoints,
+        visible: &[Visible],
+    ) -> (Vec<crate::samples::Sample>, SampleCounts) {
+        let f = &self.ds.spec.frames[k];
+        let cov = self.coverage(f.camera, f.turntable_deg);
+        frame_samples(
+            img,
+            f,
+            visible,
+            &pts.positions,
+            x_i,
+            Some(spot),
+            Some((&self.scene, &cov)),
+            &self.opts.samples,
+        )
+    }
+
+    /// The samples of a registered frame at the store's lattice points
+    /// ([`crate::store::SampleStore::points`]); `None` without a store, or a lattice in it.
+    pub fn lattice_samples(
+        &self,
+        reg: &RegisteredFrame,
+    ) -> Result<Option<FrameSamples>, SamplesError> {
+        match self.store() {
+            Some(s) if s.points().is_some() => Ok(s.samples(reg.frame, PointSet::Lattice)?),
+            _ => Ok(None),
+        }
     }
 
     /// Surface points of `pts` the camera of frame `k` sees (the rule of [`Context::visible`]
@@ -151,30 +264,6 @@ impl<'a> Context<'a> {
             f.turntable_deg,
             self.opts.samples.cos_min,
         )
-    }
-
-    /// The samples of a registered frame at the surface points `pts` of which `visible` (from
-    /// [`Context::visible_points`] for this frame's view) are seen, by the same rules as the
-    /// vertices' ([`Context::samples`], `frame_samples`); `Sample::vertex` indexes `pts`.
-    pub fn point_samples(
-        &self,
-        reg: &RegisteredFrame,
-        pts: &SurfacePoints,
-        visible: &[Visible],
-    ) -> Result<(Vec<Sample>, SampleCounts), DatasetError> {
-        let img = self.ds.read_frame(reg.frame)?;
-        let f = &self.ds.spec.frames[reg.frame];
-        let cov = self.coverage(f.camera, f.turntable_deg);
-        Ok(frame_samples(
-            &img,
-            f,
-            visible,
-            &pts.positions,
-            reg.x_i,
-            Some(&reg.spot),
-            Some((&self.scene, &cov)),
-            &self.opts.samples,
-        ))
     }
 
     /// Interpolated unit normal at a point of triangle `tri` ([`crate::geometry::Scene::normal_at`],

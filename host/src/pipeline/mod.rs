@@ -17,6 +17,7 @@
 //! fitted. Progress goes to a [`Progress`]; each stage's wall time into the report.
 pub mod assemble;
 pub mod error;
+pub mod extract;
 pub mod fit;
 pub mod interpolate;
 pub mod lattice;
@@ -31,10 +32,11 @@ use crate::geometry::GeometryError;
 use crate::modelfile::ModelFile;
 use crate::progress::Progress;
 
+pub use extract::{Cache, StoreOptions};
 pub use fit::{
     Fitter, MIN_DECAY, MIN_SHARE, MIN_SUPPORT, SEGMENT_MAX_RATE_RATIO, unsupported_term,
 };
-pub use load::Context;
+pub use load::{Context, SamplesError};
 pub use options::{
     ALPHA_T1_SHARE, AlphaLattice, MAX_SEGMENTS, ModelChoice, PipelineOptions, SEGMENT_LADDER,
     Segments,
@@ -65,6 +67,9 @@ pub enum PipelineError {
     /// Options are inconsistent.
     #[error("invalid options: {0}")]
     Invalid(String),
+    /// The sample store could not be written or read.
+    #[error(transparent)]
+    Store(#[from] crate::store::StoreError),
 }
 
 /// The result of [`fit_dataset`].
@@ -77,7 +82,8 @@ pub struct FitOutput {
 }
 
 /// Runs the whole pipeline over the frames `frames` of `ds` with `opts.model.segments`
-/// direction segments.
+/// direction segments: [`prepare`] (the one pass over the frames, through the dataset's sample
+/// cache) then [`fit_prepared`].
 pub fn fit_dataset(
     ds: &Dataset,
     frames: &[usize],
@@ -85,6 +91,30 @@ pub fn fit_dataset(
     fitter: &dyn Fitter,
     progress: &dyn Progress,
 ) -> Result<FitOutput, PipelineError> {
+    let ctx = prepare(ds, frames, opts, &StoreOptions::default(), progress)?;
+    fit_prepared(&ctx, frames, fitter, progress)
+}
+
+/// The run over frames `frames` of `ds`: the mesh prepared for ray casts and the sample store
+/// of those frames ([`extract::extract`]: each frame decoded once, or none when the cache
+/// serves), with the lattice points a fit of them samples ([`extract::fit_points`]). Every
+/// fit, evaluation and validation of any of these frames then runs from it without reading a
+/// frame.
+pub fn prepare<'a>(
+    ds: &'a Dataset,
+    frames: &[usize],
+    opts: &PipelineOptions,
+    store: &StoreOptions,
+    progress: &dyn Progress,
+) -> Result<Context<'a>, PipelineError> {
+    check_options(opts)?;
+    let ctx = Context::new(ds, *opts)?;
+    let points = extract::fit_points(&ctx, frames);
+    let held = extract::extract(&ctx, frames, points, store, progress)?;
+    Ok(ctx.with_store(held))
+}
+
+fn check_options(opts: &PipelineOptions) -> Result<(), PipelineError> {
     if !(1..=MAX_SEGMENTS).contains(&opts.model.segments) {
         return Err(PipelineError::Invalid(format!(
             "segments must be 1..={MAX_SEGMENTS}, got {}",
@@ -97,29 +127,48 @@ pub fn fit_dataset(
             "the Eq. 6 t1 share must be > 0 (inf: none), got {share}"
         )));
     }
+    Ok(())
+}
+
+/// The pipeline over frames `frames` of a prepared run ([`prepare`]; its store must hold them),
+/// with the run's options (`ctx.opts`): registration from the store, selection, the fit with
+/// the alpha rounds, the lattice, the error, interpolation and the model file. Reads no frame.
+pub fn fit_prepared(
+    ctx: &Context,
+    frames: &[usize],
+    fitter: &dyn Fitter,
+    progress: &dyn Progress,
+) -> Result<FitOutput, PipelineError> {
+    let opts = &ctx.opts;
+    check_options(opts)?;
+    let ds = ctx.ds;
+    let store = ctx
+        .store()
+        .filter(|s| s.holds(frames))
+        .ok_or_else(|| PipelineError::Invalid("the run's sample store lacks frames".into()))?;
     let mut report = FitReport {
         options: Some(*opts),
         mesh: ds.mesh_report.clone(),
         vertices: ds.mesh.positions.len(),
+        sample_store: Some(store.report().clone()),
         ..FitReport::default()
     };
     report.frames.total = ds.spec.frames.len();
     report.frames.selected = frames.len();
+    report
+        .stage_seconds
+        .insert("extract".into(), store.report().seconds);
     let mut clock = report::StageClock::start();
-
-    // The acquired data: mesh, cameras.
-    let ctx = Context::new(ds, *opts)?;
-    clock.lap("mesh", &mut report);
-    // Registration: the spot in every frame, x_i on the mesh.
-    let regs = register::register_frames(&ctx, frames, &mut report.frames, progress);
+    // Registration: the spot in every frame, x_i on the mesh (found by the extraction pass).
+    let regs = register::registered(ctx, frames, &mut report.frames);
     clock.lap("registration", &mut report);
     // "We select for each vertex in the mesh the closest light position x_i."
-    let groups = select::select_groups(&ctx, &regs);
+    let groups = select::select_groups(ctx, &regs);
     report.frames.fitted = groups.pooling.frames;
     report.frames.pooling = groups.pooling;
     clock.lap("selection", &mut report);
     // Fit R_d per x_i (Eq. 1/3/5/9), with the modulation texture alpha (Eq. 6) in rounds.
-    let fitted = fit::fit_groups(&ctx, &regs, &groups, fitter, progress);
+    let fitted = fit::fit_groups(ctx, &regs, &groups, fitter, progress);
     report.samples = fitted.counts;
     report.terms_dropped = fitted.dropped.clone();
     report.segment_fallbacks = fitted
@@ -130,13 +179,13 @@ pub fn fit_dataset(
     report.alpha = fitted.alpha_report.clone();
     clock.lap("fit", &mut report);
     // alpha finer than the mesh (section 5): Eq. 6 per lattice point, with the final fits.
-    let lattice = lattice::fit_lattice(&ctx, &regs, &groups, &fitted, progress);
+    let lattice = lattice::fit_lattice(ctx, &regs, &groups, &fitted, progress);
     if opts.alpha_lattice.max_level().is_some() {
         report.alpha.lattice = Some(lattice.report);
     }
     clock.lap("lattice", &mut report);
     // log E(x_i) (Eq. 8) with alpha; fits above the threshold fail.
-    let (errors, baseline_log_e) = error::log_e_of_fits(&ctx, &regs, &groups, &fitted, progress);
+    let (errors, baseline_log_e) = error::log_e_of_fits(ctx, &regs, &groups, &fitted, progress);
     report.baseline = fitted.baseline.as_ref().map(|b| report::BaselineReport {
         terms: b.params.terms,
         params: b.params.params.clone(),
@@ -164,13 +213,15 @@ pub fn fit_dataset(
     report.model_size = assemble::model_size(&model, fitter.max_terms(), opts.model.segments);
     clock.lap("interpolate", &mut report);
     report.peak_rss_mib = crate::util::peak_rss_mib();
+    report.frames.reads = ds.frame_reads();
     Ok(FitOutput { model, report })
 }
 
 /// [`fit_dataset`] with the direction segments chosen by `segments` (`opts.model.segments` is
 /// ignored). [`Segments::Auto`] runs one whole fit per m of [`SEGMENT_LADDER`] and keeps the
 /// smallest m whose mean log E (Table 1, mean over channels) is within the tolerance of the
-/// best (the rule of [`crate::fit::choose_order`]); the report says what was tried.
+/// best (the rule of [`crate::fit::choose_order`]); the report says what was tried. One pass
+/// over the frames serves every fit of the ladder ([`prepare`]).
 pub fn fit_scan(
     ds: &Dataset,
     frames: &[usize],
@@ -179,11 +230,23 @@ pub fn fit_scan(
     fitter: &dyn Fitter,
     progress: &dyn Progress,
 ) -> Result<FitOutput, PipelineError> {
+    let ctx = prepare(ds, frames, opts, &StoreOptions::default(), progress)?;
+    fit_scan_in(&ctx, frames, segments, fitter, progress)
+}
+
+/// [`fit_scan`] of a prepared run ([`prepare`]), with its options but for the segments.
+pub fn fit_scan_in(
+    ctx: &Context,
+    frames: &[usize],
+    segments: Segments,
+    fitter: &dyn Fitter,
+    progress: &dyn Progress,
+) -> Result<FitOutput, PipelineError> {
     let tolerance = match segments {
         Segments::Fixed(m) => {
-            let mut o = *opts;
+            let mut o = ctx.opts;
             o.model.segments = m;
-            return fit_dataset(ds, frames, &o, fitter, progress);
+            return fit_prepared(&ctx.with_options(o)?, frames, fitter, progress);
         }
         Segments::Auto { tolerance } => tolerance,
     };
@@ -194,9 +257,9 @@ pub fn fit_scan(
     }
     let mut runs = Vec::new();
     for m in SEGMENT_LADDER {
-        let mut o = *opts;
+        let mut o = ctx.opts;
         o.model.segments = m;
-        let run = fit_dataset(ds, frames, &o, fitter, progress);
+        let run = fit_prepared(&ctx.with_options(o)?, frames, fitter, progress);
         let log_e = run
             .as_ref()
             .ok()

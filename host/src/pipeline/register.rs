@@ -1,13 +1,11 @@
 //! Stage `register` (sections 4.1 and 5): the laser spot of every frame, found once, and its
 //! light position x_i on the mesh.
 //!
-//! Owns spot detection for the whole run: a [`RegisteredFrame`] carries the spot, and every later
-//! stage (samples of every fit round, the error pass, evaluation) uses that one instead of
-//! detecting it again. Never keeps an image.
-use rayon::prelude::*;
-
+//! Owns what registration means for the fit: a [`RegisteredFrame`] carries the spot, and every
+//! later stage uses that one instead of detecting it again. The spot is detected once per frame,
+//! when the extraction pass decodes it ([`super::extract`]); this stage reads the outcome from the
+//! run's sample store. Never keeps an image.
 use crate::geometry::V3;
-use crate::progress::Progress;
 use crate::registration::{RegistrationOutcome, Spot};
 
 use super::load::Context;
@@ -54,30 +52,22 @@ impl RegisteredFrame {
 /// Registers frame `k` alone (evaluation, prediction, pictures); the reason as text if the frame
 /// is not registered or cannot be read.
 pub fn register_one(ctx: &Context, k: usize) -> Result<RegisteredFrame, String> {
-    let outcome = ctx.register(k).map_err(|e| e.to_string())?;
+    let outcome = ctx.register(k)?;
     RegisteredFrame::of(ctx, k, &outcome).ok_or_else(|| format!("not registered: {outcome:?}"))
 }
 
-/// Registers the frames `frames` in parallel (one image per worker at a time), in frame order;
-/// frames that are not registered are counted in `counts` by reason.
-pub fn register_frames(
+/// The registered frames among `frames` (in the order given), from the run's sample store
+/// ([`super::extract`]: each frame was registered once, when it was decoded); frames that are
+/// not registered are counted in `counts` by reason. Without a store (or for a frame it lacks)
+/// the frame is read and registered here.
+pub fn registered(
     ctx: &Context,
     frames: &[usize],
     counts: &mut FrameCounts,
-    progress: &dyn Progress,
 ) -> Vec<RegisteredFrame> {
-    progress.start("registration", frames.len() as u64);
-    let outcomes: Vec<_> = frames
-        .par_iter()
-        .map(|&k| {
-            let r = ctx.register(k).map_err(|e| e.to_string());
-            progress.inc(1);
-            (k, r)
-        })
-        .collect();
     let mut out = Vec::new();
-    for (k, r) in outcomes {
-        match r {
+    for &k in frames {
+        match ctx.register(k) {
             Ok(o) => match o {
                 RegistrationOutcome::Registered { .. } => {
                     counts.registered += 1;

@@ -64,6 +64,9 @@ pub struct FrameCounts {
     pub fitted: usize,
     /// How the registered frames were pooled into light positions.
     pub pooling: super::select::Pooling,
+    /// Reads of frame images by this process so far ([`crate::dataset::Dataset::frame_reads`]):
+    /// each frame once per run, at the extraction pass, none when the sample cache served.
+    pub reads: crate::dataset::FrameReads,
 }
 
 /// Table-1 statistics of log E(x_i) over the fitted light positions, per channel.
@@ -156,8 +159,12 @@ pub struct FitReport {
     /// The log E(x_i) acceptance threshold applied: `max_log_e`, or `outlier_factor` × the
     /// median fit's log E (at least [`super::OUTLIER_MIN_LOG_E`]) if lower.
     pub max_log_e: f64,
-    /// Wall time per stage, seconds.
+    /// Wall time per stage, seconds (`extract`: the one pass that decoded the frames, or
+    /// opened the sample cache, shared by every fit of the run).
     pub stage_seconds: BTreeMap<String, f64>,
+    /// The run's sample store: how many frames were decoded, samples held, memory, spill,
+    /// cache.
+    pub sample_store: Option<crate::store::StoreReport>,
     /// Peak resident memory of the process, MiB (Linux; `None` elsewhere).
     pub peak_rss_mib: Option<f64>,
     /// The options used.

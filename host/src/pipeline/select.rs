@@ -169,7 +169,7 @@ pub fn select_groups(ctx: &Context, regs: &[RegisteredFrame]) -> Groups {
     }
 }
 
-/// The samples of the group with light positions `key`: each distinct frame read once, channel
+/// The samples of the group with light positions `key`: each distinct frame's from the store, channel
 /// c taken from the frames of the light position channel c selected (every view of that x_i,
 /// each sample at the distance from its own frame's x_i), directions φ in the tangent frame at
 /// the red light position's anchor. `SampleCounts::pooled` counts the channel samples taken
@@ -184,8 +184,8 @@ pub fn group_samples(
     let frame = group_frame(ctx, regs, key)?;
     for l in group_frames(key) {
         let reg = &regs[l as usize];
-        let (s, c) = ctx.samples(reg).map_err(|_| FailReason::FrameUnreadable)?;
-        counts.add(&c);
+        let fs = ctx.samples(reg).map_err(|_| FailReason::FrameUnreadable)?;
+        counts.add(&fs.counts);
         add_frame_samples(
             &mut data,
             &mut counts,
@@ -193,7 +193,7 @@ pub fn group_samples(
             l,
             reg,
             &frame,
-            &s,
+            &fs.samples,
             &ctx.ds.mesh.positions,
         );
     }
