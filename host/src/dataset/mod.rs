@@ -12,12 +12,16 @@ use serde::{Deserialize, Serialize};
 
 use crate::geometry::Camera;
 
+mod camera_file;
 mod image;
+mod ljpeg;
 mod mesh;
 mod writer;
 
+pub use camera_file::{CLIPPED, FileKind, Levels};
 pub use image::{
-    Image, ImageError, bilinear_taps, encode_exr, encode_pfm, read_image, write_exr, write_pfm,
+    Image, ImageError, bilinear_taps, encode_exr, encode_pfm, read_image, read_image_with,
+    write_exr, write_pfm,
 };
 pub use mesh::{Mesh, MeshError, MeshReport, load_obj, obj_bytes, write_obj};
 pub use writer::{DatasetWriter, STATE_DIR, WriteError};
@@ -130,6 +134,10 @@ pub struct FrameSpec {
     /// wider ones).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub galvo: Option<[u32; 2]>,
+    /// Black and white level of this frame's TIFF or PNG file (`black_level`, `white_level`),
+    /// over the dataset's.
+    #[serde(flatten)]
+    pub levels: Levels,
 }
 
 /// The content of `scan.json`.
@@ -145,9 +153,14 @@ pub struct ScanSpec {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub noise_floor: Option<f64>,
     /// Extension of this project (see `docs/scan-format.md`): raw pixel value at or above which the
-    /// sensor clipped. Absent: only infinite pixels count as saturated.
+    /// sensor clipped. Absent: only infinite pixels count as saturated, or, in a dataset of camera
+    /// files, the white level ([`Dataset::saturation`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub saturation: Option<f64>,
+    /// Black and white level of the TIFF and PNG frames (`black_level`, `white_level`; a frame
+    /// may override either). Raw files carry their own.
+    #[serde(flatten)]
+    pub levels: Levels,
     /// The cameras (the one camera model, [`crate::geometry::Camera`]).
     pub cameras: Vec<Camera>,
     /// The frames, in capture order.
@@ -186,6 +199,7 @@ impl ScanSpec {
             mesh: "object.obj".into(),
             noise_floor,
             saturation,
+            levels: Levels::default(),
             cameras,
             frames: Vec::new(),
         }
@@ -210,6 +224,9 @@ impl ScanSpec {
         {
             return bad(format!("saturation {s} must be finite and > 0"));
         }
+        self.levels
+            .check()
+            .or_else(|m| bad(format!("dataset levels: {m}")))?;
         if self.cameras.is_empty() {
             return bad("no cameras".into());
         }
@@ -229,6 +246,9 @@ impl ScanSpec {
             if !(f.exposure_s.is_finite() && f.exposure_s > 0.0) {
                 return bad(format!("frame {i}: exposure_s must be positive"));
             }
+            f.levels
+                .check()
+                .or_else(|m| bad(format!("frame {i}: {m}")))?;
             if let Some(l) = &f.laser {
                 let d = l.direction;
                 if !finite_all(&l.origin) || !finite_all(&d) || d == [0.0; 3] {
@@ -251,6 +271,9 @@ pub struct Dataset {
     pub mesh: Mesh,
     /// What loading the mesh found (degenerate and duplicate faces).
     pub mesh_report: MeshReport,
+    /// How many frames are camera files (TIFF, PNG, DNG: decoded with the white level at
+    /// [`CLIPPED`]), told by their first bytes.
+    pub camera_files: usize,
 }
 
 impl Dataset {
@@ -280,11 +303,25 @@ impl Dataset {
         if !mesh_path.is_file() {
             return Err(DatasetError::Missing(mesh_path));
         }
+        let mut camera_files = 0;
         for f in &spec.frames {
             let p = confined_path(&dir, &f.image)?;
             if !p.is_file() {
                 return Err(DatasetError::Missing(p));
             }
+            if file_kind(&p)?.is_camera_file() {
+                camera_files += 1;
+            }
+        }
+        if camera_files > 0
+            && let Some(s) = spec.saturation
+            && s > CLIPPED
+        {
+            return Err(DatasetError::Invalid(format!(
+                "saturation {s}: camera files (TIFF, PNG, DNG) are read with the white level at \
+                 {CLIPPED}, so nothing reaches {s}; leave saturation out (the white level is \
+                 the clipping level) or give it in those units"
+            )));
         }
         let (mesh, mesh_report) = load_obj(&mesh_path)?;
         Ok(Dataset {
@@ -292,7 +329,17 @@ impl Dataset {
             spec,
             mesh,
             mesh_report,
+            camera_files,
         })
+    }
+
+    /// The raw value at which frames clip, for spot detection and samples: `saturation` from
+    /// `scan.json`, else, when frames are camera files, their white level ([`CLIPPED`] after
+    /// decoding); `None` (only infinite pixels clip) for float frames without it.
+    pub fn saturation(&self) -> Option<f64> {
+        self.spec
+            .saturation
+            .or((self.camera_files > 0).then_some(CLIPPED))
     }
 
     /// Reads frame `k`'s image, checking that its size matches its camera.
@@ -304,7 +351,8 @@ impl Dataset {
             ))
         })?;
         let path = confined_path(&self.dir, &f.image)?;
-        let img = read_image(&path).map_err(|source| DatasetError::Frame { frame: k, source })?;
+        let img = read_image_with(&path, f.levels.or(self.spec.levels))
+            .map_err(|source| DatasetError::Frame { frame: k, source })?;
         let cam = &self.spec.cameras[f.camera];
         if img.width != cam.width as usize || img.height != cam.height as usize {
             return Err(DatasetError::Frame {
@@ -317,6 +365,22 @@ impl Dataset {
         }
         Ok(img)
     }
+}
+
+/// The kind of the file at `path` from its first bytes.
+fn file_kind(path: &Path) -> Result<FileKind, DatasetError> {
+    use std::io::Read;
+    let io = |source| DatasetError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let mut head = Vec::with_capacity(16);
+    std::fs::File::open(path)
+        .map_err(io)?
+        .take(16)
+        .read_to_end(&mut head)
+        .map_err(io)?;
+    Ok(FileKind::sniff(&head))
 }
 
 /// Parses a frame selection such as `3,17,40-59` into sorted, unique frame indices.
