@@ -483,7 +483,9 @@ impl ModelFile {
                 "element face_alpha {}\nproperty uchar level\nelement face_alpha_point {}\n\
                  property float detail_r\nproperty float detail_g\nproperty float detail_b\n",
                 self.triangles.len(),
-                (0..fa.faces()).map(|f| fa.face_detail(f).len()).sum::<usize>()
+                (0..fa.faces())
+                    .map(|f| fa.face_detail(f).len())
+                    .sum::<usize>()
             ),
         };
         let mut out = Vec::with_capacity(
@@ -803,8 +805,7 @@ impl ModelFile {
                                     fmt(format!("face_alpha {k}: want {want} values"))
                                 })
                             };
-                            let (dr, dg, db) =
-                                (ch("detail_r")?, ch("detail_g")?, ch("detail_b")?);
+                            let (dr, dg, db) = (ch("detail_r")?, ch("detail_g")?, ch("detail_b")?);
                             for p in 0..want {
                                 detail.push([dr[p] as f32, dg[p] as f32, db[p] as f32]);
                             }
@@ -845,10 +846,7 @@ impl ModelFile {
             }
         }
         if !points.is_empty() {
-            let want: usize = levels
-                .iter()
-                .map(|&k| crate::lattice::point_count(k))
-                .sum();
+            let want: usize = levels.iter().map(|&k| crate::lattice::point_count(k)).sum();
             if !detail.is_empty() || points.len() != want {
                 return Err(fmt(format!(
                     "face_alpha: the levels want {want} lattice points, element \
@@ -1275,7 +1273,11 @@ mod tests {
             .lines()
             .filter(|l| l.starts_with("property list"))
             .collect();
-        assert_eq!(lists, ["property list uchar int vertex_indices"], "{header}");
+        assert_eq!(
+            lists,
+            ["property list uchar int vertex_indices"],
+            "{header}"
+        );
         let total: usize = m.vertices.iter().map(|v| v.params.len()).sum();
         assert!(header.contains(&format!("element param {total}\nproperty double value\n")));
         // The body is exactly the rows the header describes.
