@@ -274,10 +274,36 @@ fn a_fitted_model_opens_in_trimesh_and_open3d() {
         model.to_str().unwrap(),
         "--no-pictures",
     ]);
-    let m = ModelFile::read(&model).unwrap();
-    let printed = run(Command::new(&py)
+    let mut m = ModelFile::read(&model).unwrap();
+    // With alpha finer than the mesh too (elements face_alpha and face_alpha_point; the shared
+    // scans have no texture above their noise, so the fit writes none): a lattice of level 2
+    // with detail between the corners on every face.
+    let faces = m.triangles.len();
+    let detail = (0..faces)
+        .flat_map(|f| {
+            subsurf::lattice::points(2).map(move |(n, i, j)| {
+                if subsurf::lattice::is_corner(2, i, j) {
+                    [0.0; 3]
+                } else {
+                    [0.01 * (f % 7) as f32, -0.02 * n as f32, 0.005]
+                }
+            })
+        })
+        .collect();
+    m.face_alpha = Some(subsurf::lattice::FaceAlpha::new(vec![2; faces], detail).unwrap());
+    let with_lattice = tmp.path().join("lattice.ply");
+    m.write(&with_lattice).unwrap();
+    for path in [&model, &with_lattice] {
+        check_outside_readers(&py, path, &m);
+    }
+}
+
+/// Opens `path` with trimesh (and Open3D where installed) and checks that they read `m`'s
+/// positions, normals and faces.
+fn check_outside_readers(py: &Path, path: &Path, m: &ModelFile) {
+    let printed = run(Command::new(py)
         .arg(workspace().join("tests/outside/open_model.py"))
-        .arg(&model));
+        .arg(path));
     let readers: serde_json::Value = serde_json::from_str(printed.trim()).unwrap();
     let ci = std::env::var_os("CI").is_some_and(|v| !v.is_empty());
     assert!(
