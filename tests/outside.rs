@@ -254,8 +254,8 @@ fn camera_files_from_outside_writers_fit_like_the_exr_frames() {
     }
 }
 
-/// Done-when of issue 24: a fitted model opens in trimesh (and Open3D where it is installed)
-/// with positions, normals and faces as subsurf reads them.
+/// Done-when of issue 24: a fitted model opens in trimesh (and Open3D where it is installed, and
+/// Blender's importer where Blender is) with positions, normals and faces as subsurf reads them.
 #[test]
 fn a_fitted_model_opens_in_trimesh_and_open3d() {
     let Some(py) = python("numpy, trimesh") else {
@@ -337,5 +337,41 @@ fn check_outside_readers(py: &Path, path: &Path, m: &ModelFile) {
     }
     if readers.get("open3d").is_none() {
         eprintln!("SKIPPED the Open3D check: Open3D is not installed and CI is not set");
+    }
+    // Blender's own importer, where Blender is installed (CI does not install it: hundreds of
+    // megabytes). Positions are single precision in Blender.
+    let Some(blender) = std::env::var_os("PATH").and_then(|paths| {
+        std::env::split_paths(&paths)
+            .map(|d| d.join("blender"))
+            .find(|p| p.is_file())
+    }) else {
+        eprintln!("SKIPPED the Blender check: no blender on PATH");
+        return;
+    };
+    let printed = run(Command::new(blender)
+        .args(["-b", "--factory-startup", "--python"])
+        .arg(workspace().join("tests/outside/blender_ply.py"))
+        .arg("--")
+        .arg(path));
+    let line = printed
+        .lines()
+        .find_map(|l| l.strip_prefix("BLENDER "))
+        .unwrap_or_else(|| panic!("{printed}"));
+    let got: serde_json::Value = serde_json::from_str(line).unwrap();
+    assert_eq!(got["vertices"], n, "blender");
+    assert_eq!(got["faces"], m.triangles.len(), "blender");
+    for (at, v, f) in [("first", 0, 0), ("last", n - 1, m.triangles.len() - 1)] {
+        for c in 0..3 {
+            let g = got[at][0][c].as_f64().unwrap();
+            assert!(
+                (g - m.positions[v][c]).abs() < 1e-5 * (1.0 + g.abs()),
+                "blender {at}"
+            );
+        }
+        assert_eq!(
+            got[at][1],
+            serde_json::json!(m.triangles[f]),
+            "blender {at}"
+        );
     }
 }
