@@ -601,7 +601,14 @@ fn decode_dng(t: &Tiff) -> Result<Image, ImageError> {
     let spp = t.num(ifd, tag::SAMPLES_PER_PIXEL)?.unwrap_or(1.0) as usize;
     let bits = req(tag::BITS_PER_SAMPLE, "BitsPerSample")? as usize;
     let cfa = t.num(ifd, tag::PHOTOMETRIC)? == Some(CFA as f64);
-    if width == 0 || height == 0 || width > 1 << 16 || height > 1 << 16 {
+    // Every sample takes at least one bit of the file, compressed or not: a size the file
+    // cannot hold is damage, not an allocation to attempt.
+    if width == 0
+        || height == 0
+        || width > 1 << 16
+        || height > 1 << 16
+        || width * height * spp.max(1) > 8 * t.b.len()
+    {
         return Err(damaged(&format!("raw image size {width}x{height}")));
     }
     if !(1..=16).contains(&bits) {
@@ -642,7 +649,10 @@ fn decode_dng(t: &Tiff) -> Result<Image, ImageError> {
         [r, c] if *r >= 1.0 && *c >= 1.0 && *r <= 16.0 && *c <= 16.0 => (*r as usize, *c as usize),
         _ => return Err(damaged("bad BlackLevelRepeatDim")),
     };
-    let black = t.nums(ifd, tag::BLACK_LEVEL)?.unwrap_or(vec![0.0]);
+    let black = t
+        .nums(ifd, tag::BLACK_LEVEL)?
+        .filter(|b| !b.is_empty())
+        .unwrap_or(vec![0.0]);
     let black_at = |r: usize, c: usize, s: usize| -> f64 {
         if black.len() == br * bc * spp {
             black[((r % br) * bc + c % bc) * spp + s]
@@ -655,6 +665,13 @@ fn decode_dng(t: &Tiff) -> Result<Image, ImageError> {
     let delta_v = t.nums(ifd, tag::BLACK_LEVEL_DELTA_V)?;
     let white = t.nums(ifd, tag::WHITE_LEVEL)?.unwrap_or(vec![max]);
     let white_of = |s: usize| white.get(s).or(white.first()).copied().unwrap_or(max);
+    let highest_black = black.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let lowest_white = (0..spp).map(white_of).fold(f64::INFINITY, f64::min);
+    if !(highest_black.is_finite() && lowest_white.is_finite() && lowest_white > highest_black) {
+        return Err(damaged(&format!(
+            "white level {lowest_white} not above black level {highest_black}"
+        )));
+    }
     let area = t.nums(ifd, tag::ACTIVE_AREA)?;
     let (top, left, bottom, right) = match area.as_deref() {
         None => (0, 0, height, width),
@@ -798,8 +815,8 @@ fn read_samples(
     if let Some(offsets) = t.nums(ifd, tag::TILE_OFFSETS)? {
         let tw = t.num(ifd, tag::TILE_WIDTH)?.unwrap_or(0.0) as usize;
         let th = t.num(ifd, tag::TILE_LENGTH)?.unwrap_or(0.0) as usize;
-        if tw == 0 || th == 0 {
-            return Err(damaged("tiles without a size"));
+        if tw == 0 || th == 0 || tw > 1 << 16 || th > 1 << 16 {
+            return Err(damaged("tiles without a sensible size"));
         }
         let across = width.div_ceil(tw);
         if offsets.len() < across * height.div_ceil(th) {

@@ -246,10 +246,11 @@ pub fn decode(b: &[u8]) -> Result<Decoded, LjpegError> {
                 {
                     return err("bad precision, point transform or predictor");
                 }
-                if width == 0 || height == 0 || width * height * ns > 1 << 28 {
+                let data = &b[at + 2 + len..];
+                // Every sample takes at least one bit (its Huffman code).
+                if width == 0 || height == 0 || width * height * ns > 8 * data.len() + 64 {
                     return err("bad image size");
                 }
-                let data = &b[at + 2 + len..];
                 let samples = scan(
                     data,
                     &comp_tables,
