@@ -495,6 +495,62 @@ mod tests {
         assert!(e.to_string().contains("scan.json"), "{e}");
     }
 
+    /// A dataset of camera files: levels from scan.json (a frame's over the dataset's), the
+    /// white level as the saturation, so clipped pixels are dropped as for float frames with
+    /// `saturation`; a `saturation` above the white level is refused.
+    #[test]
+    fn camera_file_frames_read_with_their_levels_and_clip_at_the_white_level() {
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path();
+        std::fs::create_dir_all(dir.join("frames")).unwrap();
+        std::fs::write(
+            dir.join("object.obj"),
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+        )
+        .unwrap();
+        let mut png = Vec::new();
+        ::image::DynamicImage::ImageRgb16(::image::ImageBuffer::from_fn(2, 2, |i, _| {
+            ::image::Rgb([100u16, 100 + 400 * i as u16, 4200])
+        }))
+        .write_to(
+            &mut std::io::Cursor::new(&mut png),
+            ::image::ImageFormat::Png,
+        )
+        .unwrap();
+        std::fs::write(dir.join("frames/0.png"), &png).unwrap();
+        std::fs::write(dir.join("frames/1.png"), &png).unwrap();
+        let manifest = |saturation: &str| {
+            format!(
+                r#"{{"format": "subsurf-scan/1", "units": "mm", "mesh": "object.obj",
+                  "black_level": 100, "white_level": 900 {saturation},
+                  "cameras": [{{"width": 2, "height": 2, "fx": 10.0, "fy": 10.0, "cx": 0.5,
+                    "cy": 0.5, "camera_from_world": [[1,0,0,0],[0,1,0,0],[0,0,1,50],[0,0,0,1]]}}],
+                  "frames": [{{"image": "frames/0.png", "turntable_deg": 0.0}},
+                    {{"image": "frames/1.png", "turntable_deg": 0.0, "white_level": 500}}]}}"#
+            )
+        };
+        std::fs::write(dir.join("scan.json"), manifest("")).unwrap();
+        let ds = Dataset::open(dir).unwrap();
+        assert_eq!((ds.camera_files, ds.saturation()), (2, Some(CLIPPED)));
+        let (a, b) = (ds.read_frame(0).unwrap(), ds.read_frame(1).unwrap());
+        assert_eq!(&a.data[..6], &[0.0, 0.0, 5.125, 0.0, 0.5, 5.125]);
+        assert_eq!(&b.data[..6], &[0.0, 0.0, 10.25, 0.0, 1.0, 10.25]);
+        // Round trip of the keys: the frame's own level, the dataset's.
+        assert_eq!(ds.spec.frames[1].levels.white, Some(500.0));
+        assert_eq!(ds.spec.levels.black, Some(100.0));
+        let text = serde_json::to_string(&ds.spec).unwrap();
+        assert!(text.contains("\"white_level\":500.0"), "{text}");
+        std::fs::write(dir.join("scan.json"), manifest(", \"saturation\": 4.0")).unwrap();
+        let e = Dataset::open(dir).unwrap_err().to_string();
+        assert!(e.contains("white level"), "{e}");
+        std::fs::write(
+            dir.join("scan.json"),
+            manifest("").replace("\"white_level\": 900", "\"white_level\": 50"),
+        )
+        .unwrap();
+        assert!(Dataset::open(dir).is_err(), "white below black");
+    }
+
     #[test]
     fn frame_lists_parse() {
         assert_eq!(
