@@ -92,11 +92,13 @@ fn one_camera_type_and_one_dataset_writer() {
 
 #[test]
 fn one_image_codec_one_obj_writer_one_projection() {
-    // EXR is encoded and decoded in one place (dataset::image, the `exr` crate), OBJ text is
-    // written in one place (dataset::obj_bytes), lens distortion is applied in one place
-    // (geometry::Camera).
+    // EXR is encoded and decoded in one place (dataset::image, the `exr` crate), camera files
+    // (TIFF, PNG, DNG) in one place (dataset::camera_file), OBJ text is written in one place
+    // (dataset::obj_bytes), lens distortion is applied in one place (geometry::Camera).
     for (needle, owner) in [
         ("exr::", "host/src/dataset/image.rs"),
+        ("tiff::", "host/src/dataset/camera_file.rs"),
+        ("png::", "host/src/dataset/camera_file.rs"),
         ("ImageFormat::OpenExr", ""),
         ("pub struct LinearImage", ""),
         ("\"v {", "host/src/dataset/mesh.rs"),

@@ -27,6 +27,7 @@ mod fit_pictures;
 mod fit_scale;
 mod flash;
 mod objects;
+mod outside;
 mod render;
 mod render_plots;
 mod render_slab;

@@ -60,6 +60,7 @@ fn slab_scan(
             channel: FrameChannel::Rgb,
             laser: Some(laser),
             galvo: None,
+            levels: Default::default(),
         };
         w.add_image(spec, &img, true).unwrap();
     }

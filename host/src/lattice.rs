@@ -1,7 +1,7 @@
 //! The modulation texture alpha(x_o) finer than the mesh (section 5: "the modulation texture
 //! alpha(x_o) is determined as higher resolution texture"): per face, a barycentric lattice of
 //! level k whose points carry ln alpha relative to the interpolated vertex alphas
-//! (`docs/model-format.md`, element `face_alpha`, `subsurf-model/5`).
+//! (`docs/model-format.md`, elements `face_alpha` and `face_alpha_point`, since `subsurf-model/5`).
 //!
 //! Why a per-face barycentric lattice rather than a UV atlas: the meshes we read have no
 //! parameterisation, and a lattice needs none; its level is chosen per face from what the images

@@ -262,6 +262,7 @@ mod tests {
             channel: FrameChannel::Rgb,
             laser: None,
             galvo: None,
+            levels: Default::default(),
         };
         let pos = vec![
             [1.0, 0.0, 0.0],
@@ -374,6 +375,7 @@ mod tests {
             channel: FrameChannel::Rgb,
             laser: None,
             galvo: None,
+            levels: Default::default(),
         };
         let map = CoverageMap::new(&cam, 0.0, opts.cos_min);
         let x_i = [10.0, 10.0, 0.0];
@@ -447,6 +449,7 @@ mod tests {
             channel: FrameChannel::Rgb,
             laser: None,
             galvo: None,
+            levels: Default::default(),
         };
         let opts = SampleOptions::default();
         let x_i = [0.1, 0.1, 0.0];

@@ -106,8 +106,8 @@ fn load_or_builtin(path: &Path) -> anyhow::Result<Calibration> {
 
 fn detect(path: &Path, t: &ChessboardTarget) -> anyhow::Result<(TargetView, u32, u32)> {
     let bytes = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
-    let img =
-        Image::decode(&bytes).with_context(|| format!("{} is not an image", path.display()))?;
+    let img = Image::decode_picture(&bytes)
+        .with_context(|| format!("{} is not an image", path.display()))?;
     let g = Gray::from_linear(img.width, img.height, img.channels, &img.data);
     let view = detect_chessboard(&g, t).with_context(|| format!("in {}", path.display()))?;
     Ok((view, img.width as u32, img.height as u32))

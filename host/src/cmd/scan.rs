@@ -11,7 +11,7 @@ use subsurf::rig::{ClientConfig, RigClient};
 use subsurf::scan::driver::{ScanConfig, ScanError, run_with_reconnect};
 use subsurf::scan::plan::estimate_duration;
 use subsurf::scan::setup::{
-    GROUND_TRUTH_FILE, camera_from_spec, rig_timing, sim_noise_floor, write_ground_truth,
+    GROUND_TRUTH_FILE, camera_from_spec_with, rig_timing, sim_noise_floor, write_ground_truth,
 };
 
 use super::plan::{PlanArgs, make_plan, resolve};
@@ -45,6 +45,14 @@ pub struct Args {
     /// Laser channel index.
     #[arg(long, default_value_t = 0)]
     pub laser_channel: u8,
+    /// Black level (DN) of the camera's 16-bit TIFF or PNG files (`dir:`/`cmd:` cameras; raw
+    /// DNG files carry their own). Default 0.
+    #[arg(long)]
+    pub black_level: Option<f64>,
+    /// White level (DN, where the sensor clips) of the camera's TIFF or PNG files. Default the
+    /// largest 16-bit value, 65535.
+    #[arg(long)]
+    pub white_level: Option<f64>,
     /// Seconds to wait for each camera image.
     #[arg(long, default_value_t = 10.0)]
     pub camera_timeout: f64,
@@ -93,12 +101,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         // Ctrl-C: finish the frame in hand, laser off, journal consistent, exit.
         let _ = ctrlc::set_handler(move || stop.store(true, Ordering::Relaxed));
     }
-    let mut camera = camera_from_spec(
+    let mut camera = camera_from_spec_with(
         &args.camera,
         &r.mesh,
         &r.calib,
         args.seed,
         Duration::from_secs_f64(args.camera_timeout.max(0.01)),
+        subsurf::dataset::Levels {
+            black: args.black_level,
+            white: args.white_level,
+        },
     )?;
     let progress = if args.quiet {
         Bar::hidden()

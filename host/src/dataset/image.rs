@@ -1,9 +1,11 @@
 //! The one image type ([`Image`], linear float) and its one encoder and decoder: OpenEXR
-//! through the `exr` crate (half or float, RGB or one channel), PFM, and anything else the
-//! `image` crate decodes (16-bit PNG/TIFF from a camera). Frames of a dataset, images a camera
-//! delivers to `subsurf scan`, HDR merges, predictions and renders all use these.
+//! through the `exr` crate (half or float, RGB or one channel), PFM, and camera files (16-bit
+//! TIFF and PNG, DNG: [`super::camera_file`]). Frames of a dataset, images a camera delivers to
+//! `subsurf scan`, HDR merges, predictions and renders all use these.
 use std::io::{BufRead, BufReader, Read, Seek};
 use std::path::{Path, PathBuf};
+
+use super::camera_file::{self, FileKind, Levels};
 
 /// Why an image could not be read or written.
 #[derive(Debug, thiserror::Error)]
@@ -32,6 +34,14 @@ pub enum ImageError {
     /// In-memory bytes that no decoder reads (see [`Image::decode`]).
     #[error("not a readable image: {0}")]
     Decode(String),
+    /// A file whose values are not linear in light (JPEG, 8-bit, declared sRGB): refused, with
+    /// what to use instead.
+    #[error("refused: {0}")]
+    NonLinear(String),
+    /// A readable kind of file in a variant subsurf does not read (a vendor raw format, a
+    /// compression, a colour filter array), with what to do instead.
+    #[error("not read: {0}")]
+    Unsupported(String),
 }
 
 /// A linear float image, row-major, channels interleaved (1 or 3).
@@ -76,23 +86,43 @@ impl Image {
         Ok(())
     }
 
-    /// Decodes an image held in memory: OpenEXR (by its magic number) as [`read_image`] reads
-    /// it (R, G, B or one channel kept as one), anything else the `image` crate decodes (16-bit
-    /// PNG/TIFF, ...) as linear RGB float, integer formats scaled to `[0, 1]` (they must already
-    /// be linear).
+    /// Decodes an image held in memory, as a camera delivers it: OpenEXR (R, G, B or one
+    /// channel kept as one), PFM, or a camera file ([`camera_file`]: 16-bit TIFF or PNG with
+    /// black 0 and white 65535, DNG with its own levels), told apart by their first bytes.
+    /// JPEG and 8-bit files are refused ([`ImageError::NonLinear`]).
     pub fn decode(bytes: &[u8]) -> Result<Image, ImageError> {
-        if bytes.starts_with(&EXR_MAGIC) {
-            return decode_exr(std::io::Cursor::new(bytes), "image")
-                .map_err(|e| ImageError::Decode(e.to_string()));
+        Image::decode_with(bytes, Levels::default())
+    }
+
+    /// [`Image::decode`] with the black and white level of a TIFF or PNG camera file (raw files
+    /// carry their own; float images have none).
+    pub fn decode_with(bytes: &[u8], levels: Levels) -> Result<Image, ImageError> {
+        match FileKind::sniff(bytes) {
+            FileKind::Exr => decode_exr(std::io::Cursor::new(bytes), "image")
+                .map_err(|e| ImageError::Decode(e.to_string())),
+            FileKind::Pfm => decode_pfm(&mut std::io::Cursor::new(bytes), "image"),
+            _ => camera_file::decode(bytes, levels),
         }
-        let img = image::load_from_memory(bytes).map_err(|e| ImageError::Decode(e.to_string()))?;
-        let rgb = img.to_rgb32f();
-        Ok(Image {
-            width: rgb.width() as usize,
-            height: rgb.height() as usize,
-            channels: 3,
-            data: rgb.into_raw(),
-        })
+    }
+
+    /// A picture for geometry only (chessboard detection in `subsurf calib`), where linearity
+    /// does not matter: whatever [`Image::decode`] reads, else any 8-bit PNG as values in
+    /// `[0, 1]`.
+    pub fn decode_picture(bytes: &[u8]) -> Result<Image, ImageError> {
+        match Image::decode(bytes) {
+            Err(ImageError::NonLinear(why)) => {
+                let img = image::load_from_memory(bytes)
+                    .map_err(|e| ImageError::Decode(format!("{e} ({why})")))?;
+                let rgb = img.to_rgb32f();
+                Ok(Image {
+                    width: rgb.width() as usize,
+                    height: rgb.height() as usize,
+                    channels: 3,
+                    data: rgb.into_raw(),
+                })
+            }
+            other => other,
+        }
     }
 
     /// The value of pixel column `i`, row `j`, channel `c`.
@@ -154,20 +184,50 @@ pub fn bilinear_taps(
     ])
 }
 
-/// Reads an `.exr` or `.pfm` image (by extension; anything else is tried as EXR).
+/// Reads a frame image: OpenEXR, PFM, or a camera file (16-bit TIFF or PNG with black 0 and
+/// white 65535, DNG with its own levels), told apart by their first bytes.
 pub fn read_image(path: &Path) -> Result<Image, ImageError> {
-    let is_pfm = path
-        .extension()
-        .is_some_and(|e| e.eq_ignore_ascii_case("pfm"));
-    if is_pfm {
-        read_pfm(path)
-    } else {
-        read_exr(path)
-    }
+    read_image_with(path, Levels::default())
 }
 
-/// The first four bytes of every OpenEXR file.
-const EXR_MAGIC: [u8; 4] = [0x76, 0x2f, 0x31, 0x01];
+/// [`read_image`] with the black and white level of a TIFF or PNG camera file (from
+/// `scan.json`; raw files carry their own).
+pub fn read_image_with(path: &Path, levels: Levels) -> Result<Image, ImageError> {
+    let io = |source| ImageError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let mut head = [0u8; 16];
+    let n = {
+        let mut f = std::fs::File::open(path).map_err(io)?;
+        let mut n = 0;
+        while n < head.len() {
+            match f.read(&mut head[n..]).map_err(io)? {
+                0 => break,
+                k => n += k,
+            }
+        }
+        n
+    };
+    match FileKind::sniff(&head[..n]) {
+        FileKind::Exr => read_exr(path),
+        FileKind::Pfm => read_pfm(path),
+        // Files too short to tell keep the old rule: `.pfm` by extension, else EXR.
+        FileKind::Unknown
+            if path
+                .extension()
+                .is_some_and(|e| e.eq_ignore_ascii_case("pfm")) =>
+        {
+            read_pfm(path)
+        }
+        FileKind::Unknown => read_exr(path),
+        _ => {
+            let bytes = std::fs::read(path).map_err(io)?;
+            camera_file::decode(&bytes, levels)
+                .map_err(|e| ImageError::Format(format!("{}: {e}", path.display())))
+        }
+    }
+}
 
 fn read_exr(path: &Path) -> Result<Image, ImageError> {
     let file = std::fs::File::open(path).map_err(|source| ImageError::Io {
@@ -258,13 +318,17 @@ fn decode_exr(source: impl Read + Seek + Send, name: &str) -> Result<Image, ExrE
 }
 
 fn read_pfm(path: &Path) -> Result<Image, ImageError> {
-    let io = |source| ImageError::Io {
+    let file = std::fs::File::open(path).map_err(|source| ImageError::Io {
         path: path.to_path_buf(),
         source,
-    };
-    let bad = |m: &str| ImageError::Format(format!("{}: not a PFM image: {m}", path.display()));
-    let file = std::fs::File::open(path).map_err(io)?;
-    let mut r = BufReader::new(file);
+    })?;
+    decode_pfm(&mut BufReader::new(file), &path.display().to_string())
+}
+
+/// A PFM from `r`; `name` (the file, or "image") goes into the errors.
+fn decode_pfm(r: &mut impl BufRead, name: &str) -> Result<Image, ImageError> {
+    let io = |e: std::io::Error| ImageError::Format(format!("{name}: not a PFM image: {e}"));
+    let bad = |m: &str| ImageError::Format(format!("{name}: not a PFM image: {m}"));
     let mut tokens = Vec::new();
     // Header: three whitespace-separated tokens (type, "w h", scale), each line ended by one newline.
     let mut line = String::new();

@@ -12,12 +12,16 @@ use serde::{Deserialize, Serialize};
 
 use crate::geometry::Camera;
 
+mod camera_file;
 mod image;
+mod ljpeg;
 mod mesh;
 mod writer;
 
+pub use camera_file::{CLIPPED, FileKind, Levels};
 pub use image::{
-    Image, ImageError, bilinear_taps, encode_exr, encode_pfm, read_image, write_exr, write_pfm,
+    Image, ImageError, bilinear_taps, encode_exr, encode_pfm, read_image, read_image_with,
+    write_exr, write_pfm,
 };
 pub use mesh::{Mesh, MeshError, MeshReport, load_obj, obj_bytes, write_obj};
 pub use writer::{DatasetWriter, STATE_DIR, WriteError};
@@ -130,6 +134,10 @@ pub struct FrameSpec {
     /// wider ones).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub galvo: Option<[u32; 2]>,
+    /// Black and white level of this frame's TIFF or PNG file (`black_level`, `white_level`),
+    /// over the dataset's.
+    #[serde(flatten)]
+    pub levels: Levels,
 }
 
 /// The content of `scan.json`.
@@ -145,9 +153,14 @@ pub struct ScanSpec {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub noise_floor: Option<f64>,
     /// Extension of this project (see `docs/scan-format.md`): raw pixel value at or above which the
-    /// sensor clipped. Absent: only infinite pixels count as saturated.
+    /// sensor clipped. Absent: only infinite pixels count as saturated, or, in a dataset of camera
+    /// files, the white level ([`Dataset::saturation`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub saturation: Option<f64>,
+    /// Black and white level of the TIFF and PNG frames (`black_level`, `white_level`; a frame
+    /// may override either). Raw files carry their own.
+    #[serde(flatten)]
+    pub levels: Levels,
     /// The cameras (the one camera model, [`crate::geometry::Camera`]).
     pub cameras: Vec<Camera>,
     /// The frames, in capture order.
@@ -186,6 +199,7 @@ impl ScanSpec {
             mesh: "object.obj".into(),
             noise_floor,
             saturation,
+            levels: Levels::default(),
             cameras,
             frames: Vec::new(),
         }
@@ -210,6 +224,9 @@ impl ScanSpec {
         {
             return bad(format!("saturation {s} must be finite and > 0"));
         }
+        self.levels
+            .check()
+            .or_else(|m| bad(format!("dataset levels: {m}")))?;
         if self.cameras.is_empty() {
             return bad("no cameras".into());
         }
@@ -229,6 +246,9 @@ impl ScanSpec {
             if !(f.exposure_s.is_finite() && f.exposure_s > 0.0) {
                 return bad(format!("frame {i}: exposure_s must be positive"));
             }
+            f.levels
+                .check()
+                .or_else(|m| bad(format!("frame {i}: {m}")))?;
             if let Some(l) = &f.laser {
                 let d = l.direction;
                 if !finite_all(&l.origin) || !finite_all(&d) || d == [0.0; 3] {
@@ -263,6 +283,10 @@ pub struct Dataset {
     pub mesh: Mesh,
     /// What loading the mesh found (degenerate and duplicate faces).
     pub mesh_report: MeshReport,
+    /// How many frames are camera files (TIFF, PNG, DNG: decoded with the white level at
+    /// [`CLIPPED`]), told by their file names' extensions (opening every frame here would read
+    /// each twice per run; the decoder tells the kind by the first bytes).
+    pub camera_files: usize,
     /// Reads of each frame's image by this process (shared by clones).
     reads: std::sync::Arc<Vec<std::sync::atomic::AtomicU32>>,
 }
@@ -294,11 +318,25 @@ impl Dataset {
         if !mesh_path.is_file() {
             return Err(DatasetError::Missing(mesh_path));
         }
+        let mut camera_files = 0;
         for f in &spec.frames {
             let p = confined_path(&dir, &f.image)?;
             if !p.is_file() {
                 return Err(DatasetError::Missing(p));
             }
+            if is_camera_file_name(&f.image) {
+                camera_files += 1;
+            }
+        }
+        if camera_files > 0
+            && let Some(s) = spec.saturation
+            && s > CLIPPED
+        {
+            return Err(DatasetError::Invalid(format!(
+                "saturation {s}: camera files (TIFF, PNG, DNG) are read with the white level at \
+                 {CLIPPED}, so nothing reaches {s}; leave saturation out (the white level is \
+                 the clipping level) or give it in those units"
+            )));
         }
         let (mesh, mesh_report) = load_obj(&mesh_path)?;
         let reads = (0..spec.frames.len()).map(|_| Default::default()).collect();
@@ -307,6 +345,7 @@ impl Dataset {
             spec,
             mesh,
             mesh_report,
+            camera_files,
             reads: std::sync::Arc::new(reads),
         })
     }
@@ -330,6 +369,15 @@ impl Dataset {
         }
     }
 
+    /// The raw value at which frames clip, for spot detection and samples: `saturation` from
+    /// `scan.json`, else, when frames are camera files, their white level ([`CLIPPED`] after
+    /// decoding); `None` (only infinite pixels clip) for float frames without it.
+    pub fn saturation(&self) -> Option<f64> {
+        self.spec
+            .saturation
+            .or((self.camera_files > 0).then_some(CLIPPED))
+    }
+
     /// Reads frame `k`'s image, checking that its size matches its camera.
     pub fn read_frame(&self, k: usize) -> Result<Image, DatasetError> {
         let f = self.spec.frames.get(k).ok_or_else(|| {
@@ -342,7 +390,8 @@ impl Dataset {
         if let Some(n) = self.reads.get(k) {
             n.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         }
-        let img = read_image(&path).map_err(|source| DatasetError::Frame { frame: k, source })?;
+        let img = read_image_with(&path, f.levels.or(self.spec.levels))
+            .map_err(|source| DatasetError::Frame { frame: k, source })?;
         let cam = &self.spec.cameras[f.camera];
         if img.width != cam.width as usize || img.height != cam.height as usize {
             return Err(DatasetError::Frame {
@@ -355,6 +404,19 @@ impl Dataset {
         }
         Ok(img)
     }
+}
+
+/// Whether a frame's file name says it is a camera file (TIFF, PNG, DNG): the extension,
+/// case-insensitive.
+fn is_camera_file_name(name: &str) -> bool {
+    Path::new(name)
+        .extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| {
+            ["tif", "tiff", "png", "dng"]
+                .iter()
+                .any(|c| e.eq_ignore_ascii_case(c))
+        })
 }
 
 /// Parses a frame selection such as `3,17,40-59` into sorted, unique frame indices.
@@ -467,6 +529,62 @@ mod tests {
         // A folder without a manifest still says which file it looked for.
         let e = Dataset::open(tmp.path()).unwrap_err();
         assert!(e.to_string().contains("scan.json"), "{e}");
+    }
+
+    /// A dataset of camera files: levels from scan.json (a frame's over the dataset's), the
+    /// white level as the saturation, so clipped pixels are dropped as for float frames with
+    /// `saturation`; a `saturation` above the white level is refused.
+    #[test]
+    fn camera_file_frames_read_with_their_levels_and_clip_at_the_white_level() {
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path();
+        std::fs::create_dir_all(dir.join("frames")).unwrap();
+        std::fs::write(
+            dir.join("object.obj"),
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+        )
+        .unwrap();
+        let mut png = Vec::new();
+        ::image::DynamicImage::ImageRgb16(::image::ImageBuffer::from_fn(2, 2, |i, _| {
+            ::image::Rgb([100u16, 100 + 400 * i as u16, 4200])
+        }))
+        .write_to(
+            &mut std::io::Cursor::new(&mut png),
+            ::image::ImageFormat::Png,
+        )
+        .unwrap();
+        std::fs::write(dir.join("frames/0.png"), &png).unwrap();
+        std::fs::write(dir.join("frames/1.png"), &png).unwrap();
+        let manifest = |saturation: &str| {
+            format!(
+                r#"{{"format": "subsurf-scan/1", "units": "mm", "mesh": "object.obj",
+                  "black_level": 100, "white_level": 900 {saturation},
+                  "cameras": [{{"width": 2, "height": 2, "fx": 10.0, "fy": 10.0, "cx": 0.5,
+                    "cy": 0.5, "camera_from_world": [[1,0,0,0],[0,1,0,0],[0,0,1,50],[0,0,0,1]]}}],
+                  "frames": [{{"image": "frames/0.png", "turntable_deg": 0.0}},
+                    {{"image": "frames/1.png", "turntable_deg": 0.0, "white_level": 500}}]}}"#
+            )
+        };
+        std::fs::write(dir.join("scan.json"), manifest("")).unwrap();
+        let ds = Dataset::open(dir).unwrap();
+        assert_eq!((ds.camera_files, ds.saturation()), (2, Some(CLIPPED)));
+        let (a, b) = (ds.read_frame(0).unwrap(), ds.read_frame(1).unwrap());
+        assert_eq!(&a.data[..6], &[0.0, 0.0, 5.125, 0.0, 0.5, 5.125]);
+        assert_eq!(&b.data[..6], &[0.0, 0.0, 10.25, 0.0, 1.0, 10.25]);
+        // Round trip of the keys: the frame's own level, the dataset's.
+        assert_eq!(ds.spec.frames[1].levels.white, Some(500.0));
+        assert_eq!(ds.spec.levels.black, Some(100.0));
+        let text = serde_json::to_string(&ds.spec).unwrap();
+        assert!(text.contains("\"white_level\":500.0"), "{text}");
+        std::fs::write(dir.join("scan.json"), manifest(", \"saturation\": 4.0")).unwrap();
+        let e = Dataset::open(dir).unwrap_err().to_string();
+        assert!(e.contains("white level"), "{e}");
+        std::fs::write(
+            dir.join("scan.json"),
+            manifest("").replace("\"white_level\": 900", "\"white_level\": 50"),
+        )
+        .unwrap();
+        assert!(Dataset::open(dir).is_err(), "white below black");
     }
 
     #[test]

@@ -411,6 +411,7 @@ mod tests {
                 direction: [0.0, 0.0, -1.0],
             }),
             galvo: Some([k as u32, 7]),
+            levels: Default::default(),
         }
     }
 

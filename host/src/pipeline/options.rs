@@ -124,17 +124,18 @@ impl std::str::FromStr for AlphaLattice {
 }
 
 impl PipelineOptions {
-    /// Defaults for a dataset: noise floor and saturation from `scan.json`.
+    /// Defaults for a dataset: noise floor and saturation from `scan.json` (for camera files the
+    /// white level: `Dataset::saturation`).
     pub fn for_dataset(ds: &Dataset) -> PipelineOptions {
         let floor = ds.spec.noise_floor.unwrap_or(0.0);
         PipelineOptions {
             spot: SpotOptions {
                 min_peak: 0.0,
-                saturation: ds.spec.saturation,
+                saturation: ds.saturation(),
                 laser_tolerance_mm: 2.0,
             },
             samples: SampleOptions {
-                saturation: ds.spec.saturation,
+                saturation: ds.saturation(),
                 ..SampleOptions::default()
             },
             max_select_mm: 2.0,

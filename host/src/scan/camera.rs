@@ -6,7 +6,7 @@
 //! switches the laser off). HDR comes from [`super::frame::merge_hdr`] over exposure brackets
 //! when the camera is not HDR itself.
 
-use crate::dataset::Image;
+use crate::dataset::{Image, Levels};
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -135,6 +135,8 @@ pub struct DirCamera {
     since: SystemTime,
     /// Camera frame number minus the rig's exposure count, once known.
     offset: Option<i64>,
+    /// Black and white level of the camera's TIFF or PNG files.
+    levels: Levels,
 }
 
 /// The camera's frame number in a file name: its last run of decimal digits.
@@ -167,11 +169,20 @@ impl DirCamera {
             seen: BTreeSet::new(),
             since: SystemTime::UNIX_EPOCH,
             offset: None,
+            levels: Levels::default(),
         };
         // Files already there belong to earlier runs.
         cam.seen = cam.listing().into_iter().collect();
         cam.since = SystemTime::now();
         Ok(cam)
+    }
+
+    /// The camera's TIFF or PNG files have these black and white levels (raw files carry their
+    /// own): images are decoded to `(DN − black) / (white − black)`, so the sensor clips at 1,
+    /// the default [`Camera::saturation`].
+    pub fn with_levels(mut self, levels: Levels) -> Self {
+        self.levels = levels;
+        self
     }
 
     fn listing(&self) -> Vec<PathBuf> {
@@ -253,10 +264,12 @@ impl Camera for DirCamera {
                         path: p.display().to_string(),
                         message: e.to_string(),
                     })?;
-                    return Image::decode(&bytes).map_err(|e| CameraError::Image {
-                        camera: self.describe(),
-                        path: p.display().to_string(),
-                        message: e.to_string(),
+                    return Image::decode_with(&bytes, self.levels).map_err(|e| {
+                        CameraError::Image {
+                            camera: self.describe(),
+                            path: p.display().to_string(),
+                            message: e.to_string(),
+                        }
                     });
                 }
             }
@@ -279,6 +292,7 @@ pub struct CmdCamera {
     template: String,
     scratch: tempfile::TempDir,
     timeout: Duration,
+    levels: Levels,
 }
 
 impl CmdCamera {
@@ -295,7 +309,15 @@ impl CmdCamera {
             template: template.to_string(),
             scratch,
             timeout,
+            levels: Levels::default(),
         })
+    }
+
+    /// The command's TIFF or PNG files have these black and white levels (see
+    /// [`DirCamera::with_levels`]).
+    pub fn with_levels(mut self, levels: Levels) -> Self {
+        self.levels = levels;
+        self
     }
 }
 
@@ -368,7 +390,7 @@ impl Camera for CmdCamera {
             path: out.display().to_string(),
             message: format!("the command did not write it ({e})"),
         })?;
-        Image::decode(&bytes).map_err(|e| CameraError::Image {
+        Image::decode_with(&bytes, self.levels).map_err(|e| CameraError::Image {
             camera: self.describe(),
             path: out.display().to_string(),
             message: e.to_string(),
@@ -435,6 +457,35 @@ mod tests {
         // Without numbers in the names (or without counts) name order still works.
         assert_eq!(frame_number(Path::new("a/shot.exr")), None);
         assert_eq!(frame_number(Path::new("cam0-000042.tiff")), Some(42));
+    }
+
+    /// Cameras deliver what cameras write: a 16-bit PNG with the camera's black and white level
+    /// reads linear with the white level at 1 (the default saturation); a JPEG is refused with
+    /// the reason.
+    #[test]
+    fn cameras_decode_sixteen_bit_files_with_their_levels_and_refuse_jpeg() {
+        let d = tempfile::tempdir().unwrap();
+        let mut cam = DirCamera::new(d.path(), Duration::from_millis(150))
+            .unwrap()
+            .with_levels(Levels {
+                black: Some(256.0),
+                white: Some(4352.0),
+            });
+        let mut png = Vec::new();
+        image::DynamicImage::ImageRgb16(image::ImageBuffer::from_pixel(
+            2,
+            2,
+            image::Rgb([256u16, 2304, 4352]),
+        ))
+        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+        .unwrap();
+        std::fs::write(d.path().join("a.png"), &png).unwrap();
+        let img = cam.capture(&shot(0)).unwrap();
+        assert_eq!(&img.data[..3], &[0.0, 0.5, 1.0]);
+        assert_eq!(cam.saturation(), 1.0);
+        std::fs::write(d.path().join("b.jpg"), [0xff, 0xd8, 0xff, 0xe0, 0, 16]).unwrap();
+        let e = cam.capture(&shot(1)).unwrap_err().to_string();
+        assert!(e.contains("JPEG") && e.contains("16-bit"), "{e}");
     }
 
     #[test]

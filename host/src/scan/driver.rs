@@ -675,6 +675,7 @@ impl<'a> Scan<'a> {
             channel: self.cfg.plan.channel,
             laser: Some(LaserRay { origin, direction }),
             galvo: Some(f.galvo.map(u32::from)),
+            levels: Default::default(),
         };
         self.writer.commit(entry, &bytes)?;
         self.written += 1;

@@ -5,7 +5,7 @@ use super::camera::{Camera, CmdCamera, DirCamera};
 use super::plan::RigTiming;
 use super::simcam::SimCamera;
 use crate::calib::Calibration;
-use crate::dataset::Mesh;
+use crate::dataset::{Levels, Mesh};
 use crate::simulate::{Field, Sensor, SimObject, Spot};
 use std::path::Path;
 use std::time::Duration;
@@ -187,6 +187,20 @@ pub fn camera_from_spec(
     seed: u64,
     timeout: Duration,
 ) -> Result<Box<dyn Camera>, super::camera::CameraError> {
+    camera_from_spec_with(spec, mesh, calib, seed, timeout, Levels::default())
+}
+
+/// [`camera_from_spec`] with the black and white level of a `dir:` or `cmd:` camera's TIFF or
+/// PNG files (`subsurf scan --black-level --white-level`; raw files carry their own).
+pub fn camera_from_spec_with(
+    spec: &str,
+    mesh: &Mesh,
+    calib: &Calibration,
+    seed: u64,
+    timeout: Duration,
+    levels: Levels,
+) -> Result<Box<dyn Camera>, super::camera::CameraError> {
+    levels.check().map_err(super::camera::CameraError::Spec)?;
     if spec == "sim" {
         let sensor = sim_sensor();
         return Ok(Box::new(
@@ -194,10 +208,12 @@ pub fn camera_from_spec(
         ));
     }
     if let Some(dir) = spec.strip_prefix("dir:") {
-        return Ok(Box::new(DirCamera::new(Path::new(dir), timeout)?));
+        return Ok(Box::new(
+            DirCamera::new(Path::new(dir), timeout)?.with_levels(levels),
+        ));
     }
     if let Some(cmd) = spec.strip_prefix("cmd:") {
-        return Ok(Box::new(CmdCamera::new(cmd, timeout)?));
+        return Ok(Box::new(CmdCamera::new(cmd, timeout)?.with_levels(levels)));
     }
     Err(super::camera::CameraError::Spec(format!(
         "unknown camera {spec:?}: use sim, dir:PATH or cmd:\"COMMAND {{out}}\""

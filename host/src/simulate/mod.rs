@@ -839,6 +839,7 @@ pub fn simulate(
                     direction: normalize(ray.direction).unwrap_or(ray.direction),
                 }),
                 galvo: None,
+                levels: Default::default(),
             };
             if k >= done {
                 writer.add_image(spec, &img, cfg.pfm)?;
