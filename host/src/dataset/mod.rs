@@ -17,7 +17,8 @@ mod mesh;
 mod writer;
 
 pub use image::{
-    Image, ImageError, bilinear_taps, encode_exr, encode_pfm, read_image, write_exr, write_pfm,
+    Image, ImageError, bilinear_taps, encode_exr, encode_pfm, read_exr_with_alpha, read_image,
+    write_exr, write_pfm,
 };
 pub use mesh::{Mesh, MeshError, MeshReport, load_obj, obj_bytes, write_obj};
 pub use writer::{DatasetWriter, STATE_DIR, WriteError};
