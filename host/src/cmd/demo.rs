@@ -15,7 +15,7 @@ use anyhow::{Context, Result, anyhow};
 use subsurf::calib::Calibration;
 use subsurf::dataset::Dataset;
 use subsurf::evaluate::evaluate_frames;
-use subsurf::export::{self, ColourMode, ExportOptions, LatticeMode};
+use subsurf::export::{self, ExportOptions, LatticeMode};
 use subsurf::fit::{FitOptions, Preset, Terms};
 use subsurf::modelfile::ModelFile;
 use subsurf::pipeline::{
@@ -383,7 +383,6 @@ pub fn run_demo(args: &Args) -> Result<Vec<PathBuf>> {
         let dir = out.join("blender");
         let opts = ExportOptions {
             lattice: LatticeMode::Refine,
-            colour: ColourMode::Matched,
             eta: ropts.eta,
             lights: key.clone(),
             camera: cam.clone(),

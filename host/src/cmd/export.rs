@@ -7,7 +7,7 @@ use anyhow::{Context, Result, bail};
 
 use super::models::{builtin, lights_or_default, load_model, parse_size, resolve_camera};
 use super::progress::Bar;
-use subsurf::export::{self, ColourMode, ExportOptions, LatticeMode};
+use subsurf::export::{self, ExportOptions, LatticeMode};
 use subsurf::render::{Method, Quality, RenderOptions};
 use subsurf::report::fmt;
 
@@ -28,15 +28,6 @@ pub enum Lattice {
     Drop,
 }
 
-/// What the subsurface colour holds.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
-pub enum Colour {
-    /// Matched to this mesh: Cycles' picture under uniform light is subsurf's.
-    Matched,
-    /// The total diffuse reflectance of each vertex's fall-off (the material, mesh aside).
-    Total,
-}
-
 /// Export a model for Blender's Cycles (Principled BSDF subsurface colour and radius per vertex).
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -55,9 +46,6 @@ pub struct Args {
     /// Alpha finer than the mesh (`face_alpha`): refine the mesh, or drop the detail.
     #[arg(long, value_enum, default_value_t = Lattice::Refine)]
     lattice: Lattice,
-    /// The subsurface colour: matched to this mesh, or each fall-off's total reflectance.
-    #[arg(long, value_enum, default_value_t = Colour::Matched)]
-    colour: Colour,
     /// A light of the scene (as `subsurf render --light`); default: the render's key and fill.
     #[arg(long = "light")]
     lights: Vec<String>,
@@ -86,7 +74,7 @@ pub struct Args {
     /// With `--render`: render Cycles twice (two seeds) to measure its sampling noise.
     #[arg(long, requires = "render")]
     noise: bool,
-    /// Speed/accuracy of subsurf's sums (the matched colour, and the render of `--render`).
+    /// Speed/accuracy of subsurf's render for `--render`.
     #[arg(long, value_enum, default_value_t = Quality::Balanced)]
     quality: Quality,
 }
@@ -104,10 +92,6 @@ pub fn run(args: Args) -> Result<()> {
         lattice: match args.lattice {
             Lattice::Refine => LatticeMode::Refine,
             Lattice::Drop => LatticeMode::Drop,
-        },
-        colour: match args.colour {
-            Colour::Matched => ColourMode::Matched,
-            Colour::Total => ColourMode::Total,
         },
         eta: (args.eta > 0.0).then_some(args.eta),
         lights,

@@ -157,7 +157,7 @@ mod tests {
     #[test]
     fn the_truncated_profile_integrates_to_the_albedo() {
         assert!((truncated_cdf() - 0.996_379_009_370_832_8).abs() < 1e-12);
-        let d = 0.7;
+        let d: f64 = 0.7;
         let (a, b) = ((1e-9 * d).ln(), (TRUNCATE * d).ln());
         let n = 4000;
         let h = (b - a) / n as f64;

@@ -19,7 +19,6 @@
 pub mod blender;
 pub mod convert;
 pub mod cycles;
-pub mod disk;
 pub mod gltf;
 pub mod mesh;
 pub mod scene;
@@ -105,26 +104,11 @@ pub enum LatticeMode {
     Drop,
 }
 
-/// What the subsurface colour holds.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum ColourMode {
-    /// The total diffuse reflectance of each vertex's fall-off: right on a plane, and what
-    /// carries the material to another mesh.
-    Total,
-    /// Matched to this mesh ([`disk`]): the renderer's exitance lit from the front divided by
-    /// Cycles' disk-step gain under the same light, so Cycles' picture of this object is the
-    /// renderer's; the total diffuse reflectance where the surface is flat and homogeneous.
-    Matched,
-}
-
 /// What the export needs besides the model.
 #[derive(Clone, Debug)]
 pub struct ExportOptions {
     /// Face lattice handling.
     pub lattice: LatticeMode,
-    /// What the subsurface colour holds.
-    pub colour: ColourMode,
     /// Relative refractive index of the exit Fresnel factor (the renderer's `eta`); `None` off.
     pub eta: Option<f64>,
     /// The scene's lights (the renderer's).
@@ -203,17 +187,8 @@ pub struct ExportSummary {
     /// Vertices by where their parameters came from: own fit, interpolated fit, filled from
     /// neighbours (no model), none.
     pub sources: [usize; 4],
-    /// What the subsurface colour holds.
-    pub colour_mode: ColourMode,
-    /// Subsurface colour over vertices with a model.
+    /// Subsurface colour (total diffuse reflectance) over vertices with a model.
     pub colour: Option<ChannelStats>,
-    /// Total diffuse reflectance of the averaged fall-off.
-    pub total_reflectance: Option<ChannelStats>,
-    /// Matched colour over total reflectance: what the mesh's geometry and Cycles' disk step
-    /// change (1 on a flat homogeneous surface).
-    pub geometry_factor: Option<ChannelStats>,
-    /// Cycles' disk-step gain on this mesh (matched colours).
-    pub cycles_gain: Option<ChannelStats>,
     /// Subsurface radius, mm.
     pub radius_mm: Option<ChannelStats>,
     /// log E of the converted profile against the direction-averaged fitted one.
@@ -297,10 +272,7 @@ pub fn export(
     if opts.samples == 0 {
         return Err(ExportError::Invalid("samples must be at least 1".into()));
     }
-    let mut vertices = convert::convert(model, progress);
-    if opts.colour == ColourMode::Matched {
-        match_colours(model, &mut vertices, progress)?;
-    }
+    let vertices = convert::convert(model, progress);
     let (mesh, refinement) = match opts.lattice {
         LatticeMode::Refine => mesh::refined_mesh(model, &vertices),
         LatticeMode::Drop => (mesh::vertex_mesh(model, &vertices), Refinement::default()),
@@ -336,14 +308,7 @@ pub fn export(
             Source::None,
         ]
         .map(|s| vertices.iter().filter(|v| v.source == s).count()),
-        colour_mode: opts.colour,
         colour: stats(&|v| Some(v.colour)),
-        total_reflectance: stats(&|v| Some(v.total_reflectance)),
-        geometry_factor: stats(&|v| {
-            v.received
-                .map(|_| [0, 1, 2].map(|c| v.colour[c] / v.total_reflectance[c]))
-        }),
-        cycles_gain: stats(&|v| v.cycles_gain),
         radius_mm: stats(&|v| Some(v.radius_mm)),
         conversion_log_e: stats(&|v| v.log_e),
         total_log_e: stats(&|v| v.total_log_e),
@@ -387,43 +352,6 @@ pub fn export(
         summary,
         scene,
     })
-}
-
-/// [`ColourMode::Matched`]: every vertex's colour becomes `B_front / gain` ([`disk`]).
-fn match_colours(
-    model: &ModelFile,
-    vertices: &mut [VertexConversion],
-    progress: &dyn Progress,
-) -> Result<(), ExportError> {
-    let b1 = disk::front_exitance(model, progress);
-    let scene = render::shadow_scene(&model.positions, &model.triangles)?;
-    let d: Vec<[f64; 3]> = vertices
-        .iter()
-        .map(|v| v.radius_mm.map(|r| r / cycles::RADIUS_PER_D))
-        .collect();
-    let gain = disk::disk_gain(&scene, &model.normals, &d, progress);
-    for ((v, b), g) in vertices.iter_mut().zip(b1).zip(gain) {
-        if v.source == Source::None {
-            continue;
-        }
-        if !(b.iter().chain(&g).all(|x| x.is_finite() && *x >= 0.0)) {
-            return Err(ExportError::Invalid(format!(
-                "a vertex's uniform-light exitance {b:?} or Cycles gain {g:?} is not finite"
-            )));
-        }
-        // A probe that finds no surface at all (gain 0) leaves the colour as it is: Cycles
-        // shows the vertex dark whatever its colour.
-        v.colour = [0, 1, 2].map(|c| {
-            if g[c] > 1e-3 {
-                b[c] / g[c]
-            } else {
-                v.colour[c]
-            }
-        });
-        v.received = Some(b);
-        v.cycles_gain = Some(g);
-    }
-    Ok(())
 }
 
 /// The per-vertex part of the report's JSON.
