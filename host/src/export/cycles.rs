@@ -25,9 +25,9 @@
 //!   `bsdf_principled_diffuse_compute_entry_fresnel`), and at the point where light arrives a
 //!   Lambertian lobe times `1 − ½ (1 − cos θ_i)⁵` (`PRINCIPLED_DIFFUSE_LAMBERT_EXIT`).
 //!
-//! Checked in Blender itself: a half-lit slab rendered in Cycles 3.4 (the edge response of the
-//! profile) matches this `d = radius / (4π)` to its sampling noise for albedos 0.1 to 0.95,
-//! and its plateau is `A·E/π` within 0.3 % (`docs/export.md`, `tests/export.rs`).
+//! Checked in Blender itself: a half-lit slab rendered in Cycles 3.4.1 (the edge response of the
+//! profile) fits `d = 0.078 · radius` (1/(4π) = 0.0796) at every albedo from 0.1 to 0.95, to its
+//! sampling noise, and its plateau is `A·E/π` within 0.3 % (`docs/export.md`).
 //!
 //! The random walk (`RANDOM_WALK`, Blender's default) is a volume walk whose coefficients come
 //! from the albedo by another fit (Wrenninge et al.) and, for the default method, from an IOR

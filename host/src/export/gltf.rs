@@ -114,7 +114,7 @@ pub fn glb_bytes(
         extras: Default::default(),
     });
     let mut view = |root: &mut json::Root, bytes: &[u8], target: json::buffer::Target| {
-        while bin.len() % 4 != 0 {
+        while !bin.len().is_multiple_of(4) {
             bin.push(0);
         }
         let offset = bin.len();
@@ -246,7 +246,7 @@ pub fn glb_bytes(
         nodes: vec![node],
     });
     root.scene = Some(scene);
-    while bin.len() % 4 != 0 {
+    while !bin.len().is_multiple_of(4) {
         bin.push(0);
     }
     root.buffers[0].byte_length = USize64(bin.len() as u64);

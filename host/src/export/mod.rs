@@ -687,7 +687,9 @@ pub fn write_report(
         }
     ));
     let mut t = Table::new(["per vertex", "red", "green", "blue", "how"]);
-    let rows: [(&str, Option<[f64; 3]>, fn(f64) -> String, &str); 6] = [
+    /// A summary row: name, median per channel, format, how it is made.
+    type Row<'a> = (&'a str, Option<[f64; 3]>, fn(f64) -> String, &'a str);
+    let rows: [Row; 6] = [
         (
             "subsurface colour (median)",
             s.colour.map(|x| x.median),
