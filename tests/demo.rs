@@ -22,9 +22,10 @@ fn subsurf(args: &[&str]) -> String {
     String::from_utf8(o.stdout).unwrap()
 }
 
-/// The demo's output folder, made once for all tests of this file (a coarse 2 mm plan on a small
-/// camera, so it takes seconds).
-fn demo() -> &'static (PathBuf, String) {
+/// The demo's output folder, made once for all tests of this file and `export` (a coarse 2 mm
+/// plan on a small camera, so it takes seconds; with Blender present, the model in Cycles at
+/// 256 samples, whose own noise is then about 10 %).
+pub(crate) fn demo() -> &'static (PathBuf, String) {
     static OUT: OnceLock<(PathBuf, String)> = OnceLock::new();
     OUT.get_or_init(|| {
         let out = Path::new(env!("CARGO_TARGET_TMPDIR")).join("demo-test");
@@ -41,6 +42,8 @@ fn demo() -> &'static (PathBuf, String) {
             "2",
             "--picture",
             "96",
+            "--blender-samples",
+            "256",
             "--out",
             out.to_str().unwrap(),
         ]);

@@ -21,6 +21,7 @@ mod acquire_link;
 mod acquire_sim;
 mod curved;
 mod demo;
+mod export;
 mod fit_aniso;
 mod fit_curve;
 mod fit_pictures;

@@ -10,6 +10,7 @@ pub mod calib;
 pub mod curves;
 pub mod dataset;
 pub mod evaluate;
+pub mod export;
 pub mod flash;
 pub mod geometry;
 pub mod interpolate;

@@ -15,6 +15,7 @@ use anyhow::{Context, Result, anyhow};
 use subsurf::calib::Calibration;
 use subsurf::dataset::Dataset;
 use subsurf::evaluate::evaluate_frames;
+use subsurf::export::{self, ExportOptions, LatticeMode};
 use subsurf::fit::{FitOptions, Preset, Terms};
 use subsurf::modelfile::ModelFile;
 use subsurf::pipeline::{FitReport, PipelineOptions, fit_dataset, register_one};
@@ -58,6 +59,12 @@ pub struct Args {
     /// Size of the rendered pictures (pixels per side).
     #[arg(long, default_value_t = 480)]
     picture: u32,
+    /// Cycles samples per pixel of the "in Blender" render (when Blender is present).
+    #[arg(long, default_value_t = 32)]
+    blender_samples: u32,
+    /// Skip the "in Blender" render even when Blender is present.
+    #[arg(long)]
+    no_blender: bool,
 }
 
 fn bar(len: u64, msg: &str) -> Bar {
@@ -297,6 +304,7 @@ pub fn run_demo(args: &Args) -> Result<Vec<PathBuf>> {
     ]);
     let mut clip_max: f64 = 0.0;
     let mut key_truth: Option<Image> = None;
+    let mut key_exposure = 1.0;
     for (slug, light_name, light) in &lights {
         let rt = render::render(truth, light, &cam, &ropts)?;
         let rm = render::render(&model, light, &cam, &ropts)?;
@@ -357,7 +365,72 @@ pub fn run_demo(args: &Args) -> Result<Vec<PathBuf>> {
         ]);
         if *slug == "key-light" {
             key_truth = Some(rt.image);
+            key_exposure = exposure;
         }
+    }
+    // 4b. The shown model exported for Blender and rendered there under the key light and the
+    //    same camera (Cycles, `export::compare`), against subsurf's render of the same model.
+    // A Blender that is there but unusable (too old, broken) does not stop the demo: the
+    // column stays empty and the reason is printed.
+    let blender = if args.no_blender {
+        None
+    } else {
+        export::find_blender(None).unwrap_or_else(|e| {
+            println!("not rendering in Blender: {e}");
+            None
+        })
+    };
+    let mut in_blender: Option<(export::Comparison, PathBuf)> = None;
+    if let (Some(b), Some((_, _, key))) = (&blender, lights.first()) {
+        let tb = Instant::now();
+        let dir = out.join("blender");
+        let opts = ExportOptions {
+            lattice: LatticeMode::Refine,
+            eta: ropts.eta,
+            lights: key.clone(),
+            camera: cam.clone(),
+            samples: args.blender_samples,
+        };
+        let p = bar(0, "export");
+        let exported = export::export(&model, &opts, &p)?;
+        p.finish_and_clear();
+        exported.write(&dir)?;
+        println!(
+            "rendering the exported model in {} (Cycles, {} samples)",
+            b.version_line, args.blender_samples
+        );
+        let c = export::compare(&model, &opts, &ropts, b, &dir, false)
+            .context("rendering the exported model in Blender")?;
+        export::write_report(&model, &exported, Some(&c), Some(b), &dir)?;
+        println!(
+            "in Blender: mean relative pixel error against subsurf's render {}",
+            fmt::percent(c.mean_relative_error, 1)
+        );
+        // The Cycles picture beside the others: same exposure as the key-light row.
+        let cycles = export::read_render(&dir.join("cycles.exr"))?;
+        let png = out.join("render-blender-key-light.png");
+        render::save_png(&cycles, Some(key_exposure), &png)?;
+        written.push(png.clone());
+        if let Some(row) = compare_figures.first_mut() {
+            row.insert(
+                2,
+                figure(
+                    &png,
+                    "In Blender: the exported model in Cycles, key light, same camera and exposure",
+                ),
+            );
+            row.push(figure(
+                &dir.join("difference.png"),
+                "Blender − subsurf: (Cycles − subsurf's render) / subsurf's render, same model",
+            ));
+        }
+        timings.push((
+            "export to Blender and Cycles render",
+            tb.elapsed().as_secs_f64(),
+        ));
+        in_blender = Some((c, dir));
+    } else if blender.is_none() && !args.no_blender {
+        println!("no Blender found: the report's \"in Blender\" column stays empty");
     }
     // Every preset's model under the key light against the truth: the render column of the trade.
     if let (Some(kt), Some((_, _, key))) = (&key_truth, lights.first()) {
@@ -479,9 +552,33 @@ pub fn run_demo(args: &Args) -> Result<Vec<PathBuf>> {
     for row in compare_figures {
         rep.figures(row);
     }
+    diff_rows
+        .header
+        .push("in Blender: mean |Cycles − model| / model".into());
+    for (k, row) in diff_rows.rows.iter_mut().enumerate() {
+        row.push(match (&in_blender, k) {
+            (Some((c, _)), 0) => fmt::percent(c.mean_relative_error, 1),
+            _ => fmt::MISSING.to_string(),
+        });
+    }
     rep.table(
         diff_rows,
-        Some("Over lit pixels (truth above 0.1 % of its brightest).".into()),
+        Some(match &in_blender {
+            Some((c, dir)) => format!(
+                "Over lit pixels (truth above 0.1 % of its brightest). In Blender: the model \
+                 exported by `subsurf export` (per-vertex subsurface colour and radius of \
+                 Cycles' Principled BSDF, docs/export.md) rendered in Cycles ({} samples, {}) \
+                 under the key light, against subsurf's render of the same model, per channel \
+                 over lit pixels; Cycles' own sampling noise is part of it. Export and \
+                 report: `{}/`.",
+                c.samples,
+                fmt::seconds(c.cycles_seconds),
+                dir.strip_prefix(out).unwrap_or(dir).display()
+            ),
+            None => "Over lit pixels (truth above 0.1 % of its brightest). In Blender: — \
+                     (Blender was not found; `subsurf export` writes the scene for it)."
+                .into(),
+        }),
     );
     rep.table(render_rows, None);
 
@@ -691,7 +788,8 @@ pub fn run_demo(args: &Args) -> Result<Vec<PathBuf>> {
     );
     rep.paragraph(
         "Files: `model.ply` (the model, docs/model-format.md), `fit-report.json`, \
-         `render-*.png` + `.exr`, `falloff.png`, `error-map.png`, `model.png`, `scan/`.",
+         `render-*.png` + `.exr`, `falloff.png`, `error-map.png`, `model.png`, `scan/`, and \
+         with Blender `blender/` (the export, its report and the Cycles render).",
     );
     let [md, html] = rep.write(out, "report").map_err(|e| anyhow!(e))?;
     written.insert(0, html);

@@ -9,6 +9,7 @@ mod bench_tradeoff;
 mod calib;
 mod demo;
 mod evaluate;
+mod export;
 mod fit;
 mod fit_curve;
 mod flash;
@@ -66,6 +67,8 @@ enum Command {
     Plot(plot::Args),
     /// The main job with no hardware and no arguments: simulated rig, scan, fit, render, pictures.
     Demo(demo::Args),
+    /// Export a model for Blender's Cycles: per-vertex subsurface colour and radius, the scene.
+    Export(export::Args),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -86,5 +89,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Evaluate(a) => evaluate::run(a),
         Command::Plot(a) => plot::run(a),
         Command::Demo(a) => demo::run_cmd(a),
+        Command::Export(a) => export::run(a),
     }
 }

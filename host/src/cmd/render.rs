@@ -2,10 +2,10 @@
 
 use std::path::PathBuf;
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Context, Result};
 
-use super::models::{builtin, load_model};
-use subsurf::render::{self, Camera, CameraSpec, Light, Method, Quality, RenderOptions};
+use super::models::{builtin, lights_or_default, load_model, parse_size, resolve_camera};
+use subsurf::render::{self, Method, Quality, RenderOptions};
 
 /// Render a model under point, spot and directional lights.
 #[derive(Debug, clap::Args)]
@@ -47,57 +47,12 @@ pub struct Args {
     exr: Option<PathBuf>,
 }
 
-/// `WxH` → (W, H).
-pub fn parse_size(s: &str) -> Result<(u32, u32)> {
-    let (w, h) = s
-        .split_once(['x', 'X'])
-        .with_context(|| format!("size `{s}` is not WxH"))?;
-    let (w, h): (u32, u32) = (w.trim().parse()?, h.trim().parse()?);
-    if w == 0 || h == 0 || w > 16384 || h > 16384 {
-        bail!("size `{s}` must be 1..=16384 per side");
-    }
-    Ok((w, h))
-}
-
-/// Resolves a camera spec, reading the JSON file if it names one.
-pub fn resolve_camera(
-    spec: &str,
-    size: (u32, u32),
-    model: &subsurf::modelfile::ModelFile,
-) -> Result<Camera> {
-    let spec: CameraSpec = spec.parse()?;
-    Ok(match spec {
-        CameraSpec::Auto(dir) => {
-            let (lo, hi) = model.bounds();
-            Camera::framing(lo, hi, dir, size.0, size.1)?
-        }
-        CameraSpec::LookAt {
-            eye,
-            target,
-            fov_deg,
-        } => Camera::look_at_fov(eye, target, [0.0, 0.0, 1.0], fov_deg, size.0, size.1)?,
-        CameraSpec::File { path, index } => {
-            let text = std::fs::read_to_string(&path)
-                .with_context(|| format!("reading {}", path.display()))?;
-            Camera::from_json(&text, index)
-                .with_context(|| format!("camera in {}", path.display()))?
-        }
-    })
-}
-
 pub fn run(args: Args) -> Result<()> {
     let model = match &args.model {
         Some(p) => load_model(p)?,
         None => builtin(&args.builtin)?,
     };
-    let lights = if args.lights.is_empty() {
-        Light::defaults_for(model.bounds())
-    } else {
-        args.lights
-            .iter()
-            .map(|s| s.parse::<Light>())
-            .collect::<Result<_, _>>()?
-    };
+    let lights = lights_or_default(&args.lights, &model)?;
     let camera = resolve_camera(&args.camera, parse_size(&args.size)?, &model)?;
     let options = RenderOptions {
         method: if args.exact {

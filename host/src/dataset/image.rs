@@ -99,6 +99,7 @@ impl Image {
     pub fn decode_with(bytes: &[u8], levels: Levels) -> Result<Image, ImageError> {
         match FileKind::sniff(bytes) {
             FileKind::Exr => decode_exr(std::io::Cursor::new(bytes), "image")
+                .map(|(img, _)| img)
                 .map_err(|e| ImageError::Decode(e.to_string())),
             FileKind::Pfm => decode_pfm(&mut std::io::Cursor::new(bytes), "image"),
             _ => camera_file::decode(bytes, levels),
@@ -230,6 +231,12 @@ pub fn read_image_with(path: &Path, levels: Levels) -> Result<Image, ImageError>
 }
 
 fn read_exr(path: &Path) -> Result<Image, ImageError> {
+    read_exr_with_alpha(path).map(|(img, _)| img)
+}
+
+/// Reads an OpenEXR image as [`read_image`] does, and its alpha channel `A` when it has one (a
+/// renderer's coverage: another program's render with a transparent background).
+pub fn read_exr_with_alpha(path: &Path) -> Result<(Image, Option<Vec<f32>>), ImageError> {
     let file = std::fs::File::open(path).map_err(|source| ImageError::Io {
         path: path.to_path_buf(),
         source,
@@ -258,9 +265,12 @@ impl std::fmt::Display for ExrError {
     }
 }
 
-/// An OpenEXR image's first valid layer: R, G, B if present, else Y, else its only channel.
-/// `name` (the file, or "image") goes into the content errors.
-fn decode_exr(source: impl Read + Seek + Send, name: &str) -> Result<Image, ExrError> {
+/// An OpenEXR image's first valid layer: R, G, B if present, else Y, else its only channel; and
+/// its `A` channel if it has one. `name` (the file, or "image") goes into the content errors.
+fn decode_exr(
+    source: impl Read + Seek + Send,
+    name: &str,
+) -> Result<(Image, Option<Vec<f32>>), ExrError> {
     use exr::prelude::*;
     let img = read()
         .no_deep_data()
@@ -309,12 +319,18 @@ fn decode_exr(source: impl Read + Seek + Send, name: &str) -> Result<Image, ExrE
             data[p * n + k] = v;
         }
     }
-    Ok(self::Image {
-        width: w,
-        height: h,
-        channels: n,
-        data,
-    })
+    let alpha = find("A")
+        .map(|a| chans[a].sample_data.values_as_f32().collect::<Vec<f32>>())
+        .filter(|a| a.len() == w * h);
+    Ok((
+        self::Image {
+            width: w,
+            height: h,
+            channels: n,
+            data,
+        },
+        alpha,
+    ))
 }
 
 fn read_pfm(path: &Path) -> Result<Image, ImageError> {

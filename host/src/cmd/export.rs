@@ -1,0 +1,183 @@
+//! `subsurf export`: a model for another renderer (Blender's Cycles), checked by rendering it
+//! there when Blender is present.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result, bail};
+
+use super::models::{builtin, lights_or_default, load_model, parse_size, resolve_camera};
+use super::progress::Bar;
+use subsurf::export::{self, ExportOptions, LatticeMode};
+use subsurf::render::{Method, Quality, RenderOptions};
+use subsurf::report::fmt;
+
+/// The renderers `export` writes for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Format {
+    /// Blender 3.4+ (Cycles): binary glTF with custom attributes, the scene, the script that
+    /// builds the node tree; the `.blend` when Blender is present.
+    Blender,
+}
+
+/// Face lattice handling.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Lattice {
+    /// Cut the mesh at the lattice's level: alpha per lattice point.
+    Refine,
+    /// Keep the model's mesh; alpha per vertex (the report says what the detail was worth).
+    Drop,
+}
+
+/// Export a model for Blender's Cycles (Principled BSDF subsurface colour and radius per vertex).
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// The fitted model (`docs/model-format.md`).
+    #[arg(long, conflicts_with = "builtin")]
+    model: Option<PathBuf>,
+    /// Built-in model instead of a file: `torus` or `torus:NU,NV`.
+    #[arg(long, default_value = "torus")]
+    builtin: String,
+    /// What to write for.
+    #[arg(long, value_enum, default_value_t = Format::Blender)]
+    format: Format,
+    /// Output folder (created; files in it are overwritten).
+    #[arg(long)]
+    out: PathBuf,
+    /// Alpha finer than the mesh (`face_alpha`): refine the mesh, or drop the detail.
+    #[arg(long, value_enum, default_value_t = Lattice::Refine)]
+    lattice: Lattice,
+    /// A light of the scene (as `subsurf render --light`); default: the render's key and fill.
+    #[arg(long = "light")]
+    lights: Vec<String>,
+    /// The scene's camera (as `subsurf render --camera`).
+    #[arg(long, default_value = "auto")]
+    camera: String,
+    /// Image size `WxH` of the scene.
+    #[arg(long, default_value = "512x512")]
+    size: String,
+    /// Relative refractive index of the exit Fresnel factor (as `subsurf render`); 0: none.
+    #[arg(long, default_value_t = 1.3)]
+    eta: f64,
+    /// Cycles samples per pixel.
+    #[arg(long, default_value_t = 64)]
+    samples: u32,
+    /// Blender executable (default: `$SUBSURF_BLENDER`, else `blender` on the PATH).
+    #[arg(long)]
+    blender: Option<PathBuf>,
+    /// Do not run Blender even if it is installed (no `.blend`).
+    #[arg(long, conflicts_with = "render")]
+    no_blender: bool,
+    /// Also render the scene in Cycles and compare it with subsurf's render of the model
+    /// (`cycles.exr`, `subsurf.exr`, `difference.png`, the error in the report). Needs Blender.
+    #[arg(long)]
+    render: bool,
+    /// With `--render`: render Cycles twice (two seeds) to measure its sampling noise.
+    #[arg(long, requires = "render")]
+    noise: bool,
+    /// Speed/accuracy of subsurf's render for `--render`.
+    #[arg(long, value_enum, default_value_t = Quality::Balanced)]
+    quality: Quality,
+}
+
+pub fn run(args: Args) -> Result<()> {
+    let Format::Blender = args.format;
+    let model = match &args.model {
+        Some(p) => load_model(p)?,
+        None => builtin(&args.builtin)?,
+    };
+    let lights = lights_or_default(&args.lights, &model)?;
+    let camera = resolve_camera(&args.camera, parse_size(&args.size)?, &model)?;
+    let transport = Method::Hierarchical(args.quality.params());
+    let opts = ExportOptions {
+        lattice: match args.lattice {
+            Lattice::Refine => LatticeMode::Refine,
+            Lattice::Drop => LatticeMode::Drop,
+        },
+        eta: (args.eta > 0.0).then_some(args.eta),
+        lights,
+        camera,
+        samples: args.samples,
+    };
+    let blender = if args.no_blender {
+        None
+    } else {
+        export::find_blender(args.blender.as_deref())?
+    };
+    if args.render && blender.is_none() {
+        bail!(
+            "--render needs Blender: none found (--blender PATH, ${}, or `blender` on the PATH)",
+            export::blender::BLENDER_ENV
+        );
+    }
+    let bar = Bar::with_template("{msg:>12} {bar:40} {pos}/{len} {elapsed}");
+    let exported = export::export(&model, &opts, &bar).context("converting the model")?;
+    bar.finish_and_clear();
+    let mut written = exported.write(&args.out)?;
+    let s = &exported.summary;
+    println!(
+        "{} vertices → Cycles subsurface colour and radius ({} written, {} triangles)",
+        fmt::count(s.vertices),
+        fmt::count(s.written[0]),
+        fmt::count(s.written[1])
+    );
+    if let Some(st) = &s.conversion_log_e {
+        println!(
+            "conversion log E (converted profile against the fitted one): median {}, 95th \
+             percentile {}, largest {} (mean of R, G, B)",
+            fmt::log_e(st.median.iter().sum::<f64>() / 3.0),
+            fmt::log_e(st.p95.iter().sum::<f64>() / 3.0),
+            fmt::log_e(st.max.iter().copied().fold(0.0, f64::max)),
+        );
+    }
+    for line in exported.dropped_lines() {
+        println!("dropped: {line}");
+    }
+    let mut comparison = None;
+    match &blender {
+        Some(b) => {
+            if args.render {
+                println!(
+                    "rendering in {} (Cycles, {} samples)…",
+                    b.version_line, args.samples
+                );
+                let ropts = RenderOptions {
+                    method: transport,
+                    eta: opts.eta,
+                };
+                let c = export::compare(&model, &opts, &ropts, b, &args.out, args.noise)?;
+                println!(
+                    "Cycles against subsurf's render: mean relative pixel error {} over lit \
+                     pixels{}",
+                    fmt::percent(c.mean_relative_error, 1),
+                    c.cycles_noise
+                        .map(|n| format!(" (Cycles' own noise {})", fmt::percent(n, 1)))
+                        .unwrap_or_default()
+                );
+                written.extend(c.files.iter().cloned());
+                comparison = Some(c);
+            } else {
+                b.run(&args.out, &export::Run::default())?;
+            }
+            written.push(args.out.join(export::BLEND_FILE));
+        }
+        None if args.no_blender => {}
+        None => println!(
+            "no Blender found: run `blender -b --python {}` in {} to make the .blend",
+            export::BUILD_SCRIPT,
+            args.out.display()
+        ),
+    }
+    written.extend(export::write_report(
+        &model,
+        &exported,
+        comparison.as_ref(),
+        blender.as_ref(),
+        &args.out,
+    )?);
+    written.dedup();
+    println!("wrote into {}:", args.out.display());
+    for f in written {
+        println!("  {}", f.display());
+    }
+    Ok(())
+}

@@ -1,0 +1,206 @@
+//! What Blender 3.4's Cycles computes for the Principled BSDF's subsurface scattering, read from
+//! its kernel (`intern/cycles/kernel/closure/bssrdf.h`, `svm/closure.h`,
+//! `integrator/subsurface_disk.h` of Blender 3.4.1), and the one-parameter fit of its profile to
+//! a fitted fall-off.
+//!
+//! **The profile.** Christensen & Burley (2015), "Approximate Reflectance Profiles for Efficient
+//! Subsurface Scattering", Eq. 3: `R(r) = A (e^{−r/d} + e^{−r/(3d)}) / (8π d r)`, whose integral
+//! over the plane, `∫ R 2πr dr`, is `A`: the total diffuse reflectance. Their paper fits the
+//! shape parameter to the albedo, `d = ℓ / s(A)`, for three set-ups (searchlight:
+//! `s = 1.85 − A + 7|A − 0.8|³`; diffuse surface transmission: `s = 1.9 − A + 3.5 (A − 0.8)²`;
+//! diffuse mean free path: `s = 3.5 + 100 (A − 0.33)⁴`).
+//!
+//! **What Blender 3.4 does with it** (the Principled BSDF, `subsurface_method = BURLEY`):
+//! - the closure's radius is `Subsurface Radius × Subsurface` (`svm/closure.h`) and its albedo
+//!   `Subsurface Color × Subsurface + Base Color × (1 − Subsurface)`: the export sets
+//!   Subsurface = 1, so radius and colour are the attributes themselves;
+//! - `bssrdf_setup_radius` scales the radius by `0.25/π` for Burley (and for Random Walk
+//!   (Fixed Radius)) — and that is all: `bssrdf_burley_setup`, which would divide by the
+//!   diffuse-transmission `s(A)`, is never called in 3.4. So **`d = radius / (4π)`, whatever the
+//!   albedo**, and the albedo only scales the profile;
+//! - `bssrdf_burley_eval` is `(e^{−r/d} + e^{−r/(3d)}) / (4d)` (the profile times `2πr / A`),
+//!   truncated at `r = 16 d` and renormalised by the truncated CDF (0.99638), so the light a
+//!   point scatters is exactly `A`;
+//! - entry and exit: no Fresnel factor where the camera ray enters (3.4 never calls
+//!   `bsdf_principled_diffuse_compute_entry_fresnel`), and at the point where light arrives a
+//!   Lambertian lobe times `1 − ½ (1 − cos θ_i)⁵` (`PRINCIPLED_DIFFUSE_LAMBERT_EXIT`).
+//!
+//! Checked in Blender itself: a half-lit slab rendered in Cycles 3.4.1 (the edge response of the
+//! profile) fits `d = 0.078 · radius` (1/(4π) = 0.0796) at every albedo from 0.1 to 0.95, to its
+//! sampling noise, and its plateau is `A·E/π` within 0.3 % (`docs/export.md`).
+//!
+//! The random walk (`RANDOM_WALK`, Blender's default) is a volume walk whose coefficients come
+//! from the albedo by another fit (Wrenninge et al.) and, for the default method, from an IOR
+//! (`bssrdf_setup_radius`: `radius · sqrt(3 (1 − α'))` with α' a dipole inversion of the albedo):
+//! its surface profile has no closed form, is not C&B's shape at low albedo, and its scale moves
+//! with the albedo — so the subsurface colour, which alpha modulates, would change the
+//! fall-off's reach. The export targets Burley, whose profile it can fit exactly.
+
+use std::f64::consts::PI;
+
+/// Cycles' radius per Burley shape parameter `d`: `bssrdf_setup_radius` multiplies the radius by
+/// `0.25 · M_1_PI_F`, so `radius = 4π d`.
+pub const RADIUS_PER_D: f64 = 4.0 * PI;
+
+/// Cycles truncates the Burley profile at `BURLEY_TRUNCATE · d` (`bssrdf.h`).
+pub const TRUNCATE: f64 = 16.0;
+
+/// The share of the Burley profile's light within the truncation radius, `BURLEY_TRUNCATE_CDF`
+/// (`bssrdf.h`): `1 − ¼ e^{−16} − ¾ e^{−16/3}`. Cycles divides by it, so the light inside
+/// `16 d` is the whole albedo.
+pub fn truncated_cdf() -> f64 {
+    1.0 - 0.25 * (-TRUNCATE).exp() - 0.75 * (-TRUNCATE / 3.0).exp()
+}
+
+/// `ln` of Cycles' Burley profile per unit albedo at distance `r > 0` (mm⁻², like `R_d`):
+/// `ln[(e^{−r/d} + e^{−r/(3d)}) / (8π d r)]` renormalised by [`truncated_cdf`], for `r < 16 d`;
+/// beyond that Cycles has no light, and this returns the untruncated form (the fit needs a
+/// finite value there; the report says how much light lies beyond, see
+/// [`energy_beyond_truncation`]). Written as `−r/(3d) + ln(1 + e^{−2r/(3d)})`, finite where both
+/// exponentials underflow.
+pub fn ln_profile(r: f64, d: f64) -> f64 {
+    let x = r / (3.0 * d);
+    -x + (-2.0 * x).exp().ln_1p() - (8.0 * PI * d * r).ln() - truncated_cdf().ln()
+}
+
+/// The fraction of a fall-off's total diffuse reflectance that lies beyond `rho`, from its
+/// cumulative integral: `1 − cumulative(rho) / total`.
+pub fn energy_beyond_truncation(cumulative_at_rho: f64, total: f64) -> f64 {
+    if total > 0.0 {
+        (1.0 - cumulative_at_rho / total).clamp(0.0, 1.0)
+    } else {
+        0.0
+    }
+}
+
+/// Disney's exit lobe in Cycles 3.4 relative to Lambert, `1 − ½ (1 − cos θ_i)⁵`, at the point
+/// where light enters the material (`bsdf_principled_diffuse_compute_brdf`,
+/// `PRINCIPLED_DIFFUSE_LAMBERT_EXIT`); 1 at normal incidence.
+pub fn disney_entry_factor(cos_theta: f64) -> f64 {
+    1.0 - 0.5 * (1.0 - cos_theta.clamp(0.0, 1.0)).powi(5)
+}
+
+/// The best Burley shape `d` (mm) for a fall-off with total reflectance `total` sampled as
+/// `ln_target[k]` at distances `r[k]`: the `d` minimising `Σ_k (ln total + ln_profile(r_k, d) −
+/// ln_target_k)²`, with its RMS residual (log E of the converted profile, Eq. 8's measure).
+///
+/// One parameter on a bounded interval: a scan of `ln d` over four decades either side of the
+/// sampled range, then golden-section search in the best cell. Hand-written (20 lines) because
+/// the objective is one-dimensional and may have a second local minimum a derivative-based
+/// solver would stop at; the scan finds the basin, the golden section only polishes it.
+pub fn fit_shape(r: &[f64], ln_target: &[f64], total: f64) -> Option<(f64, f64)> {
+    if r.is_empty() || r.len() != ln_target.len() || !(total > 0.0 && total.is_finite()) {
+        return None;
+    }
+    let ln_a = total.ln();
+    let cost = |ln_d: f64| -> f64 {
+        let d = ln_d.exp();
+        r.iter()
+            .zip(ln_target)
+            .map(|(&r, &y)| {
+                let e = ln_a + ln_profile(r, d) - y;
+                e * e
+            })
+            .sum::<f64>()
+    };
+    let (lo, hi) = r
+        .iter()
+        .fold((f64::INFINITY, 0.0f64), |(a, b), &x| (a.min(x), b.max(x)));
+    if !(lo > 0.0 && hi.is_finite()) {
+        return None;
+    }
+    let (a, b) = ((lo * 1e-4).ln(), (hi * 1e4).ln());
+    const STEPS: usize = 160;
+    let step = (b - a) / STEPS as f64;
+    let (mut best, mut best_cost) = (a, f64::INFINITY);
+    for k in 0..=STEPS {
+        let x = a + step * k as f64;
+        let c = cost(x);
+        if c < best_cost {
+            (best, best_cost) = (x, c);
+        }
+    }
+    if !best_cost.is_finite() {
+        return None;
+    }
+    let g = (5f64.sqrt() - 1.0) / 2.0;
+    let (mut x0, mut x1) = (best - step, best + step);
+    let (mut p, mut q) = (x1 - g * (x1 - x0), x0 + g * (x1 - x0));
+    let (mut cp, mut cq) = (cost(p), cost(q));
+    for _ in 0..60 {
+        if cp < cq {
+            x1 = q;
+            (q, cq) = (p, cp);
+            p = x1 - g * (x1 - x0);
+            cp = cost(p);
+        } else {
+            x0 = p;
+            (p, cp) = (q, cq);
+            q = x0 + g * (x1 - x0);
+            cq = cost(q);
+        }
+    }
+    let x = 0.5 * (x0 + x1);
+    let c = cost(x).min(best_cost);
+    let x = if cost(x) <= best_cost { x } else { best };
+    let d = x.exp();
+    let rms = (c / r.len() as f64).sqrt();
+    (d.is_finite() && rms.is_finite()).then_some((d, rms))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// ∫ R 2πr dr over (0, 16 d) of the renormalised profile is 1 (the albedo), by Simpson in
+    /// ln r; Cycles' constant is what the closed form gives.
+    #[test]
+    fn the_truncated_profile_integrates_to_the_albedo() {
+        assert!((truncated_cdf() - 0.996_379_009_370_832_8).abs() < 1e-12);
+        let d: f64 = 0.7;
+        let (a, b) = ((1e-9 * d).ln(), (TRUNCATE * d).ln());
+        let n = 4000;
+        let h = (b - a) / n as f64;
+        let f = |u: f64| {
+            let r = u.exp();
+            ln_profile(r, d).exp() * 2.0 * PI * r * r
+        };
+        let mut s = f(a) + f(b);
+        for k in 1..n {
+            s += f(a + h * k as f64) * if k % 2 == 1 { 4.0 } else { 2.0 };
+        }
+        let total = s * h / 3.0;
+        assert!((total - 1.0).abs() < 1e-6, "{total}");
+    }
+
+    /// A Burley profile is recovered exactly from its own samples; a sum of two exponentials
+    /// with a slow second term is not, and the residual says so.
+    #[test]
+    fn the_fit_recovers_a_burley_profile_and_reports_what_it_cannot_represent() {
+        let r: Vec<f64> = (0..32).map(|k| 0.2 * 1.12f64.powi(k)).collect();
+        for d in [0.05, 0.4, 3.0] {
+            let y: Vec<f64> = r.iter().map(|&r| 0.6f64.ln() + ln_profile(r, d)).collect();
+            let (got, rms) = fit_shape(&r, &y, 0.6).unwrap();
+            assert!((got / d - 1.0).abs() < 1e-6, "{got} vs {d}");
+            assert!(rms < 1e-6, "{rms}");
+        }
+        let y: Vec<f64> = r
+            .iter()
+            .map(|&r| (0.5 * (-2.0 * r).exp() + 0.002 * (-0.1 * r).exp()).ln())
+            .collect();
+        let total = 2.0 * PI * (0.5 / 4.0 + 0.002 / 0.01);
+        let (_, rms) = fit_shape(&r, &y, total).unwrap();
+        assert!(
+            rms > 0.3,
+            "a slow second term is beyond one Burley shape: {rms}"
+        );
+        assert!(fit_shape(&[], &[], 1.0).is_none());
+        assert!(fit_shape(&[1.0], &[0.0], f64::NAN).is_none());
+    }
+
+    #[test]
+    fn disney_exit_lobe_is_one_at_normal_incidence_and_half_at_grazing() {
+        assert_eq!(disney_entry_factor(1.0), 1.0);
+        assert!((disney_entry_factor(0.0) - 0.5).abs() < 1e-15);
+    }
+}
