@@ -551,8 +551,6 @@ impl<H: Hardware> Rig<H> {
     /// Execute one already-decoded request (in-process use without framing).
     pub fn handle_request(&mut self, now: Micros, req: Request) {
         let now = self.advance(now);
-        self.last_request_at = now;
-        self.link_alive = true;
         let is_hello = matches!(req.command, Command::Hello { .. });
         if is_hello {
             self.replies.clear();
@@ -583,6 +581,13 @@ impl<H: Hardware> Rig<H> {
             self.replies.insert(reply.clone());
             reply
         };
+        if reply.result.is_ok() {
+            // Only an accepted request proves a host in session that is listening: a refused one
+            // (no session, stale, out of range, ...) may come from a confused or stuck sender, and
+            // must not keep light on.
+            self.last_request_at = now;
+            self.link_alive = true;
+        }
         self.send(RigMessage::Reply(reply));
         // The reply precedes the events its command caused (e.g. a zero-length move's MoveDone).
         while let Some(event) = self.deferred.pop_front() {
@@ -813,11 +818,27 @@ impl<H: Hardware> Rig<H> {
         if inputs.estop && self.fault != Some(Fault::EmergencyStop) {
             self.fault = Some(Fault::EmergencyStop);
             self.abort(now, HaltReason::EmergencyStop, Halt::Emergency);
-        } else if !inputs.interlock_closed
-            && (self.armed || self.lasers != 0 || self.capture.is_some() || self.run.is_some())
-        {
-            self.abort(now, HaltReason::InterlockOpen, Halt::KeepMoving);
+            // Bench e-stops cut the drivers' power: a motor without holding torque may have been
+            // turned by hand, so the position is lost even when nothing was moving (grbl's alarm
+            // and Klipper's shutdown force homing again too).
+            self.homed = false;
+            self.rehoming = false;
+        } else if !inputs.interlock_closed && (self.light_work() || self.moving_on()) {
+            // grbl's safety door: the feed is held (decelerated to rest), the light cut.
+            self.abort(now, HaltReason::InterlockOpen, Halt::Decelerate);
         }
+    }
+
+    /// Laser work is armed or under way.
+    fn light_work(&self) -> bool {
+        self.armed || self.lasers != 0 || self.capture.is_some() || self.run.is_some()
+    }
+
+    /// A move or homing pass is under way (not the ramp-down of one already halted).
+    fn moving_on(&self) -> bool {
+        self.motion
+            .as_ref()
+            .is_some_and(|m| m.kind != MotionKind::Stopping)
     }
 
     fn heartbeat_deadline(&self) -> Micros {
@@ -1133,8 +1154,17 @@ impl<H: Hardware> Rig<H> {
         self.sync_lasers();
     }
 
-    fn start_move(&mut self, now: Micros, mv: Move) -> Result<Response, RigError> {
+    /// Motion needs the enclosure shut (grbl's safety door).
+    fn check_motion_ready(&self) -> Result<(), RigError> {
         self.check_not_faulted()?;
+        if !self.inputs.interlock_closed {
+            return Err(RigError::InterlockOpen);
+        }
+        Ok(())
+    }
+
+    fn start_move(&mut self, now: Micros, mv: Move) -> Result<Response, RigError> {
+        self.check_motion_ready()?;
         if self.busy() {
             return Err(RigError::Busy);
         }
@@ -1197,7 +1227,7 @@ impl<H: Hardware> Rig<H> {
     }
 
     fn start_home(&mut self, now: Micros) -> Result<Response, RigError> {
-        self.check_not_faulted()?;
+        self.check_motion_ready()?;
         if self.busy() {
             return Err(RigError::Busy);
         }
@@ -1661,9 +1691,9 @@ impl<H: Hardware> Rig<H> {
 /// How a halt treats a motion in progress.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Halt {
-    /// Leave it running (interlock, manual laser timeout: lasers only).
+    /// Leave it running (manual laser timeout: lasers only).
     KeepMoving,
-    /// Decelerate to rest (stop request, lost heartbeat).
+    /// Decelerate to rest (stop request, lost heartbeat, interlock opened).
     Decelerate,
     /// Stop dead and discard queued steps (e-stop, stall, homing failure).
     Emergency,

@@ -1,0 +1,155 @@
+//! Issue 26, the board's first power-on on a real bench: each finding the simulator can show, in
+//! the simulator (the board-only ones are in `board_model.rs` and `pulse_train.rs`).
+
+use subsurf_firmware::rig::Micros;
+use subsurf_firmware::sim::SimParams;
+use subsurf_protocol::*;
+
+mod common;
+use common::Host;
+
+impl Host {
+    /// Let `dt` pass with a heartbeat every 100 ms.
+    fn advance(&mut self, dt: Micros) {
+        let end = self.sim.now() + dt;
+        while self.sim.now() < end {
+            let t = (self.sim.now() + 100_000).min(end);
+            self.sim.advance_to(t);
+            self.collect();
+            self.call(Command::Heartbeat).unwrap();
+        }
+    }
+
+    fn advance_quietly(&mut self, dt: Micros) {
+        let t = self.sim.now() + dt;
+        self.sim.advance_to(t);
+        self.collect();
+    }
+
+    fn status(&mut self) -> Status {
+        match self.call(Command::Status) {
+            Ok(Response::Status(s)) => s,
+            other => panic!("{other:?}"),
+        }
+    }
+
+    fn home(&mut self) {
+        assert_eq!(self.call(Command::Home), Ok(Response::Ack));
+        self.advance(20_000_000);
+        assert!(
+            self.events
+                .iter()
+                .any(|e| matches!(e.kind, EventKind::Homed { .. })),
+            "{:?}",
+            self.events
+        );
+        self.events.clear();
+    }
+
+    fn halted(&self, reason: HaltReason) -> bool {
+        self.events
+            .iter()
+            .any(|e| e.kind == EventKind::Halted { reason })
+    }
+}
+
+fn move_by(steps: i32) -> Command {
+    Command::Move(Move {
+        target: MoveTarget::Relative(steps),
+        max_speed: 10_000,
+        accel: 50_000,
+    })
+}
+
+fn move_to(position: i32) -> Command {
+    Command::Move(Move {
+        target: MoveTarget::Absolute(position),
+        max_speed: 10_000,
+        accel: 50_000,
+    })
+}
+
+// ---------------------------------------------------------------------------------------------
+// Finding 4: an e-stop while idle keeps `homed`.
+
+#[test]
+fn an_estop_while_idle_forgets_the_home_position() {
+    let mut h = Host::new(SimParams::default());
+    h.home();
+    assert!(h.status().homed);
+    // Nothing moves; the e-stop cuts the drivers' power and someone turns the table by hand.
+    let now = h.sim.now();
+    h.sim.set_estop(now + 1_000, true);
+    h.collect();
+    h.advance(100_000);
+    let now = h.sim.now();
+    h.sim.set_estop(now + 1_000, false);
+    h.collect();
+    assert_eq!(h.call(Command::ClearFault), Ok(Response::Ack));
+    let s = h.status();
+    assert!(!s.homed, "homed survived an e-stop: {s:?}");
+    assert_eq!(h.call(move_to(100)), Err(RigError::NotHomed));
+}
+
+// ---------------------------------------------------------------------------------------------
+// Finding 6: any request refreshes the heartbeat, even a refused one.
+
+#[test]
+fn refused_requests_do_not_keep_the_laser_on() {
+    let mut h = Host::new(SimParams::default());
+    h.call(Command::Arm).unwrap();
+    h.call(Command::Laser {
+        channel: 0,
+        on: true,
+    })
+    .unwrap();
+    assert_eq!(h.sim.hw().lasers(), 1);
+    // A stuck host retransmits a request the rig refuses, every 100 ms, for 3 s (the heartbeat
+    // timeout is 2 s): only accepted requests show a host that is listening.
+    let refused = Command::Laser {
+        channel: 7,
+        on: true,
+    };
+    for _ in 0..30 {
+        h.advance_quietly(100_000);
+        assert_eq!(h.call(refused.clone()), Err(RigError::NoSuchChannel));
+    }
+    assert_eq!(h.sim.hw().lasers(), 0, "the laser stayed on");
+    assert!(h.halted(HaltReason::HeartbeatLost), "{:?}", h.events);
+    assert!(!h.sim.rig().armed());
+}
+
+#[test]
+fn requests_before_a_session_do_not_count_as_heartbeats() {
+    let mut h = Host::without_hello(SimParams::default());
+    h.call(Command::Status).unwrap_err();
+    assert!(!h.sim.rig().link_alive());
+}
+
+// ---------------------------------------------------------------------------------------------
+// Finding 10: an open interlock does not stop motion.
+
+#[test]
+fn an_open_interlock_holds_the_feed_and_refuses_motion() {
+    let mut h = Host::new(SimParams::default());
+    h.call(move_by(20_000)).unwrap();
+    h.advance(400_000);
+    assert!(h.sim.rig().moving());
+    let now = h.sim.now();
+    h.sim.set_interlock(now, false);
+    h.collect();
+    assert!(h.halted(HaltReason::InterlockOpen), "{:?}", h.events);
+    // Decelerated to rest (10 000 steps/s at 50 000 steps/s²: v²/2a = 1000 steps), not cut dead
+    // and not run to its end.
+    let at_open = h.sim.hw().steps();
+    h.advance(1_000_000);
+    assert!(!h.sim.rig().moving());
+    let braking = h.sim.hw().steps() - at_open;
+    assert!((950..=1_050).contains(&braking), "{braking} braking steps");
+    assert_eq!(h.call(move_by(100)), Err(RigError::InterlockOpen));
+    assert_eq!(h.call(Command::Home), Err(RigError::InterlockOpen));
+    let now = h.sim.now();
+    h.sim.set_interlock(now, true);
+    h.collect();
+    assert_eq!(h.call(move_by(100)), Ok(Response::Ack));
+}
