@@ -221,6 +221,23 @@ struct ActiveCapture {
     phase: Phase,
 }
 
+impl ActiveCapture {
+    /// When the laser was really on. A board that times the window in hardware starts its timer
+    /// when its task wakes, a little after the schedule, and the window moves with it: the laser
+    /// comes on `trigger_at - laser_on_at` before the trigger edge the timer placed and goes off
+    /// `laser_off_at - trigger_at` after it. The hardware's timestamp of that edge therefore says
+    /// where the window lay; without one (software edges) the schedule is all there is.
+    fn lit_window(&self) -> (Micros, Micros) {
+        match self.trigger_edge {
+            Some(edge) => (
+                edge.saturating_sub(self.trigger_at.saturating_sub(self.laser_on_at)),
+                edge.saturating_add(self.laser_off_at.saturating_sub(self.trigger_at)),
+            ),
+            None => (self.laser_on_at, self.laser_off_at),
+        }
+    }
+}
+
 /// A running program.
 #[derive(Debug, Clone, Copy)]
 struct ProgramRun {
@@ -1557,8 +1574,9 @@ impl<H: Hardware> Rig<H> {
             }),
             _ => None,
         };
+        let (lit_from, lit_until) = c.lit_window();
         let lit = matches!((c.exposure_start, c.exposure_end),
-            (Some(start), Some(end)) if start >= c.laser_on_at && end <= c.laser_off_at);
+            (Some(start), Some(end)) if start >= lit_from && end <= lit_until);
         if exposure.is_none() {
             // No image will come for this capture: the camera is ready again only after the
             // timeout (a late exposure would be counted anyway).

@@ -80,9 +80,11 @@ impl<T: Copy> Log<T> {
 /// The simulated camera's behaviour.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct SimCamera {
-    /// The trigger pin goes active this long after the core drives it (a board's software
-    /// latency; 0 for a hardware timer).
-    pub trigger_latency_us: u32,
+    /// The board's exposure timer starts this long after the core's schedule (the rig task's
+    /// wake-up latency): the trigger edge and the laser's on and off edges, all placed by that
+    /// timer, come this much later than scheduled; the trigger edge is timestamped where it
+    /// really was. 0 for an ideal board.
+    pub timer_latency_us: u32,
     /// From the trigger edge to exposure-active rising, µs.
     pub exposure_delay_us: u32,
     /// Triggers (0-based, counted since boot) the camera ignores: a missed trigger.
@@ -92,7 +94,7 @@ pub struct SimCamera {
 impl Default for SimCamera {
     fn default() -> Self {
         Self {
-            trigger_latency_us: 0,
+            timer_latency_us: 0,
             exposure_delay_us: 15,
             miss_triggers: [None; 4],
         }
@@ -422,7 +424,7 @@ impl CameraTrigger for SimHardware {
         }
         let edge = self
             .clock
-            .saturating_add(u64::from(self.camera.trigger_latency_us));
+            .saturating_add(u64::from(self.camera.timer_latency_us));
         let index = self.triggers;
         self.triggers = self.triggers.saturating_add(1);
         self.push_edge(CameraEdge::Trigger(edge));
@@ -443,9 +445,12 @@ impl CameraTrigger for SimHardware {
     }
 
     fn arm_window(&mut self, window: &ExposureWindow) {
+        // The light really is on where the board's timer puts it: the whole window late by the
+        // timer's start latency.
+        let late = u64::from(self.camera.timer_latency_us);
         self.window_exposure_us = window.exposure_us;
-        self.lit_from = window.laser_on_at;
-        self.lit_until = window.laser_off_at;
+        self.lit_from = window.laser_on_at.saturating_add(late);
+        self.lit_until = window.laser_off_at.saturating_add(late);
     }
 }
 

@@ -423,7 +423,7 @@ fn exposures_below_the_hardware_minimum_are_refused() {
 fn latency_capture(lead_us: u32, tail_us: u32) -> Captured {
     let mut params = SimParams {
         camera: SimCamera {
-            trigger_latency_us: 30,
+            timer_latency_us: 30,
             ..SimCamera::default()
         },
         ..SimParams::default()

@@ -2,7 +2,7 @@
 //! the simulator (the board-only ones are in `board_model.rs` and `pulse_train.rs`).
 
 use subsurf_firmware::rig::Micros;
-use subsurf_firmware::sim::SimParams;
+use subsurf_firmware::sim::{SimCamera, SimParams};
 use subsurf_protocol::*;
 
 mod common;
@@ -152,4 +152,79 @@ fn an_open_interlock_holds_the_feed_and_refuses_motion() {
     h.sim.set_interlock(now, true);
     h.collect();
     assert_eq!(h.call(move_by(100)), Ok(Response::Ack));
+}
+
+// ---------------------------------------------------------------------------------------------
+// Finding 3: `lit` judged against the scheduled window, not the one the timer ran.
+
+fn capture_with_timer_latency(latency_us: u32, tail_us: u32) -> Captured {
+    let mut params = SimParams {
+        camera: SimCamera {
+            timer_latency_us: latency_us,
+            ..SimCamera::default()
+        },
+        ..SimParams::default()
+    };
+    params.profile.laser.tail_us = tail_us;
+    let mut h = Host::new(params);
+    h.call(Command::Arm).unwrap();
+    h.call(Command::Capture(Capture {
+        galvo: GalvoPoint::default(),
+        settle_us: Some(0),
+        channel: 0,
+        exposure_us: 1_000,
+        trigger_us: 10,
+    }))
+    .unwrap();
+    h.advance(50_000);
+    let captured: Vec<Captured> = h
+        .events
+        .iter()
+        .filter_map(|e| match e.kind {
+            EventKind::Captured(c) => Some(c),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(captured.len(), 1, "{:?}", h.events);
+    assert_eq!(
+        h.sim.hw().unlit_exposures(),
+        0,
+        "the simulated light missed the exposure"
+    );
+    captured[0]
+}
+
+#[test]
+fn lit_is_judged_by_the_window_the_timer_ran() {
+    // The rig task woke 120 µs late: the one-pulse timer (laser on, trigger edge, laser off) ran
+    // 120 µs after the schedule, and the exposure (15 µs after the edge, 1 ms long) sat inside the
+    // light with the default 50 µs margins. A scan stops on "not lit": it must not say so here.
+    let c = capture_with_timer_latency(120, 50);
+    assert!(c.lit, "a lit exposure reported as not lit: {c:?}");
+    let e = c.exposure.unwrap();
+    assert_eq!(e.delay_us, 15);
+    // A tail shorter than the camera's own delay still fails, wherever the window lay.
+    let mut params = SimParams::default();
+    params.profile.laser.tail_us = 0;
+    let c0 = {
+        let mut h = Host::new(params);
+        h.call(Command::Arm).unwrap();
+        h.call(Command::Capture(Capture {
+            galvo: GalvoPoint::default(),
+            settle_us: Some(0),
+            channel: 0,
+            exposure_us: 1_000,
+            trigger_us: 10,
+        }))
+        .unwrap();
+        h.advance(50_000);
+        h.events
+            .iter()
+            .find_map(|e| match e.kind {
+                EventKind::Captured(c) => Some(c),
+                _ => None,
+            })
+            .unwrap()
+    };
+    assert!(!c0.lit, "{c0:?}");
 }

@@ -466,7 +466,7 @@ mod tests {
     #[test]
     fn a_laser_window_without_margins_fails_under_trigger_latency() {
         let mut params = SimParams::default();
-        params.camera.trigger_latency_us = 40;
+        params.camera.timer_latency_us = 40;
         params.profile.laser.lead_us = 0;
         params.profile.laser.tail_us = 0;
         let r = selftest(params, &mut NoPrompt);
