@@ -174,7 +174,7 @@ impl CameraTiming {
             w.set_ccp(TRIGGER_TIMER_CHANNEL, io.trigger_active_low);
             w.set_cce(TRIGGER_TIMER_CHANNEL, true);
         });
-        self.channels = io.channels.min(3);
+        self.channels = io.channels.min(subsurf_protocol::BOARD_LASER_CHANNELS);
     }
 
     /// Stop a timed exposure (outputs keep their levels until changed).
