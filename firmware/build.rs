@@ -2,7 +2,8 @@
 //!
 //! - `subsurf-board` (feature `board`): cortex-m-rt's `link.x` and defmt's `defmt.x`; the chip's
 //!   `memory.x` comes from embassy-stm32's `memory-x` feature.
-//! - `subsurf-qemu` (feature `qemu`): `link.x` with `qemu/memory.x` (QEMU's mps2-an386 map).
+//! - `subsurf-qemu` and `subsurf-qemu-isr` (feature `qemu`): `link.x` with `qemu/memory.x`
+//!   (QEMU's mps2-an386 map).
 use std::env;
 
 fn main() {
@@ -26,5 +27,6 @@ fn main() {
         let dir = env::var("CARGO_MANIFEST_DIR").unwrap_or_default();
         println!("cargo:rustc-link-search={dir}/qemu");
         println!("cargo:rustc-link-arg-bin=subsurf-qemu=-Tlink.x");
+        println!("cargo:rustc-link-arg-bin=subsurf-qemu-isr=-Tlink.x");
     }
 }

@@ -34,6 +34,7 @@ use subsurf_protocol::{
 };
 
 use crate::hal::{CameraEdge, ExposureWindow, Hardware};
+use crate::planner::StepPlanner;
 use crate::profile::Profile;
 
 /// Rig time: µs since boot.
@@ -78,6 +79,15 @@ pub fn galvo_settle_us(profile: &RigProfile, from: GalvoPoint, to: GalvoPoint) -
     u32::try_from(u64::from(profile.galvo.settle_min_us).saturating_add(extra)).unwrap_or(u32::MAX)
 }
 
+/// Shortest time between two STEP edges the hardware emits, µs: the step timer's floor, or
+/// STEP low at least as long as high.
+pub const MIN_STEP_GAP_US: u32 = 10;
+
+/// The shortest step gap for a profile's STEP pulse.
+pub fn min_step_gap_us(profile: &RigProfile) -> u32 {
+    MIN_STEP_GAP_US.max(u32::from(profile.motor.step_pulse_us).saturating_mul(2))
+}
+
 /// What a profile lets the host ask for (announced in [`Hello`]).
 pub fn capabilities(profile: &RigProfile) -> Capabilities {
     Capabilities {
@@ -101,6 +111,9 @@ pub fn capabilities(profile: &RigProfile) -> Capabilities {
 enum HomePhase {
     /// Started on the switch: slowly forward until it releases, then back off.
     LeaveSwitch,
+    /// The switch released while leaving it: the steps already queued run out, then the
+    /// back-off.
+    LeftSwitch,
     /// Fast approach until the switch is seen (then a decelerating stop).
     Approach,
     /// Forward at the homing speed until the switch has been active and released again.
@@ -125,29 +138,33 @@ enum MotionKind {
         phase: HomePhase,
         /// The switch has been seen active in this phase.
         seen_active: bool,
-        /// Slow approach: first active sample, and steps taken since.
-        active_since: Option<Micros>,
-        steps_since_active: u32,
+        /// Slow approach: when the switch first read active, and the position then (the edge).
+        active_since: Option<(Micros, i32)>,
     },
     /// Decelerating to rest after a halt; nothing follows.
     Stopping,
 }
 
 /// A turntable move (or homing pass) in progress. Step `i` of `profile` (1-based) is due at
-/// `base + t(i) - t(base_index)`; a decelerating stop jumps `index` forward to the start of the
-/// profile's deceleration ramp at the current speed.
+/// `base + t(i) - t(base_index)`. Steps are planned ahead ([`crate::planner`]): `planned` is the
+/// last one handed to the hardware, `computed` the last one whose ideal time the planner holds.
+/// A decelerating stop jumps forward to the start of the profile's deceleration ramp at the speed
+/// of the last planned step, so the ramp-down follows the steps already queued.
 #[derive(Debug, Clone, Copy)]
 struct Motion {
     profile: Profile,
     base: Micros,
     base_index: u32,
-    /// Profile index of the last step taken.
-    index: u32,
-    /// When that step was due (the start for none).
-    last_step_at: Micros,
+    /// The profile's time of `base_index`, µs (kept, not recomputed per step).
+    base_t: Micros,
+    /// Profile index of the last step whose ideal time went to the planner.
+    computed: u32,
+    /// Profile index of the last step handed to the hardware.
+    planned: u32,
+    /// No step past this index is planned (a pass cut short); `profile.steps()` normally.
+    end: u32,
     forward: bool,
     kind: MotionKind,
-    next_due: Micros,
 }
 
 impl Motion {
@@ -156,36 +173,50 @@ impl Motion {
             profile,
             base: now,
             base_index: 0,
-            index: 0,
-            last_step_at: now,
+            base_t: 0,
+            computed: 0,
+            planned: 0,
+            end: profile.steps(),
             forward,
             kind,
-            next_due: now.saturating_add(profile.step_time_us(1)),
         }
     }
 
     fn due(&self, i: u32) -> Micros {
-        let t0 = self.profile.step_time_us(self.base_index);
         self.base
-            .saturating_add(self.profile.step_time_us(i).saturating_sub(t0))
+            .saturating_add(self.profile.step_time_us(i).saturating_sub(self.base_t))
     }
 
-    fn finished(&self) -> bool {
-        self.index >= self.profile.steps()
+    /// The next ideal step time for the planner, `None` past `end`.
+    fn next_ideal(&mut self) -> Option<Micros> {
+        if self.computed >= self.end {
+            return None;
+        }
+        self.computed += 1;
+        Some(self.due(self.computed))
     }
 
-    /// Decelerate to rest from the current speed: continue on the profile's ramp-down.
+    /// Decelerate to rest from the speed of the last planned step: continue on the profile's
+    /// ramp-down after it. The caller drops the planner's pending ideal times.
     fn stop(&mut self) {
         let n = self.profile.steps();
-        let k = self.index;
+        let k = self.planned;
         let d = k.min(self.profile.ramp_steps()).min(n.saturating_sub(k));
         let from = n.saturating_sub(d);
         if from > k {
-            self.base = self.last_step_at;
+            self.base = self.due(k);
             self.base_index = from;
-            self.index = from;
+            self.base_t = self.profile.step_time_us(from);
+            self.planned = from;
         }
-        self.next_due = self.due(self.index.saturating_add(1));
+        self.computed = self.planned;
+        self.end = n;
+    }
+
+    /// Plan nothing past the steps already queued.
+    fn cut(&mut self) {
+        self.end = self.planned;
+        self.computed = self.planned;
     }
 }
 
@@ -317,9 +348,14 @@ pub struct Rig<H: Hardware> {
     link_alive: bool,
     next_input_poll: Micros,
     // Turntable.
+    /// Steps the hardware has emitted by now (each counted when its time came).
     position: i32,
     homed: bool,
     motion: Option<Motion>,
+    /// The steps planned ahead and in the hardware's queue.
+    planner: StepPlanner,
+    /// Direction of the steps in flight.
+    stepping_forward: bool,
     // Galvo, camera and captures.
     galvo: GalvoPoint,
     capture: Option<ActiveCapture>,
@@ -396,6 +432,8 @@ impl<H: Hardware> Rig<H> {
             position: 0,
             homed: false,
             motion: None,
+            planner: StepPlanner::new(H::TICKS_PER_US, min_step_gap_us(&profile)),
+            stepping_forward: true,
             galvo,
             capture: None,
             rehoming: false,
@@ -484,12 +522,6 @@ impl<H: Hardware> Rig<H> {
     /// Exposures the camera confirmed since boot.
     pub fn exposures(&self) -> u32 {
         self.exposures
-    }
-
-    /// When the next motor step is due, µs (for a board that programs a hardware timer per step;
-    /// [`Rig::poll_timeout`] already includes it).
-    pub fn next_step_due(&self) -> Option<Micros> {
-        self.motion.as_ref().map(|m| m.next_due)
     }
 
     /// The active fault.
@@ -619,6 +651,8 @@ impl<H: Hardware> Rig<H> {
         let now = self.advance(now);
         let inputs = self.hw.read_inputs();
         self.apply_inputs(now, inputs);
+        // The home switch changed, perhaps: homing looks at it now, not at the next poll.
+        self.run_motion(now);
         self.take_camera_edges();
         self.run_capture_phases(now);
         self.sync_lasers();
@@ -635,7 +669,8 @@ impl<H: Hardware> Rig<H> {
         self.abort(now, HaltReason::StepStall, Halt::Emergency);
     }
 
-    /// Time passed: run every step, capture phase, program capture and safety check due by `now`.
+    /// Time passed: count the steps emitted, plan more, run every capture phase, program capture
+    /// and safety check due by `now`.
     pub fn handle_timeout(&mut self, now: Micros) {
         let now = self.advance(now);
         if now >= self.next_input_poll {
@@ -675,7 +710,20 @@ impl<H: Hardware> Rig<H> {
     pub fn poll_timeout(&self) -> Option<Micros> {
         let mut t = self.next_input_poll;
         if let Some(m) = &self.motion {
-            t = t.min(m.next_due);
+            if let Some(refill) = self.planner.refill_at() {
+                t = t.min(refill);
+            }
+            if m.planned >= m.end {
+                // Finish the motion when its last step is out.
+                t = t.min(self.planner.last_due().unwrap_or(self.now));
+            }
+            if let MotionKind::Home {
+                active_since: Some((since, _)),
+                ..
+            } = m.kind
+            {
+                t = t.min(since.saturating_add(u64::from(self.profile.homing.debounce_us)));
+            }
         }
         if let Some(c) = &self.capture {
             t = t.min(match c.phase {
@@ -809,15 +857,13 @@ impl<H: Hardware> Rig<H> {
                 if let Some(m) = self.motion.as_mut() {
                     m.kind = MotionKind::Stopping;
                     m.stop();
-                    if m.finished() {
-                        self.motion = None;
-                    }
+                    self.planner.clear_pending();
+                    self.run_motion(now);
                 }
             }
             Halt::Emergency => {
-                if self.motion.take().is_some() {
-                    self.flush_steps();
-                }
+                self.motion = None;
+                self.flush_steps();
             }
         }
         if cuts_motion {
@@ -874,7 +920,23 @@ impl<H: Hardware> Rig<H> {
 
     fn advance(&mut self, now: Micros) -> Micros {
         self.now = self.now.max(now);
+        self.count_steps(self.now);
         self.now
+    }
+
+    /// Take the steps the hardware has emitted by `now` onto the position.
+    fn count_steps(&mut self, now: Micros) {
+        let done = self.planner.take_due(now);
+        self.step_position(done);
+    }
+
+    fn step_position(&mut self, steps: u32) {
+        let d = i32::try_from(steps).unwrap_or(i32::MAX);
+        self.position = if self.stepping_forward {
+            self.position.saturating_add(d)
+        } else {
+            self.position.saturating_sub(d)
+        };
     }
 
     fn busy(&self) -> bool {
@@ -967,16 +1029,15 @@ impl<H: Hardware> Rig<H> {
         Ok(())
     }
 
-    /// Discard queued steps the hardware has not emitted yet and take them off the position.
+    /// Stop dead: discard the queued steps the hardware has not emitted yet; the ones it did are
+    /// counted. Returns how many were discarded.
     fn flush_steps(&mut self) -> u32 {
+        if self.planner.idle() {
+            return 0;
+        }
         let dropped = self.hw.flush();
-        let forward = self.motion.as_ref().is_none_or(|m| m.forward);
-        let d = i32::try_from(dropped).unwrap_or(i32::MAX);
-        self.position = if forward {
-            self.position.saturating_sub(d)
-        } else {
-            self.position.saturating_add(d)
-        };
+        let emitted = self.planner.flushed(dropped);
+        self.step_position(emitted);
         dropped
     }
 
@@ -1066,6 +1127,7 @@ impl<H: Hardware> Rig<H> {
                 }
                 self.profile = profile;
                 self.caps = capabilities(&profile);
+                self.planner.set_min_gap_us(min_step_gap_us(&profile));
                 self.homed = false;
                 self.armed = false;
                 self.lasers = 0;
@@ -1167,8 +1229,13 @@ impl<H: Hardware> Rig<H> {
     fn start_motion(&mut self, now: Micros, profile: Profile, forward: bool, kind: MotionKind) {
         // The laser goes dark before the first step: manual channels are switched off for good.
         self.lasers = 0;
+        // A motion starts from rest after the last one's steps are all out (its first step comes
+        // sqrt(2/accel) ≥ 447 µs later, past any DIR set-up).
+        self.planner.clear_pending();
+        self.stepping_forward = forward;
         self.motion = Some(Motion::new(now, profile, forward, kind));
         self.sync_lasers();
+        self.run_motion(now);
     }
 
     /// Motion needs the enclosure shut (grbl's safety door).
@@ -1220,7 +1287,6 @@ impl<H: Hardware> Rig<H> {
             phase,
             seen_active: false,
             active_since: None,
-            steps_since_active: 0,
         }
     }
 
@@ -1231,7 +1297,10 @@ impl<H: Hardware> Rig<H> {
             HomePhase::Approach => (h.speed, false),
             HomePhase::SlowApproach => (h.slow_speed, false),
             HomePhase::Release => (h.speed, true),
-            HomePhase::LeaveSwitch | HomePhase::BackOff | HomePhase::Return => (h.slow_speed, true),
+            HomePhase::LeaveSwitch
+            | HomePhase::LeftSwitch
+            | HomePhase::BackOff
+            | HomePhase::Return => (h.slow_speed, true),
             // Never started as passes (they are the stops of the fast passes).
             HomePhase::BrakeToRelease => (h.speed, false),
             HomePhase::BrakeToBackOff => (h.speed, true),
@@ -1284,18 +1353,18 @@ impl<H: Hardware> Rig<H> {
     }
 
     fn homing_failed(&mut self, now: Micros) {
-        self.motion = None;
         self.fault = Some(Fault::HomingFailed);
         self.abort(now, HaltReason::HomingFailed, Halt::Emergency);
     }
 
-    /// Before a homing step: look at the switch; `Some(next)` ends the pass (with what follows).
+    /// The switch as it reads now (position = the steps emitted by now); `Some(next)` ends the
+    /// pass (with what follows). Checked on every input change and input poll, not per step:
+    /// the board's home switch raises an interrupt.
     fn homing_check(&mut self, now: Micros, m: &mut Motion) -> Option<HomeNext> {
         let MotionKind::Home {
             phase,
             seen_active,
             active_since,
-            steps_since_active,
         } = &mut m.kind
         else {
             return None;
@@ -1303,9 +1372,7 @@ impl<H: Hardware> Rig<H> {
         let active = self.hw.read_inputs().home_switch;
         let h = self.profile.homing;
         match *phase {
-            HomePhase::LeaveSwitch => {
-                (!active).then_some(HomeNext::Pass(HomePhase::BackOff, h.backoff_steps))
-            }
+            HomePhase::LeaveSwitch => (!active).then_some(HomeNext::CutThen(HomePhase::LeftSwitch)),
             HomePhase::Release => {
                 *seen_active |= active;
                 (!active && *seen_active).then_some(HomeNext::StopThen(HomePhase::BrakeToBackOff))
@@ -1315,57 +1382,50 @@ impl<H: Hardware> Rig<H> {
                 if !active {
                     // Bounce: start over.
                     *active_since = None;
-                    *steps_since_active = 0;
                     return None;
                 }
-                let since = *active_since.get_or_insert(now);
+                let (since, edge) = *active_since.get_or_insert((now, self.position));
                 if now.saturating_sub(since) >= u64::from(h.debounce_us) {
-                    Some(HomeNext::Found(*steps_since_active))
+                    Some(HomeNext::Found(edge))
                 } else {
                     None
                 }
             }
-            HomePhase::BackOff
+            HomePhase::LeftSwitch
+            | HomePhase::BackOff
             | HomePhase::Return
             | HomePhase::BrakeToRelease
             | HomePhase::BrakeToBackOff => None,
         }
     }
 
-    /// Take every step due by `now`; finish the move or homing pass when complete.
+    /// Look at the home switch, plan steps ahead, and finish the move or homing pass once its
+    /// last step is out.
     fn run_motion(&mut self, now: Micros) {
         let Some(mut m) = self.motion.take() else {
             return;
         };
-        while !m.finished() && m.next_due <= now {
-            let due = m.next_due;
-            if let Some(next) = self.homing_check(due, &mut m) {
-                self.homing_next(due, m, next);
-                return;
-            }
-            self.hw.step(m.forward);
-            self.position = if m.forward {
-                self.position.saturating_add(1)
-            } else {
-                self.position.saturating_sub(1)
-            };
-            if let MotionKind::Home {
-                active_since: Some(_),
-                steps_since_active,
-                ..
-            } = &mut m.kind
-            {
-                *steps_since_active = steps_since_active.saturating_add(1);
-            }
-            m.index += 1;
-            m.last_step_at = due;
-            let next = m.due(m.index.saturating_add(1));
-            m.next_due = m.next_due.max(next);
+        if let Some(next) = self.homing_check(now, &mut m) {
+            self.homing_next(now, m, next);
+            return;
         }
-        if !m.finished() {
+        // Top the queue up once it runs low (not on every wake: a run of steps ends where the
+        // planning horizon did, so planning in bigger bites gives longer runs).
+        if self.planner.refill_at().is_none_or(|t| now >= t) {
+            let planner = &mut self.planner;
+            let hw = &mut self.hw;
+            planner.refill(now, m.forward, &mut || m.next_ideal(), &mut |segment| {
+                hw.queue(segment)
+            });
+        }
+        let pending = u32::try_from(self.planner.pending_len()).unwrap_or(u32::MAX);
+        m.planned = m.computed.saturating_sub(pending);
+        if m.planned < m.end || !self.planner.drained() {
+            // Steps still to plan or still in the hardware's queue.
             self.motion = Some(m);
             return;
         }
+        self.planner.clear_pending();
         match m.kind {
             MotionKind::Move => self.emit(
                 now,
@@ -1387,7 +1447,7 @@ impl<H: Hardware> Rig<H> {
                         self.homing_failed(now);
                     }
                 }
-                HomePhase::BrakeToBackOff => self.start_backoff(now),
+                HomePhase::LeftSwitch | HomePhase::BrakeToBackOff => self.start_backoff(now),
                 HomePhase::Return => self.finish_home(now),
                 HomePhase::LeaveSwitch
                 | HomePhase::Approach
@@ -1399,37 +1459,30 @@ impl<H: Hardware> Rig<H> {
 
     fn homing_next(&mut self, now: Micros, mut m: Motion, next: HomeNext) {
         match next {
-            HomeNext::Pass(phase, steps) => {
-                if phase == HomePhase::BackOff {
-                    self.start_backoff(now);
-                } else if !self.start_home_pass(now, phase, steps) {
-                    self.homing_failed(now);
-                }
+            HomeNext::CutThen(phase) => {
+                // Slow: the steps already queued run out, then the next pass starts from rest.
+                m.cut();
+                self.planner.clear_pending();
+                m.kind = Self::home_kind(phase);
+                self.motion = Some(m);
+                self.run_motion(now);
             }
             HomeNext::StopThen(brake) => {
-                // Seen at speed: steps already queued behind the switch are discarded, then a
-                // decelerating stop; the slow pass measures the edge.
-                self.motion = Some(m);
-                self.flush_steps();
-                self.motion = None;
+                // Seen at speed: the steps already queued run out and a deceleration ramp follows
+                // them, from their speed to rest (never a dead stop at speed); the slow pass
+                // measures the edge.
                 m.stop();
+                self.planner.clear_pending();
                 m.kind = Self::home_kind(brake);
-                if m.finished() {
-                    // At rest already: what the brake would chain into.
-                    self.motion = Some(m);
-                    self.run_motion(now);
-                    return;
-                }
                 self.motion = Some(m);
+                self.run_motion(now);
             }
-            HomeNext::Found(past) => {
-                self.motion = Some(m);
-                let dropped = self.flush_steps();
-                self.motion = None;
-                // The edge was `past - dropped` steps back (position decreases on approach).
-                let past = past.saturating_sub(dropped);
-                let past_i = i32::try_from(past).unwrap_or(i32::MAX);
-                self.home_edge = Some(self.position.saturating_add(past_i));
+            HomeNext::Found(edge) => {
+                // At the slow speed the motor stops within a step: drop what is queued.
+                self.flush_steps();
+                self.home_edge = Some(edge);
+                // The edge is `past` steps back (position decreases on approach).
+                let past = u32::try_from(i64::from(edge) - i64::from(self.position)).unwrap_or(0);
                 if past == 0 {
                     self.finish_home(now);
                 } else {
@@ -1720,12 +1773,12 @@ enum Halt {
 /// What ends a homing pass.
 #[derive(Debug, Clone, Copy)]
 enum HomeNext {
-    /// Start this pass over this many steps.
-    Pass(HomePhase, u32),
-    /// Decelerate, then start this pass.
+    /// Plan no more steps; once the queued ones are out, this phase's successor.
+    CutThen(HomePhase),
+    /// Decelerate after the queued steps, then this phase's successor.
     StopThen(HomePhase),
-    /// The switch edge, this many steps back.
-    Found(u32),
+    /// The switch edge, at this position.
+    Found(i32),
 }
 
 fn config_ok(c: &Config) -> bool {

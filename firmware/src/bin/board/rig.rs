@@ -1,26 +1,24 @@
 //! The rig task: pumps the sans-IO core (`subsurf_firmware::Rig`) with link bytes, input changes
 //! and its own deadlines, and implements the core's hardware traits on the board's drivers.
 //!
-//! Timing: every deadline the core asks for is run with `now` = that deadline, so each step the
-//! core emits carries its scheduled time. Steps go to the hardware step generator with their
-//! absolute target, one fixed [`STEP_PIPELINE_US`] after the scheduled time (the queue that absorbs
-//! the task's wake-up latency). While a move runs the task wakes at most every
-//! [`crate::pulse_train::BATCH_US`] and queues every step due meanwhile, so the executor wakes once
-//! per batch, not once per step; the timer interrupt expands the queued segments. A step that
-//! missed its time (the timer ran dry mid-motion) is a stall: the motion is stopped and the core
-//! halted. Once the core reports a move finished, requests are held back until the last queued
-//! step has left the timer, so nothing (a laser, a capture) overlaps a moving motor.
+//! Timing: every deadline the core asks for is run with `now` = that deadline. The core plans the
+//! steps ahead (`subsurf_firmware::planner`): while a move runs it wakes every few milliseconds
+//! and hands the step timer compressed segments for the next 10 ms, which the timer interrupt
+//! emits on its own (never once per step in the executor). The core counts a step as done when
+//! its planned time has come, so a move is finished only once its last step has left the timer.
+//! A step that missed its time (the timer ran dry mid-motion) is a stall: the motion is stopped
+//! and the core halted.
 use core::sync::atomic::{AtomicBool, Ordering};
 
-use embassy_futures::select::{Either, Either3, select, select3};
+use embassy_futures::select::{Either3, select3};
 use embassy_stm32::pac;
 use embassy_stm32::usart::{BufferedUart, BufferedUartRx, BufferedUartTx};
-use embassy_time::{Duration, Instant, Timer, with_timeout};
+use embassy_time::{Duration, Instant, Timer};
 use embedded_io_async::{Read, Write};
 use static_cell::StaticCell;
 use subsurf_firmware::hal::{
     CameraEdge, CameraInput, CameraTrigger, ExposureWindow, GalvoDac, LaserOutputs, RigInputs,
-    Stepper,
+    StepSegment, Stepper,
 };
 use subsurf_firmware::{Micros, Rig};
 use subsurf_protocol::{
@@ -30,16 +28,11 @@ use subsurf_protocol::{
 use crate::exposure::{LaserCall, on_set_lasers, plan_window};
 use crate::inputs;
 use crate::outputs::{CameraIo, CameraTiming, Galvo};
-use crate::pulse_train::batch_wake;
 use crate::stepper::{StepGen, StepperIo};
 use crate::store::Store;
 
 /// The rig task wakes at least this often (the watchdog task expects it).
 pub const MAX_SLEEP: Duration = Duration::from_millis(50);
-
-/// Steps leave the timer this long after the core scheduled them (the first step of a motion is
-/// started this far ahead; later ones keep their exact spacing).
-pub const STEP_PIPELINE_US: u64 = 1_000;
 
 /// A timed exposure still running this long after its scheduled end is cut in software.
 const WINDOW_GRACE_US: u64 = 2_000;
@@ -77,7 +70,7 @@ pub struct Hardware {
     pub now: Micros,
     /// Steps that missed their time since the last check.
     stalls: u32,
-    /// Steps the core emitted while the e-stop held the timer: never output, so a flush counts
+    /// Steps the core queued while the e-stop held the timer: never output, so a flush counts
     /// them as discarded.
     held: u32,
     /// Scheduled laser-off of the timed exposure in progress (until the core's laser-off).
@@ -124,17 +117,19 @@ impl Hardware {
 }
 
 impl Stepper for Hardware {
-    fn step(&mut self, forward: bool) {
+    const TICKS_PER_US: u32 = crate::pulse_train::TICKS_PER_US;
+
+    fn queue(&mut self, segment: StepSegment) -> bool {
         if sample_inputs().estop {
             // The EXTI interrupt stopped the timer; do not restart it before the core has seen
             // the e-stop and flushed.
-            self.held = self.held.saturating_add(1);
-            return;
+            self.held = self.held.saturating_add(u32::from(segment.count));
+            return true;
         }
         // Never blocks: a step that cannot be placed on time counts as a stall.
-        self.stepper
-            .push(self.now.saturating_add(STEP_PIPELINE_US), forward, now_us());
+        let queued = self.stepper.queue(&segment, now_us());
         self.stalls = self.stalls.saturating_add(self.stepper.take_stalls());
+        queued
     }
 
     fn flush(&mut self) -> u32 {
@@ -323,7 +318,6 @@ pub async fn run(link: BufferedUart<'static>, hw: Hardware, profile: RigProfile,
     let (mut tx, mut rx): (BufferedUartTx<'static>, BufferedUartRx<'static>) = link.split();
     static RIG: StaticCell<Rig<Hardware>> = StaticCell::new();
     let rig = RIG.init_with(|| Rig::new(hw, profile, Config::DEFAULT, boot_nonce, now_us()));
-    let mut last_wake = now_us();
     let mut rx_buf = [0u8; 64];
     let mut frame = [0u8; MAX_FRAME];
     let mut last_fault = None;
@@ -338,36 +332,16 @@ pub async fn run(link: BufferedUart<'static>, hw: Hardware, profile: RigProfile,
             defmt::warn!("fault: {}", last_fault);
         }
 
-        if !rig.moving() && rig.hw().stepper.is_running() {
-            // The core is done with the move but the last steps are still in the timer: hold
-            // requests back, watch only the inputs, until the motor really stands still.
-            let wait = select(crate::stepper::REFILL.wait(), inputs::CHANGED.wait());
-            let changed = matches!(with_timeout(MAX_SLEEP, wait).await, Ok(Either::Second(())));
-            run_due(rig);
-            check_stalls(rig);
-            if changed {
-                let now = now_us();
-                rig.hw_mut().now = now;
-                rig.handle_inputs(now);
-            }
-            continue;
-        }
-
         let now = now_us();
         let deadline = rig.poll_timeout().unwrap_or(Micros::MAX);
-        // While a move runs, take its steps in batches (one wake per batch, not per step).
-        let is_step = rig.moving() && rig.next_step_due() == Some(deadline);
-        let wake =
-            batch_wake(deadline, is_step, last_wake).min(now.saturating_add(MAX_SLEEP.as_micros()));
+        let wake = deadline.min(now.saturating_add(MAX_SLEEP.as_micros()));
         let woke = select3(
             rx.read(&mut rx_buf),
             Timer::at(Instant::from_micros(wake)),
             inputs::CHANGED.wait(),
         )
         .await;
-        last_wake = now_us();
-        // Deadlines that came while we slept run first, each at its own time: handling bytes at
-        // the later wall-clock time first would make the core emit the missed steps as a burst.
+        // Deadlines that came while we slept run first, each at its own time.
         run_due(rig);
         check_stalls(rig);
         match woke {
