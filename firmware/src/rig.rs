@@ -324,6 +324,9 @@ pub struct Rig<H: Hardware> {
     session: bool,
     /// The profile changed and the board should persist it ([`Rig::take_profile_to_persist`]).
     profile_dirty: bool,
+    /// The profile was stored (or set by the host): its laser and trigger polarities are the
+    /// wiring's. Without one nothing may arm.
+    profile_known: bool,
     decoder: FrameDecoder,
     out: Deque<RigMessage, OUT_QUEUE>,
     /// Events raised while a request executes: sent right after its reply.
@@ -376,20 +379,30 @@ pub struct Rig<H: Hardware> {
 
 impl<H: Hardware> Rig<H> {
     /// A rig at rest: lasers off, trigger low, galvo centred, disarmed, position 0 (not homed), no
-    /// session. An invalid `profile` (e.g. blank flash) is replaced by [`RigProfile::DEFAULT`].
-    /// `boot_nonce` should differ between resets (hardware RNG): the host detects a reboot by it.
-    pub fn new(
+    /// session, running `profile` (the one the board stored). An invalid `profile` is replaced by
+    /// [`RigProfile::DEFAULT`] and counts as none ([`Rig::new_unconfigured`]). `boot_nonce` should
+    /// differ between resets (hardware RNG): the host detects a reboot by it.
+    pub fn new(hw: H, profile: RigProfile, config: Config, boot_nonce: u32, now: Micros) -> Self {
+        let known = profile.validate().is_ok();
+        Self::build(hw, known.then_some(profile), config, boot_nonce, now)
+    }
+
+    /// A rig with no stored profile (a new board, unreadable flash): the documented defaults for
+    /// the mechanics, but the laser and trigger polarities are unknown, so it refuses to arm
+    /// ([`RigError::ProfileNotStored`]) until the host sets a profile.
+    pub fn new_unconfigured(hw: H, config: Config, boot_nonce: u32, now: Micros) -> Self {
+        Self::build(hw, None, config, boot_nonce, now)
+    }
+
+    fn build(
         mut hw: H,
-        profile: RigProfile,
+        stored: Option<RigProfile>,
         config: Config,
         boot_nonce: u32,
         now: Micros,
     ) -> Self {
-        let profile = if profile.validate().is_ok() {
-            profile
-        } else {
-            RigProfile::DEFAULT
-        };
+        let profile_known = stored.is_some();
+        let profile = stored.unwrap_or(RigProfile::DEFAULT);
         let config = if config_ok(&config) {
             config
         } else {
@@ -412,6 +425,7 @@ impl<H: Hardware> Rig<H> {
             boot_nonce,
             session: false,
             profile_dirty: false,
+            profile_known,
             decoder: FrameDecoder::new(),
             out: Deque::new(),
             deferred: Deque::new(),
@@ -473,10 +487,43 @@ impl<H: Hardware> Rig<H> {
         &self.profile
     }
 
-    /// The profile, once after every accepted [`Command::SetProfile`]: the board writes it to
-    /// flash (outside the core, when idle) so it survives a reset.
+    /// The profile, once after every accepted [`Command::SetProfile`], when the rig is idle with
+    /// the lasers off: the board writes it to flash so it survives a reset, blocking every
+    /// interrupt while the flash erases, so never while anything moves or emits.
     pub fn take_profile_to_persist(&mut self) -> Option<RigProfile> {
+        if self.busy() || self.laser_output != 0 || !self.planner.idle() {
+            return None;
+        }
         core::mem::take(&mut self.profile_dirty).then_some(self.profile)
+    }
+
+    /// Whether the profile in force was stored or set by the host (its polarities are the
+    /// wiring's); `false` for a board running the defaults because nothing valid was stored.
+    pub fn profile_known(&self) -> bool {
+        self.profile_known
+    }
+
+    /// The latest time any laser may still be on, µs, if one may be: the earliest of the heartbeat
+    /// deadline, the manual laser's limit and the capture window's end. The core switches the
+    /// lasers off by then on its own; a board arms a hardware timer a little after it, so the
+    /// light goes off even if the executor that runs the core is stuck.
+    pub fn light_deadline(&self) -> Option<Micros> {
+        let window = self
+            .capture
+            .as_ref()
+            .filter(|c| !matches!(c.phase, Phase::Confirming { .. }))
+            .map(|c| c.laser_off_at);
+        if self.laser_output == 0 && window.is_none() {
+            return None;
+        }
+        let mut t = self.heartbeat_deadline();
+        if let Some(d) = self.manual_deadline() {
+            t = t.min(d);
+        }
+        if let Some(off) = window {
+            t = t.min(off);
+        }
+        Some(t)
     }
 
     /// The current session settings.
@@ -1126,6 +1173,7 @@ impl<H: Hardware> Rig<H> {
                     self.hw.set_galvo(self.galvo);
                 }
                 self.profile = profile;
+                self.profile_known = true;
                 self.caps = capabilities(&profile);
                 self.planner.set_min_gap_us(min_step_gap_us(&profile));
                 self.homed = false;
@@ -1152,6 +1200,9 @@ impl<H: Hardware> Rig<H> {
                 self.check_not_faulted()?;
                 if !self.inputs.interlock_closed {
                     return Err(RigError::InterlockOpen);
+                }
+                if !self.profile_known {
+                    return Err(RigError::ProfileNotStored);
                 }
                 self.armed = true;
                 Ok(Response::Ack)

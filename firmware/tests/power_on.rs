@@ -253,3 +253,131 @@ fn homing_brakes_on_a_ramp_and_never_stops_dead_at_speed() {
         assert_eq!(h.sim.hw().violations(), 0);
     }
 }
+
+// ---------------------------------------------------------------------------------------------
+// Finding 1: light at every boot with active-low lasers. The board reads the profile before it
+// drives any laser or trigger pin; with none stored it keeps them high-impedance (the external
+// pull resistors hold them off) and the core refuses to arm until a profile is set.
+
+#[test]
+fn a_rig_without_a_stored_profile_refuses_light_until_one_is_set() {
+    use subsurf_firmware::Rig;
+    use subsurf_firmware::sim::SimHardware;
+    let params = SimParams::default();
+    let hw = SimHardware::new(params.profile, params.camera, 0, 40);
+    let mut rig = Rig::new_unconfigured(hw, Config::DEFAULT, 7, 0);
+    assert!(!rig.profile_known());
+    let mut seq = 0;
+    let mut call = |rig: &mut Rig<SimHardware>, command| {
+        seq += 1;
+        rig.handle_request(0, Request { seq, command });
+        let mut result = None;
+        while let Some(m) = rig.poll_message() {
+            if let RigMessage::Reply(r) = m {
+                result = Some(r.result);
+            }
+        }
+        result.expect("a reply")
+    };
+    call(
+        &mut rig,
+        Command::Hello {
+            protocol_version: PROTOCOL_VERSION,
+        },
+    )
+    .unwrap();
+    assert_eq!(
+        call(&mut rig, Command::Arm),
+        Err(RigError::ProfileNotStored)
+    );
+    assert_eq!(
+        rig.hw().laser_log().total(),
+        1,
+        "only the boot's lasers-off"
+    );
+    // An invalid stored profile is no profile either.
+    let mut bad = RigProfile::DEFAULT;
+    bad.laser.channels = 0;
+    let hw = SimHardware::new(params.profile, params.camera, 0, 40);
+    assert!(!Rig::new(hw, bad, Config::DEFAULT, 7, 0).profile_known());
+    // The host sets the wiring's profile: now the rig knows the polarities.
+    let mut wiring = RigProfile::DEFAULT;
+    wiring.laser.active_low = true;
+    assert_eq!(
+        call(&mut rig, Command::SetProfile(wiring)),
+        Ok(Response::Ack)
+    );
+    assert!(rig.profile_known());
+    assert_eq!(call(&mut rig, Command::Arm), Ok(Response::Ack));
+}
+
+// ---------------------------------------------------------------------------------------------
+// Finding 2: a profile save blocks every interrupt while the flash erases, so the core hands
+// the profile to the board only while nothing moves or emits.
+
+#[test]
+fn the_profile_is_persisted_only_while_idle_and_dark() {
+    let mut h = Host::new(SimParams::default());
+    let mut p = RigProfile::DEFAULT;
+    p.motor.microsteps = 32;
+    assert_eq!(h.call(Command::SetProfile(p)), Ok(Response::Ack));
+    // A move right after (before the board's loop came round to storing it).
+    h.call(move_by(2_000)).unwrap();
+    assert_eq!(h.sim.rig_mut().take_profile_to_persist(), None);
+    h.advance(2_000_000);
+    assert!(!h.sim.rig().moving());
+    assert_eq!(h.sim.rig_mut().take_profile_to_persist(), Some(p));
+    assert_eq!(h.sim.rig_mut().take_profile_to_persist(), None);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Finding 6: the light's deadlines for a hardware timer (the board arms one a little after
+// them, so a stuck executor cannot keep a laser on).
+
+#[test]
+fn the_light_deadline_is_the_earliest_of_heartbeat_manual_limit_and_window() {
+    let mut h = Host::new(SimParams::default());
+    assert_eq!(
+        h.sim.rig().light_deadline(),
+        None,
+        "dark: nothing to enforce"
+    );
+    h.call(Command::Arm).unwrap();
+    assert_eq!(h.sim.rig().light_deadline(), None, "armed but dark");
+    let t0 = h.sim.now();
+    h.call(Command::Laser {
+        channel: 0,
+        on: true,
+    })
+    .unwrap();
+    // The heartbeat (2 s) comes before the manual limit (10 s).
+    assert_eq!(h.sim.rig().light_deadline(), Some(t0 + 2_000_000));
+    // An accepted request moves it; a refused one does not.
+    h.advance_quietly(500_000);
+    h.call(Command::Laser {
+        channel: 7,
+        on: true,
+    })
+    .unwrap_err();
+    assert_eq!(h.sim.rig().light_deadline(), Some(t0 + 2_000_000));
+    h.call(Command::Heartbeat).unwrap();
+    assert_eq!(h.sim.rig().light_deadline(), Some(t0 + 2_500_000));
+    h.call(Command::Laser {
+        channel: 0,
+        on: false,
+    })
+    .unwrap();
+    assert_eq!(h.sim.rig().light_deadline(), None);
+    // A capture's window: its scheduled laser-off.
+    h.call(Command::Capture(Capture {
+        galvo: GalvoPoint::default(),
+        settle_us: Some(0),
+        channel: 0,
+        exposure_us: 1_000,
+        trigger_us: 10,
+    }))
+    .unwrap();
+    let now = h.sim.now();
+    let d = h.sim.rig().light_deadline().expect("a window ahead");
+    assert!(d > now && d <= now + 1_200, "{d} vs {now}");
+}

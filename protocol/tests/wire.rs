@@ -576,6 +576,7 @@ fn rig_error() -> impl Strategy<Value = RigError> {
         Just(RigError::BadProfile(ProfileError::Camera)),
         any::<u32>().prop_map(|min_us| RigError::ExposureTooShort { min_us }),
         any::<u32>().prop_map(|min_us| RigError::IntervalTooShort { min_us }),
+        Just(RigError::ProfileNotStored),
     ]
 }
 

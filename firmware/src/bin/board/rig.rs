@@ -8,6 +8,11 @@
 //! its planned time has come, so a move is finished only once its last step has left the timer.
 //! A step that missed its time (the timer ran dry mid-motion) is a stall: the motion is stopped
 //! and the core halted.
+//!
+//! Light: after every pass the task arms the light's deadline timer (`outputs::LightsOut`) a
+//! little after the core's own laser-off deadline (`Rig::light_deadline`), so a stuck task cannot
+//! keep a laser on; the exposure's edges are the timers' (`exposure.rs`). Safety edges the EXTI
+//! interrupt latched are passed to the core as inputs and forgotten only once it has seen them.
 use core::sync::atomic::{AtomicBool, Ordering};
 
 use embassy_futures::select::{Either3, select3};
@@ -26,16 +31,13 @@ use subsurf_protocol::{
 };
 
 use crate::exposure::{LaserCall, on_set_lasers, plan_window};
-use crate::inputs;
-use crate::outputs::{CameraIo, CameraTiming, Galvo};
+use crate::inputs::{self, InputPins};
+use crate::outputs::{CameraIo, CameraTiming, Galvo, LightsOut, lights_out};
 use crate::stepper::{StepGen, StepperIo};
 use crate::store::Store;
 
 /// The rig task wakes at least this often (the watchdog task expects it).
 pub const MAX_SLEEP: Duration = Duration::from_millis(50);
-
-/// A timed exposure still running this long after its scheduled end is cut in software.
-const WINDOW_GRACE_US: u64 = 2_000;
 
 /// Home switch is active low (from the rig profile).
 static HOME_ACTIVE_LOW: AtomicBool = AtomicBool::new(true);
@@ -45,15 +47,17 @@ fn now_us() -> Micros {
     Instant::now().as_micros()
 }
 
-/// Safety inputs straight from the pins (not the EXTI tasks' flags, which lag by a task switch).
+/// Inputs straight from the pins, with the safety edges the EXTI interrupt latched: a press
+/// shorter than a poll still reads as pressed until the core has seen it.
 fn sample_inputs() -> Inputs {
     let pa = pac::GPIOA.idr().read();
     let safety = inputs::safety_pins();
+    let latched = inputs::latched();
     Inputs {
         // PB5: NC contact to GND, pull-up: high = pressed or broken wire.
-        estop: safety.estop_high,
+        estop: safety.estop_high || latched.estop,
         // PB4: NC contact to GND, pull-up: low = enclosure closed.
-        interlock_closed: !safety.interlock_high,
+        interlock_closed: !safety.interlock_high && !latched.interlock,
         // PA10: the home switch, active level from the profile.
         home_switch: (pa.idr(10) == pac::gpio::vals::Idr::LOW)
             == HOME_ACTIVE_LOW.load(Ordering::Relaxed),
@@ -66,6 +70,8 @@ pub struct Hardware {
     pub galvo: Galvo,
     pub camera: CameraTiming,
     store: Store,
+    lights_out: LightsOut,
+    _inputs: InputPins,
     /// Core time of the call in progress (set before every call into the core).
     pub now: Micros,
     /// Steps that missed their time since the last check.
@@ -75,22 +81,31 @@ pub struct Hardware {
     held: u32,
     /// Scheduled laser-off of the timed exposure in progress (until the core's laser-off).
     window_off_at: Option<Micros>,
-    /// Scheduled laser-off of the last timed exposure, for the overrun backstop.
-    timer_deadline: Option<Micros>,
+    /// The profile the pins and timers are set up for (`None`: none known, nothing driven).
+    applied: Option<RigProfile>,
 }
 
 impl Hardware {
-    pub fn new(stepper: StepGen, galvo: Galvo, camera: CameraTiming, store: Store) -> Self {
+    pub fn new(
+        stepper: StepGen,
+        galvo: Galvo,
+        camera: CameraTiming,
+        store: Store,
+        lights_out: LightsOut,
+        inputs: InputPins,
+    ) -> Self {
         Self {
             stepper,
             galvo,
             camera,
             store,
+            lights_out,
+            _inputs: inputs,
             now: 0,
             stalls: 0,
             held: 0,
             window_off_at: None,
-            timer_deadline: None,
+            applied: None,
         }
     }
 
@@ -98,6 +113,7 @@ impl Hardware {
     /// the galvo path, the camera's and the home switch's polarity. The core changes the profile
     /// only while idle, so nothing in flight changes shape.
     pub fn apply_profile(&mut self, profile: &RigProfile) {
+        self.applied = Some(*profile);
         self.stepper.configure(StepperIo::from(&profile.motor));
         self.camera.configure(CameraIo {
             channels: profile.laser.channels,
@@ -147,14 +163,15 @@ impl GalvoDac for Hardware {
 impl LaserOutputs for Hardware {
     fn set_lasers(&mut self, mask: u8) {
         // Defence in depth: the core already refuses light with the e-stop pressed or the
-        // interlock open; the pins are checked again here, at the last moment.
+        // interlock open; the pins are checked again here, at the last moment, and nothing comes
+        // on after the deadline timer cut the light.
         let inputs = sample_inputs();
-        let allowed = !inputs.estop && inputs.interlock_closed;
+        let allowed = !inputs.estop && inputs.interlock_closed && !lights_out();
         let window = self.window_off_at.take();
         let call = on_set_lasers(window, self.now, self.camera.timed_running(), allowed, mask);
         match call {
             LaserCall::LeaveToTimer => {}
-            LaserCall::Apply(mask) => self.camera.set_lasers(mask),
+            LaserCall::Apply(mask) => self.camera.set_lasers(mask, now_us()),
         }
     }
 }
@@ -174,16 +191,16 @@ impl CameraTrigger for Hardware {
         let after = window.laser_off_at.saturating_sub(window.trigger_at);
         match plan_window(lead, window.trigger_us, window.exposure_us, after) {
             Ok(plan) => {
-                self.camera.start(&plan, window.channel_mask);
-                self.timer_deadline = Some(window.laser_off_at);
-                let (rise, fall, off) = plan.edges_us();
-                defmt::debug!(
-                    "timed exposure: trigger {}..{} us, laser off {} us",
-                    rise,
-                    fall,
-                    off
-                );
-                self.window_off_at = Some(window.laser_off_at);
+                if self.camera.start(&plan, window.channel_mask, now_us()) {
+                    let (rise, fall, off) = plan.edges_ns();
+                    defmt::debug!(
+                        "timed exposure: trigger {}..{} ns, laser off {} ns",
+                        rise,
+                        fall,
+                        off
+                    );
+                    self.window_off_at = Some(window.laser_off_at);
+                }
             }
             Err(e) => defmt::warn!("exposure window not timeable ({}); software edges", e),
         }
@@ -192,6 +209,10 @@ impl CameraTrigger for Hardware {
 
 impl CameraInput for Hardware {
     fn poll_camera_edge(&mut self) -> Option<CameraEdge> {
+        // The trigger edge the counter placed, once its time has come, then the camera's.
+        if let Some(at) = self.camera.take_trigger_edge(now_us()) {
+            return Some(CameraEdge::Trigger(at));
+        }
         inputs::pop_edge()
     }
 }
@@ -260,12 +281,21 @@ fn check_stalls(rig: &mut Rig<Hardware>) {
     }
 }
 
-/// Persist a profile the host just set, and apply it to the board's I/O.
+/// Put the board's I/O in line with the profile the core runs, as soon as it knows one (the core
+/// accepts a new one only while idle).
+fn apply_profile(rig: &mut Rig<Hardware>) {
+    let profile = *rig.profile();
+    if rig.profile_known() && rig.hw().applied != Some(profile) {
+        rig.hw_mut().apply_profile(&profile);
+    }
+}
+
+/// Persist a profile the host set, once the core says the rig is idle and dark (the erase blocks
+/// every interrupt).
 fn persist_profile(rig: &mut Rig<Hardware>) {
     let Some(profile) = rig.take_profile_to_persist() else {
         return;
     };
-    rig.hw_mut().apply_profile(&profile);
     let mut buf = [0u8; crate::flash_record::MAX_PAYLOAD];
     match postcard::to_slice(&profile, &mut buf) {
         Ok(bytes) => match rig.hw_mut().store.save(bytes) {
@@ -276,48 +306,53 @@ fn persist_profile(rig: &mut Rig<Hardware>) {
     }
 }
 
-/// Safety backstop for timed exposures: once the core has the lasers off, a timer still running
-/// well past its window's end is stopped in software.
-fn check_window(rig: &mut Rig<Hardware>) {
-    let now = now_us();
-    let lasers_off = rig.laser_output() == 0;
-    let hw = rig.hw_mut();
-    if let Some(off) = hw.timer_deadline
-        && now > off.saturating_add(WINDOW_GRACE_US)
-    {
-        hw.timer_deadline = None;
-        if hw.camera.timed_running() && lasers_off {
-            defmt::warn!("exposure timer overran its window; stopped");
-            hw.camera.set_lasers(0);
-        }
-    }
+/// Keep the light's deadline timer a little behind the core's own laser-off deadline.
+fn follow_light_deadline(rig: &mut Rig<Hardware>) {
+    let deadline = rig.light_deadline();
+    rig.hw_mut().lights_out.follow(deadline, now_us());
 }
 
-/// The profile stored in flash, or the documented default.
-pub fn stored_profile(store: &Store) -> RigProfile {
+/// Hand the core the inputs now (a pin changed, or an edge was latched), then forget the edges
+/// it has seen.
+fn pass_inputs(rig: &mut Rig<Hardware>) {
+    let edges = inputs::latched();
+    let now = now_us();
+    rig.hw_mut().now = now;
+    rig.handle_inputs(now);
+    inputs::passed_on(edges);
+}
+
+/// The profile stored in flash, if a valid one is.
+pub fn stored_profile(store: &Store) -> Option<RigProfile> {
     let mut buf = [0u8; crate::flash_record::MAX_PAYLOAD];
     let profile = store
         .load(&mut buf)
         .and_then(|bytes| postcard::from_bytes::<RigProfile>(bytes).ok())
         .filter(|p| p.validate().is_ok());
     match profile {
-        Some(p) => {
-            defmt::info!("rig profile from flash");
-            p
-        }
-        None => {
-            defmt::info!("no valid rig profile in flash: documented defaults");
-            RigProfile::DEFAULT
-        }
+        Some(_) => defmt::info!("rig profile from flash"),
+        None => defmt::warn!(
+            "no valid rig profile in flash: documented defaults, lasers and trigger left \
+             high-impedance until a profile is sent"
+        ),
     }
+    profile
 }
 
 /// The rig task.
 #[embassy_executor::task]
-pub async fn run(link: BufferedUart<'static>, hw: Hardware, profile: RigProfile, boot_nonce: u32) {
+pub async fn run(
+    link: BufferedUart<'static>,
+    hw: Hardware,
+    stored: Option<RigProfile>,
+    boot_nonce: u32,
+) {
     let (mut tx, mut rx): (BufferedUartTx<'static>, BufferedUartRx<'static>) = link.split();
     static RIG: StaticCell<Rig<Hardware>> = StaticCell::new();
-    let rig = RIG.init_with(|| Rig::new(hw, profile, Config::DEFAULT, boot_nonce, now_us()));
+    let rig = RIG.init_with(|| match stored {
+        Some(profile) => Rig::new(hw, profile, Config::DEFAULT, boot_nonce, now_us()),
+        None => Rig::new_unconfigured(hw, Config::DEFAULT, boot_nonce, now_us()),
+    });
     let mut rx_buf = [0u8; 64];
     let mut frame = [0u8; MAX_FRAME];
     let mut last_fault = None;
@@ -326,7 +361,7 @@ pub async fn run(link: BufferedUart<'static>, hw: Hardware, profile: RigProfile,
         crate::RIG_ALIVE.fetch_add(1, Ordering::Relaxed);
         transmit(rig, &mut tx, &mut frame).await;
         persist_profile(rig);
-        check_window(rig);
+        follow_light_deadline(rig);
         if rig.fault() != last_fault {
             last_fault = rig.fault();
             defmt::warn!("fault: {}", last_fault);
@@ -349,14 +384,15 @@ pub async fn run(link: BufferedUart<'static>, hw: Hardware, profile: RigProfile,
                 let now = now_us();
                 rig.hw_mut().now = now;
                 rig.handle_bytes(now, rx_buf.get(..n).unwrap_or(&[]));
+                apply_profile(rig);
             }
             Either3::First(Err(e)) => defmt::warn!("link read error: {}", e),
             Either3::Second(()) => {}
-            Either3::Third(()) => {
-                let now = now_us();
-                rig.hw_mut().now = now;
-                rig.handle_inputs(now);
-            }
+            Either3::Third(()) => pass_inputs(rig),
+        }
+        if inputs::latched() != crate::safety::SafetyEdges::default() {
+            // An edge latched while the core ran: let it see it now.
+            pass_inputs(rig);
         }
     }
 }
