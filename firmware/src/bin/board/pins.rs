@@ -19,7 +19,7 @@
 //! | Camera trigger        | PC7     | D9 (CN5)      | TIM3_CH2, polarity from the profile          |
 //! | Laser G               | PC8     | CN10-2        | TIM8_CH3                                     |
 //! | Laser B               | PC9     | CN10-1        | TIM8_CH4                                     |
-//! | Exposure active (opt.)| PB6     | D10 (CN5)     | EXTI6, camera strobe output                  |
+//! | Exposure active       | PB6     | D10 (CN5)     | EXTI6, camera strobe output (required)       |
 //!
 //! Safety inputs are wired fail-safe: a broken wire reads as "pressed"/"open". Laser enables and the
 //! trigger are inputs (high-impedance) from reset until the stored profile says their polarity;
