@@ -293,6 +293,34 @@ mod timed_exposure {
         );
     }
 
+    /// Finding 6: heartbeat loss and the laser's limits were handled only by the executor (the
+    /// watchdog, 500 ms later, the only backstop). TIM5 now fires a little after the core's own
+    /// deadline, whatever the executor does; a deadline long past fires at once.
+    #[test]
+    fn the_light_s_deadline_timer_follows_the_core_s_deadline() {
+        assert_eq!(lights_out_timer(None, 5), LightsOutTimer::Stop);
+        assert_eq!(
+            lights_out_timer(Some(2_000_000), 1_000_000),
+            LightsOutTimer::FireIn {
+                ticks: 1_000_000 + LIGHTS_OUT_GRACE_US as u32,
+                lift: true
+            }
+        );
+        // Long past (the executor was stuck): at once, and the cut stays.
+        assert_eq!(
+            lights_out_timer(Some(1_000), 9_000_000),
+            LightsOutTimer::FireIn {
+                ticks: 1,
+                lift: false
+            }
+        );
+        // Far ahead: clamped to the 32-bit counter.
+        assert!(matches!(
+            lights_out_timer(Some(u64::MAX), 0),
+            LightsOutTimer::FireIn { ticks, .. } if ticks == u32::MAX - 1
+        ));
+    }
+
     #[test]
     fn exposures_below_the_hardware_minimum_are_refused() {
         assert_eq!(

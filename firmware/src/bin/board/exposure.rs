@@ -174,3 +174,41 @@ pub fn on_set_lasers(
         LaserCall::Apply(if allowed { mask } else { 0 })
     }
 }
+
+/// The light's deadline timer (TIM5, 1 µs ticks, one-pulse) fires this long after the core's own
+/// laser-off deadline: the executor normally gets there first, and only a stuck one leaves it to
+/// the timer.
+pub const LIGHTS_OUT_GRACE_US: u64 = 20_000;
+
+/// What the light's deadline timer should do for the core's deadline (`None`: no light possible).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LightsOutTimer {
+    /// Stopped: nothing may shine.
+    Stop,
+    /// Fire after this many µs (at least 1, so a deadline long past still fires at once); the
+    /// light is not cut yet (`lift` = the deadline is still ahead: a cut the core has caught up
+    /// with may be lifted).
+    FireIn {
+        /// Reload value, µs.
+        ticks: u32,
+        /// The core's deadline is still ahead.
+        lift: bool,
+    },
+}
+
+/// The timer's setting for the core's deadline at `now` (both rig µs).
+pub fn lights_out_timer(deadline: Option<u64>, now: u64) -> LightsOutTimer {
+    match deadline {
+        None => LightsOutTimer::Stop,
+        Some(at) => {
+            let left = at
+                .saturating_add(LIGHTS_OUT_GRACE_US)
+                .saturating_sub(now)
+                .clamp(1, u64::from(u32::MAX - 1));
+            LightsOutTimer::FireIn {
+                ticks: u32::try_from(left).unwrap_or(u32::MAX - 1),
+                lift: at > now,
+            }
+        }
+    }
+}

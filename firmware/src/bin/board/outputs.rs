@@ -34,7 +34,7 @@ use embassy_stm32::spi::{self, Spi};
 use embassy_stm32::time::Hertz;
 use embassy_stm32::timer::low_level::Timer;
 
-use crate::exposure::Plan;
+use crate::exposure::{LightsOutTimer, Plan, lights_out_timer};
 use crate::galvo_map::{GalvoMap, GalvoOutput, ad5689_frames};
 use crate::pins::{LASER_PINS, LASER_TIMER_CHANNELS, TRIGGER_PIN, TRIGGER_TIMER_CHANNEL};
 use crate::safety::{Park, PinMode, Polarity, moder_with, park};
@@ -349,9 +349,6 @@ pub struct LightsOut {
     armed: Option<u64>,
 }
 
-/// Armed this long after the core's own deadline: the executor normally gets there first.
-pub const LIGHTS_OUT_GRACE_US: u64 = 20_000;
-
 impl LightsOut {
     /// Take TIM5, stopped, its interrupt enabled.
     pub fn new(tim: Peri<'static, p::TIM5>) -> Self {
@@ -381,18 +378,13 @@ impl LightsOut {
         self.armed = deadline;
         let t = pac::TIM5;
         t.cr1().modify(|w| w.set_cen(false));
-        match deadline {
-            None => LIGHTS_OUT.store(false, Ordering::SeqCst),
-            Some(at) => {
-                let fire = at.saturating_add(LIGHTS_OUT_GRACE_US);
-                let left = fire
-                    .saturating_sub(now_us)
-                    .clamp(1, u64::from(u32::MAX - 1));
-                if at > now_us {
+        match lights_out_timer(deadline, now_us) {
+            LightsOutTimer::Stop => LIGHTS_OUT.store(false, Ordering::SeqCst),
+            LightsOutTimer::FireIn { ticks, lift } => {
+                if lift {
                     LIGHTS_OUT.store(false, Ordering::SeqCst);
                 }
-                t.arr()
-                    .write_value(u32::try_from(left).unwrap_or(u32::MAX - 1));
+                t.arr().write_value(ticks);
                 t.cnt().write_value(0);
                 t.egr().write(|w| w.set_ug(true));
                 t.sr().modify(|w| w.set_uif(false));
