@@ -191,9 +191,11 @@ impl StepPlanner {
         done
     }
 
-    /// The hardware dropped `dropped` queued steps (a flush): everything in flight is gone.
-    /// Returns the steps it did emit that were not counted yet.
-    pub fn flushed(&mut self, dropped: u32) -> u32 {
+    /// The hardware dropped `dropped` queued steps (a flush at `now`): everything in flight is
+    /// gone, and the last step the motor really took came no later than `now` (not at the last
+    /// planned step's time, which may lie ahead). Returns the steps it did emit that were not
+    /// counted yet.
+    pub fn flushed(&mut self, dropped: u32, now: Micros) -> u32 {
         let mut left = 0u32;
         for (i, s) in self.in_flight.iter().enumerate() {
             let done = if i == 0 { self.front_done } else { 0 };
@@ -201,6 +203,7 @@ impl StepPlanner {
         }
         self.in_flight.clear();
         self.front_done = 0;
+        self.last_at = self.last_at.min(self.ticks(now));
         self.clear_pending();
         left.saturating_sub(dropped)
     }
@@ -261,5 +264,49 @@ impl Pending {
         if self.start == self.end {
             self.clear();
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::profile::Profile;
+    use std::vec::Vec;
+
+    fn plan_move(p: &mut StepPlanner, start: Micros, steps: u32) -> Vec<StepSegment> {
+        let profile = Profile::new(steps, 5_000, 50_000).unwrap();
+        let mut k = 0;
+        let mut out = Vec::new();
+        p.refill(
+            start,
+            true,
+            &mut || {
+                k += 1;
+                (k <= steps).then(|| start + profile.step_time_us(k))
+            },
+            &mut |s| {
+                out.push(s);
+                true
+            },
+        );
+        out
+    }
+
+    /// A flush drops steps planned ahead; the next motion starts from now, not from the last
+    /// dropped step (which lay in the future): its steps are on time and in order.
+    #[test]
+    fn after_a_flush_the_next_motion_plans_from_now() {
+        let mut p = StepPlanner::new(84, 10);
+        let first = plan_move(&mut p, 0, 400);
+        assert!(!first.is_empty());
+        // At 10 ms, steps up to 20 ms are queued; flush them.
+        let planned: u32 = first.iter().map(|s| u32::from(s.count)).sum();
+        p.take_due(10_000);
+        p.flushed(planned / 2, 10_000);
+        assert!(p.idle());
+        let next = plan_move(&mut p, 10_000, 3);
+        let at = next.first().expect("planned").first_at;
+        // The move's first step: sqrt(2/a) = 6325 µs after its start, within the error.
+        assert!((16_320 * 84..=16_325 * 84).contains(&at), "{at}");
     }
 }

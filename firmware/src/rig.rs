@@ -15,11 +15,16 @@
 //!     match wait_for(uart_rx, input_pin_change, deadline) {
 //!         Rx(bytes)  => rig.handle_bytes(now(), bytes),
 //!         PinChange  => rig.handle_inputs(now()),
-//!         Timeout    => rig.handle_timeout(now()),  // takes every step due by now, even if late
+//!         Timeout    => rig.handle_timeout(now()),  // counts the steps out, plans the next 10 ms
 //!     }
 //!     while let Some(n) = rig.poll_transmit(&mut frame) { uart_tx.write(&frame[..n]) }
 //! }
 //! ```
+//!
+//! Motion is planned ahead ([`crate::planner`]): the core hands the hardware compressed step
+//! segments up to 10 ms before their time and counts each step into the position when its time
+//! has come, so it wakes every few milliseconds during a move, never once per step. The home
+//! switch is looked at on every input change (the board's switch raises an interrupt) and poll.
 //!
 //! All laser-safety rules live in [`Rig::laser_permitted`] and `Rig::sync_lasers`: no code path
 //! writes the laser outputs except `sync_lasers`, which outputs nothing unless `laser_permitted`.
@@ -1083,7 +1088,7 @@ impl<H: Hardware> Rig<H> {
             return 0;
         }
         let dropped = self.hw.flush();
-        let emitted = self.planner.flushed(dropped);
+        let emitted = self.planner.flushed(dropped, self.now);
         self.step_position(emitted);
         dropped
     }

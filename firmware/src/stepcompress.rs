@@ -42,6 +42,10 @@ impl Run {
 /// gap, and the arithmetic stays inside `i64`.
 const FAR_GAP: u64 = 1 << 31;
 
+/// Longest run (steps). With `add` an `i32` and gaps below [`FAR_GAP`], every product of the
+/// search stays far inside `i64` (below 2^55).
+pub const MAX_RUN: usize = 4_096;
+
 /// The longest run that keeps every step of `ideal` (absolute times, ascending, in ticks) within
 /// `[ideal − err, ideal]` (`err` at most half the gap to the step before), after the last step at
 /// `last`; no gap shorter than `min_gap` ticks. `ideal` must not be empty. When even the first
@@ -62,14 +66,17 @@ pub fn compress(ideal: &[u64], last: u64, err: u64, min_gap: u64) -> Run {
         last,
         err: i64::try_from(err).unwrap_or(i64::MAX),
         min_gap: i64::try_from(min_gap).unwrap_or(i64::MAX),
-        max: ideal.len().min(usize::from(u16::MAX)),
+        max: ideal.len().min(MAX_RUN),
     };
     // Start from the `add` that joins the first and the last point exactly: on a smooth ramp
     // it is close to the best one for the whole window, so the search mostly confirms it.
     let c = window.max;
     let guess = match (ideal.first(), ideal.get(c - 1)) {
         (Some(&t1), Some(&tc)) if c > 1 => {
-            let (t1, tc) = (i128::from(t1 - last), i128::from(tc - last));
+            let (t1, tc) = (
+                i128::from(t1) - i128::from(last),
+                i128::from(tc) - i128::from(last),
+            );
             let c = i128::try_from(c).unwrap_or(1);
             i64::try_from(2 * (tc - c * t1) / (c * (c - 1))).unwrap_or(0)
         }
@@ -144,8 +151,8 @@ impl Window<'_> {
     }
 
     /// The longest prefix `add` reaches. Every product stays far inside `i64`: `j` is at most
-    /// 65 535, `add` an `i32`, the first gap below `FAR_GAP` (`high` starts there), so
-    /// `add·j·(j−1)/2` and `gap·j` are below 2^62.
+    /// [`MAX_RUN`], `add` an `i32`, the first gap below `FAR_GAP` (`high` starts there), so
+    /// `add·j·(j−1)/2` and `gap·j` are below 2^55.
     fn fit(&self, add: i64) -> Fit {
         // Feasible first gaps [low, high]; the gap before step j is interval + (j − 1)·add, so
         // the hardware's shortest gap bounds `low` too.
@@ -280,6 +287,10 @@ mod tests {
     fn a_step_due_too_soon_comes_late_not_never() {
         let run = compress(&[105], 100, 5, 10);
         assert_eq!(run.step_at(100, 1), 110);
+        // Ideal times already behind the last step (a schedule the hardware fell behind):
+        // late, one at a time, never a panic.
+        let run = compress(&[90, 95, 130], 100, 5, 10);
+        assert_eq!((run.count, run.step_at(100, 1)), (1, 110));
     }
 
     proptest! {
