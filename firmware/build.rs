@@ -1,13 +1,15 @@
 //! Linker set-up for the two bare-metal binaries; host builds (the core, its tests) get nothing.
 //!
-//! - `subsurf-board` (feature `board`): cortex-m-rt's `link.x` and defmt's `defmt.x`; the chip's
-//!   `memory.x` comes from embassy-stm32's `memory-x` feature.
-//! - `subsurf-qemu` (feature `qemu`): `link.x` with `qemu/memory.x` (QEMU's mps2-an386 map).
+//! - `subsurf-board` (feature `board`): cortex-m-rt's `link.x` and defmt's `defmt.x` with
+//!   `board/memory.x` (the chip's map, code after the profile's flash sectors).
+//! - `subsurf-qemu` and `subsurf-qemu-isr` (feature `qemu`): `link.x` with `qemu/memory.x`
+//!   (QEMU's mps2-an386 map).
 use std::env;
 
 fn main() {
     println!("cargo:rerun-if-changed=build.rs");
     println!("cargo:rerun-if-changed=qemu/memory.x");
+    println!("cargo:rerun-if-changed=board/memory.x");
     if env::var("CARGO_CFG_TARGET_OS").as_deref() != Ok("none") {
         return;
     }
@@ -18,6 +20,8 @@ fn main() {
         panic!("features `board` and `qemu` are separate builds: enable one of them");
     }
     if board {
+        let dir = env::var("CARGO_MANIFEST_DIR").unwrap_or_default();
+        println!("cargo:rustc-link-search={dir}/board");
         println!("cargo:rustc-link-arg-bin=subsurf-board=--nmagic");
         println!("cargo:rustc-link-arg-bin=subsurf-board=-Tlink.x");
         println!("cargo:rustc-link-arg-bin=subsurf-board=-Tdefmt.x");
@@ -26,5 +30,6 @@ fn main() {
         let dir = env::var("CARGO_MANIFEST_DIR").unwrap_or_default();
         println!("cargo:rustc-link-search={dir}/qemu");
         println!("cargo:rustc-link-arg-bin=subsurf-qemu=-Tlink.x");
+        println!("cargo:rustc-link-arg-bin=subsurf-qemu-isr=-Tlink.x");
     }
 }

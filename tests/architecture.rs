@@ -145,3 +145,44 @@ fn one_vertex_model_type_set_and_one_tangent_frame_rule() {
     let rules = naming("host", "abs() > 0.9 {");
     assert_eq!(rules, ["host/model/src/model/aniso.rs"], "{rules:?}");
 }
+
+/// The README's wiring table is what a person wires a bench from: it must name the pins the
+/// board's pin map uses, and must not call an input the scans require optional (issue 26: the
+/// exposure-active output was "optional" while scans refused every unconfirmed capture).
+#[test]
+fn the_readme_wiring_table_matches_the_board_s_pin_map() {
+    let readme = std::fs::read_to_string(root().join("README.md")).expect("README.md");
+    let pins =
+        std::fs::read_to_string(root().join("firmware/src/bin/board/pins.rs")).expect("pins.rs");
+    let table = readme
+        .split("| Function | Nucleo pin (MCU) | Connect to |")
+        .nth(1)
+        .expect("the README's wiring table")
+        .split("\n\n")
+        .next()
+        .unwrap_or_default();
+    assert!(
+        !table.to_ascii_lowercase().contains("optional"),
+        "the wiring table calls something optional:\n{table}"
+    );
+    // Every MCU pin of the pin map's table (`| PA0 ...`, `| PC6 ...`) appears in the README's.
+    for line in pins.lines().filter(|l| l.starts_with("//! |")) {
+        let cells: Vec<&str> = line.split('|').map(str::trim).collect();
+        let Some(mcu) = cells.get(2) else { continue };
+        for pin in mcu.split('/') {
+            let pin = pin.trim();
+            if pin.len() >= 3
+                && pin.starts_with('P')
+                && pin[1..2].chars().all(|c| c.is_ascii_uppercase())
+                && pin != "PA2"
+                && pin != "PA3"
+            {
+                assert!(
+                    table.contains(pin),
+                    "{pin} of pins.rs is missing from the README's wiring table"
+                );
+            }
+        }
+    }
+    assert!(table.contains("TIM3_CH2"), "the trigger's timer");
+}

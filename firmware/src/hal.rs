@@ -7,18 +7,73 @@ use subsurf_protocol::{GalvoPoint, Inputs};
 
 use crate::rig::Micros;
 
-/// Turntable stepper driver.
-pub trait Stepper {
-    /// Emit one step pulse in the given direction (`forward` = increasing position). A board may
-    /// queue it (a step timer a fixed pipeline delay behind the core).
-    fn step(&mut self, forward: bool);
+/// A run of steps in one direction, planned ahead by the core and emitted by the hardware's step
+/// timer (Klipper's `queue_step`): the first step at `first_at`, the second `interval` ticks
+/// later, every later gap `add` ticks longer than the one before. Times are in the stepper's
+/// ticks ([`Stepper::TICKS_PER_US`] per µs of rig time, counted from the same boot as
+/// [`Micros`]); "a step at `t`" means its STEP pulse starts at `t`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StepSegment {
+    /// The first step, absolute ticks.
+    pub first_at: u64,
+    /// Gap from the first step to the second, ticks (unused for a single step).
+    pub interval: u32,
+    /// Change of the gap from one step to the next, ticks.
+    pub add: i32,
+    /// Steps (≥ 1).
+    pub count: u16,
+    /// Direction of every step (`true` = increasing position).
+    pub forward: bool,
+}
 
-    /// Discard every step handed to [`Stepper::step`] that has not left the pin yet and return
-    /// how many were discarded (the core takes them off its position). Called when the home switch
-    /// is seen and on an emergency halt. Hardware without a queue returns 0.
-    fn flush(&mut self) -> u32 {
-        0
+impl StepSegment {
+    /// Time of step `j` (0-based), ticks.
+    pub fn step_at(&self, j: u16) -> u64 {
+        let j = i128::from(j);
+        let t = i128::from(self.first_at)
+            + i128::from(self.interval) * j
+            + i128::from(self.add) * j * (j - 1).max(0) / 2;
+        u64::try_from(t).unwrap_or(0)
     }
+
+    /// Time of its last step, ticks.
+    pub fn last_at(&self) -> u64 {
+        self.step_at(self.count.saturating_sub(1))
+    }
+
+    /// Steps whose time has come by `t` (ticks).
+    pub fn due_by(&self, t: u64) -> u16 {
+        if self.count == 0 || self.first_at > t {
+            return 0;
+        }
+        // Step times increase with `j`: the largest `j` with `step_at(j) <= t`, by bisection.
+        let (mut lo, mut hi) = (0u16, self.count - 1);
+        while lo < hi {
+            let mid = lo + (hi - lo).div_ceil(2);
+            if self.step_at(mid) <= t {
+                lo = mid;
+            } else {
+                hi = mid - 1;
+            }
+        }
+        lo + 1
+    }
+}
+
+/// Turntable stepper driver: a queue of planned [`StepSegment`]s that the hardware emits on its
+/// own time base, so the core plans steps ahead and never runs once per step.
+pub trait Stepper {
+    /// Step-clock ticks per µs of rig time.
+    const TICKS_PER_US: u32;
+
+    /// Append a segment to the step queue; `false` if the queue is full (nothing was queued, the
+    /// core offers it again later). Segments follow each other in time.
+    fn queue(&mut self, segment: StepSegment) -> bool;
+
+    /// Discard every queued step that has not left the pin yet and return how many were
+    /// discarded (the core takes them off its position): an emergency halt, or the home switch
+    /// found by the slow approach.
+    fn flush(&mut self) -> u32;
 }
 
 /// Galvo mirror DAC.

@@ -17,10 +17,15 @@
     )
 )]
 
+#[cfg(test)]
+extern crate std;
+
 pub mod hal;
+pub mod planner;
 pub mod profile;
 pub mod rig;
 pub mod sim;
+pub mod stepcompress;
 
 pub use hal::Hardware;
 pub use rig::{FIRMWARE_VERSION, Micros, Rig, galvo_settle_us};

@@ -20,6 +20,10 @@ pub struct Profile {
     trapezoid: bool,
     /// Time of the last step, µs.
     total_us: u64,
+    /// Every intermediate value of [`Profile::step_time_us`] fits 64 bits: it then runs without
+    /// 128-bit arithmetic, which a Cortex-M4 only has as library calls (the planner computes this
+    /// for every step).
+    narrow: bool,
 }
 
 fn to_u64(x: u128) -> u64 {
@@ -60,12 +64,15 @@ impl Profile {
             // T = 2·sqrt(n/a)
             to_u64(isqrt(div(4 * n * US * US, a)))
         };
+        let max = u128::from(u64::MAX);
+        let narrow = 2 * n * US * US <= max && US * (2 * a * n + v * v) <= max && 2 * a * v <= max;
         Some(Self {
             steps,
             speed,
             accel,
             trapezoid,
             total_us,
+            narrow,
         })
     }
 
@@ -100,6 +107,9 @@ impl Profile {
         if k == 0 {
             return 0;
         }
+        if self.narrow {
+            return self.step_time_narrow(k);
+        }
         let (n, v, a) = (
             u128::from(self.steps),
             u128::from(self.speed),
@@ -117,6 +127,44 @@ impl Profile {
             } else {
                 // Cruise: t = k/v + v/2a.
                 to_u64(div(US * (2 * a * k + v * v), 2 * a * v))
+            }
+        } else if 2 * k <= n {
+            from_rest(k)
+        } else {
+            self.total_us.saturating_sub(from_rest(rest))
+        }
+    }
+}
+
+impl Profile {
+    /// [`Profile::step_time_us`] for `1 <= k <= steps` when every product fits 64 bits: the same
+    /// formulas, the same results.
+    fn step_time_narrow(&self, k: u32) -> u64 {
+        const US: u64 = 1_000_000;
+        let (n, v, a, k) = (
+            u64::from(self.steps),
+            u64::from(self.speed),
+            u64::from(self.accel),
+            u64::from(k),
+        );
+        let rest = n - k;
+        let vv = v * v;
+        let from_rest = |s: u64| (2 * s * US * US / a).isqrt();
+        if self.trapezoid {
+            if 2 * a * k <= vv {
+                from_rest(k)
+            } else if 2 * a * rest <= vv {
+                self.total_us.saturating_sub(from_rest(rest))
+            } else {
+                // US·(2ak + v²)/(2av) = US·k/v + US·v/(2a), floored as one sum: the second term
+                // and the divisors are 32-bit, so no 64-by-64 division runs per step.
+                let (qx, rx) = (US * k / v, US * k % v);
+                let (qy, ry) = (US * v / (2 * a), US * v % (2 * a));
+                // frac(x) + frac(y) >= 1  <=>  rx·2a + ry·v >= 2av (all below 2^64: narrow).
+                let carry = (rx * 2 * a)
+                    .checked_add(ry * v)
+                    .is_none_or(|f| f >= 2 * a * v);
+                qx + qy + u64::from(carry)
             }
         } else if 2 * k <= n {
             from_rest(k)
@@ -176,8 +224,25 @@ mod tests {
         }
     }
 
+    /// The 64-bit path gives the 128-bit path's results to the µs.
+    fn wide(p: &Profile, k: u32) -> u64 {
+        Profile {
+            narrow: false,
+            ..*p
+        }
+        .step_time_us(k)
+    }
+
     proptest! {
         #![proptest_config(ProptestConfig::with_cases(128))]
+
+        #[test]
+        fn narrow_arithmetic_is_exact(steps in 1u32..200_000, speed in 1u32..=100_000, accel in 1u32..=20_000_000, k in any::<u32>()) {
+            let p = Profile::new(steps, speed, accel).unwrap();
+            prop_assert!(p.narrow);
+            let k = k % steps + 1;
+            prop_assert_eq!(p.step_time_us(k), wide(&p, k));
+        }
 
         #[test]
         fn steps_are_ordered_bounded_and_end_on_time(

@@ -15,11 +15,16 @@
 //!     match wait_for(uart_rx, input_pin_change, deadline) {
 //!         Rx(bytes)  => rig.handle_bytes(now(), bytes),
 //!         PinChange  => rig.handle_inputs(now()),
-//!         Timeout    => rig.handle_timeout(now()),  // takes every step due by now, even if late
+//!         Timeout    => rig.handle_timeout(now()),  // counts the steps out, plans the next 10 ms
 //!     }
 //!     while let Some(n) = rig.poll_transmit(&mut frame) { uart_tx.write(&frame[..n]) }
 //! }
 //! ```
+//!
+//! Motion is planned ahead ([`crate::planner`]): the core hands the hardware compressed step
+//! segments up to 10 ms before their time and counts each step into the position when its time
+//! has come, so it wakes every few milliseconds during a move, never once per step. The home
+//! switch is looked at on every input change (the board's switch raises an interrupt) and poll.
 //!
 //! All laser-safety rules live in [`Rig::laser_permitted`] and `Rig::sync_lasers`: no code path
 //! writes the laser outputs except `sync_lasers`, which outputs nothing unless `laser_permitted`.
@@ -34,6 +39,7 @@ use subsurf_protocol::{
 };
 
 use crate::hal::{CameraEdge, ExposureWindow, Hardware};
+use crate::planner::StepPlanner;
 use crate::profile::Profile;
 
 /// Rig time: µs since boot.
@@ -78,6 +84,15 @@ pub fn galvo_settle_us(profile: &RigProfile, from: GalvoPoint, to: GalvoPoint) -
     u32::try_from(u64::from(profile.galvo.settle_min_us).saturating_add(extra)).unwrap_or(u32::MAX)
 }
 
+/// Shortest time between two STEP edges the hardware emits, µs: the step timer's floor, or
+/// STEP low at least as long as high.
+pub const MIN_STEP_GAP_US: u32 = 10;
+
+/// The shortest step gap for a profile's STEP pulse.
+pub fn min_step_gap_us(profile: &RigProfile) -> u32 {
+    MIN_STEP_GAP_US.max(u32::from(profile.motor.step_pulse_us).saturating_mul(2))
+}
+
 /// What a profile lets the host ask for (announced in [`Hello`]).
 pub fn capabilities(profile: &RigProfile) -> Capabilities {
     Capabilities {
@@ -101,6 +116,9 @@ pub fn capabilities(profile: &RigProfile) -> Capabilities {
 enum HomePhase {
     /// Started on the switch: slowly forward until it releases, then back off.
     LeaveSwitch,
+    /// The switch released while leaving it: the steps already queued run out, then the
+    /// back-off.
+    LeftSwitch,
     /// Fast approach until the switch is seen (then a decelerating stop).
     Approach,
     /// Forward at the homing speed until the switch has been active and released again.
@@ -125,29 +143,33 @@ enum MotionKind {
         phase: HomePhase,
         /// The switch has been seen active in this phase.
         seen_active: bool,
-        /// Slow approach: first active sample, and steps taken since.
-        active_since: Option<Micros>,
-        steps_since_active: u32,
+        /// Slow approach: when the switch first read active, and the position then (the edge).
+        active_since: Option<(Micros, i32)>,
     },
     /// Decelerating to rest after a halt; nothing follows.
     Stopping,
 }
 
 /// A turntable move (or homing pass) in progress. Step `i` of `profile` (1-based) is due at
-/// `base + t(i) - t(base_index)`; a decelerating stop jumps `index` forward to the start of the
-/// profile's deceleration ramp at the current speed.
+/// `base + t(i) - t(base_index)`. Steps are planned ahead ([`crate::planner`]): `planned` is the
+/// last one handed to the hardware, `computed` the last one whose ideal time the planner holds.
+/// A decelerating stop jumps forward to the start of the profile's deceleration ramp at the speed
+/// of the last planned step, so the ramp-down follows the steps already queued.
 #[derive(Debug, Clone, Copy)]
 struct Motion {
     profile: Profile,
     base: Micros,
     base_index: u32,
-    /// Profile index of the last step taken.
-    index: u32,
-    /// When that step was due (the start for none).
-    last_step_at: Micros,
+    /// The profile's time of `base_index`, µs (kept, not recomputed per step).
+    base_t: Micros,
+    /// Profile index of the last step whose ideal time went to the planner.
+    computed: u32,
+    /// Profile index of the last step handed to the hardware.
+    planned: u32,
+    /// No step past this index is planned (a pass cut short); `profile.steps()` normally.
+    end: u32,
     forward: bool,
     kind: MotionKind,
-    next_due: Micros,
 }
 
 impl Motion {
@@ -156,36 +178,50 @@ impl Motion {
             profile,
             base: now,
             base_index: 0,
-            index: 0,
-            last_step_at: now,
+            base_t: 0,
+            computed: 0,
+            planned: 0,
+            end: profile.steps(),
             forward,
             kind,
-            next_due: now.saturating_add(profile.step_time_us(1)),
         }
     }
 
     fn due(&self, i: u32) -> Micros {
-        let t0 = self.profile.step_time_us(self.base_index);
         self.base
-            .saturating_add(self.profile.step_time_us(i).saturating_sub(t0))
+            .saturating_add(self.profile.step_time_us(i).saturating_sub(self.base_t))
     }
 
-    fn finished(&self) -> bool {
-        self.index >= self.profile.steps()
+    /// The next ideal step time for the planner, `None` past `end`.
+    fn next_ideal(&mut self) -> Option<Micros> {
+        if self.computed >= self.end {
+            return None;
+        }
+        self.computed += 1;
+        Some(self.due(self.computed))
     }
 
-    /// Decelerate to rest from the current speed: continue on the profile's ramp-down.
+    /// Decelerate to rest from the speed of the last planned step: continue on the profile's
+    /// ramp-down after it. The caller drops the planner's pending ideal times.
     fn stop(&mut self) {
         let n = self.profile.steps();
-        let k = self.index;
+        let k = self.planned;
         let d = k.min(self.profile.ramp_steps()).min(n.saturating_sub(k));
         let from = n.saturating_sub(d);
         if from > k {
-            self.base = self.last_step_at;
+            self.base = self.due(k);
             self.base_index = from;
-            self.index = from;
+            self.base_t = self.profile.step_time_us(from);
+            self.planned = from;
         }
-        self.next_due = self.due(self.index.saturating_add(1));
+        self.computed = self.planned;
+        self.end = n;
+    }
+
+    /// Plan nothing past the steps already queued.
+    fn cut(&mut self) {
+        self.end = self.planned;
+        self.computed = self.planned;
     }
 }
 
@@ -219,6 +255,23 @@ struct ActiveCapture {
     exposure_start: Option<Micros>,
     exposure_end: Option<Micros>,
     phase: Phase,
+}
+
+impl ActiveCapture {
+    /// When the laser was really on. A board that times the window in hardware starts its timer
+    /// when its task wakes, a little after the schedule, and the window moves with it: the laser
+    /// comes on `trigger_at - laser_on_at` before the trigger edge the timer placed and goes off
+    /// `laser_off_at - trigger_at` after it. The hardware's timestamp of that edge therefore says
+    /// where the window lay; without one (software edges) the schedule is all there is.
+    fn lit_window(&self) -> (Micros, Micros) {
+        match self.trigger_edge {
+            Some(edge) => (
+                edge.saturating_sub(self.trigger_at.saturating_sub(self.laser_on_at)),
+                edge.saturating_add(self.laser_off_at.saturating_sub(self.trigger_at)),
+            ),
+            None => (self.laser_on_at, self.laser_off_at),
+        }
+    }
 }
 
 /// A running program.
@@ -276,6 +329,9 @@ pub struct Rig<H: Hardware> {
     session: bool,
     /// The profile changed and the board should persist it ([`Rig::take_profile_to_persist`]).
     profile_dirty: bool,
+    /// The profile was stored (or set by the host): its laser and trigger polarities are the
+    /// wiring's. Without one nothing may arm.
+    profile_known: bool,
     decoder: FrameDecoder,
     out: Deque<RigMessage, OUT_QUEUE>,
     /// Events raised while a request executes: sent right after its reply.
@@ -300,9 +356,14 @@ pub struct Rig<H: Hardware> {
     link_alive: bool,
     next_input_poll: Micros,
     // Turntable.
+    /// Steps the hardware has emitted by now (each counted when its time came).
     position: i32,
     homed: bool,
     motion: Option<Motion>,
+    /// The steps planned ahead and in the hardware's queue.
+    planner: StepPlanner,
+    /// Direction of the steps in flight.
+    stepping_forward: bool,
     // Galvo, camera and captures.
     galvo: GalvoPoint,
     capture: Option<ActiveCapture>,
@@ -323,20 +384,30 @@ pub struct Rig<H: Hardware> {
 
 impl<H: Hardware> Rig<H> {
     /// A rig at rest: lasers off, trigger low, galvo centred, disarmed, position 0 (not homed), no
-    /// session. An invalid `profile` (e.g. blank flash) is replaced by [`RigProfile::DEFAULT`].
-    /// `boot_nonce` should differ between resets (hardware RNG): the host detects a reboot by it.
-    pub fn new(
+    /// session, running `profile` (the one the board stored). An invalid `profile` is replaced by
+    /// [`RigProfile::DEFAULT`] and counts as none ([`Rig::new_unconfigured`]). `boot_nonce` should
+    /// differ between resets (hardware RNG): the host detects a reboot by it.
+    pub fn new(hw: H, profile: RigProfile, config: Config, boot_nonce: u32, now: Micros) -> Self {
+        let known = profile.validate().is_ok();
+        Self::build(hw, known.then_some(profile), config, boot_nonce, now)
+    }
+
+    /// A rig with no stored profile (a new board, unreadable flash): the documented defaults for
+    /// the mechanics, but the laser and trigger polarities are unknown, so it refuses to arm
+    /// ([`RigError::ProfileNotStored`]) until the host sets a profile.
+    pub fn new_unconfigured(hw: H, config: Config, boot_nonce: u32, now: Micros) -> Self {
+        Self::build(hw, None, config, boot_nonce, now)
+    }
+
+    fn build(
         mut hw: H,
-        profile: RigProfile,
+        stored: Option<RigProfile>,
         config: Config,
         boot_nonce: u32,
         now: Micros,
     ) -> Self {
-        let profile = if profile.validate().is_ok() {
-            profile
-        } else {
-            RigProfile::DEFAULT
-        };
+        let profile_known = stored.is_some();
+        let profile = stored.unwrap_or(RigProfile::DEFAULT);
         let config = if config_ok(&config) {
             config
         } else {
@@ -359,6 +430,7 @@ impl<H: Hardware> Rig<H> {
             boot_nonce,
             session: false,
             profile_dirty: false,
+            profile_known,
             decoder: FrameDecoder::new(),
             out: Deque::new(),
             deferred: Deque::new(),
@@ -379,6 +451,8 @@ impl<H: Hardware> Rig<H> {
             position: 0,
             homed: false,
             motion: None,
+            planner: StepPlanner::new(H::TICKS_PER_US, min_step_gap_us(&profile)),
+            stepping_forward: true,
             galvo,
             capture: None,
             rehoming: false,
@@ -418,10 +492,43 @@ impl<H: Hardware> Rig<H> {
         &self.profile
     }
 
-    /// The profile, once after every accepted [`Command::SetProfile`]: the board writes it to
-    /// flash (outside the core, when idle) so it survives a reset.
+    /// The profile, once after every accepted [`Command::SetProfile`], when the rig is idle with
+    /// the lasers off: the board writes it to flash so it survives a reset, blocking every
+    /// interrupt while the flash erases, so never while anything moves or emits.
     pub fn take_profile_to_persist(&mut self) -> Option<RigProfile> {
+        if self.busy() || self.laser_output != 0 || !self.planner.idle() {
+            return None;
+        }
         core::mem::take(&mut self.profile_dirty).then_some(self.profile)
+    }
+
+    /// Whether the profile in force was stored or set by the host (its polarities are the
+    /// wiring's); `false` for a board running the defaults because nothing valid was stored.
+    pub fn profile_known(&self) -> bool {
+        self.profile_known
+    }
+
+    /// The latest time any laser may still be on, µs, if one may be: the earliest of the heartbeat
+    /// deadline, the manual laser's limit and the capture window's end. The core switches the
+    /// lasers off by then on its own; a board arms a hardware timer a little after it, so the
+    /// light goes off even if the executor that runs the core is stuck.
+    pub fn light_deadline(&self) -> Option<Micros> {
+        let window = self
+            .capture
+            .as_ref()
+            .filter(|c| !matches!(c.phase, Phase::Confirming { .. }))
+            .map(|c| c.laser_off_at);
+        if self.laser_output == 0 && window.is_none() {
+            return None;
+        }
+        let mut t = self.heartbeat_deadline();
+        if let Some(d) = self.manual_deadline() {
+            t = t.min(d);
+        }
+        if let Some(off) = window {
+            t = t.min(off);
+        }
+        Some(t)
     }
 
     /// The current session settings.
@@ -467,12 +574,6 @@ impl<H: Hardware> Rig<H> {
     /// Exposures the camera confirmed since boot.
     pub fn exposures(&self) -> u32 {
         self.exposures
-    }
-
-    /// When the next motor step is due, µs (for a board that programs a hardware timer per step;
-    /// [`Rig::poll_timeout`] already includes it).
-    pub fn next_step_due(&self) -> Option<Micros> {
-        self.motion.as_ref().map(|m| m.next_due)
     }
 
     /// The active fault.
@@ -551,8 +652,6 @@ impl<H: Hardware> Rig<H> {
     /// Execute one already-decoded request (in-process use without framing).
     pub fn handle_request(&mut self, now: Micros, req: Request) {
         let now = self.advance(now);
-        self.last_request_at = now;
-        self.link_alive = true;
         let is_hello = matches!(req.command, Command::Hello { .. });
         if is_hello {
             self.replies.clear();
@@ -583,6 +682,13 @@ impl<H: Hardware> Rig<H> {
             self.replies.insert(reply.clone());
             reply
         };
+        if reply.result.is_ok() {
+            // Only an accepted request proves a host in session that is listening: a refused one
+            // (no session, stale, out of range, ...) may come from a confused or stuck sender, and
+            // must not keep light on.
+            self.last_request_at = now;
+            self.link_alive = true;
+        }
         self.send(RigMessage::Reply(reply));
         // The reply precedes the events its command caused (e.g. a zero-length move's MoveDone).
         while let Some(event) = self.deferred.pop_front() {
@@ -597,6 +703,8 @@ impl<H: Hardware> Rig<H> {
         let now = self.advance(now);
         let inputs = self.hw.read_inputs();
         self.apply_inputs(now, inputs);
+        // The home switch changed, perhaps: homing looks at it now, not at the next poll.
+        self.run_motion(now);
         self.take_camera_edges();
         self.run_capture_phases(now);
         self.sync_lasers();
@@ -613,7 +721,8 @@ impl<H: Hardware> Rig<H> {
         self.abort(now, HaltReason::StepStall, Halt::Emergency);
     }
 
-    /// Time passed: run every step, capture phase, program capture and safety check due by `now`.
+    /// Time passed: count the steps emitted, plan more, run every capture phase, program capture
+    /// and safety check due by `now`.
     pub fn handle_timeout(&mut self, now: Micros) {
         let now = self.advance(now);
         if now >= self.next_input_poll {
@@ -653,7 +762,20 @@ impl<H: Hardware> Rig<H> {
     pub fn poll_timeout(&self) -> Option<Micros> {
         let mut t = self.next_input_poll;
         if let Some(m) = &self.motion {
-            t = t.min(m.next_due);
+            if let Some(refill) = self.planner.refill_at() {
+                t = t.min(refill);
+            }
+            if m.planned >= m.end {
+                // Finish the motion when its last step is out.
+                t = t.min(self.planner.last_due().unwrap_or(self.now));
+            }
+            if let MotionKind::Home {
+                active_since: Some((since, _)),
+                ..
+            } = m.kind
+            {
+                t = t.min(since.saturating_add(u64::from(self.profile.homing.debounce_us)));
+            }
         }
         if let Some(c) = &self.capture {
             t = t.min(match c.phase {
@@ -787,15 +909,13 @@ impl<H: Hardware> Rig<H> {
                 if let Some(m) = self.motion.as_mut() {
                     m.kind = MotionKind::Stopping;
                     m.stop();
-                    if m.finished() {
-                        self.motion = None;
-                    }
+                    self.planner.clear_pending();
+                    self.run_motion(now);
                 }
             }
             Halt::Emergency => {
-                if self.motion.take().is_some() {
-                    self.flush_steps();
-                }
+                self.motion = None;
+                self.flush_steps();
             }
         }
         if cuts_motion {
@@ -813,11 +933,27 @@ impl<H: Hardware> Rig<H> {
         if inputs.estop && self.fault != Some(Fault::EmergencyStop) {
             self.fault = Some(Fault::EmergencyStop);
             self.abort(now, HaltReason::EmergencyStop, Halt::Emergency);
-        } else if !inputs.interlock_closed
-            && (self.armed || self.lasers != 0 || self.capture.is_some() || self.run.is_some())
-        {
-            self.abort(now, HaltReason::InterlockOpen, Halt::KeepMoving);
+            // Bench e-stops cut the drivers' power: a motor without holding torque may have been
+            // turned by hand, so the position is lost even when nothing was moving (grbl's alarm
+            // and Klipper's shutdown force homing again too).
+            self.homed = false;
+            self.rehoming = false;
+        } else if !inputs.interlock_closed && (self.light_work() || self.moving_on()) {
+            // grbl's safety door: the feed is held (decelerated to rest), the light cut.
+            self.abort(now, HaltReason::InterlockOpen, Halt::Decelerate);
         }
+    }
+
+    /// Laser work is armed or under way.
+    fn light_work(&self) -> bool {
+        self.armed || self.lasers != 0 || self.capture.is_some() || self.run.is_some()
+    }
+
+    /// A move or homing pass is under way (not the ramp-down of one already halted).
+    fn moving_on(&self) -> bool {
+        self.motion
+            .as_ref()
+            .is_some_and(|m| m.kind != MotionKind::Stopping)
     }
 
     fn heartbeat_deadline(&self) -> Micros {
@@ -836,7 +972,23 @@ impl<H: Hardware> Rig<H> {
 
     fn advance(&mut self, now: Micros) -> Micros {
         self.now = self.now.max(now);
+        self.count_steps(self.now);
         self.now
+    }
+
+    /// Take the steps the hardware has emitted by `now` onto the position.
+    fn count_steps(&mut self, now: Micros) {
+        let done = self.planner.take_due(now);
+        self.step_position(done);
+    }
+
+    fn step_position(&mut self, steps: u32) {
+        let d = i32::try_from(steps).unwrap_or(i32::MAX);
+        self.position = if self.stepping_forward {
+            self.position.saturating_add(d)
+        } else {
+            self.position.saturating_sub(d)
+        };
     }
 
     fn busy(&self) -> bool {
@@ -929,16 +1081,15 @@ impl<H: Hardware> Rig<H> {
         Ok(())
     }
 
-    /// Discard queued steps the hardware has not emitted yet and take them off the position.
+    /// Stop dead: discard the queued steps the hardware has not emitted yet; the ones it did are
+    /// counted. Returns how many were discarded.
     fn flush_steps(&mut self) -> u32 {
+        if self.planner.idle() {
+            return 0;
+        }
         let dropped = self.hw.flush();
-        let forward = self.motion.as_ref().is_none_or(|m| m.forward);
-        let d = i32::try_from(dropped).unwrap_or(i32::MAX);
-        self.position = if forward {
-            self.position.saturating_sub(d)
-        } else {
-            self.position.saturating_add(d)
-        };
+        let emitted = self.planner.flushed(dropped, self.now);
+        self.step_position(emitted);
         dropped
     }
 
@@ -1027,7 +1178,9 @@ impl<H: Hardware> Rig<H> {
                     self.hw.set_galvo(self.galvo);
                 }
                 self.profile = profile;
+                self.profile_known = true;
                 self.caps = capabilities(&profile);
+                self.planner.set_min_gap_us(min_step_gap_us(&profile));
                 self.homed = false;
                 self.armed = false;
                 self.lasers = 0;
@@ -1052,6 +1205,9 @@ impl<H: Hardware> Rig<H> {
                 self.check_not_faulted()?;
                 if !self.inputs.interlock_closed {
                     return Err(RigError::InterlockOpen);
+                }
+                if !self.profile_known {
+                    return Err(RigError::ProfileNotStored);
                 }
                 self.armed = true;
                 Ok(Response::Ack)
@@ -1129,12 +1285,26 @@ impl<H: Hardware> Rig<H> {
     fn start_motion(&mut self, now: Micros, profile: Profile, forward: bool, kind: MotionKind) {
         // The laser goes dark before the first step: manual channels are switched off for good.
         self.lasers = 0;
+        // A motion starts from rest after the last one's steps are all out (its first step comes
+        // sqrt(2/accel) ≥ 447 µs later, past any DIR set-up).
+        self.planner.clear_pending();
+        self.stepping_forward = forward;
         self.motion = Some(Motion::new(now, profile, forward, kind));
         self.sync_lasers();
+        self.run_motion(now);
+    }
+
+    /// Motion needs the enclosure shut (grbl's safety door).
+    fn check_motion_ready(&self) -> Result<(), RigError> {
+        self.check_not_faulted()?;
+        if !self.inputs.interlock_closed {
+            return Err(RigError::InterlockOpen);
+        }
+        Ok(())
     }
 
     fn start_move(&mut self, now: Micros, mv: Move) -> Result<Response, RigError> {
-        self.check_not_faulted()?;
+        self.check_motion_ready()?;
         if self.busy() {
             return Err(RigError::Busy);
         }
@@ -1173,7 +1343,6 @@ impl<H: Hardware> Rig<H> {
             phase,
             seen_active: false,
             active_since: None,
-            steps_since_active: 0,
         }
     }
 
@@ -1184,7 +1353,10 @@ impl<H: Hardware> Rig<H> {
             HomePhase::Approach => (h.speed, false),
             HomePhase::SlowApproach => (h.slow_speed, false),
             HomePhase::Release => (h.speed, true),
-            HomePhase::LeaveSwitch | HomePhase::BackOff | HomePhase::Return => (h.slow_speed, true),
+            HomePhase::LeaveSwitch
+            | HomePhase::LeftSwitch
+            | HomePhase::BackOff
+            | HomePhase::Return => (h.slow_speed, true),
             // Never started as passes (they are the stops of the fast passes).
             HomePhase::BrakeToRelease => (h.speed, false),
             HomePhase::BrakeToBackOff => (h.speed, true),
@@ -1197,7 +1369,7 @@ impl<H: Hardware> Rig<H> {
     }
 
     fn start_home(&mut self, now: Micros) -> Result<Response, RigError> {
-        self.check_not_faulted()?;
+        self.check_motion_ready()?;
         if self.busy() {
             return Err(RigError::Busy);
         }
@@ -1237,18 +1409,18 @@ impl<H: Hardware> Rig<H> {
     }
 
     fn homing_failed(&mut self, now: Micros) {
-        self.motion = None;
         self.fault = Some(Fault::HomingFailed);
         self.abort(now, HaltReason::HomingFailed, Halt::Emergency);
     }
 
-    /// Before a homing step: look at the switch; `Some(next)` ends the pass (with what follows).
+    /// The switch as it reads now (position = the steps emitted by now); `Some(next)` ends the
+    /// pass (with what follows). Checked on every input change and input poll, not per step:
+    /// the board's home switch raises an interrupt.
     fn homing_check(&mut self, now: Micros, m: &mut Motion) -> Option<HomeNext> {
         let MotionKind::Home {
             phase,
             seen_active,
             active_since,
-            steps_since_active,
         } = &mut m.kind
         else {
             return None;
@@ -1256,9 +1428,7 @@ impl<H: Hardware> Rig<H> {
         let active = self.hw.read_inputs().home_switch;
         let h = self.profile.homing;
         match *phase {
-            HomePhase::LeaveSwitch => {
-                (!active).then_some(HomeNext::Pass(HomePhase::BackOff, h.backoff_steps))
-            }
+            HomePhase::LeaveSwitch => (!active).then_some(HomeNext::CutThen(HomePhase::LeftSwitch)),
             HomePhase::Release => {
                 *seen_active |= active;
                 (!active && *seen_active).then_some(HomeNext::StopThen(HomePhase::BrakeToBackOff))
@@ -1268,57 +1438,50 @@ impl<H: Hardware> Rig<H> {
                 if !active {
                     // Bounce: start over.
                     *active_since = None;
-                    *steps_since_active = 0;
                     return None;
                 }
-                let since = *active_since.get_or_insert(now);
+                let (since, edge) = *active_since.get_or_insert((now, self.position));
                 if now.saturating_sub(since) >= u64::from(h.debounce_us) {
-                    Some(HomeNext::Found(*steps_since_active))
+                    Some(HomeNext::Found(edge))
                 } else {
                     None
                 }
             }
-            HomePhase::BackOff
+            HomePhase::LeftSwitch
+            | HomePhase::BackOff
             | HomePhase::Return
             | HomePhase::BrakeToRelease
             | HomePhase::BrakeToBackOff => None,
         }
     }
 
-    /// Take every step due by `now`; finish the move or homing pass when complete.
+    /// Look at the home switch, plan steps ahead, and finish the move or homing pass once its
+    /// last step is out.
     fn run_motion(&mut self, now: Micros) {
         let Some(mut m) = self.motion.take() else {
             return;
         };
-        while !m.finished() && m.next_due <= now {
-            let due = m.next_due;
-            if let Some(next) = self.homing_check(due, &mut m) {
-                self.homing_next(due, m, next);
-                return;
-            }
-            self.hw.step(m.forward);
-            self.position = if m.forward {
-                self.position.saturating_add(1)
-            } else {
-                self.position.saturating_sub(1)
-            };
-            if let MotionKind::Home {
-                active_since: Some(_),
-                steps_since_active,
-                ..
-            } = &mut m.kind
-            {
-                *steps_since_active = steps_since_active.saturating_add(1);
-            }
-            m.index += 1;
-            m.last_step_at = due;
-            let next = m.due(m.index.saturating_add(1));
-            m.next_due = m.next_due.max(next);
+        if let Some(next) = self.homing_check(now, &mut m) {
+            self.homing_next(now, m, next);
+            return;
         }
-        if !m.finished() {
+        // Top the queue up once it runs low (not on every wake: a run of steps ends where the
+        // planning horizon did, so planning in bigger bites gives longer runs).
+        if self.planner.refill_at().is_none_or(|t| now >= t) {
+            let planner = &mut self.planner;
+            let hw = &mut self.hw;
+            planner.refill(now, m.forward, &mut || m.next_ideal(), &mut |segment| {
+                hw.queue(segment)
+            });
+        }
+        let pending = u32::try_from(self.planner.pending_len()).unwrap_or(u32::MAX);
+        m.planned = m.computed.saturating_sub(pending);
+        if m.planned < m.end || !self.planner.drained() {
+            // Steps still to plan or still in the hardware's queue.
             self.motion = Some(m);
             return;
         }
+        self.planner.clear_pending();
         match m.kind {
             MotionKind::Move => self.emit(
                 now,
@@ -1340,7 +1503,7 @@ impl<H: Hardware> Rig<H> {
                         self.homing_failed(now);
                     }
                 }
-                HomePhase::BrakeToBackOff => self.start_backoff(now),
+                HomePhase::LeftSwitch | HomePhase::BrakeToBackOff => self.start_backoff(now),
                 HomePhase::Return => self.finish_home(now),
                 HomePhase::LeaveSwitch
                 | HomePhase::Approach
@@ -1352,37 +1515,30 @@ impl<H: Hardware> Rig<H> {
 
     fn homing_next(&mut self, now: Micros, mut m: Motion, next: HomeNext) {
         match next {
-            HomeNext::Pass(phase, steps) => {
-                if phase == HomePhase::BackOff {
-                    self.start_backoff(now);
-                } else if !self.start_home_pass(now, phase, steps) {
-                    self.homing_failed(now);
-                }
+            HomeNext::CutThen(phase) => {
+                // Slow: the steps already queued run out, then the next pass starts from rest.
+                m.cut();
+                self.planner.clear_pending();
+                m.kind = Self::home_kind(phase);
+                self.motion = Some(m);
+                self.run_motion(now);
             }
             HomeNext::StopThen(brake) => {
-                // Seen at speed: steps already queued behind the switch are discarded, then a
-                // decelerating stop; the slow pass measures the edge.
-                self.motion = Some(m);
-                self.flush_steps();
-                self.motion = None;
+                // Seen at speed: the steps already queued run out and a deceleration ramp follows
+                // them, from their speed to rest (never a dead stop at speed); the slow pass
+                // measures the edge.
                 m.stop();
+                self.planner.clear_pending();
                 m.kind = Self::home_kind(brake);
-                if m.finished() {
-                    // At rest already: what the brake would chain into.
-                    self.motion = Some(m);
-                    self.run_motion(now);
-                    return;
-                }
                 self.motion = Some(m);
+                self.run_motion(now);
             }
-            HomeNext::Found(past) => {
-                self.motion = Some(m);
-                let dropped = self.flush_steps();
-                self.motion = None;
-                // The edge was `past - dropped` steps back (position decreases on approach).
-                let past = past.saturating_sub(dropped);
-                let past_i = i32::try_from(past).unwrap_or(i32::MAX);
-                self.home_edge = Some(self.position.saturating_add(past_i));
+            HomeNext::Found(edge) => {
+                // At the slow speed the motor stops within a step: drop what is queued.
+                self.flush_steps();
+                self.home_edge = Some(edge);
+                // The edge is `past` steps back (position decreases on approach).
+                let past = u32::try_from(i64::from(edge) - i64::from(self.position)).unwrap_or(0);
                 if past == 0 {
                     self.finish_home(now);
                 } else {
@@ -1527,8 +1683,9 @@ impl<H: Hardware> Rig<H> {
             }),
             _ => None,
         };
+        let (lit_from, lit_until) = c.lit_window();
         let lit = matches!((c.exposure_start, c.exposure_end),
-            (Some(start), Some(end)) if start >= c.laser_on_at && end <= c.laser_off_at);
+            (Some(start), Some(end)) if start >= lit_from && end <= lit_until);
         if exposure.is_none() {
             // No image will come for this capture: the camera is ready again only after the
             // timeout (a late exposure would be counted anyway).
@@ -1661,9 +1818,9 @@ impl<H: Hardware> Rig<H> {
 /// How a halt treats a motion in progress.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Halt {
-    /// Leave it running (interlock, manual laser timeout: lasers only).
+    /// Leave it running (manual laser timeout: lasers only).
     KeepMoving,
-    /// Decelerate to rest (stop request, lost heartbeat).
+    /// Decelerate to rest (stop request, lost heartbeat, interlock opened).
     Decelerate,
     /// Stop dead and discard queued steps (e-stop, stall, homing failure).
     Emergency,
@@ -1672,12 +1829,12 @@ enum Halt {
 /// What ends a homing pass.
 #[derive(Debug, Clone, Copy)]
 enum HomeNext {
-    /// Start this pass over this many steps.
-    Pass(HomePhase, u32),
-    /// Decelerate, then start this pass.
+    /// Plan no more steps; once the queued ones are out, this phase's successor.
+    CutThen(HomePhase),
+    /// Decelerate after the queued steps, then this phase's successor.
     StopThen(HomePhase),
-    /// The switch edge, this many steps back.
-    Found(u32),
+    /// The switch edge, at this position.
+    Found(i32),
 }
 
 fn config_ok(c: &Config) -> bool {

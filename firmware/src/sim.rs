@@ -18,12 +18,15 @@ use subsurf_protocol::{Config, GalvoPoint, Inputs, MAX_FRAME, RigProfile};
 
 use crate::hal::{
     CameraEdge, CameraInput, CameraTrigger, ExposureWindow, GalvoDac, LaserOutputs, RigInputs,
-    Stepper,
+    StepSegment, Stepper,
 };
 use crate::rig::{Micros, Rig};
 
 /// Entries kept per log.
 pub const LOG_LEN: usize = 256;
+
+/// The simulated step timer's queue holds as many segments as the core keeps in flight.
+const STEP_QUEUE: usize = crate::planner::IN_FLIGHT;
 
 /// One logged output change.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -80,9 +83,11 @@ impl<T: Copy> Log<T> {
 /// The simulated camera's behaviour.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct SimCamera {
-    /// The trigger pin goes active this long after the core drives it (a board's software
-    /// latency; 0 for a hardware timer).
-    pub trigger_latency_us: u32,
+    /// The board's exposure timer starts this long after the core's schedule (the rig task's
+    /// wake-up latency): the trigger edge and the laser's on and off edges, all placed by that
+    /// timer, come this much later than scheduled; the trigger edge is timestamped where it
+    /// really was. 0 for an ideal board.
+    pub timer_latency_us: u32,
     /// From the trigger edge to exposure-active rising, µs.
     pub exposure_delay_us: u32,
     /// Triggers (0-based, counted since boot) the camera ignores: a missed trigger.
@@ -92,7 +97,7 @@ pub struct SimCamera {
 impl Default for SimCamera {
     fn default() -> Self {
         Self {
-            trigger_latency_us: 0,
+            timer_latency_us: 0,
             exposure_delay_us: 15,
             miss_triggers: [None; 4],
         }
@@ -164,15 +169,21 @@ pub struct SimHardware {
     exposures: u32,
     /// Whether a laser was on for the whole of every exposure so far (checked at both edges).
     unlit_exposures: u32,
-    /// Steps handed to `step` that reach the motor `pipeline_us` later (the board's step
-    /// pipeline), with their direction.
-    step_queue: Deque<(Micros, bool), 64>,
-    pipeline_us: u32,
+    /// The step queue: planned segments, emitted each step at its time (the board's step timer).
+    step_queue: Deque<StepSegment, STEP_QUEUE>,
+    /// Steps of the front segment already emitted.
+    front_emitted: u16,
+    /// Time (ticks) and direction of the last step emitted.
+    last_step: Option<(u64, bool)>,
+    /// The gap between the last two steps, µs.
+    last_gap_us: Option<Micros>,
+    /// The fastest the motor ran, steps/s, when a flush stopped it dead with steps still queued.
+    fastest_hard_stop: u32,
     steps_per_rev: u32,
     home_switch_width: u32,
     position: i64,
     steps: u64,
-    last_step_at: Option<Micros>,
+    segments: u64,
     min_step_interval_us: Option<Micros>,
     galvo: GalvoPoint,
     lasers: u8,
@@ -210,12 +221,15 @@ impl SimHardware {
             exposures: 0,
             unlit_exposures: 0,
             step_queue: Deque::new(),
-            pipeline_us: 0,
+            front_emitted: 0,
+            last_step: None,
+            last_gap_us: None,
+            fastest_hard_stop: 0,
             steps_per_rev: profile.steps_per_rev().unwrap_or(1).max(1),
             home_switch_width,
             position: start_position,
             steps: 0,
-            last_step_at: None,
+            segments: 0,
             min_step_interval_us: None,
             galvo: GalvoPoint { x: c, y: c },
             lasers: 0,
@@ -239,6 +253,11 @@ impl SimHardware {
     /// Steps taken in total.
     pub fn steps(&self) -> u64 {
         self.steps
+    }
+
+    /// Step segments the core queued so far.
+    pub fn segments(&self) -> u64 {
+        self.segments
     }
 
     /// Shortest time between two consecutive steps seen so far, µs.
@@ -276,21 +295,62 @@ impl SimHardware {
         self.interlock_closed = closed;
     }
 
-    /// Let steps reach the motor `delay_us` after the core emits them (the board's step
-    /// pipeline): steps the core flushes never move it.
-    pub fn set_step_pipeline(&mut self, delay_us: u32) {
-        self.pipeline_us = delay_us;
+    /// When the next queued step comes, µs (the motor moves then).
+    pub fn next_step_at(&self) -> Option<Micros> {
+        let s = self.step_queue.front()?;
+        Some(
+            s.step_at(self.front_emitted)
+                .div_ceil(u64::from(Self::TICKS_PER_US)),
+        )
     }
 
-    /// Move the motor for every queued step due by now.
+    /// The fastest the motor was running when something stopped it dead with steps still queued
+    /// (a flush), steps/s; 0 if that never happened. An e-stop does it on purpose; homing must
+    /// not at more than its slow speed.
+    pub fn fastest_hard_stop(&self) -> u32 {
+        self.fastest_hard_stop
+    }
+
+    /// Move the motor for every queued step due by now, checking each as the board's driver
+    /// would see it.
     fn drain_steps(&mut self) {
-        while let Some(&(at, forward)) = self.step_queue.front() {
-            if at > self.clock {
+        let now = self.clock.saturating_mul(u64::from(Self::TICKS_PER_US));
+        // Bounded by the queue: every pass emits a step or leaves.
+        while let Some(front) = self.step_queue.front().copied() {
+            if self.front_emitted >= front.count {
+                self.step_queue.pop_front();
+                self.front_emitted = 0;
+                continue;
+            }
+            let at = front.step_at(self.front_emitted);
+            if at > now {
                 break;
             }
-            self.step_queue.pop_front();
-            self.move_motor(forward);
+            self.front_emitted += 1;
+            self.emit_step(at, front.forward);
         }
+    }
+
+    fn emit_step(&mut self, at: u64, forward: bool) {
+        let ticks = u64::from(Self::TICKS_PER_US);
+        if self.lasers != 0 {
+            self.violation();
+        }
+        if let Some((prev, prev_forward)) = self.last_step {
+            let gap_us = at.saturating_sub(prev) / ticks;
+            self.last_gap_us = Some(gap_us);
+            self.min_step_interval_us =
+                Some(self.min_step_interval_us.map_or(gap_us, |m| m.min(gap_us)));
+            // DIR must settle before the STEP edge after a reversal.
+            let setup = u64::from(self.profile.motor.dir_setup_us)
+                + u64::from(self.profile.motor.step_pulse_us);
+            if forward != prev_forward && gap_us < setup {
+                self.violation();
+            }
+        }
+        self.last_step = Some((at, forward));
+        self.steps = self.steps.saturating_add(1);
+        self.move_motor(forward);
     }
 
     /// Laser switched on for a capture while the mirror (the profile's settle model) was still
@@ -364,28 +424,32 @@ impl SimHardware {
 }
 
 impl Stepper for SimHardware {
-    fn step(&mut self, forward: bool) {
-        if self.lasers != 0 {
-            self.violation();
-        }
+    /// The board's step clock (TIM2 at 84 MHz), so the simulator runs the board's segments.
+    const TICKS_PER_US: u32 = 84;
+
+    fn queue(&mut self, segment: StepSegment) -> bool {
         self.drain_steps();
-        if let Some(prev) = self.last_step_at {
-            let gap = self.clock.saturating_sub(prev);
-            self.min_step_interval_us = Some(self.min_step_interval_us.map_or(gap, |m| m.min(gap)));
-        }
-        self.last_step_at = Some(self.clock);
-        self.steps = self.steps.saturating_add(1);
-        let at = self.clock.saturating_add(u64::from(self.pipeline_us));
-        if self.pipeline_us == 0 || self.step_queue.push_back((at, forward)).is_err() {
-            self.move_motor(forward);
-        }
+        let queued = self.step_queue.push_back(segment).is_ok();
+        self.segments = self.segments.saturating_add(u64::from(queued));
+        queued
     }
 
     fn flush(&mut self) -> u32 {
         self.drain_steps();
-        let n = self.step_queue.len();
+        let mut dropped = 0u32;
+        for (i, s) in self.step_queue.iter().enumerate() {
+            let done = if i == 0 { self.front_emitted } else { 0 };
+            dropped = dropped.saturating_add(u32::from(s.count.saturating_sub(done)));
+        }
+        if dropped > 0
+            && let Some(gap) = self.last_gap_us
+        {
+            let speed = u32::try_from(1_000_000 / gap.max(1)).unwrap_or(u32::MAX);
+            self.fastest_hard_stop = self.fastest_hard_stop.max(speed);
+        }
         self.step_queue.clear();
-        u32::try_from(n).unwrap_or(u32::MAX)
+        self.front_emitted = 0;
+        dropped
     }
 }
 
@@ -422,7 +486,7 @@ impl CameraTrigger for SimHardware {
         }
         let edge = self
             .clock
-            .saturating_add(u64::from(self.camera.trigger_latency_us));
+            .saturating_add(u64::from(self.camera.timer_latency_us));
         let index = self.triggers;
         self.triggers = self.triggers.saturating_add(1);
         self.push_edge(CameraEdge::Trigger(edge));
@@ -443,9 +507,12 @@ impl CameraTrigger for SimHardware {
     }
 
     fn arm_window(&mut self, window: &ExposureWindow) {
+        // The light really is on where the board's timer puts it: the whole window late by the
+        // timer's start latency.
+        let late = u64::from(self.camera.timer_latency_us);
         self.window_exposure_us = window.exposure_us;
-        self.lit_from = window.laser_on_at;
-        self.lit_until = window.laser_off_at;
+        self.lit_from = window.laser_on_at.saturating_add(late);
+        self.lit_until = window.laser_off_at.saturating_add(late);
     }
 }
 
@@ -505,11 +572,15 @@ impl SimRig {
     /// When something next happens on the rig by itself (step, capture phase, input poll,
     /// heartbeat timeout).
     pub fn next_deadline(&self) -> Option<Micros> {
-        let camera = self.rig.hw().next_camera_edge();
-        match (self.rig.poll_timeout(), camera) {
-            (Some(a), Some(b)) => Some(a.min(b)),
-            (a, b) => a.or(b),
-        }
+        let hw = self.rig.hw();
+        [
+            self.rig.poll_timeout(),
+            hw.next_camera_edge(),
+            hw.next_step_at(),
+        ]
+        .into_iter()
+        .flatten()
+        .min()
     }
 
     /// Let time pass up to `now`, running every deadline on the way at its exact time.
@@ -520,7 +591,12 @@ impl SimRig {
                 break;
             }
             let t = t.max(self.now);
+            let switch = self.rig.hw().home_switch();
             self.set_clock(t);
+            if self.rig.hw().home_switch() != switch {
+                // The board's home switch raises an interrupt: the core hears of it at once.
+                self.rig.handle_inputs(t);
+            }
             self.take_camera_edges(t);
             if self.rig.poll_timeout().is_some_and(|d| d <= t) {
                 self.rig.handle_timeout(t);

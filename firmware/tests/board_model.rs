@@ -83,28 +83,27 @@ mod galvo {
         assert_eq!(f[2], [0x29, 0x00, 0x00]);
     }
 
-    /// The boot sequence the board ran before: centre, then the core's first command (0, 0),
-    /// as one jump. Through the slew limiter no write moves an axis by more than `max_step`.
+    /// Finding 10: the first galvo command used to be ramped in 1 ms steps, blocking the
+    /// executor up to 32 ms (a move's steps starved meanwhile). No ramp is needed: the core's
+    /// first write is the centre, which is exactly where the AD5689R powers up (RSTSEL high:
+    /// mid-scale, 0x8000), so no write ever jumps from an unknown level; every command is one
+    /// write.
     #[test]
-    fn no_slam_at_boot() {
+    fn the_first_write_is_the_power_on_centre_so_nothing_ramps() {
         let map = GalvoMap::for_output(GalvoOutput::ExternalDac16);
-        let max_step = 2_048;
-        let mut slew = Slew::new(map.centre(), max_step);
-        let target = map.dac_codes(0, 0);
-        let mut at = map.centre();
-        let mut writes = 0;
-        while let Some(next) = slew.next(target) {
-            assert!(next.0.abs_diff(at.0) <= max_step && next.1.abs_diff(at.1) <= max_step);
-            at = next;
-            writes += 1;
-            assert!(writes < 100, "ramp does not end");
-        }
-        assert_eq!(at, target);
-        assert!(writes > 1, "jumped in one write");
-        assert!(!slew.ramping());
-        // After the ramp, ordinary commands go straight through (the core's settle model).
-        assert_eq!(slew.next((65_535, 65_535)), Some((65_535, 65_535)));
-        assert_eq!(slew.next((65_535, 65_535)), None);
+        let c = GalvoOutput::ExternalDac16.center();
+        assert_eq!(map.dac_codes(c, c), (0x8000, 0x8000));
+        assert_eq!(map.centre(), (0x8000, 0x8000));
+        let internal = GalvoMap::for_output(GalvoOutput::InternalDac12);
+        let c = GalvoOutput::InternalDac12.center();
+        assert_eq!(internal.dac_codes(c, c), internal.centre());
+    }
+
+    /// Finding 8: the internal DAC drove PA4/PA5 even on the external-DAC path.
+    #[test]
+    fn the_internal_dac_is_live_only_on_its_own_path() {
+        assert!(!internal_dac_live(GalvoOutput::ExternalDac16));
+        assert!(internal_dac_live(GalvoOutput::InternalDac12));
     }
 
     proptest! {
@@ -147,60 +146,56 @@ mod timed_exposure {
         plan_window(u64::from(m.lead_us), trigger_us, exposure_us, after)
     }
 
-    /// One-pulse timer: counts 0..=arr once at `tick_ns` and stops. The laser channel starts
-    /// active (forced on before the start) and runs "inactive on match" at `laser_off_ccr`; the
-    /// trigger runs "active on match" at `trigger_ccr` and its compare interrupt (`isr_ticks`
-    /// late) switches it to "inactive on match" at `trigger_off_ccr`. Match modes keep their level
-    /// after the timer stops. Returns the edges in ns: (laser off, trigger on, trigger off).
-    fn run(plan: &Plan, isr_ticks: u32) -> (u64, u64, u64) {
-        let mut laser = true;
+    /// The two one-pulse timers, tick by tick, with no interrupt at all: TIM8's laser channel
+    /// starts active (forced on before the start) and runs "inactive on match" at its compare;
+    /// TIM3's trigger channel runs PWM mode 2 (active while the counter is at or above its
+    /// compare). Each counter counts `0..=arr` once, then one-pulse mode stops it at 0, where a
+    /// match mode keeps its level and PWM mode 2 reads inactive. Returns the edges in ns:
+    /// (laser off, trigger on, trigger off), and checks both outputs are off once both stopped.
+    fn run(plan: &Plan) -> (u64, u64, u64) {
         let mut laser_off = None;
-        let mut trigger = (None, None);
-        let mut trig_level = false;
-        let mut trig_ccr = u32::from(plan.trigger_ccr);
-        let mut trig_mode_on = true;
-        let mut isr_at: Option<u32> = None;
-        for cnt in 0..=u32::from(plan.arr) {
-            let t = u64::from(cnt) * u64::from(plan.tick_ns);
-            if cnt == u32::from(plan.laser_off_ccr) && laser {
-                laser = false;
-                laser_off = Some(t);
-            }
-            if cnt == trig_ccr && trig_mode_on != trig_level {
-                trig_level = trig_mode_on;
-                if trig_level {
-                    trigger.0 = Some(t);
-                    isr_at = Some(cnt + isr_ticks);
-                } else {
-                    trigger.1 = Some(t);
-                }
-            }
-            if isr_at == Some(cnt) {
-                isr_at = None;
-                trig_mode_on = false;
-                trig_ccr = u32::from(plan.trigger_off_ccr);
+        for cnt in 0..=u32::from(plan.laser.arr) {
+            if cnt == u32::from(plan.laser.ccr) {
+                laser_off = Some(plan.laser.at_ns(cnt));
+                break;
             }
         }
-        assert!(!laser, "laser still on after the timer stopped");
-        assert!(!trig_level, "trigger still active after the timer stopped");
+        let (mut rise, mut fall) = (None, None);
+        let mut level = false;
+        for cnt in 0..=u32::from(plan.trigger.arr) + 1 {
+            // After `arr` the counter wraps to 0 and stops.
+            let c = if cnt > u32::from(plan.trigger.arr) {
+                0
+            } else {
+                cnt
+            };
+            let out = c >= u32::from(plan.trigger.ccr);
+            if out && !level {
+                rise = Some(plan.trigger.at_ns(cnt));
+            }
+            if !out && level {
+                fall = Some(plan.trigger.at_ns(cnt));
+            }
+            level = out;
+        }
+        assert!(!level, "trigger still active after its timer stopped");
         (
             laser_off.expect("laser off"),
-            trigger.0.expect("trigger"),
-            trigger.1.expect("trigger off"),
+            rise.expect("trigger"),
+            fall.expect("trigger off"),
         )
     }
 
     /// The laser window covers the whole exposure, from the trigger edge plus the camera's
-    /// latency to its end, and the trigger pulse is at least as long as asked.
+    /// latency to its end, and the trigger pulse is at least as long as asked, ended by its
+    /// counter.
     fn check(exposure_us: u32, trigger_us: u32, m: Margins) {
         let plan = plan(exposure_us, trigger_us, m).expect("plannable");
-        // The compare interrupt runs a tick after the trigger edge (well within MIN_TRIGGER_US).
-        let (off, trig, trig_off) = run(&plan, 1);
-        let on = 0;
+        let (off, trig, trig_off) = run(&plan);
         let start = trig + u64::from(m.trigger_latency_us) * 1_000;
         let end = start + u64::from(exposure_us) * 1_000;
         assert!(
-            on + u64::from(m.lead_us) * 1_000 <= trig + u64::from(plan.tick_ns),
+            u64::from(m.lead_us) * 1_000 <= trig + u64::from(plan.trigger.tick_ns),
             "lead"
         );
         assert!(
@@ -212,14 +207,12 @@ mod timed_exposure {
             "trigger pulse short"
         );
         assert!(trig_off <= off);
-        // And not wastefully long: at most two ticks and the margins beyond the exposure.
-        let slack = off - on - u64::from(exposure_us) * 1_000;
+        // And not wastefully long: at most two ticks of each timer beyond the margins.
+        let slack = off - u64::from(exposure_us) * 1_000;
         let margins = u64::from(m.lead_us + m.trigger_latency_us + m.tail_us) * 1_000;
-        assert!(
-            slack <= margins + 2 * u64::from(plan.tick_ns) + 1_000,
-            "slack {slack}"
-        );
-        assert_eq!(plan.edges_us().2 * 1_000, off);
+        let ticks = 2 * u64::from(plan.laser.tick_ns + plan.trigger.tick_ns);
+        assert!(slack <= margins + ticks + 1_000, "slack {slack}");
+        assert_eq!(plan.edges_ns(), (trig, trig_off, off));
     }
 
     #[test]
@@ -237,21 +230,31 @@ mod timed_exposure {
         );
     }
 
+    /// Finding 6: the trigger's falling edge needed the compare interrupt within the pulse, or
+    /// it stayed high until the next capture. Now both trigger edges are TIM3's own, even for a
+    /// 1 µs pulse (the old floor was 10 µs), and no interrupt runs at all.
+    #[test]
+    fn the_trigger_falls_by_its_counter_even_for_a_one_microsecond_pulse() {
+        check(100, 1, Margins::DEFAULT);
+        let p = plan(100, 1, Margins::DEFAULT).unwrap();
+        let (_, rise, fall) = run(&p);
+        assert_eq!(fall - rise, 1_000);
+    }
+
     #[test]
     fn long_exposures_use_a_coarser_tick_and_round_outwards() {
         check(2_000_000, 1_000, Margins::DEFAULT);
         let plan = plan(2_000_000, 1_000, Margins::DEFAULT).unwrap();
-        assert!(plan.tick_ns > 1_000);
+        assert!(plan.laser.tick_ns > 1_000);
     }
 
     #[test]
     fn window_as_the_core_announces_it() {
         // Lead 50 µs, 100 µs trigger, laser off 20 050 µs after the edge (exposure + tail).
         let p = plan_window(50, 100, 20_000, 20_050).unwrap();
-        assert_eq!(p.tick_ns, 1_000);
-        assert_eq!(p.edges_us(), (50, 150, 20_100));
-        let (off, trig, trig_off) = run(&p, 2);
-        assert_eq!((trig, trig_off, off), (50_000, 150_000, 20_100_000));
+        assert_eq!(p.trigger.tick_ns, 1_000);
+        assert_eq!(p.edges_ns(), (50_000, 150_000, 20_100_000));
+        assert_eq!(run(&p), (20_100_000, 50_000, 150_000));
     }
 
     /// The core's scheduled laser-off leaves a running timer to end the window on its count; an
@@ -290,15 +293,43 @@ mod timed_exposure {
         );
     }
 
+    /// Finding 6: heartbeat loss and the laser's limits were handled only by the executor (the
+    /// watchdog, 500 ms later, the only backstop). TIM5 now fires a little after the core's own
+    /// deadline, whatever the executor does; a deadline long past fires at once.
+    #[test]
+    fn the_light_s_deadline_timer_follows_the_core_s_deadline() {
+        assert_eq!(lights_out_timer(None, 5), LightsOutTimer::Stop);
+        assert_eq!(
+            lights_out_timer(Some(2_000_000), 1_000_000),
+            LightsOutTimer::FireIn {
+                ticks: 1_000_000 + LIGHTS_OUT_GRACE_US as u32,
+                lift: true
+            }
+        );
+        // Long past (the executor was stuck): at once, and the cut stays.
+        assert_eq!(
+            lights_out_timer(Some(1_000), 9_000_000),
+            LightsOutTimer::FireIn {
+                ticks: 1,
+                lift: false
+            }
+        );
+        // Far ahead: clamped to the 32-bit counter.
+        assert!(matches!(
+            lights_out_timer(Some(u64::MAX), 0),
+            LightsOutTimer::FireIn { ticks, .. } if ticks == u32::MAX - 1
+        ));
+    }
+
     #[test]
     fn exposures_below_the_hardware_minimum_are_refused() {
         assert_eq!(
-            plan(MIN_EXPOSURE_US - 1, MIN_TRIGGER_US, Margins::DEFAULT),
+            plan(MIN_EXPOSURE_US - 1, 1, Margins::DEFAULT),
             Err(ExposureError::TooShort)
         );
         assert_eq!(plan(1, 1, Margins::DEFAULT), Err(ExposureError::TooShort));
         assert_eq!(
-            plan(1_000, MIN_TRIGGER_US - 1, Margins::DEFAULT),
+            plan(1_000, 0, Margins::DEFAULT),
             Err(ExposureError::BadTrigger)
         );
         assert_eq!(
@@ -310,8 +341,8 @@ mod timed_exposure {
     proptest! {
         #[test]
         fn any_exposure_is_covered(
-            exposure in MIN_EXPOSURE_US + MIN_TRIGGER_US..200_000,
-            trigger in MIN_TRIGGER_US..500,
+            exposure in MIN_EXPOSURE_US + 1..200_000,
+            trigger in 1u32..500,
             lead in 0u32..200,
             latency in 0u32..200,
             tail in 0u32..200,
@@ -326,67 +357,132 @@ mod profile_flash {
     use super::flash_record::*;
     use super::*;
 
-    const SECTOR: usize = 4_096;
+    /// Two sectors in memory and what the board does with them: `save` as `store.rs` does,
+    /// counting erases; NOR flash semantics (programming only clears bits).
+    struct Flash {
+        sectors: [Vec<u8>; 2],
+        erases: [u32; 2],
+    }
 
-    fn write(sector: &mut [u8], payload: &[u8]) {
-        let mut rec = [0u8; MAX_RECORD];
-        let n = encode(payload, &mut rec).unwrap();
-        let s = scan(sector);
-        let at = match place(&s, n, sector.len()) {
-            Ok(at) => at,
-            Err(()) => {
-                sector.fill(0xff);
-                0
+    impl Flash {
+        fn blank() -> Self {
+            Self {
+                sectors: [vec![0xff; SECTOR_LEN], vec![0xff; SECTOR_LEN]],
+                erases: [0, 0],
             }
-        };
-        // NOR flash: programming only clears bits.
-        for (dst, src) in sector[at..at + n].iter_mut().zip(&rec[..n]) {
-            *dst &= *src;
+        }
+
+        fn scans(&self) -> [Scan; 2] {
+            [scan(&self.sectors[0]), scan(&self.sectors[1])]
+        }
+
+        fn latest(&self) -> Option<&[u8]> {
+            latest_payload([&self.sectors[0], &self.sectors[1]])
+        }
+
+        /// Plan and encode a save; `None` if the sector to write must be erased.
+        fn plan(&self, payload: &[u8]) -> (Placement, Vec<u8>) {
+            let p = place(&self.scans(), record_len(payload.len()), SECTOR_LEN);
+            let mut rec = [0u8; MAX_RECORD];
+            let n = encode(payload, p.seq, &mut rec).unwrap();
+            (p, rec[..n].to_vec())
+        }
+
+        fn program(&mut self, sector: usize, at: usize, bytes: &[u8]) {
+            for (d, s) in self.sectors[sector][at..at + bytes.len()]
+                .iter_mut()
+                .zip(bytes)
+            {
+                *d &= *s;
+            }
+        }
+
+        fn save(&mut self, payload: &[u8]) -> Placement {
+            let (p, rec) = self.plan(payload);
+            if p.erase {
+                self.sectors[p.sector].fill(0xff);
+                self.erases[p.sector] += 1;
+            }
+            self.program(p.sector, p.at, &rec);
+            p
         }
     }
 
     #[test]
-    fn blank_sector_has_no_profile_and_room() {
-        let sector = vec![0xffu8; SECTOR];
-        assert_eq!(latest_payload(&sector), None);
-        assert_eq!(scan(&sector).free, Some(0));
+    fn blank_sectors_have_no_profile_and_room() {
+        let f = Flash::blank();
+        assert_eq!(f.latest(), None);
+        let p = f.plan(b"x").0;
+        assert_eq!((p.sector, p.at, p.seq), (0, 0, 1));
     }
 
     #[test]
-    fn newest_record_wins_and_wraps_by_erasing() {
-        let mut sector = vec![0xffu8; SECTOR];
-        for k in 0..500u32 {
-            let payload = k.to_le_bytes();
-            write(&mut sector, &payload);
-            assert_eq!(latest_payload(&sector), Some(&payload[..]), "write {k}");
+    fn newest_record_wins_and_erases_are_rare_and_never_of_the_newest() {
+        let mut f = Flash::blank();
+        // A 256-byte payload: the largest record.
+        for k in 0..1_000u32 {
+            let mut payload = [0u8; MAX_PAYLOAD];
+            payload[..4].copy_from_slice(&k.to_le_bytes());
+            let newest_before = newest(&f.scans()).map(|(s, _)| s);
+            let p = f.save(&payload);
+            if p.erase {
+                assert_ne!(
+                    Some(p.sector),
+                    newest_before,
+                    "write {k} erased the newest record"
+                );
+            }
+            assert_eq!(f.latest(), Some(&payload[..]), "write {k}");
         }
+        // One erase per sector's worth of records, not per save.
+        let erases = f.erases[0] + f.erases[1];
+        assert!(
+            erases <= 1_000 / (RECORDS_PER_SECTOR as u32 - 1),
+            "{erases} erases for 1000 saves"
+        );
+    }
+
+    #[test]
+    fn a_reset_during_an_erase_keeps_the_newest_profile() {
+        let mut f = Flash::blank();
+        f.save(b"old");
+        // Fill sector 0 so the next save erases sector 1; the erase is cut half-way (junk left).
+        while !f.plan(b"newest").0.erase {
+            f.save(b"newest");
+        }
+        let (p, _) = f.plan(b"next");
+        assert_eq!(p.sector, 1);
+        f.sectors[1][..64].fill(0x5a);
+        assert_eq!(f.latest(), Some(&b"newest"[..]));
+        // The save after the reset erases it again and lands.
+        let p = f.save(b"next");
+        assert!(p.erase && p.sector == 1);
+        assert_eq!(f.latest(), Some(&b"next"[..]));
     }
 
     #[test]
     fn torn_write_keeps_the_previous_record() {
-        let mut sector = vec![0xffu8; SECTOR];
-        write(&mut sector, b"first profile");
-        let mut rec = [0u8; MAX_RECORD];
-        let n = encode(b"second profile", &mut rec).unwrap();
-        let at = scan(&sector).free.unwrap();
+        let mut f = Flash::blank();
+        f.save(b"first profile");
+        let (p, rec) = f.plan(b"second profile");
         // Power lost half-way through programming the second record.
-        for (dst, src) in sector[at..at + n / 2].iter_mut().zip(&rec) {
-            *dst &= *src;
-        }
-        assert_eq!(latest_payload(&sector), Some(&b"first profile"[..]));
-        // The next write still lands and is read back.
-        write(&mut sector, b"third");
-        assert_eq!(latest_payload(&sector), Some(&b"third"[..]));
+        f.program(p.sector, p.at, &rec[..rec.len() / 2]);
+        assert_eq!(f.latest(), Some(&b"first profile"[..]));
+        // The next write still lands (in the other sector: the torn one has no clean room) and
+        // is read back.
+        f.save(b"third");
+        assert_eq!(f.latest(), Some(&b"third"[..]));
     }
 
     #[test]
     fn foreign_bytes_force_an_erase_not_a_misread() {
-        let mut sector = vec![0xffu8; SECTOR];
-        sector[..4].copy_from_slice(b"junk");
-        assert_eq!(latest_payload(&sector), None);
-        assert_eq!(scan(&sector).free, None);
-        write(&mut sector, b"p");
-        assert_eq!(latest_payload(&sector), Some(&b"p"[..]));
+        let mut f = Flash::blank();
+        f.sectors[0][..4].copy_from_slice(b"junk");
+        f.sectors[1][..4].copy_from_slice(b"junk");
+        assert_eq!(f.latest(), None);
+        let p = f.save(b"p");
+        assert!(p.erase);
+        assert_eq!(f.latest(), Some(&b"p"[..]));
     }
 
     /// What the board does with a profile the host sets, and reads back after a reset: postcard
@@ -400,44 +496,64 @@ mod profile_flash {
         profile.galvo.output = GalvoOutput::InternalDac12;
         let mut buf = [0u8; MAX_PAYLOAD];
         let bytes = postcard::to_slice(&profile, &mut buf).unwrap();
-        let mut sector = vec![0xffu8; SECTOR];
-        write(&mut sector, bytes);
-        let back: RigProfile = postcard::from_bytes(latest_payload(&sector).unwrap()).unwrap();
+        let mut f = Flash::blank();
+        f.save(bytes);
+        let back: RigProfile = postcard::from_bytes(f.latest().unwrap()).unwrap();
         assert_eq!(back, profile);
         assert!(back.validate().is_ok());
-        // A newer firmware's record (version + 1) is not misread as this version's profile.
-        let at = scan(&sector).free.unwrap();
-        let mut rec = [0u8; MAX_RECORD];
-        let n = encode(b"future", &mut rec).unwrap();
+        // A newer firmware's record (version + 1, a higher sequence) is not misread as this
+        // version's profile.
+        let (p, mut rec) = f.plan(b"future");
         rec[4] = rec[4].wrapping_add(1);
-        for (d, s) in sector[at..at + n].iter_mut().zip(&rec[..n]) {
-            *d &= *s;
-        }
-        assert_eq!(latest_payload(&sector), Some(bytes as &[u8]));
+        f.program(p.sector, p.at, &rec);
+        assert_eq!(f.latest(), Some(bytes as &[u8]));
     }
 
     #[test]
     fn oversize_payload_is_refused() {
         let mut rec = [0u8; MAX_RECORD];
         assert_eq!(
-            encode(&[0; MAX_PAYLOAD + 1], &mut rec),
+            encode(&[0; MAX_PAYLOAD + 1], 1, &mut rec),
             Err(RecordError::TooLarge)
         );
         assert_eq!(
-            encode(&[0; 40], &mut [0u8; 8]),
+            encode(&[0; 40], 1, &mut [0u8; 8]),
             Err(RecordError::BufferTooSmall)
         );
+    }
+
+    /// Finding 2: a save blocked every interrupt for a 128 KiB sector's erase (up to 2 s) under a
+    /// 500 ms watchdog, so the chip reset mid-erase, every time. Now a 16 KiB sector (≤ 500 ms)
+    /// with the watchdog stretched to outlast it even on the fastest LSI.
+    #[test]
+    fn the_watchdog_outlasts_the_worst_erase() {
+        // The board's regular watchdog: 500 ms at 32 kHz, only 340 ms on a 47 kHz LSI: even the
+        // small sector's 500 ms erase would outlast it.
+        let regular_ms = 500 * 32_000 / LSI_MAX_HZ;
+        assert!(regular_ms < SECTOR_ERASE_MAX_MS);
+        let (pr, rlr) = erase_watchdog().expect("the watchdog can wait that long");
+        let shortest_ms = u64::from(rlr) * (4u64 << pr) * 1_000 / u64::from(LSI_MAX_HZ);
+        assert!(shortest_ms >= u64::from(ERASE_WATCHDOG_MS));
+        assert!(u64::from(worst_case_blocking_ms()) < shortest_ms);
+        assert!(
+            worst_case_blocking_ms() <= 510,
+            "{}",
+            worst_case_blocking_ms()
+        );
+        assert_eq!(SECTOR_LEN, 16 * 1024);
+        // Beyond what the watchdog can count, no setting.
+        assert_eq!(watchdog_setting(60_000), None);
     }
 
     proptest! {
         /// Any corruption of a stored record is caught by the CRC (never returned as a profile).
         #[test]
         fn corrupted_records_are_never_returned(payload in proptest::collection::vec(any::<u8>(), 1..200), flip in any::<usize>(), bit in 0u8..8) {
-            let mut sector = vec![0xffu8; SECTOR];
-            write(&mut sector, &payload);
+            let mut f = Flash::blank();
+            f.save(&payload);
             let n = HEADER_LEN + payload.len() + 4;
-            sector[flip % n] ^= 1 << bit;
-            prop_assert_ne!(latest_payload(&sector), Some(&payload[..]));
+            f.sectors[0][flip % n] ^= 1 << bit;
+            prop_assert_ne!(f.latest(), Some(&payload[..]));
         }
     }
 }
@@ -445,30 +561,64 @@ mod profile_flash {
 mod cut_off {
     use super::safety::*;
 
-    #[test]
-    fn unsafe_levels_cut_whichever_line_fired() {
-        let pins = |estop_high, interlock_high| SafetyPins {
+    fn pins(estop_high: bool, interlock_high: bool) -> SafetyPins {
+        SafetyPins {
             estop_high,
             interlock_high,
-        };
+        }
+    }
+
+    #[test]
+    fn unsafe_levels_cut_whichever_line_fired() {
+        let none = SafetyEdges::default();
         assert_eq!(
-            on_exti(pins(true, false)),
+            on_exti(none, pins(true, false)),
             Cut {
                 lasers: true,
                 stepper: true
             }
         );
         assert_eq!(
-            on_exti(pins(false, true)),
+            on_exti(none, pins(false, true)),
             Cut {
                 lasers: true,
                 stepper: false
             }
         );
         assert_eq!(
-            on_exti(pins(false, false)),
+            on_exti(none, pins(false, false)),
             Cut {
                 lasers: false,
+                stepper: false
+            }
+        );
+    }
+
+    /// Finding 10: the interrupt acted on the level it sampled, so a press (or an opening)
+    /// shorter than its latency, already released when it sampled, cut nothing. The latched edge
+    /// cuts.
+    #[test]
+    fn a_short_press_cuts_by_its_latched_edge() {
+        let released = pins(false, false);
+        let press = SafetyEdges {
+            estop: true,
+            interlock: false,
+        };
+        assert_eq!(
+            on_exti(press, released),
+            Cut {
+                lasers: true,
+                stepper: true
+            }
+        );
+        let opening = SafetyEdges {
+            estop: false,
+            interlock: true,
+        };
+        assert_eq!(
+            on_exti(opening, released),
+            Cut {
+                lasers: true,
                 stepper: false
             }
         );
@@ -486,9 +636,117 @@ mod cut_off {
     #[test]
     fn cut_off_takes_the_pin_back_from_the_timer() {
         // PC6, PC8, PC9 in alternate function (timer-driven) → general-purpose output.
-        let moder = moder_alternate(moder_alternate(moder_alternate(0, 6), 8), 9);
-        let out = moder_output(moder_output(moder_output(moder, 6), 8), 9);
-        assert_eq!(out, (0b01 << 12) | (0b01 << 16) | (0b01 << 18));
-        assert_eq!(moder_output(u32::MAX, 3), !(0b10 << 6));
+        let af = |m, p| moder_with(m, p, PinMode::Alternate);
+        let out = |m, p| moder_with(m, p, PinMode::Output);
+        let moder = af(af(af(0, 6), 8), 9);
+        assert_eq!(
+            out(out(out(moder, 6), 8), 9),
+            (0b01 << 12) | (0b01 << 16) | (0b01 << 18)
+        );
+        assert_eq!(out(u32::MAX, 3), !(0b10 << 6));
+        assert_eq!(moder_with(u32::MAX, 3, PinMode::Input), !(0b11 << 6));
+    }
+
+    /// A GPIO pin and what a laser driver wired to it sees: driven by ODR in output mode,
+    /// high-impedance as an input (the wiring's resistor then pulls it to the driver's off level),
+    /// the timer's level in alternate-function mode (here: the timer's idle output, inactive).
+    struct Pin {
+        moder: u32,
+        odr_high: bool,
+    }
+
+    const PIN: u8 = 6;
+
+    impl Pin {
+        fn at_reset() -> Self {
+            Self {
+                moder: 0,
+                odr_high: false,
+            }
+        }
+        fn bsrr(&mut self, word: u32) {
+            if word & (1 << PIN) != 0 {
+                self.odr_high = true;
+            }
+            if word & (1 << (PIN + 16)) != 0 {
+                self.odr_high = false;
+            }
+        }
+        /// Whether the driver (active low or high) sees "on".
+        fn on(&self, wired_active_low: bool) -> bool {
+            match (self.moder >> (2 * PIN)) & 0b11 {
+                // Input: the external resistor holds the off level.
+                0b00 => false,
+                0b01 => self.odr_high != wired_active_low,
+                _ => false,
+            }
+        }
+        fn apply(&mut self, park: Park, wired_active_low: bool, steps: &mut Vec<bool>) {
+            if let Some(word) = park.bsrr {
+                self.bsrr(word);
+                steps.push(self.on(wired_active_low));
+            }
+            self.moder = moder_with(self.moder, PIN, park.mode);
+            steps.push(self.on(wired_active_low));
+        }
+    }
+
+    /// Finding 1: from reset until the profile is known, and at every fault after, a laser pin is
+    /// never on, whichever polarity the driver is wired with: high-impedance while unknown, then
+    /// parked at the known profile's inactive level (data register before mode).
+    #[test]
+    fn laser_pins_are_off_from_reset_for_either_polarity() {
+        for wired_active_low in [false, true] {
+            let mut pin = Pin::at_reset();
+            let mut seen = vec![pin.on(wired_active_low)];
+            // Boot with nothing stored: parked (a fault path, or `configure` never called).
+            pin.apply(park(PIN, Polarity::Unknown), wired_active_low, &mut seen);
+            // The stored (right) profile is read: parked at its inactive level.
+            pin.apply(
+                park(PIN, Polarity::from_active_low(wired_active_low)),
+                wired_active_low,
+                &mut seen,
+            );
+            // A fault path parks again.
+            pin.apply(
+                park(PIN, Polarity::from_active_low(wired_active_low)),
+                wired_active_low,
+                &mut seen,
+            );
+            assert!(
+                seen.iter().all(|on| !on),
+                "wired active-{}: {seen:?}",
+                if wired_active_low { "low" } else { "high" }
+            );
+        }
+    }
+
+    /// What the old boot did, in the same model: parked at the *default* polarity (active high:
+    /// drive low) before the stored profile was read. For an active-low driver that is "on" until
+    /// the profile is applied: light at every boot.
+    #[test]
+    fn the_old_boot_order_lit_active_low_lasers() {
+        let mut pin = Pin::at_reset();
+        let mut seen = Vec::new();
+        pin.apply(park(PIN, Polarity::ActiveHigh), true, &mut seen);
+        assert!(seen.iter().any(|&on| on), "{seen:?}");
+    }
+}
+
+/// Finding 10: embassy's EXTI handler masked every line it found pending until a task waited on
+/// it again; an exposure-active edge between the board's handler and embassy's masked line 6 for
+/// the rest of the boot. The board now binds its own handler alone on every EXTI vector it uses.
+#[test]
+fn no_exti_vector_runs_embassy_s_masking_handler() {
+    let main = include_str!("../src/bin/board/main.rs");
+    assert!(
+        !main.contains("exti::InterruptHandler"),
+        "embassy's EXTI handler is bound again"
+    );
+    for vector in ["EXTI4", "EXTI9_5", "EXTI15_10"] {
+        assert!(
+            main.contains(&format!("{vector} => inputs::Exti<")),
+            "{vector} is not the board's handler"
+        );
     }
 }

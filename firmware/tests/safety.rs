@@ -195,7 +195,7 @@ proptest! {
         start_position in 0i64..16_000,
     ) {
         let params = SimParams {
-            camera: SimCamera { trigger_latency_us, miss_triggers: [miss, None, None, None], ..SimCamera::default() },
+            camera: SimCamera { timer_latency_us: trigger_latency_us, miss_triggers: [miss, None, None, None], ..SimCamera::default() },
             start_position,
             ..SimParams::default()
         };

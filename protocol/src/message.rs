@@ -14,8 +14,10 @@ use crate::profile::{ProfileError, RigProfile};
 /// Version 2 appended [`Command::Replay`] and [`Response::Events`] (event recovery). Version 3
 /// added sessions (a boot nonce in [`Hello`] and [`Status`]; nothing but `Hello` before one),
 /// the [`RigProfile`] (`SetProfile`/`GetProfile`), camera confirmation in [`Captured`], and cut
-/// [`Config`] down to the session's heartbeat (see `docs/protocol.md`).
-pub const PROTOCOL_VERSION: u16 = 3;
+/// [`Config`] down to the session's heartbeat. Version 4 appended
+/// [`RigError::ProfileNotStored`]: a board without a stored profile does not know its laser and
+/// trigger polarities and refuses to arm (see `docs/protocol.md`).
+pub const PROTOCOL_VERSION: u16 = 4;
 
 /// Galvo points per [`Command::ProgramPoints`] chunk: 32 points of at most 6 bytes each keep the
 /// chunk well inside [`crate::MAX_MESSAGE`].
@@ -78,7 +80,8 @@ pub enum Command {
     Move(Move),
     /// Set the galvo DAC codes now.
     Galvo(GalvoPoint),
-    /// Allow laser emission (refused with the interlock open, e-stop pressed or in fault).
+    /// Allow laser emission (refused with the interlock open, e-stop pressed, in fault, or with
+    /// no profile stored).
     Arm,
     /// Forbid laser emission; all channels go off.
     Disarm,
@@ -452,6 +455,10 @@ pub enum RigError {
         /// The shortest accepted interval for this exposure, µs.
         min_us: u32,
     },
+    /// `Arm` before the rig knows its laser and trigger polarities: no valid profile is stored
+    /// (a new board, or flash the firmware cannot read). The board keeps those pins
+    /// high-impedance until a profile is set with [`Command::SetProfile`] (version 4).
+    ProfileNotStored,
 }
 
 /// Conditions that stop the rig until [`Command::ClearFault`].

@@ -21,6 +21,20 @@ pub const MAX_SETTLE_US: u32 = 1_000_000;
 /// timer resolution is 1 µs).
 pub const MIN_STEP_PULSE_US: u16 = 2;
 
+/// Longest STEP pulse, µs: what the board's step generator places (a longer one would be cut to
+/// this without anyone knowing, so it is refused instead). Slow opto-isolated inputs need 5-10 µs.
+pub const MAX_STEP_PULSE_US: u16 = 50;
+
+/// Longest DIR set-up, µs: the board keeps DIR at least this long before the STEP edge after
+/// a reversal. Every motion starts from rest, so its first step comes at least
+/// `sqrt(2 / max_accel)` ≥ 447 µs after the previous motion's last one, far above this and
+/// [`MAX_STEP_PULSE_US`] together.
+pub const MAX_DIR_SETUP_US: u16 = 100;
+
+/// Laser enables the board drives (TIM8 channels 1, 3 and 4: PC6, PC8, PC9). A profile with
+/// more would announce channels that fire nothing, so it is refused.
+pub const BOARD_LASER_CHANNELS: u8 = 3;
+
 /// Shortest exposure any profile may allow, µs: below this the laser driver's rise time and the
 /// timer's resolution dominate.
 pub const MIN_EXPOSURE_FLOOR_US: u32 = 10;
@@ -73,7 +87,8 @@ pub struct MotorProfile {
     pub max_accel: u32,
     /// STEP pulse width, µs.
     pub step_pulse_us: u16,
-    /// DIR set-up time before the first STEP edge, µs.
+    /// DIR set-up time before the first STEP edge after a reversal, µs (`0..=MAX_DIR_SETUP_US`;
+    /// the board's step generator keeps it).
     pub dir_setup_us: u16,
     /// DIR high = decreasing position (motor wired the other way round).
     pub invert_dir: bool,
@@ -134,7 +149,7 @@ pub struct CameraProfile {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct LaserProfile {
-    /// Laser channels wired (`1..=MAX_LASER_CHANNELS`).
+    /// Laser channels wired (`1..=BOARD_LASER_CHANNELS`).
     pub channels: u8,
     /// Enable lines are active low.
     pub active_low: bool,
@@ -191,8 +206,8 @@ pub enum ProfileError {
     Gearing,
     /// Speed or acceleration zero or above the step generator's limits.
     MotorLimits,
-    /// STEP pulse or DIR set-up outside `MIN_STEP_PULSE_US..=100` µs / `0..=100` µs, or the
-    /// pulse longer than half the fastest step period.
+    /// STEP pulse or DIR set-up outside `MIN_STEP_PULSE_US..=MAX_STEP_PULSE_US` µs /
+    /// `0..=MAX_DIR_SETUP_US` µs, or the pulse longer than half the fastest step period.
     StepTiming,
     /// Galvo settle above [`MAX_SETTLE_US`].
     GalvoSettle,
@@ -283,9 +298,9 @@ impl RigProfile {
         }
         // The pulse must fit in half the shortest step period.
         let half_period = 500_000 / m.max_speed;
-        if !(MIN_STEP_PULSE_US..=100).contains(&m.step_pulse_us)
+        if !(MIN_STEP_PULSE_US..=MAX_STEP_PULSE_US).contains(&m.step_pulse_us)
             || u32::from(m.step_pulse_us) > half_period
-            || m.dir_setup_us > 100
+            || m.dir_setup_us > MAX_DIR_SETUP_US
         {
             return Err(ProfileError::StepTiming);
         }
@@ -302,7 +317,7 @@ impl RigProfile {
             return Err(ProfileError::Camera);
         }
         let l = &self.laser;
-        if !(1..=crate::MAX_LASER_CHANNELS).contains(&l.channels)
+        if !(1..=BOARD_LASER_CHANNELS).contains(&l.channels)
             || l.lead_us > 100_000
             || l.tail_us > 100_000
             || !(1..=MAX_MANUAL_LASER_MS).contains(&l.manual_max_ms)

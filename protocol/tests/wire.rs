@@ -188,6 +188,17 @@ fn default_profile_is_valid_and_bounds_are_enforced() {
     let mut bad = p;
     bad.motor.step_pulse_us = 1;
     assert_eq!(bad.validate(), Err(ProfileError::StepTiming));
+    // Issue 26: what the board cannot do is refused, not clamped or ignored.
+    let mut bad = p;
+    bad.motor.step_pulse_us = MAX_STEP_PULSE_US + 1;
+    bad.motor.max_speed = 1_000;
+    assert_eq!(bad.validate(), Err(ProfileError::StepTiming));
+    let mut bad = p;
+    bad.motor.dir_setup_us = MAX_DIR_SETUP_US + 1;
+    assert_eq!(bad.validate(), Err(ProfileError::StepTiming));
+    let mut bad = p;
+    bad.laser.channels = BOARD_LASER_CHANNELS + 1;
+    assert_eq!(bad.validate(), Err(ProfileError::Laser));
     let mut bad = p;
     bad.camera.min_exposure_us = 1;
     assert_eq!(bad.validate(), Err(ProfileError::Camera));
@@ -565,6 +576,7 @@ fn rig_error() -> impl Strategy<Value = RigError> {
         Just(RigError::BadProfile(ProfileError::Camera)),
         any::<u32>().prop_map(|min_us| RigError::ExposureTooShort { min_us }),
         any::<u32>().prop_map(|min_us| RigError::IntervalTooShort { min_us }),
+        Just(RigError::ProfileNotStored),
     ]
 }
 

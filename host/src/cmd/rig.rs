@@ -109,17 +109,23 @@ enum Action {
     },
     /// Laser off, disarm, halt the motor.
     Stop,
+    /// Leave the fault state (e-stop released, homing or step fault dealt with); says which
+    /// fault it cleared.
+    ClearFault,
     /// The rig profile: show the rig's, print the default, check or send a file.
     Profile {
         #[command(subcommand)]
         what: ProfileAction,
     },
-    /// Bring-up check for a real bench: handshake, profile and config read-back, home twice and
-    /// compare, a move and its step count, trigger/exposure-active loopback, galvo sweep, e-stop.
-    /// Exits non-zero when a step fails.
+    /// Bring-up check for a real bench: handshake, profile (stored, and the file's) and config
+    /// read-back, home twice and compare, a move whose count the home switch checks,
+    /// trigger/exposure-active loopback, galvo sweep, the interlock, the laser cut with a laser
+    /// on, the e-stop. Asks before anything emits light and before clearing a fault. Exits
+    /// non-zero when a step fails.
     Selftest {
-        /// Do not ask anything: steps that need someone watching (move seen, sweep seen, e-stop)
-        /// are skipped. Implied when stdin is not a terminal.
+        /// Agree to laser light in advance (the beam path is safe) and ask nothing else: steps
+        /// that need someone watching or acting (move seen, sweep seen, interlock, laser cut,
+        /// e-stop) are skipped. Without it and without a terminal, nothing emits light.
         #[arg(long)]
         yes: bool,
         /// Laser channel for the test captures.
@@ -241,6 +247,18 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 struct TerminalPrompt;
 
 impl Prompt for TerminalPrompt {
+    fn consent(&mut self, question: &str) -> bool {
+        eprint!("{question} [y/N] ");
+        let mut line = String::new();
+        if std::io::stdin().lock().read_line(&mut line).is_err() {
+            return false;
+        }
+        matches!(line.trim().to_ascii_lowercase().as_str(), "y" | "yes")
+    }
+    fn tell(&mut self, instruction: &str) -> bool {
+        eprintln!("{instruction}");
+        true
+    }
     fn confirm(&mut self, question: &str) -> Option<bool> {
         eprint!("{question} [y/n/s(kip)] ");
         let mut line = String::new();
@@ -385,6 +403,13 @@ fn act(
             rig.stop()?;
             println!("stopped: laser off, disarmed, motor halted");
         }
+        Action::ClearFault => match rig.status()?.fault {
+            None => println!("no fault to clear"),
+            Some(fault) => {
+                rig.clear_fault()?;
+                println!("cleared fault {fault:?} (home again before absolute moves)");
+            }
+        },
         Action::Profile { what } => match what {
             ProfileAction::Show => println!("{}", profile_json(&rig.get_profile()?)),
             ProfileAction::Send => {
@@ -408,10 +433,12 @@ fn act(
                 channel,
                 ..SelftestOptions::default()
             };
-            let interactive = !yes && std::io::stdin().is_terminal();
             let mut no_prompt = selftest::NoPrompt;
+            let mut assume_yes = selftest::AssumeYes;
             let mut terminal = TerminalPrompt;
-            let prompt: &mut dyn Prompt = if interactive {
+            let prompt: &mut dyn Prompt = if yes {
+                &mut assume_yes
+            } else if std::io::stdin().is_terminal() {
                 &mut terminal
             } else {
                 &mut no_prompt

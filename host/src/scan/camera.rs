@@ -89,6 +89,9 @@ pub struct Shot {
     /// The camera's exposure count for this shot as the rig confirmed it from the
     /// exposure-active output (rig-triggered only): which image belongs to this shot.
     pub exposure_count: Option<u32>,
+    /// The rig's boot nonce when it counted that exposure: its count restarts at 0 when the rig
+    /// reboots, the camera's does not.
+    pub rig_boot: Option<u32>,
 }
 
 /// A camera.
@@ -126,8 +129,10 @@ pub trait Camera: Send {
 /// ([`Shot::exposure_count`]); the offset between the camera's counter and the rig's is learned
 /// from the first image, and from then on the image for count `k` must carry number
 /// `k + offset`. An image with an unexpected number (the camera exposed without a trigger, or
-/// an image is missing) is a [`CameraError::Mismatch`], never a silent shift. Without counts
-/// (host-timed use) or without numbers in the names, images are taken in name order.
+/// an image is missing) is a [`CameraError::Mismatch`], never a silent shift. The rig's count
+/// restarts when it reboots (its boot nonce changes, [`Shot::rig_boot`]) while the camera's does
+/// not, so the offset is learned again then. Without counts (host-timed use) or without numbers
+/// in the names, images are taken in name order.
 pub struct DirCamera {
     dir: PathBuf,
     timeout: Duration,
@@ -137,6 +142,8 @@ pub struct DirCamera {
     offset: Option<i64>,
     /// Black and white level of the camera's TIFF or PNG files.
     levels: Levels,
+    /// The rig boot the offset belongs to.
+    boot: Option<u32>,
 }
 
 /// The camera's frame number in a file name: its last run of decimal digits.
@@ -170,6 +177,7 @@ impl DirCamera {
             since: SystemTime::UNIX_EPOCH,
             offset: None,
             levels: Levels::default(),
+            boot: None,
         };
         // Files already there belong to earlier runs.
         cam.seen = cam.listing().into_iter().collect();
@@ -212,6 +220,11 @@ impl Camera for DirCamera {
         Timing::RigTriggered
     }
     fn capture(&mut self, shot: &Shot) -> Result<Image, CameraError> {
+        if shot.rig_boot.is_some() && shot.rig_boot != self.boot {
+            // The rig rebooted: its exposure count started again at 0.
+            self.offset = None;
+            self.boot = shot.rig_boot;
+        }
         let start = Instant::now();
         loop {
             let fresh: Vec<PathBuf> = self
@@ -412,6 +425,7 @@ mod tests {
             exposure_s: 0.01,
             triggered_at_us: None,
             exposure_count: None,
+            rig_boot: None,
         }
     }
 
@@ -486,6 +500,28 @@ mod tests {
         std::fs::write(d.path().join("b.jpg"), [0xff, 0xd8, 0xff, 0xe0, 0, 16]).unwrap();
         let e = cam.capture(&shot(1)).unwrap_err().to_string();
         assert!(e.contains("JPEG") && e.contains("16-bit"), "{e}");
+    }
+
+    /// Issue 26, finding 10: the offset outlived a rig reboot, whose exposure count restarts
+    /// at 0 while the camera keeps counting: every image after the reconnect was a mismatch.
+    #[test]
+    fn dir_camera_learns_the_offset_again_after_a_rig_reboot() {
+        let d = tempfile::tempdir().unwrap();
+        let mut cam = DirCamera::new(d.path(), Duration::from_millis(150)).unwrap();
+        let counted = |frame, count, boot| Shot {
+            exposure_count: Some(count),
+            rig_boot: Some(boot),
+            ..shot(frame)
+        };
+        std::fs::write(d.path().join("img_100.exr"), exr(1.0)).unwrap();
+        std::fs::write(d.path().join("img_101.exr"), exr(2.0)).unwrap();
+        assert_eq!(cam.capture(&counted(0, 1, 0xaaaa)).unwrap().data[0], 1.0);
+        assert_eq!(cam.capture(&counted(1, 2, 0xaaaa)).unwrap().data[0], 2.0);
+        // The rig rebooted: its count starts at 1 again, the camera's goes on at 102.
+        std::fs::write(d.path().join("img_102.exr"), exr(3.0)).unwrap();
+        std::fs::write(d.path().join("img_103.exr"), exr(4.0)).unwrap();
+        assert_eq!(cam.capture(&counted(2, 1, 0xbbbb)).unwrap().data[0], 3.0);
+        assert_eq!(cam.capture(&counted(3, 2, 0xbbbb)).unwrap().data[0], 4.0);
     }
 
     #[test]

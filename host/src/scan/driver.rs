@@ -489,6 +489,7 @@ impl<'a> Scan<'a> {
             exposure_s: exp_us as f64 * 1e-6,
             triggered_at_us: None,
             exposure_count: None,
+            rig_boot: None,
         }
     }
 
@@ -552,6 +553,7 @@ impl<'a> Scan<'a> {
             shot.galvo = [c.galvo.x, c.galvo.y];
             shot.triggered_at_us = Some(c.triggered_at_us);
             shot.exposure_count = Some(c.exposure_count);
+            shot.rig_boot = Some(rig.hello().boot_nonce);
             match fetch(rig, camera, &shot)? {
                 Ok(img) => {
                     out[i].push(Bracket {

@@ -1,32 +1,34 @@
-//! Hardware-timed exposure: the laser gate and the camera trigger of one capture come from one
-//! timer in one-pulse mode, so their edges are placed by the counter, not by the executor. Free of
-//! registers; `firmware/tests/board_model.rs` runs it against a tick-exact model of the timer.
+//! Hardware-timed exposure: the laser gate and the camera trigger of one capture come from two
+//! timers in one-pulse mode, started together, so all their edges are placed by counters, not by
+//! the executor and not by an interrupt. Free of registers; `firmware/tests/board_model.rs` runs
+//! it against tick-exact models of the two timers.
 //!
 //! The camera starts integrating some time after its trigger edge (`trigger_latency_us`, from its
 //! datasheet or measured with the exposure-active output) and then integrates `exposure_us`. The
-//! laser must cover that whole window despite the latency, so the timer places:
+//! laser must cover that whole window despite the latency, so the timers place:
 //!
 //! ```text
-//! tick 0 = timer start      trigger_ccr                trigger_off_ccr        laser_off_ccr = ARR
-//!   |‾‾‾‾ lead ‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾|‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾|____ laser
-//!   |__________________________|‾‾‾‾‾‾ trigger_us ‾‾‾‾‾‾‾‾|_________________________________ trigger
+//! start = 0            trigger rise            trigger fall          laser off (TIM8 ARR)
+//!   |‾‾‾‾ lead ‾‾‾‾‾‾‾‾‾‾‾‾|‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾‾|____ laser (TIM8)
+//!   |______________________|‾‾‾‾‾‾ trigger_us ‾‾‾‾‾‾‾|_____________________________________ trigger (TIM3)
 //! ```
 //!
-//! The laser is already on (forced active) when the timer starts; its channel then runs "inactive
-//! on match", so the timer alone ends it, at a fixed count after the trigger edge that covers the
-//! trigger latency, the exposure and a tail. (PWM modes cannot do this in one-pulse mode: the
-//! counter stops at 0 and re-evaluates the output; a match mode keeps its level.) The trigger
-//! channel runs "active on match"; its compare interrupt moves it to "inactive on match" for the
-//! falling edge, so both edges are hardware-placed as long as that interrupt runs within
-//! `trigger_us` (hence [`MIN_TRIGGER_US`]). The timer is 16-bit, so long exposures use a coarser
-//! tick (prescaler); the laser window only ever rounds longer and the trigger pulse never shorter.
+//! TIM8 (the laser channels): the laser is on (forced active) when the timer starts and its
+//! channel runs "inactive on match" at the end count, so the timer alone ends it, a fixed time
+//! after the trigger edge that covers the trigger latency, the exposure and a tail. TIM3 channel 2
+//! (the trigger, on the same pin PC7): PWM mode 2, active from its compare count until the counter
+//! wraps, where one-pulse mode stops it at 0 and the output falls. Both edges of the trigger are
+//! the counter's: no compare interrupt has to run within the pulse, and a late interrupt can no
+//! longer leave the trigger high until the next capture. The timers are 16-bit, so long exposures
+//! use a coarser tick (prescaler); the laser window only ever rounds longer and the trigger pulse
+//! never shorter.
 
-/// Timer input clock, Hz (TIM8 on APB2: 2 × 84 MHz).
-pub const TIMER_CLOCK_HZ: u32 = 168_000_000;
-/// Largest counter value (16-bit timer).
+/// TIM8's input clock, Hz (APB2: 2 × 84 MHz).
+pub const LASER_CLOCK_HZ: u32 = 168_000_000;
+/// TIM3's input clock, Hz (APB1: 2 × 42 MHz).
+pub const TRIGGER_CLOCK_HZ: u32 = 84_000_000;
+/// Largest counter value (16-bit timers).
 pub const COUNTER_MAX: u32 = 0xffff;
-/// Shortest trigger pulse: the compare interrupt that ends it must run within it.
-pub const MIN_TRIGGER_US: u32 = 10;
 /// Shortest exposure the board times: the protocol's floor (the rig profile's
 /// `camera.min_exposure_us` may only raise it); below it the timer's 1 µs resolution and the laser
 /// driver's rise time, not the exposure, decide the light.
@@ -38,45 +40,74 @@ pub const MIN_EXPOSURE_US: u32 = subsurf_protocol::MIN_EXPOSURE_FLOOR_US;
 pub enum ExposureError {
     /// Shorter than [`MIN_EXPOSURE_US`].
     TooShort,
-    /// Trigger pulse shorter than [`MIN_TRIGGER_US`] or longer than the laser window after it.
+    /// No trigger pulse, or one longer than the laser window after it.
     BadTrigger,
-    /// The whole window does not fit the timer even at its coarsest tick.
+    /// The whole window does not fit a timer even at its coarsest tick.
     TooLong,
 }
 
-/// Register values for one exposure (the timer counts `0..=arr` once, then stops).
+/// One timer's registers for one pulse: it counts `0..=arr` once at a tick of `tick_ns`, then
+/// stops at 0.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Plan {
-    /// Prescaler register (tick = (psc + 1) / TIMER_CLOCK_HZ).
+pub struct OnePulse {
+    /// Prescaler register (tick = (psc + 1) / clock).
     pub psc: u16,
-    /// Auto-reload: the timer stops when the counter wraps after `arr`.
+    /// Auto-reload: the counter stops when it wraps after `arr`.
     pub arr: u16,
-    /// Trigger channel compare for the rising edge (active on match).
-    pub trigger_ccr: u16,
-    /// Trigger channel compare for the falling edge, written by the compare interrupt.
-    pub trigger_off_ccr: u16,
-    /// Laser channel compare (inactive on match): the laser goes off here.
-    pub laser_off_ccr: u16,
+    /// Compare value: the laser's off count (TIM8), the trigger's rise count (TIM3).
+    pub ccr: u16,
     /// Length of one tick, ns.
     pub tick_ns: u32,
 }
 
+impl OnePulse {
+    /// Time of count `ticks` after the start, ns.
+    pub fn at_ns(&self, ticks: u32) -> u64 {
+        u64::from(ticks) * u64::from(self.tick_ns)
+    }
+
+    /// When the counter wraps and stops, ns.
+    pub fn end_ns(&self) -> u64 {
+        self.at_ns(u32::from(self.arr) + 1)
+    }
+}
+
+/// Register values for one exposure.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Plan {
+    /// TIM8, laser channels: forced on at the start, off at `ccr` (= `arr`).
+    pub laser: OnePulse,
+    /// TIM3 channel 2, the trigger: active from `ccr` until the counter wraps after `arr`.
+    pub trigger: OnePulse,
+}
+
 impl Plan {
-    /// Times in µs from the timer start: (trigger rise, trigger fall, laser off).
-    pub fn edges_us(&self) -> (u64, u64, u64) {
-        let us = |ticks: u16| u64::from(ticks) * u64::from(self.tick_ns) / 1_000;
+    /// Times from the start, ns: (trigger rise, trigger fall, laser off).
+    pub fn edges_ns(&self) -> (u64, u64, u64) {
         (
-            us(self.trigger_ccr),
-            us(self.trigger_off_ccr),
-            us(self.laser_off_ccr),
+            self.trigger.at_ns(u32::from(self.trigger.ccr)),
+            self.trigger.end_ns(),
+            self.laser.at_ns(u32::from(self.laser.ccr)),
         )
     }
 }
 
-/// The timer plan for a window as the core announces it: trigger edge `lead_us` after the timer
-/// start (the laser is on from the start), trigger pulse `trigger_us`, an exposure of
-/// `exposure_us`, laser off `after_us` after the trigger edge (exposure, the camera's trigger
-/// latency and a tail; at least the exposure).
+/// A one-pulse timer at `clock_hz` whose tick is a whole number of µs, coarse enough for `end_us`.
+fn tick_for(clock_hz: u32, end_us: u64) -> Result<(u16, u64), ExposureError> {
+    let us_per_tick = end_us.div_ceil(u64::from(COUNTER_MAX)).max(1);
+    let psc = (u64::from(clock_hz / 1_000_000) * us_per_tick).saturating_sub(1);
+    let psc = u16::try_from(psc).map_err(|_| ExposureError::TooLong)?;
+    Ok((psc, us_per_tick))
+}
+
+fn to16(v: u64) -> Result<u16, ExposureError> {
+    u16::try_from(v).map_err(|_| ExposureError::TooLong)
+}
+
+/// The timer plan for a window as the core announces it: trigger edge `lead_us` after the start
+/// (the laser is on from the start), trigger pulse `trigger_us`, an exposure of `exposure_us`,
+/// laser off `after_us` after the trigger edge (exposure, the camera's trigger latency and a tail;
+/// at least the exposure).
 pub fn plan_window(
     lead_us: u64,
     trigger_us: u32,
@@ -86,29 +117,32 @@ pub fn plan_window(
     if exposure_us < MIN_EXPOSURE_US || after_us < u64::from(exposure_us) {
         return Err(ExposureError::TooShort);
     }
-    if trigger_us < MIN_TRIGGER_US || u64::from(trigger_us) >= after_us {
+    if trigger_us == 0 || u64::from(trigger_us) >= after_us {
         return Err(ExposureError::BadTrigger);
     }
-    // At least one tick before the trigger edge so the counter passes the match.
+    // The trigger: rise at least one tick in (the counter must pass the compare), rounded down;
+    // the pulse rounded up.
     let trigger_at_us = lead_us.max(1);
-    let end_us = trigger_at_us + after_us;
-    // Coarsest tick needed: ticks of `us_per_tick` µs (integer), so that `end` fits 16 bits.
-    let us_per_tick = end_us.div_ceil(u64::from(COUNTER_MAX));
-    let psc = (u64::from(TIMER_CLOCK_HZ / 1_000_000) * us_per_tick).saturating_sub(1);
-    let psc = u16::try_from(psc).map_err(|_| ExposureError::TooLong)?;
-    // The trigger edge rounds to a tick (at least 1), its pulse and the laser's time after it up.
-    let trigger_ccr = (trigger_at_us / us_per_tick).max(1);
-    let trigger_off_ccr = trigger_ccr + u64::from(trigger_us).div_ceil(us_per_tick);
-    let laser_off_ccr = trigger_ccr + after_us.div_ceil(us_per_tick);
-    let to16 = |v: u64| u16::try_from(v).map_err(|_| ExposureError::TooLong);
-    Ok(Plan {
+    let (psc, us3) = tick_for(TRIGGER_CLOCK_HZ, trigger_at_us + u64::from(trigger_us) + 1)?;
+    let rise = (trigger_at_us / us3).max(1);
+    let end = rise + u64::from(trigger_us).div_ceil(us3);
+    let trigger = OnePulse {
         psc,
-        arr: to16(laser_off_ccr)?,
-        trigger_ccr: to16(trigger_ccr)?,
-        trigger_off_ccr: to16(trigger_off_ccr)?,
-        laser_off_ccr: to16(laser_off_ccr)?,
-        tick_ns: u32::try_from(us_per_tick * 1_000).map_err(|_| ExposureError::TooLong)?,
-    })
+        arr: to16(end - 1)?,
+        ccr: to16(rise)?,
+        tick_ns: u32::try_from(us3 * 1_000).map_err(|_| ExposureError::TooLong)?,
+    };
+    // The laser: off `after_us` after the trigger's real rise, rounded up.
+    let rise_us = rise * us3;
+    let (psc, us8) = tick_for(LASER_CLOCK_HZ, rise_us + after_us)?;
+    let off = (rise_us + after_us).div_ceil(us8);
+    let laser = OnePulse {
+        psc,
+        arr: to16(off)?,
+        ccr: to16(off)?,
+        tick_ns: u32::try_from(us8 * 1_000).map_err(|_| ExposureError::TooLong)?,
+    };
+    Ok(Plan { laser, trigger })
 }
 
 /// What the board does with the core's `set_lasers(mask)` while a timed exposure may be running.
@@ -138,5 +172,43 @@ pub fn on_set_lasers(
         LaserCall::LeaveToTimer
     } else {
         LaserCall::Apply(if allowed { mask } else { 0 })
+    }
+}
+
+/// The light's deadline timer (TIM5, 1 µs ticks, one-pulse) fires this long after the core's own
+/// laser-off deadline: the executor normally gets there first, and only a stuck one leaves it to
+/// the timer.
+pub const LIGHTS_OUT_GRACE_US: u64 = 20_000;
+
+/// What the light's deadline timer should do for the core's deadline (`None`: no light possible).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LightsOutTimer {
+    /// Stopped: nothing may shine.
+    Stop,
+    /// Fire after this many µs (at least 1, so a deadline long past still fires at once); the
+    /// light is not cut yet (`lift` = the deadline is still ahead: a cut the core has caught up
+    /// with may be lifted).
+    FireIn {
+        /// Reload value, µs.
+        ticks: u32,
+        /// The core's deadline is still ahead.
+        lift: bool,
+    },
+}
+
+/// The timer's setting for the core's deadline at `now` (both rig µs).
+pub fn lights_out_timer(deadline: Option<u64>, now: u64) -> LightsOutTimer {
+    match deadline {
+        None => LightsOutTimer::Stop,
+        Some(at) => {
+            let left = at
+                .saturating_add(LIGHTS_OUT_GRACE_US)
+                .saturating_sub(now)
+                .clamp(1, u64::from(u32::MAX - 1));
+            LightsOutTimer::FireIn {
+                ticks: u32::try_from(left).unwrap_or(u32::MAX - 1),
+                lift: at > now,
+            }
+        }
     }
 }

@@ -1,32 +1,58 @@
-//! The rig profile's home on the board: a log of versioned, CRC-checked records in one flash
-//! sector. Free of registers; `firmware/tests/board_model.rs` runs it on an in-memory sector.
+//! The rig profile's home on the board: a log of versioned, CRC-checked, numbered records in two
+//! small flash sectors used in turn. Free of registers; `firmware/tests/board_model.rs` runs it on
+//! in-memory sectors.
 //!
 //! Record layout (little-endian, padded with 0xFF to [`RECORD_ALIGN`] bytes):
 //!
 //! ```text
-//! magic "SSRP" (u32) | format version (u16) | payload length (u16) | payload | CRC-32 (u32)
+//! magic "SSRP" (u32) | format version (u16) | payload length (u16) | sequence (u32) | payload | CRC-32 (u32)
 //! ```
 //!
-//! The CRC (CRC-32/ISO-HDLC, as the link's frames) covers magic, version, length and payload.
-//! Writes append after the newest record (erased flash reads 0xFF, and NOR flash can only clear
-//! bits, so appending never touches an older record); the sector is erased only when it is full or
-//! holds something unreadable. Reading takes the *last* record whose CRC checks: a write cut by a
-//! power loss leaves at worst a bad record after the good one, which is then ignored. Whole-sector
-//! erases are rare (a 128 KiB sector takes ~1000 profile writes between erases), which keeps the
-//! flash far inside its 10 000-cycle endurance.
+//! The CRC (CRC-32/ISO-HDLC, as the link's frames) covers everything before it. Writes append after
+//! the newest record (erased flash reads 0xFF, and NOR flash can only clear bits, so appending
+//! never touches an older record). Reading takes the valid record with the highest sequence number
+//! in either sector: a write cut by a power loss leaves at worst a bad record after the good one,
+//! which is then ignored. When the sector in use is full (or holds something unreadable), the
+//! *other* sector is erased and the record goes there: the newest good record is never in the
+//! sector being erased, so a reset during the erase loses nothing.
+//!
+//! Blocking: the core asks for a save only while the rig is idle with the lasers off. A save that
+//! appends programs one record (≤ [`MAX_RECORD`] / 4 words at ≤ 100 µs each: ≤ 7.4 ms); about one
+//! save in [`RECORDS_PER_SECTOR`] also erases a 16 KiB sector first, at most
+//! [`SECTOR_ERASE_MAX_MS`]. The CPU runs from the same flash bank, so every interrupt waits that
+//! long; the independent watchdog is stretched to [`ERASE_WATCHDOG_MS`] around the erase
+//! ([`erase_watchdog`]) so it cannot reset the chip mid-erase, as it did with the 128 KiB sector
+//! (up to 2 s) and a 500 ms watchdog.
 
 /// Record magic, "SSRP" read as little-endian u32.
 pub const RECORD_MAGIC: u32 = u32::from_le_bytes(*b"SSRP");
-/// Format version of the payload this firmware writes and reads.
-pub const RECORD_VERSION: u16 = 1;
+/// Format version of the payload this firmware writes and reads (2: the sequence number).
+pub const RECORD_VERSION: u16 = 2;
 /// Records start at multiples of this (covers the flash's write granularity).
 pub const RECORD_ALIGN: usize = 32;
 /// Header bytes before the payload.
-pub const HEADER_LEN: usize = 8;
+pub const HEADER_LEN: usize = 12;
 /// Largest payload.
 pub const MAX_PAYLOAD: usize = 256;
 /// Largest record (header + payload + CRC, padded).
 pub const MAX_RECORD: usize = (HEADER_LEN + MAX_PAYLOAD + 4).div_ceil(RECORD_ALIGN) * RECORD_ALIGN;
+/// The profile's sectors: sectors 1 and 2 of the STM32F446, 16 KiB each.
+pub const SECTOR_LEN: usize = 16 * 1024;
+/// Records of the largest size a sector holds between two erases.
+pub const RECORDS_PER_SECTOR: usize = SECTOR_LEN / MAX_RECORD;
+
+/// Longest erase of one 16 KiB sector at ×32 parallelism (embassy-stm32 programs the F4 with
+/// PSIZE = x32), ms: STM32F446xC/E datasheet, "Flash memory programming" characteristics,
+/// t_ERASE16KB max (typ 250 ms). A 128 KiB sector takes up to 2 s there.
+pub const SECTOR_ERASE_MAX_MS: u32 = 500;
+/// Longest programming of one 32-bit word, µs (same table, t_prog max).
+pub const WORD_PROGRAM_MAX_US: u32 = 100;
+/// The watchdog's timeout at its fastest during an erase, ms: above the longest erase plus the
+/// record's programming, with room to spare.
+pub const ERASE_WATCHDOG_MS: u32 = 1_000;
+/// The watchdog counts the LSI oscillator, which may run this fast (datasheet: 17–47 kHz,
+/// 32 kHz typical): a timeout computed at 32 kHz comes this much sooner.
+pub const LSI_MAX_HZ: u32 = 47_000;
 
 const CRC: crc::Crc<u32> = crc::Crc::<u32>::new(&crc::CRC_32_ISO_HDLC);
 
@@ -44,8 +70,8 @@ pub const fn record_len(len: usize) -> usize {
     (HEADER_LEN + len + 4).div_ceil(RECORD_ALIGN) * RECORD_ALIGN
 }
 
-/// Write one record for `payload` into `out`; returns its (padded) length.
-pub fn encode(payload: &[u8], out: &mut [u8]) -> Result<usize, RecordError> {
+/// Write record number `seq` for `payload` into `out`; returns its (padded) length.
+pub fn encode(payload: &[u8], seq: u32, out: &mut [u8]) -> Result<usize, RecordError> {
     if payload.len() > MAX_PAYLOAD {
         return Err(RecordError::TooLarge);
     }
@@ -58,6 +84,7 @@ pub fn encode(payload: &[u8], out: &mut [u8]) -> Result<usize, RecordError> {
     head[..4].copy_from_slice(&RECORD_MAGIC.to_le_bytes());
     head[4..6].copy_from_slice(&RECORD_VERSION.to_le_bytes());
     head[6..8].copy_from_slice(&len.to_le_bytes());
+    head[8..12].copy_from_slice(&seq.to_le_bytes());
     rest[..payload.len()].copy_from_slice(payload);
     let mut digest = CRC.digest();
     digest.update(head);
@@ -70,8 +97,8 @@ pub fn encode(payload: &[u8], out: &mut [u8]) -> Result<usize, RecordError> {
 /// What a sector holds.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Scan {
-    /// Offset and payload length of the newest valid record of this format version.
-    pub latest: Option<(usize, usize)>,
+    /// Offset, payload length and sequence number of the newest valid record of this format.
+    pub latest: Option<(usize, usize, u32)>,
     /// Where the next record goes; `None` when the sector must be erased first (something
     /// unreadable where free space should start).
     pub free: Option<usize>,
@@ -89,7 +116,7 @@ fn read_u16(bytes: &[u8], at: usize) -> Option<u16> {
 
 /// Walk the records of a sector image.
 pub fn scan(sector: &[u8]) -> Scan {
-    let mut latest = None;
+    let mut latest: Option<(usize, usize, u32)> = None;
     let mut at = 0usize;
     // Bounded by the sector: every pass advances by at least RECORD_ALIGN.
     while at < sector.len() {
@@ -104,8 +131,11 @@ pub fn scan(sector: &[u8]) -> Scan {
                 free: clean.then_some(at),
             };
         }
-        let (Some(version), Some(len)) = (read_u16(sector, at + 4), read_u16(sector, at + 6))
-        else {
+        let (Some(version), Some(len), Some(seq)) = (
+            read_u16(sector, at + 4),
+            read_u16(sector, at + 6),
+            read_u32(sector, at + 8),
+        ) else {
             return Scan { latest, free: None };
         };
         let len = usize::from(len);
@@ -116,26 +146,96 @@ pub fn scan(sector: &[u8]) -> Scan {
         let body = at + HEADER_LEN + len;
         let stored = read_u32(sector, body);
         let computed = CRC.checksum(&sector[at..body]);
-        if stored == Some(computed) && version == RECORD_VERSION {
-            latest = Some((at, len));
+        if stored == Some(computed)
+            && version == RECORD_VERSION
+            && latest.is_none_or(|(_, _, s)| seq > s)
+        {
+            latest = Some((at, len, seq));
         }
         at += record_len(len);
     }
     Scan { latest, free: None }
 }
 
-/// The payload of the newest valid record, if any.
-pub fn latest_payload(sector: &[u8]) -> Option<&[u8]> {
-    let (at, len) = scan(sector).latest?;
-    sector.get(at + HEADER_LEN..at + HEADER_LEN + len)
+/// The sector (0 or 1) and record holding the newest valid record of the two, if any.
+pub fn newest(scans: &[Scan; 2]) -> Option<(usize, (usize, usize, u32))> {
+    let a = scans[0].latest.map(|r| (0, r));
+    let b = scans[1].latest.map(|r| (1, r));
+    match (a, b) {
+        (Some(a), Some(b)) => Some(if b.1.2 > a.1.2 { b } else { a }),
+        (a, b) => a.or(b),
+    }
 }
 
-/// Where to put a record of `len` bytes (padded): `Ok(offset)` to append, `Err(())` to erase the
-/// sector and write at 0.
-#[allow(clippy::result_unit_err)]
-pub fn place(scan: &Scan, len: usize, sector_len: usize) -> Result<usize, ()> {
-    match scan.free {
-        Some(at) if at + len <= sector_len => Ok(at),
-        _ => Err(()),
+/// The payload of the newest valid record in either sector, if any.
+pub fn latest_payload(sectors: [&[u8]; 2]) -> Option<&[u8]> {
+    let scans = [scan(sectors[0]), scan(sectors[1])];
+    let (sector, (at, len, _)) = newest(&scans)?;
+    sectors
+        .get(sector)?
+        .get(at + HEADER_LEN..at + HEADER_LEN + len)
+}
+
+/// Where the next record of `len` bytes (padded) goes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Placement {
+    /// Sector 0 or 1.
+    pub sector: usize,
+    /// Erase that sector first.
+    pub erase: bool,
+    /// Offset in the sector.
+    pub at: usize,
+    /// The record's sequence number.
+    pub seq: u32,
+}
+
+/// Append to the sector holding the newest record while it has room; otherwise erase the other
+/// sector (never the one with the newest good record) and start it.
+pub fn place(scans: &[Scan; 2], len: usize, sector_len: usize) -> Placement {
+    let (current, seq) = match newest(scans) {
+        Some((sector, (_, _, seq))) => (sector, seq.wrapping_add(1)),
+        None => (0, 1),
+    };
+    match scans.get(current).and_then(|s| s.free) {
+        Some(at) if at + len <= sector_len => Placement {
+            sector: current,
+            erase: false,
+            at,
+            seq,
+        },
+        _ => Placement {
+            sector: if newest(scans).is_some() {
+                1 - current
+            } else {
+                current
+            },
+            erase: true,
+            at: 0,
+            seq,
+        },
     }
+}
+
+/// The independent watchdog's prescaler register value (divider 4 · 2^pr) and reload for a
+/// timeout of at least `min_ms` even when the LSI runs at [`LSI_MAX_HZ`]. `None` if the watchdog
+/// cannot wait that long (at most 4095 · 256 LSI cycles).
+pub fn watchdog_setting(min_ms: u32) -> Option<(u8, u16)> {
+    (0u8..=6).find_map(|pr| {
+        let divider = 4u64 << pr;
+        let ticks = (u64::from(min_ms) * u64::from(LSI_MAX_HZ)).div_ceil(1_000 * divider);
+        u16::try_from(ticks)
+            .ok()
+            .filter(|&t| t <= 0x0fff)
+            .map(|t| (pr, t.max(1)))
+    })
+}
+
+/// The watchdog setting used around an erase: [`ERASE_WATCHDOG_MS`] at the fastest LSI.
+pub fn erase_watchdog() -> Option<(u8, u16)> {
+    watchdog_setting(ERASE_WATCHDOG_MS)
+}
+
+/// The longest a save blocks everything, ms: one sector erase and one record's programming.
+pub const fn worst_case_blocking_ms() -> u32 {
+    SECTOR_ERASE_MAX_MS + ((MAX_RECORD / 4) as u32 * WORD_PROGRAM_MAX_US).div_ceil(1_000)
 }

@@ -14,8 +14,10 @@
 //!   range maps linearly onto that usable window instead of clipping at the rails.
 //!
 //! Either way the map can invert or swap axes, so a mirror mounted the other way round is fixed in
-//! configuration, not wiring. No slam at boot: [`Slew`] ramps the first command after power-on
-//! from the centre in bounded steps.
+//! configuration, not wiring. No slam at boot and no ramp needed: the core's first write is the
+//! centre ([`GalvoMap::centre`]), which is where the external DAC powers up (RSTSEL high: mid-scale),
+//! so every write is one write and none waits (a blocking ramp used to stall the executor up to
+//! 32 ms).
 
 pub use subsurf_protocol::GalvoOutput;
 
@@ -137,50 +139,9 @@ pub fn ad5689_frames(a: u16, b: u16) -> [[u8; 3]; 3] {
     ]
 }
 
-/// Boot slew limiter: until the first commanded point has been reached, every write moves each
-/// axis by at most `max_step` DAC codes from the last one written, starting at the centre (where
-/// the DAC powered up). After that, writes go straight through: the core's settle model covers
-/// ordinary jumps.
-#[derive(Clone, Copy, Debug)]
-pub struct Slew {
-    at: (u16, u16),
-    max_step: u16,
-    ramping: bool,
-}
-
-impl Slew {
-    /// Starting at the DAC's power-on point `at`.
-    pub const fn new(at: (u16, u16), max_step: u16) -> Self {
-        Self {
-            at,
-            max_step: if max_step == 0 { 1 } else { max_step },
-            ramping: true,
-        }
-    }
-
-    /// The next DAC codes to write towards `target`, or `None` once `target` is output.
-    pub fn next(&mut self, target: (u16, u16)) -> Option<(u16, u16)> {
-        if self.at == target {
-            self.ramping = false;
-            return None;
-        }
-        let step = |from: u16, to: u16| {
-            if self.ramping {
-                if to > from {
-                    from.saturating_add(self.max_step.min(to - from))
-                } else {
-                    from.saturating_sub(self.max_step.min(from - to))
-                }
-            } else {
-                to
-            }
-        };
-        self.at = (step(self.at.0, target.0), step(self.at.1, target.1));
-        Some(self.at)
-    }
-
-    /// Whether the boot ramp is still in effect.
-    pub fn ramping(&self) -> bool {
-        self.ramping
-    }
+/// Whether the STM32's internal DAC drives PA4/PA5 on this output path: only on its own. On the
+/// external path the pins stay undriven (PA5 also carries the Nucleo's LED, and they may be wired
+/// to something else).
+pub const fn internal_dac_live(output: GalvoOutput) -> bool {
+    matches!(output, GalvoOutput::InternalDac12)
 }

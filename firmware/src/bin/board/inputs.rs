@@ -1,18 +1,23 @@
-//! Safety and homing inputs on EXTI. The e-stop and interlock cut-off happens in the interrupt
-//! itself: [`SafetyCut`] is bound ahead of embassy's EXTI handler on every EXTI vector the board
-//! uses, samples both safety pins and, on an unsafe level, drives the lasers inactive (and on
-//! e-stop stops the step timer) before anything else runs, whatever the executor is doing. Then
-//! embassy's handler wakes the tasks below, which update the flags and wake the rig task so the
-//! core halts, disarms and reports.
+//! Safety, homing and camera inputs on EXTI, handled by one interrupt handler of our own on every
+//! EXTI vector the board uses ([`Exti`]); embassy's EXTI driver is not used at all. (Embassy's
+//! handler masks every line it sees pending until a task waits on it again: an exposure-active
+//! edge arriving between our handler and embassy's masked that line for the rest of the boot, and
+//! an e-stop press between two waits of its task raised no interrupt.)
+//!
+//! The e-stop (PB5, line 5) and the interlock (PB4, line 4) trigger on their unsafe (rising) edge
+//! only, and the handler acts on the latched edge, not just the level it samples: a press shorter
+//! than the interrupt's latency still parks the lasers and the trigger and stops the step timer
+//! before anything else runs, and the core still sees it ([`latched`]) until the rig task has
+//! passed it on. Releases are seen by the core's input polls (every millisecond). The home switch
+//! (PA10, line 10) wakes the rig task on both edges; the camera's exposure-active output (PB6,
+//! line 6) is timestamped on both edges in the handler.
 use core::cell::RefCell;
 use core::marker::PhantomData;
 use core::sync::atomic::{AtomicBool, Ordering};
 
 use embassy_stm32::Peri;
-use embassy_stm32::exti::ExtiInput;
 use embassy_stm32::gpio::{Input, Pull};
-use embassy_stm32::interrupt::typelevel::{Handler, Interrupt};
-use embassy_stm32::mode::Async;
+use embassy_stm32::interrupt::typelevel::{EXTI4, EXTI9_5, EXTI15_10, Handler, Interrupt};
 use embassy_stm32::pac;
 use embassy_stm32::peripherals as p;
 use embassy_sync::blocking_mutex::CriticalSectionMutex;
@@ -21,9 +26,14 @@ use embassy_sync::signal::Signal;
 use heapless::Deque;
 use subsurf_firmware::hal::CameraEdge;
 
-use crate::outputs::force_lasers_off;
-use crate::safety::{SafetyPins, on_exti};
+use crate::outputs::{force_lasers_off, force_trigger_off};
+use crate::safety::{SafetyEdges, SafetyPins, on_exti};
 use crate::stepper;
+
+const INTERLOCK_LINE: usize = 4;
+const ESTOP_LINE: usize = 5;
+const EXPOSURE_LINE: usize = 6;
+const HOME_LINE: usize = 10;
 
 /// Safety pins straight from the input data register: PB5 (e-stop) and PB4 (interlock), both NC
 /// contacts to GND with pull-ups, so high = pressed / open / wire broken.
@@ -35,76 +45,78 @@ pub fn safety_pins() -> SafetyPins {
     }
 }
 
-/// First handler on the EXTI vectors: the laser cut-off, before embassy's handler and before any
-/// task runs.
-pub struct SafetyCut<I> {
+/// An e-stop press latched by its edge, not yet passed on to the core.
+static ESTOP_LATCHED: AtomicBool = AtomicBool::new(false);
+/// An interlock opening latched by its edge, not yet passed on to the core.
+static INTERLOCK_LATCHED: AtomicBool = AtomicBool::new(false);
+/// Any input changed: the rig task re-reads the inputs.
+pub static CHANGED: Signal<CriticalSectionRawMutex, ()> = Signal::new();
+
+/// The unsafe edges latched since the rig task last passed them on.
+pub fn latched() -> SafetyEdges {
+    SafetyEdges {
+        estop: ESTOP_LATCHED.load(Ordering::SeqCst),
+        interlock: INTERLOCK_LATCHED.load(Ordering::SeqCst),
+    }
+}
+
+/// The rig task handed the core the inputs with these edges in them (`handle_inputs`): forget
+/// them (a new edge since then stays).
+pub fn passed_on(edges: SafetyEdges) {
+    if edges.estop {
+        ESTOP_LATCHED.store(false, Ordering::SeqCst);
+    }
+    if edges.interlock {
+        INTERLOCK_LATCHED.store(false, Ordering::SeqCst);
+    }
+}
+
+/// The board's handler on EXTI4, EXTI9_5 and EXTI15_10: the light and motor cut-off first, then
+/// the camera's timestamp, then a wake-up for the rig task.
+pub struct Exti<I> {
     _irq: PhantomData<I>,
 }
 
-impl<I: Interrupt> Handler<I> for SafetyCut<I> {
+impl<I: Interrupt> Handler<I> for Exti<I> {
     unsafe fn on_interrupt() {
-        let cut = on_exti(safety_pins());
+        let exti = pac::EXTI;
+        let mask =
+            (1 << INTERLOCK_LINE) | (1 << ESTOP_LINE) | (1 << EXPOSURE_LINE) | (1 << HOME_LINE);
+        let pending = exti.pr(0).read().0 & mask;
+        // Clear exactly what was seen; an edge after this read stays pending for the next pass.
+        exti.pr(0).write_value(pac::exti::regs::Lines(pending));
+        let edges = SafetyEdges {
+            estop: pending & (1 << ESTOP_LINE) != 0,
+            interlock: pending & (1 << INTERLOCK_LINE) != 0,
+        };
+        let cut = on_exti(edges, safety_pins());
         if cut.lasers {
             force_lasers_off();
+            force_trigger_off();
         }
         if cut.stepper {
             // Registers only: the queue stays, so the core's flush can count what was not output.
             stepper::fault_stop();
         }
-    }
-}
-
-/// Emergency stop pressed (or its wire broken).
-pub static ESTOP: AtomicBool = AtomicBool::new(true);
-/// Enclosure interlock closed.
-pub static INTERLOCK_CLOSED: AtomicBool = AtomicBool::new(false);
-/// Home switch active.
-pub static HOME: AtomicBool = AtomicBool::new(false);
-/// Any input changed: the rig task re-reads the flags.
-pub static CHANGED: Signal<CriticalSectionRawMutex, ()> = Signal::new();
-
-fn store(flag: &AtomicBool, value: bool) {
-    if flag.swap(value, Ordering::SeqCst) != value {
-        CHANGED.signal(());
-    }
-}
-
-/// E-stop: normally-closed contact to GND with pull-up, so high = pressed or wire broken.
-#[embassy_executor::task]
-pub async fn estop(mut pin: ExtiInput<'static, Async>) {
-    loop {
-        let pressed = pin.is_high();
-        if pressed {
-            // Already done by `SafetyCut` in the interrupt; repeated for the state at start-up.
-            force_lasers_off();
-            stepper::fault_stop();
-            defmt::warn!("emergency stop");
+        if edges.estop {
+            ESTOP_LATCHED.store(true, Ordering::SeqCst);
         }
-        store(&ESTOP, pressed);
-        pin.wait_for_any_edge().await;
-    }
-}
-
-/// Interlock: normally-closed contact to GND with pull-up, so high = enclosure open.
-#[embassy_executor::task]
-pub async fn interlock(mut pin: ExtiInput<'static, Async>) {
-    loop {
-        let closed = pin.is_low();
-        if !closed {
-            force_lasers_off();
-            defmt::warn!("interlock open");
+        if edges.interlock {
+            INTERLOCK_LATCHED.store(true, Ordering::SeqCst);
         }
-        store(&INTERLOCK_CLOSED, closed);
-        pin.wait_for_any_edge().await;
-    }
-}
-
-/// Home switch to GND with pull-up: low = at home.
-#[embassy_executor::task]
-pub async fn home(mut pin: ExtiInput<'static, Async>) {
-    loop {
-        store(&HOME, pin.is_low());
-        pin.wait_for_any_edge().await;
+        if pending & (1 << EXPOSURE_LINE) != 0 {
+            let at = embassy_time::Instant::now().as_micros();
+            let high = pac::GPIOB.idr().read().idr(6) == pac::gpio::vals::Idr::HIGH;
+            let active = high != EXPOSURE_ACTIVE_LOW.load(Ordering::Relaxed);
+            push_edge(if active {
+                CameraEdge::ExposureStart(at)
+            } else {
+                CameraEdge::ExposureEnd(at)
+            });
+        }
+        if pending != 0 {
+            CHANGED.signal(());
+        }
     }
 }
 
@@ -133,35 +145,82 @@ pub fn pop_edge() -> Option<CameraEdge> {
     EDGES.lock(|q| q.try_borrow_mut().ok().and_then(|mut q| q.pop_front()))
 }
 
-/// The camera's exposure-active output on PB6, EXTI line 6 on both edges, always unmasked and
-/// handled by [`ExposureEdge`] (not by an embassy task: embassy masks a line between its task's
-/// waits, and an exposure's end must not be lost while the executor is busy).
-pub struct ExposureInput {
-    _pin: Input<'static>,
-    _line: Peri<'static, p::EXTI6>,
+/// The input pins, configured, their EXTI lines routed and unmasked.
+pub struct InputPins {
+    _estop: Input<'static>,
+    _interlock: Input<'static>,
+    _home: Input<'static>,
+    _exposure: Input<'static>,
+    _lines: (
+        Peri<'static, p::EXTI4>,
+        Peri<'static, p::EXTI5>,
+        Peri<'static, p::EXTI6>,
+        Peri<'static, p::EXTI10>,
+    ),
 }
 
-impl ExposureInput {
-    /// Take PB6 (pull-down: an unconnected output reads inactive for active-high cameras).
-    pub fn new(
-        pin: Peri<'static, p::PB6>,
-        line: Peri<'static, p::EXTI6>,
-        active_low: bool,
-    ) -> Self {
-        let pin = Input::new(pin, Pull::Down);
-        set_exposure_active_low(active_low);
+/// The pins the inputs take.
+pub struct InputParts {
+    pub estop: Peri<'static, p::PB5>,
+    pub interlock: Peri<'static, p::PB4>,
+    pub home: Peri<'static, p::PA10>,
+    pub exposure: Peri<'static, p::PB6>,
+    /// The EXTI lines they use (owned so nothing else claims them).
+    pub lines: (
+        Peri<'static, p::EXTI4>,
+        Peri<'static, p::EXTI5>,
+        Peri<'static, p::EXTI6>,
+        Peri<'static, p::EXTI10>,
+    ),
+}
+
+impl InputPins {
+    /// Pull-ups on the safety contacts and the home switch (polarity from the profile later),
+    /// pull-down on exposure-active; EXTI lines routed (SYSCFG is clocked by embassy's init),
+    /// triggers set, pending bits cleared, lines unmasked, vectors enabled.
+    pub fn new(parts: InputParts, exposure_active_low: bool) -> Self {
+        let pins = Self {
+            _estop: Input::new(parts.estop, Pull::Up),
+            _interlock: Input::new(parts.interlock, Pull::Up),
+            _home: Input::new(parts.home, Pull::Up),
+            _exposure: Input::new(parts.exposure, Pull::Down),
+            _lines: parts.lines,
+        };
+        set_exposure_active_low(exposure_active_low);
         cortex_m::interrupt::free(|_| {
-            // EXTICR2 holds lines 4..7; line 6 from port B (1).
-            pac::SYSCFG.exticr(1).modify(|w| w.set_exti(2, 1));
-            pac::EXTI.rtsr(0).modify(|w| w.set_line(6, true));
-            pac::EXTI.ftsr(0).modify(|w| w.set_line(6, true));
-            pac::EXTI.pr(0).write(|w| w.set_line(6, true));
-            pac::EXTI.imr(0).modify(|w| w.set_line(6, true));
+            let syscfg = pac::SYSCFG;
+            // EXTICR[line / 4] field line % 4: port B = 1, port A = 0.
+            for (line, port) in [
+                (INTERLOCK_LINE, 1),
+                (ESTOP_LINE, 1),
+                (EXPOSURE_LINE, 1),
+                (HOME_LINE, 0),
+            ] {
+                syscfg
+                    .exticr(line / 4)
+                    .modify(|w| w.set_exti(line % 4, port));
+            }
+            let exti = pac::EXTI;
+            for line in [INTERLOCK_LINE, ESTOP_LINE, EXPOSURE_LINE, HOME_LINE] {
+                exti.rtsr(0).modify(|w| w.set_line(line, true));
+                // Safety lines latch only their unsafe (rising) edge.
+                let both = line == EXPOSURE_LINE || line == HOME_LINE;
+                exti.ftsr(0).modify(|w| w.set_line(line, both));
+                exti.pr(0).write(|w| w.set_line(line, true));
+                exti.imr(0).modify(|w| w.set_line(line, true));
+            }
         });
-        Self {
-            _pin: pin,
-            _line: line,
+        for enable in [EXTI4::unpend, EXTI9_5::unpend, EXTI15_10::unpend] {
+            enable();
         }
+        // SAFETY: the handlers are bound in `main`; they share only atomics, a critical-section
+        // queue and registers with the tasks.
+        unsafe {
+            EXTI4::enable();
+            EXTI9_5::enable();
+            EXTI15_10::enable();
+        }
+        pins
     }
 }
 
@@ -175,26 +234,4 @@ pub fn set_exposure_active_low(active_low: bool) {
         pac::gpio::vals::Pupdr::PULL_DOWN
     };
     pac::GPIOB.pupdr().modify(|w| w.set_pupdr(6, pull));
-}
-
-/// Second handler on EXTI9_5 (after [`SafetyCut`], before embassy's): timestamps exposure-active
-/// edges and clears line 6's pending bit, so embassy never sees (or masks) it.
-pub struct ExposureEdge;
-
-impl Handler<embassy_stm32::interrupt::typelevel::EXTI9_5> for ExposureEdge {
-    unsafe fn on_interrupt() {
-        if !pac::EXTI.pr(0).read().line(6) {
-            return;
-        }
-        pac::EXTI.pr(0).write(|w| w.set_line(6, true));
-        let at = embassy_time::Instant::now().as_micros();
-        let high = pac::GPIOB.idr().read().idr(6) == pac::gpio::vals::Idr::HIGH;
-        let active = high != EXPOSURE_ACTIVE_LOW.load(Ordering::Relaxed);
-        push_edge(if active {
-            CameraEdge::ExposureStart(at)
-        } else {
-            CameraEdge::ExposureEnd(at)
-        });
-        CHANGED.signal(());
-    }
 }

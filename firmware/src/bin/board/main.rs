@@ -3,8 +3,13 @@
 //! The board binary only owns the hardware and pumps the sans-IO core (`subsurf_firmware`): bytes
 //! from the USART2 link go into the core, its frames go back out, its hardware calls land on the
 //! drivers in this directory, and its next deadline becomes an embassy timer. Every decision lives
-//! in the core; the binary adds the fault paths the core cannot see (panic, HardFault, a hung
-//! executor via the independent watchdog) and drives the lasers low on each of them.
+//! in the core; the binary adds the fault paths the core cannot see (panic, HardFault, a stuck
+//! executor via the light's deadline timer and the independent watchdog) and parks the lasers and
+//! the trigger at off on each of them.
+//!
+//! Boot order: clocks, then the rig profile from flash (a memory-mapped read, no pin involved),
+//! then the laser and trigger pins, parked at the profile's off levels, or left high-impedance if
+//! no profile is stored (the wiring's pull resistors hold them off, whatever their polarity).
 //!
 //! Build: `cargo fw`; flash: `subsurf flash` (or `cargo fw-run` with the probe-rs CLI).
 #![no_std]
@@ -26,15 +31,17 @@ use core::sync::atomic::{AtomicU32, Ordering};
 
 use defmt_rtt as _;
 use embassy_executor::Spawner;
-use embassy_stm32::exti::{self, ExtiInput};
-use embassy_stm32::gpio::Pull;
 use embassy_stm32::usart::{self, BufferedUart};
 use embassy_stm32::wdg::IndependentWatchdog;
 use embassy_stm32::{bind_interrupts, interrupt, peripherals};
 use embassy_time::{Duration, Timer};
 use static_cell::StaticCell;
 
-use crate::outputs::{CameraIo, CameraTiming, Galvo, GalvoPins, force_lasers_off};
+use crate::inputs::{InputParts, InputPins};
+use crate::outputs::{
+    CameraIo, CameraPins, CameraTiming, Galvo, GalvoPins, LightsOut, force_lasers_off,
+    force_trigger_off,
+};
 use crate::pins::Board;
 use crate::stepper::{StepGen, StepperIo};
 use crate::store::Store;
@@ -42,15 +49,11 @@ use crate::store::Store;
 bind_interrupts!(struct Irqs {
     USART2 => usart::BufferedInterruptHandler<peripherals::USART2>;
     TIM2 => stepper::StepInterrupt;
-    TIM8_CC => outputs::TriggerInterrupt;
-    // The laser cut-off runs first, in the interrupt, then embassy wakes the input tasks.
-    EXTI4 => inputs::SafetyCut<interrupt::typelevel::EXTI4>,
-        exti::InterruptHandler<interrupt::typelevel::EXTI4>;
-    EXTI9_5 => inputs::SafetyCut<interrupt::typelevel::EXTI9_5>,
-        inputs::ExposureEdge,
-        exti::InterruptHandler<interrupt::typelevel::EXTI9_5>;
-    EXTI15_10 => inputs::SafetyCut<interrupt::typelevel::EXTI15_10>,
-        exti::InterruptHandler<interrupt::typelevel::EXTI15_10>;
+    TIM5 => outputs::LightsOutInterrupt;
+    // The board's own EXTI handler (the cut-off first); embassy's EXTI driver is not used.
+    EXTI4 => inputs::Exti<interrupt::typelevel::EXTI4>;
+    EXTI9_5 => inputs::Exti<interrupt::typelevel::EXTI9_5>;
+    EXTI15_10 => inputs::Exti<interrupt::typelevel::EXTI15_10>;
 });
 
 /// Link baud rate: `SUBSURF_BAUD` at build time, 921600 by default (`subsurf rig --baud` must match).
@@ -88,27 +91,26 @@ pub static RIG_ALIVE: AtomicU32 = AtomicU32::new(0);
 async fn main(spawner: Spawner) {
     let p = embassy_stm32::init(clock_config());
     let board = Board::new(p);
-    // First thing after the clocks: laser enables parked at their inactive level (default
-    // polarity until the profile is read, which the external resistors hold anyway), trigger idle.
-    let mut camera = CameraTiming::new(
-        board.camera_timer,
-        board.laser_r,
-        board.camera_trigger,
-        board.laser_g,
-        board.laser_b,
-        CameraIo {
-            channels: 3,
-            laser_active_low: false,
-            trigger_active_low: false,
-        },
-    );
+    // The profile first: its laser and trigger polarities decide the pins' off levels. Until
+    // then (and for ever, with nothing stored) those pins stay inputs, as at reset.
     let store = Store::new(board.flash);
-    let profile = rig::stored_profile(&store);
-    camera.configure(CameraIo {
-        channels: profile.laser.channels,
-        laser_active_low: profile.laser.active_low,
-        trigger_active_low: profile.camera.trigger_active_low,
-    });
+    let stored = rig::stored_profile(&store);
+    let camera = CameraTiming::new(
+        board.camera_timer,
+        board.trigger_timer,
+        CameraPins {
+            laser_r: board.laser_r,
+            trigger: board.camera_trigger,
+            laser_g: board.laser_g,
+            laser_b: board.laser_b,
+        },
+        stored.map(|p| CameraIo {
+            channels: p.laser.channels,
+            laser_active_low: p.laser.active_low,
+            trigger_active_low: p.camera.trigger_active_low,
+        }),
+    );
+    let profile = stored.unwrap_or(subsurf_protocol::RigProfile::DEFAULT);
     defmt::info!(
         "subsurf firmware {} on STM32F446RE, link {} baud",
         env!("CARGO_PKG_VERSION"),
@@ -140,14 +142,22 @@ async fn main(spawner: Spawner) {
         },
         profile.galvo.output,
     );
-
-    let estop = ExtiInput::new(board.estop, board.estop_exti, Pull::Up, Irqs);
-    let interlock = ExtiInput::new(board.interlock, board.interlock_exti, Pull::Up, Irqs);
-    let home = ExtiInput::new(board.home, board.home_exti, Pull::Up, Irqs);
-    let _exposure = inputs::ExposureInput::new(board.exposure, board.exposure_exti, false);
-    spawner.spawn(defmt::unwrap!(inputs::estop(estop)));
-    spawner.spawn(defmt::unwrap!(inputs::interlock(interlock)));
-    spawner.spawn(defmt::unwrap!(inputs::home(home)));
+    let inputs = InputPins::new(
+        InputParts {
+            estop: board.estop,
+            interlock: board.interlock,
+            home: board.home,
+            exposure: board.exposure,
+            lines: (
+                board.interlock_exti,
+                board.estop_exti,
+                board.exposure_exti,
+                board.home_exti,
+            ),
+        },
+        profile.camera.exposure_active_low,
+    );
+    let lights_out = LightsOut::new(board.deadline_timer);
 
     static TX_BUF: StaticCell<[u8; 1024]> = StaticCell::new();
     static RX_BUF: StaticCell<[u8; 1024]> = StaticCell::new();
@@ -163,12 +173,14 @@ async fn main(spawner: Spawner) {
         link_config,
     ));
 
-    let mut hardware = rig::Hardware::new(stepper, galvo, camera, store);
-    hardware.apply_profile(&profile);
+    let mut hardware = rig::Hardware::new(stepper, galvo, camera, store, lights_out, inputs);
+    if let Some(profile) = stored {
+        hardware.apply_profile(&profile);
+    }
     spawner.spawn(defmt::unwrap!(rig::run(
         link,
         hardware,
-        profile,
+        stored,
         boot_nonce()
     )));
 }
@@ -251,22 +263,24 @@ async fn watchdog_task(mut watchdog: IndependentWatchdog<'static, peripherals::I
     }
 }
 
-/// Lasers low and stepper stopped, then report the panic over defmt and fault (probe-rs stops
-/// there with a backtrace; without a debugger the watchdog resets the chip). panic-probe is not
-/// used because it cannot switch the lasers off first.
+/// Lasers and trigger parked off and stepper stopped, then report the panic over defmt and fault
+/// (probe-rs stops there with a backtrace; without a debugger the watchdog resets the chip).
+/// panic-probe is not used because it cannot switch the lasers off first.
 #[panic_handler]
 fn panic(info: &core::panic::PanicInfo) -> ! {
     force_lasers_off();
+    force_trigger_off();
     stepper::fault_stop();
     defmt::error!("panic: {}", defmt::Display2Format(info));
     cortex_m::asm::udf()
 }
 
-/// Any fault (bad memory access, undefined instruction, the panic above): lasers low, stepper
-/// stopped, then wait for the watchdog reset.
+/// Any fault (bad memory access, undefined instruction, the panic above): lasers and trigger
+/// parked off, stepper stopped, then wait for the watchdog reset.
 #[cortex_m_rt::exception]
 unsafe fn HardFault(_frame: &cortex_m_rt::ExceptionFrame) -> ! {
     force_lasers_off();
+    force_trigger_off();
     stepper::fault_stop();
     loop {
         cortex_m::asm::nop();

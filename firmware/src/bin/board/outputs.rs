@@ -1,21 +1,31 @@
-//! Laser enables and camera trigger (TIM8, hardware-timed exposures) and the galvo DAC (external
-//! SPI DAC or the internal one): the board's actuators besides the stepper.
+//! Laser enables and camera trigger (hardware-timed exposures), the light's deadline timer, and
+//! the galvo DAC (external SPI DAC or the internal one): the board's actuators besides the
+//! stepper.
 //!
-//! Lasers R/G/B and the trigger are TIM8 channels 1, 3, 4 and 2 (PC6, PC8, PC9, PC7, see `pins`).
-//! A timed exposure ([`CameraTiming::start`]) runs TIM8 once in one-pulse mode: the laser channel in
-//! PWM mode 2 and the trigger "active on match", whose compare interrupt ([`TriggerInterrupt`])
-//! moves it to "inactive on match" for the falling edge; the plan comes from `exposure.rs`, which a
-//! host test checks against a tick-exact timer model. Outside a timed exposure the same channels
-//! are driven by the forced-active/forced-inactive output modes. A laser pin is in
-//! alternate-function mode only while its channel may emit; [`force_lasers_off`] puts every laser
-//! pin back to a GPIO output at its inactive level, whatever the timer is doing.
-use core::cell::Cell;
-use core::sync::atomic::{AtomicBool, AtomicU8, AtomicU16, Ordering};
+//! Lasers R/G/B are TIM8 channels 1, 3, 4 (PC6, PC8, PC9); the trigger is TIM3 channel 2 (PC7).
+//! A timed exposure ([`CameraTiming::start`]) runs both timers once in one-pulse mode, started
+//! together: the laser channels forced on and "inactive on match" at the window's end, the trigger
+//! in PWM mode 2, so every edge is a counter's (the plan is `exposure.rs`, which a host test checks
+//! against tick-exact timer models). Outside a timed exposure the same channels are driven by the
+//! forced-active/forced-inactive output modes. A laser or trigger pin is in alternate-function mode
+//! only while its timer may drive it; [`force_lasers_off`] parks every pin at off through the GPIO
+//! registers, whatever the timers do.
+//!
+//! Until the profile is known the polarities are not, and the pins stay high-impedance (inputs,
+//! no pull: the external resistors of the documented wiring hold them off): [`CameraTiming::new`]
+//! takes `None` then and drives nothing until [`CameraTiming::configure`] is called with the
+//! profile's polarities.
+//!
+//! The light's deadline ([`LightsOut`], TIM5): the core knows by when every laser must be off
+//! (heartbeat, manual limit, the window's end: `Rig::light_deadline`); the rig task arms TIM5 a
+//! little after that, and its interrupt parks the lasers and the trigger if the executor has not
+//! done it by then (a stuck task cannot keep light on; the watchdog comes later).
+use core::sync::atomic::{AtomicBool, AtomicU8, Ordering};
 
 use embassy_stm32::Peri;
 use embassy_stm32::dac::{Dac, DualValue};
-use embassy_stm32::gpio::{Level, Output, OutputType, Speed};
-use embassy_stm32::interrupt::typelevel::{Handler, Interrupt, TIM8_CC};
+use embassy_stm32::gpio::{Level, Output, Speed};
+use embassy_stm32::interrupt::typelevel::{Handler, Interrupt, TIM5};
 use embassy_stm32::mode::Blocking;
 use embassy_stm32::pac;
 use embassy_stm32::pac::timer::vals::{Ocm, Urs};
@@ -23,72 +33,93 @@ use embassy_stm32::peripherals as p;
 use embassy_stm32::spi::{self, Spi};
 use embassy_stm32::time::Hertz;
 use embassy_stm32::timer::low_level::Timer;
-use embassy_stm32::timer::simple_pwm::PwmPin;
-use embassy_stm32::timer::{Ch1, Ch2, Ch3, Ch4};
-use embassy_sync::blocking_mutex::CriticalSectionMutex;
-use embassy_time::{Duration, Instant, block_for};
 
-use crate::exposure::Plan;
-use crate::galvo_map::{GalvoMap, GalvoOutput, Slew, ad5689_frames};
-use crate::inputs::push_edge;
-use crate::pins::{LASER_PINS, LASER_TIMER_CHANNELS, TRIGGER_TIMER_CHANNEL};
-use crate::safety::{bsrr_inactive, moder_alternate, moder_output};
-use subsurf_firmware::hal::CameraEdge;
+use crate::exposure::{LightsOutTimer, Plan, lights_out_timer};
+use crate::galvo_map::{GalvoMap, GalvoOutput, ad5689_frames};
+use crate::pins::{LASER_PINS, LASER_TIMER_CHANNELS, TRIGGER_PIN, TRIGGER_TIMER_CHANNEL};
+use crate::safety::{Park, PinMode, Polarity, moder_with, park};
 
-/// Laser enables are active low (from the rig profile; read by the fault paths).
-static LASER_ACTIVE_LOW: AtomicBool = AtomicBool::new(false);
-/// Trigger channel state for the compare interrupt: 1 = rising edge armed, 0 = idle.
-static TRIGGER_PHASE: AtomicU8 = AtomicU8::new(0);
-/// Compare value of the trigger's falling edge in the running exposure.
-static TRIGGER_OFF_CCR: AtomicU16 = AtomicU16::new(0);
-/// Rig time (µs) at which the running exposure's trigger edge comes: the timer's start plus the
-/// edge's count, so the edge's timestamp is exact, not the interrupt's.
-static TRIGGER_EDGE_AT: CriticalSectionMutex<Cell<u64>> = CriticalSectionMutex::new(Cell::new(0));
+/// Laser enables' polarity ([`Polarity::to_u8`]; read by the fault paths).
+static LASER_POLARITY: AtomicU8 = AtomicU8::new(0);
+/// Trigger's polarity.
+static TRIGGER_POLARITY: AtomicU8 = AtomicU8::new(0);
+/// The deadline timer cut the light: no laser comes on again until the rig task re-arms it.
+static LIGHTS_OUT: AtomicBool = AtomicBool::new(false);
 
-/// Drive every laser enable to its inactive level and take the pins from the timer, through the
-/// GPIO registers only: safe from any interrupt or fault handler, whoever owns the pins. Used by
-/// every fault path (panic, HardFault, e-stop and interlock interrupts) before anything else.
-pub fn force_lasers_off() {
-    let active_low = LASER_ACTIVE_LOW.load(Ordering::Relaxed);
-    for (port, pin) in LASER_PINS {
-        // Output data first (takes effect the moment the pin becomes an output), then the mode.
-        port.bsrr()
-            .write_value(pac::gpio::regs::Bsrr(bsrr_inactive(pin, active_low)));
-        port.moder().modify(|w| w.0 = moder_output(w.0, pin));
+/// TIM8's alternate function on PC6/8/9, TIM3's on PC7 (datasheet, alternate function map).
+const TIM8_AF: u8 = 3;
+const TIM3_AF: u8 = 2;
+
+fn write_park(port: pac::gpio::Gpio, pin: u8, how: Park) {
+    if let Some(bsrr) = how.bsrr {
+        port.bsrr().write_value(pac::gpio::regs::Bsrr(bsrr));
     }
+    port.moder()
+        .modify(|w| w.0 = moder_with(w.0, pin, how.mode));
+}
+
+/// Park every laser enable at off (its inactive level, or high-impedance while the polarity is
+/// unknown) and take the pins from the timer, through the GPIO registers only: safe from any
+/// interrupt or fault handler, whoever owns the pins. Used by every fault path (panic, HardFault,
+/// e-stop and interlock interrupts, the deadline timer) before anything else.
+pub fn force_lasers_off() {
+    let polarity = Polarity::from_u8(LASER_POLARITY.load(Ordering::Relaxed));
+    for (port, pin) in LASER_PINS {
+        write_park(port, pin, park(pin, polarity));
+    }
+}
+
+/// Park the camera trigger at its inactive level (or high-impedance), the same way.
+pub fn force_trigger_off() {
+    let polarity = Polarity::from_u8(TRIGGER_POLARITY.load(Ordering::Relaxed));
+    let (port, pin) = TRIGGER_PIN;
+    write_park(port, pin, park(pin, polarity));
+}
+
+/// Stop both exposure timers (registers only).
+fn stop_exposure_timers() {
+    pac::TIM8.cr1().modify(|w| w.set_cen(false));
+    pac::TIM3.cr1().modify(|w| w.set_cen(false));
 }
 
 /// Hand laser pin `channel` to the timer (its output now decides the level).
 fn connect_laser(channel: usize) {
     if let Some(&(port, pin)) = LASER_PINS.get(channel) {
-        port.moder().modify(|w| w.0 = moder_alternate(w.0, pin));
+        port.moder()
+            .modify(|w| w.0 = moder_with(w.0, pin, PinMode::Alternate));
     }
 }
 
-fn set_ocm(channel: usize, mode: Ocm) {
+fn connect_trigger() {
+    let (port, pin) = TRIGGER_PIN;
+    port.moder()
+        .modify(|w| w.0 = moder_with(w.0, pin, PinMode::Alternate));
+}
+
+fn set_laser_ocm(channel: usize, mode: Ocm) {
     pac::TIM8
         .ccmr_output(channel / 2)
         .modify(|w| w.set_ocm(channel % 2, mode));
 }
 
-/// The camera trigger's compare interrupt: at the rising edge, schedule the falling one.
-pub struct TriggerInterrupt;
+fn set_trigger_ocm(mode: Ocm) {
+    let ch = TRIGGER_TIMER_CHANNEL;
+    pac::TIM3
+        .ccmr_output(ch / 2)
+        .modify(|w| w.set_ocm(ch % 2, mode));
+}
 
-impl Handler<TIM8_CC> for TriggerInterrupt {
-    unsafe fn on_interrupt() {
-        let tim = pac::TIM8;
-        let ch = TRIGGER_TIMER_CHANNEL;
-        if !tim.sr().read().ccif(ch) {
-            return;
-        }
-        tim.sr().modify(|w| w.set_ccif(ch, false));
-        if TRIGGER_PHASE.swap(0, Ordering::SeqCst) == 1 {
-            tim.ccr(ch)
-                .write(|w| w.set_ccr(TRIGGER_OFF_CCR.load(Ordering::SeqCst)));
-            set_ocm(ch, Ocm::INACTIVE_ON_MATCH);
-            push_edge(CameraEdge::Trigger(TRIGGER_EDGE_AT.lock(Cell::get)));
-        }
-    }
+/// Alternate function `af`, push-pull, fast edges, no pull on `pin` of `port`; MODER untouched
+/// (the pin stays what it is until it is parked or connected).
+fn prepare_pin(port: pac::gpio::Gpio, pin: u8, af: u8) {
+    let n = usize::from(pin);
+    port.afr(n / 8).modify(|w| w.set_afr(n % 8, af));
+    port.otyper()
+        .modify(|w| w.set_ot(n, pac::gpio::vals::Ot::PUSH_PULL));
+    port.ospeedr()
+        .modify(|w| w.set_ospeedr(n, pac::gpio::vals::Ospeedr::HIGH_SPEED));
+    port.pupdr()
+        .modify(|w| w.set_pupdr(n, pac::gpio::vals::Pupdr::FLOATING));
 }
 
 /// Laser and trigger wiring (from the rig profile).
@@ -102,119 +133,150 @@ pub struct CameraIo {
     pub trigger_active_low: bool,
 }
 
-/// Lasers and camera trigger on TIM8.
+/// Lasers (TIM8) and the camera trigger (TIM3).
 pub struct CameraTiming {
-    _timer: Timer<'static, p::TIM8>,
-    _r: PwmPin<'static, p::TIM8, Ch1>,
-    _trigger: PwmPin<'static, p::TIM8, Ch2>,
-    _g: PwmPin<'static, p::TIM8, Ch3>,
-    _b: PwmPin<'static, p::TIM8, Ch4>,
+    _tim8: Timer<'static, p::TIM8>,
+    _tim3: Timer<'static, p::TIM3>,
+    _pins: (
+        Peri<'static, p::PC6>,
+        Peri<'static, p::PC7>,
+        Peri<'static, p::PC8>,
+        Peri<'static, p::PC9>,
+    ),
+    /// Channels wired; 0 until the profile is known (nothing is driven then).
     channels: u8,
     /// A timed exposure is (or was last) running.
     timed: bool,
+    /// The trigger edge of the running exposure (rig µs), until it is reported.
+    edge_at: Option<u64>,
+}
+
+/// The four pins, taken as they are at reset (inputs).
+pub struct CameraPins {
+    pub laser_r: Peri<'static, p::PC6>,
+    pub trigger: Peri<'static, p::PC7>,
+    pub laser_g: Peri<'static, p::PC8>,
+    pub laser_b: Peri<'static, p::PC9>,
 }
 
 impl CameraTiming {
-    /// Take TIM8 and the four pins; lasers parked at their inactive level on GPIO, trigger idle.
+    /// Take TIM8, TIM3 and the four pins. With `io` (the stored profile's wiring) the pins are
+    /// parked at their inactive levels; without, they stay high-impedance as at reset. No pin is
+    /// driven at any other level on the way.
     pub fn new(
-        tim: Peri<'static, p::TIM8>,
-        laser_r: Peri<'static, p::PC6>,
-        trigger: Peri<'static, p::PC7>,
-        laser_g: Peri<'static, p::PC8>,
-        laser_b: Peri<'static, p::PC9>,
-        io: CameraIo,
+        tim8: Peri<'static, p::TIM8>,
+        tim3: Peri<'static, p::TIM3>,
+        pins: CameraPins,
+        io: Option<CameraIo>,
     ) -> Self {
-        LASER_ACTIVE_LOW.store(io.laser_active_low, Ordering::SeqCst);
-        let timer = Timer::new(tim);
-        let r = PwmPin::new(laser_r, OutputType::PushPull);
-        let g = PwmPin::new(laser_g, OutputType::PushPull);
-        let b = PwmPin::new(laser_b, OutputType::PushPull);
-        // The pins are alternate-function now, with the timer's outputs still disabled: park the
-        // lasers on GPIO at once.
-        force_lasers_off();
-        let trigger = PwmPin::new(trigger, OutputType::PushPull);
-        let tim = pac::TIM8;
-        tim.cr1().modify(|w| {
+        // Timers clocked, their outputs idle before any pin could reach them.
+        let tim8_ = Timer::new(tim8);
+        let tim3_ = Timer::new(tim3);
+        for (port, pin) in LASER_PINS {
+            prepare_pin(port, pin, TIM8_AF);
+        }
+        prepare_pin(TRIGGER_PIN.0, TRIGGER_PIN.1, TIM3_AF);
+        let t8 = pac::TIM8;
+        t8.cr1().modify(|w| {
             w.set_opm(true);
             w.set_urs(Urs::COUNTER_ONLY);
         });
         for ch in 0..4 {
-            set_ocm(ch, Ocm::FORCE_INACTIVE);
+            set_laser_ocm(ch, Ocm::FORCE_INACTIVE);
         }
-        tim.bdtr().modify(|w| w.set_moe(true));
-        tim.dier()
-            .modify(|w| w.set_ccie(TRIGGER_TIMER_CHANNEL, true));
-        TIM8_CC::unpend();
-        // SAFETY: the handler is bound in `main`; it shares only atomics with this driver.
-        unsafe { TIM8_CC::enable() };
+        t8.bdtr().modify(|w| w.set_moe(true));
+        let t3 = pac::TIM3;
+        t3.cr1().modify(|w| {
+            w.set_opm(true);
+            w.set_urs(Urs::COUNTER_ONLY);
+        });
+        set_trigger_ocm(Ocm::FORCE_INACTIVE);
         let mut camera = Self {
-            _timer: timer,
-            _r: r,
-            _trigger: trigger,
-            _g: g,
-            _b: b,
+            _tim8: tim8_,
+            _tim3: tim3_,
+            _pins: (pins.laser_r, pins.trigger, pins.laser_g, pins.laser_b),
             channels: 0,
             timed: false,
+            edge_at: None,
         };
-        camera.configure(io);
+        if let Some(io) = io {
+            camera.configure(io);
+        }
         camera
     }
 
-    /// Apply polarities and the channel count (from the rig profile): lasers off first.
+    /// Apply polarities and the channel count (from the rig profile): parks every pin at its
+    /// inactive level first (the old one, then the new one).
     pub fn configure(&mut self, io: CameraIo) {
-        self.set_lasers(0);
+        self.set_lasers(0, 0);
         self.set_trigger(false);
-        LASER_ACTIVE_LOW.store(io.laser_active_low, Ordering::SeqCst);
+        force_trigger_off();
+        LASER_POLARITY.store(
+            Polarity::from_active_low(io.laser_active_low).to_u8(),
+            Ordering::SeqCst,
+        );
+        TRIGGER_POLARITY.store(
+            Polarity::from_active_low(io.trigger_active_low).to_u8(),
+            Ordering::SeqCst,
+        );
         force_lasers_off();
+        force_trigger_off();
         pac::TIM8.ccer().modify(|w| {
             for ch in LASER_TIMER_CHANNELS {
                 w.set_ccp(ch, io.laser_active_low);
                 w.set_cce(ch, true);
             }
+        });
+        pac::TIM3.ccer().modify(|w| {
             w.set_ccp(TRIGGER_TIMER_CHANNEL, io.trigger_active_low);
             w.set_cce(TRIGGER_TIMER_CHANNEL, true);
         });
-        self.channels = io.channels.min(3);
+        self.channels = io.channels.min(subsurf_protocol::BOARD_LASER_CHANNELS);
     }
 
-    /// Stop a timed exposure (outputs keep their levels until changed).
-    fn stop_timer(&mut self) {
-        pac::TIM8.cr1().modify(|w| w.set_cen(false));
-        TRIGGER_PHASE.store(0, Ordering::SeqCst);
+    /// Stop a timed exposure; the trigger goes inactive, the lasers keep their levels until
+    /// changed. A trigger edge that had not come yet is not reported.
+    fn stop_timer(&mut self, now_us: u64) {
+        stop_exposure_timers();
+        set_trigger_ocm(Ocm::FORCE_INACTIVE);
+        if self.edge_at.is_some_and(|at| at > now_us) {
+            self.edge_at = None;
+        }
         self.timed = false;
     }
 
     /// Software control: bit `i` of `mask` = laser channel `i` on. Ends any timed exposure.
-    pub fn set_lasers(&mut self, mask: u8) {
-        self.stop_timer();
+    /// Nothing comes on while the polarity is unknown or after the deadline timer cut the light.
+    pub fn set_lasers(&mut self, mask: u8, now_us: u64) {
+        self.stop_timer(now_us);
+        let lights_out = LIGHTS_OUT.load(Ordering::SeqCst);
         for (i, ch) in LASER_TIMER_CHANNELS.into_iter().enumerate() {
-            let on = i < usize::from(self.channels) && mask & (1 << i) != 0;
+            let on = !lights_out && i < usize::from(self.channels) && mask & (1 << i) != 0;
             if on {
-                set_ocm(ch, Ocm::FORCE_ACTIVE);
+                set_laser_ocm(ch, Ocm::FORCE_ACTIVE);
                 connect_laser(i);
             } else {
-                set_ocm(ch, Ocm::FORCE_INACTIVE);
+                set_laser_ocm(ch, Ocm::FORCE_INACTIVE);
             }
         }
-        if mask == 0 {
+        if mask == 0 || lights_out {
             force_lasers_off();
         }
     }
 
-    /// Software control of the trigger line.
+    /// Software control of the trigger line (captures the timers cannot time).
     pub fn set_trigger(&mut self, high: bool) {
-        if self.timed && pac::TIM8.cr1().read().cen() {
+        if self.timed_running() {
             // The timer owns the edges of the running exposure.
             return;
         }
-        set_ocm(
-            TRIGGER_TIMER_CHANNEL,
-            if high {
-                Ocm::FORCE_ACTIVE
-            } else {
-                Ocm::FORCE_INACTIVE
-            },
-        );
+        if high && self.channels > 0 && !LIGHTS_OUT.load(Ordering::SeqCst) {
+            set_trigger_ocm(Ocm::FORCE_ACTIVE);
+            connect_trigger();
+        } else {
+            set_trigger_ocm(Ocm::FORCE_INACTIVE);
+            force_trigger_off();
+        }
     }
 
     /// Whether a timed exposure is still running.
@@ -222,47 +284,140 @@ impl CameraTiming {
         self.timed && pac::TIM8.cr1().read().cen()
     }
 
+    /// The running exposure's trigger edge, once its time has come (the counter placed it).
+    pub fn take_trigger_edge(&mut self, now_us: u64) -> Option<u64> {
+        let at = self.edge_at.filter(|&at| at <= now_us)?;
+        self.edge_at = None;
+        Some(at)
+    }
+
     /// Run one timed exposure now per `plan`: laser channels `mask` on from now (forced active)
-    /// until the timer's match turns them off, the trigger pulse on its matches.
-    pub fn start(&mut self, plan: &Plan, mask: u8) {
-        self.stop_timer();
-        let tim = pac::TIM8;
-        tim.psc().write_value(plan.psc);
-        tim.arr().write(|w| w.set_arr(plan.arr));
-        tim.ccr(TRIGGER_TIMER_CHANNEL)
-            .write(|w| w.set_ccr(plan.trigger_ccr));
-        set_ocm(TRIGGER_TIMER_CHANNEL, Ocm::FORCE_INACTIVE);
-        TRIGGER_OFF_CCR.store(plan.trigger_off_ccr, Ordering::SeqCst);
-        tim.cnt().write(|w| w.set_cnt(0));
+    /// until TIM8's match turns them off, the trigger pulse from TIM3. Returns `false` (nothing
+    /// started) while the wiring is unknown or the light is cut.
+    pub fn start(&mut self, plan: &Plan, mask: u8, now_us: u64) -> bool {
+        self.stop_timer(now_us);
+        if self.channels == 0 || LIGHTS_OUT.load(Ordering::SeqCst) {
+            return false;
+        }
+        let t8 = pac::TIM8;
+        t8.psc().write_value(plan.laser.psc);
+        t8.arr().write(|w| w.set_arr(plan.laser.arr));
+        t8.cnt().write(|w| w.set_cnt(0));
         // Load PSC/ARR (no update interrupt: URS = counter only), clear stale flags.
-        tim.egr().write(|w| w.set_ug(true));
-        tim.sr().write_value(pac::timer::regs::SrAdv(0));
+        t8.egr().write(|w| w.set_ug(true));
+        t8.sr().write_value(pac::timer::regs::SrAdv(0));
+        let t3 = pac::TIM3;
+        t3.psc().write_value(plan.trigger.psc);
+        t3.arr().write(|w| w.set_arr(plan.trigger.arr));
+        t3.ccr(TRIGGER_TIMER_CHANNEL)
+            .write(|w| w.set_ccr(plan.trigger.ccr));
+        t3.cnt().write(|w| w.set_cnt(0));
+        t3.egr().write(|w| w.set_ug(true));
+        t3.sr().write_value(pac::timer::regs::SrGp16(0));
+        // PWM mode 2 with the counter at 0 below the compare: inactive until the rise.
+        set_trigger_ocm(Ocm::PWM_MODE2);
+        connect_trigger();
         for (i, ch) in LASER_TIMER_CHANNELS.into_iter().enumerate() {
-            tim.ccr(ch).write(|w| w.set_ccr(plan.laser_off_ccr));
+            t8.ccr(ch).write(|w| w.set_ccr(plan.laser.ccr));
             if i < usize::from(self.channels) && mask & (1 << i) != 0 {
                 // On now; the match mode keeps that level until the counter reaches the end.
-                set_ocm(ch, Ocm::FORCE_ACTIVE);
+                set_laser_ocm(ch, Ocm::FORCE_ACTIVE);
                 connect_laser(i);
-                set_ocm(ch, Ocm::INACTIVE_ON_MATCH);
+                set_laser_ocm(ch, Ocm::INACTIVE_ON_MATCH);
             } else {
-                set_ocm(ch, Ocm::FORCE_INACTIVE);
+                set_laser_ocm(ch, Ocm::FORCE_INACTIVE);
             }
         }
-        set_ocm(TRIGGER_TIMER_CHANNEL, Ocm::ACTIVE_ON_MATCH);
-        TRIGGER_PHASE.store(1, Ordering::SeqCst);
         self.timed = true;
-        let edge_in_ns = u64::from(plan.trigger_ccr) * u64::from(plan.tick_ns);
-        let started = Instant::now().as_micros();
-        tim.cr1().modify(|w| w.set_cen(true));
-        TRIGGER_EDGE_AT.lock(|at| at.set(started + edge_in_ns / 1_000));
+        // Both counters start within a few cycles of each other.
+        let started = cortex_m::interrupt::free(|_| {
+            t8.cr1().modify(|w| w.set_cen(true));
+            t3.cr1().modify(|w| w.set_cen(true));
+            embassy_time::Instant::now().as_micros()
+        });
+        let (rise_ns, _, _) = plan.edges_ns();
+        self.edge_at = Some(started + rise_ns / 1_000);
+        true
     }
+}
+
+/// The light's deadline on TIM5 (32-bit, 1 µs ticks, one-pulse): its update interrupt is the
+/// backstop of the core's own laser-off deadlines.
+pub struct LightsOut {
+    _timer: Timer<'static, p::TIM5>,
+    /// The deadline armed (rig µs), if any.
+    armed: Option<u64>,
+}
+
+impl LightsOut {
+    /// Take TIM5, stopped, its interrupt enabled.
+    pub fn new(tim: Peri<'static, p::TIM5>) -> Self {
+        let mut timer = Timer::new(tim);
+        timer.set_tick_freq(Hertz(1_000_000));
+        let t = pac::TIM5;
+        t.cr1().modify(|w| {
+            w.set_opm(true);
+            w.set_urs(Urs::COUNTER_ONLY);
+        });
+        t.dier().modify(|w| w.set_uie(true));
+        TIM5::unpend();
+        // SAFETY: the handler is bound in `main`; it shares only atomics and registers.
+        unsafe { TIM5::enable() };
+        Self {
+            _timer: timer,
+            armed: None,
+        }
+    }
+
+    /// Follow the core's light deadline (`None`: no light possible, the timer stops). Re-arming
+    /// with a deadline still ahead lifts a cut: the core has caught up with it.
+    pub fn follow(&mut self, deadline: Option<u64>, now_us: u64) {
+        if deadline == self.armed {
+            return;
+        }
+        self.armed = deadline;
+        let t = pac::TIM5;
+        t.cr1().modify(|w| w.set_cen(false));
+        match lights_out_timer(deadline, now_us) {
+            LightsOutTimer::Stop => LIGHTS_OUT.store(false, Ordering::SeqCst),
+            LightsOutTimer::FireIn { ticks, lift } => {
+                if lift {
+                    LIGHTS_OUT.store(false, Ordering::SeqCst);
+                }
+                t.arr().write_value(ticks);
+                t.cnt().write_value(0);
+                t.egr().write(|w| w.set_ug(true));
+                t.sr().modify(|w| w.set_uif(false));
+                t.cr1().modify(|w| w.set_cen(true));
+            }
+        }
+    }
+}
+
+/// TIM5's update: the core's deadline passed long ago and the light is still allowed: cut it.
+pub struct LightsOutInterrupt;
+
+impl Handler<TIM5> for LightsOutInterrupt {
+    unsafe fn on_interrupt() {
+        let t = pac::TIM5;
+        if !t.sr().read().uif() {
+            return;
+        }
+        t.sr().modify(|w| w.set_uif(false));
+        LIGHTS_OUT.store(true, Ordering::SeqCst);
+        stop_exposure_timers();
+        force_lasers_off();
+        force_trigger_off();
+    }
+}
+
+/// Whether the deadline timer has cut the light (and the core has not caught up yet).
+pub fn lights_out() -> bool {
+    LIGHTS_OUT.load(Ordering::SeqCst)
 }
 
 /// SPI clock for the external DAC (APB1 42 MHz / 4; the AD5689R takes up to 50 MHz).
 const SPI_HZ: u32 = 10_000_000;
-/// Boot ramp: largest DAC step per write, and the pause between writes.
-const RAMP_STEP_16: u16 = 1_024;
-const RAMP_PAUSE: Duration = Duration::from_millis(1);
 
 /// The AD5689R on SPI2 with /SYNC on a GPIO.
 struct SpiDac {
@@ -270,13 +425,22 @@ struct SpiDac {
     sync: Output<'static>,
 }
 
-/// The two galvo axes, updated together, on the external SPI DAC or the internal DAC (both are
-/// set up at boot; the rig profile picks one, and can switch it without a reset).
+/// The internal DAC's peripheral and pins, until the internal path is first selected.
+struct InternalParts {
+    dac: Peri<'static, p::DAC1>,
+    x: Peri<'static, p::PA4>,
+    y: Peri<'static, p::PA5>,
+}
+
+/// The two galvo axes, updated together, on the external SPI DAC or the internal DAC (the rig
+/// profile picks one, and can switch it without a reset). The internal DAC is only switched on
+/// once the internal path is chosen, and off again when it is left: on the external path PA4/PA5
+/// are not driven (PA5 also carries the Nucleo's LED).
 pub struct Galvo {
     spi: SpiDac,
-    internal: Dac<'static, Blocking>,
+    internal: Option<Dac<'static, Blocking>>,
+    parts: Option<InternalParts>,
     map: GalvoMap,
-    slew: Slew,
 }
 
 /// Pins and peripherals of both galvo paths.
@@ -290,47 +454,55 @@ pub struct GalvoPins {
     pub y: Peri<'static, p::PA5>,
 }
 
-fn slew_step(output: GalvoOutput) -> u16 {
-    match output {
-        GalvoOutput::ExternalDac16 => RAMP_STEP_16,
-        // The same angle per write on the 12-bit DAC.
-        GalvoOutput::InternalDac12 => RAMP_STEP_16 / 16,
-    }
-}
-
 impl Galvo {
-    /// Both paths; nothing moves until the first command, which the boot ramp brings from the
-    /// centre smoothly. The external DAC powers up at mid-scale (RSTSEL high) and is not written
-    /// before that; the internal one is set to the centre of its linear window at once.
+    /// Both paths; nothing is written until the core's first command (the centre, where the
+    /// external DAC powered up: RSTSEL high puts the AD5689R at mid-scale).
     pub fn new(pins: GalvoPins, output: GalvoOutput) -> Self {
         let mut config = spi::Config::default();
         config.mode = spi::MODE_1;
         config.frequency = Hertz(SPI_HZ);
         let spi = Spi::new_blocking_txonly(pins.spi, pins.sck, pins.mosi, config);
-        let mut internal = Dac::new_blocking(pins.dac, pins.x, pins.y);
-        let (cx, cy) = GalvoMap::for_output(GalvoOutput::InternalDac12).centre();
-        internal.set(DualValue::Bit12Right(cx, cy));
-        let map = GalvoMap::for_output(output);
-        Self {
+        let mut galvo = Self {
             spi: SpiDac {
                 spi,
                 sync: Output::new(pins.sync, Level::High, Speed::VeryHigh),
             },
-            internal,
-            slew: Slew::new(map.centre(), slew_step(output)),
-            map,
-        }
+            internal: None,
+            parts: Some(InternalParts {
+                dac: pins.dac,
+                x: pins.x,
+                y: pins.y,
+            }),
+            map: GalvoMap::for_output(GalvoOutput::ExternalDac16),
+        };
+        galvo.set_output(output);
+        galvo
     }
 
-    /// Switch the output path (from a new rig profile): the new path ramps from its centre.
+    /// Switch the output path (from a rig profile): the internal DAC on only while it is the
+    /// path.
     pub fn set_output(&mut self, output: GalvoOutput) {
-        if output != self.map.output {
-            self.map = GalvoMap::for_output(output);
-            self.slew = Slew::new(self.map.centre(), slew_step(output));
+        self.map = GalvoMap::for_output(output);
+        let live = crate::galvo_map::internal_dac_live(output);
+        if live
+            && self.internal.is_none()
+            && let Some(parts) = self.parts.take()
+        {
+            let mut dac = Dac::new_blocking(parts.dac, parts.x, parts.y);
+            let (cx, cy) = self.map.centre();
+            dac.set(DualValue::Bit12Right(cx, cy));
+            self.internal = Some(dac);
+        }
+        if let Some(dac) = self.internal.as_mut() {
+            dac.ch1().set_enable(live);
+            dac.ch2().set_enable(live);
         }
     }
 
-    fn write(&mut self, (a, b): (u16, u16)) {
+    /// Set both axes (protocol codes, clamped): one write, no waiting (the core waits the
+    /// mirrors' settle time before it lights the spot). About 8 µs on the SPI DAC.
+    pub fn set(&mut self, x: u16, y: u16) {
+        let (a, b) = self.map.dac_codes(x, y);
         match self.map.output {
             GalvoOutput::ExternalDac16 => {
                 for frame in ad5689_frames(a, b) {
@@ -341,23 +513,10 @@ impl Galvo {
                     self.spi.sync.set_high();
                 }
             }
-            GalvoOutput::InternalDac12 => self.internal.set(DualValue::Bit12Right(a, b)),
-        }
-    }
-
-    /// Set both axes (protocol codes, clamped). The first command after boot is ramped from the
-    /// centre in small steps; later ones go straight out (the core waits the settle time).
-    pub fn set(&mut self, x: u16, y: u16) {
-        let target = self.map.dac_codes(x, y);
-        // Bounded: the ramp ends after full scale / step writes; afterwards one write.
-        for _ in 0..=u32::from(u16::MAX) {
-            let ramping = self.slew.ramping();
-            let Some(next) = self.slew.next(target) else {
-                return;
-            };
-            self.write(next);
-            if ramping && next != target {
-                block_for(RAMP_PAUSE);
+            GalvoOutput::InternalDac12 => {
+                if let Some(dac) = self.internal.as_mut() {
+                    dac.set(DualValue::Bit12Right(a, b));
+                }
             }
         }
     }

@@ -16,14 +16,15 @@
 //! | Emergency stop        | PB5     | D4 (CN9)      | EXTI5, NC contact to GND: high = stop        |
 //! | Enclosure interlock   | PB4     | D5 (CN9)      | EXTI4, NC contact to GND: high = open        |
 //! | Laser R               | PC6     | CN10-4        | TIM8_CH1, polarity from the profile          |
-//! | Camera trigger        | PC7     | D9 (CN5)      | TIM8_CH2, polarity from the profile          |
+//! | Camera trigger        | PC7     | D9 (CN5)      | TIM3_CH2, polarity from the profile          |
 //! | Laser G               | PC8     | CN10-2        | TIM8_CH3                                     |
 //! | Laser B               | PC9     | CN10-1        | TIM8_CH4                                     |
-//! | Exposure active (opt.)| PB6     | D10 (CN5)     | EXTI6, camera strobe output                  |
+//! | Exposure active       | PB6     | D10 (CN5)     | EXTI6, camera strobe output (required)       |
 //!
-//! Safety inputs are wired fail-safe: a broken wire reads as "pressed"/"open". Laser enables sit at
-//! their inactive level through reset (pins float until `main` parks them, so external pull
-//! resistors to the inactive level hold them there during reset and boot).
+//! Safety inputs are wired fail-safe: a broken wire reads as "pressed"/"open". Laser enables and the
+//! trigger are inputs (high-impedance) from reset until the stored profile says their polarity;
+//! the wiring's external resistors to each one's off level hold them off meanwhile, and for ever
+//! if no profile is stored (`outputs.rs`).
 use embassy_stm32::{Peri, Peripherals, peripherals as p};
 
 /// Every peripheral and pin the firmware uses, taken once from [`Peripherals`].
@@ -49,6 +50,8 @@ pub struct Board {
     pub interlock: Peri<'static, p::PB4>,
     pub interlock_exti: Peri<'static, p::EXTI4>,
     pub camera_timer: Peri<'static, p::TIM8>,
+    pub trigger_timer: Peri<'static, p::TIM3>,
+    pub deadline_timer: Peri<'static, p::TIM5>,
     pub laser_r: Peri<'static, p::PC6>,
     pub laser_g: Peri<'static, p::PC8>,
     pub laser_b: Peri<'static, p::PC9>,
@@ -84,6 +87,8 @@ impl Board {
             interlock: p.PB4,
             interlock_exti: p.EXTI4,
             camera_timer: p.TIM8,
+            trigger_timer: p.TIM3,
+            deadline_timer: p.TIM5,
             laser_r: p.PC6,
             laser_g: p.PC8,
             laser_b: p.PC9,
@@ -104,7 +109,10 @@ pub const LASER_PINS: [(embassy_stm32::pac::gpio::Gpio, u8); 3] = [
     (embassy_stm32::pac::GPIOC, 9),
 ];
 
+/// The camera trigger as (GPIO port, pin number), for the same fault paths.
+pub const TRIGGER_PIN: (embassy_stm32::pac::gpio::Gpio, u8) = (embassy_stm32::pac::GPIOC, 7);
+
 /// TIM8 channel index (0-based) of each laser (R, G, B).
 pub const LASER_TIMER_CHANNELS: [usize; 3] = [0, 2, 3];
-/// TIM8 channel index (0-based) of the camera trigger.
+/// TIM3 channel index (0-based) of the camera trigger.
 pub const TRIGGER_TIMER_CHANNEL: usize = 1;

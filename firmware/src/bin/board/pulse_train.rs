@@ -1,102 +1,61 @@
-//! The step generator's bookkeeping, free of registers so a host test can run it against a model
-//! of the timer (`firmware/tests/pulse_train.rs` includes this file through `#[path]`).
+//! The step timer's bookkeeping, free of registers so host tests run it against a model of the
+//! timer (`firmware/tests/pulse_train.rs`) and the QEMU benchmark counts its instructions on a
+//! Cortex-M4 (`src/bin/qemu_isr/main.rs`); both include this file through `#[path]`.
 //!
-//! Timer model (TIM2 in PWM mode 2, up-counting, ARR and CCR preloaded): a period of `len` ticks
-//! runs the counter `0..len`; the output is high while `counter >= ccr`, so a step period
-//! (`ccr = len - pulse`) ends with a STEP pulse and a blank period (`ccr` above `len`) has none.
-//! At each update event (counter wrap) the preloaded `arr`/`ccr` become active and the interrupt
-//! calls [`PulseTrain::on_update`], which says what to do next.
+//! Timer model (TIM2 in PWM mode 2, up-counting at [`TICKS_PER_US`] ticks per µs, ARR and CCR
+//! preloaded): a period of `len` ticks runs the counter `0..len`; the output is high while
+//! `counter >= ccr`, so a step period (`ccr = len - pulse`) ends with a STEP pulse and a blank
+//! period (`ccr` above `len`) has none. At each update event (counter wrap) the preloaded
+//! `arr`/`ccr` become active and the interrupt runs [`on_interrupt`].
 //!
-//! Steps are queued as segments `(interval, count, add)`, as Klipper's `queue_step` does
-//! (`src/stepper.c`): the first step comes `interval` ticks after the previous one, and each of
-//! the following `count - 1` steps comes `add` ticks later than the spacing before it. The
-//! interrupt expands them one period at a time, so the feeding task wakes once per batch of steps
-//! (every [`BATCH_US`] at most while a move runs), not once per step. Consecutive steps merge into
-//! the newest queued segment whenever they continue its arithmetic progression exactly, so the
-//! compression is lossless: every pulse lands on its tick.
+//! The core plans the steps ahead and compresses them into [`StepSegment`]s (Klipper's
+//! `queue_step`: the first step at its time, then gaps of `interval`, `interval + add`, ...); the
+//! rig task queues them here some milliseconds before they are due. The interrupt only emits: per
+//! step it counts the step that ended, sets DIR, and preloads the period after next from the
+//! segment being expanded (`len = next; next = gap; gap += add`). Its cost per step is measured in
+//! instructions on a Cortex-M4 under QEMU (BENCHMARKS.md).
 //!
-//! Time: the train keeps the absolute time (rig µs = timer ticks, both counted from the same PLL)
-//! at which its last queued period ends. A step is pushed with its absolute target; while the train
-//! runs, its interval is the target minus that end, so the spacing is exact however late the push.
-//! A step whose target comes too soon to be placed (the timer ran dry mid-motion because the
-//! feeder was late by more than the pipeline, or the queue is full) is a stall: it is counted
-//! ([`PulseTrain::take_stalls`]) and the rig raises it as a fault instead of moving the motor off
-//! schedule without anyone knowing.
+//! Time: the train keeps the absolute time (ticks of the rig clock's PLL) at which its last
+//! queued period ends, so a segment's first step lands exactly where the core put it, however late
+//! the task queued it. A step that cannot be placed on time (the queue ran dry mid-motion because
+//! the task was late by more than the planning horizon, the queue is full, or a reversal leaves
+//! DIR less than its set-up time) is a stall: it is counted ([`PulseTrain::take_stalls`]) and the
+//! rig faults instead of moving the motor off schedule without anyone knowing.
 use heapless::Deque;
+use subsurf_firmware::hal::StepSegment;
 
-/// Default STEP high time, ticks (µs). Bare STEP/DIR drivers need 0.1–2 µs; opto-isolated inputs
-/// (the common DM542/TB6600 class) need 2.5–5 µs, so 5 µs is the default.
-pub const DEFAULT_PULSE_TICKS: u32 = 5;
-/// Accepted STEP high times, ticks.
-pub const PULSE_TICKS_RANGE: core::ops::RangeInclusive<u32> = 2..=50;
-/// Shortest period the interrupt keeps up with, ticks (its work takes ~1 µs at 168 MHz). The
-/// shortest step interval is this or twice the pulse width, whichever is longer (STEP low at least
-/// as long as high): 100 kHz with the default pulse.
-pub const MIN_PERIOD_TICKS: u32 = 10;
-/// Longest interval one timer period takes.
-pub const MAX_INTERVAL_TICKS: u32 = 0x7fff_ffff;
-/// Queued segments. Worst case (every step its own segment, during acceleration) this holds
-/// 128 steps: 3.2 ms at 40 kHz, three times the pipeline.
-pub const QUEUE_LEN: usize = 128;
-/// A step may replace a preloaded blank period only while the current period has more than this
-/// many ticks left (the register writes take well under one tick).
-pub const PATCH_MARGIN_TICKS: u32 = 3;
-/// While a move runs, the feeding task wakes at most this often and queues every step that came
-/// due meanwhile (each with its own scheduled time). Must stay well below the pipeline.
-pub const BATCH_US: u64 = 400;
+/// Timer ticks per µs: TIM2 counts its input clock (APB1 42 MHz × 2 = 84 MHz) undivided. The
+/// core plans in the same ticks (`Stepper::TICKS_PER_US`).
+pub const TICKS_PER_US: u32 = 84;
+/// Default STEP high time, µs. Bare STEP/DIR drivers need 0.1–2 µs; opto-isolated inputs (the
+/// common DM542/TB6600 class) need 2.5–5 µs, so 5 µs is the default.
+pub const DEFAULT_PULSE_US: u32 = 5;
+/// Accepted STEP high times, µs (the rig profile refuses others).
+pub const PULSE_US_RANGE: core::ops::RangeInclusive<u32> = 2..=50;
+/// Shortest period the interrupt keeps up with, µs: it has to write the preloads within one
+/// period. The core's `MIN_STEP_GAP_US`.
+pub const MIN_PERIOD_US: u32 = 10;
+/// DIR is written by the interrupt at the start of the period that ends with the step; it may run
+/// this late, which the DIR set-up must leave room for.
+pub const DIR_LATENCY_US: u32 = 2;
+/// Longest period, ticks (25 s; a longer pause between two steps idles the timer instead).
+pub const MAX_PERIOD_TICKS: u32 = 0x7fff_ffff;
+/// Queued segments: the core keeps at most 32 in flight (`planner::IN_FLIGHT`).
+pub const QUEUE_LEN: usize = 32;
 
-/// The shortest step interval for a pulse width.
-pub const fn min_interval(pulse_ticks: u32) -> u32 {
-    let twice = pulse_ticks.saturating_mul(2);
-    if twice > MIN_PERIOD_TICKS {
-        twice
-    } else {
-        MIN_PERIOD_TICKS
-    }
-}
-
-/// A run of steps in one direction: `count` steps, the first `interval` ticks after the previous
-/// step, each following interval `add` ticks longer than the one before.
+/// A segment as the interrupt expands it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Segment {
-    /// Ticks before the first step.
-    pub interval: u32,
-    /// Steps in the segment (≥ 1).
-    pub count: u16,
-    /// Change of the interval from one step to the next, ticks.
-    pub add: i32,
+struct Segment {
+    /// Period before the first step, ticks.
+    first: u32,
+    /// Period before the second step, ticks.
+    interval: u32,
+    /// Change of the period from one step to the next, ticks.
+    add: i32,
+    /// Steps (≥ 1).
+    count: u16,
     /// Direction of every step.
-    pub forward: bool,
-}
-
-impl Segment {
-    /// Interval before the last step of the segment (`None` if it leaves the valid range).
-    fn last_interval(&self) -> Option<u32> {
-        let steps = i64::from(self.count).checked_sub(1)?;
-        let last = i64::from(self.interval) + i64::from(self.add) * steps;
-        u32::try_from(last).ok()
-    }
-
-    /// Extend the segment by a step `interval` after its last one, if that continues it exactly.
-    fn try_extend(&mut self, interval: u32, forward: bool) -> bool {
-        if forward != self.forward || self.count == u16::MAX {
-            return false;
-        }
-        let Some(last) = self.last_interval() else {
-            return false;
-        };
-        let step = i64::from(interval) - i64::from(last);
-        let Ok(step) = i32::try_from(step) else {
-            return false;
-        };
-        if self.count == 1 {
-            self.add = step;
-        } else if step != self.add {
-            return false;
-        }
-        self.count += 1;
-        true
-    }
+    forward: bool,
 }
 
 /// What one timer period does.
@@ -113,15 +72,7 @@ pub enum Period {
     Blank,
 }
 
-impl Period {
-    /// Length in ticks.
-    pub fn len(self) -> u32 {
-        match self {
-            Period::Step { len, .. } => len,
-            Period::Blank => MIN_PERIOD_TICKS,
-        }
-    }
-}
+const BLANK_TICKS: u32 = MIN_PERIOD_US * TICKS_PER_US;
 
 /// Values for the timer's preload registers.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -141,19 +92,15 @@ pub struct Update {
     pub dir: Option<bool>,
     /// Write these preloads (the period after the one starting now); `None` = stop the counter.
     pub preload: Option<Preload>,
-    /// The queue is half empty or the train ended: wake the feeder.
-    pub refill: bool,
 }
 
 /// What [`PulseTrain::push`] needs done to the timer.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Push {
-    /// Queued (or merged into the newest segment); the interrupt will load it.
+    /// Queued; the interrupt will load it.
     Queued,
     /// The queue is full: nothing changed (counted as a stall).
     Full,
-    /// Overwrite the preload registers with this (the step replaces a preloaded blank period).
-    Patch(Preload),
     /// The timer was idle: set DIR, load `first` into the active registers (update generation),
     /// then `next` into the preloads, and start counting from 0.
     Start {
@@ -169,9 +116,12 @@ pub enum Push {
 /// Segment being expanded by the interrupt.
 #[derive(Clone, Copy, Debug)]
 struct Expanding {
-    interval: u32,
-    left: u16,
+    /// The next period, ticks.
+    next: u32,
+    /// The one after it.
+    gap: u32,
     add: i32,
+    left: u16,
     forward: bool,
 }
 
@@ -184,8 +134,11 @@ pub struct PulseTrain {
     current: Period,
     next: Period,
     pulse_ticks: u32,
+    dir_setup_ticks: u32,
     /// Absolute time (ticks) at which the last queued period ends.
     end_at: u64,
+    /// Direction of the last queued step.
+    last_forward: bool,
     stalls: u32,
 }
 
@@ -195,8 +148,40 @@ impl Default for PulseTrain {
     }
 }
 
+/// The step timer's registers as the update interrupt touches them: the board's TIM2 and DIR pin,
+/// or a model (host tests, the QEMU benchmark).
+pub trait StepTimer {
+    /// Whether an update event is pending; clears the flag.
+    fn take_update(&mut self) -> bool;
+    /// Drive DIR for the period that starts now.
+    fn set_dir(&mut self, forward: bool);
+    /// Write the preload registers (the period after the one that starts now).
+    fn preload(&mut self, preload: Preload);
+    /// Stop the counter.
+    fn stop(&mut self);
+}
+
+/// The whole update interrupt: a period ended; count its step, set DIR for the period that
+/// starts, preload the one after it or stop. Bounded, constant work per step: no division, no
+/// loop, no step-time computation.
+#[inline(always)]
+pub fn on_interrupt(train: &mut PulseTrain, timer: &mut impl StepTimer) -> Option<Update> {
+    if !timer.take_update() {
+        return None;
+    }
+    let update = train.on_update();
+    if let Some(forward) = update.dir {
+        timer.set_dir(forward);
+    }
+    match update.preload {
+        Some(p) => timer.preload(p),
+        None => timer.stop(),
+    }
+    Some(update)
+}
+
 impl PulseTrain {
-    /// Idle, empty, default pulse width.
+    /// Idle, empty, default pulse width, no DIR set-up.
     pub const fn new() -> Self {
         Self {
             queue: Deque::new(),
@@ -204,8 +189,10 @@ impl PulseTrain {
             running: false,
             current: Period::Blank,
             next: Period::Blank,
-            pulse_ticks: DEFAULT_PULSE_TICKS,
+            pulse_ticks: DEFAULT_PULSE_US * TICKS_PER_US,
+            dir_setup_ticks: 0,
             end_at: 0,
+            last_forward: true,
             stalls: 0,
         }
     }
@@ -220,13 +207,16 @@ impl PulseTrain {
         self.pulse_ticks
     }
 
-    /// Set the STEP high time (clamped to [`PULSE_TICKS_RANGE`]); only while idle, so no period
-    /// in flight changes shape. Returns whether it was applied.
-    pub fn set_pulse_ticks(&mut self, ticks: u32) -> bool {
+    /// Set the STEP high time and the DIR set-up, µs (the pulse clamped to [`PULSE_US_RANGE`],
+    /// which the profile already enforces); only while idle, so no period in flight changes
+    /// shape. Returns whether it was applied.
+    pub fn set_timing(&mut self, pulse_us: u32, dir_setup_us: u32) -> bool {
         if self.running {
             return false;
         }
-        self.pulse_ticks = ticks.clamp(*PULSE_TICKS_RANGE.start(), *PULSE_TICKS_RANGE.end());
+        let pulse = pulse_us.clamp(*PULSE_US_RANGE.start(), *PULSE_US_RANGE.end());
+        self.pulse_ticks = pulse * TICKS_PER_US;
+        self.dir_setup_ticks = dir_setup_us.saturating_mul(TICKS_PER_US);
         true
     }
 
@@ -240,19 +230,20 @@ impl PulseTrain {
         self.queue.len()
     }
 
-    /// Forget everything and go idle (the caller stops the timer); keeps the pulse width and the
+    /// Forget everything and go idle (the caller stops the timer); keeps the timing and the
     /// stall count.
-    pub fn clear(&mut self) {
-        let (pulse_ticks, stalls) = (self.pulse_ticks, self.stalls);
-        *self = Self::new();
-        self.pulse_ticks = pulse_ticks;
-        self.stalls = stalls;
+    fn clear(&mut self) {
+        self.queue.clear();
+        self.expanding = None;
+        self.running = false;
+        self.current = Period::Blank;
+        self.next = Period::Blank;
     }
 
     /// Stop here: forget every step whose pulse has not started yet and return how many (the
     /// caller stops the timer and forces STEP low first). `counter` is the timer's counter: the
     /// current period's pulse already started if it reached the compare value, and then counts as
-    /// emitted. Keeps the pulse width and the stall count.
+    /// emitted. Keeps the timing and the stall count.
     pub fn flush(&mut self, counter: u32) -> u32 {
         let mut dropped: u64 = 0;
         if self.running {
@@ -278,7 +269,7 @@ impl PulseTrain {
                 ccr: len - self.pulse_ticks,
             },
             Period::Blank => Preload {
-                arr: MIN_PERIOD_TICKS - 1,
+                arr: BLANK_TICKS - 1,
                 ccr: u32::MAX,
             },
         }
@@ -288,18 +279,20 @@ impl PulseTrain {
     fn take_period(&mut self) -> Period {
         if self.expanding.is_none_or(|e| e.left == 0) {
             self.expanding = self.queue.pop_front().map(|s| Expanding {
-                interval: s.interval,
-                left: s.count,
+                next: s.first,
+                gap: s.interval,
                 add: s.add,
+                left: s.count,
                 forward: s.forward,
             });
         }
         let Some(e) = self.expanding.as_mut().filter(|e| e.left > 0) else {
             return Period::Blank;
         };
-        let len = e.interval;
+        let len = e.next;
         e.left -= 1;
-        e.interval = u32::try_from(i64::from(e.interval) + i64::from(e.add)).unwrap_or(0);
+        e.next = e.gap;
+        e.gap = e.gap.wrapping_add_signed(e.add);
         Period::Step {
             forward: e.forward,
             len,
@@ -323,7 +316,6 @@ impl PulseTrain {
                     stepped,
                     dir: None,
                     preload: None,
-                    refill: true,
                 };
             }
             Period::Blank => None,
@@ -331,24 +323,35 @@ impl PulseTrain {
         self.next = self.take_period();
         if self.next == Period::Blank {
             // Ran out of steps: a blank period follows, the train's end moves past it.
-            self.end_at += u64::from(Period::Blank.len());
+            self.end_at += u64::from(BLANK_TICKS);
         }
         Update {
             stepped,
             dir,
             preload: Some(self.preload_for(self.next)),
-            refill: self.queue.len() <= QUEUE_LEN / 2,
         }
     }
 
-    /// The interval for a step whose pulse must rise at `target` (absolute ticks), after the end
-    /// of the train at `end`; a target too soon is a stall and gets the shortest interval.
-    fn interval_to(&mut self, target: u64, end: u64) -> u32 {
-        let wanted = target.saturating_add(u64::from(self.pulse_ticks));
-        let min = min_interval(self.pulse_ticks);
+    /// The shortest period that may end with a step in direction `forward` after the last queued
+    /// one: STEP low at least as long as high, the interrupt's floor, and after a reversal DIR's
+    /// set-up (DIR changes at the period's start, the pulse comes at its end).
+    fn min_len(&self, forward: bool) -> u32 {
+        let floor = (MIN_PERIOD_US * TICKS_PER_US).max(self.pulse_ticks * 2);
+        if forward == self.last_forward {
+            floor
+        } else {
+            floor.max(self.pulse_ticks + self.dir_setup_ticks + DIR_LATENCY_US * TICKS_PER_US)
+        }
+    }
+
+    /// The length of the period ending with a step that must rise at `rise` (absolute ticks), after
+    /// the train's end at `end`; a step too soon is a stall and gets the shortest period.
+    fn period_to(&mut self, rise: u64, end: u64, forward: bool) -> u32 {
+        let wanted = rise.saturating_add(u64::from(self.pulse_ticks));
+        let min = self.min_len(forward);
         match wanted.checked_sub(end).map(u32::try_from) {
-            Some(Ok(interval)) if interval >= min => interval.min(MAX_INTERVAL_TICKS),
-            Some(Err(_)) => MAX_INTERVAL_TICKS,
+            Some(Ok(len)) if len >= min => len.min(MAX_PERIOD_TICKS),
+            Some(Err(_)) => MAX_PERIOD_TICKS,
             _ => {
                 self.stalls = self.stalls.saturating_add(1);
                 min
@@ -356,62 +359,46 @@ impl PulseTrain {
         }
     }
 
-    /// Add a step whose STEP pulse must rise at `target` (absolute ticks). `now` is the time now,
-    /// `counter` the timer's counter and `update_pending` its update flag (an update happened whose
-    /// interrupt has not run yet), all read with interrupts masked.
-    pub fn push(
-        &mut self,
-        target: u64,
-        forward: bool,
-        now: u64,
-        counter: u32,
-        update_pending: bool,
-    ) -> Push {
+    /// Add a segment the core planned (times in absolute ticks). `now` is the time now, read with
+    /// interrupts masked like the rest of the call.
+    pub fn push(&mut self, segment: &StepSegment, now: u64) -> Push {
+        if segment.count == 0 {
+            return Push::Queued;
+        }
+        let forward = segment.forward;
         if self.running {
-            let left = self.current.len().saturating_sub(counter.saturating_add(1));
-            if self.next == Period::Blank
-                && !self.has_steps()
-                && !update_pending
-                && left > PATCH_MARGIN_TICKS
-            {
-                // The preloaded blank is replaced: the train ends where the current period does.
-                let end = self.end_at.saturating_sub(u64::from(Period::Blank.len()));
-                let len = self.interval_to(target, end);
-                self.next = Period::Step { forward, len };
-                self.end_at = end + u64::from(len);
-                return Push::Patch(self.preload_for(self.next));
+            if self.queue.is_full() {
+                self.stalls = self.stalls.saturating_add(u32::from(segment.count));
+                return Push::Full;
             }
-            let interval = self.interval_to(target, self.end_at);
-            if let Some(back) = self.queue.back_mut()
-                && back.try_extend(interval, forward)
-            {
-                self.end_at += u64::from(interval);
-                return Push::Queued;
-            }
-            let segment = Segment {
-                interval,
-                count: 1,
-                add: 0,
+            let first = self.period_to(segment.first_at, self.end_at, forward);
+            let queued = Segment {
+                first,
+                interval: segment.interval,
+                add: segment.add,
+                count: segment.count,
                 forward,
             };
-            return match self.queue.push_back(segment) {
-                Ok(()) => {
-                    self.end_at += u64::from(interval);
-                    Push::Queued
-                }
-                Err(_) => {
-                    self.stalls = self.stalls.saturating_add(1);
-                    Push::Full
-                }
-            };
+            // Cannot fail: checked for room above.
+            let _ = self.queue.push_back(queued);
+            self.end_at += u64::from(first) + (segment.last_at() - segment.first_at);
+            self.last_forward = forward;
+            return Push::Queued;
         }
-        let len = self.interval_to(target, now);
+        let len = self.period_to(segment.first_at, now, forward);
         self.current = Period::Step { forward, len };
-        self.end_at = now + u64::from(len);
-        self.expanding = None;
+        self.end_at = now + u64::from(len) + (segment.last_at() - segment.first_at);
+        self.last_forward = forward;
+        self.expanding = Some(Expanding {
+            next: segment.interval,
+            gap: segment.interval.wrapping_add_signed(segment.add),
+            add: segment.add,
+            left: segment.count - 1,
+            forward,
+        });
         self.next = self.take_period();
         if self.next == Period::Blank {
-            self.end_at += u64::from(Period::Blank.len());
+            self.end_at += u64::from(BLANK_TICKS);
         }
         self.running = true;
         Push::Start {
@@ -419,17 +406,5 @@ impl PulseTrain {
             first: self.preload_for(self.current),
             next: self.preload_for(self.next),
         }
-    }
-}
-
-/// When the feeding task should wake next: at the core's `deadline`, except that while a move
-/// runs (`deadline` is the next step's) it sleeps at least until `last_wake + BATCH_US`, taking
-/// the steps due meanwhile together. Steps still land on time: the pipeline is longer than the
-/// batch.
-pub fn batch_wake(deadline: u64, deadline_is_step: bool, last_wake: u64) -> u64 {
-    if deadline_is_step {
-        deadline.max(last_wake.saturating_add(BATCH_US))
-    } else {
-        deadline
     }
 }

@@ -1,26 +1,29 @@
 //! The rig task: pumps the sans-IO core (`subsurf_firmware::Rig`) with link bytes, input changes
 //! and its own deadlines, and implements the core's hardware traits on the board's drivers.
 //!
-//! Timing: every deadline the core asks for is run with `now` = that deadline, so each step the
-//! core emits carries its scheduled time. Steps go to the hardware step generator with their
-//! absolute target, one fixed [`STEP_PIPELINE_US`] after the scheduled time (the queue that absorbs
-//! the task's wake-up latency). While a move runs the task wakes at most every
-//! [`crate::pulse_train::BATCH_US`] and queues every step due meanwhile, so the executor wakes once
-//! per batch, not once per step; the timer interrupt expands the queued segments. A step that
-//! missed its time (the timer ran dry mid-motion) is a stall: the motion is stopped and the core
-//! halted. Once the core reports a move finished, requests are held back until the last queued
-//! step has left the timer, so nothing (a laser, a capture) overlaps a moving motor.
+//! Timing: every deadline the core asks for is run with `now` = that deadline. The core plans the
+//! steps ahead (`subsurf_firmware::planner`): while a move runs it wakes every few milliseconds
+//! and hands the step timer compressed segments for the next 10 ms, which the timer interrupt
+//! emits on its own (never once per step in the executor). The core counts a step as done when
+//! its planned time has come, so a move is finished only once its last step has left the timer.
+//! A step that missed its time (the timer ran dry mid-motion) is a stall: the motion is stopped
+//! and the core halted.
+//!
+//! Light: after every pass the task arms the light's deadline timer (`outputs::LightsOut`) a
+//! little after the core's own laser-off deadline (`Rig::light_deadline`), so a stuck task cannot
+//! keep a laser on; the exposure's edges are the timers' (`exposure.rs`). Safety edges the EXTI
+//! interrupt latched are passed to the core as inputs and forgotten only once it has seen them.
 use core::sync::atomic::{AtomicBool, Ordering};
 
-use embassy_futures::select::{Either, Either3, select, select3};
+use embassy_futures::select::{Either3, select3};
 use embassy_stm32::pac;
 use embassy_stm32::usart::{BufferedUart, BufferedUartRx, BufferedUartTx};
-use embassy_time::{Duration, Instant, Timer, with_timeout};
+use embassy_time::{Duration, Instant, Timer};
 use embedded_io_async::{Read, Write};
 use static_cell::StaticCell;
 use subsurf_firmware::hal::{
     CameraEdge, CameraInput, CameraTrigger, ExposureWindow, GalvoDac, LaserOutputs, RigInputs,
-    Stepper,
+    StepSegment, Stepper,
 };
 use subsurf_firmware::{Micros, Rig};
 use subsurf_protocol::{
@@ -28,21 +31,13 @@ use subsurf_protocol::{
 };
 
 use crate::exposure::{LaserCall, on_set_lasers, plan_window};
-use crate::inputs;
-use crate::outputs::{CameraIo, CameraTiming, Galvo};
-use crate::pulse_train::batch_wake;
+use crate::inputs::{self, InputPins};
+use crate::outputs::{CameraIo, CameraTiming, Galvo, LightsOut, lights_out};
 use crate::stepper::{StepGen, StepperIo};
 use crate::store::Store;
 
 /// The rig task wakes at least this often (the watchdog task expects it).
 pub const MAX_SLEEP: Duration = Duration::from_millis(50);
-
-/// Steps leave the timer this long after the core scheduled them (the first step of a motion is
-/// started this far ahead; later ones keep their exact spacing).
-pub const STEP_PIPELINE_US: u64 = 1_000;
-
-/// A timed exposure still running this long after its scheduled end is cut in software.
-const WINDOW_GRACE_US: u64 = 2_000;
 
 /// Home switch is active low (from the rig profile).
 static HOME_ACTIVE_LOW: AtomicBool = AtomicBool::new(true);
@@ -52,15 +47,17 @@ fn now_us() -> Micros {
     Instant::now().as_micros()
 }
 
-/// Safety inputs straight from the pins (not the EXTI tasks' flags, which lag by a task switch).
+/// Inputs straight from the pins, with the safety edges the EXTI interrupt latched: a press
+/// shorter than a poll still reads as pressed until the core has seen it.
 fn sample_inputs() -> Inputs {
     let pa = pac::GPIOA.idr().read();
     let safety = inputs::safety_pins();
+    let latched = inputs::latched();
     Inputs {
         // PB5: NC contact to GND, pull-up: high = pressed or broken wire.
-        estop: safety.estop_high,
+        estop: safety.estop_high || latched.estop,
         // PB4: NC contact to GND, pull-up: low = enclosure closed.
-        interlock_closed: !safety.interlock_high,
+        interlock_closed: !safety.interlock_high && !latched.interlock,
         // PA10: the home switch, active level from the profile.
         home_switch: (pa.idr(10) == pac::gpio::vals::Idr::LOW)
             == HOME_ACTIVE_LOW.load(Ordering::Relaxed),
@@ -73,31 +70,42 @@ pub struct Hardware {
     pub galvo: Galvo,
     pub camera: CameraTiming,
     store: Store,
+    lights_out: LightsOut,
+    _inputs: InputPins,
     /// Core time of the call in progress (set before every call into the core).
     pub now: Micros,
     /// Steps that missed their time since the last check.
     stalls: u32,
-    /// Steps the core emitted while the e-stop held the timer: never output, so a flush counts
+    /// Steps the core queued while the e-stop held the timer: never output, so a flush counts
     /// them as discarded.
     held: u32,
     /// Scheduled laser-off of the timed exposure in progress (until the core's laser-off).
     window_off_at: Option<Micros>,
-    /// Scheduled laser-off of the last timed exposure, for the overrun backstop.
-    timer_deadline: Option<Micros>,
+    /// The profile the pins and timers are set up for (`None`: none known, nothing driven).
+    applied: Option<RigProfile>,
 }
 
 impl Hardware {
-    pub fn new(stepper: StepGen, galvo: Galvo, camera: CameraTiming, store: Store) -> Self {
+    pub fn new(
+        stepper: StepGen,
+        galvo: Galvo,
+        camera: CameraTiming,
+        store: Store,
+        lights_out: LightsOut,
+        inputs: InputPins,
+    ) -> Self {
         Self {
             stepper,
             galvo,
             camera,
             store,
+            lights_out,
+            _inputs: inputs,
             now: 0,
             stalls: 0,
             held: 0,
             window_off_at: None,
-            timer_deadline: None,
+            applied: None,
         }
     }
 
@@ -105,6 +113,7 @@ impl Hardware {
     /// the galvo path, the camera's and the home switch's polarity. The core changes the profile
     /// only while idle, so nothing in flight changes shape.
     pub fn apply_profile(&mut self, profile: &RigProfile) {
+        self.applied = Some(*profile);
         self.stepper.configure(StepperIo::from(&profile.motor));
         self.camera.configure(CameraIo {
             channels: profile.laser.channels,
@@ -124,17 +133,19 @@ impl Hardware {
 }
 
 impl Stepper for Hardware {
-    fn step(&mut self, forward: bool) {
+    const TICKS_PER_US: u32 = crate::pulse_train::TICKS_PER_US;
+
+    fn queue(&mut self, segment: StepSegment) -> bool {
         if sample_inputs().estop {
             // The EXTI interrupt stopped the timer; do not restart it before the core has seen
             // the e-stop and flushed.
-            self.held = self.held.saturating_add(1);
-            return;
+            self.held = self.held.saturating_add(u32::from(segment.count));
+            return true;
         }
         // Never blocks: a step that cannot be placed on time counts as a stall.
-        self.stepper
-            .push(self.now.saturating_add(STEP_PIPELINE_US), forward, now_us());
+        let queued = self.stepper.queue(&segment, now_us());
         self.stalls = self.stalls.saturating_add(self.stepper.take_stalls());
+        queued
     }
 
     fn flush(&mut self) -> u32 {
@@ -152,14 +163,15 @@ impl GalvoDac for Hardware {
 impl LaserOutputs for Hardware {
     fn set_lasers(&mut self, mask: u8) {
         // Defence in depth: the core already refuses light with the e-stop pressed or the
-        // interlock open; the pins are checked again here, at the last moment.
+        // interlock open; the pins are checked again here, at the last moment, and nothing comes
+        // on after the deadline timer cut the light.
         let inputs = sample_inputs();
-        let allowed = !inputs.estop && inputs.interlock_closed;
+        let allowed = !inputs.estop && inputs.interlock_closed && !lights_out();
         let window = self.window_off_at.take();
         let call = on_set_lasers(window, self.now, self.camera.timed_running(), allowed, mask);
         match call {
             LaserCall::LeaveToTimer => {}
-            LaserCall::Apply(mask) => self.camera.set_lasers(mask),
+            LaserCall::Apply(mask) => self.camera.set_lasers(mask, now_us()),
         }
     }
 }
@@ -179,16 +191,16 @@ impl CameraTrigger for Hardware {
         let after = window.laser_off_at.saturating_sub(window.trigger_at);
         match plan_window(lead, window.trigger_us, window.exposure_us, after) {
             Ok(plan) => {
-                self.camera.start(&plan, window.channel_mask);
-                self.timer_deadline = Some(window.laser_off_at);
-                let (rise, fall, off) = plan.edges_us();
-                defmt::debug!(
-                    "timed exposure: trigger {}..{} us, laser off {} us",
-                    rise,
-                    fall,
-                    off
-                );
-                self.window_off_at = Some(window.laser_off_at);
+                if self.camera.start(&plan, window.channel_mask, now_us()) {
+                    let (rise, fall, off) = plan.edges_ns();
+                    defmt::debug!(
+                        "timed exposure: trigger {}..{} ns, laser off {} ns",
+                        rise,
+                        fall,
+                        off
+                    );
+                    self.window_off_at = Some(window.laser_off_at);
+                }
             }
             Err(e) => defmt::warn!("exposure window not timeable ({}); software edges", e),
         }
@@ -197,6 +209,10 @@ impl CameraTrigger for Hardware {
 
 impl CameraInput for Hardware {
     fn poll_camera_edge(&mut self) -> Option<CameraEdge> {
+        // The trigger edge the counter placed, once its time has come, then the camera's.
+        if let Some(at) = self.camera.take_trigger_edge(now_us()) {
+            return Some(CameraEdge::Trigger(at));
+        }
         inputs::pop_edge()
     }
 }
@@ -265,12 +281,21 @@ fn check_stalls(rig: &mut Rig<Hardware>) {
     }
 }
 
-/// Persist a profile the host just set, and apply it to the board's I/O.
+/// Put the board's I/O in line with the profile the core runs, as soon as it knows one (the core
+/// accepts a new one only while idle).
+fn apply_profile(rig: &mut Rig<Hardware>) {
+    let profile = *rig.profile();
+    if rig.profile_known() && rig.hw().applied != Some(profile) {
+        rig.hw_mut().apply_profile(&profile);
+    }
+}
+
+/// Persist a profile the host set, once the core says the rig is idle and dark (the erase blocks
+/// every interrupt).
 fn persist_profile(rig: &mut Rig<Hardware>) {
     let Some(profile) = rig.take_profile_to_persist() else {
         return;
     };
-    rig.hw_mut().apply_profile(&profile);
     let mut buf = [0u8; crate::flash_record::MAX_PAYLOAD];
     match postcard::to_slice(&profile, &mut buf) {
         Ok(bytes) => match rig.hw_mut().store.save(bytes) {
@@ -281,49 +306,53 @@ fn persist_profile(rig: &mut Rig<Hardware>) {
     }
 }
 
-/// Safety backstop for timed exposures: once the core has the lasers off, a timer still running
-/// well past its window's end is stopped in software.
-fn check_window(rig: &mut Rig<Hardware>) {
-    let now = now_us();
-    let lasers_off = rig.laser_output() == 0;
-    let hw = rig.hw_mut();
-    if let Some(off) = hw.timer_deadline
-        && now > off.saturating_add(WINDOW_GRACE_US)
-    {
-        hw.timer_deadline = None;
-        if hw.camera.timed_running() && lasers_off {
-            defmt::warn!("exposure timer overran its window; stopped");
-            hw.camera.set_lasers(0);
-        }
-    }
+/// Keep the light's deadline timer a little behind the core's own laser-off deadline.
+fn follow_light_deadline(rig: &mut Rig<Hardware>) {
+    let deadline = rig.light_deadline();
+    rig.hw_mut().lights_out.follow(deadline, now_us());
 }
 
-/// The profile stored in flash, or the documented default.
-pub fn stored_profile(store: &Store) -> RigProfile {
+/// Hand the core the inputs now (a pin changed, or an edge was latched), then forget the edges
+/// it has seen.
+fn pass_inputs(rig: &mut Rig<Hardware>) {
+    let edges = inputs::latched();
+    let now = now_us();
+    rig.hw_mut().now = now;
+    rig.handle_inputs(now);
+    inputs::passed_on(edges);
+}
+
+/// The profile stored in flash, if a valid one is.
+pub fn stored_profile(store: &Store) -> Option<RigProfile> {
     let mut buf = [0u8; crate::flash_record::MAX_PAYLOAD];
     let profile = store
         .load(&mut buf)
         .and_then(|bytes| postcard::from_bytes::<RigProfile>(bytes).ok())
         .filter(|p| p.validate().is_ok());
     match profile {
-        Some(p) => {
-            defmt::info!("rig profile from flash");
-            p
-        }
-        None => {
-            defmt::info!("no valid rig profile in flash: documented defaults");
-            RigProfile::DEFAULT
-        }
+        Some(_) => defmt::info!("rig profile from flash"),
+        None => defmt::warn!(
+            "no valid rig profile in flash: documented defaults, lasers and trigger left \
+             high-impedance until a profile is sent"
+        ),
     }
+    profile
 }
 
 /// The rig task.
 #[embassy_executor::task]
-pub async fn run(link: BufferedUart<'static>, hw: Hardware, profile: RigProfile, boot_nonce: u32) {
+pub async fn run(
+    link: BufferedUart<'static>,
+    hw: Hardware,
+    stored: Option<RigProfile>,
+    boot_nonce: u32,
+) {
     let (mut tx, mut rx): (BufferedUartTx<'static>, BufferedUartRx<'static>) = link.split();
     static RIG: StaticCell<Rig<Hardware>> = StaticCell::new();
-    let rig = RIG.init_with(|| Rig::new(hw, profile, Config::DEFAULT, boot_nonce, now_us()));
-    let mut last_wake = now_us();
+    let rig = RIG.init_with(|| match stored {
+        Some(profile) => Rig::new(hw, profile, Config::DEFAULT, boot_nonce, now_us()),
+        None => Rig::new_unconfigured(hw, Config::DEFAULT, boot_nonce, now_us()),
+    });
     let mut rx_buf = [0u8; 64];
     let mut frame = [0u8; MAX_FRAME];
     let mut last_fault = None;
@@ -332,42 +361,22 @@ pub async fn run(link: BufferedUart<'static>, hw: Hardware, profile: RigProfile,
         crate::RIG_ALIVE.fetch_add(1, Ordering::Relaxed);
         transmit(rig, &mut tx, &mut frame).await;
         persist_profile(rig);
-        check_window(rig);
+        follow_light_deadline(rig);
         if rig.fault() != last_fault {
             last_fault = rig.fault();
             defmt::warn!("fault: {}", last_fault);
         }
 
-        if !rig.moving() && rig.hw().stepper.is_running() {
-            // The core is done with the move but the last steps are still in the timer: hold
-            // requests back, watch only the inputs, until the motor really stands still.
-            let wait = select(crate::stepper::REFILL.wait(), inputs::CHANGED.wait());
-            let changed = matches!(with_timeout(MAX_SLEEP, wait).await, Ok(Either::Second(())));
-            run_due(rig);
-            check_stalls(rig);
-            if changed {
-                let now = now_us();
-                rig.hw_mut().now = now;
-                rig.handle_inputs(now);
-            }
-            continue;
-        }
-
         let now = now_us();
         let deadline = rig.poll_timeout().unwrap_or(Micros::MAX);
-        // While a move runs, take its steps in batches (one wake per batch, not per step).
-        let is_step = rig.moving() && rig.next_step_due() == Some(deadline);
-        let wake =
-            batch_wake(deadline, is_step, last_wake).min(now.saturating_add(MAX_SLEEP.as_micros()));
+        let wake = deadline.min(now.saturating_add(MAX_SLEEP.as_micros()));
         let woke = select3(
             rx.read(&mut rx_buf),
             Timer::at(Instant::from_micros(wake)),
             inputs::CHANGED.wait(),
         )
         .await;
-        last_wake = now_us();
-        // Deadlines that came while we slept run first, each at its own time: handling bytes at
-        // the later wall-clock time first would make the core emit the missed steps as a burst.
+        // Deadlines that came while we slept run first, each at its own time.
         run_due(rig);
         check_stalls(rig);
         match woke {
@@ -375,14 +384,15 @@ pub async fn run(link: BufferedUart<'static>, hw: Hardware, profile: RigProfile,
                 let now = now_us();
                 rig.hw_mut().now = now;
                 rig.handle_bytes(now, rx_buf.get(..n).unwrap_or(&[]));
+                apply_profile(rig);
             }
             Either3::First(Err(e)) => defmt::warn!("link read error: {}", e),
             Either3::Second(()) => {}
-            Either3::Third(()) => {
-                let now = now_us();
-                rig.hw_mut().now = now;
-                rig.handle_inputs(now);
-            }
+            Either3::Third(()) => pass_inputs(rig),
+        }
+        if inputs::latched() != crate::safety::SafetyEdges::default() {
+            // An edge latched while the core ran: let it see it now.
+            pass_inputs(rig);
         }
     }
 }
