@@ -37,4 +37,5 @@ mod rig_cli;
 mod rig_link;
 mod scan;
 mod scan_fit;
+mod store;
 mod texture;

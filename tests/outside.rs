@@ -331,7 +331,9 @@ fn check_outside_readers(py: &Path, path: &Path, m: &ModelFile) {
         }
     }
     if readers.get("open3d").is_none() {
-        eprintln!("SKIPPED the Open3D check: Open3D is not installed (CI reads with trimesh and Blender)");
+        eprintln!(
+            "SKIPPED the Open3D check: Open3D is not installed (CI reads with trimesh and Blender)"
+        );
     }
     // Blender's own importer, where Blender is installed (CI does not install it: hundreds of
     // megabytes). Positions are single precision in Blender.
@@ -368,5 +370,94 @@ fn check_outside_readers(py: &Path, path: &Path, m: &ModelFile) {
             serde_json::json!(m.triangles[f]),
             "blender {at}"
         );
+    }
+}
+
+/// Issue 23: the sample store opens in pyarrow (and pandas): the frames, the registered ones, and
+/// per sample file the rows, the samples per channel and their sums read as subsurf holds them.
+#[test]
+fn the_sample_store_opens_in_pyarrow() {
+    use subsurf::pipeline::{PipelineOptions, StoreOptions, prepare};
+    use subsurf::store::PointSet;
+    let Some(py) = python("pyarrow") else {
+        return;
+    };
+    let d = tempfile::tempdir().unwrap();
+    let data = d.path().join("scan");
+    crate::fixture::small_slab_copy(&data);
+    let ds = Dataset::open(&data).unwrap();
+    let opts = PipelineOptions::for_dataset(&ds);
+    let frames: Vec<usize> = (0..ds.spec.frames.len()).collect();
+    let ctx = prepare(&ds, &frames, &opts, &StoreOptions::default(), &()).unwrap();
+    let store = ctx.store().unwrap();
+    let dir = store.report().dir.clone().unwrap();
+    assert!(
+        dir.starts_with(data.join(".subsurf-cache")),
+        "{}",
+        dir.display()
+    );
+    let printed = run(Command::new(&py)
+        .arg(workspace().join("tests/outside/read_store.py"))
+        .arg(&dir));
+    let got: serde_json::Value = serde_json::from_str(printed.trim()).unwrap();
+    assert_eq!(got["frames"], frames.len());
+    let registered = store
+        .records()
+        .iter()
+        .filter(|r| {
+            matches!(
+                r.outcome,
+                Ok(subsurf::registration::RegistrationOutcome::Registered { .. })
+            )
+        })
+        .count();
+    assert_eq!(got["registered"], registered);
+    for (set, name) in [
+        (PointSet::Vertices, "vertices"),
+        (PointSet::Lattice, "points"),
+    ] {
+        let (mut rows, mut sum_r, mut sum_s, mut valid) = (0usize, 0.0, [0.0; 3], [0usize; 3]);
+        let mut rs = Vec::new();
+        let mut ss = [Vec::new(), Vec::new(), Vec::new()];
+        for &k in &frames {
+            let Some(fs) = store.samples(k, set).unwrap() else {
+                continue;
+            };
+            for x in fs.samples.iter() {
+                rows += 1;
+                rs.push(x.r);
+                for c in 0..3 {
+                    if x.valid & (1 << c) != 0 {
+                        valid[c] += 1;
+                        ss[c].push(x.value[c]);
+                    }
+                }
+            }
+        }
+        if set == PointSet::Lattice && store.points().is_none() {
+            continue;
+        }
+        let fsum = |v: &[f64]| v.iter().sum::<f64>();
+        sum_r += fsum(&rs);
+        for c in 0..3 {
+            sum_s[c] = fsum(&ss[c]);
+        }
+        let g = &got[name];
+        assert_eq!(g["rows"], rows, "{name}: {printed}");
+        assert_eq!(g["valid"], serde_json::json!(valid), "{name}");
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-9 * b.abs().max(1e-300);
+        assert!(
+            close(g["sum_r"].as_f64().unwrap(), sum_r),
+            "{name}: {printed}"
+        );
+        for c in 0..3 {
+            assert!(
+                close(g["sum_s"][c].as_f64().unwrap(), sum_s[c]),
+                "{name} {c}"
+            );
+        }
+    }
+    if let Some(n) = got.get("pandas_rows") {
+        assert_eq!(n, &got["vertices"]["rows"]);
     }
 }

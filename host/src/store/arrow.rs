@@ -282,9 +282,8 @@ impl Writer {
         };
         let batches = std::mem::take(&mut self.batches);
         let rows = std::mem::take(&mut self.rows);
-        let files = Files::new(dir, keep, not_cached, batches, rows);
         self.tmp = PathBuf::new();
-        Ok(files)
+        Files::new(dir, keep, not_cached, batches, rows)
     }
 }
 
@@ -602,6 +601,44 @@ fn lattice_batch(p: &StorePoints) -> RecordBatch {
         .unwrap_or_else(|_| RecordBatch::new_empty(Arc::new(Schema::empty())))
 }
 
+/// A reader of a shared open file at a position of its own (positioned reads), so that readers on
+/// several threads never share a file offset, and a store stays readable when another run
+/// replaces its directory: the files were opened when the store was made.
+struct At {
+    file: Arc<File>,
+    pos: u64,
+}
+
+impl std::io::Read for At {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        #[cfg(unix)]
+        let n = std::os::unix::fs::FileExt::read_at(&*self.file, buf, self.pos)?;
+        #[cfg(windows)]
+        let n = std::os::windows::fs::FileExt::seek_read(&*self.file, buf, self.pos)?;
+        self.pos += n as u64;
+        Ok(n)
+    }
+}
+
+impl std::io::Seek for At {
+    fn seek(&mut self, to: std::io::SeekFrom) -> std::io::Result<u64> {
+        use std::io::SeekFrom;
+        let base = match to {
+            SeekFrom::Start(p) => {
+                self.pos = p;
+                return Ok(p);
+            }
+            SeekFrom::Current(d) => (self.pos, d),
+            SeekFrom::End(d) => (self.file.metadata()?.len(), d),
+        };
+        self.pos = base
+            .0
+            .checked_add_signed(base.1)
+            .ok_or_else(|| std::io::Error::other("seek before the start"))?;
+        Ok(self.pos)
+    }
+}
+
 /// A store's finished files, read back a batch at a time.
 pub struct Files {
     dir: PathBuf,
@@ -609,8 +646,10 @@ pub struct Files {
     not_cached: Option<String>,
     batches: [Vec<Option<usize>>; 2],
     rows: [Vec<usize>; 2],
-    /// Open readers per point set, reused (opening one parses the footer).
-    readers: [Mutex<Vec<FileReader<BufReader<File>>>>; 2],
+    /// The sample files, opened once.
+    open: [Option<Arc<File>>; 2],
+    /// Readers per point set, reused (making one parses the footer).
+    readers: [Mutex<Vec<FileReader<BufReader<At>>>>; 2],
 }
 
 impl std::fmt::Debug for Files {
@@ -629,15 +668,23 @@ impl Files {
         not_cached: Option<String>,
         batches: [Vec<Option<usize>>; 2],
         rows: [Vec<usize>; 2],
-    ) -> Files {
-        Files {
+    ) -> Result<Files, StoreError> {
+        let mut open = [None, None];
+        for set in [PointSet::Vertices, PointSet::Lattice] {
+            let path = dir.join(file_name(set));
+            if batches[set as usize].iter().any(Option::is_some) {
+                open[set as usize] = Some(Arc::new(File::open(&path).map_err(io(&path))?));
+            }
+        }
+        Ok(Files {
             dir,
             keep,
             not_cached,
             batches,
             rows,
+            open,
             readers: [Mutex::new(Vec::new()), Mutex::new(Vec::new())],
-        }
+        })
     }
 
     /// The directory.
@@ -669,8 +716,11 @@ impl Files {
         let mut reader = match reader {
             Some(r) => r,
             None => {
-                let f = File::open(&path).map_err(io(&path))?;
-                FileReader::try_new_buffered(f, None).map_err(|e| format_err(&path, e))?
+                let file = self.open[set as usize]
+                    .clone()
+                    .ok_or_else(|| format_err(&path, "no samples were written"))?;
+                FileReader::try_new_buffered(At { file, pos: 0 }, None)
+                    .map_err(|e| format_err(&path, e))?
             }
         };
         reader.set_index(b).map_err(|e| format_err(&path, e))?;
@@ -794,7 +844,7 @@ fn open_dir(
             return Err(format_err(&path, "a frame names a batch the file lacks"));
         }
     }
-    let files = Files::new(dir.clone(), true, None, batches, rows);
+    let files = Files::new(dir.clone(), true, None, batches, rows)?;
     SampleStore::from_files(key, dataset_frames, records, points, files, budget)
 }
 
