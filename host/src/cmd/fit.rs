@@ -124,6 +124,10 @@ pub struct Args {
     /// the homogeneous baseline's, then fit on everything (`docs/validation.md`).
     #[arg(long)]
     pub validate: bool,
+    /// Skip the check that the scan's laser spots lie on the mesh surface (up to 48 frames read
+    /// before the fit; a mesh in another pose or unit fails it: run `subsurf align` first).
+    #[arg(long)]
+    pub skip_mesh_check: bool,
     /// Do not draw the PNGs beside the report (`<report>-error-map.png`: log E(x_i) per vertex,
     /// Eq. 8; `<report>-model.png`: alpha, reflectance, reach and vertex status).
     #[arg(long)]
@@ -151,6 +155,51 @@ fn pictures(
     subsurf::plot::model_viewer(&model_png, model, view, MODEL_PANEL)
         .with_context(|| format!("drawing {}", model_png.display()))?;
     Ok(vec![error_png, model_png])
+}
+
+/// Spots farther than this many pixel footprints (median) from the mesh get a warning.
+const MESH_WARN_PX: f64 = 1.0;
+
+/// The spots of up to 48 frames against the mesh surface (`subsurf::align::check_mesh`): an
+/// error when their median distance exceeds the laser tolerance (registration would refuse most
+/// of them anyway, and the rest land on the wrong vertices), a warning above
+/// [`MESH_WARN_PX`] pixels.
+fn mesh_check(
+    ds: &Dataset,
+    frames: &[usize],
+    opts: &PipelineOptions,
+    scan: &std::path::Path,
+) -> anyhow::Result<subsurf::align::MeshCheck> {
+    let ev = subsurf::align::EvidenceOptions {
+        min_peak: opts.spot.min_peak,
+        saturation: opts.spot.saturation,
+        max_gap_px: 2.0,
+    };
+    let bound = opts.spot.laser_tolerance_mm;
+    let c = subsurf::align::check_mesh(ds, frames, &ev, bound, &())
+        .context("checking the mesh against the laser spots")?;
+    let align = format!("subsurf align --scan {}", scan.display());
+    if c.far() {
+        anyhow::bail!(
+            "the scan's laser spots lie a median {:.2} mm ({:.1} px) from the mesh surface, beyond \
+             the bound of {bound} mm (--laser-tolerance; {} of {} spots farther): the mesh is not \
+             in the turntable frame (another pose or unit?). Run `{align}` first, or \
+             --skip-mesh-check to fit anyway",
+            c.median_mm,
+            c.median_px,
+            (c.far_share * c.spots as f64).round(),
+            c.spots
+        );
+    }
+    if c.conclusive() && c.median_px > MESH_WARN_PX {
+        eprintln!(
+            "warning: the scan's laser spots lie a median {:.2} mm ({:.1} px) from the mesh \
+             surface; above {MESH_WARN_PX} px the mesh may be slightly off the turntable frame: \
+             `{align}` estimates its pose from the spots",
+            c.median_mm, c.median_px
+        );
+    }
+    Ok(c)
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -221,6 +270,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             )
         }
     }
+    let mesh_check = if args.skip_mesh_check {
+        None
+    } else {
+        Some(mesh_check(&ds, &frames, &opts, &args.scan)?)
+    };
     let bar = Bar::with_template("{msg:>12} {bar:40} {pos}/{len} {eta}");
     let validation = if args.validate {
         let holdout = subsurf::validate::holdout(&ds, &frames);
@@ -254,6 +308,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     json["fit_options"] = serde_json::to_value(&fit)?;
     if let Some(v) = &validation {
         json["validation"] = serde_json::to_value(v)?;
+    }
+    if let Some(c) = &mesh_check {
+        json["mesh_check"] = serde_json::to_value(c)?;
     }
     if let Some(c) = &out.report.segments_choice {
         println!(

@@ -12,10 +12,12 @@ use serde::{Deserialize, Serialize};
 
 use crate::geometry::Camera;
 
+mod alignment;
 mod image;
 mod mesh;
 mod writer;
 
+pub use alignment::{Alignment, Symmetry, aligned_name};
 pub use image::{
     Image, ImageError, bilinear_taps, encode_exr, encode_pfm, read_image, write_exr, write_pfm,
 };
@@ -148,6 +150,10 @@ pub struct ScanSpec {
     /// sensor clipped. Absent: only infinite pixels count as saturated.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub saturation: Option<f64>,
+    /// Extension of this project: how `subsurf align` placed the user's mesh in the object frame
+    /// (then `mesh` is the aligned copy). Absent: the mesh was given in the object frame.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub alignment: Option<Alignment>,
     /// The cameras (the one camera model, [`crate::geometry::Camera`]).
     pub cameras: Vec<Camera>,
     /// The frames, in capture order.
@@ -186,6 +192,7 @@ impl ScanSpec {
             mesh: "object.obj".into(),
             noise_floor,
             saturation,
+            alignment: None,
             cameras,
             frames: Vec::new(),
         }
@@ -209,6 +216,9 @@ impl ScanSpec {
             && !(s.is_finite() && s > 0.0)
         {
             return bad(format!("saturation {s} must be finite and > 0"));
+        }
+        if let Some(a) = &self.alignment {
+            a.validate()?;
         }
         if self.cameras.is_empty() {
             return bad("no cameras".into());
@@ -245,6 +255,8 @@ impl ScanSpec {
 pub struct Dataset {
     /// The dataset directory.
     pub dir: PathBuf,
+    /// The manifest file read (`dir/scan.json`, or the JSON file given).
+    pub manifest: PathBuf,
     /// `scan.json`.
     pub spec: ScanSpec,
     /// The mesh, in the object frame.
@@ -273,8 +285,10 @@ impl Dataset {
             path: path.clone(),
             source,
         })?;
-        let spec: ScanSpec =
-            serde_json::from_str(&text).map_err(|source| DatasetError::Json { path, source })?;
+        let spec: ScanSpec = serde_json::from_str(&text).map_err(|source| DatasetError::Json {
+            path: path.clone(),
+            source,
+        })?;
         spec.validate()?;
         let mesh_path = confined_path(&dir, &spec.mesh)?;
         if !mesh_path.is_file() {
@@ -289,6 +303,7 @@ impl Dataset {
         let (mesh, mesh_report) = load_obj(&mesh_path)?;
         Ok(Dataset {
             dir,
+            manifest: path,
             spec,
             mesh,
             mesh_report,
