@@ -182,6 +182,8 @@ pub struct Residual {
     pub px: f64,
     /// Whether the pose was fitted to it.
     pub inlier: bool,
+    /// The nearest point of the aligned surface, object frame.
+    pub at: V3,
 }
 
 /// The estimated pose and everything that judges it.
@@ -201,6 +203,26 @@ pub struct Aligned {
     pub hypotheses: usize,
     /// Distinct poses the search converged to (the chosen one included).
     pub distinct_poses: usize,
+}
+
+impl Aligned {
+    /// Per vertex of the aligned mesh, the spot whose surface point is nearest within `reach_mm`:
+    /// its residual in pixels and whether it is an inlier (`None` where no spot is that close):
+    /// what the picture of `subsurf align` colours.
+    pub fn spots_on_mesh(&self, reach_mm: f64) -> Vec<Option<(f64, bool)>> {
+        self.mesh
+            .positions
+            .par_iter()
+            .map(|p| {
+                self.residuals
+                    .iter()
+                    .map(|r| (crate::geometry::dist(*p, r.at), r))
+                    .filter(|(d, _)| *d <= reach_mm)
+                    .min_by(|a, b| a.0.total_cmp(&b.0))
+                    .map(|(_, r)| (r.px, r.inlier))
+            })
+            .collect()
+    }
 }
 
 /// Estimates the pose of the dataset's source mesh ([`Dataset::source_mesh`]) from the laser
@@ -291,6 +313,9 @@ pub fn align_points(
         })
         .collect();
     finals.sort_by(|a, b| a.1.total_cmp(&b.1));
+    if finals.is_empty() {
+        return Err(AlignError::NoPose);
+    }
     let (best, best_score) = finals.remove(0);
     // Distinct poses among the refined ones, and the best rival: a pose that puts the surface
     // elsewhere yet fits about as well (judged after the pose's own uncertainty, which names the
@@ -336,6 +361,7 @@ pub fn align_points(
                 mm,
                 px: mm / sp.footprint_mm,
                 inlier: *inl,
+                at: m.map_or(sp.point, |m| m.y),
             }
         })
         .collect();

@@ -50,6 +50,10 @@ pub struct Args {
     /// Estimate and print, but write nothing.
     #[arg(long)]
     pub dry_run: bool,
+    /// Do not draw the picture of the spots on the aligned mesh (`<mesh>.aligned.png` beside
+    /// the aligned mesh: each spot's residual in pixels around where it lies, outliers apart).
+    #[arg(long)]
+    pub no_picture: bool,
     /// Print one JSON object (the record, the evidence, every spot's residual).
     #[arg(long)]
     pub json: bool,
@@ -100,11 +104,20 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 .context("recording the alignment")?,
         )
     };
+    let picture = match &written {
+        Some(mesh_path) if !args.no_picture => {
+            let png = mesh_path.with_extension("png");
+            draw(&out, &png).with_context(|| format!("drawing {}", png.display()))?;
+            Some(png)
+        }
+        _ => None,
+    };
     let rec = &out.record;
     if args.json {
         let v = serde_json::json!({
             "alignment": rec,
             "aligned_mesh": written,
+            "picture": picture,
             "evidence": {
                 "frames": out.evidence.frames,
                 "spots": out.evidence.points.len(),
@@ -163,11 +176,93 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         None => {}
     }
     match written {
-        Some(p) => println!(
-            "wrote {}; scan.json now names it as the mesh (`subsurf fit` uses it)",
-            p.display()
-        ),
+        Some(p) => {
+            println!(
+                "wrote {}; scan.json now names it as the mesh (`subsurf fit` uses it)",
+                p.display()
+            );
+            if let Some(png) = picture {
+                println!("picture: {}", png.display());
+            }
+        }
         None => println!("dry run: nothing written"),
     }
+    Ok(())
+}
+
+/// The aligned mesh with the spots on it: around each spot (within two median edges) its residual
+/// in pixels, and which spots were inliers and which outliers.
+fn draw(out: &subsurf::align::Aligned, png: &std::path::Path) -> anyhow::Result<()> {
+    use subsurf::plot::{MeshView, Panel, PanelData, surface_panels};
+    let mesh = &out.mesh;
+    let mut edges: Vec<f64> = mesh
+        .triangles
+        .iter()
+        .flat_map(|t| {
+            [(0, 1), (1, 2), (2, 0)].map(|(a, b)| {
+                subsurf::geometry::dist(
+                    mesh.positions[t[a] as usize],
+                    mesh.positions[t[b] as usize],
+                )
+            })
+        })
+        .collect();
+    edges.sort_by(f64::total_cmp);
+    let reach = 2.0 * edges.get(edges.len() / 2).copied().unwrap_or(1.0);
+    let near = out.spots_on_mesh(reach);
+    let values: Vec<f64> = near
+        .iter()
+        .map(|s| match s {
+            Some((px, true)) => *px,
+            _ => f64::NAN,
+        })
+        .collect();
+    let top = values
+        .iter()
+        .copied()
+        .filter(|v| v.is_finite())
+        .fold(0.0, f64::max)
+        .max(1e-3);
+    let kind: Vec<[f64; 3]> = near
+        .iter()
+        .map(|s| match s {
+            Some((_, true)) => [0.2, 0.6, 0.9],
+            Some((_, false)) => [0.9, 0.25, 0.2],
+            None => [0.85, 0.85, 0.85],
+        })
+        .collect();
+    let rec = &out.record;
+    surface_panels(
+        png,
+        &format!(
+            "{} aligned: {} spots, RMS {:.3} px ({:.4} mm)",
+            rec.source_mesh, rec.spots, rec.rms_px, rec.rms_mm
+        ),
+        MeshView {
+            positions: &mesh.positions,
+            normals: &mesh.normals,
+            faces: &mesh.triangles,
+        },
+        &[
+            Panel {
+                title: "inlier spots: distance from the surface".into(),
+                data: PanelData::Scalar {
+                    values,
+                    range: (0.0, top),
+                    label: "residual, pixels".into(),
+                },
+            },
+            Panel {
+                title: format!(
+                    "spots: {} inliers (blue), {} outliers (red)",
+                    rec.inliers,
+                    rec.spots - rec.inliers
+                ),
+                data: PanelData::Rgb(kind),
+            },
+        ],
+        subsurf::render::DEFAULT_VIEW,
+        (420, 440),
+    )?;
     Ok(())
 }
