@@ -318,8 +318,9 @@ pub fn align_points(
     }
     let (best, best_score) = finals.remove(0);
     // Distinct poses among the refined ones, and the best rival: a pose that puts the surface
-    // elsewhere yet fits about as well (judged after the pose's own uncertainty, which names the
-    // cause when the evidence is degenerate).
+    // elsewhere (by more than half a pixel and 3 sigma) yet fits about as well — its score, the
+    // mean truncated squared distance, within one inlier variance of the best's. Judged after the
+    // pose's own uncertainty, which names the cause when the evidence is degenerate.
     let mut distinct: Vec<Similarity> = vec![best.pose];
     let mut rival = None;
     for (r, s) in &finals {
