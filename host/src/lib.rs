@@ -5,6 +5,7 @@
 //! become a model (`model`, `fit`), and the model is rendered and judged (`render`, `plot`).
 #![warn(missing_docs)]
 
+pub mod align;
 pub mod baseline;
 pub mod calib;
 pub mod curves;

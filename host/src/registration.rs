@@ -295,28 +295,33 @@ pub fn spot_visible(scene: &Scene, camera: &Camera, deg: f64, hit: &Hit) -> bool
 /// samples (the far tube seen past the near one's silhouette, next to a half-hidden spot whose
 /// light the spot exclusion cannot model) disagree with every other frame's. So a hidden hit
 /// stays `NoSpot`.
-pub fn register_frame(
+///
+/// Second: the spot detected in the image, whatever the mesh made of it (also for a hidden
+/// hit, `NoSpot`, and for `SpotOffObject` and `LaserMismatch`): the mesh-free evidence that the
+/// mesh sits where the scan saw the object ([`crate::align::check_spots`]).
+pub fn register_frame_detected(
     img: &Image,
     frame: &FrameSpec,
     camera: &Camera,
     scene: &Scene,
     opts: &SpotOptions,
-) -> RegistrationOutcome {
+) -> (RegistrationOutcome, Option<Spot>) {
+    let min_peak = opts.min_peak * frame.exposure_s;
+    let detected = detect_spot(img, min_peak, opts.saturation);
     if let Some(l) = &frame.laser
         && let Some(h) = scene.cast_world(l.origin, l.direction, frame.turntable_deg)
         && !spot_visible(scene, camera, frame.turntable_deg, &h)
     {
-        return RegistrationOutcome::NoSpot;
+        return (RegistrationOutcome::NoSpot, detected);
     }
-    let min_peak = opts.min_peak * frame.exposure_s;
-    let Some(spot) = detect_spot(img, min_peak, opts.saturation) else {
-        return RegistrationOutcome::NoSpot;
+    let Some(spot) = detected else {
+        return (RegistrationOutcome::NoSpot, None);
     };
     let Some((o, d)) = camera.ray(spot.u, spot.v) else {
-        return RegistrationOutcome::SpotOffObject;
+        return (RegistrationOutcome::SpotOffObject, detected);
     };
     let Some(hit) = scene.cast_world(o, d, frame.turntable_deg) else {
-        return RegistrationOutcome::SpotOffObject;
+        return (RegistrationOutcome::SpotOffObject, detected);
     };
     let x_i = hit.point;
     let mut disagreement = None;
@@ -324,18 +329,35 @@ pub fn register_frame(
         let lh = scene.cast_world(l.origin, l.direction, frame.turntable_deg);
         disagreement = lh.map(|h| dist(h.point, x_i));
         if disagreement.is_none_or(|dd| dd > opts.laser_tolerance_mm) {
-            return RegistrationOutcome::LaserMismatch {
-                x_i,
-                disagreement_mm: disagreement,
-            };
+            return (
+                RegistrationOutcome::LaserMismatch {
+                    x_i,
+                    disagreement_mm: disagreement,
+                },
+                detected,
+            );
         }
     }
-    RegistrationOutcome::Registered {
-        x_i,
-        triangle: hit.triangle,
-        laser_disagreement_mm: disagreement,
-        spot,
-    }
+    (
+        RegistrationOutcome::Registered {
+            x_i,
+            triangle: hit.triangle,
+            laser_disagreement_mm: disagreement,
+            spot,
+        },
+        detected,
+    )
+}
+
+/// [`register_frame_detected`]'s outcome alone.
+pub fn register_frame(
+    img: &Image,
+    frame: &FrameSpec,
+    camera: &Camera,
+    scene: &Scene,
+    opts: &SpotOptions,
+) -> RegistrationOutcome {
+    register_frame_detected(img, frame, camera, scene, opts).0
 }
 
 #[cfg(test)]

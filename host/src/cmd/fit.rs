@@ -134,6 +134,10 @@ pub struct Args {
     /// later fits of the same frames with the same extraction options), a directory, or `off`.
     #[arg(long, default_value = "dataset")]
     pub cache: subsurf::pipeline::Cache,
+    /// Skip the check that the scan's laser spots (as the extraction pass detected them) lie on
+    /// the mesh surface (a mesh in another pose or unit fails it: run `subsurf align` first).
+    #[arg(long)]
+    pub skip_mesh_check: bool,
     /// Do not draw the PNGs beside the report (`<report>-error-map.png`: log E(x_i) per vertex,
     /// Eq. 8; `<report>-model.png`: alpha, reflectance, reach and vertex status).
     #[arg(long)]
@@ -161,6 +165,53 @@ fn pictures(
     subsurf::plot::model_viewer(&model_png, model, view, MODEL_PANEL)
         .with_context(|| format!("drawing {}", model_png.display()))?;
     Ok(vec![error_png, model_png])
+}
+
+/// Spots farther than this many pixel footprints (median) from the mesh get a warning.
+const MESH_WARN_PX: f64 = 1.0;
+
+/// The laser spots the extraction pass detected (the sample store's records, so no frame is read
+/// for it) against the mesh surface (`subsurf::align::check_spots`): an error when their median
+/// distance exceeds the laser tolerance (registration would refuse most of them anyway, and the
+/// rest land on the wrong vertices), a warning above [`MESH_WARN_PX`] pixels.
+fn mesh_check(
+    run: &subsurf::pipeline::Context,
+    frames: &[usize],
+    scan: &std::path::Path,
+) -> anyhow::Result<subsurf::align::MeshCheck> {
+    let bound = run.opts.spot.laser_tolerance_mm;
+    let spots: Vec<(usize, subsurf::registration::Spot)> = run
+        .store()
+        .map(|s| {
+            frames
+                .iter()
+                .filter_map(|&k| Some((k, s.record(k)?.spot?)))
+                .collect()
+        })
+        .unwrap_or_default();
+    let c = subsurf::align::check_spots(run.ds, &run.scene, &spots, 2.0, bound);
+    let align = format!("subsurf align --scan {}", scan.display());
+    if c.far() {
+        anyhow::bail!(
+            "the scan's laser spots lie a median {:.2} mm ({:.1} px) from the mesh surface, beyond \
+             the bound of {bound} mm (--laser-tolerance; {} of {} spots farther): the mesh is not \
+             in the turntable frame (another pose or unit?). Run `{align}` first, or \
+             --skip-mesh-check to fit anyway",
+            c.median_mm,
+            c.median_px,
+            (c.far_share * c.spots as f64).round(),
+            c.spots
+        );
+    }
+    if c.conclusive() && c.median_px > MESH_WARN_PX {
+        eprintln!(
+            "warning: the scan's laser spots lie a median {:.2} mm ({:.1} px) from the mesh \
+             surface; above {MESH_WARN_PX} px the mesh may be slightly off the turntable frame: \
+             `{align}` estimates its pose from the spots",
+            c.median_mm, c.median_px
+        );
+    }
+    Ok(c)
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -240,6 +291,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     // everything all read the samples from it.
     let run = prepare(&ds, &frames, &opts, &store, &bar)
         .with_context(|| format!("reading the frames of {}", args.scan.display()))?;
+    let mesh_check = if args.skip_mesh_check {
+        None
+    } else {
+        Some(mesh_check(&run, &frames, &args.scan)?)
+    };
     let validation = if args.validate {
         let holdout = subsurf::validate::holdout(&ds, &frames);
         let v = fit_scan_in(&run, &holdout.training, segments, &fit, &bar)
@@ -272,6 +328,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     json["fit_options"] = serde_json::to_value(&fit)?;
     if let Some(v) = &validation {
         json["validation"] = serde_json::to_value(v)?;
+    }
+    if let Some(c) = &mesh_check {
+        json["mesh_check"] = serde_json::to_value(c)?;
     }
     if let Some(c) = &out.report.segments_choice {
         println!(

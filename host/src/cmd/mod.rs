@@ -1,6 +1,7 @@
 //! One module per subcommand. Each owns its `Args` and a `run` that returns `anyhow::Result`.
 use clap::{Parser, Subcommand};
 
+mod align;
 mod bench;
 mod bench_fit;
 mod bench_one_pass;
@@ -57,6 +58,8 @@ enum Command {
     Bench(bench::Args),
     /// Relight a fitted model under point, spot and directional lights: PNG (+ linear EXR).
     Render(render::Args),
+    /// Place the scan's mesh (any pose and unit) in the turntable frame from its laser spots.
+    Align(align::Args),
     /// Fit the per-vertex model to a scan dataset (register, select, fit, interpolate).
     Fit(fit::Args),
     /// Render a model's prediction of one frame of a scan.
@@ -84,6 +87,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Rig(args) => rig::run(args),
         Command::Bench(args) => bench::run(args),
         Command::Render(a) => render::run(a),
+        Command::Align(a) => align::run(a),
         Command::Fit(a) => fit::run(a),
         Command::Predict(a) => predict::run(a),
         Command::Evaluate(a) => evaluate::run(a),

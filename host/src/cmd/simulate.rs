@@ -13,6 +13,8 @@ pub enum Object {
     Sphere,
     /// A torus (non-convex, self-occluding).
     Torus,
+    /// An asymmetric pebble about 30 × 20 × 14 mm: no rotation or mirror maps it onto itself.
+    Blob,
 }
 
 /// Write a simulated scan (`docs/scan-format.md`) plus `ground-truth.ply` and `ground-truth.json`.
@@ -90,6 +92,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             major: 10.0,
             minor: 4.0,
             segments: root(args.vertices as f64 / 2.0),
+        },
+        Object::Blob => SimObject::Blob {
+            size: 30.0,
+            rings: root(args.vertices as f64 / 2.0),
         },
     };
     let mut cfg = SimConfig::for_object(object, args.size, args.angles, args.raster);

@@ -12,12 +12,14 @@ use serde::{Deserialize, Serialize};
 
 use crate::geometry::Camera;
 
+mod alignment;
 mod camera_file;
 mod image;
 mod ljpeg;
 mod mesh;
 mod writer;
 
+pub use alignment::{Alignment, Symmetry, aligned_name};
 pub use camera_file::{CLIPPED, FileKind, Levels};
 pub use image::{
     Image, ImageError, bilinear_taps, encode_exr, encode_pfm, read_exr_with_alpha, read_image,
@@ -161,6 +163,10 @@ pub struct ScanSpec {
     /// may override either). Raw files carry their own.
     #[serde(flatten)]
     pub levels: Levels,
+    /// Extension of this project: how `subsurf align` placed the user's mesh in the object frame
+    /// (then `mesh` is the aligned copy). Absent: the mesh was given in the object frame.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub alignment: Option<Alignment>,
     /// The cameras (the one camera model, [`crate::geometry::Camera`]).
     pub cameras: Vec<Camera>,
     /// The frames, in capture order.
@@ -200,6 +206,7 @@ impl ScanSpec {
             noise_floor,
             saturation,
             levels: Levels::default(),
+            alignment: None,
             cameras,
             frames: Vec::new(),
         }
@@ -227,6 +234,9 @@ impl ScanSpec {
         self.levels
             .check()
             .or_else(|m| bad(format!("dataset levels: {m}")))?;
+        if let Some(a) = &self.alignment {
+            a.validate()?;
+        }
         if self.cameras.is_empty() {
             return bad("no cameras".into());
         }
@@ -277,6 +287,8 @@ pub struct FrameReads {
 pub struct Dataset {
     /// The dataset directory.
     pub dir: PathBuf,
+    /// The manifest file read (`dir/scan.json`, or the JSON file given).
+    pub manifest: PathBuf,
     /// `scan.json`.
     pub spec: ScanSpec,
     /// The mesh, in the object frame.
@@ -311,8 +323,10 @@ impl Dataset {
             path: path.clone(),
             source,
         })?;
-        let spec: ScanSpec =
-            serde_json::from_str(&text).map_err(|source| DatasetError::Json { path, source })?;
+        let spec: ScanSpec = serde_json::from_str(&text).map_err(|source| DatasetError::Json {
+            path: path.clone(),
+            source,
+        })?;
         spec.validate()?;
         let mesh_path = confined_path(&dir, &spec.mesh)?;
         if !mesh_path.is_file() {
@@ -342,6 +356,7 @@ impl Dataset {
         let reads = (0..spec.frames.len()).map(|_| Default::default()).collect();
         Ok(Dataset {
             dir,
+            manifest: path,
             spec,
             mesh,
             mesh_report,

@@ -6,7 +6,7 @@
 //! `p` sits in the world at `R_z(θ)·p`. Everything here is plain `[f64; 3]`; parry's glam types
 //! stay inside [`Scene`]: nothing else in the workspace builds a parry mesh.
 use parry3d_f64::math::Vector as PVec;
-use parry3d_f64::query::{Ray, RayCast};
+use parry3d_f64::query::{PointQueryWithLocation, Ray, RayCast};
 use parry3d_f64::shape::TriMesh;
 
 use crate::dataset::Mesh;
@@ -75,6 +75,17 @@ pub struct Hit {
     pub point: V3,
     /// Index of the triangle hit.
     pub triangle: u32,
+}
+
+/// The point of the mesh closest to a query point ([`Scene::closest`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Closest {
+    /// The closest surface point, object frame.
+    pub point: V3,
+    /// Index of the triangle that holds it.
+    pub triangle: u32,
+    /// Distance from the query point, mm.
+    pub distance: f64,
 }
 
 /// A vertex seen by a camera, with where it lands in the image. Also a surface point of a
@@ -210,6 +221,35 @@ impl Scene {
             world_to_turntable(dir, deg),
             f64::MAX,
         )
+    }
+
+    /// The surface point nearest to `p` (object frame) within `max_dist` (infinite: anywhere),
+    /// with its triangle: the query of point-to-surface distances (`align`'s ICP, the fit's
+    /// mesh check, tests that measure a surface's distance). `None` for a non-finite `p` or
+    /// nothing within `max_dist`.
+    pub fn closest(&self, p: V3, max_dist: f64) -> Option<Closest> {
+        if !p.iter().all(|x| x.is_finite()) {
+            return None;
+        }
+        let q = PVec::new(p[0], p[1], p[2]);
+        let (proj, (triangle, _)) = self
+            .bvh
+            .project_local_point_and_get_location_with_max_dist(q, false, max_dist)?;
+        let point = [proj.point.x, proj.point.y, proj.point.z];
+        Some(Closest {
+            point,
+            triangle,
+            distance: dist(point, p),
+        })
+    }
+
+    /// Unit geometric normal of triangle `tri` (counter-clockwise seen from outside); `None`
+    /// for an index out of range. The plane of point-to-plane distances, where
+    /// [`Scene::normal_at`] is the shading normal.
+    pub fn face_normal(&self, tri: u32) -> Option<V3> {
+        let t = self.mesh.triangles.get(tri as usize)?;
+        let [a, b, c] = t.map(|i| self.mesh.positions[i as usize]);
+        normalize(cross(sub(b, a), sub(c, a)))
     }
 
     /// Barycentric weights of `p` in triangle `tri` (clamped to the triangle, summing to 1).

@@ -226,6 +226,7 @@ pub fn extract_frame(
             record: FrameRecord {
                 frame: k,
                 outcome: Err(e.to_string()),
+                spot: None,
                 counts: Default::default(),
             },
             vertices: None,
@@ -243,11 +244,12 @@ pub fn extract_image(
     points: Option<&StorePoints>,
     visible: Option<&[Visible]>,
 ) -> Extracted {
-    let outcome = ctx.register_image(img, k);
+    let (outcome, detected) = ctx.register_image(img, k);
     let mut x = Extracted {
         record: FrameRecord {
             frame: k,
             outcome: Ok(outcome),
+            spot: detected,
             counts: Default::default(),
         },
         vertices: None,

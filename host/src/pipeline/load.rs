@@ -10,7 +10,7 @@ use std::sync::{Arc, Mutex};
 
 use crate::dataset::{Dataset, DatasetError};
 use crate::geometry::{Camera, CoverageMap, Scene, SurfacePoints, V3, Visible};
-use crate::registration::{RegistrationOutcome, register_frame};
+use crate::registration::RegistrationOutcome;
 use crate::samples::{SampleCounts, frame_samples};
 use crate::store::{FrameSamples, PointSet, SampleStore, StoreError};
 
@@ -165,13 +165,24 @@ impl<'a> Context<'a> {
             return r.outcome.clone();
         }
         let img = self.ds.read_frame(k).map_err(|e| e.to_string())?;
-        Ok(self.register_image(&img, k))
+        Ok(self.register_image(&img, k).0)
     }
 
-    /// Registers frame `k` from its image `img` (the rule of [`Context::register`]).
-    pub fn register_image(&self, img: &crate::dataset::Image, k: usize) -> RegistrationOutcome {
+    /// Registers frame `k` from its image `img` (the rule of [`Context::register`]), with the
+    /// spot detected in it ([`crate::registration::register_frame_detected`]).
+    pub fn register_image(
+        &self,
+        img: &crate::dataset::Image,
+        k: usize,
+    ) -> (RegistrationOutcome, Option<crate::registration::Spot>) {
         let f = &self.ds.spec.frames[k];
-        register_frame(img, f, &self.cams[f.camera], &self.scene, &self.opts.spot)
+        crate::registration::register_frame_detected(
+            img,
+            f,
+            &self.cams[f.camera],
+            &self.scene,
+            &self.opts.spot,
+        )
     }
 
     /// The samples of a registered frame at the vertices: from the store when it holds the

@@ -29,6 +29,16 @@ pub enum SimObject {
         /// Segments around the tube (around the axis there are twice as many).
         segments: usize,
     },
+    /// A pebble with no symmetry at all (no rotation about any axis and no mirror maps it onto
+    /// itself): a star-shaped blob, egg-shaped along x with two skewed bulges, about
+    /// `size × 0.67·size × 0.47·size`, resting on the platter. What `subsurf align` must place
+    /// in a unique pose.
+    Blob {
+        /// Length along x, mm (roughly).
+        size: f64,
+        /// Rings from pole to pole of the underlying sphere (longitude segments are twice this).
+        rings: usize,
+    },
 }
 
 impl SimObject {
@@ -42,6 +52,7 @@ impl SimObject {
                 minor,
                 segments,
             } => torus(major, minor, segments.max(3)),
+            SimObject::Blob { size, rings } => blob(size, rings.max(3)),
         };
         Mesh::new(pos, tris).0
     }
@@ -52,6 +63,24 @@ impl SimObject {
             SimObject::Slab { size, .. } => ([0.0; 3], size * std::f64::consts::FRAC_1_SQRT_2),
             SimObject::Sphere { radius, .. } => ([0.0, 0.0, radius], radius),
             SimObject::Torus { major, minor, .. } => ([0.0, 0.0, minor], major + minor),
+            SimObject::Blob { size, rings } => {
+                // Its box's centre and the farthest vertex from it (the shape has no closed form).
+                let (pos, _) = blob(size, rings.max(3));
+                let mut lo = [f64::INFINITY; 3];
+                let mut hi = [f64::NEG_INFINITY; 3];
+                for p in &pos {
+                    for k in 0..3 {
+                        lo[k] = lo[k].min(p[k]);
+                        hi[k] = hi[k].max(p[k]);
+                    }
+                }
+                let c: [f64; 3] = std::array::from_fn(|k| 0.5 * (lo[k] + hi[k]));
+                let r = pos
+                    .iter()
+                    .map(|p| crate::geometry::dist(*p, c))
+                    .fold(0.0, f64::max);
+                (c, r)
+            }
         }
     }
 }
@@ -137,6 +166,31 @@ fn torus(big: f64, small: f64, segs: usize) -> Tris {
     (pos, tris)
 }
 
+/// The unit sphere of [`sphere`] pushed radially by `1 + Σ` low-order terms that share no
+/// symmetry (a dipole along x makes the egg, the products of two axes skew it), then stretched
+/// to `size × 0.67·size × 0.47·size` and set on the platter (lowest vertex at z = 0). The
+/// terms sum to at most 0.57 in size, so the radius stays positive and the shape star-shaped
+/// about its centre: every ray from it crosses the surface once, the mesh never folds.
+fn blob(size: f64, rings: usize) -> Tris {
+    let (unit, tris) = sphere(1.0, rings);
+    let axes = [0.5 * size, 0.335 * size, 0.235 * size];
+    let mut pos: Vec<[f64; 3]> = unit
+        .iter()
+        .map(|p| {
+            // `sphere` rests on the platter: its centre is at z = r = 1.
+            let d = [p[0], p[1], p[2] - 1.0];
+            let r = 1.0 + 0.2 * d[0] + 0.15 * d[0] * d[1] - 0.12 * d[1] * d[2]
+                + 0.1 * (d[1] * d[1] - d[2] * d[2]) * d[0];
+            std::array::from_fn(|k| axes[k] * r * d[k])
+        })
+        .collect();
+    let lowest = pos.iter().map(|p| p[2]).fold(f64::INFINITY, f64::min);
+    for p in &mut pos {
+        p[2] -= lowest;
+    }
+    (pos, tris)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -155,6 +209,10 @@ mod tests {
                 minor: 2.0,
                 segments: 8,
             },
+            SimObject::Blob {
+                size: 30.0,
+                rings: 10,
+            },
         ] {
             let (pos, tris) = match obj {
                 SimObject::Slab { size, n } => slab(size, n),
@@ -164,6 +222,7 @@ mod tests {
                     minor,
                     segments,
                 } => torus(major, minor, segments),
+                SimObject::Blob { size, rings } => blob(size, rings),
             };
             let (m, r) = Mesh::new(pos, tris.clone());
             assert_eq!(m.triangles.len(), tris.len(), "{obj:?} {r:?}");
@@ -171,7 +230,9 @@ mod tests {
             for (p, n) in m.positions.iter().zip(&m.normals) {
                 match obj {
                     SimObject::Slab { .. } => assert!(n[2] > 0.99),
-                    SimObject::Sphere { .. } => assert!(dot(sub(*p, c), *n) > 0.0),
+                    SimObject::Sphere { .. } | SimObject::Blob { .. } => {
+                        assert!(dot(sub(*p, c), *n) > 0.0)
+                    }
                     SimObject::Torus { major, .. } => {
                         let l = (p[0] * p[0] + p[1] * p[1]).sqrt();
                         let centre = [p[0] / l * major, p[1] / l * major, c[2]];

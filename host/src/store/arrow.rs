@@ -463,10 +463,7 @@ fn frames_batch(
         | Ok(RegistrationOutcome::LaserMismatch { x_i, .. }) => Some(x_i),
         _ => None,
     };
-    let spot = |r: &FrameRecord| match r.outcome {
-        Ok(RegistrationOutcome::Registered { spot, .. }) => Some(spot),
-        _ => None,
-    };
+    let spot = |r: &FrameRecord| r.spot;
     let f64s = |f: &dyn Fn(&FrameRecord) -> Option<f64>| -> ArrayRef {
         Arc::new(Float64Array::from_iter(records.iter().map(f)))
     };
@@ -896,19 +893,23 @@ fn records_of(
             (Some(x), Some(y), Some(z)) => Some([x, y, z]),
             _ => None,
         };
+        let spot = match (opt(su, i), opt(sv, i), opt(sp, i), opt(spf, i), opt(ss, i)) {
+            (Some(u), Some(v), Some(peak), Some(peak_fit), Some(sigma_px)) => Some(Spot {
+                u,
+                v,
+                peak,
+                saturated: !sat.is_null(i) && sat.value(i),
+                peak_fit,
+                sigma_px,
+            }),
+            _ => None,
+        };
         let outcome = match outcome.value(i) {
             "registered" => Ok(RegistrationOutcome::Registered {
                 x_i: x_i.ok_or_else(missing)?,
                 triangle: opt(tri, i).ok_or_else(missing)?,
                 laser_disagreement_mm: opt(laser, i),
-                spot: Spot {
-                    u: opt(su, i).ok_or_else(missing)?,
-                    v: opt(sv, i).ok_or_else(missing)?,
-                    peak: opt(sp, i).ok_or_else(missing)?,
-                    saturated: (!sat.is_null(i) && sat.value(i)),
-                    peak_fit: opt(spf, i).ok_or_else(missing)?,
-                    sigma_px: opt(ss, i).ok_or_else(missing)?,
-                },
+                spot: spot.ok_or_else(missing)?,
             }),
             "no_spot" => Ok(RegistrationOutcome::NoSpot),
             "spot_off_object" => Ok(RegistrationOutcome::SpotOffObject),
@@ -938,6 +939,7 @@ fn records_of(
         records.push(FrameRecord {
             frame: frame.value(i) as usize,
             outcome,
+            spot,
             counts: [c(0), c(1)],
         });
         for (set, (bc, rc)) in [(vb, vr), (pb, pr)].into_iter().enumerate() {

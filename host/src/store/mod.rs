@@ -49,6 +49,9 @@ pub struct FrameRecord {
     pub frame: usize,
     /// Registration's outcome, or why the image could not be read.
     pub outcome: Result<RegistrationOutcome, String>,
+    /// The spot detected in the image, whatever the mesh made of it
+    /// ([`crate::registration::register_frame_detected`]).
+    pub spot: Option<crate::registration::Spot>,
     /// Why channel samples were dropped, at the vertices and at the lattice points.
     pub counts: [SampleCounts; 2],
 }

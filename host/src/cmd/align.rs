@@ -1,0 +1,268 @@
+//! `subsurf align`: place the dataset's mesh (any pose, any unit) in the object frame from the
+//! scan's own laser spots, write the aligned copy beside it and record the transform in
+//! `scan.json`.
+use std::path::PathBuf;
+
+use anyhow::{Context, anyhow};
+use subsurf::align::{AlignOptions, align};
+use subsurf::dataset::{Dataset, Symmetry, select_frames};
+
+use super::progress::Bar;
+
+/// Align the scan's mesh to the turntable frame from the laser spots (rotation, translation,
+/// uniform scale), then `subsurf fit` uses the aligned mesh.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// The scan dataset: its folder or its `scan.json`. Its mesh may be in any pose and unit;
+    /// once aligned, aligning again starts from the same original file.
+    #[arg(long)]
+    pub scan: PathBuf,
+    /// Frames whose spots are used, e.g. `0-95` (default: all).
+    #[arg(long)]
+    pub frames: Option<String>,
+    /// Frames left out (e.g. the frames a fit will hold out).
+    #[arg(long)]
+    pub exclude_frames: Option<String>,
+    /// Refuse when the spots' inlier RMS distance from the aligned surface exceeds this, pixels.
+    #[arg(long, default_value_t = 1.0)]
+    pub max_rms_px: f64,
+    /// Refuse when fewer spots than this are inliers, as a share.
+    #[arg(long, default_value_t = 0.5)]
+    pub min_inlier_share: f64,
+    /// Refuse with fewer triangulated spots than this.
+    #[arg(long, default_value_t = 12)]
+    pub min_spots: usize,
+    /// Refuse when a motion that changes the surface is fixed to no better than this (one
+    /// standard deviation of vertex displacement), pixels.
+    #[arg(long, default_value_t = 0.25)]
+    pub max_pose_sigma_px: f64,
+    /// A spot counts when its camera ray passes this close to the frame's laser ray, pixels.
+    #[arg(long, default_value_t = 2.0)]
+    pub max_gap_px: f64,
+    /// How far inside the surface, along the laser ray, the camera sees a spot's centre (mm):
+    /// `auto` estimates it with the pose (translucent objects glow from below their surface),
+    /// a number holds it (0 for an opaque object).
+    #[arg(long, default_value = "auto")]
+    pub spot_depth: String,
+    /// Override the dataset's noise floor (spots must peak 10× above it).
+    #[arg(long)]
+    pub noise_floor: Option<f64>,
+    /// Estimate and print, but write nothing.
+    #[arg(long)]
+    pub dry_run: bool,
+    /// Do not draw the picture of the spots on the aligned mesh (`<mesh>.aligned.png` beside
+    /// the aligned mesh: each spot's residual in pixels around where it lies, outliers apart).
+    #[arg(long)]
+    pub no_picture: bool,
+    /// Print one JSON object (the record, the evidence, every spot's residual).
+    #[arg(long)]
+    pub json: bool,
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let ds =
+        Dataset::open(&args.scan).with_context(|| format!("opening {}", args.scan.display()))?;
+    let frames = select_frames(
+        ds.spec.frames.len(),
+        args.frames.as_deref(),
+        args.exclude_frames.as_deref(),
+    )
+    .map_err(|e| anyhow!(e))?;
+    let mut opts = AlignOptions::for_dataset(&ds);
+    if let Some(f) = args.noise_floor {
+        opts.evidence.min_peak = 10.0 * f;
+    }
+    opts.evidence.max_gap_px = args.max_gap_px;
+    opts.min_spots = args.min_spots;
+    opts.max_rms_px = args.max_rms_px;
+    opts.min_inlier_share = args.min_inlier_share;
+    opts.max_pose_sigma_px = args.max_pose_sigma_px;
+    opts.spot_depth = match args.spot_depth.as_str() {
+        "auto" => None,
+        d => Some(
+            d.parse::<f64>()
+                .ok()
+                .filter(|d| d.is_finite())
+                .ok_or_else(|| {
+                    anyhow!("--spot-depth must be `auto` or a number of mm, not {d:?}")
+                })?,
+        ),
+    };
+    let bar = if args.json {
+        Bar::hidden()
+    } else {
+        Bar::with_template("align {msg} {bar:40} {pos}/{len}")
+    };
+    let out = align(&ds, &frames, &opts, &bar);
+    bar.finish_and_clear();
+    let out = out.with_context(|| format!("aligning the mesh of {}", args.scan.display()))?;
+    let written = if args.dry_run {
+        None
+    } else {
+        Some(
+            ds.record_alignment(&out.mesh, &out.record)
+                .context("recording the alignment")?,
+        )
+    };
+    let picture = match &written {
+        Some(mesh_path) if !args.no_picture => {
+            let png = mesh_path.with_extension("png");
+            draw(&out, &png).with_context(|| format!("drawing {}", png.display()))?;
+            Some(png)
+        }
+        _ => None,
+    };
+    let rec = &out.record;
+    if args.json {
+        let v = serde_json::json!({
+            "alignment": rec,
+            "aligned_mesh": written,
+            "picture": picture,
+            "evidence": {
+                "frames": out.evidence.frames,
+                "spots": out.evidence.points.len(),
+                "no_laser_ray": out.evidence.no_laser_ray,
+                "no_spot": out.evidence.no_spot,
+                "rays_apart": out.evidence.rays_apart,
+            },
+            "hypotheses": out.hypotheses,
+            "distinct_poses": out.distinct_poses,
+            "residuals": out.residuals,
+        });
+        println!("{}", serde_json::to_string_pretty(&v)?);
+        return Ok(());
+    }
+    let r = out.pose.rotation;
+    let angle = ((r.trace() - 1.0) / 2.0)
+        .clamp(-1.0, 1.0)
+        .acos()
+        .to_degrees();
+    let t = rec.translation;
+    println!(
+        "pose of {}: scale {:.6} (mesh units to mm), rotation {angle:.2}°, translation \
+         ({:.3}, {:.3}, {:.3}) mm",
+        rec.source_mesh, rec.scale, t[0], t[1], t[2]
+    );
+    let ev = &out.evidence;
+    println!(
+        "spots: {} of {} frames ({} without a spot, {} off the laser ray, {} without a laser ray); \
+         {} inliers ({:.0} %)",
+        rec.spots,
+        ev.frames,
+        ev.no_spot,
+        ev.rays_apart,
+        ev.no_laser_ray,
+        rec.inliers,
+        100.0 * rec.inlier_share
+    );
+    println!(
+        "residuals: RMS {:.4} mm = {:.3} px from the aligned surface (bound {} px); pose \
+         uncertainty {:.4} mm at the vertices; spots seen {:.3} mm below the surface",
+        rec.rms_mm, rec.rms_px, args.max_rms_px, rec.pose_sigma_mm, rec.spot_depth_mm
+    );
+    match &rec.symmetry {
+        Some(Symmetry::TurntableAxis { fold: None }) => println!(
+            "symmetry: the surface is a body of revolution about the turntable axis; the scan \
+             cannot fix the angle about it, and every angle puts the same surface in the same place"
+        ),
+        Some(Symmetry::TurntableAxis { fold: Some(k) }) => println!(
+            "symmetry: {k}-fold about the turntable axis; the {k} poses put the same surface in \
+             the same place"
+        ),
+        Some(Symmetry::Other { motion }) => println!(
+            "symmetry: {motion} leaves the surface unchanged; the scan cannot fix it, and need not"
+        ),
+        Some(s) => println!("symmetry: {s:?}"),
+        None => {}
+    }
+    match written {
+        Some(p) => {
+            println!(
+                "wrote {}; scan.json now names it as the mesh (`subsurf fit` uses it)",
+                p.display()
+            );
+            if let Some(png) = picture {
+                println!("picture: {}", png.display());
+            }
+        }
+        None => println!("dry run: nothing written"),
+    }
+    Ok(())
+}
+
+/// The aligned mesh with the spots on it: around each spot (within two median edges) its residual
+/// in pixels, and which spots were inliers and which outliers.
+fn draw(out: &subsurf::align::Aligned, png: &std::path::Path) -> anyhow::Result<()> {
+    use subsurf::plot::{MeshView, Panel, PanelData, surface_panels};
+    let mesh = &out.mesh;
+    let mut edges: Vec<f64> = mesh
+        .triangles
+        .iter()
+        .flat_map(|t| {
+            [(0, 1), (1, 2), (2, 0)].map(|(a, b)| {
+                subsurf::geometry::dist(
+                    mesh.positions[t[a] as usize],
+                    mesh.positions[t[b] as usize],
+                )
+            })
+        })
+        .collect();
+    edges.sort_by(f64::total_cmp);
+    let reach = 2.0 * edges.get(edges.len() / 2).copied().unwrap_or(1.0);
+    let near = out.spots_on_mesh(reach);
+    let values: Vec<f64> = near
+        .iter()
+        .map(|s| match s {
+            Some((px, true)) => *px,
+            _ => f64::NAN,
+        })
+        .collect();
+    let top = values
+        .iter()
+        .copied()
+        .filter(|v| v.is_finite())
+        .fold(0.0, f64::max)
+        .max(1e-3);
+    let kind: Vec<[f64; 3]> = near
+        .iter()
+        .map(|s| match s {
+            Some((_, true)) => [0.2, 0.6, 0.9],
+            Some((_, false)) => [0.9, 0.25, 0.2],
+            None => [0.85, 0.85, 0.85],
+        })
+        .collect();
+    let rec = &out.record;
+    surface_panels(
+        png,
+        &format!(
+            "{} aligned: {} spots, RMS {:.3} px ({:.4} mm)",
+            rec.source_mesh, rec.spots, rec.rms_px, rec.rms_mm
+        ),
+        MeshView {
+            positions: &mesh.positions,
+            normals: &mesh.normals,
+            faces: &mesh.triangles,
+        },
+        &[
+            Panel {
+                title: "inlier spots: distance from the surface".into(),
+                data: PanelData::Scalar {
+                    values,
+                    range: (0.0, top),
+                    label: "residual, pixels".into(),
+                },
+            },
+            Panel {
+                title: format!(
+                    "spots: {} inliers (blue), {} outliers (red)",
+                    rec.inliers,
+                    rec.spots - rec.inliers
+                ),
+                data: PanelData::Rgb(kind),
+            },
+        ],
+        subsurf::render::DEFAULT_VIEW,
+        (420, 440),
+    )?;
+    Ok(())
+}
