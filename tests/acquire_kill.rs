@@ -49,6 +49,10 @@ fn snapshot(dir: &Path) -> Vec<(String, Vec<u8>)> {
     while let Some(d) = stack.pop() {
         for e in std::fs::read_dir(&d).unwrap().flatten() {
             let p = e.path();
+            // The sample cache is derived data (its manifest records the frames' file times).
+            if p.file_name().is_some_and(|n| n == ".subsurf-cache") {
+                continue;
+            }
             if p.is_dir() {
                 stack.push(p);
             } else {

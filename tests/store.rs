@@ -123,6 +123,35 @@ fn the_cache_is_invalidated_by_changed_frames_and_extraction_options() {
     std::fs::write(&f, bytes).unwrap();
     assert_eq!(decoded(&opts, &all), (n, false, n as u64));
     assert_eq!(decoded(&opts, &all), (0, true, 0));
+    // A cache that cannot be read (a truncated file) is rebuilt, and the report says why.
+    let cache = data.join(".subsurf-cache");
+    let dir = std::fs::read_dir(&cache)
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap()
+        .path();
+    let frames = dir.join("frames.arrow");
+    let len = std::fs::metadata(&frames).unwrap().len();
+    std::fs::File::options()
+        .write(true)
+        .open(&frames)
+        .unwrap()
+        .set_len(len / 2)
+        .unwrap();
+    let ds3 = Dataset::open(&data).unwrap();
+    let ctx = prepare(&ds3, &all, &opts, &cached, &()).unwrap();
+    let r = ctx.store().unwrap().report();
+    assert!(!r.from_cache && r.frames_decoded == n);
+    assert!(
+        r.cache_rejected
+            .as_deref()
+            .is_some_and(|why| why.contains("frames.arrow")),
+        "{:?}",
+        r.cache_rejected
+    );
+    drop(ctx);
+    assert_eq!(decoded(&opts, &all), (0, true, 0));
 }
 
 /// `subsurf fit` twice on the same scan: the second run starts from the cache, decodes no frame,
@@ -157,4 +186,48 @@ fn a_second_fit_starts_from_the_cache() {
     assert_eq!(r["sample_store"]["from_cache"], true);
     assert_eq!(r["frames"]["reads"]["total"], 0);
     assert!(a == b && b == c, "the same model from every store");
+}
+
+/// `subsurf scan` extracts each frame's samples as it arrives: the first `subsurf fit` after the
+/// scan starts from that store, decodes no frame, and writes the model a fit that decodes every
+/// frame itself writes.
+#[test]
+fn a_fit_after_a_scan_starts_from_the_store_the_scan_wrote() {
+    let d = tempfile::tempdir().unwrap();
+    let data = d.path().join("scan");
+    let run = |args: &[&str]| {
+        let o = std::process::Command::new(env!("CARGO_BIN_EXE_subsurf"))
+            .args(args)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        String::from_utf8_lossy(&o.stdout).into_owned()
+    };
+    let data_s = data.to_str().unwrap();
+    let printed = run(&[
+        "scan", "--sim", "--camera", "sim", "--quiet", "--size", "64", "--angles", "4", "--raster",
+        "6", "--out", data_s,
+    ]);
+    assert!(printed.contains("sample store of"), "{printed}");
+    let fit = |out: &str, extra: &[&str]| {
+        let model = d.path().join(out);
+        let mut args = vec!["fit", "--no-pictures", "--scan", data_s, "--out"];
+        args.push(model.to_str().unwrap());
+        args.extend_from_slice(extra);
+        run(&args);
+        let r: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(d.path().join("fit-report.json")).unwrap())
+                .unwrap();
+        (std::fs::read(&model).unwrap(), r)
+    };
+    let (from_scan, r) = fit("a.ply", &[]);
+    assert_eq!(
+        r["sample_store"]["from_cache"], true,
+        "{}",
+        r["sample_store"]
+    );
+    assert_eq!(r["frames"]["reads"]["total"], 0);
+    let (decoded, r) = fit("b.ply", &["--cache", "off"]);
+    assert!(r["frames"]["reads"]["total"].as_u64().unwrap() > 0);
+    assert!(from_scan == decoded, "the scan's store fits the same model");
 }

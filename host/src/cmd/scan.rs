@@ -8,7 +8,7 @@ use std::time::Duration;
 
 use subsurf::link::SerialLink;
 use subsurf::rig::{ClientConfig, RigClient};
-use subsurf::scan::driver::{ScanConfig, ScanError, run_with_reconnect};
+use subsurf::scan::driver::{FrameSink, ScanConfig, ScanError, run_with_reconnect_into};
 use subsurf::scan::plan::estimate_duration;
 use subsurf::scan::setup::{
     GROUND_TRUTH_FILE, camera_from_spec_with, rig_timing, sim_noise_floor, write_ground_truth,
@@ -68,6 +68,13 @@ pub struct Args {
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
+    /// Memory for the sample store extracted as frames arrive (MiB), as `subsurf fit --memory`.
+    #[arg(long, default_value_t = (subsurf::store::DEFAULT_BUDGET >> 20) as u64)]
+    pub memory: u64,
+    /// Do not extract the frames' samples as they arrive (the first `subsurf fit` then decodes
+    /// every frame itself).
+    #[arg(long)]
+    pub no_store: bool,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -124,6 +131,20 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         );
         p
     };
+    // Each frame is registered and sampled as it arrives, into the sample store `subsurf fit`
+    // starts from (`pipeline::extract::ScanExtraction`).
+    let memory = args.memory;
+    let no_store = args.no_store;
+    let sink = move || -> Option<Box<dyn FrameSink>> {
+        (!no_store).then(|| {
+            Box::new(subsurf::pipeline::extract::ScanExtraction::new(
+                subsurf::pipeline::StoreOptions {
+                    budget: usize::try_from(memory.saturating_mul(1 << 20)).unwrap_or(usize::MAX),
+                    cache: subsurf::pipeline::Cache::Dataset,
+                },
+            )) as Box<dyn FrameSink>
+        })
+    };
     let result = if args.sim {
         let mut connect = || {
             let link = subsurf::sim::SimLink::clean(subsurf::sim::VirtualRig::new(
@@ -131,12 +152,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             ));
             RigClient::connect_with_seq(link, ClientConfig::default(), 1)
         };
-        run_with_reconnect(
+        run_with_reconnect_into(
             &cfg,
             &mut connect,
             camera.as_mut(),
             &progress,
             args.reconnects,
+            sink(),
         )
     } else {
         let port = args.port.clone().unwrap_or_default();
@@ -145,12 +167,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             let link = SerialLink::open(&port, baud)?;
             RigClient::connect(link, ClientConfig::default())
         };
-        run_with_reconnect(
+        run_with_reconnect_into(
             &cfg,
             &mut connect,
             camera.as_mut(),
             &progress,
             args.reconnects,
+            sink(),
         )
     };
     progress.finish_and_clear();
@@ -182,6 +205,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 s.reconnects,
                 s.camera_retries
             );
+            match &s.sink {
+                Some(Ok(m)) => println!("{m}"),
+                Some(Err(e)) => println!(
+                    "no sample store was kept ({e}): the first `subsurf fit` reads the frames"
+                ),
+                None => {}
+            }
             Ok(())
         }
         Err(e @ ScanError::Interrupted { .. }) => {

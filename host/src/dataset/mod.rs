@@ -365,6 +365,31 @@ impl Dataset {
         })
     }
 
+    /// A dataset being written (`subsurf scan`): its directory, `scan.json` so far and mesh,
+    /// nothing checked on disk.
+    pub fn in_progress(
+        dir: PathBuf,
+        spec: ScanSpec,
+        mesh: Mesh,
+        mesh_report: MeshReport,
+    ) -> Dataset {
+        let reads = (0..spec.frames.len()).map(|_| Default::default()).collect();
+        let camera_files = spec
+            .frames
+            .iter()
+            .filter(|f| is_camera_file_name(&f.image))
+            .count();
+        Dataset {
+            manifest: dir.join("scan.json"),
+            dir,
+            spec,
+            mesh,
+            mesh_report,
+            camera_files,
+            reads: std::sync::Arc::new(reads),
+        }
+    }
+
     /// How often each frame's image was read by this process, per frame.
     pub fn frame_read_counts(&self) -> Vec<u32> {
         use std::sync::atomic::Ordering;

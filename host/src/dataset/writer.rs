@@ -363,6 +363,11 @@ impl DatasetWriter {
         write_atomic(&path, (text + "\n").as_bytes())
     }
 
+    /// `scan.json` without its frames (format, units, mesh, noise floor, saturation, cameras).
+    pub fn header(&self) -> &ScanSpec {
+        &self.header
+    }
+
     /// Writes the final `scan.json`.
     pub fn finish(mut self) -> Result<PathBuf, WriteError> {
         self.write_index()?;

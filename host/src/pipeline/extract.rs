@@ -14,7 +14,7 @@ use std::path::PathBuf;
 
 use rayon::prelude::*;
 
-use crate::dataset::{Dataset, Image};
+use crate::dataset::{Dataset, FrameSpec, Image};
 use crate::geometry::{Camera, SurfacePoints, Visible};
 use crate::lattice::{is_corner, points};
 use crate::model::TangentFrame;
@@ -82,9 +82,9 @@ impl Cache {
 }
 
 /// The extraction settings a store depends on (spot detection and the sample rules), as the
-/// JSON its key records.
-pub fn extraction_options(opts: &PipelineOptions) -> serde_json::Value {
-    serde_json::json!({ "spot": opts.spot, "samples": opts.samples })
+/// JSON text its key records.
+pub fn extraction_options(opts: &PipelineOptions) -> String {
+    serde_json::json!({ "spot": opts.spot, "samples": opts.samples }).to_string()
 }
 
 /// The lattice points a fit of `frames` samples alpha at (section 5's "higher resolution
@@ -92,11 +92,17 @@ pub fn extraction_options(opts: &PipelineOptions) -> serde_json::Value {
 /// turntable angle) of the frames, the points between the corners (a corner is a vertex, whose
 /// alpha the fit rounds give). `None` when the lattice is off.
 pub fn fit_points(ctx: &Context, frames: &[usize]) -> Option<StorePoints> {
-    let max_level = ctx.opts.alpha_lattice.max_level()?;
-    let views: Vec<(&Camera, f64)> = views_of(ctx.ds, frames)
+    let views: Vec<(usize, f64)> = views_of(ctx.ds, frames)
         .keys()
-        .map(|&(c, d)| (ctx.camera(c), f64::from_bits(d)))
+        .map(|&(c, d)| (c, f64::from_bits(d)))
         .collect();
+    lattice_points(ctx, &views)
+}
+
+/// [`fit_points`] of the frames seen from `views` (camera, turntable angle).
+pub fn lattice_points(ctx: &Context, views: &[(usize, f64)]) -> Option<StorePoints> {
+    let max_level = ctx.opts.alpha_lattice.max_level()?;
+    let views: Vec<(&Camera, f64)> = views.iter().map(|&(c, d)| (ctx.camera(c), d)).collect();
     let levels = face_levels(&ctx.scene, &views, ctx.opts.samples.cos_min, max_level);
     let pts = SurfacePoints::lattice(&ctx.ds.mesh, &levels).ok()?;
     let mut which = Vec::new();
@@ -156,6 +162,7 @@ pub fn extract(
     )
     .map_err(|e| PipelineError::Invalid(e.to_string()))?;
     let root = store.cache.root(ds);
+    let mut rejected = None;
     if let Some(root) = &root {
         match crate::store::arrow::open(root, &key, &ds.mesh, ds.spec.frames.len(), store.budget) {
             Ok(Some(mut s)) => {
@@ -163,8 +170,11 @@ pub fn extract(
                 return Ok(s);
             }
             Ok(None) => {}
-            // A cache that cannot be read is rebuilt, never trusted.
-            Err(e) => progress.println(&format!("ignoring the sample cache: {e}")),
+            // A cache that cannot be read is rebuilt, never trusted; the report says why.
+            Err(e) => {
+                progress.println(&format!("ignoring the sample cache: {e}"));
+                rejected = Some(e.to_string());
+            }
         }
     }
     let target = match root {
@@ -209,6 +219,7 @@ pub fn extract(
     }
     let mut held = builder.finish()?;
     held.set_seconds(clock.elapsed().as_secs_f64());
+    held.set_cache_rejected(rejected);
     Ok(held)
 }
 
@@ -221,7 +232,7 @@ pub fn extract_frame(
     visible: Option<&[Visible]>,
 ) -> Extracted {
     match ctx.ds.read_frame(k) {
-        Ok(img) => extract_image(ctx, k, &img, points, visible),
+        Ok(img) => extract_image(ctx, k, &ctx.ds.spec.frames[k], &img, points, visible),
         Err(e) => Extracted {
             record: FrameRecord {
                 frame: k,
@@ -236,15 +247,17 @@ pub fn extract_frame(
     }
 }
 
-/// [`extract_frame`] of an image already in memory (`subsurf scan` as frames arrive).
+/// [`extract_frame`] of frame `k` (its `scan.json` entry `spec`) whose image `img` is in memory
+/// already (`subsurf scan`, as frames arrive).
 pub fn extract_image(
     ctx: &Context,
     k: usize,
+    spec: &FrameSpec,
     img: &Image,
     points: Option<&StorePoints>,
     visible: Option<&[Visible]>,
 ) -> Extracted {
-    let (outcome, detected) = ctx.register_image(img, k);
+    let (outcome, detected) = ctx.register_image(img, spec);
     let mut x = Extracted {
         record: FrameRecord {
             frame: k,
@@ -265,11 +278,11 @@ pub fn extract_image(
     else {
         return x;
     };
-    let (v, vc) = ctx.vertex_samples(img, k, x_i, &spot);
+    let (v, vc) = ctx.vertex_samples(img, spec, x_i, &spot);
     x.vertices = Some(v);
     x.record.counts[0] = vc;
     if let (Some(p), Some(vis)) = (points, visible) {
-        let (mut s, c) = ctx.surface_samples(img, k, x_i, &spot, &p.points, vis);
+        let (mut s, c) = ctx.surface_samples(img, spec, x_i, &spot, &p.points, vis);
         p.keep(&mut s);
         x.points = Some(s);
         x.record.counts[1] = c;
@@ -291,4 +304,208 @@ pub fn decode_pass(ds: &Dataset, frames: &[usize], progress: &dyn Progress) -> (
             (usize::from(n > 0), n)
         })
         .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
+}
+
+/// The extraction pass run while a scan is captured (`subsurf scan`): each frame, as it is
+/// committed, goes to a worker thread that registers and samples it from the image in memory
+/// into a sample store, with the options a later `subsurf fit` of the whole scan uses by default;
+/// when the scan ends the store is cached in the dataset, so that fit starts from it.
+///
+/// The scan never waits for it: a frame that arrives while the worker is a few frames behind is
+/// read back from its file at the end instead (as are frames of an earlier, resumed run). Any
+/// failure leaves the dataset without a cache and is reported, never fails the scan.
+pub struct ScanExtraction {
+    store: StoreOptions,
+    tx: Option<std::sync::mpsc::SyncSender<(usize, FrameSpec, Image)>>,
+    worker: Option<std::thread::JoinHandle<Result<String, String>>>,
+    failed: Option<String>,
+}
+
+impl ScanExtraction {
+    /// A sink for `subsurf scan` with the store's settings `store`.
+    pub fn new(store: StoreOptions) -> ScanExtraction {
+        ScanExtraction {
+            store,
+            tx: None,
+            worker: None,
+            failed: None,
+        }
+    }
+}
+
+/// `x` as it reads back from its JSON in `scan.json`.
+fn as_read_back<T: serde::Serialize + serde::de::DeserializeOwned>(x: &T) -> Option<T> {
+    serde_json::from_str(&serde_json::to_string(x).ok()?).ok()
+}
+
+/// Frames the worker may be behind before the scan stops waiting for it.
+const SCAN_QUEUE: usize = 4;
+
+impl crate::scan::driver::FrameSink for ScanExtraction {
+    fn begin(
+        &mut self,
+        dir: &std::path::Path,
+        header: &crate::dataset::ScanSpec,
+        frames: usize,
+        views: &[(usize, f64)],
+    ) {
+        let mesh_path = match crate::dataset::confined_path(dir, &header.mesh) {
+            Ok(p) => p,
+            Err(e) => {
+                self.failed = Some(e.to_string());
+                return;
+            }
+        };
+        let (mesh, mesh_report) = match crate::dataset::load_obj(&mesh_path) {
+            Ok(m) => m,
+            Err(e) => {
+                self.failed = Some(format!("{}: {e}", mesh_path.display()));
+                return;
+            }
+        };
+        let (tx, rx) = std::sync::mpsc::sync_channel(SCAN_QUEUE);
+        // What a later `subsurf fit` reads back from scan.json (JSON need not round-trip a
+        // number to the bit), so that this store is the one it would extract.
+        let Some(mut spec) = as_read_back(header) else {
+            self.failed = Some("the scan's header does not read back".into());
+            return;
+        };
+        spec.frames.clear();
+        let planned = Dataset::in_progress(dir.to_path_buf(), spec, mesh, mesh_report);
+        let views = views.to_vec();
+        let store = self.store.clone();
+        self.tx = Some(tx);
+        self.worker = Some(std::thread::spawn(move || {
+            scan_worker(planned, frames, &views, &store, rx)
+        }));
+    }
+
+    fn frame(&mut self, k: usize, entry: &FrameSpec, image: Image) {
+        if let Some(tx) = &self.tx
+            && let Some(entry) = as_read_back(entry)
+            && tx.try_send((k, entry, image)).is_err()
+        {
+            // The worker is behind (or gone): the frame is read back from its file at the end.
+        }
+    }
+
+    fn finish(&mut self) -> Result<String, String> {
+        if let Some(why) = self.failed.take() {
+            return Err(why);
+        }
+        self.tx = None;
+        match self.worker.take() {
+            Some(w) => w
+                .join()
+                .map_err(|_| "the extraction thread panicked".to_string())?,
+            None => Err("the extraction never started".into()),
+        }
+    }
+}
+
+/// The worker of [`ScanExtraction`]: extracts what arrives on `rx` from the images in memory,
+/// then, once the scan is complete, the frames it did not get from their files, and caches the
+/// store under the key a later `subsurf fit` of all frames asks for.
+fn scan_worker(
+    planned: Dataset,
+    frames: usize,
+    views: &[(usize, f64)],
+    store: &StoreOptions,
+    rx: std::sync::mpsc::Receiver<(usize, FrameSpec, Image)>,
+) -> Result<String, String> {
+    let clock = std::time::Instant::now();
+    let opts = PipelineOptions::for_dataset(&planned);
+    let ctx = Context::new(&planned, opts).map_err(|e| e.to_string())?;
+    let points = lattice_points(&ctx, views);
+    let digest = points.as_ref().map(StorePoints::digest);
+    let key = ExtractionKey::new(&planned, &[], extraction_options(&opts), digest.clone())
+        .map_err(|e| e.to_string())?;
+    let root = store
+        .cache
+        .root(&planned)
+        .ok_or("--cache off: no sample store is kept")?;
+    let writer =
+        Writer::create(Target::Cache(root), &key, points.is_some()).map_err(|e| e.to_string())?;
+    let mut builder = StoreBuilder::new(key, frames, points, store.budget, Some(writer));
+    let mut used: Vec<Option<FrameSpec>> = vec![None; frames];
+    let mut visible: Option<((usize, u64), Vec<Visible>)> = None;
+    let mut extract = |k: usize, spec: &FrameSpec, img: &Image, builder: &mut StoreBuilder| {
+        let view = (spec.camera, spec.turntable_deg.to_bits());
+        let vis = builder.points().map(|p| {
+            if visible.as_ref().is_none_or(|(v, _)| *v != view) {
+                let cam = ctx.camera(spec.camera);
+                let pv = ctx.scene.visible_points_of(
+                    &p.points,
+                    &p.which,
+                    cam,
+                    spec.turntable_deg,
+                    ctx.opts.samples.cos_min,
+                );
+                visible = Some((view, pv));
+            }
+            visible.as_ref().map_or(&[][..], |(_, v)| &v[..])
+        });
+        let x = extract_image(&ctx, k, spec, img, builder.points(), vis);
+        builder
+            .push(x, &ctx.ds.mesh.positions)
+            .map_err(|e| e.to_string())
+    };
+    let mut live = 0usize;
+    let mut ended = None;
+    for (k, spec, img) in rx.iter().chain(std::iter::from_fn(|| {
+        ended = Some(std::time::Instant::now());
+        None
+    })) {
+        if k >= frames || builder.holds(k) {
+            return Err(format!("frame {k} is not one of the plan's {frames}"));
+        }
+        extract(k, &spec, &img, &mut builder)?;
+        used[k] = Some(spec);
+        live += 1;
+    }
+    // The scan is complete: the dataset as written, and the frames the worker did not get.
+    let ds = Dataset::open(&planned.dir).map_err(|e| e.to_string())?;
+    if ds.spec.frames.len() != frames {
+        return Err(format!(
+            "the scan holds {} frames, the plan {frames}",
+            ds.spec.frames.len()
+        ));
+    }
+    if PipelineOptions::for_dataset(&ds) != opts {
+        return Err("the dataset's options are not the ones extracted with".into());
+    }
+    for (k, f) in used.iter().enumerate() {
+        if f.as_ref().is_some_and(|f| *f != ds.spec.frames[k]) {
+            return Err(format!("frame {k} in scan.json is not the one extracted"));
+        }
+    }
+    for k in 0..frames {
+        if !builder.holds(k) {
+            let img = ds.read_frame(k).map_err(|e| e.to_string())?;
+            extract(k, &ds.spec.frames[k], &img, &mut builder)?;
+        }
+    }
+    let all: Vec<usize> = (0..frames).collect();
+    let seen: Vec<(usize, f64)> = views_of(&ds, &all)
+        .keys()
+        .map(|&(c, d)| (c, f64::from_bits(d)))
+        .collect();
+    if lattice_points(&ctx, &seen).map(|p| p.digest()) != digest {
+        return Err("the scan's views are not the plan's".into());
+    }
+    let key = ExtractionKey::new(&ds, &all, extraction_options(&opts), digest)
+        .map_err(|e| e.to_string())?;
+    builder.set_key(key);
+    let held = builder.finish().map_err(|e| e.to_string())?;
+    let after = ended.map_or(0.0, |t| t.elapsed().as_secs_f64());
+    Ok(format!(
+        "sample store of {frames} frames written in {:.1} s, {after:.1} s of it after the scan's \
+         end ({live} frames extracted as they arrived, {} read back from their files) in {}",
+        clock.elapsed().as_secs_f64(),
+        frames - live,
+        held.report()
+            .dir
+            .as_deref()
+            .map_or("-".into(), |d| d.display().to_string())
+    ))
 }

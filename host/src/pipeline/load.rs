@@ -8,7 +8,7 @@
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
-use crate::dataset::{Dataset, DatasetError};
+use crate::dataset::{Dataset, DatasetError, FrameSpec};
 use crate::geometry::{Camera, CoverageMap, Scene, SurfacePoints, V3, Visible};
 use crate::registration::RegistrationOutcome;
 use crate::samples::{SampleCounts, frame_samples};
@@ -165,17 +165,17 @@ impl<'a> Context<'a> {
             return r.outcome.clone();
         }
         let img = self.ds.read_frame(k).map_err(|e| e.to_string())?;
-        Ok(self.register_image(&img, k).0)
+        Ok(self.register_image(&img, &self.ds.spec.frames[k]).0)
     }
 
-    /// Registers frame `k` from its image `img` (the rule of [`Context::register`]), with the
-    /// spot detected in it ([`crate::registration::register_frame_detected`]).
+    /// Registers the frame `f` (its `scan.json` entry) from its image `img` (the rule of
+    /// [`Context::register`]), with the spot detected in it
+    /// ([`crate::registration::register_frame_detected`]).
     pub fn register_image(
         &self,
         img: &crate::dataset::Image,
-        k: usize,
+        f: &FrameSpec,
     ) -> (RegistrationOutcome, Option<crate::registration::Spot>) {
-        let f = &self.ds.spec.frames[k];
         crate::registration::register_frame_detected(
             img,
             f,
@@ -196,23 +196,23 @@ impl<'a> Context<'a> {
                 .unwrap_or_default());
         }
         let img = self.ds.read_frame(reg.frame)?;
-        let (samples, counts) = self.vertex_samples(&img, reg.frame, reg.x_i, &reg.spot);
+        let f = &self.ds.spec.frames[reg.frame];
+        let (samples, counts) = self.vertex_samples(&img, f, reg.x_i, &reg.spot);
         Ok(FrameSamples {
             samples: Arc::new(samples),
             counts,
         })
     }
 
-    /// Samples of frame `k`'s image `img` at the vertices it sees, with light at `x_i` and the
-    /// laser spot `spot` ([`frame_samples`] with this run's rules).
+    /// Samples of the image `img` of frame `f` (its `scan.json` entry) at the vertices it sees,
+    /// with light at `x_i` and the laser spot `spot` ([`frame_samples`] with this run's rules).
     pub fn vertex_samples(
         &self,
         img: &crate::dataset::Image,
-        k: usize,
+        f: &FrameSpec,
         x_i: V3,
         spot: &crate::registration::Spot,
     ) -> (Vec<crate::samples::Sample>, SampleCounts) {
-        let f = &self.ds.spec.frames[k];
         let vis = self.visible(f.camera, f.turntable_deg);
         let cov = self.coverage(f.camera, f.turntable_deg);
         frame_samples(
@@ -227,18 +227,17 @@ impl<'a> Context<'a> {
         )
     }
 
-    /// Samples of frame `k`'s image `img` at the surface points `pts` of which `visible` are seen
-    /// (by the vertices' rules, [`Context::vertex_samples`]); `Sample::vertex` indexes `pts`.
+    /// Samples of the image `img` of frame `f` at the surface points `pts` of which `visible` are
+    /// seen (by the vertices' rules, [`Context::vertex_samples`]); `Sample::vertex` indexes `pts`.
     pub fn surface_samples(
         &self,
         img: &crate::dataset::Image,
-        k: usize,
+        f: &FrameSpec,
         x_i: V3,
         spot: &crate::registration::Spot,
         pts: &SurfacePoints,
         visible: &[Visible],
     ) -> (Vec<crate::samples::Sample>, SampleCounts) {
-        let f = &self.ds.spec.frames[k];
         let cov = self.coverage(f.camera, f.turntable_deg);
         frame_samples(
             img,

@@ -211,6 +211,10 @@ pub fn summary_lines(r: &FitReport) -> Vec<String> {
         ),
         format!("alpha finer than the mesh: {}", lattice_summary(&r.alpha)),
         format!(
+            "sample store: {}",
+            r.sample_store.as_ref().map_or("none".into(), store_summary)
+        ),
+        format!(
             "stages: {}; peak RSS {}",
             r.stage_seconds
                 .iter()
@@ -220,6 +224,33 @@ pub fn summary_lines(r: &FitReport) -> Vec<String> {
             fmt::opt(r.peak_rss_mib, |m| format!("{} MiB", fmt::sig(m, 3)))
         ),
     ]
+}
+
+/// How the run's sample store came to be: opened from the cache, or extracted (and why a cache
+/// of the same options was not used, if one could not be read).
+fn store_summary(s: &crate::store::StoreReport) -> String {
+    let how = if s.from_cache {
+        format!("opened from the cache in {}", fmt::seconds(s.seconds))
+    } else {
+        format!(
+            "{} frames decoded once in {}",
+            fmt::count(s.frames_decoded),
+            fmt::seconds(s.seconds)
+        )
+    };
+    let mut out = format!(
+        "{how}; {} vertex and {} lattice samples, {} frames spilled to disk",
+        fmt::count(s.vertex_samples as usize),
+        fmt::count(s.point_samples as usize),
+        fmt::count(s.spilled)
+    );
+    if let Some(why) = &s.cache_rejected {
+        out.push_str(&format!("; the cache was ignored: {why}"));
+    }
+    if let Some(why) = &s.not_cached {
+        out.push_str(&format!("; not cached: {why}"));
+    }
+    out
 }
 
 /// Where a fit came from and went to, for its report.

@@ -16,7 +16,7 @@ use crate::dataset::{DatasetWriter, FrameSpec, Image, LaserRay, ScanSpec, WriteE
 use crate::link::ByteLink;
 use crate::progress::Progress;
 use crate::rig::{RigClient, RigClientError};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
@@ -196,6 +196,8 @@ pub struct ScanSummary {
     pub reconnects: u32,
     /// Camera retries.
     pub camera_retries: u32,
+    /// What the frame sink said at the end, if the scan had one ([`FrameSink::finish`]).
+    pub sink: Option<Result<String, String>>,
 }
 
 /// The raw level at which the frames a scan writes are clipped, for `scan.json`: the camera's
@@ -214,10 +216,25 @@ pub fn frame_saturation(camera_saturation: f32, exposures_s: &[f64]) -> Option<f
     (shortest.is_finite() && shortest > 0.0).then(|| 0.98 * sat / shortest)
 }
 
+/// Receives each frame as it is committed, while the scan goes on: processing that can start
+/// before the scan ends (the sample store's extraction, `pipeline::extract::ScanExtraction`,
+/// which `subsurf scan` attaches). A sink never fails the scan: what it cannot do it reports at
+/// the end.
+pub trait FrameSink {
+    /// The scan (its dataset at `dir`, `scan.json`'s header `header`, `frames` planned frames seen
+    /// from the views `views`: camera, turntable angle) starts or resumes.
+    fn begin(&mut self, dir: &Path, header: &ScanSpec, frames: usize, views: &[(usize, f64)]);
+    /// Frame `k` is committed with its `scan.json` entry and its image as written.
+    fn frame(&mut self, k: usize, entry: &FrameSpec, image: Image);
+    /// Every frame is committed and `scan.json` written: what the sink has to say.
+    fn finish(&mut self) -> Result<String, String>;
+}
+
 /// An open scan: the dataset writer and the plan, across rig sessions.
 pub struct Scan<'a> {
     cfg: &'a ScanConfig,
     writer: DatasetWriter,
+    sink: Option<Box<dyn FrameSink>>,
     frames: Vec<super::plan::PlannedFrame>,
     resumed_from: usize,
     written: usize,
@@ -247,6 +264,7 @@ impl<'a> Scan<'a> {
         Ok(Scan {
             cfg,
             writer,
+            sink: None,
             frames: cfg.plan.frames(),
             resumed_from: done,
             written: 0,
@@ -259,6 +277,27 @@ impl<'a> Scan<'a> {
     /// Frames complete.
     pub fn done(&self) -> usize {
         self.writer.done()
+    }
+
+    /// Hands every frame committed from now on to `sink` as well ([`FrameSink`]).
+    pub fn with_sink(mut self, mut sink: Box<dyn FrameSink>) -> Self {
+        let mut views: Vec<(usize, f64)> = Vec::new();
+        for f in &self.frames {
+            if !views
+                .iter()
+                .any(|v| v.1.to_bits() == f.turntable_deg.to_bits())
+            {
+                views.push((0, f.turntable_deg));
+            }
+        }
+        sink.begin(
+            &self.cfg.out,
+            self.writer.header(),
+            self.frames.len(),
+            &views,
+        );
+        self.sink = Some(sink);
+        self
     }
 
     /// Whether every planned frame is written.
@@ -679,8 +718,12 @@ impl<'a> Scan<'a> {
             galvo: Some(f.galvo.map(u32::from)),
             levels: Default::default(),
         };
+        let sent = self.sink.as_ref().map(|_| entry.clone());
         self.writer.commit(entry, &bytes)?;
         self.written += 1;
+        if let (Some(sink), Some(entry)) = (&mut self.sink, sent) {
+            sink.frame(self.writer.done() - 1, &entry, image);
+        }
         Ok(())
     }
 
@@ -695,7 +738,9 @@ impl<'a> Scan<'a> {
             self.started,
         );
         let scan_json = self.writer.finish()?;
+        let sink = self.sink.map(|mut s| s.finish());
         Ok(ScanSummary {
+            sink,
             scan_json,
             frames_total,
             resumed_from,
@@ -811,7 +856,22 @@ pub fn run_with_reconnect<L: ByteLink>(
     progress: &dyn Progress,
     max_reconnects: u32,
 ) -> Result<ScanSummary, ScanError> {
+    run_with_reconnect_into(cfg, connect, camera, progress, max_reconnects, None)
+}
+
+/// [`run_with_reconnect`], every committed frame handed to `sink` as well ([`FrameSink`]).
+pub fn run_with_reconnect_into<L: ByteLink>(
+    cfg: &ScanConfig,
+    connect: &mut dyn FnMut() -> Result<RigClient<L>, RigClientError>,
+    camera: &mut dyn Camera,
+    progress: &dyn Progress,
+    max_reconnects: u32,
+    sink: Option<Box<dyn FrameSink>>,
+) -> Result<ScanSummary, ScanError> {
     let mut scan = Scan::open(cfg, camera)?;
+    if let Some(s) = sink {
+        scan = scan.with_sink(s);
+    }
     let mut reconnects = 0u32;
     let mut backoff = Duration::from_millis(100);
     let mut ever_connected = false;

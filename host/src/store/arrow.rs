@@ -107,7 +107,6 @@ pub enum Target {
 pub struct Writer {
     tmp: PathBuf,
     target: Target,
-    name: String,
     files: [Option<FileWriter<BufWriter<File>>>; 2],
     next_batch: [usize; 2],
     batches: [Vec<Option<usize>>; 2],
@@ -136,10 +135,11 @@ impl Writer {
         key: &ExtractionKey,
         lattice: bool,
     ) -> Result<Writer, StoreError> {
-        let name = key.dir_name();
+        // Named by the key's prefix only: a store filled during a scan learns its frames'
+        // identities (and so its final name, at `finish`) once they are all written.
         let (tmp, target) = match target {
             Target::Cache(root) => {
-                let tmp = root.join(format!(".{name}.tmp-{}", unique_suffix()));
+                let tmp = root.join(format!(".{}tmp-{}", key.dir_prefix(), unique_suffix()));
                 match std::fs::create_dir_all(&tmp) {
                     Ok(()) => (tmp, Target::Cache(root)),
                     Err(e) => {
@@ -167,7 +167,6 @@ impl Writer {
         Ok(Writer {
             tmp,
             target,
-            name,
             files,
             next_batch: [0, 0],
             batches: [Vec::new(), Vec::new()],
@@ -252,7 +251,7 @@ impl Writer {
         f.sync_all().map_err(io(&path))?;
         let (dir, keep, not_cached) = match &self.target {
             Target::Cache(root) => {
-                let dir = root.join(&self.name);
+                let dir = root.join(key.dir_name());
                 // A stale cache of the same options (other frames, changed files) is replaced;
                 // if another run put one in place meanwhile, ours stays a scratch copy.
                 if dir.exists() {

@@ -49,8 +49,9 @@ pub struct FrameIdentity {
 pub struct ExtractionKey {
     /// [`EXTRACTION_RULES`].
     pub rules: u32,
-    /// The extraction options (spot detection, sample rules), as JSON.
-    pub options: serde_json::Value,
+    /// The extraction options (spot detection, sample rules), as JSON text: compared as text,
+    /// since a number read back from JSON need not equal the one written to the bit.
+    pub options: String,
     /// CRC-64 of the mesh (positions, triangles, normals).
     pub mesh: String,
     /// CRC-64 of the cameras (JSON).
@@ -111,7 +112,7 @@ impl ExtractionKey {
     pub fn new(
         ds: &Dataset,
         frames: &[usize],
-        options: serde_json::Value,
+        options: String,
         lattice: Option<String>,
     ) -> Result<ExtractionKey, StoreKeyError> {
         let m = &ds.mesh;

@@ -240,6 +240,9 @@ pub struct StoreReport {
     /// read-only dataset).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub not_cached: Option<String>,
+    /// Why a cache of the same options was not used (it could not be read), if one was not.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cache_rejected: Option<String>,
     /// Wall time of filling it (the one pass over the frames) or opening it, seconds.
     pub seconds: f64,
 }
@@ -334,6 +337,22 @@ impl StoreBuilder {
     /// The lattice points the store samples, if any.
     pub fn points(&self) -> Option<&StorePoints> {
         self.store.points.as_ref().map(|(p, _)| p)
+    }
+
+    /// Whether frame `k` was added.
+    pub fn holds(&self, k: usize) -> bool {
+        self.store.record(k).is_some()
+    }
+
+    /// The key the store is filled under.
+    pub fn key(&self) -> &ExtractionKey {
+        &self.store.key
+    }
+
+    /// Sets the store's key: a store filled while its frames were still being written learns
+    /// their identities on disk at the end ([`StoreBuilder::finish`] names the cache by them).
+    pub fn set_key(&mut self, key: ExtractionKey) {
+        self.store.key = key;
     }
 
     /// Adds one frame (in any order; each frame once). `positions` are the mesh's vertices.
@@ -440,6 +459,11 @@ impl SampleStore {
     /// Records the wall time it took to fill or open the store.
     pub fn set_seconds(&mut self, seconds: f64) {
         self.report.seconds = seconds;
+    }
+
+    /// Records why a cache of the same options was not used ([`StoreReport::cache_rejected`]).
+    pub fn set_cache_rejected(&mut self, why: Option<String>) {
+        self.report.cache_rejected = why;
     }
 
     /// Every frame's record, in the order the frames were added.
