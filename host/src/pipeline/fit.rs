@@ -48,6 +48,13 @@ pub trait Fitter: Sync {
     fn max_terms(&self) -> Option<usize> {
         None
     }
+
+    /// The same fit without this fitter's approximations (distance bins, subsampling, a short
+    /// iteration limit), which the fit report checks it against ([`super::check`]); `None`:
+    /// nothing to check (exact already, or unknown).
+    fn exact(&self) -> Option<Box<dyn Fitter>> {
+        None
+    }
 }
 
 /// The fitting engine's solver failures as the pipeline's reasons (the one mapping).
@@ -124,6 +131,11 @@ impl Fitter for crate::fit::FitOptions {
             crate::fit::Terms::Fixed(n) => Some(n),
             crate::fit::Terms::Auto { max, .. } => Some(max),
         }
+    }
+
+    fn exact(&self) -> Option<Box<dyn Fitter>> {
+        self.exact_counterpart()
+            .map(|o| Box::new(o) as Box<dyn Fitter>)
     }
 }
 
