@@ -24,6 +24,7 @@ mod demo;
 mod fit_aniso;
 mod fit_curve;
 mod fit_pictures;
+mod fit_presets;
 mod fit_scale;
 mod flash;
 mod objects;

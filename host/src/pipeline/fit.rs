@@ -1005,7 +1005,22 @@ fn fit_baseline(
         colour: ctx.opts.model.colour,
         segments: 1,
     };
-    let (model, terms, _) = fit_samples(&pooled, &choice, fitter, &mut Vec::new()).ok()?;
+    // As the interpolation's refits do: one term fewer while the fit fails. The pooled curve's
+    // top term often runs its rate to 0 (a constant, which the drop rule then removes), and the
+    // solver gets there slowly: at the draft preset's iteration limit that fit failed, the run
+    // kept no baseline, and its renders came out 11–14 % dark (BENCHMARKS.md, issue 28).
+    let max_n = fitter.max_terms().unwrap_or(1);
+    let (model, terms, _) = fit_samples(&pooled, &choice, fitter, &mut Vec::new())
+        .or_else(|e| {
+            (1..max_n)
+                .rev()
+                .find_map(|n| {
+                    let at_most = AtMost { inner: fitter, n };
+                    fit_samples(&pooled, &choice, &at_most, &mut Vec::new()).ok()
+                })
+                .ok_or(e)
+        })
+        .ok()?;
     let r_range = pooled
         .iter()
         .flatten()
