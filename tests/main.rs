@@ -26,6 +26,7 @@ mod export;
 mod fit_aniso;
 mod fit_curve;
 mod fit_pictures;
+mod fit_presets;
 mod fit_scale;
 mod flash;
 mod objects;

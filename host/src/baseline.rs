@@ -97,6 +97,64 @@ pub fn ln_predict(
     }
 }
 
+/// The diffuse reflectance a light position's model predicts within its reach, per channel:
+/// 2π ∫_0^{r_max} r·R(r) dr of its fall-off averaged over directions (φ = `None`: the hat
+/// weights of Eq. 3 give every segment 1/m of the circle), extended below r_min by
+/// [`ln_predict`]'s rule (the baseline's shape, or without one the support rule's slope). In
+/// closed form: every piece is a sum of exponentials ([`crate::model::Term::reflectance_between`]).
+/// `None` for an unknown range. What the fit report's reflectance check compares
+/// (`pipeline::check`): beyond r_max the prediction is the baseline's, whoever fitted the light
+/// position, so the figure stops there.
+pub fn reflectance_within_reach(
+    local: &ColourModel,
+    support: Support,
+    baseline: Option<&Baseline>,
+) -> Option<[f64; 3]> {
+    use crate::model::Term;
+    if !support.is_known() {
+        return None;
+    }
+    let (lo, hi) = (support.r_min, support.r_max);
+    let at_lo = local.ln_eval(lo, None);
+    let slope = crate::model::ln_slope(local, lo, None);
+    let mut out = [0.0; 3];
+    for (c, total) in out.iter_mut().enumerate() {
+        let falloff = local.channel(c)?;
+        let m = falloff.segments.len() as f64;
+        let inside: f64 = falloff
+            .segments
+            .iter()
+            .map(|s| s.reflectance_between(lo, hi))
+            .sum::<f64>()
+            / m;
+        let below = match baseline {
+            // R(r) = R_local(r_min) · B(r) / B(r_min): B's terms scaled.
+            Some(b) => {
+                let shape = b.model.channel(c)?;
+                let scale = (at_lo[c] - b.model.ln_eval(lo, None)[c]).exp();
+                let bm = shape.segments.len() as f64;
+                scale
+                    * shape
+                        .segments
+                        .iter()
+                        .map(|s| s.reflectance_between(0.0, lo))
+                        .sum::<f64>()
+                    / bm
+            }
+            None => {
+                let (ln_c, g) = support.below(at_lo[c], slope[c]);
+                Term {
+                    c: ln_c.exp(),
+                    d: g,
+                }
+                .reflectance_between(0.0, lo)
+            }
+        };
+        *total = inside + below;
+    }
+    out.iter().all(|v| v.is_finite()).then_some(out)
+}
+
 /// The baseline's terms `(c, d)` per channel (shared colour: the common fall-off times the
 /// channel's scale), for closed forms such as the renderer's disk integrals.
 pub fn channel_terms(b: &Baseline) -> [Vec<(f64, f64)>; 3] {
@@ -188,6 +246,36 @@ mod tests {
         assert_eq!(
             ln_predict(&local, range, 0.3, None, None),
             ln_eval_supported(&local, range, 0.3, None)
+        );
+        // The reflectance within reach: the local model's share of the plane from r_min to
+        // r_max plus the extension below r_min, by either rule, against the midpoint rule on
+        // the prediction itself.
+        let numeric = |base: Option<&Baseline>| {
+            let k = 200_000;
+            let h = 8.0 / k as f64;
+            (0..k)
+                .map(|i| {
+                    let r = (i as f64 + 0.5) * h;
+                    r * ln_predict(&local, range, r, None, base)[1].exp()
+                })
+                .sum::<f64>()
+                * h
+                * std::f64::consts::TAU
+        };
+        for base in [Some(&b), None] {
+            let got = reflectance_within_reach(&local, range, base).unwrap()[1];
+            let want = numeric(base);
+            assert!((got - want).abs() < 1e-6 * want, "{got} vs {want}");
+        }
+        let with = reflectance_within_reach(&local, range, Some(&b)).unwrap()[1];
+        let without = reflectance_within_reach(&local, range, None).unwrap()[1];
+        assert!(
+            with > without,
+            "the baseline's steeper rise adds reflectance"
+        );
+        assert_eq!(
+            reflectance_within_reach(&local, Support::UNKNOWN, None),
+            None
         );
         // The channel terms integrate to the baseline's own total.
         let t = channel_terms(&b);

@@ -18,10 +18,8 @@ use subsurf::modelfile::ModelFile;
 use subsurf::pipeline::{PipelineOptions, fit_dataset};
 use subsurf::plot::TradeoffPoint;
 use subsurf::render::{self, Camera, Image, Light, Method, Quality, RenderOptions};
-use subsurf::scan::setup::{
-    builtin_object, sim_exposures_s, sim_field, sim_noise_floor, sim_sensor, sim_spot,
-};
-use subsurf::simulate::{CameraRig, Sensor, SimConfig, SimObject, simulate};
+use subsurf::scan::setup::{builtin_object, single_exposure_sim};
+use subsurf::simulate::{SimConfig, SimObject, simulate};
 
 use super::progress::Bar;
 
@@ -135,26 +133,10 @@ impl Sizes {
     }
 }
 
-/// One simulated scan: one camera orbiting at the default elevation, so the frame count is
-/// angles × raster².
+/// One simulated scan (`scan::setup::single_exposure_sim`): one camera orbiting at the default
+/// elevation, so the frame count is angles × raster².
 fn scan_config(sizes: &Sizes, d: Density, seed: u64, half_step: bool) -> SimConfig {
-    let mut cfg = SimConfig::for_object(object(sizes), sizes.scan_px, d.angles, d.raster);
-    // What `subsurf scan --sim --camera sim` captures (scan::setup): its isotropic material,
-    // spot and sensor. One exposure per frame here (no HDR bracket), the one that keeps the
-    // laser spot unclipped, so registration is sub-pixel exact and the spot's own light can be
-    // told from the scattered light (a clipped spot's light leaks into the samples near x_i and
-    // the steepest term fits it); the noise floor follows that exposure.
-    let exposure = sim_exposures_s()[0];
-    cfg.field = sim_field();
-    cfg.spot = sim_spot();
-    cfg.sensor = Sensor {
-        exposure_s: exposure,
-        ..sim_sensor()
-    };
-    cfg.noise_floor = sim_noise_floor(&[exposure]);
-    if let CameraRig::Orbit { count, .. } = &mut cfg.cameras {
-        *count = 1;
-    }
+    let mut cfg = single_exposure_sim(object(sizes), sizes.scan_px, d.angles, d.raster);
     if half_step {
         let step = 360.0 / d.angles.max(1) as f64;
         for a in &mut cfg.turntable_deg {
@@ -204,6 +186,8 @@ struct Row {
     render_err: f64,
     /// Against the exact render of the simulation's ground-truth model.
     truth_err: f64,
+    /// The same, signed: the mean of (render − truth) / truth, a brightness bias.
+    truth_signed: f64,
 }
 
 impl Row {
@@ -322,6 +306,7 @@ fn run_chain(b: &TradeoffBench, sizes: &Sizes) -> Result<Vec<Row>> {
                     image,
                     render_err: f64::NAN,
                     truth_err: f64::NAN,
+                    truth_signed: f64::NAN,
                 });
             }
         }
@@ -348,7 +333,8 @@ fn run_chain(b: &TradeoffBench, sizes: &Sizes) -> Result<Vec<Row>> {
     for r in &mut rows {
         if let Ok(i) = &r.image {
             r.render_err = render::relative_pixel_error(i, &ref_image, 1e-3).unwrap_or(f64::NAN);
-            r.truth_err = render::relative_pixel_error(i, truth_image, 1e-3).unwrap_or(f64::NAN);
+            (r.truth_err, r.truth_signed) =
+                render::relative_pixel_errors(i, truth_image, 1e-3).unwrap_or((f64::NAN, f64::NAN));
         }
     }
     Ok(rows)
@@ -358,6 +344,19 @@ fn run_chain(b: &TradeoffBench, sizes: &Sizes) -> Result<Vec<Row>> {
 fn num(value: f64, digits: usize, unit: &str) -> String {
     if value.is_finite() {
         format!("{value:.digits$}{unit}")
+    } else {
+        "–".to_string()
+    }
+}
+
+/// A signed percentage cell (`+0.3%`, `−12.1%`), or "–".
+fn signed_cell(percent: f64) -> String {
+    if percent.is_finite() {
+        format!(
+            "{}{:.1}%",
+            if percent < 0.0 { "−" } else { "+" },
+            percent.abs()
+        )
     } else {
         "–".to_string()
     }
@@ -421,14 +420,17 @@ fn report(b: &TradeoffBench, sizes: &Sizes, rows: &[Row], total_s: f64) -> Resul
     writeln!(s)?;
     writeln!(
         s,
-        "| scan (angles × raster²) | frames | fit preset | render | scan s | fit s | render s | total s | fitted / interp. | held-out log E | render error | vs. truth | Pareto |"
+        "| scan (angles × raster²) | frames | fit preset | render | scan s | fit s | render s | total s | fitted / interp. | held-out log E | render error | vs. truth | vs. truth, signed | Pareto |"
     )?;
-    writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|---|---|")?;
+    writeln!(
+        s,
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+    )?;
     for (i, r) in rows.iter().enumerate() {
         let d = sizes.densities[r.density];
         writeln!(
             s,
-            "| {} × {}² | {} | {} | {} | {:.2} | {:.2} | {} | {} | {} / {} | {:.4} | {} | {} | {} |",
+            "| {} × {}² | {} | {} | {} | {:.2} | {:.2} | {} | {} | {} / {} | {:.4} | {} | {} | {} | {} |",
             d.angles,
             d.raster,
             r.frames,
@@ -446,6 +448,7 @@ fn report(b: &TradeoffBench, sizes: &Sizes, rows: &[Row], total_s: f64) -> Resul
                 Ok(_) => format!("{:.3}%", 100.0 * r.render_err),
             },
             num(100.0 * r.truth_err, 1, "%"),
+            signed_cell(100.0 * r.truth_signed),
             if front.contains(&i) { "★" } else { "" }
         )?;
     }
@@ -459,8 +462,9 @@ fn report(b: &TradeoffBench, sizes: &Sizes, rows: &[Row], total_s: f64) -> Resul
         "render error = mean relative pixel error (channels of covered pixels above 1e-3 of the \
          maximum) against the exact render of the best model, the one with the lowest held-out \
          log E (the row with 0%); vs. truth = the same against the exact render of the \
-         simulation's ground-truth model; held-out log E = Eq. 8, mean over R, G, B, on the \
-         held-out scan; ★ = Pareto front of (total s, render error). Plot: `{}`. Whole benchmark \
+         simulation's ground-truth model, and signed: the mean of (render − truth) / truth over \
+         the same channels (a brightness bias; noise averages out of it); held-out log E = \
+         Eq. 8, mean over R, G, B, on the held-out scan; ★ = Pareto front of (total s, render error). Plot: `{}`. Whole benchmark \
          {:.1} s.",
         b.plot.display(),
         total_s

@@ -48,6 +48,13 @@ pub trait Fitter: Sync {
     fn max_terms(&self) -> Option<usize> {
         None
     }
+
+    /// The same fit without this fitter's approximations (distance bins, subsampling, a short
+    /// iteration limit), which the fit report checks it against ([`super::check`]); `None`:
+    /// nothing to check (exact already, or unknown).
+    fn exact(&self) -> Option<Box<dyn Fitter>> {
+        None
+    }
 }
 
 /// The fitting engine's solver failures as the pipeline's reasons (the one mapping).
@@ -124,6 +131,11 @@ impl Fitter for crate::fit::FitOptions {
             crate::fit::Terms::Fixed(n) => Some(n),
             crate::fit::Terms::Auto { max, .. } => Some(max),
         }
+    }
+
+    fn exact(&self) -> Option<Box<dyn Fitter>> {
+        self.exact_counterpart()
+            .map(|o| Box::new(o) as Box<dyn Fitter>)
     }
 }
 
@@ -993,7 +1005,22 @@ fn fit_baseline(
         colour: ctx.opts.model.colour,
         segments: 1,
     };
-    let (model, terms, _) = fit_samples(&pooled, &choice, fitter, &mut Vec::new()).ok()?;
+    // As the interpolation's refits do: one term fewer while the fit fails. The pooled curve's
+    // top term often runs its rate to 0 (a constant, which the drop rule then removes), and the
+    // solver gets there slowly: at the draft preset's iteration limit that fit failed, the run
+    // kept no baseline, and its renders came out 11–14 % dark (BENCHMARKS.md, issue 28).
+    let max_n = fitter.max_terms().unwrap_or(1);
+    let (model, terms, _) = fit_samples(&pooled, &choice, fitter, &mut Vec::new())
+        .or_else(|e| {
+            (1..max_n)
+                .rev()
+                .find_map(|n| {
+                    let at_most = AtMost { inner: fitter, n };
+                    fit_samples(&pooled, &choice, &at_most, &mut Vec::new()).ok()
+                })
+                .ok_or(e)
+        })
+        .ok()?;
     let r_range = pooled
         .iter()
         .flatten()

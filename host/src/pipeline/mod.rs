@@ -16,6 +16,7 @@
 //! count. The solver is passed in ([`Fitter`]): the pipeline never depends on how Eq. 1 is
 //! fitted. Progress goes to a [`Progress`]; each stage's wall time into the report.
 pub mod assemble;
+pub mod check;
 pub mod error;
 pub mod extract;
 pub mod fit;
@@ -43,8 +44,8 @@ pub use options::{
 };
 pub use register::{RegisteredFrame, register_one};
 pub use report::{
-    AlphaReport, AlphaRound, BASELINE_POOL, BaselineReport, FailReason, FitReport, FrameCounts,
-    LogEStats, ModelSize, OrderCount, TermDropped,
+    AlphaReport, AlphaRound, BASELINE_POOL, BaselineReport, FailReason, FitReport, FitWarning,
+    FrameCounts, LogEStats, ModelSize, OrderCount, TermDropped,
 };
 
 /// A fit within this log E (3 % RMS) is never an outlier, however good the typical fit is
@@ -178,6 +179,9 @@ pub fn fit_prepared(
         .count();
     report.alpha = fitted.alpha_report.clone();
     clock.lap("fit", &mut report);
+    // A preset's approximations against exact fits of a sample of light positions (issue 28).
+    report.reflectance_check = check::reflectance(&ctx, &regs, &groups, &fitted, fitter, progress);
+    clock.lap("check", &mut report);
     // alpha finer than the mesh (section 5): Eq. 6 per lattice point, with the final fits.
     let lattice = lattice::fit_lattice(ctx, &regs, &groups, &fitted, progress);
     if opts.alpha_lattice.max_level().is_some() {
@@ -214,6 +218,7 @@ pub fn fit_prepared(
     clock.lap("interpolate", &mut report);
     report.peak_rss_mib = crate::util::peak_rss_mib();
     report.frames.reads = ds.frame_reads();
+    report.warnings = report.derive_warnings();
     Ok(FitOutput { model, report })
 }
 

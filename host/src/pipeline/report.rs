@@ -169,9 +169,88 @@ pub struct FitReport {
     pub peak_rss_mib: Option<f64>,
     /// The options used.
     pub options: Option<PipelineOptions>,
+    /// A preset's fits against exact fits of a sample of light positions ([`super::check`]);
+    /// `None` for an exact fitter.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reflectance_check: Option<super::check::ReflectanceCheck>,
+    /// What the run found that makes its model suspect, for people ([`FitWarning`]).
+    pub warnings: Vec<FitWarning>,
     /// With `--segments auto` ([`super::Segments::Auto`]): every m tried and the one chosen.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub segments_choice: Option<OrderChoice>,
+}
+
+/// Something a run found that makes its model suspect although it was written.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+#[non_exhaustive]
+pub enum FitWarning {
+    /// No homogeneous baseline could be fitted (at any order). Below each light position's
+    /// smallest sampled distance its model then continues with its slope there, which cannot
+    /// steepen towards x_i as measured fall-offs do: renders come out dark (the tradeoff
+    /// benchmark's sphere: 11–14 %, BENCHMARKS.md, issue 28).
+    NoBaseline,
+    /// The run's fits and exact fits of the same light positions disagree in the reflectance
+    /// they predict within reach by more than the tolerance and the noise ([`super::check`]).
+    ReflectanceBiased {
+        /// Light positions checked.
+        checked: usize,
+        /// The bias: mean ln(run's / exact), relative.
+        mean: f64,
+        /// Its standard error.
+        standard_error: f64,
+        /// The tolerance (relative).
+        tolerance: f64,
+    },
+}
+
+impl std::fmt::Display for FitWarning {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            FitWarning::NoBaseline => write!(
+                f,
+                "no homogeneous baseline could be fitted: below each light position's smallest \
+                 sampled distance its model continues with its slope there, and renders come out \
+                 dark (11-14 % on the tradeoff benchmark's sphere)"
+            ),
+            FitWarning::ReflectanceBiased {
+                checked,
+                mean,
+                standard_error,
+                tolerance,
+            } => write!(
+                f,
+                "the preset's fits of {checked} light positions predict {:.1} ± {:.1} % {} \
+                 diffuse reflectance than exact fits of the same samples (tolerance {:.0} %): \
+                 the preset biases this scan's model; fit without --preset (exact) to compare",
+                100.0 * mean.abs(),
+                100.0 * standard_error,
+                if *mean < 0.0 { "less" } else { "more" },
+                100.0 * tolerance
+            ),
+        }
+    }
+}
+
+impl FitReport {
+    /// The warnings that follow from the report's figures.
+    pub(crate) fn derive_warnings(&self) -> Vec<FitWarning> {
+        let mut out = Vec::new();
+        if self.baseline.is_none() && self.vertices_fitted > 0 {
+            out.push(FitWarning::NoBaseline);
+        }
+        if let Some(c) = &self.reflectance_check
+            && c.biased()
+        {
+            out.push(FitWarning::ReflectanceBiased {
+                checked: c.checked,
+                mean: c.mean,
+                standard_error: c.standard_error,
+                tolerance: c.tolerance,
+            });
+        }
+        out
+    }
 }
 
 /// Light positions (accepted fits) and their vertices that chose one order (n, m).

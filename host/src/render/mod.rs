@@ -47,7 +47,8 @@ pub use output::{
 };
 pub use raster::{Image, rasterise};
 pub use scene::{
-    Method, RenderOptions, RenderOutput, Transported, light_transport, relative_pixel_error, render,
+    Method, RenderOptions, RenderOutput, Transported, light_transport, relative_pixel_error,
+    relative_pixel_errors, render,
 };
 
 /// Why a render could not be made. Every variant names the offending input.

@@ -309,6 +309,12 @@ fn lattice_mesh(
 /// out: a relative error there says nothing about the picture). `None` when no pixel qualifies or
 /// the sizes differ.
 pub fn relative_pixel_error(image: &Image, reference: &Image, floor: f64) -> Option<f64> {
+    relative_pixel_errors(image, reference, floor).map(|(abs, _)| abs)
+}
+
+/// [`relative_pixel_error`] and its signed mean over the same channels, (image − reference) /
+/// reference: a brightness bias shows in the signed mean, noise only in the absolute one.
+pub fn relative_pixel_errors(image: &Image, reference: &Image, floor: f64) -> Option<(f64, f64)> {
     if image.width != reference.width || image.height != reference.height {
         return None;
     }
@@ -319,7 +325,7 @@ pub fn relative_pixel_error(image: &Image, reference: &Image, floor: f64) -> Opt
         .filter(|(_, c)| **c)
         .flat_map(|(p, _)| p.iter().map(|&v| v as f64))
         .fold(0.0, f64::max);
-    let (mut sum, mut n) = (0.0, 0usize);
+    let (mut sum, mut signed, mut n) = (0.0, 0.0, 0usize);
     for k in 0..reference.pixels.len() {
         if !reference.covered[k] {
             continue;
@@ -327,12 +333,14 @@ pub fn relative_pixel_error(image: &Image, reference: &Image, floor: f64) -> Opt
         for c in 0..3 {
             let r = reference.pixels[k][c] as f64;
             if r > floor * max && r > 0.0 {
-                sum += ((image.pixels[k][c] as f64 - r) / r).abs();
+                let e = (image.pixels[k][c] as f64 - r) / r;
+                sum += e.abs();
+                signed += e;
                 n += 1;
             }
         }
     }
-    (n > 0).then(|| sum / n as f64)
+    (n > 0).then(|| (sum / n as f64, signed / n as f64))
 }
 
 #[cfg(test)]

@@ -153,10 +153,10 @@ pub fn stages_table(r: &FitReport) -> Table {
     t
 }
 
-/// The lines `subsurf fit` prints after a fit.
+/// The lines `subsurf fit` prints after a fit, its warnings first.
 pub fn summary_lines(r: &FitReport) -> Vec<String> {
     let f = &r.frames;
-    vec![
+    let lines = vec![
         format!(
             "{} vertices: {} fitted, {} interpolated, {} without model; failed before \
              interpolation: {}",
@@ -223,7 +223,43 @@ pub fn summary_lines(r: &FitReport) -> Vec<String> {
                 .join(", "),
             fmt::opt(r.peak_rss_mib, |m| format!("{} MiB", fmt::sig(m, 3)))
         ),
-    ]
+        format!("reflectance check: {}", reflectance_summary(r)),
+    ];
+    let warnings = r.warnings.iter().map(|w| format!("warning: {w}"));
+    warnings.chain(lines).collect()
+}
+
+/// The reflectance check ([`crate::pipeline::check`]) in one sentence.
+pub fn reflectance_summary(r: &FitReport) -> String {
+    match &r.reflectance_check {
+        None => "none (exact fits)".to_string(),
+        Some(c) => format!(
+            "{} light positions fitted again exactly: diffuse reflectance within reach {} ± {} \
+             (single positions ± {}, worst {}); {}",
+            fmt::count(c.checked),
+            signed_percent(c.mean),
+            percent(c.standard_error),
+            percent(c.spread),
+            signed_percent(c.worst),
+            if c.biased() {
+                "biased".to_string()
+            } else {
+                format!("no bias beyond ±{}", percent(c.tolerance))
+            }
+        ),
+    }
+}
+
+fn percent(x: f64) -> String {
+    format!("{} %", fmt::sig(100.0 * x, 2))
+}
+
+fn signed_percent(x: f64) -> String {
+    format!(
+        "{}{} %",
+        if x < 0.0 { "−" } else { "+" },
+        fmt::sig(100.0 * x.abs(), 2)
+    )
 }
 
 /// How the run's sample store came to be: opened from the cache, or extracted (and why a cache
@@ -283,6 +319,12 @@ pub fn fit_report(r: &FitReport, inputs: &FitInputs<'_>) -> Report {
         reasons(&r.failures),
         reasons(&r.terms_dropped),
     ));
+    if !r.warnings.is_empty() {
+        rep.heading("Warnings");
+        for w in &r.warnings {
+            rep.paragraph(format!("{w}."));
+        }
+    }
     rep.heading("Error");
     rep.table(
         log_e_table(r),
@@ -293,6 +335,11 @@ pub fn fit_report(r: &FitReport, inputs: &FitInputs<'_>) -> Report {
             fmt::count(r.log_e.count)
         )),
     );
+    rep.paragraph(format!(
+        "Reflectance check (a preset's fits against exact fits of the same light positions, \
+         compared by the diffuse reflectance 2π∫ r R_d(r) dr each predicts within reach): {}.",
+        reflectance_summary(r)
+    ));
     rep.heading("Model order");
     rep.table(
         orders_table(r),
@@ -415,7 +462,35 @@ mod tests {
         r.log_e.median = [Some(0.04), Some(0.1), Some(0.012)];
         r.alpha.last_change = 0.001_234_567_891;
         r.stage_seconds.insert("fit".into(), 1.234_567_891);
+        r.reflectance_check = Some(crate::pipeline::check::ReflectanceCheck {
+            checked: 16,
+            tolerance: 0.03,
+            ratios: vec![0.87; 16],
+            mean: -0.130_000_000_1,
+            standard_error: 0.004_567_891,
+            spread: 0.018_271_564,
+            worst: -0.134_567_891,
+            ..Default::default()
+        });
+        r.warnings = r.derive_warnings();
         let lines = summary_lines(&r).join("\n");
+        // No baseline, and a bias beyond the tolerance and the noise: both said first.
+        assert!(
+            lines.starts_with("warning: no homogeneous baseline"),
+            "{lines}"
+        );
+        assert!(
+            lines.contains(
+                "warning: the preset's fits of 16 light positions predict 13.0 ± 0.5 % less"
+            ),
+            "{lines}"
+        );
+        assert!(
+            lines.contains(
+                "within reach −13 % ± 0.46 % (single positions ± 1.8 %, worst −13 %); biased"
+            ),
+            "{lines}"
+        );
         assert!(lines.contains("12,345 vertices"), "{lines}");
         assert!(lines.contains("no data 342, high error 3"), "{lines}");
         assert!(lines.contains("mean 0.0467 / – / 0.0120"), "{lines}");

@@ -237,6 +237,35 @@ pub fn sim_field() -> Field {
     }
 }
 
+/// A `subsurf simulate` configuration that captures what `subsurf scan --sim --camera sim` does
+/// (its isotropic material, spot and sensor) with one camera orbiting `object` and one exposure
+/// per frame: the spot exposure of [`sim_exposures_s`], which keeps the laser spot unclipped, so
+/// registration is sub-pixel exact and the spot's own light can be told from the scattered
+/// light (a clipped spot's light leaks into the samples near x_i and the steepest term fits
+/// it); the noise floor follows that exposure. `angles` × `raster`² frames. The scans of
+/// `subsurf bench tradeoff` and of the tests that check its findings.
+pub fn single_exposure_sim(
+    object: SimObject,
+    image_px: u32,
+    angles: usize,
+    raster: usize,
+) -> crate::simulate::SimConfig {
+    use crate::simulate::{CameraRig, SimConfig};
+    let mut cfg = SimConfig::for_object(object, image_px, angles, raster);
+    let exposure = sim_exposures_s()[0];
+    cfg.field = sim_field();
+    cfg.spot = sim_spot();
+    cfg.sensor = Sensor {
+        exposure_s: exposure,
+        ..sim_sensor()
+    };
+    cfg.noise_floor = sim_noise_floor(&[exposure]);
+    if let CameraRig::Orbit { count, .. } = &mut cfg.cameras {
+        *count = 1;
+    }
+    cfg
+}
+
 /// File name of the ground truth a `--camera sim` scan writes beside `scan.json`.
 pub const GROUND_TRUTH_FILE: &str = "ground-truth.ply";
 

@@ -112,6 +112,24 @@ impl Default for FitOptions {
     }
 }
 
+impl FitOptions {
+    /// The same fit without the fast mode's approximations: every sample, no distance bins, at
+    /// least the default iteration limit; `None` when these options are that already. What an
+    /// approximate fit is checked against (the fit report's reflectance check, issue 28: a
+    /// preset may be noisier than the exact fit, never biased against it).
+    pub fn exact_counterpart(&self) -> Option<FitOptions> {
+        let exact = FitOptions {
+            bins: None,
+            subsample: 1,
+            max_iterations: self
+                .max_iterations
+                .max(FitOptions::default().max_iterations),
+            ..self.clone()
+        };
+        (exact != *self).then_some(exact)
+    }
+}
+
 /// Speed/accuracy presets (their measured trade-off is in BENCHMARKS.md).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]

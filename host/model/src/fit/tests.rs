@@ -706,6 +706,29 @@ fn presets_run() {
     }
 }
 
+/// The exact counterpart drops exactly the fast mode's approximations and keeps the model
+/// (terms, objective, solver); exact options have none.
+#[test]
+fn exact_counterpart_drops_bins_subsampling_and_the_short_iteration_limit() {
+    let draft = Preset::Draft.options();
+    let exact = draft.exact_counterpart().unwrap();
+    assert_eq!((exact.bins, exact.subsample), (None, 1));
+    assert_eq!(exact.max_iterations, FitOptions::default().max_iterations);
+    assert_eq!(
+        (exact.terms, exact.objective),
+        (draft.terms, draft.objective)
+    );
+    assert_eq!(exact.exact_counterpart(), None);
+    assert_eq!(FitOptions::default().exact_counterpart(), None);
+    assert_eq!(Preset::Best.options().exact_counterpart(), None);
+    let long = FitOptions {
+        max_iterations: 500,
+        bins: Some(16),
+        ..FitOptions::default()
+    };
+    assert_eq!(long.exact_counterpart().unwrap().max_iterations, 500);
+}
+
 mod props {
     use super::*;
     use proptest::prelude::*;

@@ -32,7 +32,7 @@ pub use colour::ColourModel;
 pub use dipole::{Dipole, MATERIALS, Material};
 pub use error::{LogEAccumulator, reconstruction_error, table1_mean};
 pub use expsum::{ExpSum, MAX_TERMS, Term};
-pub use support::{Support, ln_eval_supported};
+pub use support::{Support, ln_eval_supported, ln_slope};
 
 /// Why a model value was rejected. Models are data; this is what `validate` reports.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]

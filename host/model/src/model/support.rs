@@ -96,8 +96,8 @@ pub fn ln_eval_supported(
 }
 
 /// d ln R_d / dr per channel (Eq. 3: the hat-weighted blend of the segments' slopes, each
-/// weighted by its share of R_d).
-fn ln_slope(model: &ColourModel, r: f64, phi: Option<f64>) -> [f64; 3] {
+/// weighted by its share of R_d): the slope the extension below r_min continues with.
+pub fn ln_slope(model: &ColourModel, r: f64, phi: Option<f64>) -> [f64; 3] {
     let aniso = |a: &super::Anisotropic| -> f64 {
         let m = a.segments.len();
         let weights: Vec<(usize, f64)> = match phi.filter(|p| p.is_finite()) {
