@@ -124,21 +124,16 @@ fn the_cache_is_invalidated_by_changed_frames_and_extraction_options() {
     assert_eq!(decoded(&opts, &all), (n, false, n as u64));
     assert_eq!(decoded(&opts, &all), (0, true, 0));
     // A cache that cannot be read (a truncated file) is rebuilt, and the report says why.
-    let cache = data.join(".subsurf-cache");
-    let dir = std::fs::read_dir(&cache)
-        .unwrap()
-        .next()
-        .unwrap()
-        .unwrap()
-        .path();
-    let frames = dir.join("frames.arrow");
-    let len = std::fs::metadata(&frames).unwrap().len();
-    std::fs::File::options()
-        .write(true)
-        .open(&frames)
-        .unwrap()
-        .set_len(len / 2)
-        .unwrap();
+    for e in std::fs::read_dir(data.join(".subsurf-cache")).unwrap() {
+        let frames = e.unwrap().path().join("frames.arrow");
+        let len = std::fs::metadata(&frames).unwrap().len();
+        std::fs::File::options()
+            .write(true)
+            .open(&frames)
+            .unwrap()
+            .set_len(len / 2)
+            .unwrap();
+    }
     let ds3 = Dataset::open(&data).unwrap();
     let ctx = prepare(&ds3, &all, &opts, &cached, &()).unwrap();
     let r = ctx.store().unwrap().report();

@@ -1,5 +1,6 @@
-//! `subsurf bench fit-scale`: how `subsurf fit` grows with frames and vertices (issue 4's scale
-//! benchmark). For every (vertices, frames) pair it simulates a sphere scan with `subsurf
+//! `subsurf bench fit-scale`: how `subsurf fit` grows with frames, vertices and image size
+//! (issue 4's scale benchmark; the size axis is issue 23's: a camera-resolution fit against its
+//! one decode pass). For every (size, vertices, frames) it simulates a sphere scan with `subsurf
 //! simulate`, fits it with `subsurf fit` in a fresh process (so each run's peak RSS is its own),
 //! reads the stage timings and peak memory from the fit report, deletes the dataset before the next
 //! one is written (the disk holds one dataset at a time) and finally prints the table, the growth
@@ -22,9 +23,11 @@ pub struct FitScaleBench {
     /// `raster × raster` laser positions.
     #[arg(long, value_delimiter = ',', default_values_t = [1250usize, 2500, 5000])]
     frames: Vec<usize>,
-    /// Image width and height, pixels.
-    #[arg(long, default_value_t = 256)]
-    size: u32,
+    /// Image widths and heights, pixels (comma-separated). Every frame is decoded once (the
+    /// `extract` stage), so the table's `fit / extract` column is the fit's cost beyond one
+    /// decode of the frames.
+    #[arg(long, value_delimiter = ',', default_values_t = [256u32])]
+    size: Vec<u32>,
     /// Laser raster per axis and turntable angle.
     #[arg(long, default_value_t = 5)]
     raster: usize,
@@ -46,6 +49,7 @@ pub struct FitScaleBench {
 /// One measured (vertices, frames) point.
 #[derive(Debug, Clone, serde::Serialize)]
 struct Row {
+    size: u32,
     vertices: usize,
     frames: usize,
     registered: usize,
@@ -58,12 +62,14 @@ struct Row {
     stages: BTreeMap<String, f64>,
     /// `VmHWM` of the fit process after everything was written.
     peak_rss_mib: f64,
+    /// Frame files read by the fit (each frame once: `frames.reads.total`).
+    frames_read: usize,
 }
 
 impl Row {
-    /// The stages that touch frames: registration, fit, error (Eq. 8).
+    /// The stages over the frames' samples: the decode pass (extract), fit, lattice, error.
     fn frame_stages_s(&self) -> f64 {
-        ["registration", "fit", "error"]
+        ["registration", "extract", "fit", "lattice", "error"]
             .iter()
             .filter_map(|s| self.stages.get(*s))
             .sum()
@@ -109,19 +115,26 @@ fn run_child(cmd: &mut Command, what: &str) -> Result<String> {
 fn measure(
     b: &FitScaleBench,
     exe: &Path,
+    size: u32,
     vertices: usize,
     frames: usize,
     bar: &indicatif::ProgressBar,
 ) -> Result<Row> {
     let per_angle = b.raster.max(1) * b.raster.max(1);
     let angles = (frames / per_angle).max(1);
-    let data = b.dir.join(format!("scan-v{vertices}-f{frames}"));
-    let model = b.dir.join(format!("model-v{vertices}-f{frames}.ply"));
-    let report = b.dir.join(format!("report-v{vertices}-f{frames}.json"));
+    let data = b.dir.join(format!("scan-s{size}-v{vertices}-f{frames}"));
+    let model = b
+        .dir
+        .join(format!("model-s{size}-v{vertices}-f{frames}.ply"));
+    let report = b
+        .dir
+        .join(format!("report-s{size}-v{vertices}-f{frames}.json"));
     if data.exists() {
         std::fs::remove_dir_all(&data).with_context(|| format!("removing {}", data.display()))?;
     }
-    bar.set_message(format!("simulating {frames} frames, {vertices} vertices"));
+    bar.set_message(format!(
+        "simulating {frames} frames of {size}x{size}, {vertices} vertices"
+    ));
     let t = Instant::now();
     let sim_out = run_child(
         Command::new(exe)
@@ -130,7 +143,7 @@ fn measure(
             .arg(&data)
             .args(["--object", "sphere", "--cameras", "1", "--seed", "3"])
             .args(["--vertices", &vertices.to_string()])
-            .args(["--size", &b.size.to_string()])
+            .args(["--size", &size.to_string()])
             .args(["--angles", &angles.to_string()])
             .args(["--raster", &b.raster.to_string()]),
         "subsurf simulate",
@@ -138,7 +151,9 @@ fn measure(
     let simulate_s = t.elapsed().as_secs_f64();
     bar.inc(1);
     bar.suspend(|| print!("  {sim_out}"));
-    bar.set_message(format!("fitting {frames} frames, {vertices} vertices"));
+    bar.set_message(format!(
+        "fitting {frames} frames of {size}x{size}, {vertices} vertices"
+    ));
     let dataset_mb = dir_bytes(&data) as f64 / 1e6;
     let t = Instant::now();
     let fit_out = run_child(
@@ -180,6 +195,8 @@ fn measure(
         .map_or(f64::NAN, num);
     let _ = std::fs::remove_file(&model);
     Ok(Row {
+        size,
+        frames_read: count(&json["frames"]["reads"]["total"]),
         vertices: count(&json["vertices"]),
         frames: count(&json["frames"]["total"]),
         registered: count(&json["frames"]["registered"]),
@@ -195,26 +212,27 @@ fn measure(
 fn print_table(rows: &[Row]) {
     println!();
     println!(
-        "| vertices | frames | registered | fits | dataset MB | mesh s | registration s | selection s | fit s | error s | interpolate s | frame stages s | ms / frame | fit wall s | peak RSS MiB |"
+        "| size | vertices | frames | registered | fits | dataset MB | frames read | extract s | ms / frame decoded | fit s | lattice s | error s | interpolate s | fit wall s | fit wall / extract | peak RSS MiB |"
     );
-    println!("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    println!("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for r in rows {
         println!(
-            "| {} | {} | {} | {} | {:.0} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.0} |",
+            "| {} | {} | {} | {} | {} | {:.0} | {} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.0} |",
+            r.size,
             r.vertices,
             r.frames,
             r.registered,
             r.fits,
             r.dataset_mb,
-            r.stage("mesh"),
-            r.stage("registration"),
-            r.stage("selection"),
+            r.frames_read,
+            r.stage("extract"),
+            1e3 * r.stage("extract") / r.frames.max(1) as f64,
             r.stage("fit"),
+            r.stage("lattice"),
             r.stage("error"),
             r.stage("interpolate"),
-            r.frame_stages_s(),
-            1e3 * r.frame_stages_s() / r.frames.max(1) as f64,
             r.wall_s,
+            r.wall_s / r.stage("extract"),
             r.peak_rss_mib
         );
     }
@@ -226,27 +244,35 @@ fn print_growth(rows: &[Row]) {
     println!("growth (later / earlier):");
     for (i, a) in rows.iter().enumerate() {
         for b in &rows[i + 1..] {
-            let frames_doubled = a.vertices == b.vertices && b.frames == 2 * a.frames;
-            let vertices_doubled = a.frames == b.frames
+            let same_size = a.size == b.size;
+            let frames_doubled = same_size && a.vertices == b.vertices && b.frames == 2 * a.frames;
+            let vertices_doubled = same_size
+                && a.frames == b.frames
                 && (b.vertices as f64 / a.vertices.max(1) as f64 - 2.0).abs() < 0.1;
-            if !(frames_doubled || vertices_doubled) {
-                continue;
-            }
+            let size_doubled =
+                a.vertices == b.vertices && a.frames == b.frames && b.size == 2 * a.size;
             let what = if frames_doubled {
                 format!(
-                    "frames {} -> {} at {} vertices",
-                    a.frames, b.frames, a.vertices
+                    "frames {} -> {} at {} vertices, {} px",
+                    a.frames, b.frames, a.vertices, a.size
+                )
+            } else if vertices_doubled {
+                format!(
+                    "vertices {} -> {} at {} frames, {} px",
+                    a.vertices, b.vertices, a.frames, a.size
+                )
+            } else if size_doubled {
+                format!(
+                    "size {} -> {} px (4x the pixels) at {} vertices, {} frames",
+                    a.size, b.size, a.vertices, a.frames
                 )
             } else {
-                format!(
-                    "vertices {} -> {} at {} frames",
-                    a.vertices, b.vertices, a.frames
-                )
+                continue;
             };
             println!(
-                "  {what}: registration x{:.2}, fit x{:.2}, error x{:.2}, frame stages x{:.2}, \
+                "  {what}: extract x{:.2}, fit x{:.2}, error x{:.2}, frame stages x{:.2}, \
                  interpolate x{:.2}, wall x{:.2}, peak RSS x{:.2}",
-                b.stage("registration") / a.stage("registration"),
+                b.stage("extract") / a.stage("extract"),
                 b.stage("fit") / a.stage("fit"),
                 b.stage("error") / a.stage("error"),
                 b.frame_stages_s() / a.frame_stages_s(),
@@ -260,7 +286,7 @@ fn print_growth(rows: &[Row]) {
 
 /// Two panels: seconds against frames (fit wall time and the frame stages) and peak RSS against
 /// frames, one line per vertex count, both axes from zero so linearity reads directly.
-fn plot(path: &Path, rows: &[Row], size: u32) -> Result<()> {
+fn plot(path: &Path, rows: &[Row]) -> Result<()> {
     use plotters::prelude::*;
     subsurf::plot::register_font();
     let err = |e: &dyn std::fmt::Display| anyhow::anyhow!("drawing {}: {e}", path.display());
@@ -276,9 +302,9 @@ fn plot(path: &Path, rows: &[Row], size: u32) -> Result<()> {
         .fold(0.0, f64::max)
         .max(1.0)
         * 1.25;
-    let mut by_v: BTreeMap<usize, Vec<&Row>> = BTreeMap::new();
+    let mut by_v: BTreeMap<(u32, usize), Vec<&Row>> = BTreeMap::new();
     for r in rows {
-        by_v.entry(r.vertices).or_default().push(r);
+        by_v.entry((r.size, r.vertices)).or_default().push(r);
     }
     let colours = [
         RGBColor(31, 119, 180),
@@ -295,12 +321,12 @@ fn plot(path: &Path, rows: &[Row], size: u32) -> Result<()> {
         .map_err(|e| err(&e))?;
     chart
         .configure_mesh()
-        .x_desc(format!("frames ({size}x{size})"))
+        .x_desc("frames")
         .x_label_formatter(&|v| format!("{v:.0}"))
         .y_desc("seconds")
         .draw()
         .map_err(|e| err(&e))?;
-    for (i, (v, rs)) in by_v.iter().enumerate() {
+    for (i, ((px, v), rs)) in by_v.iter().enumerate() {
         let c = colours[i % colours.len()];
         let mut rs = rs.clone();
         rs.sort_by_key(|r| r.frames);
@@ -312,7 +338,7 @@ fn plot(path: &Path, rows: &[Row], size: u32) -> Result<()> {
         chart
             .draw_series(LineSeries::new(wall.clone(), c.stroke_width(2)))
             .map_err(|e| err(&e))?
-            .label(format!("{v} vertices: fit wall"))
+            .label(format!("{px} px, {v} vertices: fit wall"))
             .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], c.stroke_width(2)));
         chart
             .draw_series(wall.iter().map(|&p| Circle::new(p, 3, c.filled())))
@@ -320,7 +346,7 @@ fn plot(path: &Path, rows: &[Row], size: u32) -> Result<()> {
         chart
             .draw_series(LineSeries::new(frame.clone(), c.mix(0.6).stroke_width(1)))
             .map_err(|e| err(&e))?
-            .label(format!("{v} vertices: registration+fit+error"))
+            .label(format!("{px} px, {v} vertices: extract+fit+lattice+error"))
             .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], c.mix(0.6)));
         chart
             .draw_series(frame.iter().map(|&p| TriangleMarker::new(p, 4, c.mix(0.6))))
@@ -342,12 +368,12 @@ fn plot(path: &Path, rows: &[Row], size: u32) -> Result<()> {
         .map_err(|e| err(&e))?;
     chart
         .configure_mesh()
-        .x_desc(format!("frames ({size}x{size})"))
+        .x_desc("frames")
         .x_label_formatter(&|v| format!("{v:.0}"))
         .y_desc("peak RSS (MiB)")
         .draw()
         .map_err(|e| err(&e))?;
-    for (i, (v, rs)) in by_v.iter().enumerate() {
+    for (i, ((px, v), rs)) in by_v.iter().enumerate() {
         let c = colours[i % colours.len()];
         let mut rs = rs.clone();
         rs.sort_by_key(|r| r.frames);
@@ -358,7 +384,7 @@ fn plot(path: &Path, rows: &[Row], size: u32) -> Result<()> {
         chart
             .draw_series(LineSeries::new(pts.clone(), c.stroke_width(2)))
             .map_err(|e| err(&e))?
-            .label(format!("{v} vertices"))
+            .label(format!("{px} px, {v} vertices"))
             .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], c.stroke_width(2)));
         chart
             .draw_series(pts.iter().map(|&p| Circle::new(p, 3, c.filled())))
@@ -376,8 +402,8 @@ fn plot(path: &Path, rows: &[Row], size: u32) -> Result<()> {
 }
 
 pub fn bench_fit_scale(b: FitScaleBench) -> Result<()> {
-    if b.vertices.is_empty() || b.frames.is_empty() {
-        bail!("--vertices and --frames need at least one value each");
+    if b.vertices.is_empty() || b.frames.is_empty() || b.size.is_empty() {
+        bail!("--vertices, --frames and --size need at least one value each");
     }
     let exe = std::env::current_exe().context("locating the subsurf binary")?;
     std::fs::create_dir_all(&b.dir).with_context(|| format!("creating {}", b.dir.display()))?;
@@ -385,12 +411,12 @@ pub fn bench_fit_scale(b: FitScaleBench) -> Result<()> {
         println!("warning: debug build; figures for BENCHMARKS.md come from --release");
     }
     println!(
-        "fit-scale: sphere, 1 camera, {0}x{0} EXR frames, {1}x{1} laser raster per angle, {2} rayon threads",
+        "fit-scale: sphere, 1 camera, EXR frames of {0:?} px, {1}x{1} laser raster per angle, {2} rayon threads",
         b.size,
         b.raster,
         rayon::current_num_threads()
     );
-    let total = b.vertices.len() * b.frames.len();
+    let total = b.size.len() * b.vertices.len() * b.frames.len();
     let mut rows = Vec::with_capacity(total);
     // Children run with captured output; this bar shows which one is running.
     let bar = indicatif::ProgressBar::new(2 * total as u64).with_style(
@@ -398,17 +424,28 @@ pub fn bench_fit_scale(b: FitScaleBench) -> Result<()> {
             .context("progress style")?,
     );
     bar.enable_steady_tick(std::time::Duration::from_millis(250));
-    for &v in &b.vertices {
-        for &f in &b.frames {
-            bar.suspend(|| println!("[{}/{total}] {v} vertices, {f} frames", rows.len() + 1));
-            let row = measure(&b, &exe, v, f, &bar)?;
-            bar.suspend(|| {
-                println!(
-                    "  simulate {:.1} s, dataset {:.0} MB; fit wall {:.2} s, peak RSS {:.0} MiB",
-                    row.simulate_s, row.dataset_mb, row.wall_s, row.peak_rss_mib
-                )
-            });
-            rows.push(row);
+    for &px in &b.size {
+        for &v in &b.vertices {
+            for &f in &b.frames {
+                bar.suspend(|| {
+                    println!(
+                        "[{}/{total}] {px}x{px} px, {v} vertices, {f} frames",
+                        rows.len() + 1
+                    )
+                });
+                let row = measure(&b, &exe, px, v, f, &bar)?;
+                bar.suspend(|| {
+                    println!(
+                        "  simulate {:.1} s, dataset {:.0} MB; fit wall {:.2} s (extract {:.2} s), peak RSS {:.0} MiB",
+                        row.simulate_s,
+                        row.dataset_mb,
+                        row.wall_s,
+                        row.stage("extract"),
+                        row.peak_rss_mib
+                    )
+                });
+                rows.push(row);
+            }
         }
     }
     bar.finish_and_clear();
@@ -420,7 +457,7 @@ pub fn bench_fit_scale(b: FitScaleBench) -> Result<()> {
         println!("wrote {}", p.display());
     }
     if let Some(p) = &b.plot {
-        plot(p, &rows, b.size)?;
+        plot(p, &rows)?;
         println!("wrote {}", p.display());
     }
     Ok(())

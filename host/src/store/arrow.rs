@@ -71,9 +71,14 @@ struct Manifest {
     /// The program that wrote it.
     writer: String,
     key: ExtractionKey,
-    /// The lattice's [`StorePoints::min_value`], if it has one.
+    /// The lattice's [`StorePoints::min_value`], if it has one (for people; the store reads
+    /// `lattice_min_value_bits`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     lattice_min_value: Option<f64>,
+    /// The same, its IEEE 754 bits: serde_json's default parse of a float may be one ulp off
+    /// the value written, and the lattice's digest (its key) includes this value to the bit.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    lattice_min_value_bits: Option<u64>,
 }
 
 /// The schema of a point set's sample batches.
@@ -243,6 +248,7 @@ impl Writer {
             writer: format!("subsurf {}", env!("CARGO_PKG_VERSION")),
             key: key.clone(),
             lattice_min_value: points.map(|p| p.min_value),
+            lattice_min_value_bits: points.map(|p| p.min_value.to_bits()),
         };
         let path = self.tmp.join(MANIFEST);
         let json = serde_json::to_vec_pretty(&manifest).map_err(|e| format_err(&path, e))?;
@@ -786,7 +792,11 @@ fn candidates(
         if manifest.format != FORMAT {
             continue;
         }
-        out.push((e.path(), manifest.key, manifest.lattice_min_value));
+        let min_value = manifest
+            .lattice_min_value_bits
+            .map(f64::from_bits)
+            .or(manifest.lattice_min_value);
+        out.push((e.path(), manifest.key, min_value));
     }
     out.sort_by_key(|(d, k, _)| (k.frames.len(), d.clone()));
     Ok(out)
