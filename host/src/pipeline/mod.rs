@@ -180,7 +180,7 @@ pub fn fit_prepared(
     report.alpha = fitted.alpha_report.clone();
     clock.lap("fit", &mut report);
     // A preset's approximations against exact fits of a sample of light positions (issue 28).
-    report.reflectance_check = check::reflectance(&ctx, &regs, &groups, &fitted, fitter, progress);
+    report.reflectance_check = check::reflectance(ctx, &regs, &groups, &fitted, fitter, progress);
     clock.lap("check", &mut report);
     // alpha finer than the mesh (section 5): Eq. 6 per lattice point, with the final fits.
     let lattice = lattice::fit_lattice(ctx, &regs, &groups, &fitted, progress);
