@@ -32,9 +32,9 @@ use subsurf::fit::{FitOptions, Terms, fit_expsum};
 use subsurf::model::{ColourModel, Support};
 use subsurf::modelfile::{ColourMode, ModelFile};
 use subsurf::pipeline::fit::fit_at;
-use subsurf::pipeline::register::register_frames;
+use subsurf::pipeline::register::registered;
 use subsurf::pipeline::select::{ChannelSamples, group_samples, select_groups};
-use subsurf::pipeline::{Context, FrameCounts, PipelineOptions, fit_dataset, unsupported_term};
+use subsurf::pipeline::{FrameCounts, PipelineOptions, fit_dataset, prepare, unsupported_term};
 use subsurf::render::{self, Camera, Image, Light, Method, RenderOptions};
 
 /// One variant of the command line.
@@ -84,8 +84,14 @@ fn render_exact(model: &ModelFile, px: u32) -> Result<Image> {
 /// Every light position's samples, as the pipeline selects them.
 fn light_positions(ds: &Dataset) -> Result<Vec<ChannelSamples>> {
     let frames = select_frames(ds.spec.frames.len(), None, None).map_err(|e| anyhow!(e))?;
-    let ctx = Context::new(ds, PipelineOptions::for_dataset(ds))?;
-    let regs = register_frames(&ctx, &frames, &mut FrameCounts::default(), &());
+    // One decode pass into the run's sample store, as `subsurf fit` does (`--cache off`: an
+    // ablation leaves nothing in the dataset).
+    let store = subsurf::pipeline::StoreOptions {
+        cache: subsurf::pipeline::Cache::Off,
+        ..Default::default()
+    };
+    let ctx = prepare(ds, &frames, &PipelineOptions::for_dataset(ds), &store, &())?;
+    let regs = registered(&ctx, &frames, &mut FrameCounts::default());
     let groups = select_groups(&ctx, &regs);
     Ok(groups
         .keys
