@@ -28,9 +28,12 @@ mod key;
 
 pub use key::{EXTRACTION_RULES, ExtractionKey, FrameIdentity, StoreKeyError};
 
-/// The default memory budget of a store, bytes: with the rest of a fit (mesh, BVH, alpha
-/// accumulators, two decoded frames) a fit's peak RSS stays under 1 GiB at any frame count.
-pub const DEFAULT_BUDGET: usize = 512 << 20;
+/// The default memory budget of a store, bytes: with the rest of a fit (mesh, BVH, visibility
+/// caches, the lattice's accumulators and a few frames' contributions, a few decoded frames) a
+/// fit's peak RSS stays under 1 GB at any frame count. Measured on 900 frames of 1024x1024 px,
+/// 20,000 vertices, 139 M lattice samples: 512 MiB gave a peak of 1,101 MiB (326 MiB besides the
+/// store after extraction, 240 MiB more in the lattice stage), so 256 (BENCHMARKS.md).
+pub const DEFAULT_BUDGET: usize = 256 << 20;
 
 /// The samples of one frame at one point set (the vertices, or the lattice points).
 #[derive(Debug, Clone, Default, PartialEq)]
