@@ -41,13 +41,16 @@ pub struct FitScaleBench {
     /// Write every row as JSON here.
     #[arg(long)]
     json: Option<PathBuf>,
+    /// Draw `--plot` from this JSON of an earlier run (`--json`) instead of measuring.
+    #[arg(long)]
+    replot: Option<PathBuf>,
     /// Extra arguments passed to `subsurf fit` (e.g. `--fit-args=--preset,balanced`).
     #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
     fit_args: Vec<String>,
 }
 
 /// One measured (vertices, frames) point.
-#[derive(Debug, Clone, serde::Serialize)]
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 struct Row {
     size: u32,
     vertices: usize,
@@ -284,8 +287,18 @@ fn print_growth(rows: &[Row]) {
     }
 }
 
-/// Two panels: seconds against frames (fit wall time and the frame stages) and peak RSS against
-/// frames, one line per vertex count, both axes from zero so linearity reads directly.
+/// A series' size label: none when the series are by image size (size is the x axis).
+fn px_label(px: u32) -> String {
+    if px == 0 {
+        String::new()
+    } else {
+        format!("{px} px, ")
+    }
+}
+
+/// Two panels: seconds against frames or image size (fit wall time, the frame stages, the
+/// decode pass) and peak RSS, one line per series, both axes from zero so linearity reads
+/// directly.
 fn plot(path: &Path, rows: &[Row]) -> Result<()> {
     use plotters::prelude::*;
     subsurf::plot::register_font();
@@ -293,7 +306,33 @@ fn plot(path: &Path, rows: &[Row]) -> Result<()> {
     let root = BitMapBackend::new(path, (1200, 480)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| err(&e))?;
     let (left, right) = root.split_horizontally(600);
-    let fmax = rows.iter().map(|r| r.frames).max().unwrap_or(1) as f64 * 1.05;
+    // Against image size when the frame count is fixed (the `--size` ladder), else frames.
+    let distinct = |f: fn(&Row) -> u64| {
+        rows.iter()
+            .map(f)
+            .collect::<std::collections::BTreeSet<_>>()
+            .len()
+    };
+    let by_size = distinct(|r| r.frames as u64) == 1 && distinct(|r| u64::from(r.size)) > 1;
+    let xv = move |r: &Row| {
+        if by_size {
+            f64::from(r.size).powi(2) / 1e6
+        } else {
+            r.frames as f64
+        }
+    };
+    let (x_desc, what) = if by_size {
+        (
+            format!(
+                "megapixels per frame ({} frames)",
+                rows.first().map_or(0, |r| r.frames)
+            ),
+            "image size",
+        )
+    } else {
+        ("frames".to_string(), "frames")
+    };
+    let fmax = rows.iter().map(xv).fold(0.0, f64::max).max(1e-3) * 1.05;
     let tmax = rows.iter().map(|r| r.wall_s).fold(0.0, f64::max).max(1e-3) * 1.1;
     let mmax = rows
         .iter()
@@ -304,7 +343,8 @@ fn plot(path: &Path, rows: &[Row]) -> Result<()> {
         * 1.25;
     let mut by_v: BTreeMap<(u32, usize), Vec<&Row>> = BTreeMap::new();
     for r in rows {
-        by_v.entry((r.size, r.vertices)).or_default().push(r);
+        let series = if by_size { 0 } else { r.size };
+        by_v.entry((series, r.vertices)).or_default().push(r);
     }
     let colours = [
         RGBColor(31, 119, 180),
@@ -313,7 +353,7 @@ fn plot(path: &Path, rows: &[Row]) -> Result<()> {
         RGBColor(148, 103, 189),
     ];
     let mut chart = ChartBuilder::on(&left)
-        .caption("subsurf fit: time vs frames", ("sans-serif", 20))
+        .caption(format!("subsurf fit: time vs {what}"), ("sans-serif", 20))
         .margin(12)
         .x_label_area_size(40)
         .y_label_area_size(60)
@@ -321,24 +361,22 @@ fn plot(path: &Path, rows: &[Row]) -> Result<()> {
         .map_err(|e| err(&e))?;
     chart
         .configure_mesh()
-        .x_desc("frames")
-        .x_label_formatter(&|v| format!("{v:.0}"))
+        .x_desc(x_desc.clone())
+        .x_label_formatter(&|v| format!("{v:.2}"))
         .y_desc("seconds")
         .draw()
         .map_err(|e| err(&e))?;
     for (i, ((px, v), rs)) in by_v.iter().enumerate() {
         let c = colours[i % colours.len()];
         let mut rs = rs.clone();
-        rs.sort_by_key(|r| r.frames);
-        let wall: Vec<(f64, f64)> = rs.iter().map(|r| (r.frames as f64, r.wall_s)).collect();
-        let frame: Vec<(f64, f64)> = rs
-            .iter()
-            .map(|r| (r.frames as f64, r.frame_stages_s()))
-            .collect();
+        rs.sort_by(|a, b| xv(a).total_cmp(&xv(b)));
+        let wall: Vec<(f64, f64)> = rs.iter().map(|r| (xv(r), r.wall_s)).collect();
+        let decode: Vec<(f64, f64)> = rs.iter().map(|r| (xv(r), r.stage("extract"))).collect();
+        let frame: Vec<(f64, f64)> = rs.iter().map(|r| (xv(r), r.frame_stages_s())).collect();
         chart
             .draw_series(LineSeries::new(wall.clone(), c.stroke_width(2)))
             .map_err(|e| err(&e))?
-            .label(format!("{px} px, {v} vertices: fit wall"))
+            .label(format!("{}{v} vertices: fit wall", px_label(*px)))
             .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], c.stroke_width(2)));
         chart
             .draw_series(wall.iter().map(|&p| Circle::new(p, 3, c.filled())))
@@ -346,11 +384,25 @@ fn plot(path: &Path, rows: &[Row]) -> Result<()> {
         chart
             .draw_series(LineSeries::new(frame.clone(), c.mix(0.6).stroke_width(1)))
             .map_err(|e| err(&e))?
-            .label(format!("{px} px, {v} vertices: extract+fit+lattice+error"))
+            .label(format!(
+                "{}{v} vertices: extract+fit+lattice+error",
+                px_label(*px)
+            ))
             .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], c.mix(0.6)));
         chart
             .draw_series(frame.iter().map(|&p| TriangleMarker::new(p, 4, c.mix(0.6))))
             .map_err(|e| err(&e))?;
+        chart
+            .draw_series(LineSeries::new(
+                decode,
+                ShapeStyle::from(c.mix(0.9)).stroke_width(1),
+            ))
+            .map_err(|e| err(&e))?
+            .label(format!(
+                "{}{v} vertices: extract (the one decode pass)",
+                px_label(*px)
+            ))
+            .legend(move |(x, y)| PathElement::new([(x, y + 2), (x + 18, y + 2)], c.mix(0.9)));
     }
     chart
         .configure_series_labels()
@@ -360,7 +412,10 @@ fn plot(path: &Path, rows: &[Row]) -> Result<()> {
         .draw()
         .map_err(|e| err(&e))?;
     let mut chart = ChartBuilder::on(&right)
-        .caption("subsurf fit: peak RSS vs frames", ("sans-serif", 20))
+        .caption(
+            format!("subsurf fit: peak RSS vs {what}"),
+            ("sans-serif", 20),
+        )
         .margin(12)
         .x_label_area_size(40)
         .y_label_area_size(60)
@@ -368,23 +423,20 @@ fn plot(path: &Path, rows: &[Row]) -> Result<()> {
         .map_err(|e| err(&e))?;
     chart
         .configure_mesh()
-        .x_desc("frames")
-        .x_label_formatter(&|v| format!("{v:.0}"))
+        .x_desc(x_desc.clone())
+        .x_label_formatter(&|v| format!("{v:.2}"))
         .y_desc("peak RSS (MiB)")
         .draw()
         .map_err(|e| err(&e))?;
     for (i, ((px, v), rs)) in by_v.iter().enumerate() {
         let c = colours[i % colours.len()];
         let mut rs = rs.clone();
-        rs.sort_by_key(|r| r.frames);
-        let pts: Vec<(f64, f64)> = rs
-            .iter()
-            .map(|r| (r.frames as f64, r.peak_rss_mib))
-            .collect();
+        rs.sort_by(|a, b| xv(a).total_cmp(&xv(b)));
+        let pts: Vec<(f64, f64)> = rs.iter().map(|r| (xv(r), r.peak_rss_mib)).collect();
         chart
             .draw_series(LineSeries::new(pts.clone(), c.stroke_width(2)))
             .map_err(|e| err(&e))?
-            .label(format!("{px} px, {v} vertices"))
+            .label(format!("{}{v} vertices", px_label(*px)))
             .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], c.stroke_width(2)));
         chart
             .draw_series(pts.iter().map(|&p| Circle::new(p, 3, c.filled())))
@@ -404,6 +456,16 @@ fn plot(path: &Path, rows: &[Row]) -> Result<()> {
 pub fn bench_fit_scale(b: FitScaleBench) -> Result<()> {
     if b.vertices.is_empty() || b.frames.is_empty() || b.size.is_empty() {
         bail!("--vertices, --frames and --size need at least one value each");
+    }
+    if let Some(json) = &b.replot {
+        let rows: Vec<Row> = serde_json::from_slice(
+            &std::fs::read(json).with_context(|| format!("reading {}", json.display()))?,
+        )
+        .with_context(|| format!("parsing {}", json.display()))?;
+        let p = b.plot.as_deref().context("--replot needs --plot")?;
+        plot(p, &rows)?;
+        println!("wrote {}", p.display());
+        return Ok(());
     }
     let exe = std::env::current_exe().context("locating the subsurf binary")?;
     std::fs::create_dir_all(&b.dir).with_context(|| format!("creating {}", b.dir.display()))?;
