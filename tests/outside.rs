@@ -331,7 +331,9 @@ fn check_outside_readers(py: &Path, path: &Path, m: &ModelFile) {
         }
     }
     if readers.get("open3d").is_none() {
-        eprintln!("SKIPPED the Open3D check: Open3D is not installed (CI reads with trimesh and Blender)");
+        eprintln!(
+            "SKIPPED the Open3D check: Open3D is not installed (CI reads with trimesh and Blender)"
+        );
     }
     // Blender's own importer, where Blender is installed (CI does not install it: hundreds of
     // megabytes). Positions are single precision in Blender.

@@ -7,6 +7,7 @@
 
 pub mod baseline;
 pub mod calib;
+pub mod crossval;
 pub mod curves;
 pub mod dataset;
 pub mod evaluate;

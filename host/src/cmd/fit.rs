@@ -3,12 +3,11 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, anyhow};
+use subsurf::crossval::{Segments, fit_scan_in};
 use subsurf::dataset::{Dataset, select_frames};
 use subsurf::fit::{Preset, Terms};
 use subsurf::modelfile::ColourMode;
-use subsurf::pipeline::{
-    MAX_SEGMENTS, PipelineOptions, Segments, StoreOptions, fit_scan_in, prepare,
-};
+use subsurf::pipeline::{MAX_SEGMENTS, PipelineOptions, StoreOptions, prepare};
 
 use super::progress::Bar;
 
@@ -273,21 +272,24 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if let Some(v) = &validation {
         json["validation"] = serde_json::to_value(v)?;
     }
-    if let Some(c) = &out.report.segments_choice {
-        println!(
-            "segments: m = {} chosen (tolerance {}); candidates {}",
-            c.chosen,
-            c.tolerance,
-            c.candidates
-                .iter()
-                .map(|k| format!(
-                    "m = {}: {}",
-                    k.order,
-                    k.log_e.map_or("failed".into(), subsurf::report::fmt::log_e)
-                ))
-                .collect::<Vec<_>>()
-                .join(", ")
-        );
+    if let Some(cv) = &out.report.cross_validation {
+        for c in &cv.choices {
+            println!(
+                "{}: {} chosen ({}); candidates {}",
+                c.name,
+                c.chosen,
+                c.rule,
+                c.candidates
+                    .iter()
+                    .map(|k| format!(
+                        "{}: {}",
+                        k.value,
+                        k.score.map_or("failed".into(), subsurf::report::fmt::log_e)
+                    ))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            );
+        }
     }
     // The model is already on disk: a picture that cannot be drawn is reported after the report
     // is written, so no result is lost.
