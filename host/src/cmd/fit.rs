@@ -335,10 +335,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     for k in &r.alpha.round_log {
         println!(
-            "  round {}: training objective {:.6e} (previous fits {:.6e}; {} light positions kept their previous fit) {}",
+            "  round {}: training objective {:.6e} (last kept round {:.6e}; fits against the alpha they were fitted to {:.6e}; {} light positions kept their previous fit) {}",
             k.round,
             k.objective,
             k.previous,
+            k.fitted,
             k.fits_kept_previous,
             if k.kept { "kept" } else { "discarded" }
         );
