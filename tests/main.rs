@@ -19,6 +19,7 @@ mod acquire_faults;
 mod acquire_kill;
 mod acquire_link;
 mod acquire_sim;
+mod crossval;
 mod curved;
 mod demo;
 mod export;
