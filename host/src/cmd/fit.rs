@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, anyhow};
-use subsurf::crossval::{Segments, fit_scan_in};
+use subsurf::crossval::{CvSettings, Segments, fit_scan_in};
 use subsurf::dataset::{Dataset, select_frames};
 use subsurf::fit::{Preset, Terms};
 use subsurf::modelfile::ColourMode;
@@ -54,14 +54,18 @@ pub struct Args {
     /// Colour model.
     #[arg(long, value_enum, default_value = "shared")]
     pub colour: Colour,
-    /// Direction segments m (Eq. 3); 1 = isotropic; `auto` fits m = 1, 2, 4, 8 and keeps the
-    /// smallest whose mean log E is within --segments-tolerance of the best (the choice is
-    /// written to the report as `segments_choice`). Default: the preset's (1 for exact).
+    /// Direction segments m (Eq. 3); 1 = isotropic; `auto` chooses m among 1, 2, 4, 8 by
+    /// cross-validation (`--cv-folds`): the simplest whose held-out error is within one standard
+    /// error of the best (the candidates are in the report's `cross_validation`). Default: the
+    /// preset's (1 for exact).
     #[arg(long)]
     pub segments: Option<String>,
-    /// Relative log E tolerance of `--segments auto` (0.05 = within 5 % of the best).
-    #[arg(long, default_value_t = 0.05)]
-    pub segments_tolerance: f64,
+    /// Folds of the cross-validation inside the fit (whole turntable angles, or spread raster
+    /// positions on a one-angle scan): each fold's frames are predicted by a fit of the others,
+    /// which chooses `--segments auto` and the number of alpha rounds. 0 or 1: no
+    /// cross-validation (the rounds run to `--alpha-rounds` or convergence).
+    #[arg(long, default_value_t = subsurf::crossval::DEFAULT_FOLDS)]
+    pub cv_folds: usize,
     /// Exponential terms n (Eq. 1): the largest n a light position may use (each chooses its
     /// own n and m, see `--fixed-order`), or `auto` for the smallest order within 1 % of the
     /// best. Default: the preset's (3 for exact).
@@ -201,9 +205,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     let segments = match args.segments.as_deref() {
         None => Segments::Fixed(opts.model.segments),
-        Some("auto") => Segments::Auto {
-            tolerance: args.segments_tolerance,
-        },
+        Some("auto") => Segments::Auto,
         Some(m) => Segments::Fixed(
             m.parse()
                 .ok()
@@ -212,6 +214,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                     anyhow!("--segments must be 1..={MAX_SEGMENTS} or auto, got {m:?}")
                 })?,
         ),
+    };
+    let cv = CvSettings {
+        folds: args.cv_folds,
+        segments,
+        rounds: true,
     };
     match args.terms.as_deref() {
         None => {}
@@ -241,7 +248,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         .with_context(|| format!("reading the frames of {}", args.scan.display()))?;
     let validation = if args.validate {
         let holdout = subsurf::validate::holdout(&ds, &frames);
-        let v = fit_scan_in(&run, &holdout.training, segments, &fit, &bar)
+        let v = fit_scan_in(&run, &holdout.training, &cv, &fit, &bar)
             .with_context(|| format!("validation fit of {}", args.scan.display()))?;
         let v = subsurf::validate::judge(&run, &v.model, holdout, v.report.log_e, &bar)
             .context("judging the validation fit on the held-out frames")?;
@@ -249,7 +256,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     } else {
         None
     };
-    let out = fit_scan_in(&run, &frames, segments, &fit, &bar)
+    let out = fit_scan_in(&run, &frames, &cv, &fit, &bar)
         .with_context(|| format!("fitting {}", args.scan.display()))?;
     bar.finish_and_clear();
     let report_dir = args.report.as_deref().and_then(std::path::Path::parent);
@@ -273,18 +280,32 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         json["validation"] = serde_json::to_value(v)?;
     }
     if let Some(cv) = &out.report.cross_validation {
+        println!(
+            "cross-validation: {} ({} fits, {:.1} s)",
+            cv.rule, cv.fits, cv.seconds
+        );
+        if let Some(why) = &cv.skipped {
+            println!("  {why}");
+        }
         for c in &cv.choices {
             println!(
-                "{}: {} chosen ({}); candidates {}",
+                "  {}: {} chosen; held-out log E per candidate {}",
                 c.name,
                 c.chosen,
-                c.rule,
                 c.candidates
                     .iter()
                     .map(|k| format!(
-                        "{}: {}",
+                        "{}: {}{}",
                         k.value,
-                        k.score.map_or("failed".into(), subsurf::report::fmt::log_e)
+                        k.score.map_or("-".into(), subsurf::report::fmt::log_e),
+                        k.worse_by.zip(k.se).filter(|(d, _)| *d > 0.0).map_or(
+                            String::new(),
+                            |(d, se)| format!(
+                                " (+{} ± {})",
+                                subsurf::report::fmt::log_e(d),
+                                subsurf::report::fmt::log_e(se)
+                            )
+                        )
                     ))
                     .collect::<Vec<_>>()
                     .join(", ")
