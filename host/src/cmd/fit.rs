@@ -113,6 +113,16 @@ pub struct Args {
     /// 1..=8 caps the level; `off` keeps alpha per vertex only.
     #[arg(long, default_value = "auto")]
     pub alpha_lattice: subsurf::pipeline::AlphaLattice,
+    /// Eq. 6's shrinkage of alpha towards 1, as a multiple of the empirical-Bayes pseudo-count
+    /// (the noise within a texel over the texture's variance between texels): 1 = the empirical
+    /// one, 0 = none (the plain geometric mean of s / R_d), `inf` = no texture (alpha = 1).
+    #[arg(long, default_value_t = 1.0)]
+    pub alpha_shrinkage: f64,
+    /// Frames whose laser spot the camera sees more grazing than this (cos θ at the spot) are
+    /// not fitted, nor evaluated with the model: their spot is foreshortened and x_i least
+    /// certain. Registration keeps spots down to cos θ = 0.1.
+    #[arg(long, default_value_t = subsurf::registration::SPOT_COS_MIN)]
+    pub spot_cos_min: f64,
     /// Largest disagreement between detected spot and laser ray (mm).
     #[arg(long, default_value_t = 2.0)]
     pub laser_tolerance: f64,
@@ -195,6 +205,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     opts.alpha_tolerance = args.alpha_tolerance;
     opts.alpha_window.t1_share = args.alpha_t1_share;
     opts.alpha_lattice = args.alpha_lattice;
+    opts.alpha_shrinkage = args.alpha_shrinkage;
+    opts.spot_cos_min = args.spot_cos_min;
     if args.fixed_order {
         opts.order = None;
     }

@@ -120,6 +120,19 @@ fn check_options(opts: &PipelineOptions) -> Result<(), PipelineError> {
             opts.model.segments
         )));
     }
+    if !(opts.alpha_shrinkage >= 0.0) {
+        return Err(PipelineError::Invalid(format!(
+            "the Eq. 6 shrinkage must be >= 0 (inf: no texture), got {}",
+            opts.alpha_shrinkage
+        )));
+    }
+    let floor = crate::registration::SPOT_COS_FLOOR;
+    if !(floor..=1.0).contains(&opts.spot_cos_min) {
+        return Err(PipelineError::Invalid(format!(
+            "the spot's grazing limit must be {floor}..=1 (cos θ), got {}",
+            opts.spot_cos_min
+        )));
+    }
     let share = opts.alpha_window.t1_share;
     if share.is_nan() || share <= 0.0 {
         return Err(PipelineError::Invalid(format!(
