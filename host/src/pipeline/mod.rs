@@ -120,7 +120,7 @@ fn check_options(opts: &PipelineOptions) -> Result<(), PipelineError> {
             opts.model.segments
         )));
     }
-    if !(opts.alpha_shrinkage >= 0.0) {
+    if opts.alpha_shrinkage.is_nan() || opts.alpha_shrinkage < 0.0 {
         return Err(PipelineError::Invalid(format!(
             "the Eq. 6 shrinkage must be >= 0 (inf: no texture), got {}",
             opts.alpha_shrinkage
