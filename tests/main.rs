@@ -20,6 +20,7 @@ mod acquire_kill;
 mod acquire_link;
 mod acquire_sim;
 mod align;
+mod crossval;
 mod curved;
 mod demo;
 mod export;

@@ -234,6 +234,7 @@ fn torus_model_file() -> subsurf::modelfile::ModelFile {
         baseline: None,
         frame: subsurf::model::FrameRule::CURRENT,
         face_alpha: None,
+        fitted_with: None,
     }
 }
 

@@ -114,6 +114,30 @@ impl ModelAt {
 }
 
 impl ModelAt {
+    /// How much of the prediction at distance r is the corners' own models rather than the
+    /// baseline they fall back to beyond their sampled range ([`crate::baseline::local_weight`]),
+    /// weighted as [`ModelAt::ln_eval`] weights the corners: 1 where every corner was sampled
+    /// out to r, towards 0 far beyond; 1 for a model without a baseline.
+    pub fn local_share(&self, r: f64) -> f64 {
+        if self.baseline.is_none() {
+            return 1.0;
+        }
+        let (mut local, mut total) = (0.0, 0.0);
+        for c in &self.corners {
+            let w = c.weight * c.support.weight(r);
+            total += w;
+            local += w * crate::baseline::local_weight(c.support, r);
+        }
+        if total > 0.0 {
+            local / total
+        } else {
+            self.corners
+                .iter()
+                .map(|c| c.weight * crate::baseline::local_weight(c.support, r))
+                .sum()
+        }
+    }
+
     fn corner_ln(&self, c: &Corner, r: f64, phi: Option<f64>) -> [f64; 3] {
         crate::baseline::ln_predict(&c.model, c.support, r, phi, self.baseline.as_ref())
     }
@@ -199,6 +223,11 @@ pub struct FrameEval {
     pub log_e: [Option<f64>; 3],
     /// Channel samples used.
     pub samples: u64,
+    /// Share of the frame's samples the vertices' own models predicted, against the baseline
+    /// they fall back to beyond their sampled range ([`ModelAt::local_share`], mean over the
+    /// samples); `None` when none was compared.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub local_share: Option<f64>,
     /// Why the frame was not evaluated, if it was not.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub skipped: Option<String>,
@@ -306,6 +335,7 @@ pub fn evaluate_in(
                 frame: k,
                 log_e: [None; 3],
                 samples: 0,
+                local_share: None,
                 skipped: Some(reason),
             })
         })
@@ -340,6 +370,7 @@ fn evaluate_one(
         }
     };
     let mut acc = [LogEAccumulator::default(); 3];
+    let (mut local, mut compared) = (0.0, 0u64);
     for s in fs.samples.iter() {
         let p = s.vertex as usize;
         let (x_o, a) = match points {
@@ -351,18 +382,38 @@ fn evaluate_one(
         };
         let (r, phi) = at.frame.polar(x_i, x_o);
         let ln = at.ln_eval(r, phi);
+        let mut used = false;
         for c in 0..3 {
             if s.valid & (1 << c) != 0 {
-                acc[c].add_ln(a[c].ln() + ln[c], s.value[c], ctx.opts.error_threshold);
+                used |= acc[c].add_ln(a[c].ln() + ln[c], s.value[c], ctx.opts.error_threshold);
             }
+        }
+        if used {
+            local += at.local_share(r);
+            compared += 1;
         }
     }
     Ok(FrameEval {
         frame: k,
         log_e: acc.map(|a| a.log_e()),
         samples: acc.iter().map(|a| a.count).sum(),
+        local_share: (compared > 0).then(|| local / compared as f64),
         skipped: None,
     })
+}
+
+/// The share of the evaluated samples of `evals` that the vertices' own models predicted
+/// (each frame's [`FrameEval::local_share`] weighted by its samples); the rest is the baseline's
+/// fallback beyond their sampled range. `None` when no frame has one.
+pub fn local_share(evals: &[FrameEval]) -> Option<f64> {
+    let (sum, n) = evals
+        .iter()
+        .filter_map(|e| {
+            e.local_share
+                .map(|s| (s * e.samples as f64, e.samples as f64))
+        })
+        .fold((0.0, 0.0), |(a, b), (x, y)| (a + x, b + y));
+    (n > 0.0).then(|| sum / n)
 }
 
 /// Renders what the camera of frame `k` sees when the laser hits that frame's x_i, as the model

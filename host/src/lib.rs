@@ -8,6 +8,7 @@
 pub mod align;
 pub mod baseline;
 pub mod calib;
+pub mod crossval;
 pub mod curves;
 pub mod dataset;
 pub mod evaluate;

@@ -174,6 +174,64 @@ pub struct ModelFile {
     /// relative to the interpolated vertex alphas ([`crate::lattice::FaceAlpha`]); `None` in
     /// files without the `face_alpha` element (alpha at the vertices only).
     pub face_alpha: Option<crate::lattice::FaceAlpha>,
+    /// The rules the model's samples were read by (`comment fitted …`), which `subsurf evaluate`
+    /// judges it by unless told otherwise; `None` in files without the line (written before it,
+    /// or not by a fit: ground truth).
+    pub fitted_with: Option<FitRecord>,
+}
+
+/// What a model was fitted with that judging it depends on: how its frames were registered
+/// and sampled (header line `comment fitted key=value …`, `docs/model-format.md`). Readers that
+/// do not know the line skip it as any comment; keys this version does not know are skipped.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct FitRecord {
+    /// The radiance noise floor: samples below it dropped, Eq. 8's threshold t, spots 10× above.
+    pub noise_floor: f64,
+    /// Samples closer than this to x_i (mm) were dropped.
+    pub exclusion_radius_mm: f64,
+    /// The samples' grazing limit (cos θ at x_o).
+    pub cos_min: f64,
+    /// The coverage check of the samples' pixel neighbourhoods.
+    pub coverage: bool,
+    /// The largest disagreement between detected spot and laser ray (mm).
+    pub laser_tolerance_mm: f64,
+    /// Frames whose spot the camera saw more grazing than this (cos θ) were not fitted.
+    pub spot_cos_min: f64,
+}
+
+impl FitRecord {
+    fn header_line(&self) -> String {
+        format!(
+            "comment fitted noise_floor={} exclusion_radius_mm={} cos_min={} coverage={} \
+             laser_tolerance_mm={} spot_cos_min={}\n",
+            self.noise_floor,
+            self.exclusion_radius_mm,
+            self.cos_min,
+            u8::from(self.coverage),
+            self.laser_tolerance_mm,
+            self.spot_cos_min
+        )
+    }
+
+    /// The record of `key=value` words; `None` when a known key is missing or not a finite
+    /// number.
+    fn parse(words: &[&str]) -> Option<FitRecord> {
+        let get = |key: &str| -> Option<f64> {
+            words
+                .iter()
+                .find_map(|w| w.strip_prefix(key)?.strip_prefix('='))
+                .and_then(|v| v.parse::<f64>().ok())
+                .filter(|v| v.is_finite())
+        };
+        Some(FitRecord {
+            noise_floor: get("noise_floor")?,
+            exclusion_radius_mm: get("exclusion_radius_mm")?,
+            cos_min: get("cos_min")?,
+            coverage: get("coverage")? != 0.0,
+            laser_tolerance_mm: get("laser_tolerance_mm")?,
+            spot_cos_min: get("spot_cos_min")?,
+        })
+    }
 }
 
 /// The homogeneous baseline as the file holds it (header line `comment baseline <n> <r_min>
@@ -334,6 +392,7 @@ impl ModelFile {
             baseline: None,
             frame: FrameRule::CURRENT,
             face_alpha: None,
+            fitted_with: None,
         }
     }
 
@@ -507,7 +566,11 @@ impl ModelFile {
             self.frame.name(),
             self.baseline
                 .as_ref()
-                .map_or(String::new(), BaselineParams::header_line),
+                .map_or(String::new(), BaselineParams::header_line)
+                + &self
+                    .fitted_with
+                    .as_ref()
+                    .map_or(String::new(), FitRecord::header_line),
             self.positions.len(),
             self.triangles.len(),
         );
@@ -594,6 +657,7 @@ impl ModelFile {
         let mut elements: Vec<(String, usize, Vec<Prop>)> = Vec::new();
         let (mut terms, mut segments, mut colour, mut magic) = (None, None, None, false);
         let mut baseline = None;
+        let mut fitted_with = None;
         // Files before version 4 have no `comment frame`: their rule.
         let mut frame = FrameRule::ReferenceAxis;
         let mut first = true;
@@ -626,6 +690,12 @@ impl ModelFile {
                     baseline = Some(
                         BaselineParams::parse(rest, colour)
                             .ok_or_else(|| fmt(format!("bad baseline line {:?}", line.trim())))?,
+                    )
+                }
+                ["comment", "fitted", rest @ ..] => {
+                    fitted_with = Some(
+                        FitRecord::parse(rest)
+                            .ok_or_else(|| fmt(format!("bad fitted line {:?}", line.trim())))?,
                     )
                 }
                 ["comment", ..] | ["obj_info", ..] => {}
@@ -685,6 +755,7 @@ impl ModelFile {
             baseline: None,
             frame,
             face_alpha: None,
+            fitted_with,
         };
         let (mut levels, mut detail) = (Vec::new(), Vec::new());
         let mut face_alpha_seen = false;
@@ -1090,7 +1161,44 @@ mod tests {
             baseline: None,
             frame: FrameRule::MinimalRotation,
             face_alpha: None,
+            fitted_with: None,
         }
+    }
+
+    /// The rules a model was fitted with round-trip through `comment fitted`; a file without
+    /// the line (every file before it) reads as none, and a reader skips keys it does not know.
+    #[test]
+    fn the_fit_record_round_trips_and_is_optional() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.ply");
+        let mut m = sample();
+        m.write(&p).unwrap();
+        assert_eq!(ModelFile::read(&p).unwrap().fitted_with, None);
+        let rec = FitRecord {
+            noise_floor: 2.5e-5,
+            exclusion_radius_mm: 0.75,
+            cos_min: 0.5,
+            coverage: true,
+            laser_tolerance_mm: 2.0,
+            spot_cos_min: 0.1,
+        };
+        m.fitted_with = Some(rec);
+        m.write(&p).unwrap();
+        assert_eq!(ModelFile::read(&p).unwrap().fitted_with, Some(rec));
+        let words = ["future_key=3", "noise_floor=1", "exclusion_radius_mm=0.5"];
+        let mut more: Vec<&str> = words.to_vec();
+        more.extend([
+            "cos_min=0.5",
+            "coverage=0",
+            "laser_tolerance_mm=2",
+            "spot_cos_min=0.2",
+        ]);
+        let r = FitRecord::parse(&more).unwrap();
+        assert_eq!(
+            (r.noise_floor, r.coverage, r.spot_cos_min),
+            (1.0, false, 0.2)
+        );
+        assert_eq!(FitRecord::parse(&words), None);
     }
 
     /// A face lattice of `level` on the sample's one triangle, with detail at every non-corner

@@ -13,7 +13,16 @@ use crate::geometry::{Camera, Hit, Scene, V3, dist};
 /// the limb, and back-projecting it misplaces x_i by several mean free paths. At grazing angles
 /// the back-projection also magnifies the sub-pixel error by `1 / cos`. Same limit as the
 /// samples' grazing rejection (`SampleOptions::cos_min`).
+/// It is the fit's default (`PipelineOptions::spot_cos_min`): registration itself keeps spots
+/// down to [`SPOT_COS_FLOOR`], and whether the frames between the two help the model is the fit's
+/// choice (cross-validated, `crate::crossval`), not a constant of registration.
 pub const SPOT_COS_MIN: f64 = 0.2;
+
+/// The most grazing view of the spot registration accepts (cos θ, about 84 degrees): below it
+/// the spot is foreshortened more than tenfold and its sub-pixel error magnified as much. Frames
+/// between this and a fit's `spot_cos_min` are registered and sampled (the store holds them)
+/// and the fit decides whether to use them ([`spot_cos`]).
+pub const SPOT_COS_FLOOR: f64 = 0.1;
 
 /// Settings of spot detection.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
@@ -270,16 +279,46 @@ fn solve4(mut a: [[f64; 4]; 4], mut b: [f64; 4]) -> Option<[f64; 4]> {
 /// the grazing limit [`SPOT_COS_MIN`]. The scan planner predicts registration with this very
 /// function, so a plan's "seen" is processing's "registered".
 pub fn spot_visible(scene: &Scene, camera: &Camera, deg: f64, hit: &Hit) -> bool {
+    spot_visible_at(scene, camera, deg, hit, SPOT_COS_MIN)
+}
+
+/// [`spot_visible`] with the grazing limit `cos_min`.
+pub fn spot_visible_at(scene: &Scene, camera: &Camera, deg: f64, hit: &Hit, cos_min: f64) -> bool {
     scene
         .normal_at(hit.triangle, hit.point)
-        .and_then(|n| scene.sees(camera, deg, hit.point, n, SPOT_COS_MIN))
+        .and_then(|n| scene.sees(camera, deg, hit.point, n, cos_min))
         .is_some()
+}
+
+/// cos θ of the camera's view of a frame's spot: between the interpolated normal and the
+/// direction to the camera centre, at the laser's hit when the frame has a laser ray that hits
+/// the mesh (the point [`register_frame`]'s visibility rule judges), else at the registered
+/// x_i on triangle `triangle`. `None` where the normal degenerates.
+pub fn spot_cos(
+    scene: &Scene,
+    frame: &FrameSpec,
+    camera: &Camera,
+    x_i: V3,
+    triangle: u32,
+) -> Option<f64> {
+    let deg = frame.turntable_deg;
+    let (p, tri) = frame
+        .laser
+        .as_ref()
+        .and_then(|l| scene.cast_world(l.origin, l.direction, deg))
+        .map_or((x_i, triangle), |h| (h.point, h.triangle));
+    let n = scene.normal_at(tri, p)?;
+    let c = crate::geometry::world_to_turntable(camera.center(), deg);
+    let to_cam = crate::geometry::normalize(crate::geometry::sub(c, p))?;
+    let cos = crate::geometry::dot(n, to_cam);
+    cos.is_finite().then_some(cos)
 }
 
 /// Registers one frame: detect the spot, back-project it onto the mesh at the frame's turntable
 /// angle, cross-check with the frame's `laser` ray.
 ///
-/// A frame whose `laser` ray hits the mesh where the camera cannot see it ([`spot_visible`]) has
+/// A frame whose `laser` ray hits the mesh where the camera cannot see it ([`spot_visible_at`]
+/// with [`SPOT_COS_FLOOR`]: occluded, or more grazing than that) has
 /// [`RegistrationOutcome::NoSpot`]: whatever is brightest in it is scattered light, not the spot,
 /// and would be registered up to the laser tolerance away from the true x_i.
 ///
@@ -310,7 +349,7 @@ pub fn register_frame_detected(
     let detected = detect_spot(img, min_peak, opts.saturation);
     if let Some(l) = &frame.laser
         && let Some(h) = scene.cast_world(l.origin, l.direction, frame.turntable_deg)
-        && !spot_visible(scene, camera, frame.turntable_deg, &h)
+        && !spot_visible_at(scene, camera, frame.turntable_deg, &h, SPOT_COS_FLOOR)
     {
         return (RegistrationOutcome::NoSpot, detected);
     }

@@ -96,9 +96,11 @@ pub fn holdout(ds: &Dataset, frames: &[usize]) -> Holdout {
     }
 }
 
-/// The model with every vertex replaced by the homogeneous baseline (alpha = 1): what the
-/// baseline alone predicts, for judging it on held-out frames like any model. `None` without a
-/// baseline.
+/// The model with every vertex's fall-off replaced by the homogeneous baseline: what the
+/// baseline alone predicts, for judging it on held-out frames like any model. It keeps the
+/// model's alpha (per vertex and, where there is one, the face lattice), so the two differ only
+/// in the per-vertex fall-offs: the comparison says what those add. Every vertex gets the
+/// baseline, those without a model of their own too. `None` without a baseline.
 pub fn baseline_only(model: &ModelFile) -> Option<ModelFile> {
     let b = model.baseline.as_ref()?;
     let m = model.shape.segments;
@@ -124,11 +126,11 @@ pub fn baseline_only(model: &ModelFile) -> Option<ModelFile> {
     let mut out = model.clone();
     out.shape.terms = out.shape.terms.max(b.terms);
     out.baseline = None;
-    out.face_alpha = None;
     for v in &mut out.vertices {
-        v.alpha = [1.0; 3];
         v.status = VertexStatus::Interpolated;
         v.terms = b.terms as u8;
+        // Every vertex, one without a model (segments 0) too, at the file's m.
+        v.segments = m as u8;
         v.params = params.clone();
         v.r_range = crate::modelfile::NO_RANGE;
     }
@@ -201,6 +203,47 @@ pub fn frame_list(frames: &[usize]) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::modelfile::{BaselineParams, ModelShape};
+
+    /// The baseline is judged as a model on every dataset: a vertex without a model of its own
+    /// and vertices of fewer segments than the file's take it too (a model with such vertices
+    /// once had no baseline row), and it keeps the model's alpha.
+    #[test]
+    fn the_baseline_replaces_every_vertex_and_keeps_alpha() {
+        let mut m = ModelFile::homogeneous(
+            vec![[0.0; 3], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]],
+            vec![[0.0, 0.0, 1.0]; 3],
+            vec![[0, 1, 2]],
+            [0.8, 0.6],
+            &[(1.0, -1.0)],
+        );
+        m.shape = ModelShape {
+            terms: 1,
+            segments: 2,
+            ..m.shape
+        };
+        m.vertices[0].params = vec![0.8, 0.6, 1.0, -1.0, 2.0, -1.5];
+        m.vertices[0].segments = 2;
+        m.vertices[1].alpha = [1.2, 0.9, 1.0];
+        let none = &mut m.vertices[2];
+        none.status = VertexStatus::NoModel;
+        none.terms = 0;
+        none.segments = 0;
+        none.params.clear();
+        m.check().unwrap();
+        assert_eq!(baseline_only(&m), None, "no baseline, no row");
+        m.baseline = Some(BaselineParams {
+            terms: 1,
+            params: vec![0.7, 0.5, 3.0, -0.8],
+            r_range: [0.5, 9.0],
+        });
+        let b = baseline_only(&m).expect("a baseline model");
+        for (v, w) in b.vertices.iter().zip(&m.vertices) {
+            assert_eq!(v.segments, 2);
+            assert_eq!(v.params, vec![0.7, 0.5, 3.0, -0.8, 3.0, -0.8]);
+            assert_eq!(v.alpha, w.alpha);
+        }
+    }
 
     #[test]
     fn frame_lists_read_back() {

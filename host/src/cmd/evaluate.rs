@@ -27,14 +27,24 @@ pub struct Args {
     /// Print one JSON object.
     #[arg(long)]
     pub json: bool,
-    /// Samples closer than this to x_i (mm) are not compared.
-    #[arg(long, default_value_t = 0.5)]
-    pub exclusion_radius: f64,
+    /// Samples closer than this to x_i (mm) are not compared (default: the model's fit's, from
+    /// its file's `comment fitted` line, else 0.5).
+    #[arg(long)]
+    pub exclusion_radius: Option<f64>,
     /// Drop samples whose bilinear neighbourhood is not covered by the surface at x_o (a pixel
     /// centre seeing the background or another surface, counted as `samples.uncovered`). Off by
-    /// default: it helps simulated scans seen past open boundaries, not the outside datasets.
+    /// default unless the model was fitted with it: it helps simulated scans seen past open
+    /// boundaries, not the outside datasets.
     #[arg(long)]
     pub coverage_check: bool,
+    /// Override the dataset's noise floor (default: the one the model was fitted with).
+    #[arg(long)]
+    pub noise_floor: Option<f64>,
+    /// Judge the model by this version's defaults for the dataset rather than by the rules it
+    /// was fitted with (noise floor, exclusion radius, grazing limits, coverage check, laser
+    /// tolerance), which a model file records and `evaluate` otherwise uses.
+    #[arg(long)]
+    pub ignore_fit_record: bool,
     /// Where the model is compared with the pixels: at the mesh's vertices, or at surface points
     /// (the lattice points of level --surface-level on every face), which is where alpha finer
     /// than the mesh (a model's face lattice) can be judged: at vertices its detail is 0.
@@ -73,9 +83,20 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         args.exclude_frames.as_deref(),
     )
     .map_err(|e| anyhow!(e))?;
+    // The model is judged on the terms it was fitted on (its file records them), unless told
+    // otherwise: explicit flags override single rules, --ignore-fit-record all of them.
     let mut opts = PipelineOptions::for_dataset(&ds);
-    opts.samples.exclusion_radius_mm = args.exclusion_radius;
-    opts.samples.coverage = args.coverage_check;
+    let record = model.fitted_with.filter(|_| !args.ignore_fit_record);
+    if let Some(r) = &record {
+        opts = opts.with_fit_record(r);
+    }
+    if let Some(f) = args.noise_floor {
+        opts = opts.with_noise_floor(f);
+    }
+    if let Some(x) = args.exclusion_radius {
+        opts.samples.exclusion_radius_mm = x;
+    }
+    opts.samples.coverage |= args.coverage_check;
     let bar = if args.json {
         Bar::hidden()
     } else {
@@ -95,6 +116,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     bar.finish_and_clear();
     let rgb = |v: [Option<f64>; 3]| v.map(|x| x.map_or(serde_json::Value::Null, |x| x.into()));
     let evaluated = evals.iter().filter(|e| e.skipped.is_none()).count();
+    let local = subsurf::evaluate::local_share(&evals);
     if args.json {
         let out = serde_json::json!({
             "points": points,
@@ -102,6 +124,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "skipped": evals.len() - evaluated,
             "mean_log_e": rgb(stats.mean),
             "median_log_e": rgb(stats.median),
+            "local_share": local,
+            "options": {
+                "from_model_file": record.is_some(),
+                "noise_floor": opts.samples.noise_floor,
+                "exclusion_radius_mm": opts.samples.exclusion_radius_mm,
+                "cos_min": opts.samples.cos_min,
+                "coverage": opts.samples.coverage,
+                "laser_tolerance_mm": opts.spot.laser_tolerance_mm,
+                "spot_cos_min": opts.spot_cos_min,
+            },
             "per_frame": evals,
         });
         println!("{out}");
@@ -127,6 +159,24 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             f(stats.median[0]),
             f(stats.median[1]),
             f(stats.median[2])
+        );
+        if let Some(l) = local {
+            println!(
+                "samples predicted by the vertices' own models: {:.1} % (the rest by the homogeneous baseline beyond their sampled range)",
+                100.0 * l
+            );
+        }
+        println!(
+            "options: {} (noise floor {:.3e}, exclusion radius {} mm, spot cos min {}, coverage check {})",
+            if record.is_some() {
+                "the model's fit's (its file's record)"
+            } else {
+                "this version's defaults for the dataset"
+            },
+            opts.samples.noise_floor,
+            opts.samples.exclusion_radius_mm,
+            opts.spot_cos_min,
+            if opts.samples.coverage { "on" } else { "off" }
         );
         for e in evals.iter().filter(|e| e.skipped.is_some()).take(10) {
             println!(

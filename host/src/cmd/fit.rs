@@ -3,12 +3,11 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, anyhow};
+use subsurf::crossval::{CvSettings, Segments, fit_scan_in};
 use subsurf::dataset::{Dataset, select_frames};
 use subsurf::fit::{Preset, Terms};
 use subsurf::modelfile::ColourMode;
-use subsurf::pipeline::{
-    MAX_SEGMENTS, PipelineOptions, Segments, StoreOptions, fit_scan_in, prepare,
-};
+use subsurf::pipeline::{MAX_SEGMENTS, PipelineOptions, StoreOptions, prepare};
 
 use super::progress::Bar;
 
@@ -55,14 +54,18 @@ pub struct Args {
     /// Colour model.
     #[arg(long, value_enum, default_value = "shared")]
     pub colour: Colour,
-    /// Direction segments m (Eq. 3); 1 = isotropic; `auto` fits m = 1, 2, 4, 8 and keeps the
-    /// smallest whose mean log E is within --segments-tolerance of the best (the choice is
-    /// written to the report as `segments_choice`). Default: the preset's (1 for exact).
+    /// Direction segments m (Eq. 3); 1 = isotropic; `auto` chooses m among 1, 2, 4, 8 by
+    /// cross-validation (`--cv-folds`): the simplest whose held-out error is within one standard
+    /// error of the best (the candidates are in the report's `cross_validation`). Default: the
+    /// preset's (1 for exact).
     #[arg(long)]
     pub segments: Option<String>,
-    /// Relative log E tolerance of `--segments auto` (0.05 = within 5 % of the best).
-    #[arg(long, default_value_t = 0.05)]
-    pub segments_tolerance: f64,
+    /// Folds of the cross-validation inside the fit (whole turntable angles, or spread raster
+    /// positions on a one-angle scan): each fold's frames are predicted by a fit of the others,
+    /// which chooses `--segments auto` and the number of alpha rounds. 0 or 1: no
+    /// cross-validation (the rounds run to `--alpha-rounds` or convergence).
+    #[arg(long, default_value_t = subsurf::crossval::DEFAULT_FOLDS)]
+    pub cv_folds: usize,
     /// Exponential terms n (Eq. 1): the largest n a light position may use (each chooses its
     /// own n and m, see `--fixed-order`), or `auto` for the smallest order within 1 % of the
     /// best. Default: the preset's (3 for exact).
@@ -110,6 +113,16 @@ pub struct Args {
     /// 1..=8 caps the level; `off` keeps alpha per vertex only.
     #[arg(long, default_value = "auto")]
     pub alpha_lattice: subsurf::pipeline::AlphaLattice,
+    /// Eq. 6's shrinkage of alpha towards 1, as a multiple of the empirical-Bayes pseudo-count
+    /// (the noise within a texel over the texture's variance between texels): 1 = the empirical
+    /// one, 0 = none (the plain geometric mean of s / R_d), `inf` = no texture (alpha = 1).
+    #[arg(long, default_value_t = 1.0)]
+    pub alpha_shrinkage: f64,
+    /// Frames whose laser spot the camera sees more grazing than this (cos θ at the spot) are
+    /// not fitted, nor evaluated with the model: their spot is foreshortened and x_i least
+    /// certain. Registration keeps spots down to cos θ = 0.1.
+    #[arg(long, default_value_t = subsurf::registration::SPOT_COS_MIN)]
+    pub spot_cos_min: f64,
     /// Largest disagreement between detected spot and laser ray (mm).
     #[arg(long, default_value_t = 2.0)]
     pub laser_tolerance: f64,
@@ -243,6 +256,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     opts.alpha_tolerance = args.alpha_tolerance;
     opts.alpha_window.t1_share = args.alpha_t1_share;
     opts.alpha_lattice = args.alpha_lattice;
+    opts.alpha_shrinkage = args.alpha_shrinkage;
+    opts.spot_cos_min = args.spot_cos_min;
     if args.fixed_order {
         opts.order = None;
     }
@@ -253,9 +268,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     let segments = match args.segments.as_deref() {
         None => Segments::Fixed(opts.model.segments),
-        Some("auto") => Segments::Auto {
-            tolerance: args.segments_tolerance,
-        },
+        Some("auto") => Segments::Auto,
         Some(m) => Segments::Fixed(
             m.parse()
                 .ok()
@@ -264,6 +277,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                     anyhow!("--segments must be 1..={MAX_SEGMENTS} or auto, got {m:?}")
                 })?,
         ),
+    };
+    let cv = CvSettings {
+        folds: args.cv_folds,
+        segments,
+        rounds: true,
     };
     match args.terms.as_deref() {
         None => {}
@@ -298,7 +316,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     let validation = if args.validate {
         let holdout = subsurf::validate::holdout(&ds, &frames);
-        let v = fit_scan_in(&run, &holdout.training, segments, &fit, &bar)
+        let v = fit_scan_in(&run, &holdout.training, &cv, &fit, &bar)
             .with_context(|| format!("validation fit of {}", args.scan.display()))?;
         let v = subsurf::validate::judge(&run, &v.model, holdout, v.report.log_e, &bar)
             .context("judging the validation fit on the held-out frames")?;
@@ -306,7 +324,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     } else {
         None
     };
-    let out = fit_scan_in(&run, &frames, segments, &fit, &bar)
+    let out = fit_scan_in(&run, &frames, &cv, &fit, &bar)
         .with_context(|| format!("fitting {}", args.scan.display()))?;
     bar.finish_and_clear();
     let report_dir = args.report.as_deref().and_then(std::path::Path::parent);
@@ -332,21 +350,38 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if let Some(c) = &mesh_check {
         json["mesh_check"] = serde_json::to_value(c)?;
     }
-    if let Some(c) = &out.report.segments_choice {
+    if let Some(cv) = &out.report.cross_validation {
         println!(
-            "segments: m = {} chosen (tolerance {}); candidates {}",
-            c.chosen,
-            c.tolerance,
-            c.candidates
-                .iter()
-                .map(|k| format!(
-                    "m = {}: {}",
-                    k.order,
-                    k.log_e.map_or("failed".into(), subsurf::report::fmt::log_e)
-                ))
-                .collect::<Vec<_>>()
-                .join(", ")
+            "cross-validation: {} ({} fits, {:.1} s)",
+            cv.rule, cv.fits, cv.seconds
         );
+        if let Some(why) = &cv.skipped {
+            println!("  {why}");
+        }
+        for c in &cv.choices {
+            println!(
+                "  {}: {} chosen; held-out log E per candidate {}",
+                c.name,
+                c.chosen,
+                c.candidates
+                    .iter()
+                    .map(|k| format!(
+                        "{}: {}{}",
+                        k.value,
+                        k.score.map_or("-".into(), subsurf::report::fmt::log_e),
+                        k.worse_by.zip(k.se).filter(|(d, _)| *d > 0.0).map_or(
+                            String::new(),
+                            |(d, se)| format!(
+                                " (+{} ± {})",
+                                subsurf::report::fmt::log_e(d),
+                                subsurf::report::fmt::log_e(se)
+                            )
+                        )
+                    ))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            );
+        }
     }
     // The model is already on disk: a picture that cannot be drawn is reported after the report
     // is written, so no result is lost.
@@ -392,10 +427,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     for k in &r.alpha.round_log {
         println!(
-            "  round {}: training objective {:.6e} (previous fits {:.6e}; {} light positions kept their previous fit) {}",
+            "  round {}: training objective {:.6e} (last kept round {:.6e}; fits against the alpha they were fitted to {:.6e}; {} light positions kept their previous fit) {}",
             k.round,
             k.objective,
             k.previous,
+            k.fitted,
             k.fits_kept_previous,
             if k.kept { "kept" } else { "discarded" }
         );

@@ -87,5 +87,6 @@ pub fn model_file(
         // Every fit measures directions with `TangentFrame::from_normal` (the `select` stage).
         frame: crate::model::FrameRule::CURRENT,
         face_alpha: None,
+        fitted_with: None,
     }
 }

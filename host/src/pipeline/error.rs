@@ -38,7 +38,7 @@ pub struct OwnFit {
 
 /// log E(x_i) (Eq. 8, with alpha) per channel of every group's fit; `None` where the group has
 /// no fit or its frames could not be read. Second: the same of the homogeneous baseline
-/// (alpha = 1) on the group's samples, when there is one.
+/// (with the model's alpha) on the group's samples, when there is one.
 pub fn log_e_of_fits(
     ctx: &Context,
     regs: &[RegisteredFrame],
@@ -60,11 +60,12 @@ pub fn log_e_of_fits(
                 let mut base = [LogEAccumulator::default(); 3];
                 for (ch, d) in data.iter().enumerate() {
                     for x in d {
-                        let ln = fitted.alpha[x.vertex as usize][ch].ln()
-                            + g.model.ln_eval(x.r, x.phi)[ch];
+                        let ln_alpha = fitted.alpha[x.vertex as usize][ch].ln();
+                        let ln = ln_alpha + g.model.ln_eval(x.r, x.phi)[ch];
                         acc[ch].add_ln(ln, x.s, threshold);
+                        // The baseline with the model's alpha, as the held-out row judges it.
                         if let Some(b) = baseline {
-                            base[ch].add_ln(b.ln_eval(x.r, None)[ch], x.s, threshold);
+                            base[ch].add_ln(ln_alpha + b.ln_eval(x.r, None)[ch], x.s, threshold);
                         }
                     }
                 }

@@ -700,17 +700,50 @@ pub struct Fitted {
 /// (32 × 72 bytes per vertex), and it depends on the scan alone, never on the thread count.
 const FOLD_CHUNKS: usize = 32;
 
+/// Per vertex and channel, the sufficient statistics of the training objective over the
+/// vertex's samples: with e = ln R_d − ln s (s as captured), the vertex's share of
+/// O(R_d, alpha) = Σ (ln alpha + e)^2 is n·ln²alpha + 2·ln alpha·Σe + Σe² for *any* alpha. So the
+/// objective of a round's fits under the alpha Eq. 6 then derives from them (the model the round
+/// leaves) is known without another pass over the samples.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+struct ObjectiveStats {
+    n: f64,
+    sum: f64,
+    sum_sq: f64,
+}
+
+impl ObjectiveStats {
+    fn add(&mut self, e: f64) {
+        if e.is_finite() {
+            self.n += 1.0;
+            self.sum += e;
+            self.sum_sq += e * e;
+        }
+    }
+
+    fn merge(&mut self, o: &ObjectiveStats) {
+        self.n += o.n;
+        self.sum += o.sum;
+        self.sum_sq += o.sum_sq;
+    }
+
+    /// Σ (ln alpha + e)^2 at `ln_alpha`.
+    fn at(&self, ln_alpha: f64) -> f64 {
+        (self.n * ln_alpha * ln_alpha + 2.0 * ln_alpha * self.sum + self.sum_sq).max(0.0)
+    }
+}
+
 /// One round's results, folded over the groups in parallel.
 #[derive(Default)]
 struct RoundState {
     fits: Vec<(usize, Result<GroupFit, FailReason>)>,
     alpha: Vec<[AlphaAccumulator; 3]>,
+    /// Per vertex and channel, the objective's statistics of this round's fits.
+    objective_stats: Vec<[ObjectiveStats; 3]>,
     counts: SampleCounts,
     dropped: BTreeMap<TermDropped, usize>,
-    /// Training objective of this round's fits (see [`fit_groups`]).
+    /// Training objective of this round's fits against the alpha they were fitted to.
     objective: f64,
-    /// The same of the previous round's fits.
-    objective_prev: f64,
     /// Groups that kept their previous fit.
     kept_previous: usize,
 }
@@ -720,8 +753,14 @@ impl RoundState {
         self.fits.append(&mut other.fits);
         if self.alpha.is_empty() {
             self.alpha = other.alpha;
+            self.objective_stats = other.objective_stats;
         } else if !other.alpha.is_empty() {
             for (a, b) in self.alpha.iter_mut().zip(&other.alpha) {
+                for c in 0..3 {
+                    a[c].merge(&b[c]);
+                }
+            }
+            for (a, b) in self.objective_stats.iter_mut().zip(&other.objective_stats) {
                 for c in 0..3 {
                     a[c].merge(&b[c]);
                 }
@@ -729,12 +768,31 @@ impl RoundState {
         }
         self.counts.add(&other.counts);
         self.objective += other.objective;
-        self.objective_prev += other.objective_prev;
         self.kept_previous += other.kept_previous;
         for (k, v) in other.dropped {
             *self.dropped.entry(k).or_default() += v;
         }
         self
+    }
+
+    /// The training objective of this round's fits with alpha `alpha` per vertex and channel.
+    fn objective_with(&self, alpha: &[[f64; 3]]) -> f64 {
+        self.objective_stats
+            .iter()
+            .zip(alpha)
+            .map(|(st, a)| (0..3).map(|c| st[c].at(a[c].ln())).sum::<f64>())
+            .sum()
+    }
+
+    /// The fits by group index (`None`: the group has none).
+    fn by_index(&self, groups: usize) -> Vec<Option<GroupFit>> {
+        let mut v: Vec<Option<GroupFit>> = vec![None; groups];
+        for (idx, f) in &self.fits {
+            if let Ok(g) = f {
+                v[*idx] = Some(g.clone());
+            }
+        }
+        v
     }
 }
 
@@ -753,34 +811,32 @@ fn sq_err(m: &ColourModel, data: &ChannelSamples) -> f64 {
     o
 }
 
-/// Fits every group, then runs the alpha rounds (Eq. 6): round 0 fits the samples as captured;
-/// each further round divides them by the previous round's alpha(x_o) and refits, so the
-/// modulation texture is not mistaken for noise by the fit of R_d, until alpha changes by less
-/// than `alpha_tolerance` or `alpha_rounds` extra rounds ran. Every round re-reads the frames.
-///
-/// The rounds are a block coordinate descent on the training objective
-/// O(R_d, alpha) = Σ (ln alpha + ln R_d − ln s)^2: Eq. 6 in log space is its minimiser over alpha
-/// for fixed R_d (up to the shrinkage of [`crate::model::empirical_prior`]), and a group whose refit is
-/// worse than its previous fit against the same alpha (LM finds local minima) keeps the previous
-/// one. A round that does not lower O is discarded and the rounds stop; the report lists every
-/// round (`AlphaReport::round_log`).
-pub fn fit_groups(
-    ctx: &Context,
-    regs: &[RegisteredFrame],
-    groups: &Groups,
-    fitter: &dyn Fitter,
-    progress: &dyn Progress,
-) -> Fitted {
-    let opts = &ctx.opts;
-    let nv = ctx.ds.mesh.positions.len();
-    // The baseline first: the per-vertex order choice has it as its smallest candidate.
-    let baseline = fit_baseline(ctx, regs, groups, fitter);
-    let base_model = baseline.as_ref().map(|b| &b.baseline.model);
-    let fit_round = |alpha_div: Option<&[[f64; 3]]>,
-                     round: usize,
-                     prev: Option<&[Option<GroupFit>]>|
-     -> RoundState {
-        progress.start(
+/// What one fit round needs: the run, its selection, the solver and the baseline.
+struct RoundRunner<'r, 'a> {
+    ctx: &'r Context<'a>,
+    regs: &'r [RegisteredFrame],
+    groups: &'r Groups,
+    fitter: &'r dyn Fitter,
+    progress: &'r dyn Progress,
+    base_model: Option<ColourModel>,
+}
+
+impl RoundRunner<'_, '_> {
+    /// One fit round: every group fitted to its samples divided by `alpha_div` (none: as
+    /// captured), at the order of its previous fit `prev` when there is one (round 0 chooses
+    /// it), keeping the previous fit where the new one is worse against the same alpha; the
+    /// Eq. 6 accumulators and the objective's statistics of the fits, per vertex.
+    fn run(
+        &self,
+        alpha_div: Option<&[[f64; 3]]>,
+        round: usize,
+        prev: Option<&[Option<GroupFit>]>,
+    ) -> RoundState {
+        let (ctx, regs, groups, fitter) = (self.ctx, self.regs, self.groups, self.fitter);
+        let opts = &ctx.opts;
+        let nv = ctx.ds.mesh.positions.len();
+        let base_model = self.base_model.as_ref();
+        self.progress.start(
             &format!("fit (round {})", round + 1),
             groups.keys.len() as u64,
         );
@@ -848,19 +904,19 @@ pub fn fit_groups(
                     }
                     (Err(e), _, _) => return Err(e),
                 };
-                Ok((g, data, counts, o_new, o_old.unwrap_or(o_new), kept_old))
+                Ok((g, data, counts, o_new, kept_old))
             });
             for why in dropped {
                 *st.dropped.entry(why).or_default() += 1;
             }
             match out {
-                Ok((g, data, counts, o_new, o_old, kept_old)) => {
+                Ok((g, data, counts, o_new, kept_old)) => {
                     st.objective += o_new;
-                    st.objective_prev += o_old;
                     st.kept_previous += kept_old as usize;
                     // Eq. 6 contributions are folded right away so the samples can be dropped.
                     if st.alpha.is_empty() {
                         st.alpha = vec![[AlphaAccumulator::default(); 3]; nv];
+                        st.objective_stats = vec![[ObjectiveStats::default(); 3]; nv];
                     }
                     for (ch, d) in data.iter().enumerate() {
                         // Eq. 6 compares the captured sample with R_d.
@@ -872,7 +928,9 @@ pub fn fit_groups(
                         let window = opts.alpha_window.for_light(s_max);
                         for x in d {
                             let ln_rd = g.model.ln_eval(x.r, x.phi)[ch];
-                            st.alpha[x.vertex as usize][ch].add_ln(captured(x), ln_rd, &window);
+                            let s = captured(x);
+                            st.alpha[x.vertex as usize][ch].add_ln(s, ln_rd, &window);
+                            st.objective_stats[x.vertex as usize][ch].add(ln_rd - s.ln());
                         }
                     }
                     st.counts.add(&counts);
@@ -880,7 +938,7 @@ pub fn fit_groups(
                 }
                 Err(e) => st.fits.push((idx, Err(e))),
             }
-            progress.inc(1);
+            self.progress.inc(1);
             st
         };
         let chunk = groups.keys.len().div_ceil(FOLD_CHUNKS).max(1);
@@ -900,73 +958,200 @@ pub fn fit_groups(
             .fold(RoundState::default(), RoundState::merge);
         state.fits.sort_by_key(|f| f.0);
         state
-    };
-    let by_index = |st: &RoundState| -> Vec<Option<GroupFit>> {
-        let mut v: Vec<Option<GroupFit>> = vec![None; groups.keys.len()];
-        for (idx, f) in &st.fits {
-            if let Ok(g) = f {
-                v[*idx] = Some(g.clone());
-            }
+    }
+}
+
+/// The fit with the alpha rounds (Eq. 6), one round at a time ([`AlphaRounds::step`]), so a
+/// caller can look at the model after every round (the cross-validated choice of the number of
+/// rounds, `crate::crossval`). [`fit_groups`] runs it to the end.
+///
+/// A round is the alpha step and the refit together: round r divides the samples by the alpha
+/// Eq. 6 derived from round r − 1's fits and refits every group; the model it leaves is its
+/// fits with the alpha Eq. 6 derives from *them*, as round 0's model is the fits of the samples
+/// as captured with their Eq. 6 alpha. Its training objective
+/// O(R_d, alpha) = Σ (ln alpha + ln R_d − ln s)^2 over the fitted samples is computed exactly
+/// (per-vertex sufficient statistics), and the round is kept only if O falls below the last
+/// kept round's. Neither half alone is a descent step once Eq. 6 is shrunk towards 1 and takes
+/// only the samples of its intensity window (the alpha step can raise O; measured on a hidden
+/// object: O fell in round 1, then rose in every round after it), so only the whole round is
+/// judged: the kept rounds' objectives fall strictly, and the model returned is the last kept
+/// round's.
+pub struct AlphaRounds<'r, 'a> {
+    runner: RoundRunner<'r, 'a>,
+    baseline: Option<FittedBaseline>,
+    /// The last kept round's fits and Eq. 6 accumulators.
+    state: RoundState,
+    /// The alpha the kept round's fits were fitted against (`None`: as captured, round 0).
+    alpha_used: Option<Vec<[f64; 3]>>,
+    /// Eq. 6 of the kept round's fits: the model's alpha.
+    alpha: Vec<[f64; 3]>,
+    alpha_report: AlphaReport,
+    /// The kept round's objective (its fits with `alpha`).
+    objective: f64,
+    round_log: Vec<AlphaRound>,
+    /// The last kept round.
+    rounds: usize,
+    /// The next round to try.
+    next: usize,
+    last_change: f64,
+    converged: bool,
+    stopped: bool,
+}
+
+impl<'r, 'a> AlphaRounds<'r, 'a> {
+    /// The homogeneous baseline and round 0: every group fitted to its samples as captured,
+    /// its order chosen.
+    pub fn start(
+        ctx: &'r Context<'a>,
+        regs: &'r [RegisteredFrame],
+        groups: &'r Groups,
+        fitter: &'r dyn Fitter,
+        progress: &'r dyn Progress,
+    ) -> Self {
+        // The baseline first: the per-vertex order choice has it as its smallest candidate.
+        let baseline = fit_baseline(ctx, regs, groups, fitter);
+        let runner = RoundRunner {
+            ctx,
+            regs,
+            groups,
+            fitter,
+            progress,
+            base_model: baseline.as_ref().map(|b| b.baseline.model.clone()),
+        };
+        let state = runner.run(None, 0, None);
+        let (alpha, alpha_report) = alpha_texture(
+            &state.alpha,
+            ctx.ds.mesh.positions.len(),
+            &ctx.scene,
+            ctx.opts.alpha_shrinkage,
+        );
+        let objective = state.objective_with(&alpha);
+        AlphaRounds {
+            runner,
+            baseline,
+            round_log: vec![AlphaRound {
+                round: 0,
+                objective,
+                previous: objective,
+                fitted: state.objective,
+                fits_kept_previous: 0,
+                kept: true,
+            }],
+            state,
+            alpha_used: None,
+            alpha,
+            alpha_report,
+            objective,
+            rounds: 0,
+            next: 1,
+            last_change: 0.0,
+            converged: false,
+            stopped: false,
         }
-        v
-    };
-    let mut state = fit_round(None, 0, None);
-    let mut round_log = vec![AlphaRound {
-        round: 0,
-        objective: state.objective,
-        previous: state.objective,
-        fits_kept_previous: 0,
-        kept: true,
-    }];
-    let mut rounds = 0;
-    let mut last_change = 0.0;
-    let mut converged = false;
-    let mut previous: Option<Vec<[f64; 3]>> = None;
-    for round in 1..=opts.alpha_rounds {
-        let (a, _) = alpha_texture(&state.alpha, nv, &ctx.scene);
-        if let Some(prev) = &previous {
-            last_change = rms_ln_change(prev, &a);
-            if last_change < opts.alpha_tolerance {
-                converged = true;
-                break;
-            }
+    }
+
+    /// Runs the next round; `true` when it was kept (the model moved on), `false` when the
+    /// rounds are over: alpha converged (it changed by less than `alpha_tolerance` in the last
+    /// kept round), the round did not lower the objective (discarded), or `alpha_rounds` ran.
+    pub fn step(&mut self) -> bool {
+        let opts = &self.runner.ctx.opts;
+        if self.stopped || self.next > opts.alpha_rounds {
+            self.stopped = true;
+            return false;
         }
-        let prev_fits = by_index(&state);
-        let next = fit_round(Some(&a), round, Some(&prev_fits));
-        let kept = next.objective < next.objective_prev * (1.0 - 1e-9);
-        round_log.push(AlphaRound {
+        let ones;
+        let used = match &self.alpha_used {
+            Some(a) => a,
+            None => {
+                ones = vec![[1.0; 3]; self.alpha.len()];
+                &ones
+            }
+        };
+        self.last_change = rms_ln_change(used, &self.alpha);
+        if self.last_change < opts.alpha_tolerance {
+            self.converged = true;
+            self.stopped = true;
+            return false;
+        }
+        let round = self.next;
+        self.next += 1;
+        let prev = self.state.by_index(self.runner.groups.keys.len());
+        let next = self.runner.run(Some(&self.alpha), round, Some(&prev));
+        let (alpha, report) = alpha_texture(
+            &next.alpha,
+            self.alpha.len(),
+            &self.runner.ctx.scene,
+            opts.alpha_shrinkage,
+        );
+        let objective = next.objective_with(&alpha);
+        let kept = objective < self.objective * (1.0 - 1e-9);
+        self.round_log.push(AlphaRound {
             round,
-            objective: next.objective,
-            previous: next.objective_prev,
+            objective,
+            previous: self.objective,
+            fitted: next.objective,
             fits_kept_previous: next.kept_previous,
             kept,
         });
         if !kept {
-            // No gain: the previous state (its fits and their Eq. 6) stands.
-            converged = true;
-            break;
+            // No gain: the last kept round's model (its fits and their Eq. 6) stands.
+            self.converged = true;
+            self.stopped = true;
+            return false;
         }
-        state = next;
-        rounds = round;
-        previous = Some(a);
+        self.alpha_used = Some(std::mem::replace(&mut self.alpha, alpha));
+        self.alpha_report = report;
+        self.state = next;
+        self.objective = objective;
+        self.rounds = round;
+        true
     }
-    let (alpha, mut alpha_report) = alpha_texture(&state.alpha, nv, &ctx.scene);
-    if let Some(prev) = &previous {
-        last_change = rms_ln_change(prev, &alpha);
-        converged |= last_change < opts.alpha_tolerance;
+
+    /// The rounds kept so far (0: only round 0).
+    pub fn rounds(&self) -> usize {
+        self.rounds
     }
-    alpha_report.rounds = rounds;
-    alpha_report.last_change = last_change;
-    alpha_report.converged = converged || opts.alpha_rounds == 0;
-    alpha_report.round_log = round_log;
-    Fitted {
-        fits: state.fits.into_iter().map(|(_, f)| f).collect(),
-        alpha,
-        alpha_report,
-        counts: state.counts,
-        dropped: state.dropped,
-        baseline,
+
+    /// The model of the last kept round.
+    pub fn fitted(&self) -> Fitted {
+        let opts = &self.runner.ctx.opts;
+        let mut alpha_report = self.alpha_report.clone();
+        let last_change = match &self.alpha_used {
+            Some(a) if !self.stopped || self.last_change == 0.0 => rms_ln_change(a, &self.alpha),
+            _ => self.last_change,
+        };
+        alpha_report.rounds = self.rounds;
+        alpha_report.last_change = last_change;
+        alpha_report.converged =
+            self.converged || last_change < opts.alpha_tolerance || opts.alpha_rounds == 0;
+        alpha_report.round_log = self.round_log.clone();
+        Fitted {
+            fits: self.state.fits.iter().map(|(_, f)| f.clone()).collect(),
+            alpha: self.alpha.clone(),
+            alpha_report,
+            counts: self.state.counts,
+            dropped: self.state.dropped.clone(),
+            baseline: self.baseline.clone(),
+        }
     }
+}
+
+/// Fits every group, then runs the alpha rounds (Eq. 6) to the end ([`AlphaRounds`]): round 0
+/// fits the samples as captured; each further round divides them by the previous round's
+/// alpha(x_o) and refits, so the modulation texture is not mistaken for noise by the fit of
+/// R_d, until alpha changes by less than `alpha_tolerance`, a round no longer lowers the
+/// training objective, or `alpha_rounds` extra rounds ran. The report lists every round
+/// (`AlphaReport::round_log`).
+pub fn fit_groups(
+    ctx: &Context,
+    regs: &[RegisteredFrame],
+    groups: &Groups,
+    fitter: &dyn Fitter,
+    progress: &dyn Progress,
+) -> Fitted {
+    let mut rounds = AlphaRounds::start(ctx, regs, groups, fitter, progress);
+    while rounds.step() {}
+    rounds.fitted()
 }
 
 /// The homogeneous baseline: one isotropic fall-off (m = 1, the model's colour mode) fitted to
@@ -1064,6 +1249,16 @@ fn rms_ln_change(a: &[[f64; 3]], b: &[[f64; 3]]) -> f64 {
     if n == 0 { 0.0 } else { (sum / n as f64).sqrt() }
 }
 
+/// The pseudo-count Eq. 6 is shrunk with: the empirical one ([`crate::model::empirical_prior`])
+/// times the run's `alpha_shrinkage`; infinite (alpha = 1, no texture) when the setting is.
+pub fn shrinkage_prior(empirical: f64, shrinkage: f64) -> f64 {
+    if shrinkage.is_infinite() {
+        f64::INFINITY
+    } else {
+        empirical * shrinkage.max(0.0)
+    }
+}
+
 /// Eq. 6 per vertex from the accumulated samples; vertices no fitted frame saw (Eq. 6's X is
 /// empty: not visible from any camera at any selected turntable angle) take the harmonic
 /// interpolation of ln alpha from their mesh neighbours, and 1 where no neighbour has data.
@@ -1071,10 +1266,16 @@ fn alpha_texture(
     acc: &[[AlphaAccumulator; 3]],
     nv: usize,
     scene: &Scene,
+    shrinkage: f64,
 ) -> (Vec<[f64; 3]>, AlphaReport) {
-    // Eq. 6's shrinkage per channel from the texels' own spread against the noise.
-    let prior: [f64; 3] =
-        [0, 1, 2].map(|ch| crate::model::empirical_prior(acc.iter().map(|a| &a[ch])));
+    // Eq. 6's shrinkage per channel from the texels' own spread against the noise, scaled by
+    // the run's setting (infinite: alpha = 1).
+    let prior: [f64; 3] = [0, 1, 2].map(|ch| {
+        shrinkage_prior(
+            crate::model::empirical_prior(acc.iter().map(|a| &a[ch])),
+            shrinkage,
+        )
+    });
     let own: Vec<Option<Vec<f64>>> = (0..nv)
         .map(|v| {
             let a = acc.get(v)?;
@@ -1098,7 +1299,7 @@ fn alpha_texture(
         .collect();
     let filled = crate::interpolate::harmonic(&own, |v| scene.neighbours(v), 500);
     let mut rep = AlphaReport {
-        prior,
+        prior: prior.map(|p| p.min(crate::model::ALPHA_PRIOR_MAX)),
         ..AlphaReport::default()
     };
     let alpha = (0..nv)

@@ -279,7 +279,7 @@ pub fn fit_lattice(
             }
         }
     }
-    finish(pts, &corner, &acc, &mut report)
+    finish(pts, &corner, &acc, ctx.opts.alpha_shrinkage, &mut report)
 }
 
 /// The detail from the accumulators: the prior per channel, the shrunk detail where the channel
@@ -288,12 +288,16 @@ fn finish(
     pts: &SurfacePoints,
     corner: &[bool],
     acc: &[[AlphaAccumulator; 3]],
+    shrinkage: f64,
     report: &mut LatticeReport,
 ) -> Lattice {
-    let prior = [0, 1, 2].map(|ch| empirical_prior(acc.iter().map(|a| &a[ch])));
+    // The run's shrinkage scales the empirical prior here as at the vertices.
+    let prior = [0, 1, 2].map(|ch| {
+        super::fit::shrinkage_prior(empirical_prior(acc.iter().map(|a| &a[ch])), shrinkage)
+    });
     let seen_twice = [0, 1, 2].map(|ch| acc.iter().any(|a| a[ch].count >= 2));
     let supported = [0, 1, 2].map(|ch| seen_twice[ch] && prior[ch] < ALPHA_PRIOR_MAX);
-    report.prior = prior;
+    report.prior = prior.map(|p| p.min(ALPHA_PRIOR_MAX));
     report.supported = supported;
     let mut detail = vec![[0.0f32; 3]; pts.len()];
     let mut sq = [0.0; 3];

@@ -39,13 +39,12 @@ pub use fit::{
 };
 pub use load::{Context, SamplesError};
 pub use options::{
-    ALPHA_T1_SHARE, AlphaLattice, MAX_SEGMENTS, ModelChoice, PipelineOptions, SEGMENT_LADDER,
-    Segments,
+    ALPHA_T1_SHARE, AlphaLattice, MAX_SEGMENTS, ModelChoice, PipelineOptions, fit_record,
 };
 pub use register::{RegisteredFrame, register_one};
 pub use report::{
-    AlphaReport, AlphaRound, BASELINE_POOL, BaselineReport, FailReason, FitReport, FitWarning,
-    FrameCounts, LogEStats, ModelSize, OrderCount, TermDropped,
+    AlphaReport, AlphaRound, BASELINE_POOL, BaselineReport, CvCandidate, CvChoice, CvReport,
+    FailReason, FitReport, FitWarning, FrameCounts, LogEStats, ModelSize, OrderCount, TermDropped,
 };
 
 /// A fit within this log E (3 % RMS) is never an outlier, however good the typical fit is
@@ -82,8 +81,8 @@ pub struct FitOutput {
     pub report: FitReport,
 }
 
-/// Runs the whole pipeline over the frames `frames` of `ds` with `opts.model.segments`
-/// direction segments: [`prepare`] (the one pass over the frames, through the dataset's sample
+/// Runs the whole pipeline over the frames `frames` of `ds` with the options `opts` as they are
+/// (no cross-validated choice: that is `crate::crossval`): [`prepare`] (the one pass over the frames, through the dataset's sample
 /// cache) then [`fit_prepared`].
 pub fn fit_dataset(
     ds: &Dataset,
@@ -122,6 +121,19 @@ fn check_options(opts: &PipelineOptions) -> Result<(), PipelineError> {
             opts.model.segments
         )));
     }
+    if opts.alpha_shrinkage.is_nan() || opts.alpha_shrinkage < 0.0 {
+        return Err(PipelineError::Invalid(format!(
+            "the Eq. 6 shrinkage must be >= 0 (inf: no texture), got {}",
+            opts.alpha_shrinkage
+        )));
+    }
+    let floor = crate::registration::SPOT_COS_FLOOR;
+    if !(floor..=1.0).contains(&opts.spot_cos_min) {
+        return Err(PipelineError::Invalid(format!(
+            "the spot's grazing limit must be {floor}..=1 (cos θ), got {}",
+            opts.spot_cos_min
+        )));
+    }
     let share = opts.alpha_window.t1_share;
     if share.is_nan() || share <= 0.0 {
         return Err(PipelineError::Invalid(format!(
@@ -140,145 +152,174 @@ pub fn fit_prepared(
     fitter: &dyn Fitter,
     progress: &dyn Progress,
 ) -> Result<FitOutput, PipelineError> {
-    let opts = &ctx.opts;
-    check_options(opts)?;
-    let ds = ctx.ds;
-    let store = ctx
-        .store()
-        .filter(|s| s.holds(frames))
-        .ok_or_else(|| PipelineError::Invalid("the run's sample store lacks frames".into()))?;
-    let mut report = FitReport {
-        options: Some(*opts),
-        mesh: ds.mesh_report.clone(),
-        vertices: ds.mesh.positions.len(),
-        sample_store: Some(store.report().clone()),
-        ..FitReport::default()
-    };
-    report.frames.total = ds.spec.frames.len();
-    report.frames.selected = frames.len();
-    report
-        .stage_seconds
-        .insert("extract".into(), store.report().seconds);
-    let mut clock = report::StageClock::start();
-    // Registration: the spot in every frame, x_i on the mesh (found by the extraction pass).
-    let regs = register::registered(ctx, frames, &mut report.frames);
-    clock.lap("registration", &mut report);
-    // "We select for each vertex in the mesh the closest light position x_i."
-    let groups = select::select_groups(ctx, &regs);
-    report.frames.fitted = groups.pooling.frames;
-    report.frames.pooling = groups.pooling;
-    clock.lap("selection", &mut report);
-    // Fit R_d per x_i (Eq. 1/3/5/9), with the modulation texture alpha (Eq. 6) in rounds.
-    let fitted = fit::fit_groups(ctx, &regs, &groups, fitter, progress);
-    report.samples = fitted.counts;
-    report.terms_dropped = fitted.dropped.clone();
-    report.segment_fallbacks = fitted
-        .fits
-        .iter()
-        .filter(|f| f.as_ref().is_ok_and(|g| g.isotropic_fallback))
-        .count();
-    report.alpha = fitted.alpha_report.clone();
-    clock.lap("fit", &mut report);
-    // A preset's approximations against exact fits of a sample of light positions (issue 28).
-    report.reflectance_check = check::reflectance(ctx, &regs, &groups, &fitted, fitter, progress);
-    clock.lap("check", &mut report);
-    // alpha finer than the mesh (section 5): Eq. 6 per lattice point, with the final fits.
-    let lattice = lattice::fit_lattice(ctx, &regs, &groups, &fitted, progress);
-    if opts.alpha_lattice.max_level().is_some() {
-        report.alpha.lattice = Some(lattice.report);
-    }
-    clock.lap("lattice", &mut report);
-    // log E(x_i) (Eq. 8) with alpha; fits above the threshold fail.
-    let (errors, baseline_log_e) = error::log_e_of_fits(ctx, &regs, &groups, &fitted, progress);
-    report.baseline = fitted.baseline.as_ref().map(|b| report::BaselineReport {
-        terms: b.params.terms,
-        params: b.params.params.clone(),
-        r_range: b.params.r_range,
-        samples: b.samples,
-        log_e: LogEStats::of(&baseline_log_e),
-    });
-    clock.lap("error", &mut report);
-    let (own, shape) = error::accept(&groups, &fitted, &errors, opts, &mut report)?;
-    // Failed vertices are interpolated from their neighbours, refitted with the common order;
-    // with the order chosen per light position, with the largest order chosen (the blend of
-    // neighbours' curves of different orders needs it; unsupported terms are still dropped).
-    let common_n = match opts.order {
-        Some(_) => shape.terms,
-        None => report
-            .orders
-            .iter()
-            .max_by_key(|(_, c)| **c)
-            .map_or(shape.terms, |(n, _)| *n),
-    };
-    let refits = interpolate::fill(&ctx.scene, &own, &shape, common_n, fitter);
-    let mut model = assemble::model_file(ds, shape, &own, &refits, &fitted.alpha, &mut report);
-    model.baseline = fitted.baseline.as_ref().map(|b| b.params.clone());
-    model.face_alpha = lattice.face_alpha;
-    report.model_size = assemble::model_size(&model, fitter.max_terms(), opts.model.segments);
-    clock.lap("interpolate", &mut report);
-    report.peak_rss_mib = crate::util::peak_rss_mib();
-    report.frames.reads = ds.frame_reads();
-    report.warnings = report.derive_warnings();
-    Ok(FitOutput { model, report })
+    let mut run = Setup::new(ctx, frames)?;
+    let fitted = fit::fit_groups(ctx, &run.regs, &run.groups, fitter, progress);
+    run.clock.lap("fit", &mut run.report);
+    run.finish(ctx, fitted, fitter, progress)
 }
 
-/// [`fit_dataset`] with the direction segments chosen by `segments` (`opts.model.segments` is
-/// ignored). [`Segments::Auto`] runs one whole fit per m of [`SEGMENT_LADDER`] and keeps the
-/// smallest m whose mean log E (Table 1, mean over channels) is within the tolerance of the
-/// best (the rule of [`crate::fit::choose_order`]); the report says what was tried. One pass
-/// over the frames serves every fit of the ladder ([`prepare`]).
-pub fn fit_scan(
-    ds: &Dataset,
-    frames: &[usize],
-    opts: &PipelineOptions,
-    segments: Segments,
-    fitter: &dyn Fitter,
-    progress: &dyn Progress,
-) -> Result<FitOutput, PipelineError> {
-    let ctx = prepare(ds, frames, opts, &StoreOptions::default(), progress)?;
-    fit_scan_in(&ctx, frames, segments, fitter, progress)
-}
-
-/// [`fit_scan`] of a prepared run ([`prepare`]), with its options but for the segments.
-pub fn fit_scan_in(
+/// [`fit_prepared`] with the model after every alpha round handed to `each` (round, model): the
+/// model of round 0 (the fits of the samples as captured, with their Eq. 6 alpha), then of every
+/// kept round ([`fit::AlphaRounds`]), as long as `each` returns `true`. The model of round r is
+/// the one [`fit_prepared`] returns with `alpha_rounds = r`; the cross-validated choice of the
+/// number of rounds (`crate::crossval`) judges each without fitting the rounds again.
+pub fn fit_prepared_rounds(
     ctx: &Context,
     frames: &[usize],
-    segments: Segments,
     fitter: &dyn Fitter,
     progress: &dyn Progress,
-) -> Result<FitOutput, PipelineError> {
-    let tolerance = match segments {
-        Segments::Fixed(m) => {
-            let mut o = ctx.opts;
-            o.model.segments = m;
-            return fit_prepared(&ctx.with_options(o)?, frames, fitter, progress);
+    each: &mut dyn FnMut(usize, FitOutput) -> bool,
+) -> Result<(), PipelineError> {
+    let setup = Setup::new(ctx, frames)?;
+    let mut rounds = fit::AlphaRounds::start(ctx, &setup.regs, &setup.groups, fitter, progress);
+    loop {
+        let mut run = Setup {
+            report: setup.report.clone(),
+            regs: Vec::new(),
+            groups: select::Groups::default(),
+            clock: report::StageClock::start(),
+        };
+        let out = run.finish_with(
+            ctx,
+            &setup.regs,
+            &setup.groups,
+            rounds.fitted(),
+            fitter,
+            progress,
+        )?;
+        if !each(rounds.rounds(), out) || !rounds.step() {
+            return Ok(());
         }
-        Segments::Auto { tolerance } => tolerance,
-    };
-    if !(tolerance >= 0.0 && tolerance.is_finite()) {
-        return Err(PipelineError::Invalid(
-            "the segments tolerance must be finite and >= 0".into(),
-        ));
     }
-    let mut runs = Vec::new();
-    for m in SEGMENT_LADDER {
-        let mut o = ctx.opts;
-        o.model.segments = m;
-        let run = fit_prepared(&ctx.with_options(o)?, frames, fitter, progress);
-        let log_e = run
-            .as_ref()
-            .ok()
-            .and_then(|out| out.report.log_e.mean_over_channels());
-        runs.push((m, log_e, run));
+}
+
+/// A run's registration and selection, before the fit.
+struct Setup {
+    report: FitReport,
+    regs: Vec<RegisteredFrame>,
+    groups: select::Groups,
+    clock: report::StageClock,
+}
+
+impl Setup {
+    fn new(ctx: &Context, frames: &[usize]) -> Result<Setup, PipelineError> {
+        let opts = &ctx.opts;
+        check_options(opts)?;
+        let ds = ctx.ds;
+        let store = ctx
+            .store()
+            .filter(|s| s.holds(frames))
+            .ok_or_else(|| PipelineError::Invalid("the run's sample store lacks frames".into()))?;
+        let mut report = FitReport {
+            options: Some(*opts),
+            mesh: ds.mesh_report.clone(),
+            vertices: ds.mesh.positions.len(),
+            sample_store: Some(store.report().clone()),
+            ..FitReport::default()
+        };
+        report.frames.total = ds.spec.frames.len();
+        report.frames.selected = frames.len();
+        report
+            .stage_seconds
+            .insert("extract".into(), store.report().seconds);
+        let mut clock = report::StageClock::start();
+        // Registration: the spot in every frame, x_i on the mesh (found by the extraction pass).
+        let regs = register::registered(ctx, frames, &mut report.frames);
+        clock.lap("registration", &mut report);
+        // "We select for each vertex in the mesh the closest light position x_i."
+        let groups = select::select_groups(ctx, &regs);
+        report.frames.fitted = groups.pooling.frames;
+        report.frames.pooling = groups.pooling;
+        clock.lap("selection", &mut report);
+        Ok(Setup {
+            report,
+            regs,
+            groups,
+            clock,
+        })
     }
-    let candidates: Vec<(usize, Option<f64>)> = runs.iter().map(|(m, e, _)| (*m, *e)).collect();
-    let choice = crate::fit::choose_order(&candidates, tolerance);
-    let chosen = choice.as_ref().map_or(1, |c| c.chosen);
-    let (_, _, run) = runs
-        .into_iter()
-        .find(|(m, _, _)| *m == chosen)
-        .ok_or_else(|| PipelineError::Invalid("no segment count was fitted".into()))?;
-    let mut out = run?;
-    out.report.segments_choice = choice;
-    Ok(out)
+
+    fn finish(
+        mut self,
+        ctx: &Context,
+        fitted: fit::Fitted,
+        fitter: &dyn Fitter,
+        progress: &dyn Progress,
+    ) -> Result<FitOutput, PipelineError> {
+        let (regs, groups) = (
+            std::mem::take(&mut self.regs),
+            std::mem::take(&mut self.groups),
+        );
+        self.finish_with(ctx, &regs, &groups, fitted, fitter, progress)
+    }
+
+    /// The stages after the fit: the lattice, the error, acceptance, interpolation and the
+    /// model file.
+    fn finish_with(
+        &mut self,
+        ctx: &Context,
+        regs: &[RegisteredFrame],
+        groups: &select::Groups,
+        fitted: fit::Fitted,
+        fitter: &dyn Fitter,
+        progress: &dyn Progress,
+    ) -> Result<FitOutput, PipelineError> {
+        let opts = &ctx.opts;
+        let ds = ctx.ds;
+        let report = &mut self.report;
+        let clock = &mut self.clock;
+        report.samples = fitted.counts;
+        report.terms_dropped = fitted.dropped.clone();
+        report.segment_fallbacks = fitted
+            .fits
+            .iter()
+            .filter(|f| f.as_ref().is_ok_and(|g| g.isotropic_fallback))
+            .count();
+        report.alpha = fitted.alpha_report.clone();
+        // A preset's approximations against exact fits of a sample of light positions (issue 28).
+        report.reflectance_check = check::reflectance(ctx, regs, groups, &fitted, fitter, progress);
+        clock.lap("check", report);
+        // alpha finer than the mesh (section 5): Eq. 6 per lattice point, with the final fits.
+        let lattice = lattice::fit_lattice(ctx, regs, groups, &fitted, progress);
+        if opts.alpha_lattice.max_level().is_some() {
+            report.alpha.lattice = Some(lattice.report);
+        }
+        clock.lap("lattice", report);
+        // log E(x_i) (Eq. 8) with alpha; fits above the threshold fail.
+        let (errors, baseline_log_e) = error::log_e_of_fits(ctx, regs, groups, &fitted, progress);
+        report.baseline = fitted.baseline.as_ref().map(|b| report::BaselineReport {
+            terms: b.params.terms,
+            params: b.params.params.clone(),
+            r_range: b.params.r_range,
+            samples: b.samples,
+            log_e: LogEStats::of(&baseline_log_e),
+        });
+        clock.lap("error", report);
+        let (own, shape) = error::accept(groups, &fitted, &errors, opts, report)?;
+        // Failed vertices are interpolated from their neighbours, refitted with the common order;
+        // with the order chosen per light position, with the largest order chosen (the blend of
+        // neighbours' curves of different orders needs it; unsupported terms are still dropped).
+        let common_n = match opts.order {
+            Some(_) => shape.terms,
+            None => report
+                .orders
+                .iter()
+                .max_by_key(|(_, c)| **c)
+                .map_or(shape.terms, |(n, _)| *n),
+        };
+        let refits = interpolate::fill(&ctx.scene, &own, &shape, common_n, fitter);
+        let mut model = assemble::model_file(ds, shape, &own, &refits, &fitted.alpha, report);
+        model.baseline = fitted.baseline.as_ref().map(|b| b.params.clone());
+        model.face_alpha = lattice.face_alpha;
+        model.fitted_with = Some(options::fit_record(opts));
+        report.model_size = assemble::model_size(&model, fitter.max_terms(), opts.model.segments);
+        clock.lap("interpolate", report);
+        report.peak_rss_mib = crate::util::peak_rss_mib();
+        report.frames.reads = ds.frame_reads();
+        report.warnings = report.derive_warnings();
+        Ok(FitOutput {
+            model,
+            report: report.clone(),
+        })
+    }
 }

@@ -74,6 +74,17 @@ pub struct PipelineOptions {
     /// as higher resolution texture"): Eq. 6 per point of a per-face lattice after the rounds
     /// ([`super::lattice`]), written as the model file's `face_alpha` where the images support it.
     pub alpha_lattice: AlphaLattice,
+    /// Eq. 6's shrinkage towards alpha = 1: this multiple of the empirical-Bayes pseudo-count
+    /// ([`crate::model::empirical_prior`], noise over the texture's spread) at the vertices and
+    /// at the lattice points; 1 = the empirical one, 0 = none (the plain geometric mean),
+    /// infinite = no texture (alpha = 1). Chosen by cross-validation (`crate::crossval`).
+    pub alpha_shrinkage: f64,
+    /// Frames whose laser spot the camera sees at a grazing angle (cos θ between the normal at
+    /// the laser's hit and the direction to the camera below this) are not fitted: their spot is
+    /// foreshortened and its back-projected x_i least certain. Registration keeps such frames
+    /// down to [`crate::registration::SPOT_COS_FLOOR`], so whether they help is a choice of the
+    /// fit ([`crate::registration::SPOT_COS_MIN`] by default, chosen by cross-validation).
+    pub spot_cos_min: f64,
 }
 
 /// Whether and how finely alpha is estimated between the vertices (`subsurf fit --alpha-lattice`).
@@ -156,6 +167,8 @@ impl PipelineOptions {
             alpha_rounds: 8,
             alpha_tolerance: 2e-3,
             alpha_lattice: AlphaLattice::Auto,
+            alpha_shrinkage: 1.0,
+            spot_cos_min: crate::registration::SPOT_COS_MIN,
         }
         .with_noise_floor(floor)
     }
@@ -188,25 +201,35 @@ impl PipelineOptions {
     }
 }
 
-/// How many direction segments m (Eq. 3) the fit uses.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum Segments {
-    /// Exactly m.
-    Fixed(usize),
-    /// "Model only what the scene requires": one whole fit per m of [`SEGMENT_LADDER`], keeping
-    /// the smallest m whose mean log E is within `tolerance` (relative) of the best
-    /// ([`crate::fit::choose_order`]).
-    Auto {
-        /// Relative tolerance, e.g. 0.05 = within 5 % of the best.
-        tolerance: f64,
-    },
-}
-
-/// The values of m `--segments auto` tries, in order.
-pub const SEGMENT_LADDER: [usize; 4] = [1, 2, 4, 8];
-
 /// The largest m any fit accepts (the model file and the renderer hold up to it).
 pub const MAX_SEGMENTS: usize = 64;
+
+/// What a model was fitted with that judging it depends on, for its file
+/// ([`crate::modelfile::FitRecord`]): `subsurf evaluate` reads frames by these rules unless told
+/// otherwise, so a model is judged on the fit's terms.
+pub fn fit_record(opts: &PipelineOptions) -> crate::modelfile::FitRecord {
+    crate::modelfile::FitRecord {
+        noise_floor: opts.samples.noise_floor,
+        exclusion_radius_mm: opts.samples.exclusion_radius_mm,
+        cos_min: opts.samples.cos_min,
+        coverage: opts.samples.coverage,
+        laser_tolerance_mm: opts.spot.laser_tolerance_mm,
+        spot_cos_min: opts.spot_cos_min,
+    }
+}
+
+impl PipelineOptions {
+    /// These options with the rules a model was fitted with ([`fit_record`]).
+    pub fn with_fit_record(self, r: &crate::modelfile::FitRecord) -> PipelineOptions {
+        let mut o = self.with_noise_floor(r.noise_floor);
+        o.samples.exclusion_radius_mm = r.exclusion_radius_mm;
+        o.samples.cos_min = r.cos_min;
+        o.samples.coverage = r.coverage;
+        o.spot.laser_tolerance_mm = r.laser_tolerance_mm;
+        o.spot_cos_min = r.spot_cos_min;
+        o
+    }
+}
 
 #[cfg(test)]
 mod tests {

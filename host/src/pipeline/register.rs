@@ -49,17 +49,40 @@ impl RegisteredFrame {
     }
 }
 
+/// Whether the camera sees frame `reg`'s spot more grazing than the run's `spot_cos_min`
+/// ([`crate::registration::spot_cos`]): registration keeps such frames down to
+/// [`crate::registration::SPOT_COS_FLOOR`], the run decides whether to use them.
+pub fn too_grazing(ctx: &Context, reg: &RegisteredFrame) -> bool {
+    let min = ctx.opts.spot_cos_min;
+    if min <= crate::registration::SPOT_COS_FLOOR {
+        return false;
+    }
+    let f = &ctx.ds.spec.frames[reg.frame];
+    crate::registration::spot_cos(&ctx.scene, f, ctx.camera(f.camera), reg.x_i, reg.triangle)
+        .is_none_or(|c| c < min)
+}
+
 /// Registers frame `k` alone (evaluation, prediction, pictures); the reason as text if the frame
-/// is not registered or cannot be read.
+/// is not registered (or its spot is seen more grazing than the run's `spot_cos_min`) or cannot
+/// be read.
 pub fn register_one(ctx: &Context, k: usize) -> Result<RegisteredFrame, String> {
     let outcome = ctx.register(k)?;
-    RegisteredFrame::of(ctx, k, &outcome).ok_or_else(|| format!("not registered: {outcome:?}"))
+    let reg = RegisteredFrame::of(ctx, k, &outcome)
+        .ok_or_else(|| format!("not registered: {outcome:?}"))?;
+    if too_grazing(ctx, &reg) {
+        return Err(format!(
+            "spot seen at a grazing angle (cos θ below {})",
+            ctx.opts.spot_cos_min
+        ));
+    }
+    Ok(reg)
 }
 
 /// The registered frames among `frames` (in the order given), from the run's sample store
 /// ([`super::extract`]: each frame was registered once, when it was decoded); frames that are
 /// not registered are counted in `counts` by reason. Without a store (or for a frame it lacks)
-/// the frame is read and registered here.
+/// the frame is read and registered here. Frames whose spot is seen more grazing than the run's
+/// `spot_cos_min` are counted (`grazing`) and left out.
 pub fn registered(
     ctx: &Context,
     frames: &[usize],
@@ -69,10 +92,14 @@ pub fn registered(
     for &k in frames {
         match ctx.register(k) {
             Ok(o) => match o {
-                RegistrationOutcome::Registered { .. } => {
-                    counts.registered += 1;
-                    out.extend(RegisteredFrame::of(ctx, k, &o));
-                }
+                RegistrationOutcome::Registered { .. } => match RegisteredFrame::of(ctx, k, &o) {
+                    Some(r) if too_grazing(ctx, &r) => counts.grazing += 1,
+                    Some(r) => {
+                        counts.registered += 1;
+                        out.push(r);
+                    }
+                    None => {}
+                },
                 RegistrationOutcome::NoSpot => counts.no_spot += 1,
                 RegistrationOutcome::SpotOffObject => counts.spot_off_object += 1,
                 RegistrationOutcome::LaserMismatch { .. } => counts.laser_mismatch += 1,

@@ -1,7 +1,6 @@
 //! What a run found: `fit-report.json` and the per-vertex failure reasons it counts.
 use std::collections::BTreeMap;
 
-use crate::fit::OrderChoice;
 use crate::samples::SampleCounts;
 
 use super::PipelineOptions;
@@ -51,6 +50,9 @@ pub struct FrameCounts {
     pub registered: usize,
     /// Frames without a bright enough spot.
     pub no_spot: usize,
+    /// Registered frames left out because the camera sees their spot more grazing than the
+    /// run's `spot_cos_min` (`PipelineOptions::spot_cos_min`).
+    pub grazing: usize,
     /// Frames whose spot is not on the mesh.
     pub spot_off_object: usize,
     /// Frames whose spot disagrees with the laser ray (flagged, not used).
@@ -175,9 +177,67 @@ pub struct FitReport {
     pub reflectance_check: Option<super::check::ReflectanceCheck>,
     /// What the run found that makes its model suspect, for people ([`FitWarning`]).
     pub warnings: Vec<FitWarning>,
-    /// With `--segments auto` ([`super::Segments::Auto`]): every m tried and the one chosen.
+    /// The cross-validated choices of the run (`crate::crossval`): the folds, every candidate's
+    /// held-out error and the one chosen; `None` for a fit without cross-validation.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub segments_choice: Option<OrderChoice>,
+    pub cross_validation: Option<CvReport>,
+}
+
+/// The cross-validation of a fit's choices (`crate::crossval`): folds of the training frames,
+/// each fitted on the rest and judged on itself as `subsurf evaluate` judges, and per choice
+/// every candidate's cross-validated error.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct CvReport {
+    /// How the folds were made, in words.
+    pub rule: String,
+    /// Per fold, its frames (held out of that fold's fit).
+    pub folds: Vec<Vec<usize>>,
+    /// Every choice, in the order they were made (each with the earlier ones' outcome).
+    pub choices: Vec<CvChoice>,
+    /// Fits run (one per fold and candidate).
+    pub fits: usize,
+    /// Wall time of the cross-validation, seconds.
+    pub seconds: f64,
+    /// Why no choice could be cross-validated, when none was (too few light positions to make
+    /// folds): every choice then took its default.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub skipped: Option<String>,
+}
+
+/// One cross-validated choice.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct CvChoice {
+    /// The setting chosen (`segments`, `alpha_rounds`, …).
+    pub name: String,
+    /// The rule that chose, in words.
+    pub rule: String,
+    /// Every candidate, in the order the rule prefers them.
+    pub candidates: Vec<CvCandidate>,
+    /// The value chosen.
+    pub chosen: String,
+}
+
+/// One candidate of a cross-validated choice.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct CvCandidate {
+    /// The setting's value.
+    pub value: String,
+    /// Table-1 statistics of log E (Eq. 8) over the held-out frames of every fold (each frame
+    /// judged by the fit that did not see it).
+    pub held_out: LogEStats,
+    /// The criterion: mean over the frames every candidate of the choice predicted of the frame's
+    /// log E (mean over its channels).
+    pub score: Option<f64>,
+    /// How much worse than the best candidate (paired over those frames), and the standard error
+    /// of that difference.
+    pub worse_by: Option<f64>,
+    /// The standard error of `worse_by`.
+    pub se: Option<f64>,
+    /// Whether it was chosen.
+    pub chosen: bool,
+    /// A remark (e.g. the candidate fitted the same model as another and was not fitted again).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub note: Option<String>,
 }
 
 /// Something a run found that makes its model suspect although it was written.
@@ -295,8 +355,8 @@ pub struct BaselineReport {
     pub r_range: [f64; 2],
     /// Channel samples pooled (every k-th of a group's samples above [`BASELINE_POOL`]).
     pub samples: usize,
-    /// Table-1 statistics of log E(x_i) (Eq. 8, alpha = 1) of the baseline on the fitted light
-    /// positions: compare with `log_e`.
+    /// Table-1 statistics of log E(x_i) (Eq. 8, with the model's alpha) of the baseline on the
+    /// fitted light positions: compare with `log_e`.
     pub log_e: LogEStats,
 }
 
@@ -309,12 +369,15 @@ pub const BASELINE_POOL: usize = 2000;
 pub struct AlphaRound {
     /// Round (0 = the fit on the samples as captured).
     pub round: usize,
-    /// Training objective after the round's fit: sum over the fitted samples of
-    /// (ln alpha + ln R_d − ln s)^2 with the alpha it was fitted against.
+    /// Training objective of the model the round leaves: sum over the fitted samples of
+    /// (ln alpha + ln R_d − ln s)^2, the round's fits with the alpha Eq. 6 derives from them
+    /// (the alpha step and the refit together).
     pub objective: f64,
-    /// The same objective of the previous round's fits with this round's alpha (what the round
-    /// had to beat); equals `objective` for round 0.
+    /// The same of the last kept round (what the round had to beat); equals `objective` for
+    /// round 0.
     pub previous: f64,
+    /// The round's fits against the alpha they were fitted to (before the alpha step).
+    pub fitted: f64,
     /// Light positions whose new fit was worse than their previous one and kept the previous.
     pub fits_kept_previous: usize,
     /// Whether the round lowered the objective and was kept (a round that does not is

@@ -91,6 +91,7 @@ pub fn from_field(
         baseline: None,
         frame: crate::model::FrameRule::CURRENT,
         face_alpha: None,
+        fitted_with: None,
     }
 }
 

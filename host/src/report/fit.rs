@@ -104,6 +104,28 @@ pub fn log_e_table(r: &FitReport) -> Table {
     t
 }
 
+/// One cross-validated choice: every candidate's held-out error, its distance from the best
+/// and the standard error of that, and which was chosen.
+pub fn cv_table(c: &crate::pipeline::CvChoice) -> Table {
+    let mut t = Table::new([
+        c.name.as_str(),
+        "held-out log E",
+        "worse than the best",
+        "standard error",
+        "chosen",
+    ]);
+    for k in &c.candidates {
+        t.row([
+            k.value.clone(),
+            fmt::opt(k.score, fmt::log_e),
+            fmt::opt(k.worse_by, fmt::log_e),
+            fmt::opt(k.se, fmt::log_e),
+            if k.chosen { "yes" } else { "" }.to_string(),
+        ]);
+    }
+    t
+}
+
 /// The histogram of the orders (n, m) chosen per light position ([`crate::order`]).
 pub fn orders_table(r: &FitReport) -> Table {
     let mut t = Table::new([
@@ -352,6 +374,26 @@ pub fn fit_report(r: &FitReport, inputs: &FitInputs<'_>) -> Report {
             model_size_line(r)
         )),
     );
+    if let Some(cv) = &r.cross_validation {
+        rep.heading("Choices (cross-validated)");
+        rep.paragraph(format!(
+            "{} ({} fits, {} s). Each candidate's error is the mean log E (Eq. 8) of the frames \
+             of every fold, predicted by a fit of the other folds; the simplest candidate within \
+             one standard error of the best is chosen.{}",
+            cv.rule,
+            fmt::count(cv.fits),
+            fmt::sig(cv.seconds, 3),
+            cv.skipped
+                .as_ref()
+                .map_or(String::new(), |w| format!(" {w}."))
+        ));
+        for c in &cv.choices {
+            rep.table(
+                cv_table(c),
+                Some(format!("{}: {} chosen.", c.name, c.chosen)),
+            );
+        }
+    }
     rep.heading("Data");
     rep.table(counts_table(r), None);
     rep.paragraph(format!(
@@ -473,6 +515,28 @@ mod tests {
             ..Default::default()
         });
         r.warnings = r.derive_warnings();
+        r.cross_validation = Some(crate::pipeline::CvReport {
+            rule: "5 folds of whole turntable angles".into(),
+            fits: 20,
+            seconds: 61.234_567_89,
+            choices: vec![crate::pipeline::CvChoice {
+                name: "segments".into(),
+                chosen: "4".into(),
+                candidates: ["1", "4"]
+                    .iter()
+                    .map(|v| crate::pipeline::CvCandidate {
+                        value: v.to_string(),
+                        score: Some(0.146_123_456_789),
+                        worse_by: Some(0.000_123_456_789),
+                        se: Some(0.000_045_678_912),
+                        chosen: *v == "4",
+                        ..Default::default()
+                    })
+                    .collect(),
+                ..Default::default()
+            }],
+            ..Default::default()
+        });
         let lines = summary_lines(&r).join("\n");
         // No baseline, and a bias beyond the tolerance and the noise: both said first.
         assert!(
@@ -504,6 +568,8 @@ mod tests {
             },
         )
         .to_markdown(Path::new("."));
+        assert!(md.contains("Choices (cross-validated)"), "{md}");
+        assert!(md.contains("segments: 4 chosen"), "{md}");
         for text in [&lines, &md] {
             assert!(!text.contains("Some("), "{text}");
             assert!(!text.contains("None"), "{text}");

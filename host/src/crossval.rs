@@ -1,0 +1,398 @@
+//! The fit's choices made by how well the model predicts frames its fit did not see, not by
+//! how well it fits (issue 25): k-fold cross-validation over the training frames.
+//!
+//! The folds are turntable-aware ([`folds`]): whole turntable angles when the scan has several
+//! (a frame at an angle the fit saw has its x_i beside a fitted one and would measure little
+//! more than noise), else raster positions spread over the scan's order. Each fold's frames are
+//! held out of one fit of the rest and judged as `subsurf evaluate` judges them
+//! ([`crate::evaluate::evaluate_in`], at the vertices, with the run's options), from the run's
+//! sample store: no frame is read again (`Context::store`).
+//!
+//! What is chosen so: the direction segments m with `--segments auto` (per scan, among
+//! [`SEGMENT_LADDER`]) and the number of alpha rounds (Eq. 6) for the chosen m. The rounds cost
+//! nothing extra: every fold fit hands out its model after each round
+//! ([`crate::pipeline::fit_prepared_rounds`]). The rule is the one-standard-error rule of
+//! cross-validation (Breiman et al. 1984; Hastie, Tibshirani and Friedman, *Elements of
+//! Statistical Learning*, 7.10): the simplest candidate whose mean held-out error is within one
+//! standard error (paired over the held-out frames) of the best, because on a few dozen frames
+//! the best candidate's lead is often noise, and the simpler model is the one that carries to
+//! new light positions. Handwritten: the criterion is the product's own (Eq. 8's log E per
+//! held-out frame, the figure `evaluate` prints), which no CV crate computes.
+use std::collections::BTreeMap;
+
+use crate::dataset::Dataset;
+use crate::evaluate::{EvalPoints, FrameEval, evaluate_in};
+use crate::pipeline::{
+    Context, CvCandidate, CvChoice, CvReport, FitOutput, Fitter, LogEStats, PipelineError,
+    fit_prepared, fit_prepared_rounds,
+};
+use crate::progress::Progress;
+
+/// Folds of `subsurf fit --cv-folds` by default: five, the usual compromise between the bias of
+/// few folds (each fit sees 80 % of the frames) and the cost of many.
+pub const DEFAULT_FOLDS: usize = 5;
+
+/// How many direction segments m (Eq. 3) the fit uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Segments {
+    /// Exactly m.
+    Fixed(usize),
+    /// "Model only what the scene requires": the m of [`SEGMENT_LADDER`] chosen by
+    /// cross-validation (needs at least 2 folds).
+    Auto,
+}
+
+/// The values of m `--segments auto` tries, simplest first.
+pub const SEGMENT_LADDER: [usize; 4] = [1, 2, 4, 8];
+
+/// What a fit chooses by cross-validation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct CvSettings {
+    /// Folds (`--cv-folds`); below 2 nothing is cross-validated and every setting keeps the
+    /// value given.
+    pub folds: usize,
+    /// The direction segments.
+    pub segments: Segments,
+    /// Whether the number of alpha rounds (at most `PipelineOptions::alpha_rounds`) is chosen.
+    pub rounds: bool,
+}
+
+impl Default for CvSettings {
+    fn default() -> Self {
+        CvSettings {
+            folds: DEFAULT_FOLDS,
+            segments: Segments::Fixed(1),
+            rounds: true,
+        }
+    }
+}
+
+/// Splits `frames` into at most `k` folds: with at least 2 distinct turntable angles, whole
+/// angles (in angle order, angle i to fold i mod k), else frames in scan order (frame j to fold
+/// j mod k, so each fold's raster positions are spread over the scan). Folds are never empty;
+/// the rule in words second.
+pub fn folds(ds: &Dataset, frames: &[usize], k: usize) -> (Vec<Vec<usize>>, String) {
+    let angle = |f: usize| ds.spec.frames[f].turntable_deg.rem_euclid(360.0);
+    let mut angles: Vec<f64> = frames.iter().map(|&f| angle(f)).collect();
+    angles.sort_by(f64::total_cmp);
+    angles.dedup_by(|a, b| (*a - *b).abs() < 1e-6);
+    if angles.len() >= 2 {
+        let k = k.min(angles.len()).max(1);
+        let mut out = vec![Vec::new(); k];
+        for &f in frames {
+            let i = angles
+                .iter()
+                .position(|a| (a - angle(f)).abs() < 1e-6)
+                .unwrap_or(0);
+            out[i % k].push(f);
+        }
+        out.retain(|f| !f.is_empty());
+        let rule = format!(
+            "{} folds of whole turntable angles (the scan's {} angles dealt round-robin in angle order)",
+            out.len(),
+            angles.len()
+        );
+        (out, rule)
+    } else {
+        let k = k.min(frames.len()).max(1);
+        let mut out = vec![Vec::new(); k];
+        for (j, &f) in frames.iter().enumerate() {
+            out[j % k].push(f);
+        }
+        out.retain(|f| !f.is_empty());
+        let rule = format!(
+            "{} folds of raster positions (one turntable angle: frame j of the scan's order to fold j mod {})",
+            out.len(),
+            out.len()
+        );
+        (out, rule)
+    }
+}
+
+/// Held-out log E per frame (r, g, b; NaN where missing), each frame judged by the fold fit that
+/// did not see it.
+type Errors = BTreeMap<usize, [f64; 3]>;
+
+/// The cross-validated errors of the run's options `ctx.opts` on `folds` (of `frames`), per
+/// number of alpha rounds 0..: entry r is the model a fit with `alpha_rounds = r` leaves (a fold
+/// whose rounds stopped before r contributes its last model). Second: the most rounds any
+/// fold's fit kept.
+fn cross_validate(
+    ctx: &Context,
+    frames: &[usize],
+    folds: &[Vec<usize>],
+    fitter: &dyn Fitter,
+    progress: &dyn Progress,
+    fits: &mut usize,
+) -> Result<(Vec<Errors>, usize), PipelineError> {
+    let max_rounds = ctx.opts.alpha_rounds;
+    let mut per_round: Vec<Errors> = vec![Errors::new(); max_rounds + 1];
+    let mut most = 0;
+    for fold in folds {
+        let train: Vec<usize> = frames
+            .iter()
+            .copied()
+            .filter(|f| !fold.contains(f))
+            .collect();
+        let mut by_round: Vec<Vec<FrameEval>> = Vec::new();
+        let mut failed = None;
+        let run = fit_prepared_rounds(ctx, &train, fitter, &(), &mut |r, out| {
+            match evaluate_in(ctx, &out.model, fold, EvalPoints::Vertices, &()) {
+                Ok((evals, _)) => by_round.push(evals),
+                Err(e) => {
+                    failed = Some(e);
+                    return false;
+                }
+            }
+            r < max_rounds
+        });
+        *fits += 1;
+        progress.inc(1);
+        // A fold whose fit or evaluation fails (too few light positions left) predicts none of
+        // its frames: they drop out of every candidate's comparison.
+        if run.is_err() || failed.is_some() || by_round.is_empty() {
+            continue;
+        }
+        most = most.max(by_round.len() - 1);
+        for (r, errs) in per_round.iter_mut().enumerate() {
+            let evals = &by_round[r.min(by_round.len() - 1)];
+            for e in evals.iter().filter(|e| e.skipped.is_none()) {
+                errs.insert(e.frame, e.log_e.map(|v| v.unwrap_or(f64::NAN)));
+            }
+        }
+    }
+    Ok((per_round, most))
+}
+
+/// Mean over its finite channels of a frame's log E.
+fn frame_error(v: &[f64; 3]) -> Option<f64> {
+    let f: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+    (!f.is_empty()).then(|| f.iter().sum::<f64>() / f.len() as f64)
+}
+
+/// The one-standard-error choice among `candidates` (value, errors), simplest first: scores over
+/// the frames every candidate with data predicted; the index chosen (`None` when no candidate
+/// predicted any frame) and the report's rows.
+fn one_se(candidates: &[(String, &Errors)]) -> (Option<usize>, Vec<CvCandidate>) {
+    let with_data: Vec<bool> = candidates
+        .iter()
+        .map(|(_, e)| e.values().any(|v| frame_error(v).is_some()))
+        .collect();
+    let common: Vec<usize> = candidates
+        .iter()
+        .find(|(_, e)| !e.is_empty())
+        .map(|(_, e)| e.keys().copied().collect::<Vec<_>>())
+        .unwrap_or_default()
+        .into_iter()
+        .filter(|f| {
+            candidates
+                .iter()
+                .zip(&with_data)
+                .filter(|(_, d)| **d)
+                .all(|((_, e), _)| e.get(f).and_then(frame_error).is_some())
+        })
+        .collect();
+    let err = |i: usize, f: usize| candidates[i].1.get(&f).and_then(frame_error);
+    let score: Vec<Option<f64>> = (0..candidates.len())
+        .map(|i| {
+            (with_data[i] && !common.is_empty()).then(|| {
+                common.iter().filter_map(|&f| err(i, f)).sum::<f64>() / common.len() as f64
+            })
+        })
+        .collect();
+    let best = (0..candidates.len())
+        .filter_map(|i| score[i].map(|s| (i, s)))
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .map(|b| b.0);
+    let mut rows: Vec<CvCandidate> = candidates
+        .iter()
+        .map(|(value, e)| CvCandidate {
+            value: value.clone(),
+            held_out: LogEStats::of(&e.values().copied().collect::<Vec<_>>()),
+            ..CvCandidate::default()
+        })
+        .collect();
+    let Some(best) = best else {
+        return (None, rows);
+    };
+    let mut chosen = None;
+    for i in 0..candidates.len() {
+        rows[i].score = score[i];
+        if score[i].is_none() {
+            rows[i].note = Some("predicted none of the compared frames".into());
+            continue;
+        }
+        let d: Vec<f64> = common
+            .iter()
+            .filter_map(|&f| Some(err(i, f)? - err(best, f)?))
+            .collect();
+        let n = d.len() as f64;
+        let mean = d.iter().sum::<f64>() / n;
+        let se = if d.len() >= 2 {
+            (d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0) / n).sqrt()
+        } else {
+            0.0
+        };
+        rows[i].worse_by = Some(mean);
+        rows[i].se = Some(se);
+        if chosen.is_none() && mean <= se {
+            chosen = Some(i);
+        }
+    }
+    let chosen = chosen.unwrap_or(best);
+    rows[chosen].chosen = true;
+    (Some(chosen), rows)
+}
+
+const ONE_SE_RULE: &str = "the simplest candidate whose mean held-out log E (frames every candidate predicted) is within one standard error (paired over those frames) of the best";
+
+/// The choice of the number of alpha rounds among `per_round[..=most]`: the chosen number and
+/// the report's choice. When the choice is the most rounds any fold kept (the rounds ran until
+/// they converged or stopped lowering the objective) the fit keeps its limit `max` rather than
+/// this number, so the fit on every frame may run as far as its data allow.
+fn choose_rounds(per_round: &[Errors], most: usize, max: usize) -> (usize, CvChoice) {
+    let cands: Vec<(String, &Errors)> = per_round[..=most.min(per_round.len() - 1)]
+        .iter()
+        .enumerate()
+        .map(|(r, e)| (r.to_string(), e))
+        .collect();
+    let (chosen, candidates) = one_se(&cands);
+    let r = chosen.unwrap_or(most);
+    let limit = if r >= most { max } else { r };
+    let choice = CvChoice {
+        name: "alpha_rounds".into(),
+        rule: format!(
+            "{ONE_SE_RULE}; rounds beyond the {most} any fold's fit kept are not candidates (the fit stops there on its own)"
+        ),
+        candidates,
+        chosen: if limit == r {
+            r.to_string()
+        } else {
+            format!("{r} (the rounds run to their end: limit {max})")
+        },
+    };
+    (limit, choice)
+}
+
+/// A fit of the prepared run `ctx` on `frames`, with the choices of `cv` made by
+/// cross-validation over `frames` ([`folds`]); the report's `cross_validation` lists every
+/// candidate's held-out error and the choice. Without folds (fewer than 2, or a scan with a
+/// single frame) every setting keeps the value given, and `--segments auto` is refused.
+pub fn fit_scan_in(
+    ctx: &Context,
+    frames: &[usize],
+    cv: &CvSettings,
+    fitter: &dyn Fitter,
+    progress: &dyn Progress,
+) -> Result<FitOutput, PipelineError> {
+    let start = std::time::Instant::now();
+    let mut opts = ctx.opts;
+    if let Segments::Fixed(m) = cv.segments {
+        opts.model.segments = m;
+    }
+    let auto = cv.segments == Segments::Auto;
+    let rounds = cv.rounds && opts.alpha_rounds > 0;
+    let mut report = None;
+    if auto || rounds {
+        let (folds, rule) = folds(ctx.ds, frames, cv.folds);
+        let mut rep = CvReport {
+            rule,
+            folds: folds.clone(),
+            ..CvReport::default()
+        };
+        if cv.folds < 2 || folds.len() < 2 {
+            if auto {
+                return Err(PipelineError::Invalid(
+                    "--segments auto chooses m by cross-validation: it needs --cv-folds >= 2 and at least 2 frames".into(),
+                ));
+            }
+            rep.skipped = Some(format!(
+                "{} fold(s): nothing cross-validated, every setting as given",
+                folds.len()
+            ));
+        } else {
+            let ladder: Vec<usize> = if auto {
+                SEGMENT_LADDER.to_vec()
+            } else {
+                vec![opts.model.segments]
+            };
+            progress.start("cross-validation", (ladder.len() * folds.len()) as u64);
+            let mut grids = Vec::new();
+            for &m in &ladder {
+                let mut o = opts;
+                o.model.segments = m;
+                let c = ctx.with_options(o)?;
+                grids.push(cross_validate(
+                    &c,
+                    frames,
+                    &folds,
+                    fitter,
+                    progress,
+                    &mut rep.fits,
+                )?);
+            }
+            // Each m at its own best number of rounds, then the rounds of the m chosen.
+            let per_m: Vec<(usize, CvChoice)> = grids
+                .iter()
+                .map(|(g, most)| choose_rounds(g, *most, opts.alpha_rounds))
+                .collect();
+            let mut k = 0;
+            if auto {
+                let cands: Vec<(String, &Errors)> = ladder
+                    .iter()
+                    .zip(&grids)
+                    .zip(&per_m)
+                    .map(|((m, (g, most)), (limit, _))| (m.to_string(), &g[(*limit).min(*most)]))
+                    .collect();
+                let (chosen, candidates) = one_se(&cands);
+                k = chosen.unwrap_or(0);
+                opts.model.segments = ladder[k];
+                rep.choices.push(CvChoice {
+                    name: "segments".into(),
+                    rule: format!("{ONE_SE_RULE} (each m with its own cross-validated rounds)"),
+                    candidates,
+                    chosen: ladder[k].to_string(),
+                });
+            }
+            if rounds {
+                let (limit, choice) = per_m[k].clone();
+                opts.alpha_rounds = limit;
+                rep.choices.push(choice);
+            }
+        }
+        rep.seconds = start.elapsed().as_secs_f64();
+        report = Some(rep);
+    }
+    let mut out = fit_prepared(&ctx.with_options(opts)?, frames, fitter, progress)?;
+    out.report.cross_validation = report;
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn errors(v: &[(usize, f64)]) -> Errors {
+        v.iter().map(|&(f, e)| (f, [e; 3])).collect()
+    }
+
+    /// The simplest candidate within one standard error of the best wins; a clearly better
+    /// complex one wins; a candidate without data is reported and never chosen.
+    #[test]
+    fn the_one_se_rule_prefers_the_simpler_within_noise() {
+        let simple = errors(&[(0, 0.30), (1, 0.20), (2, 0.41), (3, 0.25)]);
+        let noisy_better = errors(&[(0, 0.28), (1, 0.22), (2, 0.37), (3, 0.25)]);
+        let (c, rows) = one_se(&[("1".into(), &simple), ("2".into(), &noisy_better)]);
+        assert_eq!(c, Some(0), "{rows:?}");
+        let clearly = errors(&[(0, 0.20), (1, 0.11), (2, 0.30), (3, 0.16)]);
+        let (c, rows) = one_se(&[("1".into(), &simple), ("4".into(), &clearly)]);
+        assert_eq!(c, Some(1), "{rows:?}");
+        assert!(rows[0].worse_by.unwrap() > rows[0].se.unwrap());
+        let none = Errors::new();
+        let (c, rows) = one_se(&[("1".into(), &none), ("2".into(), &simple)]);
+        assert_eq!(c, Some(1));
+        assert_eq!(rows[0].score, None);
+        assert!(rows[0].note.is_some());
+        assert_eq!(one_se(&[("1".into(), &none)]).0, None);
+    }
+}
