@@ -63,9 +63,11 @@ pub struct Args {
     /// Folds of the cross-validation inside the fit (whole turntable angles, or spread raster
     /// positions on a one-angle scan): each fold's frames are predicted by a fit of the others,
     /// which chooses `--segments auto` and the number of alpha rounds. 0 or 1: no
-    /// cross-validation (the rounds run to `--alpha-rounds` or convergence).
-    #[arg(long, default_value_t = subsurf::crossval::DEFAULT_FOLDS)]
-    pub cv_folds: usize,
+    /// cross-validation (the rounds run to `--alpha-rounds` or convergence). Default: 5; 0 for
+    /// `--preset draft` unless `--segments auto` (a preview does not pay for the fold fits,
+    /// which cost several times the fit itself: BENCHMARKS.md).
+    #[arg(long)]
+    pub cv_folds: Option<usize>,
     /// Exponential terms n (Eq. 1): the largest n a light position may use (each chooses its
     /// own n and m, see `--fixed-order`), or `auto` for the smallest order within 1 % of the
     /// best. Default: the preset's (3 for exact).
@@ -278,8 +280,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 })?,
         ),
     };
+    let folds = args.cv_folds.unwrap_or(
+        if matches!(args.preset, PresetArg::Draft) && segments != Segments::Auto {
+            0
+        } else {
+            subsurf::crossval::DEFAULT_FOLDS
+        },
+    );
     let cv = CvSettings {
-        folds: args.cv_folds,
+        folds,
         segments,
         rounds: true,
     };
