@@ -23,8 +23,8 @@ use std::collections::BTreeMap;
 use crate::dataset::Dataset;
 use crate::evaluate::{EvalPoints, FrameEval, evaluate_in};
 use crate::pipeline::{
-    Context, CvCandidate, CvChoice, CvReport, FitOutput, Fitter, LogEStats, PipelineError,
-    fit_prepared, fit_prepared_rounds,
+    AlphaLattice, Context, CvCandidate, CvChoice, CvReport, FitOutput, Fitter, LogEStats,
+    PipelineError, PipelineOptions, fit_prepared, fit_prepared_rounds,
 };
 use crate::progress::Progress;
 
@@ -126,6 +126,12 @@ fn cross_validate(
     fits: &mut usize,
 ) -> Result<(Vec<Errors>, usize), PipelineError> {
     let max_rounds = ctx.opts.alpha_rounds;
+    // The folds are judged at the vertices, where alpha finer than the mesh changes nothing
+    // (`EvalPoints::Vertices`): their fits skip the lattice stage, the same errors for less.
+    let ctx = &ctx.with_options(PipelineOptions {
+        alpha_lattice: AlphaLattice::Off,
+        ..ctx.opts
+    })?;
     let mut per_round: Vec<Errors> = vec![Errors::new(); max_rounds + 1];
     let mut most = 0;
     for fold in folds {
