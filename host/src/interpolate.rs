@@ -2,40 +2,67 @@
 //! "vertices for which no stable fit could be achieved were filtered out and interpolated from
 //! neighboring vertices"; the pipeline's failed vertices, and alpha where no frame saw a texel).
 //!
-//! Every unknown vertex becomes the mean of its neighbours, known vertices held fixed, solved by
-//! Gauss–Seidel sweeps from a breadth-first initial guess. Vectors that hold one entry per
+//! Every unknown vertex becomes the mean of its neighbours, known vertices held fixed: the
+//! discrete Laplace equation, from a breadth-first initial guess. Plain values ([`harmonic`]) are
+//! solved by conjugate gradients on the graph Laplacian; vectors that hold one entry per
 //! direction segment (Eq. 3) are only averaged in one frame: [`harmonic_aligned`] lets the caller
 //! re-express a neighbour's vector in the frame of the vertex it is averaged into, so curves are
-//! never averaged across a turn of the tangent frame.
+//! never averaged across a turn of the tangent frame, and solves by Gauss–Seidel sweeps.
 
 /// Fills every `None` in `values` with the harmonic interpolation of the `Some` values over the
-/// graph given by `neighbours`. Vertices not connected to any known vertex stay `None`. All known
-/// vectors must have the same length.
+/// graph given by `neighbours` (which must be symmetric, as a mesh's edges are). Vertices not
+/// connected to any known vertex stay `None`. All known vectors must have the same length.
+/// `iterations` bounds the solve.
+///
+/// Conjugate gradients (Jacobi-preconditioned) rather than Gauss–Seidel: the Laplacian of a hole
+/// d edges across has a condition number of order d², so Gauss–Seidel needs of order d² sweeps
+/// to settle and CG of order d iterations. The cross-validation's fold fits leave holes a
+/// turntable angle wide at every vertex without data, where Gauss–Seidel ran into its 2,000
+/// sweeps and took three quarters of a default `subsurf fit` (sample-pebble); CG also ends
+/// nearer the solution (relative residual 1e-13 against a sweep that moved nothing by 1e-12).
 pub fn harmonic<'a>(
     values: &[Option<Vec<f64>>],
     neighbours: impl Fn(usize) -> &'a [u32],
-    sweeps: usize,
+    iterations: usize,
 ) -> Vec<Option<Vec<f64>>> {
-    harmonic_aligned(values, neighbours, |_, _, _| None, sweeps)
+    let no_turn = |_: usize, _: usize, _: &[f64]| None;
+    let (mut out, order) = breadth_first(values, &neighbours, &no_turn);
+    if !conjugate_gradients(&mut out, &order, &neighbours, iterations) {
+        gauss_seidel(&mut out, &order, &neighbours, &no_turn, iterations);
+    }
+    out
 }
 
 /// [`harmonic`] where `align(v, w, x)` re-expresses neighbour `w`'s vector `x` for vertex `v`
 /// (`None`: use it as it is). The pipeline turns a neighbour's direction segments into `v`'s
-/// tangent frame with it.
+/// tangent frame with it. Gauss–Seidel, at most `sweeps` sweeps: the turns make the operator
+/// other than the symmetric Laplacian conjugate gradients need.
 pub fn harmonic_aligned<'a>(
     values: &[Option<Vec<f64>>],
     neighbours: impl Fn(usize) -> &'a [u32],
     align: impl Fn(usize, usize, &[f64]) -> Option<Vec<f64>>,
     sweeps: usize,
 ) -> Vec<Option<Vec<f64>>> {
+    let (mut out, order) = breadth_first(values, &neighbours, &align);
+    gauss_seidel(&mut out, &order, &neighbours, &align, sweeps);
+    out
+}
+
+/// The initial guess: each unknown vertex, in order of distance from the known set, takes the
+/// mean of its already-assigned neighbours. Returns the guess and the unknown vertices it
+/// reached, in that order.
+fn breadth_first<'a>(
+    values: &[Option<Vec<f64>>],
+    neighbours: &impl Fn(usize) -> &'a [u32],
+    align: &impl Fn(usize, usize, &[f64]) -> Option<Vec<f64>>,
+) -> (Vec<Option<Vec<f64>>>, Vec<usize>) {
     let n = values.len();
     let mut out: Vec<Option<Vec<f64>>> = values.to_vec();
     let fixed: Vec<bool> = values.iter().map(Option::is_some).collect();
-    // Breadth-first initial guess: each unknown vertex, in order of distance from the known set,
-    // takes the mean of its already-assigned neighbours.
     let mut frontier: Vec<usize> = (0..n).filter(|&v| fixed[v]).collect();
-    let mut assigned = fixed.clone();
+    let mut assigned = fixed;
     let mut order = Vec::new();
+    let mut buf = Vec::new();
     while !frontier.is_empty() {
         let mut next = Vec::new();
         for &v in &frontier {
@@ -48,60 +75,286 @@ pub fn harmonic_aligned<'a>(
             }
         }
         for &w in &next {
-            out[w] = mean_of(&out, w, neighbours(w), &align);
+            out[w] = mean_into(&out, w, neighbours(w), align, &mut buf).then(|| buf.clone());
             order.push(w);
         }
         frontier = next;
     }
+    (out, order)
+}
+
+/// Gauss–Seidel sweeps over `order` until no value moves by 1e-12 or `sweeps` ran.
+fn gauss_seidel<'a>(
+    out: &mut [Option<Vec<f64>>],
+    order: &[usize],
+    neighbours: &impl Fn(usize) -> &'a [u32],
+    align: &impl Fn(usize, usize, &[f64]) -> Option<Vec<f64>>,
+    sweeps: usize,
+) {
+    let mut m = Vec::new();
     for _ in 0..sweeps {
         let mut change: f64 = 0.0;
-        for &v in &order {
-            if let Some(m) = mean_of(&out, v, neighbours(v), &align) {
-                if let Some(old) = &out[v] {
-                    for (a, b) in old.iter().zip(&m) {
-                        change = change.max((a - b).abs());
+        for &v in order {
+            if mean_into(out, v, neighbours(v), align, &mut m) {
+                match &mut out[v] {
+                    Some(old) if old.len() == m.len() => {
+                        for (a, b) in old.iter_mut().zip(&m) {
+                            change = change.max((*a - b).abs());
+                            *a = *b;
+                        }
+                    }
+                    slot => {
+                        if let Some(old) = slot.as_ref() {
+                            for (a, b) in old.iter().zip(&m) {
+                                change = change.max((a - b).abs());
+                            }
+                        }
+                        *slot = Some(m.clone());
                     }
                 }
-                out[v] = Some(m);
             }
         }
         if change < 1e-12 {
             break;
         }
     }
-    out
 }
 
-fn mean_of(
+/// Solves the Laplace equation on the unknown vertices `order` (the rest of `out` held fixed)
+/// by Jacobi-preconditioned conjugate gradients, one independent solve per vector component
+/// sharing the sparse products, started from `out`. `false` (and `out` untouched) where the
+/// vectors differ in length, which only the sweeps handle (they skip such neighbours).
+fn conjugate_gradients<'a>(
+    out: &mut [Option<Vec<f64>>],
+    order: &[usize],
+    neighbours: &impl Fn(usize) -> &'a [u32],
+    iterations: usize,
+) -> bool {
+    const RTOL: f64 = 1e-13;
+    let n = out.len();
+    let Some(len) = out.iter().flatten().map(Vec::len).next() else {
+        return true;
+    };
+    if order.is_empty() {
+        return true;
+    }
+    if out.iter().flatten().any(|x| x.len() != len) {
+        return false;
+    }
+    let mut pos = vec![usize::MAX; n];
+    for (i, &v) in order.iter().enumerate() {
+        pos[v] = i;
+    }
+    let nu = order.len();
+    // Rows of the system deg(v)·x_v − Σ_{w unknown} x_w = Σ_{w known} x_w: the unknown
+    // neighbours (compressed), the degree (neighbours with a value, as the mean counts them)
+    // and the right-hand side.
+    let mut cols: Vec<u32> = Vec::new();
+    let mut start = Vec::with_capacity(nu + 1);
+    let mut deg = vec![0.0; nu];
+    let mut b = vec![0.0; nu * len];
+    for (i, &v) in order.iter().enumerate() {
+        start.push(cols.len());
+        for &w in neighbours(v) {
+            let w = w as usize;
+            if w >= n {
+                continue;
+            }
+            if pos[w] != usize::MAX {
+                cols.push(pos[w] as u32);
+                deg[i] += 1.0;
+            } else if let Some(x) = &out[w] {
+                for (bc, xc) in b[i * len..(i + 1) * len].iter_mut().zip(x) {
+                    *bc += xc;
+                }
+                deg[i] += 1.0;
+            }
+        }
+    }
+    start.push(cols.len());
+    if deg.iter().any(|&d| d <= 0.0) {
+        return false;
+    }
+    let apply = |x: &[f64], y: &mut [f64]| {
+        for i in 0..nu {
+            let yi = &mut y[i * len..(i + 1) * len];
+            for (c, yc) in yi.iter_mut().enumerate() {
+                *yc = deg[i] * x[i * len + c];
+            }
+            for &j in &cols[start[i]..start[i + 1]] {
+                let j = j as usize;
+                for (c, yc) in yi.iter_mut().enumerate() {
+                    *yc -= x[j * len + c];
+                }
+            }
+        }
+    };
+    let mut x = vec![0.0; nu * len];
+    for (i, &v) in order.iter().enumerate() {
+        if let Some(g) = &out[v] {
+            x[i * len..(i + 1) * len].copy_from_slice(g);
+        }
+    }
+    let mut r = vec![0.0; nu * len];
+    apply(&x, &mut r);
+    for (ri, bi) in r.iter_mut().zip(&b) {
+        *ri = bi - *ri;
+    }
+    let col_dot = |a: &[f64], b: &[f64]| -> Vec<f64> {
+        let mut s = vec![0.0; len];
+        for (ai, bi) in a.chunks_exact(len).zip(b.chunks_exact(len)) {
+            for c in 0..len {
+                s[c] += ai[c] * bi[c];
+            }
+        }
+        s
+    };
+    let b_norm: Vec<f64> = col_dot(&b, &b).into_iter().map(f64::sqrt).collect();
+    let inv_deg: Vec<f64> = deg.iter().map(|d| 1.0 / d).collect();
+    let mut z: Vec<f64> = r
+        .chunks_exact(len)
+        .zip(&inv_deg)
+        .flat_map(|(ri, k)| ri.iter().map(move |v| v * k))
+        .collect();
+    let mut p = z.clone();
+    let mut rz = col_dot(&r, &z);
+    let mut rr = col_dot(&r, &r);
+    let mut q = vec![0.0; nu * len];
+    let mut step = vec![0.0; len];
+    let mut beta = vec![0.0; len];
+    for _ in 0..iterations {
+        let done = rr
+            .iter()
+            .zip(&b_norm)
+            .all(|(rr, bn)| rr.sqrt() <= RTOL * bn.max(f64::MIN_POSITIVE));
+        if done {
+            break;
+        }
+        apply(&p, &mut q);
+        let pq = col_dot(&p, &q);
+        for c in 0..len {
+            step[c] = if pq[c] > 0.0 { rz[c] / pq[c] } else { 0.0 };
+        }
+        let mut rz_new = vec![0.0; len];
+        rr.iter_mut().for_each(|v| *v = 0.0);
+        for (i, &kd) in inv_deg.iter().enumerate() {
+            for c in 0..len {
+                let k = i * len + c;
+                x[k] += step[c] * p[k];
+                r[k] -= step[c] * q[k];
+                z[k] = r[k] * kd;
+                rz_new[c] += r[k] * z[k];
+                rr[c] += r[k] * r[k];
+            }
+        }
+        for c in 0..len {
+            beta[c] = if rz[c] > 0.0 { rz_new[c] / rz[c] } else { 0.0 };
+        }
+        for (pk, zk) in p.chunks_exact_mut(len).zip(z.chunks_exact(len)) {
+            for c in 0..len {
+                pk[c] = zk[c] + beta[c] * pk[c];
+            }
+        }
+        rz = rz_new;
+    }
+    if x.iter().any(|v| !v.is_finite()) {
+        return false;
+    }
+    for (i, &v) in order.iter().enumerate() {
+        out[v] = Some(x[i * len..(i + 1) * len].to_vec());
+    }
+    true
+}
+
+/// The mean of `v`'s neighbours' vectors (each re-expressed by `align`) into `acc`; `false`
+/// where no neighbour has one. Neighbours whose vector differs in length from the first are
+/// skipped.
+fn mean_into(
     vals: &[Option<Vec<f64>>],
     v: usize,
     nb: &[u32],
     align: &impl Fn(usize, usize, &[f64]) -> Option<Vec<f64>>,
-) -> Option<Vec<f64>> {
-    let mut acc: Option<Vec<f64>> = None;
+    acc: &mut Vec<f64>,
+) -> bool {
+    acc.clear();
     let mut count = 0.0;
     for &w in nb {
         if let Some(Some(x)) = vals.get(w as usize) {
             let aligned = align(v, w as usize, x);
             let x = aligned.as_deref().unwrap_or(x);
-            match &mut acc {
-                None => acc = Some(x.to_vec()),
-                Some(a) if a.len() == x.len() => {
-                    for (s, y) in a.iter_mut().zip(x) {
-                        *s += y;
-                    }
+            if count == 0.0 {
+                acc.extend_from_slice(x);
+            } else if acc.len() == x.len() {
+                for (s, y) in acc.iter_mut().zip(x) {
+                    *s += y;
                 }
-                Some(_) => continue,
+            } else {
+                continue;
             }
             count += 1.0;
         }
     }
-    acc.map(|a| a.into_iter().map(|x| x / count).collect())
+    for a in acc.iter_mut() {
+        *a /= count;
+    }
+    count > 0.0
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// x² − y² is harmonic on the 4-neighbour grid (its discrete Laplacian is 2 − 2), so with the
+    /// boundary known the interior must come out as x² − y² itself; a 40 × 40 hole is where the
+    /// sweeps' d² convergence shows (they stop 1e-12 per sweep short, far from the solution).
+    #[test]
+    fn a_grid_hole_is_filled_with_the_discrete_harmonic_function() {
+        let k = 42usize;
+        let id = |i: usize, j: usize| (i * k + j) as u32;
+        let adj: Vec<Vec<u32>> = (0..k * k)
+            .map(|v| {
+                let (i, j) = (v / k, v % k);
+                let mut nb = Vec::new();
+                if i > 0 {
+                    nb.push(id(i - 1, j));
+                }
+                if i + 1 < k {
+                    nb.push(id(i + 1, j));
+                }
+                if j > 0 {
+                    nb.push(id(i, j - 1));
+                }
+                if j + 1 < k {
+                    nb.push(id(i, j + 1));
+                }
+                nb
+            })
+            .collect();
+        let f = |v: usize| {
+            let (x, y) = ((v / k) as f64, (v % k) as f64);
+            vec![x * x - y * y, 1.0 + 0.5 * x - 2.0 * y]
+        };
+        let border = |v: usize| {
+            let (i, j) = (v / k, v % k);
+            i == 0 || j == 0 || i + 1 == k || j + 1 == k
+        };
+        let vals: Vec<Option<Vec<f64>>> = (0..k * k).map(|v| border(v).then(|| f(v))).collect();
+        let out = harmonic(&vals, |v| &adj[v], 2000);
+        for (v, got) in out.iter().enumerate() {
+            let got = got.as_ref().unwrap();
+            for (g, w) in got.iter().zip(f(v)) {
+                assert!(
+                    (g - w).abs() < 1e-8 * (1.0 + w.abs()),
+                    "vertex {v}: {g} vs {w}"
+                );
+            }
+        }
+        // Gauss–Seidel stopped after 200 sweeps is still far off in the middle.
+        let gs = harmonic_aligned(&vals, |v| &adj[v], |_, _, _| None, 200);
+        let mid = (k / 2) * k + k / 2;
+        let err = (gs[mid].as_ref().unwrap()[0] - f(mid)[0]).abs();
+        assert!(err > 1e-3, "Gauss–Seidel already converged ({err})");
+    }
 
     #[test]
     fn a_path_is_filled_linearly_and_islands_stay_empty() {

@@ -60,15 +60,20 @@ pub fn fill(
     } else {
         2
     };
-    let filled = crate::interpolate::harmonic_aligned(
-        &known,
-        |v| scene.neighbours(v),
-        |v, w, x| {
-            let k = turns.shift(v, w, shape.segments);
-            (k != 0).then(|| turn_segments(x, head, grid.r.len(), shape.segments, k))
-        },
-        2000,
-    );
+    // One segment has no frame to turn: the Laplacian's conjugate gradients.
+    let filled = if shape.segments > 1 {
+        crate::interpolate::harmonic_aligned(
+            &known,
+            |v| scene.neighbours(v),
+            |v, w, x| {
+                let k = turns.shift(v, w, shape.segments);
+                (k != 0).then(|| turn_segments(x, head, grid.r.len(), shape.segments, k))
+            },
+            2000,
+        )
+    } else {
+        crate::interpolate::harmonic(&known, |v| scene.neighbours(v), 2000)
+    };
     (0..own.len())
         .into_par_iter()
         .map(|v| {
