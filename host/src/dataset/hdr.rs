@@ -128,4 +128,40 @@ mod tests {
             .is_err()
         );
     }
+
+    /// What no exposure measured is never made up: a value clipped or not finite in every
+    /// exposure keeps the shortest one's (clipped stays at or above saturation over it, NaN and
+    /// infinity stay, for the readers' rules to drop); one good exposure is enough.
+    #[test]
+    fn values_no_exposure_measured_stay_clipped_or_not_finite() {
+        let bracket = |exposure_s: f64, data: [f32; 4]| Bracket {
+            exposure_s,
+            image: Image {
+                width: 4,
+                height: 1,
+                channels: 1,
+                data: data.to_vec(),
+            },
+        };
+        let nan = f32::NAN;
+        let m = merge_hdr(
+            &[
+                bracket(0.5, [1.0, nan, f32::INFINITY, nan]),
+                bracket(2.0, [1.0, nan, 1.0, 0.4]),
+            ],
+            &MergeOptions {
+                saturation: 1.0,
+                noise_floor: 0.0,
+            },
+        )
+        .unwrap();
+        assert_eq!(
+            m.data[0], 2.0,
+            "clipped in both: the shortest's value over its exposure"
+        );
+        assert!(m.data[0] as f64 * 0.5 >= 1.0);
+        assert!(m.data[1].is_nan());
+        assert_eq!(m.data[2], f32::INFINITY);
+        assert!((m.data[3] - 0.2).abs() < 1e-7, "{}", m.data[3]);
+    }
 }
