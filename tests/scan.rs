@@ -61,6 +61,7 @@ fn slab_scan(
             laser: Some(laser),
             galvo: None,
             levels: Default::default(),
+            brackets: Vec::new(),
         };
         w.add_image(spec, &img, true).unwrap();
     }

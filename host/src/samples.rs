@@ -263,6 +263,7 @@ mod tests {
             laser: None,
             galvo: None,
             levels: Default::default(),
+            brackets: Vec::new(),
         };
         let pos = vec![
             [1.0, 0.0, 0.0],
@@ -376,6 +377,7 @@ mod tests {
             laser: None,
             galvo: None,
             levels: Default::default(),
+            brackets: Vec::new(),
         };
         let map = CoverageMap::new(&cam, 0.0, opts.cos_min);
         let x_i = [10.0, 10.0, 0.0];
@@ -450,6 +452,7 @@ mod tests {
             laser: None,
             galvo: None,
             levels: Default::default(),
+            brackets: Vec::new(),
         };
         let opts = SampleOptions::default();
         let x_i = [0.1, 0.1, 0.0];

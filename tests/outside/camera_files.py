@@ -3,7 +3,8 @@
 Usage: python camera_files.py JOB.json
 
 JOB.json: {"width": W, "height": H, "black": B, "white": W16, "dn_per_unit": K,
-           "frames": [{"raw": "in/000.f32", "tiff": "out/000.tif", "dng": "out/000.dng"}, ...]}
+           "frames": [{"raw": "in/000.f32", "tiff": "out/000.tif", "dng": "out/000.dng",
+                       "brackets": [{"gain": 64, "tiff": "out/000_b.tif", "dng": ...}]}, ...]}
 
 Each raw file holds H x W x 3 little-endian float32 (linear radiance, as the EXR frame). A camera
 that maps radiance v to DN = B + K * v, rounded, clipped at W16 (16-bit), writes it:
@@ -11,7 +12,10 @@ that maps radiance v to DN = B + K * v, rounded, clipped at W16 (16-bit), writes
 - as a raw DNG with PiDNG: a 16-bit RGGB Bayer mosaic at twice the size (each pixel one 2x2 cell:
   its red, its green twice, its blue), BlackLevel B, WhiteLevel W16 in the file, uncompressed;
   checked by reading it back with rawpy (LibRaw).
-Prints one JSON line: how many DNG photosites clipped.
+"brackets" (optional): further exposures of the same frame, `gain` times longer (DN = B + gain *
+K * v), written the same way (either file may be left out); the bright parts clip.
+Prints one JSON line: how many values (pixel and colour) clipped in the frames' own files, and
+per bracket position (0: the frames' own files).
 """
 import json
 import sys
@@ -25,13 +29,16 @@ from pidng.defs import CFAPattern, PhotometricInterpretation
 job = json.load(open(sys.argv[1]))
 w, h = job["width"], job["height"]
 black, white, k = job["black"], job["white"], job["dn_per_unit"]
-clipped = 0
-for f in job["frames"]:
-    v = np.fromfile(f["raw"], dtype="<f4").reshape(h, w, 3).astype(np.float64)
-    dn = np.clip(np.rint(black + k * v), 0, white).astype(np.uint16)
-    clipped += int((dn >= white).sum())
-    tifffile.imwrite(f["tiff"], dn, photometric="rgb")
 
+
+def write(v, gain, tiff_path, dng_path):
+    """Writes radiance v exposed `gain` times longer; returns the clipped values (per pixel and
+    colour, as in the TIFF)."""
+    dn = np.clip(np.rint(black + gain * k * v), 0, white).astype(np.uint16)
+    if tiff_path:
+        tifffile.imwrite(tiff_path, dn, photometric="rgb")
+    if not dng_path:
+        return int((dn >= white).sum())
     mosaic = np.empty((2 * h, 2 * w), dtype=np.uint16)
     mosaic[0::2, 0::2] = dn[:, :, 0]
     mosaic[0::2, 1::2] = dn[:, :, 1]
@@ -56,12 +63,22 @@ for f in job["frames"]:
     # Uncompressed: PiDNG's lossless-JPEG encoder (its liblj92 extension) fails on Python >= 3.10.
     r = RAW2DNG()
     r.options(t, path="", compress=False)
-    out = f["dng"]
-    r.convert(mosaic, filename=out[: -len(".dng")] if out.endswith(".dng") else out)
+    r.convert(mosaic, filename=dng_path[: -len(".dng")] if dng_path.endswith(".dng") else dng_path)
     # LibRaw reads the same photosites and levels back.
-    with rawpy.imread(out) as raw:
-        assert np.array_equal(raw.raw_image_visible, mosaic), out
+    with rawpy.imread(dng_path) as raw:
+        assert np.array_equal(raw.raw_image_visible, mosaic), dng_path
         assert raw.white_level == white, (raw.white_level, white)
         assert list(raw.black_level_per_channel) == [black] * 4, raw.black_level_per_channel
         assert raw.raw_pattern.tolist() == [[0, 1], [3, 2]], raw.raw_pattern
-print(json.dumps({"clipped_photosites": clipped}))
+    return int((dn >= white).sum())
+
+
+by_bracket = []
+for f in job["frames"]:
+    v = np.fromfile(f["raw"], dtype="<f4").reshape(h, w, 3).astype(np.float64)
+    files = [{"gain": 1, "tiff": f.get("tiff"), "dng": f.get("dng")}] + f.get("brackets", [])
+    for i, b in enumerate(files):
+        n = write(v, b["gain"], b.get("tiff"), b.get("dng"))
+        by_bracket += [0] * (i + 1 - len(by_bracket))
+        by_bracket[i] += n
+print(json.dumps({"clipped_photosites": by_bracket[0], "clipped_by_bracket": by_bracket}))

@@ -179,6 +179,7 @@ mod tests {
             }),
             galvo: None,
             levels: Default::default(),
+            brackets: Vec::new(),
         }
     }
 

@@ -14,6 +14,7 @@ use crate::geometry::Camera;
 
 mod alignment;
 mod camera_file;
+mod hdr;
 mod image;
 mod ljpeg;
 mod mesh;
@@ -21,6 +22,7 @@ mod writer;
 
 pub use alignment::{Alignment, Symmetry, aligned_name};
 pub use camera_file::{CLIPPED, FileKind, Levels};
+pub use hdr::{Bracket, MergeOptions, merge_hdr};
 pub use image::{
     Image, ImageError, bilinear_taps, encode_exr, encode_pfm, read_exr_with_alpha, read_image,
     read_image_with, write_exr, write_pfm,
@@ -140,6 +142,33 @@ pub struct FrameSpec {
     /// over the dataset's.
     #[serde(flatten)]
     pub levels: Levels,
+    /// Extension of this project: further exposures of the same view, each at least as long as
+    /// `exposure_s` (`image` is the shortest, the one a reader that ignores this key reads
+    /// alone), merged with it per pixel into one radiance image by [`Dataset::read_frame`]
+    /// ([`merge_hdr`]): the way an HDR capture written by another camera program arrives.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub brackets: Vec<BracketSpec>,
+}
+
+/// One further exposure of a frame (`frames[].brackets[]` in `scan.json`): its file, exposure
+/// time and, for TIFF and PNG, levels over the frame's.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BracketSpec {
+    /// Image path relative to the dataset directory, confined like the frame's.
+    pub image: String,
+    /// Exposure time (s); at least the frame's own `exposure_s`.
+    pub exposure_s: f64,
+    /// Black and white level of this file (TIFF, PNG), over the frame's and the dataset's.
+    #[serde(flatten)]
+    pub levels: Levels,
+}
+
+impl FrameSpec {
+    /// Every image file of this frame, relative to the dataset directory: `image`, then its
+    /// brackets' files.
+    pub fn files(&self) -> impl Iterator<Item = &str> {
+        std::iter::once(self.image.as_str()).chain(self.brackets.iter().map(|b| b.image.as_str()))
+    }
 }
 
 /// The content of `scan.json`.
@@ -259,6 +288,25 @@ impl ScanSpec {
             f.levels
                 .check()
                 .or_else(|m| bad(format!("frame {i}: {m}")))?;
+            for (b, x) in f.brackets.iter().enumerate() {
+                if !(x.exposure_s.is_finite() && x.exposure_s > 0.0) {
+                    return bad(format!(
+                        "frame {i}: bracket {b}: exposure_s must be positive"
+                    ));
+                }
+                if x.exposure_s < f.exposure_s {
+                    return bad(format!(
+                        "frame {i}: bracket {b} ({}) is exposed {} s, shorter than the frame's \
+                         own {} s: name the shortest exposure as the frame's image and \
+                         exposure_s (the merged frame is in its units, so its white level stays \
+                         the clipping level), the longer ones in brackets",
+                        x.image, x.exposure_s, f.exposure_s
+                    ));
+                }
+                x.levels
+                    .check()
+                    .or_else(|m| bad(format!("frame {i}: bracket {b}: {m}")))?;
+            }
             if let Some(l) = &f.laser {
                 let d = l.direction;
                 if !finite_all(&l.origin) || !finite_all(&d) || d == [0.0; 3] {
@@ -295,8 +343,8 @@ pub struct Dataset {
     pub mesh: Mesh,
     /// What loading the mesh found (degenerate and duplicate faces).
     pub mesh_report: MeshReport,
-    /// How many frames are camera files (TIFF, PNG, DNG: decoded with the white level at
-    /// [`CLIPPED`]), told by their file names' extensions (opening every frame here would read
+    /// How many frames are (or have a bracket that is) camera files (TIFF, PNG, DNG: decoded
+    /// with the white level at [`CLIPPED`]), told by their file names' extensions (opening every frame here would read
     /// each twice per run; the decoder tells the kind by the first bytes).
     pub camera_files: usize,
     /// Reads of each frame's image by this process (shared by clones).
@@ -334,11 +382,13 @@ impl Dataset {
         }
         let mut camera_files = 0;
         for f in &spec.frames {
-            let p = confined_path(&dir, &f.image)?;
-            if !p.is_file() {
-                return Err(DatasetError::Missing(p));
+            for name in f.files() {
+                let p = confined_path(&dir, name)?;
+                if !p.is_file() {
+                    return Err(DatasetError::Missing(p));
+                }
             }
-            if is_camera_file_name(&f.image) {
+            if f.files().any(is_camera_file_name) {
                 camera_files += 1;
             }
         }
@@ -377,7 +427,7 @@ impl Dataset {
         let camera_files = spec
             .frames
             .iter()
-            .filter(|f| is_camera_file_name(&f.image))
+            .filter(|f| f.files().any(is_camera_file_name))
             .count();
         Dataset {
             manifest: dir.join("scan.json"),
@@ -418,7 +468,12 @@ impl Dataset {
             .or((self.camera_files > 0).then_some(CLIPPED))
     }
 
-    /// Reads frame `k`'s image, checking that its size matches its camera.
+    /// Reads frame `k`'s image, checking that its size matches its camera. A frame with
+    /// `brackets` is their HDR merge with its own image ([`merge_hdr`], clipping at
+    /// [`Dataset::saturation`] in each file's units) in the units of its own (shortest)
+    /// exposure: a pixel divided by `exposure_s` is radiance, as for one file, and a pixel
+    /// clipped in every exposure stays at or above the saturation, so samples touching it are
+    /// dropped and spots fitted from their ring as for one file.
     pub fn read_frame(&self, k: usize) -> Result<Image, DatasetError> {
         let f = self.spec.frames.get(k).ok_or_else(|| {
             DatasetError::Invalid(format!(
@@ -426,18 +481,63 @@ impl Dataset {
                 self.spec.frames.len()
             ))
         })?;
-        let path = confined_path(&self.dir, &f.image)?;
         if let Some(n) = self.reads.get(k) {
             n.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         }
-        let img = read_image_with(&path, f.levels.or(self.spec.levels))
+        let levels = f.levels.or(self.spec.levels);
+        let img = self.read_file(k, f, &f.image, levels)?;
+        if f.brackets.is_empty() {
+            return Ok(img);
+        }
+        let mut brackets = vec![Bracket {
+            exposure_s: f.exposure_s,
+            image: img,
+        }];
+        for b in &f.brackets {
+            let image = self.read_file(k, f, &b.image, b.levels.or(levels))?;
+            if image.channels != brackets[0].image.channels {
+                return Err(DatasetError::Frame {
+                    frame: k,
+                    source: ImageError::Format(format!(
+                        "bracket {} has {} channels, the frame's image {} has {}",
+                        b.image, image.channels, f.image, brackets[0].image.channels
+                    )),
+                });
+            }
+            brackets.push(Bracket {
+                exposure_s: b.exposure_s,
+                image,
+            });
+        }
+        let opts = MergeOptions {
+            saturation: self.saturation().map_or(f32::INFINITY, |s| s as f32),
+            noise_floor: 0.0,
+        };
+        let mut merged = merge_hdr(&brackets, &opts)
+            .map_err(|source| DatasetError::Frame { frame: k, source })?;
+        for v in &mut merged.data {
+            *v = (*v as f64 * f.exposure_s) as f32;
+        }
+        Ok(merged)
+    }
+
+    /// One image file of frame `f` (its own or a bracket's), checked against its camera.
+    fn read_file(
+        &self,
+        k: usize,
+        f: &FrameSpec,
+        name: &str,
+        levels: Levels,
+    ) -> Result<Image, DatasetError> {
+        let path = confined_path(&self.dir, name)?;
+        let img = read_image_with(&path, levels)
             .map_err(|source| DatasetError::Frame { frame: k, source })?;
         let cam = &self.spec.cameras[f.camera];
         if img.width != cam.width as usize || img.height != cam.height as usize {
             return Err(DatasetError::Frame {
                 frame: k,
                 source: ImageError::Format(format!(
-                    "image is {}x{}, camera {} is {}x{}",
+                    "{name}: image is {}x{}, camera {} is {}x{}",
                     img.width, img.height, f.camera, cam.width, cam.height
                 )),
             });
@@ -625,6 +725,121 @@ mod tests {
         )
         .unwrap();
         assert!(Dataset::open(dir).is_err(), "white below black");
+    }
+
+    /// A frame listing brackets (another camera program's HDR capture): 16-bit PNGs of one view
+    /// at 10 ms and 40 ms (the longer one with its own white level), merged into the units of
+    /// the shortest. A dim pixel is read mostly from the long exposure (finer steps), a pixel
+    /// clipped only in the long one from the short one, a pixel clipped in both stays at or
+    /// above the saturation (samples touching it are dropped). Bracket paths are confined and
+    /// checked like the frame's; an exposure shorter than the frame's own is refused.
+    #[test]
+    fn bracketed_frames_merge_their_exposures_and_keep_clipped_pixels_clipped() {
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path();
+        std::fs::create_dir_all(dir.join("frames")).unwrap();
+        std::fs::write(
+            dir.join("object.obj"),
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+        )
+        .unwrap();
+        // Radiance (white level = 1 after 10 ms) of the three grey pixels and the DN each
+        // exposure records: black 0, white 1000 DN (the long file: 2000, so its DN are twice as
+        // fine: decoded values are relative to each file's white level), rounded, clipped.
+        let radiance = [0.0123, 0.6, 3.0];
+        let png = |name: &str, gain: f64, white: f64| {
+            let dn: Vec<u16> = radiance
+                .iter()
+                .map(|r| (r * gain * white).round().min(white) as u16)
+                .collect();
+            let mut bytes = Vec::new();
+            ::image::DynamicImage::ImageLuma16(
+                ::image::ImageBuffer::from_raw(3, 1, dn.clone()).unwrap(),
+            )
+            .write_to(
+                &mut std::io::Cursor::new(&mut bytes),
+                ::image::ImageFormat::Png,
+            )
+            .unwrap();
+            std::fs::write(dir.join(name), bytes).unwrap();
+            dn
+        };
+        assert_eq!(png("frames/0a.png", 1.0, 1000.0), [12, 600, 1000]);
+        assert_eq!(png("frames/0b.png", 4.0, 2000.0), [98, 2000, 2000]);
+        let manifest = |frame: &str| {
+            format!(
+                r#"{{"format": "subsurf-scan/1", "units": "mm", "mesh": "object.obj",
+                  "white_level": 1000,
+                  "cameras": [{{"width": 3, "height": 1, "fx": 10.0, "fy": 10.0, "cx": 1.0,
+                    "cy": 0.0, "camera_from_world": [[1,0,0,0],[0,1,0,0],[0,0,1,50],[0,0,0,1]]}}],
+                  "frames": [{frame}]}}"#
+            )
+        };
+        let frame = |first: &str, exposure: f64, second: &str| {
+            format!(
+                r#"{{"image": "{first}", "turntable_deg": 0.0, "exposure_s": {exposure},
+                  "brackets": [{{"image": "{second}", "exposure_s": 0.04, "white_level": 2000}}]}}"#
+            )
+        };
+        std::fs::write(
+            dir.join("scan.json"),
+            manifest(&frame("frames/0a.png", 0.01, "frames/0b.png")),
+        )
+        .unwrap();
+        let ds = Dataset::open(dir).unwrap();
+        assert_eq!((ds.camera_files, ds.saturation()), (1, Some(CLIPPED)));
+        let m = ds.read_frame(0).unwrap();
+        assert_eq!(
+            ds.frame_reads().total,
+            1,
+            "one read of the frame, all its files"
+        );
+        // Dim: both brackets count, the long one (weight 4 × its 4 times larger hat) most:
+        // between the short one's 12 DN and the long one's 98 DN / 4, nearer the latter.
+        let (short, long) = (0.012f32, 98.0 / 2000.0 / 4.0);
+        assert!(m.data[0] > short && m.data[0] < long, "{}", m.data[0]);
+        assert!(
+            (m.data[0] - long).abs() < 0.1 * (long - short),
+            "{}",
+            m.data[0]
+        );
+        // Clipped in the long exposure only: the short one's value, unclipped.
+        assert!((m.data[1] - 0.6).abs() < 1e-6, "{}", m.data[1]);
+        // Clipped in both: still clipped at the dataset's saturation.
+        assert!(m.data[2] as f64 >= CLIPPED, "{}", m.data[2]);
+        // The bracket survives a round trip; a frame without brackets writes no key.
+        let text = serde_json::to_string(&ds.spec).unwrap();
+        assert!(
+            text.contains("\"brackets\":[{\"image\":\"frames/0b.png\""),
+            "{text}"
+        );
+        let mut plain = ds.spec.clone();
+        plain.frames[0].brackets.clear();
+        assert!(!serde_json::to_string(&plain).unwrap().contains("brackets"));
+
+        for (bad, want) in [
+            (
+                frame("frames/0a.png", 0.01, "../0b.png"),
+                "leaves the dataset",
+            ),
+            (frame("frames/0a.png", 0.01, "frames/none.png"), "missing"),
+            (frame("frames/0a.png", 0.05, "frames/0b.png"), "shorter"),
+        ] {
+            std::fs::write(dir.join("scan.json"), manifest(&bad)).unwrap();
+            let e = Dataset::open(dir).unwrap_err().to_string();
+            assert!(e.contains(want), "{e}");
+        }
+        // A bracket of another size than its camera is an error naming the file.
+        ::image::DynamicImage::ImageLuma16(::image::ImageBuffer::new(2, 1))
+            .save(dir.join("frames/0c.png"))
+            .unwrap();
+        std::fs::write(
+            dir.join("scan.json"),
+            manifest(&frame("frames/0a.png", 0.01, "frames/0c.png")),
+        )
+        .unwrap();
+        let e = Dataset::open(dir).unwrap().read_frame(0).unwrap_err();
+        assert!(e.to_string().contains("0c.png"), "{e}");
     }
 
     #[test]

@@ -417,6 +417,7 @@ mod tests {
             }),
             galvo: Some([k as u32, 7]),
             levels: Default::default(),
+            brackets: Vec::new(),
         }
     }
 

@@ -3,7 +3,7 @@
 //! A camera is either triggered by the rig (the `sim` camera and `dir:PATH`: the rig's queued
 //! capture program fires the trigger, the host then collects the image of each capture) or timed
 //! by the host (`cmd:"…"`: the host points the galvo, switches the laser on, runs the command,
-//! switches the laser off). HDR comes from [`super::frame::merge_hdr`] over exposure brackets
+//! switches the laser off). HDR comes from [`crate::dataset::merge_hdr`] over exposure brackets
 //! when the camera is not HDR itself.
 
 use crate::dataset::{Image, Levels};

@@ -9,9 +9,9 @@
 //! and leaves a dataset the same command resumes.
 
 use super::camera::{Camera, CameraError, Shot, Timing};
-use super::frame::{Bracket, MergeOptions, merge_hdr};
 use super::plan::{ScanPlan, angle_steps};
 use crate::calib::Calibration;
+use crate::dataset::{Bracket, MergeOptions, merge_hdr};
 use crate::dataset::{DatasetWriter, FrameSpec, Image, LaserRay, ScanSpec, WriteError, encode_exr};
 use crate::link::ByteLink;
 use crate::progress::Progress;
@@ -717,6 +717,7 @@ impl<'a> Scan<'a> {
             laser: Some(LaserRay { origin, direction }),
             galvo: Some(f.galvo.map(u32::from)),
             levels: Default::default(),
+            brackets: Vec::new(),
         };
         let sent = self.sink.as_ref().map(|_| entry.clone());
         self.writer.commit(entry, &bytes)?;

@@ -7,7 +7,6 @@
 
 pub mod camera;
 pub mod driver;
-pub mod frame;
 pub mod plan;
 pub mod setup;
 pub mod simcam;

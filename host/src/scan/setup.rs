@@ -96,7 +96,7 @@ pub fn scan_exposures_s(given: &[f64], builtin: bool) -> Vec<f64> {
 }
 
 /// Exposure bracket of a `--camera sim` scan (s), shortest first (merged per frame by
-/// `scan::frame::merge_hdr`, section 5's HDR capture):
+/// `dataset::merge_hdr`, section 5's HDR capture):
 /// - the spot exposure keeps the laser spot's reflection unclipped (at half the clipping
 ///   level), so registration takes the exact log-Gaussian sub-pixel path; a clipped spot's
 ///   plateau and ring are skewed by the scattered light around it, most near the limb, which

@@ -841,6 +841,7 @@ pub fn simulate(
                 }),
                 galvo: None,
                 levels: Default::default(),
+                brackets: Vec::new(),
             };
             if k >= done {
                 writer.add_image(spec, &img, cfg.pfm)?;

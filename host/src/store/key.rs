@@ -1,8 +1,8 @@
 //! What a sample store depends on, so that a cached store is used only for the very frames and
 //! extraction options it was made from.
 //!
-//! A frame is identified as `make` and cargo identify files: its `scan.json` entry, the image
-//! file's size and modification time (re-reading every byte to hash it would cost the decode the
+//! A frame is identified as `make` and cargo identify files: its `scan.json` entry, each of its
+//! image files' (its own and its brackets') size and modification time (re-reading every byte to hash it would cost the decode the
 //! cache saves). The extraction is identified by its options, the mesh, the cameras, the lattice
 //! points sampled and [`EXTRACTION_RULES`].
 use std::path::Path;
@@ -43,6 +43,40 @@ pub struct FrameIdentity {
     pub bytes: u64,
     /// Modification time of the image file, nanoseconds since the Unix epoch (0: unknown).
     pub modified_ns: u64,
+    /// The same of each bracket file (`frames[].brackets`), in order: empty for a frame of one
+    /// file, so keys of such frames are those made before brackets existed.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub brackets: Vec<FileIdentity>,
+}
+
+/// One file as a store knows it: size and modification time.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FileIdentity {
+    /// Size, bytes.
+    pub bytes: u64,
+    /// Modification time, nanoseconds since the Unix epoch (0: unknown).
+    pub modified_ns: u64,
+}
+
+impl FileIdentity {
+    /// File `rel` of frame `frame` of `ds` as it is on disk now.
+    fn of(ds: &Dataset, frame: usize, rel: &str) -> Result<FileIdentity, StoreKeyError> {
+        let path = confined_path(&ds.dir, rel).unwrap_or_else(|_| Path::new("").into());
+        let meta = std::fs::metadata(&path).map_err(|source| StoreKeyError::Io {
+            frame,
+            path: path.clone(),
+            source,
+        })?;
+        let modified_ns = meta
+            .modified()
+            .ok()
+            .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+            .map_or(0, |d| d.as_nanos() as u64);
+        Ok(FileIdentity {
+            bytes: meta.len(),
+            modified_ns,
+        })
+    }
 }
 
 /// What a store's content depends on.
@@ -87,22 +121,18 @@ impl FrameIdentity {
     pub fn of(ds: &Dataset, k: usize) -> Result<FrameIdentity, StoreKeyError> {
         let f = &ds.spec.frames[k];
         let spec = digest(serde_json::to_string(f).unwrap_or_default().as_bytes());
-        let path = confined_path(&ds.dir, &f.image).unwrap_or_else(|_| Path::new("").into());
-        let meta = std::fs::metadata(&path).map_err(|source| StoreKeyError::Io {
-            frame: k,
-            path: path.clone(),
-            source,
-        })?;
-        let modified_ns = meta
-            .modified()
-            .ok()
-            .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
-            .map_or(0, |d| d.as_nanos() as u64);
+        let own = FileIdentity::of(ds, k, &f.image)?;
+        let brackets = f
+            .brackets
+            .iter()
+            .map(|b| FileIdentity::of(ds, k, &b.image))
+            .collect::<Result<_, _>>()?;
         Ok(FrameIdentity {
             frame: k,
             spec,
-            bytes: meta.len(),
-            modified_ns,
+            bytes: own.bytes,
+            modified_ns: own.modified_ns,
+            brackets,
         })
     }
 }
@@ -173,5 +203,56 @@ impl ExtractionKey {
             && self.cameras == want.cameras
             && (want.lattice.is_none() || self.lattice == want.lattice)
             && want.frames.iter().all(|w| held.get(&w.frame) == Some(&w))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every file of a bracketed frame is in its identity: rewriting a bracket file (same bytes,
+    /// a later time) changes the key, so a cache made before is not used; a frame of one file
+    /// has the identity it had before brackets existed (no `brackets` key in the JSON).
+    #[test]
+    fn a_bracket_file_that_changed_changes_the_key() {
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path();
+        std::fs::write(
+            dir.join("object.obj"),
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+        )
+        .unwrap();
+        let img = crate::dataset::Image::new(2, 2, 3);
+        for name in ["a.pfm", "b.pfm", "c.pfm"] {
+            crate::dataset::write_pfm(&dir.join(name), &img).unwrap();
+        }
+        std::fs::write(
+            dir.join("scan.json"),
+            r#"{"format": "subsurf-scan/1", "units": "mm", "mesh": "object.obj",
+              "cameras": [{"width": 2, "height": 2, "fx": 10.0, "fy": 10.0, "cx": 0.5, "cy": 0.5,
+                "camera_from_world": [[1,0,0,0],[0,1,0,0],[0,0,1,50],[0,0,0,1]]}],
+              "frames": [{"image": "a.pfm", "turntable_deg": 0.0, "exposure_s": 0.01,
+                          "brackets": [{"image": "b.pfm", "exposure_s": 0.1}]},
+                         {"image": "c.pfm", "turntable_deg": 0.0}]}"#,
+        )
+        .unwrap();
+        let key = || {
+            let ds = Dataset::open(dir).unwrap();
+            ExtractionKey::new(&ds, &[0, 1], "{}".into(), None).unwrap()
+        };
+        let before = key();
+        assert_eq!(before.frames[0].brackets.len(), 1);
+        let plain = serde_json::to_string(&before.frames[1]).unwrap();
+        assert!(!plain.contains("brackets"), "{plain}");
+        assert!(key().serves(&before));
+        std::thread::sleep(std::time::Duration::from_millis(20));
+        let bytes = std::fs::read(dir.join("b.pfm")).unwrap();
+        std::fs::write(dir.join("b.pfm"), bytes).unwrap();
+        let after = key();
+        assert!(
+            !before.serves(&after),
+            "a changed bracket file must not be served"
+        );
+        assert_eq!(before.frames[1], after.frames[1]);
     }
 }

@@ -26,7 +26,7 @@ use crate::samples::{Sample, SampleCounts};
 pub mod arrow;
 mod key;
 
-pub use key::{EXTRACTION_RULES, ExtractionKey, FrameIdentity, StoreKeyError};
+pub use key::{EXTRACTION_RULES, ExtractionKey, FileIdentity, FrameIdentity, StoreKeyError};
 
 /// The default memory budget of a store, bytes: with the rest of a fit (mesh, BVH, visibility
 /// caches, the lattice's accumulators and a few frames' contributions, a few decoded frames) a

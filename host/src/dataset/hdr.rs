@@ -1,9 +1,11 @@
-//! HDR merging of exposure brackets. Images are the one image type, [`crate::dataset::Image`]
-//! (linear, black level removed), encoded by [`crate::dataset::encode_exr`].
+//! HDR merging of exposure brackets: the one merge, for the brackets `subsurf scan --exposure
+//! a,b,c` takes and for the bracket files another program's dataset lists per frame
+//! (`frames[].brackets`, [`super::Dataset::read_frame`]). Images are the one image type,
+//! [`super::Image`] (linear, black level removed).
 
 use serde::{Deserialize, Serialize};
 
-use crate::dataset::{Image, ImageError};
+use super::{Image, ImageError};
 
 /// One exposure of a bracket.
 #[derive(Debug, Clone)]
@@ -25,12 +27,15 @@ pub struct MergeOptions {
 
 /// Merges an exposure bracket into one linear radiance image (value per second of exposure).
 ///
-/// Per pixel and channel, each exposure's `value / exposure` is averaged with the weight
-/// `exposure · hat(value)`: the hat is 0 at and above 98% of saturation and below the noise
-/// floor, and rises linearly in between, so long exposures dominate the dark parts (more signal
-/// per read noise) and saturated samples never count. A sample saturated in every exposure takes
-/// the shortest exposure's value (a lower bound, like the camera would report). Hand-written:
-/// the merge is a few lines and no maintained crate does linear-sensor weighting.
+/// Debevec and Malik's merge for a linear sensor: per pixel and channel, each exposure's
+/// `value / exposure` is averaged with the weight `exposure · hat(value)`: the hat is 0 at and
+/// above 98% of saturation, and rises linearly from the noise floor to half of it and falls again,
+/// so long exposures dominate the dark parts (more signal per read noise) and saturated samples
+/// never count. A sample saturated or not finite in every exposure keeps the shortest exposure's
+/// value (a lower bound, like the camera would report; at or above the saturation over the
+/// shortest exposure, or not finite), so the readers' rules still see it as clipped or bad and
+/// drop it, never as a made-up value. Hand-written: the merge is a few lines and no maintained
+/// crate does linear-sensor weighting.
 pub fn merge_hdr(brackets: &[Bracket], opts: &MergeOptions) -> Result<Image, ImageError> {
     let first = brackets
         .first()
@@ -74,11 +79,7 @@ pub fn merge_hdr(brackets: &[Bracket], opts: &MergeOptions) -> Result<Image, Ima
             (num / den) as f32
         } else {
             let v = shortest.image.data[i];
-            if v.is_finite() {
-                (v as f64 / shortest.exposure_s) as f32
-            } else {
-                0.0
-            }
+            (v as f64 / shortest.exposure_s) as f32
         };
     }
     Ok(out)
@@ -126,5 +127,41 @@ mod tests {
             )
             .is_err()
         );
+    }
+
+    /// What no exposure measured is never made up: a value clipped or not finite in every
+    /// exposure keeps the shortest one's (clipped stays at or above saturation over it, NaN and
+    /// infinity stay, for the readers' rules to drop); one good exposure is enough.
+    #[test]
+    fn values_no_exposure_measured_stay_clipped_or_not_finite() {
+        let bracket = |exposure_s: f64, data: [f32; 4]| Bracket {
+            exposure_s,
+            image: Image {
+                width: 4,
+                height: 1,
+                channels: 1,
+                data: data.to_vec(),
+            },
+        };
+        let nan = f32::NAN;
+        let m = merge_hdr(
+            &[
+                bracket(0.5, [1.0, nan, f32::INFINITY, nan]),
+                bracket(2.0, [1.0, nan, 1.0, 0.4]),
+            ],
+            &MergeOptions {
+                saturation: 1.0,
+                noise_floor: 0.0,
+            },
+        )
+        .unwrap();
+        assert_eq!(
+            m.data[0], 2.0,
+            "clipped in both: the shortest's value over its exposure"
+        );
+        assert!(m.data[0] as f64 * 0.5 >= 1.0);
+        assert!(m.data[1].is_nan());
+        assert_eq!(m.data[2], f32::INFINITY);
+        assert!((m.data[3] - 0.2).abs() < 1e-7, "{}", m.data[3]);
     }
 }
