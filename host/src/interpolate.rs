@@ -9,6 +9,8 @@
 //! re-express a neighbour's vector in the frame of the vertex it is averaged into, so curves are
 //! never averaged across a turn of the tangent frame, and solves by Gauss–Seidel sweeps.
 
+use rayon::prelude::*;
+
 /// Fills every `None` in `values` with the harmonic interpolation of the `Some` values over the
 /// graph given by `neighbours` (which must be symmetric, as a mesh's edges are). Vertices not
 /// connected to any known vertex stay `None`. All known vectors must have the same length.
@@ -175,9 +177,9 @@ fn conjugate_gradients<'a>(
     if deg.iter().any(|&d| d <= 0.0) {
         return false;
     }
+    // Rows are independent: parallel without changing a bit.
     let apply = |x: &[f64], y: &mut [f64]| {
-        for i in 0..nu {
-            let yi = &mut y[i * len..(i + 1) * len];
+        y.par_chunks_mut(len).enumerate().for_each(|(i, yi)| {
             for (c, yc) in yi.iter_mut().enumerate() {
                 *yc = deg[i] * x[i * len + c];
             }
@@ -187,7 +189,7 @@ fn conjugate_gradients<'a>(
                     *yc -= x[j * len + c];
                 }
             }
-        }
+        });
     };
     let mut x = vec![0.0; nu * len];
     for (i, &v) in order.iter().enumerate() {
