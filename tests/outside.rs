@@ -117,6 +117,54 @@ const BLACK: f64 = 1024.0;
 const WHITE: f64 = 65535.0;
 const HEADROOM: f64 = 15.0 / 16.0;
 
+/// A dataset's float frames and the DN per radiance unit of one 16-bit exposure that puts its
+/// brightest value at [`HEADROOM`] of the range above black (exposed to the right).
+fn exposed_to_the_right(src: &Path) -> (Dataset, Vec<subsurf::dataset::Image>, f64) {
+    let ds = Dataset::open(src).unwrap();
+    let images: Vec<_> = (0..ds.spec.frames.len())
+        .map(|k| ds.read_frame(k).unwrap())
+        .collect();
+    let brightest = images
+        .iter()
+        .flat_map(|i| i.data.iter())
+        .fold(0.0f64, |m, &v| m.max(v as f64));
+    (ds, images, HEADROOM * (WHITE - BLACK) / brightest)
+}
+
+/// Frame `k`'s float values as little-endian f32 under `tmp/raw`, for `camera_files.py`.
+fn write_raw(tmp: &Path, k: usize, img: &subsurf::dataset::Image) -> PathBuf {
+    let raw = tmp.join("raw");
+    std::fs::create_dir_all(&raw).unwrap();
+    let bytes: Vec<u8> = img.data.iter().flat_map(|v| v.to_le_bytes()).collect();
+    let path = raw.join(format!("{k:03}.f32"));
+    std::fs::write(&path, bytes).unwrap();
+    path
+}
+
+/// Runs `tests/outside/camera_files.py` (the outside writers) on `frames`; what it printed.
+fn camera_files(
+    py: &Path,
+    tmp: &Path,
+    ds: &Dataset,
+    dn_per_unit: f64,
+    frames: Vec<serde_json::Value>,
+) -> String {
+    let cam = &ds.spec.cameras[0];
+    let job = tmp.join("job.json");
+    std::fs::write(
+        &job,
+        serde_json::json!({
+            "width": cam.width, "height": cam.height, "black": BLACK, "white": WHITE,
+            "dn_per_unit": dn_per_unit, "frames": frames,
+        })
+        .to_string(),
+    )
+    .unwrap();
+    run(Command::new(py)
+        .arg(workspace().join("tests/outside/camera_files.py"))
+        .arg(&job))
+}
+
 /// Issue 24: sample-slab's frames converted to 16-bit TIFF (tifffile) and to raw DNG (PiDNG, a
 /// Bayer mosaic; read back by rawpy/LibRaw) decode to exactly the quantised frames and fit, on
 /// the same training frames, exactly as those quantised values do as float EXR (to 0.1 % of
@@ -132,20 +180,8 @@ fn camera_files_from_outside_writers_fit_like_the_exr_frames() {
         return;
     };
     let tmp = tempfile::tempdir().unwrap();
-    let ds = Dataset::open(&src).unwrap();
-    let cam = &ds.spec.cameras[0];
-    let (w, h) = (cam.width as usize, cam.height as usize);
-    let images: Vec<_> = (0..ds.spec.frames.len())
-        .map(|k| ds.read_frame(k).unwrap())
-        .collect();
-    let brightest = images
-        .iter()
-        .flat_map(|i| i.data.iter())
-        .fold(0.0f64, |m, &v| m.max(v as f64));
-    let dn_per_unit = HEADROOM * (WHITE - BLACK) / brightest;
+    let (ds, images, dn_per_unit) = exposed_to_the_right(&src);
     let quantised = |v: f32| (v as f64 * dn_per_unit).round().clamp(0.0, WHITE - BLACK);
-    let raw = tmp.path().join("raw");
-    std::fs::create_dir_all(&raw).unwrap();
     let (tiff_dir, dng_dir, float_dir) = (
         tmp.path().join("tiff"),
         tmp.path().join("dng"),
@@ -154,11 +190,8 @@ fn camera_files_from_outside_writers_fit_like_the_exr_frames() {
     let mut frames = Vec::new();
     for (k, img) in images.iter().enumerate() {
         assert_eq!(img.channels, 3);
-        let bytes: Vec<u8> = img.data.iter().flat_map(|v| v.to_le_bytes()).collect();
-        let f32_path = raw.join(format!("{k:03}.f32"));
-        std::fs::write(&f32_path, bytes).unwrap();
         frames.push(serde_json::json!({
-            "raw": f32_path,
+            "raw": write_raw(tmp.path(), k, img),
             "tiff": tiff_dir.join(format!("frames/{k:03}.tif")),
             "dng": dng_dir.join(format!("frames/{k:03}.dng")),
         }));
@@ -195,19 +228,7 @@ fn camera_files_from_outside_writers_fit_like_the_exr_frames() {
         }
         write_exr(&float_dir.join(format!("frames/{k:03}.exr")), &q).unwrap();
     }
-    let job = tmp.path().join("job.json");
-    std::fs::write(
-        &job,
-        serde_json::json!({
-            "width": w, "height": h, "black": BLACK, "white": WHITE,
-            "dn_per_unit": dn_per_unit, "frames": frames,
-        })
-        .to_string(),
-    )
-    .unwrap();
-    let printed = run(Command::new(&py)
-        .arg(workspace().join("tests/outside/camera_files.py"))
-        .arg(&job));
+    let printed = camera_files(&py, tmp.path(), &ds, dn_per_unit, frames);
     assert!(printed.contains("\"clipped_photosites\": 0"), "{printed}");
 
     // The TIFF and the DNG (binned from its mosaic) decode to exactly the quantised frames.
@@ -286,26 +307,14 @@ fn bracketed_camera_files_fit_like_the_exr_frames() {
         return;
     };
     let tmp = tempfile::tempdir().unwrap();
-    let ds = Dataset::open(&src).unwrap();
-    let images: Vec<_> = (0..ds.spec.frames.len())
-        .map(|k| ds.read_frame(k).unwrap())
-        .collect();
-    let brightest = images
-        .iter()
-        .flat_map(|i| i.data.iter())
-        .fold(0.0f64, |m, &v| m.max(v as f64));
-    let dn_per_unit = HEADROOM * (WHITE - BLACK) / brightest;
+    let (ds, images, dn_per_unit) = exposed_to_the_right(&src);
     let scale = dn_per_unit / (WHITE - BLACK);
-    let raw = tmp.path().join("raw");
-    std::fs::create_dir_all(&raw).unwrap();
     let (tiff_dir, dng_dir) = (tmp.path().join("tiff"), tmp.path().join("dng"));
     let dng_gains = &BRACKET_GAINS[..2];
     let name = |k: usize, b: usize, ext: &str| format!("frames/{k:03}_{b}.{ext}");
     let mut frames = Vec::new();
     for (k, img) in images.iter().enumerate() {
-        let bytes: Vec<u8> = img.data.iter().flat_map(|v| v.to_le_bytes()).collect();
-        let f32_path = raw.join(format!("{k:03}.f32"));
-        std::fs::write(&f32_path, bytes).unwrap();
+        let f32_path = write_raw(tmp.path(), k, img);
         let brackets: Vec<_> = BRACKET_GAINS
             .iter()
             .enumerate()
@@ -360,20 +369,7 @@ fn bracketed_camera_files_fit_like_the_exr_frames() {
         )
         .unwrap();
     }
-    let job = tmp.path().join("job.json");
-    let cam = &ds.spec.cameras[0];
-    std::fs::write(
-        &job,
-        serde_json::json!({
-            "width": cam.width, "height": cam.height, "black": BLACK, "white": WHITE,
-            "dn_per_unit": dn_per_unit, "frames": frames,
-        })
-        .to_string(),
-    )
-    .unwrap();
-    let printed = run(Command::new(&py)
-        .arg(workspace().join("tests/outside/camera_files.py"))
-        .arg(&job));
+    let printed = camera_files(&py, tmp.path(), &ds, dn_per_unit, frames);
     let clipped: serde_json::Value = serde_json::from_str(printed.trim()).unwrap();
     let clipped: Vec<u64> = clipped["clipped_by_bracket"]
         .as_array()

@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, anyhow};
 use subsurf::align::{AlignOptions, align};
-use subsurf::dataset::{Dataset, Symmetry, select_frames};
+use subsurf::dataset::Symmetry;
 
 use super::progress::Bar;
 
@@ -60,14 +60,11 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let ds =
-        Dataset::open(&args.scan).with_context(|| format!("opening {}", args.scan.display()))?;
-    let frames = select_frames(
-        ds.spec.frames.len(),
+    let (ds, frames) = super::open_frames(
+        &args.scan,
         args.frames.as_deref(),
         args.exclude_frames.as_deref(),
-    )
-    .map_err(|e| anyhow!(e))?;
+    )?;
     let mut opts = AlignOptions::for_dataset(&ds);
     if let Some(f) = args.noise_floor {
         opts.evidence.min_peak = 10.0 * f;

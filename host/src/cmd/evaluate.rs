@@ -1,8 +1,7 @@
 //! `subsurf evaluate`: Table-1 statistics of a model on any frames of a scan.
 use std::path::PathBuf;
 
-use anyhow::{Context, anyhow};
-use subsurf::dataset::{Dataset, select_frames};
+use anyhow::Context;
 use subsurf::evaluate::{EvalPoints, evaluate_frames_stored};
 use subsurf::modelfile::ModelFile;
 use subsurf::pipeline::PipelineOptions;
@@ -73,16 +72,13 @@ pub enum At {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let ds =
-        Dataset::open(&args.scan).with_context(|| format!("opening {}", args.scan.display()))?;
-    let model = ModelFile::read(&args.model)
-        .with_context(|| format!("reading {}", args.model.display()))?;
-    let frames = select_frames(
-        ds.spec.frames.len(),
+    let (ds, frames) = super::open_frames(
+        &args.scan,
         args.frames.as_deref(),
         args.exclude_frames.as_deref(),
-    )
-    .map_err(|e| anyhow!(e))?;
+    )?;
+    let model = ModelFile::read(&args.model)
+        .with_context(|| format!("reading {}", args.model.display()))?;
     // The model is judged on the terms it was fitted on (its file records them), unless told
     // otherwise: explicit flags override single rules, --ignore-fit-record all of them.
     let mut opts = PipelineOptions::for_dataset(&ds);

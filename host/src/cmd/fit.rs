@@ -4,7 +4,6 @@ use std::path::PathBuf;
 
 use anyhow::{Context, anyhow};
 use subsurf::crossval::{CvSettings, Segments, fit_scan_in};
-use subsurf::dataset::{Dataset, select_frames};
 use subsurf::fit::{Preset, Terms};
 use subsurf::modelfile::ColourMode;
 use subsurf::pipeline::{MAX_SEGMENTS, PipelineOptions, StoreOptions, prepare};
@@ -230,14 +229,11 @@ fn mesh_check(
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let ds =
-        Dataset::open(&args.scan).with_context(|| format!("opening {}", args.scan.display()))?;
-    let frames = select_frames(
-        ds.spec.frames.len(),
+    let (ds, frames) = super::open_frames(
+        &args.scan,
         args.frames.as_deref(),
         args.exclude_frames.as_deref(),
-    )
-    .map_err(|e| anyhow!(e))?;
+    )?;
     let preset = match args.preset {
         PresetArg::Exact => None,
         PresetArg::Draft => Some(Preset::Draft),

@@ -96,3 +96,18 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Export(a) => export::run(a),
     }
 }
+
+/// The dataset at `scan` and its frames chosen by `--frames` / `--exclude-frames`, with the
+/// path in the error (the commands that read a scan's frames: align, evaluate, fit).
+fn open_frames(
+    scan: &std::path::Path,
+    frames: Option<&str>,
+    exclude: Option<&str>,
+) -> anyhow::Result<(subsurf::dataset::Dataset, Vec<usize>)> {
+    use anyhow::Context;
+    let ds = subsurf::dataset::Dataset::open(scan)
+        .with_context(|| format!("opening {}", scan.display()))?;
+    let frames = subsurf::dataset::select_frames(ds.spec.frames.len(), frames, exclude)
+        .map_err(|e| anyhow::anyhow!(e))?;
+    Ok((ds, frames))
+}
