@@ -23,14 +23,23 @@ use std::collections::BTreeMap;
 use crate::dataset::Dataset;
 use crate::evaluate::{EvalPoints, FrameEval, evaluate_in};
 use crate::pipeline::{
-    AlphaLattice, Context, CvCandidate, CvChoice, CvReport, FitOutput, Fitter, LogEStats,
-    PipelineError, PipelineOptions, fit_prepared, fit_prepared_rounds,
+    AlphaLattice, Context, CvCandidate, CvChoice, CvReport, FitOutput, FitRounds, Fitter,
+    LogEStats, PipelineError, PipelineOptions, Prepared, fit_prepared,
 };
 use crate::progress::Progress;
+use rayon::prelude::*;
 
 /// Folds of `subsurf fit --cv-folds` by default: five, the usual compromise between the bias of
 /// few folds (each fit sees 80 % of the frames) and the cost of many.
 pub const DEFAULT_FOLDS: usize = 5;
+
+/// Rounds in a row without a lower cross-validated error after which the folds' alpha rounds
+/// stop (`--cv-patience`). Two, not one: a single round may tie within rounding of the best
+/// and the next still fall. It costs nothing in choice on the scans measured (the same rounds
+/// chosen as scoring all 8 on sample-slab, sample-torus, sample-pebble, two simulated scans
+/// and a simulated sphere: docs/validation.md) and ends a fold's fit after 4 of 9 models where
+/// the error is lowest after one round (the sphere).
+pub const DEFAULT_PATIENCE: usize = 2;
 
 /// How many direction segments m (Eq. 3) the fit uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -55,6 +64,9 @@ pub struct CvSettings {
     pub segments: Segments,
     /// Whether the number of alpha rounds (at most `PipelineOptions::alpha_rounds`) is chosen.
     pub rounds: bool,
+    /// The folds' rounds stop once this many rounds in a row have not lowered the best
+    /// cross-validated error (`--cv-patience`; 0: every round to the limit is scored).
+    pub patience: usize,
 }
 
 impl Default for CvSettings {
@@ -63,6 +75,7 @@ impl Default for CvSettings {
             folds: DEFAULT_FOLDS,
             segments: Segments::Fixed(1),
             rounds: true,
+            patience: DEFAULT_PATIENCE,
         }
     }
 }
@@ -117,11 +130,17 @@ type Errors = BTreeMap<usize, [f64; 3]>;
 /// number of alpha rounds 0..: entry r is the model a fit with `alpha_rounds = r` leaves (a fold
 /// whose rounds stopped before r contributes its last model). Second: the most rounds any
 /// fold's fit kept.
+///
+/// The folds' fits run side by side ([`crate::pipeline::Prepared`]), round by round, the folds
+/// in parallel: after each round the pooled errors so far choose their best number of rounds,
+/// and once `patience` rounds in a row (0: never) have not lowered it, no fold runs another
+/// round ([`rounds_exhausted`]).
 fn cross_validate(
     ctx: &Context,
     frames: &[usize],
     folds: &[Vec<usize>],
     fitter: &dyn Fitter,
+    patience: usize,
     progress: &dyn Progress,
     fits: &mut usize,
 ) -> Result<(Vec<Errors>, usize), PipelineError> {
@@ -132,42 +151,121 @@ fn cross_validate(
         alpha_lattice: AlphaLattice::Off,
         ..ctx.opts
     })?;
-    let mut per_round: Vec<Errors> = vec![Errors::new(); max_rounds + 1];
-    let mut most = 0;
-    for fold in folds {
-        let train: Vec<usize> = frames
-            .iter()
-            .copied()
-            .filter(|f| !fold.contains(f))
+    let trains: Vec<Vec<usize>> = folds
+        .iter()
+        .map(|fold| {
+            frames
+                .iter()
+                .copied()
+                .filter(|f| !fold.contains(f))
+                .collect()
+        })
+        .collect();
+    // A fold whose fit or evaluation fails (too few light positions left) predicts none of its
+    // frames: it drops out of every candidate's comparison.
+    let prepared: Vec<Option<Prepared>> = trains
+        .par_iter()
+        .map(|t| Prepared::new(ctx, t).ok())
+        .collect();
+    let mut runs: Vec<Option<FitRounds>> = prepared
+        .par_iter()
+        .map(|p| p.as_ref().map(|p| p.rounds(ctx, fitter, &())))
+        .collect();
+    let mut live: Vec<bool> = runs.iter().map(Option::is_some).collect();
+    let mut failed: Vec<bool> = live.iter().map(|l| !l).collect();
+    let mut by_round: Vec<Vec<Vec<FrameEval>>> = vec![Vec::new(); folds.len()];
+    for r in 0..=max_rounds {
+        let judged: Vec<Option<Option<Vec<FrameEval>>>> = runs
+            .par_iter()
+            .zip(&live)
+            .zip(folds)
+            .map(|((run, &l), fold)| {
+                let run = run.as_ref().filter(|_| l)?;
+                Some(run.model().ok().and_then(|out| {
+                    evaluate_in(ctx, &out.model, fold, EvalPoints::Vertices, &())
+                        .ok()
+                        .map(|(evals, _)| evals)
+                }))
+            })
             .collect();
-        let mut by_round: Vec<Vec<FrameEval>> = Vec::new();
-        let mut failed = None;
-        let run = fit_prepared_rounds(ctx, &train, fitter, &(), &mut |r, out| {
-            match evaluate_in(ctx, &out.model, fold, EvalPoints::Vertices, &()) {
-                Ok((evals, _)) => by_round.push(evals),
-                Err(e) => {
-                    failed = Some(e);
-                    return false;
+        for (i, j) in judged.into_iter().enumerate() {
+            match j {
+                None => {}
+                Some(Some(evals)) => by_round[i].push(evals),
+                Some(None) => {
+                    failed[i] = true;
+                    live[i] = false;
                 }
             }
-            r < max_rounds
-        });
-        *fits += 1;
-        progress.inc(1);
-        // A fold whose fit or evaluation fails (too few light positions left) predicts none of
-        // its frames: they drop out of every candidate's comparison.
-        if run.is_err() || failed.is_some() || by_round.is_empty() {
-            continue;
         }
-        most = most.max(by_round.len() - 1);
+        if r == max_rounds || rounds_exhausted(&pooled(&by_round, &failed, r), patience) {
+            break;
+        }
+        live = runs
+            .par_iter_mut()
+            .zip(&live)
+            .map(|(run, &l)| l && run.as_mut().is_some_and(|run| run.step()))
+            .collect();
+        if !live.contains(&true) {
+            break;
+        }
+    }
+    *fits += folds.len();
+    progress.inc(folds.len() as u64);
+    let most = by_round
+        .iter()
+        .zip(&failed)
+        .filter(|(b, f)| !**f && !b.is_empty())
+        .map(|(b, _)| b.len() - 1)
+        .max()
+        .unwrap_or(0);
+    Ok((pooled(&by_round, &failed, max_rounds), most))
+}
+
+/// The folds' held-out errors per number of rounds 0..=`last`, every fold that did not fail
+/// contributing its model after that many rounds, or its last model where its rounds stopped
+/// before.
+fn pooled(by_round: &[Vec<Vec<FrameEval>>], failed: &[bool], last: usize) -> Vec<Errors> {
+    let mut per_round: Vec<Errors> = vec![Errors::new(); last + 1];
+    for (fold, _) in by_round
+        .iter()
+        .zip(failed)
+        .filter(|(b, f)| !**f && !b.is_empty())
+    {
         for (r, errs) in per_round.iter_mut().enumerate() {
-            let evals = &by_round[r.min(by_round.len() - 1)];
+            let evals = &fold[r.min(fold.len() - 1)];
             for e in evals.iter().filter(|e| e.skipped.is_none()) {
                 errs.insert(e.frame, e.log_e.map(|v| v.unwrap_or(f64::NAN)));
             }
         }
     }
-    Ok((per_round, most))
+    per_round
+}
+
+/// Whether the rounds tried so far (`per_round`, 0..=r) have had `patience` rounds in a row
+/// after their best (lowest mean held-out error, as [`one_se`] scores them): early stopping,
+/// the usual cut of an iteration judged on held-out data. The alpha rounds are a fixed-point
+/// iteration whose held-out error falls to a minimum and then rises or levels off as the
+/// texture fits the noise (docs/validation.md, "How far the rounds run"); rounds past that
+/// cannot become the one-standard-error choice unless the error fell again, which no scan
+/// measured did. 0: never stop.
+fn rounds_exhausted(per_round: &[Errors], patience: usize) -> bool {
+    if patience == 0 || per_round.len() <= patience {
+        return false;
+    }
+    let cands: Vec<(String, &Errors)> = per_round
+        .iter()
+        .enumerate()
+        .map(|(r, e)| (r.to_string(), e))
+        .collect();
+    let (_, rows) = one_se(&cands);
+    let best = rows
+        .iter()
+        .enumerate()
+        .filter_map(|(i, c)| c.score.map(|s| (i, s)))
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .map(|b| b.0);
+    best.is_some_and(|b| per_round.len() - 1 - b >= patience)
 }
 
 /// Mean over its finite channels of a frame's log E.
@@ -256,7 +354,12 @@ const ONE_SE_RULE: &str = "the simplest candidate whose mean held-out log E (fra
 /// the report's choice. When the choice is the most rounds any fold kept (the rounds ran until
 /// they converged or stopped lowering the objective) the fit keeps its limit `max` rather than
 /// this number, so the fit on every frame may run as far as its data allow.
-fn choose_rounds(per_round: &[Errors], most: usize, max: usize) -> (usize, CvChoice) {
+fn choose_rounds(
+    per_round: &[Errors],
+    most: usize,
+    max: usize,
+    patience: usize,
+) -> (usize, CvChoice) {
     let cands: Vec<(String, &Errors)> = per_round[..=most.min(per_round.len() - 1)]
         .iter()
         .enumerate()
@@ -268,7 +371,12 @@ fn choose_rounds(per_round: &[Errors], most: usize, max: usize) -> (usize, CvCho
     let choice = CvChoice {
         name: "alpha_rounds".into(),
         rule: format!(
-            "{ONE_SE_RULE}; rounds beyond the {most} any fold's fit kept are not candidates (the fit stops there on its own)"
+            "{ONE_SE_RULE}; rounds beyond the {most} any fold's fit kept are not candidates (the fits stop there on their own{})",
+            if patience > 0 {
+                format!(", or once {patience} rounds in a row have not lowered the best")
+            } else {
+                String::new()
+            }
         ),
         candidates,
         chosen: if limit == r {
@@ -333,6 +441,7 @@ pub fn fit_scan_in(
                     frames,
                     &folds,
                     fitter,
+                    cv.patience,
                     progress,
                     &mut rep.fits,
                 )?);
@@ -340,7 +449,7 @@ pub fn fit_scan_in(
             // Each m at its own best number of rounds, then the rounds of the m chosen.
             let per_m: Vec<(usize, CvChoice)> = grids
                 .iter()
-                .map(|(g, most)| choose_rounds(g, *most, opts.alpha_rounds))
+                .map(|(g, most)| choose_rounds(g, *most, opts.alpha_rounds, cv.patience))
                 .collect();
             let mut k = 0;
             if auto {
@@ -400,5 +509,27 @@ mod tests {
         assert_eq!(rows[0].score, None);
         assert!(rows[0].note.is_some());
         assert_eq!(one_se(&[("1".into(), &none)]).0, None);
+    }
+
+    /// Early stopping: the rounds end `patience` rounds after the best, never while the error
+    /// still falls, and never with patience 0.
+    #[test]
+    fn the_rounds_stop_patience_rounds_after_the_best() {
+        let curve = |v: &[f64]| -> Vec<Errors> {
+            v.iter()
+                .map(|&e| errors(&[(0, e), (1, e + 0.01), (2, e - 0.01)]))
+                .collect()
+        };
+        let rising = [0.220, 0.215, 0.217, 0.217, 0.219];
+        assert!(!rounds_exhausted(&curve(&rising[..2]), 2));
+        assert!(!rounds_exhausted(&curve(&rising[..3]), 2));
+        assert!(rounds_exhausted(&curve(&rising[..4]), 2));
+        assert!(rounds_exhausted(&curve(&rising[..3]), 1));
+        assert!(!rounds_exhausted(&curve(&rising), 0));
+        let falling = [0.454, 0.445, 0.442, 0.441, 0.440, 0.439];
+        assert!(!rounds_exhausted(&curve(&falling), 2));
+        // A tie with the best is not a new best: the first of equals stays the best.
+        let flat = [0.30, 0.20, 0.20, 0.20];
+        assert!(rounds_exhausted(&curve(&flat), 2));
     }
 }

@@ -67,6 +67,11 @@ pub struct Args {
     /// which cost several times the fit itself: BENCHMARKS.md).
     #[arg(long)]
     pub cv_folds: Option<usize>,
+    /// The folds' alpha rounds stop once this many rounds in a row have not lowered the best
+    /// cross-validated error (early stopping; the report lists the rounds scored). 0: score
+    /// every round up to `--alpha-rounds`.
+    #[arg(long, default_value_t = subsurf::crossval::DEFAULT_PATIENCE)]
+    pub cv_patience: usize,
     /// Exponential terms n (Eq. 1): the largest n a light position may use (each chooses its
     /// own n and m, see `--fixed-order`), or `auto` for the smallest order within 1 % of the
     /// best. Default: the preset's (3 for exact).
@@ -287,6 +292,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         folds,
         segments,
         rounds: true,
+        patience: args.cv_patience,
     };
     match args.terms.as_deref() {
         None => {}

@@ -170,26 +170,88 @@ pub fn fit_prepared_rounds(
     progress: &dyn Progress,
     each: &mut dyn FnMut(usize, FitOutput) -> bool,
 ) -> Result<(), PipelineError> {
-    let setup = Setup::new(ctx, frames)?;
-    let mut rounds = fit::AlphaRounds::start(ctx, &setup.regs, &setup.groups, fitter, progress);
+    let prepared = Prepared::new(ctx, frames)?;
+    let mut run = prepared.rounds(ctx, fitter, progress);
     loop {
+        let out = run.model()?;
+        if !each(run.rounds(), out) || !run.step() {
+            return Ok(());
+        }
+    }
+}
+
+/// A fit's registration and selection on frames `frames` of a prepared run, done once, for a
+/// caller that steps the alpha rounds itself ([`FitRounds`]): the cross-validation runs its
+/// folds' fits side by side, round by round, so that their pooled held-out error can end every
+/// fold's rounds once more rounds stop helping (`crate::crossval`).
+pub struct Prepared {
+    setup: Setup,
+}
+
+impl Prepared {
+    /// Registration from the store and selection; no fit yet.
+    pub fn new(ctx: &Context, frames: &[usize]) -> Result<Prepared, PipelineError> {
+        Ok(Prepared {
+            setup: Setup::new(ctx, frames)?,
+        })
+    }
+
+    /// The baseline and round 0 fitted ([`fit::AlphaRounds::start`]).
+    pub fn rounds<'r, 'a>(
+        &'r self,
+        ctx: &'r Context<'a>,
+        fitter: &'r dyn Fitter,
+        progress: &'r dyn Progress,
+    ) -> FitRounds<'r, 'a> {
+        let setup = &self.setup;
+        FitRounds {
+            setup,
+            ctx,
+            fitter,
+            progress,
+            rounds: fit::AlphaRounds::start(ctx, &setup.regs, &setup.groups, fitter, progress),
+        }
+    }
+}
+
+/// The alpha rounds of one [`Prepared`] fit, stepped by the caller: [`FitRounds::model`] is the
+/// model [`fit_prepared`] returns with `alpha_rounds` = [`FitRounds::rounds`].
+pub struct FitRounds<'r, 'a> {
+    setup: &'r Setup,
+    ctx: &'r Context<'a>,
+    fitter: &'r dyn Fitter,
+    progress: &'r dyn Progress,
+    rounds: fit::AlphaRounds<'r, 'a>,
+}
+
+impl FitRounds<'_, '_> {
+    /// The rounds kept so far (0: round 0 only).
+    pub fn rounds(&self) -> usize {
+        self.rounds.rounds()
+    }
+
+    /// The model of the last kept round: the stages after the fit run on it.
+    pub fn model(&self) -> Result<FitOutput, PipelineError> {
+        let setup = self.setup;
         let mut run = Setup {
             report: setup.report.clone(),
             regs: Vec::new(),
             groups: select::Groups::default(),
             clock: report::StageClock::start(),
         };
-        let out = run.finish_with(
-            ctx,
+        run.finish_with(
+            self.ctx,
             &setup.regs,
             &setup.groups,
-            rounds.fitted(),
-            fitter,
-            progress,
-        )?;
-        if !each(rounds.rounds(), out) || !rounds.step() {
-            return Ok(());
-        }
+            self.rounds.fitted(),
+            self.fitter,
+            self.progress,
+        )
+    }
+
+    /// The next round ([`fit::AlphaRounds::step`]): `false` when the rounds are over.
+    pub fn step(&mut self) -> bool {
+        self.rounds.step()
     }
 }
 
