@@ -177,95 +177,98 @@ fn conjugate_gradients<'a>(
     if deg.iter().any(|&d| d <= 0.0) {
         return false;
     }
-    // Rows are independent: parallel without changing a bit.
+    // Each component is its own solve: one column per component, the columns in parallel. Each
+    // column's arithmetic is the same, in the same order, on any number of threads (the same
+    // bits), and every column runs until all have converged, as one solve of the whole would.
+    let inv_deg: Vec<f64> = deg.iter().map(|d| 1.0 / d).collect();
     let apply = |x: &[f64], y: &mut [f64]| {
-        y.par_chunks_mut(len).enumerate().for_each(|(i, yi)| {
-            for (c, yc) in yi.iter_mut().enumerate() {
-                *yc = deg[i] * x[i * len + c];
-            }
+        for (i, yi) in y.iter_mut().enumerate() {
+            *yi = deg[i] * x[i];
             for &j in &cols[start[i]..start[i + 1]] {
-                let j = j as usize;
-                for (c, yc) in yi.iter_mut().enumerate() {
-                    *yc -= x[j * len + c];
-                }
+                *yi -= x[j as usize];
             }
-        });
-    };
-    let mut x = vec![0.0; nu * len];
-    for (i, &v) in order.iter().enumerate() {
-        if let Some(g) = &out[v] {
-            x[i * len..(i + 1) * len].copy_from_slice(g);
         }
-    }
-    let mut r = vec![0.0; nu * len];
-    apply(&x, &mut r);
-    for (ri, bi) in r.iter_mut().zip(&b) {
-        *ri = bi - *ri;
-    }
-    let col_dot = |a: &[f64], b: &[f64]| -> Vec<f64> {
-        let mut s = vec![0.0; len];
-        for (ai, bi) in a.chunks_exact(len).zip(b.chunks_exact(len)) {
-            for c in 0..len {
-                s[c] += ai[c] * bi[c];
-            }
+    };
+    let dot = |a: &[f64], b: &[f64]| -> f64 {
+        let mut s = 0.0;
+        for (ai, bi) in a.iter().zip(b) {
+            s += ai * bi;
         }
         s
     };
-    let b_norm: Vec<f64> = col_dot(&b, &b).into_iter().map(f64::sqrt).collect();
-    let inv_deg: Vec<f64> = deg.iter().map(|d| 1.0 / d).collect();
-    let mut z: Vec<f64> = r
-        .chunks_exact(len)
-        .zip(&inv_deg)
-        .flat_map(|(ri, k)| ri.iter().map(move |v| v * k))
+    let mut columns: Vec<Column> = (0..len)
+        .into_par_iter()
+        .map(|c| {
+            let bc: Vec<f64> = (0..nu).map(|i| b[i * len + c]).collect();
+            let x: Vec<f64> = order
+                .iter()
+                .map(|&v| out[v].as_ref().map_or(0.0, |g| g[c]))
+                .collect();
+            let mut r = vec![0.0; nu];
+            apply(&x, &mut r);
+            for (ri, bi) in r.iter_mut().zip(&bc) {
+                *ri = bi - *ri;
+            }
+            let z: Vec<f64> = r.iter().zip(&inv_deg).map(|(ri, k)| ri * k).collect();
+            Column {
+                b_norm: dot(&bc, &bc).sqrt(),
+                rz: dot(&r, &z),
+                rr: dot(&r, &r),
+                p: z.clone(),
+                q: vec![0.0; nu],
+                x,
+                r,
+                z,
+            }
+        })
         .collect();
-    let mut p = z.clone();
-    let mut rz = col_dot(&r, &z);
-    let mut rr = col_dot(&r, &r);
-    let mut q = vec![0.0; nu * len];
-    let mut step = vec![0.0; len];
-    let mut beta = vec![0.0; len];
+    drop(b);
     for _ in 0..iterations {
-        let done = rr
+        let done = columns
             .iter()
-            .zip(&b_norm)
-            .all(|(rr, bn)| rr.sqrt() <= RTOL * bn.max(f64::MIN_POSITIVE));
+            .all(|k| k.rr.sqrt() <= RTOL * k.b_norm.max(f64::MIN_POSITIVE));
         if done {
             break;
         }
-        apply(&p, &mut q);
-        let pq = col_dot(&p, &q);
-        for c in 0..len {
-            step[c] = if pq[c] > 0.0 { rz[c] / pq[c] } else { 0.0 };
-        }
-        let mut rz_new = vec![0.0; len];
-        rr.iter_mut().for_each(|v| *v = 0.0);
-        for (i, &kd) in inv_deg.iter().enumerate() {
-            for c in 0..len {
-                let k = i * len + c;
-                x[k] += step[c] * p[k];
-                r[k] -= step[c] * q[k];
-                z[k] = r[k] * kd;
-                rz_new[c] += r[k] * z[k];
-                rr[c] += r[k] * r[k];
+        columns.par_iter_mut().for_each(|k| {
+            apply(&k.p, &mut k.q);
+            let pq = dot(&k.p, &k.q);
+            let step = if pq > 0.0 { k.rz / pq } else { 0.0 };
+            let mut rz_new = 0.0;
+            k.rr = 0.0;
+            for (i, &kd) in inv_deg.iter().enumerate() {
+                k.x[i] += step * k.p[i];
+                k.r[i] -= step * k.q[i];
+                k.z[i] = k.r[i] * kd;
+                rz_new += k.r[i] * k.z[i];
+                k.rr += k.r[i] * k.r[i];
             }
-        }
-        for c in 0..len {
-            beta[c] = if rz[c] > 0.0 { rz_new[c] / rz[c] } else { 0.0 };
-        }
-        for (pk, zk) in p.chunks_exact_mut(len).zip(z.chunks_exact(len)) {
-            for c in 0..len {
-                pk[c] = zk[c] + beta[c] * pk[c];
+            let beta = if k.rz > 0.0 { rz_new / k.rz } else { 0.0 };
+            for (pi, zi) in k.p.iter_mut().zip(&k.z) {
+                *pi = zi + beta * *pi;
             }
-        }
-        rz = rz_new;
+            k.rz = rz_new;
+        });
     }
-    if x.iter().any(|v| !v.is_finite()) {
+    if columns.iter().any(|k| k.x.iter().any(|v| !v.is_finite())) {
         return false;
     }
     for (i, &v) in order.iter().enumerate() {
-        out[v] = Some(x[i * len..(i + 1) * len].to_vec());
+        out[v] = Some(columns.iter().map(|k| k.x[i]).collect());
     }
     true
+}
+
+/// One component's conjugate-gradient state ([`conjugate_gradients`]).
+struct Column {
+    x: Vec<f64>,
+    r: Vec<f64>,
+    z: Vec<f64>,
+    p: Vec<f64>,
+    q: Vec<f64>,
+    rz: f64,
+    rr: f64,
+    b_norm: f64,
 }
 
 /// The mean of `v`'s neighbours' vectors (each re-expressed by `align`) into `acc`; `false`
