@@ -224,8 +224,11 @@ pub fn fit_lattice(
     // contributions, not a view's.
     let chunk = 2 * rayon::current_num_threads().max(1);
     for frames in by_view.values().flat_map(|f| f.chunks(chunk)) {
-        // Per frame: (point, channel, group, s, ln R_d + ln of the interpolated vertex alpha).
-        type Contribution = (u32, u8, u32, f64, f64);
+        // Per frame: (point, channel, ln(s / (R_d · the interpolated vertex alpha))) of every
+        // sample Eq. 6 takes, the logarithms and each light position's own window (t1 relative
+        // to its brightest sample) in parallel; only the sums below, in frame order, are
+        // sequential (the same bits on any number of threads).
+        type Contribution = (u32, u8, f64);
         let per_frame: Vec<Option<Vec<Contribution>>> = frames
             .par_iter()
             .map(|&l| {
@@ -238,6 +241,8 @@ pub fn fit_lattice(
                         else {
                             continue;
                         };
+                        let windows =
+                            [0, 1, 2].map(|ch| ctx.opts.alpha_window.for_light(g.s_max[ch]));
                         for (x, phi, takes) in
                             frame_observations(&groups.keys[gi], l, reg, tf, s, &pts.positions)
                         {
@@ -245,14 +250,15 @@ pub fn fit_lattice(
                             let ln_rd = g.model.ln_eval(x.r, phi);
                             let p = x.vertex as usize;
                             for ch in 0..3 {
-                                if takes & (1 << ch) != 0 {
-                                    out.push((
-                                        x.vertex,
-                                        ch as u8,
-                                        gi as u32,
-                                        x.value[ch],
-                                        ln_rd[ch] + ln_ref[p][ch],
-                                    ));
+                                if takes & (1 << ch) == 0 {
+                                    continue;
+                                }
+                                if let Some(t) = AlphaAccumulator::ln_ratio(
+                                    x.value[ch],
+                                    ln_rd[ch] + ln_ref[p][ch],
+                                    &windows[ch],
+                                ) {
+                                    out.push((x.vertex, ch as u8, t));
                                 }
                             }
                         }
@@ -269,13 +275,8 @@ pub fn fit_lattice(
                 report.unreadable += 1;
                 continue;
             };
-            for (p, ch, gi, s, ln_r) in contrib {
-                // Each light position's own Eq. 6 window (t1 relative to its brightest sample).
-                let s_max = fitted.fits[gi as usize]
-                    .as_ref()
-                    .map_or(f64::NAN, |g| g.s_max[ch as usize]);
-                let window = ctx.opts.alpha_window.for_light(s_max);
-                acc[p as usize][ch as usize].add_ln(s, ln_r, &window);
+            for (p, ch, t) in contrib {
+                acc[p as usize][ch as usize].add_ratio(t);
             }
         }
     }

@@ -146,15 +146,28 @@ impl AlphaAccumulator {
 
     /// [`AlphaAccumulator::add`] with ln R_d (finite where R_d underflows).
     pub fn add_ln(&mut self, s: f64, ln_r_d: f64, window: &IntensityWindow) -> bool {
-        let ln_ratio = s.ln() - ln_r_d;
-        if window.contains(s) && s > 0.0 && ln_ratio.is_finite() {
-            self.sum_ln += ln_ratio;
-            self.sum_sq_ln += ln_ratio * ln_ratio;
-            self.count += 1;
-            true
-        } else {
-            false
+        match Self::ln_ratio(s, ln_r_d, window) {
+            Some(x) => {
+                self.add_ratio(x);
+                true
+            }
+            None => false,
         }
+    }
+
+    /// The term one sample adds, ln(s / R_d), or `None` where [`AlphaAccumulator::add_ln`]
+    /// would not use it: split out so that many samples' terms can be taken in parallel and
+    /// only the sums ([`AlphaAccumulator::add_ratio`], in a fixed order) stay sequential.
+    pub fn ln_ratio(s: f64, ln_r_d: f64, window: &IntensityWindow) -> Option<f64> {
+        let ln_ratio = s.ln() - ln_r_d;
+        (window.contains(s) && s > 0.0 && ln_ratio.is_finite()).then_some(ln_ratio)
+    }
+
+    /// Adds a term of [`AlphaAccumulator::ln_ratio`].
+    pub fn add_ratio(&mut self, ln_ratio: f64) {
+        self.sum_ln += ln_ratio;
+        self.sum_sq_ln += ln_ratio * ln_ratio;
+        self.count += 1;
     }
 
     /// Merges another accumulator (for parallel accumulation).
