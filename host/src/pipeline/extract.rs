@@ -21,7 +21,9 @@ use crate::model::TangentFrame;
 use crate::progress::Progress;
 use crate::registration::RegistrationOutcome;
 use crate::store::arrow::{CACHE_DIR, Target, Writer};
-use crate::store::{Extracted, ExtractionKey, FrameRecord, SampleStore, StoreBuilder, StorePoints};
+use crate::store::{
+    Extracted, ExtractionKey, FrameRecord, SampleStore, StoreBuilder, StoreError, StorePoints,
+};
 
 use super::lattice::face_levels;
 use super::load::Context;
@@ -191,32 +193,55 @@ pub fn extract(
     );
     progress.start("extract", frames.len() as u64);
     let threads = rayon::current_num_threads().max(1);
-    for ((cam, deg), view) in views_of(ds, frames) {
-        let deg = f64::from_bits(deg);
-        let visible = builder.points().map(|p| {
-            ctx.scene.visible_points_of(
-                &p.points,
-                &p.which,
-                ctx.camera(cam),
-                deg,
-                ctx.opts.samples.cos_min,
-            )
+    let points = builder.shared_points();
+    let positions = &ds.mesh.positions[..];
+    // The store is written on a thread of its own while the workers decode the next frames:
+    // written in line, its Arrow batches (the φ of every sample, the IPC encoding) held every
+    // worker idle, ~10 % of a fit's CPU at 1024 px. One chunk in flight at most (a rendezvous
+    // channel): memory holds at most one chunk's samples more than a serial pass, and the
+    // frames go to the builder in the order they are taken, so the store is the same bytes.
+    let (tx, rx) = std::sync::mpsc::sync_channel::<Vec<Extracted>>(0);
+    let builder = std::thread::scope(|scope| {
+        let writer = scope.spawn(move || {
+            for chunk in rx {
+                for x in chunk {
+                    builder.push(x, positions)?;
+                }
+            }
+            Ok::<_, StoreError>(builder)
         });
-        // A few frames per worker at a time: their samples wait for the (sequential) store.
-        for chunk in view.chunks(2 * threads) {
-            let out: Vec<Extracted> = chunk
-                .par_iter()
-                .map(|&k| {
-                    let x = extract_frame(ctx, k, builder.points(), visible.as_deref());
-                    progress.inc(1);
-                    x
-                })
-                .collect();
-            for x in out {
-                builder.push(x, &ds.mesh.positions)?;
+        'views: for ((cam, deg), view) in views_of(ds, frames) {
+            let deg = f64::from_bits(deg);
+            let visible = points.as_deref().map(|p| {
+                ctx.scene.visible_points_of(
+                    &p.points,
+                    &p.which,
+                    ctx.camera(cam),
+                    deg,
+                    ctx.opts.samples.cos_min,
+                )
+            });
+            // A few frames per worker at a time: their samples wait for the store's writer.
+            for chunk in view.chunks(2 * threads) {
+                let out: Vec<Extracted> = chunk
+                    .par_iter()
+                    .map(|&k| {
+                        let x = extract_frame(ctx, k, points.as_deref(), visible.as_deref());
+                        progress.inc(1);
+                        x
+                    })
+                    .collect();
+                if tx.send(out).is_err() {
+                    // The writer stopped on an error, which its join returns.
+                    break 'views;
+                }
             }
         }
-    }
+        drop(tx);
+        writer
+            .join()
+            .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
+    })?;
     let mut held = builder.finish()?;
     held.set_seconds(clock.elapsed().as_secs_f64());
     held.set_cache_rejected(rejected);
