@@ -283,7 +283,9 @@ pub struct SampleStore {
     /// Record index per dataset frame (`u32::MAX`: not held).
     index: Vec<u32>,
     vertices: Vec<Slot>,
-    points: Option<(StorePoints, Vec<Slot>)>,
+    /// The lattice points (shared with the extraction that samples at them while this store
+    /// is filled, [`StoreBuilder::shared_points`]) and each record's slot.
+    points: Option<(Arc<StorePoints>, Vec<Slot>)>,
     files: Option<arrow::Files>,
     report: StoreReport,
 }
@@ -326,7 +328,7 @@ impl StoreBuilder {
                 records: Vec::new(),
                 index: vec![u32::MAX; dataset_frames],
                 vertices: Vec::new(),
-                points: points.map(|p| (p, Vec::new())),
+                points: points.map(|p| (Arc::new(p), Vec::new())),
                 files: None,
                 report: StoreReport {
                     budget_bytes: budget,
@@ -339,7 +341,15 @@ impl StoreBuilder {
 
     /// The lattice points the store samples, if any.
     pub fn points(&self) -> Option<&StorePoints> {
-        self.store.points.as_ref().map(|(p, _)| p)
+        self.store.points.as_ref().map(|(p, _)| &**p)
+    }
+
+    /// [`StoreBuilder::points`] as a handle of their own: the extraction samples at them while
+    /// the builder, moved to the thread that writes the store, adds the frames before
+    /// ([`crate::pipeline::extract`]). Shared, never copied (a lattice at 1024 px holds
+    /// millions of points).
+    pub fn shared_points(&self) -> Option<Arc<StorePoints>> {
+        self.store.points.as_ref().map(|(p, _)| Arc::clone(p))
     }
 
     /// Whether frame `k` was added.
@@ -438,7 +448,7 @@ impl StoreBuilder {
             let files = w.finish(
                 &self.store.key,
                 &self.store.records,
-                self.store.points.as_ref().map(|(p, _)| p),
+                self.store.points.as_ref().map(|(p, _)| &**p),
             )?;
             self.store.report.dir = Some(files.dir().to_path_buf());
             self.store.report.not_cached = files.not_cached().map(str::to_owned);
@@ -487,7 +497,7 @@ impl SampleStore {
 
     /// The lattice points the store holds samples at, if any.
     pub fn points(&self) -> Option<&StorePoints> {
-        self.points.as_ref().map(|(p, _)| p)
+        self.points.as_ref().map(|(p, _)| &**p)
     }
 
     /// The samples of dataset frame `k` at point set `set`; `Ok(None)` when the frame is held but
@@ -583,7 +593,7 @@ impl SampleStore {
         };
         let vertices = load(PointSet::Vertices, &mut report)?;
         let points = match points {
-            Some(p) => Some((p, load(PointSet::Lattice, &mut report)?)),
+            Some(p) => Some((Arc::new(p), load(PointSet::Lattice, &mut report)?)),
             None => None,
         };
         Ok(SampleStore {
