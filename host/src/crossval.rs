@@ -36,9 +36,9 @@ pub const DEFAULT_FOLDS: usize = 5;
 /// Rounds in a row without a lower cross-validated error after which the folds' alpha rounds
 /// stop (`--cv-patience`). Two, not one: a single round may tie within rounding of the best
 /// and the next still fall. It costs nothing in choice on the scans measured (the same rounds
-/// chosen as scoring all 8 on sample-slab, sample-torus, sample-pebble, two simulated scans
-/// and a simulated sphere: docs/validation.md) and ends a fold's fit after 4 of 9 models where
-/// the error is lowest after one round (the sphere).
+/// chosen as scoring all 8 on sample-slab, sample-torus, sample-pebble, four simulated scans
+/// and a simulated rig's scan: docs/validation.md, "How far the rounds run") and ends a fold's
+/// fit after 4 of its 9 models where the error is lowest after one round (the 256 px sphere).
 pub const DEFAULT_PATIENCE: usize = 2;
 
 /// How many direction segments m (Eq. 3) the fit uses.
