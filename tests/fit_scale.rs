@@ -72,3 +72,64 @@ fn fit_scale_tabulates_every_pair_and_deletes_its_datasets() {
     let img = image::open(&png).expect("decode plot").to_rgb8();
     assert_eq!(img.dimensions(), (1200, 480));
 }
+
+/// `subsurf bench one-pass` end to end on a tiny simulated scan: the fit decodes each frame once
+/// (its reads in the JSON), the ratio is written; `--no-pictures` in `--fit-args` is accepted (the
+/// bench gives it too), and what the bench must own (`--cache`) is refused before any work.
+#[test]
+fn one_pass_bench_reports_the_ratio_and_guards_its_own_fit_arguments() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scan = tmp.path().join("scan");
+    let sim = Command::new(env!("CARGO_BIN_EXE_subsurf"))
+        .args([
+            "simulate",
+            "--object",
+            "slab",
+            "--vertices",
+            "81",
+            "--size",
+            "48",
+        ])
+        .args(["--angles", "1", "--raster", "3", "--out"])
+        .arg(&scan)
+        .output()
+        .expect("run subsurf simulate");
+    assert!(
+        sim.status.success(),
+        "{}",
+        String::from_utf8_lossy(&sim.stderr)
+    );
+    let json = tmp.path().join("op.json");
+    let run = |fit_args: &str| {
+        Command::new(env!("CARGO_BIN_EXE_subsurf"))
+            .args(["bench", "one-pass", "--scan"])
+            .arg(&scan)
+            .arg("--dir")
+            .arg(tmp.path().join("out"))
+            .arg("--json")
+            .arg(&json)
+            .arg(format!("--fit-args={fit_args}"))
+            .output()
+            .expect("run subsurf bench one-pass")
+    };
+    let out = run("--no-pictures,--cv-folds,0");
+    assert!(
+        out.status.success(),
+        "{}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let fig: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let frames = fig["frames"].as_u64().unwrap();
+    assert_eq!(frames, 9, "{fig}");
+    assert_eq!(fig["frame_reads"]["total"].as_u64(), Some(frames), "{fig}");
+    assert_eq!(fig["frame_reads"]["most"].as_u64(), Some(1), "{fig}");
+    assert!(fig["ratio"].as_f64().unwrap() > 0.0, "{fig}");
+    std::fs::remove_file(&json).unwrap();
+    let refused = run("--cache,dataset");
+    assert!(!refused.status.success());
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert!(err.contains("--fit-args may not set --cache"), "{err}");
+    assert!(!json.exists(), "nothing measured for a refused run");
+}

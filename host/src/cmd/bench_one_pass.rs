@@ -26,7 +26,9 @@ pub struct OnePassBench {
     /// Where the model and report go.
     #[arg(long, default_value = "/tmp/subsurf-one-pass")]
     dir: PathBuf,
-    /// Extra arguments for `subsurf fit` (e.g. `--fit-args=--alpha-rounds,0`).
+    /// Extra arguments for `subsurf fit` (e.g. `--fit-args=--alpha-rounds,0`). The bench gives
+    /// `--scan`, `--out`, `--report`, `--cache off` (the fit must decode the frames itself) and
+    /// `--no-pictures` itself; the first four are refused here, the last accepted.
     #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
     fit_args: Vec<String>,
     /// Write the figures as JSON here.
@@ -51,6 +53,14 @@ struct Figures {
 }
 
 pub fn bench_one_pass(b: OnePassBench) -> Result<()> {
+    for own in ["--scan", "--out", "--report", "--cache"] {
+        if b.fit_args
+            .iter()
+            .any(|a| a == own || a.starts_with(&format!("{own}=")))
+        {
+            bail!("--fit-args may not set {own}: the bench sets it (see --help)");
+        }
+    }
     let ds = Dataset::open(&b.scan).with_context(|| format!("opening {}", b.scan.display()))?;
     let frames = select_frames(ds.spec.frames.len(), b.frames.as_deref(), None)
         .map_err(|e| anyhow::anyhow!(e))?;
@@ -78,7 +88,10 @@ pub fn bench_one_pass(b: OnePassBench) -> Result<()> {
         .arg(&model)
         .arg("--report")
         .arg(&report)
-        .args(["--no-pictures", "--cache", "off"]);
+        .args(["--cache", "off"]);
+    if !b.fit_args.iter().any(|a| a == "--no-pictures") {
+        cmd.arg("--no-pictures");
+    }
     if let Some(f) = &b.frames {
         cmd.args(["--frames", f]);
     }
