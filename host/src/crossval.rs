@@ -171,42 +171,38 @@ fn cross_validate(
         .par_iter()
         .map(|p| p.as_ref().map(|p| p.rounds(ctx, fitter, &())))
         .collect();
-    let mut live: Vec<bool> = runs.iter().map(Option::is_some).collect();
-    let mut failed: Vec<bool> = live.iter().map(|l| !l).collect();
+    // A fold's run is dropped (`None`) when its rounds end; a failed fold's errors with it.
     let mut by_round: Vec<Vec<Vec<FrameEval>>> = vec![Vec::new(); folds.len()];
     for r in 0..=max_rounds {
-        let judged: Vec<Option<Option<Vec<FrameEval>>>> = runs
+        let judged: Vec<Option<Vec<FrameEval>>> = runs
             .par_iter()
-            .zip(&live)
             .zip(folds)
-            .map(|((run, &l), fold)| {
-                let run = run.as_ref().filter(|_| l)?;
-                Some(run.model().ok().and_then(|out| {
-                    evaluate_in(ctx, &out.model, fold, EvalPoints::Vertices, &())
-                        .ok()
-                        .map(|(evals, _)| evals)
-                }))
+            .map(|(run, fold)| {
+                let out = run.as_ref()?.model().ok()?;
+                evaluate_in(ctx, &out.model, fold, EvalPoints::Vertices, &())
+                    .ok()
+                    .map(|(evals, _)| evals)
             })
             .collect();
-        for (i, j) in judged.into_iter().enumerate() {
-            match j {
-                None => {}
-                Some(Some(evals)) => by_round[i].push(evals),
-                Some(None) => {
-                    failed[i] = true;
-                    live[i] = false;
+        for ((run, fold), evals) in runs.iter_mut().zip(&mut by_round).zip(judged) {
+            match evals {
+                _ if run.is_none() => {}
+                Some(evals) => fold.push(evals),
+                None => {
+                    fold.clear();
+                    *run = None;
                 }
             }
         }
-        if r == max_rounds || rounds_exhausted(&pooled(&by_round, &failed, r), patience) {
+        if r == max_rounds || rounds_exhausted(&pooled(&by_round, r), patience) {
             break;
         }
-        live = runs
-            .par_iter_mut()
-            .zip(&live)
-            .map(|(run, &l)| l && run.as_mut().is_some_and(|run| run.step()))
-            .collect();
-        if !live.contains(&true) {
+        runs.par_iter_mut().for_each(|run| {
+            if run.as_mut().is_some_and(|run| !run.step()) {
+                *run = None;
+            }
+        });
+        if runs.iter().all(Option::is_none) {
             break;
         }
     }
@@ -214,24 +210,18 @@ fn cross_validate(
     progress.inc(folds.len() as u64);
     let most = by_round
         .iter()
-        .zip(&failed)
-        .filter(|(b, f)| !**f && !b.is_empty())
-        .map(|(b, _)| b.len() - 1)
+        .filter_map(|b| b.len().checked_sub(1))
         .max()
         .unwrap_or(0);
-    Ok((pooled(&by_round, &failed, max_rounds), most))
+    Ok((pooled(&by_round, max_rounds), most))
 }
 
-/// The folds' held-out errors per number of rounds 0..=`last`, every fold that did not fail
-/// contributing its model after that many rounds, or its last model where its rounds stopped
-/// before.
-fn pooled(by_round: &[Vec<Vec<FrameEval>>], failed: &[bool], last: usize) -> Vec<Errors> {
+/// The folds' held-out errors per number of rounds 0..=`last`, every fold with errors (a failed
+/// fold has none) contributing its model after that many rounds, or its last model where its
+/// rounds stopped before.
+fn pooled(by_round: &[Vec<Vec<FrameEval>>], last: usize) -> Vec<Errors> {
     let mut per_round: Vec<Errors> = vec![Errors::new(); last + 1];
-    for (fold, _) in by_round
-        .iter()
-        .zip(failed)
-        .filter(|(b, f)| !**f && !b.is_empty())
-    {
+    for fold in by_round.iter().filter(|b| !b.is_empty()) {
         for (r, errs) in per_round.iter_mut().enumerate() {
             let evals = &fold[r.min(fold.len() - 1)];
             for e in evals.iter().filter(|e| e.skipped.is_none()) {

@@ -540,26 +540,12 @@ fn scan_worker(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::simulate::{CameraRig, LaserRig, SimConfig, SimObject, simulate};
+    use crate::simulate::{simulate, top_down_slab_config};
     use crate::store::StoreError;
 
-    /// A slab of 8 mm seen from above at 72 px, lit at a 5 × 5 raster: 25 frames of one view,
-    /// several chunks of the pass.
+    /// 25 frames of one view ([`top_down_slab_config`]): several chunks of the pass.
     fn slab(dir: &std::path::Path) -> Dataset {
-        let mut cfg = SimConfig::for_object(SimObject::Slab { size: 8.0, n: 5 }, 72, 1, 5);
-        cfg.cameras = CameraRig::TopDown {
-            distance: 400.0,
-            mm_per_pixel: 0.125,
-            size: 72,
-        };
-        cfg.laser = LaserRig::Raster {
-            origin: [0.0, 0.0, 850.0],
-            n: 5,
-            span: 0.65,
-        };
-        cfg.turntable_deg = vec![0.0];
-        cfg.pfm = true;
-        simulate(&cfg, dir, &()).unwrap();
+        simulate(&top_down_slab_config(), dir, &()).unwrap();
         Dataset::open(dir).unwrap()
     }
 

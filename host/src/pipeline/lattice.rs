@@ -359,7 +359,7 @@ mod tests {
     use crate::lattice::point_bary;
     use crate::modelfile::ModelFile;
     use crate::pipeline::{AlphaLattice, FitOutput, PipelineOptions, fit_dataset};
-    use crate::simulate::{CameraRig, Field, LaserRig, SimConfig, SimObject, simulate};
+    use crate::simulate::{Field, SimConfig, simulate, top_down_slab_config};
 
     /// A homogeneous slab (so R_d is one curve and alpha is all the variation) of 8 mm with
     /// vertices 2 mm apart, seen from above at 0.125 mm per pixel, lit at a 5 × 5 raster; alpha's
@@ -372,20 +372,10 @@ mod tests {
             vein_wavelength: 3.0,
             ..Field::default()
         };
-        let mut cfg = SimConfig::for_object(SimObject::Slab { size: 8.0, n: 5 }, 72, 1, 5);
-        cfg.field = field.clone();
-        cfg.cameras = CameraRig::TopDown {
-            distance: 400.0,
-            mm_per_pixel: 0.125,
-            size: 72,
+        let cfg = SimConfig {
+            field: field.clone(),
+            ..top_down_slab_config()
         };
-        cfg.laser = LaserRig::Raster {
-            origin: [0.0, 0.0, 850.0],
-            n: 5,
-            span: 0.65,
-        };
-        cfg.turntable_deg = vec![0.0];
-        cfg.pfm = true;
         simulate(&cfg, dir, &()).unwrap();
         (Dataset::open(dir).unwrap(), field)
     }

@@ -877,6 +877,26 @@ pub fn simulate(
     })
 }
 
+/// For the host's unit tests: a slab of 8 mm (5 × 5 vertices) seen from above at 72 px and
+/// 0.125 mm per pixel, lit at a 5 × 5 raster at one turntable angle: 25 frames of one view.
+#[cfg(test)]
+pub(crate) fn top_down_slab_config() -> SimConfig {
+    let mut cfg = SimConfig::for_object(SimObject::Slab { size: 8.0, n: 5 }, 72, 1, 5);
+    cfg.cameras = CameraRig::TopDown {
+        distance: 400.0,
+        mm_per_pixel: 0.125,
+        size: 72,
+    };
+    cfg.laser = LaserRig::Raster {
+        origin: [0.0, 0.0, 850.0],
+        n: 5,
+        span: 0.65,
+    };
+    cfg.turntable_deg = vec![0.0];
+    cfg.pfm = true;
+    cfg
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

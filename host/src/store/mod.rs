@@ -345,7 +345,7 @@ impl StoreBuilder {
     }
 
     /// [`StoreBuilder::points`] as a handle of their own: the extraction samples at them while
-    /// the builder, moved to the thread that writes the store, adds the frames before
+    /// the builder, borrowed mutably by the worker that writes the store, adds the frames before
     /// ([`crate::pipeline::extract`]). Shared, never copied (a lattice at 1024 px holds
     /// millions of points).
     pub fn shared_points(&self) -> Option<Arc<StorePoints>> {
