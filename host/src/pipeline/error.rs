@@ -61,11 +61,12 @@ pub fn log_e_of_fits(
                 for (ch, d) in data.iter().enumerate() {
                     for x in d {
                         let ln_alpha = fitted.alpha[x.vertex as usize][ch].ln();
-                        let ln = ln_alpha + g.model.ln_eval(x.r, x.phi)[ch];
+                        let ln = ln_alpha + g.model.ln_eval_channel(ch, x.r, x.phi);
                         acc[ch].add_ln(ln, x.s, threshold);
                         // The baseline with the model's alpha, as the held-out row judges it.
                         if let Some(b) = baseline {
-                            base[ch].add_ln(ln_alpha + b.ln_eval(x.r, None)[ch], x.s, threshold);
+                            let ln_b = b.ln_eval_channel(ch, x.r, None);
+                            base[ch].add_ln(ln_alpha + ln_b, x.s, threshold);
                         }
                     }
                 }

@@ -260,11 +260,14 @@ pub fn unsupported_term(f: &ExpSum, r: &[f64]) -> Option<TermDropped> {
     rs.sort_by(f64::total_cmp);
     rs.dedup_by(|a, b| (*a - *b).abs() <= 1e-9 * b.abs().max(1.0));
     let ln_min_share = MIN_SHARE.ln();
+    // ln R_d at each distance once, not once per term (the same values).
+    let ln_rd: Vec<f64> = rs.iter().map(|&x| f.ln_eval(x)).collect();
     for t in &f.terms {
         let ln_c = t.c.ln();
         let support = rs
             .iter()
-            .filter(|&&x| ln_c + t.d * x - f.ln_eval(x) >= ln_min_share)
+            .zip(&ln_rd)
+            .filter(|&(&x, &l)| ln_c + t.d * x - l >= ln_min_share)
             .count();
         if support < MIN_SUPPORT {
             return Some(TermDropped::Unresolved);
@@ -630,7 +633,7 @@ fn scaled_baseline(base: &ColourModel, data: &ChannelSamples) -> Option<ColourMo
     for (c, d) in data.iter().enumerate() {
         let v: Vec<f64> = d
             .iter()
-            .map(|x| x.s.ln() - base.ln_eval(x.r, x.phi)[c])
+            .map(|x| x.s.ln() - base.ln_eval_channel(c, x.r, x.phi))
             .filter(|v| v.is_finite())
             .collect();
         if v.is_empty() {
@@ -804,7 +807,7 @@ fn sq_err(m: &ColourModel, data: &ChannelSamples) -> f64 {
     let mut o = 0.0;
     for (ch, d) in data.iter().enumerate() {
         for x in d {
-            let e = m.ln_eval(x.r, x.phi)[ch] - x.s.ln();
+            let e = m.ln_eval_channel(ch, x.r, x.phi) - x.s.ln();
             if e.is_finite() {
                 o += e * e;
             }
@@ -929,7 +932,7 @@ impl RoundRunner<'_, '_> {
                         let s_max = d.iter().map(captured).fold(0.0, f64::max);
                         let window = opts.alpha_window.for_light(s_max);
                         for x in d {
-                            let ln_rd = g.model.ln_eval(x.r, x.phi)[ch];
+                            let ln_rd = g.model.ln_eval_channel(ch, x.r, x.phi);
                             let s = captured(x);
                             st.alpha[x.vertex as usize][ch].add_ln(s, ln_rd, &window);
                             st.objective_stats[x.vertex as usize][ch].add(ln_rd - s.ln());

@@ -17,6 +17,7 @@ use super::{
 };
 use crate::model::expsum::sort_terms;
 use crate::model::{Anisotropic, ColourModel, ExpSum, MAX_TERMS, Term, hat_weights};
+use crate::model::{exp_exact_at_zero, ln_exact_at_one};
 
 /// Settings of an anisotropic / colour fit.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -170,6 +171,12 @@ impl Problem for AnisoProblem<'_> {
         let mut vals: Vec<f64> = Vec::with_capacity(2 * n * self.m + 1);
         let mut ln_seg = vec![0.0; self.m];
         let mut v = vec![0.0; self.m * n];
+        // exp(b_lk), the rate magnitudes: once per evaluation, not once per sample and term as
+        // before (the same values). With the exps and logs that are exactly 1 and 0 skipped
+        // (one segment's weight, the largest term's share), this loop makes 2 exps and 1 log
+        // per sample at n = 3, m = 1 instead of 11 and 3: it was the fit's largest cost (issue
+        // 23), and it gives the same bits.
+        let rate: Vec<f64> = (0..self.m * n).map(|i| theta[2 * i + 1].exp()).collect();
         for (j, &r) in self.r.iter().enumerate() {
             segment_weights(self.phi[j], self.m, &mut segs);
             // ln of w_l·R_l for each involved segment, with within-segment term shares v.
@@ -177,24 +184,27 @@ impl Problem for AnisoProblem<'_> {
             for &(l, w) in &segs {
                 let mut mx = f64::NEG_INFINITY;
                 for k in 0..n {
-                    let t = theta[2 * (l * n + k)] - theta[2 * (l * n + k) + 1].exp() * r;
+                    let t = theta[2 * (l * n + k)] - rate[l * n + k] * r;
                     v[l * n + k] = t;
                     mx = mx.max(t);
                 }
                 let mut sum = 0.0;
                 for k in 0..n {
-                    let e = (v[l * n + k] - mx).exp();
+                    let e = exp_exact_at_zero(v[l * n + k] - mx);
                     v[l * n + k] = e;
                     sum += e;
                 }
                 for k in 0..n {
                     v[l * n + k] /= sum;
                 }
-                ln_seg[l] = w.ln() + mx + sum.ln();
+                ln_seg[l] = ln_exact_at_one(w) + mx + ln_exact_at_one(sum);
                 top = top.max(ln_seg[l]);
             }
-            let total: f64 = segs.iter().map(|&(l, _)| (ln_seg[l] - top).exp()).sum();
-            let ln_t = top + total.ln();
+            let total: f64 = segs
+                .iter()
+                .map(|&(l, _)| exp_exact_at_zero(ln_seg[l] - top))
+                .sum();
+            let ln_t = top + ln_exact_at_one(total);
             if !ln_t.is_finite() {
                 return false;
             }
@@ -202,10 +212,10 @@ impl Problem for AnisoProblem<'_> {
                 idx.clear();
                 vals.clear();
                 for &(l, _) in &segs {
-                    let u = (ln_seg[l] - ln_t).exp();
+                    let u = exp_exact_at_zero(ln_seg[l] - ln_t);
                     for k in 0..n {
                         let p = 2 * (l * n + k);
-                        let d = -theta[p + 1].exp();
+                        let d = -rate[l * n + k];
                         idx.push(p);
                         vals.push(u * v[l * n + k]);
                         idx.push(p + 1);

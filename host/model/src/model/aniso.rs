@@ -3,7 +3,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::{ExpSum, ModelError, log_sum_exp};
+use super::{ExpSum, ModelError, ln_exact_at_one, log_sum_exp};
 
 /// Which rule builds the [`TangentFrame`] from a normal. A model file records the rule its
 /// segments were fitted in (`docs/model-format.md`), so a reader evaluates every file in the frame
@@ -227,12 +227,12 @@ impl Anisotropic {
         match phi.filter(|p| p.is_finite()) {
             Some(phi) if m > 1 => {
                 let [(l0, w0), (l1, w1)] = hat_weights(phi, m);
-                let a = w0.ln() + self.segments[l0].ln_eval(r);
-                let b = w1.ln() + self.segments[l1].ln_eval(r);
+                let a = ln_exact_at_one(w0) + self.segments[l0].ln_eval(r);
+                let b = ln_exact_at_one(w1) + self.segments[l1].ln_eval(r);
                 log_sum_exp([a, b].into_iter())
             }
             _ => {
-                let lw = -(m as f64).ln();
+                let lw = -ln_exact_at_one(m as f64);
                 log_sum_exp(self.segments.iter().map(|s| lw + s.ln_eval(r)))
             }
         }

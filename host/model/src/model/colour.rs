@@ -52,6 +52,23 @@ impl ColourModel {
         }
     }
 
+    /// ln R_d of one channel (0 = r, 1 = g, 2 = b): `self.ln_eval(r, phi)[channel]` to the bit,
+    /// without the other channels' evaluations (the fit's loops take one channel's samples at a
+    /// time, and evaluated all three for each: issue 23). NaN for a channel index above 2.
+    pub fn ln_eval_channel(&self, channel: usize, r: f64, phi: Option<f64>) -> f64 {
+        match self {
+            Self::PerChannel { channels } => channels
+                .get(channel)
+                .map_or(f64::NAN, |c| c.ln_eval(r, phi)),
+            Self::Shared { falloff, s_g, s_b } => match channel {
+                0 => falloff.ln_eval(r, phi),
+                1 => falloff.ln_eval(r, phi) + s_g.ln(),
+                2 => falloff.ln_eval(r, phi) + s_b.ln(),
+                _ => f64::NAN,
+            },
+        }
+    }
+
     /// R_d per channel at distance r and direction φ.
     pub fn eval(&self, r: f64, phi: Option<f64>) -> [f64; 3] {
         self.ln_eval(r, phi).map(f64::exp)
@@ -102,5 +119,51 @@ mod tests {
         assert!(bad.validate().is_err());
         let json = serde_json::to_string(&m).unwrap();
         assert_eq!(serde_json::from_str::<ColourModel>(&json).unwrap(), m);
+    }
+
+    /// One channel's evaluation is the full evaluation's entry to the bit, for per-channel and
+    /// shared colour, one and several segments, with and without a direction.
+    #[test]
+    fn one_channel_is_the_full_evaluations_entry_to_the_bit() {
+        let seg = |k: f64| {
+            ExpSum::new(vec![
+                Term {
+                    c: 3.0 + k,
+                    d: -0.4 - 0.1 * k,
+                },
+                Term {
+                    c: 0.2 * (1.0 + k),
+                    d: -2.5 - k,
+                },
+            ])
+            .unwrap()
+        };
+        let aniso = |m: usize, k: f64| Anisotropic {
+            segments: (0..m).map(|l| seg(k + l as f64)).collect(),
+        };
+        for m in [1, 2, 4] {
+            let models = [
+                ColourModel::PerChannel {
+                    channels: [aniso(m, 0.0), aniso(m, 1.0), aniso(m, 2.0)],
+                },
+                ColourModel::Shared {
+                    falloff: aniso(m, 0.5),
+                    s_g: 0.7,
+                    s_b: 0.3,
+                },
+            ];
+            for model in &models {
+                for r in [0.0, 1e-9, 0.37, 3.0, 40.0, 4000.0] {
+                    for phi in [None, Some(0.0), Some(1.1), Some(-2.9), Some(f64::NAN)] {
+                        let all = model.ln_eval(r, phi);
+                        for (ch, want) in all.iter().enumerate() {
+                            let got = model.ln_eval_channel(ch, r, phi);
+                            assert_eq!(got.to_bits(), want.to_bits(), "m {m} r {r} phi {phi:?}");
+                        }
+                        assert!(model.ln_eval_channel(3, r, phi).is_nan());
+                    }
+                }
+            }
+        }
     }
 }

@@ -93,7 +93,36 @@ pub enum ModelError {
 }
 
 /// log(Σ exp(v_i)) without overflow or underflow; −∞ for an empty input or all −∞ terms.
+///
+/// Each value is computed once (up to [`LSE_INLINE`] values are held on the stack; beyond, the
+/// iterator is run twice as it always was): the values are closures over `ln c_k + d_k·r`, and
+/// running them twice cost a log per term per evaluation, the fit's hottest path (issue 23).
+/// The arithmetic is the one it was, so the result is the same to the bit.
 pub(crate) fn log_sum_exp(values: impl Iterator<Item = f64> + Clone) -> f64 {
+    let mut held = [0.0; LSE_INLINE];
+    let mut n = 0;
+    for v in values.clone() {
+        if n == LSE_INLINE {
+            return log_sum_exp_twice(values);
+        }
+        held[n] = v;
+        n += 1;
+    }
+    let held = &held[..n];
+    let m = held.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    if m == f64::NEG_INFINITY || m.is_nan() {
+        return m;
+    }
+    if m == f64::INFINITY {
+        return m;
+    }
+    m + ln_exact_at_one(held.iter().map(|&v| exp_exact_at_zero(v - m)).sum::<f64>())
+}
+
+/// Values [`log_sum_exp`] holds on the stack: more than any model's terms × segments in use.
+const LSE_INLINE: usize = 32;
+
+fn log_sum_exp_twice(values: impl Iterator<Item = f64> + Clone) -> f64 {
     let m = values.clone().fold(f64::NEG_INFINITY, f64::max);
     if m == f64::NEG_INFINITY || m.is_nan() {
         return m;
@@ -102,4 +131,71 @@ pub(crate) fn log_sum_exp(values: impl Iterator<Item = f64> + Clone) -> f64 {
         return m;
     }
     m + values.map(|v| (v - m).exp()).sum::<f64>().ln()
+}
+
+/// `x.exp()`, skipping the call at ±0 where it is exactly 1: the largest term of every
+/// log-sum-exp is exp(0), and a one-term sum is nothing else (issue 23: a third of the fit's
+/// exps). Bit for bit `x.exp()`.
+#[inline]
+pub(crate) fn exp_exact_at_zero(x: f64) -> f64 {
+    if x == 0.0 { 1.0 } else { x.exp() }
+}
+
+/// `x.ln()`, skipping the call at 1 where it is exactly +0: the sum of a one-term log-sum-exp
+/// and the weight of an unsegmented model. Bit for bit `x.ln()`.
+#[inline]
+pub(crate) fn ln_exact_at_one(x: f64) -> f64 {
+    if x == 1.0 { 0.0 } else { x.ln() }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn value() -> impl Strategy<Value = f64> {
+        prop_oneof![
+            8 => -800.0..800.0f64,
+            1 => Just(0.0),
+            1 => Just(-0.0),
+            1 => Just(f64::NEG_INFINITY),
+            1 => Just(f64::INFINITY),
+            1 => Just(f64::NAN),
+        ]
+    }
+
+    proptest! {
+        /// Holding the values on the stack changes no bit of the result: the same values, the
+        /// same max, the same sum in the same order (and the skipped exp(0), ln(1) are exact).
+        #[test]
+        fn log_sum_exp_is_the_two_pass_sum_to_the_bit(
+            v in proptest::collection::vec(value(), 0..(LSE_INLINE + 4)),
+        ) {
+            let got = log_sum_exp(v.iter().copied());
+            let want = log_sum_exp_twice(v.iter().copied());
+            prop_assert!(got.to_bits() == want.to_bits() || (got.is_nan() && want.is_nan()),
+                "{got} against {want} for {v:?}");
+        }
+    }
+
+    #[test]
+    fn the_skipped_calls_are_exact() {
+        for x in [0.0f64, -0.0] {
+            assert_eq!(exp_exact_at_zero(x).to_bits(), x.exp().to_bits());
+        }
+        assert_eq!(ln_exact_at_one(1.0).to_bits(), 1.0f64.ln().to_bits());
+        for x in [
+            1e-300,
+            0.5,
+            2.0,
+            1.0 + f64::EPSILON,
+            1.0 - f64::EPSILON / 2.0,
+        ] {
+            assert_eq!(ln_exact_at_one(x).to_bits(), x.ln().to_bits());
+            assert_eq!(
+                exp_exact_at_zero(x - 1.0).to_bits(),
+                (x - 1.0).exp().to_bits()
+            );
+        }
+    }
 }
