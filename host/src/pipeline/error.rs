@@ -58,13 +58,15 @@ pub fn log_e_of_fits(
                 let (data, _) = group_samples(ctx, regs, key).ok()?;
                 let mut acc = [LogEAccumulator::default(); 3];
                 let mut base = [LogEAccumulator::default(); 3];
+                let (model, baseline) =
+                    (g.model.ln_evaluator(), baseline.map(|b| b.ln_evaluator()));
                 for (ch, d) in data.iter().enumerate() {
                     for x in d {
                         let ln_alpha = fitted.alpha[x.vertex as usize][ch].ln();
-                        let ln = ln_alpha + g.model.ln_eval_channel(ch, x.r, x.phi);
+                        let ln = ln_alpha + model.ln_eval_channel(ch, x.r, x.phi);
                         acc[ch].add_ln(ln, x.s, threshold);
                         // The baseline with the model's alpha, as the held-out row judges it.
-                        if let Some(b) = baseline {
+                        if let Some(b) = &baseline {
                             let ln_b = b.ln_eval_channel(ch, x.r, None);
                             base[ch].add_ln(ln_alpha + ln_b, x.s, threshold);
                         }

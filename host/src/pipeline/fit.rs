@@ -630,10 +630,11 @@ fn fit_order(
 /// samples in a channel or if the result is not a valid model.
 fn scaled_baseline(base: &ColourModel, data: &ChannelSamples) -> Option<ColourModel> {
     let mut a = [0.0; 3];
+    let ev = base.ln_evaluator();
     for (c, d) in data.iter().enumerate() {
         let v: Vec<f64> = d
             .iter()
-            .map(|x| x.s.ln() - base.ln_eval_channel(c, x.r, x.phi))
+            .map(|x| x.s.ln() - ev.ln_eval_channel(c, x.r, x.phi))
             .filter(|v| v.is_finite())
             .collect();
         if v.is_empty() {
@@ -804,6 +805,7 @@ impl RoundState {
 /// Sum over a group's (alpha-divided) samples of (ln R_d − ln s)^2: its share of the training
 /// objective.
 fn sq_err(m: &ColourModel, data: &ChannelSamples) -> f64 {
+    let m = m.ln_evaluator();
     let mut o = 0.0;
     for (ch, d) in data.iter().enumerate() {
         for x in d {
@@ -923,6 +925,7 @@ impl RoundRunner<'_, '_> {
                         st.alpha = vec![[AlphaAccumulator::default(); 3]; nv];
                         st.objective_stats = vec![[ObjectiveStats::default(); 3]; nv];
                     }
+                    let ev = g.model.ln_evaluator();
                     for (ch, d) in data.iter().enumerate() {
                         // Eq. 6 compares the captured sample with R_d.
                         let captured = |x: &GroupSample| {
@@ -932,7 +935,7 @@ impl RoundRunner<'_, '_> {
                         let s_max = d.iter().map(captured).fold(0.0, f64::max);
                         let window = opts.alpha_window.for_light(s_max);
                         for x in d {
-                            let ln_rd = g.model.ln_eval_channel(ch, x.r, x.phi);
+                            let ln_rd = ev.ln_eval_channel(ch, x.r, x.phi);
                             let s = captured(x);
                             st.alpha[x.vertex as usize][ch].add_ln(s, ln_rd, &window);
                             st.objective_stats[x.vertex as usize][ch].add(ln_rd - s.ln());

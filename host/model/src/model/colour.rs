@@ -69,6 +69,20 @@ impl ColourModel {
         }
     }
 
+    /// The model ready for many evaluations: ln s_g and ln s_b taken once, not at every
+    /// evaluation (two logs against the fall-off's own one: issue 23). Its evaluations are
+    /// [`ColourModel::ln_eval`]'s and [`ColourModel::ln_eval_channel`]'s to the bit.
+    pub fn ln_evaluator(&self) -> LnEvaluator<'_> {
+        let ln_scale = match self {
+            Self::PerChannel { .. } => [0.0; 2],
+            Self::Shared { s_g, s_b, .. } => [s_g.ln(), s_b.ln()],
+        };
+        LnEvaluator {
+            model: self,
+            ln_scale,
+        }
+    }
+
     /// R_d per channel at distance r and direction φ.
     pub fn eval(&self, r: f64, phi: Option<f64>) -> [f64; 3] {
         self.ln_eval(r, phi).map(f64::exp)
@@ -85,6 +99,41 @@ impl ColourModel {
                     segments: falloff.segments.iter().map(|e| e.scaled(s)).collect(),
                 })
             }
+        }
+    }
+}
+
+/// [`ColourModel::ln_evaluator`]: a colour model with the logarithms of its channel scales taken.
+#[derive(Debug, Clone, Copy)]
+pub struct LnEvaluator<'a> {
+    model: &'a ColourModel,
+    /// ln s_g, ln s_b (shared colour; unused per channel).
+    ln_scale: [f64; 2],
+}
+
+impl LnEvaluator<'_> {
+    /// [`ColourModel::ln_eval`], the same bits.
+    pub fn ln_eval(&self, r: f64, phi: Option<f64>) -> [f64; 3] {
+        match self.model {
+            ColourModel::PerChannel { channels } => [0, 1, 2].map(|c| channels[c].ln_eval(r, phi)),
+            ColourModel::Shared { falloff, .. } => {
+                let l = falloff.ln_eval(r, phi);
+                [l, l + self.ln_scale[0], l + self.ln_scale[1]]
+            }
+        }
+    }
+
+    /// [`ColourModel::ln_eval_channel`], the same bits.
+    pub fn ln_eval_channel(&self, channel: usize, r: f64, phi: Option<f64>) -> f64 {
+        match self.model {
+            ColourModel::PerChannel { channels } => channels
+                .get(channel)
+                .map_or(f64::NAN, |c| c.ln_eval(r, phi)),
+            ColourModel::Shared { falloff, .. } => match channel {
+                0 => falloff.ln_eval(r, phi),
+                1 | 2 => falloff.ln_eval(r, phi) + self.ln_scale[channel - 1],
+                _ => f64::NAN,
+            },
         }
     }
 }
@@ -124,7 +173,7 @@ mod tests {
     /// One channel's evaluation is the full evaluation's entry to the bit, for per-channel and
     /// shared colour, one and several segments, with and without a direction.
     #[test]
-    fn one_channel_is_the_full_evaluations_entry_to_the_bit() {
+    fn one_channel_and_the_evaluator_are_the_full_evaluation_to_the_bit() {
         let seg = |k: f64| {
             ExpSum::new(vec![
                 Term {
@@ -156,11 +205,17 @@ mod tests {
                 for r in [0.0, 1e-9, 0.37, 3.0, 40.0, 4000.0] {
                     for phi in [None, Some(0.0), Some(1.1), Some(-2.9), Some(f64::NAN)] {
                         let all = model.ln_eval(r, phi);
+                        let ev = model.ln_evaluator();
+                        let all_ev = ev.ln_eval(r, phi);
                         for (ch, want) in all.iter().enumerate() {
                             let got = model.ln_eval_channel(ch, r, phi);
                             assert_eq!(got.to_bits(), want.to_bits(), "m {m} r {r} phi {phi:?}");
+                            let got = ev.ln_eval_channel(ch, r, phi);
+                            assert_eq!(got.to_bits(), want.to_bits(), "m {m} r {r} phi {phi:?}");
+                            assert_eq!(all_ev[ch].to_bits(), want.to_bits());
                         }
                         assert!(model.ln_eval_channel(3, r, phi).is_nan());
+                        assert!(ev.ln_eval_channel(3, r, phi).is_nan());
                     }
                 }
             }

@@ -28,7 +28,7 @@ pub mod support;
 
 pub use alpha::{ALPHA_PRIOR, ALPHA_PRIOR_MAX, AlphaAccumulator, IntensityWindow, empirical_prior};
 pub use aniso::{Anisotropic, FrameRule, TangentFrame, hat_weights};
-pub use colour::ColourModel;
+pub use colour::{ColourModel, LnEvaluator};
 pub use dipole::{Dipole, MATERIALS, Material};
 pub use error::{LogEAccumulator, reconstruction_error, table1_mean};
 pub use expsum::{ExpSum, MAX_TERMS, Term};
