@@ -56,17 +56,7 @@ impl ColourModel {
     /// without the other channels' evaluations (the fit's loops take one channel's samples at a
     /// time, and evaluated all three for each: issue 23). NaN for a channel index above 2.
     pub fn ln_eval_channel(&self, channel: usize, r: f64, phi: Option<f64>) -> f64 {
-        match self {
-            Self::PerChannel { channels } => channels
-                .get(channel)
-                .map_or(f64::NAN, |c| c.ln_eval(r, phi)),
-            Self::Shared { falloff, s_g, s_b } => match channel {
-                0 => falloff.ln_eval(r, phi),
-                1 => falloff.ln_eval(r, phi) + s_g.ln(),
-                2 => falloff.ln_eval(r, phi) + s_b.ln(),
-                _ => f64::NAN,
-            },
-        }
+        self.ln_evaluator().ln_eval_channel(channel, r, phi)
     }
 
     /// The model ready for many evaluations: ln s_g and ln s_b taken once, not at every

@@ -94,21 +94,32 @@ pub enum ModelError {
 
 /// log(Σ exp(v_i)) without overflow or underflow; −∞ for an empty input or all −∞ terms.
 ///
-/// Each value is computed once (up to [`LSE_INLINE`] values are held on the stack; beyond, the
-/// iterator is run twice as it always was): the values are closures over `ln c_k + d_k·r`, and
-/// running them twice cost a log per term per evaluation, the fit's hottest path (issue 23).
+/// Each value is computed once (up to [`LSE_INLINE`] values held on the stack, more in a `Vec`):
+/// the values are closures over `ln c_k + d_k·r`, and running them twice, once for the maximum
+/// and once for the sum, cost a log per term per evaluation, the fit's hottest path (issue 23).
 /// The arithmetic is the one it was, so the result is the same to the bit.
-pub(crate) fn log_sum_exp(values: impl Iterator<Item = f64> + Clone) -> f64 {
+pub(crate) fn log_sum_exp(values: impl Iterator<Item = f64>) -> f64 {
     let mut held = [0.0; LSE_INLINE];
     let mut n = 0;
-    for v in values.clone() {
-        if n == LSE_INLINE {
-            return log_sum_exp_twice(values);
+    let mut values = values.peekable();
+    while n < LSE_INLINE {
+        match values.next() {
+            Some(v) => held[n] = v,
+            None => break,
         }
-        held[n] = v;
         n += 1;
     }
-    let held = &held[..n];
+    if values.peek().is_none() {
+        return log_sum_exp_of(&held[..n]);
+    }
+    let all: Vec<f64> = held.into_iter().chain(values).collect();
+    log_sum_exp_of(&all)
+}
+
+/// Values [`log_sum_exp`] holds on the stack: more than any model's terms × segments in use.
+const LSE_INLINE: usize = 32;
+
+fn log_sum_exp_of(held: &[f64]) -> f64 {
     let m = held.iter().copied().fold(f64::NEG_INFINITY, f64::max);
     if m == f64::NEG_INFINITY || m.is_nan() {
         return m;
@@ -117,20 +128,6 @@ pub(crate) fn log_sum_exp(values: impl Iterator<Item = f64> + Clone) -> f64 {
         return m;
     }
     m + ln_exact_at_one(held.iter().map(|&v| exp_exact_at_zero(v - m)).sum::<f64>())
-}
-
-/// Values [`log_sum_exp`] holds on the stack: more than any model's terms × segments in use.
-const LSE_INLINE: usize = 32;
-
-fn log_sum_exp_twice(values: impl Iterator<Item = f64> + Clone) -> f64 {
-    let m = values.clone().fold(f64::NEG_INFINITY, f64::max);
-    if m == f64::NEG_INFINITY || m.is_nan() {
-        return m;
-    }
-    if m == f64::INFINITY {
-        return m;
-    }
-    m + values.map(|v| (v - m).exp()).sum::<f64>().ln()
 }
 
 /// `x.exp()`, skipping the call at ±0 where it is exactly 1: the largest term of every
@@ -152,6 +149,18 @@ pub(crate) fn ln_exact_at_one(x: f64) -> f64 {
 mod tests {
     use super::*;
     use proptest::prelude::*;
+
+    /// The two-pass form `log_sum_exp` had: the reference its bits are held to.
+    fn log_sum_exp_twice(values: impl Iterator<Item = f64> + Clone) -> f64 {
+        let m = values.clone().fold(f64::NEG_INFINITY, f64::max);
+        if m == f64::NEG_INFINITY || m.is_nan() {
+            return m;
+        }
+        if m == f64::INFINITY {
+            return m;
+        }
+        m + values.map(|v| (v - m).exp()).sum::<f64>().ln()
+    }
 
     fn value() -> impl Strategy<Value = f64> {
         prop_oneof![
