@@ -224,6 +224,59 @@ fn the_fit_cross_validates_its_choices_from_the_sample_store() {
     );
 }
 
+/// Round 0's candidate fits, fitted once on every frame (`pipeline::fit::OrderCache`), are the
+/// very fits a fold would make of the light positions it holds: on sample-torus (a turntable
+/// scan whose folds are whole angles), a fold's fit through the filled cache is its fit without
+/// it, byte for byte after round 0 and after a further round, and the cache did serve it.
+#[test]
+fn shared_round_zero_candidates_fit_a_fold_as_its_own_fit_would() {
+    use subsurf::pipeline::Prepared;
+    use subsurf::pipeline::fit::OrderCache;
+    let Some(dir) = shared("sample-torus") else {
+        eprintln!("SKIPPED: shared/data/sample-torus is absent");
+        return;
+    };
+    let ds = subsurf::dataset::Dataset::open(&dir).unwrap();
+    let frames: Vec<usize> = (0..ds.spec.frames.len()).collect();
+    let opts = subsurf::pipeline::PipelineOptions::for_dataset(&ds);
+    let store = subsurf::pipeline::StoreOptions {
+        cache: subsurf::pipeline::Cache::Off,
+        ..Default::default()
+    };
+    let ctx = subsurf::pipeline::prepare(&ds, &frames, &opts, &store, &()).unwrap();
+    let fitter = subsurf::fit::FitOptions::default();
+    let (folds, _) = subsurf::crossval::folds(&ds, &frames, 5);
+    let train: Vec<usize> = frames
+        .iter()
+        .copied()
+        .filter(|f| !folds[1].contains(f))
+        .collect();
+    let cache = OrderCache::default();
+    Prepared::new(&ctx, &frames)
+        .unwrap()
+        .fill_order_cache(&ctx, &fitter, &cache, &());
+    let (fitted, _) = cache.counts();
+    assert!(fitted > 0, "the fill fitted the light positions");
+    let fold = Prepared::new(&ctx, &train).unwrap();
+    let mut own = fold.rounds(&ctx, &fitter, None, &());
+    let mut shared = fold.rounds(&ctx, &fitter, Some(&cache), &());
+    for round in 0..2 {
+        let (a, b) = (own.model().unwrap(), shared.model().unwrap());
+        assert_eq!(
+            a.model.to_bytes().unwrap(),
+            b.model.to_bytes().unwrap(),
+            "round {round}"
+        );
+        own.step();
+        shared.step();
+    }
+    let (_, reused) = cache.counts();
+    assert!(
+        reused > fitted / 2,
+        "the fold found most of its light positions fitted: {reused} of {fitted}"
+    );
+}
+
 /// Done-when of issue 25 on the outside renderer's datasets, their test frames held out of
 /// every fit: sample-slab's held-out error with `--segments auto` (m chosen by cross-validation
 /// on the 7 training frames) at or below the isotropic fit's, channel by channel (measured

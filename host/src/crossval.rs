@@ -24,7 +24,7 @@ use crate::dataset::Dataset;
 use crate::evaluate::{EvalPoints, FrameEval, evaluate_in};
 use crate::pipeline::{
     AlphaLattice, Context, CvCandidate, CvChoice, CvReport, FitOutput, FitRounds, Fitter,
-    LogEStats, PipelineError, PipelineOptions, Prepared, fit_prepared,
+    LogEStats, PipelineError, PipelineOptions, Prepared, fit::OrderCache, fit_prepared_with,
 };
 use crate::progress::Progress;
 use rayon::prelude::*;
@@ -135,11 +135,13 @@ type Errors = BTreeMap<usize, [f64; 3]>;
 /// in parallel: after each round the pooled errors so far choose their best number of rounds,
 /// and once `patience` rounds in a row (0: never) have not lowered it, no fold runs another
 /// round ([`rounds_exhausted`]).
+#[allow(clippy::too_many_arguments)]
 fn cross_validate(
     ctx: &Context,
     frames: &[usize],
     folds: &[Vec<usize>],
     fitter: &dyn Fitter,
+    cache: &OrderCache,
     patience: usize,
     progress: &dyn Progress,
     fits: &mut usize,
@@ -169,7 +171,7 @@ fn cross_validate(
         .collect();
     let mut runs: Vec<Option<FitRounds>> = prepared
         .par_iter()
-        .map(|p| p.as_ref().map(|p| p.rounds(ctx, fitter, &())))
+        .map(|p| p.as_ref().map(|p| p.rounds(ctx, fitter, Some(cache), &())))
         .collect();
     // A fold's run is dropped (`None`) when its rounds end; a failed fold's errors with it.
     let mut by_round: Vec<Vec<Vec<FrameEval>>> = vec![Vec::new(); folds.len()];
@@ -396,6 +398,7 @@ pub fn fit_scan_in(
     }
     let auto = cv.segments == Segments::Auto;
     let rounds = cv.rounds && opts.alpha_rounds > 0;
+    let cache = OrderCache::default();
     let mut report = None;
     if auto || rounds {
         let (folds, rule) = folds(ctx.ds, frames, cv.folds);
@@ -420,17 +423,27 @@ pub fn fit_scan_in(
             } else {
                 vec![opts.model.segments]
             };
-            progress.start("cross-validation", (ladder.len() * folds.len()) as u64);
-            let mut grids = Vec::new();
+            let mut ctxs = Vec::with_capacity(ladder.len());
             for &m in &ladder {
                 let mut o = opts;
                 o.model.segments = m;
                 let c = ctx.with_options(o)?;
+                // Round 0's candidates of the fit on every frame, fitted once for every fold
+                // that holds their frames and for the final fit (`OrderCache`).
+                if let Ok(full) = Prepared::new(&c, frames) {
+                    full.fill_order_cache(&c, fitter, &cache, progress);
+                }
+                ctxs.push(c);
+            }
+            progress.start("cross-validation", (ladder.len() * folds.len()) as u64);
+            let mut grids = Vec::new();
+            for c in &ctxs {
                 grids.push(cross_validate(
-                    &c,
+                    c,
                     frames,
                     &folds,
                     fitter,
+                    &cache,
                     cv.patience,
                     progress,
                     &mut rep.fits,
@@ -468,7 +481,16 @@ pub fn fit_scan_in(
         rep.seconds = start.elapsed().as_secs_f64();
         report = Some(rep);
     }
-    let mut out = fit_prepared(&ctx.with_options(opts)?, frames, fitter, progress)?;
+    let mut out = fit_prepared_with(
+        &ctx.with_options(opts)?,
+        frames,
+        fitter,
+        Some(&cache),
+        progress,
+    )?;
+    if let Some(r) = &mut report {
+        (r.round0_fitted, r.round0_reused) = cache.counts();
+    }
     out.report.cross_validation = report;
     Ok(out)
 }

@@ -66,7 +66,7 @@ pub enum ModelFileError {
 }
 
 /// How colour is modelled.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum ColourMode {
     /// One fall-off for all channels with scales `s_g`, `s_b` (Eq. 5 and 9).

@@ -12,7 +12,7 @@ use crate::model::{ColourModel, LogEAccumulator};
 use crate::modelfile::{ModelShape, params_of};
 use crate::progress::Progress;
 
-use super::fit::Fitted;
+use super::fit::{Fitted, ln_rd_with};
 use super::load::Context;
 use super::register::RegisteredFrame;
 use super::report::{FailReason, FitReport, LogEStats, OrderCount};
@@ -60,15 +60,16 @@ pub fn log_e_of_fits(
                 let mut base = [LogEAccumulator::default(); 3];
                 let (model, baseline) =
                     (g.model.ln_evaluator(), baseline.map(|b| b.ln_evaluator()));
+                let ln_model = ln_rd_with(&model, &data, true);
+                let ln_base = baseline.as_ref().map(|b| ln_rd_with(b, &data, false));
                 for (ch, d) in data.iter().enumerate() {
-                    for x in d {
+                    for (j, x) in d.iter().enumerate() {
                         let ln_alpha = fitted.alpha[x.vertex as usize][ch].ln();
-                        let ln = ln_alpha + model.ln_eval_channel(ch, x.r, x.phi);
+                        let ln = ln_alpha + ln_model[ch][j];
                         acc[ch].add_ln(ln, x.s, threshold);
                         // The baseline with the model's alpha, as the held-out row judges it.
-                        if let Some(b) = &baseline {
-                            let ln_b = b.ln_eval_channel(ch, x.r, None);
-                            base[ch].add_ln(ln_alpha + ln_b, x.s, threshold);
+                        if let Some(ln_b) = &ln_base {
+                            base[ch].add_ln(ln_alpha + ln_b[ch][j], x.s, threshold);
                         }
                     }
                 }

@@ -528,7 +528,9 @@ fn fit_samples(
 /// fitted ([`scaled_baseline`], 3 parameters): where a light position's samples do not show
 /// that their own curve differs from the whole object's, the object's is kept (measured on a
 /// sparse simulated torus, turntable angles held out: without it, the per-vertex models
-/// predicted worse than the baseline alone).
+/// predicted worse than the baseline alone). The other candidates depend on the samples alone:
+/// with `cache`, they are taken from (or fitted into) the run's [`OrderCache`].
+#[allow(clippy::too_many_arguments)]
 fn fit_order(
     data: &ChannelSamples,
     choice: &ModelChoice,
@@ -536,28 +538,97 @@ fn fit_order(
     rule: Option<crate::order::OrderRule>,
     baseline: Option<&ColourModel>,
     at: Option<(usize, usize, bool)>,
+    cache: Option<(&OrderCache, &OrderKey)>,
     dropped: &mut Vec<TermDropped>,
 ) -> Result<(ColourModel, usize, usize, bool, FitPath), FailReason> {
-    let at_order = |n: Option<usize>, m: usize, dropped: &mut Vec<TermDropped>| {
-        let c = ModelChoice {
-            segments: m,
-            ..*choice
-        };
-        match n {
-            Some(n) => fit_samples(data, &c, &AtMost { inner: fitter, n }, dropped),
-            None => fit_samples(data, &c, fitter, dropped),
-        }
-        .map(|(model, n, path)| (model, n, m, false, path))
-    };
     if let Some((n, m, on_baseline)) = at {
         if on_baseline && let Some(b) = baseline.and_then(|b| scaled_baseline(b, data)) {
             return Ok((b, n, 1, true, FitPath::Joint));
         }
-        return at_order(Some(n), m, dropped);
+        return fit_candidate(data, choice, fitter, Some(n), m, dropped);
     }
     let (Some(rule), Some(max_n)) = (rule, fitter.max_terms()) else {
-        return at_order(None, choice.segments, dropped);
+        return fit_candidate(data, choice, fitter, None, choice.segments, dropped);
     };
+    let found = match cache {
+        Some((cache, key)) => {
+            cache.get_or_fit(key, || order_candidates(data, choice, fitter, max_n))
+        }
+        None => std::sync::Arc::new(order_candidates(data, choice, fitter, max_n)),
+    };
+    let found = found.as_ref().as_ref().map_err(|e| *e)?;
+    let mut cands = found.cands.clone();
+    let base = baseline.and_then(|b| scaled_baseline(b, data));
+    let base_terms = base.as_ref().and_then(|b| params_of(b).ok()).map(|p| p.1);
+    let samples = found.samples;
+    if let (Some(b), Some(n)) = (&base, base_terms) {
+        cands.push(crate::order::Candidate {
+            terms: n,
+            segments: 1,
+            params: 3,
+            samples,
+            rss: sq_err(b, data),
+        });
+    }
+    let on_baseline = |i: usize| base_terms.is_some() && i + 1 == cands.len();
+    match crate::order::choose(&cands, rule) {
+        Some(c) if on_baseline(c.index) => {
+            let b = base.ok_or(FailReason::NonPhysical)?;
+            Ok((b, c.terms, c.segments, true, FitPath::Joint))
+        }
+        Some(c) => {
+            let (model, d, path) = found.fits[c.index].clone();
+            dropped.extend(d);
+            Ok((model, c.terms, c.segments, false, path))
+        }
+        None => Err(found.first_err.unwrap_or(FailReason::TooFewSamples)),
+    }
+}
+
+/// One light position's fit at n terms (`None`: the fitter's own setting) and m segments
+/// ([`fit_samples`]): the model, n, m, `false` (not the baseline) and how it was fitted.
+fn fit_candidate(
+    data: &ChannelSamples,
+    choice: &ModelChoice,
+    fitter: &dyn Fitter,
+    n: Option<usize>,
+    m: usize,
+    dropped: &mut Vec<TermDropped>,
+) -> Result<(ColourModel, usize, usize, bool, FitPath), FailReason> {
+    let c = ModelChoice {
+        segments: m,
+        ..*choice
+    };
+    match n {
+        Some(n) => fit_samples(data, &c, &AtMost { inner: fitter, n }, dropped),
+        None => fit_samples(data, &c, fitter, dropped),
+    }
+    .map(|(model, n, path)| (model, n, m, false, path))
+}
+
+/// Round 0's candidates of one light position ([`fit_order`]): its fits at every (n, m) but the
+/// baseline's, which depend on its samples alone.
+#[derive(Debug, Clone)]
+pub struct Candidates {
+    /// Every candidate fitted, as the order rule scores it.
+    cands: Vec<crate::order::Candidate>,
+    /// Per candidate: its model, the terms its fit dropped and how it was fitted.
+    fits: Vec<(ColourModel, Vec<TermDropped>, FitPath)>,
+    /// Why the first candidate that failed did.
+    first_err: Option<FailReason>,
+    /// Positive finite samples N (AICc's).
+    samples: usize,
+}
+
+/// Fits every candidate (n, m) of [`fit_order`]: n = 1..=`max_n`, m up to `choice.segments`.
+/// `Err(TooFewSamples)` when the light position has too few samples for the largest isotropic
+/// model.
+fn order_candidates(
+    data: &ChannelSamples,
+    choice: &ModelChoice,
+    fitter: &dyn Fitter,
+    max_n: usize,
+) -> Result<Candidates, FailReason> {
     let samples = data
         .iter()
         .flatten()
@@ -566,12 +637,10 @@ fn fit_order(
     let mut cands: Vec<crate::order::Candidate> = Vec::new();
     let mut fits: Vec<(ColourModel, Vec<TermDropped>, FitPath)> = Vec::new();
     let mut first_err = None;
-    let base = baseline.and_then(|b| scaled_baseline(b, data));
-    let base_terms = base.as_ref().and_then(|b| params_of(b).ok()).map(|p| p.1);
     for m in crate::order::segment_ladder(choice.segments) {
         for n in 1..=max_n.max(1) {
             let mut d = Vec::new();
-            match at_order(Some(n), m, &mut d) {
+            match fit_candidate(data, choice, fitter, Some(n), m, &mut d) {
                 Ok((model, n, m, _, path)) => {
                     // A candidate whose unsupported terms were dropped repeats a smaller one.
                     if cands.iter().any(|c| c.terms == n && c.segments == m) {
@@ -604,24 +673,108 @@ fn fit_order(
             }
         }
     }
-    if let (Some(b), Some(n)) = (base, base_terms) {
-        cands.push(crate::order::Candidate {
-            terms: n,
-            segments: 1,
-            params: 3,
-            samples,
-            rss: sq_err(&b, data),
-        });
-        fits.push((b, Vec::new(), FitPath::Joint));
-    }
-    let on_baseline = |i: usize| base_terms.is_some() && i + 1 == cands.len();
-    match crate::order::choose(&cands, rule) {
-        Some(c) => {
-            let (model, d, path) = fits.swap_remove(c.index);
-            dropped.extend(d);
-            Ok((model, c.terms, c.segments, on_baseline(c.index), path))
+    Ok(Candidates {
+        cands,
+        fits,
+        first_err,
+        samples,
+    })
+}
+
+/// Which light position, in which model, a [`Candidates`] belongs to: its frames and anchors as
+/// dataset frame numbers (a fold's registered-frame indices differ from the whole scan's), the
+/// colour mode and the segments.
+#[derive(Debug, Clone, PartialEq, Eq, Hash)]
+pub struct OrderKey {
+    frames: [Vec<usize>; 3],
+    anchors: [usize; 3],
+    colour: ColourMode,
+    segments: usize,
+}
+
+impl OrderKey {
+    fn of(choice: &ModelChoice, regs: &[RegisteredFrame], key: &super::select::GroupKey) -> Self {
+        let frame = |l: &u32| regs.get(*l as usize).map_or(usize::MAX, |r| r.frame);
+        OrderKey {
+            frames: key.frames.each_ref().map(|f| f.iter().map(frame).collect()),
+            anchors: key.anchors.each_ref().map(frame),
+            colour: choice.colour,
+            segments: choice.segments,
         }
-        None => Err(first_err.unwrap_or(FailReason::TooFewSamples)),
+    }
+}
+
+/// Round 0's candidate fits ([`Candidates`]), shared by the fits of one
+/// [`crate::crossval::fit_scan_in`]: the cross-validation's fold fits and the final fit. A
+/// light position's samples are those of its frames, whatever other frames a fit holds, so a
+/// fold whose training frames hold all of them fits the very same candidates, bit for bit, as
+/// the fit on every frame; they are fitted once ([`OrderCache::fill`]) instead of once per fold
+/// and once more at the end. Only round 0 is shared: later rounds divide by the fold's own alpha.
+/// The candidates depend on the fitter and the model choice too: a cache serves one fitter.
+#[derive(Debug, Default)]
+pub struct OrderCache {
+    found: std::sync::Mutex<
+        std::collections::HashMap<OrderKey, std::sync::Arc<Result<Candidates, FailReason>>>,
+    >,
+    hits: std::sync::atomic::AtomicUsize,
+    fitted: std::sync::atomic::AtomicUsize,
+}
+
+impl OrderCache {
+    /// The candidates of `key`, fitted by `fit` unless known.
+    fn get_or_fit(
+        &self,
+        key: &OrderKey,
+        fit: impl FnOnce() -> Result<Candidates, FailReason>,
+    ) -> std::sync::Arc<Result<Candidates, FailReason>> {
+        use std::sync::atomic::Ordering::Relaxed;
+        let known = self
+            .found
+            .lock()
+            .ok()
+            .and_then(|m| m.get(key).map(std::sync::Arc::clone));
+        if let Some(c) = known {
+            self.hits.fetch_add(1, Relaxed);
+            return c;
+        }
+        let c = std::sync::Arc::new(fit());
+        self.fitted.fetch_add(1, Relaxed);
+        if let Ok(mut m) = self.found.lock() {
+            m.entry(key.clone())
+                .or_insert_with(|| std::sync::Arc::clone(&c));
+        }
+        c
+    }
+
+    /// Fits the candidates of every group of a selection (`regs`, `groups`: the fit on every
+    /// frame) with the run's model choice, the groups in parallel, before the folds start, so
+    /// that the folds, running side by side, find them instead of fitting them each.
+    pub fn fill(
+        &self,
+        ctx: &Context,
+        regs: &[RegisteredFrame],
+        groups: &Groups,
+        fitter: &dyn Fitter,
+        progress: &dyn Progress,
+    ) {
+        let (Some(_), Some(max_n)) = (ctx.opts.order, fitter.max_terms()) else {
+            return;
+        };
+        let choice = &ctx.opts.model;
+        progress.start("fit (round 1 candidates)", groups.keys.len() as u64);
+        groups.keys.par_iter().for_each(|key| {
+            let k = OrderKey::of(choice, regs, key);
+            if let Ok((data, _)) = group_samples(ctx, regs, key) {
+                self.get_or_fit(&k, || order_candidates(&data, choice, fitter, max_n));
+            }
+            progress.inc(1);
+        });
+    }
+
+    /// Light positions whose candidates were fitted, and lookups that found them fitted.
+    pub fn counts(&self) -> (usize, usize) {
+        use std::sync::atomic::Ordering::Relaxed;
+        (self.fitted.load(Relaxed), self.hits.load(Relaxed))
     }
 }
 
@@ -805,11 +958,65 @@ impl RoundState {
 /// Sum over a group's (alpha-divided) samples of (ln R_d − ln s)^2: its share of the training
 /// objective.
 fn sq_err(m: &ColourModel, data: &ChannelSamples) -> f64 {
-    let m = m.ln_evaluator();
+    let ln_rd = ln_rd_at(m, data);
     let mut o = 0.0;
-    for (ch, d) in data.iter().enumerate() {
-        for x in d {
-            let e = m.ln_eval_channel(ch, x.r, x.phi) - x.s.ln();
+    for (d, l) in data.iter().zip(&ln_rd) {
+        for (x, ln_rd) in d.iter().zip(l) {
+            let e = ln_rd - x.s.ln();
+            if e.is_finite() {
+                o += e * e;
+            }
+        }
+    }
+    o
+}
+
+/// ln R_d of a model at each of a group's samples, per channel (their order).
+fn ln_rd_at(m: &ColourModel, data: &ChannelSamples) -> [Vec<f64>; 3] {
+    ln_rd_with(&m.ln_evaluator(), data, true)
+}
+
+/// [`ln_rd_at`] with the model's evaluator. With shared colour (Eq. 5) a sample of channel 1 or
+/// 2 at the very (r, φ) of the red sample at its index (the usual case: a frame measures its
+/// channels at the same pixels) takes the red fall-off's value plus its channel's ln s_c
+/// ([`crate::model::LnEvaluator::shared_offset`]): the same bits, one evaluation instead of
+/// three. `directions = false` evaluates every sample without its direction (φ = `None`, as
+/// the isotropic baseline is judged).
+pub(super) fn ln_rd_with(
+    ev: &crate::model::LnEvaluator,
+    data: &ChannelSamples,
+    directions: bool,
+) -> [Vec<f64>; 3] {
+    let phi = |x: &GroupSample| if directions { x.phi } else { None };
+    let red: Vec<f64> = data[0]
+        .iter()
+        .map(|x| ev.ln_eval_channel(0, x.r, phi(x)))
+        .collect();
+    let same = |a: &GroupSample, b: &GroupSample| {
+        a.r.to_bits() == b.r.to_bits() && phi(a).map(f64::to_bits) == phi(b).map(f64::to_bits)
+    };
+    let other = |ch: usize| -> Vec<f64> {
+        let offset = ev.shared_offset(ch);
+        data[ch]
+            .iter()
+            .enumerate()
+            .map(|(j, x)| match (offset, data[0].get(j)) {
+                (Some(k), Some(y)) if same(x, y) => red[j] + k,
+                _ => ev.ln_eval_channel(ch, x.r, phi(x)),
+            })
+            .collect()
+    };
+    let (g, b) = (other(1), other(2));
+    [red, g, b]
+}
+
+/// [`sq_err`] from a model's ln R_d at the samples ([`ln_rd_at`]) and the samples' ln s: the
+/// same sum in the same order, so the same bits.
+fn sq_err_at(ln_rd: &[Vec<f64>; 3], ln_s: &[Vec<f64>; 3]) -> f64 {
+    let mut o = 0.0;
+    for (l, s) in ln_rd.iter().zip(ln_s) {
+        for (a, b) in l.iter().zip(s) {
+            let e = a - b;
             if e.is_finite() {
                 o += e * e;
             }
@@ -826,6 +1033,8 @@ struct RoundRunner<'r, 'a> {
     fitter: &'r dyn Fitter,
     progress: &'r dyn Progress,
     base_model: Option<ColourModel>,
+    /// Round 0's candidates shared with other fits of the same run ([`OrderCache`]).
+    cache: Option<&'r OrderCache>,
 }
 
 impl RoundRunner<'_, '_> {
@@ -868,6 +1077,9 @@ impl RoundRunner<'_, '_> {
                 }
                 // Round 0 chooses each light position's order; later rounds keep it.
                 let at = old.as_ref().map(|g| (g.terms, g.segments, g.on_baseline));
+                let order_key = self
+                    .cache
+                    .map(|c| (c, OrderKey::of(&opts.model, regs, key)));
                 let new = fit_order(
                     &data,
                     &opts.model,
@@ -875,6 +1087,7 @@ impl RoundRunner<'_, '_> {
                     opts.order,
                     base_model,
                     at,
+                    order_key.as_ref().map(|(c, k)| (*c, k)),
                     &mut dropped,
                 )
                 .map(|(model, terms, segments, on_baseline, path)| {
@@ -894,30 +1107,39 @@ impl RoundRunner<'_, '_> {
                         s_max,
                     }
                 });
-                let o_old = old.as_ref().map(|g| sq_err(&g.model, &data));
-                let (g, o_new, kept_old) = match (new, old, o_old) {
-                    (Ok(g), Some(old), Some(oo)) => {
-                        let on = sq_err(&g.model, &data);
+                // The old and new fits are scored on the same samples, and the one kept feeds
+                // Eq. 6 below: each model's ln R_d and each sample's ln s are taken once.
+                let ln_s: [Vec<f64>; 3] =
+                    std::array::from_fn(|ch| data[ch].iter().map(|x| x.s.ln()).collect());
+                let scored = |m: &ColourModel| {
+                    let ln_rd = ln_rd_at(m, &data);
+                    let o = sq_err_at(&ln_rd, &ln_s);
+                    (ln_rd, o)
+                };
+                let o_old = old.as_ref().map(|g| scored(&g.model));
+                let (g, ln_rd, o_new, kept_old) = match (new, old, o_old) {
+                    (Ok(g), Some(old), Some((lo, oo))) => {
+                        let (ln, on) = scored(&g.model);
                         if on <= oo {
-                            (g, on, false)
+                            (g, ln, on, false)
                         } else {
-                            (old, oo, true)
+                            (old, lo, oo, true)
                         }
                     }
-                    (Err(_), Some(old), Some(oo)) => (old, oo, true),
+                    (Err(_), Some(old), Some((lo, oo))) => (old, lo, oo, true),
                     (Ok(g), _, _) => {
-                        let on = sq_err(&g.model, &data);
-                        (g, on, false)
+                        let (ln, on) = scored(&g.model);
+                        (g, ln, on, false)
                     }
                     (Err(e), _, _) => return Err(e),
                 };
-                Ok((g, data, counts, o_new, kept_old))
+                Ok((g, data, counts, o_new, kept_old, ln_rd, ln_s))
             });
             for why in dropped {
                 *st.dropped.entry(why).or_default() += 1;
             }
             match out {
-                Ok((g, data, counts, o_new, kept_old)) => {
+                Ok((g, data, counts, o_new, kept_old, ln_rd, ln_s)) => {
                     st.objective += o_new;
                     st.kept_previous += kept_old as usize;
                     // Eq. 6 contributions are folded right away so the samples can be dropped.
@@ -925,7 +1147,6 @@ impl RoundRunner<'_, '_> {
                         st.alpha = vec![[AlphaAccumulator::default(); 3]; nv];
                         st.objective_stats = vec![[ObjectiveStats::default(); 3]; nv];
                     }
-                    let ev = g.model.ln_evaluator();
                     for (ch, d) in data.iter().enumerate() {
                         // Eq. 6 compares the captured sample with R_d.
                         let captured = |x: &GroupSample| {
@@ -934,11 +1155,16 @@ impl RoundRunner<'_, '_> {
                         // t1 relative to this light position's brightest sample.
                         let s_max = d.iter().map(captured).fold(0.0, f64::max);
                         let window = opts.alpha_window.for_light(s_max);
-                        for x in d {
-                            let ln_rd = ev.ln_eval_channel(ch, x.r, x.phi);
+                        for ((x, &ln_rd), &ln_s) in d.iter().zip(&ln_rd[ch]).zip(&ln_s[ch]) {
                             let s = captured(x);
-                            st.alpha[x.vertex as usize][ch].add_ln(s, ln_rd, &window);
-                            st.objective_stats[x.vertex as usize][ch].add(ln_rd - s.ln());
+                            // As captured (round 0) s is the sample itself, its log known.
+                            let ln_s = if alpha_div.is_some() { s.ln() } else { ln_s };
+                            if let Some(v) =
+                                AlphaAccumulator::ln_ratio_with(s, ln_s, ln_rd, &window)
+                            {
+                                st.alpha[x.vertex as usize][ch].add_ratio(v);
+                            }
+                            st.objective_stats[x.vertex as usize][ch].add(ln_rd - ln_s);
                         }
                     }
                     st.counts.add(&counts);
@@ -1014,6 +1240,7 @@ impl<'r, 'a> AlphaRounds<'r, 'a> {
         regs: &'r [RegisteredFrame],
         groups: &'r Groups,
         fitter: &'r dyn Fitter,
+        cache: Option<&'r OrderCache>,
         progress: &'r dyn Progress,
     ) -> Self {
         // The baseline first: the per-vertex order choice has it as its smallest candidate.
@@ -1025,6 +1252,7 @@ impl<'r, 'a> AlphaRounds<'r, 'a> {
             fitter,
             progress,
             base_model: baseline.as_ref().map(|b| b.baseline.model.clone()),
+            cache,
         };
         let state = runner.run(None, 0, None);
         let (alpha, alpha_report) = alpha_texture(
@@ -1155,9 +1383,10 @@ pub fn fit_groups(
     regs: &[RegisteredFrame],
     groups: &Groups,
     fitter: &dyn Fitter,
+    cache: Option<&OrderCache>,
     progress: &dyn Progress,
 ) -> Fitted {
-    let mut rounds = AlphaRounds::start(ctx, regs, groups, fitter, progress);
+    let mut rounds = AlphaRounds::start(ctx, regs, groups, fitter, cache, progress);
     while rounds.step() {}
     rounds.fitted()
 }

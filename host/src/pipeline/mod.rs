@@ -152,8 +152,20 @@ pub fn fit_prepared(
     fitter: &dyn Fitter,
     progress: &dyn Progress,
 ) -> Result<FitOutput, PipelineError> {
+    fit_prepared_with(ctx, frames, fitter, None, progress)
+}
+
+/// [`fit_prepared`] taking round 0's candidates from `cache` where another fit of the run
+/// (the cross-validation's) fitted them ([`fit::OrderCache`]): the same model.
+pub fn fit_prepared_with(
+    ctx: &Context,
+    frames: &[usize],
+    fitter: &dyn Fitter,
+    cache: Option<&fit::OrderCache>,
+    progress: &dyn Progress,
+) -> Result<FitOutput, PipelineError> {
     let mut run = Setup::new(ctx, frames)?;
-    let fitted = fit::fit_groups(ctx, &run.regs, &run.groups, fitter, progress);
+    let fitted = fit::fit_groups(ctx, &run.regs, &run.groups, fitter, cache, progress);
     run.clock.lap("fit", &mut run.report);
     run.finish(ctx, fitted, fitter, progress)
 }
@@ -171,7 +183,7 @@ pub fn fit_prepared_rounds(
     each: &mut dyn FnMut(usize, FitOutput) -> bool,
 ) -> Result<(), PipelineError> {
     let prepared = Prepared::new(ctx, frames)?;
-    let mut run = prepared.rounds(ctx, fitter, progress);
+    let mut run = prepared.rounds(ctx, fitter, None, progress);
     loop {
         let out = run.model()?;
         if !each(run.rounds(), out) || !run.step() {
@@ -196,11 +208,25 @@ impl Prepared {
         })
     }
 
-    /// The baseline and round 0 fitted ([`fit::AlphaRounds::start`]).
+    /// Round 0's candidates of every light position of this selection, into `cache`
+    /// ([`fit::OrderCache::fill`]).
+    pub fn fill_order_cache(
+        &self,
+        ctx: &Context,
+        fitter: &dyn Fitter,
+        cache: &fit::OrderCache,
+        progress: &dyn Progress,
+    ) {
+        cache.fill(ctx, &self.setup.regs, &self.setup.groups, fitter, progress);
+    }
+
+    /// The baseline and round 0 fitted ([`fit::AlphaRounds::start`]), round 0's candidates
+    /// from `cache` where known.
     pub fn rounds<'r, 'a>(
         &'r self,
         ctx: &'r Context<'a>,
         fitter: &'r dyn Fitter,
+        cache: Option<&'r fit::OrderCache>,
         progress: &'r dyn Progress,
     ) -> FitRounds<'r, 'a> {
         let setup = &self.setup;
@@ -209,7 +235,14 @@ impl Prepared {
             ctx,
             fitter,
             progress,
-            rounds: fit::AlphaRounds::start(ctx, &setup.regs, &setup.groups, fitter, progress),
+            rounds: fit::AlphaRounds::start(
+                ctx,
+                &setup.regs,
+                &setup.groups,
+                fitter,
+                cache,
+                progress,
+            ),
         }
     }
 }

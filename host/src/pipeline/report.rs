@@ -196,6 +196,11 @@ pub struct CvReport {
     pub choices: Vec<CvChoice>,
     /// Fits run (one per fold and candidate).
     pub fits: usize,
+    /// Light positions whose round-0 candidates were fitted, once for every fit of the run
+    /// that holds their frames (`pipeline::fit::OrderCache`).
+    pub round0_fitted: usize,
+    /// Times a fold's or the final fit's round 0 found a light position's candidates fitted.
+    pub round0_reused: usize,
     /// Wall time of the cross-validation, seconds.
     pub seconds: f64,
     /// Why no choice could be cross-validated, when none was (too few light positions to make

@@ -159,7 +159,13 @@ impl AlphaAccumulator {
     /// would not use it: split out so that many samples' terms can be taken in parallel and
     /// only the sums ([`AlphaAccumulator::add_ratio`], in a fixed order) stay sequential.
     pub fn ln_ratio(s: f64, ln_r_d: f64, window: &IntensityWindow) -> Option<f64> {
-        let ln_ratio = s.ln() - ln_r_d;
+        Self::ln_ratio_with(s, s.ln(), ln_r_d, window)
+    }
+
+    /// [`AlphaAccumulator::ln_ratio`] with `ln_s = s.ln()` given, for a caller that needs ln s
+    /// itself too (the fit's objective): the same bits, one log fewer.
+    pub fn ln_ratio_with(s: f64, ln_s: f64, ln_r_d: f64, window: &IntensityWindow) -> Option<f64> {
+        let ln_ratio = ln_s - ln_r_d;
         (window.contains(s) && s > 0.0 && ln_ratio.is_finite()).then_some(ln_ratio)
     }
 

@@ -220,6 +220,13 @@ impl Anisotropic {
 
     /// ln R_d (Eq. 3) as a log-sum-exp over segments and terms, finite where exp underflows.
     pub fn ln_eval(&self, r: f64, phi: Option<f64>) -> f64 {
+        self.ln_eval_by(phi, |l| self.segments[l].ln_eval(r))
+    }
+
+    /// [`Anisotropic::ln_eval`] with segment l's ln R_d(r) given by `segment(l)`: the one blend
+    /// of the segments (Eq. 3's hat weights), shared with [`super::LnEvaluator`], which
+    /// evaluates the segments with their ln c_k taken once.
+    pub(crate) fn ln_eval_by(&self, phi: Option<f64>, segment: impl Fn(usize) -> f64) -> f64 {
         let m = self.segments.len();
         if m == 0 {
             return f64::NEG_INFINITY;
@@ -227,13 +234,13 @@ impl Anisotropic {
         match phi.filter(|p| p.is_finite()) {
             Some(phi) if m > 1 => {
                 let [(l0, w0), (l1, w1)] = hat_weights(phi, m);
-                let a = ln_exact_at_one(w0) + self.segments[l0].ln_eval(r);
-                let b = ln_exact_at_one(w1) + self.segments[l1].ln_eval(r);
+                let a = ln_exact_at_one(w0) + segment(l0);
+                let b = ln_exact_at_one(w1) + segment(l1);
                 log_sum_exp([a, b].into_iter())
             }
             _ => {
                 let lw = -ln_exact_at_one(m as f64);
-                log_sum_exp(self.segments.iter().map(|s| lw + s.ln_eval(r)))
+                log_sum_exp((0..m).map(|l| lw + segment(l)))
             }
         }
     }

@@ -56,20 +56,49 @@ impl ColourModel {
     /// without the other channels' evaluations (the fit's loops take one channel's samples at a
     /// time, and evaluated all three for each: issue 23). NaN for a channel index above 2.
     pub fn ln_eval_channel(&self, channel: usize, r: f64, phi: Option<f64>) -> f64 {
-        self.ln_evaluator().ln_eval_channel(channel, r, phi)
+        match self {
+            Self::PerChannel { channels } => channels
+                .get(channel)
+                .map_or(f64::NAN, |c| c.ln_eval(r, phi)),
+            Self::Shared { falloff, s_g, s_b } => match channel {
+                0 => falloff.ln_eval(r, phi),
+                1 => falloff.ln_eval(r, phi) + s_g.ln(),
+                2 => falloff.ln_eval(r, phi) + s_b.ln(),
+                _ => f64::NAN,
+            },
+        }
     }
 
-    /// The model ready for many evaluations: ln s_g and ln s_b taken once, not at every
-    /// evaluation (two logs against the fall-off's own one: issue 23). Its evaluations are
-    /// [`ColourModel::ln_eval`]'s and [`ColourModel::ln_eval_channel`]'s to the bit.
+    /// The model ready for many evaluations: ln s_g, ln s_b and every term's ln c_k taken once,
+    /// not at every evaluation (at n = 3 terms an evaluation took 4 logs and 2 exps, now 1 and
+    /// 2: issue 23). Its evaluations are [`ColourModel::ln_eval`]'s and
+    /// [`ColourModel::ln_eval_channel`]'s to the bit.
     pub fn ln_evaluator(&self) -> LnEvaluator<'_> {
         let ln_scale = match self {
             Self::PerChannel { .. } => [0.0; 2],
             Self::Shared { s_g, s_b, .. } => [s_g.ln(), s_b.ln()],
         };
+        let falloffs: &[Anisotropic] = match self {
+            Self::PerChannel { channels } => channels,
+            Self::Shared { falloff, .. } => std::slice::from_ref(falloff),
+        };
+        let mut ln_c = Vec::new();
+        let mut starts = Vec::new();
+        let mut first = [0; 3];
+        for (f, a) in falloffs.iter().enumerate() {
+            first[f] = starts.len();
+            for e in &a.segments {
+                starts.push(ln_c.len());
+                ln_c.extend(e.terms.iter().map(|t| t.c.ln()));
+            }
+        }
+        starts.push(ln_c.len());
         LnEvaluator {
             model: self,
             ln_scale,
+            ln_c,
+            starts,
+            first,
         }
     }
 
@@ -93,23 +122,52 @@ impl ColourModel {
     }
 }
 
-/// [`ColourModel::ln_evaluator`]: a colour model with the logarithms of its channel scales taken.
-#[derive(Debug, Clone, Copy)]
+/// [`ColourModel::ln_evaluator`]: a colour model with the logarithms of its channel scales and
+/// of its terms' amplitudes taken.
+#[derive(Debug, Clone)]
 pub struct LnEvaluator<'a> {
     model: &'a ColourModel,
     /// ln s_g, ln s_b (shared colour; unused per channel).
     ln_scale: [f64; 2],
+    /// ln c_k of every term, fall-off by fall-off (one shared, or r, g, b), segment by segment.
+    ln_c: Vec<f64>,
+    /// Where each segment's ln c_k start in `ln_c` (one more entry: the end).
+    starts: Vec<usize>,
+    /// Per fall-off, the index in `starts` of its first segment.
+    first: [usize; 3],
 }
 
 impl LnEvaluator<'_> {
+    /// ln R_d of fall-off `f` (Eq. 3), its segments evaluated with their ln c_k taken.
+    fn falloff(&self, f: usize, a: &Anisotropic, r: f64, phi: Option<f64>) -> f64 {
+        let at = self.first[f];
+        a.ln_eval_by(phi, |l| {
+            let (i, j) = (self.starts[at + l], self.starts[at + l + 1]);
+            a.segments[l].ln_eval_with(&self.ln_c[i..j], r)
+        })
+    }
+
     /// [`ColourModel::ln_eval`], the same bits.
     pub fn ln_eval(&self, r: f64, phi: Option<f64>) -> [f64; 3] {
         match self.model {
-            ColourModel::PerChannel { channels } => [0, 1, 2].map(|c| channels[c].ln_eval(r, phi)),
+            ColourModel::PerChannel { channels } => {
+                [0, 1, 2].map(|c| self.falloff(c, &channels[c], r, phi))
+            }
             ColourModel::Shared { falloff, .. } => {
-                let l = falloff.ln_eval(r, phi);
+                let l = self.falloff(0, falloff, r, phi);
                 [l, l + self.ln_scale[0], l + self.ln_scale[1]]
             }
+        }
+    }
+
+    /// Shared colour (Eq. 5): the ln s_c that channel 1 or 2 adds to channel 0's ln R_d, so that
+    /// `ln_eval_channel(c, r, φ)` is `ln_eval_channel(0, r, φ) + offset` to the bit and a caller
+    /// with several channels observed at one (r, φ) evaluates the fall-off once. `None` per
+    /// channel and for channels 0 and above 2.
+    pub fn shared_offset(&self, channel: usize) -> Option<f64> {
+        match (self.model, channel) {
+            (ColourModel::Shared { .. }, 1 | 2) => Some(self.ln_scale[channel - 1]),
+            _ => None,
         }
     }
 
@@ -118,10 +176,10 @@ impl LnEvaluator<'_> {
         match self.model {
             ColourModel::PerChannel { channels } => channels
                 .get(channel)
-                .map_or(f64::NAN, |c| c.ln_eval(r, phi)),
+                .map_or(f64::NAN, |c| self.falloff(channel, c, r, phi)),
             ColourModel::Shared { falloff, .. } => match channel {
-                0 => falloff.ln_eval(r, phi),
-                1 | 2 => falloff.ln_eval(r, phi) + self.ln_scale[channel - 1],
+                0 => self.falloff(0, falloff, r, phi),
+                1 | 2 => self.falloff(0, falloff, r, phi) + self.ln_scale[channel - 1],
                 _ => f64::NAN,
             },
         }
@@ -180,10 +238,32 @@ mod tests {
         let aniso = |m: usize, k: f64| Anisotropic {
             segments: (0..m).map(|l| seg(k + l as f64)).collect(),
         };
-        for m in [1, 2, 4] {
+        // Segments of different orders (a term dropped in one): the evaluator's ln c_k are
+        // found per segment.
+        let one = |c: f64| ExpSum::new(vec![Term { c, d: -0.9 }]).unwrap();
+        let mixed = |m: usize, k: f64| Anisotropic {
+            segments: (0..m)
+                .map(|l| {
+                    if l % 2 == 0 {
+                        seg(k + l as f64)
+                    } else {
+                        one(1.5 + k)
+                    }
+                })
+                .collect(),
+        };
+        for m in [1, 2, 3, 4] {
             let models = [
                 ColourModel::PerChannel {
                     channels: [aniso(m, 0.0), aniso(m, 1.0), aniso(m, 2.0)],
+                },
+                ColourModel::PerChannel {
+                    channels: [mixed(m, 0.0), aniso(m, 1.0), mixed(m, 2.0)],
+                },
+                ColourModel::Shared {
+                    falloff: mixed(m, 0.5),
+                    s_g: 1.7,
+                    s_b: 0.03,
                 },
                 ColourModel::Shared {
                     falloff: aniso(m, 0.5),
@@ -203,6 +283,10 @@ mod tests {
                             let got = ev.ln_eval_channel(ch, r, phi);
                             assert_eq!(got.to_bits(), want.to_bits(), "m {m} r {r} phi {phi:?}");
                             assert_eq!(all_ev[ch].to_bits(), want.to_bits());
+                            if let Some(k) = ev.shared_offset(ch) {
+                                let got = ev.ln_eval_channel(0, r, phi) + k;
+                                assert_eq!(got.to_bits(), want.to_bits());
+                            }
                         }
                         assert!(model.ln_eval_channel(3, r, phi).is_nan());
                         assert!(ev.ln_eval_channel(3, r, phi).is_nan());

@@ -106,6 +106,12 @@ impl ExpSum {
         log_sum_exp(self.terms.iter().map(move |t| t.c.ln() + t.d * r))
     }
 
+    /// [`ExpSum::ln_eval`] with the terms' ln c_k given (`ln_c[k] = c_k.ln()`): the same bits
+    /// without a log per term ([`super::LnEvaluator`]).
+    pub(crate) fn ln_eval_with(&self, ln_c: &[f64], r: f64) -> f64 {
+        log_sum_exp(self.terms.iter().zip(ln_c).map(move |(t, lc)| lc + t.d * r))
+    }
+
     /// d/dr ln R_d(r): the local fall-off rate (negative), a convex combination of the d_k.
     pub fn ln_slope(&self, r: f64) -> f64 {
         let l = self.ln_eval(r);
