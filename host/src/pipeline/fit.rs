@@ -260,10 +260,11 @@ pub fn unsupported_term(f: &ExpSum, r: &[f64]) -> Option<TermDropped> {
     rs.sort_by(f64::total_cmp);
     rs.dedup_by(|a, b| (*a - *b).abs() <= 1e-9 * b.abs().max(1.0));
     let ln_min_share = MIN_SHARE.ln();
-    // ln R_d at each distance once, not once per term (the same values).
-    let ln_rd: Vec<f64> = rs.iter().map(|&x| f.ln_eval(x)).collect();
-    for t in &f.terms {
-        let ln_c = t.c.ln();
+    // ln R_d at each distance once, not once per term, the terms' ln c_k taken once (the same
+    // values).
+    let ln_cs = f.ln_c();
+    let ln_rd: Vec<f64> = rs.iter().map(|&x| f.ln_eval_with(&ln_cs, x)).collect();
+    for (t, &ln_c) in f.terms.iter().zip(&ln_cs) {
         let support = rs
             .iter()
             .zip(&ln_rd)
@@ -436,14 +437,18 @@ fn isotropic_order(
             let (r, s) = rs(0);
             let red = fit_supported(fitter, &r, &s, None, dropped)?;
             let scales = |f: &ExpSum| -> Result<[f64; 3], FailReason> {
+                let ln_c = f.ln_c();
                 let mut out = [1.0; 3];
                 for (c, o) in out.iter_mut().enumerate().skip(1) {
                     let d = &data[c];
                     if d.is_empty() {
                         return Err(FailReason::TooFewSamples);
                     }
-                    let mean =
-                        d.iter().map(|x| x.s.ln() - f.ln_eval(x.r)).sum::<f64>() / d.len() as f64;
+                    let mean = d
+                        .iter()
+                        .map(|x| x.s.ln() - f.ln_eval_with(&ln_c, x.r))
+                        .sum::<f64>()
+                        / d.len() as f64;
                     *o = mean.exp();
                 }
                 if out.iter().all(|v| v.is_finite() && *v > 0.0) {

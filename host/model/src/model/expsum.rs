@@ -106,9 +106,15 @@ impl ExpSum {
         log_sum_exp(self.terms.iter().map(move |t| t.c.ln() + t.d * r))
     }
 
-    /// [`ExpSum::ln_eval`] with the terms' ln c_k given (`ln_c[k] = c_k.ln()`): the same bits
-    /// without a log per term ([`super::LnEvaluator`]).
-    pub(crate) fn ln_eval_with(&self, ln_c: &[f64], r: f64) -> f64 {
+    /// The terms' ln c_k, for [`ExpSum::ln_eval_with`].
+    pub fn ln_c(&self) -> Vec<f64> {
+        self.terms.iter().map(|t| t.c.ln()).collect()
+    }
+
+    /// [`ExpSum::ln_eval`] with the terms' ln c_k given (`ln_c` = [`ExpSum::ln_c`]): the same
+    /// bits without a log per term, for loops that evaluate one fall-off at many distances
+    /// ([`super::LnEvaluator`]).
+    pub fn ln_eval_with(&self, ln_c: &[f64], r: f64) -> f64 {
         log_sum_exp(self.terms.iter().zip(ln_c).map(move |(t, lc)| lc + t.d * r))
     }
 
