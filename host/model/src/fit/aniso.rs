@@ -101,6 +101,26 @@ impl<P: Problem> Problem for Anchored<'_, P> {
     fn rows(&self) -> usize {
         self.inner.rows() + self.anchor.len()
     }
+    /// The inner problem's one-pass normal equations, then the anchor rows (after every inner
+    /// row, on the diagonal), as the generic accumulation over [`Problem::eval`] adds them.
+    fn normal_equations(
+        &self,
+        theta: &[f64],
+        jtj: &mut [f64],
+        jtr: &mut [f64],
+    ) -> Option<Option<f64>> {
+        let Some(mut cost) = self.inner.normal_equations(theta, jtj, jtr)? else {
+            return Some(None);
+        };
+        let p = self.params();
+        for &(i, target) in self.anchor {
+            let res = ANCHOR_WEIGHT * (theta[i] - target);
+            cost += res * res;
+            jtr[i] += ANCHOR_WEIGHT * res;
+            jtj[i * p + i] += ANCHOR_WEIGHT * ANCHOR_WEIGHT;
+        }
+        Some((cost.is_finite() && jtr.iter().all(|v| v.is_finite())).then_some(cost))
+    }
     fn eval<F: FnMut(f64, &[usize], &[f64])>(&self, theta: &[f64], jac: bool, mut row: F) -> bool {
         if !self.inner.eval(theta, jac, &mut row) {
             return false;
@@ -157,9 +177,117 @@ fn segment_weights(phi: f64, m: usize, out: &mut Vec<(usize, f64)>) {
     }
 }
 
+impl AnisoProblem<'_> {
+    /// [`Problem::normal_equations`] of one segment (m = 1, the pipeline's default model) with
+    /// N terms: the rows [`Problem::eval`] gives, accumulated into JᵀJ, Jᵀres and the cost
+    /// without the generic accumulation's index lists. Every entry receives the same products
+    /// in the same order (row by row, each channel's row of an observation in turn), and the
+    /// lower triangle is the generic symmetrisation's upper + 0, so the result is the same to
+    /// the bit (test: `one_segment_normal_equations_are_the_generic_ones_to_the_bit`). The
+    /// generic path spent most of the joint fit's time walking those lists (issue 23).
+    #[allow(clippy::needless_range_loop)] // index loops over parallel fixed-size arrays
+    fn normal_one_segment<const N: usize>(
+        &self,
+        theta: &[f64],
+        jtj: &mut [f64],
+        jtr: &mut [f64],
+    ) -> Option<f64> {
+        const P_MAX: usize = 2 * MAX_TERMS + 2;
+        let p = self.params();
+        let q = 2 * N;
+        let rate: [f64; N] = std::array::from_fn(|k| theta[2 * k + 1].exp());
+        let mut acc = [[0.0f64; P_MAX]; P_MAX];
+        let mut g = [0.0f64; P_MAX];
+        let mut cost = 0.0;
+        let mut v = [0.0f64; N];
+        let mut vals = [0.0f64; 2 * MAX_TERMS];
+        for (j, &r) in self.r.iter().enumerate() {
+            // Problem::eval with the one segment of weight 1.
+            let mut mx = f64::NEG_INFINITY;
+            for k in 0..N {
+                let t = theta[2 * k] - rate[k] * r;
+                v[k] = t;
+                mx = mx.max(t);
+            }
+            let mut sum = 0.0;
+            for k in 0..N {
+                let e = exp_exact_at_zero(v[k] - mx);
+                v[k] = e;
+                sum += e;
+            }
+            for k in 0..N {
+                v[k] /= sum;
+            }
+            let ln_seg = ln_exact_at_one(1.0) + mx + ln_exact_at_one(sum);
+            let top = f64::NEG_INFINITY.max(ln_seg);
+            let total: f64 = std::iter::once(exp_exact_at_zero(ln_seg - top)).sum();
+            let ln_t = top + ln_exact_at_one(total);
+            if !ln_t.is_finite() {
+                return None;
+            }
+            let u = exp_exact_at_zero(ln_seg - ln_t);
+            for k in 0..N {
+                let d = -rate[k];
+                vals[2 * k] = u * v[k];
+                vals[2 * k + 1] = u * v[k] * r * d;
+            }
+            for ch in 0..self.channels {
+                let y = self.y[ch][j];
+                if !y.is_finite() {
+                    continue;
+                }
+                let scale = self.scale_index(ch);
+                let res = ln_t + scale.map_or(0.0, |i| theta[i]) - y;
+                cost += res * res;
+                for a in 0..q {
+                    g[a] += vals[a] * res;
+                    for b in a..q {
+                        acc[a][b] += vals[a] * vals[b];
+                    }
+                }
+                if let Some(i) = scale {
+                    for a in 0..q {
+                        acc[a][i] += vals[a] * 1.0;
+                    }
+                    g[i] += 1.0 * res;
+                    acc[i][i] += 1.0 * 1.0;
+                }
+            }
+        }
+        for a in 0..p {
+            jtr[a] = g[a];
+            jtj[a * p + a] = acc[a][a];
+            for b in (a + 1)..p {
+                // The generic path fills the upper triangle only, then adds the (zero) lower.
+                let s = acc[a][b] + 0.0;
+                jtj[a * p + b] = s;
+                jtj[b * p + a] = s;
+            }
+        }
+        (cost.is_finite() && jtr.iter().all(|v| v.is_finite())).then_some(cost)
+    }
+}
+
 impl Problem for AnisoProblem<'_> {
     fn params(&self) -> usize {
         2 * self.m * self.n + if self.shared { 2 } else { 0 }
+    }
+    fn normal_equations(
+        &self,
+        theta: &[f64],
+        jtj: &mut [f64],
+        jtr: &mut [f64],
+    ) -> Option<Option<f64>> {
+        if self.m != 1 || self.channels > 3 {
+            return None;
+        }
+        Some(match self.n {
+            1 => self.normal_one_segment::<1>(theta, jtj, jtr),
+            2 => self.normal_one_segment::<2>(theta, jtj, jtr),
+            3 => self.normal_one_segment::<3>(theta, jtj, jtr),
+            4 => self.normal_one_segment::<4>(theta, jtj, jtr),
+            _ => return None,
+        })
     }
     fn rows(&self) -> usize {
         self.used_rows()
@@ -891,6 +1019,78 @@ fn fit_joint(
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
+
+    /// A problem's rows through the solver's generic accumulation only (no specialised normal
+    /// equations): the reference the one-segment path is held to.
+    struct Generic<'a, P>(&'a P);
+
+    impl<P: Problem> Problem for Generic<'_, P> {
+        fn params(&self) -> usize {
+            self.0.params()
+        }
+        fn rows(&self) -> usize {
+            self.0.rows()
+        }
+        fn eval<F: FnMut(f64, &[usize], &[f64])>(&self, theta: &[f64], jac: bool, row: F) -> bool {
+            self.0.eval(theta, jac, row)
+        }
+    }
+
+    proptest::proptest! {
+        /// The one-segment normal equations (n = 1..4, one or three channels, shared scales,
+        /// unusable samples, anchors, rates that overflow) are the generic accumulation's to the
+        /// bit: JᵀJ, Jᵀres, the cost and whether θ is feasible.
+        #[test]
+        fn one_segment_normal_equations_are_the_generic_ones_to_the_bit(
+            n in 1usize..=4,
+            shared in proptest::bool::ANY,
+            rows in 1usize..40,
+            seed in proptest::num::u64::ANY,
+            anchored in proptest::bool::ANY,
+            wild in proptest::bool::ANY,
+        ) {
+            let mut state = seed;
+            let mut next = || uniform(&mut state);
+            let channels = if shared { 3 } else { 1 };
+            let r: Vec<f64> = (0..rows).map(|_| 3.0 * next()).collect();
+            let phi: Vec<f64> = (0..rows)
+                .map(|_| if next() < 0.2 { f64::NAN } else { 6.0 * next() })
+                .collect();
+            let y: Vec<Vec<f64>> = (0..3)
+                .map(|_| {
+                    (0..rows)
+                        .map(|_| if next() < 0.15 { f64::NAN } else { 10.0 * next() - 8.0 })
+                        .collect()
+                })
+                .collect();
+            let problem = AnisoProblem {
+                r: &r,
+                phi: &phi,
+                y: [&y[0], &y[1], &y[2]],
+                channels,
+                n,
+                m: 1,
+                shared,
+            };
+            let p = problem.params();
+            let theta: Vec<f64> = (0..p)
+                .map(|i| if wild && i == 1 { 700.0 * next() } else { 6.0 * next() - 3.0 })
+                .collect();
+            let anchor: Vec<(usize, f64)> =
+                if anchored { vec![(0, 0.5), (1, -0.25)] } else { Vec::new() };
+            let fast = Anchored { inner: &problem, anchor: &anchor };
+            let reference = Generic(&fast);
+            let (ok_a, jtj_a, jtr_a, cost_a) = lm::built(&fast, &theta);
+            let (ok_b, jtj_b, jtr_b, cost_b) = lm::built(&reference, &theta);
+            proptest::prop_assert_eq!(ok_a, ok_b);
+            if ok_a {
+                let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<u64>>();
+                proptest::prop_assert_eq!(bits(&jtj_a), bits(&jtj_b));
+                proptest::prop_assert_eq!(bits(&jtr_a), bits(&jtr_b));
+                proptest::prop_assert_eq!(cost_a.to_bits(), cost_b.to_bits());
+            }
+        }
+    }
 
     fn uniform(seed: &mut u64) -> f64 {
         *seed = seed.wrapping_add(0x9E37_79B9_7F4A_7C15);

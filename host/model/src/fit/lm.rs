@@ -101,6 +101,20 @@ struct Normal {
     cost: f64,
 }
 
+/// What the solver builds at θ ([`build`]): whether θ is feasible, JᵀJ, Jᵀres and the cost;
+/// for tests that hold a problem's specialised normal equations to the generic ones.
+#[cfg(test)]
+pub(crate) fn built<P: Problem>(problem: &P, theta: &[f64]) -> (bool, Vec<f64>, Vec<f64>, f64) {
+    let p = problem.params();
+    let mut out = Normal {
+        jtj: vec![0.0; p * p],
+        jtr: vec![0.0; p],
+        cost: 0.0,
+    };
+    let ok = build(problem, theta, &mut out);
+    (ok, out.jtj, out.jtr, out.cost)
+}
+
 fn build<P: Problem>(problem: &P, theta: &[f64], out: &mut Normal) -> bool {
     let p = problem.params();
     if let Some(result) = problem.normal_equations(theta, &mut out.jtj, &mut out.jtr) {
