@@ -269,7 +269,7 @@ pub fn frame_observations<'a>(
     s.iter().filter_map(move |x| {
         let t = takes & x.valid;
         (t != 0).then(|| {
-            let (_, phi) = frame.polar(reg.x_i, positions[x.vertex as usize]);
+            let phi = frame.direction(reg.x_i, positions[x.vertex as usize]);
             (x, phi, t)
         })
     })

@@ -355,7 +355,7 @@ fn sample_batch(
     };
     let phi = Float64Array::from_iter(s.iter().map(|x| {
         let x_o = positions.get(x.vertex as usize).copied()?;
-        tangent?.polar(x_i, x_o).1
+        tangent?.direction(x_i, x_o)
     }));
     let columns: Vec<ArrayRef> = vec![
         Arc::new(UInt32Array::from(vec![frame as u32; s.len()])),

@@ -136,9 +136,19 @@ impl TangentFrame {
     pub fn polar(&self, x_i: [f64; 3], x_o: [f64; 3]) -> (f64, Option<f64>) {
         let v = [x_o[0] - x_i[0], x_o[1] - x_i[1], x_o[2] - x_i[2]];
         let r = v[0].hypot(v[1]).hypot(v[2]);
+        (r, self.direction_of(v))
+    }
+
+    /// φ of [`TangentFrame::polar`] alone, without the distance (two `hypot`s): for callers
+    /// that know r already (the sample store holds it), once per sample of every fit round.
+    pub fn direction(&self, x_i: [f64; 3], x_o: [f64; 3]) -> Option<f64> {
+        self.direction_of([x_o[0] - x_i[0], x_o[1] - x_i[1], x_o[2] - x_i[2]])
+    }
+
+    fn direction_of(&self, v: [f64; 3]) -> Option<f64> {
         let (u, w) = (dot(v, self.t), dot(v, self.b));
         if u == 0.0 && w == 0.0 || !(u.is_finite() && w.is_finite()) {
-            return (r, None);
+            return None;
         }
         let mut phi = w.atan2(u);
         if phi < 0.0 {
@@ -147,7 +157,7 @@ impl TangentFrame {
         if phi >= std::f64::consts::TAU {
             phi = 0.0;
         }
-        (r, Some(phi))
+        Some(phi)
     }
 }
 
