@@ -639,8 +639,8 @@ fn fit_candidate(
 
 /// Round 0's candidates of one light position ([`fit_order`]): its fits at every (n, m) but the
 /// baseline's, which depend on its samples alone.
-#[derive(Debug, Clone)]
-pub struct Candidates {
+#[derive(Debug)]
+struct Candidates {
     /// Every candidate fitted, as the order rule scores it.
     cands: Vec<crate::order::Candidate>,
     /// Per candidate: its model, the terms its fit dropped and how it was fitted.
@@ -716,7 +716,7 @@ fn order_candidates(
 /// dataset frame numbers (a fold's registered-frame indices differ from the whole scan's), the
 /// colour mode and the segments.
 #[derive(Debug, Clone, PartialEq, Eq, Hash)]
-pub struct OrderKey {
+struct OrderKey {
     frames: [Vec<usize>; 3],
     anchors: [usize; 3],
     colour: ColourMode,
@@ -989,17 +989,13 @@ impl RoundState {
 /// Sum over a group's (alpha-divided) samples of (ln R_d − ln s)^2: its share of the training
 /// objective.
 fn sq_err(m: &ColourModel, data: &ChannelSamples) -> f64 {
-    let ln_rd = ln_rd_at(m, data);
-    let mut o = 0.0;
-    for (d, l) in data.iter().zip(&ln_rd) {
-        for (x, ln_rd) in d.iter().zip(l) {
-            let e = ln_rd - x.s.ln();
-            if e.is_finite() {
-                o += e * e;
-            }
-        }
-    }
-    o
+    sq_err_at(&ln_rd_at(m, data), &ln_s_of(data))
+}
+
+/// ln s of each of a group's samples, per channel (their order).
+fn ln_s_of(data: &ChannelSamples) -> [Vec<f64>; 3] {
+    data.each_ref()
+        .map(|d| d.iter().map(|x| x.s.ln()).collect())
 }
 
 /// ln R_d of a model at each of a group's samples, per channel (their order).
@@ -1041,8 +1037,8 @@ pub(super) fn ln_rd_with(
     [red, g, b]
 }
 
-/// [`sq_err`] from a model's ln R_d at the samples ([`ln_rd_at`]) and the samples' ln s: the
-/// same sum in the same order, so the same bits.
+/// [`sq_err`] from a model's ln R_d at the samples ([`ln_rd_at`]) and their ln s
+/// ([`ln_s_of`]), for a caller that reuses either (a round's old and new fits, Eq. 6).
 fn sq_err_at(ln_rd: &[Vec<f64>; 3], ln_s: &[Vec<f64>; 3]) -> f64 {
     let mut o = 0.0;
     for (l, s) in ln_rd.iter().zip(ln_s) {
@@ -1140,8 +1136,7 @@ impl RoundRunner<'_, '_> {
                 });
                 // The old and new fits are scored on the same samples, and the one kept feeds
                 // Eq. 6 below: each model's ln R_d and each sample's ln s are taken once.
-                let ln_s: [Vec<f64>; 3] =
-                    std::array::from_fn(|ch| data[ch].iter().map(|x| x.s.ln()).collect());
+                let ln_s = ln_s_of(&data);
                 let scored = |m: &ColourModel| {
                     let ln_rd = ln_rd_at(m, &data);
                     let o = sq_err_at(&ln_rd, &ln_s);

@@ -161,6 +161,30 @@ impl AnisoProblem<'_> {
     }
 }
 
+/// One segment's terms at distance r (`theta` from its first amplitude, `rate` its terms'
+/// exp(b_k)): each term's share c_k e^{d_k r} / R_l into `shares`, and (max_k t_k, Σ_k
+/// exp(t_k − max)) with t_k = a_k − exp(b_k)·r, so ln R_l = max + ln Σ. The one evaluation
+/// of the generic rows ([`Problem::eval`]) and of the one-segment normal equations.
+#[inline(always)]
+fn segment_shares(theta: &[f64], rate: &[f64], r: f64, shares: &mut [f64]) -> (f64, f64) {
+    let mut mx = f64::NEG_INFINITY;
+    for (k, v) in shares.iter_mut().enumerate() {
+        let t = theta[2 * k] - rate[k] * r;
+        *v = t;
+        mx = mx.max(t);
+    }
+    let mut sum = 0.0;
+    for v in shares.iter_mut() {
+        let e = exp_exact_at_zero(*v - mx);
+        *v = e;
+        sum += e;
+    }
+    for v in shares.iter_mut() {
+        *v /= sum;
+    }
+    (mx, sum)
+}
+
 /// Segments and their hat weights for direction φ (all segments equally if φ is NaN).
 fn segment_weights(phi: f64, m: usize, out: &mut Vec<(usize, f64)>) {
     out.clear();
@@ -202,34 +226,19 @@ impl AnisoProblem<'_> {
         let mut v = [0.0f64; N];
         let mut vals = [0.0f64; 2 * MAX_TERMS];
         for (j, &r) in self.r.iter().enumerate() {
-            // Problem::eval with the one segment of weight 1.
-            let mut mx = f64::NEG_INFINITY;
-            for k in 0..N {
-                let t = theta[2 * k] - rate[k] * r;
-                v[k] = t;
-                mx = mx.max(t);
-            }
-            let mut sum = 0.0;
-            for k in 0..N {
-                let e = exp_exact_at_zero(v[k] - mx);
-                v[k] = e;
-                sum += e;
-            }
-            for k in 0..N {
-                v[k] /= sum;
-            }
-            let ln_seg = ln_exact_at_one(1.0) + mx + ln_exact_at_one(sum);
-            let top = f64::NEG_INFINITY.max(ln_seg);
-            let total: f64 = std::iter::once(exp_exact_at_zero(ln_seg - top)).sum();
-            let ln_t = top + ln_exact_at_one(total);
-            if !ln_t.is_finite() {
+            // Problem::eval with its one segment of weight 1, whose blend over the segments is
+            // exact: ln w = 0, the blend's sum is exp(0) = 1 wherever ln R_l is finite (and θ
+            // infeasible elsewhere), ln R_d = ln R_l + ln 1, and the segment's share u is 1.
+            let (mx, sum) = segment_shares(theta, &rate, r, &mut v);
+            let ln_seg = 0.0 + mx + ln_exact_at_one(sum);
+            if !ln_seg.is_finite() {
                 return None;
             }
-            let u = exp_exact_at_zero(ln_seg - ln_t);
+            let ln_t = ln_seg + 0.0;
             for k in 0..N {
                 let d = -rate[k];
-                vals[2 * k] = u * v[k];
-                vals[2 * k + 1] = u * v[k] * r * d;
+                vals[2 * k] = v[k];
+                vals[2 * k + 1] = v[k] * r * d;
             }
             for ch in 0..self.channels {
                 let y = self.y[ch][j];
@@ -245,12 +254,13 @@ impl AnisoProblem<'_> {
                         acc[a][b] += vals[a] * vals[b];
                     }
                 }
+                // The channel scale's Jacobian entry is 1.
                 if let Some(i) = scale {
                     for a in 0..q {
-                        acc[a][i] += vals[a] * 1.0;
+                        acc[a][i] += vals[a];
                     }
-                    g[i] += 1.0 * res;
-                    acc[i][i] += 1.0 * 1.0;
+                    g[i] += res;
+                    acc[i][i] += 1.0;
                 }
             }
         }
@@ -310,21 +320,12 @@ impl Problem for AnisoProblem<'_> {
             // ln of w_l·R_l for each involved segment, with within-segment term shares v.
             let mut top = f64::NEG_INFINITY;
             for &(l, w) in &segs {
-                let mut mx = f64::NEG_INFINITY;
-                for k in 0..n {
-                    let t = theta[2 * (l * n + k)] - rate[l * n + k] * r;
-                    v[l * n + k] = t;
-                    mx = mx.max(t);
-                }
-                let mut sum = 0.0;
-                for k in 0..n {
-                    let e = exp_exact_at_zero(v[l * n + k] - mx);
-                    v[l * n + k] = e;
-                    sum += e;
-                }
-                for k in 0..n {
-                    v[l * n + k] /= sum;
-                }
+                let (mx, sum) = segment_shares(
+                    &theta[2 * l * n..],
+                    &rate[l * n..(l + 1) * n],
+                    r,
+                    &mut v[l * n..(l + 1) * n],
+                );
                 ln_seg[l] = ln_exact_at_one(w) + mx + ln_exact_at_one(sum);
                 top = top.max(ln_seg[l]);
             }
