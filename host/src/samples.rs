@@ -134,9 +134,36 @@ pub fn frame_samples(
     coverage: Option<(&Scene, &CoverageMap)>,
     opts: &SampleOptions,
 ) -> (Vec<Sample>, SampleCounts) {
+    frame_samples_above(
+        img, frame, visible, positions, x_i, spot, coverage, opts, 0.0,
+    )
+}
+
+/// [`frame_samples`] keeping, of the samples it counts, only the channel samples above
+/// `min_value` (and the samples left with one): the lattice points' rule
+/// ([`crate::store::StorePoints::min_value`]; 0 keeps all). The counts are [`frame_samples`]'s. Why
+/// here and not after: a view holds about a lattice point per pixel of the object, of which a
+/// frame keeps a few per cent; collecting them all first took a buffer of every visible point
+/// per frame (tens of MB at 1024 px, freshly paged in each time).
+#[allow(clippy::too_many_arguments)]
+pub fn frame_samples_above(
+    img: &Image,
+    frame: &FrameSpec,
+    visible: &[Visible],
+    positions: &[V3],
+    x_i: V3,
+    spot: Option<&Spot>,
+    coverage: Option<(&Scene, &CoverageMap)>,
+    opts: &SampleOptions,
+    min_value: f64,
+) -> (Vec<Sample>, SampleCounts) {
     let coverage = coverage.filter(|_| opts.coverage);
     let mut counts = SampleCounts::default();
-    let mut out = Vec::with_capacity(visible.len());
+    let mut out = if min_value > 0.0 {
+        Vec::new()
+    } else {
+        Vec::with_capacity(visible.len())
+    };
     let chans = frame.channel.channels();
     let sat = opts.saturation.map(|s| s * 0.999).unwrap_or(f64::INFINITY);
     let spot = spot.and_then(|s| spot_light(s, img.channels));
@@ -153,15 +180,15 @@ pub fn frame_samples(
             counts.uncovered += chans.len() as u64;
             continue;
         }
-        let mut raw = [None; 3];
-        for &c in chans {
-            raw[c] = img.bilinear(vis.u, vis.v, c);
-        }
+        let Some(read) = img.bilinear_channels(vis.u, vis.v, chans) else {
+            // Outside the image: no channel is read, none counted.
+            continue;
+        };
         let spot_raw = spot.as_ref().map_or(0.0, |l| l.raw_at(vis.u, vis.v));
-        let lit = raw
-            .iter()
-            .flatten()
-            .any(|(val, _)| spot_raw > SPOT_SHARE * val || (spot_raw > 0.0 && *val <= 0.0));
+        let lit = chans.iter().any(|&c| {
+            let val = read[c].0;
+            spot_raw > SPOT_SHARE * val || (spot_raw > 0.0 && val <= 0.0)
+        });
         if lit {
             counts.excluded += chans.len() as u64;
             continue;
@@ -173,9 +200,7 @@ pub fn frame_samples(
             valid: 0,
         };
         for &c in chans {
-            let Some((val, max_raw)) = raw[c] else {
-                continue;
-            };
+            let (val, max_raw) = read[c];
             let v = val / frame.exposure_s;
             if !v.is_finite() || !max_raw.is_finite() {
                 counts.non_finite += 1;
@@ -187,6 +212,9 @@ pub fn frame_samples(
                 s.value[c] = v;
                 s.valid |= 1 << c;
                 counts.used += 1;
+                if min_value > 0.0 && v <= min_value {
+                    s.valid &= !(1 << c);
+                }
             }
         }
         if s.valid != 0 {
@@ -427,6 +455,109 @@ mod tests {
     /// function and rules: each value is the bilinear pixel at the point's projection over the
     /// exposure, points within the exclusion radius of x_i are dropped and counted, and
     /// `Sample::vertex` indexes the point array.
+    /// `frame_samples_above` is `frame_samples` with the store's rule for lattice points
+    /// applied after (channel samples at or below the minimum dropped, then samples with none),
+    /// to the bit, with the same counts, on a noisy image with negative pixels, a NaN, clipped
+    /// pixels and the laser spot, in every channel and in one.
+    #[test]
+    fn keeping_while_sampling_is_keeping_after() {
+        let mut img = Image::new(16, 4, 3);
+        let mut x = 0x9e37_79b9_7f4a_7c15_u64;
+        for v in img.data.iter_mut() {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            *v = ((x >> 40) as f32 / (1u64 << 24) as f32 - 0.1) * 3.0;
+        }
+        img.data[3..6].copy_from_slice(&[1.0, f32::NAN, 1.0]);
+        img.data[6..9].copy_from_slice(&[50.0, 50.0, 1e-6]);
+        img.data[42..45].copy_from_slice(&[39.0, 39.0, 39.0]);
+        let pos: Vec<V3> = (0..64).map(|k| [0.05 * k as f64, 0.3, 0.0]).collect();
+        let vis: Vec<Visible> = (0..64u32)
+            .map(|k| Visible {
+                vertex: k,
+                u: (k % 16) as f64 + 0.37 * (k % 3) as f64,
+                v: (k / 16) as f64 * 0.9,
+            })
+            .collect();
+        let opts = SampleOptions {
+            exclusion_radius_mm: 0.5,
+            noise_floor: 0.05,
+            saturation: Some(40.0),
+            cos_min: 0.2,
+            coverage: false,
+        };
+        let spot = crate::registration::detect_spot(&img, 0.0, opts.saturation);
+        for channel in [FrameChannel::Rgb, FrameChannel::G] {
+            let frame = FrameSpec {
+                image: String::new(),
+                camera: 0,
+                turntable_deg: 0.0,
+                exposure_s: 2.0,
+                channel,
+                laser: None,
+                galvo: None,
+                levels: Default::default(),
+                brackets: Vec::new(),
+            };
+            let (all, counts) = frame_samples(
+                &img,
+                &frame,
+                &vis,
+                &pos,
+                [0.0; 3],
+                spot.as_ref(),
+                None,
+                &opts,
+            );
+            assert!(
+                counts.used > 0 && counts.excluded > 0 && counts.non_finite > 0,
+                "{counts:?}"
+            );
+            for min_value in [0.0, 0.1, 0.4, 1.0, f64::NAN] {
+                let mut want = all.clone();
+                if min_value > 0.0 {
+                    for s in &mut want {
+                        for c in 0..3 {
+                            if s.value[c] <= min_value {
+                                s.valid &= !(1 << c);
+                            }
+                        }
+                    }
+                    want.retain(|s| s.valid != 0);
+                }
+                let (got, c) = frame_samples_above(
+                    &img,
+                    &frame,
+                    &vis,
+                    &pos,
+                    [0.0; 3],
+                    spot.as_ref(),
+                    None,
+                    &opts,
+                    min_value,
+                );
+                assert_eq!(c, counts);
+                assert_eq!(got.len(), want.len(), "{min_value}");
+                for (g, w) in got.iter().zip(&want) {
+                    assert_eq!(
+                        (g.vertex, g.valid, g.r.to_bits()),
+                        (w.vertex, w.valid, w.r.to_bits())
+                    );
+                    assert_eq!(g.value.map(f64::to_bits), w.value.map(f64::to_bits));
+                }
+                if min_value == 0.4 {
+                    // Some channels and some whole samples dropped, some kept.
+                    let bits = |s: &[Sample]| s.iter().map(|x| x.valid.count_ones()).sum::<u32>();
+                    assert!(bits(&got) > 0 && bits(&got) < bits(&all));
+                }
+                if min_value == 1.0 {
+                    assert!(!got.is_empty() && got.len() < all.len());
+                }
+            }
+        }
+    }
+
     #[test]
     fn surface_points_are_sampled_by_the_same_rules() {
         use crate::geometry::SurfacePoints;

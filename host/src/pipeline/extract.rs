@@ -309,8 +309,7 @@ pub fn extract_image(
     x.vertices = Some(v);
     x.record.counts[0] = vc;
     if let (Some(p), Some(vis)) = (points, visible) {
-        let (mut s, c) = ctx.surface_samples(img, spec, x_i, &spot, &p.points, vis);
-        p.keep(&mut s);
+        let (s, c) = ctx.surface_samples(img, spec, x_i, &spot, p, vis);
         x.points = Some(s);
         x.record.counts[1] = c;
     }

@@ -12,7 +12,7 @@ use crate::dataset::{Dataset, DatasetError, FrameSpec};
 use crate::geometry::{Camera, CoverageMap, Scene, SurfacePoints, V3, Visible};
 use crate::registration::RegistrationOutcome;
 use crate::samples::{SampleCounts, frame_samples};
-use crate::store::{FrameSamples, PointSet, SampleStore, StoreError};
+use crate::store::{FrameSamples, PointSet, SampleStore, StoreError, StorePoints};
 
 use super::register::RegisteredFrame;
 use super::{PipelineError, PipelineOptions};
@@ -227,27 +227,30 @@ impl<'a> Context<'a> {
         )
     }
 
-    /// Samples of the image `img` of frame `f` at the surface points `pts` of which `visible` are
-    /// seen (by the vertices' rules, [`Context::vertex_samples`]); `Sample::vertex` indexes `pts`.
+    /// Samples of the image `img` of frame `f` at the store's lattice points `pts` of which
+    /// `visible` are seen (by the vertices' rules, [`Context::vertex_samples`]), those the store
+    /// keeps (above [`StorePoints::min_value`]); `Sample::vertex` indexes `pts.points`. The counts are of
+    /// every visible point.
     pub fn surface_samples(
         &self,
         img: &crate::dataset::Image,
         f: &FrameSpec,
         x_i: V3,
         spot: &crate::registration::Spot,
-        pts: &SurfacePoints,
+        pts: &StorePoints,
         visible: &[Visible],
     ) -> (Vec<crate::samples::Sample>, SampleCounts) {
         let cov = self.coverage(f.camera, f.turntable_deg);
-        frame_samples(
+        crate::samples::frame_samples_above(
             img,
             f,
             visible,
-            &pts.positions,
+            &pts.points.positions,
             x_i,
             Some(spot),
             Some((&self.scene, &cov)),
             &self.opts.samples,
+            pts.min_value,
         )
     }
 

@@ -104,22 +104,6 @@ impl StorePoints {
                 .chain(std::iter::once(self.min_value.to_bits())),
         )
     }
-
-    /// Drops from `s` the channel samples at or below [`StorePoints::min_value`], and samples
-    /// left with none.
-    pub fn keep(&self, s: &mut Vec<Sample>) {
-        if self.min_value <= 0.0 {
-            return;
-        }
-        for x in s.iter_mut() {
-            for c in 0..3 {
-                if x.value[c] <= self.min_value {
-                    x.valid &= !(1 << c);
-                }
-            }
-        }
-        s.retain(|x| x.valid != 0);
-    }
 }
 
 /// Which point set of a store.
