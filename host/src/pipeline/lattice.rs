@@ -244,9 +244,15 @@ pub fn fit_lattice(
                         let windows =
                             [0, 1, 2].map(|ch| ctx.opts.alpha_window.for_light(g.s_max[ch]));
                         let model = g.model.ln_evaluator();
-                        for (x, phi, takes) in
-                            frame_observations(&groups.keys[gi], l, reg, tf, s, &pts.positions)
-                        {
+                        for (x, phi, takes) in frame_observations(
+                            &groups.keys[gi],
+                            l,
+                            reg,
+                            tf,
+                            s,
+                            &pts.positions,
+                            model.uses_direction(),
+                        ) {
                             // One evaluation of R_d for all channels of the observation.
                             let ln_rd = model.ln_eval(x.r, phi);
                             let p = x.vertex as usize;

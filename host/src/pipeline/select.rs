@@ -234,7 +234,7 @@ pub fn add_frame_samples(
     s: &[Sample],
     positions: &[V3],
 ) {
-    for (x, phi, takes) in frame_observations(key, l, reg, frame, s, positions) {
+    for (x, phi, takes) in frame_observations(key, l, reg, frame, s, positions, true) {
         for (ch, slot) in data.iter_mut().enumerate() {
             if takes & (1 << ch) != 0 {
                 slot.push(GroupSample {
@@ -254,7 +254,9 @@ pub fn add_frame_samples(
 /// its direction φ in `frame` ([`group_frame`]) around `l`'s own x_i (its distance `Sample::r`
 /// is from that x_i too), and the channels the group takes from it (bit c: `l` belongs to the
 /// light position channel c selected and the sample's channel c is valid). The one rule
-/// [`group_samples`] and the lattice pass ([`super::lattice`]) measure samples by.
+/// [`group_samples`] and the lattice pass ([`super::lattice`]) measure samples by. Without
+/// `directions`, φ is not measured (`None`): for a model it cannot change
+/// ([`crate::model::LnEvaluator::uses_direction`]).
 pub fn frame_observations<'a>(
     key: &GroupKey,
     l: u32,
@@ -262,6 +264,7 @@ pub fn frame_observations<'a>(
     frame: &'a TangentFrame,
     s: &'a [Sample],
     positions: &'a [V3],
+    directions: bool,
 ) -> impl Iterator<Item = (&'a Sample, Option<f64>, u8)> + 'a {
     let takes = (0..3).fold(0u8, |m, ch| {
         m | (u8::from(key.frames[ch].contains(&l)) << ch)
@@ -269,7 +272,9 @@ pub fn frame_observations<'a>(
     s.iter().filter_map(move |x| {
         let t = takes & x.valid;
         (t != 0).then(|| {
-            let phi = frame.direction(reg.x_i, positions[x.vertex as usize]);
+            let phi = directions
+                .then(|| frame.direction(reg.x_i, positions[x.vertex as usize]))
+                .flatten();
             (x, phi, t)
         })
     })

@@ -138,6 +138,17 @@ pub struct LnEvaluator<'a> {
 }
 
 impl LnEvaluator<'_> {
+    /// Whether φ changes any evaluation: a fall-off of more than one segment (Eq. 3). With one
+    /// segment, [`LnEvaluator::ln_eval`] at any φ (or none) is the same bits, so a caller may
+    /// skip measuring it (an atan2 per sample: an eighth of the lattice pass at 1024 px).
+    pub fn uses_direction(&self) -> bool {
+        let falloffs: &[Anisotropic] = match self.model {
+            ColourModel::PerChannel { channels } => channels,
+            ColourModel::Shared { falloff, .. } => std::slice::from_ref(falloff),
+        };
+        falloffs.iter().any(|a| a.segments.len() > 1)
+    }
+
     /// ln R_d of fall-off `f` (Eq. 3), its segments evaluated with their ln c_k taken.
     fn falloff(&self, f: usize, a: &Anisotropic, r: f64, phi: Option<f64>) -> f64 {
         let at = self.first[f];
@@ -277,6 +288,12 @@ mod tests {
                         let all = model.ln_eval(r, phi);
                         let ev = model.ln_evaluator();
                         let all_ev = ev.ln_eval(r, phi);
+                        // A model that does not use φ evaluates the same without it.
+                        assert_eq!(ev.uses_direction(), m > 1);
+                        if !ev.uses_direction() {
+                            let none = ev.ln_eval(r, None).map(f64::to_bits);
+                            assert_eq!(none, all.map(f64::to_bits), "r {r} phi {phi:?}");
+                        }
                         for (ch, want) in all.iter().enumerate() {
                             let got = model.ln_eval_channel(ch, r, phi);
                             assert_eq!(got.to_bits(), want.to_bits(), "m {m} r {r} phi {phi:?}");
