@@ -26,7 +26,7 @@ fn fit_bytes(
 /// Every frame file is opened once per fit: the extraction pass reads each frame, no later
 /// stage (the fit rounds, the lattice, the error) reads one again, and a fit from the cache
 /// reads none. The model is byte-identical whether the store is in memory, spilled entirely to
-/// disk (a zero budget) or opened from the cache.
+/// disk (a zero budget, to the cache or to a scratch store) or opened from the cache.
 #[test]
 fn each_frame_is_read_once_and_spilled_or_cached_stores_fit_the_same_model() {
     let d = tempfile::tempdir().unwrap();
@@ -65,6 +65,20 @@ fn each_frame_is_read_once_and_spilled_or_cached_stores_fit_the_same_model() {
     assert!(rep.sample_store.as_ref().unwrap().spilled > 0);
     assert!(ds.frame_read_counts().iter().all(|&n| n == 1));
     assert_eq!(in_memory, from_disk, "a spilled store fits the same model");
+
+    // Spilled to a scratch store (no cache), whose lattice file holds no r: the run measures it.
+    let ds = Dataset::open(&data).unwrap();
+    let scratch = StoreOptions {
+        budget: 0,
+        cache: Cache::Off,
+    };
+    let (from_scratch, rep) = fit_bytes(&ds, &opts, &scratch, &d.path().join("s.ply"));
+    let st = rep.sample_store.as_ref().unwrap();
+    assert!(st.spilled > 0 && st.point_samples > 0, "{st:?}");
+    assert_eq!(
+        in_memory, from_scratch,
+        "a spilled scratch store fits the same model"
+    );
 
     // The cache: no frame is read.
     let ds = Dataset::open(&data).unwrap();

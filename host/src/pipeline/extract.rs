@@ -567,6 +567,53 @@ mod tests {
         files
     }
 
+    /// A scratch store's lattice file holds no frame, r or φ (its run measures r again from
+    /// the points and x_i): spilled entirely, every frame reads back the samples a cache, which
+    /// holds r, reads back, to the bit, with the same counts.
+    #[test]
+    fn a_scratch_store_reads_back_the_samples_a_cache_holds() {
+        use crate::samples::SampleCounts;
+        use crate::store::{FrameSamples, PointSet};
+        let tmp = tempfile::tempdir().unwrap();
+        let ds = slab(&tmp.path().join("scan"));
+        let ctx = Context::new(&ds, PipelineOptions::for_dataset(&ds)).unwrap();
+        let frames: Vec<usize> = (0..ds.spec.frames.len()).collect();
+        let points = fit_points(&ctx, &frames);
+        let spilled = |cache| StoreOptions { budget: 0, cache };
+        let dir = Cache::Dir(tmp.path().join("cache"));
+        let cached = extract(&ctx, &frames, points.clone(), &spilled(dir), &()).unwrap();
+        let scratch = extract(&ctx, &frames, points, &spilled(Cache::Off), &()).unwrap();
+        assert!(scratch.report().spilled > 0 && scratch.report().memory_bytes == 0);
+        type Bits = (u32, u8, u64, [u64; 3]);
+        let bits = |s: Option<FrameSamples>| -> Option<(SampleCounts, Vec<Bits>)> {
+            s.map(|s| {
+                let v = s.samples.iter().map(|x| {
+                    let value = [0, 1, 2]
+                        .map(|c| (x.valid & (1 << c) != 0).then_some(x.value[c].to_bits()));
+                    (
+                        x.vertex,
+                        x.valid,
+                        x.r.to_bits(),
+                        value.map(|v| v.unwrap_or(0)),
+                    )
+                });
+                (s.counts, v.collect())
+            })
+        };
+        let mut lattice = 0;
+        for &k in &frames {
+            for set in [PointSet::Vertices, PointSet::Lattice] {
+                let want = bits(cached.samples(k, set).unwrap());
+                let got = bits(scratch.samples(k, set).unwrap());
+                if set == PointSet::Lattice {
+                    lattice += want.as_ref().map_or(0, |w| w.1.len());
+                }
+                assert_eq!(got, want, "frame {k} {set:?}");
+            }
+        }
+        assert!(lattice > 0, "the lattice is sampled");
+    }
+
     /// The pass writes each chunk's samples to the store while the next chunk decodes; the
     /// frames must still reach it in the order they were taken, so its files are the bytes of a
     /// serial pass (frames taken in an order of their own, spilled beyond a small budget, so

@@ -82,20 +82,31 @@ struct Manifest {
 }
 
 /// The schema of a point set's sample batches.
-fn sample_schema(set: PointSet) -> SchemaRef {
+/// The schema of `set`'s samples; `compact`: the point and the channels only (a scratch store's
+/// lattice, [`Writer::create`]).
+fn sample_schema(set: PointSet, compact: bool) -> SchemaRef {
     let point = match set {
         PointSet::Vertices => "vertex",
         PointSet::Lattice => "point",
     };
-    Arc::new(Schema::new(vec![
-        Field::new("frame", DataType::UInt32, false),
-        Field::new(point, DataType::UInt32, false),
-        Field::new("r", DataType::Float64, false),
-        Field::new("phi", DataType::Float64, true),
-        Field::new("s_r", DataType::Float64, true),
-        Field::new("s_g", DataType::Float64, true),
-        Field::new("s_b", DataType::Float64, true),
-    ]))
+    let channels = ["s_r", "s_g", "s_b"].map(|c| Field::new(c, DataType::Float64, true));
+    let fields = if compact {
+        [Field::new(point, DataType::UInt32, false)]
+            .into_iter()
+            .chain(channels)
+            .collect()
+    } else {
+        [
+            Field::new("frame", DataType::UInt32, false),
+            Field::new(point, DataType::UInt32, false),
+            Field::new("r", DataType::Float64, false),
+            Field::new("phi", DataType::Float64, true),
+        ]
+        .into_iter()
+        .chain(channels)
+        .collect::<Vec<_>>()
+    };
+    Arc::new(Schema::new(fields))
 }
 
 /// Where a store's files go.
@@ -113,6 +124,8 @@ pub struct Writer {
     tmp: PathBuf,
     target: Target,
     files: [Option<FileWriter<BufWriter<File>>>; 2],
+    /// The lattice file without the frame, r and φ columns (see [`Writer::create`]).
+    compact_lattice: bool,
     next_batch: [usize; 2],
     batches: [Vec<Option<usize>>; 2],
     rows: [Vec<usize>; 2],
@@ -155,10 +168,17 @@ impl Writer {
             }
             Target::Scratch(why) => (scratch_dir()?, Target::Scratch(why)),
         };
+        // A scratch store's lattice is read back by this run alone, which knows each frame's
+        // x_i and the points: r is their distance again (as for the lattice in memory,
+        // `Packed`, the same bits) and φ the lattice pass measures itself, or not at all for
+        // a model of one segment. Without those columns and the frame's, the file is 28 bytes a
+        // sample instead of 48, and at 1024 px it is GBs that are written and read back.
+        let compact_lattice = matches!(target, Target::Scratch(_));
         let open = |set: PointSet| -> Result<FileWriter<BufWriter<File>>, StoreError> {
             let path = tmp.join(file_name(set));
             let f = File::create(&path).map_err(io(&path))?;
-            FileWriter::try_new(BufWriter::with_capacity(1 << 20, f), &sample_schema(set))
+            let schema = sample_schema(set, compact_lattice && set == PointSet::Lattice);
+            FileWriter::try_new(BufWriter::with_capacity(1 << 20, f), &schema)
                 .map_err(|e| format_err(&path, e))
         };
         let files = [
@@ -173,6 +193,7 @@ impl Writer {
             tmp,
             target,
             files,
+            compact_lattice,
             next_batch: [0, 0],
             batches: [Vec::new(), Vec::new()],
             rows: [Vec::new(), Vec::new()],
@@ -205,7 +226,12 @@ impl Writer {
                 self.batches[i].push(None);
                 continue;
             };
-            let batch = sample_batch(set, x.record.frame, s, pos, x_i, x.tangent.as_ref());
+            let compact = self.compact_lattice && set == PointSet::Lattice;
+            let batch = if compact {
+                compact_batch(s)
+            } else {
+                sample_batch(set, x.record.frame, s, pos, x_i, x.tangent.as_ref())
+            };
             let path = self.tmp.join(file_name(set));
             w.write(&batch).map_err(|e| format_err(&path, e))?;
             out[i] = Some(self.next_batch[i]);
@@ -367,8 +393,27 @@ fn sample_batch(
         channel(2),
     ];
     // The columns match the schema by construction.
-    RecordBatch::try_new(sample_schema(set), columns)
-        .unwrap_or_else(|_| RecordBatch::new_empty(sample_schema(set)))
+    RecordBatch::try_new(sample_schema(set, false), columns)
+        .unwrap_or_else(|_| RecordBatch::new_empty(sample_schema(set, false)))
+}
+
+/// One frame's lattice samples as a compact batch (a scratch store's, [`Writer::create`]).
+fn compact_batch(s: &[Sample]) -> RecordBatch {
+    let schema = sample_schema(PointSet::Lattice, true);
+    let channel = |c: usize| -> ArrayRef {
+        Arc::new(Float64Array::from_iter(
+            s.iter()
+                .map(|x| (x.valid & (1 << c) != 0).then_some(x.value[c])),
+        ))
+    };
+    let columns: Vec<ArrayRef> = vec![
+        Arc::new(UInt32Array::from_iter_values(s.iter().map(|x| x.vertex))),
+        channel(0),
+        channel(1),
+        channel(2),
+    ];
+    // The columns match the schema by construction.
+    RecordBatch::try_new(schema.clone(), columns).unwrap_or_else(|_| RecordBatch::new_empty(schema))
 }
 
 fn column<'a>(b: &'a RecordBatch, name: &str, path: &Path) -> Result<&'a ArrayRef, StoreError> {
@@ -405,14 +450,33 @@ fn opt<T: arrow_array::ArrowPrimitiveType>(
     (!a.is_null(i)).then(|| a.value(i))
 }
 
-/// A sample batch back as samples.
-fn samples_of(b: &RecordBatch, set: PointSet, path: &Path) -> Result<Vec<Sample>, StoreError> {
+/// A sample batch back as samples. A compact batch (no `r` column, [`compact_batch`]) takes r
+/// from `at`: the points' positions and the frame's x_i.
+fn samples_of(
+    b: &RecordBatch,
+    set: PointSet,
+    path: &Path,
+    at: Option<(&[V3], V3)>,
+) -> Result<Vec<Sample>, StoreError> {
     let point = match set {
         PointSet::Vertices => "vertex",
         PointSet::Lattice => "point",
     };
     let p = u32_col(b, point, path)?;
-    let r = f64_col(b, "r", path)?;
+    let r = match b.column_by_name("r") {
+        Some(_) => R::Column(f64_col(b, "r", path)?),
+        None => {
+            let (positions, x_i) =
+                at.ok_or_else(|| format_err(path, "no column \"r\" and no x_i to measure it"))?;
+            if let Some(&bad) = p.values().iter().find(|&&i| i as usize >= positions.len()) {
+                return Err(format_err(
+                    path,
+                    format!("point {bad} is not in the lattice"),
+                ));
+            }
+            R::From(positions, x_i)
+        }
+    };
     let ch = [
         f64_col(b, "s_r", path)?,
         f64_col(b, "s_g", path)?,
@@ -420,9 +484,15 @@ fn samples_of(b: &RecordBatch, set: PointSet, path: &Path) -> Result<Vec<Sample>
     ];
     Ok((0..b.num_rows())
         .map(|i| {
+            let vertex = p.value(i);
+            let r = match r {
+                R::Column(r) => r.value(i),
+                // As `Packed::unpack` measures it: the same bits as at extraction.
+                R::From(positions, x_i) => crate::geometry::dist(positions[vertex as usize], x_i),
+            };
             let mut s = Sample {
-                vertex: p.value(i),
-                r: r.value(i),
+                vertex,
+                r,
                 value: [0.0; 3],
                 valid: 0,
             };
@@ -435,6 +505,13 @@ fn samples_of(b: &RecordBatch, set: PointSet, path: &Path) -> Result<Vec<Sample>
             s
         })
         .collect())
+}
+
+/// Where [`samples_of`] takes r from.
+#[derive(Clone, Copy)]
+enum R<'a> {
+    Column(&'a Float64Array),
+    From(&'a [V3], V3),
 }
 
 const COUNT_NAMES: [&str; 7] = [
@@ -722,8 +799,14 @@ impl Files {
         (n, n * std::mem::size_of::<Sample>())
     }
 
-    /// Batch `b` of `set`'s file as samples.
-    pub(super) fn read_batch(&self, set: PointSet, b: usize) -> Result<Vec<Sample>, StoreError> {
+    /// Batch `b` of `set`'s file as samples; `at` (the points' positions and the frame's x_i)
+    /// measures r where the file does not hold it (a scratch store's lattice).
+    pub(super) fn read_batch(
+        &self,
+        set: PointSet,
+        b: usize,
+        at: Option<(&[V3], V3)>,
+    ) -> Result<Vec<Sample>, StoreError> {
         let path = self.dir.join(file_name(set));
         let pool = &self.readers[set as usize];
         let reader = pool.lock().ok().and_then(|mut p| p.pop());
@@ -745,7 +828,7 @@ impl Files {
         if let Ok(mut p) = pool.lock() {
             p.push(reader);
         }
-        samples_of(&batch, set, &path)
+        samples_of(&batch, set, &path, at)
     }
 }
 

@@ -506,7 +506,13 @@ impl SampleStore {
                 Arc::new(p.unpack(pts, x_i))
             }
             Slot::Spilled(batch) => match &self.files {
-                Some(f) => Arc::new(f.read_batch(set, *batch)?),
+                Some(f) => {
+                    let at = match set {
+                        PointSet::Vertices => None,
+                        PointSet::Lattice => self.lattice_frame(i),
+                    };
+                    Arc::new(f.read_batch(set, *batch, at)?)
+                }
                 None => return Err(StoreError::Frame(k)),
             },
         };
@@ -565,7 +571,8 @@ impl SampleStore {
                     slots.push(Slot::Spilled(b));
                     continue;
                 }
-                let s = files.read_batch(set, b)?;
+                // A cache holds r (its lattice is never compact).
+                let s = files.read_batch(set, b, None)?;
                 let slot = match set {
                     PointSet::Vertices => Slot::Samples(Arc::new(s)),
                     PointSet::Lattice => Slot::Packed(Arc::new(Packed::of(&s))),
