@@ -582,6 +582,11 @@ mod tests {
         let spilled = |cache| StoreOptions { budget: 0, cache };
         let dir = Cache::Dir(tmp.path().join("cache"));
         let cached = extract(&ctx, &frames, points.clone(), &spilled(dir), &()).unwrap();
+        let files = store_files(&tmp.path().join("cache"));
+        assert!(
+            files.iter().all(|(name, _)| name != ".lock"),
+            "a cache holds no lock"
+        );
         let scratch = extract(&ctx, &frames, points, &spilled(Cache::Off), &()).unwrap();
         assert!(scratch.report().spilled > 0 && scratch.report().memory_bytes == 0);
         type Bits = (u32, u8, u64, [u64; 3]);

@@ -126,6 +126,8 @@ pub struct Writer {
     files: [Option<FileWriter<BufWriter<File>>>; 2],
     /// The lattice file without the frame, r and φ columns (see [`Writer::create`]).
     compact_lattice: bool,
+    /// `tmp`'s lock ([`hold`]), held until the files are dropped.
+    lock: Option<File>,
     next_batch: [usize; 2],
     batches: [Vec<Option<usize>>; 2],
     rows: [Vec<usize>; 2],
@@ -134,6 +136,43 @@ pub struct Writer {
 impl std::fmt::Debug for Writer {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Writer").field("tmp", &self.tmp).finish()
+    }
+}
+
+/// The file in a directory being written (a scratch store, a cache before it is moved into place)
+/// that its run holds locked while it lives.
+const LOCK: &str = ".lock";
+
+/// Name prefix of scratch stores in the temporary directory.
+const SCRATCH_PREFIX: &str = "subsurf-store-";
+
+/// Creates `dir`'s lock file and locks it: the directory is live while the handle is.
+fn hold(dir: &Path) -> Result<File, StoreError> {
+    let path = dir.join(LOCK);
+    let f = File::create(&path).map_err(io(&path))?;
+    f.lock().map_err(io(&path))?;
+    Ok(f)
+}
+
+/// Removes the directories under `root` whose names pass `ours` and whose run is gone: a store
+/// being written holds its lock file locked ([`hold`]) until it is finished or dropped, and a
+/// run that is killed (Ctrl-C, `timeout`, out of memory) releases it with the process, leaving
+/// its files behind: 4–7 GB of scratch lattice at 1024 px. A directory without a lock file, or
+/// whose lock is held, is left alone; errors are ignored (another user's temporary files).
+fn sweep_stale(root: &Path, ours: impl Fn(&str) -> bool) {
+    let Ok(entries) = std::fs::read_dir(root) else {
+        return;
+    };
+    for e in entries.flatten() {
+        if !ours(&e.file_name().to_string_lossy()) {
+            continue;
+        }
+        let Ok(lock) = File::options().write(true).open(e.path().join(LOCK)) else {
+            continue;
+        };
+        if lock.try_lock().is_ok() {
+            let _ = std::fs::remove_dir_all(e.path());
+        }
     }
 }
 
@@ -157,6 +196,7 @@ impl Writer {
         // identities (and so its final name, at `finish`) once they are all written.
         let (tmp, target) = match target {
             Target::Cache(root) => {
+                sweep_stale(&root, |n| n.starts_with('.') && n.contains("tmp-"));
                 let tmp = root.join(format!(".{}tmp-{}", key.dir_prefix(), unique_suffix()));
                 match std::fs::create_dir_all(&tmp) {
                     Ok(()) => (tmp, Target::Cache(root)),
@@ -174,6 +214,13 @@ impl Writer {
         // a model of one segment. Without those columns and the frame's, the file is 28 bytes a
         // sample instead of 48, and at 1024 px it is GBs that are written and read back.
         let compact_lattice = matches!(target, Target::Scratch(_));
+        let lock = match hold(&tmp) {
+            Ok(l) => l,
+            Err(e) => {
+                let _ = std::fs::remove_dir_all(&tmp);
+                return Err(e);
+            }
+        };
         let open = |set: PointSet| -> Result<FileWriter<BufWriter<File>>, StoreError> {
             let path = tmp.join(file_name(set));
             let f = File::create(&path).map_err(io(&path))?;
@@ -194,6 +241,7 @@ impl Writer {
             target,
             files,
             compact_lattice,
+            lock: Some(lock),
             next_batch: [0, 0],
             batches: [Vec::new(), Vec::new()],
             rows: [Vec::new(), Vec::new()],
@@ -297,6 +345,9 @@ impl Writer {
                 if dir.exists() {
                     let _ = std::fs::remove_dir_all(&dir);
                 }
+                // A cache holds no lock file; the lock itself is held until the move is done,
+                // so no other run takes the directory for a stale one meanwhile.
+                let _ = std::fs::remove_file(self.tmp.join(LOCK));
                 match std::fs::rename(&self.tmp, &dir) {
                     Ok(()) => {
                         if let Ok(d) = File::open(root) {
@@ -322,7 +373,10 @@ impl Writer {
         let batches = std::mem::take(&mut self.batches);
         let rows = std::mem::take(&mut self.rows);
         self.tmp = PathBuf::new();
-        Files::new(dir, keep, not_cached, batches, rows)
+        let lock = if keep { None } else { self.lock.take() };
+        let mut files = Files::new(dir, keep, not_cached, batches, rows)?;
+        files.lock = lock;
+        Ok(files)
     }
 }
 
@@ -336,7 +390,9 @@ impl Drop for Writer {
 }
 
 fn scratch_dir() -> Result<PathBuf, StoreError> {
-    let dir = std::env::temp_dir().join(format!("subsurf-store-{}", unique_suffix()));
+    let tmp = std::env::temp_dir();
+    sweep_stale(&tmp, |n| n.starts_with(SCRATCH_PREFIX));
+    let dir = tmp.join(format!("{SCRATCH_PREFIX}{}", unique_suffix()));
     std::fs::create_dir_all(&dir).map_err(io(&dir))?;
     Ok(dir)
 }
@@ -741,6 +797,8 @@ pub struct Files {
     open: [Option<Arc<File>>; 2],
     /// Readers per point set, reused (making one parses the footer).
     readers: [Mutex<Vec<FileReader<BufReader<At>>>>; 2],
+    /// A scratch directory's lock ([`hold`]): held while the files live.
+    lock: Option<File>,
 }
 
 impl std::fmt::Debug for Files {
@@ -775,6 +833,7 @@ impl Files {
             rows,
             open,
             readers: [Mutex::new(Vec::new()), Mutex::new(Vec::new())],
+            lock: None,
         })
     }
 
@@ -1059,4 +1118,50 @@ fn records_of(
         }
     }
     Ok((records, batches, rows))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A store directory whose run is gone (its lock released with it) is removed by the next
+    /// run that writes a store beside it; a live one (its lock held), one without a lock file
+    /// and one of another name are left alone.
+    #[test]
+    fn stores_of_runs_that_are_gone_are_swept_and_live_ones_kept() {
+        let root = tempfile::tempdir().unwrap();
+        let make = |name: &str| {
+            let d = root.path().join(name);
+            std::fs::create_dir(&d).unwrap();
+            std::fs::write(d.join("points.arrow"), b"samples").unwrap();
+            d
+        };
+        let gone = make("subsurf-store-1-1");
+        drop(hold(&gone).unwrap());
+        let live = make("subsurf-store-2-2");
+        let held = hold(&live).unwrap();
+        let no_lock = make("subsurf-store-3-3");
+        let other = make("other-4");
+        drop(hold(&other).unwrap());
+        let ours = |n: &str| n.starts_with(SCRATCH_PREFIX);
+        sweep_stale(root.path(), ours);
+        assert!(!gone.exists());
+        assert!(live.exists() && no_lock.exists() && other.exists());
+        drop(held);
+        sweep_stale(root.path(), ours);
+        assert!(!live.exists() && no_lock.exists() && other.exists());
+
+        // The scratch directory a run makes sweeps the temporary directory first, and holds
+        // its own lock.
+        let stale = std::env::temp_dir().join(format!("{SCRATCH_PREFIX}gone-{}", unique_suffix()));
+        std::fs::create_dir(&stale).unwrap();
+        drop(hold(&stale).unwrap());
+        let mine = scratch_dir().unwrap();
+        assert!(!stale.exists(), "a gone run's scratch store is swept");
+        let lock = hold(&mine).unwrap();
+        sweep_stale(&std::env::temp_dir(), ours);
+        assert!(mine.exists(), "a live run's scratch store stays");
+        drop(lock);
+        std::fs::remove_dir_all(&mine).unwrap();
+    }
 }
