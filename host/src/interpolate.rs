@@ -183,7 +183,7 @@ fn conjugate_gradients<'a>(
     // that solve), and every column runs until all have converged, as one solve of the whole
     // would. Why blocks: the fold fits of the cross-validation fill holes a turntable angle
     // wide, thousands of vertices times tens of columns for hundreds of iterations, once per
-    // fold and round (a sixth of a default fit's cross-validation at 1024 px); a block reads
+    // fold and round (a tenth of a default fit's cross-validation at 1024 px); a block reads
     // each row's neighbours once for its columns and its lanes vectorise. Four lanes: a hole of
     // 8,715 vertices and 40 columns took 385 ms by column, 255 ms in blocks of 8 (their five
     // vectors outgrow the cache) and 210 ms in blocks of 4 (release, 2 threads).
@@ -275,7 +275,6 @@ fn conjugate_gradients<'a>(
             k.rz = rz_new;
         });
     }
-    let real = |k: &Block, i: usize| k.x[i][..k.width].to_vec();
     if blocks
         .iter()
         .any(|k| (0..nu).any(|i| k.x[i][..k.width].iter().any(|v| !v.is_finite())))
@@ -283,7 +282,12 @@ fn conjugate_gradients<'a>(
         return false;
     }
     for (i, &v) in order.iter().enumerate() {
-        out[v] = Some(blocks.iter().flat_map(|k| real(k, i)).collect());
+        out[v] = Some(
+            blocks
+                .iter()
+                .flat_map(|k| k.x[i][..k.width].iter().copied())
+                .collect(),
+        );
     }
     true
 }

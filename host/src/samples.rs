@@ -141,8 +141,8 @@ pub fn frame_samples(
 
 /// [`frame_samples`] keeping, of the samples it counts, only the channel samples above
 /// `min_value` (and the samples left with one): the lattice points' rule
-/// ([`crate::store::StorePoints::min_value`]; 0 keeps all). The counts are [`frame_samples`]'s. Why
-/// here and not after: a view holds about a lattice point per pixel of the object, of which a
+/// ([`crate::store::StorePoints::min_value`]; 0 keeps all). The counts are [`frame_samples`]'s.
+/// Why here and not after: a view holds about a lattice point per pixel of the object, of which a
 /// frame keeps a few per cent; collecting them all first took a buffer of every visible point
 /// per frame (tens of MB at 1024 px, freshly paged in each time).
 #[allow(clippy::too_many_arguments)]
@@ -451,10 +451,6 @@ mod tests {
         assert!(l.raw_at(30.0, 0.0) < 1e-100);
     }
 
-    /// Samples at surface points between the vertices (a face lattice) are read by the same
-    /// function and rules: each value is the bilinear pixel at the point's projection over the
-    /// exposure, points within the exclusion radius of x_i are dropped and counted, and
-    /// `Sample::vertex` indexes the point array.
     /// `frame_samples_above` is `frame_samples` with the store's rule for lattice points
     /// applied after (channel samples at or below the minimum dropped, then samples with none),
     /// to the bit, with the same counts, on a noisy image with negative pixels, a NaN, clipped
@@ -488,6 +484,10 @@ mod tests {
             coverage: false,
         };
         let spot = crate::registration::detect_spot(&img, 0.0, opts.saturation);
+        assert!(
+            spot.is_some_and(|s| !s.saturated),
+            "an unclipped spot: {spot:?}"
+        );
         for channel in [FrameChannel::Rgb, FrameChannel::G] {
             let frame = FrameSpec {
                 image: String::new(),
@@ -558,6 +558,10 @@ mod tests {
         }
     }
 
+    /// Samples at surface points between the vertices (a face lattice) are read by the same
+    /// function and rules: each value is the bilinear pixel at the point's projection over the
+    /// exposure, points within the exclusion radius of x_i are dropped and counted, and
+    /// `Sample::vertex` indexes the point array.
     #[test]
     fn surface_points_are_sampled_by_the_same_rules() {
         use crate::geometry::SurfacePoints;

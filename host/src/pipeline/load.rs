@@ -228,9 +228,9 @@ impl<'a> Context<'a> {
     }
 
     /// Samples of the image `img` of frame `f` at the store's lattice points `pts` of which
-    /// `visible` are seen (by the vertices' rules, [`Context::vertex_samples`]), those the store
-    /// keeps (above [`StorePoints::min_value`]); `Sample::vertex` indexes `pts.points`. The counts are of
-    /// every visible point.
+    /// `visible` are seen (by the vertices' rules, [`Context::vertex_samples`]), those the
+    /// store keeps (above [`StorePoints::min_value`]); `Sample::vertex` indexes `pts.points`.
+    /// The counts are of every visible point.
     pub fn surface_samples(
         &self,
         img: &crate::dataset::Image,

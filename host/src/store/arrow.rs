@@ -81,7 +81,6 @@ struct Manifest {
     lattice_min_value_bits: Option<u64>,
 }
 
-/// The schema of a point set's sample batches.
 /// The schema of `set`'s samples; `compact`: the point and the channels only (a scratch store's
 /// lattice, [`Writer::create`]).
 fn sample_schema(set: PointSet, compact: bool) -> SchemaRef {
@@ -429,12 +428,6 @@ fn sample_batch(
     x_i: V3,
     tangent: Option<&crate::model::TangentFrame>,
 ) -> RecordBatch {
-    let channel = |c: usize| -> ArrayRef {
-        Arc::new(Float64Array::from_iter(
-            s.iter()
-                .map(|x| (x.valid & (1 << c) != 0).then_some(x.value[c])),
-        ))
-    };
     let phi = Float64Array::from_iter(s.iter().map(|x| {
         let x_o = positions.get(x.vertex as usize).copied()?;
         tangent?.direction(x_i, x_o)
@@ -444,9 +437,9 @@ fn sample_batch(
         Arc::new(UInt32Array::from_iter_values(s.iter().map(|x| x.vertex))),
         Arc::new(Float64Array::from_iter_values(s.iter().map(|x| x.r))),
         Arc::new(phi),
-        channel(0),
-        channel(1),
-        channel(2),
+        channel_column(s, 0),
+        channel_column(s, 1),
+        channel_column(s, 2),
     ];
     // The columns match the schema by construction.
     RecordBatch::try_new(sample_schema(set, false), columns)
@@ -456,20 +449,22 @@ fn sample_batch(
 /// One frame's lattice samples as a compact batch (a scratch store's, [`Writer::create`]).
 fn compact_batch(s: &[Sample]) -> RecordBatch {
     let schema = sample_schema(PointSet::Lattice, true);
-    let channel = |c: usize| -> ArrayRef {
-        Arc::new(Float64Array::from_iter(
-            s.iter()
-                .map(|x| (x.valid & (1 << c) != 0).then_some(x.value[c])),
-        ))
-    };
     let columns: Vec<ArrayRef> = vec![
         Arc::new(UInt32Array::from_iter_values(s.iter().map(|x| x.vertex))),
-        channel(0),
-        channel(1),
-        channel(2),
+        channel_column(s, 0),
+        channel_column(s, 1),
+        channel_column(s, 2),
     ];
     // The columns match the schema by construction.
     RecordBatch::try_new(schema.clone(), columns).unwrap_or_else(|_| RecordBatch::new_empty(schema))
+}
+
+/// Channel `c` of samples `s`: the value where valid, else null.
+fn channel_column(s: &[Sample], c: usize) -> ArrayRef {
+    Arc::new(Float64Array::from_iter(
+        s.iter()
+            .map(|x| (x.valid & (1 << c) != 0).then_some(x.value[c])),
+    ))
 }
 
 fn column<'a>(b: &'a RecordBatch, name: &str, path: &Path) -> Result<&'a ArrayRef, StoreError> {
@@ -520,7 +515,7 @@ fn samples_of(
     };
     let p = u32_col(b, point, path)?;
     let r = match b.column_by_name("r") {
-        Some(_) => R::Column(f64_col(b, "r", path)?),
+        Some(_) => RFrom::Column(f64_col(b, "r", path)?),
         None => {
             let (positions, x_i) =
                 at.ok_or_else(|| format_err(path, "no column \"r\" and no x_i to measure it"))?;
@@ -530,7 +525,7 @@ fn samples_of(
                     format!("point {bad} is not in the lattice"),
                 ));
             }
-            R::From(positions, x_i)
+            RFrom::Points(positions, x_i)
         }
     };
     let ch = [
@@ -542,9 +537,11 @@ fn samples_of(
         .map(|i| {
             let vertex = p.value(i);
             let r = match r {
-                R::Column(r) => r.value(i),
+                RFrom::Column(r) => r.value(i),
                 // As `Packed::unpack` measures it: the same bits as at extraction.
-                R::From(positions, x_i) => crate::geometry::dist(positions[vertex as usize], x_i),
+                RFrom::Points(positions, x_i) => {
+                    crate::geometry::dist(positions[vertex as usize], x_i)
+                }
             };
             let mut s = Sample {
                 vertex,
@@ -563,11 +560,11 @@ fn samples_of(
         .collect())
 }
 
-/// Where [`samples_of`] takes r from.
+/// Where [`samples_of`] takes r from: the file's column, or the points' positions and x_i.
 #[derive(Clone, Copy)]
-enum R<'a> {
+enum RFrom<'a> {
     Column(&'a Float64Array),
-    From(&'a [V3], V3),
+    Points(&'a [V3], V3),
 }
 
 const COUNT_NAMES: [&str; 7] = [
