@@ -132,51 +132,12 @@ fn conjugate_gradients<'a>(
     neighbours: &impl Fn(usize) -> &'a [u32],
     iterations: usize,
 ) -> bool {
-    const RTOL: f64 = 1e-13;
-    let n = out.len();
-    let Some(len) = out.iter().flatten().map(Vec::len).next() else {
-        return true;
+    let (system, b, len) = match System::assemble(out, order, neighbours) {
+        Assembly::Nothing => return true,
+        Assembly::Unsupported => return false,
+        Assembly::System { system, b, len } => (system, b, len),
     };
-    if order.is_empty() {
-        return true;
-    }
-    if out.iter().flatten().any(|x| x.len() != len) {
-        return false;
-    }
-    let mut pos = vec![usize::MAX; n];
-    for (i, &v) in order.iter().enumerate() {
-        pos[v] = i;
-    }
     let nu = order.len();
-    // Rows of the system deg(v)·x_v − Σ_{w unknown} x_w = Σ_{w known} x_w: the unknown
-    // neighbours (compressed), the degree (neighbours with a value, as the mean counts them)
-    // and the right-hand side.
-    let mut cols: Vec<u32> = Vec::new();
-    let mut start = Vec::with_capacity(nu + 1);
-    let mut deg = vec![0.0; nu];
-    let mut b = vec![0.0; nu * len];
-    for (i, &v) in order.iter().enumerate() {
-        start.push(cols.len());
-        for &w in neighbours(v) {
-            let w = w as usize;
-            if w >= n {
-                continue;
-            }
-            if pos[w] != usize::MAX {
-                cols.push(pos[w] as u32);
-                deg[i] += 1.0;
-            } else if let Some(x) = &out[w] {
-                for (bc, xc) in b[i * len..(i + 1) * len].iter_mut().zip(x) {
-                    *bc += xc;
-                }
-                deg[i] += 1.0;
-            }
-        }
-    }
-    start.push(cols.len());
-    if deg.iter().any(|&d| d <= 0.0) {
-        return false;
-    }
     // Each component is its own solve, one column per component; columns go LANES at a time
     // ([`Block`]), each lane doing the very arithmetic of its column alone, in the same order
     // (so the same bits as a column's own solve, on any number of threads: the test keeps
@@ -187,12 +148,7 @@ fn conjugate_gradients<'a>(
     // each row's neighbours once for its columns and its lanes vectorise. Four lanes: a hole of
     // 8,715 vertices and 40 columns took 385 ms by column, 255 ms in blocks of 8 (their five
     // vectors outgrow the cache) and 210 ms in blocks of 4 (release, 2 threads).
-    let inv_deg: Vec<f64> = deg.iter().map(|d| 1.0 / d).collect();
-    let system = System {
-        cols: &cols,
-        start: &start,
-        deg: &deg,
-    };
+    let inv_deg: Vec<f64> = system.deg.iter().map(|d| 1.0 / d).collect();
     let mut blocks: Vec<Block> = (0..len.div_ceil(LANES))
         .into_par_iter()
         .map(|g| {
@@ -300,13 +256,89 @@ type Lane = [f64; LANES];
 
 /// The rows of the Laplacian system of [`conjugate_gradients`]: row i is
 /// deg(i)·x_i − Σ x_j over its unknown neighbours j.
-struct System<'a> {
-    cols: &'a [u32],
-    start: &'a [usize],
-    deg: &'a [f64],
+struct System {
+    /// The unknown neighbours of each row (indices into the unknowns), row after row.
+    cols: Vec<u32>,
+    /// Where each row's neighbours start in `cols` (one more entry: the end).
+    start: Vec<usize>,
+    /// deg(i): the neighbours with a value (unknown or known), as the mean counts them.
+    deg: Vec<f64>,
 }
 
-impl System<'_> {
+/// What [`System::assemble`] found.
+enum Assembly {
+    /// Nothing to solve: no vector known, or no vertex unknown.
+    Nothing,
+    /// Vectors of different lengths, or an unknown vertex without a neighbour: the sweeps' case.
+    Unsupported,
+    /// The rows, the right-hand sides (`len` per row, row-major) and the vectors' length.
+    System {
+        system: System,
+        b: Vec<f64>,
+        len: usize,
+    },
+}
+
+/// The convergence test of [`conjugate_gradients`]: residual norm below this share of the
+/// right-hand side's.
+const RTOL: f64 = 1e-13;
+
+impl System {
+    /// The rows deg(v)·x_v − Σ_{w unknown} x_w = Σ_{w known} x_w of the unknown vertices
+    /// `order`, the known ones' values taken from `out`.
+    fn assemble<'a>(
+        out: &[Option<Vec<f64>>],
+        order: &[usize],
+        neighbours: &impl Fn(usize) -> &'a [u32],
+    ) -> Assembly {
+        let n = out.len();
+        let Some(len) = out.iter().flatten().map(Vec::len).next() else {
+            return Assembly::Nothing;
+        };
+        if order.is_empty() {
+            return Assembly::Nothing;
+        }
+        if out.iter().flatten().any(|x| x.len() != len) {
+            return Assembly::Unsupported;
+        }
+        let mut pos = vec![usize::MAX; n];
+        for (i, &v) in order.iter().enumerate() {
+            pos[v] = i;
+        }
+        let nu = order.len();
+        let mut cols: Vec<u32> = Vec::new();
+        let mut start = Vec::with_capacity(nu + 1);
+        let mut deg = vec![0.0; nu];
+        let mut b = vec![0.0; nu * len];
+        for (i, &v) in order.iter().enumerate() {
+            start.push(cols.len());
+            for &w in neighbours(v) {
+                let w = w as usize;
+                if w >= n {
+                    continue;
+                }
+                if pos[w] != usize::MAX {
+                    cols.push(pos[w] as u32);
+                    deg[i] += 1.0;
+                } else if let Some(x) = &out[w] {
+                    for (bc, xc) in b[i * len..(i + 1) * len].iter_mut().zip(x) {
+                        *bc += xc;
+                    }
+                    deg[i] += 1.0;
+                }
+            }
+        }
+        start.push(cols.len());
+        if deg.iter().any(|&d| d <= 0.0) {
+            return Assembly::Unsupported;
+        }
+        Assembly::System {
+            system: System { cols, start, deg },
+            b,
+            len,
+        }
+    }
+
     /// y = A x and Σ_i x_i·y_i (in the order of i, as [`lane_dot`]), lane by lane: one pass.
     fn apply_dot(&self, x: &[Lane], y: &mut [Lane]) -> Lane {
         let mut s = [0.0; LANES];
@@ -416,51 +448,12 @@ mod tests {
         neighbours: &impl Fn(usize) -> &'a [u32],
         iterations: usize,
     ) -> bool {
-        const RTOL: f64 = 1e-13;
-        let n = out.len();
-        let Some(len) = out.iter().flatten().map(Vec::len).next() else {
-            return true;
+        let (System { cols, start, deg }, b, len) = match System::assemble(out, order, neighbours) {
+            Assembly::Nothing => return true,
+            Assembly::Unsupported => return false,
+            Assembly::System { system, b, len } => (system, b, len),
         };
-        if order.is_empty() {
-            return true;
-        }
-        if out.iter().flatten().any(|x| x.len() != len) {
-            return false;
-        }
-        let mut pos = vec![usize::MAX; n];
-        for (i, &v) in order.iter().enumerate() {
-            pos[v] = i;
-        }
         let nu = order.len();
-        // Rows of the system deg(v)·x_v − Σ_{w unknown} x_w = Σ_{w known} x_w: the unknown
-        // neighbours (compressed), the degree (neighbours with a value, as the mean counts them)
-        // and the right-hand side.
-        let mut cols: Vec<u32> = Vec::new();
-        let mut start = Vec::with_capacity(nu + 1);
-        let mut deg = vec![0.0; nu];
-        let mut b = vec![0.0; nu * len];
-        for (i, &v) in order.iter().enumerate() {
-            start.push(cols.len());
-            for &w in neighbours(v) {
-                let w = w as usize;
-                if w >= n {
-                    continue;
-                }
-                if pos[w] != usize::MAX {
-                    cols.push(pos[w] as u32);
-                    deg[i] += 1.0;
-                } else if let Some(x) = &out[w] {
-                    for (bc, xc) in b[i * len..(i + 1) * len].iter_mut().zip(x) {
-                        *bc += xc;
-                    }
-                    deg[i] += 1.0;
-                }
-            }
-        }
-        start.push(cols.len());
-        if deg.iter().any(|&d| d <= 0.0) {
-            return false;
-        }
         // Each component is its own solve: one column per component, the columns in parallel. Each
         // column's arithmetic is the same, in the same order, on any number of threads (the same
         // bits), and every column runs until all have converged, as one solve of the whole would.
