@@ -227,7 +227,8 @@ fn the_fit_cross_validates_its_choices_from_the_sample_store() {
 /// Round 0's candidate fits, fitted once on every frame (`pipeline::fit::OrderCache`), are the
 /// very fits a fold would make of the light positions it holds: on sample-torus (a turntable
 /// scan whose folds are whole angles), a fold's fit through the filled cache is its fit without
-/// it, byte for byte after round 0 and after a further round, and the cache did serve it.
+/// it, byte for byte after round 0 and after a further round, and the cache did serve it; the
+/// model file the folds judge (`FitRounds::model_file`, no report) is the whole run's model.
 #[test]
 fn shared_round_zero_candidates_fit_a_fold_as_its_own_fit_would() {
     use subsurf::pipeline::Prepared;
@@ -266,6 +267,12 @@ fn shared_round_zero_candidates_fit_a_fold_as_its_own_fit_would() {
             a.model.to_bytes().unwrap(),
             b.model.to_bytes().unwrap(),
             "round {round}"
+        );
+        // What the folds judge: the model file without the report's own figures, the same.
+        assert_eq!(
+            own.model_file().unwrap().to_bytes().unwrap(),
+            a.model.to_bytes().unwrap(),
+            "round {round}: the model file alone"
         );
         own.step();
         shared.step();

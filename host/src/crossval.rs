@@ -180,8 +180,8 @@ fn cross_validate(
             .par_iter()
             .zip(folds)
             .map(|(run, fold)| {
-                let out = run.as_ref()?.model().ok()?;
-                evaluate_in(ctx, &out.model, fold, EvalPoints::Vertices, &())
+                let model = run.as_ref()?.model_file().ok()?;
+                evaluate_in(ctx, &model, fold, EvalPoints::Vertices, &())
                     .ok()
                     .map(|(evals, _)| evals)
             })

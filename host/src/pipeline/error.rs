@@ -37,18 +37,27 @@ pub struct OwnFit {
 }
 
 /// log E(x_i) (Eq. 8, with alpha) per channel of every group's fit; `None` where the group has
-/// no fit or its frames could not be read. Second: the same of the homogeneous baseline
-/// (with the model's alpha) on the group's samples, when there is one.
+/// no fit or its frames could not be read. Second: with `baseline`, the same of the homogeneous
+/// baseline (with the model's alpha) on the group's samples, when there is one: a figure of the
+/// report only, which the cross-validation's fold models, judged and dropped, do without (it
+/// costs about as many exponentials and logarithms as the model's own).
 pub fn log_e_of_fits(
     ctx: &Context,
     regs: &[RegisteredFrame],
     groups: &Groups,
     fitted: &Fitted,
+    baseline: bool,
     progress: &dyn Progress,
 ) -> (Vec<Option<[f64; 3]>>, Vec<[f64; 3]>) {
     progress.start("error", groups.keys.len() as u64);
     let threshold = ctx.opts.error_threshold;
-    let baseline = fitted.baseline.as_ref().map(|b| &b.baseline.model);
+    let baseline = fitted
+        .baseline
+        .as_ref()
+        .filter(|_| baseline)
+        .map(|b| &b.baseline.model);
+    // ln alpha once per vertex, not once per sample: the same logarithm of the same number.
+    let ln_alpha: Vec<[f64; 3]> = fitted.alpha.iter().map(|a| a.map(f64::ln)).collect();
     let both: Vec<Option<([f64; 3], [f64; 3])>> = fitted
         .fits
         .par_iter()
@@ -64,7 +73,7 @@ pub fn log_e_of_fits(
                 let ln_base = baseline.as_ref().map(|b| ln_rd_with(b, &data, false));
                 for (ch, d) in data.iter().enumerate() {
                     for (j, x) in d.iter().enumerate() {
-                        let ln_alpha = fitted.alpha[x.vertex as usize][ch].ln();
+                        let ln_alpha = ln_alpha[x.vertex as usize][ch];
                         let ln = ln_alpha + ln_model[ch][j];
                         acc[ch].add_ln(ln, x.s, threshold);
                         // The baseline with the model's alpha, as the held-out row judges it.

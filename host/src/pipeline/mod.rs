@@ -265,12 +265,24 @@ impl FitRounds<'_, '_> {
 
     /// The model of the last kept round: the stages after the fit run on it.
     pub fn model(&self) -> Result<FitOutput, PipelineError> {
+        self.finish(Figures::All)
+    }
+
+    /// [`FitRounds::model`]'s model file alone, for a caller that judges it and drops the
+    /// report (the cross-validation's folds): the report's figures no model number depends on
+    /// are not computed ([`Figures::ModelOnly`]). The same model, bit for bit.
+    pub fn model_file(&self) -> Result<ModelFile, PipelineError> {
+        self.finish(Figures::ModelOnly).map(|out| out.model)
+    }
+
+    fn finish(&self, figures: Figures) -> Result<FitOutput, PipelineError> {
         let setup = self.setup;
         let mut run = Setup {
             report: setup.report.clone(),
             regs: Vec::new(),
             groups: select::Groups::default(),
             clock: report::StageClock::start(),
+            figures,
         };
         run.finish_with(
             self.ctx,
@@ -288,12 +300,24 @@ impl FitRounds<'_, '_> {
     }
 }
 
+/// What [`Setup::finish_with`] computes besides the model.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Figures {
+    /// Every figure of the fit report.
+    All,
+    /// Only what the model file depends on: the homogeneous baseline's log E (Eq. 8), a figure
+    /// of the report alone, is left out.
+    ModelOnly,
+}
+
 /// A run's registration and selection, before the fit.
 struct Setup {
     report: FitReport,
     regs: Vec<RegisteredFrame>,
     groups: select::Groups,
     clock: report::StageClock,
+    /// What [`Setup::finish_with`] computes besides the model.
+    figures: Figures,
 }
 
 impl Setup {
@@ -331,6 +355,7 @@ impl Setup {
             regs,
             groups,
             clock,
+            figures: Figures::All,
         })
     }
 
@@ -381,7 +406,14 @@ impl Setup {
         }
         clock.lap("lattice", report);
         // log E(x_i) (Eq. 8) with alpha; fits above the threshold fail.
-        let (errors, baseline_log_e) = error::log_e_of_fits(ctx, regs, groups, &fitted, progress);
+        let (errors, baseline_log_e) = error::log_e_of_fits(
+            ctx,
+            regs,
+            groups,
+            &fitted,
+            self.figures == Figures::All,
+            progress,
+        );
         report.baseline = fitted.baseline.as_ref().map(|b| report::BaselineReport {
             terms: b.params.terms,
             params: b.params.params.clone(),
