@@ -3,7 +3,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::{ExpSum, ModelError, ln_exact_at_one, log_sum_exp};
+use super::{ExpSum, ModelError, ln_exact_at_one, log_sum_exp, log_sum_exp_of};
 
 /// Which rule builds the [`TangentFrame`] from a normal. A model file records the rule its
 /// segments were fitted in (`docs/model-format.md`), so a reader evaluates every file in the frame
@@ -246,8 +246,10 @@ impl Anisotropic {
                 let [(l0, w0), (l1, w1)] = hat_weights(phi, m);
                 let a = ln_exact_at_one(w0) + segment(l0);
                 let b = ln_exact_at_one(w1) + segment(l1);
-                log_sum_exp([a, b].into_iter())
+                log_sum_exp_of(&[a, b])
             }
+            // One segment: its own ln R_d through the same log-sum-exp (weight 1, ln 1 = 0).
+            _ if m == 1 => log_sum_exp_of(&[-ln_exact_at_one(1.0) + segment(0)]),
             _ => {
                 let lw = -ln_exact_at_one(m as f64);
                 log_sum_exp((0..m).map(|l| lw + segment(l)))

@@ -2,7 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::{ModelError, log_sum_exp};
+use super::{ModelError, log_sum_exp, log_sum_exp_of};
 
 /// Largest number of terms n the project fits (the paper uses n = 3; auto order tries 1..=4).
 pub const MAX_TERMS: usize = 4;
@@ -103,7 +103,7 @@ impl ExpSum {
     /// ln R_d(r), Eq. 1 evaluated as a log-sum-exp of ln c_k + d_k·r: finite wherever the model is
     /// valid and r is finite, even where every exp(d_k·r) underflows.
     pub fn ln_eval(&self, r: f64) -> f64 {
-        log_sum_exp(self.terms.iter().map(move |t| t.c.ln() + t.d * r))
+        self.ln_terms(r, |t, _| t.c.ln())
     }
 
     /// The terms' ln c_k, for [`ExpSum::ln_eval_with`].
@@ -115,7 +115,31 @@ impl ExpSum {
     /// bits without a log per term, for loops that evaluate one fall-off at many distances
     /// ([`super::LnEvaluator`]).
     pub fn ln_eval_with(&self, ln_c: &[f64], r: f64) -> f64 {
-        log_sum_exp(self.terms.iter().zip(ln_c).map(move |(t, lc)| lc + t.d * r))
+        if ln_c.len() < self.terms.len() {
+            return log_sum_exp(self.terms.iter().zip(ln_c).map(move |(t, lc)| lc + t.d * r));
+        }
+        self.ln_terms(r, |_, k| ln_c[k])
+    }
+
+    /// The log-sum-exp of ln c_k + d_k·r, ln c_k = `ln_c(term, k)`: the terms' values in an array
+    /// on the stack (at most [`MAX_TERMS`] of them; a longer sum, which [`ExpSum::new`] refuses,
+    /// through [`log_sum_exp`]), the same values in the same order, so the same bits.
+    #[inline]
+    fn ln_terms(&self, r: f64, ln_c: impl Fn(&Term, usize) -> f64) -> f64 {
+        let n = self.terms.len();
+        if n > MAX_TERMS {
+            return log_sum_exp(
+                self.terms
+                    .iter()
+                    .enumerate()
+                    .map(|(k, t)| ln_c(t, k) + t.d * r),
+            );
+        }
+        let mut v = [0.0; MAX_TERMS];
+        for (k, t) in self.terms.iter().enumerate() {
+            v[k] = ln_c(t, k) + t.d * r;
+        }
+        log_sum_exp_of(&v[..n])
     }
 
     /// d/dr ln R_d(r): the local fall-off rate (negative), a convex combination of the d_k.

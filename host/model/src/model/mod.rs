@@ -119,7 +119,12 @@ pub(crate) fn log_sum_exp(values: impl Iterator<Item = f64>) -> f64 {
 /// Values [`log_sum_exp`] holds on the stack: more than any model's terms × segments in use.
 const LSE_INLINE: usize = 32;
 
-fn log_sum_exp_of(held: &[f64]) -> f64 {
+/// [`log_sum_exp`] of values already held: for callers with a handful of values in an array
+/// (a fall-off's n ≤ [`MAX_TERMS`] terms, a blend's one or two segments), the same bits without
+/// the iterator and the 32 slots [`log_sum_exp`] clears on every call, which were a fifth of
+/// the fit's model evaluations at 1024 px (issue 23).
+#[inline]
+pub(crate) fn log_sum_exp_of(held: &[f64]) -> f64 {
     let m = held.iter().copied().fold(f64::NEG_INFINITY, f64::max);
     if m == f64::NEG_INFINITY || m.is_nan() {
         return m;
@@ -173,6 +178,15 @@ mod tests {
         ]
     }
 
+    /// A term (c_k, d_k): mostly of comparable size, so that every term counts in the sum and
+    /// an order of summation other than the reference's would show, sometimes extreme.
+    fn term() -> impl Strategy<Value = (f64, f64)> {
+        prop_oneof![
+            4 => (0.1..10.0f64, -5.0..-0.01f64),
+            1 => (1e-300..1e3f64, -1e3..-1e-9f64),
+        ]
+    }
+
     proptest! {
         /// Holding the values on the stack changes no bit of the result: the same values, the
         /// same max, the same sum in the same order (and the skipped exp(0), ln(1) are exact).
@@ -184,6 +198,45 @@ mod tests {
             let want = log_sum_exp_twice(v.iter().copied());
             prop_assert!(got.to_bits() == want.to_bits() || (got.is_nan() && want.is_nan()),
                 "{got} against {want} for {v:?}");
+        }
+
+        /// A fall-off's ln R_d (Eq. 1) through its terms' array ([`log_sum_exp_of`]) and a model of
+        /// one or two segments' blend (Eq. 3) are the two-pass sum of the same values to the bit,
+        /// with ln c_k taken in the call or given.
+        #[test]
+        fn falloffs_and_blends_are_the_two_pass_sum_to_the_bit(
+            terms in proptest::collection::vec(term(), 1..=MAX_TERMS),
+            other in proptest::collection::vec(term(), 1..=MAX_TERMS),
+            r in prop_oneof![4 => 0.0..5.0f64, 1 => Just(0.0), 1 => 1e3..1e6f64],
+            phi in prop_oneof![2 => Just(None), 3 => (-10.0..10.0f64).prop_map(Some)],
+        ) {
+            let of = |t: &[(f64, f64)]| ExpSum {
+                terms: t.iter().map(|&(c, d)| Term { c, d }).collect(),
+            };
+            let (e, f) = (of(&terms), of(&other));
+            let ln = |e: &ExpSum| {
+                log_sum_exp_twice(e.terms.iter().map(|t| t.c.ln() + t.d * r))
+            };
+            let same = |a: f64, b: f64| a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan());
+            prop_assert!(same(e.ln_eval(r), ln(&e)));
+            prop_assert!(same(e.ln_eval_with(&e.ln_c(), r), ln(&e)));
+            let one = Anisotropic { segments: vec![e.clone()] };
+            let want = log_sum_exp_twice([-ln_exact_at_one(1.0) + ln(&e)].into_iter());
+            prop_assert!(same(one.ln_eval(r, phi), want));
+            let two = Anisotropic { segments: vec![e.clone(), f.clone()] };
+            let want = match phi {
+                Some(p) => {
+                    let [(l0, w0), (l1, w1)] = aniso::hat_weights(p, 2);
+                    let seg = |l: usize| ln(if l == 0 { &e } else { &f });
+                    log_sum_exp_twice(
+                        [ln_exact_at_one(w0) + seg(l0), ln_exact_at_one(w1) + seg(l1)].into_iter(),
+                    )
+                }
+                None => log_sum_exp_twice(
+                    [-ln_exact_at_one(2.0) + ln(&e), -ln_exact_at_one(2.0) + ln(&f)].into_iter(),
+                ),
+            };
+            prop_assert!(same(two.ln_eval(r, phi), want));
         }
     }
 
