@@ -268,39 +268,79 @@ pub const SEGMENT_MAX_RATE_RATIO: f64 = 4.0;
 
 /// The first term of `f` the sample distances `r` do not support, if any.
 pub fn unsupported_term(f: &ExpSum, r: &[f64]) -> Option<TermDropped> {
-    let (lo, hi) = r
-        .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
-            (a.min(x), b.max(x))
-        });
-    if hi.partial_cmp(&lo).is_none_or(|o| o.is_lt()) {
-        return None;
-    }
-    if f.terms.iter().any(|t| -t.d * (hi - lo) < MIN_DECAY) {
-        return Some(TermDropped::NonDecaying);
-    }
-    if f.n() < 2 {
-        return None;
-    }
-    let mut rs: Vec<f64> = r.to_vec();
-    rs.sort_by(f64::total_cmp);
-    rs.dedup_by(|a, b| (*a - *b).abs() <= 1e-9 * b.abs().max(1.0));
-    let ln_min_share = MIN_SHARE.ln();
-    // ln R_d at each distance once, not once per term, the terms' ln c_k taken once (the same
-    // values).
-    let ln_cs = f.ln_c();
-    let ln_rd: Vec<f64> = rs.iter().map(|&x| f.ln_eval_with(&ln_cs, x)).collect();
-    for (t, &ln_c) in f.terms.iter().zip(&ln_cs) {
-        let support = rs
+    Distances::of(r).unsupported_term(f)
+}
+
+/// A light position's sample distances as [`unsupported_term`] judges a fall-off's terms on
+/// them: their range, and (taken at the first fall-off of two terms or more) the distinct
+/// distances, sorted. Held so that the fits of one set of distances (every candidate order, the
+/// refits with a term fewer, the shared colour's fit of all channels, whose distances are the
+/// red ones three times) sort them once: the sort was a twentieth of a fit (issue 23).
+pub(crate) struct Distances<'r> {
+    r: &'r [f64],
+    lo: f64,
+    hi: f64,
+    distinct: std::cell::OnceCell<Vec<f64>>,
+}
+
+impl<'r> Distances<'r> {
+    pub(crate) fn of(r: &'r [f64]) -> Self {
+        let (lo, hi) = r
             .iter()
-            .zip(&ln_rd)
-            .filter(|&(&x, &l)| ln_c + t.d * x - l >= ln_min_share)
-            .count();
-        if support < MIN_SUPPORT {
-            return Some(TermDropped::Unresolved);
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
+                (a.min(x), b.max(x))
+            });
+        Distances {
+            r,
+            lo,
+            hi,
+            distinct: std::cell::OnceCell::new(),
         }
     }
-    None
+
+    /// Sorted, each run of distances within 1e-9 relative of its first kept once. Equal
+    /// values under `total_cmp` are the same bits, so the unstable sort orders them as a stable
+    /// one would; a value repeated anywhere (the three channels' copies of one distance) is
+    /// removed like any duplicate, so r repeated gives the distinct values of r.
+    fn distinct(&self) -> &[f64] {
+        self.distinct.get_or_init(|| {
+            let mut rs: Vec<f64> = self.r.to_vec();
+            rs.sort_unstable_by(f64::total_cmp);
+            rs.dedup_by(|a, b| (*a - *b).abs() <= 1e-9 * b.abs().max(1.0));
+            rs
+        })
+    }
+
+    /// [`unsupported_term`] of `f` on these distances.
+    fn unsupported_term(&self, f: &ExpSum) -> Option<TermDropped> {
+        let (lo, hi) = (self.lo, self.hi);
+        if hi.partial_cmp(&lo).is_none_or(|o| o.is_lt()) {
+            return None;
+        }
+        if f.terms.iter().any(|t| -t.d * (hi - lo) < MIN_DECAY) {
+            return Some(TermDropped::NonDecaying);
+        }
+        if f.n() < 2 {
+            return None;
+        }
+        let rs = self.distinct();
+        let ln_min_share = MIN_SHARE.ln();
+        // ln R_d at each distance once, not once per term, the terms' ln c_k taken once (the
+        // same values).
+        let ln_cs = f.ln_c();
+        let ln_rd: Vec<f64> = rs.iter().map(|&x| f.ln_eval_with(&ln_cs, x)).collect();
+        for (t, &ln_c) in f.terms.iter().zip(&ln_cs) {
+            let support = rs
+                .iter()
+                .zip(&ln_rd)
+                .filter(|&(&x, &l)| ln_c + t.d * x - l >= ln_min_share)
+                .count();
+            if support < MIN_SUPPORT {
+                return Some(TermDropped::Unresolved);
+            }
+        }
+        None
+    }
 }
 
 /// Fits Eq. 1 and drops unsupported terms: while [`unsupported_term`] finds one, refit with one
@@ -312,9 +352,21 @@ fn fit_supported(
     terms: Option<usize>,
     dropped: &mut Vec<TermDropped>,
 ) -> Result<ExpSum, FailReason> {
+    fit_supported_on(fitter, &Distances::of(r), s, terms, dropped)
+}
+
+/// [`fit_supported`] of the samples at `distances`.
+fn fit_supported_on(
+    fitter: &dyn Fitter,
+    distances: &Distances,
+    s: &[f64],
+    terms: Option<usize>,
+    dropped: &mut Vec<TermDropped>,
+) -> Result<ExpSum, FailReason> {
+    let r = distances.r;
     let mut f = fitter.fit(r, s, terms)?;
     loop {
-        match unsupported_term(&f, r) {
+        match distances.unsupported_term(&f) {
             None => return Ok(f),
             Some(why) => {
                 if f.n() <= 1 {
@@ -461,7 +513,8 @@ fn isotropic_order(
         }
         ColourMode::Shared => {
             let (r, s) = rs(0);
-            let red = fit_supported(fitter, &r, &s, None, dropped)?;
+            let red_distances = Distances::of(&r);
+            let red = fit_supported_on(fitter, &red_distances, &s, None, dropped)?;
             let scales = |f: &ExpSum| -> Result<[f64; 3], FailReason> {
                 let ln_c = f.ln_c();
                 let mut out = [1.0; 3];
@@ -484,10 +537,20 @@ fn isotropic_order(
                 }
             };
             let sc = scales(&red)?;
-            let (r, s): (Vec<f64>, Vec<f64>) = (0..3)
+            let (r_all, s): (Vec<f64>, Vec<f64>) = (0..3)
                 .flat_map(|c| data[c].iter().map(move |x| (x.r, x.s / sc[c])))
                 .unzip();
-            let iso = fit_supported(fitter, &r, &s, Some(red.n()), dropped)?;
+            // The usual group holds every channel at the red distances: all its distances are
+            // the red ones three times, whose range and distinct values are the red ones.
+            let red_thrice = data[1..].iter().all(|d| {
+                d.len() == r.len() && d.iter().zip(&r).all(|(x, r)| x.r.to_bits() == r.to_bits())
+            });
+            let all_distances = if red_thrice {
+                Distances { r: &r_all, ..red_distances }
+            } else {
+                Distances::of(&r_all)
+            };
+            let iso = fit_supported_on(fitter, &all_distances, &s, Some(red.n()), dropped)?;
             let sc = scales(&iso)?;
             ColourModel::Shared {
                 falloff: one(iso),

@@ -173,7 +173,9 @@ pub fn select_groups(ctx: &Context, regs: &[RegisteredFrame]) -> Groups {
 /// c taken from the frames of the light position channel c selected (every view of that x_i,
 /// each sample at the distance from its own frame's x_i), directions φ in the tangent frame at
 /// the red light position's anchor. `SampleCounts::pooled` counts the channel samples taken
-/// from frames other than a light position's anchor.
+/// from frames other than a light position's anchor. φ is measured only for a model of more
+/// than one segment (`--segments`): of one, no fit, evaluation or bin reads it
+/// ([`frame_observations`]), and its atan2 per sample was a twentieth of a cross-validated fit.
 pub fn group_samples(
     ctx: &Context,
     regs: &[RegisteredFrame],
@@ -182,6 +184,7 @@ pub fn group_samples(
     let mut data: ChannelSamples = Default::default();
     let mut counts = SampleCounts::default();
     let frame = group_frame(ctx, regs, key)?;
+    let directions = ctx.opts.model.segments > 1;
     for l in group_frames(key) {
         let reg = &regs[l as usize];
         let fs = ctx.samples(reg).map_err(|_| FailReason::FrameUnreadable)?;
@@ -195,6 +198,7 @@ pub fn group_samples(
             &frame,
             &fs.samples,
             &ctx.ds.mesh.positions,
+            directions,
         );
     }
     Ok((data, counts))
@@ -222,7 +226,7 @@ pub fn group_frames(key: &GroupKey) -> Vec<u32> {
 
 /// Adds registered frame `l`'s samples `s` (read at `positions`: the mesh's vertices, or surface
 /// points, whose index `Sample::vertex` is) to a group's channel samples, as
-/// [`frame_observations`] measures them.
+/// [`frame_observations`] measures them (φ with `directions`).
 #[allow(clippy::too_many_arguments)]
 pub fn add_frame_samples(
     data: &mut ChannelSamples,
@@ -233,8 +237,9 @@ pub fn add_frame_samples(
     frame: &TangentFrame,
     s: &[Sample],
     positions: &[V3],
+    directions: bool,
 ) {
-    for (x, phi, takes) in frame_observations(key, l, reg, frame, s, positions, true) {
+    for (x, phi, takes) in frame_observations(key, l, reg, frame, s, positions, directions) {
         for (ch, slot) in data.iter_mut().enumerate() {
             if takes & (1 << ch) != 0 {
                 slot.push(GroupSample {
