@@ -546,7 +546,10 @@ fn isotropic_order(
                 d.len() == r.len() && d.iter().zip(&r).all(|(x, r)| x.r.to_bits() == r.to_bits())
             });
             let all_distances = if red_thrice {
-                Distances { r: &r_all, ..red_distances }
+                Distances {
+                    r: &r_all,
+                    ..red_distances
+                }
             } else {
                 Distances::of(&r_all)
             };
@@ -1651,6 +1654,67 @@ mod tests {
     use super::*;
     use crate::fit::FitOptions;
     use crate::model::Term;
+    use proptest::prelude::*;
+
+    /// `unsupported_term` as it was, sorting the distances at every call (stably): the
+    /// reference [`Distances`] is held to.
+    fn unsupported_term_sorting(f: &ExpSum, r: &[f64]) -> Option<TermDropped> {
+        let (lo, hi) = r
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
+                (a.min(x), b.max(x))
+            });
+        if hi.partial_cmp(&lo).is_none_or(|o| o.is_lt()) {
+            return None;
+        }
+        if f.terms.iter().any(|t| -t.d * (hi - lo) < MIN_DECAY) {
+            return Some(TermDropped::NonDecaying);
+        }
+        if f.n() < 2 {
+            return None;
+        }
+        let mut rs: Vec<f64> = r.to_vec();
+        rs.sort_by(f64::total_cmp);
+        rs.dedup_by(|a, b| (*a - *b).abs() <= 1e-9 * b.abs().max(1.0));
+        for t in &f.terms {
+            let support = rs
+                .iter()
+                .filter(|&&x| t.c.ln() + t.d * x - f.ln_eval(x) >= MIN_SHARE.ln())
+                .count();
+            if support < MIN_SUPPORT {
+                return Some(TermDropped::Unresolved);
+            }
+        }
+        None
+    }
+
+    proptest! {
+        /// The distances sorted once judge every fall-off as sorting them at every call did, and
+        /// the red distances three times (the shared colour's fit of all channels) are judged
+        /// as the red distances: the same range, the same distinct values.
+        #[test]
+        fn distances_sorted_once_judge_terms_as_before(
+            base in proptest::collection::vec(0.0..20.0f64, 1..40),
+            near in proptest::collection::vec((0usize..40, -2e-8..2e-8f64), 0..20),
+            terms in proptest::collection::vec((0.01..10.0f64, -20.0..-0.001f64), 1..=4),
+        ) {
+            // Some distances repeated or within the dedup tolerance of another.
+            let mut r = base.clone();
+            for (i, dx) in near {
+                r.push(base[i % base.len()] * (1.0 + dx));
+            }
+            let f = ExpSum {
+                terms: terms.iter().map(|&(c, d)| Term { c, d }).collect(),
+            };
+            let want = unsupported_term_sorting(&f, &r);
+            prop_assert_eq!(unsupported_term(&f, &r), want);
+            let thrice: Vec<f64> = r.iter().chain(&r).chain(&r).copied().collect();
+            prop_assert_eq!(unsupported_term_sorting(&f, &thrice), want);
+            let (once, all) = (Distances::of(&r), Distances::of(&thrice));
+            prop_assert_eq!(once.distinct(), all.distinct());
+            prop_assert_eq!((once.lo, once.hi), (all.lo, all.hi));
+        }
+    }
 
     fn sample(frame: u32, vertex: u32, r: f64, phi: Option<f64>, s: f64) -> GroupSample {
         GroupSample {
