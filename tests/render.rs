@@ -355,7 +355,10 @@ fn fit_evaluation_and_render_share_the_tangent_frame_on_a_curved_scan() {
     .noise_free();
     simulate(&cfg, tmp.path(), &()).expect("simulate");
     let ds = Dataset::open(tmp.path()).unwrap();
-    let ctx = Context::new(&ds, PipelineOptions::for_dataset(&ds)).unwrap();
+    // φ is measured for a model of more than one segment, the only one that reads it.
+    let mut opts = PipelineOptions::for_dataset(&ds);
+    opts.model.segments = 8;
+    let ctx = Context::new(&ds, opts).unwrap();
     let regs: Vec<_> = (0..ds.spec.frames.len())
         .filter_map(|k| register_one(&ctx, k).ok())
         .collect();
@@ -390,6 +393,14 @@ fn fit_evaluation_and_render_share_the_tangent_frame_on_a_curved_scan() {
         compared > 100 && tilted > 2,
         "{compared} samples, {tilted} tilted x_i"
     );
+    // A model of one segment reads no φ, and none is measured for it.
+    let one = Context::new(&ds, PipelineOptions::for_dataset(&ds)).unwrap();
+    let key = GroupKey {
+        frames: std::array::from_fn(|_| vec![0]),
+        anchors: [0; 3],
+    };
+    let (samples, _) = group_samples(&one, &regs, &key).unwrap();
+    assert!(!samples[0].is_empty() && samples[0].iter().all(|s| s.phi.is_none()));
     // The renderer's frame at vertex v is the fit's frame at x_i = v.
     let falloffs = render::Falloffs::new(&model);
     for (t, tri) in ds.mesh.triangles.iter().enumerate().step_by(7) {
