@@ -163,7 +163,8 @@ fn conjugate_gradients<'a>(
                 .map(|&v| lane(&|c| out[v].as_ref().map_or(0.0, |g| g[c])))
                 .collect();
             let mut r = vec![[0.0; LANES]; nu];
-            system.apply(&x, &mut r);
+            // y = A x; its dot with x is not needed here.
+            system.apply_dot(&x, &mut r);
             for (ri, bi) in r.iter_mut().zip(&bc) {
                 for l in 0..LANES {
                     ri[l] = bi[l] - ri[l];
@@ -358,23 +359,6 @@ impl System {
             }
         }
         s
-    }
-
-    /// y = A x, lane by lane.
-    fn apply(&self, x: &[Lane], y: &mut [Lane]) {
-        for (i, yi) in y.iter_mut().enumerate() {
-            let d = self.deg[i];
-            let xi = &x[i];
-            for l in 0..LANES {
-                yi[l] = d * xi[l];
-            }
-            for &j in &self.cols[self.start[i]..self.start[i + 1]] {
-                let xj = &x[j as usize];
-                for l in 0..LANES {
-                    yi[l] -= xj[l];
-                }
-            }
-        }
     }
 }
 
