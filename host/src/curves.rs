@@ -884,9 +884,9 @@ fn word(b: &[u8], i: usize) -> u64 {
 /// the `pulp` crate's safe intrinsics, which the workspace's `unsafe_code = "deny"` requires.
 ///
 /// Why by hand: reading the numbers was a third of `fit-curve --batch`'s time, and scalar
-/// readers had run out of levers (BENCHMARKS.md "Second pass": word-at-a-time readers stay
-/// bound by their chains of shifts and multiplies, and each row's start waited on the
-/// previous row's numbers being scanned). Here:
+/// readers had run out of levers (BENCHMARKS.md, the scipy comparison's second pass:
+/// word-at-a-time readers stay bound by their chains of shifts and multiplies, and each row's
+/// start waited on the previous row's numbers being scanned). Here:
 /// - the row loop ([`pairs`]) finds a row's comma and newline from one compare of the 32
 ///   bytes after its id, so the next row starts after one load and one scan while the
 ///   numbers' conversion overlaps the following rows;
