@@ -1,8 +1,7 @@
-//! Issue 25: a model is judged on the fit's terms. `--validate` prints the homogeneous
-//! baseline's held-out row wherever it prints the model's (the baseline with the model's alpha),
-//! `evaluate` reads frames by the rules the model file records unless told otherwise and says
-//! what share of the samples the vertices' own models predicted, and the fit's cross-validated
-//! choices are in its report.
+//! Issue 25 and 39: `--validate` prints the homogeneous baseline's held-out row wherever it
+//! prints the model's (the baseline with the model's alpha), `evaluate` judges every model by
+//! the dataset's protocol, with clustered standard errors, and says what share of the samples
+//! the vertices' own models predicted, and the fit's cross-validated choices are in its report.
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -91,60 +90,161 @@ fn validate_prints_the_baseline_row_on_every_dataset() {
     }
 }
 
-/// `evaluate` judges a model by the rules its fit used (here a wider exclusion radius than the
-/// default), recorded in the model file; `--ignore-fit-record` falls back to the defaults and
-/// explicit flags override. It reports the share of samples the vertices' own models predicted.
+/// Issue 39: `evaluate` judges every model of a dataset by the dataset's protocol, never by the
+/// rules its fit used (here a wider exclusion radius than the protocol's): the model file records
+/// them and `evaluate` says they differ, but compares the same samples as for a model fitted
+/// with the defaults; a flag changes the protocol for every model alike. It reports the share of
+/// samples the vertices' own models predicted, the clustered standard error (checked here against
+/// the textbook formula on the per-frame figures it prints), the sample-weighted mean, and frames
+/// the fit used apart, as in-sample, with a warning.
 #[test]
-fn evaluate_uses_the_options_the_model_was_fitted_with() {
+fn evaluate_judges_every_model_by_the_datasets_protocol() {
     let tmp = tempfile::tempdir().unwrap();
     let sim = tmp.path().join("texslab");
     textured_slab(&sim);
     let scan = sim.to_str().unwrap();
-    let model = tmp.path().join("m.ply");
-    let model = model.to_str().unwrap();
     let held: Vec<String> = (1..64).step_by(5).map(|k| k.to_string()).collect();
     let held = held.join(",");
-    subsurf(&[
-        "fit",
-        "--scan",
-        scan,
-        "--out",
-        model,
-        "--exclude-frames",
-        &held,
-        "--exclusion-radius",
-        "1.5",
-        "--no-pictures",
-        "--cache",
-        "off",
-    ]);
-    let rec = subsurf::modelfile::ModelFile::read(Path::new(model))
-        .unwrap()
-        .fitted_with
-        .expect("the fit recorded its rules");
-    assert_eq!(rec.exclusion_radius_mm, 1.5);
-    let eval = |extra: &[&str]| -> serde_json::Value {
-        let mut a = vec!["evaluate", "--model", model, "--scan", scan, "--json"];
-        a.extend(["--frames", &held, "--cache", "off"]);
+    let fit = |out: &str, extra: &[&str]| {
+        let mut a = vec![
+            "fit",
+            "--scan",
+            scan,
+            "--out",
+            out,
+            "--exclude-frames",
+            &held,
+        ];
+        a.extend(["--no-pictures", "--cache", "off", "--cv-folds", "0"]);
         a.extend(extra);
-        serde_json::from_str(&subsurf(&a)).unwrap()
+        subsurf(&a);
     };
-    let own = eval(&[]);
-    assert_eq!(own["options"]["from_model_file"], true, "{own}");
-    assert_eq!(own["options"]["exclusion_radius_mm"], 1.5, "{own}");
-    let defaults = eval(&["--ignore-fit-record"]);
-    assert_eq!(defaults["options"]["exclusion_radius_mm"], 0.5);
-    let explicit = eval(&["--ignore-fit-record", "--exclusion-radius", "1.5"]);
-    assert_eq!(own["mean_log_e"], explicit["mean_log_e"]);
-    assert_ne!(own["mean_log_e"], defaults["mean_log_e"]);
+    let wide = tmp.path().join("wide.ply");
+    let wide = wide.to_str().unwrap();
+    let plain = tmp.path().join("plain.ply");
+    let plain = plain.to_str().unwrap();
+    fit(wide, &["--exclusion-radius", "1.5"]);
+    fit(plain, &[]);
+    let m = subsurf::modelfile::ModelFile::read(Path::new(wide)).unwrap();
+    let rec = m.fitted_with.expect("the fit recorded its rules");
+    assert_eq!(rec.exclusion_radius_mm, 1.5);
+    let fitted = m.fitted_frames.expect("the fit recorded its frames");
+    let held_list = subsurf::dataset::parse_frame_list(&held).unwrap();
+    assert!(fitted.iter().all(|f| !held_list.contains(f)));
+    assert_eq!(fitted.len() + held_list.len(), 64);
+    let eval = |model: &str, extra: &[&str]| -> (serde_json::Value, String) {
+        let mut a = vec!["evaluate", "--model", model, "--scan", scan, "--json"];
+        a.extend(["--cache", "off"]);
+        a.extend(extra);
+        let o = Command::new(env!("CARGO_BIN_EXE_subsurf"))
+            .args(&a)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        (
+            serde_json::from_slice(&o.stdout).unwrap(),
+            String::from_utf8_lossy(&o.stderr).to_string(),
+        )
+    };
+    let (own, _) = eval(wide, &["--frames", &held]);
+    assert_eq!(own["protocol"]["exclusion_radius_mm"], 0.5, "{own}");
+    assert_eq!(own["protocol"]["fit_rules_differ"], true, "{own}");
+    assert_eq!(own["protocol"]["overridden"], false, "{own}");
+    let (other, _) = eval(plain, &["--frames", &held]);
+    assert_eq!(other["protocol"]["fit_rules_differ"], false, "{other}");
+    // The same samples judge both models: the same channel samples per frame.
+    let counts = |v: &serde_json::Value| -> Vec<serde_json::Value> {
+        v["per_frame"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|f| f["channel_samples"].clone())
+            .collect()
+    };
+    assert_eq!(counts(&own), counts(&other));
+    let (wider, _) = eval(wide, &["--frames", &held, "--exclusion-radius", "1.5"]);
+    assert_eq!(wider["protocol"]["overridden"], true);
+    assert_ne!(counts(&wider), counts(&own));
     let share = own["local_share"].as_f64().expect("a local share");
     assert!(share > 0.0 && share <= 1.0, "{own}");
+
+    // The standard error, clustered by raster neighbourhood (one turntable angle), against the
+    // textbook formula on the printed per-frame figures and clusters.
+    let cell = subsurf::evaluate::summary::RASTER_CELL_MM;
+    let frames = own["per_frame"].as_array().unwrap();
+    let judged: Vec<&serde_json::Value> =
+        frames.iter().filter(|f| f["skipped"].is_null()).collect();
+    assert!(judged.len() >= 8, "{own}");
+    assert_eq!(own["frames"].as_u64().unwrap() as usize, judged.len());
+    for c in 0..3 {
+        let mut by: std::collections::BTreeMap<[i64; 3], Vec<(f64, f64)>> = Default::default();
+        for f in &judged {
+            let Some(y) = f["log_e"][c].as_f64() else {
+                continue;
+            };
+            let n = f["channel_samples"][c].as_f64().unwrap();
+            let x: Vec<f64> = f["x_i"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|v| v.as_f64().unwrap())
+                .collect();
+            let key = [0, 1, 2].map(|k| (x[k] / cell).floor() as i64);
+            by.entry(key).or_default().push((y, n));
+        }
+        let all: Vec<(f64, f64)> = by.values().flatten().copied().collect();
+        let f = all.len() as f64;
+        let mean = all.iter().map(|v| v.0).sum::<f64>() / f;
+        let g = by.len() as f64;
+        let s: f64 = by
+            .values()
+            .map(|v| v.iter().map(|(y, _)| y - mean).sum::<f64>().powi(2))
+            .sum();
+        let se = (g / (g - 1.0) * s).sqrt() / f;
+        let w: f64 = all.iter().map(|v| v.1).sum();
+        let wmean = all.iter().map(|v| v.0 * v.1).sum::<f64>() / w;
+        assert!(g >= 2.0, "{own}");
+        assert!((own["mean_log_e"][c].as_f64().unwrap() - mean).abs() < 1e-12);
+        assert!(
+            (own["se_log_e"][c].as_f64().unwrap() - se).abs() < 1e-12,
+            "{own}"
+        );
+        assert!((own["weighted_mean_log_e"][c].as_f64().unwrap() - wmean).abs() < 1e-12);
+        assert_eq!(own["clusters"].as_u64().unwrap() as f64, g);
+    }
+
+    // Frames the fit used are reported apart, with a warning; the held-out figures do not move.
+    let both = format!("{held},0,2,3");
+    let (mixed, stderr) = eval(wide, &["--frames", &both]);
+    assert!(stderr.contains("in-sample"), "{stderr}");
+    assert_eq!(mixed["in_sample_frames"], serde_json::json!([0, 2, 3]));
+    assert_eq!(mixed["mean_log_e"], own["mean_log_e"]);
+    assert_eq!(mixed["se_log_e"], own["se_log_e"]);
+    assert!(
+        mixed["in_sample"]["mean_log_e"][1].as_f64().is_some(),
+        "{mixed}"
+    );
+
+    // The paired difference of two models on the same frames: the difference of their means,
+    // and zero against itself.
+    let (pair, _) = eval(wide, &["--frames", &held, "--against", plain]);
+    for c in 0..3 {
+        let d = pair["against"]["mean_difference"][c].as_f64().unwrap();
+        let direct =
+            own["mean_log_e"][c].as_f64().unwrap() - other["mean_log_e"][c].as_f64().unwrap();
+        assert!((d - direct).abs() < 1e-12, "{pair}");
+    }
+    let (same, _) = eval(wide, &["--frames", &held, "--against", wide]);
+    assert_eq!(
+        same["against"]["mean_difference"],
+        serde_json::json!([0.0, 0.0, 0.0])
+    );
 }
 
 /// The cross-validation inside the fit: folds of whole raster positions on the one-angle
 /// textured slab, disjoint and covering the training frames; `--segments auto` lists every m of
-/// the ladder with its held-out error and exactly one chosen, the alpha rounds likewise; the fold
-/// fits read no frame (they use the run's sample store).
+/// the ladder with its held-out error and exactly one chosen, Eq. 6's t1 and the alpha rounds
+/// likewise; the fold fits read no frame (they use the run's sample store).
 #[test]
 fn the_fit_cross_validates_its_choices_from_the_sample_store() {
     use subsurf::crossval::{CvSettings, Segments, fit_scan_in};
@@ -166,6 +266,7 @@ fn the_fit_cross_validates_its_choices_from_the_sample_store() {
     };
     let out = fit_scan_in(
         &ctx,
+        &ctx,
         &frames,
         &cv,
         &subsurf::fit::FitOptions::default(),
@@ -182,9 +283,13 @@ fn the_fit_cross_validates_its_choices_from_the_sample_store() {
     let mut all: Vec<usize> = r.folds.concat();
     all.sort();
     assert_eq!(all, frames);
-    assert_eq!(r.fits, 4 * 5);
+    // The four m of the ladder, then t1 (none against crossval::T1_CANDIDATE) for the m chosen.
+    assert_eq!(r.fits, 5 * 5);
     let names: Vec<&str> = r.choices.iter().map(|c| c.name.as_str()).collect();
-    assert_eq!(names, ["segments", "alpha_rounds"]);
+    assert_eq!(names, ["segments", "alpha_t1_share", "alpha_rounds"]);
+    // The per-frame errors of the choice, every training frame judged once by its fold.
+    assert!(r.per_frame.keys().all(|f| frames.contains(f)));
+    assert!(r.per_frame.len() * 2 > frames.len(), "{:?}", r.per_frame);
     for c in &r.choices {
         assert_eq!(c.candidates.iter().filter(|k| k.chosen).count(), 1, "{c:?}");
         assert!(
@@ -205,7 +310,7 @@ fn the_fit_cross_validates_its_choices_from_the_sample_store() {
             .iter()
             .any(|k| k.chosen && k.value == seg.chosen)
     );
-    let rounds = &r.choices[1];
+    let rounds = &r.choices[2];
     assert!(
         rounds.candidates.len() >= 2,
         "several rounds ran in the folds: {rounds:?}"
@@ -214,6 +319,7 @@ fn the_fit_cross_validates_its_choices_from_the_sample_store() {
     let none = CvSettings { folds: 1, ..cv };
     assert!(
         fit_scan_in(
+            &ctx,
             &ctx,
             &frames,
             &none,
@@ -309,7 +415,7 @@ fn cross_validated_choices_on_the_shared_datasets() {
             ..Default::default()
         };
         let ctx = subsurf::pipeline::prepare(&ds, &frames, &opts, &store, &()).unwrap();
-        let out = fit_scan_in(&ctx, &frames, &cv, &fitter, &()).unwrap();
+        let out = fit_scan_in(&ctx, &ctx, &frames, &cv, &fitter, &()).unwrap();
         let (_, st) = subsurf::evaluate::evaluate_frames_stored(
             &ds,
             &out.model,

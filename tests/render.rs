@@ -235,6 +235,7 @@ fn torus_model_file() -> subsurf::modelfile::ModelFile {
         frame: subsurf::model::FrameRule::CURRENT,
         face_alpha: None,
         fitted_with: None,
+        fitted_frames: None,
     }
 }
 

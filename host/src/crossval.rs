@@ -21,7 +21,8 @@
 use std::collections::BTreeMap;
 
 use crate::dataset::Dataset;
-use crate::evaluate::{EvalPoints, FrameEval, evaluate_in};
+use crate::evaluate::summary::clustered_mean;
+use crate::evaluate::{Clustering, EvalPoints, FrameEval, evaluate_in};
 use crate::pipeline::{
     AlphaLattice, Context, CvCandidate, CvChoice, CvReport, FitOutput, FitRounds, Fitter,
     LogEStats, PipelineError, PipelineOptions, Prepared, fit::OrderCache, fit_prepared_with,
@@ -67,7 +68,20 @@ pub struct CvSettings {
     /// The folds' rounds stop once this many rounds in a row have not lowered the best
     /// cross-validated error (`--cv-patience`; 0: every round to the limit is scored).
     pub patience: usize,
+    /// Whether Eq. 6's upper threshold t1 is chosen per scan, off against [`T1_CANDIDATE`]
+    /// (when the run's options leave it off; `subsurf fit --alpha-t1-share` fixes it).
+    pub t1: bool,
 }
+
+/// The t1 share ([`crate::pipeline::ALPHA_T1_SHARE`]'s alternative) the cross-validation weighs
+/// against none. Why per scan: on training frames (docs/validation.md) a t1 at 0.3 of each light
+/// position's brightest sample predicted better on sample-slab, sample-torus and the simulated
+/// torus (by 3, 1.8 and 3.6 standard errors), the same on the textured slab, and worse within
+/// noise on sample-pebble; 0.1 gained little more where t1 helped and lost more where it hurt
+/// (sample-pebble: 3.8 standard errors); and on the anisotropic simulated slab of `fit_aniso`,
+/// whose near field is multiple scattering blurred by the pixels, alpha needs the bright
+/// samples. No constant fits every scan.
+pub const T1_CANDIDATE: f64 = 0.3;
 
 impl Default for CvSettings {
     fn default() -> Self {
@@ -76,6 +90,7 @@ impl Default for CvSettings {
             segments: Segments::Fixed(1),
             rounds: true,
             patience: DEFAULT_PATIENCE,
+            t1: true,
         }
     }
 }
@@ -138,6 +153,7 @@ type Errors = BTreeMap<usize, [f64; 3]>;
 #[allow(clippy::too_many_arguments)]
 fn cross_validate(
     ctx: &Context,
+    judge: &Context,
     frames: &[usize],
     folds: &[Vec<usize>],
     fitter: &dyn Fitter,
@@ -147,6 +163,7 @@ fn cross_validate(
     fits: &mut usize,
 ) -> Result<(Vec<Errors>, usize), PipelineError> {
     let max_rounds = ctx.opts.alpha_rounds;
+    let clusters = &Clustering::of_folds(folds);
     // The folds are judged at the vertices, where alpha finer than the mesh changes nothing
     // (`EvalPoints::Vertices`): their fits skip the lattice stage, the same errors for less.
     let ctx = &ctx.with_options(PipelineOptions {
@@ -181,7 +198,7 @@ fn cross_validate(
             .zip(folds)
             .map(|(run, fold)| {
                 let model = run.as_ref()?.model_file().ok()?;
-                evaluate_in(ctx, &model, fold, EvalPoints::Vertices, &())
+                evaluate_in(judge, &model, fold, EvalPoints::Vertices, &())
                     .ok()
                     .map(|(evals, _)| evals)
             })
@@ -196,7 +213,7 @@ fn cross_validate(
                 }
             }
         }
-        if r == max_rounds || rounds_exhausted(&pooled(&by_round, r), patience) {
+        if r == max_rounds || rounds_exhausted(&pooled(&by_round, r), clusters, patience) {
             break;
         }
         runs.par_iter_mut().for_each(|run| {
@@ -241,7 +258,7 @@ fn pooled(by_round: &[Vec<Vec<FrameEval>>], last: usize) -> Vec<Errors> {
 /// texture fits the noise (docs/validation.md, "How far the rounds run"); rounds past that
 /// cannot become the one-standard-error choice unless the error fell again, which no scan
 /// measured did. 0: never stop.
-fn rounds_exhausted(per_round: &[Errors], patience: usize) -> bool {
+fn rounds_exhausted(per_round: &[Errors], clusters: &Clustering, patience: usize) -> bool {
     if patience == 0 || per_round.len() <= patience {
         return false;
     }
@@ -250,7 +267,7 @@ fn rounds_exhausted(per_round: &[Errors], patience: usize) -> bool {
         .enumerate()
         .map(|(r, e)| (r.to_string(), e))
         .collect();
-    let (_, rows) = one_se(&cands);
+    let (_, rows) = one_se(&cands, clusters);
     let best = rows
         .iter()
         .enumerate()
@@ -269,7 +286,16 @@ fn frame_error(v: &[f64; 3]) -> Option<f64> {
 /// The one-standard-error choice among `candidates` (value, errors), simplest first: scores over
 /// the frames every candidate with data predicted; the index chosen (`None` when no candidate
 /// predicted any frame) and the report's rows.
-fn one_se(candidates: &[(String, &Errors)]) -> (Option<usize>, Vec<CvCandidate>) {
+///
+/// The standard error of a candidate's difference from the best is clustered by `clusters`
+/// (the folds: the frames of one fold share one fit, and a fold holds whole turntable angles,
+/// whose frames share their views), as Hastie, Tibshirani and Friedman (7.10) take it from the
+/// K fold-level errors; frames treated as independent made it too small, and the rule less
+/// parsimonious than it means to be ([`crate::evaluate::summary::clustered_mean`]).
+fn one_se(
+    candidates: &[(String, &Errors)],
+    clusters: &Clustering,
+) -> (Option<usize>, Vec<CvCandidate>) {
     let with_data: Vec<bool> = candidates
         .iter()
         .map(|(_, e)| e.values().any(|v| frame_error(v).is_some()))
@@ -318,17 +344,11 @@ fn one_se(candidates: &[(String, &Errors)]) -> (Option<usize>, Vec<CvCandidate>)
             rows[i].note = Some("predicted none of the compared frames".into());
             continue;
         }
-        let d: Vec<f64> = common
+        let d: Vec<(f64, f64, (bool, usize))> = common
             .iter()
-            .filter_map(|&f| Some(err(i, f)? - err(best, f)?))
+            .filter_map(|&f| Some((err(i, f)? - err(best, f)?, 1.0, clusters.cluster(f))))
             .collect();
-        let n = d.len() as f64;
-        let mean = d.iter().sum::<f64>() / n;
-        let se = if d.len() >= 2 {
-            (d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0) / n).sqrt()
-        } else {
-            0.0
-        };
+        let (mean, se) = clustered_mean(&d).map_or((0.0, 0.0), |m| (m.mean, m.se.unwrap_or(0.0)));
         rows[i].worse_by = Some(mean);
         rows[i].se = Some(se);
         if chosen.is_none() && mean <= se {
@@ -340,16 +360,17 @@ fn one_se(candidates: &[(String, &Errors)]) -> (Option<usize>, Vec<CvCandidate>)
     (Some(chosen), rows)
 }
 
-const ONE_SE_RULE: &str = "the simplest candidate whose mean held-out log E (frames every candidate predicted) is within one standard error (paired over those frames) of the best";
+const ONE_SE_RULE: &str = "the simplest candidate whose mean held-out log E (frames every candidate predicted) is within one standard error (of the paired difference over those frames, clustered by fold) of the best";
 
 /// The choice of the number of alpha rounds among `per_round[..=most]`: the chosen number and
-/// the report's choice. When the choice is the most rounds any fold kept (the rounds ran until
-/// they converged or stopped lowering the objective) the fit keeps its limit `max` rather than
-/// this number, so the fit on every frame may run as far as its data allow.
+/// the report's choice. The fit on every frame runs at most that many rounds (fewer where its
+/// rounds converge or stop lowering the objective first): no more than the folds validated.
+/// Before, a choice equal to the most rounds any fold kept let the final fit run on to `max`,
+/// rounds no fold had judged.
 fn choose_rounds(
     per_round: &[Errors],
     most: usize,
-    max: usize,
+    clusters: &Clustering,
     patience: usize,
 ) -> (usize, CvChoice) {
     let cands: Vec<(String, &Errors)> = per_round[..=most.min(per_round.len() - 1)]
@@ -357,9 +378,9 @@ fn choose_rounds(
         .enumerate()
         .map(|(r, e)| (r.to_string(), e))
         .collect();
-    let (chosen, candidates) = one_se(&cands);
+    let (chosen, candidates) = one_se(&cands, clusters);
     let r = chosen.unwrap_or(most);
-    let limit = if r >= most { max } else { r };
+    let limit = r;
     let choice = CvChoice {
         name: "alpha_rounds".into(),
         rule: format!(
@@ -371,11 +392,7 @@ fn choose_rounds(
             }
         ),
         candidates,
-        chosen: if limit == r {
-            r.to_string()
-        } else {
-            format!("{r} (the rounds run to their end: limit {max})")
-        },
+        chosen: r.to_string(),
     };
     (limit, choice)
 }
@@ -386,6 +403,7 @@ fn choose_rounds(
 /// single frame) every setting keeps the value given, and `--segments auto` is refused.
 pub fn fit_scan_in(
     ctx: &Context,
+    judge: &Context,
     frames: &[usize],
     cv: &CvSettings,
     fitter: &dyn Fitter,
@@ -435,11 +453,16 @@ pub fn fit_scan_in(
                 }
                 ctxs.push(c);
             }
-            progress.start("cross-validation", (ladder.len() * folds.len()) as u64);
+            let try_t1 = cv.t1 && opts.alpha_window.t1_share.is_infinite();
+            progress.start(
+                "cross-validation",
+                ((ladder.len() + usize::from(try_t1)) * folds.len()) as u64,
+            );
             let mut grids = Vec::new();
             for c in &ctxs {
                 grids.push(cross_validate(
                     c,
+                    judge,
                     frames,
                     &folds,
                     fitter,
@@ -449,10 +472,11 @@ pub fn fit_scan_in(
                     &mut rep.fits,
                 )?);
             }
+            let fold_clusters = Clustering::of_folds(&folds);
             // Each m at its own best number of rounds, then the rounds of the m chosen.
             let per_m: Vec<(usize, CvChoice)> = grids
                 .iter()
-                .map(|(g, most)| choose_rounds(g, *most, opts.alpha_rounds, cv.patience))
+                .map(|(g, most)| choose_rounds(g, *most, &fold_clusters, cv.patience))
                 .collect();
             let mut k = 0;
             if auto {
@@ -462,7 +486,7 @@ pub fn fit_scan_in(
                     .zip(&per_m)
                     .map(|((m, (g, most)), (limit, _))| (m.to_string(), &g[(*limit).min(*most)]))
                     .collect();
-                let (chosen, candidates) = one_se(&cands);
+                let (chosen, candidates) = one_se(&cands, &fold_clusters);
                 k = chosen.unwrap_or(0);
                 opts.model.segments = ladder[k];
                 rep.choices.push(CvChoice {
@@ -472,10 +496,60 @@ pub fn fit_scan_in(
                     chosen: ladder[k].to_string(),
                 });
             }
+            let (mut limit, mut choice) = per_m[k].clone();
+            let mut grid_k = grids.swap_remove(k);
+            if try_t1 {
+                // Eq. 6's t1 for the m chosen: none (the simpler) against T1_CANDIDATE, each at
+                // its own cross-validated rounds. Round 0's fits do not depend on t1: the
+                // cache serves both.
+                let mut o = ctxs[k].opts;
+                o.alpha_window.t1_share = T1_CANDIDATE;
+                let c = ctx.with_options(o)?;
+                let g = cross_validate(
+                    &c,
+                    judge,
+                    frames,
+                    &folds,
+                    fitter,
+                    &cache,
+                    cv.patience,
+                    progress,
+                    &mut rep.fits,
+                )?;
+                let r = choose_rounds(&g.0, g.1, &fold_clusters, cv.patience);
+                let cands: Vec<(String, &Errors)> = vec![
+                    ("off".into(), &grid_k.0[limit.min(grid_k.1)]),
+                    (T1_CANDIDATE.to_string(), &g.0[r.0.min(g.1)]),
+                ];
+                let (chosen, candidates) = one_se(&cands, &fold_clusters);
+                let with_t1 = chosen == Some(1);
+                rep.choices.push(CvChoice {
+                    name: "alpha_t1_share".into(),
+                    rule: format!("{ONE_SE_RULE} (each with its own cross-validated rounds)"),
+                    candidates,
+                    chosen: if with_t1 {
+                        T1_CANDIDATE.to_string()
+                    } else {
+                        "off".into()
+                    },
+                });
+                if with_t1 {
+                    opts.alpha_window.t1_share = T1_CANDIDATE;
+                    (limit, choice) = r;
+                    grid_k = g;
+                }
+            }
             if rounds {
-                let (limit, choice) = per_m[k].clone();
                 opts.alpha_rounds = limit;
                 rep.choices.push(choice);
+            }
+            let (grid, most) = &grid_k;
+            let at = if rounds { limit } else { opts.alpha_rounds };
+            if let Some(errs) = grid.get(at.min(*most)).or(grid.last()) {
+                rep.per_frame = errs
+                    .iter()
+                    .map(|(&f, v)| (f, v.map(|x| x.is_finite().then_some(x))))
+                    .collect();
             }
         }
         rep.seconds = start.elapsed().as_secs_f64();
@@ -507,41 +581,75 @@ mod tests {
     /// complex one wins; a candidate without data is reported and never chosen.
     #[test]
     fn the_one_se_rule_prefers_the_simpler_within_noise() {
+        // Every frame its own cluster.
+        let lone = Clustering::of_folds(&[]);
         let simple = errors(&[(0, 0.30), (1, 0.20), (2, 0.41), (3, 0.25)]);
         let noisy_better = errors(&[(0, 0.28), (1, 0.22), (2, 0.37), (3, 0.25)]);
-        let (c, rows) = one_se(&[("1".into(), &simple), ("2".into(), &noisy_better)]);
+        let (c, rows) = one_se(&[("1".into(), &simple), ("2".into(), &noisy_better)], &lone);
         assert_eq!(c, Some(0), "{rows:?}");
         let clearly = errors(&[(0, 0.20), (1, 0.11), (2, 0.30), (3, 0.16)]);
-        let (c, rows) = one_se(&[("1".into(), &simple), ("4".into(), &clearly)]);
+        let (c, rows) = one_se(&[("1".into(), &simple), ("4".into(), &clearly)], &lone);
         assert_eq!(c, Some(1), "{rows:?}");
         assert!(rows[0].worse_by.unwrap() > rows[0].se.unwrap());
         let none = Errors::new();
-        let (c, rows) = one_se(&[("1".into(), &none), ("2".into(), &simple)]);
+        let (c, rows) = one_se(&[("1".into(), &none), ("2".into(), &simple)], &lone);
         assert_eq!(c, Some(1));
         assert_eq!(rows[0].score, None);
         assert!(rows[0].note.is_some());
-        assert_eq!(one_se(&[("1".into(), &none)]).0, None);
+        assert_eq!(one_se(&[("1".into(), &none)], &lone).0, None);
     }
 
     /// Early stopping: the rounds end `patience` rounds after the best, never while the error
     /// still falls, and never with patience 0.
     #[test]
     fn the_rounds_stop_patience_rounds_after_the_best() {
+        let lone = Clustering::of_folds(&[]);
         let curve = |v: &[f64]| -> Vec<Errors> {
             v.iter()
                 .map(|&e| errors(&[(0, e), (1, e + 0.01), (2, e - 0.01)]))
                 .collect()
         };
         let rising = [0.220, 0.215, 0.217, 0.217, 0.219];
-        assert!(!rounds_exhausted(&curve(&rising[..2]), 2));
-        assert!(!rounds_exhausted(&curve(&rising[..3]), 2));
-        assert!(rounds_exhausted(&curve(&rising[..4]), 2));
-        assert!(rounds_exhausted(&curve(&rising[..3]), 1));
-        assert!(!rounds_exhausted(&curve(&rising), 0));
+        assert!(!rounds_exhausted(&curve(&rising[..2]), &lone, 2));
+        assert!(!rounds_exhausted(&curve(&rising[..3]), &lone, 2));
+        assert!(rounds_exhausted(&curve(&rising[..4]), &lone, 2));
+        assert!(rounds_exhausted(&curve(&rising[..3]), &lone, 1));
+        assert!(!rounds_exhausted(&curve(&rising), &lone, 0));
         let falling = [0.454, 0.445, 0.442, 0.441, 0.440, 0.439];
-        assert!(!rounds_exhausted(&curve(&falling), 2));
+        assert!(!rounds_exhausted(&curve(&falling), &lone, 2));
         // A tie with the best is not a new best: the first of equals stays the best.
         let flat = [0.30, 0.20, 0.20, 0.20];
-        assert!(rounds_exhausted(&curve(&flat), 2));
+        assert!(rounds_exhausted(&curve(&flat), &lone, 2));
+    }
+
+    /// Frames of one fold move together: the same per-frame gain of the complex candidate,
+    /// consistent within folds but of opposite sign between them, is within one clustered
+    /// standard error though far outside the one that takes frames as independent.
+    #[test]
+    fn the_one_se_rule_clusters_by_fold() {
+        // Eight frames in two folds; the complex candidate gains 0.03 on fold 0's frames and
+        // loses 0.01 on fold 1's: on average it is better.
+        let base: Vec<(usize, f64)> = (0..8).map(|f| (f, 0.3 + 0.001 * f as f64)).collect();
+        let simple = errors(&base);
+        let complex = errors(
+            &base
+                .iter()
+                .map(|&(f, e)| (f, if f < 4 { e - 0.03 } else { e + 0.01 }))
+                .collect::<Vec<_>>(),
+        );
+        let cands = [("1".to_string(), &simple), ("2".to_string(), &complex)];
+        let lone = Clustering::of_folds(&[]);
+        let folds = Clustering::of_folds(&[vec![0, 1, 2, 3], vec![4, 5, 6, 7]]);
+        let (independent, rows) = one_se(&cands, &lone);
+        assert_eq!(independent, Some(1), "{rows:?}");
+        let (clustered, rows) = one_se(&cands, &folds);
+        assert_eq!(clustered, Some(0), "{rows:?}");
+        // The clustered SE of the difference, by the textbook formula (two clusters).
+        let d = [0.03, 0.03, 0.03, 0.03, -0.01, -0.01, -0.01, -0.01];
+        let mean: f64 = d.iter().sum::<f64>() / 8.0;
+        let u0: f64 = d[..4].iter().map(|x| x - mean).sum();
+        let u1: f64 = d[4..].iter().map(|x| x - mean).sum();
+        let se = (2.0 * (u0 * u0 + u1 * u1)).sqrt() / 8.0;
+        assert!((rows[0].se.unwrap() - se).abs() < 1e-12, "{rows:?}");
     }
 }

@@ -178,6 +178,10 @@ pub struct ModelFile {
     /// judges it by unless told otherwise; `None` in files without the line (written before it,
     /// or not by a fit: ground truth).
     pub fitted_with: Option<FitRecord>,
+    /// The frames the model's fit was given (`comment fitted_frames …`): `subsurf evaluate`
+    /// reports them apart, as in-sample, from frames the fit never saw. `None` in files without
+    /// the line (written before it, or not by a fit: ground truth).
+    pub fitted_frames: Option<Vec<usize>>,
 }
 
 /// What a model was fitted with that judging it depends on: how its frames were registered
@@ -197,6 +201,32 @@ pub struct FitRecord {
     pub laser_tolerance_mm: f64,
     /// Frames whose spot the camera saw more grazing than this (cos θ) were not fitted.
     pub spot_cos_min: f64,
+}
+
+/// The header lines `comment fitted_frames <ranges>` of a fit's frames, each under the reader's
+/// line limit (a long list of holes takes several lines; the reader joins them).
+fn fitted_frames_lines(frames: &[usize]) -> String {
+    let list = crate::dataset::format_frame_list(frames);
+    let mut out = String::new();
+    let mut line = String::new();
+    for part in list.split(',').filter(|p| !p.is_empty()) {
+        if !line.is_empty() && line.len() + part.len() > 900 {
+            out += &format!("comment fitted_frames {line}\n");
+            line.clear();
+        }
+        if !line.is_empty() {
+            line.push(',');
+        }
+        line += part;
+    }
+    if !line.is_empty() || frames.is_empty() {
+        // An empty fit (no frame) still says so: `-` is no frame.
+        out += &format!(
+            "comment fitted_frames {}\n",
+            if line.is_empty() { "-" } else { &line }
+        );
+    }
+    out
 }
 
 impl FitRecord {
@@ -393,6 +423,7 @@ impl ModelFile {
             frame: FrameRule::CURRENT,
             face_alpha: None,
             fitted_with: None,
+            fitted_frames: None,
         }
     }
 
@@ -570,7 +601,11 @@ impl ModelFile {
                 + &self
                     .fitted_with
                     .as_ref()
-                    .map_or(String::new(), FitRecord::header_line),
+                    .map_or(String::new(), FitRecord::header_line)
+                + &self
+                    .fitted_frames
+                    .as_deref()
+                    .map_or(String::new(), fitted_frames_lines),
             self.positions.len(),
             self.triangles.len(),
         );
@@ -658,6 +693,7 @@ impl ModelFile {
         let (mut terms, mut segments, mut colour, mut magic) = (None, None, None, false);
         let mut baseline = None;
         let mut fitted_with = None;
+        let mut fitted_frames: Option<Vec<usize>> = None;
         // Files before version 4 have no `comment frame`: their rule.
         let mut frame = FrameRule::ReferenceAxis;
         let mut first = true;
@@ -691,6 +727,21 @@ impl ModelFile {
                         BaselineParams::parse(rest, colour)
                             .ok_or_else(|| fmt(format!("bad baseline line {:?}", line.trim())))?,
                     )
+                }
+                ["comment", "fitted_frames", "-"] => {
+                    fitted_frames.get_or_insert_with(Vec::new);
+                }
+                ["comment", "fitted_frames", list] => {
+                    let more = crate::dataset::parse_frame_list(list).map_err(|e| {
+                        fmt(format!("bad fitted_frames line {:?}: {e}", line.trim()))
+                    })?;
+                    let all = fitted_frames.get_or_insert_with(Vec::new);
+                    if all.len() + more.len() > crate::dataset::MAX_FRAME_RANGE {
+                        return Err(fmt("more fitted frames than any scan holds".into()));
+                    }
+                    all.extend(more);
+                    all.sort_unstable();
+                    all.dedup();
                 }
                 ["comment", "fitted", rest @ ..] => {
                     fitted_with = Some(
@@ -756,6 +807,7 @@ impl ModelFile {
             frame,
             face_alpha: None,
             fitted_with,
+            fitted_frames,
         };
         let (mut levels, mut detail) = (Vec::new(), Vec::new());
         let mut face_alpha_seen = false;
@@ -1162,11 +1214,50 @@ mod tests {
             frame: FrameRule::MinimalRotation,
             face_alpha: None,
             fitted_with: None,
+            fitted_frames: None,
         }
     }
 
     /// The rules a model was fitted with round-trip through `comment fitted`; a file without
     /// the line (every file before it) reads as none, and a reader skips keys it does not know.
+    #[test]
+    fn the_fitted_frames_round_trip_over_several_lines_and_are_optional() {
+        let tmp = tempfile::tempdir().unwrap();
+        let p = tmp.path().join("m.ply");
+        let mut m = sample();
+        m.write(&p).unwrap();
+        assert_eq!(ModelFile::read(&p).unwrap().fitted_frames, None);
+        // Every third frame of 3,000: a thousand holes, several header lines.
+        let frames: Vec<usize> = (0..3000).filter(|f| f % 3 != 1).collect();
+        m.fitted_frames = Some(frames.clone());
+        m.write(&p).unwrap();
+        let text = std::fs::read(&p).unwrap();
+        let header = String::from_utf8_lossy(&text[..header_end(&text)]).to_string();
+        assert!(
+            header.matches("comment fitted_frames").count() > 3,
+            "{header}"
+        );
+        assert!(header.lines().all(|l| l.len() <= 1024));
+        assert_eq!(ModelFile::read(&p).unwrap().fitted_frames, Some(frames));
+        m.fitted_frames = Some(vec![]);
+        m.write(&p).unwrap();
+        assert_eq!(ModelFile::read(&p).unwrap().fitted_frames, Some(vec![]));
+        m.fitted_frames = Some(vec![0, 1, 2, 3, 7, 9, 10]);
+        m.write(&p).unwrap();
+        let text = std::fs::read(&p).unwrap();
+        let header = String::from_utf8_lossy(&text[..header_end(&text)]).to_string();
+        assert!(
+            header.contains("comment fitted_frames 0-3,7,9-10\n"),
+            "{header}"
+        );
+        // A range no scan holds is refused, not allocated.
+        let bad = header.replace("0-3,7,9-10", "0-99999999999");
+        let mut bytes = bad.into_bytes();
+        bytes.extend_from_slice(&text[header_end(&text)..]);
+        std::fs::write(&p, bytes).unwrap();
+        assert!(ModelFile::read(&p).is_err());
+    }
+
     #[test]
     fn the_fit_record_round_trips_and_is_optional() {
         let dir = tempfile::tempdir().unwrap();

@@ -94,6 +94,28 @@ pub enum RegistrationOutcome {
     },
 }
 
+impl RegistrationOutcome {
+    /// Why a frame was not registered, in words (`None` for a registered one).
+    pub fn why_not(&self) -> Option<String> {
+        match self {
+            RegistrationOutcome::Registered { .. } => None,
+            RegistrationOutcome::NoSpot => Some(
+                "no laser spot seen (nothing bright enough, or the laser hits where the camera cannot see)"
+                    .into(),
+            ),
+            RegistrationOutcome::SpotOffObject => {
+                Some("the spot's viewing ray misses the mesh".into())
+            }
+            RegistrationOutcome::LaserMismatch {
+                disagreement_mm, ..
+            } => Some(match disagreement_mm {
+                Some(d) => format!("the spot lies {d:.2} mm from the laser ray's hit"),
+                None => "the laser ray misses the mesh".into(),
+            }),
+        }
+    }
+}
+
 fn luminance(img: &Image, i: usize, j: usize) -> f64 {
     let k = (j * img.width + i) * img.channels;
     let s: f64 = img.data[k..k + img.channels]
@@ -328,12 +350,12 @@ pub fn spot_cos(
 /// from the camera meets the near tube 16.8 mm before the hit. Their brightest pixel is the spot's
 /// glow past the near tube's limb and back-projects within 0.32–0.35 mm of the laser's hit (the
 /// registered frames: median 0.16 mm, at most 0.37 mm), so they *could* be registered, with x_i
-/// either from the glow or from the laser ray. Both made the model worse: held-out mean log E
-/// (frames 96–103, green) 0.568 without them, 0.637 with x_i from the laser ray, 0.642 with x_i
-/// from the glow; the homogeneous baseline's in-sample log E rose from 0.66 to 1.03, i.e. their
-/// samples (the far tube seen past the near one's silhouette, next to a half-hidden spot whose
-/// light the spot exclusion cannot model) disagree with every other frame's. So a hidden hit
-/// stays `NoSpot`.
+/// either from the glow or from the laser ray. Their samples disagree with every other frame's:
+/// with them, the homogeneous baseline's log E over the training frames rose from 0.66 to 1.03
+/// (the far tube seen past the near one's silhouette, next to a half-hidden spot whose light the
+/// spot exclusion cannot model). So a hidden hit stays `NoSpot`. The rule is part of the
+/// evaluation protocol (docs/validation.md), not a fit setting: it decides which frames have an
+/// observable x_i at all, so no held-out error can compare it (the frames judged would differ).
 ///
 /// Second: the spot detected in the image, whatever the mesh made of it (also for a hidden
 /// hit, `NoSpot`, and for `SpotOffObject` and `LaserMismatch`): the mesh-free evidence that the

@@ -2,9 +2,10 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use subsurf::evaluate::{EvalPoints, evaluate_frames_stored};
+use subsurf::evaluate::{EvalPoints, evaluate_models_stored};
 use subsurf::modelfile::ModelFile;
 use subsurf::pipeline::PipelineOptions;
+use subsurf::report::evaluate::{EvaluateReport, Protocol};
 
 use super::progress::Bar;
 
@@ -26,24 +27,22 @@ pub struct Args {
     /// Print one JSON object.
     #[arg(long)]
     pub json: bool,
-    /// Samples closer than this to x_i (mm) are not compared (default: the model's fit's, from
-    /// its file's `comment fitted` line, else 0.5).
+    /// A second model (PLY) judged on the same samples: prints this model's error minus that
+    /// one's, per frame paired, with its clustered standard error.
+    #[arg(long)]
+    pub against: Option<PathBuf>,
+    /// Change the evaluation protocol: samples closer than this to x_i (mm) are not compared
+    /// (default: the protocol's 0.5 for every model). Figures under a changed protocol compare
+    /// only with figures under the same one.
     #[arg(long)]
     pub exclusion_radius: Option<f64>,
-    /// Drop samples whose bilinear neighbourhood is not covered by the surface at x_o (a pixel
-    /// centre seeing the background or another surface, counted as `samples.uncovered`). Off by
-    /// default unless the model was fitted with it: it helps simulated scans seen past open
-    /// boundaries, not the outside datasets.
+    /// Change the evaluation protocol: drop samples whose bilinear neighbourhood is not covered
+    /// by the surface at x_o (counted as `samples.uncovered`).
     #[arg(long)]
     pub coverage_check: bool,
-    /// Override the dataset's noise floor (default: the one the model was fitted with).
+    /// Change the evaluation protocol: this noise floor instead of the dataset's.
     #[arg(long)]
     pub noise_floor: Option<f64>,
-    /// Judge the model by this version's defaults for the dataset rather than by the rules it
-    /// was fitted with (noise floor, exclusion radius, grazing limits, coverage check, laser
-    /// tolerance), which a model file records and `evaluate` otherwise uses.
-    #[arg(long)]
-    pub ignore_fit_record: bool,
     /// Where the model is compared with the pixels: at the mesh's vertices, or at surface points
     /// (the lattice points of level --surface-level on every face), which is where alpha finer
     /// than the mesh (a model's face lattice) can be judged: at vertices its detail is 0.
@@ -77,18 +76,28 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         args.frames.as_deref(),
         args.exclude_frames.as_deref(),
     )?;
-    let model = ModelFile::read(&args.model)
-        .with_context(|| format!("reading {}", args.model.display()))?;
-    // The model is judged on the terms it was fitted on (its file records them), unless told
-    // otherwise: explicit flags override single rules, --ignore-fit-record all of them.
-    let mut opts = PipelineOptions::for_dataset(&ds);
-    let record = model.fitted_with.filter(|_| !args.ignore_fit_record);
-    if let Some(r) = &record {
-        opts = opts.with_fit_record(r);
-    }
-    if let Some(f) = args.noise_floor {
-        opts = opts.with_noise_floor(f);
-    }
+    let read = |p: &PathBuf| ModelFile::read(p).with_context(|| format!("reading {}", p.display()));
+    let model = read(&args.model)?;
+    let against = args.against.as_ref().map(read).transpose()?;
+    // Every model of a dataset is judged by the dataset's protocol, never by its fit's options
+    // (docs/validation.md); flags change the protocol for every model alike.
+    let (mut opts, floor) = if args.noise_floor.is_some() && ds.spec.noise_floor.is_none() {
+        // The flag replaces the floor: nothing to measure.
+        let o = PipelineOptions::evaluation_protocol(&ds);
+        (o, subsurf::pipeline::NoiseFloor::default())
+    } else {
+        subsurf::pipeline::evaluation_protocol(&ds).context("the dataset's noise floor")?
+    };
+    let source = floor.source.clone();
+    let overridden =
+        args.noise_floor.is_some() || args.exclusion_radius.is_some() || args.coverage_check;
+    let source = match args.noise_floor {
+        Some(f) => {
+            opts = opts.with_noise_floor(f);
+            "--noise-floor".to_string()
+        }
+        None => source,
+    };
     if let Some(x) = args.exclusion_radius {
         opts.samples.exclusion_radius_mm = x;
     }
@@ -108,79 +117,28 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         budget: usize::try_from(args.memory.saturating_mul(1 << 20)).unwrap_or(usize::MAX),
         cache: args.cache.clone(),
     };
-    let (evals, stats) = evaluate_frames_stored(&ds, &model, &frames, &opts, points, &store, &bar)?;
+    let models: Vec<&ModelFile> = std::iter::once(&model).chain(against.as_ref()).collect();
+    let evals = evaluate_models_stored(&ds, &models, &frames, &opts, points, &store, &bar)?;
     bar.finish_and_clear();
-    let rgb = |v: [Option<f64>; 3]| v.map(|x| x.map_or(serde_json::Value::Null, |x| x.into()));
-    let evaluated = evals.iter().filter(|e| e.skipped.is_none()).count();
-    let local = subsurf::evaluate::local_share(&evals);
+    let protocol = Protocol::of(&opts, overridden, source, &model);
+    let report = EvaluateReport::new(
+        &ds,
+        &model,
+        &evals[0].0,
+        against
+            .as_ref()
+            .zip(evals.get(1))
+            .map(|(m, e)| (m, &e.0[..])),
+        points,
+        protocol,
+    );
+    if let Some(w) = report.in_sample_warning() {
+        eprintln!("{w}");
+    }
     if args.json {
-        let out = serde_json::json!({
-            "points": points,
-            "frames": evaluated,
-            "skipped": evals.len() - evaluated,
-            "mean_log_e": rgb(stats.mean),
-            "median_log_e": rgb(stats.median),
-            "local_share": local,
-            "options": {
-                "from_model_file": record.is_some(),
-                "noise_floor": opts.samples.noise_floor,
-                "exclusion_radius_mm": opts.samples.exclusion_radius_mm,
-                "cos_min": opts.samples.cos_min,
-                "coverage": opts.samples.coverage,
-                "laser_tolerance_mm": opts.spot.laser_tolerance_mm,
-                "spot_cos_min": opts.spot_cos_min,
-            },
-            "per_frame": evals,
-        });
-        println!("{out}");
+        println!("{}", serde_json::to_string(&report)?);
     } else {
-        let f = |v: Option<f64>| subsurf::report::fmt::opt(v, subsurf::report::fmt::log_e);
-        let at = match points {
-            EvalPoints::Vertices => "at the vertices".to_string(),
-            EvalPoints::Surface { level } => format!("at surface points of level {level}"),
-        };
-        println!(
-            "{evaluated} frames evaluated {at}, {} skipped",
-            evals.len() - evaluated
-        );
-        println!("            red      green    blue");
-        println!(
-            "mean log E  {:8} {:8} {:8}",
-            f(stats.mean[0]),
-            f(stats.mean[1]),
-            f(stats.mean[2])
-        );
-        println!(
-            "median      {:8} {:8} {:8}",
-            f(stats.median[0]),
-            f(stats.median[1]),
-            f(stats.median[2])
-        );
-        if let Some(l) = local {
-            println!(
-                "samples predicted by the vertices' own models: {:.1} % (the rest by the homogeneous baseline beyond their sampled range)",
-                100.0 * l
-            );
-        }
-        println!(
-            "options: {} (noise floor {:.3e}, exclusion radius {} mm, spot cos min {}, coverage check {})",
-            if record.is_some() {
-                "the model's fit's (its file's record)"
-            } else {
-                "this version's defaults for the dataset"
-            },
-            opts.samples.noise_floor,
-            opts.samples.exclusion_radius_mm,
-            opts.spot_cos_min,
-            if opts.samples.coverage { "on" } else { "off" }
-        );
-        for e in evals.iter().filter(|e| e.skipped.is_some()).take(10) {
-            println!(
-                "skipped frame {}: {}",
-                e.frame,
-                e.skipped.as_deref().unwrap_or("")
-            );
-        }
+        print!("{}", report.text());
     }
     Ok(())
 }

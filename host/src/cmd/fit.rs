@@ -111,8 +111,10 @@ pub struct Args {
     /// Eq. 6's upper threshold t1 as a share of each light position's brightest sample: brighter
     /// samples (near x_i, not yet multiple scattering) do not enter alpha ("inf", the default:
     /// none).
-    #[arg(long, default_value_t = subsurf::pipeline::ALPHA_T1_SHARE)]
-    pub alpha_t1_share: f64,
+    /// By default chosen per scan by cross-validation, none against 0.3
+    /// (`crossval::T1_CANDIDATE`); given, it is fixed.
+    #[arg(long)]
+    pub alpha_t1_share: Option<f64>,
     /// alpha finer than the mesh (section 5's "higher resolution texture"): `auto` estimates
     /// Eq. 6 per point of a per-face lattice whose level follows the pixel footprint (at most
     /// 8) and writes it (`face_alpha`) where the images show detail above the noise; a number
@@ -246,8 +248,18 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         PresetArg::Best => Some(Preset::Best),
     };
     let (mut opts, mut fit) = PipelineOptions::for_dataset(&ds).with_preset(preset);
-    if let Some(f) = args.noise_floor {
-        opts = opts.with_noise_floor(f);
+    // The dataset's floor (scan.json's, else measured from its frames) is the evaluation
+    // protocol's; --noise-floor changes only what this fit reads.
+    let all: Vec<usize> = (0..ds.spec.frames.len()).collect();
+    let mut floor = subsurf::pipeline::noise_floor(&ds, &all, false)
+        .with_context(|| format!("the noise floor of {}", args.scan.display()))?;
+    let protocol = PipelineOptions::evaluation_protocol(&ds).with_noise_floor(floor.value);
+    opts = opts.with_noise_floor(args.noise_floor.unwrap_or(floor.value));
+    if floor.measured.is_some() {
+        eprintln!(
+            "noise floor: {:.3e}, measured from the frames (scan.json gives none)",
+            floor.value
+        );
     }
     opts.samples.exclusion_radius_mm = args.exclusion_radius;
     opts.samples.coverage = args.coverage_check;
@@ -257,7 +269,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     opts.outlier_factor = args.outlier_factor;
     opts.alpha_rounds = args.alpha_rounds;
     opts.alpha_tolerance = args.alpha_tolerance;
-    opts.alpha_window.t1_share = args.alpha_t1_share;
+    opts.alpha_window.t1_share = args
+        .alpha_t1_share
+        .unwrap_or(subsurf::pipeline::ALPHA_T1_SHARE);
     opts.alpha_lattice = args.alpha_lattice;
     opts.alpha_shrinkage = args.alpha_shrinkage;
     opts.spot_cos_min = args.spot_cos_min;
@@ -293,6 +307,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         segments,
         rounds: true,
         patience: args.cv_patience,
+        t1: args.alpha_t1_share.is_none(),
     };
     match args.terms.as_deref() {
         None => {}
@@ -325,17 +340,31 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     } else {
         Some(mesh_check(&run, &frames, &args.scan)?)
     };
+    // The cross-validation's folds and --validate's held-out frames are judged by the dataset's
+    // evaluation protocol, whatever this fit's own sample rules (the run itself when they agree).
+    // A floor scan.json gives is checked against the frames while they are fresh (not when the
+    // samples came from a cache: nothing was read).
+    if ds.spec.noise_floor.is_some() && run.store().is_some_and(|s| !s.report().from_cache) {
+        if let Ok(checked) = subsurf::pipeline::noise_floor(&ds, &all, true) {
+            floor = checked;
+        }
+        if let Some(w) = &floor.warning {
+            eprintln!("warning: {w}");
+        }
+    }
+    let judge = subsurf::pipeline::judge_context(&run, &frames, Some(&protocol), &store, &bar)
+        .with_context(|| format!("reading the frames of {} to judge", args.scan.display()))?;
     let validation = if args.validate {
         let holdout = subsurf::validate::holdout(&ds, &frames);
-        let v = fit_scan_in(&run, &holdout.training, &cv, &fit, &bar)
+        let v = fit_scan_in(&run, &judge, &holdout.training, &cv, &fit, &bar)
             .with_context(|| format!("validation fit of {}", args.scan.display()))?;
-        let v = subsurf::validate::judge(&run, &v.model, holdout, v.report.log_e, &bar)
+        let v = subsurf::validate::judge(&judge, &v.model, holdout, v.report.log_e, &bar)
             .context("judging the validation fit on the held-out frames")?;
         Some(v)
     } else {
         None
     };
-    let out = fit_scan_in(&run, &frames, &cv, &fit, &bar)
+    let out = fit_scan_in(&run, &judge, &frames, &cv, &fit, &bar)
         .with_context(|| format!("fitting {}", args.scan.display()))?;
     bar.finish_and_clear();
     let report_dir = args.report.as_deref().and_then(std::path::Path::parent);
@@ -355,6 +384,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     json["model_bytes"] = bytes.into();
     json["model"] = args.out.display().to_string().into();
     json["fit_options"] = serde_json::to_value(&fit)?;
+    json["noise_floor"] = serde_json::to_value(&floor)?;
     if let Some(v) = &validation {
         json["validation"] = serde_json::to_value(v)?;
     }

@@ -561,6 +561,36 @@ fn is_camera_file_name(name: &str) -> bool {
 
 /// Parses a frame selection such as `3,17,40-59` into sorted, unique frame indices.
 pub fn parse_frame_list(s: &str) -> Result<Vec<usize>, String> {
+    parse_frame_list_checked(s)
+}
+
+/// The longest range a frame list may hold (a list read from a file must not allocate without
+/// bound): 16.7 million frames, decades of rig time.
+pub const MAX_FRAME_RANGE: usize = 1 << 24;
+
+/// Sorted, distinct frame indices as the ranges [`parse_frame_list`] reads, e.g. `0-95,104`.
+pub fn format_frame_list(frames: &[usize]) -> String {
+    let mut v = frames.to_vec();
+    v.sort_unstable();
+    v.dedup();
+    let mut parts = Vec::new();
+    let mut i = 0;
+    while i < v.len() {
+        let mut j = i;
+        while j + 1 < v.len() && v[j + 1] == v[j] + 1 {
+            j += 1;
+        }
+        parts.push(if j == i {
+            v[i].to_string()
+        } else {
+            format!("{}-{}", v[i], v[j])
+        });
+        i = j + 1;
+    }
+    parts.join(",")
+}
+
+fn parse_frame_list_checked(s: &str) -> Result<Vec<usize>, String> {
     let mut out = Vec::new();
     for part in s.split(',').map(str::trim).filter(|p| !p.is_empty()) {
         if let Some((a, b)) = part.split_once('-') {
@@ -574,6 +604,11 @@ pub fn parse_frame_list(s: &str) -> Result<Vec<usize>, String> {
                 .map_err(|_| format!("bad frame range {part:?}"))?;
             if b < a {
                 return Err(format!("empty frame range {part:?}"));
+            }
+            if b - a >= MAX_FRAME_RANGE {
+                return Err(format!(
+                    "frame range {part:?} spans more than {MAX_FRAME_RANGE} frames"
+                ));
             }
             out.extend(a..=b);
         } else {

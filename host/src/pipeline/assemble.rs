@@ -88,5 +88,6 @@ pub fn model_file(
         frame: crate::model::FrameRule::CURRENT,
         face_alpha: None,
         fitted_with: None,
+        fitted_frames: None,
     }
 }

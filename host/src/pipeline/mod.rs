@@ -23,6 +23,7 @@ pub mod fit;
 pub mod interpolate;
 pub mod lattice;
 pub mod load;
+pub mod noise;
 mod options;
 pub mod register;
 mod report;
@@ -111,6 +112,109 @@ pub fn prepare<'a>(
     let ctx = Context::new(ds, *opts)?;
     let points = extract::fit_points(&ctx, frames);
     let held = extract::extract(&ctx, frames, points, store, progress)?;
+    Ok(ctx.with_store(held))
+}
+
+/// A dataset's radiance noise floor and where it came from.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct NoiseFloor {
+    /// The floor the run uses.
+    pub value: f64,
+    /// Where it came from: `scan.json`, `measured` or a flag.
+    pub source: String,
+    /// The measurement, where one was made ([`noise::estimate`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub measured: Option<noise::NoiseEstimate>,
+    /// Set when a given floor and the measured one differ by more than a factor 2.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub warning: Option<String>,
+}
+
+/// The noise floor of `ds`: `scan.json`'s when it gives one (measured too when `check`, and a
+/// warning when the two differ by more than 2x), else measured from up to
+/// [`noise::MAX_FRAMES`] of `frames` ([`noise::estimate`]).
+pub fn noise_floor(
+    ds: &Dataset,
+    frames: &[usize],
+    check: bool,
+) -> Result<NoiseFloor, PipelineError> {
+    let measure = || -> Result<noise::NoiseEstimate, PipelineError> {
+        let scene = crate::geometry::Scene::new(ds.mesh.clone())?;
+        noise::estimate(ds, &scene, frames).map_err(|e| PipelineError::Invalid(e.to_string()))
+    };
+    match ds.spec.noise_floor {
+        Some(given) => {
+            let measured = if check { measure().ok() } else { None };
+            let warning = measured.as_ref().and_then(|m| {
+                let ratio = (m.floor.max(f64::MIN_POSITIVE) / given.max(f64::MIN_POSITIVE)).max(
+                    given.max(f64::MIN_POSITIVE) / m.floor.max(f64::MIN_POSITIVE),
+                );
+                (ratio > 2.0).then(|| {
+                    format!(
+                        "scan.json's noise_floor {given:.3e} and the one measured from the frames, {:.3e} (where the noise is 1/{} of the signal), differ by more than 2x: check the dataset's units or measure the camera's floor (docs/scan-format.md)",
+                        m.floor,
+                        noise::FLOOR_SNR
+                    )
+                })
+            });
+            Ok(NoiseFloor {
+                value: given,
+                source: "scan.json".into(),
+                measured,
+                warning,
+            })
+        }
+        None => {
+            let m = measure()?;
+            Ok(NoiseFloor {
+                value: m.floor,
+                source: "measured (none in scan.json)".into(),
+                measured: Some(m),
+                warning: None,
+            })
+        }
+    }
+}
+
+/// The evaluation protocol of `ds` ([`PipelineOptions::evaluation_protocol`]) with the dataset's
+/// noise floor: `scan.json`'s, else measured from its frames (all of them, whichever are judged,
+/// so every evaluation of the dataset has the same floor).
+pub fn evaluation_protocol(ds: &Dataset) -> Result<(PipelineOptions, NoiseFloor), PipelineError> {
+    let all: Vec<usize> = (0..ds.spec.frames.len()).collect();
+    let floor = noise_floor(ds, &all, false)?;
+    Ok((
+        PipelineOptions::evaluation_protocol(ds).with_noise_floor(floor.value),
+        floor,
+    ))
+}
+
+/// The context that judges the models of the run `run` on `frames` by the dataset's evaluation
+/// protocol ([`PipelineOptions::evaluation_protocol`], or `protocol` when given): the run itself
+/// when its samples were read by the protocol's rules (every fit with the default sample rules:
+/// nothing is read again), else a second pass over `frames` under the protocol's rules. The
+/// cross-validation's folds and `subsurf fit --validate` judge through it, so a fit's own
+/// exclusion radius, noise floor or grazing limits never change which samples judge its
+/// models.
+pub fn judge_context<'a>(
+    run: &Context<'a>,
+    frames: &[usize],
+    protocol: Option<&PipelineOptions>,
+    store: &StoreOptions,
+    progress: &dyn Progress,
+) -> Result<Context<'a>, PipelineError> {
+    let protocol = protocol
+        .copied()
+        .unwrap_or_else(|| PipelineOptions::evaluation_protocol(run.ds));
+    let opts = run.opts.judged_by(&protocol);
+    if opts.spot == run.opts.spot && opts.samples == run.opts.samples {
+        return run.with_options(opts);
+    }
+    let opts = PipelineOptions {
+        alpha_lattice: AlphaLattice::Off,
+        ..opts
+    };
+    let ctx = Context::new(run.ds, opts)?;
+    let held = extract::extract(&ctx, frames, None, store, progress)?;
     Ok(ctx.with_store(held))
 }
 
@@ -278,6 +382,7 @@ impl FitRounds<'_, '_> {
     fn finish(&self, figures: Figures) -> Result<FitOutput, PipelineError> {
         let setup = self.setup;
         let mut run = Setup {
+            frames: setup.frames.clone(),
             report: setup.report.clone(),
             regs: Vec::new(),
             groups: select::Groups::default(),
@@ -312,6 +417,8 @@ enum Figures {
 
 /// A run's registration and selection, before the fit.
 struct Setup {
+    /// The frames the fit was given (the model file records them).
+    frames: Vec<usize>,
     report: FitReport,
     regs: Vec<RegisteredFrame>,
     groups: select::Groups,
@@ -351,6 +458,7 @@ impl Setup {
         report.frames.pooling = groups.pooling;
         clock.lap("selection", &mut report);
         Ok(Setup {
+            frames: frames.to_vec(),
             report,
             regs,
             groups,
@@ -439,6 +547,7 @@ impl Setup {
         model.baseline = fitted.baseline.as_ref().map(|b| b.params.clone());
         model.face_alpha = lattice.face_alpha;
         model.fitted_with = Some(options::fit_record(opts));
+        model.fitted_frames = Some(self.frames.clone());
         report.model_size = assemble::model_size(&model, fitter.max_terms(), opts.model.segments);
         clock.lap("interpolate", report);
         report.peak_rss_mib = crate::util::peak_rss_mib();

@@ -17,17 +17,12 @@ pub struct ModelChoice {
 }
 
 /// Eq. 6's upper threshold t1 as a share of a light position's brightest sample (per channel,
-/// [`crate::model::IntensityWindow::for_light`]), by default none: t1 is meant to keep the near
-/// field of x_i (single scattering, first-surface light, "dominated by multiple scattering",
-/// section 4.2) out of alpha, but on every scan measured it either made no difference above the
-/// noise or made prediction worse, so it is off until a scan shows it pays (`--alpha-t1-share`).
-/// Held-out mean log E r / g / b, without t1 against share 0.3 / 0.1:
-/// sample-torus 0.385 / 0.568 / 0.360 against 0.385 / 0.564 / 0.357 and 0.392 / 0.570 / 0.356
-/// (0.03 and below left no sample in its window: its light positions span less than 1.5 decades
-/// above t2); sample-slab `--segments 8` 0.164 / 0.139 / 0.151 against 0.164 / 0.139 / 0.153;
-/// the anisotropic simulated slab of `fit_aniso` (red, m = 8) 0.232 against 0.343 with 0.3, its
-/// in-sample error 0.267 against 0.366 — in a simulation the near field is multiple scattering
-/// blurred by the pixels, and alpha needs it.
+/// [`crate::model::IntensityWindow::for_light`]) when none is chosen: none. t1 is meant to keep
+/// the near field of x_i (single scattering, first-surface light, "dominated by multiple
+/// scattering", section 4.2) out of alpha; whether that pays differs by scan, so `subsurf fit`
+/// chooses it per scan by cross-validation on the training frames, none against
+/// [`crate::crossval::T1_CANDIDATE`] (the evidence is there and in docs/validation.md);
+/// `--alpha-t1-share` fixes it.
 pub const ALPHA_T1_SHARE: f64 = f64::INFINITY;
 
 /// Every setting of the pipeline.
@@ -219,6 +214,30 @@ pub fn fit_record(opts: &PipelineOptions) -> crate::modelfile::FitRecord {
 }
 
 impl PipelineOptions {
+    /// The evaluation protocol of dataset `ds`: the rules every model of the dataset is judged
+    /// by (`subsurf evaluate`, the cross-validation's folds, `subsurf fit --validate`), whatever
+    /// options it was fitted with. The noise floor is the dataset's (Eq. 8's threshold t and
+    /// the samples kept), the exclusion radius around x_i, the samples' and the spot's grazing
+    /// limits and the laser cross-check are this version's defaults for the dataset. A fit's
+    /// options change the model, never which samples judge it: two models fitted with different
+    /// exclusion radii are compared on the same samples (docs/validation.md, "The evaluation
+    /// protocol").
+    pub fn evaluation_protocol(ds: &Dataset) -> PipelineOptions {
+        PipelineOptions::for_dataset(ds)
+    }
+
+    /// These options with the judging rules of `protocol` (sample rules, spot detection, the
+    /// spot's grazing limit, Eq. 8's threshold) and every fit setting of `self`.
+    pub fn judged_by(self, protocol: &PipelineOptions) -> PipelineOptions {
+        PipelineOptions {
+            spot: protocol.spot,
+            samples: protocol.samples,
+            spot_cos_min: protocol.spot_cos_min,
+            error_threshold: protocol.error_threshold,
+            ..self
+        }
+    }
+
     /// These options with the rules a model was fitted with ([`fit_record`]).
     pub fn with_fit_record(self, r: &crate::modelfile::FitRecord) -> PipelineOptions {
         let mut o = self.with_noise_floor(r.noise_floor);

@@ -67,8 +67,12 @@ pub fn too_grazing(ctx: &Context, reg: &RegisteredFrame) -> bool {
 /// be read.
 pub fn register_one(ctx: &Context, k: usize) -> Result<RegisteredFrame, String> {
     let outcome = ctx.register(k)?;
-    let reg = RegisteredFrame::of(ctx, k, &outcome)
-        .ok_or_else(|| format!("not registered: {outcome:?}"))?;
+    let reg = RegisteredFrame::of(ctx, k, &outcome).ok_or_else(|| {
+        format!(
+            "not registered: {}",
+            outcome.why_not().unwrap_or_else(|| format!("{outcome:?}"))
+        )
+    })?;
     if too_grazing(ctx, &reg) {
         return Err(format!(
             "spot seen at a grazing angle (cos θ below {})",

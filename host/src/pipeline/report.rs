@@ -203,6 +203,10 @@ pub struct CvReport {
     pub round0_reused: usize,
     /// Wall time of the cross-validation, seconds.
     pub seconds: f64,
+    /// The chosen settings' held-out log E per frame (r, g, b; `null` where a channel had no
+    /// sample), each frame judged by the fold fit that did not see it: what two fits' scores are
+    /// compared by, frame by frame and clustered by fold (docs/validation.md).
+    pub per_frame: std::collections::BTreeMap<usize, [Option<f64>; 3]>,
     /// Why no choice could be cross-validated, when none was (too few light positions to make
     /// folds): every choice then took its default.
     #[serde(skip_serializing_if = "Option::is_none")]

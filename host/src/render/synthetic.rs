@@ -92,6 +92,7 @@ pub fn from_field(
         frame: crate::model::FrameRule::CURRENT,
         face_alpha: None,
         fitted_with: None,
+        fitted_frames: None,
     }
 }
 

@@ -688,6 +688,7 @@ pub fn ground_truth_model(mesh: &crate::dataset::Mesh, field: &Field) -> ModelFi
         frame: crate::model::FrameRule::CURRENT,
         face_alpha: None,
         fitted_with: None,
+        fitted_frames: None,
     };
     if field.alpha_amplitude != 0.0 {
         m.face_alpha = true_face_alpha(&m, field);

@@ -1220,9 +1220,9 @@ pub(crate) fn fit_fixed(
             // the fine bins then take the last 1–2 steps (BENCHMARKS.md, "Third pass"). A
             // given start skips it (it is meant to be used as it is). Fast mode only: there it
             // finds the same minima (the 2,000 curves of the scipy comparison: mean log E equal
-            // to 7 digits), but as the exact fit's pre-fit it led the pipeline's per-vertex fits
-            // on sample-torus elsewhere (held-out log E r 0.386 -> 0.436), so the exact mode
-            // keeps the candidates ranked on the fine bins.
+            // to 7 digits), but as the exact fit's pre-fit it led some of the pipeline's
+            // per-vertex fits on sample-torus to other minima, so the exact mode keeps the
+            // candidates ranked on the fine bins (its result must not depend on a coarsening).
             let coarse_bins =
                 (given.is_none() && bins.is_some() && prefit_bins.len() >= COARSE_MIN_BINS)
                     .then(|| coarsen(&prefit_bins, COARSE_MERGE));

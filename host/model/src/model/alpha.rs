@@ -59,8 +59,9 @@ impl IntensityWindow {
 ///
 /// With per-sample log noise sigma, the mean of ln(s / R_d) over k samples has variance
 /// sigma^2 / k; weighting it against `p` pseudo-samples at 0 is the posterior mean under a
-/// N(0, sigma^2 / p) prior on ln alpha. Measured on sample-torus, where most texels are seen in
-/// one or two samples: held-out mean log E (green) 0.49 with no prior, 0.44 with 3.
+/// N(0, sigma^2 / p) prior on ln alpha. The fit's default estimates p from the data instead
+/// (the empirical-Bayes shrinkage, chosen by cross-validation on training frames:
+/// docs/validation.md); this constant is only its fallback where no texel was seen twice.
 pub const ALPHA_PRIOR: f64 = 1.0;
 
 /// Largest prior [`empirical_prior`] returns: the texture's spread is not above the noise, so

@@ -10,6 +10,9 @@ use crate::pipeline::{Context, LogEStats, PipelineError, PipelineOptions, regist
 use crate::progress::Progress;
 use crate::store::StorePoints;
 
+pub mod summary;
+pub use summary::{Clustering, Figures, Paired};
+
 /// Why a model cannot be evaluated on a dataset.
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -223,6 +226,13 @@ pub struct FrameEval {
     pub log_e: [Option<f64>; 3],
     /// Channel samples used.
     pub samples: u64,
+    /// Samples used per channel r, g, b (the weights of the sample-weighted mean,
+    /// [`summary::Figures`]).
+    pub channel_samples: [u64; 3],
+    /// The frame's light position x_i (mm, turntable frame), where it was registered: what
+    /// clusters the frames of a scan with one turntable angle ([`summary::Clustering`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub x_i: Option<[f64; 3]>,
     /// Share of the frame's samples the vertices' own models predicted, against the baseline
     /// they fall back to beyond their sampled range ([`ModelAt::local_share`], mean over the
     /// samples); `None` when none was compared.
@@ -279,14 +289,34 @@ pub fn evaluate_frames_stored(
     store: &StoreOptions,
     progress: &dyn Progress,
 ) -> Result<(Vec<FrameEval>, LogEStats), EvaluateError> {
-    check_mesh(ds, model)?;
+    let mut out = evaluate_models_stored(ds, &[model], frames, opts, at, store, progress)?;
+    Ok(out.remove(0))
+}
+
+/// [`evaluate_frames_stored`] for several models on the same frames, from one pass over them:
+/// every model judged on the same samples (`subsurf evaluate --against`).
+pub fn evaluate_models_stored(
+    ds: &Dataset,
+    models: &[&ModelFile],
+    frames: &[usize],
+    opts: &PipelineOptions,
+    at: EvalPoints,
+    store: &StoreOptions,
+    progress: &dyn Progress,
+) -> Result<Vec<(Vec<FrameEval>, LogEStats)>, EvaluateError> {
+    if models.is_empty() {
+        return Ok(Vec::new());
+    }
+    for m in models {
+        check_mesh(ds, m)?;
+    }
     let ctx = Context::new(ds, *opts)?;
     let points = match at {
         EvalPoints::Vertices => None,
         EvalPoints::Surface { level } => {
-            if model.triangles != ds.mesh.triangles {
+            if let Some(m) = models.iter().find(|m| m.triangles != ds.mesh.triangles) {
                 return Err(EvaluateError::FaceMismatch {
-                    model: model.triangles.len(),
+                    model: m.triangles.len(),
                     mesh: ds.mesh.triangles.len(),
                 });
             }
@@ -296,7 +326,21 @@ pub fn evaluate_frames_stored(
     };
     let held = crate::pipeline::extract::extract(&ctx, frames, points, store, progress)?;
     let ctx = ctx.with_store(held);
-    evaluate_in(&ctx, model, frames, at, progress)
+    models
+        .iter()
+        .map(|m| evaluate_in(&ctx, m, frames, at, progress))
+        .collect()
+}
+
+/// The judged frames `evals` of `model` split into those its fit never saw (first) and those
+/// it was fitted to (second: in-sample, optimistic), by the frames its file records
+/// ([`ModelFile::fitted_frames`]); a model without the record has every frame in the first.
+pub fn split_fitted(model: &ModelFile, evals: &[FrameEval]) -> (Vec<FrameEval>, Vec<FrameEval>) {
+    let fitted = model.fitted_frames.as_deref().unwrap_or(&[]);
+    evals
+        .iter()
+        .cloned()
+        .partition(|e| fitted.binary_search(&e.frame).is_err())
 }
 
 fn check_mesh(ds: &Dataset, model: &ModelFile) -> Result<(), EvaluateError> {
@@ -335,6 +379,8 @@ pub fn evaluate_in(
                 frame: k,
                 log_e: [None; 3],
                 samples: 0,
+                channel_samples: [0; 3],
+                x_i: None,
                 local_share: None,
                 skipped: Some(reason),
             })
@@ -397,6 +443,8 @@ fn evaluate_one(
         frame: k,
         log_e: acc.map(|a| a.log_e()),
         samples: acc.iter().map(|a| a.count).sum(),
+        channel_samples: acc.map(|a| a.count),
+        x_i: Some(x_i),
         local_share: (compared > 0).then(|| local / compared as f64),
         skipped: None,
     })
