@@ -21,7 +21,7 @@ use subsurf_firmware::FIRMWARE_VERSION;
 use subsurf_protocol::{
     Capture, Command, EventKind, FrameDecoder, GalvoPoint, HaltReason, MAX_FRAME, Move, MoveTarget,
     PROTOCOL_VERSION, ProgramChunk, ProgramHeader, Request, Response, RigError, RigMessage,
-    encode_request,
+    RigProfile, SaveError, encode_request,
 };
 
 struct Script {
@@ -170,6 +170,30 @@ fn scenario() -> Vec<u8> {
     s.send(4_500 * ms, 25, Command::Heartbeat);
     s.send(6_000 * ms, 26, Command::Heartbeat);
     s.send(6_000 * ms + 1, 27, Command::Status);
+    // Issue 38, finding B: lasers wired active low under the default (active-high) profile. The
+    // rig refuses to arm, so no laser command is accepted; wired right again, it arms.
+    s.record(6_010 * ms, KIND_LASER_WIRING, &[1]);
+    s.send(6_010 * ms + 1, 28, Command::Arm);
+    s.send(
+        6_010 * ms + 2,
+        29,
+        Command::Laser {
+            channel: 0,
+            on: true,
+        },
+    );
+    s.record(6_020 * ms, KIND_LASER_WIRING, &[0]);
+    s.send(6_020 * ms + 1, 30, Command::Arm);
+    s.send(6_020 * ms + 2, 31, Command::Disarm);
+    // Finding E: a save whose read-back fails is refused and changes nothing; the next one is
+    // acknowledged, and flash holds it.
+    let mut profile = RigProfile::DEFAULT;
+    profile.motor.microsteps = 32;
+    s.record(6_030 * ms, KIND_FAIL_SAVE, &[2]);
+    s.send(6_030 * ms + 1, 32, Command::SetProfile(profile));
+    s.send(6_030 * ms + 2, 33, Command::GetStoredProfile);
+    s.send(6_030 * ms + 3, 34, Command::SetProfile(profile));
+    s.send(6_030 * ms + 4, 35, Command::GetStoredProfile);
     s.bytes
 }
 
@@ -266,6 +290,18 @@ fn the_scenario_exercises_every_path_it_claims() {
         &reply(20)[..],
         [Err(RigError::UnknownVersion { .. })]
     ));
+    // A wrong laser polarity: no arming, no light (issue 38, B).
+    assert!(matches!(&reply(28)[..], [Err(RigError::LaserPolarity)]));
+    assert!(matches!(&reply(29)[..], [Err(RigError::NotArmed)]));
+    assert!(matches!(&reply(30)[..], [Ok(Response::Ack)]));
+    // A save is acknowledged only once flash reads it back (issue 38, E).
+    assert!(matches!(
+        &reply(32)[..],
+        [Err(RigError::ProfileNotSaved(SaveError::Verify))]
+    ));
+    assert!(matches!(&reply(33)[..], [Ok(Response::Profile(p))] if *p == RigProfile::DEFAULT));
+    assert!(matches!(&reply(34)[..], [Ok(Response::Ack)]));
+    assert!(matches!(&reply(35)[..], [Ok(Response::Profile(p))] if p.motor.microsteps == 32));
 
     let events: Vec<&EventKind> = messages
         .iter()

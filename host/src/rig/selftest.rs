@@ -1,12 +1,12 @@
 //! `subsurf rig selftest`: the bring-up check a user runs on a real bench, step by step.
 //!
 //! Each step talks to the rig through the ordinary [`RigClient`] and says PASS, FAIL or SKIP with
-//! what it measured: handshake, profile (stored on the rig, and the one the file says) and config
-//! read-back, a fault left from before (cleared only when the person says so), homing twice (the
-//! second homing reports where the new zero lay in the first one's coordinates), a move whose step
-//! count the home switch checks (not the rig's own counter), a capture whose trigger the camera's
-//! exposure-active output confirms (trigger loopback), a galvo sweep with a confirmed capture at
-//! each point, the enclosure interlock (seen open, arming refused), the laser cut with a laser
+//! what it measured: handshake, profile (stored on the rig, read back from its flash, and the one
+//! the file says) and config read-back, a fault left from before (cleared only when the person
+//! says so), homing twice (the second homing reports where the new zero lay in the first one's
+//! coordinates), a move whose step count the home switch checks (not the rig's own counter), a
+//! capture whose trigger the camera's exposure-active output confirms (trigger loopback), a galvo
+//! sweep with a confirmed capture at each point, the enclosure interlock (seen open, arming refused), the laser cut with a laser
 //! actually on (the person opens the interlock while it shines), and the e-stop.
 //!
 //! Nothing emits light before the person has agreed ([`Prompt::consent`]; `--yes` agrees in
@@ -215,7 +215,7 @@ pub fn run<L: ByteLink>(
             hello.protocol_version, v.major, v.minor, v.patch, hello.boot_nonce
         ),
     );
-    profile_read_back(rig, options, &mut s);
+    let polarity_ok = profile_read_back(rig, options, &mut s);
     s.result(
         "config read-back",
         rig.get_config()
@@ -230,15 +230,21 @@ pub fn run<L: ByteLink>(
     }
     motion(rig, prompt, options, &mut s);
     let caps = rig.hello().capabilities;
-    let consent = prompt.consent(&format!(
-        "The next steps switch laser channel {} on: captures at the centre and at four points \
+    let consent = polarity_ok
+        && prompt.consent(&format!(
+            "The next steps switch laser channel {} on: captures at the centre and at four points \
          of the galvo range (a quarter in from each end), then a laser held on while you open \
          the enclosure interlock. Is the beam path enclosed, or is everyone wearing eye \
          protection?",
-        options.channel
-    ));
+            options.channel
+        ));
     if consent {
         light(rig, prompt, options, &caps, &mut s);
+    } else if !polarity_ok {
+        s.skip_all(
+            &LIGHT_STEPS,
+            "the laser polarity does not match the wiring (see \"profile stored\")",
+        );
     } else {
         s.skip_all(
             &LIGHT_STEPS,
@@ -260,12 +266,15 @@ fn finish<L: ByteLink>(rig: &mut RigClient<L>) {
 }
 
 /// The profile the rig runs (valid, the file's) and whether it is stored at all: a board without
-/// one keeps its lasers and trigger high-impedance and refuses to arm.
+/// one keeps its lasers and trigger high-impedance and refuses to arm. Arming also checks the
+/// laser wiring against the profile's polarity, with no light (the board reads its undriven
+/// laser lines, which the wiring's resistors hold at their off level): returns `false` when the
+/// polarity is wrong, and the self-test then asks for no light at all.
 fn profile_read_back<L: ByteLink>(
     rig: &mut RigClient<L>,
     options: &SelftestOptions,
     s: &mut Steps,
-) {
+) -> bool {
     let profile = rig.get_profile().map_err(err);
     s.result(
         "profile read-back",
@@ -288,6 +297,7 @@ fn profile_read_back<L: ByteLink>(
         }),
     );
     // Arming emits nothing by itself; it is how the rig says whether it knows its wiring.
+    let mut polarity_ok = true;
     let stored = match rig.arm() {
         Ok(()) => Ok("stored: the lasers' and trigger's polarities are known".to_owned()),
         Err(RigClientError::Rejected {
@@ -299,6 +309,19 @@ fn profile_read_back<L: ByteLink>(
                    profile send`"
                 .to_owned(),
         ),
+        Err(RigClientError::Rejected {
+            error: RigError::LaserPolarity,
+            ..
+        }) => {
+            polarity_ok = false;
+            Err(
+                "the laser lines, undriven, sit at the level the profile calls \"on\": \
+                 laser.active_low is not the wiring's, or a pull resistor is missing (README, \
+                 laser wiring). The rig drives nothing and this self-test asks for no light; fix \
+                 the profile or the wiring and send the profile again"
+                    .to_owned(),
+            )
+        }
         Err(RigClientError::Rejected { error, .. }) => Ok(format!(
             "not checked: arming refused for another reason ({error:?})"
         )),
@@ -306,6 +329,26 @@ fn profile_read_back<L: ByteLink>(
     };
     let _ = rig.disarm();
     s.result("profile stored", stored);
+    // What flash holds, read from flash: the profile the next boot runs must be the one in force.
+    let in_flash = match (rig.get_stored_profile(), rig.get_profile()) {
+        (Ok(stored), Ok(running)) if stored == running => {
+            Ok("flash holds the profile in force: a reset keeps it".to_owned())
+        }
+        (Ok(stored), Ok(running)) => Err(format!(
+            "flash holds another profile than the one in force (a reset would bring it back): \
+             flash {stored:?}, running {running:?}; send yours again with `subsurf rig profile send`"
+        )),
+        (
+            Err(RigClientError::Rejected {
+                error: RigError::ProfileNotStored,
+                ..
+            }),
+            _,
+        ) => Err("flash holds no valid profile of this firmware's layout".to_owned()),
+        (Err(e), _) | (_, Err(e)) => Err(err(e)),
+    };
+    s.result("profile in flash", in_flash);
+    polarity_ok
 }
 
 /// A fault left from before the self-test: cleared only when the person says its cause is gone.
@@ -363,6 +406,9 @@ fn fault_cause(fault: Fault) -> &'static str {
         Fault::EmergencyStop => "the e-stop was pressed or its wire is broken",
         Fault::HomingFailed => "homing did not find the switch",
         Fault::StepStall => "the step generator ran dry mid-move: steps were lost",
+        Fault::StepLate => {
+            "the step interrupt ran later than one step period: a step may have been repeated"
+        }
         _ => "see `subsurf rig status`",
     }
 }
@@ -946,6 +992,41 @@ mod tests {
         );
         // The interlock is still checked (no light needed).
         assert_eq!(verdict(&r, "interlock"), Verdict::Pass);
+    }
+
+    /// Issue 38, finding B: a profile whose laser polarity is not the wiring's lit the laser at
+    /// every boot and at `profile send`. The self-test catches it with no light: the arming
+    /// check fails, and no light step asks for consent or switches a laser on.
+    #[test]
+    fn a_wrong_laser_polarity_fails_before_any_light_is_asked_for() {
+        let wrong = !RigProfile::DEFAULT.laser.active_low;
+        let (r, link, asked) = at_bench(
+            SimParams::default(),
+            |rig| rig.set_laser_wiring(wrong),
+            true,
+        );
+        assert_eq!(verdict(&r, "profile stored"), Verdict::Fail, "{r:#?}");
+        assert!(!r.passed());
+        assert!(
+            !asked.iter().any(|q| q.contains("eye protection")),
+            "consent asked: {asked:?}"
+        );
+        for step in LIGHT_STEPS {
+            assert_eq!(verdict(&r, step), Verdict::Skip, "{step}");
+        }
+        assert!(
+            link.rig().laser_log().iter().all(|e| e.value == 0),
+            "light with a wrong polarity: {:?}",
+            link.rig().laser_log()
+        );
+        // The same bench wired as the profile says passes that step.
+        let right = RigProfile::DEFAULT.laser.active_low;
+        let (r, _, _) = at_bench(
+            SimParams::default(),
+            |rig| rig.set_laser_wiring(right),
+            true,
+        );
+        assert_eq!(verdict(&r, "profile stored"), Verdict::Pass, "{r:#?}");
     }
 
     /// Finding 9: a fault from before the self-test was cleared without a word.

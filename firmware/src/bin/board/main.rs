@@ -8,8 +8,9 @@
 //! the trigger at off on each of them.
 //!
 //! Boot order: clocks, then the rig profile from flash (a memory-mapped read, no pin involved),
-//! then the laser and trigger pins, parked at the profile's off levels, or left high-impedance if
-//! no profile is stored (the wiring's pull resistors hold them off, whatever their polarity).
+//! then the laser and trigger timers set up for the profile's polarities. The pins themselves stay
+//! high-impedance, as at reset, until a window drives one to its active level (the wiring's pull
+//! resistors hold them off, whatever their polarity: `safety.rs`).
 //!
 //! Build: `cargo fw`; flash: `subsurf flash` (or `cargo fw-run` with the probe-rs CLI).
 #![no_std]
@@ -91,8 +92,8 @@ pub static RIG_ALIVE: AtomicU32 = AtomicU32::new(0);
 async fn main(spawner: Spawner) {
     let p = embassy_stm32::init(clock_config());
     let board = Board::new(p);
-    // The profile first: its laser and trigger polarities decide the pins' off levels. Until
-    // then (and for ever, with nothing stored) those pins stay inputs, as at reset.
+    // The profile first: its laser and trigger polarities decide how a window drives the pins.
+    // Outside a window (and for ever, with nothing stored) those pins stay inputs, as at reset.
     let store = Store::new(board.flash);
     let stored = rig::stored_profile(&store);
     let camera = CameraTiming::new(
@@ -242,7 +243,7 @@ fn clock_config() -> embassy_stm32::Config {
 
 /// Pets the independent watchdog while the rig task keeps looping (it wakes at least every
 /// [`rig::MAX_SLEEP`]); a stuck task or executor stops the petting and the chip resets with the
-/// lasers low.
+/// laser pins inputs (their reset state: off by the wiring's resistors).
 #[embassy_executor::task]
 async fn watchdog_task(mut watchdog: IndependentWatchdog<'static, peripherals::IWDG>) {
     let mut last = RIG_ALIVE.load(Ordering::Relaxed);
@@ -263,7 +264,7 @@ async fn watchdog_task(mut watchdog: IndependentWatchdog<'static, peripherals::I
     }
 }
 
-/// Lasers and trigger parked off and stepper stopped, then report the panic over defmt and fault
+/// Lasers and trigger parked (high-impedance) and stepper stopped, then report the panic over defmt and fault
 /// (probe-rs stops there with a backtrace; without a debugger the watchdog resets the chip).
 /// panic-probe is not used because it cannot switch the lasers off first.
 #[panic_handler]
@@ -276,7 +277,7 @@ fn panic(info: &core::panic::PanicInfo) -> ! {
 }
 
 /// Any fault (bad memory access, undefined instruction, the panic above): lasers and trigger
-/// parked off, stepper stopped, then wait for the watchdog reset.
+/// parked (high-impedance), stepper stopped, then wait for the watchdog reset.
 #[cortex_m_rt::exception]
 unsafe fn HardFault(_frame: &cortex_m_rt::ExceptionFrame) -> ! {
     force_lasers_off();

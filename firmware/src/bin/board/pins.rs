@@ -22,9 +22,9 @@
 //! | Exposure active       | PB6     | D10 (CN5)     | EXTI6, camera strobe output (required)       |
 //!
 //! Safety inputs are wired fail-safe: a broken wire reads as "pressed"/"open". Laser enables and the
-//! trigger are inputs (high-impedance) from reset until the stored profile says their polarity;
-//! the wiring's external resistors to each one's off level hold them off meanwhile, and for ever
-//! if no profile is stored (`outputs.rs`).
+//! trigger are inputs (high-impedance) whenever no window runs, from reset on: the wiring's
+//! external resistors, powered by the drivers and not by this board, hold each at its off level
+//! (`safety.rs`, README "Laser enables and trigger").
 use embassy_stm32::{Peri, Peripherals, peripherals as p};
 
 /// Every peripheral and pin the firmware uses, taken once from [`Peripherals`].

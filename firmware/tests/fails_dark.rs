@@ -1,0 +1,84 @@
+//! Issue 38, the board on a real bench, part two: what happens when something else fails (a wrong
+//! profile, a save that did not happen, a late step interrupt, an unconfigured board), each
+//! finding the simulator can show, in the simulator (the board-only ones are in
+//! `board_model.rs` and `pulse_train.rs`).
+
+use subsurf_firmware::sim::SimParams;
+use subsurf_protocol::*;
+
+mod common;
+use common::Host;
+
+// ---------------------------------------------------------------------------------------------
+// Finding B: a profile whose laser polarity is not the wiring's. The board reads its undriven
+// laser lines (the wiring's resistors hold them at the off level) and the core refuses to arm,
+// so nothing ever asks for light.
+
+#[test]
+fn a_wrong_laser_polarity_refuses_to_arm_and_no_laser_is_ever_driven() {
+    for stored_active_low in [false, true] {
+        let mut params = SimParams::default();
+        params.profile.laser.active_low = stored_active_low;
+        let mut h = Host::new(params);
+        h.sim
+            .rig_mut()
+            .hw_mut()
+            .set_laser_wiring(!stored_active_low);
+        assert_eq!(h.call(Command::Arm), Err(RigError::LaserPolarity));
+        assert_eq!(
+            h.call(Command::Laser {
+                channel: 0,
+                on: true
+            }),
+            Err(RigError::NotArmed)
+        );
+        assert!(
+            h.sim.hw().laser_log().entries().all(|e| e.value == 0),
+            "a laser was driven"
+        );
+        // Sending the wiring's polarity fixes it.
+        let mut right = params.profile;
+        right.laser.active_low = !stored_active_low;
+        assert_eq!(h.call(Command::SetProfile(right)), Ok(Response::Ack));
+        assert_eq!(h.call(Command::Arm), Ok(Response::Ack));
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Finding E: `SetProfile` was acknowledged before the flash write, and a failed write went only
+// to the board's log: after a reset the old profile (and its polarity) came back unannounced. The
+// reply now waits for the write and its read-back.
+
+#[test]
+fn a_save_is_acknowledged_only_once_flash_holds_it() {
+    let mut h = Host::new(SimParams::default());
+    let old = RigProfile::DEFAULT;
+    let mut new = old;
+    new.laser.active_low = !old.laser.active_low;
+    for error in [SaveError::Erase, SaveError::Program, SaveError::Verify] {
+        h.sim.rig_mut().hw_mut().fail_next_save(error);
+        assert_eq!(
+            h.call(Command::SetProfile(new)),
+            Err(RigError::ProfileNotSaved(error))
+        );
+        // Nothing changed: the profile in force is the one flash holds, the one a reset brings.
+        assert_eq!(h.call(Command::GetProfile), Ok(Response::Profile(old)));
+        assert_eq!(
+            h.call(Command::GetStoredProfile),
+            Ok(Response::Profile(old))
+        );
+    }
+    assert_eq!(h.sim.hw().saves(), 0);
+    assert_eq!(h.call(Command::SetProfile(new)), Ok(Response::Ack));
+    assert_eq!(h.sim.hw().saves(), 1);
+    assert_eq!(
+        h.call(Command::GetStoredProfile),
+        Ok(Response::Profile(new))
+    );
+    // A blank flash says so.
+    h.sim.rig_mut().hw_mut().erase_stored_profile();
+    assert_eq!(
+        h.call(Command::GetStoredProfile),
+        Err(RigError::ProfileNotStored)
+    );
+}
