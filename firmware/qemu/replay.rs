@@ -39,6 +39,9 @@ pub const KIND_ADVANCE: u8 = 5;
 pub const KIND_LASER_WIRING: u8 = 7;
 /// The next profile save fails: payload `[0]` erase, `[1]` program, `[2]` read-back.
 pub const KIND_FAIL_SAVE: u8 = 8;
+/// The board's step interrupt ran later than one period (its train stopped the timer): what the
+/// board's rig task tells the core (`Rig::handle_step_late`).
+pub const KIND_STEP_LATE: u8 = 9;
 
 /// Marks the start of the summary in the output.
 pub const SUMMARY_MAGIC: &[u8] = b"\0SUMMARY";
@@ -111,6 +114,11 @@ pub fn replay_observed(
                 rig.advance_to(time);
                 let active_low = payload.first().is_some_and(|&b| b != 0);
                 rig.rig_mut().hw_mut().set_laser_wiring(active_low);
+            }
+            KIND_STEP_LATE => {
+                rig.advance_to(time);
+                let now = rig.now();
+                rig.rig_mut().handle_step_late(now);
             }
             KIND_FAIL_SAVE => {
                 rig.advance_to(time);

@@ -708,6 +708,18 @@ impl<H: Hardware> Rig<H> {
         self.abort(now, HaltReason::StepStall, Halt::Emergency);
     }
 
+    /// The step interrupt ran later than one timer period (board: its hardware update count ran
+    /// ahead of the interrupts; Klipper's "Timer too close"), so a period may have repeated on
+    /// stale preloads: a step nobody counted. The board has stopped the timer; fault, stop
+    /// everything at once, forget `homed` and report [`HaltReason::StepLate`].
+    pub fn handle_step_late(&mut self, now: Micros) {
+        let now = self.advance(now);
+        self.fault = Some(Fault::StepLate);
+        self.homed = false;
+        self.rehoming = false;
+        self.abort(now, HaltReason::StepLate, Halt::Emergency);
+    }
+
     /// Time passed: count the steps emitted, plan more, run every capture phase, program capture
     /// and safety check due by `now`.
     pub fn handle_timeout(&mut self, now: Micros) {

@@ -82,3 +82,58 @@ fn a_save_is_acknowledged_only_once_flash_holds_it() {
         Err(RigError::ProfileNotStored)
     );
 }
+
+// ---------------------------------------------------------------------------------------------
+// Finding C: a step interrupt later than one period made the timer repeat a period, a step nobody
+// counted. The board's train detects it (`pulse_train.rs`, its test) and stops the timer; the
+// core then faults, stops the motion at once, forgets `homed` and reports it.
+
+#[test]
+fn a_late_step_interrupt_stops_the_motion_and_is_reported() {
+    let mut h = Host::new(SimParams::default());
+    assert_eq!(h.call(Command::Home), Ok(Response::Ack));
+    for _ in 0..200 {
+        let t = h.sim.now() + 100_000;
+        h.sim.advance_to(t);
+        h.collect();
+        h.call(Command::Heartbeat).unwrap();
+    }
+    assert!(
+        h.events
+            .iter()
+            .any(|e| matches!(e.kind, EventKind::Homed { .. }))
+    );
+    let mv = Command::Move(Move {
+        target: MoveTarget::Relative(8_000),
+        max_speed: 8_000,
+        accel: 40_000,
+    });
+    assert_eq!(h.call(mv), Ok(Response::Ack));
+    let t = h.sim.now() + 200_000;
+    h.sim.advance_to(t);
+    h.collect();
+    assert!(h.sim.rig().moving());
+    let now = h.sim.now();
+    h.sim.rig_mut().handle_step_late(now);
+    h.collect();
+    assert!(!h.sim.rig().moving(), "still moving");
+    assert_eq!(h.sim.rig().fault(), Some(Fault::StepLate));
+    assert!(h.events.iter().any(|e| matches!(
+        e.kind,
+        EventKind::Halted {
+            reason: HaltReason::StepLate
+        }
+    )));
+    let Ok(Response::Status(st)) = h.call(Command::Status) else {
+        panic!("status")
+    };
+    assert!(!st.homed);
+    assert_eq!(
+        h.call(Command::Move(Move {
+            target: MoveTarget::Absolute(0),
+            max_speed: 8_000,
+            accel: 40_000,
+        })),
+        Err(RigError::Faulted(Fault::StepLate))
+    );
+}

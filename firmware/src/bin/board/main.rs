@@ -83,6 +83,20 @@ const fn parse_baud(text: Option<&str>) -> u32 {
     value
 }
 
+/// Interrupt priorities (NVIC, 4 bits on the STM32F446; lower is more urgent). The step
+/// interrupt (TIM2, `stepper.rs`) alone at `P0`, as grbl keeps its step ISR above everything: it
+/// must write the next period's preloads within the running period (≥ 10 µs), and only a
+/// critical section can delay it now; TIM4's hardware count of its updates reports any delay
+/// beyond one period (`Fault::StepLate`). Then the safety cut-offs (e-stop, interlock and
+/// exposure EXTI lines, the light's deadline TIM5), the time driver (TIM12: it must run within
+/// half its 65.5 ms period), and the link's USART last (its FIFO-less receiver overruns after one
+/// character, 11 µs at 921600 baud, but a lost frame is retransmitted).
+pub const PRIO_SAFETY: interrupt::Priority = interrupt::Priority::P1;
+/// The time driver's interrupt.
+const PRIO_TIME: interrupt::Priority = interrupt::Priority::P2;
+/// The link's interrupt.
+const PRIO_LINK: interrupt::Priority = interrupt::Priority::P3;
+
 /// Watchdog timeout: a hung executor or a stalled rig task resets the chip after this long.
 const WATCHDOG_TIMEOUT_US: u32 = 500_000;
 /// Incremented by the rig task every loop; the watchdog task only pets while it moves.
@@ -91,6 +105,12 @@ pub static RIG_ALIVE: AtomicU32 = AtomicU32::new(0);
 #[embassy_executor::main]
 async fn main(spawner: Spawner) {
     let p = embassy_stm32::init(clock_config());
+    // The time driver's interrupt (TIM12 shares its vector with TIM8's break, unused), below the
+    // step and safety interrupts; see `PRIO_SAFETY`.
+    {
+        use embassy_stm32::interrupt::InterruptExt;
+        interrupt::TIM8_BRK_TIM12.set_priority(PRIO_TIME);
+    }
     let board = Board::new(p);
     // The profile first: its laser and trigger polarities decide how a window drives the pins.
     // Outside a window (and for ever, with nothing stored) those pins stay inputs, as at reset.
@@ -124,6 +144,7 @@ async fn main(spawner: Spawner) {
 
     let mut stepper = StepGen::new(
         board.step_timer,
+        board.step_counter,
         board.step,
         board.dir,
         board.enable,
@@ -173,6 +194,10 @@ async fn main(spawner: Spawner) {
         Irqs,
         link_config,
     ));
+    {
+        use embassy_stm32::interrupt::InterruptExt;
+        interrupt::USART2.set_priority(PRIO_LINK);
+    }
 
     let mut hardware = rig::Hardware::new(stepper, galvo, camera, store, lights_out, inputs);
     if let Some(profile) = stored {

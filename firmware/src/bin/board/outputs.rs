@@ -436,6 +436,7 @@ impl LightsOut {
             w.set_urs(Urs::COUNTER_ONLY);
         });
         t.dier().modify(|w| w.set_uie(true));
+        TIM5::set_priority(crate::PRIO_SAFETY);
         TIM5::unpend();
         // SAFETY: the handler is bound in `main`; it shares only atomics and registers.
         unsafe { TIM5::enable() };

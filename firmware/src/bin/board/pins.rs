@@ -33,6 +33,8 @@ pub struct Board {
     pub usart_tx: Peri<'static, p::PA2>,
     pub usart_rx: Peri<'static, p::PA3>,
     pub step_timer: Peri<'static, p::TIM2>,
+    /// Counts TIM2's update events (no pin): the step interrupt's overrun check.
+    pub step_counter: Peri<'static, p::TIM4>,
     pub step: Peri<'static, p::PA0>,
     pub dir: Peri<'static, p::PA1>,
     pub enable: Peri<'static, p::PB0>,
@@ -70,6 +72,7 @@ impl Board {
             usart_tx: p.PA2,
             usart_rx: p.PA3,
             step_timer: p.TIM2,
+            step_counter: p.TIM4,
             step: p.PA0,
             dir: p.PA1,
             enable: p.PB0,

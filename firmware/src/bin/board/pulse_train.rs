@@ -140,6 +140,11 @@ pub struct PulseTrain {
     /// Direction of the last queued step.
     last_forward: bool,
     stalls: u32,
+    /// Update events handled since the timer started (wrapping), to compare with the hardware's
+    /// own count ([`StepTimer::updates`]).
+    handled: u16,
+    /// Interrupts that came after the next update event had already happened.
+    overruns: u32,
 }
 
 impl Default for PulseTrain {
@@ -159,6 +164,9 @@ pub trait StepTimer {
     fn preload(&mut self, preload: Preload);
     /// Stop the counter.
     fn stop(&mut self);
+    /// Update events the hardware itself counted since the timer started, wrapping (the board:
+    /// TIM4 clocked by TIM2's update TRGO, RM0390 §17.3.15 "Timer synchronization").
+    fn updates(&mut self) -> u16;
 }
 
 /// The whole update interrupt: a period ended; count its step, set DIR for the period that
@@ -168,6 +176,17 @@ pub trait StepTimer {
 pub fn on_interrupt(train: &mut PulseTrain, timer: &mut impl StepTimer) -> Option<Update> {
     if !timer.take_update() {
         return None;
+    }
+    if !train.count_update(timer.updates()) {
+        // Later than one period: the timer already ran the next period on stale preloads (an
+        // extra, uncounted pulse, or a lost one). Klipper's "Timer too close": stop here; the rig
+        // task reports it and the core faults, position unknown.
+        timer.stop();
+        return Some(Update {
+            stepped: false,
+            dir: None,
+            preload: None,
+        });
     }
     let update = train.on_update();
     if let Some(forward) = update.dir {
@@ -194,7 +213,33 @@ impl PulseTrain {
             end_at: 0,
             last_forward: true,
             stalls: 0,
+            handled: 0,
+            overruns: 0,
         }
+    }
+
+    /// One more update event handled; `seen` is the hardware's count. `false` when the hardware
+    /// counted more: this interrupt ran after the following update event, so the period after it
+    /// ran on the preloads of the one before (counted as an overrun; the train stops).
+    pub fn count_update(&mut self, seen: u16) -> bool {
+        self.handled = self.handled.wrapping_add(1);
+        if seen == self.handled {
+            return true;
+        }
+        self.overruns = self.overruns.saturating_add(1);
+        false
+    }
+
+    /// Interrupts later than one period since the last call (and resets the count).
+    pub fn take_overruns(&mut self) -> u32 {
+        core::mem::take(&mut self.overruns)
+    }
+
+    /// Take the hardware's update count as handled (the board zeroes its counter when the timer
+    /// starts; a benchmark that raises updates without handling them syncs here).
+    #[allow(dead_code)] // the QEMU benchmark's
+    pub fn sync_updates(&mut self, seen: u16) {
+        self.handled = seen;
     }
 
     /// Whether the timer is counting.
@@ -401,6 +446,8 @@ impl PulseTrain {
             self.end_at += u64::from(BLANK_TICKS);
         }
         self.running = true;
+        // The caller zeroes the hardware's update count as it starts the timer.
+        self.handled = 0;
         Push::Start {
             dir: forward,
             first: self.preload_for(self.current),

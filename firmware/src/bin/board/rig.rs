@@ -294,6 +294,24 @@ fn run_due(rig: &mut Rig<Hardware>) {
     }
 }
 
+/// A step interrupt ran after the following update event (the train stopped the timer): the
+/// core faults with `StepLate`, clears `homed` and reports it (issue 38, C).
+fn check_overruns(rig: &mut Rig<Hardware>) {
+    let overruns = rig.hw_mut().stepper.take_overruns();
+    if overruns > 0 {
+        defmt::error!(
+            "step interrupt later than one period ({} times): stopped",
+            overruns
+        );
+        let now = now_us();
+        rig.hw_mut().now = now;
+        rig.handle_step_late(now);
+        if rig.hw().stepper.is_running() {
+            let _ = rig.hw_mut().flush();
+        }
+    }
+}
+
 /// Hand step stalls to the core (fault, emergency stop, `homed` cleared). Also a stall: the
 /// e-stop interrupt stopped the timer under a queued motion, or steps were held back, and the
 /// e-stop is released before the core saw it (a glitch): those steps would never be output.
@@ -398,6 +416,7 @@ pub async fn run(
         // Deadlines that came while we slept run first, each at its own time.
         run_due(rig);
         rig.hw_mut().camera.park_when_done();
+        check_overruns(rig);
         check_stalls(rig);
         match woke {
             Either3::First(Ok(n)) => {
