@@ -1315,6 +1315,11 @@ impl<H: Hardware> Rig<H> {
         if !self.inputs.interlock_closed {
             return Err(RigError::InterlockOpen);
         }
+        // No guessed mechanics (issue 38, G): the board keeps EN released until a profile is
+        // stored, so a motion now would only count steps nobody makes.
+        if !self.profile_known {
+            return Err(RigError::ProfileNotStored);
+        }
         Ok(())
     }
 

@@ -137,3 +137,52 @@ fn a_late_step_interrupt_stops_the_motion_and_is_reported() {
         Err(RigError::Faulted(Fault::StepLate))
     );
 }
+
+// ---------------------------------------------------------------------------------------------
+// Finding G: without a profile only `Arm` was refused; `Home` and `Move` ran on guessed
+// mechanics (and the board energised EN at boot). Now they are refused too, and the board keeps
+// EN released until a profile is stored and the e-stop reads closed (`rig::follow_enable`).
+
+#[test]
+fn an_unconfigured_rig_refuses_motion_until_a_profile_is_stored() {
+    use subsurf_firmware::Rig;
+    use subsurf_firmware::sim::SimHardware;
+    let params = SimParams::default();
+    let hw = SimHardware::new(params.profile, params.camera, 0, 40);
+    let mut rig = Rig::new_unconfigured(hw, Config::DEFAULT, 7, 0);
+    let mut seq = 0;
+    let mut call = |rig: &mut Rig<SimHardware>, command| {
+        seq += 1;
+        rig.handle_request(0, Request { seq, command });
+        let mut result = None;
+        while let Some(m) = rig.poll_message() {
+            if let RigMessage::Reply(r) = m {
+                result = Some(r.result);
+            }
+        }
+        result.expect("a reply")
+    };
+    call(
+        &mut rig,
+        Command::Hello {
+            protocol_version: PROTOCOL_VERSION,
+        },
+    )
+    .unwrap();
+    let mv = Command::Move(Move {
+        target: MoveTarget::Relative(100),
+        max_speed: 1_000,
+        accel: 10_000,
+    });
+    assert_eq!(
+        call(&mut rig, Command::Home),
+        Err(RigError::ProfileNotStored)
+    );
+    assert_eq!(call(&mut rig, mv.clone()), Err(RigError::ProfileNotStored));
+    assert_eq!(rig.hw().steps(), 0);
+    assert_eq!(
+        call(&mut rig, Command::SetProfile(RigProfile::DEFAULT)),
+        Ok(Response::Ack)
+    );
+    assert_eq!(call(&mut rig, mv), Ok(Response::Ack));
+}

@@ -467,7 +467,9 @@ pub enum RigError {
     },
     /// `Arm` before the rig knows its laser and trigger polarities: no valid profile is stored
     /// (a new board, or flash the firmware cannot read). The board keeps those pins
-    /// high-impedance until a profile is set with [`Command::SetProfile`] (version 4).
+    /// high-impedance until a profile is set with [`Command::SetProfile`] (version 4). Since
+    /// version 5 also `Home` and `Move` (the board keeps the motor driver's EN released), and
+    /// [`Command::GetStoredProfile`] with nothing stored.
     ProfileNotStored,
     /// `Arm` while a laser enable, undriven, sits at the level the profile calls "on": the
     /// wiring's resistor holds every line at its off level, so the profile's `laser.active_low`

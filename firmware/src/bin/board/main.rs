@@ -142,7 +142,7 @@ async fn main(spawner: Spawner) {
     watchdog.unleash();
     spawner.spawn(defmt::unwrap!(watchdog_task(watchdog)));
 
-    let mut stepper = StepGen::new(
+    let stepper = StepGen::new(
         board.step_timer,
         board.step_counter,
         board.step,
@@ -150,8 +150,9 @@ async fn main(spawner: Spawner) {
         board.enable,
         StepperIo::from(&profile.motor),
     );
-    // Holding torque from here on keeps the position.
-    stepper.set_enabled(true);
+    // EN stays released (no holding torque) until the rig task has a stored profile and reads
+    // the e-stop closed (`rig::follow_enable`): no motion on guessed mechanics, none before the
+    // e-stop input is even set up (issue 38, G).
     let galvo = Galvo::new(
         GalvoPins {
             spi: board.galvo_spi,

@@ -294,6 +294,20 @@ fn run_due(rig: &mut Rig<Hardware>) {
     }
 }
 
+/// Energise the motor driver only with a stored profile (its EN polarity and mechanics are the
+/// wiring's) and the e-stop reading closed; release it otherwise (issue 38, G). Holding torque
+/// keeps the position from then on; a press forgets it anyway (`homed` cleared).
+fn follow_enable(rig: &mut Rig<Hardware>) {
+    let want = rig.profile_known() && !sample_inputs().estop;
+    if rig.hw().stepper.energised() != want {
+        defmt::info!(
+            "motor driver {}",
+            if want { "energised" } else { "released" }
+        );
+        rig.hw_mut().stepper.set_enabled(want);
+    }
+}
+
 /// A step interrupt ran after the following update event (the train stopped the timer): the
 /// core faults with `StepLate`, clears `homed` and reports it (issue 38, C).
 fn check_overruns(rig: &mut Rig<Hardware>) {
@@ -416,6 +430,7 @@ pub async fn run(
         // Deadlines that came while we slept run first, each at its own time.
         run_due(rig);
         rig.hw_mut().camera.park_when_done();
+        follow_enable(rig);
         check_overruns(rig);
         check_stalls(rig);
         match woke {

@@ -254,6 +254,11 @@ impl StepGen {
         self.set_enabled(self.energised);
     }
 
+    /// Whether the motor driver is energised.
+    pub fn energised(&self) -> bool {
+        self.energised
+    }
+
     /// Energise (or release) the motor driver through EN.
     pub fn set_enabled(&mut self, on: bool) {
         self.energised = on;
