@@ -321,6 +321,25 @@ mod timed_exposure {
         ));
     }
 
+    /// Issue 38, finding J: `tail_us = 0` with `trigger_us = exposure_us` (a level-triggered
+    /// camera, no trigger latency) fell back to software edges; it is timed by the counters.
+    #[test]
+    fn a_trigger_as_long_as_the_window_is_timed_in_hardware() {
+        let m = Margins {
+            lead_us: 50,
+            trigger_latency_us: 0,
+            tail_us: 0,
+        };
+        assert!(plan(1_000, 1_000, m).is_ok());
+        check(1_000, 1_000, m);
+        check(20_000, 20_000, m);
+        // Longer than the window after it stays refused.
+        assert_eq!(
+            plan_window(50, 1_001, 1_000, 1_000),
+            Err(ExposureError::BadTrigger)
+        );
+    }
+
     #[test]
     fn exposures_below_the_hardware_minimum_are_refused() {
         assert_eq!(

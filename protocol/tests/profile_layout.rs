@@ -50,7 +50,7 @@ macro_rules! unsupported {
     )*};
 }
 
-impl<'a> ser::Serializer for &'a mut Shape {
+impl ser::Serializer for &mut Shape {
     type Ok = ();
     type Error = Unsupported;
     type SerializeSeq = ser::Impossible<(), Unsupported>;

@@ -111,6 +111,8 @@ async fn main(spawner: Spawner) {
         use embassy_stm32::interrupt::InterruptExt;
         interrupt::TIM8_BRK_TIM12.set_priority(PRIO_TIME);
     }
+    hardfault_runs_first();
+    ensure_brown_out_level();
     let board = Board::new(p);
     // The profile first: its laser and trigger polarities decide how a window drives the pins.
     // Outside a window (and for ever, with nothing stored) those pins stay inputs, as at reset.
@@ -212,6 +214,44 @@ async fn main(spawner: Spawner) {
     )));
 }
 
+/// FLASH_OPTCR.BOR_LEV for brown-out reset level 3 (RM0390 §3.7.1: 0b00 = level 3, 0b11 = off,
+/// the factory setting, which leaves only the power-on/power-down reset at about 1.7 V).
+const BOR_LEVEL_3: u8 = 0b00;
+
+/// Brown-out reset at level 3 (VBOR3, 2.70 V typical falling, STM32F446 datasheet "Embedded
+/// reset and power control block characteristics"): 168 MHz with 5 flash wait states is only
+/// specified for VDD 2.7–3.6 V (RM0390 Table 5, "Number of wait states according to CPU clock
+/// frequency"), and so is the ×32 erase the profile store uses. Below that the chip may execute
+/// garbage with the laser pins in any state, so it must be held in reset instead. The option byte
+/// is written here once per board (it survives resets, power cycles and reflashing), before the
+/// watchdog runs, and takes effect at the next reset; `defmt` logs the level at every boot.
+fn ensure_brown_out_level() {
+    let f = embassy_stm32::pac::FLASH;
+    let level = f.optcr().read().bor_lev();
+    if level == BOR_LEVEL_3 {
+        defmt::info!("brown-out reset at level 3 (2.7 V)");
+        return;
+    }
+    defmt::warn!(
+        "brown-out reset level {=u8} (BOR_LEV), not 3: programming the option byte",
+        level
+    );
+    cortex_m::interrupt::free(|_| {
+        while f.sr().read().bsy() {}
+        if f.optcr().read().optlock() {
+            f.optkeyr().write_value(0x0819_2A3B);
+            f.optkeyr().write_value(0x4C5D_6E7F);
+        }
+        f.optcr().modify(|w| w.set_bor_lev(BOR_LEVEL_3));
+        f.optcr().modify(|w| w.set_optstrt(true));
+        while f.sr().read().bsy() {}
+        f.optcr().modify(|w| w.set_optlock(true));
+    });
+    if f.optcr().read().bor_lev() != BOR_LEVEL_3 {
+        defmt::error!("brown-out level not programmed (option bytes locked?)");
+    }
+}
+
 /// Survives a reset (not a power cycle): counts resets, so the boot nonce differs after every
 /// watchdog or software reset even where RAM contents repeat.
 #[unsafe(link_section = ".uninit.BOOT_COUNT")]
@@ -304,12 +344,33 @@ fn panic(info: &core::panic::PanicInfo) -> ! {
 
 /// Any fault (bad memory access, undefined instruction, the panic above): lasers and trigger
 /// parked (high-impedance), stepper stopped, then wait for the watchdog reset.
+///
+/// Under a debug probe the pins are parked first too: the probe's vector catch on HardFault
+/// (DEMCR.VC_HARDERR, which `probe-rs run` sets) would halt the core *before* this handler, with a
+/// laser left on by its timer, so `main` clears it ([`hardfault_runs_first`]) and this handler
+/// breaks into the attached debugger itself once the pins are parked.
 #[cortex_m_rt::exception]
 unsafe fn HardFault(_frame: &cortex_m_rt::ExceptionFrame) -> ! {
     force_lasers_off();
     force_trigger_off();
     stepper::fault_stop();
+    // SAFETY: a read of the core's debug status register.
+    let debugger = unsafe { (*cortex_m::peripheral::DCB::PTR).dhcsr.read() } & 1 != 0;
+    if debugger {
+        cortex_m::asm::bkpt();
+    }
     loop {
         cortex_m::asm::nop();
+    }
+}
+
+/// Clear the debugger's vector catch on HardFault (DEMCR bit 10, VC_HARDERR; ARMv7-M ARM
+/// C1.6.5), so a fault always runs [`HardFault`], which parks the pins before it halts.
+fn hardfault_runs_first() {
+    // SAFETY: a read-modify-write of DEMCR at start-up, before any task runs; only the
+    // vector-catch bit changes.
+    unsafe {
+        let dcb = &*cortex_m::peripheral::DCB::PTR;
+        dcb.demcr.modify(|w| w & !(1 << 10));
     }
 }

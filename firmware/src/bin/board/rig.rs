@@ -230,6 +230,7 @@ impl ProfileStore for Hardware {
     /// again (no wear, no erase stall).
     fn store_profile(&mut self, profile: &RigProfile) -> Result<(), SaveError> {
         if stored_profile(&self.store).as_ref() == Some(profile) {
+            self.apply_profile(profile);
             return Ok(());
         }
         let mut buf = [0u8; crate::flash_record::MAX_PAYLOAD];
@@ -241,6 +242,9 @@ impl ProfileStore for Hardware {
         }
         if stored_profile(&self.store).as_ref() == Some(profile) {
             defmt::info!("rig profile stored in flash and read back");
+            // Applied now, before the core runs the next request of the same received chunk
+            // (it used to wait for the whole chunk: issue 38, J).
+            self.apply_profile(profile);
             Ok(())
         } else {
             defmt::error!("rig profile written but flash reads back another");
