@@ -186,12 +186,15 @@ const MOTION_STEPS: [&str; 4] = [
     "move seen",
     "step count by the home switch",
 ];
+/// The e-stop's cut with a laser on.
+const LASER_ESTOP: &str = "laser cut by the e-stop";
 /// The steps that emit light.
-const LIGHT_STEPS: [&str; 4] = [
+const LIGHT_STEPS: [&str; 5] = [
     "trigger and exposure-active loopback",
     "galvo sweep",
     "galvo sweep seen",
     "laser cut by the interlock",
+    LASER_ESTOP,
 ];
 
 /// Run the self-test; `progress` sees each step as it ends. Leaves the rig stopped, disarmed.
@@ -255,7 +258,7 @@ pub fn run<L: ByteLink>(
     if consent {
         laser_cut(rig, prompt, options, &mut s);
     }
-    estop(rig, prompt, &mut s);
+    estop(rig, prompt, options, consent, &mut s);
     finish(rig);
     s.report
 }
@@ -634,31 +637,48 @@ fn laser_cut<L: ByteLink>(
 
 /// Keep the link alive while the person acts; the rig's status once it halted for the interlock.
 fn watch_cut<L: ByteLink>(rig: &mut RigClient<L>, within: Duration) -> Result<Status, String> {
+    watch_halt(
+        rig,
+        within,
+        HaltReason::InterlockOpen,
+        "the interlock was not opened",
+        |st| !st.inputs.interlock_closed && st.lasers == 0,
+    )
+}
+
+/// Keep the link alive while the person acts; the rig's status once it halted for `reason` (or
+/// once its status shows `done`, should the halt event be lost).
+fn watch_halt<L: ByteLink>(
+    rig: &mut RigClient<L>,
+    within: Duration,
+    reason: HaltReason,
+    not_done: &str,
+    done: impl Fn(&Status) -> bool,
+) -> Result<Status, String> {
     let deadline = rig.link().now() + within;
     loop {
         let left = deadline.saturating_duration_since(rig.link().now());
         if left.is_zero() {
-            return Err(format!("the interlock was not opened within {within:?}"));
+            return Err(format!("{not_done} within {within:?}"));
         }
         match rig
             .next_event(left.min(Duration::from_millis(100)))
             .map_err(err)?
         {
             Some(e) => match e.kind {
-                EventKind::Halted {
-                    reason: HaltReason::InterlockOpen,
-                } => return rig.status().map_err(err),
-                EventKind::Halted { reason } => {
+                EventKind::Halted { reason: r } if r == reason => {
+                    return rig.status().map_err(err);
+                }
+                EventKind::Halted { reason: r } => {
                     return Err(format!(
-                        "the laser went off for another reason ({reason:?}) before the \
-                         interlock opened"
+                        "the laser went off for another reason ({r:?}) before the person acted"
                     ));
                 }
                 _ => {}
             },
             None => {
                 let st = rig.status().map_err(err)?;
-                if !st.inputs.interlock_closed && st.lasers == 0 {
+                if done(&st) {
                     // The halt event may have been lost; the status says the same.
                     return Ok(st);
                 }
@@ -759,12 +779,75 @@ fn capture_at<L: ByteLink>(
     ))
 }
 
-fn estop<L: ByteLink>(rig: &mut RigClient<L>, prompt: &mut dyn Prompt, s: &mut Steps) {
-    if !prompt.wait_for("Press the emergency stop, then press Enter") {
-        s.record("e-stop", Verdict::Skip, "nobody to press it".into());
-        return;
-    }
-    let pressed = rig.status().map_err(err);
+/// The e-stop; with consent to light, pressed while a laser shines (issue 38, J: the e-stop's cut
+/// was never seen with a laser on), the cut watched like the interlock's.
+fn estop<L: ByteLink>(
+    rig: &mut RigClient<L>,
+    prompt: &mut dyn Prompt,
+    options: &SelftestOptions,
+    light: bool,
+    s: &mut Steps,
+) {
+    let pressed = if light {
+        let instruction = format!(
+            "Laser {} comes ON now: press the emergency stop within {} s; the rig must switch \
+             it off at once",
+            options.channel,
+            options.act_within.as_secs()
+        );
+        if !prompt.tell(&instruction) {
+            s.record("e-stop", Verdict::Skip, "nobody to press it".into());
+            return;
+        }
+        // Events of the steps before (the interlock's halt) are not this step's.
+        while let Ok(Some(_)) = rig.next_event(Duration::ZERO) {}
+        let lit = rig
+            .arm()
+            .and_then(|()| rig.laser(options.channel, true))
+            .map_err(err);
+        if let Err(e) = lit {
+            let _ = rig.disarm();
+            s.record(
+                LASER_ESTOP,
+                Verdict::Fail,
+                format!("could not switch the laser on: {e}"),
+            );
+            return;
+        }
+        let outcome = watch_halt(
+            rig,
+            options.act_within,
+            HaltReason::EmergencyStop,
+            "the e-stop was not pressed",
+            |st| st.inputs.estop && st.lasers == 0,
+        );
+        let _ = rig.laser(options.channel, false);
+        let _ = rig.disarm();
+        s.result(
+            LASER_ESTOP,
+            outcome.clone().and_then(|st| {
+                if st.lasers != 0 {
+                    return Err(format!(
+                        "the e-stop is pressed but lasers {:#b} still emit",
+                        st.lasers
+                    ));
+                }
+                match prompt.confirm("Did the laser go off the moment the e-stop was pressed?") {
+                    Some(false) => Err("you saw it stay on: the laser is not switched by the \
+                                        rig's enable output"
+                        .to_owned()),
+                    _ => Ok("off when the e-stop was pressed".to_owned()),
+                }
+            }),
+        );
+        outcome
+    } else {
+        if !prompt.wait_for("Press the emergency stop, then press Enter") {
+            s.record("e-stop", Verdict::Skip, "nobody to press it".into());
+            return;
+        }
+        rig.status().map_err(err)
+    };
     match pressed {
         Ok(st) if st.inputs.estop && st.fault.is_some() && st.lasers == 0 => {
             s.record(
@@ -885,7 +968,9 @@ mod tests {
                 Act::Interlock(false)
             } else if instruction.starts_with("Close the enclosure interlock") {
                 Act::Interlock(true)
-            } else if instruction.starts_with("Press the emergency stop") {
+            } else if instruction.starts_with("Press the emergency stop")
+                || instruction.contains("press the emergency stop")
+            {
                 Act::Estop(true)
             } else if instruction.starts_with("Release the emergency stop") {
                 Act::Estop(false)
@@ -953,6 +1038,7 @@ mod tests {
         for step in [
             "interlock",
             "laser cut by the interlock",
+            LASER_ESTOP,
             "e-stop",
             "e-stop release",
             "step count by the home switch",
