@@ -6,8 +6,9 @@
 //! says so), homing twice (the second homing reports where the new zero lay in the first one's
 //! coordinates), a move whose step count the home switch checks (not the rig's own counter), a
 //! capture whose trigger the camera's exposure-active output confirms (trigger loopback), a galvo
-//! sweep with a confirmed capture at each point, the enclosure interlock (seen open, arming refused), the laser cut with a laser
-//! actually on (the person opens the interlock while it shines), and the e-stop.
+//! sweep with a confirmed capture at each point, the enclosure interlock (seen open, arming
+//! refused), the laser cut with a laser actually on (the person opens the interlock while it
+//! shines), and the e-stop (pressed while a laser shines, with consent to light).
 //!
 //! Nothing emits light before the person has agreed ([`Prompt::consent`]; `--yes` agrees in
 //! advance). Steps a person must watch or do ask through the [`Prompt`]; with no one to ask

@@ -140,9 +140,9 @@ pub struct PulseTrain {
     /// Direction of the last queued step.
     last_forward: bool,
     stalls: u32,
-    /// Update events handled since the timer started (wrapping), to compare with the hardware's
-    /// own count ([`StepTimer::updates`]).
-    handled: u16,
+    /// The hardware's update count ([`StepTimer::updates`]) at the end of the last interrupt;
+    /// `None` until the first interrupt after a start (no count to compare with yet).
+    last_seen: Option<u16>,
     /// Interrupts that came after the next update event had already happened.
     overruns: u32,
 }
@@ -177,17 +177,6 @@ pub fn on_interrupt(train: &mut PulseTrain, timer: &mut impl StepTimer) -> Optio
     if !timer.take_update() {
         return None;
     }
-    if !train.count_update(timer.updates()) {
-        // Later than one period: the timer already ran the next period on stale preloads (an
-        // extra, uncounted pulse, or a lost one). Klipper's "Timer too close": stop here; the rig
-        // task reports it and the core faults, position unknown.
-        timer.stop();
-        return Some(Update {
-            stepped: false,
-            dir: None,
-            preload: None,
-        });
-    }
     let update = train.on_update();
     if let Some(forward) = update.dir {
         timer.set_dir(forward);
@@ -195,6 +184,20 @@ pub fn on_interrupt(train: &mut PulseTrain, timer: &mut impl StepTimer) -> Optio
     match update.preload {
         Some(p) => timer.preload(p),
         None => timer.stop(),
+    }
+    // Read after the preloads are written: if the hardware counted the following update by now,
+    // this interrupt (or its preload write) came later than one period and the timer ran, or may
+    // have run, a period on stale preloads: an extra, uncounted pulse. Klipper's "Timer too
+    // close": stop here (and drop the flag that update raised); the rig task reports it and the
+    // core faults, position unknown.
+    if !train.count_update(timer.updates()) {
+        timer.stop();
+        let _ = timer.take_update();
+        return Some(Update {
+            stepped: update.stepped,
+            dir: None,
+            preload: None,
+        });
     }
     Some(update)
 }
@@ -213,21 +216,25 @@ impl PulseTrain {
             end_at: 0,
             last_forward: true,
             stalls: 0,
-            handled: 0,
+            last_seen: None,
             overruns: 0,
         }
     }
 
-    /// One more update event handled; `seen` is the hardware's count. `false` when the hardware
-    /// counted more: this interrupt ran after the following update event, so the period after it
-    /// ran on the preloads of the one before (counted as an overrun; the train stops).
+    /// One more update event handled; `seen` is the hardware's count at the end of this
+    /// interrupt. `false` when it moved by more than one since the last interrupt: the following
+    /// update came before this interrupt had written its preloads (counted as an overrun). The
+    /// first interrupt after a start only takes the count (a difference, not an absolute, so the
+    /// start's own update event and the slave counter's synchronisation delay do not matter).
     pub fn count_update(&mut self, seen: u16) -> bool {
-        self.handled = self.handled.wrapping_add(1);
-        if seen == self.handled {
-            return true;
+        let last = self.last_seen.replace(seen);
+        match last {
+            Some(prev) if seen.wrapping_sub(prev) != 1 => {
+                self.overruns = self.overruns.saturating_add(1);
+                false
+            }
+            _ => true,
         }
-        self.overruns = self.overruns.saturating_add(1);
-        false
     }
 
     /// Interrupts later than one period since the last call (and resets the count).
@@ -235,11 +242,11 @@ impl PulseTrain {
         core::mem::take(&mut self.overruns)
     }
 
-    /// Take the hardware's update count as handled (the board zeroes its counter when the timer
-    /// starts; a benchmark that raises updates without handling them syncs here).
+    /// Take the hardware's update count as the last one seen (a benchmark that raises updates
+    /// without handling them syncs here).
     #[allow(dead_code)] // the QEMU benchmark's
     pub fn sync_updates(&mut self, seen: u16) {
-        self.handled = seen;
+        self.last_seen = Some(seen);
     }
 
     /// Whether the timer is counting.
@@ -446,8 +453,8 @@ impl PulseTrain {
             self.end_at += u64::from(BLANK_TICKS);
         }
         self.running = true;
-        // The caller zeroes the hardware's update count as it starts the timer.
-        self.handled = 0;
+        // The hardware's update count is compared from the first interrupt on.
+        self.last_seen = None;
         Push::Start {
             dir: forward,
             first: self.preload_for(self.current),

@@ -286,9 +286,6 @@ impl StepGen {
                     tim.cnt().write_value(0);
                     // Load the preloads into the active registers (no interrupt: URS = counter only).
                     tim.egr().write(|w| w.set_ug(true));
-                    // The UG above was an update too: the hardware count starts here, at 0,
-                    // as the train's does.
-                    pac::TIM4.cnt().write(|w| w.set_cnt(0));
                     write_preload(next);
                     tim.ccmr_output(0).modify(|w| w.set_ocm(0, Ocm::PWM_MODE2));
                     tim.cr1().modify(|w| w.set_cen(true));
