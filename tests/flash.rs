@@ -227,6 +227,26 @@ fn sections_outside_flash_and_ram_are_refused() {
     }
 }
 
+/// Issue 38, finding I: code in the profile's flash sectors (0x0800_4000..0x0800_C000) would be
+/// overwritten by the next profile save, and flashing it would destroy the stored profile.
+#[test]
+fn sections_in_the_profile_sectors_are_refused() {
+    // Ending exactly where sector 1 starts is fine.
+    assert!(parse(&ElfSpec::firmware().moved(".text", 0x0800_3000)).is_ok());
+    for addr in [0x0800_3800, 0x0800_4000, 0x0800_bff0] {
+        match parse(&ElfSpec::firmware().moved(".text", addr)) {
+            Err(FlashError::OverlapsProfile {
+                section, address, ..
+            }) => {
+                assert_eq!(section, ".text");
+                assert_eq!(address, u64::from(addr));
+            }
+            other => panic!("{addr:#x}: expected OverlapsProfile, got {other:?}"),
+        }
+    }
+    assert!(parse(&ElfSpec::firmware().moved(".text", 0x0800_C000)).is_ok());
+}
+
 #[test]
 fn garbage_and_missing_files_are_refused() {
     let dir = tempfile::tempdir().expect("temp dir");

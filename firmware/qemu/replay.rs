@@ -14,7 +14,7 @@ use subsurf_firmware::Micros;
 use subsurf_firmware::sim::{SimParams, SimRig};
 use subsurf_protocol::{
     Capture, Command, GalvoPoint, MAX_FRAME, Move, MoveTarget, PROTOCOL_VERSION, Request,
-    encode_request,
+    SaveError, encode_request,
 };
 
 /// Seed and length of the pseudo-random session that follows the recorded script.
@@ -34,6 +34,14 @@ pub const KIND_INTERLOCK_OPEN: u8 = 3;
 pub const KIND_INTERLOCK_CLOSE: u8 = 4;
 /// Only let time pass.
 pub const KIND_ADVANCE: u8 = 5;
+/// Wire the simulated laser drivers: payload `[1]` active low, `[0]` active high (a profile that
+/// says otherwise has the wrong polarity).
+pub const KIND_LASER_WIRING: u8 = 7;
+/// The next profile save fails: payload `[0]` erase, `[1]` program, `[2]` read-back.
+pub const KIND_FAIL_SAVE: u8 = 8;
+/// The board's step interrupt ran later than one period (its train stopped the timer): what the
+/// board's rig task tells the core (`Rig::handle_step_late`).
+pub const KIND_STEP_LATE: u8 = 9;
 
 /// Marks the start of the summary in the output.
 pub const SUMMARY_MAGIC: &[u8] = b"\0SUMMARY";
@@ -102,6 +110,25 @@ pub fn replay_observed(
             KIND_INTERLOCK_OPEN => rig.set_interlock(time, false),
             KIND_INTERLOCK_CLOSE => rig.set_interlock(time, true),
             KIND_ADVANCE => rig.advance_to(time),
+            KIND_LASER_WIRING => {
+                rig.advance_to(time);
+                let active_low = payload.first().is_some_and(|&b| b != 0);
+                rig.rig_mut().hw_mut().set_laser_wiring(active_low);
+            }
+            KIND_STEP_LATE => {
+                rig.advance_to(time);
+                let now = rig.now();
+                rig.rig_mut().handle_step_late(now);
+            }
+            KIND_FAIL_SAVE => {
+                rig.advance_to(time);
+                let error = match payload.first() {
+                    Some(0) => SaveError::Erase,
+                    Some(1) => SaveError::Program,
+                    _ => SaveError::Verify,
+                };
+                rig.rig_mut().hw_mut().fail_next_save(error);
+            }
             _ => return Err(ScriptError::UnknownKind { at }),
         }
         rig.drain_frames(|frame| out(frame));

@@ -3,7 +3,7 @@
 //! decisions: the core tells them what to output and when, and they report back only what the
 //! hardware timestamped (camera edges) or could not do (steps discarded by a flush).
 
-use subsurf_protocol::{GalvoPoint, Inputs};
+use subsurf_protocol::{GalvoPoint, Inputs, RigProfile, SaveError};
 
 use crate::rig::Micros;
 
@@ -87,6 +87,13 @@ pub trait LaserOutputs {
     /// Drive the laser channels: bit `i` set = channel `i` emitting. Only the core's single safety
     /// gate calls this.
     fn set_lasers(&mut self, mask: u8);
+
+    /// Whether every wired laser enable, left undriven, sits at the off level of a profile with
+    /// `active_low`: the documented wiring holds each line at its off level by a resistor, so a
+    /// line at the other level means the profile's polarity is not the wiring's. The board reads
+    /// its parked pins; the core refuses to arm when this is `false`
+    /// ([`subsurf_protocol::RigError::LaserPolarity`]).
+    fn lines_idle_off(&mut self, active_low: bool) -> bool;
 }
 
 /// One capture's timed window, all times absolute rig µs: laser `channel_mask` on at
@@ -151,13 +158,25 @@ pub trait RigInputs {
     fn read_inputs(&mut self) -> Inputs;
 }
 
-/// Everything the rig needs; implemented automatically for any type with all six traits.
+/// Where the rig profile survives a reset (the board's flash).
+pub trait ProfileStore {
+    /// Store `profile` for the next boot, read it back and compare: `Ok` only when what the store
+    /// returns now is `profile`. Blocking: the core calls it only while the rig is idle with the
+    /// lasers off (an erase stalls every interrupt on the board), and replies to `SetProfile`
+    /// with its outcome.
+    fn store_profile(&mut self, profile: &RigProfile) -> Result<(), SaveError>;
+
+    /// The profile the store returns now (what the next boot runs), if a valid one.
+    fn stored_profile(&mut self) -> Option<RigProfile>;
+}
+
+/// Everything the rig needs; implemented automatically for any type with all seven traits.
 pub trait Hardware:
-    Stepper + GalvoDac + LaserOutputs + CameraTrigger + CameraInput + RigInputs
+    Stepper + GalvoDac + LaserOutputs + CameraTrigger + CameraInput + RigInputs + ProfileStore
 {
 }
 
-impl<T: Stepper + GalvoDac + LaserOutputs + CameraTrigger + CameraInput + RigInputs> Hardware
-    for T
+impl<T: Stepper + GalvoDac + LaserOutputs + CameraTrigger + CameraInput + RigInputs + ProfileStore>
+    Hardware for T
 {
 }

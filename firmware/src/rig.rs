@@ -327,8 +327,6 @@ pub struct Rig<H: Hardware> {
     boot_nonce: u32,
     /// A `Hello` succeeded since boot.
     session: bool,
-    /// The profile changed and the board should persist it ([`Rig::take_profile_to_persist`]).
-    profile_dirty: bool,
     /// The profile was stored (or set by the host): its laser and trigger polarities are the
     /// wiring's. Without one nothing may arm.
     profile_known: bool,
@@ -429,7 +427,6 @@ impl<H: Hardware> Rig<H> {
             config,
             boot_nonce,
             session: false,
-            profile_dirty: false,
             profile_known,
             decoder: FrameDecoder::new(),
             out: Deque::new(),
@@ -490,16 +487,6 @@ impl<H: Hardware> Rig<H> {
     /// The rig profile in force.
     pub fn profile(&self) -> &RigProfile {
         &self.profile
-    }
-
-    /// The profile, once after every accepted [`Command::SetProfile`], when the rig is idle with
-    /// the lasers off: the board writes it to flash so it survives a reset, blocking every
-    /// interrupt while the flash erases, so never while anything moves or emits.
-    pub fn take_profile_to_persist(&mut self) -> Option<RigProfile> {
-        if self.busy() || self.laser_output != 0 || !self.planner.idle() {
-            return None;
-        }
-        core::mem::take(&mut self.profile_dirty).then_some(self.profile)
     }
 
     /// Whether the profile in force was stored or set by the host (its polarities are the
@@ -719,6 +706,18 @@ impl<H: Hardware> Rig<H> {
         }
         self.fault = Some(Fault::StepStall);
         self.abort(now, HaltReason::StepStall, Halt::Emergency);
+    }
+
+    /// The step interrupt ran later than one timer period (board: its hardware update count ran
+    /// ahead of the interrupts; Klipper's "Timer too close"), so a period may have repeated on
+    /// stale preloads: a step nobody counted. The board has stopped the timer; fault, stop
+    /// everything at once, forget `homed` and report [`HaltReason::StepLate`].
+    pub fn handle_step_late(&mut self, now: Micros) {
+        let now = self.advance(now);
+        self.fault = Some(Fault::StepLate);
+        self.homed = false;
+        self.rehoming = false;
+        self.abort(now, HaltReason::StepLate, Halt::Emergency);
     }
 
     /// Time passed: count the steps emitted, plan more, run every capture phase, program capture
@@ -1167,11 +1166,26 @@ impl<H: Hardware> Rig<H> {
                 Ok(Response::Ack)
             }
             Command::GetProfile => Ok(Response::Profile(self.profile)),
+            Command::GetStoredProfile => self
+                .hw
+                .stored_profile()
+                .map(Response::Profile)
+                .ok_or(RigError::ProfileNotStored),
             Command::SetProfile(profile) => {
-                if self.busy() {
+                if self.busy() || !self.planner.idle() {
                     return Err(RigError::Busy);
                 }
                 profile.validate().map_err(RigError::BadProfile)?;
+                // Dark and disarmed before the write (an erase stalls every interrupt on the
+                // board), whatever its outcome; the reply waits for flash to read the profile
+                // back (issue 38, E): a failed save leaves the old profile in force, the one a
+                // reset would bring back.
+                self.armed = false;
+                self.lasers = 0;
+                self.sync_lasers();
+                self.hw
+                    .store_profile(&profile)
+                    .map_err(RigError::ProfileNotSaved)?;
                 if profile.galvo.output != self.profile.galvo.output {
                     let c = profile.galvo.output.center();
                     self.galvo = GalvoPoint { x: c, y: c };
@@ -1182,11 +1196,8 @@ impl<H: Hardware> Rig<H> {
                 self.caps = capabilities(&profile);
                 self.planner.set_min_gap_us(min_step_gap_us(&profile));
                 self.homed = false;
-                self.armed = false;
-                self.lasers = 0;
                 self.program.clear();
                 self.program_header = None;
-                self.profile_dirty = true;
                 Ok(Response::Ack)
             }
             Command::Home => self.start_home(now),
@@ -1208,6 +1219,10 @@ impl<H: Hardware> Rig<H> {
                 }
                 if !self.profile_known {
                     return Err(RigError::ProfileNotStored);
+                }
+                // A wrong polarity is caught here, before anything asks for light (issue 38, B).
+                if !self.hw.lines_idle_off(self.profile.laser.active_low) {
+                    return Err(RigError::LaserPolarity);
                 }
                 self.armed = true;
                 Ok(Response::Ack)
@@ -1299,6 +1314,11 @@ impl<H: Hardware> Rig<H> {
         self.check_not_faulted()?;
         if !self.inputs.interlock_closed {
             return Err(RigError::InterlockOpen);
+        }
+        // No guessed mechanics (issue 38, G): the board keeps EN released until a profile is
+        // stored, so a motion now would only count steps nobody makes.
+        if !self.profile_known {
+            return Err(RigError::ProfileNotStored);
         }
         Ok(())
     }

@@ -14,11 +14,11 @@
 //! for the window's exposure; it can be told to miss triggers.
 
 use heapless::{Deque, HistoryBuf};
-use subsurf_protocol::{Config, GalvoPoint, Inputs, MAX_FRAME, RigProfile};
+use subsurf_protocol::{Config, GalvoPoint, Inputs, MAX_FRAME, RigProfile, SaveError};
 
 use crate::hal::{
-    CameraEdge, CameraInput, CameraTrigger, ExposureWindow, GalvoDac, LaserOutputs, RigInputs,
-    StepSegment, Stepper,
+    CameraEdge, CameraInput, CameraTrigger, ExposureWindow, GalvoDac, LaserOutputs, ProfileStore,
+    RigInputs, StepSegment, Stepper,
 };
 use crate::rig::{Micros, Rig};
 
@@ -187,6 +187,15 @@ pub struct SimHardware {
     min_step_interval_us: Option<Micros>,
     galvo: GalvoPoint,
     lasers: u8,
+    /// How the simulated laser drivers are wired, when it differs from the profile's claim
+    /// (`None`: as the profile says).
+    laser_wired_active_low: Option<bool>,
+    /// The simulated flash: the profile a reset would bring back.
+    stored: Option<RigProfile>,
+    /// The next saves fail so (a worn or locked flash), oldest first.
+    failing_saves: Deque<SaveError, 4>,
+    /// Profile saves that completed.
+    saves: u32,
     trigger: bool,
     estop: bool,
     interlock_closed: bool,
@@ -233,6 +242,10 @@ impl SimHardware {
             min_step_interval_us: None,
             galvo: GalvoPoint { x: c, y: c },
             lasers: 0,
+            laser_wired_active_low: None,
+            stored: Some(profile),
+            failing_saves: Deque::new(),
+            saves: 0,
             trigger: false,
             estop: false,
             interlock_closed: true,
@@ -288,6 +301,27 @@ impl SimHardware {
     /// Press or release the emergency stop (tell the rig with [`SimRig::set_estop`]).
     pub fn set_estop(&mut self, pressed: bool) {
         self.estop = pressed;
+    }
+
+    /// Wire the simulated laser drivers active low or high, whatever the profile says (a profile
+    /// with the wrong polarity: the rig must refuse to arm).
+    pub fn set_laser_wiring(&mut self, active_low: bool) {
+        self.laser_wired_active_low = Some(active_low);
+    }
+
+    /// Make the next profile save fail with `error` (and the one after, if called again).
+    pub fn fail_next_save(&mut self, error: SaveError) {
+        let _ = self.failing_saves.push_back(error);
+    }
+
+    /// Profile saves that completed (flash writes).
+    pub fn saves(&self) -> u32 {
+        self.saves
+    }
+
+    /// Forget the stored profile (a blank flash).
+    pub fn erase_stored_profile(&mut self) {
+        self.stored = None;
     }
 
     /// Close or open the enclosure interlock.
@@ -473,6 +507,31 @@ impl LaserOutputs for SimHardware {
         }
         self.lasers = mask;
         self.laser_log.push(self.clock, mask);
+    }
+
+    fn lines_idle_off(&mut self, active_low: bool) -> bool {
+        self.laser_wired_active_low
+            .is_none_or(|wired| wired == active_low)
+    }
+}
+
+impl ProfileStore for SimHardware {
+    fn store_profile(&mut self, profile: &RigProfile) -> Result<(), SaveError> {
+        // The board's erase stalls every interrupt: never while anything moves or shines.
+        if self.lasers != 0 || !self.step_queue.is_empty() {
+            self.violation();
+        }
+        if let Some(error) = self.failing_saves.pop_front() {
+            // A failed erase or write leaves no readable new record; the old one stays.
+            return Err(error);
+        }
+        self.stored = Some(*profile);
+        self.saves = self.saves.saturating_add(1);
+        Ok(())
+    }
+
+    fn stored_profile(&mut self) -> Option<RigProfile> {
+        self.stored
     }
 }
 

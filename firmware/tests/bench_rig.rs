@@ -321,15 +321,15 @@ fn profile_is_validated_applied_and_handed_to_flash() {
         h.call(Command::SetProfile(bad)),
         Err(RigError::BadProfile(ProfileError::StepTiming))
     );
-    assert_eq!(h.sim.rig_mut().take_profile_to_persist(), None);
+    assert_eq!(h.sim.hw().saves(), 0);
     let mut p = RigProfile::DEFAULT;
     p.motor.microsteps = 32;
     p.laser.channels = 1;
     p.galvo = RigProfile::INTERNAL_DAC;
     h.home();
     assert_eq!(h.call(Command::SetProfile(p)), Ok(Response::Ack));
-    assert_eq!(h.sim.rig_mut().take_profile_to_persist(), Some(p));
-    assert_eq!(h.sim.rig_mut().take_profile_to_persist(), None);
+    assert_eq!(h.sim.hw().saves(), 1);
+    assert_eq!(h.call(Command::GetStoredProfile), Ok(Response::Profile(p)));
     let s = h.status();
     assert!(!s.homed, "new mechanics: home again");
     assert_eq!(s.galvo, GalvoPoint { x: 2048, y: 2048 });

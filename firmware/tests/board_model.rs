@@ -321,6 +321,25 @@ mod timed_exposure {
         ));
     }
 
+    /// Issue 38, finding J: `tail_us = 0` with `trigger_us = exposure_us` (a level-triggered
+    /// camera, no trigger latency) fell back to software edges; it is timed by the counters.
+    #[test]
+    fn a_trigger_as_long_as_the_window_is_timed_in_hardware() {
+        let m = Margins {
+            lead_us: 50,
+            trigger_latency_us: 0,
+            tail_us: 0,
+        };
+        assert!(plan(1_000, 1_000, m).is_ok());
+        check(1_000, 1_000, m);
+        check(20_000, 20_000, m);
+        // Longer than the window after it stays refused.
+        assert_eq!(
+            plan_window(50, 1_001, 1_000, 1_000),
+            Err(ExposureError::BadTrigger)
+        );
+    }
+
     #[test]
     fn exposures_below_the_hardware_minimum_are_refused() {
         assert_eq!(
@@ -485,8 +504,9 @@ mod profile_flash {
         assert_eq!(f.latest(), Some(&b"p"[..]));
     }
 
-    /// What the board does with a profile the host sets, and reads back after a reset: postcard
-    /// into a record, the newest valid record out; a record of another format version is skipped.
+    /// What the board does with a profile the host sets, and reads back after a reset: its
+    /// layout key and postcard bytes into a record, the newest valid record out; a record of
+    /// another format version is skipped.
     #[test]
     fn rig_profile_survives_the_record_round_trip() {
         use subsurf_protocol::{GalvoOutput, RigProfile};
@@ -495,18 +515,68 @@ mod profile_flash {
         profile.motor.step_pulse_us = 8;
         profile.galvo.output = GalvoOutput::InternalDac12;
         let mut buf = [0u8; MAX_PAYLOAD];
-        let bytes = postcard::to_slice(&profile, &mut buf).unwrap();
+        let bytes = encode_profile(&profile, &mut buf).unwrap();
         let mut f = Flash::blank();
         f.save(bytes);
-        let back: RigProfile = postcard::from_bytes(f.latest().unwrap()).unwrap();
+        let back = decode_profile(f.latest().unwrap()).unwrap();
         assert_eq!(back, profile);
-        assert!(back.validate().is_ok());
         // A newer firmware's record (version + 1, a higher sequence) is not misread as this
         // version's profile.
         let (p, mut rec) = f.plan(b"future");
         rec[4] = rec[4].wrapping_add(1);
         f.program(p.sector, p.at, &rec);
         assert_eq!(f.latest(), Some(bytes as &[u8]));
+    }
+
+    /// Issue 38, finding F: a record of another profile layout, or with bytes after the profile,
+    /// is no profile, never a misread one.
+    #[test]
+    fn another_layout_or_trailing_bytes_read_as_no_profile() {
+        use subsurf_protocol::RigProfile;
+        let profile = RigProfile::DEFAULT;
+        let mut buf = [0u8; MAX_PAYLOAD];
+        let bytes = encode_profile(&profile, &mut buf).unwrap().to_vec();
+        assert_eq!(bytes[..4], RigProfile::LAYOUT.to_le_bytes());
+        assert_eq!(decode_profile(&bytes), Some(profile));
+        // The same bytes under another layout key (a firmware whose RigProfile differs).
+        let mut other = bytes.clone();
+        other[0] ^= 1;
+        assert_eq!(decode_profile(&other), None);
+        // Trailing bytes: postcard's `from_bytes` accepts them, the board does not.
+        let mut longer = bytes.clone();
+        longer.push(0);
+        assert!(postcard::from_bytes::<RigProfile>(&longer[4..]).is_ok());
+        assert_eq!(decode_profile(&longer), None);
+        // A record of the old format (version 2: postcard bytes with no key) is skipped whole.
+        let mut f = Flash::blank();
+        let old = postcard::to_slice(&profile, &mut buf).unwrap().to_vec();
+        let (p, mut rec) = f.plan(&old);
+        rec[4..6].copy_from_slice(&2u16.to_le_bytes());
+        let body = HEADER_LEN + old.len();
+        let crc = crc::Crc::<u32>::new(&crc::CRC_32_ISO_HDLC).checksum(&rec[..body]);
+        rec[body..body + 4].copy_from_slice(&crc.to_le_bytes());
+        f.program(p.sector, p.at, &rec);
+        assert_eq!(
+            scan(&f.sectors[p.sector]).latest,
+            None,
+            "a version-2 record read"
+        );
+        assert_eq!(f.latest(), None);
+        // The same record with this version's number would have been read (the CRC is right).
+        rec[4..6].copy_from_slice(&RECORD_VERSION.to_le_bytes());
+        let crc = crc::Crc::<u32>::new(&crc::CRC_32_ISO_HDLC).checksum(&rec[..body]);
+        rec[body..body + 4].copy_from_slice(&crc.to_le_bytes());
+        let mut g = Flash::blank();
+        g.program(p.sector, p.at, &rec);
+        assert_eq!(g.latest(), Some(&old[..]));
+        assert_eq!(decode_profile(&old), None, "no key: not a profile");
+        // Shorter than a key, or a valid key over an invalid profile.
+        assert_eq!(decode_profile(&bytes[..3]), None);
+        let mut bad = profile;
+        bad.laser.channels = 0;
+        let mut buf = [0u8; MAX_PAYLOAD];
+        let bad = encode_profile(&bad, &mut buf).unwrap();
+        assert_eq!(decode_profile(bad), None);
     }
 
     #[test]
@@ -624,112 +694,174 @@ mod cut_off {
         );
     }
 
-    /// The old cut-off always wrote the pin's reset bit (low): for an active-low laser driver that
-    /// switched the laser ON. The inactive level follows the polarity.
     #[test]
-    fn cut_off_drives_the_inactive_level_for_either_polarity() {
-        assert_eq!(bsrr_inactive(8, false), 1 << 24); // BR8: low
-        assert_eq!(bsrr_inactive(8, true), 1 << 8); // BS8: high = off for active-low
-        assert_eq!(bsrr_inactive(9, false), 1 << 25);
-    }
-
-    #[test]
-    fn cut_off_takes_the_pin_back_from_the_timer() {
-        // PC6, PC8, PC9 in alternate function (timer-driven) → general-purpose output.
+    fn the_cut_off_is_one_moder_write_to_input_whatever_the_pin_did() {
+        // PC6, PC8, PC9 in alternate function (timer-driven) or output → input, others kept.
         let af = |m, p| moder_with(m, p, PinMode::Alternate);
-        let out = |m, p| moder_with(m, p, PinMode::Output);
-        let moder = af(af(af(0, 6), 8), 9);
-        assert_eq!(
-            out(out(out(moder, 6), 8), 9),
-            (0b01 << 12) | (0b01 << 16) | (0b01 << 18)
-        );
-        assert_eq!(out(u32::MAX, 3), !(0b10 << 6));
-        assert_eq!(moder_with(u32::MAX, 3, PinMode::Input), !(0b11 << 6));
+        // PC6 a general-purpose output (0b01), PC0 too.
+        let moder = af(af((0b01 << 12) | 0b01, 8), 9);
+        assert_eq!(park(park(park(moder, 6), 8), 9), 0b01);
+        assert_eq!(park(u32::MAX, 3), !(0b11 << 6));
+        assert_eq!(PARKED, PinMode::Input);
     }
 
-    /// A GPIO pin and what a laser driver wired to it sees: driven by ODR in output mode,
-    /// high-impedance as an input (the wiring's resistor then pulls it to the driver's off level),
-    /// the timer's level in alternate-function mode (here: the timer's idle output, inactive).
-    struct Pin {
+    /// A laser enable line as the documented wiring makes it: the board's pin (MODER, OTYPER, the
+    /// output data register, the timer channel's output in alternate-function mode) and the
+    /// wiring's resistor, which pulls the line to the driver's off level when nothing drives it.
+    /// A push-pull pin drives both levels; an open-drain pin only pulls low.
+    #[derive(Clone, Copy)]
+    struct Line {
         moder: u32,
+        otype: OutputType,
         odr_high: bool,
+        /// The timer channel's output level (after its polarity bit).
+        timer_high: bool,
+        /// How the laser driver is wired (its resistor holds the opposite level).
+        wired_active_low: bool,
     }
 
     const PIN: u8 = 6;
 
-    impl Pin {
-        fn at_reset() -> Self {
+    impl Line {
+        fn at_reset(wired_active_low: bool) -> Self {
             Self {
                 moder: 0,
+                otype: OutputType::PushPull,
                 odr_high: false,
+                timer_high: false,
+                wired_active_low,
             }
         }
-        fn bsrr(&mut self, word: u32) {
-            if word & (1 << PIN) != 0 {
-                self.odr_high = true;
-            }
-            if word & (1 << (PIN + 16)) != 0 {
-                self.odr_high = false;
+        fn mode(&self) -> u32 {
+            (self.moder >> (2 * PIN)) & 0b11
+        }
+        /// The line's level: the pin's output where it drives, else the resistor's.
+        fn high(&self) -> bool {
+            let resistor_high = self.wired_active_low;
+            let out = match self.mode() {
+                0b01 => Some(self.odr_high),
+                0b10 => Some(self.timer_high),
+                _ => None,
+            };
+            match (out, self.otype) {
+                (None, _) => resistor_high,
+                (Some(level), OutputType::PushPull) => level,
+                (Some(false), OutputType::OpenDrain) => false,
+                (Some(true), OutputType::OpenDrain) => resistor_high,
             }
         }
-        /// Whether the driver (active low or high) sees "on".
-        fn on(&self, wired_active_low: bool) -> bool {
-            match (self.moder >> (2 * PIN)) & 0b11 {
-                // Input: the external resistor holds the off level.
-                0b00 => false,
-                0b01 => self.odr_high != wired_active_low,
-                _ => false,
-            }
-        }
-        fn apply(&mut self, park: Park, wired_active_low: bool, steps: &mut Vec<bool>) {
-            if let Some(word) = park.bsrr {
-                self.bsrr(word);
-                steps.push(self.on(wired_active_low));
-            }
-            self.moder = moder_with(self.moder, PIN, park.mode);
-            steps.push(self.on(wired_active_low));
+        /// Whether the driver emits.
+        fn on(&self) -> bool {
+            self.high() != self.wired_active_low
         }
     }
 
-    /// Finding 1: from reset until the profile is known, and at every fault after, a laser pin is
-    /// never on, whichever polarity the driver is wired with: high-impedance while unknown, then
-    /// parked at the known profile's inactive level (data register before mode).
+    /// What the board does to one laser pin over a boot and one timed window, per its stored
+    /// polarity (`outputs.rs`, as `safety.rs` decides it), with every line level it goes through.
+    /// Returns (line "on" outside the window, line "on" inside it).
+    fn boot_and_window(stored_active_low: bool, wired_active_low: bool) -> (Vec<bool>, Vec<bool>) {
+        let polarity = Polarity::from_active_low(stored_active_low);
+        let mut line = Line::at_reset(wired_active_low);
+        let mut outside = vec![line.on()];
+        // Boot: the profile is read; the pins are parked and their output stage chosen.
+        line.moder = park(line.moder, PIN);
+        line.otype = output_type(polarity).expect("known polarity");
+        outside.push(line.on());
+        // The timer channel idles inactive (its polarity bit applied).
+        line.timer_high = stored_active_low;
+        // Arming and every connection read the parked line first.
+        let idle_ok = idles_off(polarity, line.high());
+        let mut inside = Vec::new();
+        if idle_ok {
+            // The window: forced active, connected, "inactive on match" at the end.
+            line.timer_high = !stored_active_low;
+            line.moder = moder_with(line.moder, PIN, PinMode::Alternate);
+            inside.push(line.on());
+            line.timer_high = stored_active_low;
+            inside.push(line.on());
+        }
+        // The timers stopped: parked (as every fault path does, at any moment).
+        line.moder = park(line.moder, PIN);
+        outside.push(line.on());
+        // A fault path in the middle of a window parks the same way: nothing to know.
+        if idle_ok {
+            line.timer_high = !stored_active_low;
+            line.moder = moder_with(line.moder, PIN, PinMode::Alternate);
+            inside.push(line.on());
+            line.moder = park(line.moder, PIN);
+            outside.push(line.on());
+        }
+        (outside, inside)
+    }
+
+    /// Issue 38, finding B: a stored polarity that is not the wiring's gives no light at all,
+    /// neither at boot, nor in a window, nor at any fault; the right one gives light only inside
+    /// its window.
     #[test]
-    fn laser_pins_are_off_from_reset_for_either_polarity() {
+    fn a_wrong_polarity_gives_no_light() {
+        for stored in [false, true] {
+            for wired in [false, true] {
+                let (outside, inside) = boot_and_window(stored, wired);
+                assert!(
+                    outside.iter().all(|on| !on),
+                    "stored active-low {stored}, wired {wired}: light outside a window {outside:?}"
+                );
+                if stored == wired {
+                    assert_eq!(inside.first(), Some(&true), "no light in the window");
+                } else {
+                    assert!(
+                        inside.iter().all(|on| !on),
+                        "stored active-low {stored}, wired {wired}: light {inside:?}"
+                    );
+                }
+            }
+        }
+    }
+
+    /// The idle check is what stops the push-pull case: without it an "active high" profile on an
+    /// active-low driver lights the laser at the window's end, when the timer drives low.
+    #[test]
+    fn without_the_idle_check_an_active_high_profile_lights_an_active_low_driver() {
+        let mut line = Line::at_reset(true);
+        assert!(!idles_off(Polarity::ActiveHigh, line.high()));
+        line.otype = output_type(Polarity::ActiveHigh).unwrap();
+        line.moder = moder_with(line.moder, PIN, PinMode::Alternate);
+        line.timer_high = false;
+        assert!(line.on());
+        // Open-drain cannot drive the off level of an active-low line, so an "active low"
+        // profile on an active-high driver stays dark even unchecked.
+        let mut line = Line::at_reset(false);
+        line.otype = output_type(Polarity::ActiveLow).unwrap();
+        line.moder = moder_with(line.moder, PIN, PinMode::Alternate);
+        for timer_high in [false, true] {
+            line.timer_high = timer_high;
+            assert!(!line.on());
+        }
+    }
+
+    /// Finding 1 (issue 26): from reset until the profile is known, and at every fault after, a
+    /// laser pin is never on, whichever polarity the driver is wired with, and none is known.
+    #[test]
+    fn laser_pins_are_off_from_reset_with_no_profile() {
         for wired_active_low in [false, true] {
-            let mut pin = Pin::at_reset();
-            let mut seen = vec![pin.on(wired_active_low)];
-            // Boot with nothing stored: parked (a fault path, or `configure` never called).
-            pin.apply(park(PIN, Polarity::Unknown), wired_active_low, &mut seen);
-            // The stored (right) profile is read: parked at its inactive level.
-            pin.apply(
-                park(PIN, Polarity::from_active_low(wired_active_low)),
-                wired_active_low,
-                &mut seen,
-            );
-            // A fault path parks again.
-            pin.apply(
-                park(PIN, Polarity::from_active_low(wired_active_low)),
-                wired_active_low,
-                &mut seen,
-            );
-            assert!(
-                seen.iter().all(|on| !on),
-                "wired active-{}: {seen:?}",
-                if wired_active_low { "low" } else { "high" }
-            );
+            let mut line = Line::at_reset(wired_active_low);
+            assert!(!line.on());
+            line.moder = park(line.moder, PIN);
+            assert!(!line.on());
+            assert_eq!(output_type(Polarity::Unknown), None);
+            assert!(!idles_off(Polarity::Unknown, line.high()));
         }
     }
 
-    /// What the old boot did, in the same model: parked at the *default* polarity (active high:
-    /// drive low) before the stored profile was read. For an active-low driver that is "on" until
-    /// the profile is applied: light at every boot.
+    /// What issue 26's cut-off did, in the same model: it drove the *stored* off level, push-pull.
+    /// With the wrong polarity stored that is "on": the light of finding B.
     #[test]
-    fn the_old_boot_order_lit_active_low_lasers() {
-        let mut pin = Pin::at_reset();
-        let mut seen = Vec::new();
-        pin.apply(park(PIN, Polarity::ActiveHigh), true, &mut seen);
-        assert!(seen.iter().any(|&on| on), "{seen:?}");
+    fn the_old_cut_off_lit_a_wrongly_stored_polarity() {
+        let mut line = Line::at_reset(true);
+        // Stored active high: "off" = drive low.
+        line.odr_high = false;
+        line.moder = 0b01 << (2 * PIN);
+        assert!(line.on());
     }
 }
 

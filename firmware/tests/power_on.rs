@@ -312,22 +312,33 @@ fn a_rig_without_a_stored_profile_refuses_light_until_one_is_set() {
 }
 
 // ---------------------------------------------------------------------------------------------
-// Finding 2: a profile save blocks every interrupt while the flash erases, so the core hands
-// the profile to the board only while nothing moves or emits.
+// Finding 2: a profile save blocks every interrupt while the flash erases, so the core stores
+// the profile only while nothing moves or emits (since issue 38, E: inside `SetProfile`, which a
+// moving rig refuses).
 
 #[test]
 fn the_profile_is_persisted_only_while_idle_and_dark() {
     let mut h = Host::new(SimParams::default());
     let mut p = RigProfile::DEFAULT;
     p.motor.microsteps = 32;
-    assert_eq!(h.call(Command::SetProfile(p)), Ok(Response::Ack));
-    // A move right after (before the board's loop came round to storing it).
     h.call(move_by(2_000)).unwrap();
-    assert_eq!(h.sim.rig_mut().take_profile_to_persist(), None);
+    assert_eq!(h.call(Command::SetProfile(p)), Err(RigError::Busy));
+    assert_eq!(h.sim.hw().saves(), 0);
     h.advance(2_000_000);
     assert!(!h.sim.rig().moving());
-    assert_eq!(h.sim.rig_mut().take_profile_to_persist(), Some(p));
-    assert_eq!(h.sim.rig_mut().take_profile_to_persist(), None);
+    // Armed with a laser on: the save switches it off and disarms first.
+    h.call(Command::Arm).unwrap();
+    h.call(Command::Laser {
+        channel: 0,
+        on: true,
+    })
+    .unwrap();
+    assert_ne!(h.sim.hw().lasers(), 0);
+    assert_eq!(h.call(Command::SetProfile(p)), Ok(Response::Ack));
+    assert_eq!(h.sim.hw().saves(), 1);
+    assert_eq!(h.sim.hw().lasers(), 0);
+    assert_eq!(h.sim.hw().violations(), 0, "stored while moving or lit");
+    assert!(!h.status().armed);
 }
 
 // ---------------------------------------------------------------------------------------------

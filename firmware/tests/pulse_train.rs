@@ -37,6 +37,8 @@ struct Tim {
     uif: bool,
     out: bool,
     dir: bool,
+    /// Update events since the start (the board's TIM4 clocked by TIM2's update).
+    updates: u16,
 }
 
 impl Tim {
@@ -47,6 +49,7 @@ impl Tim {
         self.cnt = 0;
         self.out = false;
         self.cen = true;
+        self.updates = 0;
     }
 }
 
@@ -67,6 +70,9 @@ impl StepTimer for Regs<'_> {
         self.0.cen = false;
         self.0.out = false;
     }
+    fn updates(&mut self) -> u16 {
+        self.0.updates
+    }
 }
 
 #[derive(Debug, Default)]
@@ -85,6 +91,8 @@ struct Run {
     stopped_at: Option<u64>,
     /// Steps that could not be placed on schedule.
     stalls: u32,
+    /// Interrupts that came after the following update event (the train stopped).
+    overruns: u32,
     /// Times the feeding task woke with something to queue.
     wakes: u64,
     /// Segments queued.
@@ -153,6 +161,7 @@ fn simulate(
                 tim.arr = tim.arr_pre;
                 tim.ccr = tim.ccr_pre;
                 tim.uif = true;
+                tim.updates = tim.updates.wrapping_add(1);
                 isr_at = Some(next + isr_latency(next));
             } else {
                 tim.cnt += dt;
@@ -172,6 +181,7 @@ fn simulate(
             isr_at = None;
             run.interrupts += 1;
             if let Some(u) = on_interrupt(&mut train, &mut Regs(&mut tim)) {
+                run.overruns += train.take_overruns();
                 run.counted += u64::from(u.stepped);
                 if u.preload.is_none() {
                     run.stopped_at = Some(t);
@@ -346,6 +356,53 @@ fn moves_back_and_forth_keep_direction_and_dir_set_up() {
     assert_exact(&motions, &run, DEFAULT_PULSE_US);
 }
 
+/// Issue 38, finding C: an interrupt later than one period. TIM2 preloads its period, so the
+/// period after the missed update repeats the stale preload: a pulse nobody counts, and the
+/// position (counted by time) is off without a word. The hardware's own update count (TIM4 on
+/// TIM2's update) exposes it, and the train stops at once (Klipper's "Timer too close").
+#[test]
+fn an_interrupt_later_than_one_period_stops_the_train_and_is_reported() {
+    let motions = [MotionSpec {
+        start_us: 2_000,
+        steps: 3_000,
+        speed: 40_000,
+        accel: 400_000,
+        forward: true,
+    }];
+    // Up to 4 µs late (less than the 25 µs period at 40 kHz): no overrun, every step exact.
+    let run = simulate(&motions, DEFAULT_PULSE_US, 5, &|_| 100, &|t| (t % 5) * T);
+    assert_eq!(run.overruns, 0);
+    assert_exact(&motions, &run, DEFAULT_PULSE_US);
+    // Once, 60 µs late (more than two periods at cruise), 50 ms into the move: the train stops
+    // on that interrupt and reports it; no step is emitted after it.
+    let late_at = 52_000 * T;
+    let once = std::cell::Cell::new(false);
+    let isr_latency = |t: u64| {
+        if t >= late_at && !once.replace(true) {
+            60 * T
+        } else {
+            T
+        }
+    };
+    let run = simulate(&motions, DEFAULT_PULSE_US, 5, &|_| 100, &isr_latency);
+    assert_eq!(run.overruns, 1, "the late interrupt was not reported");
+    let stopped = run.stopped_at.expect("the timer stopped");
+    assert!(
+        stopped >= late_at && stopped <= late_at + 100 * T,
+        "stopped at {stopped}, late at {late_at}"
+    );
+    assert!(run.edges.iter().all(|&(t, _)| t <= stopped));
+    assert!(run.edges.len() < 3_000);
+    // The same lateness without the check is silent: the hardware emitted more pulses than the
+    // interrupt counted.
+    let emitted_before_stop = run.edges.len() as u64;
+    assert!(
+        emitted_before_stop > run.counted,
+        "{emitted_before_stop} pulses, {} counted: nothing was lost",
+        run.counted
+    );
+}
+
 #[test]
 fn feeder_late_by_more_than_the_horizon_is_a_stall() {
     // At 40 kHz the task misses one wake by 30 ms: the timer runs dry mid-motion. The train
@@ -443,6 +500,7 @@ fn flush_accounts_for_every_step() {
                     tim.cnt = 0;
                     (tim.arr, tim.ccr) = (tim.arr_pre, tim.ccr_pre);
                     tim.uif = true;
+                    tim.updates = tim.updates.wrapping_add(1);
                     isr_at = Some(next + 2 * T);
                 } else {
                     tim.cnt += dt;

@@ -21,7 +21,7 @@ use subsurf_firmware::FIRMWARE_VERSION;
 use subsurf_protocol::{
     Capture, Command, EventKind, FrameDecoder, GalvoPoint, HaltReason, MAX_FRAME, Move, MoveTarget,
     PROTOCOL_VERSION, ProgramChunk, ProgramHeader, Request, Response, RigError, RigMessage,
-    encode_request,
+    RigProfile, SaveError, encode_request,
 };
 
 struct Script {
@@ -170,6 +170,47 @@ fn scenario() -> Vec<u8> {
     s.send(4_500 * ms, 25, Command::Heartbeat);
     s.send(6_000 * ms, 26, Command::Heartbeat);
     s.send(6_000 * ms + 1, 27, Command::Status);
+    // Issue 38, finding B: lasers wired active low under the default (active-high) profile. The
+    // rig refuses to arm, so no laser command is accepted; wired right again, it arms.
+    s.record(6_010 * ms, KIND_LASER_WIRING, &[1]);
+    s.send(6_010 * ms + 1, 28, Command::Arm);
+    s.send(
+        6_010 * ms + 2,
+        29,
+        Command::Laser {
+            channel: 0,
+            on: true,
+        },
+    );
+    s.record(6_020 * ms, KIND_LASER_WIRING, &[0]);
+    s.send(6_020 * ms + 1, 30, Command::Arm);
+    s.send(6_020 * ms + 2, 31, Command::Disarm);
+    // Finding E: a save whose read-back fails is refused and changes nothing; the next one is
+    // acknowledged, and flash holds it.
+    let mut profile = RigProfile::DEFAULT;
+    profile.motor.microsteps = 32;
+    s.record(6_030 * ms, KIND_FAIL_SAVE, &[2]);
+    s.send(6_030 * ms + 1, 32, Command::SetProfile(profile));
+    s.send(6_030 * ms + 2, 33, Command::GetStoredProfile);
+    s.send(6_030 * ms + 3, 34, Command::SetProfile(profile));
+    s.send(6_030 * ms + 4, 35, Command::GetStoredProfile);
+    // Finding C: the step interrupt late by more than a period mid-move: the motion stops at
+    // once, the fault and the halt are reported, the axis is no longer homed.
+    s.send(6_040 * ms, 36, Command::Home);
+    s.send(7_000 * ms, 37, Command::Heartbeat);
+    s.send(8_000 * ms, 38, Command::Heartbeat);
+    s.send(
+        8_000 * ms + 1,
+        39,
+        Command::Move(Move {
+            target: MoveTarget::Relative(4_000),
+            max_speed: 8_000,
+            accel: 40_000,
+        }),
+    );
+    s.record(8_100 * ms, KIND_STEP_LATE, &[]);
+    s.send(8_100 * ms + 1, 40, Command::Status);
+    s.send(8_100 * ms + 2, 41, Command::ClearFault);
     s.bytes
 }
 
@@ -266,6 +307,33 @@ fn the_scenario_exercises_every_path_it_claims() {
         &reply(20)[..],
         [Err(RigError::UnknownVersion { .. })]
     ));
+    // A wrong laser polarity: no arming, no light (issue 38, B).
+    assert!(matches!(&reply(28)[..], [Err(RigError::LaserPolarity)]));
+    assert!(matches!(&reply(29)[..], [Err(RigError::NotArmed)]));
+    assert!(matches!(&reply(30)[..], [Ok(Response::Ack)]));
+    // A save is acknowledged only once flash reads it back (issue 38, E).
+    assert!(matches!(
+        &reply(32)[..],
+        [Err(RigError::ProfileNotSaved(SaveError::Verify))]
+    ));
+    assert!(matches!(&reply(33)[..], [Ok(Response::Profile(p))] if *p == RigProfile::DEFAULT));
+    assert!(matches!(&reply(34)[..], [Ok(Response::Ack)]));
+    assert!(matches!(&reply(35)[..], [Ok(Response::Profile(p))] if p.motor.microsteps == 32));
+    // A late step interrupt stops the move and is reported (issue 38, C).
+    assert!(
+        matches!(&reply(39)[..], [Ok(Response::Ack)]),
+        "{:?}",
+        reply(39)
+    );
+    match &reply(40)[..] {
+        [Ok(Response::Status(st))] => {
+            assert_eq!(st.fault, Some(subsurf_protocol::Fault::StepLate));
+            assert!(!st.homed, "still homed after a late step interrupt");
+            assert_eq!(st.state, subsurf_protocol::RigState::Fault);
+        }
+        other => panic!("status after the late interrupt: {other:?}"),
+    }
+    assert!(matches!(&reply(41)[..], [Ok(Response::Ack)]));
 
     let events: Vec<&EventKind> = messages
         .iter()
@@ -277,7 +345,7 @@ fn the_scenario_exercises_every_path_it_claims() {
     let count = |f: &dyn Fn(&EventKind) -> bool| events.iter().filter(|e| f(e)).count();
     assert_eq!(count(&|e| matches!(e, EventKind::Captured(_))), 4);
     assert_eq!(count(&|e| matches!(e, EventKind::MoveDone { .. })), 1);
-    assert_eq!(count(&|e| matches!(e, EventKind::Homed { .. })), 1);
+    assert_eq!(count(&|e| matches!(e, EventKind::Homed { .. })), 2);
     assert_eq!(
         count(&|e| matches!(
             e,
@@ -292,6 +360,15 @@ fn the_scenario_exercises_every_path_it_claims() {
             e,
             EventKind::Halted {
                 reason: HaltReason::HeartbeatLost
+            }
+        )),
+        1
+    );
+    assert_eq!(
+        count(&|e| matches!(
+            e,
+            EventKind::Halted {
+                reason: HaltReason::StepLate
             }
         )),
         1

@@ -2,7 +2,7 @@
 //!
 //! Order of work, so nothing is touched with a file that cannot be right: [`FirmwareImage::inspect`]
 //! checks the ELF (32-bit little-endian ARM, a vector table in the chip's flash, every loaded
-//! section inside flash or RAM) before any probe is listed; then [`list_probes`] /
+//! section inside flash or RAM and none in the profile's sectors) before any probe is listed; then [`list_probes`] /
 //! [`select_probe`] find the debug probe, [`flash_image`] erases, programs and resets, and
 //! [`handshake`] asks the running firmware for its version over the serial link.
 //!
@@ -28,6 +28,10 @@ use crate::link::{ByteLink, LinkError};
 pub const DEFAULT_CHIP: &str = "STM32F446RETx";
 /// STM32F446RE flash: 512 KiB at 0x0800_0000.
 pub const FLASH: std::ops::Range<u64> = 0x0800_0000..0x0808_0000;
+/// Flash sectors 1 and 2 (16 KiB each): the rig profile's record log (`firmware/board/memory.x`,
+/// `store.rs`). No loaded section may lie there: flashing would overwrite the stored profile and
+/// the next profile save would erase code (issue 38, I).
+pub const PROFILE_SECTORS: std::ops::Range<u64> = 0x0800_4000..0x0800_C000;
 /// STM32F446RE SRAM: 128 KiB at 0x2000_0000.
 pub const RAM: std::ops::Range<u64> = 0x2000_0000..0x2002_0000;
 /// Where `cargo fw` puts the release firmware, relative to the workspace root.
@@ -76,6 +80,23 @@ pub enum FlashError {
         "{path}: section {section} at {address:#010x} (+{size} bytes) is outside the chip's flash and RAM"
     )]
     OutsideMemory {
+        /// The file.
+        path: PathBuf,
+        /// Section name.
+        section: String,
+        /// Its address.
+        address: u64,
+        /// Its size.
+        size: u64,
+    },
+    /// A loaded section lies in the profile's flash sectors.
+    #[error(
+        "{path}: section {section} at {address:#010x} (+{size} bytes) overlaps the rig profile's \
+         flash sectors {:#010x}..{:#010x} (firmware/board/memory.x keeps code out of them)",
+        PROFILE_SECTORS.start,
+        PROFILE_SECTORS.end
+    )]
+    OverlapsProfile {
         /// The file.
         path: PathBuf,
         /// Section name.
@@ -196,6 +217,14 @@ impl FirmwareImage {
             // Zero-initialised sections take no flash; initialised RAM sections (.data) are
             // copied from flash at start-up and so take both.
             let zero_init = section.kind() == SectionKind::UninitializedData;
+            if in_flash && start < PROFILE_SECTORS.end && end > PROFILE_SECTORS.start {
+                return Err(FlashError::OverlapsProfile {
+                    path: path.to_owned(),
+                    section: section.name().unwrap_or("?").to_owned(),
+                    address: start,
+                    size,
+                });
+            }
             if in_flash {
                 flash_bytes += size;
             } else if in_ram {

@@ -16,8 +16,12 @@ use crate::profile::{ProfileError, RigProfile};
 /// the [`RigProfile`] (`SetProfile`/`GetProfile`), camera confirmation in [`Captured`], and cut
 /// [`Config`] down to the session's heartbeat. Version 4 appended
 /// [`RigError::ProfileNotStored`]: a board without a stored profile does not know its laser and
-/// trigger polarities and refuses to arm (see `docs/protocol.md`).
-pub const PROTOCOL_VERSION: u16 = 4;
+/// trigger polarities and refuses to arm (see `docs/protocol.md`). Version 5 (issue 38) appended
+/// [`RigError::LaserPolarity`]: the board refuses to arm when its undriven laser lines contradict
+/// the profile's polarity; [`RigError::ProfileNotSaved`] and [`Command::GetStoredProfile`]: a
+/// `SetProfile` is answered only after flash reads it back; [`Fault::StepLate`] and
+/// [`HaltReason::StepLate`]: a step interrupt later than one timer period stops the motion.
+pub const PROTOCOL_VERSION: u16 = 5;
 
 /// Galvo points per [`Command::ProgramPoints`] chunk: 32 points of at most 6 bytes each keep the
 /// chunk well inside [`crate::MAX_MESSAGE`].
@@ -116,11 +120,17 @@ pub enum Command {
         /// short reply gets through where a long one would not.
         max: u8,
     },
-    /// Replace the rig profile (idle only): validated, then persisted by the board; resets the
-    /// axis to not homed. Answered with [`Response::Ack`] or [`RigError::BadProfile`].
+    /// Replace the rig profile (idle only): validated, lasers off and disarmed, written to the
+    /// board's flash and read back; only then applied (the axis is no longer homed) and answered
+    /// with [`Response::Ack`]. [`RigError::BadProfile`] or [`RigError::ProfileNotSaved`] (the
+    /// old profile stays in force and in flash) otherwise (version 5: the reply waits for the
+    /// verified write).
     SetProfile(RigProfile),
-    /// Answered with [`Response::Profile`].
+    /// The profile in force (RAM); answered with [`Response::Profile`].
     GetProfile,
+    /// The profile the board's flash holds now, read from flash: what the next boot runs
+    /// (version 5). Answered with [`Response::Profile`], or [`RigError::ProfileNotStored`].
+    GetStoredProfile,
 }
 
 /// A turntable move. Speeds in steps/s, acceleration in steps/s².
@@ -457,8 +467,32 @@ pub enum RigError {
     },
     /// `Arm` before the rig knows its laser and trigger polarities: no valid profile is stored
     /// (a new board, or flash the firmware cannot read). The board keeps those pins
-    /// high-impedance until a profile is set with [`Command::SetProfile`] (version 4).
+    /// high-impedance until a profile is set with [`Command::SetProfile`] (version 4). Since
+    /// version 5 also `Home` and `Move` (the board keeps the motor driver's EN released), and
+    /// [`Command::GetStoredProfile`] with nothing stored.
     ProfileNotStored,
+    /// `Arm` while a laser enable, undriven, sits at the level the profile calls "on": the
+    /// wiring's resistor holds every line at its off level, so the profile's `laser.active_low`
+    /// is not the wiring's (or a resistor is missing). Nothing is driven (version 5).
+    LaserPolarity,
+    /// [`Command::SetProfile`] could not be stored: the write failed or did not read back as
+    /// sent. The profile in force and in flash is the old one (version 5).
+    ProfileNotSaved(SaveError),
+}
+
+/// Why a profile save failed ([`RigError::ProfileNotSaved`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[non_exhaustive]
+pub enum SaveError {
+    /// The profile does not fit a flash record.
+    Encode,
+    /// The flash controller reported an error erasing a sector.
+    Erase,
+    /// The flash controller reported an error programming the record.
+    Program,
+    /// The write completed but flash does not read back the profile sent.
+    Verify,
 }
 
 /// Conditions that stop the rig until [`Command::ClearFault`].
@@ -472,6 +506,9 @@ pub enum Fault {
     HomingFailed,
     /// The step generator ran dry while a move was in progress (steps lost: position unknown).
     StepStall,
+    /// The step interrupt ran later than one timer period, so the timer may have repeated a
+    /// period: a step nobody counted (Klipper's "Timer too close"). Position unknown (version 5).
+    StepLate,
 }
 
 /// Unsolicited rig → host message. `event_seq` increases by one per event, so the host can tell
@@ -573,4 +610,6 @@ pub enum HaltReason {
     LaserTimeout,
     /// The step generator stalled ([`Fault::StepStall`]).
     StepStall,
+    /// The step interrupt was late ([`Fault::StepLate`]).
+    StepLate,
 }

@@ -43,6 +43,37 @@ fn golden_error_reply() {
     assert_eq!(&out[..n], &[1, 8, 7, 1, 1, 78, 200, 23, 74, 0]);
 }
 
+/// Version 5 appended `LaserPolarity` as error variant 16; the earlier errors keep their bytes.
+#[test]
+fn golden_laser_polarity_reply() {
+    let mut out = [0u8; MAX_FRAME];
+    let reply = Reply {
+        seq: 7,
+        result: Err(RigError::LaserPolarity),
+    };
+    let n = encode_reply(&reply, &mut out).unwrap();
+    assert_eq!(&out[..n], &[1, 8, 7, 1, 16, 188, 232, 167, 32, 0]);
+}
+
+/// Version 5: `ProfileNotSaved(Verify)` is error variant 17 with its cause (variant 3), and
+/// `GetStoredProfile` command variant 20.
+#[test]
+fn golden_profile_not_saved_reply_and_stored_profile_request() {
+    let mut out = [0u8; MAX_FRAME];
+    let reply = Reply {
+        seq: 7,
+        result: Err(RigError::ProfileNotSaved(SaveError::Verify)),
+    };
+    let n = encode_reply(&reply, &mut out).unwrap();
+    assert_eq!(&out[..n], &[1, 9, 7, 1, 17, 3, 57, 215, 231, 144, 0]);
+    let req = Request {
+        seq: 1,
+        command: Command::GetStoredProfile,
+    };
+    let n = encode_request(&req, &mut out).unwrap();
+    assert_eq!(&out[..n], &[7, 1, 20, 195, 247, 24, 66, 0]);
+}
+
 #[test]
 fn golden_relative_move() {
     let mut out = [0u8; MAX_FRAME];
@@ -544,6 +575,7 @@ fn command() -> impl Strategy<Value = Command> {
         (any::<u32>(), any::<u8>()).prop_map(|(since, max)| Command::Replay { since, max }),
         profile().prop_map(Command::SetProfile),
         Just(Command::GetProfile),
+        Just(Command::GetStoredProfile),
     ]
 }
 
@@ -555,7 +587,8 @@ fn fault() -> impl Strategy<Value = Fault> {
     prop_oneof![
         Just(Fault::EmergencyStop),
         Just(Fault::HomingFailed),
-        Just(Fault::StepStall)
+        Just(Fault::StepStall),
+        Just(Fault::StepLate)
     ]
 }
 
@@ -577,6 +610,14 @@ fn rig_error() -> impl Strategy<Value = RigError> {
         any::<u32>().prop_map(|min_us| RigError::ExposureTooShort { min_us }),
         any::<u32>().prop_map(|min_us| RigError::IntervalTooShort { min_us }),
         Just(RigError::ProfileNotStored),
+        Just(RigError::LaserPolarity),
+        prop_oneof![
+            Just(SaveError::Encode),
+            Just(SaveError::Erase),
+            Just(SaveError::Program),
+            Just(SaveError::Verify)
+        ]
+        .prop_map(RigError::ProfileNotSaved),
     ]
 }
 
@@ -673,6 +714,7 @@ fn rig_message() -> impl Strategy<Value = RigMessage> {
         Just(HaltReason::HomingFailed),
         Just(HaltReason::LaserTimeout),
         Just(HaltReason::StepStall),
+        Just(HaltReason::StepLate),
     ];
     let captured = (
         any::<u32>(),

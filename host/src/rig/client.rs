@@ -297,6 +297,15 @@ impl<L: ByteLink> RigClient<L> {
         }
     }
 
+    /// The profile the rig's flash holds (read from flash: what its next boot runs);
+    /// `RigError::ProfileNotStored` when none is.
+    pub fn get_stored_profile(&mut self) -> Result<RigProfile, RigClientError> {
+        match self.call(Command::GetStoredProfile)? {
+            Response::Profile(p) => Ok(p),
+            other => Err(unexpected("GetStoredProfile", other)),
+        }
+    }
+
     /// Send a rig profile (validated here first; the rig validates again and persists it) and
     /// handshake again so [`RigClient::hello`] shows the capabilities it implies.
     pub fn set_profile(&mut self, profile: RigProfile) -> Result<(), RigClientError> {

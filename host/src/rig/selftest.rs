@@ -1,13 +1,14 @@
 //! `subsurf rig selftest`: the bring-up check a user runs on a real bench, step by step.
 //!
 //! Each step talks to the rig through the ordinary [`RigClient`] and says PASS, FAIL or SKIP with
-//! what it measured: handshake, profile (stored on the rig, and the one the file says) and config
-//! read-back, a fault left from before (cleared only when the person says so), homing twice (the
-//! second homing reports where the new zero lay in the first one's coordinates), a move whose step
-//! count the home switch checks (not the rig's own counter), a capture whose trigger the camera's
-//! exposure-active output confirms (trigger loopback), a galvo sweep with a confirmed capture at
-//! each point, the enclosure interlock (seen open, arming refused), the laser cut with a laser
-//! actually on (the person opens the interlock while it shines), and the e-stop.
+//! what it measured: handshake, profile (stored on the rig, read back from its flash, and the one
+//! the file says) and config read-back, a fault left from before (cleared only when the person
+//! says so), homing twice (the second homing reports where the new zero lay in the first one's
+//! coordinates), a move whose step count the home switch checks (not the rig's own counter), a
+//! capture whose trigger the camera's exposure-active output confirms (trigger loopback), a galvo
+//! sweep with a confirmed capture at each point, the enclosure interlock (seen open, arming
+//! refused), the laser cut with a laser actually on (the person opens the interlock while it
+//! shines), and the e-stop (pressed while a laser shines, with consent to light).
 //!
 //! Nothing emits light before the person has agreed ([`Prompt::consent`]; `--yes` agrees in
 //! advance). Steps a person must watch or do ask through the [`Prompt`]; with no one to ask
@@ -186,12 +187,15 @@ const MOTION_STEPS: [&str; 4] = [
     "move seen",
     "step count by the home switch",
 ];
+/// The e-stop's cut with a laser on.
+const LASER_ESTOP: &str = "laser cut by the e-stop";
 /// The steps that emit light.
-const LIGHT_STEPS: [&str; 4] = [
+const LIGHT_STEPS: [&str; 5] = [
     "trigger and exposure-active loopback",
     "galvo sweep",
     "galvo sweep seen",
     "laser cut by the interlock",
+    LASER_ESTOP,
 ];
 
 /// Run the self-test; `progress` sees each step as it ends. Leaves the rig stopped, disarmed.
@@ -215,7 +219,7 @@ pub fn run<L: ByteLink>(
             hello.protocol_version, v.major, v.minor, v.patch, hello.boot_nonce
         ),
     );
-    profile_read_back(rig, options, &mut s);
+    let polarity_ok = profile_read_back(rig, options, &mut s);
     s.result(
         "config read-back",
         rig.get_config()
@@ -230,15 +234,21 @@ pub fn run<L: ByteLink>(
     }
     motion(rig, prompt, options, &mut s);
     let caps = rig.hello().capabilities;
-    let consent = prompt.consent(&format!(
-        "The next steps switch laser channel {} on: captures at the centre and at four points \
+    let consent = polarity_ok
+        && prompt.consent(&format!(
+            "The next steps switch laser channel {} on: captures at the centre and at four points \
          of the galvo range (a quarter in from each end), then a laser held on while you open \
          the enclosure interlock. Is the beam path enclosed, or is everyone wearing eye \
          protection?",
-        options.channel
-    ));
+            options.channel
+        ));
     if consent {
         light(rig, prompt, options, &caps, &mut s);
+    } else if !polarity_ok {
+        s.skip_all(
+            &LIGHT_STEPS,
+            "the laser polarity does not match the wiring (see \"profile stored\")",
+        );
     } else {
         s.skip_all(
             &LIGHT_STEPS,
@@ -249,7 +259,7 @@ pub fn run<L: ByteLink>(
     if consent {
         laser_cut(rig, prompt, options, &mut s);
     }
-    estop(rig, prompt, &mut s);
+    estop(rig, prompt, options, consent, &mut s);
     finish(rig);
     s.report
 }
@@ -260,12 +270,15 @@ fn finish<L: ByteLink>(rig: &mut RigClient<L>) {
 }
 
 /// The profile the rig runs (valid, the file's) and whether it is stored at all: a board without
-/// one keeps its lasers and trigger high-impedance and refuses to arm.
+/// one keeps its lasers and trigger high-impedance and refuses to arm. Arming also checks the
+/// laser wiring against the profile's polarity, with no light (the board reads its undriven
+/// laser lines, which the wiring's resistors hold at their off level): returns `false` when the
+/// polarity is wrong, and the self-test then asks for no light at all.
 fn profile_read_back<L: ByteLink>(
     rig: &mut RigClient<L>,
     options: &SelftestOptions,
     s: &mut Steps,
-) {
+) -> bool {
     let profile = rig.get_profile().map_err(err);
     s.result(
         "profile read-back",
@@ -288,6 +301,7 @@ fn profile_read_back<L: ByteLink>(
         }),
     );
     // Arming emits nothing by itself; it is how the rig says whether it knows its wiring.
+    let mut polarity_ok = true;
     let stored = match rig.arm() {
         Ok(()) => Ok("stored: the lasers' and trigger's polarities are known".to_owned()),
         Err(RigClientError::Rejected {
@@ -299,6 +313,19 @@ fn profile_read_back<L: ByteLink>(
                    profile send`"
                 .to_owned(),
         ),
+        Err(RigClientError::Rejected {
+            error: RigError::LaserPolarity,
+            ..
+        }) => {
+            polarity_ok = false;
+            Err(
+                "the laser lines, undriven, sit at the level the profile calls \"on\": \
+                 laser.active_low is not the wiring's, or a pull resistor is missing (README, \
+                 laser wiring). The rig drives nothing and this self-test asks for no light; fix \
+                 the profile or the wiring and send the profile again"
+                    .to_owned(),
+            )
+        }
         Err(RigClientError::Rejected { error, .. }) => Ok(format!(
             "not checked: arming refused for another reason ({error:?})"
         )),
@@ -306,6 +333,26 @@ fn profile_read_back<L: ByteLink>(
     };
     let _ = rig.disarm();
     s.result("profile stored", stored);
+    // What flash holds, read from flash: the profile the next boot runs must be the one in force.
+    let in_flash = match (rig.get_stored_profile(), rig.get_profile()) {
+        (Ok(stored), Ok(running)) if stored == running => {
+            Ok("flash holds the profile in force: a reset keeps it".to_owned())
+        }
+        (Ok(stored), Ok(running)) => Err(format!(
+            "flash holds another profile than the one in force (a reset would bring it back): \
+             flash {stored:?}, running {running:?}; send yours again with `subsurf rig profile send`"
+        )),
+        (
+            Err(RigClientError::Rejected {
+                error: RigError::ProfileNotStored,
+                ..
+            }),
+            _,
+        ) => Err("flash holds no valid profile of this firmware's layout".to_owned()),
+        (Err(e), _) | (_, Err(e)) => Err(err(e)),
+    };
+    s.result("profile in flash", in_flash);
+    polarity_ok
 }
 
 /// A fault left from before the self-test: cleared only when the person says its cause is gone.
@@ -363,6 +410,9 @@ fn fault_cause(fault: Fault) -> &'static str {
         Fault::EmergencyStop => "the e-stop was pressed or its wire is broken",
         Fault::HomingFailed => "homing did not find the switch",
         Fault::StepStall => "the step generator ran dry mid-move: steps were lost",
+        Fault::StepLate => {
+            "the step interrupt ran later than one step period: a step may have been repeated"
+        }
         _ => "see `subsurf rig status`",
     }
 }
@@ -588,31 +638,48 @@ fn laser_cut<L: ByteLink>(
 
 /// Keep the link alive while the person acts; the rig's status once it halted for the interlock.
 fn watch_cut<L: ByteLink>(rig: &mut RigClient<L>, within: Duration) -> Result<Status, String> {
+    watch_halt(
+        rig,
+        within,
+        HaltReason::InterlockOpen,
+        "the interlock was not opened",
+        |st| !st.inputs.interlock_closed && st.lasers == 0,
+    )
+}
+
+/// Keep the link alive while the person acts; the rig's status once it halted for `reason` (or
+/// once its status shows `done`, should the halt event be lost).
+fn watch_halt<L: ByteLink>(
+    rig: &mut RigClient<L>,
+    within: Duration,
+    reason: HaltReason,
+    not_done: &str,
+    done: impl Fn(&Status) -> bool,
+) -> Result<Status, String> {
     let deadline = rig.link().now() + within;
     loop {
         let left = deadline.saturating_duration_since(rig.link().now());
         if left.is_zero() {
-            return Err(format!("the interlock was not opened within {within:?}"));
+            return Err(format!("{not_done} within {within:?}"));
         }
         match rig
             .next_event(left.min(Duration::from_millis(100)))
             .map_err(err)?
         {
             Some(e) => match e.kind {
-                EventKind::Halted {
-                    reason: HaltReason::InterlockOpen,
-                } => return rig.status().map_err(err),
-                EventKind::Halted { reason } => {
+                EventKind::Halted { reason: r } if r == reason => {
+                    return rig.status().map_err(err);
+                }
+                EventKind::Halted { reason: r } => {
                     return Err(format!(
-                        "the laser went off for another reason ({reason:?}) before the \
-                         interlock opened"
+                        "the laser went off for another reason ({r:?}) before the person acted"
                     ));
                 }
                 _ => {}
             },
             None => {
                 let st = rig.status().map_err(err)?;
-                if !st.inputs.interlock_closed && st.lasers == 0 {
+                if done(&st) {
                     // The halt event may have been lost; the status says the same.
                     return Ok(st);
                 }
@@ -713,12 +780,75 @@ fn capture_at<L: ByteLink>(
     ))
 }
 
-fn estop<L: ByteLink>(rig: &mut RigClient<L>, prompt: &mut dyn Prompt, s: &mut Steps) {
-    if !prompt.wait_for("Press the emergency stop, then press Enter") {
-        s.record("e-stop", Verdict::Skip, "nobody to press it".into());
-        return;
-    }
-    let pressed = rig.status().map_err(err);
+/// The e-stop; with consent to light, pressed while a laser shines (issue 38, J: the e-stop's cut
+/// was never seen with a laser on), the cut watched like the interlock's.
+fn estop<L: ByteLink>(
+    rig: &mut RigClient<L>,
+    prompt: &mut dyn Prompt,
+    options: &SelftestOptions,
+    light: bool,
+    s: &mut Steps,
+) {
+    let pressed = if light {
+        let instruction = format!(
+            "Laser {} comes ON now: press the emergency stop within {} s; the rig must switch \
+             it off at once",
+            options.channel,
+            options.act_within.as_secs()
+        );
+        if !prompt.tell(&instruction) {
+            s.record("e-stop", Verdict::Skip, "nobody to press it".into());
+            return;
+        }
+        // Events of the steps before (the interlock's halt) are not this step's.
+        while let Ok(Some(_)) = rig.next_event(Duration::ZERO) {}
+        let lit = rig
+            .arm()
+            .and_then(|()| rig.laser(options.channel, true))
+            .map_err(err);
+        if let Err(e) = lit {
+            let _ = rig.disarm();
+            s.record(
+                LASER_ESTOP,
+                Verdict::Fail,
+                format!("could not switch the laser on: {e}"),
+            );
+            return;
+        }
+        let outcome = watch_halt(
+            rig,
+            options.act_within,
+            HaltReason::EmergencyStop,
+            "the e-stop was not pressed",
+            |st| st.inputs.estop && st.lasers == 0,
+        );
+        let _ = rig.laser(options.channel, false);
+        let _ = rig.disarm();
+        s.result(
+            LASER_ESTOP,
+            outcome.clone().and_then(|st| {
+                if st.lasers != 0 {
+                    return Err(format!(
+                        "the e-stop is pressed but lasers {:#b} still emit",
+                        st.lasers
+                    ));
+                }
+                match prompt.confirm("Did the laser go off the moment the e-stop was pressed?") {
+                    Some(false) => Err("you saw it stay on: the laser is not switched by the \
+                                        rig's enable output"
+                        .to_owned()),
+                    _ => Ok("off when the e-stop was pressed".to_owned()),
+                }
+            }),
+        );
+        outcome
+    } else {
+        if !prompt.wait_for("Press the emergency stop, then press Enter") {
+            s.record("e-stop", Verdict::Skip, "nobody to press it".into());
+            return;
+        }
+        rig.status().map_err(err)
+    };
     match pressed {
         Ok(st) if st.inputs.estop && st.fault.is_some() && st.lasers == 0 => {
             s.record(
@@ -839,7 +969,9 @@ mod tests {
                 Act::Interlock(false)
             } else if instruction.starts_with("Close the enclosure interlock") {
                 Act::Interlock(true)
-            } else if instruction.starts_with("Press the emergency stop") {
+            } else if instruction.starts_with("Press the emergency stop")
+                || instruction.contains("press the emergency stop")
+            {
                 Act::Estop(true)
             } else if instruction.starts_with("Release the emergency stop") {
                 Act::Estop(false)
@@ -907,6 +1039,7 @@ mod tests {
         for step in [
             "interlock",
             "laser cut by the interlock",
+            LASER_ESTOP,
             "e-stop",
             "e-stop release",
             "step count by the home switch",
@@ -946,6 +1079,41 @@ mod tests {
         );
         // The interlock is still checked (no light needed).
         assert_eq!(verdict(&r, "interlock"), Verdict::Pass);
+    }
+
+    /// Issue 38, finding B: a profile whose laser polarity is not the wiring's lit the laser at
+    /// every boot and at `profile send`. The self-test catches it with no light: the arming
+    /// check fails, and no light step asks for consent or switches a laser on.
+    #[test]
+    fn a_wrong_laser_polarity_fails_before_any_light_is_asked_for() {
+        let wrong = !RigProfile::DEFAULT.laser.active_low;
+        let (r, link, asked) = at_bench(
+            SimParams::default(),
+            |rig| rig.set_laser_wiring(wrong),
+            true,
+        );
+        assert_eq!(verdict(&r, "profile stored"), Verdict::Fail, "{r:#?}");
+        assert!(!r.passed());
+        assert!(
+            !asked.iter().any(|q| q.contains("eye protection")),
+            "consent asked: {asked:?}"
+        );
+        for step in LIGHT_STEPS {
+            assert_eq!(verdict(&r, step), Verdict::Skip, "{step}");
+        }
+        assert!(
+            link.rig().laser_log().iter().all(|e| e.value == 0),
+            "light with a wrong polarity: {:?}",
+            link.rig().laser_log()
+        );
+        // The same bench wired as the profile says passes that step.
+        let right = RigProfile::DEFAULT.laser.active_low;
+        let (r, _, _) = at_bench(
+            SimParams::default(),
+            |rig| rig.set_laser_wiring(right),
+            true,
+        );
+        assert_eq!(verdict(&r, "profile stored"), Verdict::Pass, "{r:#?}");
     }
 
     /// Finding 9: a fault from before the self-test was cleared without a word.

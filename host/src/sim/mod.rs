@@ -196,6 +196,11 @@ impl VirtualRig {
         self.sync_logs();
     }
 
+    /// Wire the simulated laser drivers active low or high, whatever the profile says.
+    pub fn set_laser_wiring(&mut self, active_low: bool) {
+        self.sim.rig_mut().hw_mut().set_laser_wiring(active_low);
+    }
+
     /// Close or open the simulated enclosure interlock now.
     pub fn set_interlock(&mut self, closed: bool) {
         let now = self.sim.now();

@@ -117,7 +117,10 @@ pub fn plan_window(
     if exposure_us < MIN_EXPOSURE_US || after_us < u64::from(exposure_us) {
         return Err(ExposureError::TooShort);
     }
-    if trigger_us == 0 || u64::from(trigger_us) >= after_us {
+    // A trigger as long as the window after it (`tail_us = 0`, a level-triggered camera with
+    // `trigger_us = exposure_us`) is timed too: the two counters are independent, the trigger
+    // just falls on the laser's last tick. It used to fall back to software edges (issue 38, J).
+    if trigger_us == 0 || u64::from(trigger_us) > after_us {
         return Err(ExposureError::BadTrigger);
     }
     // The trigger: rise at least one tick in (the counter must pass the compare), rounded down;

@@ -24,10 +24,13 @@
 //! ([`erase_watchdog`]) so it cannot reset the chip mid-erase, as it did with the 128 KiB sector
 //! (up to 2 s) and a 500 ms watchdog.
 
+use subsurf_protocol::RigProfile;
+
 /// Record magic, "SSRP" read as little-endian u32.
 pub const RECORD_MAGIC: u32 = u32::from_le_bytes(*b"SSRP");
-/// Format version of the payload this firmware writes and reads (2: the sequence number).
-pub const RECORD_VERSION: u16 = 2;
+/// Format version of the record this firmware writes and reads (2: the sequence number; 3: the
+/// payload starts with the profile's layout key, [`encode_profile`]).
+pub const RECORD_VERSION: u16 = 3;
 /// Records start at multiples of this (covers the flash's write granularity).
 pub const RECORD_ALIGN: usize = 32;
 /// Header bytes before the payload.
@@ -41,9 +44,10 @@ pub const SECTOR_LEN: usize = 16 * 1024;
 /// Records of the largest size a sector holds between two erases.
 pub const RECORDS_PER_SECTOR: usize = SECTOR_LEN / MAX_RECORD;
 
-/// Longest erase of one 16 KiB sector at ×32 parallelism (embassy-stm32 programs the F4 with
-/// PSIZE = x32), ms: STM32F446xC/E datasheet, "Flash memory programming" characteristics,
-/// t_ERASE16KB max (typ 250 ms). A 128 KiB sector takes up to 2 s there.
+/// Longest erase of one 16 KiB sector at ×32 parallelism (`store.rs` erases with PSIZE = ×32
+/// itself: embassy-stm32 0.6 left it at ×8, up to 800 ms), ms: STM32F446xC/E datasheet, "Flash
+/// memory programming" characteristics, t_ERASE16KB max (typ 250 ms). A 128 KiB sector takes up
+/// to 2 s there.
 pub const SECTOR_ERASE_MAX_MS: u32 = 500;
 /// Longest programming of one 32-bit word, µs (same table, t_prog max).
 pub const WORD_PROGRAM_MAX_US: u32 = 100;
@@ -55,6 +59,32 @@ pub const ERASE_WATCHDOG_MS: u32 = 1_000;
 pub const LSI_MAX_HZ: u32 = 47_000;
 
 const CRC: crc::Crc<u32> = crc::Crc::<u32>::new(&crc::CRC_32_ISO_HDLC);
+
+/// The record payload for a rig profile, in `out`: [`RigProfile::LAYOUT`] (u32, little-endian),
+/// then the profile's postcard bytes. `None` if `out` is too small.
+///
+/// The key makes a record name the layout it was written with: the record's format version
+/// does not change when `RigProfile` gains, loses or retypes a field, and postcard has no field
+/// names, so without it a new firmware would decode an old record's bytes into the wrong fields
+/// (a polarity among them) and could still pass `validate()` (issue 38, F).
+pub fn encode_profile<'b>(profile: &RigProfile, out: &'b mut [u8]) -> Option<&'b [u8]> {
+    let (key, rest) = out.split_at_mut_checked(4)?;
+    key.copy_from_slice(&RigProfile::LAYOUT.to_le_bytes());
+    let n = postcard::to_slice(profile, rest).ok()?.len();
+    out.get(..4 + n)
+}
+
+/// The rig profile in a record payload: only under this firmware's layout key, only when the
+/// bytes are exactly one profile (postcard's `from_bytes` would ignore trailing bytes) and only a
+/// valid one. Anything else is "no profile stored".
+pub fn decode_profile(payload: &[u8]) -> Option<RigProfile> {
+    let (key, rest) = payload.split_at_checked(4)?;
+    if key != RigProfile::LAYOUT.to_le_bytes() {
+        return None;
+    }
+    let (profile, tail) = postcard::take_from_bytes::<RigProfile>(rest).ok()?;
+    (tail.is_empty() && profile.validate().is_ok()).then_some(profile)
+}
 
 /// Why a record could not be encoded.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -213,6 +213,10 @@ impl InputPins {
         for enable in [EXTI4::unpend, EXTI9_5::unpend, EXTI15_10::unpend] {
             enable();
         }
+        // Just below the step interrupt (`main`, "Interrupt priorities").
+        EXTI4::set_priority(crate::PRIO_SAFETY);
+        EXTI9_5::set_priority(crate::PRIO_SAFETY);
+        EXTI15_10::set_priority(crate::PRIO_SAFETY);
         // SAFETY: the handlers are bound in `main`; they share only atomics, a critical-section
         // queue and registers with the tasks.
         unsafe {

@@ -8,8 +8,9 @@
 //! the trigger at off on each of them.
 //!
 //! Boot order: clocks, then the rig profile from flash (a memory-mapped read, no pin involved),
-//! then the laser and trigger pins, parked at the profile's off levels, or left high-impedance if
-//! no profile is stored (the wiring's pull resistors hold them off, whatever their polarity).
+//! then the laser and trigger timers set up for the profile's polarities. The pins themselves stay
+//! high-impedance, as at reset, until a window drives one to its active level (the wiring's pull
+//! resistors hold them off, whatever their polarity: `safety.rs`).
 //!
 //! Build: `cargo fw`; flash: `subsurf flash` (or `cargo fw-run` with the probe-rs CLI).
 #![no_std]
@@ -82,6 +83,20 @@ const fn parse_baud(text: Option<&str>) -> u32 {
     value
 }
 
+/// Interrupt priorities (NVIC, 4 bits on the STM32F446; lower is more urgent). The step
+/// interrupt (TIM2, `stepper.rs`) alone at `P0`, as grbl keeps its step ISR above everything: it
+/// must write the next period's preloads within the running period (≥ 10 µs), and only a
+/// critical section can delay it now; TIM4's hardware count of its updates reports any delay
+/// beyond one period (`Fault::StepLate`). Then the safety cut-offs (e-stop, interlock and
+/// exposure EXTI lines, the light's deadline TIM5), the time driver (TIM12: it must run within
+/// half its 65.5 ms period), and the link's USART last (its FIFO-less receiver overruns after one
+/// character, 11 µs at 921600 baud, but a lost frame is retransmitted).
+pub const PRIO_SAFETY: interrupt::Priority = interrupt::Priority::P1;
+/// The time driver's interrupt.
+const PRIO_TIME: interrupt::Priority = interrupt::Priority::P2;
+/// The link's interrupt.
+const PRIO_LINK: interrupt::Priority = interrupt::Priority::P3;
+
 /// Watchdog timeout: a hung executor or a stalled rig task resets the chip after this long.
 const WATCHDOG_TIMEOUT_US: u32 = 500_000;
 /// Incremented by the rig task every loop; the watchdog task only pets while it moves.
@@ -90,9 +105,17 @@ pub static RIG_ALIVE: AtomicU32 = AtomicU32::new(0);
 #[embassy_executor::main]
 async fn main(spawner: Spawner) {
     let p = embassy_stm32::init(clock_config());
+    // The time driver's interrupt (TIM12 shares its vector with TIM8's break, unused), below the
+    // step and safety interrupts; see `PRIO_SAFETY`.
+    {
+        use embassy_stm32::interrupt::InterruptExt;
+        interrupt::TIM8_BRK_TIM12.set_priority(PRIO_TIME);
+    }
+    hardfault_runs_first();
+    ensure_brown_out_level();
     let board = Board::new(p);
-    // The profile first: its laser and trigger polarities decide the pins' off levels. Until
-    // then (and for ever, with nothing stored) those pins stay inputs, as at reset.
+    // The profile first: its laser and trigger polarities decide how a window drives the pins.
+    // Outside a window (and for ever, with nothing stored) those pins stay inputs, as at reset.
     let store = Store::new(board.flash);
     let stored = rig::stored_profile(&store);
     let camera = CameraTiming::new(
@@ -121,15 +144,17 @@ async fn main(spawner: Spawner) {
     watchdog.unleash();
     spawner.spawn(defmt::unwrap!(watchdog_task(watchdog)));
 
-    let mut stepper = StepGen::new(
+    let stepper = StepGen::new(
         board.step_timer,
+        board.step_counter,
         board.step,
         board.dir,
         board.enable,
         StepperIo::from(&profile.motor),
     );
-    // Holding torque from here on keeps the position.
-    stepper.set_enabled(true);
+    // EN stays released (no holding torque) until the rig task has a stored profile and reads
+    // the e-stop closed (`rig::follow_enable`): no motion on guessed mechanics, none before the
+    // e-stop input is even set up (issue 38, G).
     let galvo = Galvo::new(
         GalvoPins {
             spi: board.galvo_spi,
@@ -172,6 +197,10 @@ async fn main(spawner: Spawner) {
         Irqs,
         link_config,
     ));
+    {
+        use embassy_stm32::interrupt::InterruptExt;
+        interrupt::USART2.set_priority(PRIO_LINK);
+    }
 
     let mut hardware = rig::Hardware::new(stepper, galvo, camera, store, lights_out, inputs);
     if let Some(profile) = stored {
@@ -183,6 +212,44 @@ async fn main(spawner: Spawner) {
         stored,
         boot_nonce()
     )));
+}
+
+/// FLASH_OPTCR.BOR_LEV for brown-out reset level 3 (RM0390 §3.7.1: 0b00 = level 3, 0b11 = off,
+/// the factory setting, which leaves only the power-on/power-down reset at about 1.7 V).
+const BOR_LEVEL_3: u8 = 0b00;
+
+/// Brown-out reset at level 3 (VBOR3, 2.70 V typical falling, STM32F446 datasheet "Embedded
+/// reset and power control block characteristics"): 168 MHz with 5 flash wait states is only
+/// specified for VDD 2.7–3.6 V (RM0390 Table 5, "Number of wait states according to CPU clock
+/// frequency"), and so is the ×32 erase the profile store uses. Below that the chip may execute
+/// garbage with the laser pins in any state, so it must be held in reset instead. The option byte
+/// is written here once per board (it survives resets, power cycles and reflashing), before the
+/// watchdog runs, and takes effect at the next reset; `defmt` logs the level at every boot.
+fn ensure_brown_out_level() {
+    let f = embassy_stm32::pac::FLASH;
+    let level = f.optcr().read().bor_lev();
+    if level == BOR_LEVEL_3 {
+        defmt::info!("brown-out reset at level 3 (2.7 V)");
+        return;
+    }
+    defmt::warn!(
+        "brown-out reset level {=u8} (BOR_LEV), not 3: programming the option byte",
+        level
+    );
+    cortex_m::interrupt::free(|_| {
+        while f.sr().read().bsy() {}
+        if f.optcr().read().optlock() {
+            f.optkeyr().write_value(0x0819_2A3B);
+            f.optkeyr().write_value(0x4C5D_6E7F);
+        }
+        f.optcr().modify(|w| w.set_bor_lev(BOR_LEVEL_3));
+        f.optcr().modify(|w| w.set_optstrt(true));
+        while f.sr().read().bsy() {}
+        f.optcr().modify(|w| w.set_optlock(true));
+    });
+    if f.optcr().read().bor_lev() != BOR_LEVEL_3 {
+        defmt::error!("brown-out level not programmed (option bytes locked?)");
+    }
 }
 
 /// Survives a reset (not a power cycle): counts resets, so the boot nonce differs after every
@@ -242,7 +309,7 @@ fn clock_config() -> embassy_stm32::Config {
 
 /// Pets the independent watchdog while the rig task keeps looping (it wakes at least every
 /// [`rig::MAX_SLEEP`]); a stuck task or executor stops the petting and the chip resets with the
-/// lasers low.
+/// laser pins inputs (their reset state: off by the wiring's resistors).
 #[embassy_executor::task]
 async fn watchdog_task(mut watchdog: IndependentWatchdog<'static, peripherals::IWDG>) {
     let mut last = RIG_ALIVE.load(Ordering::Relaxed);
@@ -263,7 +330,7 @@ async fn watchdog_task(mut watchdog: IndependentWatchdog<'static, peripherals::I
     }
 }
 
-/// Lasers and trigger parked off and stepper stopped, then report the panic over defmt and fault
+/// Lasers and trigger parked (high-impedance) and stepper stopped, then report the panic over defmt and fault
 /// (probe-rs stops there with a backtrace; without a debugger the watchdog resets the chip).
 /// panic-probe is not used because it cannot switch the lasers off first.
 #[panic_handler]
@@ -276,13 +343,34 @@ fn panic(info: &core::panic::PanicInfo) -> ! {
 }
 
 /// Any fault (bad memory access, undefined instruction, the panic above): lasers and trigger
-/// parked off, stepper stopped, then wait for the watchdog reset.
+/// parked (high-impedance), stepper stopped, then wait for the watchdog reset.
+///
+/// Under a debug probe the pins are parked first too: the probe's vector catch on HardFault
+/// (DEMCR.VC_HARDERR, which `probe-rs run` sets) would halt the core *before* this handler, with a
+/// laser left on by its timer, so `main` clears it ([`hardfault_runs_first`]) and this handler
+/// breaks into the attached debugger itself once the pins are parked.
 #[cortex_m_rt::exception]
 unsafe fn HardFault(_frame: &cortex_m_rt::ExceptionFrame) -> ! {
     force_lasers_off();
     force_trigger_off();
     stepper::fault_stop();
+    // SAFETY: a read of the core's debug status register.
+    let debugger = unsafe { (*cortex_m::peripheral::DCB::PTR).dhcsr.read() } & 1 != 0;
+    if debugger {
+        cortex_m::asm::bkpt();
+    }
     loop {
         cortex_m::asm::nop();
+    }
+}
+
+/// Clear the debugger's vector catch on HardFault (DEMCR bit 10, VC_HARDERR; ARMv7-M ARM
+/// C1.6.5), so a fault always runs [`HardFault`], which parks the pins before it halts.
+fn hardfault_runs_first() {
+    // SAFETY: a read-modify-write of DEMCR at start-up, before any task runs; only the
+    // vector-catch bit changes.
+    unsafe {
+        let dcb = &*cortex_m::peripheral::DCB::PTR;
+        dcb.demcr.modify(|w| w & !(1 << 10));
     }
 }

@@ -7,20 +7,23 @@
 //! together: the laser channels forced on and "inactive on match" at the window's end, the trigger
 //! in PWM mode 2, so every edge is a counter's (the plan is `exposure.rs`, which a host test checks
 //! against tick-exact timer models). Outside a timed exposure the same channels are driven by the
-//! forced-active/forced-inactive output modes. A laser or trigger pin is in alternate-function mode
-//! only while its timer may drive it; [`force_lasers_off`] parks every pin at off through the GPIO
-//! registers, whatever the timers do.
+//! forced-active output mode.
 //!
-//! Until the profile is known the polarities are not, and the pins stay high-impedance (inputs,
-//! no pull: the external resistors of the documented wiring hold them off): [`CameraTiming::new`]
-//! takes `None` then and drives nothing until [`CameraTiming::configure`] is called with the
-//! profile's polarities.
+//! A laser or trigger pin is high-impedance (an input, no pull) whenever it is not inside a
+//! window, and that is "off" whatever the polarity: the documented wiring's resistor holds each
+//! line at its off level (`safety.rs`). It is in alternate-function mode only while its timer
+//! drives it on; [`force_lasers_off`] and [`force_trigger_off`] park every pin by one MODER write,
+//! whatever the timers do and whatever polarity is stored. Active-low pins are open-drain, so
+//! they never drive high at all. Before a laser pin is connected, its parked line is read: a line
+//! whose resistor holds the level the stored polarity calls "on" means the profile's polarity is
+//! wrong, and the pin is not driven ([`CameraTiming::laser_lines_idle_off`], checked again before
+//! the core may arm).
 //!
 //! The light's deadline ([`LightsOut`], TIM5): the core knows by when every laser must be off
 //! (heartbeat, manual limit, the window's end: `Rig::light_deadline`); the rig task arms TIM5 a
 //! little after that, and its interrupt parks the lasers and the trigger if the executor has not
 //! done it by then (a stuck task cannot keep light on; the watchdog comes later).
-use core::sync::atomic::{AtomicBool, AtomicU8, Ordering};
+use core::sync::atomic::{AtomicBool, Ordering};
 
 use embassy_stm32::Peri;
 use embassy_stm32::dac::{Dac, DualValue};
@@ -37,12 +40,7 @@ use embassy_stm32::timer::low_level::Timer;
 use crate::exposure::{LightsOutTimer, Plan, lights_out_timer};
 use crate::galvo_map::{GalvoMap, GalvoOutput, ad5689_frames};
 use crate::pins::{LASER_PINS, LASER_TIMER_CHANNELS, TRIGGER_PIN, TRIGGER_TIMER_CHANNEL};
-use crate::safety::{Park, PinMode, Polarity, moder_with, park};
-
-/// Laser enables' polarity ([`Polarity::to_u8`]; read by the fault paths).
-static LASER_POLARITY: AtomicU8 = AtomicU8::new(0);
-/// Trigger's polarity.
-static TRIGGER_POLARITY: AtomicU8 = AtomicU8::new(0);
+use crate::safety::{OutputType, PinMode, Polarity, idles_off, moder_with, output_type, park};
 /// The deadline timer cut the light: no laser comes on again until the rig task re-arms it.
 static LIGHTS_OUT: AtomicBool = AtomicBool::new(false);
 
@@ -50,30 +48,60 @@ static LIGHTS_OUT: AtomicBool = AtomicBool::new(false);
 const TIM8_AF: u8 = 3;
 const TIM3_AF: u8 = 2;
 
-fn write_park(port: pac::gpio::Gpio, pin: u8, how: Park) {
-    if let Some(bsrr) = how.bsrr {
-        port.bsrr().write_value(pac::gpio::regs::Bsrr(bsrr));
-    }
-    port.moder()
-        .modify(|w| w.0 = moder_with(w.0, pin, how.mode));
+fn park_pin(port: pac::gpio::Gpio, pin: u8) {
+    port.moder().modify(|w| w.0 = park(w.0, pin));
 }
 
-/// Park every laser enable at off (its inactive level, or high-impedance while the polarity is
-/// unknown) and take the pins from the timer, through the GPIO registers only: safe from any
-/// interrupt or fault handler, whoever owns the pins. Used by every fault path (panic, HardFault,
-/// e-stop and interlock interrupts, the deadline timer) before anything else.
+/// Park every laser enable at off (high-impedance: the wiring's resistor holds the off level)
+/// and take the pins from the timer, through MODER only: safe from any interrupt or fault
+/// handler, whoever owns the pins, and independent of the stored polarity. Used by every fault
+/// path (panic, HardFault, e-stop and interlock interrupts, the deadline timer) before anything
+/// else.
 pub fn force_lasers_off() {
-    let polarity = Polarity::from_u8(LASER_POLARITY.load(Ordering::Relaxed));
     for (port, pin) in LASER_PINS {
-        write_park(port, pin, park(pin, polarity));
+        park_pin(port, pin);
     }
 }
 
-/// Park the camera trigger at its inactive level (or high-impedance), the same way.
+/// Park the camera trigger (high-impedance), the same way.
 pub fn force_trigger_off() {
-    let polarity = Polarity::from_u8(TRIGGER_POLARITY.load(Ordering::Relaxed));
     let (port, pin) = TRIGGER_PIN;
-    write_park(port, pin, park(pin, polarity));
+    park_pin(port, pin);
+}
+
+/// Park laser pin `channel` alone.
+fn park_laser(channel: usize) {
+    if let Some(&(port, pin)) = LASER_PINS.get(channel) {
+        park_pin(port, pin);
+    }
+}
+
+/// Whether laser pin `channel` is connected to its timer (driven).
+fn laser_connected(channel: usize) -> bool {
+    LASER_PINS
+        .get(channel)
+        .is_some_and(|&(port, pin)| port.moder().read().0 >> (2 * u32::from(pin)) & 0b11 != 0b00)
+}
+
+/// Whether laser pin `channel`, parked, reads the off level `polarity` expects (its resistor's
+/// level). Meaningful only while the pin is parked.
+fn laser_idles_off(channel: usize, polarity: Polarity) -> bool {
+    LASER_PINS.get(channel).is_some_and(|&(port, pin)| {
+        idles_off(
+            polarity,
+            port.idr().read().idr(usize::from(pin)) == pac::gpio::vals::Idr::HIGH,
+        )
+    })
+}
+
+/// OTYPER for `pin`: open-drain for an active-low line, push-pull for an active-high one.
+fn set_output_type(port: pac::gpio::Gpio, pin: u8, polarity: Polarity) {
+    let ot = match output_type(polarity) {
+        Some(OutputType::PushPull) => pac::gpio::vals::Ot::PUSH_PULL,
+        // Unknown: nothing is driven anyway; open-drain is the stage that cannot drive high.
+        Some(OutputType::OpenDrain) | None => pac::gpio::vals::Ot::OPEN_DRAIN,
+    };
+    port.otyper().modify(|w| w.set_ot(usize::from(pin), ot));
 }
 
 /// Stop both exposure timers (registers only).
@@ -109,13 +137,13 @@ fn set_trigger_ocm(mode: Ocm) {
         .modify(|w| w.set_ocm(ch % 2, mode));
 }
 
-/// Alternate function `af`, push-pull, fast edges, no pull on `pin` of `port`; MODER untouched
-/// (the pin stays what it is until it is parked or connected).
+/// Alternate function `af`, open-drain until the polarity is known, fast edges, no pull on `pin`
+/// of `port`; MODER untouched (the pin stays what it is until it is parked or connected).
 fn prepare_pin(port: pac::gpio::Gpio, pin: u8, af: u8) {
     let n = usize::from(pin);
     port.afr(n / 8).modify(|w| w.set_afr(n % 8, af));
     port.otyper()
-        .modify(|w| w.set_ot(n, pac::gpio::vals::Ot::PUSH_PULL));
+        .modify(|w| w.set_ot(n, pac::gpio::vals::Ot::OPEN_DRAIN));
     port.ospeedr()
         .modify(|w| w.set_ospeedr(n, pac::gpio::vals::Ospeedr::HIGH_SPEED));
     port.pupdr()
@@ -145,6 +173,8 @@ pub struct CameraTiming {
     ),
     /// Channels wired; 0 until the profile is known (nothing is driven then).
     channels: u8,
+    /// The laser enables' stored polarity.
+    laser_polarity: Polarity,
     /// A timed exposure is (or was last) running.
     timed: bool,
     /// The trigger edge of the running exposure (rig µs), until it is reported.
@@ -160,9 +190,9 @@ pub struct CameraPins {
 }
 
 impl CameraTiming {
-    /// Take TIM8, TIM3 and the four pins. With `io` (the stored profile's wiring) the pins are
-    /// parked at their inactive levels; without, they stay high-impedance as at reset. No pin is
-    /// driven at any other level on the way.
+    /// Take TIM8, TIM3 and the four pins, which stay high-impedance as at reset; with `io` (the
+    /// stored profile's wiring) their output stages and timer polarities are set up for it. No
+    /// pin is driven on the way.
     pub fn new(
         tim8: Peri<'static, p::TIM8>,
         tim3: Peri<'static, p::TIM3>,
@@ -196,6 +226,7 @@ impl CameraTiming {
             _tim3: tim3_,
             _pins: (pins.laser_r, pins.trigger, pins.laser_g, pins.laser_b),
             channels: 0,
+            laser_polarity: Polarity::Unknown,
             timed: false,
             edge_at: None,
         };
@@ -205,22 +236,20 @@ impl CameraTiming {
         camera
     }
 
-    /// Apply polarities and the channel count (from the rig profile): parks every pin at its
-    /// inactive level first (the old one, then the new one).
+    /// Apply polarities and the channel count (from the rig profile): parks every pin first, then
+    /// sets each one's output stage (open-drain when active low) and its timer channel's
+    /// polarity. Nothing is driven.
     pub fn configure(&mut self, io: CameraIo) {
         self.set_lasers(0, 0);
         self.set_trigger(false);
-        force_trigger_off();
-        LASER_POLARITY.store(
-            Polarity::from_active_low(io.laser_active_low).to_u8(),
-            Ordering::SeqCst,
-        );
-        TRIGGER_POLARITY.store(
-            Polarity::from_active_low(io.trigger_active_low).to_u8(),
-            Ordering::SeqCst,
-        );
         force_lasers_off();
         force_trigger_off();
+        let laser = Polarity::from_active_low(io.laser_active_low);
+        let trigger = Polarity::from_active_low(io.trigger_active_low);
+        for (port, pin) in LASER_PINS {
+            set_output_type(port, pin, laser);
+        }
+        set_output_type(TRIGGER_PIN.0, TRIGGER_PIN.1, trigger);
         pac::TIM8.ccer().modify(|w| {
             for ch in LASER_TIMER_CHANNELS {
                 w.set_ccp(ch, io.laser_active_low);
@@ -231,7 +260,50 @@ impl CameraTiming {
             w.set_ccp(TRIGGER_TIMER_CHANNEL, io.trigger_active_low);
             w.set_cce(TRIGGER_TIMER_CHANNEL, true);
         });
+        self.laser_polarity = laser;
         self.channels = io.channels.min(subsurf_protocol::BOARD_LASER_CHANNELS);
+    }
+
+    /// Whether every wired laser line agrees with the stored polarity: a parked pin reads its
+    /// resistor's level, which must be the off level (`safety::idles_off`); a connected one was
+    /// checked when it was connected. `false` while no profile is known, or for a polarity other
+    /// than the one the pins are set up for.
+    pub fn laser_lines_idle_off(&self, polarity: Polarity) -> bool {
+        self.channels > 0
+            && polarity == self.laser_polarity
+            && (0..usize::from(self.channels))
+                .all(|i| laser_connected(i) || laser_idles_off(i, polarity))
+    }
+
+    /// Connect laser pin `i` to its timer (its channel's output mode already set), unless its
+    /// parked line contradicts the stored polarity; whether it is connected.
+    fn connect_checked(&self, i: usize) -> bool {
+        if laser_connected(i) {
+            return true;
+        }
+        if !laser_idles_off(i, self.laser_polarity) {
+            defmt::error!(
+                "laser {}: its line idles at the level the profile calls on; not driven",
+                i
+            );
+            return false;
+        }
+        connect_laser(i);
+        true
+    }
+
+    /// Park the pins once a timed exposure's timers have stopped on their own (the laser went off
+    /// at its match; an active-high pin still drives its low "off" until parked).
+    pub fn park_when_done(&mut self) {
+        if self.timed && !pac::TIM8.cr1().read().cen() && !pac::TIM3.cr1().read().cen() {
+            self.timed = false;
+            for ch in LASER_TIMER_CHANNELS {
+                set_laser_ocm(ch, Ocm::FORCE_INACTIVE);
+            }
+            set_trigger_ocm(Ocm::FORCE_INACTIVE);
+            force_lasers_off();
+            force_trigger_off();
+        }
     }
 
     /// Stop a timed exposure; the trigger goes inactive, the lasers keep their levels until
@@ -254,13 +326,13 @@ impl CameraTiming {
             let on = !lights_out && i < usize::from(self.channels) && mask & (1 << i) != 0;
             if on {
                 set_laser_ocm(ch, Ocm::FORCE_ACTIVE);
-                connect_laser(i);
+                if !self.connect_checked(i) {
+                    set_laser_ocm(ch, Ocm::FORCE_INACTIVE);
+                }
             } else {
                 set_laser_ocm(ch, Ocm::FORCE_INACTIVE);
+                park_laser(i);
             }
-        }
-        if mask == 0 || lights_out {
-            force_lasers_off();
         }
     }
 
@@ -322,10 +394,14 @@ impl CameraTiming {
             if i < usize::from(self.channels) && mask & (1 << i) != 0 {
                 // On now; the match mode keeps that level until the counter reaches the end.
                 set_laser_ocm(ch, Ocm::FORCE_ACTIVE);
-                connect_laser(i);
-                set_laser_ocm(ch, Ocm::INACTIVE_ON_MATCH);
+                if self.connect_checked(i) {
+                    set_laser_ocm(ch, Ocm::INACTIVE_ON_MATCH);
+                } else {
+                    set_laser_ocm(ch, Ocm::FORCE_INACTIVE);
+                }
             } else {
                 set_laser_ocm(ch, Ocm::FORCE_INACTIVE);
+                park_laser(i);
             }
         }
         self.timed = true;
@@ -360,6 +436,7 @@ impl LightsOut {
             w.set_urs(Urs::COUNTER_ONLY);
         });
         t.dier().modify(|w| w.set_uie(true));
+        TIM5::set_priority(crate::PRIO_SAFETY);
         TIM5::unpend();
         // SAFETY: the handler is bound in `main`; it shares only atomics and registers.
         unsafe { TIM5::enable() };

@@ -22,9 +22,9 @@
 //! | Exposure active       | PB6     | D10 (CN5)     | EXTI6, camera strobe output (required)       |
 //!
 //! Safety inputs are wired fail-safe: a broken wire reads as "pressed"/"open". Laser enables and the
-//! trigger are inputs (high-impedance) from reset until the stored profile says their polarity;
-//! the wiring's external resistors to each one's off level hold them off meanwhile, and for ever
-//! if no profile is stored (`outputs.rs`).
+//! trigger are inputs (high-impedance) whenever no window runs, from reset on: the wiring's
+//! external resistors, powered by the drivers and not by this board, hold each at its off level
+//! (`safety.rs`, README "Laser enables and trigger").
 use embassy_stm32::{Peri, Peripherals, peripherals as p};
 
 /// Every peripheral and pin the firmware uses, taken once from [`Peripherals`].
@@ -33,6 +33,8 @@ pub struct Board {
     pub usart_tx: Peri<'static, p::PA2>,
     pub usart_rx: Peri<'static, p::PA3>,
     pub step_timer: Peri<'static, p::TIM2>,
+    /// Counts TIM2's update events (no pin): the step interrupt's overrun check.
+    pub step_counter: Peri<'static, p::TIM4>,
     pub step: Peri<'static, p::PA0>,
     pub dir: Peri<'static, p::PA1>,
     pub enable: Peri<'static, p::PB0>,
@@ -70,6 +72,7 @@ impl Board {
             usart_tx: p.PA2,
             usart_rx: p.PA3,
             step_timer: p.TIM2,
+            step_counter: p.TIM4,
             step: p.PA0,
             dir: p.PA1,
             enable: p.PB0,

@@ -140,6 +140,11 @@ pub struct PulseTrain {
     /// Direction of the last queued step.
     last_forward: bool,
     stalls: u32,
+    /// The hardware's update count ([`StepTimer::updates`]) at the end of the last interrupt;
+    /// `None` until the first interrupt after a start (no count to compare with yet).
+    last_seen: Option<u16>,
+    /// Interrupts that came after the next update event had already happened.
+    overruns: u32,
 }
 
 impl Default for PulseTrain {
@@ -159,6 +164,9 @@ pub trait StepTimer {
     fn preload(&mut self, preload: Preload);
     /// Stop the counter.
     fn stop(&mut self);
+    /// Update events the hardware itself counted since the timer started, wrapping (the board:
+    /// TIM4 clocked by TIM2's update TRGO, RM0390 §17.3.15 "Timer synchronization").
+    fn updates(&mut self) -> u16;
 }
 
 /// The whole update interrupt: a period ended; count its step, set DIR for the period that
@@ -177,6 +185,20 @@ pub fn on_interrupt(train: &mut PulseTrain, timer: &mut impl StepTimer) -> Optio
         Some(p) => timer.preload(p),
         None => timer.stop(),
     }
+    // Read after the preloads are written: if the hardware counted the following update by now,
+    // this interrupt (or its preload write) came later than one period and the timer ran, or may
+    // have run, a period on stale preloads: an extra, uncounted pulse. Klipper's "Timer too
+    // close": stop here (and drop the flag that update raised); the rig task reports it and the
+    // core faults, position unknown.
+    if !train.count_update(timer.updates()) {
+        timer.stop();
+        let _ = timer.take_update();
+        return Some(Update {
+            stepped: update.stepped,
+            dir: None,
+            preload: None,
+        });
+    }
     Some(update)
 }
 
@@ -194,7 +216,37 @@ impl PulseTrain {
             end_at: 0,
             last_forward: true,
             stalls: 0,
+            last_seen: None,
+            overruns: 0,
         }
+    }
+
+    /// One more update event handled; `seen` is the hardware's count at the end of this
+    /// interrupt. `false` when it moved by more than one since the last interrupt: the following
+    /// update came before this interrupt had written its preloads (counted as an overrun). The
+    /// first interrupt after a start only takes the count (a difference, not an absolute, so the
+    /// start's own update event and the slave counter's synchronisation delay do not matter).
+    pub fn count_update(&mut self, seen: u16) -> bool {
+        let last = self.last_seen.replace(seen);
+        match last {
+            Some(prev) if seen.wrapping_sub(prev) != 1 => {
+                self.overruns = self.overruns.saturating_add(1);
+                false
+            }
+            _ => true,
+        }
+    }
+
+    /// Interrupts later than one period since the last call (and resets the count).
+    pub fn take_overruns(&mut self) -> u32 {
+        core::mem::take(&mut self.overruns)
+    }
+
+    /// Take the hardware's update count as the last one seen (a benchmark that raises updates
+    /// without handling them syncs here).
+    #[allow(dead_code)] // the QEMU benchmark's
+    pub fn sync_updates(&mut self, seen: u16) {
+        self.last_seen = Some(seen);
     }
 
     /// Whether the timer is counting.
@@ -401,6 +453,8 @@ impl PulseTrain {
             self.end_at += u64::from(BLANK_TICKS);
         }
         self.running = true;
+        // The hardware's update count is compared from the first interrupt on.
+        self.last_seen = None;
         Push::Start {
             dir: forward,
             first: self.preload_for(self.current),

@@ -22,12 +22,13 @@ use embassy_time::{Duration, Instant, Timer};
 use embedded_io_async::{Read, Write};
 use static_cell::StaticCell;
 use subsurf_firmware::hal::{
-    CameraEdge, CameraInput, CameraTrigger, ExposureWindow, GalvoDac, LaserOutputs, RigInputs,
-    StepSegment, Stepper,
+    CameraEdge, CameraInput, CameraTrigger, ExposureWindow, GalvoDac, LaserOutputs, ProfileStore,
+    RigInputs, StepSegment, Stepper,
 };
 use subsurf_firmware::{Micros, Rig};
 use subsurf_protocol::{
-    Config, GalvoPoint, Inputs, MAX_FRAME, RigMessage, RigProfile, encode_event, encode_reply,
+    Config, GalvoPoint, Inputs, MAX_FRAME, RigMessage, RigProfile, SaveError, encode_event,
+    encode_reply,
 };
 
 use crate::exposure::{LaserCall, on_set_lasers, plan_window};
@@ -174,6 +175,11 @@ impl LaserOutputs for Hardware {
             LaserCall::Apply(mask) => self.camera.set_lasers(mask, now_us()),
         }
     }
+
+    fn lines_idle_off(&mut self, active_low: bool) -> bool {
+        self.camera
+            .laser_lines_idle_off(crate::safety::Polarity::from_active_low(active_low))
+    }
 }
 
 impl CameraTrigger for Hardware {
@@ -214,6 +220,40 @@ impl CameraInput for Hardware {
             return Some(CameraEdge::Trigger(at));
         }
         inputs::pop_edge()
+    }
+}
+
+impl ProfileStore for Hardware {
+    /// Write the record, then read flash back through the same path a boot takes: `Ok` only
+    /// when it returns this profile. The core calls this inside `SetProfile` while idle and dark
+    /// and answers with the outcome (issue 38, E). A profile flash already holds is not written
+    /// again (no wear, no erase stall).
+    fn store_profile(&mut self, profile: &RigProfile) -> Result<(), SaveError> {
+        if stored_profile(&self.store).as_ref() == Some(profile) {
+            self.apply_profile(profile);
+            return Ok(());
+        }
+        let mut buf = [0u8; crate::flash_record::MAX_PAYLOAD];
+        let bytes =
+            crate::flash_record::encode_profile(profile, &mut buf).ok_or(SaveError::Encode)?;
+        if let Err(e) = self.store.save(bytes) {
+            defmt::error!("rig profile not stored: {}", e);
+            return Err(e);
+        }
+        if stored_profile(&self.store).as_ref() == Some(profile) {
+            defmt::info!("rig profile stored in flash and read back");
+            // Applied now, before the core runs the next request of the same received chunk
+            // (it used to wait for the whole chunk: issue 38, J).
+            self.apply_profile(profile);
+            Ok(())
+        } else {
+            defmt::error!("rig profile written but flash reads back another");
+            Err(SaveError::Verify)
+        }
+    }
+
+    fn stored_profile(&mut self) -> Option<RigProfile> {
+        stored_profile(&self.store)
     }
 }
 
@@ -258,6 +298,38 @@ fn run_due(rig: &mut Rig<Hardware>) {
     }
 }
 
+/// Energise the motor driver only with a stored profile (its EN polarity and mechanics are the
+/// wiring's) and the e-stop reading closed; release it otherwise (issue 38, G). Holding torque
+/// keeps the position from then on; a press forgets it anyway (`homed` cleared).
+fn follow_enable(rig: &mut Rig<Hardware>) {
+    let want = rig.profile_known() && !sample_inputs().estop;
+    if rig.hw().stepper.energised() != want {
+        defmt::info!(
+            "motor driver {}",
+            if want { "energised" } else { "released" }
+        );
+        rig.hw_mut().stepper.set_enabled(want);
+    }
+}
+
+/// A step interrupt ran after the following update event (the train stopped the timer): the
+/// core faults with `StepLate`, clears `homed` and reports it (issue 38, C).
+fn check_overruns(rig: &mut Rig<Hardware>) {
+    let overruns = rig.hw_mut().stepper.take_overruns();
+    if overruns > 0 {
+        defmt::error!(
+            "step interrupt later than one period ({} times): stopped",
+            overruns
+        );
+        let now = now_us();
+        rig.hw_mut().now = now;
+        rig.handle_step_late(now);
+        if rig.hw().stepper.is_running() {
+            let _ = rig.hw_mut().flush();
+        }
+    }
+}
+
 /// Hand step stalls to the core (fault, emergency stop, `homed` cleared). Also a stall: the
 /// e-stop interrupt stopped the timer under a queued motion, or steps were held back, and the
 /// e-stop is released before the core saw it (a glitch): those steps would never be output.
@@ -290,22 +362,6 @@ fn apply_profile(rig: &mut Rig<Hardware>) {
     }
 }
 
-/// Persist a profile the host set, once the core says the rig is idle and dark (the erase blocks
-/// every interrupt).
-fn persist_profile(rig: &mut Rig<Hardware>) {
-    let Some(profile) = rig.take_profile_to_persist() else {
-        return;
-    };
-    let mut buf = [0u8; crate::flash_record::MAX_PAYLOAD];
-    match postcard::to_slice(&profile, &mut buf) {
-        Ok(bytes) => match rig.hw_mut().store.save(bytes) {
-            Ok(()) => defmt::info!("rig profile stored in flash"),
-            Err(e) => defmt::error!("rig profile not stored: {}", e),
-        },
-        Err(_) => defmt::error!("rig profile does not fit a record"),
-    }
-}
-
 /// Keep the light's deadline timer a little behind the core's own laser-off deadline.
 fn follow_light_deadline(rig: &mut Rig<Hardware>) {
     let deadline = rig.light_deadline();
@@ -322,13 +378,13 @@ fn pass_inputs(rig: &mut Rig<Hardware>) {
     inputs::passed_on(edges);
 }
 
-/// The profile stored in flash, if a valid one is.
+/// The profile stored in flash, if a valid one of this firmware's layout is
+/// (`flash_record::decode_profile`).
 pub fn stored_profile(store: &Store) -> Option<RigProfile> {
     let mut buf = [0u8; crate::flash_record::MAX_PAYLOAD];
     let profile = store
         .load(&mut buf)
-        .and_then(|bytes| postcard::from_bytes::<RigProfile>(bytes).ok())
-        .filter(|p| p.validate().is_ok());
+        .and_then(crate::flash_record::decode_profile);
     match profile {
         Some(_) => defmt::info!("rig profile from flash"),
         None => defmt::warn!(
@@ -360,7 +416,6 @@ pub async fn run(
     loop {
         crate::RIG_ALIVE.fetch_add(1, Ordering::Relaxed);
         transmit(rig, &mut tx, &mut frame).await;
-        persist_profile(rig);
         follow_light_deadline(rig);
         if rig.fault() != last_fault {
             last_fault = rig.fault();
@@ -378,6 +433,9 @@ pub async fn run(
         .await;
         // Deadlines that came while we slept run first, each at its own time.
         run_due(rig);
+        rig.hw_mut().camera.park_when_done();
+        follow_enable(rig);
+        check_overruns(rig);
         check_stalls(rig);
         match woke {
             Either3::First(Ok(n)) => {

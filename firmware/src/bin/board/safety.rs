@@ -1,20 +1,38 @@
-//! The register words of the light cut-off, the state of the laser and trigger pins before the
-//! profile is known, and the decision of the safety interrupt, free of registers so
-//! `firmware/tests/board_model.rs` checks them on the host.
+//! The register words of the light cut-off, the laser and trigger pins' drive rule, and the
+//! decision of the safety interrupt, free of registers so `firmware/tests/board_model.rs` checks
+//! them on the host.
 //!
-//! The cut-off must work whoever owns the laser pins (a GPIO driver, the exposure timer in
-//! alternate-function mode, or nobody after a fault), so it writes two registers per pin: BSRR to
-//! the *inactive* level (high for active-low laser drivers) and then MODER back to general-purpose
-//! output (in alternate-function mode the output data register, and so BSRR, does not reach the
-//! pin). Before the profile is known the inactive level is not known either: the pin is then put
-//! back to an input with no pull (high-impedance), and the external resistor the wiring documents
-//! holds the driver at its off level, whichever polarity it has. A pin is never driven at a level
-//! that depends on a guess.
+//! **High-impedance is "off"; a pin is driven only to its active level, only inside a window.**
+//! The documented wiring (README, "Laser enables and trigger") puts a resistor on every laser
+//! enable and on the trigger that holds the line at its off level when nothing drives it: a
+//! pull-up for an active-low input, a pull-down for an active-high one, to the driver's own
+//! logic rail. So the cut-off never needs to know the polarity: it puts the pin back to an input
+//! with no pull ([`park`], one MODER write per pin), and the resistor does the rest. The panic
+//! and HardFault handlers, the e-stop and interlock interrupt and the light's deadline timer all
+//! park this way, so a wrong stored polarity cannot make any of them drive the "on" level
+//! (issue 38, finding B: they used to drive the stored "off" level, which a wrong polarity made
+//! "on").
+//!
+//! Inside a window a pin drives its active level:
+//! - active low: **open-drain** ([`output_type`]). The pin can only pull low; its "inactive" is
+//!   released, so the exposure timer's edges stay in hardware and the only driven level is the
+//!   active one.
+//! - active high: push-pull (the F446's GPIO has no open-source mode, RM0390 §8.3). After the
+//!   timer's match the pin drives low until it is parked again, which is the off level only if
+//!   the wiring really is active high.
+//!
+//! What makes a wrong polarity harmless in both cases is checked before a pin is ever driven:
+//! while parked, a line reads the level of its resistor, which is the wiring's off level. The
+//! board reads it ([`idles_off`]) before it lets the core arm and before it connects a pin, and
+//! refuses when the stored polarity says otherwise: a pull-up read under an "active high"
+//! profile (or a pull-down under "active low") means the profile is wrong, and the board drives
+//! nothing. The one case the check cannot catch, a line with no resistor at all (floating, it
+//! reads either level), is the wiring the README forbids, and its bring-up checklist measures.
 
 /// A laser enable's or the trigger's polarity, as far as the board knows it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Polarity {
-    /// No profile read yet (or none stored): the pin stays high-impedance.
+    /// No profile read yet (or none stored): the pin is never driven.
     Unknown,
     /// High = active.
     ActiveHigh,
@@ -31,34 +49,6 @@ impl Polarity {
             Self::ActiveHigh
         }
     }
-
-    /// For an atomic.
-    pub const fn to_u8(self) -> u8 {
-        match self {
-            Self::Unknown => 0,
-            Self::ActiveHigh => 1,
-            Self::ActiveLow => 2,
-        }
-    }
-
-    /// From [`Polarity::to_u8`].
-    pub const fn from_u8(v: u8) -> Self {
-        match v {
-            1 => Self::ActiveHigh,
-            2 => Self::ActiveLow,
-            _ => Self::Unknown,
-        }
-    }
-}
-
-/// How to park an output pin at "off": first `bsrr` (if any), then MODER to `mode`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Park {
-    /// The BSRR word setting the output data register to the inactive level (written first, so
-    /// it takes effect the moment the pin becomes an output).
-    pub bsrr: Option<u32>,
-    /// The pin's mode afterwards.
-    pub mode: PinMode,
 }
 
 /// A GPIO pin's mode as MODER sets it.
@@ -66,28 +56,47 @@ pub struct Park {
 pub enum PinMode {
     /// Input, no pull: high-impedance (the external resistor decides the level).
     Input,
-    /// Push-pull output at the output data register's level.
-    Output,
     /// Driven by a timer channel.
     Alternate,
 }
 
-/// Park `pin` at off for `polarity`: driven at its inactive level when the polarity is known,
-/// high-impedance when it is not.
-pub const fn park(pin: u8, polarity: Polarity) -> Park {
+/// A GPIO pin's output stage as OTYPER sets it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum OutputType {
+    /// Drives both levels.
+    PushPull,
+    /// Drives low only; "high" releases the line to its resistor.
+    OpenDrain,
+}
+
+/// The mode a laser enable or the trigger is parked in, whatever the polarity: an input with no
+/// pull. The wiring's resistor holds the line at its off level.
+pub const PARKED: PinMode = PinMode::Input;
+
+/// MODER with `pin` parked ([`PARKED`]), other pins untouched: the whole cut-off for one pin.
+pub const fn park(moder: u32, pin: u8) -> u32 {
+    moder_with(moder, pin, PARKED)
+}
+
+/// The output stage for a polarity: open-drain for active low (the pin never drives high, so
+/// it never drives the off level), push-pull for active high; `None` while the polarity is
+/// unknown (nothing may be driven).
+pub const fn output_type(polarity: Polarity) -> Option<OutputType> {
     match polarity {
-        Polarity::Unknown => Park {
-            bsrr: None,
-            mode: PinMode::Input,
-        },
-        Polarity::ActiveHigh => Park {
-            bsrr: Some(bsrr_inactive(pin, false)),
-            mode: PinMode::Output,
-        },
-        Polarity::ActiveLow => Park {
-            bsrr: Some(bsrr_inactive(pin, true)),
-            mode: PinMode::Output,
-        },
+        Polarity::Unknown => None,
+        Polarity::ActiveHigh => Some(OutputType::PushPull),
+        Polarity::ActiveLow => Some(OutputType::OpenDrain),
+    }
+}
+
+/// Whether a parked line that reads `reads_high` agrees with `polarity`: its resistor holds it at
+/// the off level, high for active low, low for active high. `false` while the polarity is
+/// unknown. The board drives a pin only when this holds.
+pub const fn idles_off(polarity: Polarity, reads_high: bool) -> bool {
+    match polarity {
+        Polarity::Unknown => false,
+        Polarity::ActiveHigh => !reads_high,
+        Polarity::ActiveLow => reads_high,
     }
 }
 
@@ -95,7 +104,6 @@ pub const fn park(pin: u8, polarity: Polarity) -> Park {
 pub const fn moder_with(moder: u32, pin: u8, mode: PinMode) -> u32 {
     let bits = match mode {
         PinMode::Input => 0b00,
-        PinMode::Output => 0b01,
         PinMode::Alternate => 0b10,
     };
     let shift = 2 * pin as u32;
@@ -124,7 +132,7 @@ pub struct SafetyEdges {
 /// What the EXTI interrupt does before anything else.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Cut {
-    /// Drive every laser enable and the trigger inactive.
+    /// Park every laser enable and the trigger (high-impedance: off by the wiring's resistors).
     pub lasers: bool,
     /// Stop the step timer (its queue stays, so the core's flush can count what was not output).
     pub stepper: bool,
@@ -139,14 +147,5 @@ pub fn on_exti(edges: SafetyEdges, pins: SafetyPins) -> Cut {
     Cut {
         lasers: estop || edges.interlock || pins.interlock_high,
         stepper: estop,
-    }
-}
-
-/// BSRR word driving `pin` to its inactive level (low unless the enable is active low).
-pub const fn bsrr_inactive(pin: u8, active_low: bool) -> u32 {
-    if active_low {
-        1 << pin
-    } else {
-        1 << (pin + 16)
     }
 }

@@ -23,9 +23,10 @@ use core::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 
 use embassy_stm32::Peri;
 use embassy_stm32::gpio::{Level, Output, OutputType, Speed};
+use embassy_stm32::interrupt::Priority;
 use embassy_stm32::interrupt::typelevel::{Handler, Interrupt, TIM2};
 use embassy_stm32::pac;
-use embassy_stm32::pac::timer::vals::{Ocm, Urs};
+use embassy_stm32::pac::timer::vals::{Mms, Ocm, Sms, Ts, Urs};
 use embassy_stm32::peripherals;
 use embassy_stm32::time::Hertz;
 use embassy_stm32::timer::low_level::{OutputCompareMode, Timer};
@@ -88,6 +89,11 @@ impl StepTimer for Tim2 {
     fn stop(&mut self) {
         pac::TIM2.cr1().modify(|w| w.set_cen(false));
     }
+
+    #[inline(always)]
+    fn updates(&mut self) -> u16 {
+        pac::TIM4.cnt().read().cnt()
+    }
 }
 
 /// The TIM2 update interrupt: a period ended; emit the next step of the queued segments.
@@ -147,6 +153,7 @@ impl From<&subsurf_protocol::MotorProfile> for StepperIo {
 /// The STEP/DIR/EN driver interface.
 pub struct StepGen {
     _timer: Timer<'static, peripherals::TIM2>,
+    _counter: Timer<'static, peripherals::TIM4>,
     _step: PwmPin<'static, peripherals::TIM2, Ch1>,
     _dir: Output<'static>,
     enable: Output<'static>,
@@ -161,6 +168,7 @@ impl StepGen {
     /// [`StepGen::set_enabled`] (so a misconfigured EN polarity cannot jerk the motor at boot).
     pub fn new(
         timer: Peri<'static, peripherals::TIM2>,
+        counter: Peri<'static, peripherals::TIM4>,
         step: Peri<'static, peripherals::PA0>,
         dir: Peri<'static, peripherals::PA1>,
         enable: Peri<'static, peripherals::PB0>,
@@ -181,6 +189,23 @@ impl StepGen {
             .cr1()
             .modify(|w| w.set_urs(Urs::COUNTER_ONLY));
         timer.enable_update_interrupt(true);
+        // TIM4 counts TIM2's update events in hardware (TIM2 TRGO = update, TIM4 slave in
+        // external clock mode 1 on ITR1 = TIM2: RM0390 §17.3.15 and table "TIMx internal trigger
+        // connection"), so the interrupt can tell it ran after the following update.
+        let counter = Timer::new(counter);
+        pac::TIM2.cr2().modify(|w| w.set_mms(Mms::UPDATE));
+        let t4 = pac::TIM4;
+        t4.arr().write(|w| w.set_arr(u16::MAX));
+        t4.smcr().modify(|w| {
+            w.set_ts(Ts::ITR1);
+            w.set_sms(Sms::EXT_CLOCK_MODE);
+        });
+        t4.cnt().write(|w| w.set_cnt(0));
+        t4.cr1().modify(|w| w.set_cen(true));
+        // The step interrupt alone at the highest priority (grbl's rule): every other handler
+        // is set lower in `main`, so only a critical section can delay it, and then TIM4's count
+        // reports it.
+        TIM2::set_priority(Priority::P0);
         TIM2::unpend();
         // SAFETY: the handler is bound in `main` with `bind_interrupts!`; the state it shares is
         // behind a critical-section mutex and atomics.
@@ -192,6 +217,7 @@ impl StepGen {
         };
         let mut stepper = Self {
             _timer: timer,
+            _counter: counter,
             _step: step,
             _dir: Output::new(dir, Level::Low, Speed::Low),
             enable: Output::new(enable, idle, Speed::Low),
@@ -226,6 +252,11 @@ impl StepGen {
         });
         self.enable_active_low = settings.enable_active_low;
         self.set_enabled(self.energised);
+    }
+
+    /// Whether the motor driver is energised.
+    pub fn energised(&self) -> bool {
+        self.energised
     }
 
     /// Energise (or release) the motor driver through EN.
@@ -284,6 +315,16 @@ impl StepGen {
     /// Segments waiting in the step queue.
     pub fn queued_segments(&self) -> usize {
         TRAIN.lock(|t| t.try_borrow().map(|t| t.queued_segments()).unwrap_or(0))
+    }
+
+    /// Step interrupts that ran after the following update event since the last call (the
+    /// train stopped the timer on the first).
+    pub fn take_overruns(&mut self) -> u32 {
+        TRAIN.lock(|t| {
+            t.try_borrow_mut()
+                .map(|mut t| t.take_overruns())
+                .unwrap_or(0)
+        })
     }
 
     /// Steps that missed their time since the last call.

@@ -17,6 +17,8 @@ use crate::flash_record::{self, MAX_RECORD, RECORD_ALIGN, SECTOR_LEN};
 
 /// Offsets of the two profile sectors from the start of flash.
 pub const SECTOR_OFFSETS: [u32; 2] = [0x4000, 0x8000];
+/// Their sector numbers (FLASH_CR.SNB).
+const SECTOR_NUMBERS: [u8; 2] = [1, 2];
 const FLASH_BASE: usize = 0x0800_0000;
 
 const _: () = assert!(RECORD_ALIGN.is_multiple_of(WRITE_SIZE));
@@ -25,14 +27,8 @@ const _: () = assert!(flash_record::worst_case_blocking_ms() < flash_record::ERA
 // Erases stay rare: a sector takes this many of the largest records.
 const _: () = assert!(flash_record::RECORDS_PER_SECTOR >= 50);
 
-/// Why the profile could not be stored.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, defmt::Format)]
-pub enum StoreError {
-    /// Payload too large for a record.
-    TooLarge,
-    /// The flash controller reported an error.
-    Flash,
-}
+/// Why the profile could not be stored (reported to the host as `RigError::ProfileNotSaved`).
+pub use subsurf_protocol::SaveError as StoreError;
 
 /// The profile store.
 pub struct Store {
@@ -76,28 +72,66 @@ impl Store {
         let len = flash_record::record_len(payload.len());
         let place = flash_record::place(&scans, len, SECTOR_LEN);
         let n = flash_record::encode(payload, place.seq, &mut record)
-            .map_err(|_| StoreError::TooLarge)?;
-        let record = record.get(..n).ok_or(StoreError::TooLarge)?;
+            .map_err(|_| StoreError::Encode)?;
+        let record = record.get(..n).ok_or(StoreError::Encode)?;
         let sector = SECTOR_OFFSETS
             .get(place.sector)
             .copied()
-            .ok_or(StoreError::Flash)?;
+            .ok_or(StoreError::Erase)?;
         if place.erase {
             defmt::info!(
                 "profile sector {} full or unreadable: erasing",
                 place.sector + 1
             );
-            let erased = with_erase_watchdog(|| {
-                self.flash
-                    .blocking_erase(sector, sector + SECTOR_LEN as u32)
-                    .map_err(|_| StoreError::Flash)
-            });
-            erased?;
+            let snb = SECTOR_NUMBERS
+                .get(place.sector)
+                .copied()
+                .ok_or(StoreError::Erase)?;
+            with_erase_watchdog(|| erase_sector_x32(snb))?;
         }
-        let offset = sector + u32::try_from(place.at).map_err(|_| StoreError::Flash)?;
+        let offset = sector + u32::try_from(place.at).map_err(|_| StoreError::Program)?;
         self.flash
             .blocking_write(offset, record)
-            .map_err(|_| StoreError::Flash)
+            .map_err(|_| StoreError::Program)
+    }
+}
+
+/// Erase sector `snb` at ×32 parallelism, interrupts masked, through the registers (RM0390
+/// §3.5.2, "Sector Erase"; FLASH_CR.PSIZE = 0b10).
+///
+/// Not embassy-stm32's `blocking_erase`: version 0.6 sets only SER and SNB for an erase, and its
+/// last programming write clears the whole control register, so its erases ran at PSIZE = ×8,
+/// whose worst case for a 16 KiB sector is 800 ms, not the 500 ms of ×32 (STM32F446xC/E
+/// datasheet, "Flash memory programming", t_ERASE16KB: ×8 typ 400 / max 800 ms, ×16 300 / 600,
+/// ×32 250 / 500). ×32 needs VDD of 2.7–3.6 V, which the Nucleo's 3.3 V regulator gives and the
+/// 168 MHz clock needs anyway (brown-out: `subsurf flash` checks BOR). Masking interrupts costs
+/// nothing here: the CPU fetches from the bank being erased and stalls until the erase ends, every
+/// handler with it (all of them run from flash).
+fn erase_sector_x32(snb: u8) -> Result<(), StoreError> {
+    use pac::flash::vals::Psize;
+    let f = pac::FLASH;
+    let sr = cortex_m::interrupt::free(|_| {
+        if f.cr().read().lock() {
+            f.keyr().write_value(0x4567_0123);
+            f.keyr().write_value(0xCDEF_89AB);
+        }
+        // Clear the sticky error flags (write 1 to clear) left by an earlier operation.
+        f.sr().modify(|_| {});
+        f.cr().write(|w| {
+            w.set_psize(Psize::PSIZE32);
+            w.set_ser(true);
+            w.set_snb(snb);
+        });
+        f.cr().modify(|w| w.set_strt(true));
+        while f.sr().read().bsy() {}
+        let sr = f.sr().read();
+        f.cr().write(|w| w.set_lock(true));
+        sr
+    });
+    if sr.pgserr() || sr.pgperr() || sr.pgaerr() || sr.wrperr() || sr.operr() {
+        Err(StoreError::Erase)
+    } else {
+        Ok(())
     }
 }
 

@@ -93,7 +93,7 @@ fn main() -> ! {
         offset += chunk.len();
     };
     // Peak stack per record kind (host bytes, e-stop, interlock, ...), repainting before each.
-    let mut per_kind = [0usize; 8];
+    let mut per_kind = [0usize; 12];
     let mut observe = |kind: u8, done: bool| {
         if done {
             if let Some(peak) = per_kind.get_mut(usize::from(kind)) {
