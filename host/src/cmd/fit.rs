@@ -159,6 +159,11 @@ pub struct Args {
     /// the mesh surface (a mesh in another pose or unit fails it: run `subsurf align` first).
     #[arg(long)]
     pub skip_mesh_check: bool,
+    /// Measure the noise floor from the frames also when scan.json gives one, and warn when the
+    /// two differ by more than 2x (reads up to 16 frames a second time; without a floor in
+    /// scan.json it is always measured).
+    #[arg(long)]
+    pub check_noise_floor: bool,
     /// Do not draw the PNGs beside the report (`<report>-error-map.png`: log E(x_i) per vertex,
     /// Eq. 8; `<report>-model.png`: alpha, reflectance, reach and vertex status).
     #[arg(long)]
@@ -342,9 +347,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     // The cross-validation's folds and --validate's held-out frames are judged by the dataset's
     // evaluation protocol, whatever this fit's own sample rules (the run itself when they agree).
-    // A floor scan.json gives is checked against the frames while they are fresh (not when the
-    // samples came from a cache: nothing was read).
-    if ds.spec.noise_floor.is_some() && run.store().is_some_and(|s| !s.report().from_cache) {
+    // A floor scan.json gives is checked against the frames when asked (it reads frames again:
+    // the one decode per frame holds otherwise).
+    if ds.spec.noise_floor.is_some() && args.check_noise_floor {
         if let Ok(checked) = subsurf::pipeline::noise_floor(&ds, &all, true) {
             floor = checked;
         }
