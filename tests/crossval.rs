@@ -393,14 +393,16 @@ fn shared_round_zero_candidates_fit_a_fold_as_its_own_fit_would() {
 /// Done-when of issue 25 on the outside renderer's datasets, their test frames held out of
 /// every fit: sample-slab's held-out error with `--segments auto` (m chosen by cross-validation
 /// on the 7 training frames) at or below the isotropic fit's, channel by channel (measured
-/// 0.1614 / 0.1385 / 0.1515 against 0.1757 / 0.1614 / 0.1750, m = 4 chosen); sample-torus's
-/// held-out green with the defaults no worse than 0.568 (measured 0.5680: the rounds chosen,
-/// 0, are what the fit ran before).
+/// 0.1614 / 0.1385 / 0.1515 against 0.1757 / 0.1614 / 0.1750, m = 4 chosen). sample-torus's
+/// held-out green with the defaults is a regression check only, within two of its standard
+/// errors (clustered by turntable angle) of the figure recorded in docs/validation.md, 0.6267:
+/// its earlier bound, 0.568, was reached with a constant chosen on these very frames (issue 39),
+/// and a test that pins a test-set figure would choose by it.
 #[test]
 fn cross_validated_choices_on_the_shared_datasets() {
     use subsurf::crossval::{CvSettings, Segments, fit_scan_in};
     let fitter = subsurf::fit::FitOptions::default();
-    let held_out = |name: &str, held: &[usize], cv: CvSettings| -> Option<[f64; 3]> {
+    let held_out = |name: &str, held: &[usize], cv: CvSettings| -> Option<([f64; 3], [f64; 3])> {
         let Some(dir) = shared(name) else {
             eprintln!("SKIPPED: shared/data/{name} is absent");
             return None;
@@ -416,7 +418,7 @@ fn cross_validated_choices_on_the_shared_datasets() {
         };
         let ctx = subsurf::pipeline::prepare(&ds, &frames, &opts, &store, &()).unwrap();
         let out = fit_scan_in(&ctx, &ctx, &frames, &cv, &fitter, &()).unwrap();
-        let (_, st) = subsurf::evaluate::evaluate_frames_stored(
+        let (evals, st) = subsurf::evaluate::evaluate_frames_stored(
             &ds,
             &out.model,
             held,
@@ -426,7 +428,12 @@ fn cross_validated_choices_on_the_shared_datasets() {
             &(),
         )
         .unwrap();
-        Some(st.mean.map(|v| v.unwrap()))
+        let clusters = subsurf::evaluate::Clustering::of_frames(&ds, &evals);
+        let fig = subsurf::evaluate::Figures::of(&evals, &clusters);
+        Some((
+            st.mean.map(|v| v.unwrap()),
+            fig.se_log_e.map(|v| v.unwrap_or(f64::INFINITY)),
+        ))
     };
     let iso = held_out("sample-slab", &[1, 5], CvSettings::default());
     let auto = held_out(
@@ -437,15 +444,15 @@ fn cross_validated_choices_on_the_shared_datasets() {
             ..CvSettings::default()
         },
     );
-    if let (Some(iso), Some(auto)) = (iso, auto) {
+    if let (Some((iso, _)), Some((auto, _))) = (iso, auto) {
         eprintln!("sample-slab held out: isotropic {iso:.4?}, auto {auto:.4?}");
         for c in 0..3 {
             assert!(auto[c] <= iso[c] + 1e-9, "{auto:?} vs {iso:?}");
         }
     }
     let held: Vec<usize> = (96..104).collect();
-    if let Some(t) = held_out("sample-torus", &held, CvSettings::default()) {
-        eprintln!("sample-torus held out: {t:.4?}");
-        assert!(t[1] <= 0.5681, "{t:?}");
+    if let Some((t, se)) = held_out("sample-torus", &held, CvSettings::default()) {
+        eprintln!("sample-torus held out: {t:.4?} ± {se:.4?}");
+        assert!((t[1] - 0.6267).abs() <= 2.0 * se[1], "{t:?} ± {se:?}");
     }
 }
