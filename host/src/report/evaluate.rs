@@ -4,8 +4,8 @@
 use std::fmt::Write as _;
 
 use crate::evaluate::{Clustering, EvalPoints, Figures, FrameEval, Paired, split_fitted};
-use crate::modelfile::ModelFile;
-use crate::pipeline::PipelineOptions;
+use crate::modelfile::{FitRecord, ModelFile};
+use crate::pipeline::{PipelineOptions, fit_record};
 
 use super::fmt;
 
@@ -51,18 +51,10 @@ pub struct Protocol {
     pub overridden: bool,
     /// Where the noise floor came from.
     pub noise_floor_source: String,
-    /// The radiance noise floor: Eq. 8's threshold t.
-    pub noise_floor: f64,
-    /// Samples closer than this to x_i (mm) are not compared.
-    pub exclusion_radius_mm: f64,
-    /// The samples' grazing limit (cos θ at x_o).
-    pub cos_min: f64,
-    /// The coverage check of the samples' pixel neighbourhoods.
-    pub coverage: bool,
-    /// The largest disagreement between detected spot and laser ray (mm).
-    pub laser_tolerance_mm: f64,
-    /// Frames whose spot is seen more grazing than this (cos θ) are not judged.
-    pub spot_cos_min: f64,
+    /// The rules (noise floor, exclusion radius, grazing limits, coverage check, laser
+    /// tolerance), in the terms a model file records its fit's.
+    #[serde(flatten)]
+    pub rules: FitRecord,
     /// Whether the model's fit read its own samples by other rules (its file's record): its
     /// figures here are still on the protocol's samples.
     pub fit_rules_differ: bool,
@@ -76,24 +68,12 @@ impl Protocol {
         noise_floor_source: String,
         model: &ModelFile,
     ) -> Protocol {
-        let fit_rules_differ = model.fitted_with.is_some_and(|r| {
-            r.noise_floor != opts.samples.noise_floor
-                || r.exclusion_radius_mm != opts.samples.exclusion_radius_mm
-                || r.cos_min != opts.samples.cos_min
-                || r.coverage != opts.samples.coverage
-                || r.laser_tolerance_mm != opts.spot.laser_tolerance_mm
-                || r.spot_cos_min != opts.spot_cos_min
-        });
+        let rules = fit_record(opts);
         Protocol {
             overridden,
             noise_floor_source,
-            noise_floor: opts.samples.noise_floor,
-            exclusion_radius_mm: opts.samples.exclusion_radius_mm,
-            cos_min: opts.samples.cos_min,
-            coverage: opts.samples.coverage,
-            laser_tolerance_mm: opts.spot.laser_tolerance_mm,
-            spot_cos_min: opts.spot_cos_min,
-            fit_rules_differ,
+            rules,
+            fit_rules_differ: model.fitted_with.is_some_and(|r| r != rules),
         }
     }
 }
@@ -202,11 +182,11 @@ impl EvaluateReport {
             } else {
                 " (the dataset's)"
             },
-            p.noise_floor,
+            p.rules.noise_floor,
             p.noise_floor_source,
-            p.exclusion_radius_mm,
-            p.spot_cos_min,
-            if p.coverage { "on" } else { "off" },
+            p.rules.exclusion_radius_mm,
+            p.rules.spot_cos_min,
+            if p.rules.coverage { "on" } else { "off" },
             if p.fit_rules_differ {
                 "; the model's fit read its samples by other rules (its file's record)"
             } else {
