@@ -99,8 +99,8 @@ fn surface_rms(mesh: &Mesh, truth: &Mesh) -> f64 {
     (s / mesh.positions.len() as f64).sqrt()
 }
 
-/// Mean and median log E (Eq. 8) per channel of `model` on `frames` of `scan`.
-fn held_out(model: &Path, scan: &Path, frames: &str) -> ([f64; 3], [f64; 3]) {
+/// `subsurf evaluate --json` of `model` on `frames` of `scan`.
+fn evaluate_json(model: &Path, scan: &Path, frames: &str) -> serde_json::Value {
     let out = ok(&[
         "evaluate",
         "--model",
@@ -111,7 +111,12 @@ fn held_out(model: &Path, scan: &Path, frames: &str) -> ([f64; 3], [f64; 3]) {
         frames,
         "--json",
     ]);
-    let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+    serde_json::from_str(&out).unwrap()
+}
+
+/// Mean and median log E (Eq. 8) per channel of `model` on `frames` of `scan`.
+fn held_out(model: &Path, scan: &Path, frames: &str) -> ([f64; 3], [f64; 3]) {
+    let v = evaluate_json(model, scan, frames);
     let three = |k: &str| -> [f64; 3] {
         std::array::from_fn(|c| v[k][c].as_f64().expect("a finite log E"))
     };
@@ -334,19 +339,7 @@ fn paired_change(
     scan_b: &Path,
     frames: &str,
 ) -> ([f64; 3], [f64; 3]) {
-    let per = |model: &Path, scan: &Path| -> serde_json::Value {
-        let out = ok(&[
-            "evaluate",
-            "--model",
-            model.to_str().unwrap(),
-            "--scan",
-            scan.to_str().unwrap(),
-            "--frames",
-            frames,
-            "--json",
-        ]);
-        serde_json::from_str::<serde_json::Value>(&out).unwrap()["per_frame"].clone()
-    };
+    let per = |model: &Path, scan: &Path| evaluate_json(model, scan, frames)["per_frame"].clone();
     let (pa, pb) = (per(a, scan_a), per(b, scan_b));
     let spec: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(scan_a.join("scan.json")).unwrap()).unwrap();

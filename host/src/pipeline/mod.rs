@@ -457,8 +457,13 @@ impl Setup {
         report.frames.fitted = groups.pooling.frames;
         report.frames.pooling = groups.pooling;
         clock.lap("selection", &mut report);
+        // Sorted and distinct: the model file's ranges and `evaluate::split_fitted`'s binary
+        // search read them so.
+        let mut fitted = frames.to_vec();
+        fitted.sort_unstable();
+        fitted.dedup();
         Ok(Setup {
-            frames: frames.to_vec(),
+            frames: fitted,
             report,
             regs,
             groups,
