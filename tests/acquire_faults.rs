@@ -96,6 +96,7 @@ fn emergency_stop_halts_with_the_laser_off_and_the_scan_resumes() {
 struct Flaky {
     inner: Box<dyn Camera>,
     shots: usize,
+    dark_shots: usize,
     stop_after: Option<(usize, Arc<AtomicBool>)>,
     fail_frame: usize,
     fails: u32,
@@ -113,6 +114,7 @@ impl Camera for Flaky {
     }
     fn capture(&mut self, shot: &Shot) -> Result<Image, CameraError> {
         self.shots += 1;
+        self.dark_shots += usize::from(shot.dark);
         if let Some((n, stop)) = &self.stop_after
             && self.shots >= *n
         {
@@ -138,6 +140,7 @@ fn ctrl_c_stops_cleanly_with_the_laser_off() {
     let mut camera = Flaky {
         inner: camera_from_spec("sim", &mesh, &cfg.calib, 1, Duration::from_secs(1)).unwrap(),
         shots: 0,
+        dark_shots: 0,
         stop_after: Some((5, stop.clone())),
         fail_frame: usize::MAX,
         fails: 0,
@@ -151,6 +154,14 @@ fn ctrl_c_stops_cleanly_with_the_laser_off() {
     camera.stop_after = None;
     let s = run(&cfg, &mut rig, &mut camera, &()).unwrap();
     assert!(s.resumed_from >= 4, "{s:?}");
+    // The dark frames were taken once, by the first run; the resumed one kept their floor.
+    assert_eq!(camera.dark_shots, cfg.plan.exposures_s.len());
+    assert_eq!(s.dark_frames.len(), cfg.plan.exposures_s.len());
+    let ds = Dataset::open(&cfg.out).unwrap();
+    assert_eq!(
+        ds.spec.noise_floor,
+        subsurf::scan::dark::floor_of(&s.dark_frames)
+    );
 }
 
 #[test]
@@ -159,6 +170,7 @@ fn a_camera_timeout_is_retried_then_fails_the_frame_clearly() {
     let mut camera = Flaky {
         inner: camera_from_spec("sim", &mesh, &cfg.calib, 1, Duration::from_secs(1)).unwrap(),
         shots: 0,
+        dark_shots: 0,
         stop_after: None,
         fail_frame: 3,
         fails: 1,
@@ -172,6 +184,7 @@ fn a_camera_timeout_is_retried_then_fails_the_frame_clearly() {
     let mut camera = Flaky {
         inner: camera_from_spec("sim", &mesh, &cfg.calib, 1, Duration::from_secs(1)).unwrap(),
         shots: 0,
+        dark_shots: 0,
         stop_after: None,
         fail_frame: 2,
         fails: 100,

@@ -79,7 +79,7 @@ fn hdr_brackets_merge_into_radiance_frames() {
     let ds = Dataset::open(&cfg.out).unwrap();
     assert_eq!(ds.spec.frames.len(), 3);
     assert!(ds.spec.frames.iter().all(|f| f.exposure_s == 1.0));
-    // Three exposures per frame reached the rig.
+    // Three exposures per frame reached the rig, and one dark frame per exposure before them.
     let triggers = rig
         .link()
         .rig()
@@ -87,7 +87,52 @@ fn hdr_brackets_merge_into_radiance_frames() {
         .iter()
         .filter(|e| e.value)
         .count();
-    assert_eq!(triggers, 9);
+    assert_eq!(triggers, 9 + 3);
+    // Issue 39, item 5: with no floor given, scan.json's is the dark frames' (the longest
+    // exposure's, 1 s), and it is the sensor's: 3 read-noise σ, within 8 % of the level where
+    // one pixel's SNR (shot noise too) is 3. The laser never came on before the first frame's
+    // capture program.
+    assert_eq!(ds.spec.dark_frames.len(), 3);
+    for d in &ds.spec.dark_frames {
+        let img = subsurf::dataset::read_image(&cfg.out.join(&d.image)).unwrap();
+        assert_eq!((img.width, img.height), (48, 48));
+    }
+    let longest = &ds.spec.dark_frames[2];
+    assert_eq!(longest.exposure_s, 1.0);
+    assert_eq!(ds.spec.noise_floor, Some(longest.floor));
+    let sensor = subsurf::scan::setup::sim_sensor();
+    assert!(
+        (longest.sigma / sensor.read_noise - 1.0).abs() < 0.05,
+        "{longest:?}"
+    );
+    let snr3 = subsurf::simulate::Sensor {
+        exposure_s: 1.0,
+        ..sensor
+    }
+    .radiance_at_snr(3.0);
+    let ratio = longest.floor / snr3;
+    assert!((0.85..1.0).contains(&ratio), "{longest:?} vs {snr3:e}");
+    let first_lit = rig
+        .link()
+        .rig()
+        .laser_log()
+        .iter()
+        .find(|e| e.value != 0)
+        .map(|e| e.at)
+        .unwrap();
+    let dark_triggers: Vec<u64> = rig
+        .link()
+        .rig()
+        .trigger_log()
+        .iter()
+        .filter(|e| e.value)
+        .map(|e| e.at)
+        .take(3)
+        .collect();
+    assert!(
+        dark_triggers.iter().all(|&t| t < first_lit),
+        "{dark_triggers:?} {first_lit}"
+    );
 }
 
 #[test]

@@ -31,7 +31,7 @@
 
 use heapless::{Deque, Vec};
 use subsurf_protocol::{
-    Capabilities, Capture, Captured, Command, Config, Event, EventKind, EventReplay,
+    Capabilities, Capture, Captured, Command, Config, DarkCapture, Event, EventKind, EventReplay,
     ExposureActive, Fault, FirmwareVersion, FrameDecoder, GalvoPoint, HaltReason, Hello, Inputs,
     MAX_EXPOSURE_US, MAX_HEARTBEAT_TIMEOUT_MS, MAX_SETTLE_US, Move, MoveTarget, PROTOCOL_VERSION,
     ProgramChunk, ProgramHeader, REPLAY_BATCH, Reply, Request, Response, RigError, RigMessage,
@@ -244,7 +244,8 @@ struct ActiveCapture {
     id: u32,
     program_index: Option<u16>,
     galvo: GalvoPoint,
-    channel: u8,
+    /// `None`: a dark capture, every laser off throughout.
+    channel: Option<u8>,
     trigger_us: u32,
     exposure_us: u32,
     laser_on_at: Micros,
@@ -853,7 +854,7 @@ impl<H: Hardware> Rig<H> {
         let wanted = if self.laser_permitted() {
             let capture = match &self.capture {
                 Some(ActiveCapture {
-                    channel,
+                    channel: Some(channel),
                     phase: Phase::Lit | Phase::Exposing { .. },
                     ..
                 }) => 1u8.checked_shl(u32::from(*channel)).unwrap_or(0),
@@ -1252,6 +1253,7 @@ impl<H: Hardware> Rig<H> {
                 Ok(Response::Ack)
             }
             Command::Capture(c) => self.start_single_capture(now, c),
+            Command::DarkCapture(c) => self.start_dark_capture(now, c),
             Command::ProgramLoad(header) => self.load_program(header),
             Command::ProgramPoints(chunk) => self.add_program_points(chunk),
             Command::ProgramRun => self.run_program(now),
@@ -1583,13 +1585,43 @@ impl<H: Hardware> Rig<H> {
         self.check_laser_ready()?;
         let capture_id = self.next_capture_id;
         self.next_capture_id = self.next_capture_id.wrapping_add(1);
-        self.start_capture(now, capture_id, None, c);
+        self.start_capture(now, capture_id, None, c, true);
+        Ok(Response::CaptureStarted { capture_id })
+    }
+
+    /// A capture with every laser off (the camera's dark frame): the timing checks of a capture,
+    /// none of the laser's (it needs no arming: it emits nothing; an open interlock halts it
+    /// as any capture), the mirrors left where they are.
+    fn start_dark_capture(&mut self, now: Micros, c: DarkCapture) -> Result<Response, RigError> {
+        self.check_not_faulted()?;
+        if self.busy() {
+            return Err(RigError::Busy);
+        }
+        self.check_capture_settings(0, None, c.exposure_us, c.trigger_us)?;
+        let capture_id = self.next_capture_id;
+        self.next_capture_id = self.next_capture_id.wrapping_add(1);
+        let at = Capture {
+            galvo: self.galvo,
+            settle_us: Some(0),
+            channel: 0,
+            exposure_us: c.exposure_us,
+            trigger_us: c.trigger_us,
+        };
+        self.start_capture(now, capture_id, None, at, false);
         Ok(Response::CaptureStarted { capture_id })
     }
 
     /// Plan the window: laser on once the galvo has settled and the camera has read out (less
     /// the laser lead), trigger `lead_us` later, laser off `tail_us` after the nominal exposure.
-    fn start_capture(&mut self, now: Micros, id: u32, program_index: Option<u16>, c: Capture) {
+    /// `lit` false: a dark capture, the same timing with every laser off.
+    fn start_capture(
+        &mut self,
+        now: Micros,
+        id: u32,
+        program_index: Option<u16>,
+        c: Capture,
+        lit: bool,
+    ) {
         let settle = c
             .settle_us
             .unwrap_or_else(|| galvo_settle_us(&self.profile, self.galvo, c.galvo));
@@ -1609,7 +1641,7 @@ impl<H: Hardware> Rig<H> {
             id,
             program_index,
             galvo: c.galvo,
-            channel: c.channel,
+            channel: lit.then_some(c.channel),
             trigger_us: c.trigger_us,
             exposure_us: c.exposure_us,
             laser_on_at,
@@ -1634,9 +1666,15 @@ impl<H: Hardware> Rig<H> {
                 c.phase = Phase::Lit;
                 self.capture = Some(c);
                 self.sync_lasers();
-                if self.laser_output != 0 {
+                // A dark capture's window is timed too, with no channel in it: the camera's
+                // exposure is the same as a lit one's.
+                if self.laser_output != 0 || c.channel.is_none() {
                     let window = ExposureWindow {
-                        channel_mask: self.laser_output,
+                        channel_mask: if c.channel.is_some() {
+                            self.laser_output
+                        } else {
+                            0
+                        },
                         laser_on_at: now,
                         trigger_at: c.trigger_at,
                         trigger_us: c.trigger_us,
@@ -1704,7 +1742,8 @@ impl<H: Hardware> Rig<H> {
             _ => None,
         };
         let (lit_from, lit_until) = c.lit_window();
-        let lit = matches!((c.exposure_start, c.exposure_end),
+        let lit = c.channel.is_some()
+            && matches!((c.exposure_start, c.exposure_end),
             (Some(start), Some(end)) if start >= lit_from && end <= lit_until);
         if exposure.is_none() {
             // No image will come for this capture: the camera is ready again only after the
@@ -1723,7 +1762,8 @@ impl<H: Hardware> Rig<H> {
                 exposure_count: self.exposures,
                 lit,
                 galvo: c.galvo,
-                channel: c.channel,
+                // A dark capture fired none: `lit` says so, 0 keeps the encoding of version 5.
+                channel: c.channel.unwrap_or(0),
             }),
         );
     }
@@ -1830,7 +1870,7 @@ impl<H: Hardware> Rig<H> {
             trigger_us: header.trigger_us,
         };
         let id = run.first_id.wrapping_add(u32::from(index));
-        self.start_capture(now, id, Some(index), capture);
+        self.start_capture(now, id, Some(index), capture, true);
         true
     }
 }

@@ -706,3 +706,98 @@ fn replay_returns_kept_events_and_says_which_are_gone_after_overflow() {
         matches!(s, Ok(Response::Status(s)) if s.next_event_seq == total && s.position == total as i32)
     );
 }
+
+/// A dark capture (version 6) triggers the camera for its exposure with every laser off, armed
+/// or not, and reports it unlit (channel 0); a manual laser left on goes off for it. With
+/// the interlock open the rig halts it as it halts any capture, the laser still off.
+#[test]
+fn a_dark_capture_exposes_the_camera_with_every_laser_off() {
+    let dark = DarkCapture {
+        exposure_us: 5_000,
+        trigger_us: 100,
+    };
+    for (armed, interlock_closed) in [(true, true), (false, true), (false, false)] {
+        let open = !interlock_closed;
+        let mut h = Host::new(SimParams::default());
+        if armed {
+            h.call(Command::Arm).unwrap();
+            h.call(Command::Laser {
+                channel: 1,
+                on: true,
+            })
+            .unwrap();
+            assert_eq!(h.sim.hw().lasers(), 0b10);
+            h.advance(10);
+        }
+        if !interlock_closed {
+            let now = h.sim.now();
+            h.sim.set_interlock(now + 10, false);
+            h.advance(100);
+            h.events.clear();
+        }
+        let t0 = h.sim.now();
+        let Ok(Response::CaptureStarted { capture_id }) = h.call(Command::DarkCapture(dark)) else {
+            panic!("dark capture refused (armed {armed}, interlock {interlock_closed})");
+        };
+        h.advance(20_000);
+        // No laser output at any time after the dark capture was asked for.
+        let lit_after: Vec<_> = h
+            .sim
+            .hw()
+            .laser_log()
+            .entries()
+            .filter(|e| e.at >= t0 && e.value != 0)
+            .map(|e| (e.at, e.value))
+            .collect();
+        assert_eq!(lit_after, vec![], "armed {armed}");
+        assert_eq!(h.sim.hw().lasers(), 0);
+        if open {
+            assert_eq!(
+                h.kinds(),
+                vec![EventKind::Halted {
+                    reason: HaltReason::InterlockOpen
+                }]
+            );
+            continue;
+        }
+        let trig: Vec<_> = h
+            .sim
+            .hw()
+            .trigger_log()
+            .entries()
+            .filter(|e| e.at >= t0)
+            .map(|e| e.value)
+            .collect();
+        assert_eq!(
+            (trig.iter().filter(|v| **v).count(), trig.last()),
+            (1, Some(&false)),
+            "the camera is triggered once: {trig:?}"
+        );
+        let captured: Vec<Captured> = h
+            .kinds()
+            .into_iter()
+            .filter_map(|k| match k {
+                EventKind::Captured(c) => Some(c),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(captured.len(), 1);
+        let c = &captured[0];
+        assert_eq!(c.capture_id, capture_id);
+        assert_eq!((c.lit, c.channel), (false, 0));
+        assert_eq!(
+            c.exposure.map(|e| e.duration_us),
+            Some(5_000),
+            "the camera exposed"
+        );
+    }
+    // Its timing is checked like any capture's.
+    let mut h = Host::new(SimParams::default());
+    assert_eq!(
+        h.call(Command::DarkCapture(DarkCapture {
+            exposure_us: 5_000,
+            trigger_us: 6_000,
+        })),
+        Err(RigError::OutOfRange)
+    );
+}

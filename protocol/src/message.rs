@@ -21,7 +21,10 @@ use crate::profile::{ProfileError, RigProfile};
 /// the profile's polarity; [`RigError::ProfileNotSaved`] and [`Command::GetStoredProfile`]: a
 /// `SetProfile` is answered only after flash reads it back; [`Fault::StepLate`] and
 /// [`HaltReason::StepLate`]: a step interrupt later than one timer period stops the motion.
-pub const PROTOCOL_VERSION: u16 = 5;
+/// Version 6 (issue 39) appended [`Command::DarkCapture`]: the camera triggered with every laser
+/// off, for the dark frames a scan measures its noise floor from (its [`Captured`] says `lit`
+/// false; every earlier encoding is unchanged).
+pub const PROTOCOL_VERSION: u16 = 6;
 
 /// Galvo points per [`Command::ProgramPoints`] chunk: 32 points of at most 6 bytes each keep the
 /// chunk well inside [`crate::MAX_MESSAGE`].
@@ -131,6 +134,12 @@ pub enum Command {
     /// The profile the board's flash holds now, read from flash: what the next boot runs
     /// (version 5). Answered with [`Response::Profile`], or [`RigError::ProfileNotStored`].
     GetStoredProfile,
+    /// One capture with every laser off (version 6): the camera's dark frame, from which the
+    /// host measures its noise floor. Needs no arming and moves no mirror: it emits nothing (an open
+    /// interlock still halts it, as any capture).
+    /// Answered with [`Response::CaptureStarted`], then [`EventKind::Captured`] with `lit` false
+    /// and channel 0.
+    DarkCapture(DarkCapture),
 }
 
 /// A turntable move. Speeds in steps/s, acceleration in steps/s².
@@ -178,6 +187,17 @@ pub struct Capture {
     /// Exposure, µs (`capabilities.min_exposure_us..=capabilities.max_exposure_us`). The laser is
     /// on from the profile's `laser.lead_us` before the trigger edge to `laser.tail_us` after
     /// the exposure's nominal end.
+    pub exposure_us: u32,
+    /// Camera trigger pulse width, µs (`1..=exposure_us`).
+    pub trigger_us: u32,
+}
+
+/// A capture with every laser off: the trigger timing of [`Capture`] without a laser or a galvo
+/// point.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct DarkCapture {
+    /// Exposure, µs (`capabilities.min_exposure_us..=capabilities.max_exposure_us`).
     pub exposure_us: u32,
     /// Camera trigger pulse width, µs (`1..=exposure_us`).
     pub trigger_us: u32,
@@ -587,7 +607,7 @@ pub struct Captured {
     pub lit: bool,
     /// Where the laser pointed.
     pub galvo: GalvoPoint,
-    /// Which channel fired.
+    /// Which channel fired (0 for a [`Command::DarkCapture`], whose `lit` is false: none did).
     pub channel: u8,
 }
 

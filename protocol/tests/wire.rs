@@ -183,6 +183,24 @@ fn golden_captured_event() {
     );
 }
 
+/// Version 6's `DarkCapture` (command variant 21): exposure and trigger pulse, no laser.
+#[test]
+fn golden_dark_capture() {
+    let mut out = [0u8; MAX_FRAME];
+    let req = Request {
+        seq: 7,
+        command: Command::DarkCapture(DarkCapture {
+            exposure_us: 20_000,
+            trigger_us: 100,
+        }),
+    };
+    let n = encode_request(&req, &mut out).unwrap();
+    assert_eq!(
+        &out[..n],
+        &[11, 7, 21, 160, 156, 1, 100, 120, 69, 97, 238, 0]
+    );
+}
+
 /// Version 3's `SetProfile` (command variant 18) with the documented wiring's profile.
 #[test]
 fn golden_set_default_profile() {
@@ -576,6 +594,12 @@ fn command() -> impl Strategy<Value = Command> {
         profile().prop_map(Command::SetProfile),
         Just(Command::GetProfile),
         Just(Command::GetStoredProfile),
+        (any::<u32>(), any::<u32>()).prop_map(|(exposure_us, trigger_us)| Command::DarkCapture(
+            DarkCapture {
+                exposure_us,
+                trigger_us
+            }
+        )),
     ]
 }
 

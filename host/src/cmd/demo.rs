@@ -172,7 +172,7 @@ pub fn run_demo(args: &Args) -> Result<Vec<PathBuf>> {
         calib.clone(),
         subsurf::dataset::obj_bytes(&mesh),
     );
-    cfg.noise_floor = sim_noise_floor(&exposures);
+    cfg.noise_floor = Some(sim_noise_floor(&exposures));
     let mut camera = camera_from_spec("sim", &mesh, &calib, 7, std::time::Duration::from_secs(10))?;
     let p = bar(cfg.plan.frame_count() as u64, "scan");
     let summary = run(&cfg, &mut rig, camera.as_mut(), &p)?;
@@ -767,7 +767,7 @@ pub fn run_demo(args: &Args) -> Result<Vec<PathBuf>> {
         ])
         .row([
             "noise floor".to_string(),
-            fmt::sig(cfg.noise_floor, 2),
+            fmt::sig(cfg.noise_floor.unwrap_or(0.0), 2),
             "one pixel's SNR = 50 at the longest exposure".to_string(),
         ]);
     rep.table(

@@ -159,7 +159,7 @@ fn describe(plan: &ScanPlan, scene: &PlanScene, opts: &PlanOptions, t: &RigTimin
     let est = estimate_duration(plan, t, 0);
     format!(
         "{} planner: {} frames at {} turntable angles, {} exposure(s) each\n\
-         expected duration {:.1} s (homing {:.1}, turntable {:.1}, galvo settle {:.1}, exposure {:.1}, other {:.1})\n\
+         expected duration {:.1} s (homing {:.1}, turntable {:.1}, galvo settle {:.1}, exposure {:.1}, dark frames {:.1}, other {:.1})\n\
          predicted coverage: {} of {} coverable vertices ({:.1}%) have an x_i within {} mm; {} vertices in all",
         plan.planner,
         plan.frame_count(),
@@ -170,6 +170,7 @@ fn describe(plan: &ScanPlan, scene: &PlanScene, opts: &PlanOptions, t: &RigTimin
         est.turntable_s,
         est.settle_s,
         est.exposure_s,
+        est.dark_s,
         est.overhead_s,
         cov.covered,
         cov.coverable,

@@ -65,6 +65,14 @@ pub struct Args {
     /// Megabytes to keep free on the output disk.
     #[arg(long, default_value_t = 16)]
     pub reserve_mb: u64,
+    /// The radiance noise floor to write to scan.json (pixel / exposure_s). Default: the one
+    /// measured from the dark frames the scan takes first (the `sim` camera: its sensor's own).
+    #[arg(long)]
+    pub noise_floor: Option<f64>,
+    /// Take no dark frames (every laser off, one per exposure) before the first frame; without
+    /// --noise-floor, scan.json then has none and `subsurf fit` measures one from the frames.
+    #[arg(long)]
+    pub no_dark_frames: bool,
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
@@ -92,9 +100,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         r.calib.clone(),
         subsurf::dataset::obj_bytes(&r.mesh),
     );
-    if args.camera == "sim" {
-        cfg.noise_floor = sim_noise_floor(&cfg.plan.exposures_s);
+    if let Some(f) = args.noise_floor {
+        if !(f.is_finite() && f >= 0.0) {
+            bail!("--noise-floor must be a finite number >= 0, got {f}");
+        }
+        cfg.noise_floor = Some(f);
+    } else if args.camera == "sim" {
+        cfg.noise_floor = Some(sim_noise_floor(&cfg.plan.exposures_s));
     }
+    cfg.dark_frames = !args.no_dark_frames;
     cfg.laser_channel = args.laser_channel;
     cfg.move_speed = args.plan.speed;
     cfg.move_accel = args.plan.accel;
@@ -205,6 +219,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 s.reconnects,
                 s.camera_retries
             );
+            for line in
+                subsurf::scan::dark::summary(&s.dark_frames, s.noise_floor, args.noise_floor)
+            {
+                println!("{line}");
+            }
             match &s.sink {
                 Some(Ok(m)) => println!("{m}"),
                 Some(Err(e)) => println!(

@@ -28,7 +28,7 @@ pub use image::{
     read_image_with, write_exr, write_pfm,
 };
 pub use mesh::{Mesh, MeshError, MeshReport, load_obj, obj_bytes, write_obj};
-pub use writer::{DatasetWriter, STATE_DIR, WriteError};
+pub use writer::{DatasetWriter, STATE_DIR, WriteError, write_atomic};
 
 /// The only format string this version reads and writes.
 pub const FORMAT: &str = "subsurf-scan/1";
@@ -196,10 +196,32 @@ pub struct ScanSpec {
     /// (then `mesh` is the aligned copy). Absent: the mesh was given in the object frame.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub alignment: Option<Alignment>,
+    /// Extension of this project: the dark frames (every laser off) `subsurf scan` took, one
+    /// per exposure, and what they measured; `noise_floor` is then theirs unless the user gave
+    /// one (docs/scan-format.md, [`crate::scan::dark`]).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub dark_frames: Vec<DarkFrame>,
     /// The cameras (the one camera model, [`crate::geometry::Camera`]).
     pub cameras: Vec<Camera>,
     /// The frames, in capture order.
     pub frames: Vec<FrameSpec>,
+}
+
+/// One dark frame of a scan (`scan.json`'s `dark_frames`): the camera's record with every laser
+/// off, at one exposure of the scan's bracket, and the statistics of its raw pixels.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DarkFrame {
+    /// The image, relative to the dataset directory (raw values, not divided by the exposure).
+    pub image: String,
+    /// Exposure, s.
+    pub exposure_s: f64,
+    /// Median raw value (the offset a black level left).
+    pub median: f64,
+    /// Robust standard deviation of the raw values (1.4826 × the median absolute deviation):
+    /// the read noise.
+    pub sigma: f64,
+    /// The radiance this frame detects: (max(median, 0) + 3 sigma) / exposure_s.
+    pub floor: f64,
 }
 
 /// Rejects absolute paths and any `..`, so a dataset can only name files inside its directory.
@@ -236,6 +258,7 @@ impl ScanSpec {
             saturation,
             levels: Levels::default(),
             alignment: None,
+            dark_frames: Vec::new(),
             cameras,
             frames: Vec::new(),
         }
@@ -313,6 +336,21 @@ impl ScanSpec {
                     return bad(format!("frame {i}: laser ray must be finite and non-zero"));
                 }
             }
+        }
+        for (i, d) in self.dark_frames.iter().enumerate() {
+            let numbers = [d.median, d.sigma, d.floor];
+            if !(d.exposure_s.is_finite()
+                && d.exposure_s > 0.0
+                && numbers.iter().all(|v| v.is_finite()))
+                || d.sigma < 0.0
+                || d.floor < 0.0
+            {
+                return bad(format!(
+                    "dark_frames[{i}]: exposure_s must be positive and median, sigma, floor \
+                     finite (sigma and floor not negative)"
+                ));
+            }
+            confined_path(Path::new("."), &d.image)?;
         }
         Ok(())
     }

@@ -363,6 +363,18 @@ impl DatasetWriter {
         write_atomic(&path, (text + "\n").as_bytes())
     }
 
+    /// Records the scan's dark frames and the `noise_floor` the header then carries, and
+    /// rewrites `scan.json`.
+    pub fn set_dark_frames(
+        &mut self,
+        dark: Vec<super::DarkFrame>,
+        noise_floor: Option<f64>,
+    ) -> Result<(), WriteError> {
+        self.header.dark_frames = dark;
+        self.header.noise_floor = noise_floor;
+        self.write_index()
+    }
+
     /// `scan.json` without its frames (format, units, mesh, noise floor, saturation, cameras).
     pub fn header(&self) -> &ScanSpec {
         &self.header

@@ -159,7 +159,11 @@ pub fn noise_floor(
             });
             Ok(NoiseFloor {
                 value: given,
-                source: "scan.json".into(),
+                source: if ds.spec.dark_frames.is_empty() {
+                    "scan.json".into()
+                } else {
+                    "scan.json (the scan's dark frames)".into()
+                },
                 measured,
                 warning,
             })

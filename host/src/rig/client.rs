@@ -4,9 +4,9 @@ use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
 use subsurf_protocol::{
-    Capture, Captured, Command, Config, Event, EventKind, GalvoPoint, Hello, Move, MoveTarget,
-    PROGRAM_CHUNK, PROTOCOL_VERSION, ProgramChunk, ProgramHeader, Response, RigError, RigProfile,
-    RigState, Status,
+    Capture, Captured, Command, Config, DarkCapture, Event, EventKind, GalvoPoint, Hello, Move,
+    MoveTarget, PROGRAM_CHUNK, PROTOCOL_VERSION, ProgramChunk, ProgramHeader, Response, RigError,
+    RigProfile, RigState, Status,
 };
 
 use super::{ClientConfig, ClientCore, ClientStats, Outcome, RigClientError};
@@ -380,6 +380,19 @@ impl<L: ByteLink> RigClient<L> {
             Response::CaptureStarted { capture_id } => Ok(capture_id),
             other => Err(unexpected("Capture", other)),
         }
+    }
+
+    /// One capture with every laser off (the camera's dark frame), waited for.
+    pub fn dark_capture(
+        &mut self,
+        dark: DarkCapture,
+        timeout: Duration,
+    ) -> Result<Captured, RigClientError> {
+        let id = match self.call(Command::DarkCapture(dark))? {
+            Response::CaptureStarted { capture_id } => capture_id,
+            other => return Err(unexpected("DarkCapture", other)),
+        };
+        self.wait_captured(id, timeout)
     }
 
     /// One capture, waited for: returns the rig's report with the trigger timestamp.

@@ -92,6 +92,8 @@ pub struct Shot {
     /// The rig's boot nonce when it counted that exposure: its count restarts at 0 when the rig
     /// reboots, the camera's does not.
     pub rig_boot: Option<u32>,
+    /// Every laser off: a dark frame ([`crate::scan::dark`]), `frame` is then its bracket.
+    pub dark: bool,
 }
 
 /// A camera.
@@ -426,6 +428,7 @@ mod tests {
             triggered_at_us: None,
             exposure_count: None,
             rig_boot: None,
+            dark: false,
         }
     }
 

@@ -12,7 +12,10 @@ use super::camera::{Camera, CameraError, Shot, Timing};
 use super::plan::{ScanPlan, angle_steps};
 use crate::calib::Calibration;
 use crate::dataset::{Bracket, MergeOptions, merge_hdr};
-use crate::dataset::{DatasetWriter, FrameSpec, Image, LaserRay, ScanSpec, WriteError, encode_exr};
+use crate::dataset::{
+    DarkFrame, DatasetWriter, FrameSpec, Image, LaserRay, STATE_DIR, ScanSpec, WriteError,
+    encode_exr, write_atomic,
+};
 use crate::link::ByteLink;
 use crate::progress::Progress;
 use crate::rig::{RigClient, RigClientError};
@@ -20,7 +23,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
-use subsurf_protocol::{GalvoPoint, MoveTarget, ProgramHeader};
+use subsurf_protocol::{DarkCapture, GalvoPoint, MoveTarget, ProgramHeader};
 
 /// Why a scan stopped. Every variant leaves a dataset the same command resumes.
 #[derive(Debug, thiserror::Error)]
@@ -81,6 +84,14 @@ pub enum ScanError {
         /// What did not match.
         message: String,
     },
+    /// A dark frame measured nothing (no finite pixels).
+    #[error("dark frame at {exposure_s} s: {message}")]
+    Dark {
+        /// Its exposure.
+        exposure_s: f64,
+        /// Why.
+        message: String,
+    },
     /// Stopped on request (Ctrl-C); the laser is off.
     #[error("stopped on request after frame {done} of {total}; run the same command to resume")]
     Interrupted {
@@ -119,8 +130,11 @@ pub struct ScanConfig {
     pub calib: Calibration,
     /// The object mesh as OBJ text (copied into the dataset as `object.obj`).
     pub mesh_obj: Vec<u8>,
-    /// `noise_floor` written to `scan.json`.
-    pub noise_floor: f64,
+    /// `noise_floor` written to `scan.json` as given (`--noise-floor`, or the `sim` camera's
+    /// own); `None`: the one the dark frames measure ([`super::dark`]), or none without them.
+    pub noise_floor: Option<f64>,
+    /// Take the dark frames (one per exposure, every laser off) before the first frame.
+    pub dark_frames: bool,
     /// Laser channel index on the rig.
     pub laser_channel: u8,
     /// Turntable speed (steps/s) and acceleration (steps/s²); `None` = the rig's maximum.
@@ -150,7 +164,8 @@ impl ScanConfig {
             plan,
             calib,
             mesh_obj,
-            noise_floor: 1e-4,
+            noise_floor: None,
+            dark_frames: true,
             laser_channel: 0,
             move_speed: None,
             move_accel: None,
@@ -198,6 +213,10 @@ pub struct ScanSummary {
     pub camera_retries: u32,
     /// What the frame sink said at the end, if the scan had one ([`FrameSink::finish`]).
     pub sink: Option<Result<String, String>>,
+    /// The dark frames and what they measured (empty when none were taken).
+    pub dark_frames: Vec<DarkFrame>,
+    /// The `noise_floor` written to `scan.json`.
+    pub noise_floor: Option<f64>,
 }
 
 /// The raw level at which the frames a scan writes are clipped, for `scan.json`: the camera's
@@ -230,11 +249,19 @@ pub trait FrameSink {
     fn finish(&mut self) -> Result<String, String>;
 }
 
+/// A frame sink and the views (camera, turntable angle) it is to begin with.
+type PendingSink = (Box<dyn FrameSink>, Vec<(usize, f64)>);
+
 /// An open scan: the dataset writer and the plan, across rig sessions.
 pub struct Scan<'a> {
     cfg: &'a ScanConfig,
     writer: DatasetWriter,
     sink: Option<Box<dyn FrameSink>>,
+    /// A sink not yet begun, with its views: it begins once the header is final (after the
+    /// dark frames set the noise floor), so it extracts what a later `subsurf fit` reads.
+    pending_sink: Option<PendingSink>,
+    /// The dark frames taken (this run or a resumed one's, from the scan's state).
+    dark: Vec<DarkFrame>,
     frames: Vec<super::plan::PlannedFrame>,
     resumed_from: usize,
     written: usize,
@@ -251,7 +278,7 @@ impl<'a> Scan<'a> {
         }
         let header = ScanSpec::new(
             vec![cfg.calib.camera.clone()],
-            Some(cfg.noise_floor),
+            cfg.noise_floor,
             frame_saturation(camera.saturation(), &cfg.plan.exposures_s),
         );
         let (mut writer, done) = DatasetWriter::open(
@@ -261,10 +288,23 @@ impl<'a> Scan<'a> {
             &cfg.mesh_obj,
         )?;
         writer.reserve_bytes = cfg.reserve_bytes;
+        // Dark frames a killed run took already are not taken again.
+        let dark: Vec<DarkFrame> = std::fs::read(dark_state(&cfg.out))
+            .ok()
+            .and_then(|b| serde_json::from_slice(&b).ok())
+            .unwrap_or_default();
+        if !dark.is_empty() {
+            writer.set_dark_frames(
+                dark.clone(),
+                cfg.noise_floor.or(super::dark::floor_of(&dark)),
+            )?;
+        }
         Ok(Scan {
             cfg,
             writer,
             sink: None,
+            pending_sink: None,
+            dark,
             frames: cfg.plan.frames(),
             resumed_from: done,
             written: 0,
@@ -279,8 +319,9 @@ impl<'a> Scan<'a> {
         self.writer.done()
     }
 
-    /// Hands every frame committed from now on to `sink` as well ([`FrameSink`]).
-    pub fn with_sink(mut self, mut sink: Box<dyn FrameSink>) -> Self {
+    /// Hands every frame committed from now on to `sink` as well ([`FrameSink`]); it begins
+    /// once the dark frames are taken.
+    pub fn with_sink(mut self, sink: Box<dyn FrameSink>) -> Self {
         let mut views: Vec<(usize, f64)> = Vec::new();
         for f in &self.frames {
             if !views
@@ -290,14 +331,147 @@ impl<'a> Scan<'a> {
                 views.push((0, f.turntable_deg));
             }
         }
-        sink.begin(
-            &self.cfg.out,
-            self.writer.header(),
-            self.frames.len(),
-            &views,
-        );
-        self.sink = Some(sink);
+        self.pending_sink = Some((sink, views));
         self
+    }
+
+    /// Begins the sink, if one waits: the header is final.
+    fn begin_sink(&mut self) {
+        if let Some((mut sink, views)) = self.pending_sink.take() {
+            sink.begin(
+                &self.cfg.out,
+                self.writer.header(),
+                self.frames.len(),
+                &views,
+            );
+            self.sink = Some(sink);
+        }
+    }
+
+    /// Whether the dark frames still have to be taken.
+    fn dark_pending(&self) -> bool {
+        self.cfg.dark_frames && self.dark.is_empty()
+    }
+
+    /// One dark frame per exposure (every laser off), their statistics, and the header's noise
+    /// floor from them (unless given): see [`super::dark`]. Kept in the scan's state, so a
+    /// resumed scan does not take them again.
+    fn take_dark_frames<L: ByteLink>(
+        &mut self,
+        rig: &mut RigClient<L>,
+        camera: &mut dyn Camera,
+        progress: &dyn Progress,
+        exposures_us: &[u32],
+    ) -> Result<(), ScanError> {
+        progress.set_message("dark frames (laser off)");
+        let dir = self.cfg.out.join("dark");
+        std::fs::create_dir_all(&dir).map_err(|e| {
+            ScanError::Journal(WriteError::Io {
+                path: dir.display().to_string(),
+                source: e,
+            })
+        })?;
+        let mut dark = Vec::with_capacity(exposures_us.len());
+        for (b, &exp_us) in exposures_us.iter().enumerate() {
+            let mut attempts = 0u32;
+            let img = loop {
+                self.check_stop()?;
+                match self.dark_shot(rig, camera, b, exp_us)? {
+                    Ok(img) => break img,
+                    Err(e) => {
+                        attempts += 1;
+                        self.retries += 1;
+                        if attempts > self.cfg.camera_retries {
+                            return Err(ScanError::Camera {
+                                frame: 0,
+                                attempts,
+                                source: e,
+                            });
+                        }
+                        progress.println(&format!(
+                            "dark frame {b}: {e}; retrying ({attempts}/{})",
+                            self.cfg.camera_retries
+                        ));
+                    }
+                }
+            };
+            let exposure_s = exp_us as f64 * 1e-6;
+            let name = super::dark::image_name(b, exp_us);
+            let d = super::dark::measure(&img, exposure_s, name.clone()).map_err(|e| {
+                ScanError::Dark {
+                    exposure_s,
+                    message: e.to_string(),
+                }
+            })?;
+            let bytes = encode_exr(&img).map_err(|e| ScanError::Dark {
+                exposure_s,
+                message: e.to_string(),
+            })?;
+            write_atomic(&self.cfg.out.join(&name), &bytes)?;
+            dark.push(d);
+        }
+        let state = serde_json::to_vec_pretty(&dark).map_err(|e| {
+            ScanError::Journal(WriteError::Io {
+                path: dark_state(&self.cfg.out).display().to_string(),
+                source: std::io::Error::other(e),
+            })
+        })?;
+        write_atomic(&dark_state(&self.cfg.out), &state)?;
+        let floor = self.cfg.noise_floor.or(super::dark::floor_of(&dark));
+        self.writer.set_dark_frames(dark.clone(), floor)?;
+        self.dark = dark;
+        Ok(())
+    }
+
+    /// The camera's image with every laser off at exposure `exp_us` (bracket `b`).
+    fn dark_shot<L: ByteLink>(
+        &mut self,
+        rig: &mut RigClient<L>,
+        camera: &mut dyn Camera,
+        b: usize,
+        exp_us: u32,
+    ) -> Result<Result<Image, CameraError>, ScanError> {
+        let mut shot = Shot {
+            frame: b,
+            bracket: b,
+            turntable_deg: 0.0,
+            galvo: [0, 0],
+            channel: self.cfg.laser_channel,
+            exposure_s: exp_us as f64 * 1e-6,
+            triggered_at_us: None,
+            exposure_count: None,
+            rig_boot: None,
+            dark: true,
+        };
+        if camera.timing() == Timing::RigTriggered {
+            if let Err(e) = camera.begin_batch() {
+                return Ok(Err(e));
+            }
+            let base = rig.status().map_err(classify)?.exposures;
+            let readout = rig.hello().capabilities.camera_readout_us;
+            let timeout = Duration::from_micros(2_000_000 + 4 * (exp_us as u64 + readout as u64));
+            let c = rig
+                .dark_capture(
+                    DarkCapture {
+                        exposure_us: exp_us,
+                        trigger_us: self.cfg.trigger_us.min(exp_us).max(1),
+                    },
+                    timeout,
+                )
+                .map_err(|e| self.halted_or(e))?;
+            if let Some(message) = capture_mismatch(&c, base.wrapping_add(1), true) {
+                return Err(ScanError::CaptureMismatch {
+                    frame: 0,
+                    message: format!("dark frame {b}: {message}"),
+                });
+            }
+            shot.galvo = [c.galvo.x, c.galvo.y];
+            shot.triggered_at_us = Some(c.triggered_at_us);
+            shot.exposure_count = Some(c.exposure_count);
+            shot.rig_boot = Some(rig.hello().boot_nonce);
+        }
+        // A host-timed camera exposes with the laser as the session left it: off.
+        fetch(rig, camera, &shot)
     }
 
     /// Whether every planned frame is written.
@@ -343,6 +517,7 @@ impl<'a> Scan<'a> {
         progress.set_length(self.frames.len() as u64);
         progress.set_position(self.done() as u64);
         if self.complete() {
+            self.begin_sink();
             return Ok(());
         }
         let max_code = caps.galvo_max;
@@ -394,6 +569,10 @@ impl<'a> Scan<'a> {
             .unwrap_or(caps.max_accel)
             .min(caps.max_accel);
         let spr = caps.steps_per_rev;
+        if self.dark_pending() {
+            self.take_dark_frames(rig, camera, progress, &exposures_us)?;
+        }
+        self.begin_sink();
         while !self.complete() {
             self.check_stop()?;
             let first = self.frames[self.done()];
@@ -529,6 +708,7 @@ impl<'a> Scan<'a> {
             triggered_at_us: None,
             exposure_count: None,
             rig_boot: None,
+            dark: false,
         }
     }
 
@@ -580,7 +760,7 @@ impl<'a> Scan<'a> {
             let c = wait_capture(rig, first_id.wrapping_add(i as u32), per)
                 .map_err(|e| self.halted_or(e))?;
             let expected = base.wrapping_add(i as u32 + 1);
-            if let Some(message) = capture_mismatch(&c, expected) {
+            if let Some(message) = capture_mismatch(&c, expected, false) {
                 let _ = rig.stop();
                 let _ = drain_events(rig);
                 return Err(ScanError::CaptureMismatch {
@@ -738,8 +918,11 @@ impl<'a> Scan<'a> {
             self.retries,
             self.started,
         );
-        let scan_json = self.writer.finish()?;
-        let sink = self.sink.map(|mut s| s.finish());
+        let (dark_frames, noise_floor) = (self.dark.clone(), self.writer.header().noise_floor);
+        let mut this = self;
+        this.begin_sink();
+        let scan_json = this.writer.finish()?;
+        let sink = this.sink.map(|mut s| s.finish());
         Ok(ScanSummary {
             sink,
             scan_json,
@@ -750,6 +933,8 @@ impl<'a> Scan<'a> {
             wall_seconds: started.elapsed().as_secs_f64(),
             reconnects,
             camera_retries: retries,
+            dark_frames,
+            noise_floor,
         })
     }
 
@@ -765,11 +950,20 @@ struct Progressed {
     camera_error: Option<CameraError>,
 }
 
+/// Where a scan keeps its dark frames' statistics between runs.
+fn dark_state(out: &Path) -> PathBuf {
+    out.join(STATE_DIR).join("dark.json")
+}
+
 /// Drops events already sent by the rig (those of a stopped program).
 /// Why capture `c` cannot be trusted, if it cannot: the camera did not confirm it, its count is
 /// not the `expected` one (an exposure the rig did not trigger, or one missed earlier), or the
-/// laser did not cover the whole exposure.
-pub fn capture_mismatch(c: &subsurf_protocol::Captured, expected: u32) -> Option<String> {
+/// laser did not cover the whole exposure (unless `dark`: a dark capture has no laser).
+pub fn capture_mismatch(
+    c: &subsurf_protocol::Captured,
+    expected: u32,
+    dark: bool,
+) -> Option<String> {
     if c.exposure.is_none() {
         return Some(format!(
             "the camera did not confirm capture {} (no exposure-active edge: a missed trigger, \
@@ -784,7 +978,7 @@ pub fn capture_mismatch(c: &subsurf_protocol::Captured, expected: u32) -> Option
             c.capture_id, c.exposure_count
         ));
     }
-    if !c.lit {
+    if !dark && !c.lit {
         return Some(format!(
             "the laser did not cover the whole exposure of capture {} (exposure-active {:?}): \
              raise laser.lead_us / laser.tail_us in the rig profile",

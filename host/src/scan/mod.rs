@@ -6,6 +6,7 @@
 //! other module calls into `scan` except the commands and the demo.
 
 pub mod camera;
+pub mod dark;
 pub mod driver;
 pub mod plan;
 pub mod setup;

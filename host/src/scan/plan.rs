@@ -573,12 +573,19 @@ pub struct DurationEstimate {
     pub exposure_s: f64,
     /// Per-capture overhead.
     pub overhead_s: f64,
+    /// The dark frames a new scan takes first (one capture per exposure, every laser off).
+    pub dark_s: f64,
 }
 
 impl DurationEstimate {
     /// Sum of all parts (s).
     pub fn total_s(&self) -> f64 {
-        self.home_s + self.turntable_s + self.settle_s + self.exposure_s + self.overhead_s
+        self.home_s
+            + self.turntable_s
+            + self.settle_s
+            + self.exposure_s
+            + self.overhead_s
+            + self.dark_s
     }
 }
 
@@ -595,7 +602,15 @@ pub fn estimate_duration(plan: &ScanPlan, t: &RigTiming, frame_from: usize) -> D
         settle_s: 0.0,
         exposure_s: 0.0,
         overhead_s: 0.0,
+        dark_s: 0.0,
     };
+    if frame_from == 0 {
+        est.dark_s = plan
+            .exposures_s
+            .iter()
+            .map(|e| t.interval_s.max(e + t.readout_s) + t.capture_overhead_s)
+            .sum();
+    }
     let mut pos = 0i64;
     let mut frame = 0usize;
     let brackets = plan.exposures_s.len() as f64;

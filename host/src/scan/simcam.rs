@@ -9,7 +9,7 @@ use super::camera::{Camera, CameraError, Shot, Timing};
 use crate::calib::Calibration;
 use crate::dataset::Image;
 use crate::dataset::{LaserRay, Mesh};
-use crate::simulate::{Field, Sensor, SimScene, Spot, render_frame};
+use crate::simulate::{Field, Sensor, SimScene, Spot, render_dark, render_frame};
 
 /// The simulated camera.
 pub struct SimCamera {
@@ -69,6 +69,10 @@ impl Camera for SimCamera {
             .seed
             .wrapping_mul(0x9E37_79B9_7F4A_7C15)
             .wrapping_add((shot.frame as u64) << 8 | shot.bracket as u64);
+        if shot.dark {
+            // Seeded apart from every lit frame's noise.
+            return Ok(render_dark(&self.scene, 0, &sensor, !seed));
+        }
         Ok(render_frame(
             &self.scene,
             0,

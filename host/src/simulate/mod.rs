@@ -321,7 +321,22 @@ pub fn render_frame_truth(
             }
         }
     }
-    // Sensor: radiance → raw, shot noise, read noise, clipping.
+    sense(&mut img, sensor, &mut rng);
+    (img, truth)
+}
+
+/// What the camera of `sim` records with every laser off (a dark frame): no light, the sensor's
+/// noise alone, at `sensor.exposure_s`.
+pub fn render_dark(sim: &SimScene, camera: usize, sensor: &Sensor, seed: u64) -> Image {
+    let cam = &sim.cameras[camera.min(sim.cameras.len() - 1)];
+    let mut img = Image::new(cam.width as usize, cam.height as usize, 3);
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+    sense(&mut img, sensor, &mut rng);
+    img
+}
+
+/// The sensor: radiance → raw, shot noise, read noise, clipping.
+fn sense(img: &mut Image, sensor: &Sensor, rng: &mut rand::rngs::StdRng) {
     let read = Normal::new(0.0, sensor.read_noise.max(0.0)).ok();
     for v in &mut img.data {
         let mut raw = *v as f64 * sensor.exposure_s;
@@ -335,14 +350,13 @@ pub fn render_frame_truth(
         if let Some(read) = &read
             && sensor.read_noise > 0.0
         {
-            raw += read.sample(&mut rng);
+            raw += read.sample(rng);
         }
         if let Some(s) = sensor.saturation {
             raw = raw.min(s);
         }
         *v = raw as f32;
     }
-    (img, truth)
 }
 
 /// Where the cameras stand.
