@@ -8,6 +8,11 @@ use std::process::Command;
 use subsurf::simulate::simulate;
 
 fn subsurf(args: &[&str]) -> String {
+    subsurf_with_stderr(args).0
+}
+
+/// Standard output and standard error (not a terminal here) of a successful run.
+fn subsurf_with_stderr(args: &[&str]) -> (String, String) {
     let o = Command::new(env!("CARGO_BIN_EXE_subsurf"))
         .args(args)
         .output()
@@ -17,7 +22,10 @@ fn subsurf(args: &[&str]) -> String {
         "subsurf {args:?}: {}",
         String::from_utf8_lossy(&o.stderr)
     );
-    String::from_utf8(o.stdout).unwrap()
+    (
+        String::from_utf8(o.stdout).unwrap(),
+        String::from_utf8_lossy(&o.stderr).into_owned(),
+    )
 }
 
 fn json(path: &Path) -> serde_json::Value {
@@ -117,14 +125,18 @@ fn evaluate_judges_every_model_by_the_datasets_protocol() {
         ];
         a.extend(["--no-pictures", "--cache", "off", "--cv-folds", "0"]);
         a.extend(extra);
-        subsurf(&a);
+        subsurf_with_stderr(&a).1
     };
     let wide = tmp.path().join("wide.ply");
     let wide = wide.to_str().unwrap();
     let plain = tmp.path().join("plain.ply");
     let plain = plain.to_str().unwrap();
     fit(wide, &["--exclusion-radius", "1.5"]);
-    fit(plain, &[]);
+    // Issue 40: with stderr no terminal, the progress comes as one line per stage.
+    let progress = fit(plain, &[]);
+    for stage in ["] extract 0/", "] fit (round 1)", "] error "] {
+        assert!(progress.contains(stage), "{stage:?} not in:\n{progress}");
+    }
     let m = subsurf::modelfile::ModelFile::read(Path::new(wide)).unwrap();
     let rec = m.fitted_with.expect("the fit recorded its rules");
     assert_eq!(rec.exclusion_radius_mm, 1.5);

@@ -105,7 +105,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let bar = if args.json {
         Bar::hidden()
     } else {
-        Bar(indicatif::ProgressBar::new(0))
+        Bar::new(indicatif::ProgressBar::new(0))
     };
     let points = match args.at {
         At::Vertices => EvalPoints::Vertices,

@@ -136,7 +136,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let progress = if args.quiet {
         Bar::hidden()
     } else {
-        let p = Bar(ProgressBar::new(cfg.plan.frame_count() as u64));
+        let p = Bar::new(ProgressBar::new(cfg.plan.frame_count() as u64));
         p.set_style(
             ProgressStyle::with_template(
                 "{bar:30} {pos}/{len} frames  {per_sec}  ETA {eta}  {msg}",
