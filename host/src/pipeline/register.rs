@@ -104,7 +104,10 @@ pub fn registered(
                     }
                     None => {}
                 },
-                RegistrationOutcome::NoSpot => counts.no_spot += 1,
+                RegistrationOutcome::NoSpot => {
+                    counts.no_spot += 1;
+                    counts.no_spot_frames.push(k);
+                }
                 RegistrationOutcome::SpotOffObject => counts.spot_off_object += 1,
                 RegistrationOutcome::LaserMismatch { .. } => counts.laser_mismatch += 1,
             },

@@ -50,6 +50,8 @@ pub struct FrameCounts {
     pub registered: usize,
     /// Frames without a bright enough spot.
     pub no_spot: usize,
+    /// Which frames those are, in the order judged.
+    pub no_spot_frames: Vec<usize>,
     /// Registered frames left out because the camera sees their spot more grazing than the
     /// run's `spot_cos_min` (`PipelineOptions::spot_cos_min`).
     pub grazing: usize,

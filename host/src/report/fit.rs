@@ -189,15 +189,24 @@ pub fn summary_lines(r: &FitReport) -> Vec<String> {
             reasons(&r.failures)
         ),
         format!(
-            "frames: {} selected, {} registered, {} no spot, {} off object, {} laser mismatch, \
-             {} unreadable; {} used by fits",
+            "frames: {} selected = {} registered + {} registered but seen too grazing + {} no \
+             spot + {} off object + {} laser mismatch + {} unreadable; {} used by fits{}",
             fmt::count(f.selected),
             fmt::count(f.registered),
+            fmt::count(f.grazing),
             fmt::count(f.no_spot),
             fmt::count(f.spot_off_object),
             fmt::count(f.laser_mismatch),
             fmt::count(f.unreadable),
-            fmt::count(f.fitted)
+            fmt::count(f.fitted),
+            if f.no_spot_frames.is_empty() {
+                String::new()
+            } else {
+                format!(
+                    "; no spot in frames {}",
+                    crate::dataset::format_frame_list(&f.no_spot_frames)
+                )
+            }
         ),
         format!(
             "log E(x_i) (Eq. 8, in-sample) r / g / b: mean {}, median {}",
@@ -441,7 +450,8 @@ pub fn alpha_summary(a: &crate::pipeline::AlphaReport) -> String {
         if a.converged {
             "converged"
         } else {
-            "NOT converged within the round limit"
+            "stopped at the round limit (the rounds the cross-validation chose, or \
+             --alpha-rounds) while alpha still moved"
         },
         fmt::sig(a.last_change, 2),
         a.prior.map(prior).join(" / ")
