@@ -16,6 +16,25 @@ pub struct Similarity {
     pub translation: Vector3<f64>,
 }
 
+impl Similarity {
+    /// The rotation in words: its angle and the unit axis it turns about (right-handed, object
+    /// frame), e.g. `126.40° about (0.120, -0.985, 0.100)`; the angle alone does not say where the
+    /// mesh was turned (issue 42).
+    pub fn rotation_in_words(&self) -> String {
+        let r = nalgebra::Rotation3::from_matrix_unchecked(self.rotation);
+        match r.axis_angle() {
+            Some((axis, angle)) => format!(
+                "{:.2}° about ({:.3}, {:.3}, {:.3})",
+                angle.to_degrees(),
+                axis[0],
+                axis[1],
+                axis[2]
+            ),
+            None => "none (0°)".to_string(),
+        }
+    }
+}
+
 pub(crate) fn v(p: V3) -> Vector3<f64> {
     Vector3::new(p[0], p[1], p[2])
 }
@@ -143,6 +162,22 @@ mod tests {
             rotation: Rotation3::from_euler_angles(0.3, -1.1, 2.0).into_inner(),
             translation: Vector3::new(12.0, -30.0, 45.0),
         }
+    }
+
+    /// The words name the axis and angle a rotation was built from; the identity is none.
+    #[test]
+    fn a_rotation_in_words_names_its_axis() {
+        let axis = nalgebra::Unit::new_normalize(Vector3::new(0.0, 0.6, 0.8));
+        let t = Similarity {
+            rotation: Rotation3::from_axis_angle(&axis, 0.5).into_inner(),
+            ..pose()
+        };
+        assert_eq!(t.rotation_in_words(), "28.65° about (0.000, 0.600, 0.800)");
+        let id = Similarity {
+            rotation: nalgebra::Matrix3::identity(),
+            ..pose()
+        };
+        assert_eq!(id.rotation_in_words(), "none (0°)");
     }
 
     #[test]

@@ -129,16 +129,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         println!("{}", serde_json::to_string_pretty(&v)?);
         return Ok(());
     }
-    let r = out.pose.rotation;
-    let angle = ((r.trace() - 1.0) / 2.0)
-        .clamp(-1.0, 1.0)
-        .acos()
-        .to_degrees();
     let t = rec.translation;
     println!(
-        "pose of {}: scale {:.6} (mesh units to mm), rotation {angle:.2}°, translation \
+        "pose of {}: scale {:.6} (mesh units to mm), rotation {}, translation \
          ({:.3}, {:.3}, {:.3}) mm",
-        rec.source_mesh, rec.scale, t[0], t[1], t[2]
+        rec.source_mesh,
+        rec.scale,
+        out.pose.rotation_in_words(),
+        t[0],
+        t[1],
+        t[2]
     );
     let ev = &out.evidence;
     println!(
