@@ -71,6 +71,11 @@ pub struct CvSettings {
     /// Whether Eq. 6's upper threshold t1 is chosen per scan, off against [`T1_CANDIDATE`]
     /// (when the run's options leave it off; `subsurf fit --alpha-t1-share` fixes it).
     pub t1: bool,
+    /// Whether the lattice of alpha finer than the mesh (`face_alpha`, [`crate::pipeline::lattice`])
+    /// is written only when the folds, judged at surface points, say it predicts better
+    /// ([`judge_lattice`]); `subsurf fit --alpha-lattice` given fixes it. Only where the run's
+    /// lattice is on and the fit on every frame wrote one.
+    pub lattice: bool,
 }
 
 /// The t1 share ([`crate::pipeline::ALPHA_T1_SHARE`]'s alternative) the cross-validation weighs
@@ -91,6 +96,7 @@ impl Default for CvSettings {
             rounds: true,
             patience: DEFAULT_PATIENCE,
             t1: true,
+            lattice: true,
         }
     }
 }
@@ -397,6 +403,96 @@ fn choose_rounds(
     (limit, choice)
 }
 
+/// The folds' held-out errors of the fit `ctx` (the settings chosen, the lattice on) at
+/// surface points, without its lattice of alpha finer than the mesh (first) and with it
+/// (second): per fold one fit of the other folds (round 0 from `cache`, then the rounds the
+/// final fit runs) with its lattice stage, its model judged twice, as it is and with its
+/// `face_alpha` dropped (the lattice changes nothing else of a model: [`crate::pipeline::lattice`]
+/// reads the fit, never changes it).
+///
+/// Why at surface points: at the vertices the lattice's detail is 0 by construction, so the
+/// rounds' judgement ([`cross_validate`], `EvalPoints::Vertices`) cannot see it. The points are
+/// the run's lattice points (between the vertices, every face at the level its pixel footprint
+/// asks for), whose samples the run's store holds, so no frame is read again; the samples
+/// there are the ones the store keeps, above Eq. 6's t2 (10× the protocol's floor), by the
+/// protocol's rules ([`crate::pipeline::judge_context`]). The lattice stage runs once per
+/// fold, for the final round count only.
+#[allow(clippy::too_many_arguments)]
+fn judge_lattice(
+    ctx: &Context,
+    judge: &Context,
+    frames: &[usize],
+    folds: &[Vec<usize>],
+    fitter: &dyn Fitter,
+    cache: &OrderCache,
+    progress: &dyn Progress,
+    fits: &mut usize,
+) -> [Errors; 2] {
+    // The level is not read: the run's store holds the points (`evaluate_in`).
+    let at = EvalPoints::Surface {
+        level: crate::lattice::MAX_LEVEL,
+    };
+    let judged: Vec<Option<[Vec<FrameEval>; 2]>> = folds
+        .par_iter()
+        .map(|fold| {
+            let train: Vec<usize> = frames
+                .iter()
+                .copied()
+                .filter(|f| !fold.contains(f))
+                .collect();
+            let out = (|| {
+                let prepared = Prepared::new(ctx, &train).ok()?;
+                let mut run = prepared.rounds(ctx, fitter, Some(cache), &());
+                while run.step() {}
+                let mut model = run.model_file().ok()?;
+                let with = evaluate_in(judge, &model, fold, at, &()).ok()?.0;
+                // A fold whose own lattice stage found no detail predicts as without.
+                let without = match model.face_alpha.take() {
+                    Some(_) => evaluate_in(judge, &model, fold, at, &()).ok()?.0,
+                    None => with.clone(),
+                };
+                Some([without, with])
+            })();
+            progress.inc(1);
+            out
+        })
+        .collect();
+    *fits += folds.len();
+    let mut out = [Errors::new(), Errors::new()];
+    for pair in judged.into_iter().flatten() {
+        for (errs, evals) in out.iter_mut().zip(pair) {
+            for e in evals.iter().filter(|e| e.skipped.is_none()) {
+                errs.insert(e.frame, e.log_e.map(|v| v.unwrap_or(f64::NAN)));
+            }
+        }
+    }
+    out
+}
+
+/// The choice of the lattice from the folds' surface errors without it and with it
+/// ([`judge_lattice`]): the one-standard-error rule, no lattice the simpler. Whether it is
+/// written, and the report's choice.
+fn choose_lattice(without: &Errors, with: &Errors, clusters: &Clustering) -> (bool, CvChoice) {
+    let cands: Vec<(String, &Errors)> =
+        vec![("off".into(), without), (LATTICE_CANDIDATE.into(), with)];
+    let (chosen, candidates) = one_se(&cands, clusters);
+    let keep = chosen == Some(1);
+    (
+        keep,
+        CvChoice {
+            name: "alpha_lattice".into(),
+            rule: format!(
+                "{ONE_SE_RULE}, judged at surface points (the run's lattice points, samples above Eq. 6's t2) with the settings chosen above"
+            ),
+            candidates,
+            chosen: if keep { LATTICE_CANDIDATE } else { "off" }.into(),
+        },
+    )
+}
+
+/// The lattice candidate's name in the report: the fit's `--alpha-lattice` default.
+const LATTICE_CANDIDATE: &str = "auto";
+
 /// A fit of the prepared run `ctx` on `frames`, with the choices of `cv` made by
 /// cross-validation over `frames` ([`folds`]); the report's `cross_validation` lists every
 /// candidate's held-out error and the choice. Without folds (fewer than 2, or a scan with a
@@ -555,18 +651,65 @@ pub fn fit_scan_in(
         rep.seconds = start.elapsed().as_secs_f64();
         report = Some(rep);
     }
-    let mut out = fit_prepared_with(
-        &ctx.with_options(opts)?,
-        frames,
-        fitter,
-        Some(&cache),
-        progress,
-    )?;
+    let final_ctx = ctx.with_options(opts)?;
+    let mut out = fit_prepared_with(&final_ctx, frames, fitter, Some(&cache), progress)?;
+    if cv.lattice && opts.alpha_lattice.max_level().is_some() {
+        let start = std::time::Instant::now();
+        let (folds, rule) = folds(ctx.ds, frames, cv.folds);
+        if cv.folds >= 2 && folds.len() >= 2 {
+            let rep = report.get_or_insert_with(|| CvReport {
+                rule,
+                folds: folds.clone(),
+                ..CvReport::default()
+            });
+            let choice = if out.model.face_alpha.is_some() {
+                progress.start("cross-validation (alpha lattice)", folds.len() as u64);
+                let [without, with] = judge_lattice(
+                    &final_ctx,
+                    judge,
+                    frames,
+                    &folds,
+                    fitter,
+                    &cache,
+                    progress,
+                    &mut rep.fits,
+                );
+                let (keep, choice) = choose_lattice(&without, &with, &Clustering::of_folds(&folds));
+                if !keep {
+                    drop_lattice(&mut out);
+                }
+                if let Some(l) = &mut out.report.alpha.lattice {
+                    l.kept_by_cv = Some(keep);
+                }
+                choice
+            } else {
+                CvChoice {
+                    name: "alpha_lattice".into(),
+                    rule: "not judged: the fit's lattice stage found no detail above the noise, so there is none to write".into(),
+                    candidates: Vec::new(),
+                    chosen: "off".into(),
+                }
+            };
+            rep.choices.push(choice);
+            rep.seconds += start.elapsed().as_secs_f64();
+        }
+    }
     if let Some(r) = &mut report {
         (r.round0_fitted, r.round0_reused) = cache.counts();
     }
     out.report.cross_validation = report;
     Ok(out)
+}
+
+/// The fit `out` without its lattice: `face_alpha` dropped and the report's lattice saying so
+/// (every face at level 1, as when nothing is written).
+fn drop_lattice(out: &mut FitOutput) {
+    out.model.face_alpha = None;
+    let faces = out.model.triangles.len();
+    if let Some(l) = &mut out.report.alpha.lattice {
+        l.written = false;
+        l.levels = std::iter::once((1, faces)).collect();
+    }
 }
 
 #[cfg(test)]
@@ -597,6 +740,35 @@ mod tests {
         assert_eq!(rows[0].score, None);
         assert!(rows[0].note.is_some());
         assert_eq!(one_se(&[("1".into(), &none)], &lone).0, None);
+    }
+
+    /// The lattice is written only when the folds' surface errors say it predicts better: a
+    /// lattice whose gain is within the noise is dropped (no lattice the simpler), one clearly
+    /// better is kept, one worse is dropped; the choice names both candidates.
+    #[test]
+    fn the_lattice_is_kept_only_when_it_predicts_better() {
+        let folds = Clustering::of_folds(&[vec![0, 1], vec![2, 3], vec![4, 5]]);
+        let base: Vec<(usize, f64)> = (0..6).map(|f| (f, 0.30 + 0.02 * f as f64)).collect();
+        let without = errors(&base);
+        let shifted =
+            |d: &[f64]| errors(&base.iter().map(|&(f, e)| (f, e + d[f])).collect::<Vec<_>>());
+        // Gains of opposite sign between folds: within one clustered standard error.
+        let noise = shifted(&[-0.02, -0.02, 0.015, 0.015, 0.0, 0.0]);
+        let (keep, choice) = choose_lattice(&without, &noise, &folds);
+        assert!(!keep, "{choice:?}");
+        assert_eq!(choice.name, "alpha_lattice");
+        assert_eq!(choice.chosen, "off");
+        assert_eq!(choice.candidates.len(), 2);
+        // A gain in every fold.
+        let better = shifted(&[-0.05, -0.04, -0.06, -0.05, -0.04, -0.05]);
+        let (keep, choice) = choose_lattice(&without, &better, &folds);
+        assert!(keep, "{choice:?}");
+        assert_eq!(choice.chosen, LATTICE_CANDIDATE);
+        let off = &choice.candidates[0];
+        assert!(off.worse_by.unwrap() > off.se.unwrap(), "{choice:?}");
+        // Worse everywhere.
+        let worse = shifted(&[0.05; 6]);
+        assert!(!choose_lattice(&without, &worse, &folds).0);
     }
 
     /// Early stopping: the rounds end `patience` rounds after the best, never while the error

@@ -194,7 +194,8 @@ pub fn evaluation_protocol(ds: &Dataset) -> Result<(PipelineOptions, NoiseFloor)
 /// nothing is read again), else a second pass over `frames` under the protocol's rules. The
 /// cross-validation's folds and `subsurf fit --validate` judge through it, so a fit's own
 /// exclusion radius, noise floor or grazing limits never change which samples judge its
-/// models.
+/// models. The second pass samples the run's lattice points too (where the cross-validation
+/// judges the lattice at surface points).
 pub fn judge_context<'a>(
     run: &Context<'a>,
     frames: &[usize],
@@ -214,7 +215,17 @@ pub fn judge_context<'a>(
         ..opts
     };
     let ctx = Context::new(run.ds, opts)?;
-    let held = extract::extract(&ctx, frames, None, store, progress)?;
+    // The run's lattice points, sampled by the protocol's rules above the protocol's t2: where
+    // the cross-validation judges the lattice of alpha finer than the mesh
+    // (`crate::crossval`), on the samples the run's own store would hold there by the protocol.
+    let points = run
+        .store()
+        .and_then(|s| s.points())
+        .map(|p| crate::store::StorePoints {
+            min_value: protocol.alpha_window.t2,
+            ..p.clone()
+        });
+    let held = extract::extract(&ctx, frames, points, store, progress)?;
     Ok(ctx.with_store(held))
 }
 
