@@ -25,7 +25,9 @@ use crate::evaluate::summary::clustered_mean;
 use crate::evaluate::{Clustering, EvalPoints, FrameEval, evaluate_in};
 use crate::pipeline::{
     AlphaLattice, Context, CvCandidate, CvChoice, CvReport, FitOutput, FitRounds, Fitter,
-    LogEStats, PipelineError, PipelineOptions, Prepared, fit::OrderCache, fit_prepared_with,
+    LogEStats, PipelineError, PipelineOptions, Prepared,
+    fit::{Fitted, OrderCache},
+    fit_prepared_with,
 };
 use crate::progress::Progress;
 use rayon::prelude::*;
@@ -147,15 +149,49 @@ pub fn folds(ds: &Dataset, frames: &[usize], k: usize) -> (Vec<Vec<usize>>, Stri
 /// did not see it.
 type Errors = BTreeMap<usize, [f64; 3]>;
 
+/// One grid of the cross-validation: the folds' fits of one setting, scored after every round.
+struct Grid {
+    /// The pooled held-out errors per number of alpha rounds 0..: entry r is the model a fit
+    /// with `alpha_rounds = r` leaves (a fold whose rounds stopped before r contributes its last
+    /// model).
+    errors: Vec<Errors>,
+    /// The most rounds any fold's fit kept.
+    most: usize,
+    /// Per fold (empty unless asked), its selection and its fit's state after every round it
+    /// ran (`None`: the fold failed).
+    states: Vec<Option<FoldState>>,
+}
+
+/// A fold's fit as the rounds left it: what its model at any round it ran is finished from.
+struct FoldState {
+    prepared: Prepared,
+    /// The fit's state after round 0, 1, ... (the last where its rounds stopped).
+    fitted: Vec<Fitted>,
+}
+
+impl Grid {
+    /// Drops every fold's states but the one at `rounds` (or its last, where its rounds stopped
+    /// before): the only one the lattice's judgement reads.
+    fn keep_states_at(&mut self, rounds: usize) {
+        for s in self.states.iter_mut().flatten() {
+            let at = rounds.min(s.fitted.len().saturating_sub(1));
+            s.fitted.truncate(at + 1);
+            s.fitted.drain(..at);
+        }
+    }
+}
+
 /// The cross-validated errors of the run's options `ctx.opts` on `folds` (of `frames`), per
-/// number of alpha rounds 0..: entry r is the model a fit with `alpha_rounds = r` leaves (a fold
-/// whose rounds stopped before r contributes its last model). Second: the most rounds any
-/// fold's fit kept.
+/// number of alpha rounds ([`Grid`]).
 ///
 /// The folds' fits run side by side ([`crate::pipeline::Prepared`]), round by round, the folds
 /// in parallel: after each round the pooled errors so far choose their best number of rounds,
 /// and once `patience` rounds in a row (0: never) have not lowered it, no fold runs another
 /// round ([`rounds_exhausted`]).
+///
+/// With `keep_states`, each fold's fit state after every round is kept with its selection
+/// ([`Grid::states`]): the lattice's judgement ([`judge_lattice`]) then finishes the fold's
+/// model at the rounds chosen without fitting them again.
 #[allow(clippy::too_many_arguments)]
 fn cross_validate(
     ctx: &Context,
@@ -165,9 +201,10 @@ fn cross_validate(
     fitter: &dyn Fitter,
     cache: &OrderCache,
     patience: usize,
+    keep_states: bool,
     progress: &dyn Progress,
     fits: &mut usize,
-) -> Result<(Vec<Errors>, usize), PipelineError> {
+) -> Result<Grid, PipelineError> {
     let max_rounds = ctx.opts.alpha_rounds;
     let clusters = &Clustering::of_folds(folds);
     // The folds are judged at the vertices, where alpha finer than the mesh changes nothing
@@ -198,23 +235,34 @@ fn cross_validate(
         .collect();
     // A fold's run is dropped (`None`) when its rounds end; a failed fold's errors with it.
     let mut by_round: Vec<Vec<Vec<FrameEval>>> = vec![Vec::new(); folds.len()];
+    let mut states: Vec<Vec<Fitted>> = vec![Vec::new(); folds.len()];
     for r in 0..=max_rounds {
-        let judged: Vec<Option<Vec<FrameEval>>> = runs
+        let judged: Vec<Option<(Vec<FrameEval>, Option<Fitted>)>> = runs
             .par_iter()
             .zip(folds)
             .map(|(run, fold)| {
-                let model = run.as_ref()?.model_file().ok()?;
-                evaluate_in(judge, &model, fold, EvalPoints::Vertices, &())
-                    .ok()
-                    .map(|(evals, _)| evals)
+                let run = run.as_ref()?;
+                let model = run.model_file().ok()?;
+                let (evals, _) =
+                    evaluate_in(judge, &model, fold, EvalPoints::Vertices, &()).ok()?;
+                Some((evals, keep_states.then(|| run.fitted())))
             })
             .collect();
-        for ((run, fold), evals) in runs.iter_mut().zip(&mut by_round).zip(judged) {
+        for (((run, fold), state), evals) in runs
+            .iter_mut()
+            .zip(&mut by_round)
+            .zip(&mut states)
+            .zip(judged)
+        {
             match evals {
                 _ if run.is_none() => {}
-                Some(evals) => fold.push(evals),
+                Some((evals, fitted)) => {
+                    fold.push(evals);
+                    state.extend(fitted);
+                }
                 None => {
                     fold.clear();
+                    state.clear();
                     *run = None;
                 }
             }
@@ -238,7 +286,24 @@ fn cross_validate(
         .filter_map(|b| b.len().checked_sub(1))
         .max()
         .unwrap_or(0);
-    Ok((pooled(&by_round, max_rounds), most))
+    drop(runs);
+    let states = if keep_states {
+        prepared
+            .into_iter()
+            .zip(states)
+            .map(|(p, fitted)| {
+                p.filter(|_| !fitted.is_empty())
+                    .map(|prepared| FoldState { prepared, fitted })
+            })
+            .collect()
+    } else {
+        Vec::new()
+    };
+    Ok(Grid {
+        errors: pooled(&by_round, max_rounds),
+        most,
+        states,
+    })
 }
 
 /// The folds' held-out errors per number of rounds 0..=`last`, every fold with errors (a failed
@@ -405,10 +470,10 @@ fn choose_rounds(
 
 /// The folds' held-out errors of the fit `ctx` (the settings chosen, the lattice on) at
 /// surface points, without its lattice of alpha finer than the mesh (first) and with it
-/// (second): per fold one fit of the other folds (round 0 from `cache`, then the rounds the
-/// final fit runs) with its lattice stage, its model judged twice, as it is and with its
-/// `face_alpha` dropped (the lattice changes nothing else of a model: [`crate::pipeline::lattice`]
-/// reads the fit, never changes it).
+/// (second): per fold the fit of the other folds at the rounds the final fit runs, finished
+/// with its lattice stage, its model judged twice, as it is and with its `face_alpha` dropped
+/// (the lattice changes nothing else of a model: [`crate::pipeline::lattice`] reads the fit,
+/// never changes it).
 ///
 /// Why at surface points: at the vertices the lattice's detail is 0 by construction, so the
 /// rounds' judgement ([`cross_validate`], `EvalPoints::Vertices`) cannot see it. The points are
@@ -417,12 +482,17 @@ fn choose_rounds(
 /// there are the ones the store keeps, above Eq. 6's t2 (10× the protocol's floor), by the
 /// protocol's rules ([`crate::pipeline::judge_context`]). The lattice stage runs once per
 /// fold, for the final round count only.
+///
+/// Where the rounds' grid kept the folds' fit states at the rounds chosen (`grid`,
+/// [`Grid::keep_states_at`]), each fold's model is finished from its state, without fitting
+/// again; else (no rounds were cross-validated) each fold is fitted once more.
 #[allow(clippy::too_many_arguments)]
 fn judge_lattice(
     ctx: &Context,
     judge: &Context,
     frames: &[usize],
     folds: &[Vec<usize>],
+    grid: Option<&Grid>,
     fitter: &dyn Fitter,
     cache: &OrderCache,
     progress: &dyn Progress,
@@ -432,19 +502,32 @@ fn judge_lattice(
     let at = EvalPoints::Surface {
         level: crate::lattice::MAX_LEVEL,
     };
+    let states = grid
+        .map(|g| &g.states[..])
+        .filter(|s| s.len() == folds.len());
     let judged: Vec<Option<[Vec<FrameEval>; 2]>> = folds
         .par_iter()
-        .map(|fold| {
-            let train: Vec<usize> = frames
-                .iter()
-                .copied()
-                .filter(|f| !fold.contains(f))
-                .collect();
+        .enumerate()
+        .map(|(i, fold)| {
             let out = (|| {
-                let prepared = Prepared::new(ctx, &train).ok()?;
-                let mut run = prepared.rounds(ctx, fitter, Some(cache), &());
-                while run.step() {}
-                let mut model = run.model_file().ok()?;
+                let mut model = match states {
+                    Some(states) => {
+                        let s = states[i].as_ref()?;
+                        let fitted = s.fitted.last()?.clone();
+                        s.prepared.model_file_of(ctx, fitted, fitter).ok()?
+                    }
+                    None => {
+                        let train: Vec<usize> = frames
+                            .iter()
+                            .copied()
+                            .filter(|f| !fold.contains(f))
+                            .collect();
+                        let prepared = Prepared::new(ctx, &train).ok()?;
+                        let mut run = prepared.rounds(ctx, fitter, Some(cache), &());
+                        while run.step() {}
+                        run.model_file().ok()?
+                    }
+                };
                 let with = evaluate_in(judge, &model, fold, at, &()).ok()?.0;
                 // A fold whose own lattice stage found no detail predicts as without.
                 let without = match model.face_alpha.take() {
@@ -457,7 +540,9 @@ fn judge_lattice(
             out
         })
         .collect();
-    *fits += folds.len();
+    if states.is_none() {
+        *fits += folds.len();
+    }
     let mut out = [Errors::new(), Errors::new()];
     for pair in judged.into_iter().flatten() {
         for (errs, evals) in out.iter_mut().zip(pair) {
@@ -514,6 +599,10 @@ pub fn fit_scan_in(
     let rounds = cv.rounds && opts.alpha_rounds > 0;
     let cache = OrderCache::default();
     let mut report = None;
+    // The lattice is judged where the run's is on; the folds' fit states of the settings chosen
+    // are then kept for it (`Grid::states`).
+    let judge_lat = cv.lattice && opts.alpha_lattice.max_level().is_some();
+    let mut chosen_grid: Option<Grid> = None;
     if auto || rounds {
         let (folds, rule) = folds(ctx.ds, frames, cv.folds);
         let mut rep = CvReport {
@@ -564,6 +653,7 @@ pub fn fit_scan_in(
                     fitter,
                     &cache,
                     cv.patience,
+                    judge_lat,
                     progress,
                     &mut rep.fits,
                 )?);
@@ -572,15 +662,19 @@ pub fn fit_scan_in(
             // Each m at its own best number of rounds, then the rounds of the m chosen.
             let per_m: Vec<(usize, CvChoice)> = grids
                 .iter()
-                .map(|(g, most)| choose_rounds(g, *most, &fold_clusters, cv.patience))
+                .map(|g| choose_rounds(&g.errors, g.most, &fold_clusters, cv.patience))
                 .collect();
+            // Of each grid's fold states only those at its rounds can be judged for the lattice.
+            for (g, (limit, _)) in grids.iter_mut().zip(&per_m) {
+                g.keep_states_at(*limit);
+            }
             let mut k = 0;
             if auto {
                 let cands: Vec<(String, &Errors)> = ladder
                     .iter()
                     .zip(&grids)
                     .zip(&per_m)
-                    .map(|((m, (g, most)), (limit, _))| (m.to_string(), &g[(*limit).min(*most)]))
+                    .map(|((m, g), (limit, _))| (m.to_string(), &g.errors[(*limit).min(g.most)]))
                     .collect();
                 let (chosen, candidates) = one_se(&cands, &fold_clusters);
                 k = chosen.unwrap_or(0);
@@ -609,13 +703,16 @@ pub fn fit_scan_in(
                     fitter,
                     &cache,
                     cv.patience,
+                    judge_lat,
                     progress,
                     &mut rep.fits,
                 )?;
-                let r = choose_rounds(&g.0, g.1, &fold_clusters, cv.patience);
+                let mut g = g;
+                let r = choose_rounds(&g.errors, g.most, &fold_clusters, cv.patience);
+                g.keep_states_at(r.0);
                 let cands: Vec<(String, &Errors)> = vec![
-                    ("off".into(), &grid_k.0[limit.min(grid_k.1)]),
-                    (T1_CANDIDATE.to_string(), &g.0[r.0.min(g.1)]),
+                    ("off".into(), &grid_k.errors[limit.min(grid_k.most)]),
+                    (T1_CANDIDATE.to_string(), &g.errors[r.0.min(g.most)]),
                 ];
                 let (chosen, candidates) = one_se(&cands, &fold_clusters);
                 let with_t1 = chosen == Some(1);
@@ -639,13 +736,22 @@ pub fn fit_scan_in(
                 opts.alpha_rounds = limit;
                 rep.choices.push(choice);
             }
-            let (grid, most) = &grid_k;
             let at = if rounds { limit } else { opts.alpha_rounds };
-            if let Some(errs) = grid.get(at.min(*most)).or(grid.last()) {
+            if let Some(errs) = grid_k
+                .errors
+                .get(at.min(grid_k.most))
+                .or(grid_k.errors.last())
+            {
                 rep.per_frame = errs
                     .iter()
                     .map(|(&f, v)| (f, v.map(|x| x.is_finite().then_some(x))))
                     .collect();
+            }
+            // The folds' states at the rounds the final fit runs (its rounds are those the
+            // folds validated: a fold's state there is its fit with the final settings).
+            if judge_lat && (rounds || at == 0) {
+                grid_k.keep_states_at(at);
+                chosen_grid = Some(grid_k);
             }
         }
         rep.seconds = start.elapsed().as_secs_f64();
@@ -653,7 +759,7 @@ pub fn fit_scan_in(
     }
     let final_ctx = ctx.with_options(opts)?;
     let mut out = fit_prepared_with(&final_ctx, frames, fitter, Some(&cache), progress)?;
-    if cv.lattice && opts.alpha_lattice.max_level().is_some() {
+    if judge_lat {
         let start = std::time::Instant::now();
         let (folds, rule) = folds(ctx.ds, frames, cv.folds);
         if cv.folds >= 2 && folds.len() >= 2 {
@@ -669,6 +775,7 @@ pub fn fit_scan_in(
                     judge,
                     frames,
                     &folds,
+                    chosen_grid.as_ref(),
                     fitter,
                     &cache,
                     progress,

@@ -581,6 +581,40 @@ mod tests {
             assert_eq!(a.alpha, b.alpha);
             assert_eq!(a.params, b.params);
         }
+        // With the rounds cross-validated, the folds' lattices are finished from their fits at
+        // the rounds chosen, not fitted again: the same figures as fitting them again.
+        let grid = fit_scan_in(
+            &ctx,
+            &ctx,
+            &frames,
+            &CvSettings {
+                rounds: true,
+                ..cv(true)
+            },
+            &fitter,
+            &(),
+        )
+        .unwrap();
+        let r = grid.report.cross_validation.unwrap();
+        let rounds: usize = r.choices[0].chosen.parse().unwrap();
+        assert_eq!(r.choices[0].name, "alpha_rounds");
+        let ctx_r = ctx
+            .with_options(PipelineOptions {
+                alpha_rounds: rounds,
+                ..opts
+            })
+            .unwrap();
+        let refit = fit_scan_in(&ctx_r, &ctx_r, &frames, &cv(true), &fitter, &()).unwrap();
+        let refit = refit.report.cross_validation.unwrap();
+        let scores = |c: &crate::pipeline::CvChoice| -> Vec<Option<f64>> {
+            c.candidates.iter().map(|k| k.score).collect()
+        };
+        assert_eq!(r.fits, r.folds.len(), "no fold fitted again");
+        assert_eq!(
+            scores(r.choices.last().unwrap()),
+            scores(refit.choices.last().unwrap())
+        );
+        assert!(grid.model.face_alpha.is_none());
     }
 
     /// Without a texture (alpha = 1 everywhere) the lattice's spread is noise: nothing is written.

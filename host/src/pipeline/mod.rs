@@ -335,6 +335,19 @@ impl Prepared {
         cache.fill(ctx, &self.setup.regs, &self.setup.groups, fitter, progress);
     }
 
+    /// The model file the stages after the fit leave from `fitted` (a state of this selection's
+    /// rounds, [`FitRounds::fitted`]) under the run `ctx`: [`FitRounds::model_file`] of that
+    /// state, with `ctx`'s settings for those stages (the cross-validation judges a fold's
+    /// lattice so, from the state its rounds reached, without fitting them again).
+    pub fn model_file_of(
+        &self,
+        ctx: &Context,
+        fitted: fit::Fitted,
+        fitter: &dyn Fitter,
+    ) -> Result<ModelFile, PipelineError> {
+        finish_state(&self.setup, ctx, fitted, fitter, &(), Figures::ModelOnly).map(|out| out.model)
+    }
+
     /// The baseline and round 0 fitted ([`fit::AlphaRounds::start`]), round 0's candidates
     /// from `cache` where known.
     pub fn rounds<'r, 'a>(
@@ -378,6 +391,12 @@ impl FitRounds<'_, '_> {
         self.rounds.rounds()
     }
 
+    /// The state of the last kept round (its fits and alpha), as the stages after the fit take
+    /// it ([`Prepared::model_file_of`]).
+    pub fn fitted(&self) -> fit::Fitted {
+        self.rounds.fitted()
+    }
+
     /// The model of the last kept round: the stages after the fit run on it.
     pub fn model(&self) -> Result<FitOutput, PipelineError> {
         self.finish(Figures::All)
@@ -391,22 +410,13 @@ impl FitRounds<'_, '_> {
     }
 
     fn finish(&self, figures: Figures) -> Result<FitOutput, PipelineError> {
-        let setup = self.setup;
-        let mut run = Setup {
-            frames: setup.frames.clone(),
-            report: setup.report.clone(),
-            regs: Vec::new(),
-            groups: select::Groups::default(),
-            clock: report::StageClock::start(),
-            figures,
-        };
-        run.finish_with(
+        finish_state(
+            self.setup,
             self.ctx,
-            &setup.regs,
-            &setup.groups,
             self.rounds.fitted(),
             self.fitter,
             self.progress,
+            figures,
         )
     }
 
@@ -414,6 +424,27 @@ impl FitRounds<'_, '_> {
     pub fn step(&mut self) -> bool {
         self.rounds.step()
     }
+}
+
+/// The stages after the fit ([`Setup::finish_with`]) on the state `fitted` of `setup`'s rounds,
+/// leaving `setup` as it is (the fold fits of the cross-validation finish it more than once).
+fn finish_state(
+    setup: &Setup,
+    ctx: &Context,
+    fitted: fit::Fitted,
+    fitter: &dyn Fitter,
+    progress: &dyn Progress,
+    figures: Figures,
+) -> Result<FitOutput, PipelineError> {
+    let mut run = Setup {
+        frames: setup.frames.clone(),
+        report: setup.report.clone(),
+        regs: Vec::new(),
+        groups: select::Groups::default(),
+        clock: report::StageClock::start(),
+        figures,
+    };
+    run.finish_with(ctx, &setup.regs, &setup.groups, fitted, fitter, progress)
 }
 
 /// What [`Setup::finish_with`] computes besides the model.
