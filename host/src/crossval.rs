@@ -23,6 +23,7 @@ use std::collections::BTreeMap;
 use crate::dataset::Dataset;
 use crate::evaluate::summary::clustered_mean;
 use crate::evaluate::{Clustering, EvalPoints, FrameEval, evaluate_in};
+use crate::modelfile::ModelFile;
 use crate::pipeline::{
     AlphaLattice, Context, CvCandidate, CvChoice, CvReport, FitOutput, FitRounds, Fitter,
     LogEStats, PipelineError, PipelineOptions, Prepared,
@@ -162,12 +163,17 @@ struct Grid {
     states: Vec<Option<FoldState>>,
 }
 
-/// A fold's fit as the rounds left it: what its model at any round it ran is finished from.
+/// A fold's fit as the rounds left it: its model at every round it ran, and what the lattice
+/// is found from.
 struct FoldState {
     prepared: Prepared,
-    /// The fit's state after round 0, 1, ... (the last where its rounds stopped).
-    fitted: Vec<Fitted>,
+    /// After round 0, 1, ... (the last where its rounds stopped): the fit's state and the model
+    /// it left (without a lattice: the folds' fits skip that stage).
+    fitted: Vec<RoundModel>,
 }
+
+/// A fold fit's state after a round and the model it left.
+type RoundModel = (Fitted, ModelFile);
 
 impl Grid {
     /// Drops every fold's states but the one at `rounds` (or its last, where its rounds stopped
@@ -235,9 +241,9 @@ fn cross_validate(
         .collect();
     // A fold's run is dropped (`None`) when its rounds end; a failed fold's errors with it.
     let mut by_round: Vec<Vec<Vec<FrameEval>>> = vec![Vec::new(); folds.len()];
-    let mut states: Vec<Vec<Fitted>> = vec![Vec::new(); folds.len()];
+    let mut states: Vec<Vec<RoundModel>> = vec![Vec::new(); folds.len()];
     for r in 0..=max_rounds {
-        let judged: Vec<Option<(Vec<FrameEval>, Option<Fitted>)>> = runs
+        let judged: Vec<Option<(Vec<FrameEval>, Option<RoundModel>)>> = runs
             .par_iter()
             .zip(folds)
             .map(|(run, fold)| {
@@ -245,7 +251,7 @@ fn cross_validate(
                 let model = run.model_file().ok()?;
                 let (evals, _) =
                     evaluate_in(judge, &model, fold, EvalPoints::Vertices, &()).ok()?;
-                Some((evals, keep_states.then(|| run.fitted())))
+                Some((evals, keep_states.then(|| (run.fitted(), model))))
             })
             .collect();
         for (((run, fold), state), evals) in runs
@@ -509,33 +515,27 @@ fn judge_lattice(
         .par_iter()
         .enumerate()
         .map(|(i, fold)| {
-            let out = (|| {
-                let mut model = match states {
-                    Some(states) => {
-                        let s = states[i].as_ref()?;
-                        let fitted = s.fitted.last()?.clone();
-                        s.prepared.model_file_of(ctx, fitted, fitter).ok()?
-                    }
-                    None => {
-                        let train: Vec<usize> = frames
-                            .iter()
-                            .copied()
-                            .filter(|f| !fold.contains(f))
-                            .collect();
-                        let prepared = Prepared::new(ctx, &train).ok()?;
+            let model = match states {
+                Some(states) => states[i].as_ref().and_then(|s| {
+                    let (fitted, model) = s.fitted.last()?;
+                    let mut model = model.clone();
+                    model.face_alpha = s.prepared.lattice_of(ctx, fitted);
+                    Some(model)
+                }),
+                None => {
+                    let train: Vec<usize> = frames
+                        .iter()
+                        .copied()
+                        .filter(|f| !fold.contains(f))
+                        .collect();
+                    Prepared::new(ctx, &train).ok().and_then(|prepared| {
                         let mut run = prepared.rounds(ctx, fitter, Some(cache), &());
                         while run.step() {}
-                        run.model_file().ok()?
-                    }
-                };
-                let with = evaluate_in(judge, &model, fold, at, &()).ok()?.0;
-                // A fold whose own lattice stage found no detail predicts as without.
-                let without = match model.face_alpha.take() {
-                    Some(_) => evaluate_in(judge, &model, fold, at, &()).ok()?.0,
-                    None => with.clone(),
-                };
-                Some([without, with])
-            })();
+                        run.model_file().ok()
+                    })
+                }
+            };
+            let out = model.and_then(|m| with_and_without(judge, m, fold, at));
             progress.inc(1);
             out
         })
@@ -552,6 +552,22 @@ fn judge_lattice(
         }
     }
     out
+}
+
+/// A fold's model judged on its frames `fold` at `at` without its lattice and with it (a
+/// model whose own lattice stage found no detail predicts the same either way).
+fn with_and_without(
+    judge: &Context,
+    mut model: ModelFile,
+    fold: &[usize],
+    at: EvalPoints,
+) -> Option<[Vec<FrameEval>; 2]> {
+    let with = evaluate_in(judge, &model, fold, at, &()).ok()?.0;
+    let without = match model.face_alpha.take() {
+        Some(_) => evaluate_in(judge, &model, fold, at, &()).ok()?.0,
+        None => with.clone(),
+    };
+    Some([without, with])
 }
 
 /// The choice of the lattice from the folds' surface errors without it and with it

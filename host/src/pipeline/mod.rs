@@ -335,17 +335,18 @@ impl Prepared {
         cache.fill(ctx, &self.setup.regs, &self.setup.groups, fitter, progress);
     }
 
-    /// The model file the stages after the fit leave from `fitted` (a state of this selection's
-    /// rounds, [`FitRounds::fitted`]) under the run `ctx`: [`FitRounds::model_file`] of that
-    /// state, with `ctx`'s settings for those stages (the cross-validation judges a fold's
-    /// lattice so, from the state its rounds reached, without fitting them again).
-    pub fn model_file_of(
+    /// The lattice of alpha finer than the mesh that the lattice stage ([`lattice::fit_lattice`])
+    /// finds from `fitted` (a state of this selection's rounds, [`FitRounds::fitted`]) under the
+    /// run `ctx`: the model's `face_alpha` were it finished with `ctx`'s settings. The stages
+    /// after it do not depend on it, so the cross-validation adds it to a fold's model judged at
+    /// that state, neither fitting nor finishing the fold again.
+    pub fn lattice_of(
         &self,
         ctx: &Context,
-        fitted: fit::Fitted,
-        fitter: &dyn Fitter,
-    ) -> Result<ModelFile, PipelineError> {
-        finish_state(&self.setup, ctx, fitted, fitter, &(), Figures::ModelOnly).map(|out| out.model)
+        fitted: &fit::Fitted,
+    ) -> Option<crate::lattice::FaceAlpha> {
+        let setup = &self.setup;
+        lattice::fit_lattice(ctx, &setup.regs, &setup.groups, fitted, &()).face_alpha
     }
 
     /// The baseline and round 0 fitted ([`fit::AlphaRounds::start`]), round 0's candidates
@@ -392,7 +393,7 @@ impl FitRounds<'_, '_> {
     }
 
     /// The state of the last kept round (its fits and alpha), as the stages after the fit take
-    /// it ([`Prepared::model_file_of`]).
+    /// it ([`Prepared::lattice_of`]).
     pub fn fitted(&self) -> fit::Fitted {
         self.rounds.fitted()
     }
