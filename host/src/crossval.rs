@@ -9,7 +9,9 @@
 //! sample store: no frame is read again (`Context::store`).
 //!
 //! What is chosen so: the direction segments m with `--segments auto` (per scan, among
-//! [`SEGMENT_LADDER`]) and the number of alpha rounds (Eq. 6) for the chosen m. The rounds cost
+//! [`SEGMENT_LADDER`]), Eq. 6's t1 ([`T1_CANDIDATE`] or none) and the number of alpha rounds
+//! (Eq. 6) for the chosen m, then whether the lattice of alpha finer than the mesh is written
+//! ([`judge_lattice`], judged at surface points, where its detail is not 0). The rounds cost
 //! nothing extra: every fold fit hands out its model after each round
 //! ([`crate::pipeline::fit_prepared_rounds`]). The rule is the one-standard-error rule of
 //! cross-validation (Breiman et al. 1984; Hastie, Tibshirani and Friedman, *Elements of
@@ -196,8 +198,8 @@ impl Grid {
 /// round ([`rounds_exhausted`]).
 ///
 /// With `keep_states`, each fold's fit state after every round is kept with its selection
-/// ([`Grid::states`]): the lattice's judgement ([`judge_lattice`]) then finishes the fold's
-/// model at the rounds chosen without fitting them again.
+/// ([`Grid::states`]): the lattice's judgement ([`judge_lattice`]) then adds the lattice to the
+/// fold's model at the rounds chosen, without fitting or finishing the fold again.
 #[allow(clippy::too_many_arguments)]
 fn cross_validate(
     ctx: &Context,
