@@ -295,14 +295,30 @@ fn the_fit_cross_validates_its_choices_from_the_sample_store() {
     let mut all: Vec<usize> = r.folds.concat();
     all.sort();
     assert_eq!(all, frames);
-    // The four m of the ladder, then t1 (none against crossval::T1_CANDIDATE) for the m chosen.
+    // The four m of the ladder, then t1 (none against crossval::T1_CANDIDATE) for the m chosen,
+    // then the lattice (judged at surface points when the fit wrote one, from the folds' fits at
+    // the rounds chosen: no fit more).
     assert_eq!(r.fits, 5 * 5);
     let names: Vec<&str> = r.choices.iter().map(|c| c.name.as_str()).collect();
-    assert_eq!(names, ["segments", "alpha_t1_share", "alpha_rounds"]);
+    assert_eq!(
+        names,
+        [
+            "segments",
+            "alpha_t1_share",
+            "alpha_rounds",
+            "alpha_lattice"
+        ]
+    );
+    let lattice = &r.choices[3];
+    assert_eq!(
+        out.model.face_alpha.is_some(),
+        lattice.chosen == "auto",
+        "{lattice:?}"
+    );
     // The per-frame errors of the choice, every training frame judged once by its fold.
     assert!(r.per_frame.keys().all(|f| frames.contains(f)));
     assert!(r.per_frame.len() * 2 > frames.len(), "{:?}", r.per_frame);
-    for c in &r.choices {
+    for c in r.choices.iter().filter(|c| !c.candidates.is_empty()) {
         assert_eq!(c.candidates.iter().filter(|k| k.chosen).count(), 1, "{c:?}");
         assert!(
             c.candidates

@@ -9,7 +9,9 @@
 //! sample store: no frame is read again (`Context::store`).
 //!
 //! What is chosen so: the direction segments m with `--segments auto` (per scan, among
-//! [`SEGMENT_LADDER`]) and the number of alpha rounds (Eq. 6) for the chosen m. The rounds cost
+//! [`SEGMENT_LADDER`]), Eq. 6's t1 ([`T1_CANDIDATE`] or none) and the number of alpha rounds
+//! (Eq. 6) for the chosen m, then whether the lattice of alpha finer than the mesh is written
+//! ([`judge_lattice`], judged at surface points, where its detail is not 0). The rounds cost
 //! nothing extra: every fold fit hands out its model after each round
 //! ([`crate::pipeline::fit_prepared_rounds`]). The rule is the one-standard-error rule of
 //! cross-validation (Breiman et al. 1984; Hastie, Tibshirani and Friedman, *Elements of
@@ -23,9 +25,12 @@ use std::collections::BTreeMap;
 use crate::dataset::Dataset;
 use crate::evaluate::summary::clustered_mean;
 use crate::evaluate::{Clustering, EvalPoints, FrameEval, evaluate_in};
+use crate::modelfile::ModelFile;
 use crate::pipeline::{
     AlphaLattice, Context, CvCandidate, CvChoice, CvReport, FitOutput, FitRounds, Fitter,
-    LogEStats, PipelineError, PipelineOptions, Prepared, fit::OrderCache, fit_prepared_with,
+    LogEStats, PipelineError, PipelineOptions, Prepared,
+    fit::{Fitted, OrderCache},
+    fit_prepared_with,
 };
 use crate::progress::Progress;
 use rayon::prelude::*;
@@ -71,6 +76,11 @@ pub struct CvSettings {
     /// Whether Eq. 6's upper threshold t1 is chosen per scan, off against [`T1_CANDIDATE`]
     /// (when the run's options leave it off; `subsurf fit --alpha-t1-share` fixes it).
     pub t1: bool,
+    /// Whether the lattice of alpha finer than the mesh (`face_alpha`, [`crate::pipeline::lattice`])
+    /// is written only when the folds, judged at surface points, say it predicts better
+    /// ([`judge_lattice`]); `subsurf fit --alpha-lattice` given fixes it. Only where the run's
+    /// lattice is on and the fit on every frame wrote one.
+    pub lattice: bool,
 }
 
 /// The t1 share ([`crate::pipeline::ALPHA_T1_SHARE`]'s alternative) the cross-validation weighs
@@ -91,6 +101,7 @@ impl Default for CvSettings {
             rounds: true,
             patience: DEFAULT_PATIENCE,
             t1: true,
+            lattice: true,
         }
     }
 }
@@ -141,15 +152,54 @@ pub fn folds(ds: &Dataset, frames: &[usize], k: usize) -> (Vec<Vec<usize>>, Stri
 /// did not see it.
 type Errors = BTreeMap<usize, [f64; 3]>;
 
+/// One grid of the cross-validation: the folds' fits of one setting, scored after every round.
+struct Grid {
+    /// The pooled held-out errors per number of alpha rounds 0..: entry r is the model a fit
+    /// with `alpha_rounds = r` leaves (a fold whose rounds stopped before r contributes its last
+    /// model).
+    errors: Vec<Errors>,
+    /// The most rounds any fold's fit kept.
+    most: usize,
+    /// Per fold (empty unless asked), its selection and its fit's state after every round it
+    /// ran (`None`: the fold failed).
+    states: Vec<Option<FoldState>>,
+}
+
+/// A fold's fit as the rounds left it: its model at every round it ran, and what the lattice
+/// is found from.
+struct FoldState {
+    prepared: Prepared,
+    /// After round 0, 1, ... (the last where its rounds stopped): the fit's state and the model
+    /// it left (without a lattice: the folds' fits skip that stage).
+    fitted: Vec<RoundModel>,
+}
+
+/// A fold fit's state after a round and the model it left.
+type RoundModel = (Fitted, ModelFile);
+
+impl Grid {
+    /// Drops every fold's states but the one at `rounds` (or its last, where its rounds stopped
+    /// before): the only one the lattice's judgement reads.
+    fn keep_states_at(&mut self, rounds: usize) {
+        for s in self.states.iter_mut().flatten() {
+            let at = rounds.min(s.fitted.len().saturating_sub(1));
+            s.fitted.truncate(at + 1);
+            s.fitted.drain(..at);
+        }
+    }
+}
+
 /// The cross-validated errors of the run's options `ctx.opts` on `folds` (of `frames`), per
-/// number of alpha rounds 0..: entry r is the model a fit with `alpha_rounds = r` leaves (a fold
-/// whose rounds stopped before r contributes its last model). Second: the most rounds any
-/// fold's fit kept.
+/// number of alpha rounds ([`Grid`]).
 ///
 /// The folds' fits run side by side ([`crate::pipeline::Prepared`]), round by round, the folds
 /// in parallel: after each round the pooled errors so far choose their best number of rounds,
 /// and once `patience` rounds in a row (0: never) have not lowered it, no fold runs another
 /// round ([`rounds_exhausted`]).
+///
+/// With `keep_states`, each fold's fit state after every round is kept with its selection
+/// ([`Grid::states`]): the lattice's judgement ([`judge_lattice`]) then adds the lattice to the
+/// fold's model at the rounds chosen, without fitting or finishing the fold again.
 #[allow(clippy::too_many_arguments)]
 fn cross_validate(
     ctx: &Context,
@@ -159,9 +209,10 @@ fn cross_validate(
     fitter: &dyn Fitter,
     cache: &OrderCache,
     patience: usize,
+    keep_states: bool,
     progress: &dyn Progress,
     fits: &mut usize,
-) -> Result<(Vec<Errors>, usize), PipelineError> {
+) -> Result<Grid, PipelineError> {
     let max_rounds = ctx.opts.alpha_rounds;
     let clusters = &Clustering::of_folds(folds);
     // The folds are judged at the vertices, where alpha finer than the mesh changes nothing
@@ -192,23 +243,34 @@ fn cross_validate(
         .collect();
     // A fold's run is dropped (`None`) when its rounds end; a failed fold's errors with it.
     let mut by_round: Vec<Vec<Vec<FrameEval>>> = vec![Vec::new(); folds.len()];
+    let mut states: Vec<Vec<RoundModel>> = vec![Vec::new(); folds.len()];
     for r in 0..=max_rounds {
-        let judged: Vec<Option<Vec<FrameEval>>> = runs
+        let judged: Vec<Option<(Vec<FrameEval>, Option<RoundModel>)>> = runs
             .par_iter()
             .zip(folds)
             .map(|(run, fold)| {
-                let model = run.as_ref()?.model_file().ok()?;
-                evaluate_in(judge, &model, fold, EvalPoints::Vertices, &())
-                    .ok()
-                    .map(|(evals, _)| evals)
+                let run = run.as_ref()?;
+                let model = run.model_file().ok()?;
+                let (evals, _) =
+                    evaluate_in(judge, &model, fold, EvalPoints::Vertices, &()).ok()?;
+                Some((evals, keep_states.then(|| (run.fitted(), model))))
             })
             .collect();
-        for ((run, fold), evals) in runs.iter_mut().zip(&mut by_round).zip(judged) {
+        for (((run, fold), state), evals) in runs
+            .iter_mut()
+            .zip(&mut by_round)
+            .zip(&mut states)
+            .zip(judged)
+        {
             match evals {
                 _ if run.is_none() => {}
-                Some(evals) => fold.push(evals),
+                Some((evals, fitted)) => {
+                    fold.push(evals);
+                    state.extend(fitted);
+                }
                 None => {
                     fold.clear();
+                    state.clear();
                     *run = None;
                 }
             }
@@ -232,7 +294,24 @@ fn cross_validate(
         .filter_map(|b| b.len().checked_sub(1))
         .max()
         .unwrap_or(0);
-    Ok((pooled(&by_round, max_rounds), most))
+    drop(runs);
+    let states = if keep_states {
+        prepared
+            .into_iter()
+            .zip(states)
+            .map(|(p, fitted)| {
+                p.filter(|_| !fitted.is_empty())
+                    .map(|prepared| FoldState { prepared, fitted })
+            })
+            .collect()
+    } else {
+        Vec::new()
+    };
+    Ok(Grid {
+        errors: pooled(&by_round, max_rounds),
+        most,
+        states,
+    })
 }
 
 /// The folds' held-out errors per number of rounds 0..=`last`, every fold with errors (a failed
@@ -397,6 +476,126 @@ fn choose_rounds(
     (limit, choice)
 }
 
+/// The folds' held-out errors of the fit `ctx` (the settings chosen, the lattice on) at
+/// surface points, without its lattice of alpha finer than the mesh (first) and with it
+/// (second): per fold the fit of the other folds at the rounds the final fit runs, finished
+/// with its lattice stage, its model judged twice, as it is and with its `face_alpha` dropped
+/// (the lattice changes nothing else of a model: [`crate::pipeline::lattice`] reads the fit,
+/// never changes it).
+///
+/// Why at surface points: at the vertices the lattice's detail is 0 by construction, so the
+/// rounds' judgement ([`cross_validate`], `EvalPoints::Vertices`) cannot see it. The points are
+/// the run's lattice points (between the vertices, every face at the level its pixel footprint
+/// asks for), whose samples the run's store holds, so no frame is read again; the samples
+/// there are the ones the store keeps, above Eq. 6's t2 (10× the protocol's floor), by the
+/// protocol's rules ([`crate::pipeline::judge_context`]). The lattice stage runs once per
+/// fold, for the final round count only.
+///
+/// Where the rounds' grid kept the folds' fit states at the rounds chosen (`grid`,
+/// [`Grid::keep_states_at`]), each fold's model is finished from its state, without fitting
+/// again; else (no rounds were cross-validated) each fold is fitted once more.
+#[allow(clippy::too_many_arguments)]
+fn judge_lattice(
+    ctx: &Context,
+    judge: &Context,
+    frames: &[usize],
+    folds: &[Vec<usize>],
+    grid: Option<&Grid>,
+    fitter: &dyn Fitter,
+    cache: &OrderCache,
+    progress: &dyn Progress,
+    fits: &mut usize,
+) -> [Errors; 2] {
+    // The level is not read: the run's store holds the points (`evaluate_in`).
+    let at = EvalPoints::Surface {
+        level: crate::lattice::MAX_LEVEL,
+    };
+    let states = grid
+        .map(|g| &g.states[..])
+        .filter(|s| s.len() == folds.len());
+    let judged: Vec<Option<[Vec<FrameEval>; 2]>> = folds
+        .par_iter()
+        .enumerate()
+        .map(|(i, fold)| {
+            let model = match states {
+                Some(states) => states[i].as_ref().and_then(|s| {
+                    let (fitted, model) = s.fitted.last()?;
+                    let mut model = model.clone();
+                    model.face_alpha = s.prepared.lattice_of(ctx, fitted);
+                    Some(model)
+                }),
+                None => {
+                    let train: Vec<usize> = frames
+                        .iter()
+                        .copied()
+                        .filter(|f| !fold.contains(f))
+                        .collect();
+                    Prepared::new(ctx, &train).ok().and_then(|prepared| {
+                        let mut run = prepared.rounds(ctx, fitter, Some(cache), &());
+                        while run.step() {}
+                        run.model_file().ok()
+                    })
+                }
+            };
+            let out = model.and_then(|m| with_and_without(judge, m, fold, at));
+            progress.inc(1);
+            out
+        })
+        .collect();
+    if states.is_none() {
+        *fits += folds.len();
+    }
+    let mut out = [Errors::new(), Errors::new()];
+    for pair in judged.into_iter().flatten() {
+        for (errs, evals) in out.iter_mut().zip(pair) {
+            for e in evals.iter().filter(|e| e.skipped.is_none()) {
+                errs.insert(e.frame, e.log_e.map(|v| v.unwrap_or(f64::NAN)));
+            }
+        }
+    }
+    out
+}
+
+/// A fold's model judged on its frames `fold` at `at` without its lattice and with it (a
+/// model whose own lattice stage found no detail predicts the same either way).
+fn with_and_without(
+    judge: &Context,
+    mut model: ModelFile,
+    fold: &[usize],
+    at: EvalPoints,
+) -> Option<[Vec<FrameEval>; 2]> {
+    let with = evaluate_in(judge, &model, fold, at, &()).ok()?.0;
+    let without = match model.face_alpha.take() {
+        Some(_) => evaluate_in(judge, &model, fold, at, &()).ok()?.0,
+        None => with.clone(),
+    };
+    Some([without, with])
+}
+
+/// The choice of the lattice from the folds' surface errors without it and with it
+/// ([`judge_lattice`]): the one-standard-error rule, no lattice the simpler. Whether it is
+/// written, and the report's choice.
+fn choose_lattice(without: &Errors, with: &Errors, clusters: &Clustering) -> (bool, CvChoice) {
+    let cands: Vec<(String, &Errors)> =
+        vec![("off".into(), without), (LATTICE_CANDIDATE.into(), with)];
+    let (chosen, candidates) = one_se(&cands, clusters);
+    let keep = chosen == Some(1);
+    (
+        keep,
+        CvChoice {
+            name: "alpha_lattice".into(),
+            rule: format!(
+                "{ONE_SE_RULE}, judged at surface points (the run's lattice points, samples above Eq. 6's t2) with the settings chosen above"
+            ),
+            candidates,
+            chosen: if keep { LATTICE_CANDIDATE } else { "off" }.into(),
+        },
+    )
+}
+
+/// The lattice candidate's name in the report: the fit's `--alpha-lattice` default.
+const LATTICE_CANDIDATE: &str = "auto";
+
 /// A fit of the prepared run `ctx` on `frames`, with the choices of `cv` made by
 /// cross-validation over `frames` ([`folds`]); the report's `cross_validation` lists every
 /// candidate's held-out error and the choice. Without folds (fewer than 2, or a scan with a
@@ -418,6 +617,10 @@ pub fn fit_scan_in(
     let rounds = cv.rounds && opts.alpha_rounds > 0;
     let cache = OrderCache::default();
     let mut report = None;
+    // The lattice is judged where the run's is on; the folds' fit states of the settings chosen
+    // are then kept for it (`Grid::states`).
+    let judge_lat = cv.lattice && opts.alpha_lattice.max_level().is_some();
+    let mut chosen_grid: Option<Grid> = None;
     if auto || rounds {
         let (folds, rule) = folds(ctx.ds, frames, cv.folds);
         let mut rep = CvReport {
@@ -468,6 +671,7 @@ pub fn fit_scan_in(
                     fitter,
                     &cache,
                     cv.patience,
+                    judge_lat,
                     progress,
                     &mut rep.fits,
                 )?);
@@ -476,15 +680,19 @@ pub fn fit_scan_in(
             // Each m at its own best number of rounds, then the rounds of the m chosen.
             let per_m: Vec<(usize, CvChoice)> = grids
                 .iter()
-                .map(|(g, most)| choose_rounds(g, *most, &fold_clusters, cv.patience))
+                .map(|g| choose_rounds(&g.errors, g.most, &fold_clusters, cv.patience))
                 .collect();
+            // Of each grid's fold states only those at its rounds can be judged for the lattice.
+            for (g, (limit, _)) in grids.iter_mut().zip(&per_m) {
+                g.keep_states_at(*limit);
+            }
             let mut k = 0;
             if auto {
                 let cands: Vec<(String, &Errors)> = ladder
                     .iter()
                     .zip(&grids)
                     .zip(&per_m)
-                    .map(|((m, (g, most)), (limit, _))| (m.to_string(), &g[(*limit).min(*most)]))
+                    .map(|((m, g), (limit, _))| (m.to_string(), &g.errors[(*limit).min(g.most)]))
                     .collect();
                 let (chosen, candidates) = one_se(&cands, &fold_clusters);
                 k = chosen.unwrap_or(0);
@@ -513,13 +721,16 @@ pub fn fit_scan_in(
                     fitter,
                     &cache,
                     cv.patience,
+                    judge_lat,
                     progress,
                     &mut rep.fits,
                 )?;
-                let r = choose_rounds(&g.0, g.1, &fold_clusters, cv.patience);
+                let mut g = g;
+                let r = choose_rounds(&g.errors, g.most, &fold_clusters, cv.patience);
+                g.keep_states_at(r.0);
                 let cands: Vec<(String, &Errors)> = vec![
-                    ("off".into(), &grid_k.0[limit.min(grid_k.1)]),
-                    (T1_CANDIDATE.to_string(), &g.0[r.0.min(g.1)]),
+                    ("off".into(), &grid_k.errors[limit.min(grid_k.most)]),
+                    (T1_CANDIDATE.to_string(), &g.errors[r.0.min(g.most)]),
                 ];
                 let (chosen, candidates) = one_se(&cands, &fold_clusters);
                 let with_t1 = chosen == Some(1);
@@ -543,30 +754,87 @@ pub fn fit_scan_in(
                 opts.alpha_rounds = limit;
                 rep.choices.push(choice);
             }
-            let (grid, most) = &grid_k;
             let at = if rounds { limit } else { opts.alpha_rounds };
-            if let Some(errs) = grid.get(at.min(*most)).or(grid.last()) {
+            if let Some(errs) = grid_k
+                .errors
+                .get(at.min(grid_k.most))
+                .or(grid_k.errors.last())
+            {
                 rep.per_frame = errs
                     .iter()
                     .map(|(&f, v)| (f, v.map(|x| x.is_finite().then_some(x))))
                     .collect();
             }
+            // The folds' states at the rounds the final fit runs (its rounds are those the
+            // folds validated: a fold's state there is its fit with the final settings).
+            if judge_lat && (rounds || at == 0) {
+                grid_k.keep_states_at(at);
+                chosen_grid = Some(grid_k);
+            }
         }
         rep.seconds = start.elapsed().as_secs_f64();
         report = Some(rep);
     }
-    let mut out = fit_prepared_with(
-        &ctx.with_options(opts)?,
-        frames,
-        fitter,
-        Some(&cache),
-        progress,
-    )?;
+    let final_ctx = ctx.with_options(opts)?;
+    let mut out = fit_prepared_with(&final_ctx, frames, fitter, Some(&cache), progress)?;
+    if judge_lat {
+        let start = std::time::Instant::now();
+        let (folds, rule) = folds(ctx.ds, frames, cv.folds);
+        if cv.folds >= 2 && folds.len() >= 2 {
+            let rep = report.get_or_insert_with(|| CvReport {
+                rule,
+                folds: folds.clone(),
+                ..CvReport::default()
+            });
+            let choice = if out.model.face_alpha.is_some() {
+                progress.start("cross-validation (alpha lattice)", folds.len() as u64);
+                let [without, with] = judge_lattice(
+                    &final_ctx,
+                    judge,
+                    frames,
+                    &folds,
+                    chosen_grid.as_ref(),
+                    fitter,
+                    &cache,
+                    progress,
+                    &mut rep.fits,
+                );
+                let (keep, choice) = choose_lattice(&without, &with, &Clustering::of_folds(&folds));
+                if !keep {
+                    drop_lattice(&mut out);
+                }
+                if let Some(l) = &mut out.report.alpha.lattice {
+                    l.kept_by_cv = Some(keep);
+                }
+                choice
+            } else {
+                CvChoice {
+                    name: "alpha_lattice".into(),
+                    rule: "not judged: the fit's lattice stage found no detail above the noise, so there is none to write".into(),
+                    candidates: Vec::new(),
+                    chosen: "off".into(),
+                }
+            };
+            rep.choices.push(choice);
+            rep.seconds += start.elapsed().as_secs_f64();
+        }
+    }
     if let Some(r) = &mut report {
         (r.round0_fitted, r.round0_reused) = cache.counts();
     }
     out.report.cross_validation = report;
     Ok(out)
+}
+
+/// The fit `out` without its lattice: `face_alpha` dropped and the report's lattice saying so
+/// (every face at level 1, as when nothing is written).
+fn drop_lattice(out: &mut FitOutput) {
+    out.model.face_alpha = None;
+    let faces = out.model.triangles.len();
+    if let Some(l) = &mut out.report.alpha.lattice {
+        l.written = false;
+        l.levels = std::iter::once((1, faces)).collect();
+    }
 }
 
 #[cfg(test)]
@@ -597,6 +865,35 @@ mod tests {
         assert_eq!(rows[0].score, None);
         assert!(rows[0].note.is_some());
         assert_eq!(one_se(&[("1".into(), &none)], &lone).0, None);
+    }
+
+    /// The lattice is written only when the folds' surface errors say it predicts better: a
+    /// lattice whose gain is within the noise is dropped (no lattice the simpler), one clearly
+    /// better is kept, one worse is dropped; the choice names both candidates.
+    #[test]
+    fn the_lattice_is_kept_only_when_it_predicts_better() {
+        let folds = Clustering::of_folds(&[vec![0, 1], vec![2, 3], vec![4, 5]]);
+        let base: Vec<(usize, f64)> = (0..6).map(|f| (f, 0.30 + 0.02 * f as f64)).collect();
+        let without = errors(&base);
+        let shifted =
+            |d: &[f64]| errors(&base.iter().map(|&(f, e)| (f, e + d[f])).collect::<Vec<_>>());
+        // Gains of opposite sign between folds: within one clustered standard error.
+        let noise = shifted(&[-0.02, -0.02, 0.015, 0.015, 0.0, 0.0]);
+        let (keep, choice) = choose_lattice(&without, &noise, &folds);
+        assert!(!keep, "{choice:?}");
+        assert_eq!(choice.name, "alpha_lattice");
+        assert_eq!(choice.chosen, "off");
+        assert_eq!(choice.candidates.len(), 2);
+        // A gain in every fold.
+        let better = shifted(&[-0.05, -0.04, -0.06, -0.05, -0.04, -0.05]);
+        let (keep, choice) = choose_lattice(&without, &better, &folds);
+        assert!(keep, "{choice:?}");
+        assert_eq!(choice.chosen, LATTICE_CANDIDATE);
+        let off = &choice.candidates[0];
+        assert!(off.worse_by.unwrap() > off.se.unwrap(), "{choice:?}");
+        // Worse everywhere.
+        let worse = shifted(&[0.05; 6]);
+        assert!(!choose_lattice(&without, &worse, &folds).0);
     }
 
     /// Early stopping: the rounds end `patience` rounds after the best, never while the error

@@ -118,9 +118,11 @@ pub struct Args {
     /// alpha finer than the mesh (section 5's "higher resolution texture"): `auto` estimates
     /// Eq. 6 per point of a per-face lattice whose level follows the pixel footprint (at most
     /// 8) and writes it (`face_alpha`) where the images show detail above the noise; a number
-    /// 1..=8 caps the level; `off` keeps alpha per vertex only.
-    #[arg(long, default_value = "auto")]
-    pub alpha_lattice: subsurf::pipeline::AlphaLattice,
+    /// 1..=8 caps the level; `off` keeps alpha per vertex only. By default `auto`, and the
+    /// lattice found is written only when the cross-validation's folds, judged at surface
+    /// points, say it predicts better than alpha per vertex; given, it is fixed (not judged).
+    #[arg(long)]
+    pub alpha_lattice: Option<subsurf::pipeline::AlphaLattice>,
     /// Eq. 6's shrinkage of alpha towards 1, as a multiple of the empirical-Bayes pseudo-count
     /// (the noise within a texel over the texture's variance between texels): 1 = the empirical
     /// one, 0 = none (the plain geometric mean of s / R_d), `inf` = no texture (alpha = 1).
@@ -277,7 +279,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     opts.alpha_window.t1_share = args
         .alpha_t1_share
         .unwrap_or(subsurf::pipeline::ALPHA_T1_SHARE);
-    opts.alpha_lattice = args.alpha_lattice;
+    opts.alpha_lattice = args
+        .alpha_lattice
+        .unwrap_or(subsurf::pipeline::AlphaLattice::Auto);
     opts.alpha_shrinkage = args.alpha_shrinkage;
     opts.spot_cos_min = args.spot_cos_min;
     if args.fixed_order {
@@ -313,6 +317,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         rounds: true,
         patience: args.cv_patience,
         t1: args.alpha_t1_share.is_none(),
+        lattice: args.alpha_lattice.is_none(),
     };
     match args.terms.as_deref() {
         None => {}
@@ -405,6 +410,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             println!("  {why}");
         }
         for c in &cv.choices {
+            if c.candidates.is_empty() {
+                println!("  {}: {} ({})", c.name, c.chosen, c.rule);
+                continue;
+            }
             println!(
                 "  {}: {} chosen; held-out log E per candidate {}",
                 c.name,

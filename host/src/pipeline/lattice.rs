@@ -61,6 +61,11 @@ pub struct LatticeReport {
     pub rms_detail: [f64; 3],
     /// Whether `face_alpha` was written.
     pub written: bool,
+    /// Whether the cross-validation's folds, judged at surface points, kept the lattice this
+    /// stage found (`crate::crossval`: written only where it predicts better); `None` when not
+    /// judged (nothing found, `--alpha-lattice` given, or no folds).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub kept_by_cv: Option<bool>,
     /// Registered frames read (each once).
     pub frames: usize,
     /// Frames that could not be read.
@@ -516,6 +521,100 @@ mod tests {
         // From below, the faces face away.
         let below = at([1.0, 1.0, -400.0]);
         assert_eq!(face_levels(&scene, &[(&below, 0.0)], 0.4, 8), vec![1, 1]);
+    }
+
+    /// A lattice that cannot help is not written: on the slab without texture, with Eq. 6
+    /// unshrunk (`alpha_shrinkage` 0, so the noise rule passes the noise as detail), the
+    /// lattice stage writes its noise, and the cross-validation's folds, judged at surface
+    /// points, drop it; the rest of the model is the same.
+    #[test]
+    fn a_lattice_of_noise_is_not_written() {
+        use crate::crossval::{CvSettings, fit_scan_in};
+        use crate::pipeline::{Cache, StoreOptions, prepare};
+        let dir = tempfile::tempdir().unwrap();
+        let (ds, _) = slab(dir.path(), 0.0);
+        let mut opts = PipelineOptions::for_dataset(&ds);
+        opts.alpha_shrinkage = 0.0;
+        opts.alpha_rounds = 1;
+        let frames: Vec<usize> = (0..ds.spec.frames.len()).collect();
+        let store = StoreOptions {
+            cache: Cache::Off,
+            ..StoreOptions::default()
+        };
+        let ctx = prepare(&ds, &frames, &opts, &store, &()).unwrap();
+        let fitter = FitOptions::default();
+        // Only the lattice is judged: the rounds and t1 as given.
+        let cv = |lattice| CvSettings {
+            rounds: false,
+            t1: false,
+            lattice,
+            ..CvSettings::default()
+        };
+        let given = fit_scan_in(&ctx, &ctx, &frames, &cv(false), &fitter, &()).unwrap();
+        let rep = given.report.alpha.lattice.clone().unwrap();
+        assert!(given.model.face_alpha.is_some(), "{rep:?}");
+        assert_eq!(rep.kept_by_cv, None);
+        let judged = fit_scan_in(&ctx, &ctx, &frames, &cv(true), &fitter, &()).unwrap();
+        let rep = judged.report.alpha.lattice.clone().unwrap();
+        let r = judged.report.cross_validation.clone().unwrap();
+        eprintln!("{:#?}", r.choices);
+        assert!(judged.model.face_alpha.is_none(), "{rep:?}");
+        assert_eq!(rep.kept_by_cv, Some(false));
+        assert!(
+            !rep.written && rep.levels.keys().all(|&k| k == 1),
+            "{rep:?}"
+        );
+        let choice = r.choices.last().unwrap();
+        assert_eq!(
+            (choice.name.as_str(), choice.chosen.as_str()),
+            ("alpha_lattice", "off")
+        );
+        assert!(
+            choice
+                .candidates
+                .iter()
+                .all(|c| c.score.is_some_and(f64::is_finite)),
+            "{choice:?}"
+        );
+        assert_eq!(r.fits, r.folds.len());
+        for (a, b) in judged.model.vertices.iter().zip(&given.model.vertices) {
+            assert_eq!(a.alpha, b.alpha);
+            assert_eq!(a.params, b.params);
+        }
+        // With the rounds cross-validated, the folds' lattices are finished from their fits at
+        // the rounds chosen, not fitted again: the same figures as fitting them again.
+        let grid = fit_scan_in(
+            &ctx,
+            &ctx,
+            &frames,
+            &CvSettings {
+                rounds: true,
+                ..cv(true)
+            },
+            &fitter,
+            &(),
+        )
+        .unwrap();
+        let r = grid.report.cross_validation.unwrap();
+        let rounds: usize = r.choices[0].chosen.parse().unwrap();
+        assert_eq!(r.choices[0].name, "alpha_rounds");
+        let ctx_r = ctx
+            .with_options(PipelineOptions {
+                alpha_rounds: rounds,
+                ..opts
+            })
+            .unwrap();
+        let refit = fit_scan_in(&ctx_r, &ctx_r, &frames, &cv(true), &fitter, &()).unwrap();
+        let refit = refit.report.cross_validation.unwrap();
+        let scores = |c: &crate::pipeline::CvChoice| -> Vec<Option<f64>> {
+            c.candidates.iter().map(|k| k.score).collect()
+        };
+        assert_eq!(r.fits, r.folds.len(), "no fold fitted again");
+        assert_eq!(
+            scores(r.choices.last().unwrap()),
+            scores(refit.choices.last().unwrap())
+        );
+        assert!(grid.model.face_alpha.is_none());
     }
 
     /// Without a texture (alpha = 1 everywhere) the lattice's spread is noise: nothing is written.

@@ -198,7 +198,8 @@ pub fn evaluation_protocol(ds: &Dataset) -> Result<(PipelineOptions, NoiseFloor)
 /// nothing is read again), else a second pass over `frames` under the protocol's rules. The
 /// cross-validation's folds and `subsurf fit --validate` judge through it, so a fit's own
 /// exclusion radius, noise floor or grazing limits never change which samples judge its
-/// models.
+/// models. The second pass samples the run's lattice points too (where the cross-validation
+/// judges the lattice at surface points).
 pub fn judge_context<'a>(
     run: &Context<'a>,
     frames: &[usize],
@@ -218,7 +219,17 @@ pub fn judge_context<'a>(
         ..opts
     };
     let ctx = Context::new(run.ds, opts)?;
-    let held = extract::extract(&ctx, frames, None, store, progress)?;
+    // The run's lattice points, sampled by the protocol's rules above the protocol's t2: where
+    // the cross-validation judges the lattice of alpha finer than the mesh
+    // (`crate::crossval`), on the samples the run's own store would hold there by the protocol.
+    let points = run
+        .store()
+        .and_then(|s| s.points())
+        .map(|p| crate::store::StorePoints {
+            min_value: protocol.alpha_window.t2,
+            ..p.clone()
+        });
+    let held = extract::extract(&ctx, frames, points, store, progress)?;
     Ok(ctx.with_store(held))
 }
 
@@ -328,6 +339,20 @@ impl Prepared {
         cache.fill(ctx, &self.setup.regs, &self.setup.groups, fitter, progress);
     }
 
+    /// The lattice of alpha finer than the mesh that the lattice stage ([`lattice::fit_lattice`])
+    /// finds from `fitted` (a state of this selection's rounds, [`FitRounds::fitted`]) under the
+    /// run `ctx`: the model's `face_alpha` were it finished with `ctx`'s settings. The stages
+    /// after it do not depend on it, so the cross-validation adds it to a fold's model judged at
+    /// that state, neither fitting nor finishing the fold again.
+    pub fn lattice_of(
+        &self,
+        ctx: &Context,
+        fitted: &fit::Fitted,
+    ) -> Option<crate::lattice::FaceAlpha> {
+        let setup = &self.setup;
+        lattice::fit_lattice(ctx, &setup.regs, &setup.groups, fitted, &()).face_alpha
+    }
+
     /// The baseline and round 0 fitted ([`fit::AlphaRounds::start`]), round 0's candidates
     /// from `cache` where known.
     pub fn rounds<'r, 'a>(
@@ -371,6 +396,12 @@ impl FitRounds<'_, '_> {
         self.rounds.rounds()
     }
 
+    /// The state of the last kept round (its fits and alpha), as the stages after the fit take
+    /// it ([`Prepared::lattice_of`]).
+    pub fn fitted(&self) -> fit::Fitted {
+        self.rounds.fitted()
+    }
+
     /// The model of the last kept round: the stages after the fit run on it.
     pub fn model(&self) -> Result<FitOutput, PipelineError> {
         self.finish(Figures::All)
@@ -384,22 +415,13 @@ impl FitRounds<'_, '_> {
     }
 
     fn finish(&self, figures: Figures) -> Result<FitOutput, PipelineError> {
-        let setup = self.setup;
-        let mut run = Setup {
-            frames: setup.frames.clone(),
-            report: setup.report.clone(),
-            regs: Vec::new(),
-            groups: select::Groups::default(),
-            clock: report::StageClock::start(),
-            figures,
-        };
-        run.finish_with(
+        finish_state(
+            self.setup,
             self.ctx,
-            &setup.regs,
-            &setup.groups,
             self.rounds.fitted(),
             self.fitter,
             self.progress,
+            figures,
         )
     }
 
@@ -407,6 +429,27 @@ impl FitRounds<'_, '_> {
     pub fn step(&mut self) -> bool {
         self.rounds.step()
     }
+}
+
+/// The stages after the fit ([`Setup::finish_with`]) on the state `fitted` of `setup`'s rounds,
+/// leaving `setup` as it is (the fold fits of the cross-validation finish it more than once).
+fn finish_state(
+    setup: &Setup,
+    ctx: &Context,
+    fitted: fit::Fitted,
+    fitter: &dyn Fitter,
+    progress: &dyn Progress,
+    figures: Figures,
+) -> Result<FitOutput, PipelineError> {
+    let mut run = Setup {
+        frames: setup.frames.clone(),
+        report: setup.report.clone(),
+        regs: Vec::new(),
+        groups: select::Groups::default(),
+        clock: report::StageClock::start(),
+        figures,
+    };
+    run.finish_with(ctx, &setup.regs, &setup.groups, fitted, fitter, progress)
 }
 
 /// What [`Setup::finish_with`] computes besides the model.

@@ -397,6 +397,11 @@ pub fn fit_report(r: &FitReport, inputs: &FitInputs<'_>) -> Report {
                 .map_or(String::new(), |w| format!(" {w}."))
         ));
         for c in &cv.choices {
+            if c.candidates.is_empty() {
+                // A choice with nothing to compare (the lattice where none was found).
+                rep.paragraph(format!("{}: {} ({}).", c.name, c.chosen, c.rule));
+                continue;
+            }
             rep.table(
                 cv_table(c),
                 Some(format!("{}: {} chosen.", c.name, c.chosen)),
@@ -482,6 +487,10 @@ pub fn lattice_summary(a: &crate::pipeline::AlphaReport) -> String {
          r / g / b {}; detail shrunk by {} pseudo-samples, RMS detail (ln alpha) {}",
         if l.written {
             format!("written, faces by level {}", levels(&l.levels))
+        } else if l.kept_by_cv == Some(false) {
+            "not written (the cross-validation's folds, judged at surface points, found it \
+             predicts no better than alpha per vertex)"
+                .to_string()
         } else {
             "not written (no detail above the noise: the images do not support a texture finer \
              than the mesh)"
