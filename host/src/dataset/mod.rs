@@ -28,7 +28,7 @@ pub use image::{
     read_image_with, write_exr, write_pfm,
 };
 pub use mesh::{Mesh, MeshError, MeshReport, load_obj, obj_bytes, write_obj};
-pub use writer::{DatasetWriter, STATE_DIR, WriteError};
+pub use writer::{DatasetWriter, STATE_DIR, WriteError, write_atomic};
 
 /// The only format string this version reads and writes.
 pub const FORMAT: &str = "subsurf-scan/1";
