@@ -892,7 +892,32 @@ pub fn run_adaptive(
             "fitting {} frames to choose the next batch",
             order.len()
         ));
-        let mut a = assess(&dir, s.folds, progress)?;
+        // Too few frames for any fit (a sparse start on a dim material) is not an error: the
+        // curve has no figure yet and the next batch goes where no x_i is close.
+        let mut a = match assess(&dir, s.folds, progress) {
+            Ok(a) => a,
+            Err(AdaptiveError::Fit {
+                source: PipelineError::NothingFitted(why),
+                ..
+            }) => {
+                progress.println(&format!(
+                    "no model from {} frames yet ({why}): the next batch covers the object",
+                    order.len()
+                ));
+                let positions = mesh_vertices(source)?;
+                Assessment {
+                    per_frame: BTreeMap::new(),
+                    mean: None,
+                    se: None,
+                    clusters: 0,
+                    fitted: vec![false; positions.len()],
+                    positions,
+                    near_mm: 2.0,
+                    seconds: 0.0,
+                }
+            }
+            Err(e) => return Err(e),
+        };
         if let Some(r) = s.near_mm {
             a.near_mm = r;
         }
