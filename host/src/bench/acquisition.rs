@@ -70,6 +70,9 @@ pub struct TestError {
     pub rgb_se: [Option<f64>; 3],
     /// Test frames judged.
     pub frames: usize,
+    /// Why there is no figure, where there is none (too few frames for any fit).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub failed: Option<String>,
 }
 
 /// One point of a learning curve.
@@ -142,10 +145,22 @@ fn fit_and_test(
 ) -> Result<TestError, BenchError> {
     let mut frames = frames.to_vec();
     frames.sort_unstable();
-    let out = fit_scan_in(run, judge, &frames, cv, fit, &()).map_err(|source| BenchError::Fit {
-        frames: frames.len(),
-        source,
-    })?;
+    // A prefix too short for any fit (few frames show a spot) is a point without a figure.
+    let out = match fit_scan_in(run, judge, &frames, cv, fit, &()) {
+        Ok(out) => out,
+        Err(PipelineError::NothingFitted(why)) => {
+            return Ok(TestError {
+                failed: Some(why),
+                ..TestError::default()
+            });
+        }
+        Err(source) => {
+            return Err(BenchError::Fit {
+                frames: frames.len(),
+                source,
+            });
+        }
+    };
     let (evals, _) = evaluate_in(judge, &out.model, test, EvalPoints::Vertices, &())?;
     let clusters = Clustering::of_frames(judge.ds, &evals);
     let fig = Figures::of(&evals, &clusters);
@@ -171,6 +186,7 @@ fn fit_and_test(
         rgb: fig.mean_log_e.map(fin),
         rgb_se: fig.se_log_e.map(fin),
         frames: fig.frames,
+        failed: None,
     })
 }
 
@@ -184,6 +200,7 @@ pub fn bench_replay(
     settings: &AdaptiveSettings,
     seed: u64,
     progress: &dyn Progress,
+    log: &mut dyn FnMut(&str),
 ) -> Result<Bench, BenchError> {
     let clock = std::time::Instant::now();
     if test.is_empty() {
@@ -192,10 +209,14 @@ pub fn bench_replay(
         ));
     }
     let mut replay = Replay::open(src, &work.join("adaptive"), test)?;
-    progress.println("adaptive scan (replayed):");
+    log("adaptive scan (replayed):");
     let rep = run_adaptive(&mut replay, settings, progress, &mut |p| {
-        progress.println(&format!("  {}", p.line()))
+        log(&format!("  {}", p.line()))
     })?;
+    log(&format!(
+        "  stopped: {}",
+        rep.stopped.as_deref().unwrap_or("-")
+    ));
     let cands = replay.candidates().to_vec();
     let (timing, exposures) = (*replay.timing(), replay.exposures_s().to_vec());
     let ds: &Dataset = replay.recorded();

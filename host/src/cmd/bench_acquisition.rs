@@ -61,8 +61,16 @@ pub fn bench_acquisition(a: AcquisitionBench) -> anyhow::Result<()> {
         }
         _ => bail!("say what to replay: --replay DATASET --test-frames F, or --sim"),
     };
-    let b = bench_replay(&src, &test, &a.work, &a.adaptive.settings(), a.seed, &bar)
-        .with_context(|| format!("benchmarking the planners on {}", src.display()))?;
+    let b = bench_replay(
+        &src,
+        &test,
+        &a.work,
+        &a.adaptive.settings(),
+        a.seed,
+        &bar,
+        &mut |line| bar.suspend(|| println!("{line}")),
+    )
+    .with_context(|| format!("benchmarking the planners on {}", src.display()))?;
     bar.finish_and_clear();
     println!(
         "{} ({} pool frames, test frames {}; {:.0} s)\n",

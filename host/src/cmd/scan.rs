@@ -110,9 +110,12 @@ pub struct AdaptiveArgs {
     /// Frames of the sparse start (default: an eighth of the candidates that show a spot).
     #[arg(long)]
     pub start_frames: Option<usize>,
-    /// Frames per batch (default: a sixteenth of the candidates that show a spot).
+    /// Frames per batch (default: as many as the start).
     #[arg(long)]
     pub batch: Option<usize>,
+    /// Batches in a row whose improvement is within its standard error before the scan stops.
+    #[arg(long, default_value_t = subsurf::crossval::DEFAULT_PATIENCE)]
+    pub patience: usize,
     /// Cross-validation folds of each assessment.
     #[arg(long, default_value_t = subsurf::crossval::DEFAULT_FOLDS)]
     pub cv_folds: usize,
@@ -124,6 +127,7 @@ impl AdaptiveArgs {
         AdaptiveSettings {
             start: self.start_frames,
             batch: self.batch,
+            patience: self.patience,
             until_error: self.until_error,
             max_frames: self.max_frames,
             max_rig_s: self.max_rig_time,

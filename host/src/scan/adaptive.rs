@@ -177,8 +177,13 @@ pub struct AdaptiveSettings {
     /// Frames of the sparse start; `None`: an eighth of the candidates predicted to show a spot
     /// (at least 4).
     pub start: Option<usize>,
-    /// Frames per later batch; `None`: a sixteenth of those candidates (at least 2).
+    /// Frames per later batch; `None`: as many as the start.
     pub batch: Option<usize>,
+    /// Assessments in a row whose improvement is below its standard error before the scan
+    /// stops: the cross-validation's own patience ([`crate::crossval::DEFAULT_PATIENCE`], two:
+    /// one batch may improve within noise and the next still fall), so one noisy comparison
+    /// of a few early frames in a few clusters does not end the scan.
+    pub patience: usize,
     /// Stop once the cross-validated error is at most this.
     pub until_error: Option<f64>,
     /// Stop before more frames than this.
@@ -197,6 +202,7 @@ impl Default for AdaptiveSettings {
         AdaptiveSettings {
             start: None,
             batch: None,
+            patience: crate::crossval::DEFAULT_PATIENCE,
             until_error: None,
             max_frames: None,
             max_rig_s: None,
@@ -210,7 +216,7 @@ impl AdaptiveSettings {
     /// The start and batch sizes for a pool of `useful` candidates predicted to show a spot.
     pub fn sizes(&self, useful: usize) -> (usize, usize) {
         let start = self.start.unwrap_or(useful.div_ceil(8).max(4)).max(1);
-        let batch = self.batch.unwrap_or(useful.div_ceil(16).max(2)).max(1);
+        let batch = self.batch.unwrap_or(start).max(1);
         (start, batch)
     }
 
@@ -750,8 +756,14 @@ fn angle_key(deg: f64) -> u64 {
     ((d * 1e6).round() / 1e6).to_bits()
 }
 
-/// Why the scan stops after the point `p` (the last of the curve), if it does.
-pub fn stop_reason(p: &CurvePoint, s: &AdaptiveSettings) -> Option<String> {
+/// Whether a point's paired improvement is below its standard error.
+fn within_noise(p: &CurvePoint) -> bool {
+    matches!((p.improvement, p.improvement_se), (Some(d), Some(se)) if d < se)
+}
+
+/// Why the scan stops after the last point of `curve`, if it does.
+pub fn stop_reason(curve: &[CurvePoint], s: &AdaptiveSettings) -> Option<String> {
+    let p = curve.last()?;
     if let (Some(goal), Some(e)) = (s.until_error, p.cv_log_e)
         && e <= goal
     {
@@ -759,12 +771,14 @@ pub fn stop_reason(p: &CurvePoint, s: &AdaptiveSettings) -> Option<String> {
             "the cross-validated error {e:.4} reached --until-error {goal}"
         ));
     }
-    if let (Some(d), Some(se)) = (p.improvement, p.improvement_se)
-        && d < se
+    let patience = s.patience.max(1);
+    if curve.len() >= patience
+        && curve[curve.len() - patience..].iter().all(within_noise)
+        && let (Some(d), Some(se)) = (p.improvement, p.improvement_se)
     {
         return Some(format!(
-            "the cross-validated error stopped falling: the last batch improved it by {d:.4}, \
-             below its clustered standard error {se:.4}"
+            "the cross-validated error stopped falling: the last {patience} batch(es) improved \
+             it within noise, the last by {d:.4}, below its clustered standard error {se:.4}"
         ));
     }
     if s.max_frames.is_some_and(|m| p.frames >= m) {
@@ -945,8 +959,8 @@ pub fn run_adaptive(
             per_frame: a.per_frame.clone(),
         };
         each(&point);
-        let stop = stop_reason(&point, s);
         rep.curve.push(point);
+        let stop = stop_reason(&rep.curve, s);
         match stop {
             Some(why) => rep.stopped = Some(why),
             None => {
@@ -1113,7 +1127,7 @@ mod tests {
     /// the budget and the error goal stop.
     #[test]
     fn the_scan_stops_when_the_error_stops_falling() {
-        let mut p = CurvePoint {
+        let p = CurvePoint {
             batch: 2,
             frames: 12,
             rig_s: 30.0,
@@ -1127,25 +1141,44 @@ mod tests {
             per_frame: BTreeMap::new(),
         };
         let s = AdaptiveSettings::default();
-        assert_eq!(stop_reason(&p, &s), None);
-        p.improvement = Some(0.005);
-        assert!(stop_reason(&p, &s).is_some());
-        p.improvement = Some(0.05);
+        assert_eq!(stop_reason(std::slice::from_ref(&p), &s), None);
+        let mut q = p.clone();
+        q.improvement = Some(0.005);
+        // Once within noise is not enough with the default patience; twice in a row is.
+        assert_eq!(stop_reason(&[p.clone(), q.clone()], &s), None);
+        assert!(stop_reason(&[q.clone(), q.clone()], &s).is_some());
+        let impatient = AdaptiveSettings {
+            patience: 1,
+            ..AdaptiveSettings::default()
+        };
+        assert!(stop_reason(std::slice::from_ref(&q), &impatient).is_some());
         let goal = AdaptiveSettings {
             until_error: Some(0.31),
             ..AdaptiveSettings::default()
         };
-        assert!(stop_reason(&p, &goal).unwrap().contains("until-error"));
+        assert!(
+            stop_reason(std::slice::from_ref(&p), &goal)
+                .unwrap()
+                .contains("until-error")
+        );
         let frames = AdaptiveSettings {
             max_frames: Some(12),
             ..AdaptiveSettings::default()
         };
-        assert!(stop_reason(&p, &frames).unwrap().contains("max-frames"));
+        assert!(
+            stop_reason(std::slice::from_ref(&p), &frames)
+                .unwrap()
+                .contains("max-frames")
+        );
         let time = AdaptiveSettings {
             max_rig_s: Some(29.0),
             ..AdaptiveSettings::default()
         };
-        assert!(stop_reason(&p, &time).unwrap().contains("rig-time"));
+        assert!(
+            stop_reason(std::slice::from_ref(&p), &time)
+                .unwrap()
+                .contains("rig-time")
+        );
     }
 
     /// Rig time grows with frames and with every new turntable angle.
