@@ -156,11 +156,6 @@ fn report(rep: &AcquisitionReport, out: &std::path::Path) {
 
 /// `--replay`: a recorded dataset as the rig and camera.
 fn replay(args: &Args, src: &std::path::Path, progress: &Bar) -> anyhow::Result<()> {
-    let total = subsurf::dataset::Dataset::open(src)
-        .with_context(|| format!("cannot read the recorded scan {}", src.display()))?
-        .spec
-        .frames
-        .len();
     let exclude = match &args.exclude_frames {
         Some(f) => subsurf::dataset::parse_frame_list(f).map_err(anyhow::Error::msg)?,
         None => Vec::new(),
@@ -172,7 +167,6 @@ fn replay(args: &Args, src: &std::path::Path, progress: &Bar) -> anyhow::Result<
             args.out.display()
         )
     })?;
-    let _ = total;
     let rep = match args.plan.planner {
         Planner::Adaptive => {
             run_adaptive(&mut source, &args.adaptive.settings(), progress, &mut |p| {
