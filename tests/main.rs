@@ -15,6 +15,7 @@ mod render_common;
 
 mod architecture;
 
+mod acquire_adaptive;
 mod acquire_faults;
 mod acquire_kill;
 mod acquire_link;

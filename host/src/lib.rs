@@ -7,6 +7,7 @@
 
 pub mod align;
 pub mod baseline;
+pub mod bench;
 pub mod calib;
 pub mod crossval;
 pub mod curves;

@@ -31,6 +31,9 @@ enum Bench {
     /// One read of the frames: `subsurf fit` wall time against one decode pass over the same
     /// frames, measured in the same run, with the ratio, peak RSS and frame reads.
     OnePass(super::bench_one_pass::OnePassBench),
+    /// Acquisition planners (issue 41): learning curves of dense, coverage, random and adaptive
+    /// planning, held-out error on test frames against frames and rig time.
+    Acquisition(super::bench_acquisition::AcquisitionBench),
 }
 
 #[derive(Debug, clap::Args)]
@@ -56,6 +59,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         Bench::Tradeoff(a) => super::bench_tradeoff::bench_tradeoff(a),
         Bench::FitScale(a) => super::bench_fit::bench_fit_scale(a),
         Bench::OnePass(a) => super::bench_one_pass::bench_one_pass(a),
+        Bench::Acquisition(a) => super::bench_acquisition::bench_acquisition(a),
     }
 }
 

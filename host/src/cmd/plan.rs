@@ -18,6 +18,10 @@ pub enum Planner {
     Coverage,
     /// Fire at every raster point at every angle.
     Dense,
+    /// Steered by predicted error (`subsurf scan` only): a sparse coverage start, then batch
+    /// by batch where the model is least certain, until its cross-validated error stops
+    /// falling. Its candidates are the dense raster's frames.
+    Adaptive,
 }
 
 /// Object, calibration and planner options shared by `plan` and `scan`.
@@ -126,7 +130,7 @@ pub fn make_plan(a: &PlanArgs, r: &Resolved) -> anyhow::Result<(ScanPlan, PlanSc
     } else {
         match a.planner {
             Planner::Coverage => coverage_plan(&scene, &opts)?,
-            Planner::Dense => dense_raster(&scene, &opts)?,
+            Planner::Dense | Planner::Adaptive => dense_raster(&scene, &opts)?,
         }
     };
     Ok((plan, scene, opts))

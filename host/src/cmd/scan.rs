@@ -8,13 +8,21 @@ use std::time::Duration;
 
 use subsurf::link::SerialLink;
 use subsurf::rig::{ClientConfig, RigClient};
+use subsurf::scan::adaptive::{
+    AcquisitionReport, AdaptiveError, AdaptiveSettings, FrameSource, cover_order, run_adaptive,
+    run_fixed,
+};
 use subsurf::scan::driver::{FrameSink, ScanConfig, ScanError, run_with_reconnect_into};
+use subsurf::scan::plan::PlanScene;
 use subsurf::scan::plan::estimate_duration;
+use subsurf::scan::replay::Replay;
+use subsurf::scan::rigsource::RigSource;
 use subsurf::scan::setup::{
-    GROUND_TRUTH_FILE, camera_from_spec_with, rig_timing, sim_noise_floor, write_ground_truth,
+    GROUND_TRUTH_FILE, camera_from_spec_with, rig_timing, sim_material, sim_noise_floor,
+    write_ground_truth_of,
 };
 
-use super::plan::{PlanArgs, make_plan, resolve};
+use super::plan::{PlanArgs, Planner, make_plan, resolve};
 use super::progress::Bar;
 
 /// Scan an object: home, then per turntable angle run the rig's capture program and write each
@@ -30,10 +38,20 @@ pub struct Args {
     /// Use the simulated rig in this process (virtual time).
     #[arg(long)]
     pub sim: bool,
-    /// Camera: `sim`, `dir:PATH` (a camera program saves triggered images there) or
+    /// Camera: `sim` (or `sim:marble`, `sim:veined`, `sim:homogeneous`: the simulated
+    /// material), `dir:PATH` (a camera program saves triggered images there) or
     /// `cmd:"COMMAND {out}"` (run per exposure; `{out}`, `{exposure}`, `{frame}` are replaced).
-    #[arg(long)]
-    pub camera: String,
+    #[arg(long, required_unless_present = "replay")]
+    pub camera: Option<String>,
+    /// Serve a recorded dataset's frames as the rig and camera: the planner's candidates are its
+    /// frames (minus --exclude-frames); each frame asked for is copied into --out.
+    #[arg(long, conflicts_with_all = ["port", "sim", "camera"])]
+    pub replay: Option<PathBuf>,
+    /// With --replay: frames that are never candidates (e.g. `96-103`, a test set).
+    #[arg(long, requires = "replay")]
+    pub exclude_frames: Option<String>,
+    #[command(flatten)]
+    pub adaptive: AdaptiveArgs,
     /// Output dataset directory (created, or resumed if it holds this scan).
     #[arg(long)]
     pub out: PathBuf,
@@ -85,11 +103,117 @@ pub struct Args {
     pub no_store: bool,
 }
 
+/// The adaptive planner's stopping rules and batch sizes (`--planner adaptive`).
+#[derive(Debug, Clone, clap::Args)]
+pub struct AdaptiveArgs {
+    /// Stop once the cross-validated held-out log E is at most this.
+    #[arg(long)]
+    pub until_error: Option<f64>,
+    /// Stop before more frames than this.
+    #[arg(long)]
+    pub max_frames: Option<usize>,
+    /// Stop before more rig time than this (seconds, the plan's timing model).
+    #[arg(long)]
+    pub max_rig_time: Option<f64>,
+    /// Frames of the sparse start (default: an eighth of the candidates that show a spot).
+    #[arg(long)]
+    pub start_frames: Option<usize>,
+    /// Frames per batch (default: as many as the start).
+    #[arg(long)]
+    pub batch: Option<usize>,
+    /// Batches in a row whose improvement is within its standard error before the scan stops.
+    #[arg(long, default_value_t = subsurf::crossval::DEFAULT_PATIENCE)]
+    pub patience: usize,
+    /// Cross-validation folds of each assessment.
+    #[arg(long, default_value_t = subsurf::crossval::DEFAULT_FOLDS)]
+    pub cv_folds: usize,
+}
+
+impl AdaptiveArgs {
+    /// The library's settings.
+    pub fn settings(&self) -> AdaptiveSettings {
+        AdaptiveSettings {
+            start: self.start_frames,
+            batch: self.batch,
+            patience: self.patience,
+            until_error: self.until_error,
+            max_frames: self.max_frames,
+            max_rig_s: self.max_rig_time,
+            folds: self.cv_folds,
+            near_mm: None,
+        }
+    }
+}
+
+/// Prints the learning curve of a steered scan as it goes, and its end.
+fn report(rep: &AcquisitionReport, out: &std::path::Path) {
+    println!(
+        "{} planner: {} frames in {}; {}",
+        rep.planner,
+        rep.order().len(),
+        out.display(),
+        rep.stopped.as_deref().unwrap_or("not finished")
+    );
+    if !rep.curve.is_empty() {
+        println!(
+            "learning curve and frame order in {}",
+            out.join(subsurf::scan::adaptive::REPORT_FILE).display()
+        );
+    }
+}
+
+/// `--replay`: a recorded dataset as the rig and camera.
+fn replay(args: &Args, src: &std::path::Path, progress: &Bar) -> anyhow::Result<()> {
+    let exclude = match &args.exclude_frames {
+        Some(f) => subsurf::dataset::parse_frame_list(f).map_err(anyhow::Error::msg)?,
+        None => Vec::new(),
+    };
+    let mut source = Replay::open(src, &args.out, &exclude).with_context(|| {
+        format!(
+            "cannot replay {} into {}",
+            src.display(),
+            args.out.display()
+        )
+    })?;
+    let rep = match args.plan.planner {
+        Planner::Adaptive => {
+            run_adaptive(&mut source, &args.adaptive.settings(), progress, &mut |p| {
+                progress.suspend(|| println!("{}", p.line()))
+            })?
+        }
+        Planner::Dense => {
+            let order: Vec<usize> = source.candidates().iter().map(|c| c.id).collect();
+            run_fixed(&mut source, "dense", &order, progress)?
+        }
+        Planner::Coverage => {
+            let order = cover_order(
+                source.candidates(),
+                &source.recorded().mesh.positions,
+                args.plan.target_mm,
+            );
+            run_fixed(&mut source, "coverage", &order, progress)?
+        }
+    };
+    progress.finish_and_clear();
+    report(&rep, &args.out);
+    Ok(())
+}
+
 pub fn run(args: Args) -> anyhow::Result<()> {
+    if let Some(src) = args.replay.clone() {
+        let progress = if args.quiet {
+            Bar::hidden()
+        } else {
+            Bar::with_template("{msg:>12} {bar:30} {pos}/{len}")
+        };
+        return replay(&args, &src, &progress);
+    }
+    let camera_spec = args.camera.clone().unwrap_or_default();
     if !args.sim && args.port.is_none() {
         bail!("say which rig: --port PATH (serial) or --sim (simulated rig)");
     }
-    if args.plan.mesh.is_none() && !args.sim && args.camera != "sim" {
+    let material = sim_material(&camera_spec);
+    if args.plan.mesh.is_none() && !args.sim && material.is_none() {
         bail!("--mesh object.obj is required with a real rig (the built-in object is simulated)");
     }
     let r = resolve(&args.plan)?;
@@ -105,7 +229,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             bail!("--noise-floor must be a finite number >= 0, got {f}");
         }
         cfg.noise_floor = Some(f);
-    } else if args.camera == "sim" {
+    } else if material.is_some() {
         cfg.noise_floor = Some(sim_noise_floor(&cfg.plan.exposures_s));
     }
     cfg.dark_frames = !args.no_dark_frames;
@@ -123,7 +247,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let _ = ctrlc::set_handler(move || stop.store(true, Ordering::Relaxed));
     }
     let mut camera = camera_from_spec_with(
-        &args.camera,
+        &camera_spec,
         &r.mesh,
         &r.calib,
         args.seed,
@@ -159,6 +283,57 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             )) as Box<dyn FrameSink>
         })
     };
+    if args.plan.planner == Planner::Adaptive && args.plan.plan.is_none() {
+        let scene = PlanScene::new(&r.mesh.positions, &r.mesh.triangles, &r.calib)?;
+        let timing = super::plan::sim_timing(&args.plan);
+        let (rep, measured) = if args.sim {
+            let connect = Box::new(|| {
+                let link = subsurf::sim::SimLink::clean(subsurf::sim::VirtualRig::new(
+                    subsurf::sim::SimParams::default(),
+                ));
+                RigClient::connect_with_seq(link, ClientConfig::default(), 1)
+            });
+            steer(
+                &args,
+                cfg,
+                &scene,
+                connect,
+                camera.as_mut(),
+                Box::new(sink),
+                timing,
+                &progress,
+            )?
+        } else {
+            let port = args.port.clone().unwrap_or_default();
+            let baud = args.baud;
+            let connect = Box::new(move || {
+                let link = SerialLink::open(&port, baud)?;
+                RigClient::connect(link, ClientConfig::default())
+            });
+            steer(
+                &args,
+                cfg,
+                &scene,
+                connect,
+                camera.as_mut(),
+                Box::new(sink),
+                timing,
+                &progress,
+            )?
+        };
+        progress.finish_and_clear();
+        if let Some(field) = &material {
+            write_ground_truth_of(&r.mesh, field, &args.out).with_context(|| {
+                format!(
+                    "cannot write {}",
+                    args.out.join(GROUND_TRUTH_FILE).display()
+                )
+            })?;
+        }
+        report(&rep, &args.out);
+        println!("rig time measured by this run: {measured:.2} s (homing of every batch included)");
+        return Ok(());
+    }
     let result = if args.sim {
         let mut connect = || {
             let link = subsurf::sim::SimLink::clean(subsurf::sim::VirtualRig::new(
@@ -193,10 +368,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     progress.finish_and_clear();
     match result {
         Ok(s) => {
-            if args.camera == "sim" {
+            if let Some(field) = &material {
                 // The simulated camera's material is known: write it as the floor to compare
                 // fitted models with.
-                write_ground_truth(&r.mesh, &args.out).with_context(|| {
+                write_ground_truth_of(&r.mesh, field, &args.out).with_context(|| {
                     format!(
                         "cannot write {}",
                         args.out.join(GROUND_TRUTH_FILE).display()
@@ -238,5 +413,34 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             std::process::exit(130);
         }
         Err(e) => Err(e).context(format!("scan into {} stopped", args.out.display())),
+    }
+}
+
+/// A steered scan over the rig `connect` reaches: the adaptive planner's loop with the rig and
+/// camera as its frame source.
+#[allow(clippy::too_many_arguments)]
+fn steer<'a, L: subsurf::link::ByteLink>(
+    args: &Args,
+    cfg: ScanConfig,
+    scene: &PlanScene,
+    connect: subsurf::scan::rigsource::Connect<'a, L>,
+    camera: &'a mut dyn subsurf::scan::camera::Camera,
+    sink: subsurf::scan::rigsource::SinkFactory<'a>,
+    timing: subsurf::scan::plan::RigTiming,
+    progress: &Bar,
+) -> anyhow::Result<(AcquisitionReport, f64)> {
+    let out = cfg.out.clone();
+    let mut source = RigSource::new(cfg, scene, connect, camera, sink, args.reconnects, timing)
+        .with_context(|| format!("cannot open {}", out.display()))?;
+    let rep = run_adaptive(&mut source, &args.adaptive.settings(), progress, &mut |p| {
+        progress.suspend(|| println!("{}", p.line()))
+    });
+    match rep {
+        Ok(rep) => Ok((rep, source.measured_rig_s())),
+        Err(AdaptiveError::Scan(e @ ScanError::Interrupted { .. })) => {
+            eprintln!("{e}");
+            std::process::exit(130);
+        }
+        Err(e) => Err(e).context(format!("steered scan into {} stopped", out.display())),
     }
 }

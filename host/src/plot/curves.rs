@@ -297,3 +297,84 @@ pub fn pareto_plot(
     root.present().map_err(&e)?;
     Ok(front)
 }
+
+/// One planner's learning curve for [`learning_curves`]: `(frames, rig seconds, error)` per
+/// point.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LearningCurve {
+    /// Legend text.
+    pub name: String,
+    /// The points, in acquisition order.
+    pub points: Vec<(f64, f64, f64)>,
+}
+
+/// Learning curves side by side: held-out error against frames (left) and against rig time
+/// (right), one line per planner. Non-finite points are left out.
+pub fn learning_curves(
+    path: &Path,
+    title: &str,
+    curves: &[LearningCurve],
+) -> Result<(), PlotError> {
+    register_font();
+    let finite = |p: &&(f64, f64, f64)| p.0.is_finite() && p.1.is_finite() && p.2.is_finite();
+    let all: Vec<(f64, f64, f64)> = curves
+        .iter()
+        .flat_map(|c| c.points.iter().filter(finite).copied())
+        .collect();
+    if all.is_empty() {
+        return Err(PlotError::Empty("no finite learning-curve point".into()));
+    }
+    let max = |f: fn(&(f64, f64, f64)) -> f64| all.iter().map(f).fold(0.0, f64::max);
+    let (fmax, tmax) = (max(|p| p.0).max(1.0), max(|p| p.1).max(1e-3));
+    let emin = all.iter().map(|p| p.2).fold(f64::INFINITY, f64::min);
+    let emax = max(|p| p.2);
+    let pad = 0.05 * (emax - emin).max(1e-3);
+    let e = draw_err(path);
+    let root = BitMapBackend::new(path, (1200, 480)).into_drawing_area();
+    root.fill(&WHITE).map_err(&e)?;
+    let root = root.titled(title, ("sans-serif", 20)).map_err(&e)?;
+    let (left, right) = root.split_horizontally(600);
+    let colours = [BLUE, RED, GREEN, MAGENTA, CYAN, BLACK];
+    for (area, by_time) in [(&left, false), (&right, true)] {
+        let xmax = if by_time { tmax } else { fmax };
+        let mut chart = ChartBuilder::on(area)
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(60)
+            .build_cartesian_2d(0.0..xmax * 1.05, (emin - pad)..(emax + pad))
+            .map_err(&e)?;
+        chart
+            .configure_mesh()
+            .x_desc(if by_time { "rig time (s)" } else { "frames" })
+            .y_desc("held-out log E (test frames)")
+            .draw()
+            .map_err(&e)?;
+        for (i, c) in curves.iter().enumerate() {
+            let colour = colours[i % colours.len()];
+            let pts: Vec<(f64, f64)> = c
+                .points
+                .iter()
+                .filter(finite)
+                .map(|p| (if by_time { p.1 } else { p.0 }, p.2))
+                .collect();
+            chart
+                .draw_series(LineSeries::new(pts.clone(), colour.stroke_width(2)))
+                .map_err(&e)?
+                .label(c.name.clone())
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(2))
+                });
+            chart
+                .draw_series(pts.iter().map(|&p| Circle::new(p, 3, colour.filled())))
+                .map_err(&e)?;
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .draw()
+            .map_err(&e)?;
+    }
+    root.present().map_err(&e)?;
+    Ok(())
+}

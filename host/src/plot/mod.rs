@@ -27,7 +27,10 @@ mod difference;
 mod figures;
 mod surface;
 
-pub use curves::{Curve, TradeoffPoint, falloff_plot, pareto_front, pareto_plot, tradeoff_curve};
+pub use curves::{
+    Curve, LearningCurve, TradeoffPoint, falloff_plot, learning_curves, pareto_front, pareto_plot,
+    tradeoff_curve,
+};
 pub use difference::{DifferenceStats, difference_picture};
 pub use figures::{FalloffSummary, error_maps, falloff_figure};
 pub use surface::{MeshView, Panel, PanelData, model_viewer, surface_panels, viridis};

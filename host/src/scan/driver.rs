@@ -154,6 +154,11 @@ pub struct ScanConfig {
     pub reserve_bytes: u64,
     /// Set to stop cleanly (Ctrl-C).
     pub stop: Arc<AtomicBool>,
+    /// The frames of `plan` to capture, by index among [`ScanPlan::frames`], in this order
+    /// (`None`: every planned frame in plan order). A steered scan
+    /// ([`super::adaptive`]) grows it batch by batch; it is not part of the scan's identity, so
+    /// each batch resumes the same dataset.
+    pub order: Option<Vec<usize>>,
 }
 
 impl ScanConfig {
@@ -175,6 +180,7 @@ impl ScanConfig {
             camera_retries: 2,
             reserve_bytes: 16 << 20,
             stop: Arc::new(AtomicBool::new(false)),
+            order: None,
         }
     }
 
@@ -186,6 +192,7 @@ impl ScanConfig {
             "noise_floor": self.noise_floor,
             "laser_channel": self.laser_channel,
             "camera": camera,
+            "steered": self.order.is_some(),
             "mesh_crc32": crc::Crc::<u32>::new(&crc::CRC_32_ISO_HDLC).checksum(&self.mesh_obj),
         });
         serde_json::to_string_pretty(&id).unwrap_or_default()
@@ -299,13 +306,25 @@ impl<'a> Scan<'a> {
                 cfg.noise_floor.or(super::dark::floor_of(&dark)),
             )?;
         }
+        let all = cfg.plan.frames();
+        let frames = match &cfg.order {
+            None => all,
+            Some(order) => order
+                .iter()
+                .map(|&i| {
+                    all.get(i).copied().ok_or_else(|| {
+                        ScanError::Plan(format!("frame {i} asked for, the plan has {}", all.len()))
+                    })
+                })
+                .collect::<Result<Vec<_>, _>>()?,
+        };
         Ok(Scan {
             cfg,
             writer,
             sink: None,
             pending_sink: None,
             dark,
-            frames: cfg.plan.frames(),
+            frames,
             resumed_from: done,
             written: 0,
             rig_us: 0,

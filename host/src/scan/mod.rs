@@ -5,9 +5,12 @@
 //! Dependencies point one way: `scan` uses `calib`, the rig client and the dataset writer; no
 //! other module calls into `scan` except the commands and the demo.
 
+pub mod adaptive;
 pub mod camera;
 pub mod dark;
 pub mod driver;
 pub mod plan;
+pub mod replay;
+pub mod rigsource;
 pub mod setup;
 pub mod simcam;

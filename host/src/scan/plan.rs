@@ -221,15 +221,7 @@ impl PlanScene {
     /// ~87° of the face normal) and the camera sees it ([`spot_visible`]).
     pub fn laser_hit(&self, deg: f64, codes: [u16; 2]) -> Option<[f64; 3]> {
         let (o, d) = self.calib.galvo.ray(codes);
-        let hit = self.scene.cast_world(o, d, deg)?;
-        let t = self.scene.mesh.triangles[hit.triangle as usize];
-        let [a, b, c] = t.map(|i| self.scene.mesh.positions[i as usize]);
-        let n = normalize(cross(sub(b, a), sub(c, a)))?;
-        let d = normalize(world_to_turntable(d, deg))?;
-        if -dot(n, d) < 0.05 {
-            return None;
-        }
-        spot_visible(&self.scene, &self.calib.camera, deg, &hit).then_some(hit.point)
+        predicted_spot(&self.scene, &self.calib.camera, deg, o, d)
     }
 
     /// The galvo code window (`[x0, y0, x1, y1]`, inclusive) covering the object at all angles,
@@ -270,6 +262,29 @@ impl PlanScene {
             clamp(lo[1].max(hi[1]) + m),
         ]
     }
+}
+
+/// The laser spot x_i (object frame) of the laser ray `origin`, `dir` (world frame) at turntable
+/// angle `deg`, where processing will register it: the beam lights the side it enters (not
+/// grazing, within ~87° of the face normal) and `camera` sees the hit by registration's own rule
+/// ([`spot_visible`]). The one prediction of the planners, from galvo codes
+/// ([`PlanScene::laser_hit`]) or from a recorded frame's laser ray (a replayed scan's candidates).
+pub fn predicted_spot(
+    scene: &Scene,
+    camera: &crate::geometry::Camera,
+    deg: f64,
+    origin: [f64; 3],
+    dir: [f64; 3],
+) -> Option<[f64; 3]> {
+    let hit = scene.cast_world(origin, dir, deg)?;
+    let t = scene.mesh.triangles.get(hit.triangle as usize)?;
+    let [a, b, c] = t.map(|i| scene.mesh.positions[i as usize]);
+    let n = normalize(cross(sub(b, a), sub(c, a)))?;
+    let d = normalize(world_to_turntable(dir, deg))?;
+    if -dot(n, d) < 0.05 {
+        return None;
+    }
+    spot_visible(scene, camera, deg, &hit).then_some(hit.point)
 }
 
 /// The candidate targets: an `n × n` raster over the object's galvo window, in serpentine order

@@ -1,0 +1,4 @@
+//! Measurements behind `subsurf bench …` whose logic belongs to the library (the commands only
+//! parse their flags and print): each returns its figures as data.
+
+pub mod acquisition;
