@@ -370,6 +370,16 @@ fn mean_of(rows: &[&FrameRow], f: impl Fn(&FrameRow) -> Option<f64>) -> Option<f
     (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
 }
 
+/// What was rendered: seconds per frame of the first seed, and of all the second seed's
+/// frames when it was rendered (`--noise`).
+#[derive(Clone, Debug, Default)]
+pub struct Renders {
+    /// Seconds per frame, seed 0.
+    pub seconds: Vec<f64>,
+    /// Seconds of the second seed's renders, when there are any.
+    pub noise_seconds: Option<f64>,
+}
+
 /// Judges the renders of `scenes` in `dir/frames` (and, when rendered, `dir/frames-seed1`)
 /// against the frames on `ctx` (the evaluation protocol's run with its store), next to
 /// `model`'s own figures on the same samples.
@@ -378,11 +388,12 @@ pub fn judge_frames(
     model: &ModelFile,
     dir: &Path,
     scenes: &FrameScenes,
-    seconds: &[f64],
-    noise: bool,
-    noise_seconds: f64,
+    renders: &Renders,
     progress: &dyn Progress,
 ) -> Result<FramesComparison, ExportError> {
+    let seconds = &renders.seconds[..];
+    let noise = renders.noise_seconds.is_some();
+    let noise_seconds = renders.noise_seconds.unwrap_or(0.0);
     let frames: Vec<usize> = scenes.frames.iter().map(|s| s.frame).collect();
     let at = EvalPoints::Vertices;
     let (ours, _) = crate::evaluate::evaluate_in(ctx, model, &frames, at, progress)?;
@@ -495,22 +506,19 @@ pub fn render_and_judge(
     write_frame_scenes(dir, &scenes)?;
     let seconds = render_frames(blender, dir, &scenes, FRAMES_DIR, 0, progress)?;
     let noise_seconds = if noise {
-        render_frames(blender, dir, &scenes, NOISE_DIR, 1, progress)?
-            .iter()
-            .sum()
+        Some(
+            render_frames(blender, dir, &scenes, NOISE_DIR, 1, progress)?
+                .iter()
+                .sum(),
+        )
     } else {
-        0.0
+        None
     };
-    let cmp = judge_frames(
-        &ctx,
-        model,
-        dir,
-        &scenes,
-        &seconds,
-        noise,
+    let renders = Renders {
+        seconds,
         noise_seconds,
-        progress,
-    )?;
+    };
+    let cmp = judge_frames(&ctx, model, dir, &scenes, &renders, progress)?;
     Ok((scenes, cmp))
 }
 
