@@ -388,21 +388,56 @@ fn predicts_images_judged_as_images_give_the_models_figures() {
     assert!(e.contains("frame 10") && e.contains("non-finite"), "{e}");
 }
 
-/// Issue 43: `subsurf export --scan S --frames F --render` renders two frames of the small slab
-/// in Cycles with the exported material (the frame's camera and exposure, the laser as a narrow
+/// A copy of the small slab at `dir` whose frames are exposure brackets: each frame's `image`
+/// an exposure of 0.5 s (the pixels × 0.5, the saturation with them) and one bracket of 2 s
+/// (× 2), merged back into the same radiance (docs/scan-format.md) — a dataset whose frames'
+/// exposure is not 1.
+fn bracketed_small_slab(dir: &Path) {
+    crate::fixture::small_slab_copy(dir);
+    let _ = std::fs::remove_dir_all(dir.join(".subsurf-cache"));
+    let scan = dir.join("scan.json");
+    let mut spec = json(&scan);
+    // The sensor clips at the same light: its raw level scales with the shortest exposure.
+    if let Some(sat) = spec["saturation"].as_f64() {
+        spec["saturation"] = (sat * 0.5).into();
+    }
+    for f in spec["frames"].as_array_mut().unwrap() {
+        let name = f["image"].as_str().unwrap().to_string();
+        let img = subsurf::dataset::read_image(&dir.join(&name)).unwrap();
+        let exposure = f["exposure_s"].as_f64().unwrap_or(1.0);
+        let scaled = |t: f64| {
+            let mut x = img.clone();
+            x.data.iter_mut().for_each(|v| *v *= (t / exposure) as f32);
+            x
+        };
+        subsurf::dataset::write_exr(&dir.join(&name), &scaled(0.5)).unwrap();
+        let long = name.replace(".exr", "_b.exr");
+        subsurf::dataset::write_exr(&dir.join(&long), &scaled(2.0)).unwrap();
+        f["exposure_s"] = 0.5.into();
+        f["brackets"] = serde_json::json!([{ "image": long, "exposure_s": 2.0 }]);
+    }
+    std::fs::write(&scan, serde_json::to_vec_pretty(&spec).unwrap()).unwrap();
+}
+
+/// Issue 43: `subsurf export --scan S --frames F --render` renders two frames of a small scan in
+/// Cycles with the exported material (the frame's camera and exposure, the laser as a narrow
 /// spot on x_i) into `frames/<frame>.exr`, and its report judges them like a model, beside the
-/// model's own log E. Checked: the renders are the camera's size, carry the beam's power (their
-/// total light within 25 % of `subsurf predict`'s image of the same frame: the units), the report's
-/// subsurf column is `subsurf evaluate`'s, and `subsurf evaluate --images` on the renders gives
-/// the report's Cycles column. 64 × 64 px, 128 samples: a few seconds.
+/// model's own log E. The scan is the small slab with exposure brackets (exposure 0.5 s: the
+/// renders must be in the frames' units). Checked: the renders are the camera's size and carry
+/// the beam's power times the exposure (their total light within 25 % of `subsurf predict`'s
+/// image of the same frame), the report's subsurf column is `subsurf evaluate`'s, and `subsurf
+/// evaluate --images` on the renders gives the report's Cycles column. 64 × 64 px, 128 samples:
+/// a few seconds.
 #[test]
 fn scan_frames_render_in_cycles_and_are_judged_like_a_model() {
     if blender().is_none() {
         return;
     }
-    let ds = crate::fixture::small_slab();
-    let model = ds.join("ground-truth.ply");
     let tmp = tempfile::tempdir().unwrap();
+    let ds = tmp.path().join("bracketed");
+    bracketed_small_slab(&ds);
+    let ds = ds.as_path();
+    let model = crate::fixture::small_slab().join("ground-truth.ply");
     let out = tmp.path().join("export");
     let cache = tmp.path().join("cache");
     let (m, d, c) = (
@@ -437,6 +472,28 @@ fn scan_frames_render_in_cycles_and_are_judged_like_a_model() {
         "evaluate", "--model", m, "--scan", d, "--frames", "5,10", "--json", "--cache", c,
     ]))
     .unwrap();
+    // The brackets merge back into the plain slab's radiance: the same figures.
+    let plain = crate::fixture::small_slab();
+    let of_plain: serde_json::Value = serde_json::from_str(&subsurf(&[
+        "evaluate",
+        "--model",
+        m,
+        "--scan",
+        plain.to_str().unwrap(),
+        "--frames",
+        "5,10",
+        "--json",
+        "--cache",
+        tmp.path().join("plain-cache").to_str().unwrap(),
+    ]))
+    .unwrap();
+    for ch in 0..3 {
+        let (a, b) = (
+            of_plain["mean_log_e"][ch].as_f64().unwrap(),
+            of_model["mean_log_e"][ch].as_f64().unwrap(),
+        );
+        assert!((a - b).abs() < 1e-4 * a, "brackets: {a} vs {b}");
+    }
     let images = out.join("frames");
     let of_images: serde_json::Value = serde_json::from_str(&subsurf(&[
         "evaluate",
