@@ -424,8 +424,8 @@ fn bracketed_small_slab(dir: &Path) {
 /// spot on x_i) into `frames/<frame>.exr`, and its report judges them like a model, beside the
 /// model's own log E. The scan is the small slab with exposure brackets (exposure 0.5 s: the
 /// renders must be in the frames' units). Checked: the renders are the camera's size and carry
-/// the beam's power times the exposure (their total light within 25 % of `subsurf predict`'s
-/// image of the same frame), the report's subsurf column is `subsurf evaluate`'s, and `subsurf
+/// the beam's power times the exposure (with the colour the total reflectance, their total light
+/// within 25 % of `subsurf predict`'s image of the same frame), the report's subsurf column is `subsurf evaluate`'s, and `subsurf
 /// evaluate --images` on the renders gives the report's Cycles column. 64 × 64 px, 128 samples:
 /// a few seconds.
 #[test]
@@ -458,6 +458,10 @@ fn scan_frames_render_in_cycles_and_are_judged_like_a_model() {
         "--render",
         "--samples",
         "128",
+        // With the colour the total reflectance T, Cycles scatters exactly the model's light:
+        // the units check below.
+        "--colour",
+        "total",
         "--cache",
         c,
     ]);

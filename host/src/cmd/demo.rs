@@ -402,7 +402,9 @@ pub fn run_demo(args: &Args) -> Result<Vec<PathBuf>> {
             lights: key.clone(),
             camera: cam.clone(),
             samples: args.blender_samples,
-            colour: Default::default(),
+            // The demo compares Cycles with subsurf's own render, where the total reflectance
+            // T is what makes the two agree under uniform light.
+            colour: export::ColourRule::Total,
         };
         let p = bar(0, "export");
         let exported = export::export(&model, &opts, &p)?;

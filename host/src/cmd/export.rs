@@ -70,8 +70,9 @@ pub struct Args {
     /// Cycles samples per pixel.
     #[arg(long, default_value_t = 64)]
     samples: u32,
-    /// What the subsurface colour is.
-    #[arg(long, value_enum, default_value_t = ColourArg::Total)]
+    /// What the subsurface colour is (default chosen by Cycles' log E on a scan's training
+    /// frames, docs/export.md).
+    #[arg(long, value_enum, default_value_t = ColourArg::Fitted)]
     colour: ColourArg,
     /// Blender executable (default: `$SUBSURF_BLENDER`, else `blender` on the PATH).
     #[arg(long)]
