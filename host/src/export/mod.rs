@@ -847,9 +847,10 @@ fn frames_section(rep: &mut Report, f: &frames::FramesComparison) {
     rep.paragraph(format!(
         "Each frame rendered in Cycles with the exported material ({} samples, seed 0): the \
          frame's camera, image size and exposure, the object turned by its turntable angle, the \
-         laser as a spot light {} mm before x_i along the frame's laser ray lighting half a \
-         pixel's radius, its power the scan's unit. The renders are judged like a model \
-         (`subsurf evaluate --images`): the same samples, exclusion radius, noise floor ({}) \
+         laser as a spot light {} mm before x_i along the frame's laser ray lighting a disk one \
+         pixel across, its power the scan's unit times the exposure. The renders are judged \
+         like a model (`subsurf evaluate --images`): the same samples, exclusion radius, noise \
+         floor ({}) \
          and Eq. 8 as subsurf's own model, whose log E is beside them. The noise column is a \
          second seed's render against the first (two renders' noise: √2 times one's).",
         f.samples,
