@@ -2,7 +2,7 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use subsurf::evaluate::{EvalPoints, evaluate_models_stored};
+use subsurf::evaluate::{EvalPoints, FrameImages, evaluate_images_stored, evaluate_models_stored};
 use subsurf::modelfile::ModelFile;
 use subsurf::pipeline::PipelineOptions;
 use subsurf::report::evaluate::{EvaluateReport, Protocol};
@@ -29,8 +29,14 @@ pub struct Args {
     pub json: bool,
     /// A second model (PLY) judged on the same samples: prints this model's error minus that
     /// one's, per frame paired, with its clustered standard error.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "images")]
     pub against: Option<PathBuf>,
+    /// Judge the images in this folder (`<frame, 6 digits>.exr`, in the frames' units: pixel /
+    /// exposure_s is radiance) as predictions of the frames instead of the model: any
+    /// renderer's, e.g. `subsurf export --render`'s Cycles frames. Same samples, rules and
+    /// Eq. 8 as judging the model; the model still says which light positions apply.
+    #[arg(long)]
+    pub images: Option<PathBuf>,
     /// Change the evaluation protocol: samples closer than this to x_i (mm) are not compared
     /// (default: the protocol's 0.5 for every model). Figures under a changed protocol compare
     /// only with figures under the same one.
@@ -117,11 +123,21 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         budget: usize::try_from(args.memory.saturating_mul(1 << 20)).unwrap_or(usize::MAX),
         cache: args.cache.clone(),
     };
-    let models: Vec<&ModelFile> = std::iter::once(&model).chain(against.as_ref()).collect();
-    let evals = evaluate_models_stored(&ds, &models, &frames, &opts, points, &store, &bar)?;
+    let evals = match &args.images {
+        Some(dir) => {
+            let images = FrameImages::new(dir);
+            vec![evaluate_images_stored(
+                &ds, &model, &images, &frames, &opts, points, &store, &bar,
+            )?]
+        }
+        None => {
+            let models: Vec<&ModelFile> = std::iter::once(&model).chain(against.as_ref()).collect();
+            evaluate_models_stored(&ds, &models, &frames, &opts, points, &store, &bar)?
+        }
+    };
     bar.finish_and_clear();
     let protocol = Protocol::of(&opts, overridden, source, &model);
-    let report = EvaluateReport::new(
+    let mut report = EvaluateReport::new(
         &ds,
         &model,
         &evals[0].0,
@@ -132,6 +148,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         points,
         protocol,
     );
+    report.images = args.images.clone();
     if let Some(w) = report.in_sample_warning() {
         eprintln!("{w}");
     }

@@ -19,6 +19,15 @@ pub enum Format {
     Blender,
 }
 
+/// What the subsurface colour is (docs/export.md: chosen by Cycles' log E on training frames).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum ColourArg {
+    /// The fall-off's total diffuse reflectance T.
+    Total,
+    /// Amplitude fitted with the Burley shape in log space over the sampled distances.
+    Fitted,
+}
+
 /// Face lattice handling.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum Lattice {
@@ -61,6 +70,10 @@ pub struct Args {
     /// Cycles samples per pixel.
     #[arg(long, default_value_t = 64)]
     samples: u32,
+    /// What the subsurface colour is (default chosen by Cycles' log E on a scan's training
+    /// frames, docs/export.md).
+    #[arg(long, value_enum, default_value_t = ColourArg::Fitted)]
+    colour: ColourArg,
     /// Blender executable (default: `$SUBSURF_BLENDER`, else `blender` on the PATH).
     #[arg(long)]
     blender: Option<PathBuf>,
@@ -77,6 +90,19 @@ pub struct Args {
     /// Speed/accuracy of subsurf's render for `--render`.
     #[arg(long, value_enum, default_value_t = Quality::Balanced)]
     quality: Quality,
+    /// The model's scan dataset: with `--render`, Cycles renders its frames (`--frames`) with
+    /// the exported material — each frame's camera, exposure, laser and turntable angle — into
+    /// `OUT/frames/<frame>.exr`, and the report judges them by the frames, next to subsurf's
+    /// model (`subsurf evaluate`'s log E on the same samples).
+    #[arg(long, requires = "render")]
+    scan: Option<PathBuf>,
+    /// Frames of `--scan` to render, e.g. `96-103` (default: all).
+    #[arg(long, requires = "scan")]
+    frames: Option<String>,
+    /// Where the sample store's files go with `--scan` (`dataset`, a directory, `off`), as
+    /// `subsurf evaluate --cache`.
+    #[arg(long, default_value = "dataset")]
+    cache: subsurf::pipeline::Cache,
 }
 
 pub fn run(args: Args) -> Result<()> {
@@ -97,6 +123,10 @@ pub fn run(args: Args) -> Result<()> {
         lights,
         camera,
         samples: args.samples,
+        colour: match args.colour {
+            ColourArg::Total => export::ColourRule::Total,
+            ColourArg::Fitted => export::ColourRule::Fitted,
+        },
     };
     let blender = if args.no_blender {
         None
@@ -133,9 +163,43 @@ pub fn run(args: Args) -> Result<()> {
         println!("dropped: {line}");
     }
     let mut comparison = None;
+    let mut frames = None;
     match &blender {
         Some(b) => {
-            if args.render {
+            if let Some(scan) = &args.scan {
+                let (ds, list) = super::open_frames(scan, args.frames.as_deref(), None)?;
+                println!(
+                    "rendering {} frames of {} in {} (Cycles, {} samples{})…",
+                    list.len(),
+                    scan.display(),
+                    b.version_line,
+                    args.samples,
+                    if args.noise { ", two seeds" } else { "" }
+                );
+                let store = subsurf::pipeline::StoreOptions {
+                    cache: args.cache.clone(),
+                    ..Default::default()
+                };
+                let bar = Bar::with_template("{msg:>16} {bar:40} {pos}/{len} {elapsed}");
+                let (_, cmp) = export::frames::render_and_judge(
+                    &ds,
+                    &model,
+                    &list,
+                    args.samples,
+                    b,
+                    &args.out,
+                    args.noise,
+                    &store,
+                    &bar,
+                )
+                .context("rendering the scan's frames in Cycles")?;
+                bar.finish_and_clear();
+                print!("{}", export::frames_text(&cmp));
+                written.push(args.out.join(export::frames::FRAMES_FILE));
+                written.push(args.out.join(export::frames::FRAMES_DIR));
+                frames = Some(cmp);
+                b.run(&args.out, &export::Run::default())?;
+            } else if args.render {
                 println!(
                     "rendering in {} (Cycles, {} samples)…",
                     b.version_line, args.samples
@@ -171,6 +235,7 @@ pub fn run(args: Args) -> Result<()> {
         &model,
         &exported,
         comparison.as_ref(),
+        frames.as_ref(),
         blender.as_ref(),
         &args.out,
     )?);

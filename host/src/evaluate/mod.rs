@@ -10,7 +10,9 @@ use crate::pipeline::{Context, LogEStats, PipelineError, PipelineOptions, regist
 use crate::progress::Progress;
 use crate::store::StorePoints;
 
+pub mod images;
 pub mod summary;
+pub use images::{FrameImages, ImageProblem, Reference, evaluate_images_in};
 pub use summary::{Clustering, Figures, Paired};
 
 /// Why a model cannot be evaluated on a dataset.
@@ -39,6 +41,16 @@ pub enum EvaluateError {
     /// Preparing the dataset failed.
     #[error(transparent)]
     Pipeline(#[from] PipelineError),
+    /// A frame's prediction image (`subsurf evaluate --images`) cannot be judged.
+    #[error("frame {frame}: prediction image {}: {problem}", path.display())]
+    Image {
+        /// The frame.
+        frame: usize,
+        /// The image's file.
+        path: std::path::PathBuf,
+        /// What is wrong with it.
+        problem: ImageProblem,
+    },
     /// A frame could not be used.
     #[error("frame {frame}: {reason}")]
     Frame {
@@ -238,6 +250,11 @@ pub struct FrameEval {
     /// samples); `None` when none was compared.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub local_share: Option<f64>,
+    /// Of an image judged as the prediction ([`images`]): channel samples where the image is
+    /// black (at or below 0) and the frame has light above the noise floor, judged as the
+    /// floor; `None` for a model.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub unlit: Option<u64>,
     /// Why the frame was not evaluated, if it was not.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub skipped: Option<String>,
@@ -307,6 +324,42 @@ pub fn evaluate_models_stored(
     if models.is_empty() {
         return Ok(Vec::new());
     }
+    let ctx = judged_store(ds, models, frames, opts, at, store, progress)?;
+    models
+        .iter()
+        .map(|m| evaluate_in(&ctx, m, frames, at, progress))
+        .collect()
+}
+
+/// The images of `images` judged as predictions of `frames` of `ds` (`subsurf evaluate
+/// --images`), on the samples [`evaluate_models_stored`] judges `model` on: the same store, the
+/// same rules, Eq. 8 ([`images::evaluate_images_in`]). `model` says which light positions apply.
+#[allow(clippy::too_many_arguments)]
+pub fn evaluate_images_stored(
+    ds: &Dataset,
+    model: &ModelFile,
+    images: &FrameImages,
+    frames: &[usize],
+    opts: &PipelineOptions,
+    at: EvalPoints,
+    store: &StoreOptions,
+    progress: &dyn Progress,
+) -> Result<(Vec<FrameEval>, LogEStats), EvaluateError> {
+    let ctx = judged_store(ds, &[model], frames, opts, at, store, progress)?;
+    evaluate_images_in(&ctx, model, images, Reference::Frames, frames, at, progress)
+}
+
+/// The run that judges `models` on `frames`: the dataset under `opts` with the store of those
+/// frames (at the vertices, or also at the lattice points of `at`).
+pub fn judged_store<'a>(
+    ds: &'a Dataset,
+    models: &[&ModelFile],
+    frames: &[usize],
+    opts: &PipelineOptions,
+    at: EvalPoints,
+    store: &StoreOptions,
+    progress: &dyn Progress,
+) -> Result<Context<'a>, EvaluateError> {
     for m in models {
         check_mesh(ds, m)?;
     }
@@ -325,11 +378,7 @@ pub fn evaluate_models_stored(
         }
     };
     let held = crate::pipeline::extract::extract(&ctx, frames, points, store, progress)?;
-    let ctx = ctx.with_store(held);
-    models
-        .iter()
-        .map(|m| evaluate_in(&ctx, m, frames, at, progress))
-        .collect()
+    Ok(ctx.with_store(held))
 }
 
 /// The judged frames `evals` of `model` split into those its fit never saw (first) and those
@@ -382,6 +431,7 @@ pub fn evaluate_in(
                 channel_samples: [0; 3],
                 x_i: None,
                 local_share: None,
+                unlit: None,
                 skipped: Some(reason),
             })
         })
@@ -446,6 +496,7 @@ fn evaluate_one(
         channel_samples: acc.map(|a| a.count),
         x_i: Some(x_i),
         local_share: (compared > 0).then(|| local / compared as f64),
+        unlit: None,
         skipped: None,
     })
 }

@@ -92,6 +92,9 @@ pub struct Run {
     pub threads: usize,
     /// Cycles' seed.
     pub seed: u32,
+    /// Build and render the scene of this scan frame (`frames.json`, [`super::frames`])
+    /// instead of `scene.json`'s.
+    pub frame: Option<usize>,
 }
 
 impl Blender {
@@ -122,6 +125,9 @@ impl Blender {
         }
         cmd.args(["--threads", &run.threads.to_string()]);
         cmd.args(["--seed", &run.seed.to_string()]);
+        if let Some(k) = run.frame {
+            cmd.args(["--frame", &k.to_string()]);
+        }
         let out = cmd
             .output()
             .map_err(|e| ExportError::Blender(format!("running {}: {e}", self.path.display())))?;

@@ -23,7 +23,10 @@ Blender 3.4's glTF importer drops those, so this script reads the file itself) a
 Options after `--`: `--blend PATH` (default model.blend beside this script), `--render PATH.exr`
 (also render the scene there), `--samples N`, `--seed N`, `--threads N` (0: all cores),
 `--compare` (render as subsurf's renderer draws: pixel centres point-sampled, no light bounced
-between surfaces, so the two images compare pixel for pixel), `--dir DIR` (the export folder).
+between surfaces, so the two images compare pixel for pixel), `--dir DIR` (the export folder),
+`--frame K` (build scan frame K's scene from `frames.json` instead: its camera and image size,
+the object turned by the turntable, the laser as a narrow spot light on x_i whose power carries
+the frame's exposure; default `--blend` frames/K.blend; `subsurf export --scan --render`).
 
 Only the Python standard library is used (Debian's Blender has no numpy).
 """
@@ -43,7 +46,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 def parse_args():
     argv = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else []
     opts = {"dir": HERE, "blend": None, "render": None, "samples": None, "seed": 0,
-            "threads": 0, "compare": False}
+            "threads": 0, "compare": False, "frame": None}
     i = 0
     while i < len(argv):
         a = argv[i]
@@ -51,13 +54,14 @@ def parse_args():
             opts["compare"] = True
             i += 1
             continue
-        if a not in ("--dir", "--blend", "--render", "--samples", "--seed", "--threads"):
+        if a not in ("--dir", "--blend", "--render", "--samples", "--seed", "--threads",
+                     "--frame"):
             raise SystemExit("build_blend.py: unknown option %r" % a)
         if i + 1 >= len(argv):
             raise SystemExit("build_blend.py: %s needs a value" % a)
         opts[a[2:]] = argv[i + 1]
         i += 2
-    for k in ("samples", "seed", "threads"):
+    for k in ("samples", "seed", "threads", "frame"):
         if opts[k] is not None:
             opts[k] = int(opts[k])
     return opts
@@ -201,7 +205,7 @@ def build_material(scene):
     return mat
 
 
-def build_lights(sc, lights):
+def build_lights(sc, lights, hidden=False):
     from mathutils import Matrix
     for k, l in enumerate(lights):
         name = "%s %d" % (l["type"].lower(), k)
@@ -222,7 +226,20 @@ def build_lights(sc, lights):
         data.color = l["colour"]
         obj = bpy.data.objects.new(name, data)
         obj.matrix_world = Matrix(l["matrix_world"])
+        if hidden:
+            # A scan's laser: lights the object, never seen by the camera.
+            obj.visible_camera = False
         sc.collection.objects.link(obj)
+
+
+def frame_scene(folder, k):
+    """Scan frame k's entry of frames.json and the file's render settings."""
+    with open(os.path.join(folder, "frames.json")) as f:
+        frames = json.load(f)
+    for entry in frames["frames"]:
+        if entry["frame"] == k:
+            return frames, entry
+    raise SystemExit("frames.json has no scene for frame %d" % k)
 
 
 def build_camera(sc, c):
@@ -262,8 +279,16 @@ def main():
     mesh.materials.append(build_material(scene))
     obj = bpy.data.objects.new("subsurf model", mesh)
     sc.collection.objects.link(obj)
-    build_lights(sc, scene["lights"])
-    build_camera(sc, scene["camera"])
+    frames, entry = (None, None)
+    if opts["frame"] is not None:
+        from mathutils import Matrix
+        frames, entry = frame_scene(folder, opts["frame"])
+        obj.matrix_world = Matrix(entry["object_matrix"])
+        build_lights(sc, [entry["laser"]], hidden=True)
+        build_camera(sc, entry["camera"])
+    else:
+        build_lights(sc, scene["lights"])
+        build_camera(sc, scene["camera"])
     world = bpy.data.worlds.new("black")
     world.use_nodes = True
     world.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.0
@@ -272,7 +297,7 @@ def main():
     sc.render.engine = "CYCLES"
     sc.render.film_transparent = True
     sc.cycles.device = "CPU"
-    sc.cycles.samples = opts["samples"] or r["samples"]
+    sc.cycles.samples = opts["samples"] or (frames["samples"] if frames else r["samples"])
     sc.cycles.seed = opts["seed"]
     sc.cycles.use_denoising = False
     sc.cycles.use_adaptive_sampling = False
@@ -290,7 +315,22 @@ def main():
     sc.render.image_settings.color_mode = "RGBA"
     sc.render.image_settings.color_depth = "32"
     sc.render.image_settings.exr_codec = "ZIP"
-    blend = opts["blend"] or os.path.join(folder, scene["blend"])
+    if entry is not None:
+        # A camera pixel integrates its own area: a box filter one pixel wide.
+        sc.cycles.pixel_filter_type = "BOX"
+        sc.cycles.filter_width = frames["filter_width"]
+        if entry.get("border"):
+            # Only where the frame is read: the rest of the image stays black, full size.
+            sc.render.use_border = True
+            sc.render.use_crop_to_border = False
+            (sc.render.border_min_x, sc.render.border_max_x,
+             sc.render.border_min_y, sc.render.border_max_y) = entry["border"]
+    blend = opts["blend"] or (
+        os.path.join(folder, "frames", "%06d.blend" % entry["frame"]) if entry is not None
+        else os.path.join(folder, scene["blend"]))
+    os.makedirs(os.path.dirname(os.path.abspath(blend)), exist_ok=True)
+    # A frame's scene is written again by its second seed's run: no `.blend1` backups.
+    bpy.context.preferences.filepaths.save_version = 0
     bpy.ops.wm.save_as_mainfile(filepath=os.path.abspath(blend))
     print("SUBSURF wrote %s" % blend)
     if opts["render"]:

@@ -148,6 +148,89 @@ pub fn fit_shape(r: &[f64], ln_target: &[f64], total: f64) -> Option<(f64, f64)>
     (d.is_finite() && rms.is_finite()).then_some((d, rms))
 }
 
+/// The best Burley profile `A · R(r; d)` for a fall-off sampled as `ln_target[k]` at distances
+/// `r[k]` with its amplitude free: `(d, A, rms)` minimising `Σ_k (ln A + ln_profile(r_k, d) −
+/// ln_target_k)²`. For each `d` the best `ln A` is the mean residual (closed form), so the
+/// search is [`fit_shape`]'s over `d` alone.
+///
+/// Why: with `A` fixed to the fall-off's total reflectance T, a fall-off whose slow term holds
+/// much of T puts all of it within Cycles' short profile, too bright near x_i (issue 43: 1.3–1.6×
+/// on sample-torus) and black beyond 16 d. A free `A` matches the profile over the sampled
+/// distances in Eq. 8's own measure, giving up the light no Burley shape can place.
+pub fn fit_shape_free(r: &[f64], ln_target: &[f64]) -> Option<(f64, f64, f64)> {
+    if r.is_empty() || r.len() != ln_target.len() {
+        return None;
+    }
+    let n = r.len() as f64;
+    let ln_a = |d: f64| -> f64 {
+        r.iter()
+            .zip(ln_target)
+            .map(|(&r, &y)| y - ln_profile(r, d))
+            .sum::<f64>()
+            / n
+    };
+    // Given d, the residuals about their mean are what fit_shape's cost sees with A = e^{mean}.
+    let (lo, hi) = r
+        .iter()
+        .fold((f64::INFINITY, 0.0f64), |(a, b), &x| (a.min(x), b.max(x)));
+    if !(lo > 0.0 && hi.is_finite()) {
+        return None;
+    }
+    let cost = |ln_d: f64| -> f64 {
+        let d = ln_d.exp();
+        let a = ln_a(d);
+        r.iter()
+            .zip(ln_target)
+            .map(|(&r, &y)| {
+                let e = a + ln_profile(r, d) - y;
+                e * e
+            })
+            .sum::<f64>()
+    };
+    let ln_d = minimise_1d(cost, (lo * 1e-4).ln(), (hi * 1e4).ln())?;
+    let d = ln_d.exp();
+    let a = ln_a(d).exp();
+    let rms = (cost(ln_d) / n).sqrt();
+    (d.is_finite() && a.is_finite() && a > 0.0 && rms.is_finite()).then_some((d, a, rms))
+}
+
+/// The minimum of `cost` over `[a, b]`: a scan of 160 steps, then golden-section search in the
+/// best cell ([`fit_shape`]'s search).
+fn minimise_1d(cost: impl Fn(f64) -> f64, a: f64, b: f64) -> Option<f64> {
+    const STEPS: usize = 160;
+    let step = (b - a) / STEPS as f64;
+    let (mut best, mut best_cost) = (a, f64::INFINITY);
+    for k in 0..=STEPS {
+        let x = a + step * k as f64;
+        let c = cost(x);
+        if c < best_cost {
+            (best, best_cost) = (x, c);
+        }
+    }
+    if !best_cost.is_finite() {
+        return None;
+    }
+    let g = (5f64.sqrt() - 1.0) / 2.0;
+    let (mut x0, mut x1) = (best - step, best + step);
+    let (mut p, mut q) = (x1 - g * (x1 - x0), x0 + g * (x1 - x0));
+    let (mut cp, mut cq) = (cost(p), cost(q));
+    for _ in 0..60 {
+        if cp < cq {
+            x1 = q;
+            (q, cq) = (p, cp);
+            p = x1 - g * (x1 - x0);
+            cp = cost(p);
+        } else {
+            x0 = p;
+            (p, cp) = (q, cq);
+            q = x0 + g * (x1 - x0);
+            cq = cost(q);
+        }
+    }
+    let x = 0.5 * (x0 + x1);
+    Some(if cost(x) <= best_cost { x } else { best })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -195,6 +278,22 @@ mod tests {
             "a slow second term is beyond one Burley shape: {rms}"
         );
         assert!(fit_shape(&[], &[], 1.0).is_none());
+        // With the amplitude free, a Burley profile of any albedo is recovered, and the slow
+        // term's fall-off is matched better than with A = T (in log E over the range).
+        let y: Vec<f64> = r
+            .iter()
+            .map(|&r| 0.3f64.ln() + ln_profile(r, 0.4))
+            .collect();
+        let (d, a, rms) = fit_shape_free(&r, &y).unwrap();
+        assert!((d / 0.4 - 1.0).abs() < 1e-5 && (a / 0.3 - 1.0).abs() < 1e-5 && rms < 1e-5);
+        let slow: Vec<f64> = r
+            .iter()
+            .map(|&r| (0.5 * (-2.0 * r).exp() + 0.002 * (-0.1 * r).exp()).ln())
+            .collect();
+        let (_, fixed) = fit_shape(&r, &slow, total).unwrap();
+        let (_, _, free) = fit_shape_free(&r, &slow).unwrap();
+        assert!(free < fixed, "{free} vs {fixed}");
+        assert!(fit_shape_free(&[], &[]).is_none());
         assert!(fit_shape(&[1.0], &[0.0], f64::NAN).is_none());
     }
 

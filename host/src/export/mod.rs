@@ -19,6 +19,7 @@
 pub mod blender;
 pub mod convert;
 pub mod cycles;
+pub mod frames;
 pub mod gltf;
 pub mod mesh;
 pub mod scene;
@@ -33,7 +34,7 @@ use crate::progress::Progress;
 use crate::render::{self, Light, RenderOptions};
 use crate::report::{Figure, Report, Table, fmt};
 pub use blender::{Blender, Run, find_blender, read_render};
-pub use convert::{Source, VertexConversion};
+pub use convert::{ColourRule, Source, VertexConversion};
 pub use mesh::{ExportMesh, Refinement};
 
 /// The build script's file name in an export folder.
@@ -83,6 +84,9 @@ pub enum ExportError {
     /// The report could not be written.
     #[error(transparent)]
     Report(#[from] crate::report::ReportError),
+    /// A scan's frames could not be judged (`--scan`).
+    #[error(transparent)]
+    Evaluate(#[from] crate::evaluate::EvaluateError),
 }
 
 impl ExportError {
@@ -117,6 +121,8 @@ pub struct ExportOptions {
     pub camera: Camera,
     /// Cycles samples per pixel for renders of the scene.
     pub samples: u32,
+    /// What the subsurface colour is.
+    pub colour: ColourRule,
 }
 
 /// Summary statistics of one per-vertex quantity per channel.
@@ -180,6 +186,8 @@ pub struct ExportSummary {
     pub format: &'static str,
     /// The Cycles method the parameters are for.
     pub method: &'static str,
+    /// What the subsurface colour is.
+    pub colour_rule: ColourRule,
     /// Vertices of the model.
     pub vertices: usize,
     /// Vertices and triangles written.
@@ -272,7 +280,7 @@ pub fn export(
     if opts.samples == 0 {
         return Err(ExportError::Invalid("samples must be at least 1".into()));
     }
-    let vertices = convert::convert(model, progress);
+    let vertices = convert::convert_with(model, opts.colour, progress);
     let (mesh, refinement) = match opts.lattice {
         LatticeMode::Refine => mesh::refined_mesh(model, &vertices),
         LatticeMode::Drop => (mesh::vertex_mesh(model, &vertices), Refinement::default()),
@@ -299,6 +307,7 @@ pub fn export(
     let summary = ExportSummary {
         format: "subsurf-export/1",
         method: "BURLEY",
+        colour_rule: opts.colour,
         vertices: model.len(),
         written: [mesh.positions.len(), mesh.triangles.len()],
         sources: [
@@ -360,6 +369,9 @@ struct ReportJson<'a> {
     #[serde(flatten)]
     summary: &'a ExportSummary,
     comparison: Option<&'a Comparison>,
+    /// Cycles judged by a scan's frames (`--scan --render`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    frames: Option<&'a frames::FramesComparison>,
     per_vertex: &'a [VertexConversion],
 }
 
@@ -385,7 +397,7 @@ impl Export {
             std::fs::write(&p, bytes).map_err(|e| ExportError::io(&p, e))?;
             written.push(p);
         }
-        written.push(self.write_json(dir, None)?);
+        written.push(self.write_json(dir, None, None)?);
         Ok(written)
     }
 
@@ -393,11 +405,13 @@ impl Export {
         &self,
         dir: &Path,
         comparison: Option<&Comparison>,
+        frames: Option<&frames::FramesComparison>,
     ) -> Result<PathBuf, ExportError> {
         let p = dir.join(format!("{REPORT_STEM}.json"));
         let json = serde_json::to_vec_pretty(&ReportJson {
             summary: &self.summary,
             comparison,
+            frames,
             per_vertex: &self.vertices,
         })
         .map_err(|e| ExportError::Invalid(format!("report JSON: {e}")))?;
@@ -509,6 +523,7 @@ pub fn compare(
             compare: true,
             threads: 0,
             seed: 0,
+            frame: None,
         },
     )?;
     let cycles_seconds = t1.elapsed().as_secs_f64();
@@ -529,6 +544,7 @@ pub fn compare(
                 compare: true,
                 threads: 0,
                 seed: 1,
+                frame: None,
             },
         )?;
         let b = read_render(&second)?;
@@ -659,10 +675,11 @@ pub fn write_report(
     model: &ModelFile,
     export: &Export,
     comparison: Option<&Comparison>,
+    frames: Option<&frames::FramesComparison>,
     blender: Option<&Blender>,
     dir: &Path,
 ) -> Result<Vec<PathBuf>, ExportError> {
-    let mut written = vec![export.write_json(dir, comparison)?];
+    let mut written = vec![export.write_json(dir, comparison, frames)?];
     let map = dir.join("export-map.png");
     draw_map(model, export, &map)?;
     written.push(map.clone());
@@ -810,8 +827,113 @@ pub fn write_report(
             ),
         );
     }
+    if let Some(f) = frames {
+        frames_section(&mut rep, f);
+    }
     let [md, html] = rep.write(dir, REPORT_STEM)?;
     written.push(md);
     written.push(html);
     Ok(written)
+}
+
+/// `log E` of three channels as `r / g / b`.
+fn rgb(x: [Option<f64>; 3]) -> String {
+    x.map(|v| fmt::opt(v, fmt::log_e)).join(" / ")
+}
+
+/// The report's section on a scan's frames rendered in Cycles.
+fn frames_section(rep: &mut Report, f: &frames::FramesComparison) {
+    rep.heading("Cycles judged by the scan's frames");
+    rep.paragraph(format!(
+        "Each frame rendered in Cycles with the exported material ({} samples, seed 0): the \
+         frame's camera, image size and exposure, the object turned by its turntable angle, the \
+         laser as a spot light {} mm before x_i along the frame's laser ray lighting a disk one \
+         pixel across, its power the scan's unit times the exposure. The renders are judged \
+         like a model (`subsurf evaluate --images`): the same samples, exclusion radius, noise \
+         floor ({}) \
+         and Eq. 8 as subsurf's own model, whose log E is beside them. The noise column is a \
+         second seed's render against the first (two renders' noise: √2 times one's).",
+        f.samples,
+        frames::STANDOFF_MM,
+        fmt::sig(f.noise_floor, 3)
+    ));
+    let mut t = Table::new([
+        "frame",
+        "Cycles log E (r / g / b)",
+        "subsurf log E",
+        "Cycles noise",
+        "black samples",
+        "seconds",
+    ]);
+    for r in &f.per_frame {
+        t.row([
+            format!("{}{}", r.frame, if r.fitted { " (fitted)" } else { "" }),
+            rgb(r.cycles_log_e),
+            rgb(r.subsurf_log_e),
+            r.noise_log_e.map(rgb).unwrap_or_else(|| "–".into()),
+            format!("{} of {}", r.unlit, r.samples),
+            fmt::sig(r.seconds, 3),
+        ]);
+    }
+    t.row([
+        "mean".to_string(),
+        rgb(f.cycles_mean_log_e),
+        rgb(f.subsurf_mean_log_e),
+        f.noise_mean_log_e.map(rgb).unwrap_or_else(|| "–".into()),
+        String::new(),
+        fmt::sig(f.cycles_seconds, 3),
+    ]);
+    rep.table(
+        t,
+        Some(format!(
+            "Cycles' mean log E over subsurf's (green): {}. Frames marked fitted were used by \
+             the model's fit (in-sample for both). Skipped: {}.",
+            fmt::opt(f.ratio_green, |x| fmt::sig(x, 3)),
+            if f.skipped.is_empty() {
+                "none".to_string()
+            } else {
+                f.skipped
+                    .iter()
+                    .map(|s| format!("{} ({})", s.frame, s.reason))
+                    .collect::<Vec<_>>()
+                    .join("; ")
+            }
+        )),
+    );
+}
+
+/// The frames' comparison as the command prints it.
+pub fn frames_text(f: &frames::FramesComparison) -> String {
+    use std::fmt::Write as _;
+    let mut o = String::new();
+    let _ = writeln!(
+        o,
+        "frame        Cycles log E (r / g / b)     subsurf log E (r / g / b)    Cycles noise"
+    );
+    for r in &f.per_frame {
+        let _ = writeln!(
+            o,
+            "{:<12} {:<28} {:<28} {}",
+            format!("{}{}", r.frame, if r.fitted { " (fitted)" } else { "" }),
+            rgb(r.cycles_log_e),
+            rgb(r.subsurf_log_e),
+            r.noise_log_e.map(rgb).unwrap_or_else(|| "–".into())
+        );
+    }
+    let _ = writeln!(
+        o,
+        "{:<12} {:<28} {:<28} {}",
+        "mean",
+        rgb(f.cycles_mean_log_e),
+        rgb(f.subsurf_mean_log_e),
+        f.noise_mean_log_e.map(rgb).unwrap_or_else(|| "–".into())
+    );
+    let _ = writeln!(
+        o,
+        "Cycles / subsurf (green): {}; {} frames skipped; Cycles {}",
+        fmt::opt(f.ratio_green, |x| fmt::sig(x, 3)),
+        f.skipped.len(),
+        fmt::seconds(f.cycles_seconds)
+    );
+    o
 }

@@ -203,6 +203,65 @@ pub fn lights(lights: &[Light]) -> Result<Vec<BlenderLight>, ExportError> {
     Ok(out)
 }
 
+/// The beam power, in Blender watts, that gives Cycles' radiance the scan's units for a laser
+/// of power `flux` in the scan's units.
+///
+/// Why π and 10⁻⁶: a model's R_d is fitted to samples s = pixel / exposure_s, so it is the
+/// radiance at x_o per unit of laser power as the scan measures it (the shared datasets: per
+/// watt). Cycles' subsurface closure sends out `L(x_o) = R(r) Φ / π` for a beam of power Φ
+/// (its plateau under irradiance E is `A E / π`, measured, docs/export.md), with R per m²
+/// where R_d is per mm². So `Φ = π · flux · 10⁻⁶ W` makes Cycles' pixel / exposure_s the
+/// model's s.
+pub fn beam_watts(flux: f64) -> f64 {
+    std::f64::consts::PI * flux * METRES_PER_MM * METRES_PER_MM
+}
+
+/// A scan frame's laser as a Cycles spot light (issue 43): a point `standoff_mm` before the hit
+/// point `hit_mm` along the ray `direction` (world frame, mm), its cone just wide enough to
+/// light a disk of radius `footprint_mm` there, carrying the beam power `watts` onto it.
+///
+/// Cycles 3.4 gives a spot of power P the intensity `P/(4π)` per steradian times the cosine
+/// of the angle to its axis inside the cone (`spot_attenuation`), so the power through a cone
+/// of half-angle θ is `P/(4π) · π sin²θ`: P = 4 · watts / sin²θ. The light is a point (radius
+/// 0): no camera ray sees it.
+pub fn laser_spot(
+    hit_mm: [f64; 3],
+    direction: [f64; 3],
+    standoff_mm: f64,
+    footprint_mm: f64,
+    watts: f64,
+) -> Result<BlenderLight, ExportError> {
+    let d = unit(direction)
+        .ok_or_else(|| ExportError::Invalid("the laser ray has no direction".into()))?;
+    if !(standoff_mm > 0.0 && footprint_mm > 0.0 && watts > 0.0 && watts.is_finite()) {
+        return Err(ExportError::Invalid(format!(
+            "laser: standoff {standoff_mm} mm, footprint {footprint_mm} mm, power {watts} W"
+        )));
+    }
+    let origin = [0, 1, 2].map(|k| hit_mm[k] - standoff_mm * d[k]);
+    let half = (footprint_mm / standoff_mm).atan();
+    let matrix_world = pointing(d, origin)
+        .ok_or_else(|| ExportError::Invalid("the laser ray has no direction".into()))?;
+    let power = 4.0 * watts / half.sin().powi(2);
+    if !power.is_finite() {
+        return Err(ExportError::Invalid(format!("laser power {power} W")));
+    }
+    Ok(BlenderLight::Spot {
+        matrix_world,
+        power,
+        colour: [1.0; 3],
+        spot_size: 2.0 * half,
+        spot_blend: 0.0,
+    })
+}
+
+/// The turntable's rotation R_z(θ) (docs/scan-format.md: a mesh point p sits at R_z(θ)·p) as a
+/// Blender world matrix.
+pub fn turntable_matrix(deg: f64) -> [[f64; 4]; 4] {
+    let (s, c) = deg.to_radians().sin_cos();
+    matrix([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]], [0.0; 3])
+}
+
 /// The camera in Blender's terms; `bounds` (mm) set the clipping range around the object.
 pub fn camera(cam: &Camera, bounds: ([f64; 3], [f64; 3])) -> Result<BlenderCamera, ExportError> {
     cam.check()
@@ -296,6 +355,46 @@ mod tests {
         let mut d = cam.clone();
         d.distortion = Some(vec![0.1, 0.0, 0.0, 0.0]);
         assert!(camera(&d, ([-10.0; 3], [10.0; 3])).is_err());
+    }
+
+    /// The laser's spot: aimed along the ray, `standoff` before the hit point, its cone's
+    /// footprint the one asked for, and the power through the cone (Cycles' cosine-weighted
+    /// spot) the beam's.
+    #[test]
+    fn the_laser_spot_puts_the_beam_on_the_hit_point() {
+        let hit = [1.0, 2.0, 3.0];
+        let dir = [0.0, 0.6, -0.8];
+        let l = laser_spot(hit, dir, 5.0, 0.2, beam_watts(2.0)).unwrap();
+        let BlenderLight::Spot {
+            matrix_world: m,
+            power,
+            spot_size,
+            spot_blend,
+            ..
+        } = l
+        else {
+            panic!("{l:?}")
+        };
+        let origin = [m[0][3], m[1][3], m[2][3]].map(|x| x / METRES_PER_MM);
+        for k in 0..3 {
+            assert!(
+                (origin[k] + 5.0 * dir[k] - hit[k]).abs() < 1e-9,
+                "{origin:?}"
+            );
+            assert!((-m[k][2] - dir[k]).abs() < 1e-12, "−z along the ray");
+        }
+        let half = spot_size / 2.0;
+        assert!((5.0 * half.tan() - 0.2).abs() < 1e-12);
+        assert_eq!(spot_blend, 0.0);
+        let through =
+            power / (4.0 * std::f64::consts::PI) * std::f64::consts::PI * half.sin().powi(2);
+        assert!((through - beam_watts(2.0)).abs() < 1e-18 + 1e-12 * through);
+        assert!((beam_watts(1.0) - std::f64::consts::PI * 1e-6).abs() < 1e-18);
+        assert!(laser_spot(hit, [0.0; 3], 5.0, 0.2, 1.0).is_err());
+        assert!(laser_spot(hit, dir, 5.0, 0.2, f64::NAN).is_err());
+        // The turntable turns +x towards +y.
+        let t = turntable_matrix(90.0);
+        assert!((t[1][0] - 1.0).abs() < 1e-12 && t[0][0].abs() < 1e-12);
     }
 
     /// 1 unit of point intensity at 1 mm is 1 unit of irradiance: 4π·10⁻⁶ W at 1 mm = 0.001 m

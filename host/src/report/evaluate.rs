@@ -39,6 +39,14 @@ pub struct EvaluateReport {
     pub local_share: Option<f64>,
     /// The rules the samples were read by.
     pub protocol: Protocol,
+    /// The folder whose images were judged as the predictions (`--images`), when not the
+    /// model's own.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub images: Option<std::path::PathBuf>,
+    /// Of those images: channel samples they leave black where the frame has light above the
+    /// noise floor (judged as the floor), over every frame judged.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub unlit: Option<u64>,
     /// Every frame: held out ones first, then the in-sample ones.
     pub per_frame: Vec<FrameEval>,
 }
@@ -109,6 +117,8 @@ impl EvaluateReport {
             against,
             local_share: crate::evaluate::local_share(&held),
             protocol,
+            images: None,
+            unlit: evals.iter().filter_map(|e| e.unlit).reduce(|a, b| a + b),
             per_frame: held.into_iter().chain(fitted).collect(),
         }
     }
@@ -143,6 +153,20 @@ impl EvaluateReport {
             },
             self.skipped
         );
+        if let Some(dir) = &self.images {
+            let _ = writeln!(
+                o,
+                "predictions: the images in {} (not the model), on the model's samples and rules{}",
+                dir.display(),
+                self.unlit
+                    .filter(|&n| n > 0)
+                    .map(|n| format!(
+                        "; {n} channel samples black in the images where the frames have light \
+                         (judged at the noise floor)"
+                    ))
+                    .unwrap_or_default()
+            );
+        }
         figures_text(&mut o, HELD_OUT, &self.held_out);
         if let Some(a) = &self.against {
             let pm = |c: usize| {
