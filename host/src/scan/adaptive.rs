@@ -497,6 +497,7 @@ fn as_evals(frames: impl Iterator<Item = (usize, f64)>) -> Vec<FrameEval> {
             x_i: None,
             local_share: None,
             skipped: None,
+            unlit: None,
         })
         .collect()
 }
