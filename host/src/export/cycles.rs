@@ -109,40 +109,8 @@ pub fn fit_shape(r: &[f64], ln_target: &[f64], total: f64) -> Option<(f64, f64)>
     if !(lo > 0.0 && hi.is_finite()) {
         return None;
     }
-    let (a, b) = ((lo * 1e-4).ln(), (hi * 1e4).ln());
-    const STEPS: usize = 160;
-    let step = (b - a) / STEPS as f64;
-    let (mut best, mut best_cost) = (a, f64::INFINITY);
-    for k in 0..=STEPS {
-        let x = a + step * k as f64;
-        let c = cost(x);
-        if c < best_cost {
-            (best, best_cost) = (x, c);
-        }
-    }
-    if !best_cost.is_finite() {
-        return None;
-    }
-    let g = (5f64.sqrt() - 1.0) / 2.0;
-    let (mut x0, mut x1) = (best - step, best + step);
-    let (mut p, mut q) = (x1 - g * (x1 - x0), x0 + g * (x1 - x0));
-    let (mut cp, mut cq) = (cost(p), cost(q));
-    for _ in 0..60 {
-        if cp < cq {
-            x1 = q;
-            (q, cq) = (p, cp);
-            p = x1 - g * (x1 - x0);
-            cp = cost(p);
-        } else {
-            x0 = p;
-            (p, cp) = (q, cq);
-            q = x0 + g * (x1 - x0);
-            cq = cost(q);
-        }
-    }
-    let x = 0.5 * (x0 + x1);
-    let c = cost(x).min(best_cost);
-    let x = if cost(x) <= best_cost { x } else { best };
+    let x = minimise_1d(cost, (lo * 1e-4).ln(), (hi * 1e4).ln())?;
+    let c = cost(x);
     let d = x.exp();
     let rms = (c / r.len() as f64).sqrt();
     (d.is_finite() && rms.is_finite()).then_some((d, rms))
@@ -195,7 +163,8 @@ pub fn fit_shape_free(r: &[f64], ln_target: &[f64]) -> Option<(f64, f64, f64)> {
 }
 
 /// The minimum of `cost` over `[a, b]`: a scan of 160 steps, then golden-section search in the
-/// best cell ([`fit_shape`]'s search).
+/// best cell (`None` when no step's cost is finite). [`fit_shape`] and [`fit_shape_free`]
+/// search with it.
 fn minimise_1d(cost: impl Fn(f64) -> f64, a: f64, b: f64) -> Option<f64> {
     const STEPS: usize = 160;
     let step = (b - a) / STEPS as f64;

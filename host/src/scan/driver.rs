@@ -928,7 +928,7 @@ impl<'a> Scan<'a> {
     }
 
     /// Writes the final `scan.json` and reports.
-    pub fn finish(self, reconnects: u32) -> Result<ScanSummary, ScanError> {
+    pub fn finish(mut self, reconnects: u32) -> Result<ScanSummary, ScanError> {
         let frames_total = self.frames.len();
         let (resumed_from, frames_written, rig_us, retries, started) = (
             self.resumed_from,
@@ -937,11 +937,11 @@ impl<'a> Scan<'a> {
             self.retries,
             self.started,
         );
-        let (dark_frames, noise_floor) = (self.dark.clone(), self.writer.header().noise_floor);
-        let mut this = self;
-        this.begin_sink();
-        let scan_json = this.writer.finish()?;
-        let sink = this.sink.map(|mut s| s.finish());
+        let noise_floor = self.writer.header().noise_floor;
+        self.begin_sink();
+        let scan_json = self.writer.finish()?;
+        let sink = self.sink.map(|mut s| s.finish());
+        let dark_frames = self.dark;
         Ok(ScanSummary {
             sink,
             scan_json,
