@@ -27,12 +27,108 @@ pub fn harmonic<'a>(
     neighbours: impl Fn(usize) -> &'a [u32],
     iterations: usize,
 ) -> Vec<Option<Vec<f64>>> {
+    harmonic_with(
+        values,
+        neighbours,
+        &Solve {
+            iterations,
+            ..Solve::default()
+        },
+    )
+}
+
+/// How [`harmonic_with`] solves: [`harmonic`]'s exact solve by default.
+#[derive(Debug, Clone, Copy)]
+pub struct Solve<'w> {
+    /// At most this many iterations.
+    pub iterations: usize,
+    /// Conjugate gradients stop at this relative residual ([`RTOL`] by default).
+    pub rtol: f64,
+    /// A previous solution (of the same graph and vector length) to start from where it has
+    /// a value, instead of the breadth-first guess: the alpha rounds' fills change little from
+    /// round to round, and a start near the solution needs fewer iterations to the same
+    /// residual.
+    pub warm: Option<&'w [Option<Vec<f64>>]>,
+    /// Only the unknown vertices connected through unknown vertices to one of these are
+    /// solved; the others keep the breadth-first guess. A fold of the cross-validation reads
+    /// the model only at the corners of its held-out frames' x_i: the rest of a solve is never
+    /// read.
+    pub only: Option<&'w [bool]>,
+}
+
+impl Default for Solve<'_> {
+    fn default() -> Self {
+        Solve {
+            iterations: 2000,
+            rtol: RTOL,
+            warm: None,
+            only: None,
+        }
+    }
+}
+
+/// [`harmonic`] solved as `solve` says.
+pub fn harmonic_with<'a>(
+    values: &[Option<Vec<f64>>],
+    neighbours: impl Fn(usize) -> &'a [u32],
+    solve: &Solve,
+) -> Vec<Option<Vec<f64>>> {
     let no_turn = |_: usize, _: usize, _: &[f64]| None;
-    let (mut out, order) = breadth_first(values, &neighbours, &no_turn);
-    if !conjugate_gradients(&mut out, &order, &neighbours, iterations) {
-        gauss_seidel(&mut out, &order, &neighbours, &no_turn, iterations);
+    let (mut out, mut order) = breadth_first(values, &neighbours, &no_turn);
+    if let Some(only) = solve.only {
+        order = connected_to(&order, only, &neighbours);
+    }
+    if let Some(warm) = solve.warm {
+        for &v in &order {
+            if let (Some(w), Some(o)) = (warm.get(v).and_then(Option::as_ref), out[v].as_mut())
+                && w.len() == o.len()
+                && w.iter().all(|x| x.is_finite())
+            {
+                o.copy_from_slice(w);
+            }
+        }
+    }
+    if !conjugate_gradients(&mut out, &order, &neighbours, solve.iterations, solve.rtol) {
+        gauss_seidel(&mut out, &order, &neighbours, &no_turn, solve.iterations);
     }
     out
+}
+
+/// The vertices of `order` (unknown ones) connected through vertices of `order` to a vertex
+/// marked in `only`, in the order of `order`: whole components of the unknown subgraph, so
+/// every unknown neighbour of a kept vertex is kept and the Laplace system of the kept ones is
+/// the one of the whole, restricted to the components that are read.
+fn connected_to<'a>(
+    order: &[usize],
+    only: &[bool],
+    neighbours: &impl Fn(usize) -> &'a [u32],
+) -> Vec<usize> {
+    let n = only
+        .len()
+        .max(order.iter().map(|&v| v + 1).max().unwrap_or(0));
+    let mut unknown = vec![false; n];
+    for &v in order {
+        unknown[v] = true;
+    }
+    let mut keep = vec![false; n];
+    let mut stack: Vec<usize> = order
+        .iter()
+        .copied()
+        .filter(|&v| only.get(v).copied().unwrap_or(false))
+        .collect();
+    for &v in &stack {
+        keep[v] = true;
+    }
+    while let Some(v) = stack.pop() {
+        for &w in neighbours(v) {
+            let w = w as usize;
+            if w < n && unknown[w] && !keep[w] {
+                keep[w] = true;
+                stack.push(w);
+            }
+        }
+    }
+    order.iter().copied().filter(|&v| keep[v]).collect()
 }
 
 /// [`harmonic`] where `align(v, w, x)` re-expresses neighbour `w`'s vector `x` for vertex `v`
@@ -85,6 +181,77 @@ fn breadth_first<'a>(
     (out, order)
 }
 
+/// The harmonic interpolation's weights at the unknown vertices `targets`: for each, the
+/// known vertices and weights w with value(target) = Σ w · value(known), for any values of the
+/// known vertices `known` (the same as [`harmonic_with`] gives, within `solve.rtol`). `None`
+/// for a target that is known, or not connected to a known vertex.
+///
+/// Why: the Laplace system's matrix depends only on which vertices are known. A fold of the
+/// cross-validation needs the interpolation at a few dozen vertices (the corners of its
+/// held-out frames' x_i) in every round of every candidate, while the known set stays the
+/// same: one solve per target, L_UU y = e_target (L_UU is symmetric), gives x_target =
+/// yᵀ·b for every later right-hand side b, instead of a solve of the whole hole per round.
+pub fn harmonic_weights<'a>(
+    known: &[bool],
+    neighbours: impl Fn(usize) -> &'a [u32],
+    targets: &[usize],
+    solve: &Solve,
+) -> Vec<Option<Vec<(u32, f64)>>> {
+    let n = known.len();
+    let values: Vec<Option<Vec<f64>>> = known.iter().map(|&k| k.then(Vec::new)).collect();
+    let no_turn = |_: usize, _: usize, _: &[f64]| None;
+    let (_, order) = breadth_first(&values, &neighbours, &no_turn);
+    let mut only = vec![false; n];
+    for &t in targets {
+        if let Some(o) = only.get_mut(t) {
+            *o = true;
+        }
+    }
+    let order = connected_to(&order, &only, &neighbours);
+    let system = System::structure(n, &order, |w| known[w], &neighbours);
+    let rows: Vec<Option<usize>> = targets
+        .iter()
+        .map(|&t| system.pos.get(t).copied().filter(|&p| p != usize::MAX))
+        .collect();
+    let cols: Vec<usize> = rows.iter().flatten().copied().collect();
+    if cols.is_empty() || system.deg.iter().any(|&d| d <= 0.0) {
+        return vec![None; targets.len()];
+    }
+    let len = cols.len();
+    let nu = order.len();
+    let mut b = vec![0.0; nu * len];
+    for (c, &row) in cols.iter().enumerate() {
+        b[row * len + c] = 1.0;
+    }
+    let blocks = cg_blocks(&system, &b, len, |_, _| 0.0, solve.iterations, solve.rtol);
+    let mut out = vec![None; targets.len()];
+    let mut c = 0;
+    for (slot, row) in out.iter_mut().zip(&rows) {
+        if row.is_none() {
+            continue;
+        }
+        let (k, l) = (c / LANES, c % LANES);
+        c += 1;
+        let y = |i: usize| blocks[k].x[i][l];
+        let mut w: std::collections::BTreeMap<u32, f64> = std::collections::BTreeMap::new();
+        for (i, &v) in order.iter().enumerate() {
+            let yi = y(i);
+            if yi == 0.0 {
+                continue;
+            }
+            for &u in neighbours(v) {
+                if (u as usize) < n && known[u as usize] {
+                    *w.entry(u).or_default() += yi;
+                }
+            }
+        }
+        if w.values().all(|x| x.is_finite()) {
+            *slot = Some(w.into_iter().collect());
+        }
+    }
+    out
+}
+
 /// Gauss–Seidel sweeps over `order` until no value moves by 1e-12 or `sweeps` ran.
 fn gauss_seidel<'a>(
     out: &mut [Option<Vec<f64>>],
@@ -131,13 +298,13 @@ fn conjugate_gradients<'a>(
     order: &[usize],
     neighbours: &impl Fn(usize) -> &'a [u32],
     iterations: usize,
+    rtol: f64,
 ) -> bool {
     let (system, b, len) = match System::assemble(out, order, neighbours) {
         Assembly::Nothing => return true,
         Assembly::Unsupported => return false,
         Assembly::System { system, b, len } => (system, b, len),
     };
-    let nu = order.len();
     // Each component is its own solve, one column per component; columns go LANES at a time
     // ([`Block`]), each lane doing the very arithmetic of its column alone, in the same order
     // (so the same bits as a column's own solve, on any number of threads: the test keeps
@@ -148,6 +315,45 @@ fn conjugate_gradients<'a>(
     // each row's neighbours once for its columns and its lanes vectorise. Four lanes: a hole of
     // 8,715 vertices and 40 columns took 385 ms by column, 255 ms in blocks of 8 (their five
     // vectors outgrow the cache) and 210 ms in blocks of 4 (release, 2 threads).
+    let nu = order.len();
+    let blocks = cg_blocks(
+        &system,
+        &b,
+        len,
+        |i, c| out[order[i]].as_ref().map_or(0.0, |g| g[c]),
+        iterations,
+        rtol,
+    );
+    drop(b);
+    if blocks
+        .iter()
+        .any(|k| (0..nu).any(|i| k.x[i][..k.width].iter().any(|v| !v.is_finite())))
+    {
+        return false;
+    }
+    for (i, &v) in order.iter().enumerate() {
+        out[v] = Some(
+            blocks
+                .iter()
+                .flat_map(|k| k.x[i][..k.width].iter().copied())
+                .collect(),
+        );
+    }
+    true
+}
+
+/// Jacobi-preconditioned conjugate gradients on `system` for the right-hand sides `b` (`len`
+/// columns, row-major), started from `x0(row, column)`: the blocks of [`LANES`] columns, each
+/// lane its column's own solve.
+fn cg_blocks(
+    system: &System,
+    b: &[f64],
+    len: usize,
+    x0: impl Fn(usize, usize) -> f64 + Sync,
+    iterations: usize,
+    rtol: f64,
+) -> Vec<Block> {
+    let nu = system.deg.len();
     let inv_deg: Vec<f64> = system.deg.iter().map(|d| 1.0 / d).collect();
     let mut blocks: Vec<Block> = (0..len.div_ceil(LANES))
         .into_par_iter()
@@ -158,10 +364,7 @@ fn conjugate_gradients<'a>(
                 std::array::from_fn(|l| if l < width { f(c0 + l) } else { 0.0 })
             };
             let bc: Vec<Lane> = (0..nu).map(|i| lane(&|c| b[i * len + c])).collect();
-            let x: Vec<Lane> = order
-                .iter()
-                .map(|&v| lane(&|c| out[v].as_ref().map_or(0.0, |g| g[c])))
-                .collect();
+            let x: Vec<Lane> = (0..nu).map(|i| lane(&|c| x0(i, c))).collect();
             let mut r = vec![[0.0; LANES]; nu];
             // y = A x; its dot with x is not needed here.
             system.apply_dot(&x, &mut r);
@@ -187,10 +390,9 @@ fn conjugate_gradients<'a>(
             }
         })
         .collect();
-    drop(b);
     for _ in 0..iterations {
         let done = blocks.iter().all(|k| {
-            (0..k.width).all(|l| k.rr[l].sqrt() <= RTOL * k.b_norm[l].max(f64::MIN_POSITIVE))
+            (0..k.width).all(|l| k.rr[l].sqrt() <= rtol * k.b_norm[l].max(f64::MIN_POSITIVE))
         });
         if done {
             break;
@@ -232,21 +434,7 @@ fn conjugate_gradients<'a>(
             k.rz = rz_new;
         });
     }
-    if blocks
-        .iter()
-        .any(|k| (0..nu).any(|i| k.x[i][..k.width].iter().any(|v| !v.is_finite())))
-    {
-        return false;
-    }
-    for (i, &v) in order.iter().enumerate() {
-        out[v] = Some(
-            blocks
-                .iter()
-                .flat_map(|k| k.x[i][..k.width].iter().copied())
-                .collect(),
-        );
-    }
-    true
+    blocks
 }
 
 /// Columns [`conjugate_gradients`] solves at once, one per lane.
@@ -264,6 +452,8 @@ struct System {
     start: Vec<usize>,
     /// deg(i): the neighbours with a value (unknown or known), as the mean counts them.
     deg: Vec<f64>,
+    /// Each vertex's row (`usize::MAX`: not an unknown).
+    pos: Vec<usize>,
 }
 
 /// What [`System::assemble`] found.
@@ -282,7 +472,7 @@ enum Assembly {
 
 /// The convergence test of [`conjugate_gradients`]: residual norm below this share of the
 /// right-hand side's.
-const RTOL: f64 = 1e-13;
+pub const RTOL: f64 = 1e-13;
 
 impl System {
     /// The rows deg(v)·x_v − Σ_{w unknown} x_w = Σ_{w known} x_w of the unknown vertices
@@ -302,6 +492,36 @@ impl System {
         if out.iter().flatten().any(|x| x.len() != len) {
             return Assembly::Unsupported;
         }
+        let system = System::structure(n, order, |w| out[w].is_some(), neighbours);
+        let nu = order.len();
+        let mut b = vec![0.0; nu * len];
+        for (i, &v) in order.iter().enumerate() {
+            for &w in neighbours(v) {
+                let w = w as usize;
+                if w < n
+                    && system.pos[w] == usize::MAX
+                    && let Some(x) = &out[w]
+                {
+                    for (bc, xc) in b[i * len..(i + 1) * len].iter_mut().zip(x) {
+                        *bc += xc;
+                    }
+                }
+            }
+        }
+        if system.deg.iter().any(|&d| d <= 0.0) {
+            return Assembly::Unsupported;
+        }
+        Assembly::System { system, b, len }
+    }
+
+    /// The rows of the unknown vertices `order` of a graph of `n` vertices, `known(w)` telling
+    /// which of the others hold a value (counted in deg, as the mean counts them).
+    fn structure<'a>(
+        n: usize,
+        order: &[usize],
+        known: impl Fn(usize) -> bool,
+        neighbours: &impl Fn(usize) -> &'a [u32],
+    ) -> System {
         let mut pos = vec![usize::MAX; n];
         for (i, &v) in order.iter().enumerate() {
             pos[v] = i;
@@ -310,7 +530,6 @@ impl System {
         let mut cols: Vec<u32> = Vec::new();
         let mut start = Vec::with_capacity(nu + 1);
         let mut deg = vec![0.0; nu];
-        let mut b = vec![0.0; nu * len];
         for (i, &v) in order.iter().enumerate() {
             start.push(cols.len());
             for &w in neighbours(v) {
@@ -321,22 +540,17 @@ impl System {
                 if pos[w] != usize::MAX {
                     cols.push(pos[w] as u32);
                     deg[i] += 1.0;
-                } else if let Some(x) = &out[w] {
-                    for (bc, xc) in b[i * len..(i + 1) * len].iter_mut().zip(x) {
-                        *bc += xc;
-                    }
+                } else if known(w) {
                     deg[i] += 1.0;
                 }
             }
         }
         start.push(cols.len());
-        if deg.iter().any(|&d| d <= 0.0) {
-            return Assembly::Unsupported;
-        }
-        Assembly::System {
-            system: System { cols, start, deg },
-            b,
-            len,
+        System {
+            cols,
+            start,
+            deg,
+            pos,
         }
     }
 
@@ -432,7 +646,13 @@ mod tests {
         neighbours: &impl Fn(usize) -> &'a [u32],
         iterations: usize,
     ) -> bool {
-        let (System { cols, start, deg }, b, len) = match System::assemble(out, order, neighbours) {
+        let (
+            System {
+                cols, start, deg, ..
+            },
+            b,
+            len,
+        ) = match System::assemble(out, order, neighbours) {
             Assembly::Nothing => return true,
             Assembly::Unsupported => return false,
             Assembly::System { system, b, len } => (system, b, len),
@@ -559,7 +779,7 @@ mod tests {
             let nb = |v: usize| &adj[v][..];
             let (start, order) = breadth_first(&vals, &nb, &no_turn);
             let (mut a, mut b) = (start.clone(), start);
-            let ok_a = conjugate_gradients(&mut a, &order, &nb, iterations);
+            let ok_a = conjugate_gradients(&mut a, &order, &nb, iterations, RTOL);
             let ok_b = conjugate_gradients_by_column(&mut b, &order, &nb, iterations);
             prop_assert_eq!(ok_a, ok_b);
             let bits = |o: &[Option<Vec<f64>>]| -> Vec<Option<Vec<u64>>> {
@@ -619,6 +839,105 @@ mod tests {
         let mid = (k / 2) * k + k / 2;
         let err = (gs[mid].as_ref().unwrap()[0] - f(mid)[0]).abs();
         assert!(err > 1e-3, "Gauss–Seidel already converged ({err})");
+    }
+
+    /// Two holes in a grid: the weights of the known vertices at a few targets reproduce the
+    /// full solve there for any known values, a solve restricted to the targets' hole gives
+    /// them too, and a warm start from the solution changes nothing beyond the tolerance.
+    #[test]
+    fn weights_and_restricted_solves_agree_with_the_full_solve() {
+        let k = 30usize;
+        let id = |i: usize, j: usize| (i * k + j) as u32;
+        let adj: Vec<Vec<u32>> = (0..k * k)
+            .map(|v| {
+                let (i, j) = (v / k, v % k);
+                let mut nb = Vec::new();
+                if i > 0 {
+                    nb.push(id(i - 1, j));
+                }
+                if i + 1 < k {
+                    nb.push(id(i + 1, j));
+                }
+                if j > 0 {
+                    nb.push(id(i, j - 1));
+                }
+                if j + 1 < k {
+                    nb.push(id(i, j + 1));
+                }
+                nb
+            })
+            .collect();
+        // Known: the border and the middle column; two holes either side of it.
+        let known: Vec<bool> = (0..k * k)
+            .map(|v| {
+                let (i, j) = (v / k, v % k);
+                i == 0 || j == 0 || i + 1 == k || j + 1 == k || j == k / 2
+            })
+            .collect();
+        let vals: Vec<Option<Vec<f64>>> = (0..k * k)
+            .map(|v| {
+                let (x, y) = ((v / k) as f64, (v % k) as f64);
+                known[v].then(|| vec![(0.3 * x).sin() + y, 2.0 - 0.1 * x * y])
+            })
+            .collect();
+        let full = harmonic(&vals, |v| &adj[v], 2000);
+        let targets = [id(5, 5) as usize, id(20, 7) as usize, id(3, 3) as usize];
+        let weights = harmonic_weights(&known, |v| &adj[v], &targets, &Solve::default());
+        for (&t, w) in targets.iter().zip(&weights) {
+            let w = w.as_ref().expect("a target in a hole has weights");
+            assert!(w.iter().all(|&(u, _)| known[u as usize]));
+            let sum: f64 = w.iter().map(|x| x.1).sum();
+            assert!((sum - 1.0).abs() < 1e-9, "weights sum to {sum}");
+            let want = full[t].as_ref().unwrap();
+            for (c, want) in want.iter().enumerate() {
+                let got: f64 = w
+                    .iter()
+                    .map(|&(u, x)| x * vals[u as usize].as_ref().unwrap()[c])
+                    .sum();
+                assert!((got - want).abs() < 1e-9, "{t}/{c}: {got} vs {want}");
+            }
+        }
+        // A known vertex has no weights of its own.
+        let known_target =
+            harmonic_weights(&known, |v| &adj[v], &[id(0, 3) as usize], &Solve::default());
+        assert!(known_target[0].is_none());
+        // Restricted to the left hole: the same values there, the right hole not solved.
+        let mut only = vec![false; k * k];
+        only[id(5, 5) as usize] = true;
+        let part = harmonic_with(
+            &vals,
+            |v| &adj[v],
+            &Solve {
+                only: Some(&only),
+                ..Solve::default()
+            },
+        );
+        let (l, r) = (id(10, 4) as usize, id(10, 20) as usize);
+        for c in 0..2 {
+            let (a, b) = (part[l].as_ref().unwrap()[c], full[l].as_ref().unwrap()[c]);
+            assert!((a - b).abs() < 1e-9, "{a} vs {b}");
+        }
+        assert!(
+            (part[r].as_ref().unwrap()[0] - full[r].as_ref().unwrap()[0]).abs() > 1e-6,
+            "the right hole kept its breadth-first guess"
+        );
+        // Warm from the solution with a loose tolerance: within it of the full solve.
+        let warm = harmonic_with(
+            &vals,
+            |v| &adj[v],
+            &Solve {
+                warm: Some(&full),
+                rtol: 1e-9,
+                ..Solve::default()
+            },
+        );
+        for (a, b) in warm.iter().zip(&full) {
+            if let (Some(a), Some(b)) = (a, b) {
+                for (x, y) in a.iter().zip(b) {
+                    assert!((x - y).abs() < 1e-7, "{x} vs {y}");
+                }
+            }
+        }
     }
 
     #[test]

@@ -244,10 +244,11 @@ pub fn bench_replay(
         .map_err(fail)?;
     let (cheap, cheap_fit) = assessment_options(ds, floor.value);
     let cheap_run = run.with_options(cheap).map_err(fail)?;
+    // The adaptive planner's own assessment rule (`scan::adaptive`): the reference folds.
     let cheap_cv = CvSettings {
         folds: settings.folds,
         t1: false,
-        ..CvSettings::default()
+        ..CvSettings::reference()
     };
     // The curves' points: the adaptive scan's batch ends, and the same frame counts for the
     // others (up to each order's length), plus each order's end.

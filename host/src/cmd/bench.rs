@@ -34,6 +34,9 @@ enum Bench {
     /// Acquisition planners (issue 41): learning curves of dense, coverage, random and adaptive
     /// planning, held-out error on test frames against frames and rig time.
     Acquisition(super::bench_acquisition::AcquisitionBench),
+    /// The default fit against `--preset reference` (issue 40): time and the equivalence of
+    /// predictions and choices, per scan.
+    Equivalence(super::bench_equivalence::EquivalenceBench),
 }
 
 #[derive(Debug, clap::Args)]
@@ -60,6 +63,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         Bench::FitScale(a) => super::bench_fit::bench_fit_scale(a),
         Bench::OnePass(a) => super::bench_one_pass::bench_one_pass(a),
         Bench::Acquisition(a) => super::bench_acquisition::bench_acquisition(a),
+        Bench::Equivalence(a) => super::bench_equivalence::bench_equivalence(a),
     }
 }
 

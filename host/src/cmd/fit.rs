@@ -30,6 +30,10 @@ pub enum PresetArg {
     Balanced,
     /// Exact, automatic order, 8 direction segments.
     Best,
+    /// The exact default as it was before issue 40's cuts (five folds for every choice, every
+    /// round scored until two in a row do not lower the best, fills solved from scratch): the
+    /// reference `subsurf bench equivalence` checks the default against.
+    Reference,
 }
 
 /// Fit the per-vertex subsurface-scattering model to a scan (section 5).
@@ -68,10 +72,11 @@ pub struct Args {
     #[arg(long)]
     pub cv_folds: Option<usize>,
     /// The folds' alpha rounds stop once this many rounds in a row have not lowered the best
-    /// cross-validated error (early stopping; the report lists the rounds scored). 0: score
-    /// every round up to `--alpha-rounds`.
-    #[arg(long, default_value_t = subsurf::crossval::DEFAULT_PATIENCE)]
-    pub cv_patience: usize,
+    /// cross-validated error by half a standard error (early stopping; the report lists the
+    /// rounds scored). 0: score every round up to `--alpha-rounds`. Default: 2 (with
+    /// `--preset reference`, any lower error counts).
+    #[arg(long)]
+    pub cv_patience: Option<usize>,
     /// Exponential terms n (Eq. 1): the largest n a light position may use (each chooses its
     /// own n and m, see `--fixed-order`), or `auto` for the smallest order within 1 % of the
     /// best. Default: the preset's (3 for exact).
@@ -249,7 +254,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         args.exclude_frames.as_deref(),
     )?;
     let preset = match args.preset {
-        PresetArg::Exact => None,
+        PresetArg::Exact | PresetArg::Reference => None,
         PresetArg::Draft => Some(Preset::Draft),
         PresetArg::Balanced => Some(Preset::Balanced),
         PresetArg::Best => Some(Preset::Best),
@@ -311,13 +316,20 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             subsurf::crossval::DEFAULT_FOLDS
         },
     );
+    let base = if matches!(args.preset, PresetArg::Reference) {
+        opts.speed = subsurf::pipeline::Speed::Reference;
+        CvSettings::reference()
+    } else {
+        CvSettings::default()
+    };
     let cv = CvSettings {
         folds,
         segments,
         rounds: true,
-        patience: args.cv_patience,
+        patience: args.cv_patience.unwrap_or(base.patience),
         t1: args.alpha_t1_share.is_none(),
         lattice: args.alpha_lattice.is_none(),
+        ..base
     };
     match args.terms.as_deref() {
         None => {}

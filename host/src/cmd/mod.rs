@@ -4,6 +4,7 @@ use clap::{Parser, Subcommand};
 mod align;
 mod bench;
 mod bench_acquisition;
+mod bench_equivalence;
 mod bench_fit;
 mod bench_one_pass;
 mod bench_render;

@@ -122,7 +122,7 @@ pub struct AdaptiveArgs {
     #[arg(long)]
     pub batch: Option<usize>,
     /// Batches in a row whose improvement is within its standard error before the scan stops.
-    #[arg(long, default_value_t = subsurf::crossval::DEFAULT_PATIENCE)]
+    #[arg(long, default_value_t = subsurf::scan::adaptive::DEFAULT_PATIENCE)]
     pub patience: usize,
     /// Cross-validation folds of each assessment.
     #[arg(long, default_value_t = subsurf::crossval::DEFAULT_FOLDS)]

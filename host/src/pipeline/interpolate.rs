@@ -20,6 +20,7 @@ use crate::geometry::Scene;
 use crate::model::{Anisotropic, ColourModel, ExpSum, Support, TangentFrame};
 use crate::modelfile::{ColourMode, ModelShape, params_of};
 
+use super::Speed;
 use super::error::OwnFit;
 use super::fit::{Fitter, fit_common_order};
 use super::report::TermDropped;
@@ -37,6 +38,42 @@ pub struct Refit {
     pub r_range: [f64; 2],
 }
 
+/// How [`fill`] runs: for which vertices, on which path, from which start.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct FillHow<'a> {
+    /// Only these vertices need a model (a fold of the cross-validation reads the corners of
+    /// its held-out frames' x_i and nothing else: [`crate::evaluate::model_at`]); `None`:
+    /// every vertex (the model written).
+    pub needed: Option<&'a [bool]>,
+    /// The default path solves the Laplace equation to [`super::FILL_TOLERANCE`]: with needed
+    /// vertices as the weights of the known ones at those vertices, kept from `warm` while the
+    /// known set is the same, and refits only the needed vertices; the reference solves all of
+    /// it from scratch to [`crate::interpolate::RTOL`] and refits every vertex, as before
+    /// issue 40 (the same models at the needed vertices, within the tolerance).
+    pub speed: Speed,
+    /// The previous round's fill of the same run.
+    pub warm: Option<&'a FillState>,
+}
+
+/// A fill's interpolated encodings, which the next round's fill starts from
+/// ([`FillHow::warm`]).
+#[derive(Debug, Clone, Default)]
+pub struct FillState {
+    grid: Vec<f64>,
+    filled: Vec<Option<Vec<f64>>>,
+    /// The interpolation's weights at the needed vertices ([`crate::interpolate::harmonic_weights`])
+    /// and the known set they hold for.
+    weights: Option<Weights>,
+}
+
+/// The harmonic interpolation at a fold's needed vertices as weights of the known vertices.
+#[derive(Debug, Clone)]
+struct Weights {
+    known: Vec<bool>,
+    targets: Vec<usize>,
+    of: Vec<Option<Vec<(u32, f64)>>>,
+}
+
 /// A model for every vertex without its own (`None` for vertices with one, and for vertices
 /// not connected to any fitted vertex). `common_n` is the order refits use at most.
 pub fn fill(
@@ -45,13 +82,29 @@ pub fn fill(
     shape: &ModelShape,
     common_n: usize,
     fitter: &dyn Fitter,
-) -> Vec<Option<Refit>> {
+    how: &FillHow,
+) -> (Vec<Option<Refit>>, FillState) {
     let grid = CurveGrid::of(own.iter().flatten().map(|o| o.r_range));
+    // The members of a light position share its fit: each distinct fit is encoded once (the
+    // curves' exponentials were a tenth of a default fit's cross-validation, once per vertex).
+    let mut encoded: std::collections::HashMap<Vec<u64>, Vec<f64>> =
+        std::collections::HashMap::new();
     let known: Vec<Option<Vec<f64>>> = own
         .iter()
         .map(|o| {
-            o.as_ref()
-                .map(|o| grid.encode(&o.model, o.r_range, shape.segments))
+            o.as_ref().map(|o| {
+                let key: Vec<u64> = o
+                    .params
+                    .iter()
+                    .chain(&o.r_range)
+                    .map(|x| x.to_bits())
+                    .chain([o.terms as u64, o.segments as u64])
+                    .collect();
+                encoded
+                    .entry(key)
+                    .or_insert_with(|| grid.encode(&o.model, o.r_range, shape.segments))
+                    .clone()
+            })
         })
         .collect();
     let turns = SegmentTurns::new(scene, shape.segments);
@@ -60,6 +113,15 @@ pub fn fill(
     } else {
         2
     };
+    // The reference refits every vertex, as before issue 40 (the models at the needed ones are
+    // the same either way).
+    let needed = |v: usize| {
+        how.speed == Speed::Reference
+            || how
+                .needed
+                .is_none_or(|n| n.get(v).copied().unwrap_or(false))
+    };
+    let mut weights = None;
     // One segment has no frame to turn: the Laplacian's conjugate gradients.
     let filled = if shape.segments > 1 {
         crate::interpolate::harmonic_aligned(
@@ -71,13 +133,67 @@ pub fn fill(
             },
             2000,
         )
+    } else if let (Speed::Default, Some(needed)) = (how.speed, how.needed) {
+        // A fold's fill: the interpolation at its needed vertices, as weights of the known
+        // ones that hold while the known set does (every round of a fold, mostly).
+        let known_set: Vec<bool> = known.iter().map(Option::is_some).collect();
+        let targets: Vec<usize> = (0..own.len())
+            .filter(|&v| needed.get(v).copied().unwrap_or(false) && own[v].is_none())
+            .collect();
+        let w = match how.warm.and_then(|w| w.weights.as_ref()) {
+            Some(w) if w.known == known_set && w.targets == targets => w.clone(),
+            _ => Weights {
+                of: crate::interpolate::harmonic_weights(
+                    &known_set,
+                    |v| scene.neighbours(v),
+                    &targets,
+                    &crate::interpolate::Solve {
+                        rtol: super::FILL_TOLERANCE,
+                        ..crate::interpolate::Solve::default()
+                    },
+                ),
+                known: known_set,
+                targets,
+            },
+        };
+        let mut filled: Vec<Option<Vec<f64>>> = vec![None; own.len()];
+        for (&t, of) in w.targets.iter().zip(&w.of) {
+            let Some(of) = of else { continue };
+            let mut x: Option<Vec<f64>> = None;
+            for &(k, wk) in of {
+                let Some(val) = known[k as usize].as_ref() else {
+                    continue;
+                };
+                let acc = x.get_or_insert_with(|| vec![0.0; val.len()]);
+                if acc.len() == val.len() {
+                    for (a, b) in acc.iter_mut().zip(val) {
+                        *a += wk * b;
+                    }
+                }
+            }
+            filled[t] = x;
+        }
+        weights = Some(w);
+        filled
     } else {
-        crate::interpolate::harmonic(&known, |v| scene.neighbours(v), 2000)
+        let solve = match how.speed {
+            Speed::Reference => crate::interpolate::Solve::default(),
+            Speed::Default => crate::interpolate::Solve {
+                rtol: super::FILL_TOLERANCE,
+                warm: how
+                    .warm
+                    .filter(|w| w.grid == grid.r && w.filled.len() == own.len())
+                    .map(|w| &w.filled[..]),
+                only: how.needed,
+                ..crate::interpolate::Solve::default()
+            },
+        };
+        crate::interpolate::harmonic_with(&known, |v| scene.neighbours(v), &solve)
     };
-    (0..own.len())
+    let refits = (0..own.len())
         .into_par_iter()
         .map(|v| {
-            if own[v].is_some() {
+            if own[v].is_some() || !needed(v) {
                 return None;
             }
             let enc = filled[v].as_ref()?;
@@ -113,7 +229,13 @@ pub fn fill(
                 })
             })
         })
-        .collect()
+        .collect();
+    let state = FillState {
+        grid: grid.r.clone(),
+        filled,
+        weights,
+    };
+    (refits, state)
 }
 
 /// The tangent frames (Eq. 3, the fit's rule) at every vertex normal, to compare neighbours'.

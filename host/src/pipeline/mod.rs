@@ -40,7 +40,8 @@ pub use fit::{
 };
 pub use load::{Context, SamplesError};
 pub use options::{
-    ALPHA_T1_SHARE, AlphaLattice, MAX_SEGMENTS, ModelChoice, PipelineOptions, fit_record,
+    ALPHA_T1_SHARE, AlphaLattice, FILL_TOLERANCE, MAX_SEGMENTS, ModelChoice, PipelineOptions,
+    Speed, fit_record,
 };
 pub use register::{RegisteredFrame, register_one};
 pub use report::{
@@ -376,6 +377,7 @@ impl Prepared {
                 cache,
                 progress,
             ),
+            last_fill: std::sync::Mutex::new(None),
         }
     }
 }
@@ -388,6 +390,8 @@ pub struct FitRounds<'r, 'a> {
     fitter: &'r dyn Fitter,
     progress: &'r dyn Progress,
     rounds: fit::AlphaRounds<'r, 'a>,
+    /// The last finish's fill, the next one's start ([`interpolate::FillHow::warm`]).
+    last_fill: std::sync::Mutex<Option<interpolate::FillState>>,
 }
 
 impl FitRounds<'_, '_> {
@@ -404,25 +408,51 @@ impl FitRounds<'_, '_> {
 
     /// The model of the last kept round: the stages after the fit run on it.
     pub fn model(&self) -> Result<FitOutput, PipelineError> {
-        self.finish(Figures::All)
+        self.finish(Figures::All, None)
     }
 
     /// [`FitRounds::model`]'s model file alone, for a caller that judges it and drops the
     /// report (the cross-validation's folds): the report's figures no model number depends on
     /// are not computed ([`Figures::ModelOnly`]). The same model, bit for bit.
     pub fn model_file(&self) -> Result<ModelFile, PipelineError> {
-        self.finish(Figures::ModelOnly).map(|out| out.model)
+        self.finish(Figures::ModelOnly, None).map(|out| out.model)
     }
 
-    fn finish(&self, figures: Figures) -> Result<FitOutput, PipelineError> {
-        finish_state(
+    /// [`FitRounds::model_file`] where only the vertices marked in `needed` must have their
+    /// model (a fold judges its frames with the corners of their x_i's triangles alone): the
+    /// others without a fit of their own are left without one. At the needed vertices the
+    /// same models as [`FitRounds::model_file`]'s, on the reference path bit for bit; on the
+    /// default path the fill starts from this run's previous one ([`interpolate::FillHow`]).
+    pub fn model_file_for(&self, needed: &[bool]) -> Result<ModelFile, PipelineError> {
+        self.finish(Figures::ModelOnly, Some(needed))
+            .map(|out| out.model)
+    }
+
+    fn finish(
+        &self,
+        figures: Figures,
+        needed: Option<&[bool]>,
+    ) -> Result<FitOutput, PipelineError> {
+        let mut last = self
+            .last_fill
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let how = interpolate::FillHow {
+            needed,
+            speed: self.ctx.opts.speed,
+            warm: last.as_ref(),
+        };
+        let (out, state) = finish_state(
             self.setup,
             self.ctx,
             self.rounds.fitted(),
             self.fitter,
             self.progress,
             figures,
-        )
+            &how,
+        )?;
+        *last = Some(state);
+        Ok(out)
     }
 
     /// The next round ([`fit::AlphaRounds::step`]): `false` when the rounds are over.
@@ -440,7 +470,8 @@ fn finish_state(
     fitter: &dyn Fitter,
     progress: &dyn Progress,
     figures: Figures,
-) -> Result<FitOutput, PipelineError> {
+    fill: &interpolate::FillHow,
+) -> Result<(FitOutput, interpolate::FillState), PipelineError> {
     let mut run = Setup {
         frames: setup.frames.clone(),
         report: setup.report.clone(),
@@ -449,7 +480,15 @@ fn finish_state(
         clock: report::StageClock::start(),
         figures,
     };
-    run.finish_with(ctx, &setup.regs, &setup.groups, fitted, fitter, progress)
+    run.finish_with(
+        ctx,
+        &setup.regs,
+        &setup.groups,
+        fitted,
+        fitter,
+        progress,
+        fill,
+    )
 }
 
 /// What [`Setup::finish_with`] computes besides the model.
@@ -530,11 +569,17 @@ impl Setup {
             std::mem::take(&mut self.regs),
             std::mem::take(&mut self.groups),
         );
-        self.finish_with(ctx, &regs, &groups, fitted, fitter, progress)
+        let how = interpolate::FillHow {
+            speed: ctx.opts.speed,
+            ..interpolate::FillHow::default()
+        };
+        self.finish_with(ctx, &regs, &groups, fitted, fitter, progress, &how)
+            .map(|(out, _)| out)
     }
 
     /// The stages after the fit: the lattice, the error, acceptance, interpolation and the
-    /// model file.
+    /// model file; second, the fill's state a later round's fill may start from.
+    #[allow(clippy::too_many_arguments)]
     fn finish_with(
         &mut self,
         ctx: &Context,
@@ -543,7 +588,8 @@ impl Setup {
         fitted: fit::Fitted,
         fitter: &dyn Fitter,
         progress: &dyn Progress,
-    ) -> Result<FitOutput, PipelineError> {
+        fill: &interpolate::FillHow,
+    ) -> Result<(FitOutput, interpolate::FillState), PipelineError> {
         let opts = &ctx.opts;
         let ds = ctx.ds;
         let report = &mut self.report;
@@ -594,7 +640,8 @@ impl Setup {
                 .max_by_key(|(_, c)| **c)
                 .map_or(shape.terms, |(n, _)| *n),
         };
-        let refits = interpolate::fill(&ctx.scene, &own, &shape, common_n, fitter);
+        let (refits, fill_state) =
+            interpolate::fill(&ctx.scene, &own, &shape, common_n, fitter, fill);
         let mut model = assemble::model_file(ds, shape, &own, &refits, &fitted.alpha, report);
         model.baseline = fitted.baseline.as_ref().map(|b| b.params.clone());
         model.face_alpha = lattice.face_alpha;
@@ -605,9 +652,12 @@ impl Setup {
         report.peak_rss_mib = crate::util::peak_rss_mib();
         report.frames.reads = ds.frame_reads();
         report.warnings = report.derive_warnings();
-        Ok(FitOutput {
-            model,
-            report: report.clone(),
-        })
+        Ok((
+            FitOutput {
+                model,
+                report: report.clone(),
+            },
+            fill_state,
+        ))
     }
 }

@@ -180,9 +180,9 @@ pub struct AdaptiveSettings {
     /// Frames per later batch; `None`: as many as the start.
     pub batch: Option<usize>,
     /// Assessments in a row whose improvement is below its standard error before the scan
-    /// stops: the cross-validation's own patience ([`crate::crossval::DEFAULT_PATIENCE`], two:
-    /// one batch may improve within noise and the next still fall), so one noisy comparison
-    /// of a few early frames in a few clusters does not end the scan.
+    /// stops ([`DEFAULT_PATIENCE`], two: one batch may improve within noise and the next still
+    /// fall), so one noisy comparison of a few early frames in a few clusters does not end the
+    /// scan.
     pub patience: usize,
     /// Stop once the cross-validated error is at most this.
     pub until_error: Option<f64>,
@@ -197,12 +197,15 @@ pub struct AdaptiveSettings {
     pub near_mm: Option<f64>,
 }
 
+/// Assessments in a row within noise before the adaptive scan stops (`--patience`).
+pub const DEFAULT_PATIENCE: usize = 2;
+
 impl Default for AdaptiveSettings {
     fn default() -> Self {
         AdaptiveSettings {
             start: None,
             batch: None,
-            patience: crate::crossval::DEFAULT_PATIENCE,
+            patience: DEFAULT_PATIENCE,
             until_error: None,
             max_frames: None,
             max_rig_s: None,
@@ -443,14 +446,15 @@ pub fn assess(
     .map_err(fail)?;
     let judge = crate::pipeline::judge_context(&run, &frames, Some(&protocol), &store, progress)
         .map_err(fail)?;
+    // The reference preset's folds and rounds rule: the planner's curve and stop were
+    // validated with them (docs/acquisition.md).
     let cv = crate::crossval::CvSettings {
         folds,
         segments: crate::crossval::Segments::Fixed(1),
-        rounds: true,
-        patience: crate::crossval::DEFAULT_PATIENCE,
         t1: false,
         // The draft's error is judged at the vertices; a lattice would not change it.
         lattice: false,
+        ..crate::crossval::CvSettings::reference()
     };
     let out =
         crate::crossval::fit_scan_in(&run, &judge, &frames, &cv, &fit, progress).map_err(fail)?;
