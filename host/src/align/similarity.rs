@@ -93,6 +93,15 @@ impl Similarity {
         }
     }
 
+    /// `self` followed by `g` (`x ↦ g(self(x))`).
+    pub fn then(&self, g: &Similarity) -> Similarity {
+        Similarity {
+            scale: g.scale * self.scale,
+            rotation: g.rotation * self.rotation,
+            translation: g.scale * g.rotation * self.translation + g.translation,
+        }
+    }
+
     /// Are every number finite and the scale positive?
     pub fn is_finite(&self) -> bool {
         self.scale.is_finite()
@@ -107,6 +116,18 @@ impl Similarity {
     /// zero). Hand-written as a few lines on nalgebra's SVD: no crate of the field offers the
     /// weighted similarity fit.
     pub fn fit(from: &[V3], to: &[V3], w: &[f64]) -> Option<Similarity> {
+        Similarity::fit_with_scale(from, to, w, None)
+    }
+
+    /// [`Similarity::fit`] with the scale held at `scale` when one is given (`subsurf align
+    /// --scale`): the rotation of the weighted fit does not depend on the scale, and the
+    /// translation then follows from the centroids.
+    pub fn fit_with_scale(
+        from: &[V3],
+        to: &[V3],
+        w: &[f64],
+        scale: Option<f64>,
+    ) -> Option<Similarity> {
         let total: f64 = w.iter().sum();
         if total.is_nan() || total <= 0.0 || from.len() < 3 {
             return None;
@@ -142,7 +163,8 @@ impl Similarity {
             return None;
         }
         let rotation = u * d * vt;
-        let scale = (sv[0] * d[(0, 0)] + sv[1] * d[(1, 1)] + sv[2] * d[(2, 2)]) / var;
+        let scale =
+            scale.unwrap_or((sv[0] * d[(0, 0)] + sv[1] * d[(1, 1)] + sv[2] * d[(2, 2)]) / var);
         let out = Similarity {
             scale,
             rotation,
@@ -199,6 +221,9 @@ mod tests {
             assert!((v(back) - v(*p)).norm() < 1e-12);
         }
         // Collinear points fix no rotation about their line.
+        let held = Similarity::fit_with_scale(&from, &to, &[1.0; 9], Some(990.0)).unwrap();
+        assert_eq!(held.scale, 990.0);
+        assert!((held.rotation - t.rotation).norm() < 1e-9);
         let line: Vec<V3> = (0..5).map(|k| [k as f64, 0.0, 0.0]).collect();
         assert!(Similarity::fit(&line, &line, &[1.0; 5]).is_none());
     }

@@ -22,11 +22,13 @@ pub fn register_font() {
     });
 }
 
+mod alignment;
 mod curves;
 mod difference;
 mod figures;
 mod surface;
 
+pub use alignment::alignment_picture;
 pub use curves::{
     Curve, LearningCurve, TradeoffPoint, falloff_plot, learning_curves, pareto_front, pareto_plot,
     tradeoff_curve,
