@@ -33,7 +33,7 @@ pub use curves::{
     Curve, LearningCurve, TradeoffPoint, falloff_plot, learning_curves, pareto_front, pareto_plot,
     tradeoff_curve,
 };
-pub use difference::{DifferenceStats, difference_picture};
+pub use difference::{Compared, DifferenceStats, difference_picture, difference_picture_of};
 pub use figures::{FalloffSummary, error_maps, falloff_figure};
 pub use surface::{MeshView, Panel, PanelData, model_viewer, surface_panels, viridis};
 
