@@ -658,6 +658,7 @@ pub fn draw_map(model: &ModelFile, export: &Export, path: &Path) -> Result<(), E
                 range: range_of(&radius),
                 values: radius,
                 label: "mm (mean of R, G, B)".into(),
+                missing: "no model".into(),
             },
         },
         Panel {
@@ -666,6 +667,7 @@ pub fn draw_map(model: &ModelFile, export: &Export, path: &Path) -> Result<(), E
                 range: (0.0, range_of(&log_e).1),
                 values: log_e,
                 label: "Eq. 8, mean of R, G, B".into(),
+                missing: "no conversion".into(),
             },
         },
     ];
@@ -680,6 +682,7 @@ pub fn draw_map(model: &ModelFile, export: &Export, path: &Path) -> Result<(), E
                 range: (0.0, range_of(&a).1),
                 values: a,
                 label: "log E vs Eq. 3".into(),
+                missing: "no anisotropy".into(),
             },
         });
     }

@@ -36,12 +36,12 @@ pub fn alignment_picture(out: &Aligned, png: &Path) -> Result<(), PlotError> {
         .filter(|v| v.is_finite())
         .fold(0.0, f64::max)
         .max(1e-3);
-    let kind: Vec<[f64; 3]> = near
+    let kind: Vec<usize> = near
         .iter()
         .map(|s| match s {
-            Some((_, true)) => [0.2, 0.6, 0.9],
-            Some((_, false)) => [0.9, 0.25, 0.2],
-            None => [0.85, 0.85, 0.85],
+            Some((_, true)) => 0,
+            Some((_, false)) => 1,
+            None => 2,
         })
         .collect();
     let rec = &out.record;
@@ -63,6 +63,7 @@ pub fn alignment_picture(out: &Aligned, png: &Path) -> Result<(), PlotError> {
                     values,
                     range: (0.0, top),
                     label: "residual, pixels".into(),
+                    missing: "no inlier spot nearby".into(),
                 },
             },
             Panel {
@@ -71,7 +72,14 @@ pub fn alignment_picture(out: &Aligned, png: &Path) -> Result<(), PlotError> {
                     rec.inliers,
                     rec.spots - rec.inliers
                 ),
-                data: PanelData::Rgb(kind),
+                data: PanelData::Categories {
+                    index: kind,
+                    legend: vec![
+                        ("inlier".into(), [0.2, 0.6, 0.9]),
+                        ("outlier".into(), [0.9, 0.25, 0.2]),
+                        ("no spot nearby".into(), [0.85, 0.85, 0.85]),
+                    ],
+                },
             },
         ],
         crate::render::DEFAULT_VIEW,

@@ -34,8 +34,11 @@ pub use curves::{
     tradeoff_curve,
 };
 pub use difference::{Compared, DifferenceStats, difference_picture, difference_picture_of};
-pub use figures::{FalloffSummary, error_maps, falloff_figure};
-pub use surface::{MeshView, Panel, PanelData, model_viewer, surface_panels, viridis};
+pub use figures::{ERROR_MAP_TITLE, FalloffSummary, error_maps, falloff_figure};
+pub use surface::{
+    MeshView, Panel, PanelData, STATUS_LEGEND, front_and_back, model_viewer, surface_panels,
+    surface_picture_size, viridis,
+};
 
 /// Why a picture could not be drawn.
 #[non_exhaustive]
