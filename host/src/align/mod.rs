@@ -782,34 +782,10 @@ fn finite_symmetry(
     }
 }
 
-/// A rotation `x ↦ R·x + t` as its angle, axis and a point on the axis. The axis comes from
-/// `R + Rᵀ + (1 − tr R)·I = 2(1 − cos θ)·a·aᵀ`, which (unlike the skew part nalgebra's
-/// `axis_angle` reads) does not vanish for a half turn.
+/// A rotation `x ↦ R·x + t` as its angle, axis and a point on the axis (a half turn included:
+/// [`similarity::axis_angle`]).
 fn turn_of(g: &Similarity) -> Option<crate::dataset::Turn> {
-    let r = g.rotation;
-    let angle = ((r.trace() - 1.0) / 2.0).clamp(-1.0, 1.0).acos();
-    let b = r + r.transpose() + (1.0 - r.trace()) * nalgebra::Matrix3::identity();
-    let col = (0..3).max_by(|&i, &j| b.column(i).norm().total_cmp(&b.column(j).norm()))?;
-    let mut axis = b.column(col).normalize();
-    // The sign that makes the turn right-handed (the skew part), or any for a half turn.
-    let skew = nalgebra::Vector3::new(
-        r[(2, 1)] - r[(1, 2)],
-        r[(0, 2)] - r[(2, 0)],
-        r[(1, 0)] - r[(0, 1)],
-    );
-    let sign = skew.dot(&axis);
-    if sign < -1e-9
-        || (sign.abs() <= 1e-9
-            && axis
-                .iter()
-                .find(|x| x.abs() > 1e-9)
-                .is_some_and(|x| *x < 0.0))
-    {
-        axis = -axis;
-    }
-    if !axis.iter().all(|x| x.is_finite()) || angle < 1e-9 {
-        return None;
-    }
+    let (axis, angle) = similarity::axis_angle(&g.rotation)?;
     // The point on the axis nearest the origin: (I − R)·p = t restricted to the plane ⟂ axis,
     // solved in the least-squares sense.
     let m = nalgebra::Matrix3::identity() - g.rotation;

@@ -21,8 +21,7 @@ impl Similarity {
     /// frame), e.g. `126.40° about (0.120, -0.985, 0.100)`; the angle alone does not say where the
     /// mesh was turned (issue 42).
     pub fn rotation_in_words(&self) -> String {
-        let r = nalgebra::Rotation3::from_matrix_unchecked(self.rotation);
-        match r.axis_angle() {
+        match axis_angle(&self.rotation) {
             Some((axis, angle)) => format!(
                 "{:.2}° about ({:.3}, {:.3}, {:.3})",
                 angle.to_degrees(),
@@ -33,6 +32,35 @@ impl Similarity {
             None => "none (0°)".to_string(),
         }
     }
+}
+
+/// The unit axis and angle (radians, in (0, π]) of a proper rotation; `None` for the identity.
+/// The axis comes from `R + Rᵀ + (1 − tr R)·I = 2(1 − cos θ)·a·aᵀ`, signed by the skew part:
+/// nalgebra's `axis_angle` reads only the skew part, which vanishes at a half turn, and calls a
+/// half turn no rotation at all.
+pub(crate) fn axis_angle(r: &Matrix3<f64>) -> Option<(Vector3<f64>, f64)> {
+    let angle = ((r.trace() - 1.0) / 2.0).clamp(-1.0, 1.0).acos();
+    if angle.is_nan() || angle <= 1e-9 {
+        return None;
+    }
+    let b = r + r.transpose() + (1.0 - r.trace()) * Matrix3::identity();
+    let col = (0..3).max_by(|&i, &j| b.column(i).norm().total_cmp(&b.column(j).norm()))?;
+    let mut axis = b.column(col).normalize();
+    let skew = Vector3::new(
+        r[(2, 1)] - r[(1, 2)],
+        r[(0, 2)] - r[(2, 0)],
+        r[(1, 0)] - r[(0, 1)],
+    );
+    let sign = skew.dot(&axis);
+    // A half turn has no sign: the first non-zero component made positive.
+    let first_negative = axis
+        .iter()
+        .find(|x| x.abs() > 1e-9)
+        .is_some_and(|x| *x < 0.0);
+    if sign < -1e-9 || (sign.abs() <= 1e-9 && first_negative) {
+        axis = -axis;
+    }
+    axis.iter().all(|x| x.is_finite()).then_some((axis, angle))
 }
 
 pub(crate) fn v(p: V3) -> Vector3<f64> {
@@ -200,6 +228,15 @@ mod tests {
             ..pose()
         };
         assert_eq!(id.rotation_in_words(), "none (0°)");
+        // A half turn is a rotation too (nalgebra's axis_angle calls it none).
+        let half = Similarity {
+            rotation: Rotation3::from_axis_angle(&axis, std::f64::consts::PI).into_inner(),
+            ..pose()
+        };
+        assert_eq!(
+            half.rotation_in_words(),
+            "180.00° about (0.000, 0.600, 0.800)"
+        );
     }
 
     #[test]
