@@ -52,12 +52,14 @@ pub(crate) fn axis_angle(r: &Matrix3<f64>) -> Option<(Vector3<f64>, f64)> {
         r[(1, 0)] - r[(0, 1)],
     );
     let sign = skew.dot(&axis);
-    // A half turn has no sign: the first non-zero component made positive.
-    let first_negative = axis
+    // A half turn has no sign (and one within 1e-4 rad of it prints as one): its largest
+    // component made positive.
+    let half = std::f64::consts::PI - angle < 1e-4;
+    let largest_negative = axis
         .iter()
-        .find(|x| x.abs() > 1e-9)
-        .is_some_and(|x| *x < 0.0);
-    if sign < -1e-9 || (sign.abs() <= 1e-9 && first_negative) {
+        .fold(0.0f64, |m, x| if x.abs() > m.abs() { *x } else { m })
+        < 0.0;
+    if (half && largest_negative) || (!half && sign < 0.0) {
         axis = -axis;
     }
     axis.iter().all(|x| x.is_finite()).then_some((axis, angle))
