@@ -210,6 +210,28 @@ fn an_asymmetric_blob_in_metres_is_placed_uniquely_and_fits_as_the_true_mesh() {
     assert!(rec["rms_px"].as_f64().unwrap() < 0.1, "{rec}");
     let aligned = read_mesh(&ds.join("object.aligned.obj"));
     assert!(ds.join("object.aligned.png").is_file());
+    // A known unit (issue 42): `--scale` holds the scale instead of estimating it.
+    let known = ok(&[
+        "align",
+        "--scan",
+        ds.to_str().unwrap(),
+        "--exclude-frames",
+        held,
+        "--scale",
+        "1000",
+        "--dry-run",
+        "--json",
+    ]);
+    let known: serde_json::Value = serde_json::from_str(&known).unwrap();
+    assert_eq!(
+        known["alignment"]["scale"].as_f64(),
+        Some(1000.0),
+        "{known}"
+    );
+    assert!(
+        known["alignment"]["rms_px"].as_f64().unwrap() < 0.1,
+        "{known}"
+    );
     let rms = surface_rms(&aligned, &truth);
     // No symmetry: the vertices themselves return, not only the surface.
     let vertex_rms = (aligned

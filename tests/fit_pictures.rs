@@ -60,36 +60,46 @@ fn fit_writes_an_error_map_and_a_model_picture_beside_the_report() {
     assert_eq!(listed.len(), 2, "{report}");
     assert!(report["process_peak_rss_mib"].as_f64().unwrap() > 0.0);
 
-    // Error map: one 420x420 panel under a 34-pixel title.
+    // Error map: one 420x420 panel under a 34-pixel title, seen from the front and from
+    // behind (issue 42).
     let error_png = out.join("fit-report-error-map.png");
     assert!(
         stdout.contains(&error_png.display().to_string()),
         "{stdout}"
     );
     let err = image::open(&error_png).expect("decode error map").to_rgb8();
-    assert_eq!(err.dimensions(), (420, 454));
+    let (w, h) = subsurf::plot::surface_picture_size(1, (420, 420), true);
+    assert_eq!(err.dimensions(), (w, h));
     let (colours, inked) = content(&err);
     assert!(colours > 50, "error map has {colours} colours");
-    assert!(inked > 420 * 454 / 10, "error map is nearly blank");
+    assert!(inked > (w * h / 10) as usize, "error map is nearly blank");
 
     // Model picture: four 360x400 panels (alpha, reflectance, reach, status).
     let model_png = out.join("fit-report-model.png");
     let model = image::open(&model_png).expect("decode model").to_rgb8();
-    assert_eq!(model.dimensions(), (4 * 360, 434));
+    let (w, h) = subsurf::plot::surface_picture_size(4, (360, 400), true);
+    assert_eq!(model.dimensions(), (w, h));
     let (colours, inked) = content(&model);
     assert!(colours > 50, "model picture has {colours} colours");
-    assert!(inked > 4 * 360 * 434 / 10, "model picture is nearly blank");
+    assert!(
+        inked > (w * h / 10) as usize,
+        "model picture is nearly blank"
+    );
     // Every view shows the slab in colour, not only in the grey of missing values: the panel's
-    // centre pixel is coloured (alpha, and viridis for the scalar panels).
+    // centre pixel is coloured (alpha, and viridis for the scalar panels), in the front view
+    // and in the view from behind below it (views of 400 − 30 − 82 pixels: title, legend).
+    let view_h = 400 - 30 - 82;
     for k in 0..4 {
-        let centre = model
-            .get_pixel(k * 360 + 180, 34 + 30 + (400 - 30 - 64) / 2)
-            .0;
-        let grey = centre[0] == centre[1] && centre[1] == centre[2];
-        assert!(
-            !grey || k == 0,
-            "panel {k} is grey at its centre: {centre:?}"
-        );
+        for row in 0..2 {
+            let centre = model
+                .get_pixel(k * 360 + 180, 34 + 30 + row * view_h + view_h / 2)
+                .0;
+            let grey = centre[0] == centre[1] && centre[1] == centre[2];
+            assert!(
+                !grey || k == 0,
+                "panel {k} view {row} is grey at its centre: {centre:?}"
+            );
+        }
     }
 
     // --no-pictures: the model and the reports only, no PNG (in a directory `fit` creates); the

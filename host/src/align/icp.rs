@@ -53,6 +53,8 @@ pub(crate) struct Problem<'a> {
     pub floor_mm: f64,
     /// The score's truncation, mm: 3 pixel footprints.
     pub cutoff_mm: f64,
+    /// The known scale (`subsurf align --scale`), held instead of estimated.
+    pub scale: Option<f64>,
 }
 
 /// The result of the point-to-plane refinement.
@@ -180,7 +182,7 @@ impl Problem<'_> {
                     ws.push(*wi);
                 }
             }
-            let next = Similarity::fit(&from, &to, &ws)?;
+            let next = Similarity::fit_with_scale(&from, &to, &ws, self.scale)?;
             let moved = self.largest_move(&pose, &next, &from);
             pose = next;
             if moved < 1e-3 * self.floor_mm {
@@ -298,13 +300,15 @@ impl Problem<'_> {
         centre: V3,
         radius: f64,
     ) -> Option<(Similarity, f64)> {
+        // Held unknowns (the depth when not free, the scale when known) get a zero step.
         let solve = |free: bool| {
             let (mut a, mut b) = (*info, *rhs);
-            if !free {
-                a.row_mut(7).fill(0.0);
-                a.column_mut(7).fill(0.0);
-                a[(7, 7)] = 1.0;
-                b[7] = 0.0;
+            let held = [(!free).then_some(7), self.scale.map(|_| 0)];
+            for k in held.into_iter().flatten() {
+                a.row_mut(k).fill(0.0);
+                a.column_mut(k).fill(0.0);
+                a[(k, k)] = 1.0;
+                b[k] = 0.0;
             }
             let floor = 1e-12 * a.trace().max(f64::MIN_POSITIVE);
             for k in 0..8 {

@@ -66,6 +66,9 @@ pub enum AlignError {
         /// Frames whose spot was off the laser ray.
         rays_apart: usize,
     },
+    /// The known scale is not a positive number.
+    #[error("the scale must be a positive number (mesh units to mm), not {0}")]
+    Scale(f64),
     /// No starting pose converged.
     #[error("no starting pose converged: the spot points are degenerate (on a line or a point)")]
     NoPose,
@@ -150,6 +153,10 @@ pub struct AlignOptions {
     /// spot's centre: a translucent object's light comes from below its surface), mm: `None`
     /// estimates it with the pose, a number holds it (0 for an opaque object).
     pub spot_depth: Option<f64>,
+    /// The scale from mesh units to mm when it is known (`subsurf align --scale`): `None`
+    /// estimates it with the pose, a number holds it, so the search fits rotation and
+    /// translation only (a mesh whose unit is known is not rescaled to fit noisy spots).
+    pub scale: Option<f64>,
 }
 
 impl AlignOptions {
@@ -167,6 +174,7 @@ impl AlignOptions {
             min_inlier_share: 0.5,
             max_pose_sigma_px: 0.25,
             spot_depth: None,
+            scale: None,
         }
     }
 }
@@ -254,6 +262,11 @@ pub fn align_points(
     opts: &AlignOptions,
     progress: &dyn Progress,
 ) -> Result<Aligned, AlignError> {
+    if let Some(s) = opts.scale
+        && !(s.is_finite() && s > 0.0)
+    {
+        return Err(AlignError::Scale(s));
+    }
     let n = evidence.points.len();
     if n < opts.min_spots.max(3) {
         return Err(AlignError::TooFewSpots {
@@ -279,9 +292,10 @@ pub fn align_points(
         orientation: orientation(source),
         floor_mm: 0.05 * footprint,
         cutoff_mm: 3.0 * footprint,
+        scale: opts.scale,
     };
     let pts: Vec<V3> = evidence.points.iter().map(|p| p.point).collect();
-    let starts = search::hypotheses(source, &pts);
+    let starts = search::hypotheses(source, &pts, opts.scale);
     progress.start("pose search", starts.len() as u64);
     let mut tried: Vec<(Similarity, f64)> = starts
         .par_iter()
@@ -390,7 +404,10 @@ pub fn align_points(
         &probe,
         &best,
         fit_depth,
-        axis == Some(Symmetry::TurntableAxis { fold: None }),
+        LeftOut {
+            turntable_turn: axis == Some(Symmetry::TurntableAxis { fold: None }),
+            scale: opts.scale.is_some(),
+        },
         rms_mm.max(problem.floor_mm),
         bound_mm,
     )
@@ -417,7 +434,18 @@ pub fn align_points(
             apart_mm,
         });
     }
-    let symmetry = axis.or_else(|| symmetric_motion.map(|motion| Symmetry::Other { motion }));
+    let symmetry = match (axis, symmetric_motion) {
+        (Some(a @ Symmetry::TurntableAxis { fold: None }), _) => Some(a),
+        (_, Some(motion)) => Some(Symmetry::Other { motion }),
+        (axis, None) => {
+            let tol = (0.5 * footprint).max(3.0 * best.sigma_mm);
+            let here = problem.score(&problem.matches(&pose, best.depth));
+            let fits = |p: &Similarity| {
+                problem.score(&problem.matches(p, best.depth)) - here <= best.sigma_mm.powi(2)
+            };
+            finite_symmetry(&scene, source, &probe, &pose, axis, tol, &fits)
+        }
+    };
 
     let (mesh, _) = Mesh::new(
         source.positions.iter().map(|p| pose.apply(*p)).collect(),
@@ -513,11 +541,21 @@ fn same_surface(scene: &Scene, probe: &[V3], a: &Similarity, b: &Similarity) -> 
     moved > 0.0 && surface_distance(scene, probe, a, b) < SYMMETRY_RATIO * moved
 }
 
+/// Motions [`uncertainty`] leaves out of the analysis.
+#[derive(Debug, Clone, Copy)]
+struct LeftOut {
+    /// The rotation about the turntable axis (a symmetry of the surface).
+    turntable_turn: bool,
+    /// The scale (known, not estimated).
+    scale: bool,
+}
+
 /// The pose's uncertainty carried to the vertices, and the free motion that is a symmetry (if
-/// any). The spot depth is marginalised out of the normal matrix (Schur complement) and a
-/// rotation about the turntable axis that leaves the surface unchanged (`axis_symmetric`) is
+/// any). The spot depth is marginalised out of the normal matrix (Schur complement); a
+/// rotation about the turntable axis that leaves the surface unchanged (`turntable_turn`) is
 /// projected out: it is free by construction and, tested as an eigendirection, it would come
-/// mixed with whatever its neighbours in the spectrum are. Each remaining eigendirection is
+/// mixed with whatever its neighbours in the spectrum are; a known scale (`scale`) is
+/// projected out too, as it is not estimated. Each remaining eigendirection is
 /// weighed by the vertex displacement one standard deviation along it causes; one above
 /// `bound_mm` must be a symmetry of the surface too (tested by a finite motion along it) or the
 /// pose is undetermined.
@@ -526,7 +564,7 @@ fn uncertainty(
     probe: &[V3],
     best: &Refined,
     fit_depth: bool,
-    axis_symmetric: bool,
+    left_out: LeftOut,
     sigma_mm: f64,
     bound_mm: f64,
 ) -> Result<(f64, Option<String>), AlignError> {
@@ -545,20 +583,39 @@ fn uncertainty(
         g += d.transpose() * d;
     }
     g /= verts.len().max(1) as f64;
-    // The basis the analysis works in: all of the normalised motions, or those orthogonal to
-    // the rotation about the turntable axis (ω = z; about the centre c that is τ = z × c).
-    let basis: DMatrix<f64> = if axis_symmetric {
-        let c = best.centre;
-        let u =
-            DVector::from_column_slice(&[0.0, 0.0, 0.0, best.radius, -c[1], c[0], 0.0]).normalize();
-        let proj = DMatrix::<f64>::identity(7, 7) - &u * u.transpose();
+    // The basis the analysis works in: the normalised motions orthogonal to those left out —
+    // the rotation about the turntable axis (ω = z; about the centre c that is τ = z × c) and
+    // the known scale (σ), which are orthogonal to each other.
+    let c = best.centre;
+    let out: Vec<DVector<f64>> = [
+        left_out.turntable_turn.then(|| {
+            DVector::from_column_slice(&[0.0, 0.0, 0.0, best.radius, -c[1], c[0], 0.0]).normalize()
+        }),
+        left_out
+            .scale
+            .then(|| DVector::from_column_slice(&[1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])),
+    ]
+    .into_iter()
+    .flatten()
+    .collect();
+    let basis: DMatrix<f64> = if out.is_empty() {
+        DMatrix::identity(7, 7)
+    } else {
+        let mut proj = DMatrix::<f64>::identity(7, 7);
+        for u in &out {
+            proj -= u * u.transpose();
+        }
         let svd = proj.svd(true, false);
         let uu = svd.u.unwrap_or_else(|| DMatrix::identity(7, 7));
         let mut cols: Vec<usize> = (0..7).collect();
         cols.sort_by(|&a, &b| svd.singular_values[b].total_cmp(&svd.singular_values[a]));
-        DMatrix::from_columns(&cols[..6].iter().map(|&k| uu.column(k)).collect::<Vec<_>>())
-    } else {
-        DMatrix::identity(7, 7)
+        let keep = 7 - out.len();
+        DMatrix::from_columns(
+            &cols[..keep]
+                .iter()
+                .map(|&k| uu.column(k))
+                .collect::<Vec<_>>(),
+        )
     };
     let to_d = |m: &Mat7| DMatrix::from_column_slice(7, 7, m.as_slice());
     let hb = basis.transpose() * to_d(&info) * &basis;
@@ -646,6 +703,101 @@ fn turntable_symmetry(scene: &Scene, probe: &[V3], pose: &Similarity) -> Option<
         .map(|k| Symmetry::TurntableAxis { fold: Some(k) })
 }
 
+/// Most rotations a finite symmetry is counted up to (the icosahedron's 60).
+const MAX_ROTATIONS: usize = 60;
+
+/// The finite group of rotations that leave the aligned surface unchanged, when it is more than
+/// the turntable's own `axis` fold: found among the half and quarter turns about the surface's
+/// principal axes (through its centroid: any rotation that maps a surface onto itself maps its
+/// principal axes onto principal axes, so with three distinct moments these are all of them)
+/// and the turntable's turns, each checked on the surface, then closed under composition. An
+/// ellipsoid with three distinct axes has four; the turntable's fold alone would report two.
+/// A rotation counts when it puts the surface within `tol_mm` (RMS) of itself and the spots
+/// `fit` the turned pose as well as the found one: the converse of a rival (which fits as well
+/// but puts the surface elsewhere), so a nearly symmetric pebble whose spots tell its half turn
+/// apart is not called symmetric.
+fn finite_symmetry(
+    scene: &Scene,
+    source: &Mesh,
+    probe: &[V3],
+    pose: &Similarity,
+    axis: Option<Symmetry>,
+    tol_mm: f64,
+    fits: &dyn Fn(&Similarity) -> bool,
+) -> Option<Symmetry> {
+    use nalgebra::{Rotation3, Vector3};
+    let (cm, covm) = search::surface_moments(source)?;
+    let centre = v(pose.apply([cm.x, cm.y, cm.z]));
+    let axes = pose.rotation * search::axes(&covm);
+    let about = |r: nalgebra::Matrix3<f64>, c: Vector3<f64>| Similarity {
+        scale: 1.0,
+        rotation: r,
+        translation: c - r * c,
+    };
+    let mut candidates: Vec<Similarity> = search::axis_rotations()
+        .into_iter()
+        .map(|s| about(axes * s * axes.transpose(), centre))
+        .collect();
+    if let Some(Symmetry::TurntableAxis { fold: Some(k) }) = axis {
+        candidates.extend((1..k).map(|j| {
+            let r = Rotation3::from_axis_angle(
+                &Vector3::z_axis(),
+                360f64.to_radians() / f64::from(k) * f64::from(j),
+            );
+            about(r.into_inner(), Vector3::zeros())
+        }));
+    }
+    let rho = rms_radius(probe).max(1e-300) * pose.scale;
+    let same = |a: &Similarity, b: &Similarity| {
+        pose_distance(probe, &pose.then(a), &pose.then(b)) < 0.05 * rho
+    };
+    let mut group = vec![Similarity::identity()];
+    for g in candidates {
+        if !group.iter().any(|h| same(h, &g))
+            && surface_distance(scene, probe, pose, &pose.then(&g)) < tol_mm
+            && fits(&pose.then(&g))
+        {
+            group.push(g);
+        }
+    }
+    // Close under composition: the product of two symmetries is one.
+    let mut k = 0;
+    while k < group.len() && group.len() < MAX_ROTATIONS {
+        for j in 0..group.len() {
+            let g = group[k].then(&group[j]);
+            if !group.iter().any(|h| same(h, &g)) {
+                group.push(g);
+            }
+        }
+        k += 1;
+    }
+    let poses = group.len() as u32;
+    match axis {
+        Some(Symmetry::TurntableAxis { fold: Some(k) }) if poses <= k => axis,
+        _ if poses <= 1 => None,
+        _ => Some(Symmetry::Rotations {
+            poses,
+            turns: group[1..].iter().filter_map(turn_of).collect(),
+        }),
+    }
+}
+
+/// A rotation `x ↦ R·x + t` as its angle, axis and a point on the axis (a half turn included:
+/// [`similarity::axis_angle`]).
+fn turn_of(g: &Similarity) -> Option<crate::dataset::Turn> {
+    let (axis, angle) = similarity::axis_angle(&g.rotation)?;
+    // The point on the axis nearest the origin: (I − R)·p = t restricted to the plane ⟂ axis,
+    // solved in the least-squares sense.
+    let m = nalgebra::Matrix3::identity() - g.rotation;
+    let p = m.svd(true, true).solve(&g.translation, 1e-9).ok()?;
+    let p = p - axis * axis.dot(&p);
+    Some(crate::dataset::Turn {
+        degrees: angle.to_degrees(),
+        axis: [axis.x, axis.y, axis.z],
+        through: [p.x, p.y, p.z],
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -701,6 +853,7 @@ mod tests {
             min_inlier_share: 0.5,
             max_pose_sigma_px: 0.25,
             spot_depth: None,
+            scale: None,
         }
     }
 
@@ -748,6 +901,145 @@ mod tests {
         assert_eq!(out.record.symmetry, None);
         assert!(out.record.inlier_share > 0.85 && out.record.inlier_share < 0.95);
         assert!(out.record.rms_mm < 0.05 && out.record.pose_sigma_mm < 0.05);
+    }
+
+    /// An ellipsoid with semi-axes `abc` along x, y, z: an icosphere (an icosahedron with each
+    /// face split in 4, `levels` times; its half turns about x, y and z map it onto itself)
+    /// scaled, so its mesh has exactly the ellipsoid's symmetries.
+    fn ellipsoid(abc: [f64; 3], levels: usize) -> Mesh {
+        let t = (1.0 + 5f64.sqrt()) / 2.0;
+        let mut pos: Vec<V3> = vec![
+            [-1.0, t, 0.0],
+            [1.0, t, 0.0],
+            [-1.0, -t, 0.0],
+            [1.0, -t, 0.0],
+            [0.0, -1.0, t],
+            [0.0, 1.0, t],
+            [0.0, -1.0, -t],
+            [0.0, 1.0, -t],
+            [t, 0.0, -1.0],
+            [t, 0.0, 1.0],
+            [-t, 0.0, -1.0],
+            [-t, 0.0, 1.0],
+        ];
+        let mut tris: Vec<[u32; 3]> = vec![
+            [0, 11, 5],
+            [0, 5, 1],
+            [0, 1, 7],
+            [0, 7, 10],
+            [0, 10, 11],
+            [1, 5, 9],
+            [5, 11, 4],
+            [11, 10, 2],
+            [10, 7, 6],
+            [7, 1, 8],
+            [3, 9, 4],
+            [3, 4, 2],
+            [3, 2, 6],
+            [3, 6, 8],
+            [3, 8, 9],
+            [4, 9, 5],
+            [2, 4, 11],
+            [6, 2, 10],
+            [8, 6, 7],
+            [9, 8, 1],
+        ];
+        for _ in 0..levels {
+            let mut mid = std::collections::HashMap::new();
+            let mut next = Vec::new();
+            for tri in &tris {
+                let m: Vec<u32> = (0..3)
+                    .map(|k| {
+                        let (a, b) = (tri[k], tri[(k + 1) % 3]);
+                        *mid.entry((a.min(b), a.max(b))).or_insert_with(|| {
+                            let (p, q) = (pos[a as usize], pos[b as usize]);
+                            pos.push(std::array::from_fn(|i| 0.5 * (p[i] + q[i])));
+                            pos.len() as u32 - 1
+                        })
+                    })
+                    .collect();
+                next.extend([
+                    [tri[0], m[0], m[2]],
+                    [tri[1], m[1], m[0]],
+                    [tri[2], m[2], m[1]],
+                    [m[0], m[1], m[2]],
+                ]);
+            }
+            tris = next;
+        }
+        let pos = pos
+            .iter()
+            .map(|p| {
+                let n = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
+                std::array::from_fn(|i| abc[i] * p[i] / n)
+            })
+            .collect();
+        Mesh::new(pos, tris).0
+    }
+
+    /// Issue 42: an ellipsoid with three distinct axes has four proper symmetries (the identity
+    /// and a half turn about each axis), not the two that the turntable axis alone shows; lying
+    /// tilted off the axis it has no turntable symmetry at all and still four.
+    #[test]
+    fn an_ellipsoid_has_four_poses_not_two() {
+        let upright = ellipsoid([15.0, 10.0, 6.0], 3);
+        let tilted = moved(
+            &upright,
+            &Similarity {
+                scale: 1.0,
+                rotation: Rotation3::from_euler_angles(0.4, 0.3, 0.9).into_inner(),
+                translation: Vector3::new(3.0, -2.0, 8.0),
+            },
+        );
+        for (name, truth) in [("upright", upright), ("tilted", tilted)] {
+            let ev = spots(&truth, 1, 0.03);
+            let user = moved(&truth, &user_pose());
+            let out = align_points(&user, "object.obj", ev, &opts(), &()).unwrap();
+            assert!(
+                rms_from(&truth, &out.mesh) < 0.03,
+                "{name} {:?}",
+                out.record
+            );
+            match &out.record.symmetry {
+                Some(Symmetry::Rotations { poses: 4, turns }) => {
+                    assert_eq!(turns.len(), 3, "{name}");
+                    for t in turns {
+                        assert!((t.degrees - 180.0).abs() < 1.0, "{name} {t:?}");
+                    }
+                }
+                s => panic!("{name}: {s:?}"),
+            }
+            let words = out.record.symmetry.as_ref().unwrap().to_string();
+            assert!(words.starts_with("4 poses"), "{words}");
+        }
+    }
+
+    /// `--scale`: a known scale is held, not estimated. Told 1 % more than the truth, the pose
+    /// keeps exactly that scale (an estimate would return ~1000); told the truth, it places the
+    /// mesh as well as the free search does.
+    #[test]
+    fn a_known_scale_is_held() {
+        let truth = SimObject::Blob {
+            size: 30.0,
+            rings: 16,
+        }
+        .mesh();
+        let ev = spots(&truth, 1, 0.03);
+        let user = moved(&truth, &user_pose());
+        let mut o = opts();
+        o.scale = Some(1000.0);
+        let out = align_points(&user, "object.obj", ev.clone(), &o, &()).unwrap();
+        assert_eq!(out.record.scale, 1000.0);
+        assert!(rms_from(&truth, &out.mesh) < 0.02, "{:?}", out.record);
+        assert_eq!(out.record.symmetry, None);
+        o.scale = Some(1010.0);
+        o.max_rms_px = 10.0;
+        o.max_pose_sigma_px = 10.0;
+        let off = align_points(&user, "object.obj", ev.clone(), &o, &()).unwrap();
+        assert_eq!(off.record.scale, 1010.0);
+        o.scale = Some(-1.0);
+        let e = align_points(&user, "object.obj", ev, &o, &()).unwrap_err();
+        assert!(matches!(e, AlignError::Scale(_)), "{e}");
     }
 
     #[test]

@@ -50,7 +50,7 @@ pub(crate) fn point_moments(points: &[V3]) -> Option<(Vector3<f64>, Matrix3<f64>
 }
 
 /// Eigenvectors as columns, largest eigenvalue first, made right-handed.
-fn axes(cov: &Matrix3<f64>) -> Matrix3<f64> {
+pub(crate) fn axes(cov: &Matrix3<f64>) -> Matrix3<f64> {
     let eig = SymmetricEigen::new(*cov);
     let mut order = [0usize, 1, 2];
     order.sort_by(|&i, &j| eig.eigenvalues[j].total_cmp(&eig.eigenvalues[i]));
@@ -87,9 +87,9 @@ pub(crate) fn axis_rotations() -> Vec<Matrix3<f64>> {
     out
 }
 
-/// The starting poses: 24 axis matchings × scales 0.8, 1, 1.25 of the spread ratio, each placing
-/// the mesh's centroid on the points'.
-pub(crate) fn hypotheses(mesh: &Mesh, points: &[V3]) -> Vec<Similarity> {
+/// The starting poses: 24 axis matchings × scales 0.8, 1, 1.25 of the spread ratio (or the
+/// one known `scale`), each placing the mesh's centroid on the points'.
+pub(crate) fn hypotheses(mesh: &Mesh, points: &[V3], scale: Option<f64>) -> Vec<Similarity> {
     let (Some((cm, covm)), Some((cp, covp))) = (surface_moments(mesh), point_moments(points))
     else {
         return Vec::new();
@@ -98,12 +98,15 @@ pub(crate) fn hypotheses(mesh: &Mesh, points: &[V3]) -> Vec<Similarity> {
     if !(spread.is_finite() && spread > 0.0) {
         return Vec::new();
     }
+    let scales = match scale {
+        Some(s) => vec![s],
+        None => vec![0.8 * spread, spread, 1.25 * spread],
+    };
     let (um, up) = (axes(&covm), axes(&covp));
     let mut out = Vec::new();
     for s in axis_rotations() {
         let rotation = up * s * um.transpose();
-        for k in [0.8, 1.0, 1.25] {
-            let scale = spread * k;
+        for &scale in &scales {
             out.push(Similarity {
                 scale,
                 rotation,

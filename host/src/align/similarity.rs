@@ -21,8 +21,7 @@ impl Similarity {
     /// frame), e.g. `126.40° about (0.120, -0.985, 0.100)`; the angle alone does not say where the
     /// mesh was turned (issue 42).
     pub fn rotation_in_words(&self) -> String {
-        let r = nalgebra::Rotation3::from_matrix_unchecked(self.rotation);
-        match r.axis_angle() {
+        match axis_angle(&self.rotation) {
             Some((axis, angle)) => format!(
                 "{:.2}° about ({:.3}, {:.3}, {:.3})",
                 angle.to_degrees(),
@@ -33,6 +32,37 @@ impl Similarity {
             None => "none (0°)".to_string(),
         }
     }
+}
+
+/// The unit axis and angle (radians, in (0, π]) of a proper rotation; `None` for the identity.
+/// The axis comes from `R + Rᵀ + (1 − tr R)·I = 2(1 − cos θ)·a·aᵀ`, signed by the skew part:
+/// nalgebra's `axis_angle` reads only the skew part, which vanishes at a half turn, and calls a
+/// half turn no rotation at all.
+pub(crate) fn axis_angle(r: &Matrix3<f64>) -> Option<(Vector3<f64>, f64)> {
+    let angle = ((r.trace() - 1.0) / 2.0).clamp(-1.0, 1.0).acos();
+    if angle.is_nan() || angle <= 1e-9 {
+        return None;
+    }
+    let b = r + r.transpose() + (1.0 - r.trace()) * Matrix3::identity();
+    let col = (0..3).max_by(|&i, &j| b.column(i).norm().total_cmp(&b.column(j).norm()))?;
+    let mut axis = b.column(col).normalize();
+    let skew = Vector3::new(
+        r[(2, 1)] - r[(1, 2)],
+        r[(0, 2)] - r[(2, 0)],
+        r[(1, 0)] - r[(0, 1)],
+    );
+    let sign = skew.dot(&axis);
+    // A half turn has no sign (and one within 1e-4 rad of it prints as one): its largest
+    // component made positive.
+    let half = std::f64::consts::PI - angle < 1e-4;
+    let largest_negative = axis
+        .iter()
+        .fold(0.0f64, |m, x| if x.abs() > m.abs() { *x } else { m })
+        < 0.0;
+    if (half && largest_negative) || (!half && sign < 0.0) {
+        axis = -axis;
+    }
+    axis.iter().all(|x| x.is_finite()).then_some((axis, angle))
 }
 
 pub(crate) fn v(p: V3) -> Vector3<f64> {
@@ -93,6 +123,15 @@ impl Similarity {
         }
     }
 
+    /// `self` followed by `g` (`x ↦ g(self(x))`).
+    pub fn then(&self, g: &Similarity) -> Similarity {
+        Similarity {
+            scale: g.scale * self.scale,
+            rotation: g.rotation * self.rotation,
+            translation: g.scale * g.rotation * self.translation + g.translation,
+        }
+    }
+
     /// Are every number finite and the scale positive?
     pub fn is_finite(&self) -> bool {
         self.scale.is_finite()
@@ -107,6 +146,18 @@ impl Similarity {
     /// zero). Hand-written as a few lines on nalgebra's SVD: no crate of the field offers the
     /// weighted similarity fit.
     pub fn fit(from: &[V3], to: &[V3], w: &[f64]) -> Option<Similarity> {
+        Similarity::fit_with_scale(from, to, w, None)
+    }
+
+    /// [`Similarity::fit`] with the scale held at `scale` when one is given (`subsurf align
+    /// --scale`): the rotation of the weighted fit does not depend on the scale, and the
+    /// translation then follows from the centroids.
+    pub fn fit_with_scale(
+        from: &[V3],
+        to: &[V3],
+        w: &[f64],
+        scale: Option<f64>,
+    ) -> Option<Similarity> {
         let total: f64 = w.iter().sum();
         if total.is_nan() || total <= 0.0 || from.len() < 3 {
             return None;
@@ -142,7 +193,8 @@ impl Similarity {
             return None;
         }
         let rotation = u * d * vt;
-        let scale = (sv[0] * d[(0, 0)] + sv[1] * d[(1, 1)] + sv[2] * d[(2, 2)]) / var;
+        let scale =
+            scale.unwrap_or((sv[0] * d[(0, 0)] + sv[1] * d[(1, 1)] + sv[2] * d[(2, 2)]) / var);
         let out = Similarity {
             scale,
             rotation,
@@ -178,6 +230,15 @@ mod tests {
             ..pose()
         };
         assert_eq!(id.rotation_in_words(), "none (0°)");
+        // A half turn is a rotation too (nalgebra's axis_angle calls it none).
+        let half = Similarity {
+            rotation: Rotation3::from_axis_angle(&axis, std::f64::consts::PI).into_inner(),
+            ..pose()
+        };
+        assert_eq!(
+            half.rotation_in_words(),
+            "180.00° about (0.000, 0.600, 0.800)"
+        );
     }
 
     #[test]
@@ -199,6 +260,9 @@ mod tests {
             assert!((v(back) - v(*p)).norm() < 1e-12);
         }
         // Collinear points fix no rotation about their line.
+        let held = Similarity::fit_with_scale(&from, &to, &[1.0; 9], Some(990.0)).unwrap();
+        assert_eq!(held.scale, 990.0);
+        assert!((held.rotation - t.rotation).norm() < 1e-9);
         let line: Vec<V3> = (0..5).map(|k| [k as f64, 0.0, 0.0]).collect();
         assert!(Similarity::fit(&line, &line, &[1.0; 5]).is_none());
     }

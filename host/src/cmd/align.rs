@@ -5,7 +5,6 @@ use std::path::PathBuf;
 
 use anyhow::{Context, anyhow};
 use subsurf::align::{AlignOptions, align};
-use subsurf::dataset::Symmetry;
 
 use super::progress::Bar;
 
@@ -44,6 +43,10 @@ pub struct Args {
     /// a number holds it (0 for an opaque object).
     #[arg(long, default_value = "auto")]
     pub spot_depth: String,
+    /// The scale from mesh units to mm when it is known (1000 for a mesh in metres, 25.4 in
+    /// inches): held instead of estimated, so the search fits rotation and translation only.
+    #[arg(long)]
+    pub scale: Option<f64>,
     /// Override the dataset's noise floor (spots must peak 10× above it).
     #[arg(long)]
     pub noise_floor: Option<f64>,
@@ -85,6 +88,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 })?,
         ),
     };
+    opts.scale = args.scale;
     let bar = if args.json {
         Bar::hidden()
     } else {
@@ -104,7 +108,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let picture = match &written {
         Some(mesh_path) if !args.no_picture => {
             let png = mesh_path.with_extension("png");
-            draw(&out, &png).with_context(|| format!("drawing {}", png.display()))?;
+            subsurf::plot::alignment_picture(&out, &png)
+                .with_context(|| format!("drawing {}", png.display()))?;
             Some(png)
         }
         _ => None,
@@ -157,20 +162,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
          uncertainty {:.4} mm at the vertices; spots seen {:.3} mm below the surface",
         rec.rms_mm, rec.rms_px, args.max_rms_px, rec.pose_sigma_mm, rec.spot_depth_mm
     );
-    match &rec.symmetry {
-        Some(Symmetry::TurntableAxis { fold: None }) => println!(
-            "symmetry: the surface is a body of revolution about the turntable axis; the scan \
-             cannot fix the angle about it, and every angle puts the same surface in the same place"
-        ),
-        Some(Symmetry::TurntableAxis { fold: Some(k) }) => println!(
-            "symmetry: {k}-fold about the turntable axis; the {k} poses put the same surface in \
-             the same place"
-        ),
-        Some(Symmetry::Other { motion }) => println!(
-            "symmetry: {motion} leaves the surface unchanged; the scan cannot fix it, and need not"
-        ),
-        Some(s) => println!("symmetry: {s:?}"),
-        None => {}
+    if let Some(sym) = &rec.symmetry {
+        println!("symmetry: {sym}");
     }
     match written {
         Some(p) => {
@@ -184,82 +177,5 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
         None => println!("dry run: nothing written"),
     }
-    Ok(())
-}
-
-/// The aligned mesh with the spots on it: around each spot (within two median edges) its residual
-/// in pixels, and which spots were inliers and which outliers.
-fn draw(out: &subsurf::align::Aligned, png: &std::path::Path) -> anyhow::Result<()> {
-    use subsurf::plot::{MeshView, Panel, PanelData, surface_panels};
-    let mesh = &out.mesh;
-    let mut edges: Vec<f64> = mesh
-        .triangles
-        .iter()
-        .flat_map(|t| {
-            [(0, 1), (1, 2), (2, 0)].map(|(a, b)| {
-                subsurf::geometry::dist(
-                    mesh.positions[t[a] as usize],
-                    mesh.positions[t[b] as usize],
-                )
-            })
-        })
-        .collect();
-    edges.sort_by(f64::total_cmp);
-    let reach = 2.0 * edges.get(edges.len() / 2).copied().unwrap_or(1.0);
-    let near = out.spots_on_mesh(reach);
-    let values: Vec<f64> = near
-        .iter()
-        .map(|s| match s {
-            Some((px, true)) => *px,
-            _ => f64::NAN,
-        })
-        .collect();
-    let top = values
-        .iter()
-        .copied()
-        .filter(|v| v.is_finite())
-        .fold(0.0, f64::max)
-        .max(1e-3);
-    let kind: Vec<[f64; 3]> = near
-        .iter()
-        .map(|s| match s {
-            Some((_, true)) => [0.2, 0.6, 0.9],
-            Some((_, false)) => [0.9, 0.25, 0.2],
-            None => [0.85, 0.85, 0.85],
-        })
-        .collect();
-    let rec = &out.record;
-    surface_panels(
-        png,
-        &format!(
-            "{} aligned: {} spots, RMS {:.3} px ({:.4} mm)",
-            rec.source_mesh, rec.spots, rec.rms_px, rec.rms_mm
-        ),
-        MeshView {
-            positions: &mesh.positions,
-            normals: &mesh.normals,
-            faces: &mesh.triangles,
-        },
-        &[
-            Panel {
-                title: "inlier spots: distance from the surface".into(),
-                data: PanelData::Scalar {
-                    values,
-                    range: (0.0, top),
-                    label: "residual, pixels".into(),
-                },
-            },
-            Panel {
-                title: format!(
-                    "spots: {} inliers (blue), {} outliers (red)",
-                    rec.inliers,
-                    rec.spots - rec.inliers
-                ),
-                data: PanelData::Rgb(kind),
-            },
-        ],
-        subsurf::render::DEFAULT_VIEW,
-        (420, 440),
-    )?;
     Ok(())
 }

@@ -164,6 +164,7 @@ pub fn run(args: Args) -> Result<()> {
     }
     let mut comparison = None;
     let mut frames = None;
+    let bar = Bar::with_template("{msg:>16} {bar:40} {pos}/{len} {elapsed}");
     match &blender {
         Some(b) => {
             if let Some(scan) = &args.scan {
@@ -180,7 +181,6 @@ pub fn run(args: Args) -> Result<()> {
                     cache: args.cache.clone(),
                     ..Default::default()
                 };
-                let bar = Bar::with_template("{msg:>16} {bar:40} {pos}/{len} {elapsed}");
                 let (_, cmp) = export::frames::render_and_judge(
                     &ds,
                     &model,
@@ -208,7 +208,9 @@ pub fn run(args: Args) -> Result<()> {
                     method: transport,
                     eta: opts.eta,
                 };
-                let c = export::compare(&model, &opts, &ropts, b, &args.out, args.noise)?;
+                let c = export::compare_with(&model, &opts, &ropts, b, &args.out, args.noise, &bar);
+                bar.finish_and_clear();
+                let c = c?;
                 println!(
                     "Cycles against subsurf's render: mean relative pixel error {} over lit \
                      pixels{}",

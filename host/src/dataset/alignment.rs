@@ -29,6 +29,68 @@ pub enum Symmetry {
         /// Which motion, in words.
         motion: String,
     },
+    /// A finite set of rotations that is not only turns about the turntable axis leaves the
+    /// surface unchanged: `poses` of them, the identity included (4 for an ellipsoid with three
+    /// distinct axes: the identity and a half turn about each axis), each putting the same
+    /// surface in the same place. Reported so a user is not told "2-fold" of an object the scan
+    /// cannot tell apart in four poses.
+    Rotations {
+        /// How many poses put the same surface in the same place, the identity included.
+        poses: u32,
+        /// The rotations other than the identity (object frame).
+        turns: Vec<Turn>,
+    },
+}
+
+/// One rotation of a [`Symmetry::Rotations`]: `degrees` about the line along `axis` through
+/// `through` (object frame, mm).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Turn {
+    /// The angle, degrees (0..=180).
+    pub degrees: f64,
+    /// The unit axis.
+    pub axis: [f64; 3],
+    /// A point on the axis, mm.
+    pub through: [f64; 3],
+}
+
+impl std::fmt::Display for Symmetry {
+    /// The symmetry in words, for `subsurf align`'s report.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Symmetry::TurntableAxis { fold: None } => write!(
+                f,
+                "the surface is a body of revolution about the turntable axis; the scan cannot \
+                 fix the angle about it, and every angle puts the same surface in the same place"
+            ),
+            Symmetry::TurntableAxis { fold: Some(k) } => write!(
+                f,
+                "{k}-fold about the turntable axis; the {k} poses put the same surface in the \
+                 same place"
+            ),
+            Symmetry::Other { motion } => write!(
+                f,
+                "{motion} leaves the surface unchanged; the scan cannot fix it, and need not"
+            ),
+            Symmetry::Rotations { poses, turns } => {
+                write!(
+                    f,
+                    "{poses} poses put the same surface in the same place (the scan cannot tell \
+                     them apart, and need not): the found one"
+                )?;
+                for t in turns {
+                    let [a, b, c] = t.axis;
+                    let [x, y, z] = t.through;
+                    write!(
+                        f,
+                        "; {:.0}° about ({a:.2}, {b:.2}, {c:.2}) through ({x:.2}, {y:.2}, {z:.2}) mm",
+                        t.degrees
+                    )?;
+                }
+                Ok(())
+            }
+        }
+    }
 }
 
 /// What `subsurf align` found: the similarity transform from the source mesh's own frame to the

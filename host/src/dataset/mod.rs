@@ -20,7 +20,7 @@ mod ljpeg;
 mod mesh;
 mod writer;
 
-pub use alignment::{Alignment, Symmetry, aligned_name};
+pub use alignment::{Alignment, Symmetry, Turn, aligned_name};
 pub use camera_file::{CLIPPED, FileKind, Levels};
 pub use hdr::{Bracket, MergeOptions, merge_hdr};
 pub use image::{

@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use super::{BUILD_SCRIPT, ExportError};
+use crate::progress::Progress;
 use crate::render::Image;
 
 /// The environment variable naming the Blender executable to use.
@@ -101,6 +102,20 @@ impl Blender {
     /// Runs the export folder's build script: writes its `.blend` and, with `run.render`, the
     /// Cycles render. Blender's own output goes into `blender.log` in the folder.
     pub fn run(&self, dir: &Path, run: &Run) -> Result<(), ExportError> {
+        self.run_with(dir, run, &())
+    }
+
+    /// [`Blender::run`], reporting the render's samples to `progress` as Cycles prints them
+    /// (`… | Sample 12/64`): a render takes a minute and its caller would otherwise show nothing.
+    /// A backup Blender left beside a `.blend` it wrote (`model.blend1`: the script turns
+    /// backups off, but a Blender whose preferences keep them still writes one) is removed: the
+    /// export folder holds what the export made, and the `.blend` is rewritten on every run.
+    pub fn run_with(
+        &self,
+        dir: &Path,
+        run: &Run,
+        progress: &dyn Progress,
+    ) -> Result<(), ExportError> {
         let script = dir.join(BUILD_SCRIPT);
         let mut cmd = Command::new(&self.path);
         cmd.args([
@@ -128,30 +143,85 @@ impl Blender {
         if let Some(k) = run.frame {
             cmd.args(["--frame", &k.to_string()]);
         }
-        let out = cmd
-            .output()
+        let (status, text) = run_reporting(cmd, progress)
             .map_err(|e| ExportError::Blender(format!("running {}: {e}", self.path.display())))?;
         let log = dir.join("blender.log");
-        let mut text = out.stdout.clone();
-        text.extend_from_slice(&out.stderr);
         std::fs::write(&log, &text).map_err(|e| ExportError::io(&log, e))?;
         let printed = String::from_utf8_lossy(&text);
+        for blend in printed
+            .lines()
+            .filter_map(|l| l.strip_prefix("SUBSURF wrote "))
+        {
+            let backup = PathBuf::from(format!("{}1", blend.trim()));
+            if backup.extension().is_some_and(|e| e == "blend1") && backup.is_file() {
+                std::fs::remove_file(&backup).map_err(|e| ExportError::io(&backup, e))?;
+            }
+        }
         let rendered = run
             .render
             .as_ref()
             .is_none_or(|_| printed.contains("SUBSURF rendered"));
-        if !out.status.success() || !printed.contains("SUBSURF wrote") || !rendered {
+        if !status.success() || !printed.contains("SUBSURF wrote") || !rendered {
             let tail: Vec<&str> = printed.lines().rev().take(12).collect();
             return Err(ExportError::Blender(format!(
                 "{} failed ({}); see {}:\n{}",
                 self.version_line,
-                out.status,
+                status,
                 log.display(),
                 tail.into_iter().rev().collect::<Vec<_>>().join("\n")
             )));
         }
         Ok(())
     }
+}
+
+/// Runs `cmd`, its stdout read line by line as it comes so the samples Cycles reports reach
+/// `progress`; returns the exit status and stdout followed by stderr (read on a thread of its
+/// own, so neither pipe fills while the other is read).
+fn run_reporting(
+    mut cmd: Command,
+    progress: &dyn Progress,
+) -> std::io::Result<(std::process::ExitStatus, Vec<u8>)> {
+    use std::io::{BufRead, Read};
+    use std::process::Stdio;
+    let mut child = cmd.stdout(Stdio::piped()).stderr(Stdio::piped()).spawn()?;
+    let mut err_pipe = child.stderr.take();
+    let err = std::thread::spawn(move || {
+        let mut buf = Vec::new();
+        if let Some(p) = err_pipe.as_mut() {
+            let _ = p.read_to_end(&mut buf);
+        }
+        buf
+    });
+    let mut text = Vec::new();
+    if let Some(out) = child.stdout.take() {
+        let mut reader = std::io::BufReader::new(out);
+        let (mut line, mut last) = (Vec::new(), 0);
+        while reader.read_until(b'\n', &mut line)? > 0 {
+            if let Some((done, of)) = samples_done(&String::from_utf8_lossy(&line)) {
+                progress.set_length(of);
+                // Forward as increments, which a display without a terminal prints now and
+                // then; a new tile or pass starting over sets the position.
+                if done >= last {
+                    progress.inc(done - last);
+                } else {
+                    progress.set_position(done);
+                }
+                last = done;
+            }
+            text.append(&mut line);
+        }
+    }
+    let status = child.wait()?;
+    text.extend(err.join().unwrap_or_default());
+    Ok((status, text))
+}
+
+/// `(done, of)` from a Cycles status line ending `| Sample 12/64`.
+fn samples_done(line: &str) -> Option<(u64, u64)> {
+    let (_, rest) = line.rsplit_once("Sample ")?;
+    let (done, of) = rest.trim().split_once('/')?;
+    Some((done.parse().ok()?, of.trim().parse().ok()?))
 }
 
 /// A Cycles render read back: linear radiance, covered where its alpha is at least ½.
@@ -198,6 +268,65 @@ mod tests {
         assert_eq!(parse_version("Blender 3.4.1"), Some((3, 4)));
         assert_eq!(parse_version("Blender 4.2.0 LTS"), Some((4, 2)));
         assert_eq!(parse_version("Blender"), None);
+    }
+
+    /// The samples of a Cycles status line; other lines have none.
+    #[test]
+    fn samples_are_read_from_status_lines() {
+        let l = "Fra:1 Mem:19.23M (Peak 24.55M) | Time:00:00.16 | Remaining:00:00.10 | \
+                 Mem:4.58M, Peak:4.58M | subsurf, ViewLayer | Sample 12/64";
+        assert_eq!(samples_done(l), Some((12, 64)));
+        assert_eq!(samples_done("Blender quit"), None);
+    }
+
+    /// Records what a run reported.
+    #[derive(Default)]
+    struct Seen(std::sync::Mutex<Vec<(u64, u64)>>);
+    impl Progress for Seen {
+        fn set_position(&self, pos: u64) {
+            self.0.lock().unwrap().push((pos, 0));
+        }
+        fn set_length(&self, len: u64) {
+            self.0.lock().unwrap().push((len, 1));
+        }
+        fn inc(&self, n: u64) {
+            self.0.lock().unwrap().push((n, 2));
+        }
+    }
+
+    /// Issue 42: a run reports Cycles' samples as they are printed, and leaves no `.blend1`
+    /// beside the `.blend` it wrote (a stand-in Blender that writes one, as a Blender keeping
+    /// backups does).
+    #[cfg(unix)]
+    #[test]
+    fn a_run_reports_samples_and_leaves_no_backup() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = tempfile::tempdir().unwrap();
+        let fake = dir.path().join("blender");
+        std::fs::write(
+            &fake,
+            "#!/bin/sh\n\
+             while [ \"$1\" != --dir ]; do shift; done; d=\"$2\"\n\
+             touch \"$d/model.blend\" \"$d/model.blend1\" \"$d/keep.blend1\"\n\
+             echo 'Fra:1 | subsurf, ViewLayer | Sample 3/8'\n\
+             echo 'Fra:1 | subsurf, ViewLayer | Sample 8/8'\n\
+             echo \"SUBSURF wrote $d/model.blend\"\n",
+        )
+        .unwrap();
+        std::fs::set_permissions(&fake, std::fs::Permissions::from_mode(0o755)).unwrap();
+        let b = Blender {
+            path: fake,
+            version: (3, 4),
+            version_line: "Blender 3.4.1".into(),
+        };
+        let seen = Seen::default();
+        b.run_with(dir.path(), &Run::default(), &seen).unwrap();
+        assert!(dir.path().join("model.blend").is_file());
+        assert!(!dir.path().join("model.blend1").exists());
+        // Only the backup of what this run wrote.
+        assert!(dir.path().join("keep.blend1").is_file());
+        let seen = seen.0.into_inner().unwrap();
+        assert_eq!(seen, [(8, 1), (3, 2), (8, 1), (5, 2)]);
     }
 
     /// A missing executable is an error naming it, not a panic.

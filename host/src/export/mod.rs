@@ -502,6 +502,22 @@ pub fn compare(
     dir: &Path,
     noise: bool,
 ) -> Result<Comparison, ExportError> {
+    compare_with(model, opts, render_options, blender, dir, noise, &())
+}
+
+/// [`compare`], reporting its stages to `progress` (subsurf's render, then each Cycles render
+/// sample by sample: together they take a minute, `subsurf export --render`'s longest wait).
+#[allow(clippy::too_many_arguments)]
+pub fn compare_with(
+    model: &ModelFile,
+    opts: &ExportOptions,
+    render_options: &RenderOptions,
+    blender: &Blender,
+    dir: &Path,
+    noise: bool,
+    progress: &dyn Progress,
+) -> Result<Comparison, ExportError> {
+    progress.start("subsurf render", 0);
     let t0 = std::time::Instant::now();
     let out = render::render(
         model,
@@ -515,7 +531,8 @@ pub fn compare(
     let subsurf_seconds = t0.elapsed().as_secs_f64();
     let cycles_exr = dir.join("cycles.exr");
     let t1 = std::time::Instant::now();
-    blender.run(
+    progress.start("Cycles", u64::from(opts.samples));
+    blender.run_with(
         dir,
         &Run {
             render: Some(cycles_exr.clone()),
@@ -525,6 +542,7 @@ pub fn compare(
             seed: 0,
             frame: None,
         },
+        progress,
     )?;
     let cycles_seconds = t1.elapsed().as_secs_f64();
     let cycles = read_render(&cycles_exr)?;
@@ -536,7 +554,8 @@ pub fn compare(
     }
     let cycles_noise = if noise {
         let second = dir.join("cycles-seed1.exr");
-        blender.run(
+        progress.start("Cycles, seed 1", u64::from(opts.samples));
+        blender.run_with(
             dir,
             &Run {
                 render: Some(second.clone()),
@@ -546,6 +565,7 @@ pub fn compare(
                 seed: 1,
                 frame: None,
             },
+            progress,
         )?;
         let b = read_render(&second)?;
         let _ = std::fs::remove_file(&second);
@@ -562,7 +582,16 @@ pub fn compare(
     render::save_png(&cycles, Some(exposure), &cycles_png)?;
     render::save_png(&out.image, Some(exposure), &subsurf_png)?;
     let diff_png = dir.join("difference.png");
-    let d = crate::plot::difference_picture(&diff_png, &cycles, &out.image, LIT_FLOOR)?;
+    let d = crate::plot::difference_picture_of(
+        &diff_png,
+        &cycles,
+        &out.image,
+        LIT_FLOOR,
+        crate::plot::Compared {
+            image: "Cycles",
+            reference: "subsurf",
+        },
+    )?;
     let (mut either, mut one) = (0usize, 0usize);
     for (a, b) in cycles.covered.iter().zip(&out.image.covered) {
         if *a || *b {
@@ -629,6 +658,7 @@ pub fn draw_map(model: &ModelFile, export: &Export, path: &Path) -> Result<(), E
                 range: range_of(&radius),
                 values: radius,
                 label: "mm (mean of R, G, B)".into(),
+                missing: "no model".into(),
             },
         },
         Panel {
@@ -637,6 +667,7 @@ pub fn draw_map(model: &ModelFile, export: &Export, path: &Path) -> Result<(), E
                 range: (0.0, range_of(&log_e).1),
                 values: log_e,
                 label: "Eq. 8, mean of R, G, B".into(),
+                missing: "no conversion".into(),
             },
         },
     ];
@@ -651,6 +682,7 @@ pub fn draw_map(model: &ModelFile, export: &Export, path: &Path) -> Result<(), E
                 range: (0.0, range_of(&a).1),
                 values: a,
                 label: "log E vs Eq. 3".into(),
+                missing: "no anisotropy".into(),
             },
         });
     }

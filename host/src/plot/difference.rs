@@ -52,6 +52,24 @@ fn nice_range(x: f64) -> f64 {
         .unwrap_or(2.0)
 }
 
+/// What the two images of a difference picture are, for its caption `(image − reference) /
+/// reference`: a model against the ground truth, or Cycles against subsurf's render (issue 42:
+/// `export --render` called the latter "model against truth").
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Compared<'a> {
+    /// The image judged (`model` in `difference_picture`).
+    pub image: &'a str,
+    /// The one it is judged against (`truth`).
+    pub reference: &'a str,
+}
+
+impl Compared<'_> {
+    /// The caption under the colour bar.
+    pub fn caption(&self) -> String {
+        format!("({} − {r}) / {r}", self.image, r = self.reference)
+    }
+}
+
 /// Draws `(model − truth) / truth` of the luminance per pixel. Pixels not covered by both images,
 /// or where the truth is darker than `floor` × its brightest pixel, are grey (a relative
 /// difference says nothing there). The colour scale is symmetric, from the 95th percentile of
@@ -61,6 +79,26 @@ pub fn difference_picture(
     model: &Image,
     truth: &Image,
     floor: f64,
+) -> Result<DifferenceStats, PlotError> {
+    difference_picture_of(
+        path,
+        model,
+        truth,
+        floor,
+        Compared {
+            image: "model",
+            reference: "truth",
+        },
+    )
+}
+
+/// [`difference_picture`] with the two images named in the caption.
+pub fn difference_picture_of(
+    path: &Path,
+    model: &Image,
+    truth: &Image,
+    floor: f64,
+    names: Compared<'_>,
 ) -> Result<DifferenceStats, PlotError> {
     if model.width != truth.width || model.height != truth.height {
         return Err(PlotError::Empty(format!(
@@ -102,8 +140,8 @@ pub fn difference_picture(
 
     register_font();
     let (w, h) = (truth.width, truth.height);
-    let bar_h = 58u32;
-    let width = w.max(260);
+    let bar_h = 78u32;
+    let width = w.max(420);
     let e = draw_err(path);
     let root = BitMapBackend::new(path, (width, h + bar_h)).into_drawing_area();
     root.fill(&RGBColor(24, 24, 28)).map_err(&e)?;
@@ -140,12 +178,25 @@ pub fn difference_picture(
         root.draw(&Text::new(label, (x, by + 15), style.clone()))
             .map_err(&e)?;
     }
+    let caption = names.caption();
+    let (cw, _) = root.estimate_text_size(&caption, &style).map_err(&e)?;
     root.draw(&Text::new(
-        "(model − truth) / truth".to_string(),
-        (bx0 + bw / 2 - 70, by + 32),
-        style,
+        caption,
+        ((width as i32 - cw as i32) / 2, by + 32),
+        style.clone(),
     ))
     .map_err(&e)?;
+    // The grey's legend: a swatch and what it means.
+    let grey = "not compared: too dark, or outside one image";
+    let (gw, _) = root.estimate_text_size(grey, &style).map_err(&e)?;
+    let gx = (width as i32 - gw as i32 - 18) / 2;
+    root.draw(&Rectangle::new(
+        [(gx, by + 52), (gx + 12, by + 64)],
+        RGBColor(110, 110, 110).filled(),
+    ))
+    .map_err(&e)?;
+    root.draw(&Text::new(grey, (gx + 18, by + 51), style))
+        .map_err(&e)?;
     root.present().map_err(&e)?;
     Ok(stats)
 }
@@ -172,9 +223,39 @@ mod tests {
         assert!((s.mean_signed + 0.5).abs() < 1e-9 && (s.mean_abs - 0.5).abs() < 1e-9);
         assert_eq!(s.range, 0.5);
         let img = image::open(&p).unwrap().to_rgb8();
-        assert_eq!(img.dimensions(), (300, 358));
+        assert_eq!(img.dimensions(), (420, 378));
         // Full blue where the model is half as bright as the truth.
-        assert_eq!(img.get_pixel(150, 150).0, [33, 102, 172]);
+        assert_eq!(img.get_pixel(210, 150).0, [33, 102, 172]);
         assert!(difference_picture(&p, &flat(1.0, 10), &flat(1.0, 11), 1e-3).is_err());
+    }
+
+    /// Issue 42: the caption names what was compared (Cycles against subsurf for `export
+    /// --render`), and the picture draws that caption, not "model − truth".
+    #[test]
+    fn the_caption_names_the_two_images() {
+        let cycles = Compared {
+            image: "Cycles",
+            reference: "subsurf",
+        };
+        assert!(
+            cycles.caption().starts_with("(Cycles − subsurf) / subsurf"),
+            "{}",
+            cycles.caption()
+        );
+        let dir = tempfile::tempdir().unwrap();
+        let (a, b) = (dir.path().join("a.png"), dir.path().join("b.png"));
+        let (m, t) = (flat(0.5, 300), flat(1.0, 300));
+        difference_picture(&a, &m, &t, 1e-3).unwrap();
+        difference_picture_of(&b, &m, &t, 1e-3, cycles).unwrap();
+        let (a, b) = (
+            image::open(&a).unwrap().to_rgb8(),
+            image::open(&b).unwrap().to_rgb8(),
+        );
+        let differs = |y0: u32, y1: u32| {
+            (y0..y1).any(|y| (0..420).any(|x| a.get_pixel(x, y) != b.get_pixel(x, y)))
+        };
+        // The same picture and colour bar, another caption.
+        assert!(!differs(0, 300 + 30));
+        assert!(differs(300 + 36, 300 + 56));
     }
 }

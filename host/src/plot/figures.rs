@@ -66,6 +66,11 @@ pub fn falloff_figure(
     })
 }
 
+/// The error map's title: the log E stored per vertex is measured on the samples the fit used,
+/// so it is in-sample (optimistic); `subsurf evaluate` judges held-out frames (issue 42).
+pub const ERROR_MAP_TITLE: &str =
+    "In-sample reconstruction error per x_i (on the fit's own frames)";
+
 /// Figures 4/5: `log E(x_i)` (Eq. 8, stored per vertex in the model file) over the surface, one
 /// panel per model (e.g. isotropic against anisotropic) on one colour scale. The models must share
 /// the mesh. Vertices without a fit are grey.
@@ -107,6 +112,7 @@ pub fn error_maps(
                 values,
                 range: (lo, hi),
                 label: "log E(x_i), Eq. 8".into(),
+                missing: "no fit (no log E)".into(),
             },
         });
     }
@@ -115,12 +121,5 @@ pub fn error_maps(
         normals: &first.normals,
         faces: &first.triangles,
     };
-    surface_panels(
-        path,
-        "Reconstruction error per x_i",
-        mesh,
-        &panels,
-        direction,
-        panel_size,
-    )
+    surface_panels(path, ERROR_MAP_TITLE, mesh, &panels, direction, panel_size)
 }

@@ -22,18 +22,23 @@ pub fn register_font() {
     });
 }
 
+mod alignment;
 mod curves;
 mod difference;
 mod figures;
 mod surface;
 
+pub use alignment::alignment_picture;
 pub use curves::{
     Curve, LearningCurve, TradeoffPoint, falloff_plot, learning_curves, pareto_front, pareto_plot,
     tradeoff_curve,
 };
-pub use difference::{DifferenceStats, difference_picture};
-pub use figures::{FalloffSummary, error_maps, falloff_figure};
-pub use surface::{MeshView, Panel, PanelData, model_viewer, surface_panels, viridis};
+pub use difference::{Compared, DifferenceStats, difference_picture, difference_picture_of};
+pub use figures::{ERROR_MAP_TITLE, FalloffSummary, error_maps, falloff_figure};
+pub use surface::{
+    MeshView, Panel, PanelData, STATUS_LEGEND, front_and_back, model_viewer, surface_panels,
+    surface_picture_size, viridis,
+};
 
 /// Why a picture could not be drawn.
 #[non_exhaustive]
