@@ -12,6 +12,7 @@ pub mod calib;
 pub mod crossval;
 pub mod curves;
 pub mod dataset;
+pub mod demo;
 pub mod evaluate;
 pub mod export;
 pub mod flash;
