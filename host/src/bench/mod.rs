@@ -2,3 +2,4 @@
 //! parse their flags and print): each returns its figures as data.
 
 pub mod acquisition;
+pub mod fit_scale;
