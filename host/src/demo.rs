@@ -24,7 +24,7 @@ use crate::pipeline::{
     FitReport, PipelineError, PipelineOptions, StoreOptions, fit_prepared, prepare, register_one,
 };
 use crate::plot::{DifferenceStats, FalloffSummary, PlotError};
-use crate::progress::Progress;
+use crate::progress::Stages;
 use crate::render::{
     self, Camera, Image, Light, RenderError, RenderOptions, ToneMapping, auto_exposure,
     relative_pixel_error,
@@ -59,20 +59,6 @@ pub struct DemoOptions {
     pub blender_samples: u32,
     /// Skip the "in Blender" render even when Blender is present.
     pub no_blender: bool,
-}
-
-/// How the demo shows what it does: one progress receiver per stage, and lines for the user.
-/// The library draws nothing; the binary's implementation draws a bar per stage and clears it
-/// when the stage ends, as the demo always did.
-pub trait DemoUi {
-    /// The progress receiver of one stage.
-    type Bar: Progress;
-    /// A new stage of `len` units (0: unknown) named `msg`.
-    fn bar(&self, len: u64, msg: &str) -> Self::Bar;
-    /// The stage is over: its display goes.
-    fn finish(&self, bar: Self::Bar);
-    /// A line for the user (stdout in the binary).
-    fn say(&self, line: &str);
 }
 
 /// Why the demo stopped.
@@ -273,7 +259,7 @@ impl DemoRun {
 }
 
 /// Mean log E over channels of `model` on `frames`, and per channel.
-fn evaluate<U: DemoUi>(
+fn evaluate<U: Stages>(
     ui: &U,
     ds: &Dataset,
     model: &ModelFile,
@@ -281,7 +267,7 @@ fn evaluate<U: DemoUi>(
     opts: &PipelineOptions,
     msg: &str,
 ) -> Result<(Option<f64>, [Option<f64>; 3]), DemoError> {
-    let p = ui.bar(0, msg);
+    let p = ui.stage(0, msg);
     let (_, stats) = evaluate_frames(ds, model, frames, opts, &p)?;
     ui.finish(p);
     Ok((fmt::channel_mean(stats.mean), stats.mean))
@@ -289,7 +275,7 @@ fn evaluate<U: DemoUi>(
 
 /// Runs the demo into `opts.out` and writes its report there; returns the files written
 /// (`report.md`, `report.html` first).
-pub fn run_demo<U: DemoUi>(opts: &DemoOptions, ui: &U) -> Result<Vec<PathBuf>, DemoError> {
+pub fn run_demo<U: Stages>(opts: &DemoOptions, ui: &U) -> Result<Vec<PathBuf>, DemoError> {
     let t0 = Instant::now();
     let (run, mut written) = measure(opts, ui, t0)?;
     let rep = crate::report::demo::demo_report(&run);
@@ -300,7 +286,7 @@ pub fn run_demo<U: DemoUi>(opts: &DemoOptions, ui: &U) -> Result<Vec<PathBuf>, D
 }
 
 /// Stages 1–5 of the demo: what the report shows, and the files written.
-fn measure<U: DemoUi>(
+fn measure<U: Stages>(
     args: &DemoOptions,
     ui: &U,
     t0: Instant,
@@ -364,7 +350,7 @@ fn measure<U: DemoUi>(
     );
     cfg.noise_floor = Some(sim_noise_floor(&exposures));
     let mut camera = camera_from_spec("sim", &mesh, &calib, 7, std::time::Duration::from_secs(10))?;
-    let p = ui.bar(cfg.plan.frame_count() as u64, "scan");
+    let p = ui.stage(cfg.plan.frame_count() as u64, "scan");
     let summary = run_scan(&cfg, &mut rig, camera.as_mut(), &p)?;
     ui.finish(p);
     drop(rig);
@@ -408,7 +394,7 @@ fn measure<U: DemoUi>(
     // The one decode of the training frames into the sample store, timed on its own: every
     // preset then fits from the same store, so no preset's time holds the decode (before, the
     // first preset's did, and draft looked slower than balanced).
-    let p = ui.bar(0, "decode");
+    let p = ui.stage(0, "decode");
     let td = Instant::now();
     let run = prepare(&ds, &train, &opts, &StoreOptions::default(), &p)
         .step(|| "decoding the training frames into the sample store".into())?;
@@ -417,7 +403,7 @@ fn measure<U: DemoUi>(
     timings.push(("decode of the training frames (sample store)", decode_s));
     let mut fits = Vec::new();
     for (name, fit_options) in presets {
-        let p = ui.bar(0, &format!("fit {name}"));
+        let p = ui.stage(0, &format!("fit {name}"));
         let tf = Instant::now();
         let fitted = fit_prepared(&run, &train, &fit_options, &p)
             .step(|| format!("fitting the scan ({name} preset)"))?;
@@ -571,7 +557,7 @@ fn measure<U: DemoUi>(
             // T is what makes the two agree under uniform light.
             colour: export::ColourRule::Total,
         };
-        let p = ui.bar(0, "export");
+        let p = ui.stage(0, "export");
         let exported = export::export(&model, &opts, &p)?;
         ui.finish(p);
         exported.write(&dir)?;

@@ -11,9 +11,9 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::Result;
-use subsurf::demo::{DemoOptions, DemoUi, run_demo};
+use subsurf::demo::{DemoOptions, run_demo};
 
-use super::progress::Bar;
+use super::progress::StageBars;
 
 /// Run the whole chain on the simulated rig and write the results into one folder.
 #[derive(Debug, clap::Args)]
@@ -49,26 +49,6 @@ pub struct Args {
     no_blender: bool,
 }
 
-/// The demo's stages as `indicatif` bars (one per stage, cleared when it ends) and its lines
-/// on stdout.
-struct Bars;
-
-impl DemoUi for Bars {
-    type Bar = Bar;
-    fn bar(&self, len: u64, msg: &str) -> Bar {
-        let p = Bar::with_template("{msg:>12} {bar:40} {pos}/{len} {elapsed}");
-        p.set_length(len);
-        p.set_message(msg.to_string());
-        p
-    }
-    fn finish(&self, bar: Bar) {
-        bar.finish_and_clear();
-    }
-    fn say(&self, line: &str) {
-        println!("{line}");
-    }
-}
-
 pub fn run_cmd(args: Args) -> Result<()> {
     let options = DemoOptions {
         out: args.out.clone(),
@@ -81,7 +61,10 @@ pub fn run_cmd(args: Args) -> Result<()> {
         blender_samples: args.blender_samples,
         no_blender: args.no_blender,
     };
-    let files = run_demo(&options, &Bars)?;
+    let files = run_demo(
+        &options,
+        &StageBars("{msg:>12} {bar:40} {pos}/{len} {elapsed}"),
+    )?;
     println!("demo results in {}:", display(&args.out));
     for f in files {
         println!("  {}", display(&f));
