@@ -3,3 +3,4 @@
 
 pub mod acquisition;
 pub mod fit_scale;
+pub mod tradeoff;
