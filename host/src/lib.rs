@@ -15,6 +15,7 @@ pub mod dataset;
 pub mod demo;
 pub mod evaluate;
 pub mod export;
+pub mod fit_scan;
 pub mod flash;
 pub mod geometry;
 pub mod interpolate;

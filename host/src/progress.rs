@@ -29,8 +29,8 @@ pub trait Progress: Sync {
 impl Progress for () {}
 
 /// Long work of several stages shown one progress display per stage (`subsurf demo`, `bench
-/// tradeoff`): each stage gets its own receiver, whose display goes when the stage ends, and
-/// lines for the user go where the binary prints them.
+/// tradeoff`, `fit`): each stage gets its own receiver, whose display goes when the stage ends,
+/// and lines for the user go where the binary prints them.
 pub trait Stages {
     /// The progress receiver of one stage.
     type Bar: Progress;
@@ -40,6 +40,8 @@ pub trait Stages {
     fn finish(&self, _bar: Self::Bar) {}
     /// A line for the user (stdout in the binary); nothing by default.
     fn say(&self, _line: &str) {}
+    /// A warning for the user (stderr in the binary); nothing by default.
+    fn warn(&self, _line: &str) {}
 }
 
 /// Silent stages.

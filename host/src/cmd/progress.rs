@@ -152,7 +152,8 @@ impl Progress for Bar {
 }
 
 /// One bar per stage drawn with the template it holds, cleared when the stage ends; the
-/// library's lines printed on stdout (`subsurf demo`, `bench tradeoff`).
+/// library's lines printed on stdout, its warnings on stderr (`subsurf demo`, `bench tradeoff`,
+/// `fit`).
 pub struct StageBars(pub &'static str);
 
 impl Stages for StageBars {
@@ -169,5 +170,8 @@ impl Stages for StageBars {
     }
     fn say(&self, line: &str) {
         println!("{line}");
+    }
+    fn warn(&self, line: &str) {
+        eprintln!("{line}");
     }
 }
