@@ -1,5 +1,6 @@
 //! `subsurf calib`: camera intrinsics and extrinsics from chessboard images, the turntable axis,
 //! the galvo model from laser spots, OpenCV calibration import — all into one `calib.json`.
+//! Parsing only; the procedures are `subsurf::calib::procedure`.
 use std::path::PathBuf;
 
 use subsurf::calib::procedure;

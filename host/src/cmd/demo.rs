@@ -1,12 +1,7 @@
-//! `subsurf demo`: the main job end to end on built-in defaults, no hardware, no arguments.
-//!
-//! Simulated rig (the firmware's core, in virtual time as `scan --sim`) → `scan` of the built-in
-//! object with the simulated camera, sampled as the material needs it (`scan::setup`: vertex spacing, pixel footprint, x_i
-//! spacing and exposures all from the material's mean free path and brightness) → per-vertex fits
-//! with every fifth frame held out (three solver presets: the speed/accuracy trade) → the fitted
-//! model and the simulation's ground truth rendered under the same lights, and their difference →
-//! held-out against in-sample error → fall-off plot, model maps → `report.md` and a
-//! self-contained `report.html`, all in one folder.
+//! `subsurf demo`: the main job end to end on built-in defaults, no hardware, no arguments —
+//! simulated rig, scan, fits with frames held out, renders against the ground truth, pictures,
+//! `report.md`/`report.html` in one folder. Parsing and the stages' bars only; the run is
+//! `subsurf::demo`, its report `subsurf::report::demo`.
 
 use std::path::{Path, PathBuf};
 

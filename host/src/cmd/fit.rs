@@ -1,5 +1,5 @@
 //! `subsurf fit`: a scan dataset in, a per-vertex model (`docs/model-format.md`) and
-//! `fit-report.json` out.
+//! `fit-report.json` out. Parsing only; the fit is `subsurf::fit_scan`.
 use std::path::PathBuf;
 
 use subsurf::fit::Preset;

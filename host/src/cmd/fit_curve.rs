@@ -1,4 +1,5 @@
-//! `subsurf fit-curve`: fit one fall-off curve (or many, `--batch`) from a CSV file.
+//! `subsurf fit-curve`: fit one fall-off curve (or many, `--batch`) from a CSV file. Parsing and
+//! printing only; the fitting is `subsurf::curves::fitting`.
 
 use std::io::Write;
 use std::path::PathBuf;

@@ -1,4 +1,5 @@
-//! `subsurf rig …`: talk to the rig (or the simulated rig) by hand.
+//! `subsurf rig …`: talk to the rig (or the simulated rig) by hand. Parsing only; the actions
+//! are `subsurf::rig::manual`.
 
 use std::path::PathBuf;
 

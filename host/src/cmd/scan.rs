@@ -1,4 +1,6 @@
-//! `subsurf scan`: drive the rig and a camera into a scan dataset — planned, resumable.
+//! `subsurf scan`: drive the rig and a camera into a scan dataset — planned, resumable. Parsing,
+//! planning (`cmd/plan.rs`), the camera, Ctrl-C and printing here; the scan is
+//! `subsurf::scan::acquire`.
 use anyhow::bail;
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
