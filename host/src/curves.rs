@@ -24,6 +24,8 @@
 
 use std::collections::{HashMap, HashSet};
 
+pub mod fitting;
+
 /// One curve of a file: its id (batch files) and its samples per channel.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Curve {

@@ -27,3 +27,25 @@ pub trait Progress: Sync {
 
 /// Silent progress.
 impl Progress for () {}
+
+/// Long work of several stages shown one progress display per stage (`subsurf demo`, `bench
+/// tradeoff`, `fit`): each stage gets its own receiver, whose display goes when the stage ends,
+/// and lines for the user go where the binary prints them.
+pub trait Stages {
+    /// The progress receiver of one stage.
+    type Bar: Progress;
+    /// A new stage of `len` units (0: unknown) named `msg`.
+    fn stage(&self, len: u64, msg: &str) -> Self::Bar;
+    /// The stage is over: its display goes.
+    fn finish(&self, _bar: Self::Bar) {}
+    /// A line for the user (stdout in the binary); nothing by default.
+    fn say(&self, _line: &str) {}
+    /// A warning for the user (stderr in the binary); nothing by default.
+    fn warn(&self, _line: &str) {}
+}
+
+/// Silent stages.
+impl Stages for () {
+    type Bar = ();
+    fn stage(&self, _len: u64, _msg: &str) {}
+}

@@ -3,3 +3,5 @@
 
 pub mod acquisition;
 pub mod equivalence;
+pub mod fit_scale;
+pub mod tradeoff;

@@ -9,6 +9,7 @@
 pub mod detect;
 pub mod galvo;
 mod lsq;
+pub mod procedure;
 pub mod target;
 
 pub use galvo::{GalvoModel, GalvoObservation, fit_galvo};

@@ -5,8 +5,8 @@ use std::path::PathBuf;
 
 use subsurf::bench::acquisition::{bench_replay, record_sim_dense};
 
+use super::plan::AdaptiveArgs;
 use super::progress::Bar;
-use super::scan::AdaptiveArgs;
 
 /// Learning curves (held-out error on test frames no planner may pick, against frames and rig
 /// time) of the dense, coverage, random and adaptive planners, on a recorded dataset replayed

@@ -71,6 +71,49 @@ pub struct PlanArgs {
     pub interval_us: u32,
 }
 
+/// The adaptive planner's stopping rules and batch sizes (`--planner adaptive`; `scan` and
+/// `bench acquisition` embed them).
+#[derive(Debug, Clone, clap::Args)]
+pub struct AdaptiveArgs {
+    /// Stop once the cross-validated held-out log E is at most this.
+    #[arg(long)]
+    pub until_error: Option<f64>,
+    /// Stop before more frames than this.
+    #[arg(long)]
+    pub max_frames: Option<usize>,
+    /// Stop before more rig time than this (seconds, the plan's timing model).
+    #[arg(long)]
+    pub max_rig_time: Option<f64>,
+    /// Frames of the sparse start (default: an eighth of the candidates that show a spot).
+    #[arg(long)]
+    pub start_frames: Option<usize>,
+    /// Frames per batch (default: as many as the start).
+    #[arg(long)]
+    pub batch: Option<usize>,
+    /// Batches in a row whose improvement is within its standard error before the scan stops.
+    #[arg(long, default_value_t = subsurf::scan::adaptive::DEFAULT_PATIENCE)]
+    pub patience: usize,
+    /// Cross-validation folds of each assessment.
+    #[arg(long, default_value_t = subsurf::crossval::DEFAULT_FOLDS)]
+    pub cv_folds: usize,
+}
+
+impl AdaptiveArgs {
+    /// The library's settings.
+    pub fn settings(&self) -> subsurf::scan::adaptive::AdaptiveSettings {
+        subsurf::scan::adaptive::AdaptiveSettings {
+            start: self.start_frames,
+            batch: self.batch,
+            patience: self.patience,
+            until_error: self.until_error,
+            max_frames: self.max_frames,
+            max_rig_s: self.max_rig_time,
+            folds: self.cv_folds,
+            near_mm: None,
+        }
+    }
+}
+
 /// Print a scan plan: frames, expected duration and predicted coverage.
 #[derive(Debug, clap::Args)]
 pub struct Args {

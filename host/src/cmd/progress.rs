@@ -8,7 +8,7 @@
 use std::io::IsTerminal;
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
-use subsurf::progress::Progress;
+use subsurf::progress::{Progress, Stages};
 
 /// Least time between two count lines of one stage in plain mode.
 const PLAIN_EVERY: Duration = Duration::from_secs(10);
@@ -148,5 +148,30 @@ impl Progress for Bar {
             Some(_) => eprintln!("{line}"),
             None => self.0.println(line),
         }
+    }
+}
+
+/// One bar per stage drawn with the template it holds, cleared when the stage ends; the
+/// library's lines printed on stdout, its warnings on stderr (`subsurf demo`, `bench tradeoff`,
+/// `fit`).
+pub struct StageBars(pub &'static str);
+
+impl Stages for StageBars {
+    type Bar = Bar;
+    fn stage(&self, len: u64, msg: &str) -> Bar {
+        let p = Bar::with_template(self.0);
+        // The bar's own length and name (no plain line yet: the stage's work reports that).
+        p.0.set_length(len);
+        p.0.set_message(msg.to_string());
+        p
+    }
+    fn finish(&self, bar: Bar) {
+        bar.finish_and_clear();
+    }
+    fn say(&self, line: &str) {
+        println!("{line}");
+    }
+    fn warn(&self, line: &str) {
+        eprintln!("{line}");
     }
 }

@@ -1,28 +1,18 @@
-//! `subsurf scan`: drive the rig and a camera into a scan dataset — planned, resumable.
-use anyhow::{Context, bail};
+//! `subsurf scan`: drive the rig and a camera into a scan dataset — planned, resumable. Parsing,
+//! planning (`cmd/plan.rs`), the camera, Ctrl-C and printing here; the scan is
+//! `subsurf::scan::acquire`.
+use anyhow::bail;
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
-use subsurf::link::SerialLink;
-use subsurf::rig::{ClientConfig, RigClient};
-use subsurf::scan::adaptive::{
-    AcquisitionReport, AdaptiveError, AdaptiveSettings, FrameSource, cover_order, run_adaptive,
-    run_fixed,
-};
-use subsurf::scan::driver::{FrameSink, ScanConfig, ScanError, run_with_reconnect_into};
-use subsurf::scan::plan::PlanScene;
-use subsurf::scan::plan::estimate_duration;
-use subsurf::scan::replay::Replay;
-use subsurf::scan::rigsource::RigSource;
-use subsurf::scan::setup::{
-    GROUND_TRUTH_FILE, camera_from_spec_with, rig_timing, sim_material, sim_noise_floor,
-    write_ground_truth_of,
-};
+use subsurf::scan::acquire::{AcquireError, AcquireSettings, Order, RigAt, acquire, replay};
+use subsurf::scan::driver::ScanConfig;
+use subsurf::scan::setup::{camera_from_spec_with, sim_material, sim_noise_floor};
 
-use super::plan::{PlanArgs, Planner, make_plan, resolve};
+use super::plan::{AdaptiveArgs, PlanArgs, Planner, make_plan, resolve};
 use super::progress::Bar;
 
 /// Scan an object: home, then per turntable angle run the rig's capture program and write each
@@ -103,100 +93,31 @@ pub struct Args {
     pub no_store: bool,
 }
 
-/// The adaptive planner's stopping rules and batch sizes (`--planner adaptive`).
-#[derive(Debug, Clone, clap::Args)]
-pub struct AdaptiveArgs {
-    /// Stop once the cross-validated held-out log E is at most this.
-    #[arg(long)]
-    pub until_error: Option<f64>,
-    /// Stop before more frames than this.
-    #[arg(long)]
-    pub max_frames: Option<usize>,
-    /// Stop before more rig time than this (seconds, the plan's timing model).
-    #[arg(long)]
-    pub max_rig_time: Option<f64>,
-    /// Frames of the sparse start (default: an eighth of the candidates that show a spot).
-    #[arg(long)]
-    pub start_frames: Option<usize>,
-    /// Frames per batch (default: as many as the start).
-    #[arg(long)]
-    pub batch: Option<usize>,
-    /// Batches in a row whose improvement is within its standard error before the scan stops.
-    #[arg(long, default_value_t = subsurf::scan::adaptive::DEFAULT_PATIENCE)]
-    pub patience: usize,
-    /// Cross-validation folds of each assessment.
-    #[arg(long, default_value_t = subsurf::crossval::DEFAULT_FOLDS)]
-    pub cv_folds: usize,
-}
-
-impl AdaptiveArgs {
-    /// The library's settings.
-    pub fn settings(&self) -> AdaptiveSettings {
-        AdaptiveSettings {
-            start: self.start_frames,
-            batch: self.batch,
-            patience: self.patience,
-            until_error: self.until_error,
-            max_frames: self.max_frames,
-            max_rig_s: self.max_rig_time,
-            folds: self.cv_folds,
-            near_mm: None,
-        }
+/// The frame order the planner flag asks for.
+fn order(p: Planner) -> Order {
+    match p {
+        Planner::Dense => Order::Dense,
+        Planner::Coverage => Order::Coverage,
+        Planner::Adaptive => Order::Adaptive,
     }
 }
 
-/// Prints the learning curve of a steered scan as it goes, and its end.
-fn report(rep: &AcquisitionReport, out: &std::path::Path) {
-    println!(
-        "{} planner: {} frames in {}; {}",
-        rep.planner,
-        rep.order().len(),
-        out.display(),
-        rep.stopped.as_deref().unwrap_or("not finished")
-    );
-    if !rep.curve.is_empty() {
-        println!(
-            "learning curve and frame order in {}",
-            out.join(subsurf::scan::adaptive::REPORT_FILE).display()
-        );
-    }
-}
-
-/// `--replay`: a recorded dataset as the rig and camera.
-fn replay(args: &Args, src: &std::path::Path, progress: &Bar) -> anyhow::Result<()> {
-    let exclude = match &args.exclude_frames {
-        Some(f) => subsurf::dataset::parse_frame_list(f).map_err(anyhow::Error::msg)?,
-        None => Vec::new(),
-    };
-    let mut source = Replay::open(src, &args.out, &exclude).with_context(|| {
-        format!(
-            "cannot replay {} into {}",
-            src.display(),
-            args.out.display()
-        )
-    })?;
-    let rep = match args.plan.planner {
-        Planner::Adaptive => {
-            run_adaptive(&mut source, &args.adaptive.settings(), progress, &mut |p| {
-                progress.suspend(|| println!("{}", p.line()))
-            })?
-        }
-        Planner::Dense => {
-            let order: Vec<usize> = source.candidates().iter().map(|c| c.id).collect();
-            run_fixed(&mut source, "dense", &order, progress)?
-        }
-        Planner::Coverage => {
-            let order = cover_order(
-                source.candidates(),
-                &source.recorded().mesh.positions,
-                args.plan.target_mm,
-            );
-            run_fixed(&mut source, "coverage", &order, progress)?
-        }
-    };
+/// The scan's end: its lines after the bar, or the interrupt's message and exit code 130.
+fn finish(progress: &Bar, result: Result<Vec<String>, AcquireError>) -> anyhow::Result<()> {
     progress.finish_and_clear();
-    report(&rep, &args.out);
-    Ok(())
+    match result {
+        Ok(lines) => {
+            for line in lines {
+                println!("{line}");
+            }
+            Ok(())
+        }
+        Err(AcquireError::Interrupted(e)) => {
+            eprintln!("{e}");
+            std::process::exit(130);
+        }
+        Err(e) => Err(e.into()),
+    }
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -206,7 +127,23 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         } else {
             Bar::with_template("{msg:>12} {bar:30} {pos}/{len}")
         };
-        return replay(&args, &src, &progress);
+        let exclude = match &args.exclude_frames {
+            Some(f) => subsurf::dataset::parse_frame_list(f).map_err(anyhow::Error::msg)?,
+            None => Vec::new(),
+        };
+        let (planner, settings) = (order(args.plan.planner), args.adaptive.settings());
+        let mut say = |line: &str| progress.suspend(|| println!("{line}"));
+        let r = replay(
+            &src,
+            &args.out,
+            &exclude,
+            planner,
+            &settings,
+            args.plan.target_mm,
+            &progress,
+            &mut say,
+        );
+        return finish(&progress, r);
     }
     let camera_spec = args.camera.clone().unwrap_or_default();
     if !args.sim && args.port.is_none() {
@@ -269,178 +206,36 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         );
         p
     };
-    // Each frame is registered and sampled as it arrives, into the sample store `subsurf fit`
-    // starts from (`pipeline::extract::ScanExtraction`).
-    let memory = args.memory;
-    let no_store = args.no_store;
-    let sink = move || -> Option<Box<dyn FrameSink>> {
-        (!no_store).then(|| {
-            Box::new(subsurf::pipeline::extract::ScanExtraction::new(
-                subsurf::pipeline::StoreOptions {
-                    budget: usize::try_from(memory.saturating_mul(1 << 20)).unwrap_or(usize::MAX),
-                    cache: subsurf::pipeline::Cache::Dataset,
-                },
-            )) as Box<dyn FrameSink>
-        })
-    };
-    if args.plan.planner == Planner::Adaptive && args.plan.plan.is_none() {
-        let scene = PlanScene::new(&r.mesh.positions, &r.mesh.triangles, &r.calib)?;
-        let timing = super::plan::sim_timing(&args.plan);
-        let (rep, measured) = if args.sim {
-            let connect = Box::new(|| {
-                let link = subsurf::sim::SimLink::clean(subsurf::sim::VirtualRig::new(
-                    subsurf::sim::SimParams::default(),
-                ));
-                RigClient::connect_with_seq(link, ClientConfig::default(), 1)
-            });
-            steer(
-                &args,
-                cfg,
-                &scene,
-                connect,
-                camera.as_mut(),
-                Box::new(sink),
-                timing,
-                &progress,
-            )?
-        } else {
-            let port = args.port.clone().unwrap_or_default();
-            let baud = args.baud;
-            let connect = Box::new(move || {
-                let link = SerialLink::open(&port, baud)?;
-                RigClient::connect(link, ClientConfig::default())
-            });
-            steer(
-                &args,
-                cfg,
-                &scene,
-                connect,
-                camera.as_mut(),
-                Box::new(sink),
-                timing,
-                &progress,
-            )?
-        };
-        progress.finish_and_clear();
-        if let Some(field) = &material {
-            write_ground_truth_of(&r.mesh, field, &args.out).with_context(|| {
-                format!(
-                    "cannot write {}",
-                    args.out.join(GROUND_TRUTH_FILE).display()
-                )
-            })?;
-        }
-        report(&rep, &args.out);
-        println!("rig time measured by this run: {measured:.2} s (homing of every batch included)");
-        return Ok(());
-    }
-    let result = if args.sim {
-        let mut connect = || {
-            let link = subsurf::sim::SimLink::clean(subsurf::sim::VirtualRig::new(
-                subsurf::sim::SimParams::default(),
-            ));
-            RigClient::connect_with_seq(link, ClientConfig::default(), 1)
-        };
-        run_with_reconnect_into(
-            &cfg,
-            &mut connect,
-            camera.as_mut(),
-            &progress,
-            args.reconnects,
-            sink(),
+    let steer = (args.plan.planner == Planner::Adaptive && args.plan.plan.is_none()).then(|| {
+        (
+            args.adaptive.settings(),
+            super::plan::sim_timing(&args.plan),
         )
-    } else {
-        let port = args.port.clone().unwrap_or_default();
-        let baud = args.baud;
-        let mut connect = || {
-            let link = SerialLink::open(&port, baud)?;
-            RigClient::connect(link, ClientConfig::default())
-        };
-        run_with_reconnect_into(
-            &cfg,
-            &mut connect,
-            camera.as_mut(),
-            &progress,
-            args.reconnects,
-            sink(),
-        )
-    };
-    progress.finish_and_clear();
-    match result {
-        Ok(s) => {
-            if let Some(field) = &material {
-                // The simulated camera's material is known: write it as the floor to compare
-                // fitted models with.
-                write_ground_truth_of(&r.mesh, field, &args.out).with_context(|| {
-                    format!(
-                        "cannot write {}",
-                        args.out.join(GROUND_TRUTH_FILE).display()
-                    )
-                })?;
-            }
-            let p = subsurf_firmware::sim::SimParams::default();
-            let t = rig_timing(&p.profile, cfg.move_speed, cfg.move_accel, cfg.interval_us);
-            let est = estimate_duration(&cfg.plan, &t, s.resumed_from);
-            println!(
-                "scan complete: {} frames in {} ({} written now, {} were already done); rig time \
-                 {:.2} s (planned {:.2} s), wall {:.1} s, {} reconnects, {} camera retries",
-                s.frames_total,
-                s.scan_json.display(),
-                s.frames_written,
-                s.resumed_from,
-                s.rig_seconds,
-                est.total_s(),
-                s.wall_seconds,
-                s.reconnects,
-                s.camera_retries
-            );
-            for line in
-                subsurf::scan::dark::summary(&s.dark_frames, s.noise_floor, args.noise_floor)
-            {
-                println!("{line}");
-            }
-            match &s.sink {
-                Some(Ok(m)) => println!("{m}"),
-                Some(Err(e)) => println!(
-                    "no sample store was kept ({e}): the first `subsurf fit` reads the frames"
-                ),
-                None => {}
-            }
-            Ok(())
-        }
-        Err(e @ ScanError::Interrupted { .. }) => {
-            eprintln!("{e}");
-            std::process::exit(130);
-        }
-        Err(e) => Err(e).context(format!("scan into {} stopped", args.out.display())),
-    }
-}
-
-/// A steered scan over the rig `connect` reaches: the adaptive planner's loop with the rig and
-/// camera as its frame source.
-#[allow(clippy::too_many_arguments)]
-fn steer<'a, L: subsurf::link::ByteLink>(
-    args: &Args,
-    cfg: ScanConfig,
-    scene: &PlanScene,
-    connect: subsurf::scan::rigsource::Connect<'a, L>,
-    camera: &'a mut dyn subsurf::scan::camera::Camera,
-    sink: subsurf::scan::rigsource::SinkFactory<'a>,
-    timing: subsurf::scan::plan::RigTiming,
-    progress: &Bar,
-) -> anyhow::Result<(AcquisitionReport, f64)> {
-    let out = cfg.out.clone();
-    let mut source = RigSource::new(cfg, scene, connect, camera, sink, args.reconnects, timing)
-        .with_context(|| format!("cannot open {}", out.display()))?;
-    let rep = run_adaptive(&mut source, &args.adaptive.settings(), progress, &mut |p| {
-        progress.suspend(|| println!("{}", p.line()))
     });
-    match rep {
-        Ok(rep) => Ok((rep, source.measured_rig_s())),
-        Err(AdaptiveError::Scan(e @ ScanError::Interrupted { .. })) => {
-            eprintln!("{e}");
-            std::process::exit(130);
-        }
-        Err(e) => Err(e).context(format!("steered scan into {} stopped", out.display())),
-    }
+    let settings = AcquireSettings {
+        rig: match &args.port {
+            Some(port) if !args.sim => RigAt::Serial {
+                port: port.clone(),
+                baud: args.baud,
+            },
+            _ => RigAt::Sim,
+        },
+        reconnects: args.reconnects,
+        material: material.as_ref(),
+        memory: args.memory,
+        no_store: args.no_store,
+        steer,
+        noise_floor: args.noise_floor,
+    };
+    let mut say = |line: &str| progress.suspend(|| println!("{line}"));
+    let r = acquire(
+        cfg,
+        &r.mesh,
+        &r.calib,
+        camera.as_mut(),
+        &settings,
+        &progress,
+        &mut say,
+    );
+    finish(&progress, r)
 }

@@ -7,6 +7,7 @@
 //! is static, has no script, and a template engine would add a proc-macro dependency for one page.
 //! Numbers are formatted by [`fmt`] before they reach a report.
 
+pub mod demo;
 pub mod evaluate;
 pub mod fit;
 pub mod fmt;

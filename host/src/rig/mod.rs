@@ -6,6 +6,7 @@
 
 mod client;
 mod core;
+pub mod manual;
 pub mod selftest;
 
 pub use client::RigClient;

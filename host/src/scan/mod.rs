@@ -5,6 +5,7 @@
 //! Dependencies point one way: `scan` uses `calib`, the rig client and the dataset writer; no
 //! other module calls into `scan` except the commands and the demo.
 
+pub mod acquire;
 pub mod adaptive;
 pub mod camera;
 pub mod dark;
