@@ -6,7 +6,7 @@
 //! rounds; streams the groups (samples are dropped once their Eq. 6 contributions are folded in),
 //! so memory does not grow with the frame count. Never reads images itself (the `select` stage
 //! does) and never judges a fit (the `error` stage does).
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 
 use rayon::prelude::*;
 
@@ -990,9 +990,21 @@ impl ObjectiveStats {
 }
 
 /// One round's results, folded over the groups in parallel.
+///
+/// A chunk of groups folds its Eq. 6 accumulators sparsely, one slot per vertex its samples
+/// reach (`slots`, `vertices`); the merged state is dense, one entry per mesh vertex. Why:
+/// dense per-chunk arrays cost the chunks × the vertices (32 × 144 bytes × 655,362 vertices,
+/// 3 GB, on sample-pebble's mesh subdivided to scanner density, issue 40) for samples that
+/// reach a few thousand vertices each. The sums are added in the same order as before.
 #[derive(Default)]
 struct RoundState {
     fits: Vec<(usize, Result<GroupFit, FailReason>)>,
+    /// Whether a group of this state has a fit (the dense arrays exist once one has).
+    any: bool,
+    /// Sparse (a chunk): vertex → slot of `alpha` and `objective_stats`.
+    slots: HashMap<u32, u32>,
+    /// Sparse (a chunk): the vertex of each slot, in the order first reached.
+    vertices: Vec<u32>,
     alpha: Vec<[AlphaAccumulator; 3]>,
     /// Per vertex and channel, the objective's statistics of this round's fits.
     objective_stats: Vec<[ObjectiveStats; 3]>,
@@ -1005,20 +1017,33 @@ struct RoundState {
 }
 
 impl RoundState {
-    fn merge(mut self, mut other: RoundState) -> RoundState {
+    /// A chunk's slot for vertex `v` (sparse), made on first use.
+    fn slot(&mut self, v: u32) -> usize {
+        if let Some(&i) = self.slots.get(&v) {
+            return i as usize;
+        }
+        let i = self.vertices.len();
+        self.slots.insert(v, i as u32);
+        self.vertices.push(v);
+        self.alpha.push([AlphaAccumulator::default(); 3]);
+        self.objective_stats.push([ObjectiveStats::default(); 3]);
+        i
+    }
+
+    /// `other`, a sparse chunk, merged into this dense state of `nv` vertices.
+    fn merge_chunk(mut self, mut other: RoundState, nv: usize) -> RoundState {
         self.fits.append(&mut other.fits);
-        if self.alpha.is_empty() {
-            self.alpha = other.alpha;
-            self.objective_stats = other.objective_stats;
-        } else if !other.alpha.is_empty() {
-            for (a, b) in self.alpha.iter_mut().zip(&other.alpha) {
-                for c in 0..3 {
-                    a[c].merge(&b[c]);
-                }
+        if other.any {
+            if !self.any {
+                self.alpha = vec![[AlphaAccumulator::default(); 3]; nv];
+                self.objective_stats = vec![[ObjectiveStats::default(); 3]; nv];
+                self.any = true;
             }
-            for (a, b) in self.objective_stats.iter_mut().zip(&other.objective_stats) {
+            for (i, &v) in other.vertices.iter().enumerate() {
+                let v = v as usize;
                 for c in 0..3 {
-                    a[c].merge(&b[c]);
+                    self.alpha[v][c].merge(&other.alpha[i][c]);
+                    self.objective_stats[v][c].merge(&other.objective_stats[i][c]);
                 }
             }
         }
@@ -1235,10 +1260,7 @@ impl RoundRunner<'_, '_> {
                     st.objective += o_new;
                     st.kept_previous += kept_old as usize;
                     // Eq. 6 contributions are folded right away so the samples can be dropped.
-                    if st.alpha.is_empty() {
-                        st.alpha = vec![[AlphaAccumulator::default(); 3]; nv];
-                        st.objective_stats = vec![[ObjectiveStats::default(); 3]; nv];
-                    }
+                    st.any = true;
                     for (ch, d) in data.iter().enumerate() {
                         // Eq. 6 compares the captured sample with R_d.
                         let captured = |x: &GroupSample| {
@@ -1254,9 +1276,11 @@ impl RoundRunner<'_, '_> {
                             if let Some(v) =
                                 AlphaAccumulator::ln_ratio_with(s, ln_s, ln_rd, &window)
                             {
-                                st.alpha[x.vertex as usize][ch].add_ratio(v);
+                                let i = st.slot(x.vertex);
+                                st.alpha[i][ch].add_ratio(v);
                             }
-                            st.objective_stats[x.vertex as usize][ch].add(ln_rd - ln_s);
+                            let i = st.slot(x.vertex);
+                            st.objective_stats[i][ch].add(ln_rd - ln_s);
                         }
                     }
                     st.counts.add(&counts);
@@ -1281,7 +1305,7 @@ impl RoundRunner<'_, '_> {
             })
             .collect::<Vec<_>>()
             .into_iter()
-            .fold(RoundState::default(), RoundState::merge);
+            .fold(RoundState::default(), |a, b| a.merge_chunk(b, nv));
         state.fits.sort_by_key(|f| f.0);
         state
     }
