@@ -1,0 +1,105 @@
+//! The round-0 cache ([`OrderCache`]): each light position's order candidates fitted once for
+//! every fold that holds its frames and for the final fit (the same fits, the same bits).
+
+use super::*;
+
+/// Which light position, in which model, a [`Candidates`] belongs to: its frames and anchors as
+/// dataset frame numbers (a fold's registered-frame indices differ from the whole scan's), the
+/// colour mode and the segments.
+#[derive(Debug, Clone, PartialEq, Eq, Hash)]
+pub(super) struct OrderKey {
+    frames: [Vec<usize>; 3],
+    anchors: [usize; 3],
+    colour: ColourMode,
+    segments: usize,
+}
+
+impl OrderKey {
+    pub(super) fn of(
+        choice: &ModelChoice,
+        regs: &[RegisteredFrame],
+        key: &crate::pipeline::select::GroupKey,
+    ) -> Self {
+        let frame = |l: &u32| regs.get(*l as usize).map_or(usize::MAX, |r| r.frame);
+        OrderKey {
+            frames: key.frames.each_ref().map(|f| f.iter().map(frame).collect()),
+            anchors: key.anchors.each_ref().map(frame),
+            colour: choice.colour,
+            segments: choice.segments,
+        }
+    }
+}
+
+/// Round 0's candidate fits ([`Candidates`]), shared by the fits of one
+/// [`crate::crossval::fit_scan_in`]: the cross-validation's fold fits and the final fit. A
+/// light position's samples are those of its frames, whatever other frames a fit holds, so a
+/// fold whose training frames hold all of them fits the very same candidates, bit for bit, as
+/// the fit on every frame; they are fitted once ([`OrderCache::fill`]) instead of once per fold
+/// and once more at the end. Only round 0 is shared: later rounds divide by the fold's own alpha.
+/// The candidates depend on the fitter and the model choice too: a cache serves one fitter.
+#[derive(Debug, Default)]
+pub struct OrderCache {
+    found: std::sync::Mutex<
+        std::collections::HashMap<OrderKey, std::sync::Arc<Result<Candidates, FailReason>>>,
+    >,
+    hits: std::sync::atomic::AtomicUsize,
+    fitted: std::sync::atomic::AtomicUsize,
+}
+
+impl OrderCache {
+    /// The candidates of `key`, fitted by `fit` unless known.
+    pub(super) fn get_or_fit(
+        &self,
+        key: &OrderKey,
+        fit: impl FnOnce() -> Result<Candidates, FailReason>,
+    ) -> std::sync::Arc<Result<Candidates, FailReason>> {
+        use std::sync::atomic::Ordering::Relaxed;
+        let known = self
+            .found
+            .lock()
+            .ok()
+            .and_then(|m| m.get(key).map(std::sync::Arc::clone));
+        if let Some(c) = known {
+            self.hits.fetch_add(1, Relaxed);
+            return c;
+        }
+        let c = std::sync::Arc::new(fit());
+        self.fitted.fetch_add(1, Relaxed);
+        if let Ok(mut m) = self.found.lock() {
+            m.entry(key.clone())
+                .or_insert_with(|| std::sync::Arc::clone(&c));
+        }
+        c
+    }
+
+    /// Fits the candidates of every group of a selection (`regs`, `groups`: the fit on every
+    /// frame) with the run's model choice, the groups in parallel, before the folds start, so
+    /// that the folds, running side by side, find them instead of fitting them each.
+    pub fn fill(
+        &self,
+        ctx: &Context,
+        regs: &[RegisteredFrame],
+        groups: &Groups,
+        fitter: &dyn Fitter,
+        progress: &dyn Progress,
+    ) {
+        let (Some(_), Some(max_n)) = (ctx.opts.order, fitter.max_terms()) else {
+            return;
+        };
+        let choice = &ctx.opts.model;
+        progress.start("fit (round 1 candidates)", groups.keys.len() as u64);
+        groups.keys.par_iter().for_each(|key| {
+            let k = OrderKey::of(choice, regs, key);
+            if let Ok((data, _)) = group_samples(ctx, regs, key) {
+                self.get_or_fit(&k, || order_candidates(&data, choice, fitter, max_n));
+            }
+            progress.inc(1);
+        });
+    }
+
+    /// Light positions whose candidates were fitted, and lookups that found them fitted.
+    pub fn counts(&self) -> (usize, usize) {
+        use std::sync::atomic::Ordering::Relaxed;
+        (self.fitted.load(Relaxed), self.hits.load(Relaxed))
+    }
+}
