@@ -97,15 +97,19 @@ fn demo_leaves_report_renders_differences_falloff_plot_and_maps() {
         assert!(!text.contains("Some(") && !text.contains("None"), "{text}");
         assert!(longest_digit_run(text) <= 7, "{text}");
     }
+    // The maps show every panel from the front and from behind (`plot::surface_picture_size`);
+    // the difference picture holds both renders, their difference and its legend.
+    let (ew, eh) = subsurf::plot::surface_picture_size(2, (360, 380), true);
+    let (mw, mh) = subsurf::plot::surface_picture_size(4, (300, 340), true);
     for (name, w, h) in [
         ("render-key-light.png", 96, 96),
         ("render-back-light.png", 96, 96),
         ("render-truth-key-light.png", 96, 96),
         ("render-truth-back-light.png", 96, 96),
-        ("render-difference-key-light.png", 260, 154),
+        ("render-difference-key-light.png", 420, 174),
         ("falloff.png", 800, 520),
-        ("error-map.png", 720, 414),
-        ("model.png", 1200, 374),
+        ("error-map.png", ew, eh),
+        ("model.png", mw, mh),
     ] {
         let s = image_stats(&out.join(name)).unwrap_or_else(|e| panic!("{name}: {e}"));
         assert_eq!((s.width, s.height), (w, h), "{name}");

@@ -55,12 +55,9 @@ pub struct FillHow<'a> {
     pub warm: Option<&'a FillState>,
 }
 
-/// A fill's interpolated encodings, which the next round's fill starts from
-/// ([`FillHow::warm`]).
+/// What a fill keeps for the next round's ([`FillHow::warm`]).
 #[derive(Debug, Clone, Default)]
 pub struct FillState {
-    grid: Vec<f64>,
-    filled: Vec<Option<Vec<f64>>>,
     /// The interpolation's weights at the needed vertices ([`crate::interpolate::harmonic_weights`])
     /// and the known set they hold for.
     weights: Option<Weights>,
@@ -178,13 +175,11 @@ pub fn fill(
     } else {
         let solve = match how.speed {
             Speed::Reference => crate::interpolate::Solve::default(),
+            // From the breadth-first guess, never from an earlier round's fill: the model after
+            // round r of a run is the model of a fit with r rounds, byte for byte (the
+            // cross-validation's rounds and the final fit are the same procedure).
             Speed::Default => crate::interpolate::Solve {
                 rtol: super::FILL_TOLERANCE,
-                warm: how
-                    .warm
-                    .filter(|w| w.grid == grid.r && w.filled.len() == own.len())
-                    .map(|w| &w.filled[..]),
-                only: how.needed,
                 ..crate::interpolate::Solve::default()
             },
         };
@@ -230,11 +225,7 @@ pub fn fill(
             })
         })
         .collect();
-    let state = FillState {
-        grid: grid.r.clone(),
-        filled,
-        weights,
-    };
+    let state = FillState { weights };
     (refits, state)
 }
 

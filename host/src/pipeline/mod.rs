@@ -422,7 +422,8 @@ impl FitRounds<'_, '_> {
     /// model (a fold judges its frames with the corners of their x_i's triangles alone): the
     /// others without a fit of their own are left without one. At the needed vertices the
     /// same models as [`FitRounds::model_file`]'s, on the reference path bit for bit; on the
-    /// default path the fill starts from this run's previous one ([`interpolate::FillHow`]).
+    /// default path within the fill's tolerance, its weights kept from this run's previous
+    /// fill ([`interpolate::FillHow`]).
     pub fn model_file_for(&self, needed: &[bool]) -> Result<ModelFile, PipelineError> {
         self.finish(Figures::ModelOnly, Some(needed))
             .map(|out| out.model)

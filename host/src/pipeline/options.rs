@@ -90,8 +90,9 @@ pub struct PipelineOptions {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Speed {
-    /// The default: the fill of failed vertices solved to [`FILL_TOLERANCE`] and started from
-    /// the previous round's, the alpha rounds' fits started from the previous round's.
+    /// The default: the fill of failed vertices solved to [`FILL_TOLERANCE`], and in the
+    /// cross-validation's folds only at the vertices their held-out frames read, as weights of
+    /// the known vertices kept from round to round (`pipeline::interpolate::FillHow`).
     #[default]
     Default,
     /// The exact path before issue 40 (`subsurf fit --preset reference`): every solve from
