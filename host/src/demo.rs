@@ -121,19 +121,7 @@ pub enum DemoError {
     Report(#[from] crate::report::ReportError),
 }
 
-/// Names the step that failed, as `anyhow::Context` does in the binary.
-trait StepContext<T> {
-    fn step(self, what: impl FnOnce() -> String) -> Result<T, DemoError>;
-}
-
-impl<T, E: Into<DemoError>> StepContext<T> for Result<T, E> {
-    fn step(self, what: impl FnOnce() -> String) -> Result<T, DemoError> {
-        self.map_err(|e| DemoError::Step {
-            what: what(),
-            source: Box::new(e.into()),
-        })
-    }
-}
+crate::util::step_context!(DemoError);
 
 /// One solver preset's fit, and how it did.
 #[derive(Debug, Clone)]

@@ -119,19 +119,7 @@ pub enum FitScanError {
     Report(#[from] crate::report::ReportError),
 }
 
-/// Names the step that failed, as `anyhow::Context` does in the binary.
-trait StepContext<T> {
-    fn step(self, what: impl FnOnce() -> String) -> Result<T, FitScanError>;
-}
-
-impl<T, E: Into<FitScanError>> StepContext<T> for Result<T, E> {
-    fn step(self, what: impl FnOnce() -> String) -> Result<T, FitScanError> {
-        self.map_err(|e| FitScanError::Step {
-            what: what(),
-            source: Box::new(e.into()),
-        })
-    }
-}
+crate::util::step_context!(FitScanError);
 
 /// Panel size of the error map, pixels.
 const ERROR_PANEL: (u32, u32) = (420, 420);

@@ -792,11 +792,10 @@ mod tests {
     /// x² − y² is harmonic on the 4-neighbour grid (its discrete Laplacian is 2 − 2), so with the
     /// boundary known the interior must come out as x² − y² itself; a 40 × 40 hole is where the
     /// sweeps' d² convergence shows (they stop 1e-12 per sweep short, far from the solution).
-    #[test]
-    fn a_grid_hole_is_filled_with_the_discrete_harmonic_function() {
-        let k = 42usize;
+    /// The 4-neighbour graph of a k × k grid, vertex i·k + j.
+    fn grid_adjacency(k: usize) -> Vec<Vec<u32>> {
         let id = |i: usize, j: usize| (i * k + j) as u32;
-        let adj: Vec<Vec<u32>> = (0..k * k)
+        (0..k * k)
             .map(|v| {
                 let (i, j) = (v / k, v % k);
                 let mut nb = Vec::new();
@@ -814,7 +813,13 @@ mod tests {
                 }
                 nb
             })
-            .collect();
+            .collect()
+    }
+
+    #[test]
+    fn a_grid_hole_is_filled_with_the_discrete_harmonic_function() {
+        let k = 42usize;
+        let adj = grid_adjacency(k);
         let f = |v: usize| {
             let (x, y) = ((v / k) as f64, (v % k) as f64);
             vec![x * x - y * y, 1.0 + 0.5 * x - 2.0 * y]
@@ -848,25 +853,7 @@ mod tests {
     fn weights_and_restricted_solves_agree_with_the_full_solve() {
         let k = 30usize;
         let id = |i: usize, j: usize| (i * k + j) as u32;
-        let adj: Vec<Vec<u32>> = (0..k * k)
-            .map(|v| {
-                let (i, j) = (v / k, v % k);
-                let mut nb = Vec::new();
-                if i > 0 {
-                    nb.push(id(i - 1, j));
-                }
-                if i + 1 < k {
-                    nb.push(id(i + 1, j));
-                }
-                if j > 0 {
-                    nb.push(id(i, j - 1));
-                }
-                if j + 1 < k {
-                    nb.push(id(i, j + 1));
-                }
-                nb
-            })
-            .collect();
+        let adj = grid_adjacency(k);
         // Known: the border and the middle column; two holes either side of it.
         let known: Vec<bool> = (0..k * k)
             .map(|v| {

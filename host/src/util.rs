@@ -21,3 +21,26 @@ pub fn cpu_seconds() -> Option<f64> {
     let stime: f64 = f.get(12)?.parse().ok()?;
     Some((utime + stime) / 100.0)
 }
+
+/// Defines a private `StepContext` trait for `Result`s whose `step(|| what)` wraps any error
+/// convertible into `$error` in its `Step { what, source }` variant, naming the step that
+/// failed as `anyhow::Context` does in the binary: one definition for the library's step-wise
+/// procedures (the demo, `fit_scan`, calibration, `bench tradeoff`).
+macro_rules! step_context {
+    ($error:ident) => {
+        /// Names the step that failed, as `anyhow::Context` does in the binary.
+        trait StepContext<T> {
+            fn step(self, what: impl FnOnce() -> String) -> Result<T, $error>;
+        }
+
+        impl<T, E: Into<$error>> StepContext<T> for Result<T, E> {
+            fn step(self, what: impl FnOnce() -> String) -> Result<T, $error> {
+                self.map_err(|e| $error::Step {
+                    what: what(),
+                    source: Box::new(e.into()),
+                })
+            }
+        }
+    };
+}
+pub(crate) use step_context;

@@ -29,6 +29,11 @@ use crate::progress::Progress;
 
 use super::acquisition::BenchError;
 
+/// CPU time of this process so far (s; NaN where the kernel does not say).
+fn cpu_seconds() -> f64 {
+    crate::util::cpu_seconds().unwrap_or(f64::NAN)
+}
+
 /// The equivalence margin of the paired change in held-out log E (issue 40).
 pub const MARGIN: f64 = 0.005;
 /// The largest mean change in held-out log E (worse) the default may show.
@@ -122,17 +127,6 @@ impl CaseResult {
             && self.rms_ln_rd.is_none_or(|x| x <= MAX_RMS)
             && self.rms_ln_alpha.is_none_or(|x| x <= MAX_RMS)
     }
-}
-
-/// CPU time of this process so far (s).
-fn cpu_seconds() -> f64 {
-    // SAFETY: getrusage writes into the struct it is given.
-    let mut u: libc::rusage = unsafe { std::mem::zeroed() };
-    if unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) } != 0 {
-        return f64::NAN;
-    }
-    let t = |v: libc::timeval| v.tv_sec as f64 + v.tv_usec as f64 * 1e-6;
-    t(u.ru_utime) + t(u.ru_stime)
 }
 
 /// Compares the default fit with the reference preset on the scan `scan`, fitted without the

@@ -83,19 +83,7 @@ pub enum TradeoffError {
     Fmt(#[from] std::fmt::Error),
 }
 
-/// Names the step that failed, as `anyhow::Context` does in the binary.
-trait StepContext<T> {
-    fn step(self, what: impl FnOnce() -> String) -> Result<T, TradeoffError>;
-}
-
-impl<T, E: Into<TradeoffError>> StepContext<T> for Result<T, E> {
-    fn step(self, what: impl FnOnce() -> String) -> Result<T, TradeoffError> {
-        self.map_err(|e| TradeoffError::Step {
-            what: what(),
-            source: Box::new(e.into()),
-        })
-    }
-}
+crate::util::step_context!(TradeoffError);
 
 /// Runs the whole chain in `b.work` (cleared first; removed at the end unless `b.keep`) and
 /// returns the report: the table, its notes, and the plot written to `b.plot`.

@@ -42,19 +42,7 @@ pub enum ProcedureError {
     Json(#[from] serde_json::Error),
 }
 
-/// Names the step that failed, as `anyhow::Context` does in the binary.
-trait StepContext<T> {
-    fn step(self, what: impl FnOnce() -> String) -> Result<T, ProcedureError>;
-}
-
-impl<T, E: Into<ProcedureError>> StepContext<T> for Result<T, E> {
-    fn step(self, what: impl FnOnce() -> String) -> Result<T, ProcedureError> {
-        self.map_err(|e| ProcedureError::Step {
-            what: what(),
-            source: Box::new(e.into()),
-        })
-    }
-}
+crate::util::step_context!(ProcedureError);
 
 fn load_or_builtin(path: &Path, warn: fn(&str)) -> Result<Calibration, ProcedureError> {
     if path.exists() {
