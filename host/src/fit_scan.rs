@@ -9,7 +9,7 @@ use crate::dataset::Dataset;
 use crate::fit::{Preset, Terms};
 use crate::modelfile::ColourMode;
 use crate::pipeline::{MAX_SEGMENTS, PipelineOptions, StoreOptions, prepare};
-use crate::progress::Stages;
+use crate::progress::{Progress, Stages};
 
 /// The fit's settings: the command's flags (`subsurf fit --help` explains each).
 #[derive(Debug, Clone)]
@@ -78,6 +78,9 @@ pub struct FitScanSettings {
     pub check_noise_floor: bool,
     /// Do not draw the PNGs beside the report.
     pub no_pictures: bool,
+    /// Fit every vertex of the mesh however much finer it is than the frames' pixels (the
+    /// reference preset always does; [`crate::lod`]).
+    pub full_mesh: bool,
 }
 
 /// Why the fit stopped.
@@ -111,6 +114,9 @@ pub enum FitScanError {
     /// The model could not be written.
     #[error(transparent)]
     Model(#[from] crate::modelfile::ModelFileError),
+    /// The mesh could not be coarsened to the frames' level of detail, or the model prolonged.
+    #[error(transparent)]
+    Lod(#[from] crate::lod::LodError),
     /// A picture could not be drawn.
     #[error(transparent)]
     Plot(#[from] crate::plot::PlotError),
@@ -201,6 +207,35 @@ pub fn fit_scan<U: Stages>(
     args: &FitScanSettings,
     ui: &U,
 ) -> Result<(), FitScanError> {
+    // A mesh far finer than the frames' pixels is fitted at the level of detail they support
+    // and the model prolonged to every vertex at the end (crate::lod).
+    let given = ds;
+    let mut lod = crate::lod::supported(given);
+    let coarse = match &mut lod {
+        Some(l) if l.should_coarsen() && !args.full_mesh && !args.reference => {
+            let bar = ui.stage(0, "level of detail");
+            bar.start(
+                &format!(
+                    "level of detail: clustering {} vertices at the {:.3} mm pixel footprint",
+                    l.vertices, l.pixel_footprint_mm
+                ),
+                0,
+            );
+            let c = crate::lod::coarsen(&given.mesh, l)
+                .step(|| format!("coarsening the mesh of {}", args.scan.display()))?;
+            ui.finish(bar);
+            l.fitted_vertices = c.mesh.positions.len();
+            l.coarsened = true;
+            ui.say(&format!(
+                "level of detail: the mesh has {} vertices, the frames support about {} (one per \
+                 {:.3} mm pixel footprint): fitting {} and prolonging the model (--full-mesh: all)",
+                l.vertices, l.supported_vertices, l.pixel_footprint_mm, l.fitted_vertices
+            ));
+            Some((given.with_mesh(c.mesh.clone()), c))
+        }
+        _ => None,
+    };
+    let ds = coarse.as_ref().map_or(given, |(d, _)| d);
     let preset = args.preset;
     let (mut opts, mut fit) = PipelineOptions::for_dataset(ds).with_preset(preset);
     // The dataset's floor (scan.json's, else measured from its frames) is the evaluation
@@ -339,6 +374,25 @@ pub fn fit_scan<U: Stages>(
             std::fs::create_dir_all(dir).step(|| format!("creating {}", dir.display()))?;
         }
     }
+    let mut out = out;
+    if let Some((_, c)) = &coarse {
+        let bar = ui.stage(0, "prolonging the model to the mesh");
+        bar.start(
+            &format!(
+                "prolonging the model from {} to {} vertices",
+                c.mesh.positions.len(),
+                given.mesh.positions.len()
+            ),
+            0,
+        );
+        out.model = crate::lod::prolong(&out.model, &c.mesh, &given.mesh).step(|| {
+            format!(
+                "prolonging the model to the mesh of {}",
+                args.scan.display()
+            )
+        })?;
+        ui.finish(bar);
+    }
     out.model
         .write(&args.out)
         .step(|| format!("writing {}", args.out.display()))?;
@@ -352,6 +406,9 @@ pub fn fit_scan<U: Stages>(
     json["model"] = args.out.display().to_string().into();
     json["fit_options"] = serde_json::to_value(&fit)?;
     json["noise_floor"] = serde_json::to_value(&floor)?;
+    if let Some(l) = &lod {
+        json["level_of_detail"] = serde_json::to_value(l)?;
+    }
     if let Some(v) = &validation {
         json["validation"] = serde_json::to_value(v)?;
     }

@@ -21,6 +21,7 @@ pub mod geometry;
 pub mod interpolate;
 pub mod lattice;
 pub mod link;
+pub mod lod;
 pub mod modelfile;
 pub mod pipeline;
 pub mod plot;

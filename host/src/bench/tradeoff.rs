@@ -115,7 +115,7 @@ struct Density {
 /// The sizes of one run.
 struct Sizes {
     densities: Vec<Density>,
-    presets: Vec<Preset>,
+    presets: Vec<FitChoice>,
     /// `None` = exact transport.
     qualities: Vec<Option<Quality>>,
     /// Sphere tessellation.
@@ -143,7 +143,10 @@ impl Sizes {
                     angles: 3,
                     raster: 5,
                 }],
-                presets: vec![Preset::Draft, Preset::Best],
+                presets: vec![
+                    FitChoice::Preset(Preset::Draft),
+                    FitChoice::Preset(Preset::Best),
+                ],
                 qualities: vec![Some(Quality::Draft), None],
                 rings: b.rings.unwrap_or(16),
                 scan_px: b.scan_px.unwrap_or(40),
@@ -169,7 +172,11 @@ impl Sizes {
                         raster: 14,
                     },
                 ],
-                presets: Preset::ALL.to_vec(),
+                presets: Preset::ALL
+                    .iter()
+                    .map(|&p| FitChoice::Preset(p))
+                    .chain([FitChoice::Default, FitChoice::Reference])
+                    .collect(),
                 qualities: all_q,
                 rings: b.rings.unwrap_or(64),
                 scan_px: b.scan_px.unwrap_or(96),
@@ -217,11 +224,43 @@ fn quality_name(q: Option<Quality>) -> &'static str {
     }
 }
 
+/// How a row fits: a preset, the default fit, or the reference preset (issue 40: the exact path
+/// before the default was made cheaper, shown beside it so the trade is measured). Rows fit
+/// without cross-validation, all alike.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum FitChoice {
+    Preset(Preset),
+    Default,
+    Reference,
+}
+
+impl FitChoice {
+    fn name(self) -> &'static str {
+        match self {
+            FitChoice::Preset(p) => p.name(),
+            FitChoice::Default => "default",
+            FitChoice::Reference => "reference",
+        }
+    }
+
+    fn options(self, ds: &Dataset) -> (PipelineOptions, crate::fit::FitOptions) {
+        let preset = match self {
+            FitChoice::Preset(p) => Some(p),
+            FitChoice::Default | FitChoice::Reference => None,
+        };
+        let (mut opts, fit) = PipelineOptions::for_dataset(ds).with_preset(preset);
+        if self == FitChoice::Reference {
+            opts.speed = crate::pipeline::Speed::Reference;
+        }
+        (opts, fit)
+    }
+}
+
 /// One row of the table: a (scan density, fit preset, render quality) configuration.
 struct Row {
     density: usize,
     frames: usize,
-    preset: Preset,
+    preset: FitChoice,
     quality: Option<Quality>,
     scan_s: f64,
     fit_s: f64,
@@ -294,7 +333,7 @@ fn run_chain<U: Stages>(
             truth = render_image(&gt, sizes.render_px, None).map(|(i, _)| i);
         }
         for &preset in &sizes.presets {
-            let (opts, fit) = PipelineOptions::for_dataset(&ds).with_preset(Some(preset));
+            let (opts, fit) = preset.options(&ds);
             let p = ui.stage(0, &format!("fit {}", preset.name()));
             let t = Instant::now();
             let fitted = fit_dataset(&ds, &frames, &opts, &fit, &p)

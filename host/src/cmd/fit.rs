@@ -173,6 +173,12 @@ pub struct Args {
     /// Eq. 8; `<report>-model.png`: alpha, reflectance, reach and vertex status).
     #[arg(long)]
     pub no_pictures: bool,
+    /// Fit every vertex of the mesh even when it is far finer than the frames' pixels (by
+    /// default such a mesh is fitted at the level of detail the pixels support, one vertex per
+    /// pixel footprint, and the model is prolonged to every vertex; `--preset reference` never
+    /// coarsens).
+    #[arg(long)]
+    pub full_mesh: bool,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -222,6 +228,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         skip_mesh_check: args.skip_mesh_check,
         check_noise_floor: args.check_noise_floor,
         no_pictures: args.no_pictures,
+        full_mesh: args.full_mesh,
     };
     let stages = StageBars("{msg:>12} {bar:40} {pos}/{len} {eta}");
     fit_scan(&ds, &frames, &settings, &stages)?;

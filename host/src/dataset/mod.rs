@@ -390,6 +390,16 @@ pub struct Dataset {
 }
 
 impl Dataset {
+    /// The same dataset with another mesh of the same object (a coarser level of detail,
+    /// [`crate::lod`]): the frames, cameras and read counts are shared.
+    pub fn with_mesh(&self, mesh: Mesh) -> Dataset {
+        Dataset {
+            mesh,
+            mesh_report: MeshReport::default(),
+            ..self.clone()
+        }
+    }
+
     /// Opens a dataset given as its folder (`dir/scan.json` is read) or as its manifest file
     /// itself (`dir/scan.json`, or any JSON file: its folder is the dataset's): users pass either,
     /// and every `--scan` goes through here. Validates the manifest, checks that every named file

@@ -429,6 +429,8 @@ impl<'r, 'a> AlphaRounds<'r, 'a> {
             ctx.ds.mesh.positions.len(),
             &ctx.scene,
             ctx.opts.alpha_shrinkage,
+            ctx.opts.speed,
+            None,
         );
         let objective = state.objective_with(&alpha);
         AlphaRounds {
@@ -487,6 +489,8 @@ impl<'r, 'a> AlphaRounds<'r, 'a> {
             self.alpha.len(),
             &self.runner.ctx.scene,
             opts.alpha_shrinkage,
+            opts.speed,
+            Some(&self.alpha),
         );
         let objective = next.objective_with(&alpha);
         let kept = objective < self.objective * (1.0 - 1e-9);
@@ -589,6 +593,8 @@ pub(super) fn alpha_texture(
     nv: usize,
     scene: &Scene,
     shrinkage: f64,
+    speed: crate::pipeline::Speed,
+    previous: Option<&[[f64; 3]]>,
 ) -> (Vec<[f64; 3]>, AlphaReport) {
     // Eq. 6's shrinkage per channel from the texels' own spread against the noise, scaled by
     // the run's setting (infinite: alpha = 1).
@@ -619,7 +625,29 @@ pub(super) fn alpha_texture(
             Some(vals.iter().map(|x| x.map_or(mean, f64::ln)).collect())
         })
         .collect();
-    let filled = crate::interpolate::harmonic(&own, |v| scene.neighbours(v), 500);
+    // The default path solves the fill to the fill tolerance from the previous round's texture
+    // (a round moves ln alpha by a few hundredths: the start is near the solution); the
+    // reference, as before issue 40, from the breadth-first guess to the exact tolerance.
+    // Rounds chain the same way in every fit, so a fit with r rounds is still round r of a
+    // longer one, byte for byte.
+    let warm: Option<Vec<Option<Vec<f64>>>> = match (speed, previous) {
+        (crate::pipeline::Speed::Default, Some(prev)) => Some(
+            prev.iter()
+                .map(|a| Some(a.iter().map(|x| x.ln()).collect()))
+                .collect(),
+        ),
+        _ => None,
+    };
+    let solve = crate::interpolate::Solve {
+        iterations: 500,
+        rtol: match speed {
+            crate::pipeline::Speed::Default => crate::pipeline::FILL_TOLERANCE,
+            crate::pipeline::Speed::Reference => crate::interpolate::RTOL,
+        },
+        warm: warm.as_deref(),
+        only: None,
+    };
+    let filled = crate::interpolate::harmonic_with(&own, |v| scene.neighbours(v), &solve);
     let mut rep = AlphaReport {
         prior: prior.map(|p| p.min(crate::model::ALPHA_PRIOR_MAX)),
         ..AlphaReport::default()
