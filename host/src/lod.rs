@@ -32,6 +32,12 @@ use crate::modelfile::{ModelFile, VertexModel};
 /// their meshes subdivided once) are fitted as they are.
 pub const COARSEN_ABOVE: f64 = 2.0;
 
+/// Coarsening needs the frames to resolve the object into at least this many pixel footprints.
+/// A mesh whose whole surface covers fewer is not a scanner's fine mesh but one in another unit
+/// or pose (a mesh in metres covers a millionth of its footprints): it is fitted as it is, and
+/// the fit's mesh check against the laser spots says what is wrong with it.
+pub const MIN_SUPPORTED: usize = 1_000;
+
 /// What the frames support for a mesh, and what was done with it (the fit report's
 /// `level_of_detail`).
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
@@ -126,9 +132,11 @@ pub fn supported(ds: &Dataset) -> Option<LevelOfDetail> {
 }
 
 impl LevelOfDetail {
-    /// Whether the mesh is finer than the frames support by more than [`COARSEN_ABOVE`].
+    /// Whether the mesh is finer than the frames support by more than [`COARSEN_ABOVE`] (and
+    /// the frames resolve at least [`MIN_SUPPORTED`] footprints on it).
     pub fn should_coarsen(&self) -> bool {
-        self.vertices as f64 > COARSEN_ABOVE * self.supported_vertices as f64
+        self.supported_vertices >= MIN_SUPPORTED
+            && self.vertices as f64 > COARSEN_ABOVE * self.supported_vertices as f64
     }
 }
 
@@ -317,6 +325,22 @@ mod tests {
         assert!((a - 16.0).abs() < 0.15 * 16.0, "area {a}");
         // Oriented as the fine mesh: every normal still +z.
         assert!(coarse.mesh.normals.iter().all(|n| n[2] > 0.99));
+    }
+
+    #[test]
+    fn only_a_mesh_far_finer_than_enough_footprints_is_coarsened() {
+        let lod = |vertices, supported| LevelOfDetail {
+            vertices,
+            pixel_footprint_mm: 0.4,
+            supported_vertices: supported,
+            fitted_vertices: vertices,
+            coarsened: false,
+        };
+        assert!(lod(655_362, 10_918).should_coarsen());
+        assert!(!lod(10_242, 10_918).should_coarsen());
+        assert!(!lod(21_000, 10_918).should_coarsen());
+        // A mesh in metres: a handful of footprints, never coarsened (the mesh check speaks).
+        assert!(!lod(5_000, 1).should_coarsen());
     }
 
     #[test]
