@@ -26,12 +26,19 @@ pub fn render_threads(requested: usize) -> Result<usize, ExportError> {
     }
     match std::env::var(THREADS_ENV) {
         Err(std::env::VarError::NotPresent) => Ok(0),
-        Ok(v) if v.trim().is_empty() => Ok(0),
-        Ok(v) => v.trim().parse().map_err(|_| {
-            ExportError::Blender(format!("{THREADS_ENV}={v:?} is not a thread count"))
-        }),
+        Ok(v) => parse_threads(&v),
         Err(e) => Err(ExportError::Blender(format!("{THREADS_ENV}: {e}"))),
     }
+}
+
+/// [`THREADS_ENV`]'s value as a thread count (empty: 0, Blender's default).
+fn parse_threads(v: &str) -> Result<usize, ExportError> {
+    if v.trim().is_empty() {
+        return Ok(0);
+    }
+    v.trim()
+        .parse()
+        .map_err(|_| ExportError::Blender(format!("{THREADS_ENV}={v:?} is not a thread count")))
 }
 
 /// The oldest Blender whose Cycles the export was written against (its kernel's subsurface
@@ -350,6 +357,18 @@ mod tests {
         assert!(dir.path().join("keep.blend1").is_file());
         let seen = seen.0.into_inner().unwrap();
         assert_eq!(seen, [(8, 1), (3, 2), (8, 1), (5, 2)]);
+    }
+
+    /// The thread count from the environment: a number, empty for Blender's default, anything
+    /// else an error naming the variable.
+    #[test]
+    fn thread_counts_parse() {
+        assert_eq!(parse_threads("1").unwrap(), 1);
+        assert_eq!(parse_threads(" 4 ").unwrap(), 4);
+        assert_eq!(parse_threads("").unwrap(), 0);
+        let e = parse_threads("all").unwrap_err();
+        assert!(e.to_string().contains(THREADS_ENV), "{e}");
+        assert_eq!(render_threads(3).unwrap(), 3);
     }
 
     /// A missing executable is an error naming it, not a panic.

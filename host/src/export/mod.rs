@@ -2,9 +2,10 @@
 //! (`subsurf export --format blender`, `docs/export.md`).
 //!
 //! 1. [`convert`]: per vertex, the fitted fall-off R_d(r) (Eq. 1/3/5/9; anisotropy averaged over
-//!    its segments) becomes the Principled BSDF's subsurface colour (the total diffuse
-//!    reflectance) and radius (Cycles' Christensen–Burley profile fitted in log space over the
-//!    vertex's sampled range, [`cycles`]), with the conversion's log E per channel.
+//!    its segments) becomes the Principled BSDF's subsurface colour and radius (Cycles'
+//!    Christensen–Burley profile fitted in log space over the vertex's sampled range,
+//!    [`cycles`]; the colour rule [`ColourRule`] chosen by how Cycles renders a scan's training
+//!    frames; `TwoLobe`: a near and a slow BSDF mixed), with the conversion's log E per channel.
 //! 2. [`mesh`]: the mesh with those parameters and alpha (Eq. 2/6) per vertex, or cut finer where
 //!    the model has a face lattice of alpha.
 //! 3. [`gltf`] + [`scene`] + `build_blend.py`: the files Blender reads — a binary glTF with the
