@@ -103,7 +103,7 @@ fn export_writes_the_scene_and_reports_the_conversion_error() {
 /// fall-off never worse than one fitted lobe (its starting point). On this torus the terms'
 /// split of the light holds the two lobes together: measured, both median log E 0.269 — the
 /// share is fixed by the c_k, and here one shape is the best a 25 % slow share allows; on
-/// sample-torus's fitted model two lobes give 0.079 against 0.19 (docs/export.md). With
+/// sample-torus's fitted model two lobes give 0.026 against 0.19 (docs/export.md). With
 /// Blender the script builds the two-BSDF `.blend`.
 #[test]
 fn two_lobes_are_written_and_fit_no_worse_than_one() {
