@@ -315,3 +315,60 @@ fn check_in_browser(chrome: &Path, page: &Path, images: usize) {
         page.display()
     );
 }
+
+/// The percentage in the report row that starts with `label` (`| label | 12.3 % |`).
+fn row_percent(report: &str, label: &str) -> f64 {
+    let line = report
+        .lines()
+        .find(|l| l.starts_with(&format!("| {label}")))
+        .unwrap_or_else(|| panic!("no row `{label}`:\n{report}"));
+    let cell = line
+        .trim_end_matches('|')
+        .rsplit('|')
+        .next()
+        .unwrap()
+        .trim();
+    cell.trim_end_matches('%')
+        .trim()
+        .parse()
+        .unwrap_or_else(|e| panic!("`{cell}` in `{line}`: {e}"))
+}
+
+/// Issue 43 item 4: with Blender, the demo judges Cycles' render of the exported model against
+/// the ground truth in the measure it judges subsurf's render by, with Cycles' own two-seed
+/// noise beside it, and shows the (Cycles − truth) / truth picture.
+#[test]
+fn demo_shows_cycles_against_the_ground_truth_with_its_noise() {
+    if crate::export::blender().is_none() {
+        return;
+    }
+    let (out, stdout) = demo();
+    assert!(
+        stdout.contains("in Blender: mean relative pixel error against the ground truth"),
+        "{stdout}"
+    );
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    let subsurf = row_percent(&report, "subsurf's render of the fitted model");
+    let cycles = row_percent(&report, "Cycles' render of the exported model");
+    let noise = row_percent(&report, "Cycles' own noise");
+    let between = row_percent(&report, "Cycles against subsurf's render");
+    eprintln!(
+        "key light against the ground truth: subsurf {subsurf} %, Cycles {cycles} % (noise \
+         {noise} %), Cycles against subsurf {between} %"
+    );
+    for x in [subsurf, cycles, noise, between] {
+        assert!(x.is_finite() && x > 0.0 && x < 200.0, "{x}\n{report}");
+    }
+    // The fitted model renders close to the truth in subsurf (same renderer; 4 % on this small
+    // scan); Cycles' figure holds its own noise (measured 17.6 % against 9.6 %), so it is not
+    // far below it.
+    assert!(subsurf < 25.0, "{subsurf}");
+    assert!(cycles > 0.5 * noise, "{cycles} vs noise {noise}");
+    assert!(
+        report.contains("in Blender: mean \\|Cycles − truth\\| / truth"),
+        "{report}"
+    );
+    let s = image_stats(&out.join("render-difference-blender-key-light.png")).unwrap();
+    assert_eq!((s.width, s.height), (420, 174), "{s:?}");
+    assert!(s.distinct_colours > 20 && s.luma_std > 5.0, "{s:?}");
+}

@@ -98,6 +98,58 @@ fn export_writes_the_scene_and_reports_the_conversion_error() {
     assert!(s.distinct_colours > 20, "{s:?}");
 }
 
+/// Issue 43 item 3's candidate: `--colour two-lobe` on the built-in torus (a slow third term)
+/// writes the slow lobe (scene "lobes": 2, the slow attributes, shares in [0, 1]) and fits the
+/// fall-off never worse than one fitted lobe (its starting point). On this torus the terms'
+/// split of the light holds the two lobes together: measured, both median log E 0.269 — the
+/// share is fixed by the c_k, and here one shape is the best a 25 % slow share allows; on
+/// sample-torus's fitted model two lobes give 0.026 against 0.19 (docs/export.md). With
+/// Blender the script builds the two-BSDF `.blend`.
+#[test]
+fn two_lobes_are_written_and_fit_no_worse_than_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let median = |out: &Path| -> Vec<f64> {
+        let r = json(&out.join("export-report.json"));
+        (0..3)
+            .map(|c| r["conversion_log_e"]["median"][c].as_f64().unwrap())
+            .collect()
+    };
+    let (one, two) = (dir.path().join("one"), dir.path().join("two"));
+    for (out, colour) in [(&one, "fitted"), (&two, "two-lobe")] {
+        let mut args = vec![
+            "export",
+            "--builtin",
+            "torus:48,20",
+            "--out",
+            out.to_str().unwrap(),
+            "--size",
+            "64x48",
+            "--colour",
+            colour,
+        ];
+        if colour == "fitted" || blender().is_none() {
+            args.push("--no-blender");
+        }
+        subsurf(&args);
+    }
+    let scene = json(&two.join("scene.json"));
+    assert_eq!(scene["lobes"], 2);
+    assert_eq!(json(&one.join("scene.json"))["lobes"], 1);
+    let r = json(&two.join("export-report.json"));
+    assert_eq!(r["colour_rule"], "two-lobe");
+    for v in r["per_vertex"].as_array().unwrap() {
+        let w = v["slow"]["weight"].as_f64().unwrap();
+        assert!((0.0..=1.0).contains(&w), "{v}");
+    }
+    let (l1, l2) = (median(&one), median(&two));
+    for c in 0..3 {
+        assert!(l2[c] <= l1[c] + 1e-9, "two lobes {l2:?}, one {l1:?}");
+    }
+    if blender().is_some() {
+        assert!(two.join("model.blend").is_file());
+    }
+}
+
 /// A model with anisotropy (m = 2) and a face lattice of alpha: the export says it averaged the
 /// segments and what that costs, and that it cut the mesh for the lattice (or, dropping it,
 /// what the detail was worth).
@@ -197,7 +249,8 @@ fn anisotropy_and_a_lattice_are_reported_with_their_cost() {
 /// noise 9.6 %), because the demo's sphere (radius 4 mm) is no larger than its fall-off's reach
 /// (3d ≈ 3.6 mm) and Cycles' disk probes gather more of the light than the renderer's
 /// surface sum there (docs/export.md). The bounds hold that finding: uniformly brighter, the
-/// same silhouette, nothing else.
+/// same silhouette, nothing else. (Those figures are with the colour T; since issue 43 item 4 the
+/// demo exports with the default fitted colour, measured 21.7 % here, still uniformly brighter.)
 #[test]
 fn the_demo_model_renders_in_blender_like_subsurfs_render() {
     if blender().is_none() {

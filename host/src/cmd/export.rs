@@ -26,6 +26,9 @@ pub enum ColourArg {
     Total,
     /// Amplitude fitted with the Burley shape in log space over the sampled distances.
     Fitted,
+    /// Two Burley lobes (near and slow Principled BSDFs mixed by a Mix Shader), T split between
+    /// them as the fitted terms' reflectances split it.
+    TwoLobe,
 }
 
 /// Face lattice handling.
@@ -126,6 +129,7 @@ pub fn run(args: Args) -> Result<()> {
         colour: match args.colour {
             ColourArg::Total => export::ColourRule::Total,
             ColourArg::Fitted => export::ColourRule::Fitted,
+            ColourArg::TwoLobe => export::ColourRule::TwoLobe,
         },
     };
     let blender = if args.no_blender {

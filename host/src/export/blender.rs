@@ -12,6 +12,35 @@ use crate::render::Image;
 /// The environment variable naming the Blender executable to use.
 pub const BLENDER_ENV: &str = "SUBSURF_BLENDER";
 
+/// The environment variable giving Blender's render threads when a [`Run`] asks for none
+/// (`threads: 0`): unset or 0, Blender's own default (all cores). A machine shared with other
+/// work (benchmarks, CI runners) limits Cycles with it, as Blender's `-t N` does by hand.
+pub const THREADS_ENV: &str = "SUBSURF_BLENDER_THREADS";
+
+/// The render threads a run uses: `requested` when it is not 0, else [`THREADS_ENV`] (0 when
+/// unset: Blender's default). A value that is not a count is an error naming the variable,
+/// rather than a silently unlimited render.
+pub fn render_threads(requested: usize) -> Result<usize, ExportError> {
+    if requested > 0 {
+        return Ok(requested);
+    }
+    match std::env::var(THREADS_ENV) {
+        Err(std::env::VarError::NotPresent) => Ok(0),
+        Ok(v) => parse_threads(&v),
+        Err(e) => Err(ExportError::Blender(format!("{THREADS_ENV}: {e}"))),
+    }
+}
+
+/// [`THREADS_ENV`]'s value as a thread count (empty: 0, Blender's default).
+fn parse_threads(v: &str) -> Result<usize, ExportError> {
+    if v.trim().is_empty() {
+        return Ok(0);
+    }
+    v.trim()
+        .parse()
+        .map_err(|_| ExportError::Blender(format!("{THREADS_ENV}={v:?} is not a thread count")))
+}
+
 /// The oldest Blender whose Cycles the export was written against (its kernel's subsurface
 /// code is `export::cycles`'s reading).
 pub const MIN_VERSION: (u32, u32) = (3, 4);
@@ -89,7 +118,7 @@ pub struct Run {
     pub samples: Option<u32>,
     /// Render as the subsurf renderer draws (point-sampled pixels, no bounced light).
     pub compare: bool,
-    /// Render threads (0: all cores).
+    /// Render threads (0: [`THREADS_ENV`], else Blender's default, all cores).
     pub threads: usize,
     /// Cycles' seed.
     pub seed: u32,
@@ -117,18 +146,19 @@ impl Blender {
         progress: &dyn Progress,
     ) -> Result<(), ExportError> {
         let script = dir.join(BUILD_SCRIPT);
+        let threads = render_threads(run.threads)?;
         let mut cmd = Command::new(&self.path);
-        cmd.args([
-            "-b",
-            "--factory-startup",
-            "--python-exit-code",
-            "1",
-            "--python",
-        ])
-        .arg(&script)
-        .arg("--")
-        .arg("--dir")
-        .arg(dir);
+        cmd.args(["-b", "--factory-startup"]);
+        if threads > 0 {
+            // Blender's own option as well as the script's: it also bounds the threads Blender
+            // starts before the script runs.
+            cmd.args(["-t", &threads.to_string()]);
+        }
+        cmd.args(["--python-exit-code", "1", "--python"])
+            .arg(&script)
+            .arg("--")
+            .arg("--dir")
+            .arg(dir);
         if let Some(exr) = &run.render {
             cmd.arg("--render").arg(exr);
         }
@@ -138,7 +168,7 @@ impl Blender {
         if run.compare {
             cmd.arg("--compare");
         }
-        cmd.args(["--threads", &run.threads.to_string()]);
+        cmd.args(["--threads", &threads.to_string()]);
         cmd.args(["--seed", &run.seed.to_string()]);
         if let Some(k) = run.frame {
             cmd.args(["--frame", &k.to_string()]);
@@ -327,6 +357,18 @@ mod tests {
         assert!(dir.path().join("keep.blend1").is_file());
         let seen = seen.0.into_inner().unwrap();
         assert_eq!(seen, [(8, 1), (3, 2), (8, 1), (5, 2)]);
+    }
+
+    /// The thread count from the environment: a number, empty for Blender's default, anything
+    /// else an error naming the variable.
+    #[test]
+    fn thread_counts_parse() {
+        assert_eq!(parse_threads("1").unwrap(), 1);
+        assert_eq!(parse_threads(" 4 ").unwrap(), 4);
+        assert_eq!(parse_threads("").unwrap(), 0);
+        let e = parse_threads("all").unwrap_err();
+        assert!(e.to_string().contains(THREADS_ENV), "{e}");
+        assert_eq!(render_threads(3).unwrap(), 3);
     }
 
     /// A missing executable is an error naming it, not a panic.

@@ -16,7 +16,9 @@ Blender 3.4's glTF importer drops those, so this script reads the file itself) a
 - the material: Attribute nodes feeding a Principled BSDF (Subsurface 1, method Christensen-Burley,
   Specular 0, Roughness 0): Subsurface Color = subsurface_colour x alpha x the Fresnel
   transmission out of the surface relative to normal incidence, Subsurface Radius =
-  subsurface_radius (Blender scales the radius by the Subsurface factor, here 1);
+  subsurface_radius (Blender scales the radius by the Subsurface factor, here 1); with two lobes
+  (`scene.json` "lobes": 2) a second, slow Principled BSDF fed by `subsurface_colour_slow` and
+  `subsurface_radius_slow`, mixed in by a Mix Shader whose factor is the `lobe_mix` attribute;
 - the lights and the camera of the subsurf render, a black world, Cycles on the CPU, colour
   management "Standard" (the EXR holds linear radiance, unscaled).
 
@@ -127,7 +129,13 @@ def build_mesh(doc, blob):
             ("_SUBSURFACE_COLOR", "subsurface_colour", "FLOAT_COLOR"),
             ("_SUBSURFACE_RADIUS", "subsurface_radius", "FLOAT_VECTOR"),
             ("_ALPHA", "alpha", "FLOAT_COLOR"),
-            ("_CONVERSION_LOG_E", "conversion_log_e", "FLOAT_VECTOR")):
+            ("_CONVERSION_LOG_E", "conversion_log_e", "FLOAT_VECTOR"),
+            ("_SUBSURFACE_COLOR_SLOW", "subsurface_colour_slow", "FLOAT_COLOR"),
+            ("_SUBSURFACE_RADIUS_SLOW", "subsurface_radius_slow", "FLOAT_VECTOR"),
+            ("_LOBE_MIX", "lobe_mix", "FLOAT_VECTOR")):
+        if gltf_name not in attr:
+            # The slow lobe's attributes are written only with two lobes.
+            continue
         values = accessor(doc, blob, attr[gltf_name], "f")
         a = mesh.attributes.new(name, kind, "POINT")
         if kind == "FLOAT_COLOR":
@@ -148,28 +156,25 @@ def attribute_node(nt, name, location):
     return n
 
 
-def build_material(scene):
-    mat = bpy.data.materials.new("subsurf material")
-    mat.use_nodes = True
-    nt = mat.node_tree
-    for n in list(nt.nodes):
-        nt.nodes.remove(n)
-    out = nt.nodes.new("ShaderNodeOutputMaterial")
-    out.location = (900, 0)
+def principled(nt, method, location):
     bsdf = nt.nodes.new("ShaderNodeBsdfPrincipled")
-    bsdf.location = (600, 0)
-    bsdf.subsurface_method = scene["method"]
+    bsdf.location = location
+    bsdf.subsurface_method = method
     bsdf.inputs["Subsurface"].default_value = 1.0
     bsdf.inputs["Specular"].default_value = 0.0
     bsdf.inputs["Roughness"].default_value = 0.0
     bsdf.inputs["Sheen"].default_value = 0.0
-    colour = attribute_node(nt, "subsurface_colour", (-600, 200))
-    alpha = attribute_node(nt, "alpha", (-600, 0))
-    radius = attribute_node(nt, "subsurface_radius", (-600, -250))
+    return bsdf
+
+
+def albedo_of(nt, scene, colour_name, y):
+    """Attribute(colour) x alpha x the exit Fresnel factor: a lobe's Subsurface Color."""
+    colour = attribute_node(nt, colour_name, (-600, y + 200))
+    alpha = attribute_node(nt, "alpha", (-600, y))
     times_alpha = nt.nodes.new("ShaderNodeVectorMath")
     times_alpha.operation = "MULTIPLY"
     times_alpha.label = "colour x alpha"
-    times_alpha.location = (-300, 150)
+    times_alpha.location = (-300, y + 150)
     nt.links.new(colour.outputs["Color"], times_alpha.inputs[0])
     nt.links.new(alpha.outputs["Color"], times_alpha.inputs[1])
     albedo = times_alpha.outputs["Vector"]
@@ -179,29 +184,61 @@ def build_material(scene):
         # incidence: (1 - F(theta_o)) / (1 - F(0)), as subsurf's renderer applies it.
         fres = nt.nodes.new("ShaderNodeFresnel")
         fres.inputs["IOR"].default_value = eta
-        fres.location = (-300, -50)
+        fres.location = (-300, y - 50)
         one_minus = nt.nodes.new("ShaderNodeMath")
         one_minus.operation = "SUBTRACT"
         one_minus.inputs[0].default_value = 1.0
-        one_minus.location = (-100, -50)
+        one_minus.location = (-100, y - 50)
         nt.links.new(fres.outputs["Fac"], one_minus.inputs[1])
         f0 = ((eta - 1.0) / (eta + 1.0)) ** 2
         relative = nt.nodes.new("ShaderNodeMath")
         relative.operation = "MULTIPLY"
         relative.inputs[1].default_value = 1.0 / (1.0 - f0)
         relative.label = "F_t(theta_o) / F_t(0)"
-        relative.location = (100, -50)
+        relative.location = (100, y - 50)
         nt.links.new(one_minus.outputs["Value"], relative.inputs[0])
         scale = nt.nodes.new("ShaderNodeVectorMath")
         scale.operation = "SCALE"
-        scale.location = (300, 150)
+        scale.location = (300, y + 150)
         nt.links.new(albedo, scale.inputs[0])
         nt.links.new(relative.outputs["Value"], scale.inputs["Scale"])
         albedo = scale.outputs["Vector"]
+    return albedo
+
+
+def lobe(nt, scene, colour_name, radius_name, y):
+    """One Principled BSDF subsurface lobe fed by its colour and radius attributes."""
+    bsdf = principled(nt, scene["method"], (600, y))
+    albedo = albedo_of(nt, scene, colour_name, y)
+    radius = attribute_node(nt, radius_name, (-600, y - 250))
     nt.links.new(albedo, bsdf.inputs["Subsurface Color"])
     nt.links.new(albedo, bsdf.inputs["Base Color"])
     nt.links.new(radius.outputs["Vector"], bsdf.inputs["Subsurface Radius"])
-    nt.links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
+    return bsdf
+
+
+def build_material(scene):
+    mat = bpy.data.materials.new("subsurf material")
+    mat.use_nodes = True
+    nt = mat.node_tree
+    for n in list(nt.nodes):
+        nt.nodes.remove(n)
+    out = nt.nodes.new("ShaderNodeOutputMaterial")
+    out.location = (1100, 0)
+    near = lobe(nt, scene, "subsurface_colour", "subsurface_radius", 0)
+    if scene.get("lobes", 1) == 2:
+        # Two lobes: the slow Principled BSDF mixed in by the lobe_mix attribute (the slow
+        # lobe's share of the light); Cycles samples the two BSSRDF closures by weight.
+        slow = lobe(nt, scene, "subsurface_colour_slow", "subsurface_radius_slow", -800)
+        mix = nt.nodes.new("ShaderNodeMixShader")
+        mix.location = (900, 0)
+        fac = attribute_node(nt, "lobe_mix", (600, 300))
+        nt.links.new(fac.outputs["Fac"], mix.inputs["Fac"])
+        nt.links.new(near.outputs["BSDF"], mix.inputs[1])
+        nt.links.new(slow.outputs["BSDF"], mix.inputs[2])
+        nt.links.new(mix.outputs["Shader"], out.inputs["Surface"])
+    else:
+        nt.links.new(near.outputs["BSDF"], out.inputs["Surface"])
     return mat
 
 

@@ -21,7 +21,7 @@
 
 use rayon::prelude::*;
 
-use super::cycles::{RADIUS_PER_D, TRUNCATE, fit_shape, fit_shape_free, ln_profile};
+use super::cycles::{RADIUS_PER_D, TRUNCATE, fit_shape, fit_shape_free, fit_two_lobes, ln_profile};
 use crate::model::hat_weights;
 use crate::modelfile::{ModelFile, VertexStatus};
 use crate::progress::Progress;
@@ -73,6 +73,30 @@ pub struct VertexConversion {
     pub range_mm: [f64; 2],
     /// Where the parameters came from.
     pub source: Source,
+    /// The second, slow lobe of [`ColourRule::TwoLobe`] (`None` for one lobe): then `colour` and
+    /// `radius_mm` are the near lobe's.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub slow: Option<SlowLobe>,
+}
+
+/// The slow one of two Principled BSDF subsurface lobes mixed by a Mix Shader
+/// ([`ColourRule::TwoLobe`]).
+///
+/// A Mix Shader with factor `f` scales the near BSDF's closures by `1 − f` and this one's by
+/// `f`, and Cycles scatters `weight × colour` through each lobe's own profile (it picks one
+/// BSSRDF closure per path by weight, so the mix is unbiased). So a lobe holding the light `A`
+/// gets the colour `A / weight`: the near lobe `A_near / (1 − f)`, this one `A_slow / f`. The
+/// factor is one number per vertex (the Mix Shader's Fac is a scalar): the slow share of the
+/// light, averaged over channels; the colours carry each channel's own split.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct SlowLobe {
+    /// Subsurface colour per channel (`A_slow / weight`).
+    pub colour: [f64; 3],
+    /// Subsurface radius per channel, mm (`4π d_slow`).
+    pub radius_mm: [f64; 3],
+    /// The Mix Shader's factor: the slow lobe's share of the total reflectance, mean over
+    /// channels, in [0, 1].
+    pub weight: f64,
 }
 
 /// What the subsurface colour is (issue 43's conversion candidates, chosen by how well Cycles
@@ -91,6 +115,13 @@ pub enum ColourRule {
     /// measured, and the light of a slow term no Burley shape holds is given up.
     #[default]
     Fitted,
+    /// Two Burley lobes, a near and a slow one, mixed by a Mix Shader (issue 43 item 3): the
+    /// fitted exponentials (Eq. 1, every direction segment's, Eq. 3 averaged) split at the
+    /// largest gap in their rates into a fast and a slow group; T is split between the lobes as
+    /// the groups' own reflectances `Σ 2π c_k / d_k²` split it, and each lobe's radius is the
+    /// Burley shape of its group's curve. One Burley shape cannot hold a near and a slow term at
+    /// once; two can, with the slow term's light where it falls instead of near x_i or nowhere.
+    TwoLobe,
 }
 
 /// Converts every vertex of `model` (validated by [`crate::render::validate`]) by
@@ -132,6 +163,7 @@ fn convert_one(model: &ModelFile, f: &Falloffs, i: usize, rule: ColourRule) -> V
         beyond_truncation: None,
         range_mm: [0.0; 2],
         source: Source::None,
+        slow: None,
     };
     if vm.status == VertexStatus::NoModel || !f.is_active(i) {
         return none;
@@ -147,51 +179,114 @@ fn convert_one(model: &ModelFile, f: &Falloffs, i: usize, rule: ColourRule) -> V
     };
     let rs = geometric(range, COMPARE_POINTS);
     let ln_mean: Vec<[f64; 3]> = rs.iter().map(|&r| f.ln_eval_mean(i, r)).collect();
-    let mut colour = [0.0; 3];
-    let mut radius = [0.0; 3];
+    // Per channel the converted profile as lobes `(A, d)`: `Σ_j A_j R(r; d_j)`.
+    let mut lobes = [[(0.0, 1.0); 2]; 3];
+    let two = if rule == ColourRule::TwoLobe {
+        let Some(t) = two_lobes(model, i, &rs, &ln_mean) else {
+            return none;
+        };
+        Some(t)
+    } else {
+        None
+    };
+    for c in 0..3 {
+        let y: Vec<f64> = ln_mean.iter().map(|l| l[c]).collect();
+        lobes[c] = match (rule, &two) {
+            (ColourRule::TwoLobe, Some(t)) => t[c],
+            (ColourRule::Fitted, _) => {
+                let Some((d, a, _)) = fit_shape_free(&rs, &y) else {
+                    return none;
+                };
+                [(a, d), (0.0, d)]
+            }
+            _ => {
+                let total = profile.total[c];
+                let Some((d, _)) = fit_shape(&rs, &y, total) else {
+                    return none;
+                };
+                [(total, d), (0.0, d)]
+            }
+        };
+    }
+    let ln_conv = |c: usize, r: f64| -> f64 { ln_lobes(&lobes[c], r) };
     let mut log_e = [0.0; 3];
     let mut tail = [0.0; 3];
     let mut beyond = [0.0; 3];
-    let mut d_of = [0.0; 3];
     for c in 0..3 {
-        let y: Vec<f64> = ln_mean.iter().map(|l| l[c]).collect();
-        let (d, total, rms) = match rule {
-            ColourRule::Total => {
-                let total = profile.total[c];
-                let Some((d, rms)) = fit_shape(&rs, &y, total) else {
-                    return none;
-                };
-                (d, total, rms)
-            }
-            ColourRule::Fitted => {
-                let Some(fit) = fit_shape_free(&rs, &y) else {
-                    return none;
-                };
-                fit
-            }
-        };
-        d_of[c] = d;
-        colour[c] = total;
-        radius[c] = RADIUS_PER_D * d;
-        log_e[c] = rms;
-        let outer = &rs[rs.len() * 3 / 4..];
-        tail[c] = outer
+        let err: Vec<f64> = rs
             .iter()
-            .zip(&y[rs.len() * 3 / 4..])
-            .map(|(&r, &yk)| yk - (total.ln() + ln_profile(r, d)))
-            .sum::<f64>()
-            / outer.len() as f64;
-        beyond[c] = profile.share_beyond(c, TRUNCATE * d);
+            .zip(&ln_mean)
+            .map(|(&r, l)| l[c] - ln_conv(c, r))
+            .collect();
+        log_e[c] = (err.iter().map(|e| e * e).sum::<f64>() / err.len() as f64).sqrt();
+        let outer = &err[err.len() * 3 / 4..];
+        tail[c] = outer.iter().sum::<f64>() / outer.len() as f64;
+        // Cycles' reach: 16 d of the farthest lobe holding light.
+        let reach = lobes[c]
+            .iter()
+            .filter(|(a, _)| *a > 0.0)
+            .map(|(_, d)| TRUNCATE * d)
+            .fold(0.0, f64::max);
+        beyond[c] = profile.share_beyond(c, reach);
     }
+    // What the node tree gets: the near lobe's colour and radius (with two lobes, its light over
+    // its Mix Shader weight), the slow lobe apart.
+    let (colour, radius, slow) = match &two {
+        Some(_) => {
+            let w = (0..3)
+                .map(|c| {
+                    let t = lobes[c][0].0 + lobes[c][1].0;
+                    if t > 0.0 { lobes[c][1].0 / t } else { 0.0 }
+                })
+                .sum::<f64>()
+                / 3.0;
+            let w = if w.is_finite() {
+                w.clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
+            let near_colour = [0, 1, 2].map(|c| {
+                if 1.0 - w > 1e-9 {
+                    lobes[c][0].0 / (1.0 - w)
+                } else {
+                    0.0
+                }
+            });
+            let near_radius = [0, 1, 2].map(|c| RADIUS_PER_D * lobes[c][0].1);
+            let slow = if w > 1e-9 {
+                SlowLobe {
+                    colour: [0, 1, 2].map(|c| lobes[c][1].0 / w),
+                    radius_mm: [0, 1, 2].map(|c| RADIUS_PER_D * lobes[c][1].1),
+                    weight: w,
+                }
+            } else {
+                // No slow light: a lobe of weight 0 (the near one's values, so interpolation
+                // in ln colour and ln radius stays finite).
+                SlowLobe {
+                    colour: near_colour,
+                    radius_mm: near_radius,
+                    weight: 0.0,
+                }
+            };
+            (near_colour, near_radius, Some(slow))
+        }
+        None => (
+            [0, 1, 2].map(|c| lobes[c][0].0),
+            [0, 1, 2].map(|c| RADIUS_PER_D * lobes[c][0].1),
+            None,
+        ),
+    };
     let m = f.segments();
     let (anisotropy, total_log_e) = if m > 1 {
-        let (a, t) = anisotropy_cost(f, i, &rs, &ln_mean, colour, d_of);
+        let (a, t) = anisotropy_cost(f, i, &rs, &ln_mean, &ln_conv);
         (Some(a), t)
     } else {
         (None, log_e)
     };
     let finite = |x: &[f64; 3]| x.iter().all(|v| v.is_finite());
-    if !(finite(&colour) && finite(&radius) && finite(&log_e) && finite(&total_log_e)) {
+    if !(finite(&colour) && finite(&radius) && finite(&log_e) && finite(&total_log_e))
+        || slow.is_some_and(|l| !(finite(&l.colour) && finite(&l.radius_mm)))
+    {
         return none;
     }
     VertexConversion {
@@ -207,7 +302,116 @@ fn convert_one(model: &ModelFile, f: &Falloffs, i: usize, rule: ColourRule) -> V
             VertexStatus::Interpolated => Source::Interpolated,
             _ => Source::Fitted,
         },
+        slow,
     }
+}
+
+/// `ln Σ_j A_j R(r; d_j)` of Cycles' Burley lobes (log-sum-exp: finite where a lobe
+/// underflows; lobes with no light are skipped).
+fn ln_lobes(lobes: &[(f64, f64); 2], r: f64) -> f64 {
+    let l: Vec<f64> = lobes
+        .iter()
+        .filter(|(a, _)| *a > 0.0)
+        .map(|&(a, d)| a.ln() + ln_profile(r, d))
+        .collect();
+    let m = l.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    if !m.is_finite() {
+        return m;
+    }
+    m + l.iter().map(|x| (x - m).exp()).sum::<f64>().ln()
+}
+
+/// The two lobes `[(A_near, d_near), (A_slow, d_slow)]` per channel of vertex `i`
+/// ([`ColourRule::TwoLobe`]), fitted to its direction-averaged fall-off `ln_mean` at the
+/// compared distances `rs`; `None` when the vertex's parameters do not read as a model.
+///
+/// The pool is every exponential of every direction segment, weighted `1/m` (Eq. 3 averaged,
+/// as the one-lobe conversion averages the segments), with the channel's scale (Eq. 5/9). Sorted
+/// by rate, it is cut at the largest ratio between neighbouring rates: the fast group is the
+/// near lobe, the rest the slow one (a vertex whose terms all share one rate has no slow lobe:
+/// `A_slow = 0`). Each group's reflectance is `Σ 2π c_k / d_k²` (closed form), and the lobes'
+/// light is split in that ratio. The two shapes and the amplitude are fitted together in log
+/// space over the compared distances ([`fit_two_lobes`]): fitted to each group's own curve
+/// with the amplitude fixed to T (tried first), the near lobe came out far too wide — Burley's
+/// `e^{−r/d}/r` is no exponential, and T as the renderer integrates it (the support rule below
+/// r_min) is about twice the terms' closed form on sample-torus — and its conversion log E was
+/// 1.5 (median, sample-torus) against 0.19 for one fitted lobe; fitted together, 0.026.
+fn two_lobes(
+    model: &ModelFile,
+    i: usize,
+    rs: &[f64],
+    ln_mean: &[[f64; 3]],
+) -> Option<[[(f64, f64); 2]; 3]> {
+    use crate::model::ColourModel;
+    let vm = &model.vertices[i];
+    let cm = crate::modelfile::model_of(&model.shape, vm.terms as usize, &vm.params).ok()?;
+    let mut out = [[(0.0, 1.0); 2]; 3];
+    let (mut done, mut shares) = ([[(0.0, 1.0); 2]; 3], [f64::NAN; 3]);
+    for (c, lobes) in out.iter_mut().enumerate() {
+        let (aniso, scale) = match &cm {
+            ColourModel::Shared { falloff, s_g, s_b } => (falloff, [1.0, *s_g, *s_b][c]),
+            ColourModel::PerChannel { channels } => (&channels[c], 1.0),
+        };
+        let m = aniso.segments.len().max(1) as f64;
+        let mut pool: Vec<(f64, f64)> = aniso
+            .segments
+            .iter()
+            .flat_map(|seg| seg.terms.iter().map(|t| (t.c * scale / m, -t.d)))
+            .filter(|&(a, s)| a > 0.0 && s > 0.0 && a.is_finite() && s.is_finite())
+            .collect();
+        if pool.is_empty() {
+            return None;
+        }
+        pool.sort_by(|a, b| b.1.total_cmp(&a.1));
+        // Cut at the largest rate ratio (none when every rate is the same to 1 %).
+        let cut = (1..pool.len())
+            .map(|k| (k, pool[k - 1].1 / pool[k].1))
+            .filter(|&(_, ratio)| ratio > 1.01)
+            .max_by(|a, b| a.1.total_cmp(&b.1))
+            .map_or(pool.len(), |(k, _)| k);
+        let (near, slow) = pool.split_at(cut);
+        let reflectance = |g: &[(f64, f64)]| {
+            g.iter()
+                .map(|&(a, s)| std::f64::consts::TAU * a / (s * s))
+                .sum::<f64>()
+        };
+        let (t_near, t_slow) = (reflectance(near), reflectance(slow));
+        let share = t_slow / (t_near + t_slow);
+        if !share.is_finite() {
+            return None;
+        }
+        // The shapes and the amplitude over the vertex's compared distances, the share fixed.
+        let y: Vec<f64> = ln_mean.iter().map(|l| l[c]).collect();
+        // A channel that is an earlier one scaled (Eq. 5/9: shared colour) with the same split
+        // has its shapes: only the amplitude differs (the fit is the slow part of an export).
+        let offset = |p: usize| -> Option<f64> {
+            let diff: Vec<f64> = ln_mean.iter().map(|l| l[c] - l[p]).collect();
+            let mean = diff.iter().sum::<f64>() / diff.len() as f64;
+            diff.iter().all(|x| (x - mean).abs() < 1e-9).then_some(mean)
+        };
+        if let Some((p, shift)) = shares[..c]
+            .iter()
+            .enumerate()
+            .filter(|(_, s)| (**s - share).abs() < 1e-12)
+            .find_map(|(p, _)| offset(p).map(|o| (p, o)))
+        {
+            let [(a1, d1), (a2, d2)] = done[p];
+            *lobes = [(a1 * shift.exp(), d1), (a2 * shift.exp(), d2)];
+            done[c] = *lobes;
+            shares[c] = share;
+            continue;
+        }
+        let (d_near, d_slow, amp, _) = if slow.is_empty() {
+            let (d, a, rms) = fit_shape_free(rs, &y)?;
+            (d, d, a, rms)
+        } else {
+            fit_two_lobes(rs, &y, share)?
+        };
+        *lobes = [(amp * (1.0 - share), d_near), (amp * share, d_slow)];
+        done[c] = *lobes;
+        shares[c] = share;
+    }
+    Some(out)
 }
 
 /// `(log E of R̄ against R(r, φ), log E of the converted profile against R(r, φ))` per channel,
@@ -217,8 +421,7 @@ fn anisotropy_cost(
     i: usize,
     rs: &[f64],
     ln_mean: &[[f64; 3]],
-    colour: [f64; 3],
-    d: [f64; 3],
+    ln_conv: &dyn Fn(usize, f64) -> f64,
 ) -> ([f64; 3], [f64; 3]) {
     let m = f.segments();
     let dirs = 4 * m;
@@ -238,7 +441,7 @@ fn anisotropy_cost(
                 }
                 let lf = full[c].ln();
                 let ea = ln_mean[k][c] - lf;
-                let et = colour[c].ln() + ln_profile(r, d[c]) - lf;
+                let et = ln_conv(c, r) - lf;
                 sa[c] += ea * ea;
                 st[c] += et * et;
                 n[c] += 1;
@@ -357,15 +560,27 @@ fn fill_missing(model: &ModelFile, out: &mut [VertexConversion]) {
             }
         }
     }
+    // ln colour and ln radius (and with two lobes the slow lobe's, and its weight) per vertex.
+    let two = out.iter().any(|v| v.slow.is_some());
+    let width = if two { 13 } else { 6 };
     let known: Vec<Option<Vec<f64>>> = out
         .iter()
         .map(|v| {
-            (v.source != Source::None && v.colour.iter().all(|&c| c > 0.0)).then(|| {
-                v.colour
+            let slow_ok = !two
+                || v.slow
+                    .is_some_and(|l| l.colour.iter().chain(&l.radius_mm).all(|&c| c > 0.0));
+            (v.source != Source::None && v.colour.iter().all(|&c| c > 0.0) && slow_ok).then(|| {
+                let mut x: Vec<f64> = v
+                    .colour
                     .iter()
                     .chain(&v.radius_mm)
                     .map(|x| x.ln())
-                    .collect()
+                    .collect();
+                if let (true, Some(l)) = (two, &v.slow) {
+                    x.extend(l.colour.iter().chain(&l.radius_mm).map(|x| x.ln()));
+                    x.push(l.weight);
+                }
+                x
             })
         })
         .collect();
@@ -374,9 +589,16 @@ fn fill_missing(model: &ModelFile, out: &mut [VertexConversion]) {
         if v.source != Source::None {
             continue;
         }
-        if let Some(x) = f.filter(|x| x.len() == 6 && x.iter().all(|y| y.is_finite())) {
+        if let Some(x) = f.filter(|x| x.len() == width && x.iter().all(|y| y.is_finite())) {
             v.colour = [x[0].exp(), x[1].exp(), x[2].exp()];
             v.radius_mm = [x[3].exp(), x[4].exp(), x[5].exp()];
+            if two {
+                v.slow = Some(SlowLobe {
+                    colour: [x[6].exp(), x[7].exp(), x[8].exp()],
+                    radius_mm: [x[9].exp(), x[10].exp(), x[11].exp()],
+                    weight: x[12].clamp(0.0, 1.0),
+                });
+            }
             v.source = Source::Filled;
         }
     }
@@ -435,6 +657,38 @@ mod tests {
         let one = convert(&plate(&[(0.5, -2.0)]), &());
         let l1 = one[4].log_e.unwrap()[0];
         assert!(l1 > 0.01 && l1.is_finite(), "{l1}");
+    }
+
+    /// Two lobes: the slow lobe's weight is the slow term's share of the terms' closed-form
+    /// reflectance, the radii are ordered, and the pair fits the two-term fall-off better than
+    /// one lobe; a one-term vertex has a slow lobe of weight 0.
+    #[test]
+    fn two_lobes_split_the_light_as_the_terms_do_and_fit_better_than_one() {
+        let terms = [(0.5, -2.0), (0.02, -0.4)];
+        let m = plate(&terms);
+        let two = convert_with(&m, ColourRule::TwoLobe, &());
+        let one = convert_with(&m, ColourRule::Fitted, &());
+        let v = &two[4];
+        let t: Vec<f64> = terms
+            .iter()
+            .map(|&(c, d)| std::f64::consts::TAU * c / (d * d))
+            .collect();
+        let share = t[1] / (t[0] + t[1]);
+        let slow = v.slow.expect("a slow lobe");
+        assert!(
+            (slow.weight - share).abs() < 1e-9,
+            "{} vs {share}",
+            slow.weight
+        );
+        assert!(slow.radius_mm[0] >= v.radius_mm[0], "{slow:?} {v:?}");
+        let (l2, l1) = (v.log_e.unwrap()[0], one[4].log_e.unwrap()[0]);
+        assert!(l2 < l1, "two lobes {l2}, one {l1}");
+        let single = convert_with(&plate(&[(0.5, -2.0)]), ColourRule::TwoLobe, &());
+        assert_eq!(single[4].slow.map(|l| l.weight), Some(0.0));
+        // The mesh carries the slow lobe to the glTF.
+        let mesh = super::super::mesh::vertex_mesh(&m, &two);
+        assert_eq!(mesh.slow_weight.len(), mesh.positions.len());
+        assert!(mesh.slow_weight.iter().all(|w| (w[0] - share).abs() < 1e-9));
     }
 
     /// A vertex without a model takes its neighbours' parameters.

@@ -29,6 +29,16 @@ pub const ATTRIBUTES: [(&str, &str); 4] = [
     ("_CONVERSION_LOG_E", "conversion log E"),
 ];
 
+/// The second lobe's attributes, written only with two lobes ([`super::ColourRule::TwoLobe`]).
+pub const SLOW_ATTRIBUTES: [(&str, &str); 3] = [
+    ("_SUBSURFACE_COLOR_SLOW", "slow lobe's subsurface colour"),
+    (
+        "_SUBSURFACE_RADIUS_SLOW",
+        "slow lobe's subsurface radius, m",
+    ),
+    ("_LOBE_MIX", "Mix Shader factor: the slow lobe's share"),
+];
+
 /// The `.glb` bytes of `mesh`, lengths scaled by `metres_per_unit` (the model is in mm: 0.001).
 pub fn glb_bytes(
     mesh: &ExportMesh,
@@ -51,6 +61,15 @@ pub fn glb_bytes(
         ("log E", mesh.log_e.len()),
     ] {
         if len != n {
+            return Err(bad(format!("{what}: {len} entries for {n} vertices")));
+        }
+    }
+    for (what, len) in [
+        ("slow colour", mesh.slow_colour.len()),
+        ("slow radius", mesh.slow_radius_mm.len()),
+        ("lobe mix", mesh.slow_weight.len()),
+    ] {
+        if len != 0 && len != n {
             return Err(bad(format!("{what}: {len} entries for {n} vertices")));
         }
     }
@@ -91,10 +110,24 @@ pub fn glb_bytes(
         .iter()
         .map(|l| l.map(|x| if x.is_finite() { x as f32 } else { -1.0 }))
         .collect();
-    let preview: Vec<[f32; 3]> = colour
-        .iter()
-        .zip(&alpha)
-        .map(|(c, a)| [0, 1, 2].map(|k| (c[k] * a[k]).clamp(0.0, 1.0)))
+    let slow_colour = vec3(&mesh.slow_colour, 1.0, "slow subsurface colour")?;
+    let slow_radius = vec3(&mesh.slow_radius_mm, s, "slow subsurface radius")?;
+    let slow_weight = vec3(&mesh.slow_weight, 1.0, "lobe mix")?;
+    let two = !slow_weight.is_empty();
+    // The preview: the light both lobes scatter, times alpha.
+    let preview: Vec<[f32; 3]> = (0..n)
+        .map(|v| {
+            let (c, a) = (colour[v], alpha[v]);
+            [0, 1, 2].map(|k| {
+                let total = if two {
+                    let w = slow_weight[v][k];
+                    c[k] * (1.0 - w) + slow_colour[v][k] * w
+                } else {
+                    c[k]
+                };
+                (total * a[k]).clamp(0.0, 1.0)
+            })
+        })
         .collect();
 
     let mut bin: Vec<u8> = Vec::new();
@@ -193,6 +226,18 @@ pub fn glb_bytes(
             vec3_accessor(&mut root, data, name, false),
         );
     }
+    if two {
+        for ((name, _), data) in
+            SLOW_ATTRIBUTES
+                .iter()
+                .zip([&slow_colour, &slow_radius, &slow_weight])
+        {
+            attributes.insert(
+                Valid(Semantic::Extras(name[1..].to_string())),
+                vec3_accessor(&mut root, data, name, false),
+            );
+        }
+    }
     let index_bytes: Vec<u8> = mesh
         .triangles
         .iter()
@@ -278,6 +323,7 @@ mod tests {
             radius_mm: vec![[2.0, 1.0, 0.5]; 3],
             alpha: vec![[1.0, 0.9, 1.1]; 3],
             log_e: vec![[0.01, f64::NAN, 0.02]; 3],
+            ..Default::default()
         }
     }
 
@@ -325,6 +371,31 @@ mod tests {
             .into_u32()
             .collect();
         assert_eq!(idx, [0, 1, 2]);
+        assert!(
+            prim.get(&gltf::Semantic::Extras("LOBE_MIX".into()))
+                .is_none()
+        );
+
+        // Two lobes: the slow lobe's attributes are there, and the preview is both lobes' light.
+        let mut two = tri();
+        two.slow_colour = vec![[1.0, 1.0, 1.0]; 3];
+        two.slow_radius_mm = vec![[20.0, 10.0, 5.0]; 3];
+        two.slow_weight = vec![[0.25; 3]; 3];
+        let bytes = glb_bytes(&two, 1e-3, "test").unwrap();
+        let g = gltf::Gltf::from_slice(&bytes).unwrap();
+        let prim = g.meshes().next().unwrap().primitives().next().unwrap();
+        for name in [
+            "SUBSURFACE_COLOR_SLOW",
+            "SUBSURFACE_RADIUS_SLOW",
+            "LOBE_MIX",
+        ] {
+            assert!(
+                prim.get(&gltf::Semantic::Extras(name.into())).is_some(),
+                "{name}"
+            );
+        }
+        two.slow_weight.pop();
+        assert!(glb_bytes(&two, 1e-3, "t").is_err());
     }
 
     #[test]

@@ -35,6 +35,13 @@ pub struct ExportMesh {
     pub alpha: Vec<[f64; 3]>,
     /// Conversion log E per channel (NaN where none: no model of its own).
     pub log_e: Vec<[f64; 3]>,
+    /// The slow lobe's subsurface colour per channel (two lobes, [`super::ColourRule::TwoLobe`];
+    /// empty for one).
+    pub slow_colour: Vec<[f64; 3]>,
+    /// The slow lobe's radius per channel, mm (empty for one lobe).
+    pub slow_radius_mm: Vec<[f64; 3]>,
+    /// The Mix Shader's factor, the slow lobe's share, in every channel (empty for one lobe).
+    pub slow_weight: Vec<[f64; 3]>,
 }
 
 /// What refining the mesh for a face lattice did.
@@ -66,7 +73,22 @@ pub fn vertex_mesh(model: &ModelFile, conv: &[VertexConversion]) -> ExportMesh {
             .iter()
             .map(|v| v.log_e.unwrap_or([f64::NAN; 3]))
             .collect(),
+        slow_colour: slow(conv, |l, _| l.map_or([0.0; 3], |l| l.colour)),
+        slow_radius_mm: slow(conv, |l, v| l.map_or(v.radius_mm, |l| l.radius_mm)),
+        slow_weight: slow(conv, |l, _| [l.map_or(0.0, |l| l.weight); 3]),
     }
+}
+
+/// A slow-lobe array over the vertices when any vertex has a slow lobe (a vertex without one:
+/// weight 0), else empty.
+fn slow(
+    conv: &[VertexConversion],
+    get: impl Fn(Option<&super::convert::SlowLobe>, &VertexConversion) -> [f64; 3],
+) -> Vec<[f64; 3]> {
+    if conv.iter().all(|v| v.slow.is_none()) {
+        return Vec::new();
+    }
+    conv.iter().map(|v| get(v.slow.as_ref(), v)).collect()
 }
 
 /// The mesh cut at the model's largest lattice level (see the module doc); the vertex mesh when
@@ -201,6 +223,16 @@ pub fn refined_mesh(model: &ModelFile, conv: &[VertexConversion]) -> (ExportMesh
             out.colour.push(col);
             out.radius_mm.push(rad);
             out.log_e.push(le);
+            if !out.slow_weight.is_empty() {
+                let (sc, sr, sw) = (
+                    mix(&out.slow_colour[..nv]),
+                    mix(&out.slow_radius_mm[..nv]),
+                    mix(&out.slow_weight[..nv]),
+                );
+                out.slow_colour.push(sc);
+                out.slow_radius_mm.push(sr);
+                out.slow_weight.push(sw);
+            }
             out.alpha.push([0.0; 3]);
             ln_alpha_sum.push(la);
             first_ln.push(la);

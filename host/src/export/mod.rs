@@ -2,9 +2,10 @@
 //! (`subsurf export --format blender`, `docs/export.md`).
 //!
 //! 1. [`convert`]: per vertex, the fitted fall-off R_d(r) (Eq. 1/3/5/9; anisotropy averaged over
-//!    its segments) becomes the Principled BSDF's subsurface colour (the total diffuse
-//!    reflectance) and radius (Cycles' Christensen–Burley profile fitted in log space over the
-//!    vertex's sampled range, [`cycles`]), with the conversion's log E per channel.
+//!    its segments) becomes the Principled BSDF's subsurface colour and radius (Cycles'
+//!    Christensen–Burley profile fitted in log space over the vertex's sampled range,
+//!    [`cycles`]; the colour rule [`ColourRule`] chosen by how Cycles renders a scan's training
+//!    frames; `TwoLobe`: a near and a slow BSDF mixed), with the conversion's log E per channel.
 //! 2. [`mesh`]: the mesh with those parameters and alpha (Eq. 2/6) per vertex, or cut finer where
 //!    the model has a face lattice of alpha.
 //! 3. [`gltf`] + [`scene`] + `build_blend.py`: the files Blender reads — a binary glTF with the
@@ -205,8 +206,14 @@ pub struct ExportSummary {
     pub total_log_e: Option<ChannelStats>,
     /// Mean ln(fitted / converted) over the outer quarter of each vertex's range.
     pub tail_excess: Option<ChannelStats>,
-    /// Share of the fitted light beyond Cycles' truncation at 16 d.
+    /// Share of the fitted light beyond Cycles' truncation at 16 d (of the farthest lobe).
     pub beyond_truncation: Option<ChannelStats>,
+    /// With two lobes: the slow lobe's radius, mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub slow_radius_mm: Option<ChannelStats>,
+    /// With two lobes: the slow lobe's share of the light (the Mix Shader's factor).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub slow_weight: Option<ChannelStats>,
     /// The face lattice's refinement.
     pub refinement: Refinement,
     /// What was left out.
@@ -240,6 +247,9 @@ pub struct SceneFile {
     pub blend: &'static str,
     /// The Principled BSDF's `subsurface_method`.
     pub method: &'static str,
+    /// Subsurface lobes per point: 1, or 2 (a near and a slow Principled BSDF mixed by a Mix
+    /// Shader, [`ColourRule::TwoLobe`]).
+    pub lobes: u8,
     /// The exit Fresnel factor's relative index (`None`: no factor).
     pub exit_fresnel_ior: Option<f64>,
     /// The lights.
@@ -323,6 +333,8 @@ pub fn export(
         total_log_e: stats(&|v| v.total_log_e),
         tail_excess: stats(&|v| v.tail_excess),
         beyond_truncation: stats(&|v| v.beyond_truncation),
+        slow_radius_mm: stats(&|v| v.slow.map(|l| l.radius_mm)),
+        slow_weight: stats(&|v| v.slow.map(|l| [l.weight; 3])),
         refinement,
         dropped: Dropped {
             anisotropy: (m > 1)
@@ -345,6 +357,11 @@ pub fn export(
         mesh: MESH_FILE,
         blend: BLEND_FILE,
         method: "BURLEY",
+        lobes: if opts.colour == ColourRule::TwoLobe {
+            2
+        } else {
+            1
+        },
         exit_fresnel_ior: opts.eta,
         lights: scene::lights(&opts.lights)?,
         camera: scene::camera(&opts.camera, model.bounds())?,
