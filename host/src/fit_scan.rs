@@ -231,11 +231,11 @@ pub fn fit_scan<U: Stages>(
                  {:.3} mm pixel footprint): fitting {} and prolonging the model (--full-mesh: all)",
                 l.vertices, l.supported_vertices, l.pixel_footprint_mm, l.fitted_vertices
             ));
-            Some((given.with_mesh(c.mesh.clone()), c))
+            Some(given.with_mesh(c.mesh))
         }
         _ => None,
     };
-    let ds = coarse.as_ref().map_or(given, |(d, _)| d);
+    let ds = coarse.as_ref().unwrap_or(given);
     let preset = args.preset;
     let (mut opts, mut fit) = PipelineOptions::for_dataset(ds).with_preset(preset);
     // The dataset's floor (scan.json's, else measured from its frames) is the evaluation
@@ -375,7 +375,7 @@ pub fn fit_scan<U: Stages>(
         }
     }
     let mut out = out;
-    if let Some((_, c)) = &coarse {
+    if let Some(c) = &coarse {
         let bar = ui.stage(0, "prolonging the model to the mesh");
         bar.start(
             &format!(

@@ -114,7 +114,7 @@ pub fn pixel_footprint_mm(ds: &Dataset) -> Option<f64> {
 /// The level of detail `ds`'s frames support for its mesh (nothing is built here).
 pub fn supported(ds: &Dataset) -> Option<LevelOfDetail> {
     let h = pixel_footprint_mm(ds)?;
-    let area = mesh_area(&ds.mesh);
+    let area = ds.mesh.area();
     // An equilateral lattice of edge h has 2 / (√3 h²) vertices per unit area.
     let supported = (2.0 * area / (3f64.sqrt() * h * h)).ceil();
     let n = ds.mesh.positions.len();
@@ -138,19 +138,6 @@ impl LevelOfDetail {
         self.supported_vertices >= MIN_SUPPORTED
             && self.vertices as f64 > COARSEN_ABOVE * self.supported_vertices as f64
     }
-}
-
-fn mesh_area(mesh: &Mesh) -> f64 {
-    mesh.triangles
-        .iter()
-        .map(|t| {
-            let [a, b, c] = t.map(|i| mesh.positions[i as usize]);
-            let u = crate::geometry::sub(b, a);
-            let v = crate::geometry::sub(c, a);
-            0.5 * crate::geometry::norm(crate::geometry::cross(u, v))
-        })
-        .filter(|a| a.is_finite())
-        .sum()
 }
 
 /// `mesh` clustered to about the vertex count `lod` says the frames support: first on a grid of
@@ -321,7 +308,7 @@ mod tests {
             assert_eq!(coarse.mesh.positions[k], fine.positions[v as usize]);
         }
         // The coarse surface covers the square (area within 15 %: the border cells shrink it).
-        let a = mesh_area(&coarse.mesh);
+        let a = coarse.mesh.area();
         assert!((a - 16.0).abs() < 0.15 * 16.0, "area {a}");
         // Oriented as the fine mesh: every normal still +z.
         assert!(coarse.mesh.normals.iter().all(|n| n[2] > 0.99));

@@ -379,7 +379,36 @@ fn px_label(px: u32) -> String {
 /// decode pass) and peak RSS, one line per series, both axes from zero so linearity reads
 /// directly.
 pub fn plot(path: &Path, rows: &[Row]) -> Result<(), FitScaleError> {
+    use plotters::coord::Shift;
+    use plotters::coord::types::RangedCoordf64;
     use plotters::prelude::*;
+    /// One panel's axes: x from 0 to `xmax` (two decimals), y from 0 to `y.0` named `y.1`.
+    fn axes<'a, 'b>(
+        area: &'a DrawingArea<BitMapBackend<'b>, Shift>,
+        caption: String,
+        x_desc: &str,
+        xmax: f64,
+        y: (f64, &str),
+    ) -> Result<
+        ChartContext<'a, BitMapBackend<'b>, Cartesian2d<RangedCoordf64, RangedCoordf64>>,
+        String,
+    > {
+        let mut chart = ChartBuilder::on(area)
+            .caption(caption, ("sans-serif", 20))
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(60)
+            .build_cartesian_2d(0.0..xmax, 0.0..y.0)
+            .map_err(|e| e.to_string())?;
+        chart
+            .configure_mesh()
+            .x_desc(x_desc)
+            .x_label_formatter(&|v| format!("{v:.2}"))
+            .y_desc(y.1)
+            .draw()
+            .map_err(|e| e.to_string())?;
+        Ok(chart)
+    }
     crate::plot::register_font();
     let err =
         |e: &dyn std::fmt::Display| FitScaleError::Draw(format!("drawing {}: {e}", path.display()));
@@ -432,20 +461,14 @@ pub fn plot(path: &Path, rows: &[Row]) -> Result<(), FitScaleError> {
         RGBColor(44, 160, 44),
         RGBColor(148, 103, 189),
     ];
-    let mut chart = ChartBuilder::on(&left)
-        .caption(format!("subsurf fit: time vs {what}"), ("sans-serif", 20))
-        .margin(12)
-        .x_label_area_size(40)
-        .y_label_area_size(60)
-        .build_cartesian_2d(0.0..fmax, 0.0..tmax)
-        .map_err(|e| err(&e))?;
-    chart
-        .configure_mesh()
-        .x_desc(x_desc.clone())
-        .x_label_formatter(&|v| format!("{v:.2}"))
-        .y_desc("seconds")
-        .draw()
-        .map_err(|e| err(&e))?;
+    let mut chart = axes(
+        &left,
+        format!("subsurf fit: time vs {what}"),
+        &x_desc,
+        fmax,
+        (tmax, "seconds"),
+    )
+    .map_err(|e| err(&e))?;
     for (i, ((px, v), rs)) in by_v.iter().enumerate() {
         let c = colours[i % colours.len()];
         let mut rs = rs.clone();
@@ -491,23 +514,14 @@ pub fn plot(path: &Path, rows: &[Row]) -> Result<(), FitScaleError> {
         .border_style(BLACK)
         .draw()
         .map_err(|e| err(&e))?;
-    let mut chart = ChartBuilder::on(&right)
-        .caption(
-            format!("subsurf fit: peak RSS vs {what}"),
-            ("sans-serif", 20),
-        )
-        .margin(12)
-        .x_label_area_size(40)
-        .y_label_area_size(60)
-        .build_cartesian_2d(0.0..fmax, 0.0..mmax)
-        .map_err(|e| err(&e))?;
-    chart
-        .configure_mesh()
-        .x_desc(x_desc.clone())
-        .x_label_formatter(&|v| format!("{v:.2}"))
-        .y_desc("peak RSS (MiB)")
-        .draw()
-        .map_err(|e| err(&e))?;
+    let mut chart = axes(
+        &right,
+        format!("subsurf fit: peak RSS vs {what}"),
+        &x_desc,
+        fmax,
+        (mmax, "peak RSS (MiB)"),
+    )
+    .map_err(|e| err(&e))?;
     for (i, ((px, v), rs)) in by_v.iter().enumerate() {
         let c = colours[i % colours.len()];
         let mut rs = rs.clone();

@@ -143,6 +143,14 @@ impl Mesh {
         )
     }
 
+    /// The surface area (mm²): the sum of its triangles' ([`triangle_area`]).
+    pub fn area(&self) -> f64 {
+        self.triangles
+            .iter()
+            .map(|&t| triangle_area(&self.positions, t))
+            .sum()
+    }
+
     /// Length of the bounding box diagonal (mm): the scale for geometric tolerances.
     pub fn diagonal(&self) -> f64 {
         let mut lo = [f64::INFINITY; 3];
@@ -155,6 +163,18 @@ impl Mesh {
         }
         norm(sub(hi, lo))
     }
+}
+
+/// The area of face `f` of the vertices `p` (mm²); 0 for a face with an index out of range.
+pub fn triangle_area(p: &[[f64; 3]], f: [u32; 3]) -> f64 {
+    let (Some(a), Some(b), Some(c)) = (
+        p.get(f[0] as usize),
+        p.get(f[1] as usize),
+        p.get(f[2] as usize),
+    ) else {
+        return 0.0;
+    };
+    0.5 * norm(cross(sub(*b, *a), sub(*c, *a)))
 }
 
 /// Loads an OBJ (all objects merged, polygons triangulated).

@@ -27,7 +27,7 @@ pub use image::{
     Image, ImageError, bilinear_taps, encode_exr, encode_pfm, read_exr_with_alpha, read_image,
     read_image_with, write_exr, write_pfm,
 };
-pub use mesh::{Mesh, MeshError, MeshReport, load_obj, obj_bytes, write_obj};
+pub use mesh::{Mesh, MeshError, MeshReport, load_obj, obj_bytes, triangle_area, write_obj};
 pub use writer::{DatasetWriter, STATE_DIR, WriteError, write_atomic};
 
 /// The only format string this version reads and writes.

@@ -5,7 +5,7 @@ use rayon::prelude::*;
 use super::RenderError;
 use super::fresnel::relative_transmittance;
 use super::light::Light;
-use crate::dataset::Mesh;
+use crate::dataset::{Mesh, triangle_area};
 use crate::geometry::Scene;
 
 /// The mesh as shadow rays see it: the one [`Scene`] (its BVH, lift-off and shadow ray
@@ -16,18 +16,6 @@ pub fn shadow_scene(positions: &[[f64; 3]], faces: &[[u32; 3]]) -> Result<Scene,
         return Err(RenderError::Degenerate);
     }
     Scene::new(mesh).map_err(|_| RenderError::Degenerate)
-}
-
-fn triangle_area(p: &[[f64; 3]], f: [u32; 3]) -> f64 {
-    let (a, b, c) = (p[f[0] as usize], p[f[1] as usize], p[f[2] as usize]);
-    let u = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
-    let v = [c[0] - a[0], c[1] - a[1], c[2] - a[2]];
-    let x = [
-        u[1] * v[2] - u[2] * v[1],
-        u[2] * v[0] - u[0] * v[2],
-        u[0] * v[1] - u[1] * v[0],
-    ];
-    0.5 * (x[0] * x[0] + x[1] * x[1] + x[2] * x[2]).sqrt()
 }
 
 /// `A(x_i)`: a third of the area of every triangle around each vertex (the barycentric dual
