@@ -708,6 +708,9 @@ pub fn fit_scan_in(
     progress: &dyn Progress,
 ) -> Result<FitOutput, PipelineError> {
     let start = std::time::Instant::now();
+    // The reference preset fits with its own numerics throughout (libm's exp and ln).
+    let reference = crate::pipeline::reference_fitter(ctx, fitter);
+    let fitter = reference.as_deref().unwrap_or(fitter);
     let mut opts = ctx.opts;
     if let Segments::Fixed(m) = cv.segments {
         opts.model.segments = m;

@@ -275,6 +275,14 @@ pub fn fit_prepared(
     fit_prepared_with(ctx, frames, fitter, None, progress)
 }
 
+/// `fitter` as the reference preset runs it (libm's exp and ln, [`Fitter::reference`]) where
+/// the run is the reference (`ctx.opts.speed`); `None`: use `fitter` as it is.
+pub(crate) fn reference_fitter(ctx: &Context, fitter: &dyn Fitter) -> Option<Box<dyn Fitter>> {
+    (ctx.opts.speed == Speed::Reference)
+        .then(|| fitter.reference())
+        .flatten()
+}
+
 /// [`fit_prepared`] taking round 0's candidates from `cache` where another fit of the run
 /// (the cross-validation's) fitted them ([`fit::OrderCache`]): the same model.
 pub fn fit_prepared_with(
@@ -284,6 +292,8 @@ pub fn fit_prepared_with(
     cache: Option<&fit::OrderCache>,
     progress: &dyn Progress,
 ) -> Result<FitOutput, PipelineError> {
+    let reference = reference_fitter(ctx, fitter);
+    let fitter = reference.as_deref().unwrap_or(fitter);
     let mut run = Setup::new(ctx, frames)?;
     let fitted = fit::fit_groups(ctx, &run.regs, &run.groups, fitter, cache, progress);
     run.clock.lap("fit", &mut run.report);

@@ -94,6 +94,11 @@ pub struct FitOptions {
     /// and say so in [`ExpFit::reduced_from`]. Off by default: per-vertex fitting keeps one
     /// order and interpolates vertices with too few samples; `subsurf fit-curve` turns it on.
     pub reduce_order: bool,
+    /// libm's exp and ln in the joint fit's one-segment normal equations instead of the
+    /// vectorised ones of the exact isotropic fit (`isotropic::log_sum_exp_points`): the
+    /// reference preset's exact path before issue 40.
+    #[serde(default)]
+    pub libm: bool,
 }
 
 impl Default for FitOptions {
@@ -108,6 +113,7 @@ impl Default for FitOptions {
             start: None,
             require_convergence: true,
             reduce_order: false,
+            libm: false,
         }
     }
 }

@@ -65,6 +65,12 @@ pub trait Fitter: Sync {
     fn exact(&self) -> Option<Box<dyn Fitter>> {
         None
     }
+
+    /// This fitter as the reference preset runs it (the exact path before issue 40: libm's
+    /// exp and ln, [`crate::fit::FitOptions::libm`]); `None`: it is that already.
+    fn reference(&self) -> Option<Box<dyn Fitter>> {
+        None
+    }
 }
 
 /// The fitting engine's solver failures as the pipeline's reasons (the one mapping).
@@ -119,6 +125,7 @@ impl Fitter for crate::fit::FitOptions {
             bins: self.bins,
             direction_bins: self.bins,
             anchored,
+            libm: self.libm,
         };
         let k = self.subsample.max(1);
         let sub;
@@ -146,6 +153,15 @@ impl Fitter for crate::fit::FitOptions {
     fn exact(&self) -> Option<Box<dyn Fitter>> {
         self.exact_counterpart()
             .map(|o| Box::new(o) as Box<dyn Fitter>)
+    }
+
+    fn reference(&self) -> Option<Box<dyn Fitter>> {
+        (!self.libm).then(|| {
+            Box::new(crate::fit::FitOptions {
+                libm: true,
+                ..self.clone()
+            }) as Box<dyn Fitter>
+        })
     }
 }
 
