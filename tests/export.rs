@@ -582,24 +582,7 @@ fn scan_frames_render_in_cycles_and_are_judged_like_a_model() {
             assert!(theirs.is_finite() && theirs > 0.0, "{row}");
         }
         // The renders carry the beam's power: their light adds up to the model's prediction.
-        let name = format!("{k:06}.exr");
-        let cycles = subsurf::dataset::read_image(&images.join(&name)).unwrap();
-        assert_eq!((cycles.width, cycles.height), (64, 64));
-        let predicted = tmp.path().join(&name);
-        subsurf(&[
-            "predict",
-            "--model",
-            m,
-            "--scan",
-            d,
-            "--frame",
-            &k.to_string(),
-            "--out",
-            predicted.to_str().unwrap(),
-        ]);
-        let predicted = subsurf::dataset::read_image(&predicted).unwrap();
-        let total = |img: &subsurf::dataset::Image| img.data.iter().map(|&v| v as f64).sum::<f64>();
-        let ratio = total(&cycles) / total(&predicted);
+        let ratio = light_against_prediction(&images, m, ds, k, &tmp.path().join("plain"));
         eprintln!("frame {k}: Cycles' total light / the model's {ratio:.3}; {row}");
         assert!((0.75..1.25).contains(&ratio), "frame {k}: {ratio}");
     }
@@ -649,30 +632,49 @@ fn scan_frames_render_in_cycles_and_are_judged_like_a_model() {
             close("cycles_log_e", 0.005);
         }
         let k = b["frame"].as_u64().unwrap();
-        let name = format!("{k:06}.exr");
-        let cycles = subsurf::dataset::read_image(&cam_out.join("frames").join(&name)).unwrap();
-        assert_eq!((cycles.width, cycles.height), (64, 64));
-        let predicted = tmp.path().join(format!("camera-{name}"));
-        subsurf(&[
-            "predict",
-            "--model",
+        let ratio = light_against_prediction(
+            &cam_out.join("frames"),
             m,
-            "--scan",
-            cam.to_str().unwrap(),
-            "--frame",
-            &k.to_string(),
-            "--out",
-            predicted.to_str().unwrap(),
-        ]);
-        let predicted = subsurf::dataset::read_image(&predicted).unwrap();
-        let total = |img: &subsurf::dataset::Image| img.data.iter().map(|&v| v as f64).sum::<f64>();
-        let ratio = total(&cycles) / total(&predicted);
+            &cam,
+            k,
+            &tmp.path().join("camera"),
+        );
         eprintln!("camera files, frame {k}: Cycles' total light / the model's {ratio:.3}");
         assert!(
             (0.75..1.25).contains(&ratio),
             "camera files, frame {k}: {ratio}"
         );
     }
+}
+
+/// Frame `k`'s Cycles render in `renders` (64 × 64 px) against `subsurf predict`'s image of the
+/// same frame of `scan` by `model` (written under `scratch`): their total light's ratio.
+fn light_against_prediction(
+    renders: &Path,
+    model: &str,
+    scan: &Path,
+    k: u64,
+    scratch: &Path,
+) -> f64 {
+    let name = format!("{k:06}.exr");
+    let cycles = subsurf::dataset::read_image(&renders.join(&name)).unwrap();
+    assert_eq!((cycles.width, cycles.height), (64, 64));
+    std::fs::create_dir_all(scratch).unwrap();
+    let predicted = scratch.join(&name);
+    subsurf(&[
+        "predict",
+        "--model",
+        model,
+        "--scan",
+        scan.to_str().unwrap(),
+        "--frame",
+        &k.to_string(),
+        "--out",
+        predicted.to_str().unwrap(),
+    ]);
+    let predicted = subsurf::dataset::read_image(&predicted).unwrap();
+    let total = |img: &subsurf::dataset::Image| img.data.iter().map(|&v| v as f64).sum::<f64>();
+    total(&cycles) / total(&predicted)
 }
 
 /// A copy of the small slab at `dir` whose frames are camera files: 16-bit linear PNGs

@@ -208,96 +208,20 @@ fn segment_weights(phi: f64, m: usize, out: &mut Vec<(usize, f64)>) {
     }
 }
 
-impl AnisoProblem<'_> {
-    /// [`Problem::normal_equations`] of one segment (m = 1, the pipeline's default model) with
-    /// N terms: the rows [`Problem::eval`] gives, accumulated into JᵀJ, Jᵀres and the cost
-    /// without the generic accumulation's index lists. Every entry receives the same products
-    /// in the same order (row by row, each channel's row of an observation in turn), and the
-    /// lower triangle is the generic symmetrisation's upper + 0, so the result is the same to
-    /// the bit (test: `one_segment_normal_equations_are_the_generic_ones_to_the_bit`). The
-    /// generic path spent most of the joint fit's time walking those lists (issue 23).
-    #[allow(clippy::needless_range_loop)] // index loops over parallel fixed-size arrays
-    fn normal_one_segment<const N: usize>(
-        &self,
-        theta: &[f64],
-        jtj: &mut [f64],
-        jtr: &mut [f64],
-    ) -> Option<f64> {
-        const P_MAX: usize = 2 * MAX_TERMS + 2;
-        let p = self.params();
-        let q = 2 * N;
-        let rate: [f64; N] = std::array::from_fn(|k| theta[2 * k + 1].exp());
-        let mut acc = [[0.0f64; P_MAX]; P_MAX];
-        let mut g = [0.0f64; P_MAX];
-        let mut cost = 0.0;
-        let mut v = [0.0f64; N];
-        let mut vals = [0.0f64; 2 * MAX_TERMS];
-        for (j, &r) in self.r.iter().enumerate() {
-            // Problem::eval with its one segment of weight 1, whose blend over the segments is
-            // exact: ln w = 0, the blend's sum is exp(0) = 1 wherever ln R_l is finite (and θ
-            // infeasible elsewhere), ln R_d = ln R_l + ln 1, and the segment's share u is 1.
-            let (mx, sum) = segment_shares(theta, &rate, r, &mut v);
-            let ln_seg = 0.0 + mx + ln_exact_at_one(sum);
-            if !ln_seg.is_finite() {
-                return None;
-            }
-            let ln_t = ln_seg + 0.0;
-            for k in 0..N {
-                let d = -rate[k];
-                vals[2 * k] = v[k];
-                vals[2 * k + 1] = v[k] * r * d;
-            }
-            for ch in 0..self.channels {
-                let y = self.y[ch][j];
-                if !y.is_finite() {
-                    continue;
-                }
-                let scale = self.scale_index(ch);
-                let res = ln_t + scale.map_or(0.0, |i| theta[i]) - y;
-                cost += res * res;
-                for a in 0..q {
-                    g[a] += vals[a] * res;
-                    for b in a..q {
-                        acc[a][b] += vals[a] * vals[b];
-                    }
-                }
-                // The channel scale's Jacobian entry is 1.
-                if let Some(i) = scale {
-                    for a in 0..q {
-                        acc[a][i] += vals[a];
-                    }
-                    g[i] += res;
-                    acc[i][i] += 1.0;
-                }
-            }
-        }
-        for a in 0..p {
-            jtr[a] = g[a];
-            jtj[a * p + a] = acc[a][a];
-            for b in (a + 1)..p {
-                // The generic path fills the upper triangle only, then adds the (zero) lower.
-                let s = acc[a][b] + 0.0;
-                jtj[a * p + b] = s;
-                jtj[b * p + a] = s;
-            }
-        }
-        (cost.is_finite() && jtr.iter().all(|v| v.is_finite())).then_some(cost)
-    }
-}
-
 /// [`AnisoProblem::normal_blocks`] as a kernel of the SIMD dispatch ([`super::simd`]).
-struct OneSegment<'a, 'p, const N: usize> {
+struct OneSegment<'a, 'p, const N: usize, const LIBM: bool> {
     p: &'a AnisoProblem<'p>,
     theta: &'a [f64],
     jtj: &'a mut [f64],
     jtr: &'a mut [f64],
 }
 
-impl<const N: usize> super::simd::Kernel for OneSegment<'_, '_, N> {
+impl<const N: usize, const LIBM: bool> super::simd::Kernel for OneSegment<'_, '_, N, LIBM> {
     type Output = Option<f64>;
     #[inline(always)]
     fn run(self) -> Option<f64> {
-        self.p.normal_blocks::<N>(self.theta, self.jtj, self.jtr)
+        self.p
+            .normal_blocks::<N, LIBM>(self.theta, self.jtj, self.jtr)
     }
 }
 
@@ -305,17 +229,25 @@ impl<const N: usize> super::simd::Kernel for OneSegment<'_, '_, N> {
 const ROW_BLOCK: usize = 16;
 
 impl AnisoProblem<'_> {
-    /// [`AnisoProblem::normal_one_segment`] with the log-sum-exp of [`ROW_BLOCK`] rows at a
-    /// time through the exact isotropic fit's branch-free exp and ln
-    /// (`isotropic::exp_nonpositive`, `isotropic::ln_positive`), whose lane loops vectorise
-    /// under the SIMD dispatch; libm's calls do not, and they were a third of the default fit's
-    /// CPU on `scan1024` (perf, issue 40). The same rows, accumulated in the same order; only
-    /// the shares and ln R_d differ from the libm path, by rounding. Loops, not the isotropic
-    /// kernel's closures: a closure is not forced inline, and the per-row accumulation then
-    /// ran out of line (measured 30 % slower).
+    /// [`Problem::normal_equations`] of one segment (m = 1, the pipeline's default model) with
+    /// N terms: the rows [`Problem::eval`] gives, accumulated into JᵀJ, Jᵀres and the cost
+    /// without the generic accumulation's index lists (which took most of the joint fit's time,
+    /// issue 23), [`ROW_BLOCK`] rows at a time.
+    ///
+    /// With `LIBM` every entry receives the same products in the same order as the generic
+    /// path (row by row, each channel's row of an observation in turn), the shares and ln R_d
+    /// from libm's exp and ln as [`segment_shares`] takes them, and the lower triangle is the
+    /// generic symmetrisation's upper + 0: the same to the bit (test:
+    /// `one_segment_normal_equations_are_the_generic_ones_to_the_bit`; the reference preset).
+    /// Without it (the default) the exact isotropic fit's branch-free exp and ln
+    /// (`isotropic::exp_nonpositive`, `isotropic::ln_positive`) take a block's lanes at once,
+    /// which vectorises under the SIMD dispatch; libm's calls do not, and they were a third of
+    /// the default fit's CPU on `scan1024` (perf, issue 40). Loops, not the isotropic kernel's
+    /// closures: a closure is not forced inline, and the per-row accumulation then ran out of
+    /// line (measured 30 % slower).
     #[inline(always)]
     #[allow(clippy::needless_range_loop)] // lane loops over parallel fixed-size arrays
-    fn normal_blocks<const N: usize>(
+    fn normal_blocks<const N: usize, const LIBM: bool>(
         &self,
         theta: &[f64],
         jtj: &mut [f64],
@@ -355,14 +287,27 @@ impl AnisoProblem<'_> {
                     // Below −708 libm's exp is subnormal or 0, where exp_nonpositive clamps
                     // to 2^−1022: 0 there, so a vanishing share times an enormous rate stays 0.
                     let x = e[k][i] - mx[i];
-                    let v = if x < -708.0 { 0.0 } else { exp_nonpositive(x) };
+                    let v = if LIBM {
+                        exp_exact_at_zero(x)
+                    } else if x < -708.0 {
+                        0.0
+                    } else {
+                        exp_nonpositive(x)
+                    };
                     e[k][i] = v;
                     sum[i] += v;
                 }
             }
             let mut ln_t = [0.0f64; ROW_BLOCK];
             for i in 0..ROW_BLOCK {
-                ln_t[i] = mx[i] + ln_positive(sum[i]);
+                let ln_sum = if LIBM {
+                    ln_exact_at_one(sum[i])
+                } else {
+                    ln_positive(sum[i])
+                };
+                // The blend over one segment of weight 1 is exact (ln w = 0, ln 1 = 0): the
+                // generic path's sums, to the bit.
+                ln_t[i] = (0.0 + mx[i] + ln_sum) + 0.0;
             }
             for i in 0..len {
                 if !ln_t[i].is_finite() {
@@ -403,6 +348,7 @@ impl AnisoProblem<'_> {
             jtr[a] = g[a];
             jtj[a * p + a] = acc[a][a];
             for b in (a + 1)..p {
+                // The generic path fills the upper triangle only, then adds the (zero) lower.
                 let s = acc[a][b] + 0.0;
                 jtj[a * p + b] = s;
                 jtj[b * p + a] = s;
@@ -425,40 +371,30 @@ impl Problem for AnisoProblem<'_> {
         if self.m != 1 || self.channels > 3 {
             return None;
         }
-        if !self.libm {
-            return Some(match self.n {
-                1 => super::simd::wide(OneSegment::<1> {
-                    p: self,
-                    theta,
-                    jtj,
-                    jtr,
-                }),
-                2 => super::simd::wide(OneSegment::<2> {
-                    p: self,
-                    theta,
-                    jtj,
-                    jtr,
-                }),
-                3 => super::simd::wide(OneSegment::<3> {
-                    p: self,
-                    theta,
-                    jtj,
-                    jtr,
-                }),
-                4 => super::simd::wide(OneSegment::<4> {
-                    p: self,
-                    theta,
-                    jtj,
-                    jtr,
-                }),
-                _ => return None,
-            });
+        macro_rules! one_segment {
+            ($n:literal) => {
+                if self.libm {
+                    super::simd::wide(OneSegment::<$n, true> {
+                        p: self,
+                        theta,
+                        jtj,
+                        jtr,
+                    })
+                } else {
+                    super::simd::wide(OneSegment::<$n, false> {
+                        p: self,
+                        theta,
+                        jtj,
+                        jtr,
+                    })
+                }
+            };
         }
         Some(match self.n {
-            1 => self.normal_one_segment::<1>(theta, jtj, jtr),
-            2 => self.normal_one_segment::<2>(theta, jtj, jtr),
-            3 => self.normal_one_segment::<3>(theta, jtj, jtr),
-            4 => self.normal_one_segment::<4>(theta, jtj, jtr),
+            1 => one_segment!(1),
+            2 => one_segment!(2),
+            3 => one_segment!(3),
+            4 => one_segment!(4),
             _ => return None,
         })
     }

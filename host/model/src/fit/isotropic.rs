@@ -366,6 +366,36 @@ impl LogRows for LogExact<'_> {
     }
 }
 
+/// The terms of Eq. 1 at a block of [`CHUNK`] distances `r` as a log-sum-exp: `t[k][j]` =
+/// exp(a_k + d_k r_j − m_j) with m_j the largest exponent, and per lane (m_j, Σ_k t[k][j]), so
+/// ln R_d = m + ln Σ and the weights are t / Σ. Constant-bound lane loops with
+/// [`exp_nonpositive`], which vectorise in the kernels that inline it ([`exact_normal_n`],
+/// [`binned_normal_kernel`]).
+#[inline(always)]
+#[allow(clippy::needless_range_loop)] // index loops over parallel arrays vectorise
+fn block_terms<const N: usize>(
+    a: &[f64; 4],
+    d: &[f64; 4],
+    r: &[f64; CHUNK],
+    t: &mut [[f64; CHUNK]; N],
+) -> ([f64; CHUNK], [f64; CHUNK]) {
+    let mut m = [f64::NEG_INFINITY; CHUNK];
+    for k in 0..N {
+        for j in 0..CHUNK {
+            t[k][j] = a[k] + d[k] * r[j];
+            m[j] = m[j].max(t[k][j]);
+        }
+    }
+    let mut sum = [0.0f64; CHUNK];
+    for k in 0..N {
+        for j in 0..CHUNK {
+            t[k][j] = exp_nonpositive(t[k][j] - m[j]);
+            sum[j] += t[k][j];
+        }
+    }
+    (m, sum)
+}
+
 /// The arguments of [`exact_normal_n`] as a [`super::simd::Kernel`].
 struct ExactNormal<'a, 'p> {
     problem: &'a LogExact<'p>,
@@ -413,27 +443,14 @@ fn exact_normal_n<const N: usize>(
     let mut cost = 0.0;
     let mut acc = [[0.0f64; 8]; 8];
     let mut g = [0.0f64; 8];
-    let mut t = [[0.0f64; CHUNK]; 4];
+    let mut t = [[0.0f64; CHUNK]; N];
     let mut rr = [0.0f64; CHUNK];
     let mut start = 0;
     while start < len {
         let l = CHUNK.min(len - start);
         rr[..l].copy_from_slice(&problem.r[start..start + l]);
         rr[l..].fill(0.0);
-        let mut m = [f64::NEG_INFINITY; CHUNK];
-        for k in 0..N {
-            for j in 0..CHUNK {
-                t[k][j] = a[k] + d[k] * rr[j];
-                m[j] = m[j].max(t[k][j]);
-            }
-        }
-        let mut sum = [0.0f64; CHUNK];
-        for k in 0..N {
-            for j in 0..CHUNK {
-                t[k][j] = exp_nonpositive(t[k][j] - m[j]);
-                sum[j] += t[k][j];
-            }
-        }
+        let (m, sum) = block_terms::<N>(&a, &d, &rr, &mut t);
         let mut ln_rd = [0.0f64; CHUNK];
         let mut inv = [0.0f64; CHUNK];
         for j in 0..CHUNK {
@@ -635,20 +652,7 @@ pub(crate) fn binned_normal_kernel<
             }
         }
         // ln R_d and the weights w_k = c_k e^{d_k r} / R_d (the log-sum-exp kernel's).
-        let mut m = [f64::NEG_INFINITY; CHUNK];
-        for k in 0..N {
-            for j in 0..CHUNK {
-                w[k][j] = a[k] + d[k] * r[j];
-                m[j] = m[j].max(w[k][j]);
-            }
-        }
-        let mut sum = [0.0f64; CHUNK];
-        for k in 0..N {
-            for j in 0..CHUNK {
-                w[k][j] = exp_nonpositive(w[k][j] - m[j]);
-                sum[j] += w[k][j];
-            }
-        }
+        let (m, sum) = block_terms::<N>(&a, &d, &r, &mut w);
         let mut v = [[0.0f64; CHUNK]; 3];
         let (mut g, mut h) = ([0.0f64; CHUNK], [0.0f64; CHUNK]);
         let mut inv = [0.0f64; CHUNK];
