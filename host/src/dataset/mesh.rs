@@ -1,6 +1,7 @@
 //! The object's triangle mesh: OBJ in through `tobj`, degenerate and duplicate faces reported and
 //! dropped, area-weighted vertex normals, OBJ out.
-use std::collections::HashSet;
+use foldhash::fast::FixedState;
+use std::collections::{HashMap, HashSet};
 use std::path::{Path, PathBuf};
 
 /// Why a mesh could not be used.
@@ -86,7 +87,7 @@ impl Mesh {
         let diag = norm(sub(hi, lo));
         // Area below this counts as zero: relative to the mesh's size, far below any real triangle.
         let min_area2 = (diag * diag * 1e-14).max(f64::MIN_POSITIVE);
-        let mut seen = HashSet::new();
+        let mut seen: HashSet<[u32; 3], FixedState> = HashSet::default();
         let mut kept = Vec::with_capacity(triangles.len());
         for t in triangles {
             let [a, b, c] = t.map(|i| i as usize);
@@ -202,29 +203,25 @@ pub fn load_obj(path: &Path) -> Result<(Mesh, MeshReport), MeshError> {
         source,
     })?;
     let mut positions = Vec::new();
-    let mut index_of: std::collections::HashMap<[u32; 3], u32> = std::collections::HashMap::new();
+    // foldhash, not std's SipHash: a scanner's mesh has millions of corners to look up, and
+    // the keys are our own file's numbers, so there is no adversary to hash against.
+    let mut index_of: HashMap<[u32; 3], u32, FixedState> = HashMap::default();
     for line in text.lines() {
         let mut w = line.split_whitespace();
         if w.next() != Some("v") {
             continue;
         }
-        let toks: Vec<&str> = w.take(3).collect();
-        let (Some(p64), Some(p32)) = (
-            toks.iter()
-                .map(|t| t.parse::<f64>().ok())
-                .collect::<Option<Vec<f64>>>(),
-            toks.iter()
-                .map(|t| t.parse::<f32>().ok())
-                .collect::<Option<Vec<f32>>>(),
-        ) else {
-            return Err(invalid(format!("bad vertex line {line:?}")));
-        };
-        if p64.len() != 3 {
-            return Err(invalid(format!("bad vertex line {line:?}")));
+        let (mut p64, mut key) = ([0.0; 3], [0u32; 3]);
+        for k in 0..3 {
+            let parsed = w.next().map(|t| (t.parse::<f64>(), t.parse::<f32>()));
+            let Some((Ok(a), Ok(b))) = parsed else {
+                return Err(invalid(format!("bad vertex line {line:?}")));
+            };
+            p64[k] = a;
+            key[k] = b.to_bits();
         }
-        let key = [p32[0].to_bits(), p32[1].to_bits(), p32[2].to_bits()];
         index_of.entry(key).or_insert(positions.len() as u32);
-        positions.push([p64[0], p64[1], p64[2]]);
+        positions.push(p64);
     }
     let mut triangles = Vec::new();
     for m in &models {
