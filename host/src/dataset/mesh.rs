@@ -1,7 +1,8 @@
 //! The object's triangle mesh: OBJ in through `tobj`, degenerate and duplicate faces reported and
 //! dropped, area-weighted vertex normals, OBJ out.
 use foldhash::fast::FixedState;
-use std::collections::{HashMap, HashSet};
+use rayon::slice::ParallelSliceMut;
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 /// Why a mesh could not be used.
@@ -87,8 +88,7 @@ impl Mesh {
         let diag = norm(sub(hi, lo));
         // Area below this counts as zero: relative to the mesh's size, far below any real triangle.
         let min_area2 = (diag * diag * 1e-14).max(f64::MIN_POSITIVE);
-        let mut seen: HashSet<[u32; 3], FixedState> = HashSet::default();
-        let mut kept = Vec::with_capacity(triangles.len());
+        let mut good = Vec::with_capacity(triangles.len());
         for t in triangles {
             let [a, b, c] = t.map(|i| i as usize);
             if a >= n || b >= n || c >= n || a == b || b == c || a == c {
@@ -103,14 +103,33 @@ impl Mesh {
                 report.degenerate_faces += 1;
                 continue;
             }
-            let mut key = t;
-            key.sort_unstable();
-            if !seen.insert(key) {
-                report.duplicate_faces += 1;
-                continue;
-            }
-            kept.push(t);
+            good.push(t);
         }
+        // A face is a duplicate of an earlier one with the same corners in any order: the
+        // first is kept. Found by sorting (corners, position) rather than a hash set, whose
+        // inserts miss the cache on a scanner's million faces.
+        let mut by_corners: Vec<([u32; 3], u32)> = good
+            .iter()
+            .enumerate()
+            .map(|(i, t)| {
+                let mut key = *t;
+                key.sort_unstable();
+                (key, i as u32)
+            })
+            .collect();
+        by_corners.par_sort_unstable();
+        let mut duplicate = vec![false; good.len()];
+        for w in by_corners.windows(2) {
+            if w[0].0 == w[1].0 {
+                duplicate[w[1].1 as usize] = true;
+                report.duplicate_faces += 1;
+            }
+        }
+        let kept: Vec<[u32; 3]> = good
+            .into_iter()
+            .zip(&duplicate)
+            .filter_map(|(t, &d)| (!d).then_some(t))
+            .collect();
         let mut normals = vec![[0.0; 3]; n];
         for t in &kept {
             let [a, b, c] = t.map(|i| i as usize);
@@ -186,43 +205,18 @@ pub fn load_obj(path: &Path) -> Result<(Mesh, MeshReport), MeshError> {
         ignore_points: true,
         ignore_lines: true,
     };
-    let (models, _materials) = tobj::load_obj(path, &opts).map_err(|source| MeshError::Obj {
+    // tobj reads the faces while the v lines are read here: two passes over the file, one on
+    // each core (a scanner's mesh takes seconds to parse).
+    let (faces, vertices) = rayon::join(|| tobj::load_obj(path, &opts), || v_lines(path));
+    let (models, _materials) = faces.map_err(|source| MeshError::Obj {
         path: path.to_path_buf(),
         source,
     })?;
+    let (positions, index_of) = vertices?;
     let invalid = |message: String| MeshError::Invalid {
         path: path.to_path_buf(),
         message,
     };
-    // tobj orders vertices by first use in a face (and splits them by normal/texture index).
-    // Vertex i of every per-vertex file of this project is the i-th `v` line of the OBJ, so the
-    // positions are read in file order here (as f64) and tobj's faces are mapped back to them by
-    // the exact f32 values tobj parsed. Duplicate positions map to their first occurrence.
-    let text = std::fs::read_to_string(path).map_err(|source| MeshError::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    let mut positions = Vec::new();
-    // foldhash, not std's SipHash: a scanner's mesh has millions of corners to look up, and
-    // the keys are our own file's numbers, so there is no adversary to hash against.
-    let mut index_of: HashMap<[u32; 3], u32, FixedState> = HashMap::default();
-    for line in text.lines() {
-        let mut w = line.split_whitespace();
-        if w.next() != Some("v") {
-            continue;
-        }
-        let (mut p64, mut key) = ([0.0; 3], [0u32; 3]);
-        for k in 0..3 {
-            let parsed = w.next().map(|t| (t.parse::<f64>(), t.parse::<f32>()));
-            let Some((Ok(a), Ok(b))) = parsed else {
-                return Err(invalid(format!("bad vertex line {line:?}")));
-            };
-            p64[k] = a;
-            key[k] = b.to_bits();
-        }
-        index_of.entry(key).or_insert(positions.len() as u32);
-        positions.push(p64);
-    }
     let mut triangles = Vec::new();
     for m in &models {
         let lookup = |i: u32| -> Result<u32, MeshError> {
@@ -252,6 +246,48 @@ pub fn load_obj(path: &Path) -> Result<(Mesh, MeshReport), MeshError> {
         )));
     }
     Ok((mesh, report))
+}
+
+/// A position's index by its f32 coordinates' bits. foldhash, not std's SipHash: a scanner's
+/// mesh has millions of corners to look up, and the keys are our own file's numbers, so there is
+/// no adversary to hash against.
+type CornerIndex = HashMap<[u32; 3], u32, FixedState>;
+
+/// The OBJ's `v` lines in file order (as f64), and each position's index by the f32 values
+/// tobj parses (the first of equal positions).
+fn v_lines(path: &Path) -> Result<(Vec<[f64; 3]>, CornerIndex), MeshError> {
+    // tobj orders vertices by first use in a face (and splits them by normal/texture index).
+    // Vertex i of every per-vertex file of this project is the i-th `v` line of the OBJ, so the
+    // positions are read in file order here (as f64) and tobj's faces are mapped back to them by
+    // the exact f32 values tobj parsed. Duplicate positions map to their first occurrence.
+    let invalid = |message: String| MeshError::Invalid {
+        path: path.to_path_buf(),
+        message,
+    };
+    let text = std::fs::read_to_string(path).map_err(|source| MeshError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let mut positions = Vec::new();
+    let mut index_of = CornerIndex::default();
+    for line in text.lines() {
+        let mut w = line.split_whitespace();
+        if w.next() != Some("v") {
+            continue;
+        }
+        let (mut p64, mut key) = ([0.0; 3], [0u32; 3]);
+        for k in 0..3 {
+            let parsed = w.next().map(|t| (t.parse::<f64>(), t.parse::<f32>()));
+            let Some((Ok(a), Ok(b))) = parsed else {
+                return Err(invalid(format!("bad vertex line {line:?}")));
+            };
+            p64[k] = a;
+            key[k] = b.to_bits();
+        }
+        index_of.entry(key).or_insert(positions.len() as u32);
+        positions.push(p64);
+    }
+    Ok((positions, index_of))
 }
 
 /// The OBJ text of `mesh`, the one OBJ writer (scan, simulate, the demo): positions in Rust's
@@ -299,6 +335,21 @@ mod tests {
         assert_eq!(r.isolated_vertices, 2);
         assert_eq!(m.positions.len(), 5);
         assert_eq!(m.normals[0], [0.0, 0.0, 1.0]);
+    }
+
+    #[test]
+    fn of_duplicate_faces_the_first_is_kept_in_file_order() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.obj");
+        std::fs::write(
+            &p,
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\n\
+             f 2 3 1\nf 4 3 2\nf 1 2 3\nf 3 4 2\nf 2 4 3\n",
+        )
+        .unwrap();
+        let (m, r) = load_obj(&p).unwrap();
+        assert_eq!(r.duplicate_faces, 3);
+        assert_eq!(m.triangles, vec![[1, 2, 0], [3, 2, 1]]);
     }
 
     #[test]
