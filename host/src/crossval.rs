@@ -31,6 +31,7 @@ use crate::pipeline::{
     LogEStats, PipelineError, PipelineOptions, Prepared,
     fit::{Fitted, OrderCache},
     fit_prepared_with,
+    interpolate::FillState,
 };
 use crate::progress::Progress;
 use rayon::prelude::*;
@@ -253,6 +254,7 @@ fn cross_validate(
     keep_states: bool,
     progress: &dyn Progress,
     fits: &mut usize,
+    fills: &mut [Option<FillState>],
 ) -> Result<Grid, PipelineError> {
     let max_rounds = ctx.opts.alpha_rounds;
     let clusters = &Clustering::of_folds(folds);
@@ -283,6 +285,13 @@ fn cross_validate(
         .par_iter()
         .map(|p| p.as_ref().map(|p| p.rounds(ctx, fitter, Some(cache), &())))
         .collect();
+    // The fold's fills start from its last run's (another candidate's), see
+    // `FitRounds::start_fill_from`.
+    for (run, fill) in runs.iter().zip(fills.iter()) {
+        if let (Some(run), Some(fill)) = (run, fill) {
+            run.start_fill_from(fill.clone());
+        }
+    }
     // A fold's run is dropped (`None`) when its rounds end; a failed fold's errors with it.
     let mut by_round: Vec<Vec<Vec<FrameEval>>> = vec![Vec::new(); folds.len()];
     let mut states: Vec<Vec<RoundModel>> = vec![Vec::new(); folds.len()];
@@ -299,6 +308,15 @@ fn cross_validate(
                 Some((evals, keep_states.then(|| (run.fitted(), model))))
             })
             .collect();
+        for (run, fill) in runs.iter().zip(fills.iter_mut()) {
+            if let Some(state) = run
+                .as_ref()
+                .and_then(FitRounds::fill_state)
+                .filter(FillState::has_weights)
+            {
+                *fill = Some(state);
+            }
+        }
         for (((run, fold), state), evals) in runs
             .iter_mut()
             .zip(&mut by_round)
@@ -765,6 +783,8 @@ pub fn fit_scan_in(
                 ((ladder.len() + usize::from(try_t1)) * folds.len()) as u64,
             );
             let mut grids = Vec::new();
+            // Each fold's last fill, the next candidate's start (`FitRounds::start_fill_from`).
+            let mut fills: Vec<Option<FillState>> = vec![None; folds.len()];
             for c in &ctxs {
                 grids.push(cross_validate(
                     c,
@@ -777,6 +797,7 @@ pub fn fit_scan_in(
                     judge_lat,
                     progress,
                     &mut rep.fits,
+                    &mut fills,
                 )?);
             }
             let fold_clusters = Clustering::of_folds(&folds);
@@ -827,6 +848,7 @@ pub fn fit_scan_in(
                     judge_lat,
                     progress,
                     &mut rep.fits,
+                    &mut fills,
                 )?;
                 let mut g = g;
                 let r = choose_rounds(&g.errors, g.most, &fold_clusters, cv.patience);

@@ -63,6 +63,14 @@ pub struct FillState {
     weights: Option<Weights>,
 }
 
+impl FillState {
+    /// Whether it holds interpolation weights (a fold's fill on the default path with one
+    /// segment) that another run could start from.
+    pub fn has_weights(&self) -> bool {
+        self.weights.is_some()
+    }
+}
+
 /// The harmonic interpolation at a fold's needed vertices as weights of the known vertices.
 #[derive(Debug, Clone)]
 struct Weights {

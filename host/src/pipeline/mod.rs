@@ -466,6 +466,27 @@ impl FitRounds<'_, '_> {
         Ok(out)
     }
 
+    /// The last finish's fill state ([`interpolate::FillHow::warm`]), for another run on the
+    /// same mesh to start from ([`FitRounds::start_fill_from`]).
+    pub fn fill_state(&self) -> Option<interpolate::FillState> {
+        self.last_fill
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .clone()
+    }
+
+    /// Starts this run's fills from `state`, another run's on the same mesh, if this one has
+    /// not filled yet. Why: the cross-validation's candidates (t1 on and off) fit the same
+    /// folds, so a fold's known vertices, and with them the interpolation's weights, are
+    /// mostly the same in both. The fill uses the weights only where their known set and
+    /// targets are its own, so the model is the same bit for bit.
+    pub fn start_fill_from(&self, state: interpolate::FillState) {
+        self.last_fill
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .get_or_insert(state);
+    }
+
     /// The next round ([`fit::AlphaRounds::step`]): `false` when the rounds are over.
     pub fn step(&mut self) -> bool {
         self.rounds.step()
