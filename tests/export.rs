@@ -499,26 +499,7 @@ fn scan_frames_render_in_cycles_and_are_judged_like_a_model() {
         ds.to_str().unwrap(),
         cache.to_str().unwrap(),
     );
-    let printed = subsurf(&[
-        "export",
-        "--model",
-        m,
-        "--out",
-        out.to_str().unwrap(),
-        "--scan",
-        d,
-        "--frames",
-        "5,10",
-        "--render",
-        "--samples",
-        "128",
-        // With the colour the total reflectance T, Cycles scatters exactly the model's light:
-        // the units check below.
-        "--colour",
-        "total",
-        "--cache",
-        c,
-    ]);
+    let printed = render_frames_5_and_10(m, &out, ds, &cache);
     assert!(printed.contains("Cycles / subsurf (green)"), "{printed}");
     let report = json(&out.join("export-report.json"));
     let f = &report["frames"];
@@ -597,24 +578,7 @@ fn scan_frames_render_in_cycles_and_are_judged_like_a_model() {
     let cam = tmp.path().join("camera-files");
     camera_file_small_slab(&cam);
     let cam_out = tmp.path().join("export-camera-files");
-    subsurf(&[
-        "export",
-        "--model",
-        m,
-        "--out",
-        cam_out.to_str().unwrap(),
-        "--scan",
-        cam.to_str().unwrap(),
-        "--frames",
-        "5,10",
-        "--render",
-        "--samples",
-        "128",
-        "--colour",
-        "total",
-        "--cache",
-        tmp.path().join("cam-cache").to_str().unwrap(),
-    ]);
+    render_frames_5_and_10(m, &cam_out, &cam, &tmp.path().join("cam-cache"));
     let cam_report = json(&cam_out.join("export-report.json"));
     let cam_rows = cam_report["frames"]["per_frame"].as_array().unwrap();
     assert_eq!(cam_rows.len(), rows.len(), "{cam_report}");
@@ -645,6 +609,30 @@ fn scan_frames_render_in_cycles_and_are_judged_like_a_model() {
             "camera files, frame {k}: {ratio}"
         );
     }
+}
+
+/// `subsurf export --render` of frames 5 and 10 of `scan` at 128 samples into `out`; what it
+/// printed. With the colour the total reflectance T, Cycles scatters exactly the model's light:
+/// the units checks.
+fn render_frames_5_and_10(model: &str, out: &Path, scan: &Path, cache: &Path) -> String {
+    subsurf(&[
+        "export",
+        "--model",
+        model,
+        "--out",
+        out.to_str().unwrap(),
+        "--scan",
+        scan.to_str().unwrap(),
+        "--frames",
+        "5,10",
+        "--render",
+        "--samples",
+        "128",
+        "--colour",
+        "total",
+        "--cache",
+        cache.to_str().unwrap(),
+    ])
 }
 
 /// Frame `k`'s Cycles render in `renders` (64 × 64 px) against `subsurf predict`'s image of the

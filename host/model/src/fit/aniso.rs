@@ -1153,17 +1153,7 @@ pub(crate) mod tests {
             let mut state = seed;
             let mut next = || uniform(&mut state);
             let channels = if shared { 3 } else { 1 };
-            let r: Vec<f64> = (0..rows).map(|_| 3.0 * next()).collect();
-            let phi: Vec<f64> = (0..rows)
-                .map(|_| if next() < 0.2 { f64::NAN } else { 6.0 * next() })
-                .collect();
-            let y: Vec<Vec<f64>> = (0..3)
-                .map(|_| {
-                    (0..rows)
-                        .map(|_| if next() < 0.15 { f64::NAN } else { 10.0 * next() - 8.0 })
-                        .collect()
-                })
-                .collect();
+            let (r, phi, y) = random_samples(&mut next, rows, true);
             let problem = AnisoProblem {
                 r: &r,
                 phi: &phi,
@@ -1175,9 +1165,7 @@ pub(crate) mod tests {
                 libm: true,
             };
             let p = problem.params();
-            let theta: Vec<f64> = (0..p)
-                .map(|i| if wild && i == 1 { 700.0 * next() } else { 6.0 * next() - 3.0 })
-                .collect();
+            let theta = random_theta(&mut next, p, wild);
             let anchor: Vec<(usize, f64)> =
                 if anchored { vec![(0, 0.5), (1, -0.25)] } else { Vec::new() };
             let fast = Anchored { inner: &problem, anchor: &anchor };
@@ -1209,15 +1197,7 @@ pub(crate) mod tests {
             let mut state = seed;
             let mut next = || uniform(&mut state);
             let channels = if shared { 3 } else { 1 };
-            let r: Vec<f64> = (0..rows).map(|_| 3.0 * next()).collect();
-            let phi = vec![f64::NAN; rows];
-            let y: Vec<Vec<f64>> = (0..3)
-                .map(|_| {
-                    (0..rows)
-                        .map(|_| if next() < 0.15 { f64::NAN } else { 10.0 * next() - 8.0 })
-                        .collect()
-                })
-                .collect();
+            let (r, phi, y) = random_samples(&mut next, rows, false);
             let problem = |libm| AnisoProblem {
                 r: &r,
                 phi: &phi,
@@ -1229,9 +1209,7 @@ pub(crate) mod tests {
                 libm,
             };
             let (fast, exact) = (problem(false), problem(true));
-            let theta: Vec<f64> = (0..fast.params())
-                .map(|i| if wild && i == 1 { 700.0 * next() } else { 6.0 * next() - 3.0 })
-                .collect();
+            let theta = random_theta(&mut next, fast.params(), wild);
             let (ok_a, jtj_a, jtr_a, cost_a) = lm::built(&fast, &theta);
             let (ok_b, jtj_b, jtr_b, cost_b) = lm::built(&exact, &theta);
             proptest::prop_assert_eq!(ok_a, ok_b);
@@ -1249,6 +1227,50 @@ pub(crate) mod tests {
                 proptest::prop_assert!(close(cost_a, cost_b, cost_b), "{cost_a} {cost_b}");
             }
         }
+    }
+
+    /// r, φ and the three channels' ln values of a proptest's rows.
+    type Samples = (Vec<f64>, Vec<f64>, Vec<Vec<f64>>);
+
+    /// The normal-equation proptests' samples: distances r, directions φ (a fifth of them
+    /// NaN with `with_phi`, all NaN without) and three channels' ln values (15 % NaN).
+    fn random_samples(next: &mut impl FnMut() -> f64, rows: usize, with_phi: bool) -> Samples {
+        let r: Vec<f64> = (0..rows).map(|_| 3.0 * next()).collect();
+        let phi: Vec<f64> = if with_phi {
+            (0..rows)
+                .map(|_| if next() < 0.2 { f64::NAN } else { 6.0 * next() })
+                .collect()
+        } else {
+            vec![f64::NAN; rows]
+        };
+        let y: Vec<Vec<f64>> = (0..3)
+            .map(|_| {
+                (0..rows)
+                    .map(|_| {
+                        if next() < 0.15 {
+                            f64::NAN
+                        } else {
+                            10.0 * next() - 8.0
+                        }
+                    })
+                    .collect()
+            })
+            .collect();
+        (r, phi, y)
+    }
+
+    /// θ for those proptests: in [−3, 3), with `wild` a first rate up to 700 (exponents that
+    /// overflow).
+    fn random_theta(next: &mut impl FnMut() -> f64, p: usize, wild: bool) -> Vec<f64> {
+        (0..p)
+            .map(|i| {
+                if wild && i == 1 {
+                    700.0 * next()
+                } else {
+                    6.0 * next() - 3.0
+                }
+            })
+            .collect()
     }
 
     fn uniform(seed: &mut u64) -> f64 {

@@ -256,6 +256,20 @@ fn log_normal_n<const N: usize, O: LogRows>(
             });
         },
     );
+    finish_normal(p, &acc, &g, cost, jtj, jtr)
+}
+
+/// The normal equations from their upper-triangle sums `acc` and gradient `g` over p
+/// parameters: JᵀJ mirrored into `jtj`, Jᵀres into `jtr`; the cost where it and the gradient
+/// are finite (the row kernels' common end).
+fn finish_normal(
+    p: usize,
+    acc: &[[f64; 8]; 8],
+    g: &[f64; 8],
+    cost: f64,
+    jtj: &mut [f64],
+    jtr: &mut [f64],
+) -> Option<f64> {
     for i in 0..p {
         jtr[i] = g[i];
         for k in i..p {
@@ -476,14 +490,7 @@ fn exact_normal_n<const N: usize>(
         }
         start += l;
     }
-    for i in 0..p {
-        jtr[i] = g[i];
-        for k in i..p {
-            jtj[i * p + k] = acc[i][k];
-            jtj[k * p + i] = acc[i][k];
-        }
-    }
-    (cost.is_finite() && g[..p].iter().all(|v| v.is_finite())).then_some(cost)
+    finish_normal(p, &acc, &g, cost, jtj, jtr)
 }
 
 impl LogBinned<'_> {
