@@ -59,8 +59,9 @@ pub struct FillHow<'a> {
 #[derive(Debug, Clone, Default)]
 pub struct FillState {
     /// The interpolation's weights at the needed vertices ([`crate::interpolate::harmonic_weights`])
-    /// and the known set they hold for.
-    weights: Option<Weights>,
+    /// and the known set they hold for; shared, not copied, by the rounds and candidates that
+    /// reuse them.
+    weights: Option<std::sync::Arc<Weights>>,
 }
 
 impl FillState {
@@ -146,8 +147,8 @@ pub fn fill(
             .filter(|&v| needed.get(v).copied().unwrap_or(false) && own[v].is_none())
             .collect();
         let w = match how.warm.and_then(|w| w.weights.as_ref()) {
-            Some(w) if w.known == known_set && w.targets == targets => w.clone(),
-            _ => Weights {
+            Some(w) if w.known == known_set && w.targets == targets => std::sync::Arc::clone(w),
+            _ => std::sync::Arc::new(Weights {
                 of: crate::interpolate::harmonic_weights(
                     &known_set,
                     |v| scene.neighbours(v),
@@ -159,7 +160,7 @@ pub fn fill(
                 ),
                 known: known_set,
                 targets,
-            },
+            }),
         };
         let mut filled: Vec<Option<Vec<f64>>> = vec![None; own.len()];
         for (&t, of) in w.targets.iter().zip(&w.of) {
