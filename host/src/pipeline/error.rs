@@ -51,6 +51,9 @@ pub fn log_e_of_fits(
 ) -> (Vec<Option<[f64; 3]>>, Vec<[f64; 3]>) {
     progress.start("error", groups.keys.len() as u64);
     let threshold = ctx.opts.error_threshold;
+    // The default's vectorised ln R_d ([`crate::model::ExpSum::ln_eval_many`]); the reference
+    // keeps libm's.
+    let vectorised = ctx.opts.speed == super::Speed::Default;
     let baseline = fitted
         .baseline
         .as_ref()
@@ -69,8 +72,10 @@ pub fn log_e_of_fits(
                 let mut base = [LogEAccumulator::default(); 3];
                 let (model, baseline) =
                     (g.model.ln_evaluator(), baseline.map(|b| b.ln_evaluator()));
-                let ln_model = ln_rd_with(&model, &data, true);
-                let ln_base = baseline.as_ref().map(|b| ln_rd_with(b, &data, false));
+                let ln_model = ln_rd_with(&model, &data, true, vectorised);
+                let ln_base = baseline
+                    .as_ref()
+                    .map(|b| ln_rd_with(b, &data, false, vectorised));
                 for (ch, d) in data.iter().enumerate() {
                     for (j, x) in d.iter().enumerate() {
                         let ln_alpha = ln_alpha[x.vertex as usize][ch];

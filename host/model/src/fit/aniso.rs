@@ -676,7 +676,7 @@ pub fn fit_anisotropic(
     s: &[f64],
     options: &AnisoOptions,
 ) -> Result<(Anisotropic, f64, usize, bool, SampleReport), FitFailure> {
-    let fit = fit_joint(r, phi, [s, &[], &[]], 1, options)?;
+    let fit = fit_joint(r, phi, [s, &[], &[]], 1, options, None)?;
     let ColourModel::Shared { falloff, .. } = fit.model else {
         return Err(FitFailure::NonFinite);
     };
@@ -697,15 +697,31 @@ pub fn fit_colour(
     s: [&[f64]; 3],
     options: &AnisoOptions,
 ) -> Result<ColourFit, FitFailure> {
+    fit_colour_from(r, phi, s, options, None)
+}
+
+/// [`fit_colour`] of shared colour (Eq. 5) at m = 1 started from `start`, an isotropic fit of
+/// these rows' red samples at n terms that the caller has already made (the pipeline's order
+/// choice fits exactly that: issue 40), instead of fitting it again. Used where it has n terms
+/// and the fit is shared at one segment; otherwise, and with `None`, the fit starts as
+/// [`fit_colour`] does. The minimum is the same; the iterations to it, and so the last bits,
+/// may differ.
+pub fn fit_colour_from(
+    r: &[f64],
+    phi: &[f64],
+    s: [&[f64]; 3],
+    options: &AnisoOptions,
+    start: Option<&ExpSum>,
+) -> Result<ColourFit, FitFailure> {
     if options.shared {
-        return fit_joint(r, phi, s, 3, options);
+        return fit_joint(r, phi, s, 3, options, start);
     }
     let mut channels = Vec::with_capacity(3);
     let mut log_e = [0.0; 3];
     let mut samples = [SampleReport::default(); 3];
     let (mut rss, mut iterations, mut converged, mut anchored) = (0.0, 0, true, 0);
     for ch in 0..3 {
-        let f = fit_joint(r, phi, [s[ch], &[], &[]], 1, options)?;
+        let f = fit_joint(r, phi, [s[ch], &[], &[]], 1, options, None)?;
         let ColourModel::Shared { falloff, .. } = f.model else {
             return Err(FitFailure::NonFinite);
         };
@@ -827,8 +843,11 @@ fn fit_joint(
     s: [&[f64]; 3],
     channels: usize,
     options: &AnisoOptions,
+    start: Option<&ExpSum>,
 ) -> Result<ColourFit, FitFailure> {
     let (n, m) = (options.terms, options.segments);
+    // A given start of the one segment's fall-off ([`fit_colour_from`]).
+    let start = start.filter(|f| m == 1 && f.n() == n);
     if !(1..=MAX_TERMS).contains(&n) || m == 0 || m > 64 {
         return Err(FitFailure::InvalidOptions {
             reason: "terms must be 1..=4 and segments 1..=64",
@@ -911,6 +930,10 @@ fn fit_joint(
     let mut global: Option<ExpSum> = None;
     let mut seg_models = Vec::with_capacity(m);
     for (seg, &starved) in per_seg.iter().zip(&starved) {
+        if let (Some(f), false) = (start, starved) {
+            seg_models.push(f.clone());
+            continue;
+        }
         let own = if starved {
             Err(FitFailure::TooFewSamples {
                 usable: seg.0.len(),

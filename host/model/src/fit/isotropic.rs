@@ -410,6 +410,126 @@ fn block_terms<const N: usize>(
     (m, sum)
 }
 
+/// ln Σ_k exp(a_k + d_k·r_j) (Eq. 1 as a log-sum-exp, a_k = ln c_k) at every distance of `r`,
+/// into `out` (as far as both reach), `n` ≤ 4 terms: the fit's own block kernel
+/// ([`block_terms`]) under the SIMD dispatch, so a model's ln R_d at a light position's
+/// thousands of samples costs what its normal equations' exponentials cost, not a libm call per
+/// term and sample (the scalar [`crate::model::ExpSum::ln_eval_with`] was a sixth of the
+/// cross-validation's CPU on `scan1024`, issue 40). Within a few ulp of libm's (the tests
+/// bound it), not its bits: the reference preset keeps the scalar path. A lane whose largest
+/// exponent is not finite (a distance of ±∞ or NaN) gets an unspecified value and makes it
+/// return `false`: the caller then takes the scalar path for those.
+pub(crate) fn ln_sum_exp_many(
+    a: &[f64; 4],
+    d: &[f64; 4],
+    n: usize,
+    r: &[f64],
+    out: &mut [f64],
+) -> bool {
+    super::simd::wide(LnSumExpMany { a, d, n, r, out })
+}
+
+/// The arguments of [`ln_sum_exp_many`] as a [`super::simd::Kernel`].
+struct LnSumExpMany<'a> {
+    a: &'a [f64; 4],
+    d: &'a [f64; 4],
+    n: usize,
+    r: &'a [f64],
+    out: &'a mut [f64],
+}
+
+impl super::simd::Kernel for LnSumExpMany<'_> {
+    /// Whether every lane's largest exponent was finite (else some lanes need the fallback).
+    type Output = bool;
+    #[inline(always)]
+    fn run(self) -> bool {
+        let LnSumExpMany { a, d, n, r, out } = self;
+        match n {
+            1 => ln_sum_exp_many_n::<1>(a, d, r, out),
+            2 => ln_sum_exp_many_n::<2>(a, d, r, out),
+            3 => ln_sum_exp_many_n::<3>(a, d, r, out),
+            _ => ln_sum_exp_many_n::<4>(a, d, r, out),
+        }
+    }
+}
+
+/// [`ln_sum_exp_many`] at N terms: blocks of [`CHUNK`] distances (the last padded with 0).
+#[inline(always)]
+#[allow(clippy::needless_range_loop)] // index loops over parallel arrays vectorise
+fn ln_sum_exp_many_n<const N: usize>(
+    a: &[f64; 4],
+    d: &[f64; 4],
+    r: &[f64],
+    out: &mut [f64],
+) -> bool {
+    let len = r.len().min(out.len());
+    let mut finite = true;
+    let mut t = [[0.0f64; CHUNK]; N];
+    let mut start = 0;
+    while start < len {
+        let l = CHUNK.min(len - start);
+        let mut rr = [0.0f64; CHUNK];
+        rr[..l].copy_from_slice(&r[start..start + l]);
+        let (m, sum) = block_terms::<N>(a, d, &rr, &mut t);
+        let mut v = [0.0f64; CHUNK];
+        for j in 0..CHUNK {
+            v[j] = m[j] + ln_positive(sum[j]);
+        }
+        for j in 0..l {
+            finite &= m[j].is_finite();
+        }
+        out[start..start + l].copy_from_slice(&v[..l]);
+        start += l;
+    }
+    finite
+}
+
+/// ln x at every value of `x`, into `out` (as far as both reach), by [`ln_positive`] under
+/// the SIMD dispatch: what the fit's samples' ln s cost once per round and light position
+/// (issue 40). Within a few ulp of `f64::ln`; values that are not finite and positive (0,
+/// negative, NaN, ∞, whose logs are −∞, NaN or ∞) take `f64::ln` itself.
+pub fn ln_many(x: &[f64], out: &mut [f64]) {
+    let len = x.len().min(out.len());
+    let (x, out) = (&x[..len], &mut out[..len]);
+    if !super::simd::wide(LnMany { x, out }) {
+        for (o, &v) in out.iter_mut().zip(x) {
+            if !(v > 0.0 && v.is_finite()) {
+                *o = v.ln();
+            }
+        }
+    }
+}
+
+/// The arguments of [`ln_many`] as a [`super::simd::Kernel`].
+struct LnMany<'a> {
+    x: &'a [f64],
+    out: &'a mut [f64],
+}
+
+impl super::simd::Kernel for LnMany<'_> {
+    /// Whether every value was finite and positive (else the caller fixes the others up).
+    type Output = bool;
+    #[inline(always)]
+    fn run(self) -> bool {
+        let LnMany { x, out } = self;
+        let mut ok = true;
+        for (xs, os) in x.chunks(CHUNK).zip(out.chunks_mut(CHUNK)) {
+            let mut v = [1.0f64; CHUNK];
+            for (j, &xv) in xs.iter().enumerate() {
+                let good = xv > 0.0 && xv <= f64::MAX;
+                ok &= good;
+                v[j] = if good { xv } else { 1.0 };
+            }
+            let mut l = [0.0f64; CHUNK];
+            for j in 0..CHUNK {
+                l[j] = ln_positive(v[j]);
+            }
+            os.copy_from_slice(&l[..os.len()]);
+        }
+        ok
+    }
+}
+
 /// The arguments of [`exact_normal_n`] as a [`super::simd::Kernel`].
 struct ExactNormal<'a, 'p> {
     problem: &'a LogExact<'p>,

@@ -28,6 +28,8 @@ use std::borrow::Cow;
 use serde::{Deserialize, Serialize};
 
 use crate::model::{ExpSum, MAX_TERMS, Term};
+pub use isotropic::ln_many;
+pub(crate) use isotropic::ln_sum_exp_many;
 pub use samples::{SampleReport, clean};
 
 /// Which residual is minimised.

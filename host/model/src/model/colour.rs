@@ -182,6 +182,37 @@ impl LnEvaluator<'_> {
         }
     }
 
+    /// [`LnEvaluator::ln_eval_channel`] of an isotropic fall-off (one segment, where φ
+    /// changes nothing) at every distance of `r`, into `out`, vectorised
+    /// ([`super::ExpSum::ln_eval_many`]: within a few ulp, not the same bits). `false`, and `out`
+    /// untouched, where channel `channel`'s fall-off has more than one segment or there is no
+    /// such channel: the caller evaluates per sample.
+    pub fn ln_eval_channel_many(&self, channel: usize, r: &[f64], out: &mut [f64]) -> bool {
+        let (f, a, offset) = match self.model {
+            ColourModel::PerChannel { channels } => match channels.get(channel) {
+                Some(a) => (channel, a, 0.0),
+                None => return false,
+            },
+            ColourModel::Shared { falloff, .. } => match channel {
+                0 => (0, falloff, 0.0),
+                1 | 2 => (0, falloff, self.ln_scale[channel - 1]),
+                _ => return false,
+            },
+        };
+        let [seg] = a.segments.as_slice() else {
+            return false;
+        };
+        let at = self.starts[self.first[f]];
+        let ln_c = &self.ln_c[at..self.starts[self.first[f] + 1]];
+        seg.ln_eval_many(ln_c, r, out);
+        if offset != 0.0 {
+            for o in out.iter_mut() {
+                *o += offset;
+            }
+        }
+        true
+    }
+
     /// [`ColourModel::ln_eval_channel`], the same bits.
     pub fn ln_eval_channel(&self, channel: usize, r: f64, phi: Option<f64>) -> f64 {
         match self.model {

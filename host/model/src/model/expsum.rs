@@ -121,6 +121,37 @@ impl ExpSum {
         self.ln_terms(r, |_, k| ln_c[k])
     }
 
+    /// [`ExpSum::ln_eval_with`] at every distance of `r`, into `out` (as far as both reach),
+    /// vectorised: the fit's branch-free exp and ln under the SIMD dispatch, within a few ulp
+    /// of the scalar evaluation (a test bounds it), not its bits. The hot loops of the default
+    /// fit take it (ln R_d at every sample of a light position, every round: issue 40); the
+    /// reference preset keeps the scalar path. Distances where the largest term is not finite
+    /// (±∞, NaN) and sums of more than four terms take the scalar path, the same values.
+    pub fn ln_eval_many(&self, ln_c: &[f64], r: &[f64], out: &mut [f64]) {
+        let n = self.terms.len();
+        let len = r.len().min(out.len());
+        let (r, out) = (&r[..len], &mut out[..len]);
+        if n == 0 || n > 4 || ln_c.len() < n {
+            for (o, &x) in out.iter_mut().zip(r) {
+                *o = self.ln_eval_with(ln_c, x);
+            }
+            return;
+        }
+        let (mut a, mut d) = ([0.0; 4], [0.0; 4]);
+        for (k, t) in self.terms.iter().enumerate() {
+            a[k] = ln_c[k];
+            d[k] = t.d;
+        }
+        if !crate::fit::ln_sum_exp_many(&a, &d, n, r, out) {
+            for (o, &x) in out.iter_mut().zip(r) {
+                let m = (0..n).fold(f64::NEG_INFINITY, |m, k| m.max(a[k] + d[k] * x));
+                if !m.is_finite() {
+                    *o = self.ln_eval_with(ln_c, x);
+                }
+            }
+        }
+    }
+
     /// The log-sum-exp of ln c_k + d_k·r, ln c_k = `ln_c(term, k)`: the terms' values in an array
     /// on the stack (at most [`MAX_TERMS`] of them; a longer sum, which [`ExpSum::new`] refuses,
     /// through [`log_sum_exp`]), the same values in the same order, so the same bits.

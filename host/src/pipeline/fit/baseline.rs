@@ -81,13 +81,13 @@ pub(super) fn fit_baseline(
     // solver gets there slowly: at the draft preset's iteration limit that fit failed, the run
     // kept no baseline, and its renders came out 11–14 % dark (BENCHMARKS.md, issue 28).
     let max_n = fitter.max_terms().unwrap_or(1);
-    let (model, terms, _) = fit_samples(&pooled, &choice, fitter, &mut Vec::new())
+    let (model, terms, _) = fit_samples(&pooled, &choice, fitter, false, &mut Vec::new())
         .or_else(|e| {
             (1..max_n)
                 .rev()
                 .find_map(|n| {
                     let at_most = AtMost { inner: fitter, n };
-                    fit_samples(&pooled, &choice, &at_most, &mut Vec::new()).ok()
+                    fit_samples(&pooled, &choice, &at_most, false, &mut Vec::new()).ok()
                 })
                 .ok_or(e)
         })

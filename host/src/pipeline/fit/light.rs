@@ -19,7 +19,7 @@ pub const SEGMENT_MAX_RATE_RATIO: f64 = 4.0;
 
 /// The first term of `f` the sample distances `r` do not support, if any.
 pub fn unsupported_term(f: &ExpSum, r: &[f64]) -> Option<TermDropped> {
-    Distances::of(r).unsupported_term(f)
+    Distances::of(r).unsupported_term(f, false)
 }
 
 /// A light position's sample distances as [`unsupported_term`] judges a fall-off's terms on
@@ -62,8 +62,9 @@ impl<'r> Distances<'r> {
         })
     }
 
-    /// [`unsupported_term`] of `f` on these distances.
-    pub(super) fn unsupported_term(&self, f: &ExpSum) -> Option<TermDropped> {
+    /// [`unsupported_term`] of `f` on these distances; `vectorised`: ln R_d at the distances
+    /// by [`ExpSum::ln_eval_many`] ([`Fitter::rounding_cuts`]).
+    pub(super) fn unsupported_term(&self, f: &ExpSum, vectorised: bool) -> Option<TermDropped> {
         let (lo, hi) = (self.lo, self.hi);
         if hi.partial_cmp(&lo).is_none_or(|o| o.is_lt()) {
             return None;
@@ -79,7 +80,13 @@ impl<'r> Distances<'r> {
         // ln R_d at each distance once, not once per term, the terms' ln c_k taken once (the
         // same values).
         let ln_cs = f.ln_c();
-        let ln_rd: Vec<f64> = rs.iter().map(|&x| f.ln_eval_with(&ln_cs, x)).collect();
+        let ln_rd: Vec<f64> = if vectorised {
+            let mut v = vec![0.0; rs.len()];
+            f.ln_eval_many(&ln_cs, rs, &mut v);
+            v
+        } else {
+            rs.iter().map(|&x| f.ln_eval_with(&ln_cs, x)).collect()
+        };
         for (t, &ln_c) in f.terms.iter().zip(&ln_cs) {
             let support = rs
                 .iter()
@@ -117,7 +124,7 @@ pub(super) fn fit_supported_on(
     let r = distances.r;
     let mut f = fitter.fit(r, s, terms)?;
     loop {
-        match distances.unsupported_term(&f) {
+        match distances.unsupported_term(&f, fitter.rounding_cuts()) {
             None => return Ok(f),
             Some(why) => {
                 if f.n() <= 1 {
@@ -274,11 +281,18 @@ pub(super) fn isotropic_order(
                     if d.is_empty() {
                         return Err(FailReason::TooFewSamples);
                     }
-                    let mean = d
-                        .iter()
-                        .map(|x| x.s.ln() - f.ln_eval_with(&ln_c, x.r))
-                        .sum::<f64>()
-                        / d.len() as f64;
+                    let sum = if fitter.rounding_cuts() {
+                        let (r, s): (Vec<f64>, Vec<f64>) = d.iter().map(|x| (x.r, x.s)).unzip();
+                        let (mut ln_s, mut ln_rd) = (vec![0.0; s.len()], vec![0.0; r.len()]);
+                        crate::fit::ln_many(&s, &mut ln_s);
+                        f.ln_eval_many(&ln_c, &r, &mut ln_rd);
+                        ln_s.iter().zip(&ln_rd).map(|(a, b)| a - b).sum::<f64>()
+                    } else {
+                        d.iter()
+                            .map(|x| x.s.ln() - f.ln_eval_with(&ln_c, x.r))
+                            .sum::<f64>()
+                    };
+                    let mean = sum / d.len() as f64;
                     *o = mean.exp();
                 }
                 if out.iter().all(|v| v.is_finite() && *v > 0.0) {
@@ -318,6 +332,58 @@ pub(super) fn isotropic_order(
     Ok((model, n))
 }
 
+/// The default's path of [`fit_samples`] for shared colour at one segment
+/// ([`Fitter::rounding_cuts`]): the red fall-off chooses n (terms its samples do not support
+/// dropped, as in [`isotropic_order`]), the joint fit of every channel (Eq. 5) starts from it
+/// instead of fitting it again, and the joint fall-off's terms are checked for support on every
+/// channel's distances, as the exact path checks its isotropic fit of all channels. Why: that
+/// isotropic fit, which the joint fit does not start from and which sets nothing but n where
+/// the joint fit succeeds, and the joint fit's own refit of the red samples were a fifth of the
+/// cross-validation's CPU on `scan1024`. `None` where any fit or the support check fails, or a
+/// channel has no samples: the exact path then runs, so a light position fails or falls back
+/// as there.
+pub(super) fn fit_shared_from_red(
+    data: &ChannelSamples,
+    fitter: &dyn Fitter,
+    dropped: &mut Vec<TermDropped>,
+) -> Option<(ColourModel, usize)> {
+    if data[1..].iter().any(|d| d.is_empty()) {
+        return None;
+    }
+    let (r, s): (Vec<f64>, Vec<f64>) = data[0].iter().map(|x| (x.r, x.s)).unzip();
+    let red_distances = Distances::of(&r);
+    let mut own = Vec::new();
+    let red = fit_supported_on(fitter, &red_distances, &s, None, &mut own).ok()?;
+    let n = red.n();
+    let rows = ColourRows::of(data);
+    let model = fitter
+        .fit_colour_from(&rows, n, 1, ColourMode::Shared, 0, Some(&red))
+        .ok()?;
+    model.validate().ok()?;
+    let ColourModel::Shared { falloff, .. } = &model else {
+        return None;
+    };
+    let [f] = falloff.segments.as_slice() else {
+        return None;
+    };
+    // Every channel's distances: the red ones three times in the usual group, whose range and
+    // distinct values are the red ones (as in `isotropic_order`).
+    let red_thrice = data[1..]
+        .iter()
+        .all(|d| d.len() == r.len() && d.iter().zip(&r).all(|(x, r)| x.r.to_bits() == r.to_bits()));
+    let unsupported = if red_thrice {
+        red_distances.unsupported_term(f, true)
+    } else {
+        let all: Vec<f64> = data.iter().flatten().map(|x| x.r).collect();
+        Distances::of(&all).unsupported_term(f, true)
+    };
+    if unsupported.is_some() {
+        return None;
+    }
+    dropped.extend(own);
+    Some((model, n))
+}
+
 /// How a light position's model was obtained.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(super) enum FitPath {
@@ -331,15 +397,29 @@ pub(super) enum FitPath {
 /// A light position's model: the order n from the isotropic fits ([`isotropic_order`]), then the
 /// joint fit at (n, m) ([`fit_at`]). Where that fails or is implausible the light position keeps
 /// an isotropic model (the joint fit at (n, 1), else the order-choosing fit) with its segments
-/// repeated, so no light position loses the model the isotropic fit gave it.
+/// repeated, so no light position loses the model the isotropic fit gave it. `order_kept`: a
+/// round after the first, which keeps the n the first chose; where the fitter allows
+/// ([`Fitter::rounding_cuts`]) shared colour at one segment then takes
+/// [`fit_shared_from_red`]. The first round's candidates, which choose n, always take the
+/// exact path (they are fitted once per run, [`OrderCache`]), so every light position starts
+/// from the order the reference gives it.
 pub(super) fn fit_samples(
     data: &ChannelSamples,
     choice: &ModelChoice,
     fitter: &dyn Fitter,
+    order_kept: bool,
     dropped: &mut Vec<TermDropped>,
 ) -> Result<(ColourModel, usize, FitPath), FailReason> {
-    let (iso, n) = isotropic_order(data, choice.colour, fitter, dropped)?;
     let m = choice.segments.max(1);
+    if m == 1
+        && order_kept
+        && choice.colour == ColourMode::Shared
+        && fitter.rounding_cuts()
+        && let Some((model, n)) = fit_shared_from_red(data, fitter, dropped)
+    {
+        return Ok((model, n, FitPath::Joint));
+    }
+    let (iso, n) = isotropic_order(data, choice.colour, fitter, dropped)?;
     // Segments the joint fit made implausible are held at the isotropic fit and the rest
     // refitted, once.
     let mut joint = fit_at(data, choice.colour, n, m, fitter);
@@ -393,10 +473,10 @@ pub(super) fn fit_order(
         if on_baseline && let Some(b) = baseline.and_then(|b| scaled_baseline(b, data)) {
             return Ok((b, n, 1, true, FitPath::Joint));
         }
-        return fit_candidate(data, choice, fitter, Some(n), m, dropped);
+        return fit_candidate(data, choice, fitter, Some(n), m, true, dropped);
     }
     let (Some(rule), Some(max_n)) = (rule, fitter.max_terms()) else {
-        return fit_candidate(data, choice, fitter, None, choice.segments, dropped);
+        return fit_candidate(data, choice, fitter, None, choice.segments, false, dropped);
     };
     let found = match cache {
         Some((cache, key)) => {
@@ -441,6 +521,7 @@ pub(super) fn fit_candidate(
     fitter: &dyn Fitter,
     n: Option<usize>,
     m: usize,
+    order_kept: bool,
     dropped: &mut Vec<TermDropped>,
 ) -> Result<(ColourModel, usize, usize, bool, FitPath), FailReason> {
     let c = ModelChoice {
@@ -448,8 +529,8 @@ pub(super) fn fit_candidate(
         ..*choice
     };
     match n {
-        Some(n) => fit_samples(data, &c, &AtMost { inner: fitter, n }, dropped),
-        None => fit_samples(data, &c, fitter, dropped),
+        Some(n) => fit_samples(data, &c, &AtMost { inner: fitter, n }, order_kept, dropped),
+        None => fit_samples(data, &c, fitter, order_kept, dropped),
     }
     .map(|(model, n, path)| (model, n, m, false, path))
 }
@@ -488,7 +569,7 @@ pub(super) fn order_candidates(
     for m in crate::order::segment_ladder(choice.segments) {
         for n in 1..=max_n.max(1) {
             let mut d = Vec::new();
-            match fit_candidate(data, choice, fitter, Some(n), m, &mut d) {
+            match fit_candidate(data, choice, fitter, Some(n), m, false, &mut d) {
                 Ok((model, n, m, _, path)) => {
                     // A candidate whose unsupported terms were dropped repeats a smaller one.
                     if cands.iter().any(|c| c.terms == n && c.segments == m) {

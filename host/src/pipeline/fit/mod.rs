@@ -66,6 +66,33 @@ pub trait Fitter: Sync {
         None
     }
 
+    /// Whether the pipeline around this fitter takes the default's cuts that agree with the
+    /// exact path within rounding, not to the bit (issue 40): the loops around its solves (ln
+    /// R_d of a fit at every sample, ln s, the terms' support) take the vectorised exp and ln
+    /// ([`crate::model::ExpSum::ln_eval_many`], [`crate::fit::ln_many`]: within a few ulp of
+    /// libm's), and a light position's shared joint fit at one segment starts from the red fit
+    /// its order choice made and is checked for support itself ([`light::fit_samples`]). The
+    /// default's fitter does; the reference preset's (libm's throughout, the exact path before
+    /// issue 40) and any fitter that does not say do not.
+    fn rounding_cuts(&self) -> bool {
+        false
+    }
+
+    /// [`Fitter::fit_colour`] started, where the fitter can, from `start`: an isotropic fit of
+    /// the rows' red samples at n terms ([`crate::fit::aniso::fit_colour_from`]). By default
+    /// the start is not used.
+    fn fit_colour_from(
+        &self,
+        rows: &ColourRows,
+        n: usize,
+        m: usize,
+        colour: ColourMode,
+        anchored: u64,
+        _start: Option<&ExpSum>,
+    ) -> Result<ColourModel, FailReason> {
+        self.fit_colour(rows, n, m, colour, anchored)
+    }
+
     /// This fitter as the reference preset runs it (the exact path before issue 40: libm's
     /// exp and ln, [`crate::fit::FitOptions::libm`]); `None`: it is that already.
     fn reference(&self) -> Option<Box<dyn Fitter>> {
@@ -115,7 +142,19 @@ impl Fitter for crate::fit::FitOptions {
         colour: ColourMode,
         anchored: u64,
     ) -> Result<ColourModel, FailReason> {
-        use crate::fit::aniso::{AnisoOptions, fit_colour};
+        self.fit_colour_from(rows, n, m, colour, anchored, None)
+    }
+
+    fn fit_colour_from(
+        &self,
+        rows: &ColourRows,
+        n: usize,
+        m: usize,
+        colour: ColourMode,
+        anchored: u64,
+        start: Option<&ExpSum>,
+    ) -> Result<ColourModel, FailReason> {
+        use crate::fit::aniso::{AnisoOptions, fit_colour_from};
         let opts = AnisoOptions {
             terms: n,
             segments: m,
@@ -136,7 +175,9 @@ impl Fitter for crate::fit::FitOptions {
             rows
         };
         let [sr, sg, sb] = &rows.s;
-        let fit = fit_colour(&rows.r, &rows.phi, [sr, sg, sb], &opts)?;
+        // A start fitted to every row is no start for a subsample.
+        let start = start.filter(|_| k == 1);
+        let fit = fit_colour_from(&rows.r, &rows.phi, [sr, sg, sb], &opts, start)?;
         if self.require_convergence && !fit.converged {
             return Err(FailReason::NotConverged);
         }
@@ -153,6 +194,10 @@ impl Fitter for crate::fit::FitOptions {
     fn exact(&self) -> Option<Box<dyn Fitter>> {
         self.exact_counterpart()
             .map(|o| Box::new(o) as Box<dyn Fitter>)
+    }
+
+    fn rounding_cuts(&self) -> bool {
+        !self.libm
     }
 
     fn reference(&self) -> Option<Box<dyn Fitter>> {
@@ -274,8 +319,25 @@ impl Fitter for AtMost<'_> {
             .fit_colour(rows, n.min(self.n), m, colour, anchored)
     }
 
+    fn fit_colour_from(
+        &self,
+        rows: &ColourRows,
+        n: usize,
+        m: usize,
+        colour: ColourMode,
+        anchored: u64,
+        start: Option<&ExpSum>,
+    ) -> Result<ColourModel, FailReason> {
+        self.inner
+            .fit_colour_from(rows, n.min(self.n), m, colour, anchored, start)
+    }
+
     fn max_terms(&self) -> Option<usize> {
         Some(self.n)
+    }
+
+    fn rounding_cuts(&self) -> bool {
+        self.inner.rounding_cuts()
     }
 }
 
@@ -491,6 +553,61 @@ mod tests {
         assert_eq!((rows.s[0][1], rows.s[2][1]), (5.0, 4.0));
     }
 
+    /// The default's shortcut for shared colour at one segment ([`light::fit_samples`] through
+    /// `fit_shared_from_red`, [`Fitter::rounding_cuts`]) fits the exact path's model: on noisy
+    /// samples of a three-term fall-off with channel scales, the same n and path and ln R_d
+    /// within 1e-6 of the reference fitter's (libm's, the isotropic fit of all channels, the
+    /// joint fit's own start), every channel, 20 µm to 15 mm. A group with a channel without
+    /// samples leaves the shortcut for the exact path, which fails it.
+    #[test]
+    fn the_shared_shortcut_fits_the_exact_paths_model() {
+        let truth = ExpSum::new(vec![
+            Term { c: 1.0, d: -3.0 },
+            Term { c: 0.2, d: -0.8 },
+            Term { c: 0.01, d: -0.15 },
+        ])
+        .unwrap();
+        let mut data: ChannelSamples = Default::default();
+        for j in 0..160u32 {
+            let r = 0.1 + 0.075 * f64::from(j);
+            for (ch, sc) in [1.0, 0.6, 0.3].into_iter().enumerate() {
+                let noise = 1.0 + 0.03 * (f64::from(j) * 12.9898 + ch as f64 * 78.233).sin();
+                data[ch].push(sample(j % 7, j, r, None, sc * truth.eval(r) * noise));
+            }
+        }
+        let choice = ModelChoice {
+            colour: ColourMode::Shared,
+            segments: 1,
+        };
+        let fast = FitOptions::default();
+        let exact = FitOptions {
+            libm: true,
+            ..FitOptions::default()
+        };
+        assert!(fast.rounding_cuts() && !exact.rounding_cuts());
+        assert!(light::fit_shared_from_red(&data, &fast, &mut Vec::new()).is_some());
+        let (a, na, pa) = fit_samples(&data, &choice, &fast, true, &mut Vec::new()).unwrap();
+        let (b, nb, pb) = fit_samples(&data, &choice, &exact, true, &mut Vec::new()).unwrap();
+        assert_eq!((na, pa), (nb, pb));
+        assert_eq!(na, 3);
+        for k in 0..=100 {
+            let r = 0.02 + 0.1498 * f64::from(k);
+            let (x, y) = (a.ln_eval(r, None), b.ln_eval(r, None));
+            for ch in 0..3 {
+                assert!(
+                    (x[ch] - y[ch]).abs() < 1e-6,
+                    "r {r} ch {ch}: {x:?} vs {y:?}"
+                );
+            }
+        }
+        let mut no_blue = data.clone();
+        no_blue[2].clear();
+        assert!(light::fit_shared_from_red(&no_blue, &fast, &mut Vec::new()).is_none());
+        let fast_err = fit_samples(&no_blue, &choice, &fast, true, &mut Vec::new()).err();
+        let exact_err = fit_samples(&no_blue, &choice, &exact, true, &mut Vec::new()).err();
+        assert!(fast_err.is_some() && fast_err == exact_err);
+    }
+
     /// The pipeline's model is the joint hat-weighted fit: noise-free Eq. 3 data (directions
     /// between the segment centres included) are recovered, which a fit on hard sectors cannot do
     /// (a sector mixes its neighbours' fall-offs).
@@ -509,7 +626,7 @@ mod tests {
             terms: crate::fit::Terms::Fixed(2),
             ..FitOptions::default()
         };
-        let (model, n, path) = fit_samples(&data, &choice, &fitter, &mut Vec::new()).unwrap();
+        let (model, n, path) = fit_samples(&data, &choice, &fitter, true, &mut Vec::new()).unwrap();
         assert_eq!((n, path), (2, FitPath::Joint));
         for &p in &phis {
             for r in [0.5, 2.0, 5.0, 8.0] {
@@ -549,7 +666,8 @@ mod tests {
             };
             // Half the directions: the light position keeps a model of 8 segments, the empty
             // ones held together where the joint fit stands.
-            let (model, _, path) = fit_samples(&half, &choice, &fitter, &mut Vec::new()).unwrap();
+            let (model, _, path) =
+                fit_samples(&half, &choice, &fitter, true, &mut Vec::new()).unwrap();
             for f in falloffs(&model) {
                 assert_eq!(f.segments.len(), 8);
                 let (a, b) = (&f.segments[5], &f.segments[6]);
@@ -561,7 +679,8 @@ mod tests {
                 fit_at(&none, colour, 2, 8, &fitter),
                 Err(FailReason::TooFewSamples)
             );
-            let (model, _, path) = fit_samples(&none, &choice, &fitter, &mut Vec::new()).unwrap();
+            let (model, _, path) =
+                fit_samples(&none, &choice, &fitter, true, &mut Vec::new()).unwrap();
             assert_eq!(path, FitPath::Isotropic);
             for f in falloffs(&model) {
                 assert_eq!(f.segments.len(), 8);

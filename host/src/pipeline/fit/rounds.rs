@@ -133,18 +133,27 @@ impl RoundState {
 /// Sum over a group's (alpha-divided) samples of (ln R_d − ln s)^2: its share of the training
 /// objective.
 pub(super) fn sq_err(m: &ColourModel, data: &ChannelSamples) -> f64 {
-    sq_err_at(&ln_rd_at(m, data), &ln_s_of(data))
+    sq_err_at(&ln_rd_at(m, data, false), &ln_s_of(data, false))
 }
 
-/// ln s of each of a group's samples, per channel (their order).
-pub(super) fn ln_s_of(data: &ChannelSamples) -> [Vec<f64>; 3] {
-    data.each_ref()
-        .map(|d| d.iter().map(|x| x.s.ln()).collect())
+/// ln s of each of a group's samples, per channel (their order); `vectorised`: by
+/// [`crate::fit::ln_many`] ([`Fitter::rounding_cuts`]).
+pub(super) fn ln_s_of(data: &ChannelSamples, vectorised: bool) -> [Vec<f64>; 3] {
+    data.each_ref().map(|d| {
+        if vectorised {
+            let s: Vec<f64> = d.iter().map(|x| x.s).collect();
+            let mut out = vec![0.0; s.len()];
+            crate::fit::ln_many(&s, &mut out);
+            out
+        } else {
+            d.iter().map(|x| x.s.ln()).collect()
+        }
+    })
 }
 
 /// ln R_d of a model at each of a group's samples, per channel (their order).
-pub(super) fn ln_rd_at(m: &ColourModel, data: &ChannelSamples) -> [Vec<f64>; 3] {
-    ln_rd_with(&m.ln_evaluator(), data, true)
+pub(super) fn ln_rd_at(m: &ColourModel, data: &ChannelSamples, vectorised: bool) -> [Vec<f64>; 3] {
+    ln_rd_with(&m.ln_evaluator(), data, true, vectorised)
 }
 
 /// [`ln_rd_at`] with the model's evaluator. With shared colour (Eq. 5) a sample of channel 1 or
@@ -152,17 +161,28 @@ pub(super) fn ln_rd_at(m: &ColourModel, data: &ChannelSamples) -> [Vec<f64>; 3] 
 /// channels at the same pixels) takes the red fall-off's value plus its channel's ln s_c
 /// ([`crate::model::LnEvaluator::shared_offset`]): the same bits, one evaluation instead of
 /// three. `directions = false` evaluates every sample without its direction (φ = `None`, as
-/// the isotropic baseline is judged).
+/// the isotropic baseline is judged). `vectorised`: the red fall-off of one segment at every
+/// sample at once ([`crate::model::LnEvaluator::ln_eval_channel_many`], within a few ulp).
 pub(in crate::pipeline) fn ln_rd_with(
     ev: &crate::model::LnEvaluator,
     data: &ChannelSamples,
     directions: bool,
+    vectorised: bool,
 ) -> [Vec<f64>; 3] {
     let phi = |x: &GroupSample| if directions { x.phi } else { None };
-    let red: Vec<f64> = data[0]
-        .iter()
-        .map(|x| ev.ln_eval_channel(0, x.r, phi(x)))
-        .collect();
+    let batch = || -> Option<Vec<f64>> {
+        let r: Vec<f64> = data[0].iter().map(|x| x.r).collect();
+        let mut out = vec![0.0; r.len()];
+        ev.ln_eval_channel_many(0, &r, &mut out).then_some(out)
+    };
+    // Vectorised, the red fall-off at every sample at once where it has one segment (φ
+    // changes nothing then).
+    let red: Vec<f64> = vectorised.then(batch).flatten().unwrap_or_else(|| {
+        data[0]
+            .iter()
+            .map(|x| ev.ln_eval_channel(0, x.r, phi(x)))
+            .collect()
+    });
     let same = |a: &GroupSample, b: &GroupSample| {
         a.r.to_bits() == b.r.to_bits() && phi(a).map(f64::to_bits) == phi(b).map(f64::to_bits)
     };
@@ -280,9 +300,10 @@ impl RoundRunner<'_, '_> {
                 });
                 // The old and new fits are scored on the same samples, and the one kept feeds
                 // Eq. 6 below: each model's ln R_d and each sample's ln s are taken once.
-                let ln_s = ln_s_of(&data);
+                let vectorised = fitter.rounding_cuts();
+                let ln_s = ln_s_of(&data, vectorised);
                 let scored = |m: &ColourModel| {
-                    let ln_rd = ln_rd_at(m, &data);
+                    let ln_rd = ln_rd_at(m, &data, vectorised);
                     let o = sq_err_at(&ln_rd, &ln_s);
                     (ln_rd, o)
                 };
@@ -322,10 +343,24 @@ impl RoundRunner<'_, '_> {
                         // t1 relative to this light position's brightest sample.
                         let s_max = d.iter().map(captured).fold(0.0, f64::max);
                         let window = opts.alpha_window.for_light(s_max);
-                        for ((x, &ln_rd), &ln_s) in d.iter().zip(&ln_rd[ch]).zip(&ln_s[ch]) {
+                        // The captured samples' logs at once where the fitter's are vectorised.
+                        let ln_captured =
+                            (alpha_div.is_some() && fitter.rounding_cuts()).then(|| {
+                                let c: Vec<f64> = d.iter().map(captured).collect();
+                                let mut out = vec![0.0; c.len()];
+                                crate::fit::ln_many(&c, &mut out);
+                                out
+                            });
+                        for (j, ((x, &ln_rd), &ln_s)) in
+                            d.iter().zip(&ln_rd[ch]).zip(&ln_s[ch]).enumerate()
+                        {
                             let s = captured(x);
                             // As captured (round 0) s is the sample itself, its log known.
-                            let ln_s = if alpha_div.is_some() { s.ln() } else { ln_s };
+                            let ln_s = match (&ln_captured, alpha_div) {
+                                (Some(l), _) => l[j],
+                                (None, Some(_)) => s.ln(),
+                                (None, None) => ln_s,
+                            };
                             if let Some(v) =
                                 AlphaAccumulator::ln_ratio_with(s, ln_s, ln_rd, &window)
                             {
