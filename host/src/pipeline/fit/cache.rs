@@ -44,6 +44,14 @@ pub struct OrderCache {
     >,
     hits: std::sync::atomic::AtomicUsize,
     fitted: std::sync::atomic::AtomicUsize,
+    /// The homogeneous baselines ([`fit_baseline`]) by the keys of every light position they
+    /// pool, in order: the same pooled samples, the same fit. The cross-validation's candidates
+    /// of one fold (t1 off and on) share their training frames, and the baseline, fitted to the
+    /// samples as captured, does not depend on t1: it was fitted once per candidate and fold,
+    /// a twentieth of the 655,362-vertex pebble's CPU (issue 40).
+    baselines: std::sync::Mutex<
+        std::collections::HashMap<Vec<OrderKey>, std::sync::Arc<Option<FittedBaseline>>>,
+    >,
 }
 
 impl OrderCache {
@@ -95,6 +103,36 @@ impl OrderCache {
             }
             progress.inc(1);
         });
+    }
+
+    /// The baseline of the selection `regs`, `groups` with the run's model choice, fitted by
+    /// `fit` unless a fit of the same light positions' samples made it already.
+    pub(super) fn baseline(
+        &self,
+        ctx: &Context,
+        regs: &[RegisteredFrame],
+        groups: &Groups,
+        fit: impl FnOnce() -> Option<FittedBaseline>,
+    ) -> Option<FittedBaseline> {
+        let key: Vec<OrderKey> = groups
+            .keys
+            .iter()
+            .map(|k| OrderKey::of(&ctx.opts.model, regs, k))
+            .collect();
+        let known = self
+            .baselines
+            .lock()
+            .ok()
+            .and_then(|m| m.get(&key).map(std::sync::Arc::clone));
+        if let Some(b) = known {
+            return b.as_ref().clone();
+        }
+        let b = fit();
+        if let Ok(mut m) = self.baselines.lock() {
+            m.entry(key)
+                .or_insert_with(|| std::sync::Arc::new(b.clone()));
+        }
+        b
     }
 
     /// Light positions whose candidates were fitted, and lookups that found them fitted.

@@ -608,6 +608,56 @@ mod tests {
         assert!(fast_err.is_some() && fast_err == exact_err);
     }
 
+    /// ln R_d at a group's samples vectorised (the default) against per sample (the
+    /// reference): within a few ulp on every channel, whether a channel's samples are the red
+    /// ones index by index (one evaluation, the red one plus ln s_c) or not (green lacks the
+    /// red's first sample, so every later one is shifted: evaluated on its own), and the same
+    /// bits per sample where a fall-off has several segments (nothing to vectorise).
+    #[test]
+    fn vectorised_ln_r_d_at_the_samples_is_the_per_sample_one() {
+        let falloff = ExpSum::new(vec![
+            Term { c: 1.0, d: -3.0 },
+            Term { c: 0.2, d: -0.8 },
+            Term { c: 0.01, d: -0.15 },
+        ])
+        .unwrap();
+        let shared = ColourModel::Shared {
+            falloff: Anisotropic {
+                segments: vec![falloff],
+            },
+            s_g: 0.6,
+            s_b: 0.3,
+        };
+        let mut data: ChannelSamples = Default::default();
+        for j in 0..50u32 {
+            for d in data.iter_mut() {
+                d.push(sample(0, j, 0.05 + 0.3 * f64::from(j), Some(0.1), 1.0));
+            }
+        }
+        data[1].remove(0);
+        let segmented = ColourModel::Shared {
+            falloff: truth(),
+            s_g: 0.6,
+            s_b: 0.3,
+        };
+        for model in [&shared, &segmented] {
+            let ev = model.ln_evaluator();
+            let exact = ln_rd_with(&ev, &data, true, false);
+            let fast = ln_rd_with(&ev, &data, true, true);
+            for ch in 0..3 {
+                assert_eq!(exact[ch].len(), data[ch].len());
+                assert_eq!(fast[ch].len(), data[ch].len());
+                for (a, b) in exact[ch].iter().zip(&fast[ch]) {
+                    if model == &segmented {
+                        assert_eq!(a.to_bits(), b.to_bits());
+                    } else {
+                        assert!((a - b).abs() <= 4e-16 * a.abs().max(1.0), "{a} against {b}");
+                    }
+                }
+            }
+        }
+    }
+
     /// The pipeline's model is the joint hat-weighted fit: noise-free Eq. 3 data (directions
     /// between the segment centres included) are recovered, which a fit on hard sectors cannot do
     /// (a sector mixes its neighbours' fall-offs).

@@ -161,8 +161,9 @@ pub(super) fn ln_rd_at(m: &ColourModel, data: &ChannelSamples, vectorised: bool)
 /// channels at the same pixels) takes the red fall-off's value plus its channel's ln s_c
 /// ([`crate::model::LnEvaluator::shared_offset`]): the same bits, one evaluation instead of
 /// three. `directions = false` evaluates every sample without its direction (φ = `None`, as
-/// the isotropic baseline is judged). `vectorised`: the red fall-off of one segment at every
-/// sample at once ([`crate::model::LnEvaluator::ln_eval_channel_many`], within a few ulp).
+/// the isotropic baseline is judged). `vectorised`: a fall-off of one segment at every sample
+/// of a channel at once ([`crate::model::LnEvaluator::ln_eval_channel_many`], within a few
+/// ulp), the red one and any channel whose samples are not the red ones.
 pub(in crate::pipeline) fn ln_rd_with(
     ev: &crate::model::LnEvaluator,
     data: &ChannelSamples,
@@ -170,14 +171,14 @@ pub(in crate::pipeline) fn ln_rd_with(
     vectorised: bool,
 ) -> [Vec<f64>; 3] {
     let phi = |x: &GroupSample| if directions { x.phi } else { None };
-    let batch = || -> Option<Vec<f64>> {
-        let r: Vec<f64> = data[0].iter().map(|x| x.r).collect();
+    let batch = |ch: usize| -> Option<Vec<f64>> {
+        let r: Vec<f64> = data[ch].iter().map(|x| x.r).collect();
         let mut out = vec![0.0; r.len()];
-        ev.ln_eval_channel_many(0, &r, &mut out).then_some(out)
+        ev.ln_eval_channel_many(ch, &r, &mut out).then_some(out)
     };
     // Vectorised, the red fall-off at every sample at once where it has one segment (φ
     // changes nothing then).
-    let red: Vec<f64> = vectorised.then(batch).flatten().unwrap_or_else(|| {
+    let red: Vec<f64> = vectorised.then(|| batch(0)).flatten().unwrap_or_else(|| {
         data[0]
             .iter()
             .map(|x| ev.ln_eval_channel(0, x.r, phi(x)))
@@ -188,6 +189,20 @@ pub(in crate::pipeline) fn ln_rd_with(
     };
     let other = |ch: usize| -> Vec<f64> {
         let offset = ev.shared_offset(ch);
+        // A channel whose samples are not the red ones index by index (a sample of one channel
+        // dropped, below the noise floor or saturated, shifts every later one) is evaluated
+        // on its own: vectorised, all at once.
+        let aligned = || {
+            offset.is_some()
+                && data[ch].len() <= data[0].len()
+                && data[ch].iter().zip(&data[0]).all(|(x, y)| same(x, y))
+        };
+        if vectorised
+            && !aligned()
+            && let Some(v) = batch(ch)
+        {
+            return v;
+        }
         data[ch]
             .iter()
             .enumerate()
@@ -448,7 +463,12 @@ impl<'r, 'a> AlphaRounds<'r, 'a> {
         progress: &'r dyn Progress,
     ) -> Self {
         // The baseline first: the per-vertex order choice has it as its smallest candidate.
-        let baseline = fit_baseline(ctx, regs, groups, fitter);
+        let baseline = match cache {
+            Some(c) => c.baseline(ctx, regs, groups, || {
+                fit_baseline(ctx, regs, groups, fitter)
+            }),
+            None => fit_baseline(ctx, regs, groups, fitter),
+        };
         let runner = RoundRunner {
             ctx,
             regs,
