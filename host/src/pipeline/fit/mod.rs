@@ -43,7 +43,20 @@ pub trait Fitter: Sync {
     /// The joint fit of n terms and m direction segments (Eq. 3, every row weighted over the
     /// segments by the hat weights evaluation uses) and the colour model (Eq. 5/9 shared, or
     /// per channel) to `rows`; the segments of the bit mask `anchored` are held at the
-    /// isotropic fit.
+    /// isotropic fit. With `start`, an isotropic fit of the rows' red samples at n terms, the
+    /// fit starts from it where the fitter can ([`crate::fit::aniso::fit_colour_from`])
+    /// instead of fitting those samples again.
+    fn fit_colour_from(
+        &self,
+        rows: &ColourRows,
+        n: usize,
+        m: usize,
+        colour: ColourMode,
+        anchored: u64,
+        start: Option<&ExpSum>,
+    ) -> Result<ColourModel, FailReason>;
+
+    /// [`Fitter::fit_colour_from`] without a start.
     fn fit_colour(
         &self,
         rows: &ColourRows,
@@ -51,7 +64,9 @@ pub trait Fitter: Sync {
         m: usize,
         colour: ColourMode,
         anchored: u64,
-    ) -> Result<ColourModel, FailReason>;
+    ) -> Result<ColourModel, FailReason> {
+        self.fit_colour_from(rows, n, m, colour, anchored, None)
+    }
 
     /// The largest n this fitter's own setting fits (the per-vertex order choice tries 1..=it);
     /// `None`: unknown, each vertex is fitted with the fitter's own setting.
@@ -76,21 +91,6 @@ pub trait Fitter: Sync {
     /// issue 40) and any fitter that does not say do not.
     fn rounding_cuts(&self) -> bool {
         false
-    }
-
-    /// [`Fitter::fit_colour`] started, where the fitter can, from `start`: an isotropic fit of
-    /// the rows' red samples at n terms ([`crate::fit::aniso::fit_colour_from`]). By default
-    /// the start is not used.
-    fn fit_colour_from(
-        &self,
-        rows: &ColourRows,
-        n: usize,
-        m: usize,
-        colour: ColourMode,
-        anchored: u64,
-        _start: Option<&ExpSum>,
-    ) -> Result<ColourModel, FailReason> {
-        self.fit_colour(rows, n, m, colour, anchored)
     }
 
     /// This fitter as the reference preset runs it (the exact path before issue 40: libm's
@@ -132,17 +132,6 @@ impl Fitter for crate::fit::FitOptions {
             _ => self,
         };
         Ok(fit_expsum(r, s, opts)?.model)
-    }
-
-    fn fit_colour(
-        &self,
-        rows: &ColourRows,
-        n: usize,
-        m: usize,
-        colour: ColourMode,
-        anchored: u64,
-    ) -> Result<ColourModel, FailReason> {
-        self.fit_colour_from(rows, n, m, colour, anchored, None)
     }
 
     fn fit_colour_from(
@@ -305,18 +294,6 @@ impl Fitter for AtMost<'_> {
     fn fit(&self, r: &[f64], s: &[f64], terms: Option<usize>) -> Result<ExpSum, FailReason> {
         let n = terms.map_or(self.n, |t| t.min(self.n));
         self.inner.fit(r, s, Some(n))
-    }
-
-    fn fit_colour(
-        &self,
-        rows: &ColourRows,
-        n: usize,
-        m: usize,
-        colour: ColourMode,
-        anchored: u64,
-    ) -> Result<ColourModel, FailReason> {
-        self.inner
-            .fit_colour(rows, n.min(self.n), m, colour, anchored)
     }
 
     fn fit_colour_from(
@@ -553,6 +530,16 @@ mod tests {
         assert_eq!((rows.s[0][1], rows.s[2][1]), (5.0, 4.0));
     }
 
+    /// A fall-off of three terms whose slowest (0.15 / mm) carries the tail beyond 10 mm.
+    fn three_terms() -> ExpSum {
+        ExpSum::new(vec![
+            Term { c: 1.0, d: -3.0 },
+            Term { c: 0.2, d: -0.8 },
+            Term { c: 0.01, d: -0.15 },
+        ])
+        .unwrap()
+    }
+
     /// The default's shortcut for shared colour at one segment ([`light::fit_samples`] through
     /// `fit_shared_from_red`, [`Fitter::rounding_cuts`]) fits the exact path's model: on noisy
     /// samples of a three-term fall-off with channel scales, the same n and path and ln R_d
@@ -561,12 +548,7 @@ mod tests {
     /// samples leaves the shortcut for the exact path, which fails it.
     #[test]
     fn the_shared_shortcut_fits_the_exact_paths_model() {
-        let truth = ExpSum::new(vec![
-            Term { c: 1.0, d: -3.0 },
-            Term { c: 0.2, d: -0.8 },
-            Term { c: 0.01, d: -0.15 },
-        ])
-        .unwrap();
+        let truth = three_terms();
         let mut data: ChannelSamples = Default::default();
         for j in 0..160u32 {
             let r = 0.1 + 0.075 * f64::from(j);
@@ -615,12 +597,7 @@ mod tests {
     /// bits per sample where a fall-off has several segments (nothing to vectorise).
     #[test]
     fn vectorised_ln_r_d_at_the_samples_is_the_per_sample_one() {
-        let falloff = ExpSum::new(vec![
-            Term { c: 1.0, d: -3.0 },
-            Term { c: 0.2, d: -0.8 },
-            Term { c: 0.01, d: -0.15 },
-        ])
-        .unwrap();
+        let falloff = three_terms();
         let shared = ColourModel::Shared {
             falloff: Anisotropic {
                 segments: vec![falloff],
