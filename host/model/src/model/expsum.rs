@@ -126,12 +126,12 @@ impl ExpSum {
     /// of the scalar evaluation (a test bounds it), not its bits. The hot loops of the default
     /// fit take it (ln R_d at every sample of a light position, every round: issue 40); the
     /// reference preset keeps the scalar path. Distances where the largest term is not finite
-    /// (±∞, NaN) and sums of more than four terms take the scalar path, the same values.
+    /// (±∞, NaN) and sums of more than [`MAX_TERMS`] terms take the scalar path, the same values.
     pub fn ln_eval_many(&self, ln_c: &[f64], r: &[f64], out: &mut [f64]) {
         let n = self.terms.len();
         let len = r.len().min(out.len());
         let (r, out) = (&r[..len], &mut out[..len]);
-        if n == 0 || n > 4 || ln_c.len() < n {
+        if n == 0 || n > MAX_TERMS || ln_c.len() < n {
             for (o, &x) in out.iter_mut().zip(r) {
                 *o = self.ln_eval_with(ln_c, x);
             }

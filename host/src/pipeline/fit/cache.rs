@@ -62,21 +62,8 @@ impl OrderCache {
         fit: impl FnOnce() -> Result<Candidates, FailReason>,
     ) -> std::sync::Arc<Result<Candidates, FailReason>> {
         use std::sync::atomic::Ordering::Relaxed;
-        let known = self
-            .found
-            .lock()
-            .ok()
-            .and_then(|m| m.get(key).map(std::sync::Arc::clone));
-        if let Some(c) = known {
-            self.hits.fetch_add(1, Relaxed);
-            return c;
-        }
-        let c = std::sync::Arc::new(fit());
-        self.fitted.fetch_add(1, Relaxed);
-        if let Ok(mut m) = self.found.lock() {
-            m.entry(key.clone())
-                .or_insert_with(|| std::sync::Arc::clone(&c));
-        }
+        let (c, hit) = memoised(&self.found, key, fit);
+        if hit { &self.hits } else { &self.fitted }.fetch_add(1, Relaxed);
         c
     }
 
@@ -119,20 +106,7 @@ impl OrderCache {
             .iter()
             .map(|k| OrderKey::of(&ctx.opts.model, regs, k))
             .collect();
-        let known = self
-            .baselines
-            .lock()
-            .ok()
-            .and_then(|m| m.get(&key).map(std::sync::Arc::clone));
-        if let Some(b) = known {
-            return b.as_ref().clone();
-        }
-        let b = fit();
-        if let Ok(mut m) = self.baselines.lock() {
-            m.entry(key)
-                .or_insert_with(|| std::sync::Arc::new(b.clone()));
-        }
-        b
+        memoised(&self.baselines, &key, fit).0.as_ref().clone()
     }
 
     /// Light positions whose candidates were fitted, and lookups that found them fitted.
@@ -140,4 +114,27 @@ impl OrderCache {
         use std::sync::atomic::Ordering::Relaxed;
         (self.fitted.load(Relaxed), self.hits.load(Relaxed))
     }
+}
+
+/// The value of `key` in `map`, made by `make` unless there (without the lock held: fits run
+/// side by side, and two that race make the same value, the first kept); second: whether it
+/// was there.
+fn memoised<K: Eq + std::hash::Hash + Clone, V>(
+    map: &std::sync::Mutex<std::collections::HashMap<K, std::sync::Arc<V>>>,
+    key: &K,
+    make: impl FnOnce() -> V,
+) -> (std::sync::Arc<V>, bool) {
+    let known = map
+        .lock()
+        .ok()
+        .and_then(|m| m.get(key).map(std::sync::Arc::clone));
+    if let Some(v) = known {
+        return (v, true);
+    }
+    let v = std::sync::Arc::new(make());
+    if let Ok(mut m) = map.lock() {
+        m.entry(key.clone())
+            .or_insert_with(|| std::sync::Arc::clone(&v));
+    }
+    (v, false)
 }

@@ -80,13 +80,7 @@ impl<'r> Distances<'r> {
         // ln R_d at each distance once, not once per term, the terms' ln c_k taken once (the
         // same values).
         let ln_cs = f.ln_c();
-        let ln_rd: Vec<f64> = if vectorised {
-            let mut v = vec![0.0; rs.len()];
-            f.ln_eval_many(&ln_cs, rs, &mut v);
-            v
-        } else {
-            rs.iter().map(|&x| f.ln_eval_with(&ln_cs, x)).collect()
-        };
+        let ln_rd = ln_rd_of(f, &ln_cs, rs, vectorised);
         for (t, &ln_c) in f.terms.iter().zip(&ln_cs) {
             let support = rs
                 .iter()
@@ -216,7 +210,7 @@ pub(super) fn repeat_segments(model: ColourModel, m: usize) -> ColourModel {
 }
 
 /// Fits one light position's samples with n terms and m direction segments: THE Eq. 3/5/9 fit
-/// (the joint fit with the hat weights evaluation and rendering use, `Fitter::fit_colour`).
+/// (the joint fit with the hat weights evaluation and rendering use, `Fitter::fit_colour_from`).
 /// The model is validated. A direction segment with fewer samples of its own than n terms need
 /// is held at the isotropic fit of all samples (`aniso::ANCHOR_WEIGHT`); the fit fails
 /// (`TooFewSamples`) when no segment has enough.
@@ -227,10 +221,11 @@ pub fn fit_at(
     m: usize,
     fitter: &dyn Fitter,
 ) -> Result<ColourModel, FailReason> {
-    fit_anchored(data, colour, n, m, 0, fitter)
+    fit_anchored(data, colour, n, m, 0, fitter, None)
 }
 
-/// [`fit_at`] with the segments of the bit mask `anchored` held at the isotropic fit.
+/// [`fit_at`] with the segments of the bit mask `anchored` held at the isotropic fit, started
+/// from `start` where the fitter can ([`Fitter::fit_colour_from`]).
 pub(super) fn fit_anchored(
     data: &ChannelSamples,
     colour: ColourMode,
@@ -238,8 +233,10 @@ pub(super) fn fit_anchored(
     m: usize,
     anchored: u64,
     fitter: &dyn Fitter,
+    start: Option<&ExpSum>,
 ) -> Result<ColourModel, FailReason> {
-    let model = fitter.fit_colour(&ColourRows::of(data), n, m.max(1), colour, anchored)?;
+    let rows = ColourRows::of(data);
+    let model = fitter.fit_colour_from(&rows, n, m.max(1), colour, anchored, start)?;
     model.validate().map_err(|_| FailReason::NonPhysical)?;
     Ok(model)
 }
@@ -281,18 +278,12 @@ pub(super) fn isotropic_order(
                     if d.is_empty() {
                         return Err(FailReason::TooFewSamples);
                     }
-                    let sum = if fitter.rounding_cuts() {
-                        let (r, s): (Vec<f64>, Vec<f64>) = d.iter().map(|x| (x.r, x.s)).unzip();
-                        let (mut ln_s, mut ln_rd) = (vec![0.0; s.len()], vec![0.0; r.len()]);
-                        crate::fit::ln_many(&s, &mut ln_s);
-                        f.ln_eval_many(&ln_c, &r, &mut ln_rd);
-                        ln_s.iter().zip(&ln_rd).map(|(a, b)| a - b).sum::<f64>()
-                    } else {
-                        d.iter()
-                            .map(|x| x.s.ln() - f.ln_eval_with(&ln_c, x.r))
-                            .sum::<f64>()
-                    };
-                    let mean = sum / d.len() as f64;
+                    let vectorised = fitter.rounding_cuts();
+                    let r: Vec<f64> = d.iter().map(|x| x.r).collect();
+                    let ln_s = ln_of(d.iter().map(|x| x.s), vectorised);
+                    let ln_rd = ln_rd_of(f, &ln_c, &r, vectorised);
+                    let mean =
+                        ln_s.iter().zip(&ln_rd).map(|(a, b)| a - b).sum::<f64>() / d.len() as f64;
                     *o = mean.exp();
                 }
                 if out.iter().all(|v| v.is_finite() && *v > 0.0) {
@@ -305,12 +296,7 @@ pub(super) fn isotropic_order(
             let (r_all, s): (Vec<f64>, Vec<f64>) = (0..3)
                 .flat_map(|c| data[c].iter().map(move |x| (x.r, x.s / sc[c])))
                 .unzip();
-            // The usual group holds every channel at the red distances: all its distances are
-            // the red ones three times, whose range and distinct values are the red ones.
-            let red_thrice = data[1..].iter().all(|d| {
-                d.len() == r.len() && d.iter().zip(&r).all(|(x, r)| x.r.to_bits() == r.to_bits())
-            });
-            let all_distances = if red_thrice {
+            let all_distances = if red_thrice(data, &r) {
                 Distances {
                     r: &r_all,
                     ..red_distances
@@ -330,6 +316,16 @@ pub(super) fn isotropic_order(
     model.validate().map_err(|_| FailReason::NonPhysical)?;
     let n = falloffs(&model)[0].segments[0].n();
     Ok((model, n))
+}
+
+/// Whether every other channel holds the red samples' distances `r`, index by index (the usual
+/// group: a frame measures its channels at the same pixels). Then all the group's distances are
+/// the red ones three times, whose range and distinct values are the red ones: their
+/// [`Distances`] serve a fit of all channels without another sort.
+fn red_thrice(data: &ChannelSamples, r: &[f64]) -> bool {
+    data[1..]
+        .iter()
+        .all(|d| d.len() == r.len() && d.iter().zip(r).all(|(x, r)| x.r.to_bits() == r.to_bits()))
 }
 
 /// The default's path of [`fit_samples`] for shared colour at one segment
@@ -355,23 +351,15 @@ pub(super) fn fit_shared_from_red(
     let mut own = Vec::new();
     let red = fit_supported_on(fitter, &red_distances, &s, None, &mut own).ok()?;
     let n = red.n();
-    let rows = ColourRows::of(data);
-    let model = fitter
-        .fit_colour_from(&rows, n, 1, ColourMode::Shared, 0, Some(&red))
-        .ok()?;
-    model.validate().ok()?;
+    let model = fit_anchored(data, ColourMode::Shared, n, 1, 0, fitter, Some(&red)).ok()?;
     let ColourModel::Shared { falloff, .. } = &model else {
         return None;
     };
     let [f] = falloff.segments.as_slice() else {
         return None;
     };
-    // Every channel's distances: the red ones three times in the usual group, whose range and
-    // distinct values are the red ones (as in `isotropic_order`).
-    let red_thrice = data[1..]
-        .iter()
-        .all(|d| d.len() == r.len() && d.iter().zip(&r).all(|(x, r)| x.r.to_bits() == r.to_bits()));
-    let unsupported = if red_thrice {
+    // Every channel's distances, as `isotropic_order` judges its fit of all channels on them.
+    let unsupported = if red_thrice(data, &r) {
         red_distances.unsupported_term(f, true)
     } else {
         let all: Vec<f64> = data.iter().flatten().map(|x| x.r).collect();
@@ -428,7 +416,7 @@ pub(super) fn fit_samples(
     {
         let bad = implausible_segments(model, &iso);
         if bad != 0 {
-            joint = fit_anchored(data, choice.colour, n, m, bad, fitter);
+            joint = fit_anchored(data, choice.colour, n, m, bad, fitter, None);
         }
     }
     if let Ok(model) = joint

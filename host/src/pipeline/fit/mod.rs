@@ -56,18 +56,6 @@ pub trait Fitter: Sync {
         start: Option<&ExpSum>,
     ) -> Result<ColourModel, FailReason>;
 
-    /// [`Fitter::fit_colour_from`] without a start.
-    fn fit_colour(
-        &self,
-        rows: &ColourRows,
-        n: usize,
-        m: usize,
-        colour: ColourMode,
-        anchored: u64,
-    ) -> Result<ColourModel, FailReason> {
-        self.fit_colour_from(rows, n, m, colour, anchored, None)
-    }
-
     /// The largest n this fitter's own setting fits (the per-vertex order choice tries 1..=it);
     /// `None`: unknown, each vertex is fitted with the fitter's own setting.
     fn max_terms(&self) -> Option<usize> {

@@ -139,16 +139,33 @@ pub(super) fn sq_err(m: &ColourModel, data: &ChannelSamples) -> f64 {
 /// ln s of each of a group's samples, per channel (their order); `vectorised`: by
 /// [`crate::fit::ln_many`] ([`Fitter::rounding_cuts`]).
 pub(super) fn ln_s_of(data: &ChannelSamples, vectorised: bool) -> [Vec<f64>; 3] {
-    data.each_ref().map(|d| {
-        if vectorised {
-            let s: Vec<f64> = d.iter().map(|x| x.s).collect();
-            let mut out = vec![0.0; s.len()];
-            crate::fit::ln_many(&s, &mut out);
-            out
-        } else {
-            d.iter().map(|x| x.s.ln()).collect()
-        }
-    })
+    data.each_ref()
+        .map(|d| ln_of(d.iter().map(|x| x.s), vectorised))
+}
+
+/// ln of each of `values`: vectorised ([`crate::fit::ln_many`], within a few ulp;
+/// [`Fitter::rounding_cuts`]) or libm's per value (the reference's bits).
+pub(super) fn ln_of(values: impl Iterator<Item = f64>, vectorised: bool) -> Vec<f64> {
+    if vectorised {
+        let x: Vec<f64> = values.collect();
+        let mut out = vec![0.0; x.len()];
+        crate::fit::ln_many(&x, &mut out);
+        out
+    } else {
+        values.map(f64::ln).collect()
+    }
+}
+
+/// ln R_d of `f` (its terms' ln c_k given, [`ExpSum::ln_c`]) at each distance of `r`:
+/// vectorised ([`ExpSum::ln_eval_many`]) or per distance (the reference's bits).
+pub(super) fn ln_rd_of(f: &ExpSum, ln_c: &[f64], r: &[f64], vectorised: bool) -> Vec<f64> {
+    if vectorised {
+        let mut v = vec![0.0; r.len()];
+        f.ln_eval_many(ln_c, r, &mut v);
+        v
+    } else {
+        r.iter().map(|&x| f.ln_eval_with(ln_c, x)).collect()
+    }
 }
 
 /// ln R_d of a model at each of a group's samples, per channel (their order).
@@ -258,6 +275,7 @@ impl RoundRunner<'_, '_> {
         let opts = &ctx.opts;
         let nv = ctx.ds.mesh.positions.len();
         let base_model = self.base_model.as_ref();
+        let vectorised = fitter.rounding_cuts();
         self.progress.start(
             &format!("fit (round {})", round + 1),
             groups.keys.len() as u64,
@@ -315,7 +333,6 @@ impl RoundRunner<'_, '_> {
                 });
                 // The old and new fits are scored on the same samples, and the one kept feeds
                 // Eq. 6 below: each model's ln R_d and each sample's ln s are taken once.
-                let vectorised = fitter.rounding_cuts();
                 let ln_s = ln_s_of(&data, vectorised);
                 let scored = |m: &ColourModel| {
                     let ln_rd = ln_rd_at(m, &data, vectorised);
@@ -359,13 +376,8 @@ impl RoundRunner<'_, '_> {
                         let s_max = d.iter().map(captured).fold(0.0, f64::max);
                         let window = opts.alpha_window.for_light(s_max);
                         // The captured samples' logs at once where the fitter's are vectorised.
-                        let ln_captured =
-                            (alpha_div.is_some() && fitter.rounding_cuts()).then(|| {
-                                let c: Vec<f64> = d.iter().map(captured).collect();
-                                let mut out = vec![0.0; c.len()];
-                                crate::fit::ln_many(&c, &mut out);
-                                out
-                            });
+                        let ln_captured = (alpha_div.is_some() && vectorised)
+                            .then(|| ln_of(d.iter().map(captured), true));
                         for (j, ((x, &ln_rd), &ln_s)) in
                             d.iter().zip(&ln_rd[ch]).zip(&ln_s[ch]).enumerate()
                         {
