@@ -97,7 +97,8 @@ pub struct FitOptions {
     /// order and interpolates vertices with too few samples; `subsurf fit-curve` turns it on.
     pub reduce_order: bool,
     /// libm's exp and ln in the joint fit's one-segment normal equations instead of the
-    /// vectorised ones of the exact isotropic fit (`isotropic::log_sum_exp_points`): the
+    /// vectorised ones of the exact isotropic fit (`isotropic::log_sum_exp_points`), and the
+    /// joint solve to the last digits of its cost instead of [`aniso::JOINT_FTOL`]: the
     /// reference preset's exact path before issue 40.
     #[serde(default)]
     pub libm: bool,
