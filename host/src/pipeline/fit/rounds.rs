@@ -48,14 +48,18 @@ impl ObjectiveStats {
 /// reach (`slots`, `vertices`); the merged state is dense, one entry per mesh vertex. Why:
 /// dense per-chunk arrays cost the chunks × the vertices (32 × 144 bytes × 655,362 vertices,
 /// 3 GB, on sample-pebble's mesh subdivided to scanner density, issue 40) for samples that
-/// reach a few thousand vertices each. The sums are added in the same order as before.
+/// reach a few thousand vertices each. The sums are added in the same order as before. The
+/// slots are found with foldhash, not std's SipHash: every sample of every round of every fold
+/// looks its vertex up (a twentieth of `scan1024`'s CPU with SipHash), the keys are our own
+/// vertex numbers (no adversary), and the slots' order is the order of first use whatever the
+/// hasher, so the sums keep their bits.
 #[derive(Default)]
 pub(super) struct RoundState {
     fits: Vec<(usize, Result<GroupFit, FailReason>)>,
     /// Whether a group of this state has a fit (the dense arrays exist once one has).
     any: bool,
     /// Sparse (a chunk): vertex → slot of `alpha` and `objective_stats`.
-    slots: HashMap<u32, u32>,
+    slots: HashMap<u32, u32, foldhash::fast::FixedState>,
     /// Sparse (a chunk): the vertex of each slot, in the order first reached.
     vertices: Vec<u32>,
     alpha: Vec<[AlphaAccumulator; 3]>,
@@ -388,13 +392,12 @@ impl RoundRunner<'_, '_> {
                                 (None, Some(_)) => s.ln(),
                                 (None, None) => ln_s,
                             };
+                            let i = st.slot(x.vertex);
                             if let Some(v) =
                                 AlphaAccumulator::ln_ratio_with(s, ln_s, ln_rd, &window)
                             {
-                                let i = st.slot(x.vertex);
                                 st.alpha[i][ch].add_ratio(v);
                             }
-                            let i = st.slot(x.vertex);
                             st.objective_stats[i][ch].add(ln_rd - ln_s);
                         }
                     }
