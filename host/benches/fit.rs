@@ -14,7 +14,7 @@ use std::time::Duration;
 
 use criterion::measurement::{Measurement, ValueFormatter, WallTime};
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
-use subsurf::fit::aniso::{AnisoOptions, fit_anisotropic};
+use subsurf::fit::aniso::{AnisoOptions, fit_anisotropic, fit_colour_from};
 use subsurf::fit::dipole::{DipoleOptions, fit_dipole};
 use subsurf::fit::{FitOptions, Preset, Solver, fit_expsum};
 use subsurf::model::{Anisotropic, ExpSum, Material, Term};
@@ -206,6 +206,65 @@ fn anisotropic(c: &mut Crit) {
     g.finish();
 }
 
+/// A light position as the default fit solves it in every round (Eq. 5, issue 40): 1,600
+/// observations with all three channels (channel scales 0.8 and 0.6), shared colour, m = 1,
+/// n = 3, started from the red samples' isotropic fit. "default" is the pipeline's solve (the
+/// scales in closed form, the fall-off fitted to one curve: `aniso::separable_scales`),
+/// "reference" the reference preset's (every channel's row, libm's exp and ln).
+fn shared_colour(c: &mut Crit) {
+    let truth = ExpSum::new(vec![
+        Term { c: 0.05, d: -0.3 },
+        Term { c: 0.5, d: -1.0 },
+        Term { c: 5.0, d: -3.0 },
+    ])
+    .unwrap();
+    let mut rng = Rng(11);
+    let (mut r, mut phi) = (Vec::new(), Vec::new());
+    let mut s: [Vec<f64>; 3] = Default::default();
+    for _ in 0..1_600 {
+        let u = rng.uniform();
+        let x = 15.0 * u * u;
+        r.push(x);
+        phi.push(rng.uniform() * std::f64::consts::TAU);
+        for (ch, k) in [1.0, 0.8, 0.6].into_iter().enumerate() {
+            s[ch].push(k * truth.eval(x) * (0.01 * rng.gauss()).exp());
+        }
+    }
+    let start = fit_expsum(&r, &s[0], &FitOptions::default()).unwrap().model;
+    let mut g = c.benchmark_group("shared_colour_m1_n3");
+    g.sample_size(20);
+    let default = AnisoOptions {
+        terms: 3,
+        segments: 1,
+        shared: true,
+        ..AnisoOptions::default()
+    };
+    let variants = [
+        ("default", default),
+        (
+            "reference",
+            AnisoOptions {
+                libm: true,
+                ..default
+            },
+        ),
+    ];
+    let channels = [&s[0][..], &s[1][..], &s[2][..]];
+    for (name, o) in variants {
+        let f = fit_colour_from(&r, &phi, channels, &o, Some(&start)).unwrap();
+        eprintln!(
+            "accuracy shared_colour_m1_n3/{name}/1600: log E {:.6e} / {:.6e} / {:.6e}, {} iterations, converged {}",
+            f.log_e[0], f.log_e[1], f.log_e[2], f.iterations, f.converged
+        );
+        g.bench_function(BenchmarkId::new(name, 1_600), |b| {
+            b.iter(|| {
+                fit_colour_from(black_box(&r), black_box(&phi), channels, &o, Some(&start)).unwrap()
+            })
+        });
+    }
+    g.finish();
+}
+
 fn dipole(c: &mut Crit) {
     let truth = Material::by_name("skin1").unwrap().dipole(0).unwrap();
     let mut rng = Rng(3);
@@ -318,6 +377,6 @@ criterion_group! {
     name = benches;
     // No HTML plots: they need system fonts, and the figures go into BENCHMARKS.md as text.
     config = Criterion::default().with_measurement(ThreadCpuTime).without_plots();
-    targets = isotropic, anisotropic, dipole, presets, trade_curve
+    targets = isotropic, anisotropic, shared_colour, dipole, presets, trade_curve
 }
 criterion_main!(benches);

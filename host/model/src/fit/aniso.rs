@@ -843,6 +843,57 @@ fn clean_channel(r: &[f64], s: &[f64]) -> (Vec<f64>, SampleReport) {
     (y, rep)
 }
 
+/// The shared colour's channel scales in closed form, and the one curve the fall-off is then
+/// fitted to (Eq. 5, issue 40), where every observation holds all three channels (or none).
+///
+/// Why: with y_cj the log samples (normalised, [`fit_joint`]), f_j = ln R_d at row j and σ_c
+/// the channel scales (σ_r = 0), write σ_c = σ̄ + e_c with Σ e_c = 0 and ȳ_j = mean_c y_cj.
+/// The cross terms cancel, and the joint objective splits exactly:
+/// Σ_j Σ_c (f_j + σ_c − y_cj)² = 3 Σ_j (f_j + σ̄ − ȳ_j)² + Σ_j Σ_c (e_c − (y_cj − ȳ_j))².
+/// The second part does not depend on the fall-off; its minimum is e_c = mean_j (y_cj − ȳ_j),
+/// so σ_c = mean_j (y_cj − y_rj) whatever the fall-off, and the fall-off minimises
+/// Σ_j (f_j − z_j)² with z_j = mean_c (y_cj − σ_c). The joint minimum is the same point, found
+/// on a third of the rows with two parameters fewer (the three channels' rows were most of the
+/// joint solve's normal equations). Not where a segment is anchored (its anchor's weight
+/// against the data would change by the factor 3), not on the reference preset (its solve keeps
+/// its bits), and not where some observation lacks a channel (the scales then couple to the
+/// fall-off through which rows hold which channels).
+fn separable_scales(
+    yn: &[Vec<f64>],
+    shared: bool,
+    options: &AnisoOptions,
+    anchor: &[(usize, f64)],
+) -> Option<([f64; 2], Vec<f64>)> {
+    if !shared || options.libm || !anchor.is_empty() || yn.len() != 3 {
+        return None;
+    }
+    let (y0, y1, y2) = (&yn[0], &yn[1], &yn[2]);
+    let mut diff = [0.0f64; 2];
+    let mut rows = 0usize;
+    for ((a, b), c) in y0.iter().zip(y1).zip(y2) {
+        match (a.is_finite(), b.is_finite(), c.is_finite()) {
+            (true, true, true) => {
+                diff[0] += b - a;
+                diff[1] += c - a;
+                rows += 1;
+            }
+            (false, false, false) => {}
+            _ => return None,
+        }
+    }
+    if rows == 0 || y1.len() != y0.len() || y2.len() != y0.len() {
+        return None;
+    }
+    let scales = diff.map(|d| d / rows as f64);
+    let z = y0
+        .iter()
+        .zip(y1)
+        .zip(y2)
+        .map(|((a, b), c)| (a + (b - scales[0]) + (c - scales[1])) / 3.0)
+        .collect();
+    Some((scales, z))
+}
+
 fn fit_joint(
     r: &[f64],
     phi: &[f64],
@@ -1070,14 +1121,37 @@ fn fit_joint(
             };
             lm::minimize(&binned, &theta, &fast)
         }
-        (_, Solver::Specialised) => lm::minimize(
-            &Anchored {
-                inner: &problem,
-                anchor: &anchor,
-            },
-            &theta,
-            &settings,
-        ),
+        (_, Solver::Specialised) => match separable_scales(&yn, shared, options, &anchor) {
+            Some((scales, z)) => {
+                let one = AnisoProblem {
+                    y: [&z, empty, empty],
+                    channels: 1,
+                    shared: false,
+                    ..problem
+                };
+                let fall_off = &theta[..2 * m * n];
+                lm::minimize(
+                    &Anchored {
+                        inner: &one,
+                        anchor: &anchor,
+                    },
+                    fall_off,
+                    &settings,
+                )
+                .map(|mut o| {
+                    o.theta.extend(scales);
+                    o
+                })
+            }
+            None => lm::minimize(
+                &Anchored {
+                    inner: &problem,
+                    anchor: &anchor,
+                },
+                &theta,
+                &settings,
+            ),
+        },
         (_, Solver::Reference) => super::reference::minimize(
             &Anchored {
                 inner: &problem,
@@ -1411,6 +1485,54 @@ pub(crate) mod tests {
             assert!(max_rel(&fit.model, &t) < 1e-6, "m = {m}: {:?}", fit.model);
             assert!(fit.converged);
         }
+    }
+
+    /// Eq. 5's channel scales in closed form (`separable_scales`) reach the full joint solve's
+    /// minimum: 1 % noise, m = 1, the scales and ln R_d within 1e-7 of the reference preset's
+    /// solve of every channel's row (which does not separate), the same cost. A row without
+    /// its green sample couples the scales to the fall-off: no separation there, and the fit
+    /// is still the joint one.
+    #[test]
+    fn separable_scales_reach_the_joint_minimum() {
+        let (r, phi, mut s) = samples(&truth(1), 1_500, 0.01, 5);
+        let phi: Vec<f64> = phi.iter().map(|_| f64::NAN).collect();
+        let opts = AnisoOptions {
+            terms: 2,
+            segments: 1,
+            ..AnisoOptions::default()
+        };
+        let full = AnisoOptions { libm: true, ..opts };
+        let ln_rd = |m: &ColourModel, x: f64| m.eval(x, None).map(f64::ln);
+        let check = |s: &[Vec<f64>; 3]| {
+            let fast = fit_colour(&r, &phi, [&s[0], &s[1], &s[2]], &opts).unwrap();
+            let joint = fit_colour(&r, &phi, [&s[0], &s[1], &s[2]], &full).unwrap();
+            let (
+                ColourModel::Shared { s_g, s_b, .. },
+                ColourModel::Shared {
+                    s_g: jg, s_b: jb, ..
+                },
+            ) = (&fast.model, &joint.model)
+            else {
+                panic!("shared colour fits are shared");
+            };
+            assert!((s_g / jg).ln().abs() < 1e-7 && (s_b / jb).ln().abs() < 1e-7);
+            for x in [0.0, 0.5, 2.0, 6.0, 15.0] {
+                for (a, b) in ln_rd(&fast.model, x).iter().zip(ln_rd(&joint.model, x)) {
+                    assert!((a - b).abs() < 1e-7, "r = {x}: {a} against {b}");
+                }
+            }
+            assert!((fast.rss - joint.rss).abs() <= 1e-9 * joint.rss);
+        };
+        let ys = |s: &[Vec<f64>; 3]| -> Vec<Vec<f64>> {
+            s.iter().map(|c| clean_channel(&r, c).0).collect()
+        };
+        assert!(separable_scales(&ys(&s), true, &opts, &[]).is_some());
+        assert!(separable_scales(&ys(&s), true, &full, &[]).is_none());
+        assert!(separable_scales(&ys(&s), true, &opts, &[(0, 0.0)]).is_none());
+        check(&s);
+        s[1][7] = f64::NAN;
+        assert!(separable_scales(&ys(&s), true, &opts, &[]).is_none());
+        check(&s);
     }
 
     #[test]
