@@ -843,55 +843,51 @@ fn clean_channel(r: &[f64], s: &[f64]) -> (Vec<f64>, SampleReport) {
     (y, rep)
 }
 
-/// The shared colour's channel scales in closed form, and the one curve the fall-off is then
-/// fitted to (Eq. 5, issue 40), where every observation holds all three channels (or none).
+/// The one curve the shared colour's fall-off is fitted to where every observation holds all
+/// three channels (or none), the channel scales being `scales` in closed form (Eq. 5, issue 40).
 ///
 /// Why: with y_cj the log samples (normalised, [`fit_joint`]), f_j = ln R_d at row j and σ_c
 /// the channel scales (σ_r = 0), write σ_c = σ̄ + e_c with Σ e_c = 0 and ȳ_j = mean_c y_cj.
 /// The cross terms cancel, and the joint objective splits exactly:
 /// Σ_j Σ_c (f_j + σ_c − y_cj)² = 3 Σ_j (f_j + σ̄ − ȳ_j)² + Σ_j Σ_c (e_c − (y_cj − ȳ_j))².
 /// The second part does not depend on the fall-off; its minimum is e_c = mean_j (y_cj − ȳ_j),
-/// so σ_c = mean_j (y_cj − y_rj) whatever the fall-off, and the fall-off minimises
-/// Σ_j (f_j − z_j)² with z_j = mean_c (y_cj − σ_c). The joint minimum is the same point, found
-/// on a third of the rows with two parameters fewer (the three channels' rows were most of the
-/// joint solve's normal equations). Not where a segment is anchored (its anchor's weight
-/// against the data would change by the factor 3), not on the reference preset (its solve keeps
-/// its bits), and not where some observation lacks a channel (the scales then couple to the
+/// so σ_c = mean_j (y_cj − y_rj) whatever the fall-off (the joint solve's start values, which
+/// `fit_joint` passes as `scales`), and the fall-off minimises Σ_j (f_j − z_j)² with
+/// z_j = mean_c (y_cj − σ_c), returned here. The joint minimum is the same point, found on a
+/// third of the rows with two parameters fewer (the three channels' rows were most of the
+/// joint solve's normal equations). `None` where a segment is anchored (its anchor's weight
+/// against the data would change by the factor 3), on the reference preset (its solve keeps
+/// its bits), and where some observation lacks a channel (the scales then couple to the
 /// fall-off through which rows hold which channels).
 fn separable_scales(
     yn: &[Vec<f64>],
-    shared: bool,
     options: &AnisoOptions,
     anchor: &[(usize, f64)],
-) -> Option<([f64; 2], Vec<f64>)> {
-    if !shared || options.libm || !anchor.is_empty() || yn.len() != 3 {
+    scales: [f64; 2],
+) -> Option<Vec<f64>> {
+    let [y0, y1, y2] = yn else {
+        return None;
+    };
+    if options.libm || !anchor.is_empty() || y1.len() != y0.len() || y2.len() != y0.len() {
         return None;
     }
-    let (y0, y1, y2) = (&yn[0], &yn[1], &yn[2]);
-    let mut diff = [0.0f64; 2];
     let mut rows = 0usize;
-    for ((a, b), c) in y0.iter().zip(y1).zip(y2) {
-        match (a.is_finite(), b.is_finite(), c.is_finite()) {
-            (true, true, true) => {
-                diff[0] += b - a;
-                diff[1] += c - a;
-                rows += 1;
-            }
-            (false, false, false) => {}
-            _ => return None,
-        }
-    }
-    if rows == 0 || y1.len() != y0.len() || y2.len() != y0.len() {
-        return None;
-    }
-    let scales = diff.map(|d| d / rows as f64);
     let z = y0
         .iter()
         .zip(y1)
         .zip(y2)
-        .map(|((a, b), c)| (a + (b - scales[0]) + (c - scales[1])) / 3.0)
-        .collect();
-    Some((scales, z))
+        .map(
+            |((a, b), c)| match (a.is_finite(), b.is_finite(), c.is_finite()) {
+                (true, true, true) => {
+                    rows += 1;
+                    Some((a + (b - scales[0]) + (c - scales[1])) / 3.0)
+                }
+                (false, false, false) => Some(f64::NAN),
+                _ => None,
+            },
+        )
+        .collect::<Option<Vec<f64>>>()?;
+    (rows > 0).then_some(z)
 }
 
 fn fit_joint(
@@ -1100,6 +1096,14 @@ fn fit_joint(
         },
         ..Settings::default()
     };
+    // Where the channels separate, the start's scales (the mean channel differences) are the
+    // joint minimum's already.
+    let separable = if shared {
+        let scales = [theta[2 * m * n], theta[2 * m * n + 1]];
+        separable_scales(&yn, options, &anchor, scales).map(|z| (z, scales))
+    } else {
+        None
+    };
     let out = match (options.direction_bins, options.solver) {
         (Some(db), Solver::Specialised) => {
             let bins = direction_bins(r, phi, &ys, m, db.max(2 * n + 2), scale_r, level);
@@ -1121,8 +1125,8 @@ fn fit_joint(
             };
             lm::minimize(&binned, &theta, &fast)
         }
-        (_, Solver::Specialised) => match separable_scales(&yn, shared, options, &anchor) {
-            Some((scales, z)) => {
+        (_, Solver::Specialised) => match separable {
+            Some((z, scales)) => {
                 let one = AnisoProblem {
                     y: [&z, empty, empty],
                     channels: 1,
@@ -1526,12 +1530,13 @@ pub(crate) mod tests {
         let ys = |s: &[Vec<f64>; 3]| -> Vec<Vec<f64>> {
             s.iter().map(|c| clean_channel(&r, c).0).collect()
         };
-        assert!(separable_scales(&ys(&s), true, &opts, &[]).is_some());
-        assert!(separable_scales(&ys(&s), true, &full, &[]).is_none());
-        assert!(separable_scales(&ys(&s), true, &opts, &[(0, 0.0)]).is_none());
+        let scales = [1.0, 0.5];
+        assert!(separable_scales(&ys(&s), &opts, &[], scales).is_some());
+        assert!(separable_scales(&ys(&s), &full, &[], scales).is_none());
+        assert!(separable_scales(&ys(&s), &opts, &[(0, 0.0)], scales).is_none());
         check(&s);
         s[1][7] = f64::NAN;
-        assert!(separable_scales(&ys(&s), true, &opts, &[]).is_none());
+        assert!(separable_scales(&ys(&s), &opts, &[], scales).is_none());
         check(&s);
     }
 
