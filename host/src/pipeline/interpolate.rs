@@ -182,6 +182,8 @@ pub fn fill(
         weights = Some(w);
         filled
     } else {
+        // Solved once: the factor is not kept.
+        let factor = crate::interpolate::FactorCache::default();
         let solve = match how.speed {
             Speed::Reference => crate::interpolate::Solve::default(),
             // From the breadth-first guess, never from an earlier round's fill: the model after
@@ -189,6 +191,7 @@ pub fn fill(
             // cross-validation's rounds and the final fit are the same procedure).
             Speed::Default => crate::interpolate::Solve {
                 rtol: super::FILL_TOLERANCE,
+                direct: Some(&factor),
                 ..crate::interpolate::Solve::default()
             },
         };

@@ -90,9 +90,11 @@ pub struct PipelineOptions {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Speed {
-    /// The default: the fill of failed vertices solved to [`FILL_TOLERANCE`], and in the
-    /// cross-validation's folds only at the vertices their held-out frames read, as weights of
-    /// the known vertices kept from round to round (`pipeline::interpolate::FillHow`).
+    /// The default: the fills (failed vertices, alpha) solved by a sparse Cholesky factor of
+    /// their Laplace rows (`interpolate::Laplace`; conjugate gradients to [`FILL_TOLERANCE`]
+    /// where it cannot be had), and in the cross-validation's folds only at the vertices their
+    /// held-out frames read, as weights of the known vertices kept from round to round
+    /// (`pipeline::interpolate::FillHow`).
     #[default]
     Default,
     /// The exact path before issue 40 (`subsurf fit --preset reference`): every solve from

@@ -451,6 +451,8 @@ pub struct AlphaRounds<'r, 'a> {
     state: RoundState,
     /// The alpha the kept round's fits were fitted against (`None`: as captured, round 0).
     alpha_used: Option<Vec<[f64; 3]>>,
+    /// The alpha fill's factor, kept from round to round ([`alpha_texture`]).
+    alpha_factor: crate::interpolate::FactorCache,
     /// Eq. 6 of the kept round's fits: the model's alpha.
     alpha: Vec<[f64; 3]>,
     alpha_report: AlphaReport,
@@ -494,6 +496,7 @@ impl<'r, 'a> AlphaRounds<'r, 'a> {
             cache,
         };
         let state = runner.run(None, 0, None);
+        let alpha_factor = crate::interpolate::FactorCache::default();
         let (alpha, alpha_report) = alpha_texture(
             &state.alpha,
             ctx.ds.mesh.positions.len(),
@@ -501,6 +504,7 @@ impl<'r, 'a> AlphaRounds<'r, 'a> {
             ctx.opts.alpha_shrinkage,
             ctx.opts.speed,
             None,
+            &alpha_factor,
         );
         let objective = state.objective_with(&alpha);
         AlphaRounds {
@@ -516,6 +520,7 @@ impl<'r, 'a> AlphaRounds<'r, 'a> {
             }],
             state,
             alpha_used: None,
+            alpha_factor,
             alpha,
             alpha_report,
             objective,
@@ -561,6 +566,7 @@ impl<'r, 'a> AlphaRounds<'r, 'a> {
             opts.alpha_shrinkage,
             opts.speed,
             Some(&self.alpha),
+            &self.alpha_factor,
         );
         let objective = next.objective_with(&alpha);
         let kept = objective < self.objective * (1.0 - 1e-9);
@@ -665,6 +671,7 @@ pub(super) fn alpha_texture(
     shrinkage: f64,
     speed: crate::pipeline::Speed,
     previous: Option<&[[f64; 3]]>,
+    factor: &crate::interpolate::FactorCache,
 ) -> (Vec<[f64; 3]>, AlphaReport) {
     // Eq. 6's shrinkage per channel from the texels' own spread against the noise, scaled by
     // the run's setting (infinite: alpha = 1).
@@ -716,6 +723,13 @@ pub(super) fn alpha_texture(
         },
         warm: warm.as_deref(),
         only: None,
+        // The default path solves by the Laplace rows' factor, kept while the rounds of a fit
+        // keep the known set (all of them, mostly): exact up to rounding, and most of the
+        // fill's cost gone (the reference keeps its conjugate gradients to the bit).
+        direct: match speed {
+            crate::pipeline::Speed::Default => Some(factor),
+            crate::pipeline::Speed::Reference => None,
+        },
     };
     let filled = crate::interpolate::harmonic_with(&own, |v| scene.neighbours(v), &solve);
     let mut rep = AlphaReport {
