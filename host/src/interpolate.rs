@@ -1176,7 +1176,11 @@ mod tests {
         // Every other vertex known (a checkerboard): no unknown vertex has an unknown
         // neighbour, so the rows are the diagonal alone.
         let board: Vec<Option<Vec<f64>>> = (0..k * k)
-            .map(|v| ((v / k + v % k) % 2 == 0).then(|| vec![v as f64, 1.0]))
+            .map(|v| {
+                (v / k + v % k)
+                    .is_multiple_of(2)
+                    .then(|| vec![v as f64, 1.0])
+            })
             .collect();
         close(
             &harmonic_with(&board, |v| &adj[v], &direct),
