@@ -45,10 +45,10 @@ pub struct Solve<'w> {
     pub iterations: usize,
     /// Conjugate gradients stop at this relative residual ([`RTOL`] by default).
     pub rtol: f64,
-    /// A previous solution (of the same graph and vector length) to start from where it has
-    /// a value, instead of the breadth-first guess: the alpha rounds' fills change little from
-    /// round to round, and a start near the solution needs fewer iterations to the same
-    /// residual.
+    /// A previous solution (of the same graph and vector length) for conjugate gradients to
+    /// start from where it has a value, instead of the breadth-first guess: a start near the
+    /// solution needs fewer iterations to the same residual. (The alpha rounds started from
+    /// the previous round's texture until their fill was factored, [`Solve::direct`].)
     pub warm: Option<&'w [Option<Vec<f64>>]>,
     /// Only the unknown vertices connected through unknown vertices to one of these are
     /// solved; the others keep the breadth-first guess. A fold of the cross-validation reads
@@ -239,14 +239,15 @@ pub fn harmonic_weights<'a>(
     }
     // One factor for every target (a fold's few dozen), where conjugate gradients ran the
     // whole hole once per four targets; they stay the fallback.
-    let solved: Box<dyn Fn(usize, usize) -> f64> =
-        match Laplace::of_system(&system, order.clone()).map(|f| f.solve(&b, len)) {
-            Some(x) => Box::new(move |i, c| x[i * len + c]),
-            None => {
-                let blocks = cg_blocks(&system, &b, len, |_, _| 0.0, solve.iterations, solve.rtol);
-                Box::new(move |i, c| blocks[c / LANES].x[i][c % LANES])
-            }
-        };
+    let x: Vec<f64> = match Laplace::of_system(&system) {
+        Some(f) => f.solve(&b, len),
+        None => {
+            let blocks = cg_blocks(&system, &b, len, |_, _| 0.0, solve.iterations, solve.rtol);
+            (0..nu * len)
+                .map(|k| blocks[k % len / LANES].x[k / len][k % len % LANES])
+                .collect()
+        }
+    };
     let mut out = vec![None; targets.len()];
     let mut c = 0;
     for (slot, row) in out.iter_mut().zip(&rows) {
@@ -255,7 +256,7 @@ pub fn harmonic_weights<'a>(
         }
         let col = c;
         c += 1;
-        let y = |i: usize| solved(i, col);
+        let y = |i: usize| x[i * len + col];
         let mut w: std::collections::BTreeMap<u32, f64> = std::collections::BTreeMap::new();
         for (i, &v) in order.iter().enumerate() {
             let yi = y(i);
@@ -286,8 +287,6 @@ pub fn harmonic_weights<'a>(
 /// about what a few of those iterations do, and each further solve two sparse triangular
 /// sweeps. It is exact up to rounding where conjugate gradients stopped at a residual.
 pub struct Laplace {
-    /// The input's known set and the solved vertices: the factor holds while both do.
-    key: (Vec<bool>, Vec<usize>),
     /// Each factor position's row (an index into the solved vertices).
     perm: Vec<usize>,
     chol: nalgebra_sparse::factorization::CscCholesky<f64>,
@@ -302,15 +301,19 @@ impl std::fmt::Debug for Laplace {
     }
 }
 
-/// A [`Laplace`] factor kept from one solve to the next ([`Solve::direct`]).
+/// A [`Laplace`] factor kept from one solve to the next ([`Solve::direct`]), with what it
+/// holds for: the input's known set and the solved vertices.
 #[derive(Debug, Default)]
-pub struct FactorCache(std::sync::Mutex<Option<std::sync::Arc<Laplace>>>);
+pub struct FactorCache(std::sync::Mutex<Option<(FactorKey, std::sync::Arc<Laplace>)>>);
+
+/// The known set and the solved vertices of a [`FactorCache`]'s factor.
+type FactorKey = (Vec<bool>, Vec<usize>);
 
 impl Laplace {
-    /// The factor of `system`'s rows (solved vertices `order`); `None` where they are not
-    /// positive definite or the order cannot be had (neither happens for rows built by
-    /// [`System::structure`] over vertices connected to a known one).
-    fn of_system(system: &System, order: Vec<usize>) -> Option<Laplace> {
+    /// The factor of `system`'s rows; `None` where they are not positive definite or the order
+    /// cannot be had (neither happens for rows built by [`System::structure`] over vertices
+    /// connected to a known one).
+    fn of_system(system: &System) -> Option<Laplace> {
         let nu = system.deg.len();
         if nu == 0 || nu >= i32::MAX as usize || system.deg.iter().any(|&d| d <= 0.0) {
             return None;
@@ -356,11 +359,7 @@ impl Laplace {
         }
         let csc = nalgebra_sparse::CscMatrix::from(&coo);
         let chol = nalgebra_sparse::factorization::CscCholesky::factor(&csc).ok()?;
-        Some(Laplace {
-            key: (Vec::new(), order),
-            perm,
-            chol,
-        })
+        Some(Laplace { perm, chol })
     }
 
     /// x with L_UU·x = b for `len` right-hand sides (row-major, one row per solved vertex).
@@ -388,17 +387,17 @@ fn direct<'a>(
     neighbours: &impl Fn(usize) -> &'a [u32],
     cache: &FactorCache,
 ) -> bool {
-    let known: Vec<bool> = values.iter().map(Option::is_some).collect();
-    let held = {
-        let guard = cache
+    let key: FactorKey = (values.iter().map(Option::is_some).collect(), order.to_vec());
+    let lock = || {
+        cache
             .0
             .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
-        guard
-            .as_ref()
-            .filter(|f| f.key.0 == known && f.key.1 == order)
-            .cloned()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
     };
+    let held = lock()
+        .as_ref()
+        .filter(|(k, _)| *k == key)
+        .map(|(_, f)| std::sync::Arc::clone(f));
     let (system, b, len) = match System::assemble(out, order, neighbours) {
         Assembly::Nothing => return true,
         Assembly::Unsupported => return false,
@@ -407,16 +406,10 @@ fn direct<'a>(
     let factor = match held {
         Some(f) => f,
         None => {
-            let Some(mut f) = Laplace::of_system(&system, order.to_vec()) else {
+            let Some(f) = Laplace::of_system(&system).map(std::sync::Arc::new) else {
                 return false;
             };
-            f.key.0 = known;
-            let f = std::sync::Arc::new(f);
-            *cache
-                .0
-                .lock()
-                .unwrap_or_else(std::sync::PoisonError::into_inner) =
-                Some(std::sync::Arc::clone(&f));
+            *lock() = Some((key, std::sync::Arc::clone(&f)));
             f
         }
     };
@@ -1149,14 +1142,20 @@ mod tests {
             &harmonic_with(&first, |v| &adj[v], &direct),
             &harmonic(&first, |v| &adj[v], 2000),
         );
-        let held = cache.0.lock().unwrap().clone().expect("the factor is kept");
+        let held = cache
+            .0
+            .lock()
+            .unwrap()
+            .clone()
+            .expect("the factor is kept")
+            .1;
         // New values, the same known set: the same factor, the new solution.
         let second = vals(0.7);
         close(
             &harmonic_with(&second, |v| &adj[v], &direct),
             &harmonic(&second, |v| &adj[v], 2000),
         );
-        let again = cache.0.lock().unwrap().clone().unwrap();
+        let again = cache.0.lock().unwrap().clone().unwrap().1;
         assert!(
             std::sync::Arc::ptr_eq(&held, &again),
             "the factor was remade"
@@ -1168,7 +1167,7 @@ mod tests {
             &harmonic_with(&third, |v| &adj[v], &direct),
             &harmonic(&third, |v| &adj[v], 2000),
         );
-        let remade = cache.0.lock().unwrap().clone().unwrap();
+        let remade = cache.0.lock().unwrap().clone().unwrap().1;
         assert!(
             !std::sync::Arc::ptr_eq(&held, &remade),
             "a stale factor was used"

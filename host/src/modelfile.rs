@@ -514,13 +514,10 @@ impl ModelFile {
             let _ = std::fs::remove_file(&tmp);
             return Err(e);
         }
-        let back = back.and_then(|b| {
-            let on_disk = std::fs::read(&tmp).map_err(io)?;
-            Ok(if on_disk == out { b } else { on_disk })
-        });
-        match back {
-            Ok(b) if b == out => std::fs::rename(&tmp, path).map_err(io),
-            Ok(_) => {
+        let same = back.and_then(|b| Ok(b == out && std::fs::read(&tmp).map_err(io)? == out));
+        match same {
+            Ok(true) => std::fs::rename(&tmp, path).map_err(io),
+            Ok(false) => {
                 let _ = std::fs::remove_file(&tmp);
                 Err(ModelFileError::Format {
                     path: path.to_path_buf(),

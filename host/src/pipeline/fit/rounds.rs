@@ -503,7 +503,6 @@ impl<'r, 'a> AlphaRounds<'r, 'a> {
             &ctx.scene,
             ctx.opts.alpha_shrinkage,
             ctx.opts.speed,
-            None,
             &alpha_factor,
         );
         let objective = state.objective_with(&alpha);
@@ -565,7 +564,6 @@ impl<'r, 'a> AlphaRounds<'r, 'a> {
             &self.runner.ctx.scene,
             opts.alpha_shrinkage,
             opts.speed,
-            Some(&self.alpha),
             &self.alpha_factor,
         );
         let objective = next.objective_with(&alpha);
@@ -670,7 +668,6 @@ pub(super) fn alpha_texture(
     scene: &Scene,
     shrinkage: f64,
     speed: crate::pipeline::Speed,
-    previous: Option<&[[f64; 3]]>,
     factor: &crate::interpolate::FactorCache,
 ) -> (Vec<[f64; 3]>, AlphaReport) {
     // Eq. 6's shrinkage per channel from the texels' own spread against the noise, scaled by
@@ -702,34 +699,21 @@ pub(super) fn alpha_texture(
             Some(vals.iter().map(|x| x.map_or(mean, f64::ln)).collect())
         })
         .collect();
-    // The default path solves the fill to the fill tolerance from the previous round's texture
-    // (a round moves ln alpha by a few hundredths: the start is near the solution); the
-    // reference, as before issue 40, from the breadth-first guess to the exact tolerance.
-    // Rounds chain the same way in every fit, so a fit with r rounds is still round r of a
-    // longer one, byte for byte.
-    let warm: Option<Vec<Option<Vec<f64>>>> = match (speed, previous) {
-        (crate::pipeline::Speed::Default, Some(prev)) => Some(
-            prev.iter()
-                .map(|a| Some(a.iter().map(|x| x.ln()).collect()))
-                .collect(),
-        ),
-        _ => None,
-    };
+    // The default path solves by the Laplace rows' factor, kept while the rounds of a fit keep
+    // the known set (all of them, mostly): exact up to rounding, whatever round it starts from,
+    // so a fit with r rounds is still round r of a longer one. The reference, as before issue
+    // 40, solves by conjugate gradients from the breadth-first guess to the exact tolerance.
     let solve = crate::interpolate::Solve {
         iterations: 500,
         rtol: match speed {
             crate::pipeline::Speed::Default => crate::pipeline::FILL_TOLERANCE,
             crate::pipeline::Speed::Reference => crate::interpolate::RTOL,
         },
-        warm: warm.as_deref(),
-        only: None,
-        // The default path solves by the Laplace rows' factor, kept while the rounds of a fit
-        // keep the known set (all of them, mostly): exact up to rounding, and most of the
-        // fill's cost gone (the reference keeps its conjugate gradients to the bit).
         direct: match speed {
             crate::pipeline::Speed::Default => Some(factor),
             crate::pipeline::Speed::Reference => None,
         },
+        ..crate::interpolate::Solve::default()
     };
     let filled = crate::interpolate::harmonic_with(&own, |v| scene.neighbours(v), &solve);
     let mut rep = AlphaReport {
