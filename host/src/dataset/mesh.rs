@@ -1,5 +1,7 @@
-//! The object's triangle mesh: OBJ in through `tobj`, degenerate and duplicate faces reported and
+//! The object's triangle mesh: OBJ in (the common subset read on every core, `dataset::obj`;
+//! the rest through `tobj`), degenerate and duplicate faces reported and
 //! dropped, area-weighted vertex normals, OBJ out.
+use super::obj::{CommonObj, common_obj};
 use foldhash::fast::FixedState;
 use rayon::slice::ParallelSliceMut;
 use std::collections::HashMap;
@@ -197,8 +199,61 @@ pub fn triangle_area(p: &[[f64; 3]], f: [u32; 3]) -> f64 {
     0.5 * norm(cross(sub(*b, *a), sub(*c, *a)))
 }
 
-/// Loads an OBJ (all objects merged, polygons triangulated).
+/// Loads an OBJ (all objects merged, polygons triangulated as fans from their first corner).
+/// Vertex i is the file's i-th `v` line; faces refer to the first `v` line of their corner's
+/// position (in f32, as tobj reads it), so split seams are welded.
 pub fn load_obj(path: &Path) -> Result<(Mesh, MeshReport), MeshError> {
+    let fast = std::fs::read_to_string(path)
+        .ok()
+        .and_then(|text| common_obj(&text));
+    let (positions, triangles) = match fast {
+        Some(CommonObj {
+            positions,
+            keys,
+            triangles,
+        }) => (positions, weld(&keys, triangles)),
+        None => load_obj_tobj(path)?,
+    };
+    let invalid = |message: String| MeshError::Invalid {
+        path: path.to_path_buf(),
+        message,
+    };
+    if positions.iter().flatten().any(|x| !x.is_finite()) {
+        return Err(invalid("a vertex coordinate is not finite".into()));
+    }
+    let (mesh, report) = Mesh::new(positions, triangles);
+    if mesh.triangles.is_empty() {
+        return Err(invalid(format!(
+            "no usable triangle ({} degenerate, {} duplicate)",
+            report.degenerate_faces, report.duplicate_faces
+        )));
+    }
+    Ok((mesh, report))
+}
+
+/// Faces of `v`-line indices mapped to the first `v` line with the same f32 position.
+fn weld(keys: &[[u32; 3]], mut triangles: Vec<[u32; 3]>) -> Vec<[u32; 3]> {
+    let mut first = CornerIndex::with_capacity_and_hasher(keys.len(), FixedState::default());
+    let mut canonical = Vec::with_capacity(keys.len());
+    let mut welded = false;
+    for (i, k) in keys.iter().enumerate() {
+        let c = *first.entry(*k).or_insert(i as u32);
+        welded |= c as usize != i;
+        canonical.push(c);
+    }
+    if welded {
+        for t in &mut triangles {
+            for c in t.iter_mut() {
+                *c = canonical[*c as usize];
+            }
+        }
+    }
+    triangles
+}
+
+/// The positions in file order and the triangles as tobj reads them (its reading is the
+/// reference [`common_obj`] is tested against, and what reads any file outside its subset).
+fn load_obj_tobj(path: &Path) -> Result<Read, MeshError> {
     let opts = tobj::LoadOptions {
         triangulate: true,
         single_index: false,
@@ -206,7 +261,7 @@ pub fn load_obj(path: &Path) -> Result<(Mesh, MeshReport), MeshError> {
         ignore_lines: true,
     };
     // tobj reads the faces while the v lines are read here: two passes over the file, one on
-    // each core (a scanner's mesh takes seconds to parse).
+    // each core.
     let (faces, vertices) = rayon::join(|| tobj::load_obj(path, &opts), || v_lines(path));
     let (models, _materials) = faces.map_err(|source| MeshError::Obj {
         path: path.to_path_buf(),
@@ -235,18 +290,11 @@ pub fn load_obj(path: &Path) -> Result<(Mesh, MeshReport), MeshError> {
             triangles.push([lookup(t[0])?, lookup(t[1])?, lookup(t[2])?]);
         }
     }
-    if positions.iter().flatten().any(|x| !x.is_finite()) {
-        return Err(invalid("a vertex coordinate is not finite".into()));
-    }
-    let (mesh, report) = Mesh::new(positions, triangles);
-    if mesh.triangles.is_empty() {
-        return Err(invalid(format!(
-            "no usable triangle ({} degenerate, {} duplicate)",
-            report.degenerate_faces, report.duplicate_faces
-        )));
-    }
-    Ok((mesh, report))
+    Ok((positions, triangles))
 }
+
+/// Positions in file order and triangles by their index.
+type Read = (Vec<[f64; 3]>, Vec<[u32; 3]>);
 
 /// A position's index by its f32 coordinates' bits. foldhash, not std's SipHash: a scanner's
 /// mesh has millions of corners to look up, and the keys are our own file's numbers, so there is
@@ -375,6 +423,153 @@ mod tests {
         assert_eq!(m.positions[3], [1.0, 1.0, 0.0]);
         assert_eq!(m.triangles, vec![[3, 1, 2], [1, 0, 2]]);
         assert_eq!(r, MeshReport::default());
+    }
+
+    type Loaded = Result<(Mesh, MeshReport), String>;
+
+    /// tobj's reading (the reference) of `text`, and whether the common-subset reader took it.
+    fn both_readings(dir: &Path, text: &str) -> (Loaded, Loaded, bool) {
+        let p = dir.join("m.obj");
+        std::fs::write(&p, text).unwrap();
+        let reference =
+            load_obj_tobj(&p)
+                .map_err(|e| e.to_string())
+                .and_then(|(positions, triangles)| {
+                    let (m, r) = Mesh::new(positions, triangles);
+                    if m.triangles.is_empty() {
+                        Err("no usable triangle".into())
+                    } else {
+                        Ok((m, r))
+                    }
+                });
+        let loaded = load_obj(&p).map_err(|e| e.to_string());
+        (reference, loaded, common_obj(text).is_some())
+    }
+
+    /// The same mesh and report, or an error from both.
+    fn same<T: PartialEq + std::fmt::Debug>(
+        a: &Result<T, String>,
+        b: &Result<T, String>,
+        text: &str,
+    ) {
+        match (a, b) {
+            (Ok(a), Ok(b)) => assert_eq!(a, b, "{text:?}"),
+            (Err(_), Err(_)) => {}
+            _ => panic!("{text:?}: {a:?} against tobj's {b:?}"),
+        }
+    }
+
+    /// The common subset is read as tobj reads it (welding, fans, relative indices, groups,
+    /// texture and normal indices), and every file outside it is left to tobj: the loaded mesh
+    /// is tobj's in every case.
+    #[test]
+    fn the_parallel_reader_reads_as_tobj_does_and_leaves_the_rest_to_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let square = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\n";
+        let common = [
+            format!("{square}f 1 2 3\nf 1 3 4\n"),
+            format!("# c\n{square}f 1 2 3 4\n"),
+            format!("{square}v 0.5 1.5 0\nf 1 2 3 5 4\n"),
+            format!("{square}f -4 -3 -2\nf -4 -2 -1\n"),
+            format!(
+                "mtllib m.mtl\no a\n{square}vt 0 0\nvt 1 0\nvt 1 1\nvn 0 0 1\ng b\ns 1\nusemtl x\nf 1/1/1 2/2/1 3/3/1\nf 1//1 3//1 4//1\n"
+            ),
+            format!("{square}vt 0 0\nf 1/1 2/1 3/1\np 1\nf 1\nf 2 3\nf 9 9\nvp 1 2\n"),
+            // Split seams: v lines 5 and 6 repeat 1 and 3 (equal in f32) and are welded to them.
+            format!("{square}v 0 0 0\nv 1.00000000001 1 0\nf 1 2 6\nf 5 3 4\n"),
+            format!("{square}f 1 2 3\r\nf 1 3 4\r\n"),
+            format!("{square}f +1 2/ 3//\nf 1/// 3 4\n"),
+            // Degenerate and duplicate faces: Mesh::new's report.
+            format!("{square}f 1 2 3\nf 2 3 1\nf 1 1 2\nf 1 3 4\n"),
+            // Only a point and a line: no usable triangle either way.
+            format!("{square}f 1\nf 1 2\n"),
+        ];
+        for text in &common {
+            let (reference, loaded, fast) = both_readings(dir.path(), text);
+            assert!(fast, "outside the subset: {text:?}");
+            assert_eq!(reference.is_ok(), !text.ends_with("f 1 2\n"), "{text:?}");
+            same(&loaded, &reference, text);
+        }
+        let welded = both_readings(dir.path(), &common[6]).1.unwrap().0;
+        assert_eq!(welded.triangles, vec![[0, 1, 2], [0, 2, 3]]);
+        let outside = [
+            "v 0 0 0 2\nv 1 0 0 2\nv 0 1 0 2\nf 1 2 3\n".to_string(),
+            "v 0 0 0 1 0 0\nv 1 0 0 0 1 0\nv 0 1 0 0 0 1\nf 1 2 3\n".to_string(),
+            format!("{square}l 1 2 3\n"),
+            format!("f 1 2 3\n{square}"),
+            format!("{square}f 1 2 5\n"),
+            format!("{square}f 0 1 2\n"),
+            format!("{square}f -5 1 2\n"),
+            format!("{square}f 1/1 2/1 3/1\n"),
+            format!("{square}f 1/1/1/1 2 3\n"),
+            format!("{square}f /1 2 3\n"),
+            format!("{square}f\n"),
+            format!("{square}f 1 2 x\n"),
+            format!("{square}usemtl\nf 1 2 3\n"),
+            format!("{square}vt 0\nf 1 2 3\n"),
+            "v 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n".to_string(),
+            "v 0 0 nan\nv 1 0 0\nv 0 1 0\nf 1 2 3\n".to_string(),
+        ];
+        for text in &outside[..outside.len() - 1] {
+            let (reference, loaded, fast) = both_readings(dir.path(), text);
+            assert!(!fast, "read by the subset: {text:?}");
+            same(&loaded, &reference, text);
+        }
+        // NaN is a number to both readers; the loader refuses it after either.
+        let (_, loaded, fast) = both_readings(dir.path(), outside.last().unwrap());
+        assert!(fast && loaded.unwrap_err().contains("not finite"));
+    }
+
+    /// Files of other tools and sizes: the shared datasets' meshes (written by the outside
+    /// renderer) and a generated mesh large enough to be read in several chunks.
+    #[test]
+    fn the_parallel_reader_reads_whole_meshes_as_tobj_does() {
+        let dir = tempfile::tempdir().unwrap();
+        let here = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+        let mut texts: Vec<String> = ["sample-slab", "sample-torus", "sample-pebble"]
+            .iter()
+            .filter_map(|name| {
+                here.ancestors()
+                    .map(|a| a.join("shared/data").join(name).join("object.obj"))
+                    .find(|p| p.is_file())
+            })
+            .map(|p| std::fs::read_to_string(p).unwrap())
+            .collect();
+        // A 200 × 200 grid of quads with normals, written with relative indices: about 3 MB.
+        let n = 200;
+        let mut s = String::new();
+        for j in 0..n {
+            for i in 0..n {
+                s += &format!(
+                    "v {} {} {}\nvn 0 0 1\n",
+                    i as f64 * 0.1,
+                    j as f64 * 0.1,
+                    ((i * j) % 7) as f64 * 1e-3
+                );
+            }
+        }
+        for j in 0..n - 1 {
+            for i in 0..n - 1 {
+                let a = j * n + i + 1;
+                s += &format!(
+                    "f {}//{a} {}//{a} {}//{a} {}//{a}\n",
+                    a,
+                    a + 1,
+                    a + n + 1,
+                    a + n
+                );
+            }
+        }
+        s += &format!("f -1 -2 -{}\n", n + 1);
+        assert!(s.len() > 2 * super::super::obj::CHUNK_BYTES);
+        texts.push(s);
+        for text in &texts {
+            let (reference, loaded, fast) = both_readings(dir.path(), text);
+            assert!(fast);
+            let (reference, loaded) = (reference.unwrap(), loaded.unwrap());
+            assert!(reference.0.triangles.len() > 1000);
+            assert_eq!(loaded, reference);
+        }
     }
 
     #[test]

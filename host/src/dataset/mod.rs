@@ -18,6 +18,7 @@ mod hdr;
 mod image;
 mod ljpeg;
 mod mesh;
+mod obj;
 mod writer;
 
 pub use alignment::{Alignment, Symmetry, Turn, aligned_name};
