@@ -163,7 +163,9 @@ pub fn coarsen(mesh: &Mesh, lod: &LevelOfDetail) -> Result<Coarse, LodError> {
 /// ([`Mesh::new`]), and cells no triangle keeps are dropped.
 pub fn cluster(mesh: &Mesh, cell_mm: f64) -> Result<Coarse, LodError> {
     let cell_of = |p: &[f64; 3]| p.map(|x| (x / cell_mm).floor() as i64);
-    let mut cells: HashMap<[i64; 3], u32> = HashMap::new();
+    // foldhash: the cells are our own grid's numbers (no adversary), and a scanner's mesh has
+    // hundreds of thousands of vertices to place; the numbering is by first vertex either way.
+    let mut cells: HashMap<[i64; 3], u32, foldhash::fast::FixedState> = HashMap::default();
     let mut members: Vec<Vec<u32>> = Vec::new();
     let mut of: Vec<u32> = Vec::with_capacity(mesh.positions.len());
     for (v, p) in mesh.positions.iter().enumerate() {
