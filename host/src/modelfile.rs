@@ -114,6 +114,24 @@ pub enum VertexStatus {
     NoModel = 2,
 }
 
+impl VertexStatus {
+    /// The status a file's byte stands for (its `repr`); `None` for a byte no version writes.
+    fn from_byte(b: u8) -> Option<VertexStatus> {
+        match b {
+            0 => Some(VertexStatus::Fitted),
+            1 => Some(VertexStatus::Interpolated),
+            2 => Some(VertexStatus::NoModel),
+            _ => None,
+        }
+    }
+}
+
+/// log E as a file holds it, read: version 2 on writes NO_LOG_E (-1) where version 1 wrote NaN,
+/// both meaning "no fit of its own" (NaN in memory).
+fn log_e_read(x: f32) -> f32 {
+    if x >= 0.0 { x } else { f32::NAN }
+}
+
 /// One vertex's model.
 #[derive(Debug, Clone, PartialEq)]
 pub struct VertexModel {
@@ -905,6 +923,8 @@ impl ModelFile {
                 .map_err(|e| fmt(format!("baseline: {e}")))?;
             m.baseline = Some(b);
         }
+        // A face lattice is per triangle: the faces must be triangles (not polygons).
+        let triangles_only = elements.iter().any(|e| e.0 == "face_alpha");
         for (name, count, props) in &elements {
             if count.saturating_mul(props.len()) > body.len() {
                 return Err(fmt(format!(
@@ -917,7 +937,7 @@ impl ModelFile {
                 m: &mut m,
                 param_counts: &mut param_counts,
                 param_values: &mut param_values,
-                triangles_only: elements.iter().any(|e| e.0 == "face_alpha"),
+                triangles_only,
             };
             if records
                 && rows::read(name, *count, props, &mut cur, into)
@@ -968,12 +988,9 @@ impl ModelFile {
                         m.positions.push([one(Col::X)?, one(Col::Y)?, one(Col::Z)?]);
                         m.normals
                             .push([one(Col::Nx)?, one(Col::Ny)?, one(Col::Nz)?]);
-                        let status = match one(Col::Status)? as u8 {
-                            0 => VertexStatus::Fitted,
-                            1 => VertexStatus::Interpolated,
-                            2 => VertexStatus::NoModel,
-                            s => return Err(fmt(format!("unknown vertex status {s}"))),
-                        };
+                        let s = one(Col::Status)? as u8;
+                        let status = VertexStatus::from_byte(s)
+                            .ok_or_else(|| fmt(format!("unknown vertex status {s}")))?;
                         // Versions 1–5: a list in the vertex; version 6: a count here, the
                         // values in element `param`.
                         let params = match (get(Col::Params), get(Col::ParamCount)) {
@@ -1001,11 +1018,7 @@ impl ModelFile {
                                 one(Col::AlphaB)? as f32,
                             ],
                             status,
-                            // Version 2 writes NO_LOG_E (-1) where version 1 wrote NaN: both
-                            // mean "no fit of its own".
-                            log_e: Some(one(Col::LogE)? as f32)
-                                .filter(|x| *x >= 0.0)
-                                .unwrap_or(f32::NAN),
+                            log_e: log_e_read(one(Col::LogE)? as f32),
                             terms,
                             segments,
                             params,
@@ -1055,7 +1068,7 @@ impl ModelFile {
                         let idx = get(Col::VertexIndices)
                             .ok_or_else(|| fmt("face has no vertex_indices".into()))?;
                         // face_alpha is per triangle: a polygon would become several.
-                        if idx.len() != 3 && elements.iter().any(|e| e.0 == "face_alpha") {
+                        if idx.len() != 3 && triangles_only {
                             return Err(fmt("face_alpha needs a triangle mesh".into()));
                         }
                         if idx.iter().any(|&i| !(0.0..=u32::MAX as f64).contains(&i)) {
@@ -1301,7 +1314,9 @@ impl Cursor<'_> {
 /// back its model, and `evaluate` and `render` read it. The same values as the columns read
 /// (test `the_record_reader_reads_as_the_column_reader`).
 mod rows {
-    use super::{Cursor, ModelFile, Prop, Ty, VertexModel, VertexStatus};
+    use super::{
+        Cursor, ModelFile, Prop, Ty, VERTEX_RECORD, VertexModel, VertexStatus, log_e_read,
+    };
 
     /// Why a record could not be read.
     pub(super) enum RowError {
@@ -1341,7 +1356,6 @@ mod rows {
         ("r_min", Ty::F32),
         ("r_max", Ty::F32),
     ];
-    const VERTEX_BYTES: usize = super::VERTEX_RECORD;
 
     fn is(props: &[Prop], want: &[(&str, Ty)]) -> bool {
         props.len() == want.len()
@@ -1385,29 +1399,22 @@ mod rows {
         } = into;
         match name {
             "vertex" if is(props, &VERTEX) => {
-                let body = take(cur, count, VERTEX_BYTES)?;
+                let body = take(cur, count, VERTEX_RECORD)?;
                 m.positions.reserve(count);
                 m.normals.reserve(count);
                 m.vertices.reserve(count);
                 param_counts.reserve(count);
-                for r in body.chunks_exact(VERTEX_BYTES) {
+                for r in body.chunks_exact(VERTEX_RECORD) {
                     m.positions
                         .push([f64_at(r, 0), f64_at(r, 8), f64_at(r, 16)]);
                     m.normals
                         .push([f64_at(r, 24), f64_at(r, 32), f64_at(r, 40)]);
-                    let status = match r[60] {
-                        0 => VertexStatus::Fitted,
-                        1 => VertexStatus::Interpolated,
-                        2 => VertexStatus::NoModel,
-                        s => return Err(RowError::Status(s)),
-                    };
-                    let log_e = f32_at(r, 61);
+                    let status = VertexStatus::from_byte(r[60]).ok_or(RowError::Status(r[60]))?;
                     param_counts.push(u16::from_le_bytes([r[67], r[68]]) as usize);
                     m.vertices.push(VertexModel {
                         alpha: [f32_at(r, 48), f32_at(r, 52), f32_at(r, 56)],
                         status,
-                        // NO_LOG_E (-1): no fit of its own.
-                        log_e: if log_e >= 0.0 { log_e } else { f32::NAN },
+                        log_e: log_e_read(f32_at(r, 61)),
                         terms: r[65],
                         segments: r[66],
                         params: Vec::new(),
