@@ -491,12 +491,23 @@ fn cross_validated_choices_on_the_shared_datasets() {
 /// (which still solves and refits everything), within the fill's tolerance on the default path
 /// (weights of the known vertices, kept from round to round), whose restricted model has fewer
 /// vertices with a model. A run started from another's fill state gives the same bits.
+///
+/// The same with m = 4 direction segments on sample-slab, whose flat mesh turns no vertex's
+/// frame against a neighbour's: there the default path solves the plain Laplace equation where
+/// the reference sweeps the segments' aligned one (`interpolate::harmonic_aligned`).
 #[test]
 fn a_fold_fills_only_the_vertices_its_frames_read_and_the_same_there() {
+    fold_fills_only_what_it_reads("sample-torus", 1, 3);
+    // One round: the reference's sweeps of the slab's holes are most of this test's time.
+    fold_fills_only_what_it_reads("sample-slab", 4, 1);
+}
+
+/// The check above on `name` with `segments` direction segments, over `rounds` rounds.
+fn fold_fills_only_what_it_reads(name: &str, segments: usize, rounds: usize) {
     use subsurf::modelfile::VertexStatus;
     use subsurf::pipeline::{PipelineOptions, Prepared, Speed};
-    let Some(dir) = shared("sample-torus") else {
-        eprintln!("SKIPPED: shared/data/sample-torus is absent");
+    let Some(dir) = shared(name) else {
+        eprintln!("SKIPPED: shared/data/{name} is absent");
         return;
     };
     let ds = subsurf::dataset::Dataset::open(&dir).unwrap();
@@ -505,7 +516,8 @@ fn a_fold_fills_only_the_vertices_its_frames_read_and_the_same_there() {
         cache: subsurf::pipeline::Cache::Off,
         ..Default::default()
     };
-    let base = PipelineOptions::for_dataset(&ds);
+    let mut base = PipelineOptions::for_dataset(&ds);
+    base.model.segments = segments;
     let ctx = subsurf::pipeline::prepare(&ds, &frames, &base, &store, &()).unwrap();
     let fitter = subsurf::fit::FitOptions::default();
     let (folds, _) = subsurf::crossval::folds(&ds, &frames, 5);
@@ -528,9 +540,10 @@ fn a_fold_fills_only_the_vertices_its_frames_read_and_the_same_there() {
         let c = ctx.with_options(PipelineOptions { speed, ..base }).unwrap();
         let prepared = Prepared::new(&c, &train).unwrap();
         let mut run = prepared.rounds(&c, &fitter, None, &());
-        for round in 0..3 {
+        for round in 0..rounds {
             let part = run.model_file_for(&needed).unwrap();
             let full = run.model_file().unwrap();
+            assert_eq!(part.shape.segments, segments);
             let with_model = |m: &subsurf::modelfile::ModelFile| {
                 m.vertices
                     .iter()
