@@ -205,17 +205,20 @@ pub fn harmonic_permuted<'a>(
     }
     let n = values.len();
     let nu = order.len();
-    let mut pos = vec![usize::MAX; n];
-    for (i, &v) in order.iter().enumerate() {
-        pos[v] = i;
+    // Rows: deg(v)·x_v − Σ_{w unknown} P_vw x_w = Σ_{w known} P_vw x_w; the plain rows'
+    // structure, then each unknown neighbour's turn in the order of `cols`.
+    let System {
+        cols,
+        start,
+        deg,
+        pos,
+    } = System::structure(n, &order, |w| values[w].is_some(), &neighbours);
+    if deg.iter().any(|&d| d <= 0.0) {
+        return None;
     }
-    // Rows: deg(v)·x_v − Σ_{w unknown} P_vw x_w = Σ_{w known} P_vw x_w.
-    let mut cols: Vec<(u32, u32)> = Vec::new();
-    let mut start = Vec::with_capacity(nu + 1);
-    let mut deg = vec![0.0; nu];
+    let mut turns: Vec<u32> = Vec::with_capacity(cols.len());
     let mut b = vec![0.0; nu * len];
     for (i, &v) in order.iter().enumerate() {
-        start.push(cols.len());
         for &w in neighbours(v) {
             let w = w as usize;
             if w >= n {
@@ -226,26 +229,21 @@ pub fn harmonic_permuted<'a>(
                 return None;
             }
             if pos[w] != usize::MAX {
-                cols.push((pos[w] as u32, k as u32));
-                deg[i] += 1.0;
+                turns.push(k as u32);
             } else if let Some(x) = &values[w] {
                 for (bc, &src) in b[i * len..(i + 1) * len].iter_mut().zip(&perms[k]) {
                     *bc += x[src];
                 }
-                deg[i] += 1.0;
             }
         }
-    }
-    start.push(cols.len());
-    if deg.iter().any(|&d| d <= 0.0) {
-        return None;
     }
     let apply = |x: &[f64], y: &mut [f64]| {
         y.par_chunks_mut(len).enumerate().for_each(|(i, yi)| {
             for (yc, xc) in yi.iter_mut().zip(&x[i * len..(i + 1) * len]) {
                 *yc = deg[i] * xc;
             }
-            for &(j, k) in &cols[start[i]..start[i + 1]] {
+            let edges = start[i]..start[i + 1];
+            for (&j, &k) in cols[edges.clone()].iter().zip(&turns[edges]) {
                 let xj = &x[j as usize * len..(j as usize + 1) * len];
                 for (yc, &src) in yi.iter_mut().zip(&perms[k as usize]) {
                     *yc -= xj[src];
