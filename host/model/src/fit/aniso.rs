@@ -170,6 +170,76 @@ impl AnisoProblem<'_> {
     }
 }
 
+/// One row's model at m segments (Eq. 3): the segments a direction involves with their hat
+/// weights, ln of each one's weighted fall-off and its terms' shares, from the rates
+/// exp(b_lk) taken once per evaluation. The one evaluation of the generic rows
+/// ([`Problem::eval`]) and of the m > 1 normal equations.
+struct RowModel {
+    n: usize,
+    m: usize,
+    rate: Vec<f64>,
+    segs: Vec<(usize, f64)>,
+    ln_seg: Vec<f64>,
+    v: Vec<f64>,
+}
+
+impl RowModel {
+    fn new(theta: &[f64], n: usize, m: usize) -> Self {
+        // exp(b_lk), the rate magnitudes: once per evaluation, not once per sample and term as
+        // before (the same values). With the exps and logs that are exactly 1 and 0 skipped
+        // (one segment's weight, the largest term's share), a row makes 2 exps and 1 log at
+        // n = 3, m = 1 instead of 11 and 3: it was the fit's largest cost (issue 23), and it
+        // gives the same bits.
+        RowModel {
+            n,
+            m,
+            rate: (0..m * n).map(|i| theta[2 * i + 1].exp()).collect(),
+            segs: Vec::with_capacity(m),
+            ln_seg: vec![0.0; m],
+            v: vec![0.0; m * n],
+        }
+    }
+
+    /// ln R_d at distance `r` and direction `phi` (not finite where the model is not).
+    fn ln_at(&mut self, theta: &[f64], r: f64, phi: f64) -> f64 {
+        let n = self.n;
+        segment_weights(phi, self.m, &mut self.segs);
+        // ln of w_l·R_l for each involved segment, with within-segment term shares v.
+        let mut top = f64::NEG_INFINITY;
+        for &(l, w) in &self.segs {
+            let (mx, sum) = segment_shares(
+                &theta[2 * l * n..],
+                &self.rate[l * n..(l + 1) * n],
+                r,
+                &mut self.v[l * n..(l + 1) * n],
+            );
+            self.ln_seg[l] = ln_exact_at_one(w) + mx + ln_exact_at_one(sum);
+            top = top.max(self.ln_seg[l]);
+        }
+        let total: f64 = self
+            .segs
+            .iter()
+            .map(|&(l, _)| exp_exact_at_zero(self.ln_seg[l] - top))
+            .sum();
+        top + ln_exact_at_one(total)
+    }
+
+    /// The fall-off's Jacobian of the row last evaluated (`ln_t` its value, `r` its distance),
+    /// parameter by parameter: each involved segment's terms, amplitude then rate.
+    fn jacobian(&self, ln_t: f64, r: f64, mut out: impl FnMut(usize, f64)) {
+        let n = self.n;
+        for &(l, _) in &self.segs {
+            let u = exp_exact_at_zero(self.ln_seg[l] - ln_t);
+            for k in 0..n {
+                let p = 2 * (l * n + k);
+                let d = -self.rate[l * n + k];
+                out(p, u * self.v[l * n + k]);
+                out(p + 1, u * self.v[l * n + k] * r * d);
+            }
+        }
+    }
+}
+
 impl AnisoProblem<'_> {
     /// The normal equations at m > 1 segments (Eq. 3/5/9) in one pass, off the reference
     /// preset. What the generic accumulation over [`Problem::eval`] adds once per channel of
@@ -187,45 +257,18 @@ impl AnisoProblem<'_> {
         }
         jtj.fill(0.0);
         jtr.fill(0.0);
-        let mut segs = Vec::with_capacity(m);
-        let mut ln_seg = vec![0.0; m];
-        let mut v = vec![0.0; m * n];
-        let rate: Vec<f64> = (0..m * n).map(|i| theta[2 * i + 1].exp()).collect();
+        let mut row = RowModel::new(theta, n, m);
         // The row's fall-off Jacobian: (parameter, value), parameters increasing.
         let mut g: Vec<(usize, f64)> = Vec::with_capacity(2 * n * m);
         let mut cost = 0.0;
         for (j, &r) in self.r.iter().enumerate() {
             // Every row's model must be finite, as in the generic rows.
-            segment_weights(self.phi[j], m, &mut segs);
-            let mut top = f64::NEG_INFINITY;
-            for &(l, w) in &segs {
-                let (mx, sum) = segment_shares(
-                    &theta[2 * l * n..],
-                    &rate[l * n..(l + 1) * n],
-                    r,
-                    &mut v[l * n..(l + 1) * n],
-                );
-                ln_seg[l] = ln_exact_at_one(w) + mx + ln_exact_at_one(sum);
-                top = top.max(ln_seg[l]);
-            }
-            let total: f64 = segs
-                .iter()
-                .map(|&(l, _)| exp_exact_at_zero(ln_seg[l] - top))
-                .sum();
-            let ln_t = top + ln_exact_at_one(total);
+            let ln_t = row.ln_at(theta, r, self.phi[j]);
             if !ln_t.is_finite() {
                 return None;
             }
             g.clear();
-            for &(l, _) in &segs {
-                let u = exp_exact_at_zero(ln_seg[l] - ln_t);
-                for t in 0..n {
-                    let q = 2 * (l * n + t);
-                    let share = u * v[l * n + t];
-                    g.push((q, share));
-                    g.push((q + 1, share * r * -rate[l * n + t]));
-                }
-            }
+            row.jacobian(ln_t, r, |q, x| g.push((q, x)));
             g.sort_unstable_by_key(|&(q, _)| q);
             // The channels this observation holds: how many, and their residuals' sum.
             let (mut k, mut res_sum) = (0.0, 0.0);
@@ -504,53 +547,21 @@ impl Problem for AnisoProblem<'_> {
     }
     fn eval<F: FnMut(f64, &[usize], &[f64])>(&self, theta: &[f64], jac: bool, mut row: F) -> bool {
         let n = self.n;
-        let mut segs = Vec::with_capacity(self.m);
         let mut idx: Vec<usize> = Vec::with_capacity(2 * n * self.m + 1);
         let mut vals: Vec<f64> = Vec::with_capacity(2 * n * self.m + 1);
-        let mut ln_seg = vec![0.0; self.m];
-        let mut v = vec![0.0; self.m * n];
-        // exp(b_lk), the rate magnitudes: once per evaluation, not once per sample and term as
-        // before (the same values). With the exps and logs that are exactly 1 and 0 skipped
-        // (one segment's weight, the largest term's share), this loop makes 2 exps and 1 log
-        // per sample at n = 3, m = 1 instead of 11 and 3: it was the fit's largest cost (issue
-        // 23), and it gives the same bits.
-        let rate: Vec<f64> = (0..self.m * n).map(|i| theta[2 * i + 1].exp()).collect();
+        let mut model = RowModel::new(theta, n, self.m);
         for (j, &r) in self.r.iter().enumerate() {
-            segment_weights(self.phi[j], self.m, &mut segs);
-            // ln of w_l·R_l for each involved segment, with within-segment term shares v.
-            let mut top = f64::NEG_INFINITY;
-            for &(l, w) in &segs {
-                let (mx, sum) = segment_shares(
-                    &theta[2 * l * n..],
-                    &rate[l * n..(l + 1) * n],
-                    r,
-                    &mut v[l * n..(l + 1) * n],
-                );
-                ln_seg[l] = ln_exact_at_one(w) + mx + ln_exact_at_one(sum);
-                top = top.max(ln_seg[l]);
-            }
-            let total: f64 = segs
-                .iter()
-                .map(|&(l, _)| exp_exact_at_zero(ln_seg[l] - top))
-                .sum();
-            let ln_t = top + ln_exact_at_one(total);
+            let ln_t = model.ln_at(theta, r, self.phi[j]);
             if !ln_t.is_finite() {
                 return false;
             }
             if jac {
                 idx.clear();
                 vals.clear();
-                for &(l, _) in &segs {
-                    let u = exp_exact_at_zero(ln_seg[l] - ln_t);
-                    for k in 0..n {
-                        let p = 2 * (l * n + k);
-                        let d = -rate[l * n + k];
-                        idx.push(p);
-                        vals.push(u * v[l * n + k]);
-                        idx.push(p + 1);
-                        vals.push(u * v[l * n + k] * r * d);
-                    }
-                }
+                model.jacobian(ln_t, r, |p, x| {
+                    idx.push(p);
+                    vals.push(x);
+                });
             }
             let base = idx.len();
             for ch in 0..self.channels {
@@ -1427,22 +1438,7 @@ pub(crate) mod tests {
             };
             let (fast, exact) = (problem(false), problem(true));
             let theta = random_theta(&mut next, fast.params(), wild);
-            let (ok_a, jtj_a, jtr_a, cost_a) = lm::built(&fast, &theta);
-            let (ok_b, jtj_b, jtr_b, cost_b) = lm::built(&exact, &theta);
-            proptest::prop_assert_eq!(ok_a, ok_b);
-            if ok_a {
-                let close = |a: f64, b: f64, scale: f64| (a - b).abs() <= 1e-12 * scale.max(1e-300);
-                let s_jtj = jtj_b.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-                let s_jtr = jtr_b.iter().fold(0.0f64, |m, v| m.max(v.abs()))
-                    + cost_b.sqrt() * s_jtj.sqrt();
-                for (a, b) in jtj_a.iter().zip(&jtj_b) {
-                    proptest::prop_assert!(close(*a, *b, s_jtj), "{a} {b}");
-                }
-                for (a, b) in jtr_a.iter().zip(&jtr_b) {
-                    proptest::prop_assert!(close(*a, *b, s_jtr), "{a} {b}");
-                }
-                proptest::prop_assert!(close(cost_a, cost_b, cost_b), "{cost_a} {cost_b}");
-            }
+            within_rounding(lm::built(&fast, &theta), lm::built(&exact, &theta))?;
         }
     }
 
@@ -1486,23 +1482,32 @@ pub(crate) mod tests {
                 if anchored { vec![(0, 0.5), (1, -0.25)] } else { Vec::new() };
             let kernel = Anchored { inner: &fast, anchor: &anchor };
             let reference = Generic(&kernel);
-            let (ok_a, jtj_a, jtr_a, cost_a) = lm::built(&kernel, &theta);
-            let (ok_b, jtj_b, jtr_b, cost_b) = lm::built(&reference, &theta);
-            proptest::prop_assert_eq!(ok_a, ok_b);
-            if ok_a {
-                let close = |a: f64, b: f64, scale: f64| (a - b).abs() <= 1e-12 * scale.max(1e-300);
-                let s_jtj = jtj_b.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-                let s_jtr = jtr_b.iter().fold(0.0f64, |m, v| m.max(v.abs()))
-                    + cost_b.sqrt() * s_jtj.sqrt();
-                for (a, b) in jtj_a.iter().zip(&jtj_b) {
-                    proptest::prop_assert!(close(*a, *b, s_jtj), "{a} {b}");
-                }
-                for (a, b) in jtr_a.iter().zip(&jtr_b) {
-                    proptest::prop_assert!(close(*a, *b, s_jtr), "{a} {b}");
-                }
-                proptest::prop_assert!(close(cost_a, cost_b, cost_b), "{cost_a} {cost_b}");
-            }
+            within_rounding(lm::built(&kernel, &theta), lm::built(&reference, &theta))?;
         }
+    }
+
+    /// Two builds of the normal equations (`lm::built`: feasible, JᵀJ, Jᵀres, cost) agree:
+    /// feasible alike, and where feasible every entry within 1e-12 of the largest it
+    /// accumulates (Jᵀres: of the largest plus √cost·√max JᵀJ, the residuals' scale).
+    fn within_rounding(
+        (ok_a, jtj_a, jtr_a, cost_a): (bool, Vec<f64>, Vec<f64>, f64),
+        (ok_b, jtj_b, jtr_b, cost_b): (bool, Vec<f64>, Vec<f64>, f64),
+    ) -> Result<(), proptest::test_runner::TestCaseError> {
+        proptest::prop_assert_eq!(ok_a, ok_b);
+        if ok_a {
+            let close = |a: f64, b: f64, scale: f64| (a - b).abs() <= 1e-12 * scale.max(1e-300);
+            let s_jtj = jtj_b.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            let s_jtr =
+                jtr_b.iter().fold(0.0f64, |m, v| m.max(v.abs())) + cost_b.sqrt() * s_jtj.sqrt();
+            for (a, b) in jtj_a.iter().zip(&jtj_b) {
+                proptest::prop_assert!(close(*a, *b, s_jtj), "{a} {b}");
+            }
+            for (a, b) in jtr_a.iter().zip(&jtr_b) {
+                proptest::prop_assert!(close(*a, *b, s_jtr), "{a} {b}");
+            }
+            proptest::prop_assert!(close(cost_a, cost_b, cost_b), "{cost_a} {cost_b}");
+        }
+        Ok(())
     }
 
     /// r, φ and the three channels' ln values of a proptest's rows.
