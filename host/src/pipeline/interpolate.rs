@@ -131,7 +131,6 @@ pub fn fill(
                 .needed
                 .is_none_or(|n| n.get(v).copied().unwrap_or(false))
     };
-    let (mut weights, mut segment_weights) = (None, None);
     // One segment has no frame to turn: the plain Laplace equation. Neither has a run of m > 1
     // segments whose unknown vertices' frames turn by no whole segment against any neighbour
     // (`align` below is then the identity: the sweeps would solve the plain equation): on the
@@ -147,9 +146,21 @@ pub fn fill(
                         .iter()
                         .any(|&w| turns.shift(v, w as usize, shape.segments) != 0)
             }));
-    let filled = if turned && how.speed == Speed::Reference {
+    // The plain Laplace fill of per-vertex values on the mesh (a fold's by weights, see
+    // [`plain_fill`]).
+    let plain = |values: &[Option<Vec<f64>>]| {
+        plain_fill(
+            values,
+            |v| scene.neighbours(v),
+            own,
+            how.needed,
+            how.speed,
+            how.warm.and_then(|w| w.weights.as_ref()),
+        )
+    };
+    let (filled, weights, segments) = if turned && how.speed == Speed::Reference {
         let m = shape.segments;
-        crate::interpolate::harmonic_aligned(
+        let swept = crate::interpolate::harmonic_aligned(
             &known,
             |v| scene.neighbours(v),
             |v, w, x| {
@@ -157,7 +168,8 @@ pub fn fill(
                 (k != 0).then(|| turn_segments(x, head, grid.r.len(), m, k))
             },
             2000,
-        )
+        );
+        (swept, None, None)
     } else if turned {
         // Where frames turn (a curved object's, about the frame rule's singular normal): the
         // turns are cyclic shifts of the segments, so the equation of the segments' values is
@@ -185,35 +197,20 @@ pub fn fill(
             .iter()
             .map(|x| x.as_ref().and_then(|x| x.get(..head)).map(<[f64]>::to_vec))
             .collect();
-        let (head_filled, w) = plain_fill(
-            &head_values,
-            |v| scene.neighbours(v),
-            own,
-            how.needed,
-            how.speed,
-            how.warm.and_then(|w| w.weights.as_ref()),
-        );
-        let segment_values = lifted.split(&known, head, chunk);
+        let (head_filled, weights) = plain(&head_values);
         let cache = how
             .warm
             .and_then(|w| w.segments.clone())
             .unwrap_or_default();
-        let segments_filled = lifted.fill(&segment_values, how.needed, &cache);
-        let sw = how.needed.is_some().then_some(cache);
-        weights = w;
-        segment_weights = sw;
-        lifted.join(&head_filled, &segments_filled, chunk)
+        let segments_filled = lifted.fill(&lifted.split(&known, head, chunk), how.needed, &cache);
+        (
+            lifted.join(&head_filled, &segments_filled, chunk),
+            weights,
+            how.needed.is_some().then_some(cache),
+        )
     } else {
-        let (filled, w) = plain_fill(
-            &known,
-            |v| scene.neighbours(v),
-            own,
-            how.needed,
-            how.speed,
-            how.warm.and_then(|w| w.weights.as_ref()),
-        );
-        weights = w;
-        filled
+        let (filled, weights) = plain(&known);
+        (filled, weights, None)
     };
     let refits = (0..own.len())
         .into_par_iter()
@@ -255,10 +252,7 @@ pub fn fill(
             })
         })
         .collect();
-    let state = FillState {
-        weights,
-        segments: segment_weights,
-    };
+    let state = FillState { weights, segments };
     (refits, state)
 }
 

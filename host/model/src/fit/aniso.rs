@@ -258,7 +258,7 @@ impl AnisoProblem<'_> {
         jtj.fill(0.0);
         jtr.fill(0.0);
         let mut row = RowModel::new(theta, n, m);
-        // The row's fall-off Jacobian: (parameter, value), parameters increasing.
+        // The row's fall-off Jacobian: (parameter, value).
         let mut g: Vec<(usize, f64)> = Vec::with_capacity(2 * n * m);
         let mut cost = 0.0;
         for (j, &r) in self.r.iter().enumerate() {
@@ -269,7 +269,6 @@ impl AnisoProblem<'_> {
             }
             g.clear();
             row.jacobian(ln_t, r, |q, x| g.push((q, x)));
-            g.sort_unstable_by_key(|&(q, _)| q);
             // The channels this observation holds: how many, and their residuals' sum.
             let (mut k, mut res_sum) = (0.0, 0.0);
             for ch in 0..self.channels {
@@ -290,12 +289,18 @@ impl AnisoProblem<'_> {
                     }
                 }
             }
+            // Each pair once, into the upper triangle (a direction between the last segment
+            // and the first lists the last one's parameters first).
             for (a, &(qa, ga)) in g.iter().enumerate() {
                 jtr[qa] += ga * res_sum;
-                let row = &mut jtj[qa * p..(qa + 1) * p];
-                let kg = k * ga;
                 for &(qb, gb) in &g[a..] {
-                    row[qb] += kg * gb;
+                    // The lower-numbered parameter's value first, whichever is listed first.
+                    let ((lo, g_lo), (hi, g_hi)) = if qa <= qb {
+                        ((qa, ga), (qb, gb))
+                    } else {
+                        ((qb, gb), (qa, ga))
+                    };
+                    jtj[lo * p + hi] += k * g_lo * g_hi;
                 }
             }
         }
