@@ -470,7 +470,8 @@ fn paired_gain(a: &Errors, b: &Errors, clusters: &Clustering) -> Option<(f64, f6
             Some((ea - eb, 1.0, clusters.cluster(f)))
         })
         .collect();
-    clustered_mean(&d).map(|m| (m.mean, m.se.unwrap_or(0.0)))
+    // A spread that could not be measured (one fold judged) is infinite: no gain counts.
+    clustered_mean(&d).map(|m| (m.mean, m.decision_se()))
 }
 
 /// Mean over its finite channels of a frame's log E.
@@ -483,11 +484,22 @@ fn frame_error(v: &[f64; 3]) -> Option<f64> {
 /// the frames every candidate with data predicted; the index chosen (`None` when no candidate
 /// predicted any frame) and the report's rows.
 ///
-/// The standard error of a candidate's difference from the best is clustered by `clusters`
-/// (the folds: the frames of one fold share one fit, and a fold holds whole turntable angles,
-/// whose frames share their views), as Hastie, Tibshirani and Friedman (7.10) take it from the
-/// K fold-level errors; frames treated as independent made it too small, and the rule less
-/// parsimonious than it means to be ([`crate::evaluate::summary::clustered_mean`]).
+/// Which standard error: that of the paired difference between the candidate and the best,
+/// over the frames both predicted, clustered by `clusters` (the folds: the frames of one fold
+/// share one fit, and a fold holds whole turntable angles, whose frames share their views;
+/// [`crate::evaluate::summary::Clustering::rule`]). Hastie, Tibshirani and Friedman (7.10) take
+/// instead the standard error of the best candidate's own error over the K folds. The paired SE
+/// is smaller: a fold that is hard (a grazing angle, a thin part) is hard for every candidate,
+/// and that shared spread says nothing about which candidate predicts better, only how hard
+/// the folds are. So this rule is less parsimonious than theirs: it keeps a more complex
+/// candidate whenever the folds agree that it predicts better by more than the spread of that
+/// difference, where theirs would drop it whenever the folds differ in difficulty by more than
+/// the gain. We keep the paired SE because the question the rule answers is "is the gain real",
+/// which is a question about the difference.
+///
+/// A standard error that could not be measured (one fold judged) or came out zero is infinite
+/// ([`crate::evaluate::summary::ClusteredMean::decision_se`]): every candidate is then within
+/// it, and the simplest candidate that predicted anything is kept.
 fn one_se(
     candidates: &[(String, &Errors)],
     clusters: &Clustering,
@@ -544,9 +556,11 @@ fn one_se(
             .iter()
             .filter_map(|&f| Some((err(i, f)? - err(best, f)?, 1.0, clusters.cluster(f))))
             .collect();
-        let (mean, se) = clustered_mean(&d).map_or((0.0, 0.0), |m| (m.mean, m.se.unwrap_or(0.0)));
+        let (mean, se, reported) = clustered_mean(&d).map_or((0.0, f64::INFINITY, None), |m| {
+            (m.mean, m.decision_se(), m.se.filter(|s| s.is_finite()))
+        });
         rows[i].worse_by = Some(mean);
-        rows[i].se = Some(se);
+        rows[i].se = reported;
         if chosen.is_none() && mean <= se {
             chosen = Some(i);
         }
@@ -556,7 +570,7 @@ fn one_se(
     (Some(chosen), rows)
 }
 
-const ONE_SE_RULE: &str = "the simplest candidate whose mean held-out log E (frames every candidate predicted) is within one standard error (of the paired difference over those frames, clustered by fold) of the best";
+const ONE_SE_RULE: &str = "the simplest candidate whose mean held-out log E (frames every candidate predicted) is within one standard error of the best, the SE of the paired difference over those frames clustered by fold (tighter than the SE of the best's own error, so less parsimonious: a gain counts once the folds agree on it); an SE that could not be measured counts as infinite, keeping the simplest";
 
 /// The choice of the number of alpha rounds among `per_round[..=most]`: the chosen number and
 /// the report's choice. The fit on every frame runs at most that many rounds (fewer where its
@@ -987,7 +1001,9 @@ mod tests {
                         _ => 0.44 - 1e-5 * (r - 2) as f64,
                     };
                     let noise = if (f / 2) % 2 == 0 { 1e-4 } else { -1e-4 };
-                    (f, [base + if r >= 3 { noise } else { 0.0 }; 3])
+                    // Each frame's own small drift per round, so no gain's spread is exactly 0.
+                    let drift = [0.3, -0.1, 0.2, -0.4, 0.1, 0.0, -0.2, 0.1][f] * 1e-3 * r as f64;
+                    (f, [base + drift + if r >= 3 { noise } else { 0.0 }; 3])
                 })
                 .collect()
         };
@@ -1023,6 +1039,33 @@ mod tests {
         assert_eq!(rows[0].score, None);
         assert!(rows[0].note.is_some());
         assert_eq!(one_se(&[("1".into(), &none)], &lone).0, None);
+    }
+
+    /// With one cluster no spread can be measured: the standard error is infinite, so the one-SE
+    /// rule keeps the simplest candidate however much better another looks, and no round's gain
+    /// counts (the rounds stop after `patience`). With two folds the same clear gain is taken.
+    #[test]
+    fn one_cluster_keeps_the_simplest_and_counts_no_gain() {
+        let one = Clustering::of_folds(&[(0..4).collect()]);
+        let simple = errors(&[(0, 0.30), (1, 0.20), (2, 0.41), (3, 0.25)]);
+        let clearly = errors(&[(0, 0.20), (1, 0.11), (2, 0.30), (3, 0.16)]);
+        let cands = [("1".to_string(), &simple), ("4".to_string(), &clearly)];
+        let (c, rows) = one_se(&cands, &one);
+        assert_eq!(c, Some(0), "{rows:?}");
+        assert_eq!(
+            rows[0].se, None,
+            "an unmeasured SE is not written as a number"
+        );
+        let two = Clustering::of_folds(&[vec![0, 1], vec![2, 3]]);
+        assert_eq!(one_se(&cands, &two).0, Some(1));
+        // Rounds: a gain of 0.1 in every frame is no gain without a measured spread.
+        let curve = vec![simple.clone(), clearly.clone()];
+        assert!(rounds_exhausted(&curve, &one, 1, MIN_GAIN_SE));
+        assert!(!rounds_exhausted(&curve, &two, 1, MIN_GAIN_SE));
+        assert_eq!(
+            paired_gain(&simple, &clearly, &one).map(|g| g.1),
+            Some(f64::INFINITY)
+        );
     }
 
     /// The lattice is written only when the folds' surface errors say it predicts better: a

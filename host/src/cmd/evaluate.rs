@@ -149,7 +149,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         protocol,
     );
     report.images = args.images.clone();
-    if let Some(w) = report.in_sample_warning() {
+    for w in report.in_sample_warning().iter().chain(&report.warnings) {
         eprintln!("{w}");
     }
     if args.json {

@@ -47,6 +47,9 @@ pub struct EvaluateReport {
     /// noise floor (judged as the floor), over every frame judged.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub unlit: Option<u64>,
+    /// What the figures cannot carry on their own: fewer than five clusters (what a difference
+    /// must exceed there), frames the fit used.
+    pub warnings: Vec<String>,
     /// Every frame: held out ones first, then the in-sample ones.
     pub per_frame: Vec<FrameEval>,
 }
@@ -106,7 +109,16 @@ impl EvaluateReport {
         });
         let skipped = evals.iter().filter(|e| e.skipped.is_some()).count();
         let held_out = Figures::of(&held, &clusters);
+        let mut warnings: Vec<String> = held_out.warning(HELD_OUT).into_iter().collect();
+        if let Some(a) = &against {
+            warnings.extend(crate::evaluate::summary::few_clusters_warning(
+                "the paired difference",
+                a.clusters,
+            ));
+            warnings.dedup();
+        }
         EvaluateReport {
+            warnings,
             points,
             frames: held_out.frames,
             skipped,
@@ -178,13 +190,21 @@ impl EvaluateReport {
             };
             let _ = writeln!(
                 o,
-                "this model − --against, {} frames, {} clusters ({}): {} {} {}",
+                "this model − --against, {} frames, {} clusters ({}), {}: {} {} {}",
                 a.frames,
                 a.clusters,
                 a.cluster_rule,
+                dof_text(a.dof, a.t95),
                 pm(0),
                 pm(1),
                 pm(2)
+            );
+            let _ = writeln!(
+                o,
+                "  95 % interval {} {} {}",
+                interval_text(a.ci95[0]),
+                interval_text(a.ci95[1]),
+                interval_text(a.ci95[2])
             );
         }
         if let Some(f) = &self.in_sample {
@@ -244,8 +264,11 @@ fn figures_text(o: &mut String, title: &str, f: &Figures) {
     };
     let _ = writeln!(
         o,
-        "{title}: {} frames, {} clusters ({})",
-        f.frames, f.clusters, f.cluster_rule
+        "{title}: {} frames, {} clusters ({}), {}",
+        f.frames,
+        f.clusters,
+        f.cluster_rule,
+        dof_text(f.dof, f.t95)
     );
     let _ = writeln!(
         o,
@@ -257,6 +280,13 @@ fn figures_text(o: &mut String, title: &str, f: &Figures) {
         pm(f.mean_log_e[0], f.se_log_e[0]),
         pm(f.mean_log_e[1], f.se_log_e[1]),
         pm(f.mean_log_e[2], f.se_log_e[2])
+    );
+    let _ = writeln!(
+        o,
+        "95 % interval   {} {} {}",
+        interval_text(f.ci95_log_e[0]),
+        interval_text(f.ci95_log_e[1]),
+        interval_text(f.ci95_log_e[2])
     );
     let _ = writeln!(
         o,
@@ -272,4 +302,23 @@ fn figures_text(o: &mut String, title: &str, f: &Figures) {
         fmt::opt(f.median_log_e[1], fmt::log_e),
         fmt::opt(f.median_log_e[2], fmt::log_e)
     );
+}
+
+/// "3 degrees of freedom (t 3.18)", or why there are none.
+fn dof_text(dof: Option<usize>, t95: Option<f64>) -> String {
+    match (dof, t95) {
+        (Some(d), Some(t)) => format!("{d} degrees of freedom (95 % t {t:.2})"),
+        _ => "no degree of freedom (no standard error)".into(),
+    }
+}
+
+/// A 95 % interval in a column of 19 characters.
+fn interval_text(ci: Option<[f64; 2]>) -> String {
+    match ci {
+        Some([lo, hi]) => format!(
+            "{:<19}",
+            format!("[{}, {}]", fmt::log_e(lo), fmt::log_e(hi))
+        ),
+        None => format!("{:<19}", "unbounded"),
+    }
 }

@@ -17,8 +17,8 @@
 //! - **Assess** ([`assess`]): the fit of `subsurf fit` (the cheap draft preset, no alpha
 //!   lattice, no t1 candidate) with its cross-validated alpha rounds ([`crate::crossval`]); the
 //!   folds' held-out log E per frame (Eq. 8, mean over its channels) is the learning curve's
-//!   figure, its mean with the standard error clustered by turntable angle
-//!   ([`crate::evaluate::summary::clustered_mean`], the yardstick of `subsurf evaluate`).
+//!   figure, its mean with the standard error clustered by fold (the frames of a fold share
+//!   one fit: [`crate::evaluate::summary::Clustering::rule`], the rule of every judge).
 //! - **Choose** ([`next_batch`]): each candidate left is scored by four signs that the model is
 //!   uncertain there, each in 0..1: no acquired x_i close to its predicted x_i; vertices near it
 //!   interpolated or without a model; the held-out error of the acquired frames around it
@@ -40,8 +40,8 @@ use serde::{Deserialize, Serialize};
 
 use super::plan::{AnglePlan, PLAN_FORMAT, RigTiming, ScanPlan, estimate_duration};
 use crate::dataset::{Dataset, DatasetError, FrameChannel, WriteError, write_atomic};
-use crate::evaluate::summary::clustered_mean;
-use crate::evaluate::{Clustering, FrameEval};
+use crate::evaluate::Clustering;
+use crate::evaluate::summary::{ErrorSource, clustered_mean};
 use crate::modelfile::VertexStatus;
 use crate::pipeline::{PipelineError, PipelineOptions, StoreOptions};
 use crate::progress::Progress;
@@ -380,7 +380,10 @@ pub struct Assessment {
     /// Held-out log E per frame the folds judged (mean over its finite channels); a frame the
     /// folds could not judge (no spot, failed fit) is absent.
     pub per_frame: BTreeMap<usize, f64>,
-    /// Mean of `per_frame` and its standard error clustered by turntable angle.
+    /// The cross-validation's folds (frames): what clusters `per_frame`'s errors, since the
+    /// frames of a fold share one fit ([`crate::evaluate::summary::ErrorSource::Folds`]).
+    pub folds: Vec<Vec<usize>>,
+    /// Mean of `per_frame` and its standard error clustered by fold.
     pub mean: Option<f64>,
     /// See `mean`.
     pub se: Option<f64>,
@@ -459,6 +462,12 @@ pub fn assess(
     let out =
         crate::crossval::fit_scan_in(&run, &judge, &frames, &cv, &fit, progress).map_err(fail)?;
     let mut per_frame = BTreeMap::new();
+    let folds = out
+        .report
+        .cross_validation
+        .as_ref()
+        .map(|r| r.folds.clone())
+        .unwrap_or_default();
     if let Some(r) = &out.report.cross_validation {
         for (&f, v) in &r.per_frame {
             let ch: Vec<f64> = v
@@ -472,9 +481,10 @@ pub fn assess(
             }
         }
     }
-    let (mean, se, clusters) = clustered(&ds, &per_frame);
+    let (mean, se, clusters) = clustered(&ds, &folds, &per_frame);
     Ok(Assessment {
         per_frame,
+        folds,
         mean,
         se,
         clusters,
@@ -490,27 +500,21 @@ pub fn assess(
     })
 }
 
-/// Frames with their error as judged frames, for [`Clustering::of_frames`].
-fn as_evals(frames: impl Iterator<Item = (usize, f64)>) -> Vec<FrameEval> {
-    frames
-        .map(|(frame, e)| FrameEval {
-            frame,
-            log_e: [Some(e); 3],
-            samples: 0,
-            channel_samples: [0; 3],
-            x_i: None,
-            local_share: None,
-            skipped: None,
-            unlit: None,
-        })
-        .collect()
+/// The clusters of cross-validated per-frame errors: the folds that judged them, by the one
+/// rule every judge shares ([`Clustering::rule`]).
+fn fold_clusters(ds: &Dataset, folds: &[Vec<usize>], frames: &BTreeMap<usize, f64>) -> Clustering {
+    let judged: Vec<(usize, Option<[f64; 3]>)> = frames.keys().map(|&f| (f, None)).collect();
+    Clustering::rule(ds, &judged, ErrorSource::Folds(folds))
 }
 
-/// Mean of per-frame errors with its standard error clustered as `subsurf evaluate` clusters
-/// (by turntable angle); and the clusters.
-fn clustered(ds: &Dataset, per_frame: &BTreeMap<usize, f64>) -> (Option<f64>, Option<f64>, usize) {
-    let evals = as_evals(per_frame.iter().map(|(&f, &e)| (f, e)));
-    let clusters = Clustering::of_frames(ds, &evals);
+/// Mean of cross-validated per-frame errors with its standard error clustered by fold (the
+/// frames of a fold share one fit); and the clusters.
+fn clustered(
+    ds: &Dataset,
+    folds: &[Vec<usize>],
+    per_frame: &BTreeMap<usize, f64>,
+) -> (Option<f64>, Option<f64>, usize) {
+    let clusters = fold_clusters(ds, folds, per_frame);
     let v: Vec<(f64, f64, (bool, usize))> = per_frame
         .iter()
         .map(|(&f, &e)| (e, 1.0, clusters.cluster(f)))
@@ -522,9 +526,11 @@ fn clustered(ds: &Dataset, per_frame: &BTreeMap<usize, f64>) -> (Option<f64>, Op
 }
 
 /// The fall of the held-out error from `prev` to `cur`, paired over the frames both judged, and
-/// its standard error clustered by turntable angle (`None` with fewer than two clusters).
+/// its standard error clustered by the folds of `cur`'s cross-validation (`folds`), which
+/// judged the current errors (`None` with fewer than two clusters).
 fn paired_improvement(
     ds: &Dataset,
+    folds: &[Vec<usize>],
     prev: &BTreeMap<usize, f64>,
     cur: &BTreeMap<usize, f64>,
 ) -> (Option<f64>, Option<f64>) {
@@ -532,8 +538,7 @@ fn paired_improvement(
         .iter()
         .filter_map(|(f, c)| Some((*f, prev.get(f)? - c)))
         .collect();
-    let evals = as_evals(common.iter().map(|(&f, &d)| (f, d)));
-    let clusters = Clustering::of_frames(ds, &evals);
+    let clusters = fold_clusters(ds, folds, &common);
     let v: Vec<(f64, f64, (bool, usize))> = common
         .iter()
         .map(|(&f, &d)| (d, 1.0, clusters.cluster(f)))
@@ -928,6 +933,7 @@ pub fn run_adaptive(
                 let positions = mesh_vertices(source)?;
                 Assessment {
                     per_frame: BTreeMap::new(),
+                    folds: Vec::new(),
                     mean: None,
                     se: None,
                     clusters: 0,
@@ -944,7 +950,7 @@ pub fn run_adaptive(
         }
         let ds = Dataset::open(&dir)?;
         let (improvement, improvement_se) = match rep.curve.last() {
-            Some(prev) => paired_improvement(&ds, &prev.per_frame, &a.per_frame),
+            Some(prev) => paired_improvement(&ds, &a.folds, &prev.per_frame, &a.per_frame),
             None => (None, None),
         };
         let point = CurvePoint {
@@ -1114,6 +1120,7 @@ mod tests {
             per_frame: [(0, 0.1), (1, 0.1), (2, 0.1), (3, 0.3)]
                 .into_iter()
                 .collect(),
+            folds: Vec::new(),
             mean: Some(0.1),
             se: Some(0.01),
             clusters: 1,
