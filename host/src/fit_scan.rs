@@ -238,10 +238,10 @@ pub fn fit_scan<U: Stages>(
     let ds = coarse.as_ref().unwrap_or(given);
     let preset = args.preset;
     let (mut opts, mut fit) = PipelineOptions::for_dataset(ds).with_preset(preset);
-    // The dataset's floor (scan.json's, else measured from its frames) is the evaluation
-    // protocol's; --noise-floor changes only what this fit reads.
-    let all: Vec<usize> = (0..ds.spec.frames.len()).collect();
-    let mut floor = crate::pipeline::noise_floor(ds, &all, false)
+    // The dataset's floor (scan.json's, else measured from the training frames: a floor read
+    // from frames the fit is later judged on would carry their pixels into the fit) is the
+    // protocol its folds are judged by; --noise-floor changes only what this fit reads.
+    let mut floor = crate::pipeline::noise_floor(ds, frames, false)
         .step(|| format!("the noise floor of {}", args.scan.display()))?;
     let protocol = PipelineOptions::evaluation_protocol(ds).with_noise_floor(floor.value);
     opts = opts.with_noise_floor(args.noise_floor.unwrap_or(floor.value));
@@ -346,7 +346,7 @@ pub fn fit_scan<U: Stages>(
     // A floor scan.json gives is checked against the frames when asked (it reads frames again:
     // the one decode per frame holds otherwise).
     if ds.spec.noise_floor.is_some() && args.check_noise_floor {
-        if let Ok(checked) = crate::pipeline::noise_floor(ds, &all, true) {
+        if let Ok(checked) = crate::pipeline::noise_floor(ds, frames, true) {
             floor = checked;
         }
         if let Some(w) = &floor.warning {
