@@ -380,12 +380,42 @@ mod timed_exposure {
 mod profile_flash {
     use super::flash_record::*;
     use super::*;
+    use subsurf_protocol::RigProfile;
 
-    /// Two sectors in memory and what the board does with them: `save` as `store.rs` does,
-    /// counting erases; NOR flash semantics (programming only clears bits).
+    /// Two sectors in memory with NOR flash semantics (programming only clears bits), the
+    /// flash's data cache (after an erase it keeps serving the erased bytes until reset), and
+    /// optionally a bit that will not clear; saved through the board's own `flash_record::save`.
     struct Flash {
         sectors: [Vec<u8>; 2],
         erases: [u32; 2],
+        /// What the data cache still serves for a sector erased under it.
+        stale: [Option<Vec<u8>>; 2],
+        /// (sector, byte, bit) stuck at 1.
+        stuck: Option<(usize, usize, u8)>,
+    }
+
+    impl SectorFlash for Flash {
+        fn sector(&self, i: usize) -> &[u8] {
+            self.stale[i].as_deref().unwrap_or(&self.sectors[i])
+        }
+        fn erase(&mut self, i: usize) -> Result<(), subsurf_protocol::SaveError> {
+            self.stale[i] = Some(self.sectors[i].clone());
+            self.sectors[i].fill(0xff);
+            self.erases[i] += 1;
+            Ok(())
+        }
+        fn program(
+            &mut self,
+            i: usize,
+            at: usize,
+            bytes: &[u8],
+        ) -> Result<(), subsurf_protocol::SaveError> {
+            self.program(i, at, bytes);
+            Ok(())
+        }
+        fn reset_data_cache(&mut self) {
+            self.stale = [None, None];
+        }
     }
 
     impl Flash {
@@ -393,6 +423,8 @@ mod profile_flash {
             Self {
                 sectors: [vec![0xff; SECTOR_LEN], vec![0xff; SECTOR_LEN]],
                 erases: [0, 0],
+                stale: [None, None],
+                stuck: None,
             }
         }
 
@@ -413,22 +445,24 @@ mod profile_flash {
         }
 
         fn program(&mut self, sector: usize, at: usize, bytes: &[u8]) {
-            for (d, s) in self.sectors[sector][at..at + bytes.len()]
+            for (k, (d, s)) in self.sectors[sector][at..at + bytes.len()]
                 .iter_mut()
                 .zip(bytes)
+                .enumerate()
             {
                 *d &= *s;
+                if let Some((ss, byte, bit)) = self.stuck
+                    && ss == sector
+                    && byte == at + k
+                {
+                    *d |= 1 << bit;
+                }
             }
         }
 
+        /// The board's save (`flash_record::save`, as `store.rs` calls it).
         fn save(&mut self, payload: &[u8]) -> Placement {
-            let (p, rec) = self.plan(payload);
-            if p.erase {
-                self.sectors[p.sector].fill(0xff);
-                self.erases[p.sector] += 1;
-            }
-            self.program(p.sector, p.at, &rec);
-            p
+            save(self, payload).unwrap()
         }
     }
 
@@ -630,6 +664,52 @@ mod profile_flash {
             f.sectors[0][flip % n] ^= 1 << bit;
             prop_assert_ne!(f.latest(), Some(&payload[..]));
         }
+    }
+
+    fn profile(k: u32) -> RigProfile {
+        let mut p = RigProfile::DEFAULT;
+        p.motor.max_speed = 10_000 + k;
+        assert!(p.validate().is_ok());
+        p
+    }
+
+    /// A record that reads back otherwise than it was written (here a bit that will not clear
+    /// in the new record's place) refuses the save: `Err(Verify)`, and the profile in flash
+    /// is still the old one.
+    #[test]
+    fn a_read_back_mismatch_refuses_the_save() {
+        let mut f = Flash::blank();
+        assert_eq!(store_profile(&mut f, &profile(1)), Ok(()));
+        assert_eq!(load_profile(&f), Some(profile(1)));
+        // The next record goes right after the first; a bit of its payload sticks at 1.
+        let next = f.plan(&[0u8; 40]).0;
+        f.stuck = Some((next.sector, next.at + HEADER_LEN + 6, 0));
+        assert_eq!(
+            store_profile(&mut f, &profile(2)),
+            Err(subsurf_protocol::SaveError::Verify)
+        );
+        assert_eq!(load_profile(&f), Some(profile(1)));
+        // A profile flash already holds is acknowledged without a write.
+        f.stuck = None;
+        assert_eq!(store_profile(&mut f, &profile(1)), Ok(()));
+    }
+
+    /// Saves through several erases of sectors that held records: each save after an erase
+    /// reads back the new profile, because the save resets the data cache after the erase (it
+    /// would otherwise verify the erased sector's cached old records and refuse).
+    #[test]
+    fn every_save_after_an_erase_reads_back_through_a_reset_cache() {
+        let mut f = Flash::blank();
+        for k in 0..1_000u32 {
+            let p = profile(k % 2);
+            assert_eq!(store_profile(&mut f, &p), Ok(()), "save {k}");
+            assert_eq!(load_profile(&f), Some(p), "save {k}");
+        }
+        assert!(
+            f.erases[0] >= 1 && f.erases[1] >= 2,
+            "{:?}: no erase of a sector that held records",
+            f.erases
+        );
     }
 }
 

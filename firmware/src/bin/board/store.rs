@@ -95,17 +95,14 @@ impl flash_record::SectorFlash for Store {
     }
 }
 
-/// Reset the flash's data cache (RM0390 §3.4.2: DCRST only while DCEN is off), then turn it back
-/// on if it was.
+/// Reset the flash's data cache (RM0390 §3.4.2: DCRST only while DCEN is off) and turn it on
+/// (`main` turned it on at boot; the erase turned it off).
 fn reset_data_cache() {
     let f = pac::FLASH;
-    let was_on = f.acr().read().dcen();
     f.acr().modify(|w| w.set_dcen(false));
     f.acr().modify(|w| w.set_dcrst(true));
     f.acr().modify(|w| w.set_dcrst(false));
-    if was_on {
-        f.acr().modify(|w| w.set_dcen(true));
-    }
+    f.acr().modify(|w| w.set_dcen(true));
 }
 
 /// Erase sector `snb` at ×32 parallelism, interrupts masked, through the registers (RM0390
