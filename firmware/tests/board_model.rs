@@ -950,6 +950,29 @@ mod cut_off {
     }
 }
 
+/// EN follows the e-stop's fault, not its contact: released at a press, energised again only
+/// once the core's `Fault::EmergencyStop` is cleared (`ClearFault`), never by the release alone.
+#[test]
+fn the_motor_is_energised_again_only_after_clear_fault() {
+    use safety::enable_allowed;
+    use subsurf_protocol::Fault;
+    assert!(enable_allowed(true, false, None));
+    assert!(
+        !enable_allowed(false, false, None),
+        "no profile: EN not driven"
+    );
+    assert!(
+        !enable_allowed(true, true, Some(Fault::EmergencyStop)),
+        "pressed"
+    );
+    assert!(
+        !enable_allowed(true, false, Some(Fault::EmergencyStop)),
+        "released but not cleared"
+    );
+    // Other faults keep the holding torque (the position is kept, the motion stopped).
+    assert!(enable_allowed(true, false, Some(Fault::StepStall)));
+}
+
 /// Finding 10: embassy's EXTI handler masked every line it found pending until a task waited on
 /// it again; an exposure-active edge between the board's handler and embassy's masked line 6 for
 /// the rest of the boot. The board now binds its own handler alone on every EXTI vector it uses.

@@ -27,7 +27,7 @@ use subsurf_firmware::hal::{
 };
 use subsurf_firmware::{Micros, Rig};
 use subsurf_protocol::{
-    Config, Fault, GalvoPoint, Inputs, MAX_FRAME, RigMessage, RigProfile, SaveError, encode_event,
+    Config, GalvoPoint, Inputs, MAX_FRAME, RigMessage, RigProfile, SaveError, encode_event,
     encode_reply,
 };
 
@@ -300,17 +300,12 @@ fn run_due(rig: &mut Rig<Hardware>) {
 /// come back. Holding torque keeps the position from then on; a press forgets it anyway
 /// (`homed` cleared).
 fn follow_enable(rig: &mut Rig<Hardware>) {
-    let want = enable_allowed(rig.profile_known(), sample_inputs().estop, rig.fault());
+    let want =
+        crate::safety::enable_allowed(rig.profile_known(), sample_inputs().estop, rig.fault());
     if rig.hw().stepper.energised() != want {
         note(Note::Motor(want));
         rig.hw_mut().stepper.set_enabled(want);
     }
-}
-
-/// Whether the motor driver may be energised: a profile known, the e-stop closed and no
-/// e-stop fault left (cleared only by `ClearFault`).
-pub fn enable_allowed(profile_known: bool, estop: bool, fault: Option<Fault>) -> bool {
-    profile_known && !estop && fault != Some(Fault::EmergencyStop)
 }
 
 /// A step interrupt ran after the following update event (the train stopped the timer): the
