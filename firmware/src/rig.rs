@@ -1270,6 +1270,7 @@ impl<H: Hardware> Rig<H> {
                 Ok(Response::Ack)
             }
             Command::Replay { since, max } => Ok(Response::Events(self.replay(since, max))),
+            Command::BoardRegisters => Ok(Response::BoardRegisters(self.hw.board_registers())),
             // The protocol enum is non-exhaustive: a newer host command this firmware predates.
             #[allow(unreachable_patterns)]
             _ => Err(RigError::OutOfRange),

@@ -249,6 +249,17 @@ impl RigInputs for Hardware {
     fn read_inputs(&mut self) -> Inputs {
         sample_inputs()
     }
+
+    fn board_registers(&mut self) -> Option<subsurf_protocol::BoardRegisters> {
+        Some(subsurf_protocol::BoardRegisters {
+            flash_optcr: pac::FLASH.optcr().read().0,
+            flash_acr: pac::FLASH.acr().read().0,
+            dbgmcu_apb1_fz: pac::DBGMCU.apb1fzr().read().0,
+            dbgmcu_apb2_fz: pac::DBGMCU.apb2fzr().read().0,
+            tim2_cr2: pac::TIM2.cr2().read().0,
+            tim4_smcr: pac::TIM4.smcr().read().0,
+        })
+    }
 }
 
 /// Send every message the core has queued. (A halt needs nothing here: the core decelerates a
