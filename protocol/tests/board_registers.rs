@@ -63,3 +63,37 @@ fn reset_and_factory_values_fail_their_check() {
     };
     assert_eq!(failing(unwired), ["TIM2_CR2.MMS", "TIM4_SMCR.TS/SMS"]);
 }
+
+/// The command and its reply cross the link whole, the largest register values included.
+#[test]
+fn the_command_and_its_reply_round_trip_in_one_frame() {
+    use subsurf_protocol::{
+        Command, FrameDecoder, MAX_FRAME, Reply, Request, Response, RigMessage, encode_reply,
+        encode_request,
+    };
+    let mut out = [0u8; MAX_FRAME];
+    let req = Request {
+        seq: 7,
+        command: Command::BoardRegisters,
+    };
+    let n = encode_request(&req, &mut out).unwrap();
+    let mut dec = FrameDecoder::new();
+    assert_eq!(
+        dec.decode::<Request>(&out[..n]).collect::<Vec<_>>(),
+        vec![req]
+    );
+    for registers in [
+        Some(BoardRegisters::from_values([u32::MAX; 6])),
+        Some(SET_UP),
+        None,
+    ] {
+        let reply = Reply {
+            seq: 7,
+            result: Ok(Response::BoardRegisters(registers)),
+        };
+        let n = encode_reply(&reply, &mut out).unwrap();
+        assert!(n <= MAX_FRAME);
+        let back: Vec<RigMessage> = dec.decode::<RigMessage>(&out[..n]).collect();
+        assert_eq!(back, vec![RigMessage::Reply(reply)]);
+    }
+}
