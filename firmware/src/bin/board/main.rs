@@ -3,12 +3,13 @@
 //! The board binary only owns the hardware and pumps the sans-IO core (`subsurf_firmware`): bytes
 //! from the USART2 link go into the core, its frames go back out, its hardware calls land on the
 //! drivers in this directory, and its next deadline becomes an embassy timer. Every decision lives
-//! in the core; the binary adds the fault paths the core cannot see (panic, HardFault, a stuck
-//! executor via the light's deadline timer and the independent watchdog) and parks the lasers and
-//! the trigger at off on each of them.
+//! in the core; the binary adds the fault paths the core cannot see (panic, HardFault, NMI, any
+//! unexpected interrupt, a stuck executor via the light's deadline timer and the independent
+//! watchdog) and parks the lasers and the trigger at off on each of them (docs/board.md).
 //!
-//! Boot order: clocks, then the rig profile from flash (a memory-mapped read, no pin involved),
-//! then the laser and trigger timers set up for the profile's polarities. The pins themselves stay
+//! Boot order: EN to the stored profile's disabled level (before the clocks), clocks, the flash
+//! accelerator and the debug-halt freeze, then the rig profile from flash (a memory-mapped read, no
+//! pin involved), then the laser and trigger timers set up for the profile's polarities. The pins themselves stay
 //! high-impedance, as at reset, until a window drives one to its active level (the wiring's pull
 //! resistors hold them off, whatever their polarity: `safety.rs`).
 //!
