@@ -128,6 +128,10 @@ pub enum FlashError {
         /// probe-rs's error, rendered.
         message: String,
     },
+    /// A board register read back after the reset is not what the firmware sets (the bring-up
+    /// checklist in docs/board.md lists the expected values).
+    #[error("board registers differ from what the firmware sets: {0}")]
+    BoardRegisters(String),
     /// The serial link failed during the handshake.
     #[error("handshake over the serial link failed")]
     Link(#[from] LinkError),
@@ -389,8 +393,8 @@ fn probe_err(step: &'static str) -> impl FnOnce(probe_rs::Error) -> FlashError {
 /// Erase, program and verify `image` on `chip` through `probe`, then reset the core so the new
 /// firmware runs, and read back, once it has booted, the registers only hardware can show
 /// ([`BoardRegisters`]: brown-out level, flash accelerator, debug freeze, the step counter's
-/// wiring), for the caller to compare with [`BoardRegisters::checks`]. `progress` hears about
-/// each step.
+/// wiring). `progress` hears about each step and each register with its expected value;
+/// [`FlashError::BoardRegisters`] when one differs.
 pub fn flash_image(
     lister: &Lister,
     probe: &ProbeEntry,
@@ -422,8 +426,22 @@ pub fn flash_image(
     // option byte on its first boot); the probe reads them while it runs.
     std::thread::sleep(BOOT_SETTLE);
     progress("reading the board's registers");
-    read_board_registers(|address| core.read_word_32(u64::from(address)))
-        .map_err(probe_err("reading the board's registers"))
+    let registers = read_board_registers(|address| core.read_word_32(u64::from(address)))
+        .map_err(probe_err("reading the board's registers"))?;
+    let lines = register_lines(&registers);
+    for (_, line) in &lines {
+        progress(line);
+    }
+    let differ: Vec<String> = lines
+        .into_iter()
+        .filter(|(ok, _)| !ok)
+        .map(|(_, line)| line)
+        .collect();
+    if differ.is_empty() {
+        Ok(registers)
+    } else {
+        Err(FlashError::BoardRegisters(differ.join("; ")))
+    }
 }
 
 /// How long the firmware is given to boot before its registers are read.
