@@ -156,6 +156,11 @@ pub trait CameraInput {
 pub trait RigInputs {
     /// Sample all inputs now.
     fn read_inputs(&mut self) -> Inputs;
+    /// The chip's registers the bring-up checklist checks (the board only; a simulated rig has
+    /// none).
+    fn board_registers(&mut self) -> Option<subsurf_protocol::BoardRegisters> {
+        None
+    }
 }
 
 /// Where the rig profile survives a reset (the board's flash).

@@ -877,8 +877,9 @@ impl<H: Hardware> Rig<H> {
     /// Stop laser work, disarm, and report why; what happens to a motion depends on `halt`. A
     /// halt that cuts a motion clears `homed`.
     fn abort(&mut self, now: Micros, reason: HaltReason, halt: Halt) {
-        #[cfg(feature = "defmt")]
-        defmt::warn!("halt at {=u64} us: {}", now, reason);
+        // No log here: a halt may come in the middle of a decelerating stop, and a defmt line
+        // masks interrupts (the step interrupt's too) for as long as it takes; the board logs
+        // the `Halted` event it sends instead, once the motion is over.
         let moving = self
             .motion
             .as_ref()
@@ -1269,6 +1270,7 @@ impl<H: Hardware> Rig<H> {
                 Ok(Response::Ack)
             }
             Command::Replay { since, max } => Ok(Response::Events(self.replay(since, max))),
+            Command::BoardRegisters => Ok(Response::BoardRegisters(self.hw.board_registers())),
             // The protocol enum is non-exhaustive: a newer host command this firmware predates.
             #[allow(unreachable_patterns)]
             _ => Err(RigError::OutOfRange),
@@ -1749,8 +1751,6 @@ impl<H: Hardware> Rig<H> {
             // No image will come for this capture: the camera is ready again only after the
             // timeout (a late exposure would be counted anyway).
             self.camera_ready_at = self.camera_ready_at.max(now);
-            #[cfg(feature = "defmt")]
-            defmt::warn!("capture {=u32}: camera did not confirm the exposure", c.id);
         }
         self.emit(
             now,

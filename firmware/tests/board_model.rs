@@ -1,7 +1,9 @@
 //! The board binary's register-free layers on the host: galvo code mapping and the boot ramp
 //! (`galvo_map.rs`), the hardware-timed exposure against a tick-exact one-pulse timer model
-//! (`exposure.rs`), the profile's flash record log on an in-memory sector (`flash_record.rs`), and
-//! the laser cut-off's register words (`safety.rs`).
+//! (`exposure.rs`), the profile's flash record log, its save and read-back on in-memory sectors
+//! with a data cache (`flash_record.rs`), the laser cut-off's register words (`safety.rs`), and
+//! the pins' connect and cut (`gate.rs`) on a model of GPIOC, the safety inputs and the
+//! interrupts, which fire between any two register accesses of the shipped code.
 
 #[path = "../src/bin/board/exposure.rs"]
 #[allow(dead_code)]
@@ -12,6 +14,9 @@ mod flash_record;
 #[path = "../src/bin/board/galvo_map.rs"]
 #[allow(dead_code)]
 mod galvo_map;
+#[path = "../src/bin/board/gate.rs"]
+#[allow(dead_code)]
+mod gate;
 #[path = "../src/bin/board/safety.rs"]
 #[allow(dead_code)]
 mod safety;
@@ -375,12 +380,42 @@ mod timed_exposure {
 mod profile_flash {
     use super::flash_record::*;
     use super::*;
+    use subsurf_protocol::RigProfile;
 
-    /// Two sectors in memory and what the board does with them: `save` as `store.rs` does,
-    /// counting erases; NOR flash semantics (programming only clears bits).
+    /// Two sectors in memory with NOR flash semantics (programming only clears bits), the
+    /// flash's data cache (after an erase it keeps serving the erased bytes until reset), and
+    /// optionally a bit that will not clear; saved through the board's own `flash_record::save`.
     struct Flash {
         sectors: [Vec<u8>; 2],
         erases: [u32; 2],
+        /// What the data cache still serves for a sector erased under it.
+        stale: [Option<Vec<u8>>; 2],
+        /// (sector, byte, bit) stuck at 1.
+        stuck: Option<(usize, usize, u8)>,
+    }
+
+    impl SectorFlash for Flash {
+        fn sector(&self, i: usize) -> &[u8] {
+            self.stale[i].as_deref().unwrap_or(&self.sectors[i])
+        }
+        fn erase(&mut self, i: usize) -> Result<(), subsurf_protocol::SaveError> {
+            self.stale[i] = Some(self.sectors[i].clone());
+            self.sectors[i].fill(0xff);
+            self.erases[i] += 1;
+            Ok(())
+        }
+        fn program(
+            &mut self,
+            i: usize,
+            at: usize,
+            bytes: &[u8],
+        ) -> Result<(), subsurf_protocol::SaveError> {
+            self.program(i, at, bytes);
+            Ok(())
+        }
+        fn reset_data_cache(&mut self) {
+            self.stale = [None, None];
+        }
     }
 
     impl Flash {
@@ -388,6 +423,8 @@ mod profile_flash {
             Self {
                 sectors: [vec![0xff; SECTOR_LEN], vec![0xff; SECTOR_LEN]],
                 erases: [0, 0],
+                stale: [None, None],
+                stuck: None,
             }
         }
 
@@ -408,22 +445,24 @@ mod profile_flash {
         }
 
         fn program(&mut self, sector: usize, at: usize, bytes: &[u8]) {
-            for (d, s) in self.sectors[sector][at..at + bytes.len()]
+            for (k, (d, s)) in self.sectors[sector][at..at + bytes.len()]
                 .iter_mut()
                 .zip(bytes)
+                .enumerate()
             {
                 *d &= *s;
+                if let Some((ss, byte, bit)) = self.stuck
+                    && ss == sector
+                    && byte == at + k
+                {
+                    *d |= 1 << bit;
+                }
             }
         }
 
+        /// The board's save (`flash_record::save`, as `store.rs` calls it).
         fn save(&mut self, payload: &[u8]) -> Placement {
-            let (p, rec) = self.plan(payload);
-            if p.erase {
-                self.sectors[p.sector].fill(0xff);
-                self.erases[p.sector] += 1;
-            }
-            self.program(p.sector, p.at, &rec);
-            p
+            save(self, payload).unwrap()
         }
     }
 
@@ -625,6 +664,52 @@ mod profile_flash {
             f.sectors[0][flip % n] ^= 1 << bit;
             prop_assert_ne!(f.latest(), Some(&payload[..]));
         }
+    }
+
+    fn profile(k: u32) -> RigProfile {
+        let mut p = RigProfile::DEFAULT;
+        p.motor.max_speed = 10_000 + k;
+        assert!(p.validate().is_ok());
+        p
+    }
+
+    /// A record that reads back otherwise than it was written (here a bit that will not clear
+    /// in the new record's place) refuses the save: `Err(Verify)`, and the profile in flash
+    /// is still the old one.
+    #[test]
+    fn a_read_back_mismatch_refuses_the_save() {
+        let mut f = Flash::blank();
+        assert_eq!(store_profile(&mut f, &profile(1)), Ok(()));
+        assert_eq!(load_profile(&f), Some(profile(1)));
+        // The next record goes right after the first; a bit of its payload sticks at 1.
+        let next = f.plan(&[0u8; 40]).0;
+        f.stuck = Some((next.sector, next.at + HEADER_LEN + 6, 0));
+        assert_eq!(
+            store_profile(&mut f, &profile(2)),
+            Err(subsurf_protocol::SaveError::Verify)
+        );
+        assert_eq!(load_profile(&f), Some(profile(1)));
+        // A profile flash already holds is acknowledged without a write.
+        f.stuck = None;
+        assert_eq!(store_profile(&mut f, &profile(1)), Ok(()));
+    }
+
+    /// Saves through several erases of sectors that held records: each save after an erase
+    /// reads back the new profile, because the save resets the data cache after the erase (it
+    /// would otherwise verify the erased sector's cached old records and refuse).
+    #[test]
+    fn every_save_after_an_erase_reads_back_through_a_reset_cache() {
+        let mut f = Flash::blank();
+        for k in 0..1_000u32 {
+            let p = profile(k % 2);
+            assert_eq!(store_profile(&mut f, &p), Ok(()), "save {k}");
+            assert_eq!(load_profile(&f), Some(p), "save {k}");
+        }
+        assert!(
+            f.erases[0] >= 1 && f.erases[1] >= 2,
+            "{:?}: no erase of a sector that held records",
+            f.erases
+        );
     }
 }
 
@@ -865,6 +950,29 @@ mod cut_off {
     }
 }
 
+/// EN follows the e-stop's fault, not its contact: released at a press, energised again only
+/// once the core's `Fault::EmergencyStop` is cleared (`ClearFault`), never by the release alone.
+#[test]
+fn the_motor_is_energised_again_only_after_clear_fault() {
+    use safety::enable_allowed;
+    use subsurf_protocol::Fault;
+    assert!(enable_allowed(true, false, None));
+    assert!(
+        !enable_allowed(false, false, None),
+        "no profile: EN not driven"
+    );
+    assert!(
+        !enable_allowed(true, true, Some(Fault::EmergencyStop)),
+        "pressed"
+    );
+    assert!(
+        !enable_allowed(true, false, Some(Fault::EmergencyStop)),
+        "released but not cleared"
+    );
+    // Other faults keep the holding torque (the position is kept, the motion stopped).
+    assert!(enable_allowed(true, false, Some(Fault::StepStall)));
+}
+
 /// Finding 10: embassy's EXTI handler masked every line it found pending until a task waited on
 /// it again; an exposure-active edge between the board's handler and embassy's masked line 6 for
 /// the rest of the boot. The board now binds its own handler alone on every EXTI vector it uses.
@@ -880,5 +988,246 @@ fn no_exti_vector_runs_embassy_s_masking_handler() {
             main.contains(&format!("{vector} => inputs::Exti<")),
             "{vector} is not the board's handler"
         );
+    }
+}
+
+/// The laser pins' connect against an e-stop edge or the deadline timer's window end landing
+/// between any two of its register accesses: `gate.rs` as the board runs it, on a model of
+/// GPIOC's MODER and IDR, GPIOB's safety pins, the latched flags, and the interrupt mask.
+mod connect_race {
+    use super::gate::*;
+    use super::safety::*;
+
+    /// What fires, and when: before register access number `at` (counted from 0 over the whole
+    /// run) if interrupts are unmasked then, else as soon as they are unmasked again.
+    #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+    enum Event {
+        /// The e-stop opens: PB5 reads high and its EXTI line's rising edge is pending.
+        EstopEdge,
+        /// The light's deadline timer (TIM5) reaches its update.
+        WindowEnd,
+    }
+
+    #[derive(Debug)]
+    struct Model {
+        moder: u32,
+        idr: u32,
+        estop_high: bool,
+        interlock_high: bool,
+        latched: Latched,
+        masked: u32,
+        accesses: usize,
+        fire: Option<(usize, Event)>,
+        pending: Option<Event>,
+        fired: Option<Event>,
+        exposure_timers_running: bool,
+        steps_running: bool,
+    }
+
+    impl Model {
+        /// Lasers wired active high (each resistor pulls its line low: idles off), all parked,
+        /// inputs safe.
+        fn armed(fire: Option<(usize, Event)>) -> Self {
+            Self {
+                moder: 0,
+                idr: 0,
+                estop_high: false,
+                interlock_high: false,
+                latched: Latched::default(),
+                masked: 0,
+                accesses: 0,
+                fire,
+                pending: None,
+                fired: None,
+                exposure_timers_running: true,
+                steps_running: true,
+            }
+        }
+
+        /// One register access: the scheduled interrupt comes first if its time has come.
+        fn access(&mut self) {
+            if let Some((at, event)) = self.fire
+                && self.accesses >= at
+            {
+                self.fire = None;
+                self.pending = Some(event);
+            }
+            self.accesses += 1;
+            self.deliver();
+        }
+
+        fn deliver(&mut self) {
+            if self.masked == 0
+                && let Some(event) = self.pending.take()
+            {
+                self.fired = Some(event);
+                // The handler's own accesses do not count as scheduled points.
+                let fire = self.fire.take();
+                match event {
+                    Event::EstopEdge => {
+                        self.estop_high = true;
+                        on_safety_interrupt(
+                            self,
+                            SafetyEdges {
+                                estop: true,
+                                interlock: false,
+                            },
+                        );
+                    }
+                    Event::WindowEnd => on_lights_out(self),
+                }
+                self.fire = fire;
+            }
+        }
+
+        /// Whether laser channel `i`'s pin is connected to its timer (driven: on).
+        fn lit(&self, i: usize) -> bool {
+            connected(self.moder, LASER_PIN_NUMBERS[i])
+        }
+    }
+
+    impl LightRegs for Model {
+        fn moder(&mut self) -> u32 {
+            self.access();
+            self.moder
+        }
+        fn set_moder(&mut self, moder: u32) {
+            self.access();
+            self.moder = moder;
+        }
+        fn idr(&mut self) -> u32 {
+            self.access();
+            self.idr
+        }
+        fn safety_pins(&mut self) -> SafetyPins {
+            self.access();
+            SafetyPins {
+                estop_high: self.estop_high,
+                interlock_high: self.interlock_high,
+            }
+        }
+        fn latched(&mut self) -> Latched {
+            self.access();
+            self.latched
+        }
+        fn latch(&mut self, edges: SafetyEdges) {
+            self.latched.edges.estop |= edges.estop;
+            self.latched.edges.interlock |= edges.interlock;
+        }
+        fn cut_light(&mut self) {
+            self.latched.lights_out = true;
+        }
+        fn stop_exposure_timers(&mut self) {
+            self.exposure_timers_running = false;
+        }
+        fn stop_steps(&mut self) {
+            self.steps_running = false;
+        }
+        fn masked<R>(&mut self, f: impl FnOnce(&mut Self) -> R) -> R {
+            self.masked += 1;
+            let r = f(self);
+            self.masked -= 1;
+            self.deliver();
+            r
+        }
+    }
+
+    /// The rig task's sequence for `laser on` (channels R and B) once its own check passed: the
+    /// connect of `outputs.rs`, through the seam.
+    fn switch_on(m: &mut Model) -> Connected {
+        connect(m, 0b101, false, Polarity::ActiveHigh)
+    }
+
+    /// Accesses the connect makes with nothing firing.
+    fn accesses_of_a_connect() -> usize {
+        let mut m = Model::armed(None);
+        let done = switch_on(&mut m);
+        assert_eq!(done.lasers, 0b101, "the connect did not connect: {done:?}");
+        assert!(m.lit(0) && m.lit(2) && !m.lit(1));
+        m.accesses
+    }
+
+    /// An e-stop edge at every point of the connect (before its first access through after its
+    /// last): the laser ends dark every time, and the stepper stopped.
+    #[test]
+    fn an_estop_edge_anywhere_in_the_connect_leaves_the_laser_dark() {
+        let n = accesses_of_a_connect();
+        for at in 0..=n {
+            let mut m = Model::armed(Some((at, Event::EstopEdge)));
+            let done = switch_on(&mut m);
+            if m.fired.is_none() {
+                // Scheduled after the last access: the edge comes after the call.
+                m.pending = Some(Event::EstopEdge);
+                m.deliver();
+            }
+            assert_eq!(m.fired, Some(Event::EstopEdge));
+            for i in 0..3 {
+                assert!(
+                    !m.lit(i),
+                    "e-stop edge before access {at} of {n}: laser {i} lit (MODER {:#010x}, {done:?})",
+                    m.moder
+                );
+            }
+            // And the next connect is refused while the edge is latched.
+            let again = switch_on(&mut m);
+            assert!(again.refused && !m.lit(0) && !m.lit(2));
+        }
+    }
+
+    /// The same for the deadline timer's window end.
+    #[test]
+    fn a_window_end_anywhere_in_the_connect_leaves_the_laser_dark() {
+        let n = accesses_of_a_connect();
+        for at in 0..=n {
+            let mut m = Model::armed(Some((at, Event::WindowEnd)));
+            let _ = switch_on(&mut m);
+            if m.fired.is_none() {
+                m.pending = Some(Event::WindowEnd);
+                m.deliver();
+            }
+            assert!(
+                !m.lit(0) && !m.lit(2),
+                "window end before access {at} of {n}: lit (MODER {:#010x})",
+                m.moder
+            );
+            assert!(!m.exposure_timers_running);
+            assert!(switch_on(&mut m).refused);
+        }
+    }
+
+    /// An e-stop that is open (or was pressed and bounced back, its edge latched) at the connect
+    /// refuses it, though the caller's own earlier check passed: re-read inside.
+    #[test]
+    fn the_connect_re_reads_the_inputs_and_the_latched_edges() {
+        let mut m = Model::armed(None);
+        m.estop_high = true;
+        assert!(switch_on(&mut m).refused);
+        let mut m = Model::armed(None);
+        m.latched.edges.estop = true;
+        assert!(switch_on(&mut m).refused);
+        let mut m = Model::armed(None);
+        m.interlock_high = true;
+        assert!(switch_on(&mut m).refused);
+        assert_eq!(m.moder, 0);
+        // A line that idles at the level the profile calls on (a pull-up under "active high")
+        // is not driven; the others are.
+        let mut m = Model::armed(None);
+        m.idr = 1 << LASER_PIN_NUMBERS[2];
+        let done = switch_on(&mut m);
+        assert_eq!(done.lasers, 0b001);
+        assert!(m.lit(0) && !m.lit(2));
+    }
+
+    /// Every fault path's park takes the four pins, nothing else.
+    #[test]
+    fn park_all_parks_exactly_the_light_pins() {
+        let mut m = Model::armed(None);
+        m.moder = u32::MAX;
+        park_all(&mut m);
+        let light = [6u32, 7, 8, 9]
+            .iter()
+            .fold(0u32, |acc, &p| acc | (0b11 << (2 * p)));
+        assert_eq!(m.moder, !light);
+        assert_eq!(parked_all(u32::MAX), !light);
     }
 }

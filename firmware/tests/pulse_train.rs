@@ -37,20 +37,10 @@ struct Tim {
     uif: bool,
     out: bool,
     dir: bool,
-    /// Update events since the start (the board's TIM4 clocked by TIM2's update).
+    /// Update events counted by the board's TIM4 (clocked by TIM2's update TRGO): free-running
+    /// across starts, as on the chip, and counting the start's own update generation too (the
+    /// baseline must not care whether the chip does).
     updates: u16,
-}
-
-impl Tim {
-    fn start(&mut self, dir: bool, first: Preload, next: Preload) {
-        self.dir = dir;
-        (self.arr, self.ccr) = (first.arr, first.ccr);
-        (self.arr_pre, self.ccr_pre) = (next.arr, next.ccr);
-        self.cnt = 0;
-        self.out = false;
-        self.cen = true;
-        self.updates = 0;
-    }
 }
 
 /// The model as the interrupt sees it.
@@ -72,6 +62,22 @@ impl StepTimer for Regs<'_> {
     }
     fn updates(&mut self) -> u16 {
         self.0.updates
+    }
+}
+
+impl StartTimer for Regs<'_> {
+    fn load(&mut self, dir: bool, first: Preload, next: Preload) {
+        let t = &mut *self.0;
+        t.dir = dir;
+        (t.arr, t.ccr) = (first.arr, first.ccr);
+        (t.arr_pre, t.ccr_pre) = (next.arr, next.ccr);
+        t.cnt = 0;
+        t.out = false;
+        // The update generation (UG) loads the preloads and may clock TIM4 once.
+        t.updates = t.updates.wrapping_add(1);
+    }
+    fn run(&mut self) {
+        self.0.cen = true;
     }
 }
 
@@ -99,6 +105,10 @@ struct Run {
     segments: u64,
     /// When each motion started, µs.
     starts: Vec<u64>,
+    /// Tick of every update event (counter wrap).
+    wraps: Vec<u64>,
+    /// Tick at which every interrupt ran.
+    isr_runs: Vec<u64>,
 }
 
 /// One motion: the profile's steps from `start_us` (or when the one before has ended, if that
@@ -162,7 +172,12 @@ fn simulate(
                 tim.ccr = tim.ccr_pre;
                 tim.uif = true;
                 tim.updates = tim.updates.wrapping_add(1);
-                isr_at = Some(next + isr_latency(next));
+                run.wraps.push(next);
+                // A pending interrupt stays pending (the NVIC holds one, UIF stays set): a later
+                // wrap does not move it, so a late interrupt runs exactly as late as asked.
+                if isr_at.is_none() {
+                    isr_at = Some(next + isr_latency(next));
+                }
             } else {
                 tim.cnt += dt;
             }
@@ -180,6 +195,7 @@ fn simulate(
         if isr_at.is_some_and(|at| at <= t) {
             isr_at = None;
             run.interrupts += 1;
+            run.isr_runs.push(t);
             if let Some(u) = on_interrupt(&mut train, &mut Regs(&mut tim)) {
                 run.overruns += train.take_overruns();
                 run.counted += u64::from(u.stepped);
@@ -208,15 +224,13 @@ fn simulate(
                     run.planned.push((s.step_at(j), s.forward));
                 }
                 queued += 1;
-                match train.push(&s, t) {
-                    Push::Queued => true,
-                    Push::Full => false,
-                    Push::Start { dir, first, next } => {
-                        tim.start(dir, first, next);
-                        run.stopped_at = None;
-                        true
-                    }
+                // The board's own queue-and-start (`pulse_train::queue`).
+                let was_running = train.running();
+                let ok = queue(&mut train, &mut Regs(&mut tim), &s, t);
+                if !was_running && train.running() {
+                    run.stopped_at = None;
                 }
+                ok
             };
             planner.refill(now_us, m.forward, &mut ideal, &mut queue);
             run.stalls += train.take_stalls();
@@ -385,6 +399,12 @@ fn an_interrupt_later_than_one_period_stops_the_train_and_is_reported() {
         }
     };
     let run = simulate(&motions, DEFAULT_PULSE_US, 5, &|_| 100, &isr_latency);
+    // The model delivered it as late as asked.
+    let late_wrap = *run.wraps.iter().find(|&&w| w >= late_at).unwrap();
+    assert!(
+        run.isr_runs.contains(&(late_wrap + 60 * T)),
+        "the interrupt of the wrap at {late_wrap} did not run 60 µs later"
+    );
     assert_eq!(run.overruns, 1, "the late interrupt was not reported");
     let stopped = run.stopped_at.expect("the timer stopped");
     assert!(
@@ -401,6 +421,66 @@ fn an_interrupt_later_than_one_period_stops_the_train_and_is_reported() {
         "{emitted_before_stop} pulses, {} counted: nothing was lost",
         run.counted
     );
+}
+
+/// The first interrupt after a start, late by more than the period after it: the first period
+/// ran on, the timer wrapped again on the preloads the interrupt never refreshed. It is checked
+/// against the baseline the start took, so it faults like any other late interrupt; without the
+/// baseline it only took the count and the replayed period went unseen.
+#[test]
+fn a_late_first_interrupt_after_a_start_faults() {
+    let motions = [
+        MotionSpec {
+            start_us: 2_000,
+            steps: 400,
+            speed: 40_000,
+            accel: 400_000,
+            forward: true,
+        },
+        // A second start (the train idle in between): its first interrupt is late too.
+        MotionSpec {
+            start_us: 200_000,
+            steps: 400,
+            speed: 40_000,
+            accel: 400_000,
+            forward: false,
+        },
+    ];
+    // On time: every step exact, no overrun, at both starts.
+    let run = simulate(&motions, DEFAULT_PULSE_US, 5, &|_| 100, &|_| T);
+    assert_eq!(run.overruns, 0);
+    assert_exact(&motions, &run, DEFAULT_PULSE_US);
+    for (k, start_us) in [(0usize, 2_000u64), (1, 200_000)] {
+        // The first wrap at or after this motion's start is the first period's end; its
+        // interrupt comes 2 ms late (the second period, the first step's interval, is 0.93 ms).
+        let start = start_us * T;
+        let hit = std::cell::Cell::new(false);
+        let isr_latency = |t: u64| {
+            if t >= start && !hit.replace(true) {
+                2_000 * T
+            } else {
+                T
+            }
+        };
+        let run = simulate(&motions, DEFAULT_PULSE_US, 5, &|_| 100, &isr_latency);
+        let first_wrap = *run.wraps.iter().find(|&&w| w >= start).unwrap();
+        assert!(
+            run.isr_runs.contains(&(first_wrap + 2_000 * T)),
+            "motion {k}: the first interrupt did not run 2 ms after its wrap"
+        );
+        assert!(
+            run.wraps
+                .iter()
+                .filter(|&&w| w > first_wrap && w < first_wrap + 2_000 * T)
+                .count()
+                >= 1,
+            "motion {k}: no second wrap before the late interrupt"
+        );
+        assert_eq!(
+            run.overruns, 1,
+            "motion {k}: the late first interrupt was not reported"
+        );
+    }
 }
 
 #[test]
@@ -477,10 +557,8 @@ fn flush_accounts_for_every_step() {
     ] {
         let mut train = PulseTrain::new();
         let mut tim = Tim::default();
-        match train.push(&seg, 0) {
-            Push::Start { dir, first, next } => tim.start(dir, first, next),
-            other => panic!("{other:?}"),
-        }
+        assert!(queue(&mut train, &mut Regs(&mut tim), &seg, 0));
+        assert!(tim.cen);
         let (mut edges, mut isr_at) = (0u64, None);
         let mut t = 0u64;
         let dropped = loop {

@@ -23,8 +23,10 @@ use crate::profile::{ProfileError, RigProfile};
 /// [`HaltReason::StepLate`]: a step interrupt later than one timer period stops the motion.
 /// Version 6 (issue 39) appended [`Command::DarkCapture`]: the camera triggered with every laser
 /// off, for the dark frames a scan measures its noise floor from (its [`Captured`] says `lit`
-/// false; every earlier encoding is unchanged).
-pub const PROTOCOL_VERSION: u16 = 6;
+/// false; every earlier encoding is unchanged). Version 7 appended [`Command::BoardRegisters`] and
+/// [`Response::BoardRegisters`]: the board's registers that only hardware can show (brown-out
+/// level, flash accelerator, debug freeze, the step counter's wiring), for the self-test.
+pub const PROTOCOL_VERSION: u16 = 7;
 
 /// Galvo points per [`Command::ProgramPoints`] chunk: 32 points of at most 6 bytes each keep the
 /// chunk well inside [`crate::MAX_MESSAGE`].
@@ -140,6 +142,10 @@ pub enum Command {
     /// Answered with [`Response::CaptureStarted`], then [`EventKind::Captured`] with `lit` false
     /// and channel 0.
     DarkCapture(DarkCapture),
+    /// The board's registers the bring-up checklist compares with their expected values
+    /// (version 7). Answered with [`Response::BoardRegisters`] (`None` from a rig without them,
+    /// the simulated one).
+    BoardRegisters,
 }
 
 /// A turntable move. Speeds in steps/s, acceleration in steps/s².
@@ -303,6 +309,134 @@ pub enum Response {
     Events(EventReplay),
     /// Answer to [`Command::GetProfile`].
     Profile(RigProfile),
+    /// Answer to [`Command::BoardRegisters`].
+    BoardRegisters(Option<BoardRegisters>),
+}
+
+/// Registers of the STM32F446 that only the hardware can show, as the running firmware reads
+/// them ([`Command::BoardRegisters`]; `subsurf flash` reads the same addresses through the
+/// probe). [`BoardRegisters::checks`] compares each with the value the firmware sets.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct BoardRegisters {
+    /// FLASH_OPTCR (0x4002_3C14): the option bytes, BOR_LEV in bits 3:2.
+    pub flash_optcr: u32,
+    /// FLASH_ACR (0x4002_3C00): wait states, prefetch, instruction and data caches.
+    pub flash_acr: u32,
+    /// DBGMCU_APB1_FZ (0xE004_2008): which APB1 timers and watchdogs a debug halt freezes.
+    pub dbgmcu_apb1_fz: u32,
+    /// DBGMCU_APB2_FZ (0xE004_200C): the same for APB2 (TIM8).
+    pub dbgmcu_apb2_fz: u32,
+    /// TIM2_CR2 (0x4000_0004): MMS, what TIM2 sends on its trigger output.
+    pub tim2_cr2: u32,
+    /// TIM4_SMCR (0x4000_0808): TIM4's slave mode and trigger input.
+    pub tim4_smcr: u32,
+}
+
+/// One register compared with its expected value ([`BoardRegisters::checks`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RegisterCheck {
+    /// Register and field, as the reference manual names them.
+    pub name: &'static str,
+    /// The register's address.
+    pub address: u32,
+    /// The bits that matter.
+    pub mask: u32,
+    /// Their expected value (within `mask`).
+    pub expected: u32,
+    /// What the expected value means.
+    pub meaning: &'static str,
+}
+
+impl RegisterCheck {
+    /// Whether `value` (the whole register) has the expected bits.
+    pub const fn holds(&self, value: u32) -> bool {
+        value & self.mask == self.expected
+    }
+}
+
+impl BoardRegisters {
+    /// What each register must hold on a board running this firmware (RM0390), in the order of
+    /// [`BoardRegisters::values`]; the bring-up checklist lists the same (`docs/board.md`).
+    pub const CHECKS: [RegisterCheck; 6] = [
+        RegisterCheck {
+            name: "FLASH_OPTCR.BOR_LEV",
+            address: 0x4002_3C14,
+            mask: 0b11 << 2,
+            expected: 0b00 << 2,
+            meaning: "brown-out reset level 3 (2.70 V falling)",
+        },
+        RegisterCheck {
+            name: "FLASH_ACR.LATENCY/PRFTEN/ICEN/DCEN",
+            address: 0x4002_3C00,
+            mask: 0x0000_070F,
+            expected: 0x0000_0705,
+            meaning: "5 wait states, prefetch, instruction and data caches on",
+        },
+        RegisterCheck {
+            name: "DBGMCU_APB1_FZ.TIM2/TIM3/TIM4/TIM5/IWDG",
+            address: 0xE004_2008,
+            mask: 0x0000_100F,
+            expected: 0x0000_0005,
+            meaning: "a halt freezes the step timer and its counter; the trigger and deadline \
+                      timers and the watchdog run on",
+        },
+        RegisterCheck {
+            name: "DBGMCU_APB2_FZ.TIM8",
+            address: 0xE004_200C,
+            mask: 0x0000_0002,
+            expected: 0,
+            meaning: "a halt leaves the laser timer running, so a timed window still ends",
+        },
+        RegisterCheck {
+            name: "TIM2_CR2.MMS",
+            address: 0x4000_0004,
+            mask: 0b111 << 4,
+            expected: 0b010 << 4,
+            meaning: "TIM2's update event is its trigger output",
+        },
+        RegisterCheck {
+            name: "TIM4_SMCR.TS/SMS",
+            address: 0x4000_0808,
+            mask: 0b111 << 4 | 0b111,
+            expected: 0b001 << 4 | 0b111,
+            meaning: "TIM4 counts TIM2's updates (ITR1, external clock mode 1)",
+        },
+    ];
+
+    /// The registers in the order of [`BoardRegisters::CHECKS`].
+    pub const fn values(&self) -> [u32; 6] {
+        [
+            self.flash_optcr,
+            self.flash_acr,
+            self.dbgmcu_apb1_fz,
+            self.dbgmcu_apb2_fz,
+            self.tim2_cr2,
+            self.tim4_smcr,
+        ]
+    }
+
+    /// The registers from their values in the order of [`BoardRegisters::CHECKS`].
+    pub const fn from_values(v: [u32; 6]) -> Self {
+        Self {
+            flash_optcr: v[0],
+            flash_acr: v[1],
+            dbgmcu_apb1_fz: v[2],
+            dbgmcu_apb2_fz: v[3],
+            tim2_cr2: v[4],
+            tim4_smcr: v[5],
+        }
+    }
+
+    /// Each check with the value read and whether it holds.
+    pub fn checks(&self) -> [(RegisterCheck, u32, bool); 6] {
+        let values = self.values();
+        let mut out = [(Self::CHECKS[0], 0, false); 6];
+        for (slot, (check, value)) in out.iter_mut().zip(Self::CHECKS.iter().zip(values)) {
+            *slot = (*check, value, check.holds(value));
+        }
+        out
+    }
 }
 
 /// Events sent again from the rig's bounded event history (answer to [`Command::Replay`]).

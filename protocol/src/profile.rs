@@ -224,11 +224,13 @@ pub const MAX_STEP_RATE: u32 = 50_000;
 
 impl RigProfile {
     /// The key of this struct's postcard layout: CRC-32 of its shape (struct and field names,
-    /// field types, in order), which `protocol/tests/profile_layout.rs` computes from the
-    /// `Serialize` impl and requires to be this constant. The board's flash record carries it,
-    /// so a record written by a firmware with another layout reads as "no profile stored"
-    /// instead of being decoded field by field into the wrong fields (issue 38, F).
-    pub const LAYOUT: u32 = 0x6fa7_467d;
+    /// field types, in order, and each enum's variants with their wire indices), which
+    /// `protocol/tests/profile_layout.rs` computes from the `Serialize` impl and requires to be
+    /// this constant. The board's flash record carries it, so a record written by a firmware
+    /// with another layout (a field changed, or an enum's variants reordered, which postcard
+    /// writes as indices) reads as "no profile stored" instead of being decoded into the wrong
+    /// fields or variants.
+    pub const LAYOUT: u32 = 0xa77a_36a9;
 
     /// The documented wiring (README): 200-step motor, 1/16 microstepping, 5:1 belt (16 000
     /// steps per revolution), external 16-bit galvo DAC, three lasers, a machine-vision camera

@@ -297,6 +297,17 @@ impl<L: ByteLink> RigClient<L> {
         }
     }
 
+    /// The board's registers the bring-up checklist checks (brown-out level, flash accelerator,
+    /// debug freeze, the step counter's wiring); `None` from a rig without them (simulated).
+    pub fn board_registers(
+        &mut self,
+    ) -> Result<Option<subsurf_protocol::BoardRegisters>, RigClientError> {
+        match self.call(Command::BoardRegisters)? {
+            Response::BoardRegisters(r) => Ok(r),
+            other => Err(unexpected("BoardRegisters", other)),
+        }
+    }
+
     /// The profile the rig's flash holds (read from flash: what its next boot runs);
     /// `RigError::ProfileNotStored` when none is.
     pub fn get_stored_profile(&mut self) -> Result<RigProfile, RigClientError> {

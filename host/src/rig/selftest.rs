@@ -180,6 +180,38 @@ fn err(e: RigClientError) -> String {
     e.to_string()
 }
 
+/// The registers only the hardware can show, each with its expected value (the bring-up
+/// checklist, `docs/board.md`): one step per register, skipped on a rig without registers.
+fn board_registers<L: ByteLink>(rig: &mut RigClient<L>, s: &mut Steps) {
+    match rig.board_registers() {
+        Ok(Some(regs)) => {
+            for (check, value, holds) in regs.checks() {
+                let detail = format!(
+                    "{:#010x} (bits {:#010x}: {:#x}, expected {:#x}: {})",
+                    value,
+                    check.mask,
+                    value & check.mask,
+                    check.expected,
+                    check.meaning
+                );
+                let verdict = if holds { Verdict::Pass } else { Verdict::Fail };
+                s.record(check.name, verdict, detail);
+            }
+        }
+        Ok(None) => {
+            for check in subsurf_protocol::BoardRegisters::CHECKS {
+                s.record(check.name, Verdict::Skip, "no registers on this rig".into());
+            }
+        }
+        Err(e) => {
+            let why = err(e);
+            for check in subsurf_protocol::BoardRegisters::CHECKS {
+                s.record(check.name, Verdict::Fail, why.clone());
+            }
+        }
+    }
+}
+
 /// The steps that move the turntable.
 const MOTION_STEPS: [&str; 4] = [
     "home",
@@ -219,6 +251,7 @@ pub fn run<L: ByteLink>(
             hello.protocol_version, v.major, v.minor, v.patch, hello.boot_nonce
         ),
     );
+    board_registers(rig, &mut s);
     let polarity_ok = profile_read_back(rig, options, &mut s);
     s.result(
         "config read-back",

@@ -24,7 +24,7 @@
 //! ([`erase_watchdog`]) so it cannot reset the chip mid-erase, as it did with the 128 KiB sector
 //! (up to 2 s) and a 500 ms watchdog.
 
-use subsurf_protocol::RigProfile;
+use subsurf_protocol::{RigProfile, SaveError};
 
 /// Record magic, "SSRP" read as little-endian u32.
 pub const RECORD_MAGIC: u32 = u32::from_le_bytes(*b"SSRP");
@@ -268,4 +268,68 @@ pub fn erase_watchdog() -> Option<(u8, u16)> {
 /// The longest a save blocks everything, ms: one sector erase and one record's programming.
 pub const fn worst_case_blocking_ms() -> u32 {
     SECTOR_ERASE_MAX_MS + ((MAX_RECORD / 4) as u32 * WORD_PROGRAM_MAX_US).div_ceil(1_000)
+}
+
+/// The two profile sectors as a save touches them: the board's flash controller (`store.rs`) or
+/// an in-memory model in the host tests, which run this module's save and read-back as shipped.
+pub trait SectorFlash {
+    /// Sector `i`'s bytes as a read sees them (on the board through the flash's data cache).
+    fn sector(&self, i: usize) -> &[u8];
+    /// Erase sector `i`.
+    fn erase(&mut self, i: usize) -> Result<(), SaveError>;
+    /// Program `bytes` at offset `at` of sector `i`.
+    fn program(&mut self, i: usize, at: usize, bytes: &[u8]) -> Result<(), SaveError>;
+    /// Drop what the flash's data cache holds: after an erase it may still hold the erased
+    /// bytes, and a read-back would verify them instead of the flash.
+    fn reset_data_cache(&mut self);
+}
+
+/// The newest stored payload (`None`: nothing valid stored).
+pub fn load<'b>(flash: &impl SectorFlash, out: &'b mut [u8]) -> Option<&'b [u8]> {
+    let payload = latest_payload([flash.sector(0), flash.sector(1)])?;
+    let out = out.get_mut(..payload.len())?;
+    out.copy_from_slice(payload);
+    Some(out)
+}
+
+/// The stored rig profile, if a valid one of this firmware's layout is.
+pub fn load_profile(flash: &impl SectorFlash) -> Option<RigProfile> {
+    let mut buf = [0u8; MAX_PAYLOAD];
+    load(flash, &mut buf).and_then(decode_profile)
+}
+
+/// Store `payload` as the newest record, erasing the other sector first when the one in use is
+/// full (and then resetting the data cache); where it went.
+pub fn save(flash: &mut impl SectorFlash, payload: &[u8]) -> Result<Placement, SaveError> {
+    let scans = [scan(flash.sector(0)), scan(flash.sector(1))];
+    let mut record = [0u8; MAX_RECORD];
+    let len = record_len(payload.len());
+    let place = place(&scans, len, SECTOR_LEN);
+    let n = encode(payload, place.seq, &mut record).map_err(|_| SaveError::Encode)?;
+    let record = record.get(..n).ok_or(SaveError::Encode)?;
+    if place.erase {
+        let erased = flash.erase(place.sector);
+        flash.reset_data_cache();
+        erased?;
+    }
+    flash.program(place.sector, place.at, record)?;
+    Ok(place)
+}
+
+/// Save `profile` and read it back the way a boot does: `Ok` only when flash now returns this
+/// profile, `Err(SaveError::Verify)` when it returns anything else (a stuck bit, a write that
+/// did not take, stale cached data). A profile flash already holds is not written again (no
+/// wear, no erase stall).
+pub fn store_profile(flash: &mut impl SectorFlash, profile: &RigProfile) -> Result<(), SaveError> {
+    if load_profile(flash).as_ref() == Some(profile) {
+        return Ok(());
+    }
+    let mut buf = [0u8; MAX_PAYLOAD];
+    let bytes = encode_profile(profile, &mut buf).ok_or(SaveError::Encode)?;
+    save(flash, bytes)?;
+    if load_profile(flash).as_ref() == Some(profile) {
+        Ok(())
+    } else {
+        Err(SaveError::Verify)
+    }
 }

@@ -26,9 +26,8 @@ use embassy_sync::signal::Signal;
 use heapless::Deque;
 use subsurf_firmware::hal::CameraEdge;
 
-use crate::outputs::{force_lasers_off, force_trigger_off};
-use crate::safety::{SafetyEdges, SafetyPins, on_exti};
-use crate::stepper;
+use crate::outputs::BoardRegs;
+use crate::safety::{SafetyEdges, SafetyPins};
 
 const INTERLOCK_LINE: usize = 4;
 const ESTOP_LINE: usize = 5;
@@ -57,6 +56,16 @@ pub fn latched() -> SafetyEdges {
     SafetyEdges {
         estop: ESTOP_LATCHED.load(Ordering::SeqCst),
         interlock: INTERLOCK_LATCHED.load(Ordering::SeqCst),
+    }
+}
+
+/// Latch unsafe edges (the EXTI handler, through `gate::on_safety_interrupt`).
+pub fn latch(edges: SafetyEdges) {
+    if edges.estop {
+        ESTOP_LATCHED.store(true, Ordering::SeqCst);
+    }
+    if edges.interlock {
+        INTERLOCK_LATCHED.store(true, Ordering::SeqCst);
     }
 }
 
@@ -89,21 +98,9 @@ impl<I: Interrupt> Handler<I> for Exti<I> {
             estop: pending & (1 << ESTOP_LINE) != 0,
             interlock: pending & (1 << INTERLOCK_LINE) != 0,
         };
-        let cut = on_exti(edges, safety_pins());
-        if cut.lasers {
-            force_lasers_off();
-            force_trigger_off();
-        }
-        if cut.stepper {
-            // Registers only: the queue stays, so the core's flush can count what was not output.
-            stepper::fault_stop();
-        }
-        if edges.estop {
-            ESTOP_LATCHED.store(true, Ordering::SeqCst);
-        }
-        if edges.interlock {
-            INTERLOCK_LATCHED.store(true, Ordering::SeqCst);
-        }
+        // Park and stop first (the step timer through its registers only: the queue stays, so
+        // the core's flush can count what was not output), then latch for the core.
+        crate::gate::on_safety_interrupt(&mut BoardRegs, edges);
         if pending & (1 << EXPOSURE_LINE) != 0 {
             let at = embassy_time::Instant::now().as_micros();
             let high = pac::GPIOB.idr().read().idr(6) == pac::gpio::vals::Idr::HIGH;
@@ -133,7 +130,8 @@ pub fn push_edge(edge: CameraEdge) {
         if let Ok(mut q) = q.try_borrow_mut() {
             if q.is_full() {
                 q.pop_front();
-                defmt::warn!("camera edge queue full; oldest dropped");
+                // No log here: a defmt line is a critical section of its own (`notes.rs`).
+                crate::notes::count(crate::notes::Counter::EdgesDropped);
             }
             let _ = q.push_back(edge);
         }

@@ -3,12 +3,13 @@
 //! The board binary only owns the hardware and pumps the sans-IO core (`subsurf_firmware`): bytes
 //! from the USART2 link go into the core, its frames go back out, its hardware calls land on the
 //! drivers in this directory, and its next deadline becomes an embassy timer. Every decision lives
-//! in the core; the binary adds the fault paths the core cannot see (panic, HardFault, a stuck
-//! executor via the light's deadline timer and the independent watchdog) and parks the lasers and
-//! the trigger at off on each of them.
+//! in the core; the binary adds the fault paths the core cannot see (panic, HardFault, NMI, any
+//! unexpected interrupt, a stuck executor via the light's deadline timer and the independent
+//! watchdog) and parks the lasers and the trigger at off on each of them (docs/board.md).
 //!
-//! Boot order: clocks, then the rig profile from flash (a memory-mapped read, no pin involved),
-//! then the laser and trigger timers set up for the profile's polarities. The pins themselves stay
+//! Boot order: EN to the stored profile's disabled level (before the clocks), clocks, the flash
+//! accelerator and the debug-halt freeze, then the rig profile from flash (a memory-mapped read, no
+//! pin involved), then the laser and trigger timers set up for the profile's polarities. The pins themselves stay
 //! high-impedance, as at reset, until a window drives one to its active level (the wiring's pull
 //! resistors hold them off, whatever their polarity: `safety.rs`).
 //!
@@ -19,7 +20,9 @@
 mod exposure;
 mod flash_record;
 mod galvo_map;
+mod gate;
 mod inputs;
+mod notes;
 mod outputs;
 mod pins;
 mod pulse_train;
@@ -40,8 +43,7 @@ use static_cell::StaticCell;
 
 use crate::inputs::{InputParts, InputPins};
 use crate::outputs::{
-    CameraIo, CameraPins, CameraTiming, Galvo, GalvoPins, LightsOut, force_lasers_off,
-    force_trigger_off,
+    CameraIo, CameraPins, CameraTiming, Galvo, GalvoPins, LightsOut, park_lights,
 };
 use crate::pins::Board;
 use crate::stepper::{StepGen, StepperIo};
@@ -104,7 +106,12 @@ pub static RIG_ALIVE: AtomicU32 = AtomicU32::new(0);
 
 #[embassy_executor::main]
 async fn main(spawner: Spawner) {
+    // Before anything else, clocks included: EN to the stored profile's "disabled" level (or left
+    // high-impedance with none stored, where the wiring's external pull holds it disabled).
+    stepper::hold_enable_disabled_at_reset();
     let p = embassy_stm32::init(clock_config());
+    enable_flash_accelerator();
+    freeze_steps_on_halt();
     // The time driver's interrupt (TIM12 shares its vector with TIM8's break, unused), below the
     // step and safety interrupts; see `PRIO_SAFETY`.
     {
@@ -151,10 +158,12 @@ async fn main(spawner: Spawner) {
         board.dir,
         board.enable,
         StepperIo::from(&profile.motor),
+        stored.is_some(),
     );
-    // EN stays released (no holding torque) until the rig task has a stored profile and reads
-    // the e-stop closed (`rig::follow_enable`): no motion on guessed mechanics, none before the
-    // e-stop input is even set up (issue 38, G).
+    // EN stays released (no holding torque) until the rig task has a stored profile, reads the
+    // e-stop closed and no e-stop fault is left (`rig::follow_enable`): no motion on guessed
+    // mechanics, none before the e-stop input is even set up. With no profile stored EN is not
+    // driven at all (the wiring's pull holds the driver disabled).
     let galvo = Galvo::new(
         GalvoPins {
             spi: board.galvo_spi,
@@ -335,8 +344,7 @@ async fn watchdog_task(mut watchdog: IndependentWatchdog<'static, peripherals::I
 /// panic-probe is not used because it cannot switch the lasers off first.
 #[panic_handler]
 fn panic(info: &core::panic::PanicInfo) -> ! {
-    force_lasers_off();
-    force_trigger_off();
+    park_lights();
     stepper::fault_stop();
     defmt::error!("panic: {}", defmt::Display2Format(info));
     cortex_m::asm::udf()
@@ -351,8 +359,28 @@ fn panic(info: &core::panic::PanicInfo) -> ! {
 /// breaks into the attached debugger itself once the pins are parked.
 #[cortex_m_rt::exception]
 unsafe fn HardFault(_frame: &cortex_m_rt::ExceptionFrame) -> ! {
-    force_lasers_off();
-    force_trigger_off();
+    park_and_wait()
+}
+
+/// An interrupt or exception nothing was bound to (cortex-m-rt's default would spin at that
+/// vector's priority, maybe above the light's deadline timer, with a laser on until the
+/// watchdog): park every output first, then wait for the watchdog as a HardFault does.
+#[cortex_m_rt::exception]
+unsafe fn DefaultHandler(_irqn: i16) -> ! {
+    park_and_wait()
+}
+
+/// The non-maskable interrupt (on this chip: the clock security system, unused, or a pended
+/// NMI): the same.
+#[cortex_m_rt::exception]
+unsafe fn NonMaskableInt() -> ! {
+    park_and_wait()
+}
+
+/// Every fault vector: lasers and trigger parked, stepper stopped, through registers only; then
+/// a breakpoint when a debugger is attached, else a spin until the watchdog resets the chip.
+fn park_and_wait() -> ! {
+    park_lights();
     stepper::fault_stop();
     // SAFETY: a read of the core's debug status register.
     let debugger = unsafe { (*cortex_m::peripheral::DCB::PTR).dhcsr.read() } & 1 != 0;
@@ -362,6 +390,55 @@ unsafe fn HardFault(_frame: &cortex_m_rt::ExceptionFrame) -> ! {
     loop {
         cortex_m::asm::nop();
     }
+}
+
+/// FLASH_ACR with the ART accelerator on: prefetch, instruction and data caches (RM0390 §3.4.2).
+/// embassy-stm32's clock set-up writes the whole register with the wait states only, which turns
+/// all three off; at 168 MHz and 5 wait states every flash fetch would stall the step interrupt.
+/// Caches are reset while off, then enabled. The profile store's own erase resets the data cache
+/// again afterwards (`store.rs`), so a read-back never sees stale data.
+fn enable_flash_accelerator() {
+    let f = embassy_stm32::pac::FLASH;
+    f.acr().modify(|w| {
+        w.set_icen(false);
+        w.set_dcen(false);
+    });
+    f.acr().modify(|w| {
+        w.set_icrst(true);
+        w.set_dcrst(true);
+    });
+    f.acr().modify(|w| {
+        w.set_icrst(false);
+        w.set_dcrst(false);
+    });
+    f.acr().modify(|w| {
+        w.set_prften(true);
+        w.set_icen(true);
+        w.set_dcen(true);
+    });
+}
+
+/// What a debug halt stops (DBGMCU_APB1_FZ / APB2_FZ, RM0390 §33.16.4-5), written at every boot
+/// since a probe's own configuration may have set other bits:
+/// - the step timer and its update counter (TIM2, TIM4) freeze: TIM2 would otherwise replay its
+///   last preloaded period for the whole halt, stepping the motor with nobody feeding it;
+/// - the laser and trigger timers (TIM8, TIM3) keep running, so a timed window that is on at the
+///   halt still ends at its match in hardware (frozen, it would hold its laser on);
+/// - the light's deadline timer (TIM5) keeps counting (its cut runs at once on resume) and the
+///   independent watchdog keeps running, so a halt longer than its timeout resets the chip and
+///   every pin returns to its reset state (off). A laser switched on by software (`laser on`)
+///   has no timer to end it: on this silicon nothing but that watchdog reset turns it off
+///   during a halt (the bring-up checklist says so).
+fn freeze_steps_on_halt() {
+    let d = embassy_stm32::pac::DBGMCU;
+    d.apb1fzr().modify(|w| {
+        w.set_tim2(true);
+        w.set_tim4(true);
+        w.set_tim3(false);
+        w.set_tim5(false);
+        w.set_iwdg(false);
+    });
+    d.apb2fzr().modify(|w| w.set_tim8(false));
 }
 
 /// Clear the debugger's vector catch on HardFault (DEMCR bit 10, VC_HARDERR; ARMv7-M ARM

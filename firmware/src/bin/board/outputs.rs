@@ -12,7 +12,7 @@
 //! A laser or trigger pin is high-impedance (an input, no pull) whenever it is not inside a
 //! window, and that is "off" whatever the polarity: the documented wiring's resistor holds each
 //! line at its off level (`safety.rs`). It is in alternate-function mode only while its timer
-//! drives it on; [`force_lasers_off`] and [`force_trigger_off`] park every pin by one MODER write,
+//! drives it on; [`park_lights`] parks every pin by one MODER write (`gate.rs`),
 //! whatever the timers do and whatever polarity is stored. Active-low pins are open-drain, so
 //! they never drive high at all. Before a laser pin is connected, its parked line is read: a line
 //! whose resistor holds the level the stored polarity calls "on" means the profile's polarity is
@@ -39,8 +39,9 @@ use embassy_stm32::timer::low_level::Timer;
 
 use crate::exposure::{LightsOutTimer, Plan, lights_out_timer};
 use crate::galvo_map::{GalvoMap, GalvoOutput, ad5689_frames};
-use crate::pins::{LASER_PINS, LASER_TIMER_CHANNELS, TRIGGER_PIN, TRIGGER_TIMER_CHANNEL};
-use crate::safety::{OutputType, PinMode, Polarity, idles_off, moder_with, output_type, park};
+use crate::gate::{self, LASER_PIN_NUMBERS, Latched, LightRegs, TRIGGER_PIN_NUMBER};
+use crate::pins::{LASER_TIMER_CHANNELS, TRIGGER_TIMER_CHANNEL};
+use crate::safety::{OutputType, Polarity, SafetyEdges, SafetyPins, idles_off, output_type};
 /// The deadline timer cut the light: no laser comes on again until the rig task re-arms it.
 static LIGHTS_OUT: AtomicBool = AtomicBool::new(false);
 
@@ -48,50 +49,86 @@ static LIGHTS_OUT: AtomicBool = AtomicBool::new(false);
 const TIM8_AF: u8 = 3;
 const TIM3_AF: u8 = 2;
 
-fn park_pin(port: pac::gpio::Gpio, pin: u8) {
-    port.moder().modify(|w| w.0 = park(w.0, pin));
-}
+/// The board's registers as the connect and the cut see them (`gate.rs`).
+pub struct BoardRegs;
 
-/// Park every laser enable at off (high-impedance: the wiring's resistor holds the off level)
-/// and take the pins from the timer, through MODER only: safe from any interrupt or fault
-/// handler, whoever owns the pins, and independent of the stored polarity. Used by every fault
-/// path (panic, HardFault, e-stop and interlock interrupts, the deadline timer) before anything
-/// else.
-pub fn force_lasers_off() {
-    for (port, pin) in LASER_PINS {
-        park_pin(port, pin);
+impl LightRegs for BoardRegs {
+    #[inline(always)]
+    fn moder(&mut self) -> u32 {
+        pac::GPIOC.moder().read().0
+    }
+    #[inline(always)]
+    fn set_moder(&mut self, moder: u32) {
+        pac::GPIOC
+            .moder()
+            .write_value(pac::gpio::regs::Moder(moder));
+    }
+    #[inline(always)]
+    fn idr(&mut self) -> u32 {
+        pac::GPIOC.idr().read().0
+    }
+    #[inline(always)]
+    fn safety_pins(&mut self) -> SafetyPins {
+        crate::inputs::safety_pins()
+    }
+    #[inline(always)]
+    fn latched(&mut self) -> Latched {
+        Latched {
+            edges: crate::inputs::latched(),
+            lights_out: LIGHTS_OUT.load(Ordering::SeqCst),
+        }
+    }
+    #[inline(always)]
+    fn latch(&mut self, edges: SafetyEdges) {
+        crate::inputs::latch(edges);
+    }
+    #[inline(always)]
+    fn cut_light(&mut self) {
+        LIGHTS_OUT.store(true, Ordering::SeqCst);
+    }
+    #[inline(always)]
+    fn stop_exposure_timers(&mut self) {
+        stop_exposure_timers();
+    }
+    #[inline(always)]
+    fn stop_steps(&mut self) {
+        crate::stepper::fault_stop();
+    }
+    #[inline(always)]
+    fn masked<R>(&mut self, f: impl FnOnce(&mut Self) -> R) -> R {
+        cortex_m::interrupt::free(|_| f(self))
     }
 }
 
-/// Park the camera trigger (high-impedance), the same way.
-pub fn force_trigger_off() {
-    let (port, pin) = TRIGGER_PIN;
-    park_pin(port, pin);
+/// Park every laser enable and the trigger at off (high-impedance: the wiring's resistors hold
+/// the off levels) and take the pins from the timers, by one MODER write: safe from any
+/// interrupt or fault handler, whoever owns the pins, and independent of the stored polarity.
+/// Every fault path (panic, HardFault, NMI, any unexpected interrupt, the e-stop and interlock
+/// interrupt, the deadline timer) runs it before anything else.
+pub fn park_lights() {
+    gate::park_all(&mut BoardRegs);
 }
 
 /// Park laser pin `channel` alone.
 fn park_laser(channel: usize) {
-    if let Some(&(port, pin)) = LASER_PINS.get(channel) {
-        park_pin(port, pin);
+    if channel < LASER_PIN_NUMBERS.len() {
+        gate::park_some(&mut BoardRegs, 1 << channel, false);
     }
 }
 
 /// Whether laser pin `channel` is connected to its timer (driven).
 fn laser_connected(channel: usize) -> bool {
-    LASER_PINS
+    LASER_PIN_NUMBERS
         .get(channel)
-        .is_some_and(|&(port, pin)| port.moder().read().0 >> (2 * u32::from(pin)) & 0b11 != 0b00)
+        .is_some_and(|&pin| gate::connected(BoardRegs.moder(), pin))
 }
 
 /// Whether laser pin `channel`, parked, reads the off level `polarity` expects (its resistor's
 /// level). Meaningful only while the pin is parked.
 fn laser_idles_off(channel: usize, polarity: Polarity) -> bool {
-    LASER_PINS.get(channel).is_some_and(|&(port, pin)| {
-        idles_off(
-            polarity,
-            port.idr().read().idr(usize::from(pin)) == pac::gpio::vals::Idr::HIGH,
-        )
-    })
+    LASER_PIN_NUMBERS
+        .get(channel)
+        .is_some_and(|&pin| idles_off(polarity, (BoardRegs.idr() >> pin) & 1 != 0))
 }
 
 /// OTYPER for `pin`: open-drain for an active-low line, push-pull for an active-high one.
@@ -108,20 +145,6 @@ fn set_output_type(port: pac::gpio::Gpio, pin: u8, polarity: Polarity) {
 fn stop_exposure_timers() {
     pac::TIM8.cr1().modify(|w| w.set_cen(false));
     pac::TIM3.cr1().modify(|w| w.set_cen(false));
-}
-
-/// Hand laser pin `channel` to the timer (its output now decides the level).
-fn connect_laser(channel: usize) {
-    if let Some(&(port, pin)) = LASER_PINS.get(channel) {
-        port.moder()
-            .modify(|w| w.0 = moder_with(w.0, pin, PinMode::Alternate));
-    }
-}
-
-fn connect_trigger() {
-    let (port, pin) = TRIGGER_PIN;
-    port.moder()
-        .modify(|w| w.0 = moder_with(w.0, pin, PinMode::Alternate));
 }
 
 fn set_laser_ocm(channel: usize, mode: Ocm) {
@@ -202,10 +225,10 @@ impl CameraTiming {
         // Timers clocked, their outputs idle before any pin could reach them.
         let tim8_ = Timer::new(tim8);
         let tim3_ = Timer::new(tim3);
-        for (port, pin) in LASER_PINS {
-            prepare_pin(port, pin, TIM8_AF);
+        for pin in LASER_PIN_NUMBERS {
+            prepare_pin(pac::GPIOC, pin, TIM8_AF);
         }
-        prepare_pin(TRIGGER_PIN.0, TRIGGER_PIN.1, TIM3_AF);
+        prepare_pin(pac::GPIOC, TRIGGER_PIN_NUMBER, TIM3_AF);
         let t8 = pac::TIM8;
         t8.cr1().modify(|w| {
             w.set_opm(true);
@@ -242,14 +265,13 @@ impl CameraTiming {
     pub fn configure(&mut self, io: CameraIo) {
         self.set_lasers(0, 0);
         self.set_trigger(false);
-        force_lasers_off();
-        force_trigger_off();
+        park_lights();
         let laser = Polarity::from_active_low(io.laser_active_low);
         let trigger = Polarity::from_active_low(io.trigger_active_low);
-        for (port, pin) in LASER_PINS {
-            set_output_type(port, pin, laser);
+        for pin in LASER_PIN_NUMBERS {
+            set_output_type(pac::GPIOC, pin, laser);
         }
-        set_output_type(TRIGGER_PIN.0, TRIGGER_PIN.1, trigger);
+        set_output_type(pac::GPIOC, TRIGGER_PIN_NUMBER, trigger);
         pac::TIM8.ccer().modify(|w| {
             for ch in LASER_TIMER_CHANNELS {
                 w.set_ccp(ch, io.laser_active_low);
@@ -275,21 +297,17 @@ impl CameraTiming {
                 .all(|i| laser_connected(i) || laser_idles_off(i, polarity))
     }
 
-    /// Connect laser pin `i` to its timer (its channel's output mode already set), unless its
-    /// parked line contradicts the stored polarity; whether it is connected.
-    fn connect_checked(&self, i: usize) -> bool {
-        if laser_connected(i) {
-            return true;
+    /// Connect laser channels `mask` (their timer channels' output modes already set) and, with
+    /// `trigger`, the trigger, in the one critical section of `gate::connect` that re-reads the
+    /// safety inputs and the latched cuts; a laser whose parked line contradicts the stored
+    /// polarity is not connected (noted for the log).
+    fn connect(&self, mask: u8, trigger: bool) -> gate::Connected {
+        let done = gate::connect(&mut BoardRegs, mask, trigger, self.laser_polarity);
+        let wrong = mask & !done.lasers;
+        if !done.refused && wrong != 0 {
+            crate::notes::note(crate::notes::Note::LaserPolarity(wrong));
         }
-        if !laser_idles_off(i, self.laser_polarity) {
-            defmt::error!(
-                "laser {}: its line idles at the level the profile calls on; not driven",
-                i
-            );
-            return false;
-        }
-        connect_laser(i);
-        true
+        done
     }
 
     /// Park the pins once a timed exposure's timers have stopped on their own (the laser went off
@@ -301,8 +319,7 @@ impl CameraTiming {
                 set_laser_ocm(ch, Ocm::FORCE_INACTIVE);
             }
             set_trigger_ocm(Ocm::FORCE_INACTIVE);
-            force_lasers_off();
-            force_trigger_off();
+            park_lights();
         }
     }
 
@@ -318,20 +335,29 @@ impl CameraTiming {
     }
 
     /// Software control: bit `i` of `mask` = laser channel `i` on. Ends any timed exposure.
-    /// Nothing comes on while the polarity is unknown or after the deadline timer cut the light.
+    /// Nothing comes on while the polarity is unknown, after the deadline timer cut the light, or
+    /// while a safety input or latched edge says stop (checked in the connect's critical section).
     pub fn set_lasers(&mut self, mask: u8, now_us: u64) {
         self.stop_timer(now_us);
         let lights_out = LIGHTS_OUT.load(Ordering::SeqCst);
+        let mut want = 0u8;
         for (i, ch) in LASER_TIMER_CHANNELS.into_iter().enumerate() {
             let on = !lights_out && i < usize::from(self.channels) && mask & (1 << i) != 0;
             if on {
                 set_laser_ocm(ch, Ocm::FORCE_ACTIVE);
-                if !self.connect_checked(i) {
-                    set_laser_ocm(ch, Ocm::FORCE_INACTIVE);
-                }
+                want |= 1 << i;
             } else {
                 set_laser_ocm(ch, Ocm::FORCE_INACTIVE);
                 park_laser(i);
+            }
+        }
+        if want == 0 {
+            return;
+        }
+        let done = self.connect(want, false);
+        for (i, ch) in LASER_TIMER_CHANNELS.into_iter().enumerate() {
+            if want & !done.lasers & (1 << i) != 0 {
+                set_laser_ocm(ch, Ocm::FORCE_INACTIVE);
             }
         }
     }
@@ -344,10 +370,12 @@ impl CameraTiming {
         }
         if high && self.channels > 0 && !LIGHTS_OUT.load(Ordering::SeqCst) {
             set_trigger_ocm(Ocm::FORCE_ACTIVE);
-            connect_trigger();
+            if !self.connect(0, true).trigger {
+                set_trigger_ocm(Ocm::FORCE_INACTIVE);
+            }
         } else {
             set_trigger_ocm(Ocm::FORCE_INACTIVE);
-            force_trigger_off();
+            gate::park_some(&mut BoardRegs, 0, true);
         }
     }
 
@@ -388,20 +416,34 @@ impl CameraTiming {
         t3.sr().write_value(pac::timer::regs::SrGp16(0));
         // PWM mode 2 with the counter at 0 below the compare: inactive until the rise.
         set_trigger_ocm(Ocm::PWM_MODE2);
-        connect_trigger();
+        let mut want = 0u8;
         for (i, ch) in LASER_TIMER_CHANNELS.into_iter().enumerate() {
             t8.ccr(ch).write(|w| w.set_ccr(plan.laser.ccr));
             if i < usize::from(self.channels) && mask & (1 << i) != 0 {
                 // On now; the match mode keeps that level until the counter reaches the end.
                 set_laser_ocm(ch, Ocm::FORCE_ACTIVE);
-                if self.connect_checked(i) {
-                    set_laser_ocm(ch, Ocm::INACTIVE_ON_MATCH);
-                } else {
-                    set_laser_ocm(ch, Ocm::FORCE_INACTIVE);
-                }
+                want |= 1 << i;
             } else {
                 set_laser_ocm(ch, Ocm::FORCE_INACTIVE);
                 park_laser(i);
+            }
+        }
+        let done = self.connect(want, true);
+        if done.refused {
+            for ch in LASER_TIMER_CHANNELS {
+                set_laser_ocm(ch, Ocm::FORCE_INACTIVE);
+            }
+            set_trigger_ocm(Ocm::FORCE_INACTIVE);
+            return false;
+        }
+        for (i, ch) in LASER_TIMER_CHANNELS.into_iter().enumerate() {
+            if want & (1 << i) != 0 {
+                let mode = if done.lasers & (1 << i) != 0 {
+                    Ocm::INACTIVE_ON_MATCH
+                } else {
+                    Ocm::FORCE_INACTIVE
+                };
+                set_laser_ocm(ch, mode);
             }
         }
         self.timed = true;
@@ -481,10 +523,7 @@ impl Handler<TIM5> for LightsOutInterrupt {
             return;
         }
         t.sr().modify(|w| w.set_uif(false));
-        LIGHTS_OUT.store(true, Ordering::SeqCst);
-        stop_exposure_timers();
-        force_lasers_off();
-        force_trigger_off();
+        gate::on_lights_out(&mut BoardRegs);
     }
 }
 
@@ -585,7 +624,7 @@ impl Galvo {
                 for frame in ad5689_frames(a, b) {
                     self.spi.sync.set_low();
                     if self.spi.spi.blocking_write(&frame).is_err() {
-                        defmt::warn!("galvo DAC write failed");
+                        crate::notes::note(crate::notes::Note::GalvoWrite);
                     }
                     self.spi.sync.set_high();
                 }

@@ -104,16 +104,9 @@ impl Board {
     }
 }
 
-/// Laser enable pins (R, G, B) as (GPIO port, pin number), for the fault paths that cannot own
-/// the drivers (panic, HardFault, the EXTI interrupt): they write the port's registers directly.
-pub const LASER_PINS: [(embassy_stm32::pac::gpio::Gpio, u8); 3] = [
-    (embassy_stm32::pac::GPIOC, 6),
-    (embassy_stm32::pac::GPIOC, 8),
-    (embassy_stm32::pac::GPIOC, 9),
-];
-
-/// The camera trigger as (GPIO port, pin number), for the same fault paths.
-pub const TRIGGER_PIN: (embassy_stm32::pac::gpio::Gpio, u8) = (embassy_stm32::pac::GPIOC, 7);
+// The laser enables (PC6, PC8, PC9) and the trigger (PC7) are written by number on GPIOC by
+// the fault paths that cannot own the drivers (panic, HardFault, the EXTI and deadline
+// interrupts): `gate::LASER_PIN_NUMBERS` and `gate::TRIGGER_PIN_NUMBER`.
 
 /// TIM8 channel index (0-based) of each laser (R, G, B).
 pub const LASER_TIMER_CHANNELS: [usize; 3] = [0, 2, 3];

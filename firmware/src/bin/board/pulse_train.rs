@@ -140,8 +140,8 @@ pub struct PulseTrain {
     /// Direction of the last queued step.
     last_forward: bool,
     stalls: u32,
-    /// The hardware's update count ([`StepTimer::updates`]) at the end of the last interrupt;
-    /// `None` until the first interrupt after a start (no count to compare with yet).
+    /// The hardware's update count ([`StepTimer::updates`]) at the end of the last interrupt, or
+    /// at the start ([`PulseTrain::started`]); `None` before any start.
     last_seen: Option<u16>,
     /// Interrupts that came after the next update event had already happened.
     overruns: u32,
@@ -167,6 +167,40 @@ pub trait StepTimer {
     /// Update events the hardware itself counted since the timer started, wrapping (the board:
     /// TIM4 clocked by TIM2's update TRGO, RM0390 §17.3.15 "Timer synchronization").
     fn updates(&mut self) -> u16;
+}
+
+/// The step timer as a start touches it (the board's TIM2, or a model in the host tests).
+pub trait StartTimer: StepTimer {
+    /// The timer is idle: set DIR, load `first` into the active registers (an update
+    /// generation, which the hardware's update count may count too) and `next` into the
+    /// preloads, the output in its pulse mode; the counter not running yet.
+    fn load(&mut self, dir: bool, first: Preload, next: Preload);
+    /// Start counting from 0.
+    fn run(&mut self);
+}
+
+/// Queue `segment` (the rig task, with interrupts masked): into the train, and when the timer
+/// was idle, start it. A start takes the hardware's update count as the baseline of the overrun
+/// check *before* the counter runs, so the first interrupt after it is checked like every other:
+/// one that comes only after the second update event (the first period replayed on stale
+/// preloads) is an overrun. Without the baseline the first interrupt would only take the count,
+/// and a late one would pass unseen. `false` when the queue is full.
+pub fn queue(
+    train: &mut PulseTrain,
+    timer: &mut impl StartTimer,
+    segment: &StepSegment,
+    now: u64,
+) -> bool {
+    match train.push(segment, now) {
+        Push::Queued => true,
+        Push::Full => false,
+        Push::Start { dir, first, next } => {
+            timer.load(dir, first, next);
+            train.started(timer.updates());
+            timer.run();
+            true
+        }
+    }
 }
 
 /// The whole update interrupt: a period ended; count its step, set DIR for the period that
@@ -222,10 +256,10 @@ impl PulseTrain {
     }
 
     /// One more update event handled; `seen` is the hardware's count at the end of this
-    /// interrupt. `false` when it moved by more than one since the last interrupt: the following
-    /// update came before this interrupt had written its preloads (counted as an overrun). The
-    /// first interrupt after a start only takes the count (a difference, not an absolute, so the
-    /// start's own update event and the slave counter's synchronisation delay do not matter).
+    /// interrupt. `false` when it moved by more than one since the last interrupt (or since the
+    /// start's baseline): the following update came before this interrupt had written its
+    /// preloads (counted as an overrun). A difference, not an absolute: the baseline is read
+    /// after the start's own update generation has reached the counter.
     pub fn count_update(&mut self, seen: u16) -> bool {
         let last = self.last_seen.replace(seen);
         match last {
@@ -240,6 +274,12 @@ impl PulseTrain {
     /// Interrupts later than one period since the last call (and resets the count).
     pub fn take_overruns(&mut self) -> u32 {
         core::mem::take(&mut self.overruns)
+    }
+
+    /// The timer is about to run from a start; `baseline` is the hardware's update count now
+    /// (after the start's own update generation): the first interrupt must see exactly one more.
+    pub fn started(&mut self, baseline: u16) {
+        self.last_seen = Some(baseline);
     }
 
     /// Take the hardware's update count as the last one seen (a benchmark that raises updates
@@ -453,7 +493,8 @@ impl PulseTrain {
             self.end_at += u64::from(BLANK_TICKS);
         }
         self.running = true;
-        // The hardware's update count is compared from the first interrupt on.
+        // No baseline until the caller has taken the hardware's count ([`PulseTrain::started`],
+        // done by [`queue`]): until then the first interrupt would only take the count.
         self.last_seen = None;
         Push::Start {
             dir: forward,

@@ -33,6 +33,7 @@ use subsurf_protocol::{
 
 use crate::exposure::{LaserCall, on_set_lasers, plan_window};
 use crate::inputs::{self, InputPins};
+use crate::notes::{self, Note, note};
 use crate::outputs::{CameraIo, CameraTiming, Galvo, LightsOut, lights_out};
 use crate::stepper::{StepGen, StepperIo};
 use crate::store::Store;
@@ -199,16 +200,11 @@ impl CameraTrigger for Hardware {
             Ok(plan) => {
                 if self.camera.start(&plan, window.channel_mask, now_us()) {
                     let (rise, fall, off) = plan.edges_ns();
-                    defmt::debug!(
-                        "timed exposure: trigger {}..{} ns, laser off {} ns",
-                        rise,
-                        fall,
-                        off
-                    );
+                    note(Note::TimedExposure(rise, fall, off));
                     self.window_off_at = Some(window.laser_off_at);
                 }
             }
-            Err(e) => defmt::warn!("exposure window not timeable ({}); software edges", e),
+            Err(e) => note(Note::Untimeable(e)),
         }
     }
 }
@@ -225,30 +221,22 @@ impl CameraInput for Hardware {
 
 impl ProfileStore for Hardware {
     /// Write the record, then read flash back through the same path a boot takes: `Ok` only
-    /// when it returns this profile. The core calls this inside `SetProfile` while idle and dark
-    /// and answers with the outcome (issue 38, E). A profile flash already holds is not written
-    /// again (no wear, no erase stall).
+    /// when it returns this profile (`flash_record::store_profile`). The core calls this inside
+    /// `SetProfile` while idle and dark and answers with the outcome. A profile flash already
+    /// holds is not written again (no wear, no erase stall).
     fn store_profile(&mut self, profile: &RigProfile) -> Result<(), SaveError> {
-        if stored_profile(&self.store).as_ref() == Some(profile) {
-            self.apply_profile(profile);
-            return Ok(());
-        }
-        let mut buf = [0u8; crate::flash_record::MAX_PAYLOAD];
-        let bytes =
-            crate::flash_record::encode_profile(profile, &mut buf).ok_or(SaveError::Encode)?;
-        if let Err(e) = self.store.save(bytes) {
-            defmt::error!("rig profile not stored: {}", e);
-            return Err(e);
-        }
-        if stored_profile(&self.store).as_ref() == Some(profile) {
-            defmt::info!("rig profile stored in flash and read back");
-            // Applied now, before the core runs the next request of the same received chunk
-            // (it used to wait for the whole chunk: issue 38, J).
-            self.apply_profile(profile);
-            Ok(())
-        } else {
-            defmt::error!("rig profile written but flash reads back another");
-            Err(SaveError::Verify)
+        match crate::flash_record::store_profile(&mut self.store, profile) {
+            Ok(()) => {
+                defmt::info!("rig profile in flash, read back");
+                // Applied now, before the core runs the next request of the same received
+                // chunk.
+                self.apply_profile(profile);
+                Ok(())
+            }
+            Err(e) => {
+                defmt::error!("rig profile not stored: {}", e);
+                Err(e)
+            }
         }
     }
 
@@ -261,6 +249,17 @@ impl RigInputs for Hardware {
     fn read_inputs(&mut self) -> Inputs {
         sample_inputs()
     }
+
+    fn board_registers(&mut self) -> Option<subsurf_protocol::BoardRegisters> {
+        Some(subsurf_protocol::BoardRegisters {
+            flash_optcr: pac::FLASH.optcr().read().0,
+            flash_acr: pac::FLASH.acr().read().0,
+            dbgmcu_apb1_fz: pac::DBGMCU.apb1fzr().read().0,
+            dbgmcu_apb2_fz: pac::DBGMCU.apb2fzr().read().0,
+            tim2_cr2: pac::TIM2.cr2().read().0,
+            tim4_smcr: pac::TIM4.smcr().read().0,
+        })
+    }
 }
 
 /// Send every message the core has queued. (A halt needs nothing here: the core decelerates a
@@ -272,13 +271,20 @@ async fn transmit(rig: &mut Rig<Hardware>, tx: &mut BufferedUartTx<'static>, fra
             RigMessage::Event(event) => encode_event(event, frame),
         };
         let Ok(n) = encoded else {
-            defmt::error!("message does not fit a frame; dropped");
+            note(Note::Oversized);
             continue;
         };
+        if let RigMessage::Event(subsurf_protocol::Event {
+            kind: subsurf_protocol::EventKind::Halted { reason },
+            ..
+        }) = &message
+        {
+            note(Note::Halt(*reason));
+        }
         if let Some(bytes) = frame.get(..n)
             && tx.write_all(bytes).await.is_err()
         {
-            defmt::warn!("link write failed");
+            note(Note::Link);
         }
     }
 }
@@ -299,15 +305,16 @@ fn run_due(rig: &mut Rig<Hardware>) {
 }
 
 /// Energise the motor driver only with a stored profile (its EN polarity and mechanics are the
-/// wiring's) and the e-stop reading closed; release it otherwise (issue 38, G). Holding torque
-/// keeps the position from then on; a press forgets it anyway (`homed` cleared).
+/// wiring's), the e-stop reading closed and its fault cleared; release it otherwise. Releasing
+/// the e-stop alone does not energise it again: the core keeps `Fault::EmergencyStop` until the
+/// host's `ClearFault` (which it refuses while the e-stop is still open), and only then does EN
+/// come back. Holding torque keeps the position from then on; a press forgets it anyway
+/// (`homed` cleared).
 fn follow_enable(rig: &mut Rig<Hardware>) {
-    let want = rig.profile_known() && !sample_inputs().estop;
+    let want =
+        crate::safety::enable_allowed(rig.profile_known(), sample_inputs().estop, rig.fault());
     if rig.hw().stepper.energised() != want {
-        defmt::info!(
-            "motor driver {}",
-            if want { "energised" } else { "released" }
-        );
+        note(Note::Motor(want));
         rig.hw_mut().stepper.set_enabled(want);
     }
 }
@@ -317,10 +324,7 @@ fn follow_enable(rig: &mut Rig<Hardware>) {
 fn check_overruns(rig: &mut Rig<Hardware>) {
     let overruns = rig.hw_mut().stepper.take_overruns();
     if overruns > 0 {
-        defmt::error!(
-            "step interrupt later than one period ({} times): stopped",
-            overruns
-        );
+        note(Note::StepLate(overruns));
         let now = now_us();
         rig.hw_mut().now = now;
         rig.handle_step_late(now);
@@ -338,11 +342,7 @@ fn check_stalls(rig: &mut Rig<Hardware>) {
     let stopped =
         (rig.hw().stepper.stopped_under_motion() || rig.hw().held > 0) && !sample_inputs().estop;
     if stalls > 0 || stopped {
-        defmt::error!(
-            "step stall: {} steps missed their time ({} segments queued)",
-            stalls,
-            rig.hw().stepper.queued_segments()
-        );
+        note(Note::StepStall(stalls, rig.hw().stepper.queued_segments()));
         let now = now_us();
         rig.hw_mut().now = now;
         rig.handle_stall(now);
@@ -419,7 +419,11 @@ pub async fn run(
         follow_light_deadline(rig);
         if rig.fault() != last_fault {
             last_fault = rig.fault();
-            defmt::warn!("fault: {}", last_fault);
+            note(Note::Fault(last_fault));
+        }
+        if !rig.hw().stepper.is_running() {
+            // Log lines only while no step is emitted (`notes.rs`).
+            notes::drain();
         }
 
         let now = now_us();
@@ -444,7 +448,7 @@ pub async fn run(
                 rig.handle_bytes(now, rx_buf.get(..n).unwrap_or(&[]));
                 apply_profile(rig);
             }
-            Either3::First(Err(e)) => defmt::warn!("link read error: {}", e),
+            Either3::First(Err(_)) => note(Note::Link),
             Either3::Second(()) => {}
             Either3::Third(()) => pass_inputs(rig),
         }

@@ -149,3 +149,16 @@ pub fn on_exti(edges: SafetyEdges, pins: SafetyPins) -> Cut {
         stepper: estop,
     }
 }
+
+/// Whether the motor driver may be energised (EN driven to its active level): a profile known
+/// (EN's polarity and the mechanics are the wiring's), the e-stop closed, and no e-stop fault
+/// left. The core keeps `Fault::EmergencyStop` after a press until the host's `ClearFault`,
+/// which it refuses while the e-stop is still open, so releasing the e-stop alone does not
+/// energise the motor again.
+pub fn enable_allowed(
+    profile_known: bool,
+    estop: bool,
+    fault: Option<subsurf_protocol::Fault>,
+) -> bool {
+    profile_known && !estop && fault != Some(subsurf_protocol::Fault::EmergencyStop)
+}

@@ -22,7 +22,7 @@ use core::cell::RefCell;
 use core::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 
 use embassy_stm32::Peri;
-use embassy_stm32::gpio::{Level, Output, OutputType, Speed};
+use embassy_stm32::gpio::{Flex, Level, Output, OutputType, Pull, Speed};
 use embassy_stm32::interrupt::Priority;
 use embassy_stm32::interrupt::typelevel::{Handler, Interrupt, TIM2};
 use embassy_stm32::pac;
@@ -35,7 +35,7 @@ use embassy_stm32::timer::{Ch1, Channel};
 use embassy_sync::blocking_mutex::CriticalSectionMutex;
 use subsurf_firmware::hal::StepSegment;
 
-use crate::pulse_train::{Preload, PulseTrain, Push, StepTimer, TICKS_PER_US, on_interrupt};
+use crate::pulse_train::{Preload, PulseTrain, StartTimer, StepTimer, TICKS_PER_US, on_interrupt};
 
 static TRAIN: CriticalSectionMutex<RefCell<PulseTrain>> =
     CriticalSectionMutex::new(RefCell::new(PulseTrain::new()));
@@ -96,6 +96,26 @@ impl StepTimer for Tim2 {
     }
 }
 
+impl StartTimer for Tim2 {
+    fn load(&mut self, dir: bool, first: Preload, next: Preload) {
+        let tim = pac::TIM2;
+        set_dir(dir);
+        write_preload(first);
+        tim.cnt().write_value(0);
+        // Load the preloads into the active registers (no interrupt: URS = counter only).
+        tim.egr().write(|w| w.set_ug(true));
+        write_preload(next);
+        tim.ccmr_output(0).modify(|w| w.set_ocm(0, Ocm::PWM_MODE2));
+        // Let the update generation's trigger reach TIM4 (its slave input resynchronises over a
+        // few timer clocks) before the caller reads the baseline count.
+        cortex_m::asm::delay(16);
+    }
+
+    fn run(&mut self) {
+        pac::TIM2.cr1().modify(|w| w.set_cen(true));
+    }
+}
+
 /// The TIM2 update interrupt: a period ended; emit the next step of the queued segments.
 pub struct StepInterrupt;
 
@@ -121,6 +141,30 @@ pub fn fault_stop() {
     tim.cr1().modify(|w| w.set_cen(false));
     tim.ccmr_output(0)
         .modify(|w| w.set_ocm(0, Ocm::FORCE_INACTIVE));
+}
+
+/// EN (PB0) to the stored profile's "disabled" level, straight after reset and before the clocks
+/// are set up: GPIOB clocked, the output data bit first, then the pin an output. With no valid
+/// profile stored the polarity is unknown and EN stays an input (high-impedance, its reset
+/// state): the wiring's external pull resistor to the disabled level holds the driver off (an
+/// opto-isolated DM542/TB6600-class input reads a floating EN as enabled, so the resistor is
+/// required).
+pub fn hold_enable_disabled_at_reset() {
+    let Some(profile) = crate::store::stored_profile_quiet() else {
+        return;
+    };
+    // Disabled = high when EN is active low.
+    let high = profile.motor.enable_active_low;
+    pac::RCC.ahb1enr().modify(|w| w.set_gpioben(true));
+    let _ = pac::RCC.ahb1enr().read();
+    let gpio = pac::GPIOB;
+    if high {
+        gpio.bsrr().write(|w| w.set_bs(0, true));
+    } else {
+        gpio.bsrr().write(|w| w.set_br(0, true));
+    }
+    gpio.moder()
+        .modify(|w| w.set_moder(0, pac::gpio::vals::Moder::OUTPUT));
 }
 
 /// STEP/DIR/EN settings (from the rig profile's motor section).
@@ -156,9 +200,12 @@ pub struct StepGen {
     _counter: Timer<'static, peripherals::TIM4>,
     _step: PwmPin<'static, peripherals::TIM2, Ch1>,
     _dir: Output<'static>,
-    enable: Output<'static>,
+    /// EN (PB0): high-impedance until a profile says its polarity, then driven.
+    enable: Flex<'static>,
     /// EN low energises the driver.
     enable_active_low: bool,
+    /// EN's polarity is a stored profile's (until then EN is not driven).
+    enable_known: bool,
     /// The driver should be energised.
     energised: bool,
 }
@@ -166,6 +213,8 @@ pub struct StepGen {
 impl StepGen {
     /// Configure TIM2 and the pins; the timer starts stopped and the driver de-energised until
     /// [`StepGen::set_enabled`] (so a misconfigured EN polarity cannot jerk the motor at boot).
+    /// `enable_known`: `settings` come from a stored profile; without one EN stays
+    /// high-impedance (the wiring's pull holds the driver disabled) until [`StepGen::configure`].
     pub fn new(
         timer: Peri<'static, peripherals::TIM2>,
         counter: Peri<'static, peripherals::TIM4>,
@@ -173,6 +222,7 @@ impl StepGen {
         dir: Peri<'static, peripherals::PA1>,
         enable: Peri<'static, peripherals::PB0>,
         settings: StepperIo,
+        enable_known: bool,
     ) -> Self {
         DIR_INVERT.store(settings.invert_dir, Ordering::Relaxed);
         let step = PwmPin::new(step, OutputType::PushPull);
@@ -210,48 +260,59 @@ impl StepGen {
         // SAFETY: the handler is bound in `main` with `bind_interrupts!`; the state it shares is
         // behind a critical-section mutex and atomics.
         unsafe { TIM2::enable() };
-        let idle = if settings.enable_active_low {
-            Level::High
-        } else {
-            Level::Low
-        };
         let mut stepper = Self {
             _timer: timer,
             _counter: counter,
             _step: step,
             _dir: Output::new(dir, Level::Low, Speed::Low),
-            enable: Output::new(enable, idle, Speed::Low),
+            enable: Flex::new(enable),
             enable_active_low: settings.enable_active_low,
+            enable_known: false,
             energised: false,
         };
-        stepper.configure(settings);
+        if enable_known {
+            stepper.configure(settings);
+        } else {
+            stepper.set_timing(settings);
+            stepper.enable.set_as_input(Pull::None);
+        }
         stepper
     }
 
     /// Apply the STEP/DIR/EN settings (from the rig profile; the core changes it only when idle,
     /// so no pulse in flight changes shape).
     pub fn configure(&mut self, settings: StepperIo) {
+        self.set_timing(settings);
+        self.enable_active_low = settings.enable_active_low;
+        self.enable_known = true;
+        self.set_enabled(self.energised);
+    }
+
+    /// DIR polarity, STEP polarity, pulse width and DIR set-up (EN untouched).
+    fn set_timing(&mut self, settings: StepperIo) {
         DIR_INVERT.store(settings.invert_dir, Ordering::Relaxed);
         // Output polarity: an active-low STEP idles high and pulses low.
         pac::TIM2
             .ccer()
             .modify(|w| w.set_ccp(0, settings.step_active_low));
-        TRAIN.lock(|train| {
-            if let Ok(mut train) = train.try_borrow_mut()
-                && train.set_timing(
-                    u32::from(settings.pulse_us),
-                    u32::from(settings.dir_setup_us),
-                )
-            {
-                defmt::info!(
-                    "STEP pulse {} ticks, DIR set-up {} us",
-                    train.pulse_ticks(),
-                    settings.dir_setup_us
-                );
-            }
+        // The log line outside the lock: a defmt line is a critical section of its own.
+        let applied = TRAIN.lock(|train| {
+            train.try_borrow_mut().ok().and_then(|mut train| {
+                train
+                    .set_timing(
+                        u32::from(settings.pulse_us),
+                        u32::from(settings.dir_setup_us),
+                    )
+                    .then(|| train.pulse_ticks())
+            })
         });
-        self.enable_active_low = settings.enable_active_low;
-        self.set_enabled(self.energised);
+        if let Some(ticks) = applied {
+            defmt::info!(
+                "STEP pulse {} ticks, DIR set-up {} us",
+                ticks,
+                settings.dir_setup_us
+            );
+        }
     }
 
     /// Whether the motor driver is energised.
@@ -259,12 +320,20 @@ impl StepGen {
         self.energised
     }
 
-    /// Energise (or release) the motor driver through EN.
+    /// Energise (or release) the motor driver through EN; while EN's polarity is unknown it is
+    /// not driven at all (and never energised).
     pub fn set_enabled(&mut self, on: bool) {
+        if !self.enable_known {
+            self.energised = false;
+            self.enable.set_as_input(Pull::None);
+            return;
+        }
         self.energised = on;
         let high = on != self.enable_active_low;
+        // Level first, then output mode: EN never passes through the other level.
         self.enable
             .set_level(if high { Level::High } else { Level::Low });
+        self.enable.set_as_output(Speed::Low);
     }
 
     /// Queue a segment the core planned (times in ticks of `now_us`'s clock × 84). Never blocks:
@@ -276,22 +345,7 @@ impl StepGen {
                 return false;
             };
             let now = now_us.saturating_mul(u64::from(TICKS_PER_US));
-            match train.push(segment, now) {
-                Push::Queued => true,
-                Push::Full => false,
-                Push::Start { dir, first, next } => {
-                    let tim = pac::TIM2;
-                    set_dir(dir);
-                    write_preload(first);
-                    tim.cnt().write_value(0);
-                    // Load the preloads into the active registers (no interrupt: URS = counter only).
-                    tim.egr().write(|w| w.set_ug(true));
-                    write_preload(next);
-                    tim.ccmr_output(0).modify(|w| w.set_ocm(0, Ocm::PWM_MODE2));
-                    tim.cr1().modify(|w| w.set_cen(true));
-                    true
-                }
-            }
+            crate::pulse_train::queue(&mut train, &mut Tim2, segment, now)
         })
     }
 

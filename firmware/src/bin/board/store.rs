@@ -13,7 +13,7 @@ use embassy_stm32::flash::{Blocking, Flash, WRITE_SIZE};
 use embassy_stm32::pac;
 use embassy_stm32::peripherals as p;
 
-use crate::flash_record::{self, MAX_RECORD, RECORD_ALIGN, SECTOR_LEN};
+use crate::flash_record::{self, RECORD_ALIGN, SECTOR_LEN};
 
 /// Offsets of the two profile sectors from the start of flash.
 pub const SECTOR_OFFSETS: [u32; 2] = [0x4000, 0x8000];
@@ -43,57 +43,66 @@ impl Store {
         }
     }
 
-    fn sector(&self, i: usize) -> &'static [u8] {
-        let offset = SECTOR_OFFSETS.get(i).copied().unwrap_or(SECTOR_OFFSETS[0]);
-        // SAFETY: sectors 1 and 2 are always-mapped, always-readable flash on the STM32F446RE;
-        // nothing else writes them (the linker keeps code out), and `save` borrows `self`
-        // mutably, so no reference outlives a write.
-        unsafe {
-            core::slice::from_raw_parts((FLASH_BASE + offset as usize) as *const u8, SECTOR_LEN)
-        }
-    }
-
     /// The newest stored payload, copied into `out` (`None`: nothing valid stored).
     pub fn load<'b>(&self, out: &'b mut [u8]) -> Option<&'b [u8]> {
-        let payload = flash_record::latest_payload([self.sector(0), self.sector(1)])?;
-        let out = out.get_mut(..payload.len())?;
-        out.copy_from_slice(payload);
-        Some(out)
+        flash_record::load(self, out)
+    }
+}
+
+/// Profile sector `i` (0 or 1) through the memory map.
+fn mapped_sector(i: usize) -> &'static [u8] {
+    let offset = SECTOR_OFFSETS.get(i).copied().unwrap_or(SECTOR_OFFSETS[0]);
+    // SAFETY: sectors 1 and 2 are always-mapped, always-readable flash on the STM32F446RE;
+    // nothing else writes them (the linker keeps code out), and only `Store`'s erase and
+    // program change them, which take the store mutably, so no slice is read across a write
+    // (a stale one only ever reads bytes that were flash's).
+    unsafe { core::slice::from_raw_parts((FLASH_BASE + offset as usize) as *const u8, SECTOR_LEN) }
+}
+
+/// The stored profile straight from the memory map, without the flash driver or a log line:
+/// `main` reads it before the clocks are even set up (EN's polarity).
+pub fn stored_profile_quiet() -> Option<subsurf_protocol::RigProfile> {
+    let mut buf = [0u8; flash_record::MAX_PAYLOAD];
+    let payload = flash_record::latest_payload([mapped_sector(0), mapped_sector(1)])?;
+    let out = buf.get_mut(..payload.len())?;
+    out.copy_from_slice(payload);
+    flash_record::decode_profile(out)
+}
+
+impl flash_record::SectorFlash for Store {
+    fn sector(&self, i: usize) -> &[u8] {
+        mapped_sector(i)
     }
 
-    /// Store `payload` as the newest record (erasing the other sector first when the one in use
-    /// is full).
-    pub fn save(&mut self, payload: &[u8]) -> Result<(), StoreError> {
-        let scans = [
-            flash_record::scan(self.sector(0)),
-            flash_record::scan(self.sector(1)),
-        ];
-        let mut record = [0u8; MAX_RECORD];
-        let len = flash_record::record_len(payload.len());
-        let place = flash_record::place(&scans, len, SECTOR_LEN);
-        let n = flash_record::encode(payload, place.seq, &mut record)
-            .map_err(|_| StoreError::Encode)?;
-        let record = record.get(..n).ok_or(StoreError::Encode)?;
-        let sector = SECTOR_OFFSETS
-            .get(place.sector)
-            .copied()
-            .ok_or(StoreError::Erase)?;
-        if place.erase {
-            defmt::info!(
-                "profile sector {} full or unreadable: erasing",
-                place.sector + 1
-            );
-            let snb = SECTOR_NUMBERS
-                .get(place.sector)
-                .copied()
-                .ok_or(StoreError::Erase)?;
-            with_erase_watchdog(|| erase_sector_x32(snb))?;
-        }
-        let offset = sector + u32::try_from(place.at).map_err(|_| StoreError::Program)?;
+    fn erase(&mut self, i: usize) -> Result<(), StoreError> {
+        let snb = SECTOR_NUMBERS.get(i).copied().ok_or(StoreError::Erase)?;
+        defmt::info!("profile sector {} full or unreadable: erasing", i + 1);
+        with_erase_watchdog(|| erase_sector_x32(snb))
+    }
+
+    fn program(&mut self, i: usize, at: usize, bytes: &[u8]) -> Result<(), StoreError> {
+        let sector = SECTOR_OFFSETS.get(i).copied().ok_or(StoreError::Program)?;
+        let offset = sector + u32::try_from(at).map_err(|_| StoreError::Program)?;
+        // embassy-stm32's write turns the data cache off around programming and resets it
+        // before turning it back on.
         self.flash
-            .blocking_write(offset, record)
+            .blocking_write(offset, bytes)
             .map_err(|_| StoreError::Program)
     }
+
+    fn reset_data_cache(&mut self) {
+        reset_data_cache();
+    }
+}
+
+/// Reset the flash's data cache (RM0390 §3.4.2: DCRST only while DCEN is off) and turn it on
+/// (`main` turned it on at boot; the erase turned it off).
+fn reset_data_cache() {
+    let f = pac::FLASH;
+    f.acr().modify(|w| w.set_dcen(false));
+    f.acr().modify(|w| w.set_dcrst(true));
+    f.acr().modify(|w| w.set_dcrst(false));
+    f.acr().modify(|w| w.set_dcen(true));
 }
 
 /// Erase sector `snb` at ×32 parallelism, interrupts masked, through the registers (RM0390
@@ -111,6 +120,9 @@ fn erase_sector_x32(snb: u8) -> Result<(), StoreError> {
     use pac::flash::vals::Psize;
     let f = pac::FLASH;
     let sr = cortex_m::interrupt::free(|_| {
+        // The data cache off while the sector changes under it (`reset_data_cache` afterwards,
+        // through the caller, drops what it held and turns it back on).
+        f.acr().modify(|w| w.set_dcen(false));
         if f.cr().read().lock() {
             f.keyr().write_value(0x4567_0123);
             f.keyr().write_value(0xCDEF_89AB);
