@@ -856,3 +856,126 @@ fn a_mesh_finer_than_the_pixels_fits_at_their_level_of_detail() {
         );
     }
 }
+
+/// The camera-file variants that hide a camera's noise floor, written by outside tools
+/// (`tests/outside/floor_variants.py`: tifffile, PiDNG, rawpy, imagecodecs) from sample-slab's
+/// frames on a 16-bit camera exposed for the tail (the renders' floor at 50 DN above black).
+/// Without `noise_floor` in scan.json, each gives a clear error or a floor within 1.5x of the
+/// one the clean files measure, never a silent 0:
+/// - the clean TIFFs with their black level given: the reference floor;
+/// - the same files with the black level left out of scan.json (the format's default 0): refused,
+///   the message naming `black_level`;
+/// - an ambient pedestal of 4 floors on every pixel: refused, or within 1.5x;
+/// - a Bayer mosaic developed by rawpy (AHD demosaicing): refused as correlated;
+/// - a JPEG: refused as not linear.
+#[test]
+fn a_floor_hidden_by_the_camera_files_is_refused_or_measured_within_one_and_a_half_times() {
+    let Some(py) = python("numpy, tifffile, pidng, rawpy, imagecodecs") else {
+        return;
+    };
+    let Some(src) = shared("sample-slab") else {
+        return;
+    };
+    use subsurf::pipeline::noise::{NoiseError, estimate};
+    let tmp = tempfile::tempdir().unwrap();
+    let ds = Dataset::open(&src).unwrap();
+    let floor = ds.spec.noise_floor.expect("sample-slab gives its floor");
+    let dn_per_unit = 50.0 / floor;
+    let out = tmp.path().join("files");
+    std::fs::create_dir_all(&out).unwrap();
+    let frames: Vec<serde_json::Value> = (0..ds.spec.frames.len())
+        .map(|k| {
+            let img = ds.read_frame(k).unwrap();
+            serde_json::json!({
+                "raw": write_raw(tmp.path(), k, &img),
+                "out": out.join(format!("{k:03}")),
+            })
+        })
+        .collect();
+    let cam = &ds.spec.cameras[0];
+    let job = tmp.path().join("variants.json");
+    std::fs::write(
+        &job,
+        serde_json::json!({
+            "width": cam.width, "height": cam.height, "black": BLACK, "white": WHITE,
+            "dn_per_unit": dn_per_unit, "pedestal": 200.0, "frames": frames,
+        })
+        .to_string(),
+    )
+    .unwrap();
+    run(Command::new(&py)
+        .arg(workspace().join("tests/outside/floor_variants.py"))
+        .arg(&job));
+    // A dataset of the variant's files (`suffix`), without noise_floor, with `black` declared.
+    let variant = |name: &str, suffix: &str, black: Option<f64>| -> Dataset {
+        let dir = tmp.path().join(name);
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::copy(src.join(&ds.spec.mesh), dir.join(&ds.spec.mesh)).unwrap();
+        std::os::unix::fs::symlink(&out, dir.join("files")).unwrap();
+        let mut spec: serde_json::Value = serde_json::to_value(&ds.spec).unwrap();
+        spec.as_object_mut().unwrap().remove("noise_floor");
+        if let Some(b) = black {
+            spec["black_level"] = b.into();
+        }
+        spec["white_level"] = WHITE.into();
+        for (k, f) in spec["frames"]
+            .as_array_mut()
+            .unwrap()
+            .iter_mut()
+            .enumerate()
+        {
+            f["image"] = format!("files/{k:03}{suffix}").into();
+        }
+        std::fs::write(
+            dir.join("scan.json"),
+            serde_json::to_string_pretty(&spec).unwrap(),
+        )
+        .unwrap();
+        Dataset::open(&dir).unwrap()
+    };
+    let measure = |d: &Dataset| {
+        let scene = subsurf::geometry::Scene::new(d.mesh.clone()).unwrap();
+        let all: Vec<usize> = (0..d.spec.frames.len()).collect();
+        estimate(d, &scene, &all)
+    };
+    let clean = measure(&variant("clean", ".clean.tif", Some(BLACK))).expect("the clean files");
+    let reference = clean.floor;
+    eprintln!(
+        "clean TIFFs: floor {reference:.3e} (decoded units), correlation {:?}",
+        clean.neighbour_correlation
+    );
+    assert!(reference > 0.0);
+    let within = |f: f64| f > reference / 1.5 && f < reference * 1.5;
+    // The black level left in.
+    let left_in = measure(&variant("black-left-in", ".clean.tif", None));
+    eprintln!("black level left in: {left_in:?}");
+    match &left_in {
+        Err(e @ NoiseError::NoFloor { .. }) => assert!(e.to_string().contains("black_level")),
+        Ok(e) => assert!(within(e.floor), "{} against {reference}", e.floor),
+        Err(e) => panic!("{e}"),
+    }
+    // An ambient pedestal.
+    let pedestal = measure(&variant("pedestal", ".pedestal.tif", Some(BLACK)));
+    eprintln!("pedestal: {pedestal:?}");
+    match &pedestal {
+        Err(NoiseError::NoFloor { .. }) => {}
+        Ok(e) => assert!(within(e.floor), "{} against {reference}", e.floor),
+        Err(e) => panic!("{e}"),
+    }
+    // Demosaiced by rawpy.
+    let demosaiced = measure(&variant("demosaiced", ".demosaiced.tif", Some(0.0)));
+    eprintln!("demosaiced: {demosaiced:?}");
+    match &demosaiced {
+        Err(NoiseError::Correlated { .. }) => {}
+        Ok(e) => assert!(within(e.floor), "{} against {reference}", e.floor),
+        Err(e) => panic!("{e}"),
+    }
+    // A JPEG is refused when its frame is read.
+    let jpeg = measure(&variant("jpeg", ".jpg", None));
+    let message = match &jpeg {
+        Err(e) => format!("{e}"),
+        Ok(e) => panic!("a JPEG measured a floor: {e:?}"),
+    };
+    eprintln!("jpeg: {message}");
+    assert!(message.contains("JPEG"), "{message}");
+}
