@@ -72,8 +72,8 @@ fn the_firmware_core_never_imports_embassy() {
 }
 
 #[test]
-fn registration_selection_and_samples_touch_no_files() {
-    for f in ["registration.rs", "selection.rs", "samples.rs"] {
+fn spot_lights_and_samples_touch_no_files() {
+    for f in ["spot.rs", "pipeline/select/lights.rs", "samples.rs"] {
         let text = std::fs::read_to_string(root().join("host/src").join(f)).unwrap();
         for needle in ["std::fs", "File::", "fs::write", "fs::read"] {
             assert!(!text.contains(needle), "{f} names {needle}");
@@ -185,4 +185,55 @@ fn the_readme_wiring_table_matches_the_board_s_pin_map() {
         }
     }
     assert!(table.contains("TIM3_CH2"), "the trigger's timer");
+}
+
+/// The files directly in `dir` (relative to the workspace root): their stems and line counts.
+fn files_in(dir: &str) -> Vec<(String, usize)> {
+    let mut out: Vec<(String, usize)> = std::fs::read_dir(root().join(dir))
+        .unwrap()
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.extension().is_some_and(|x| x == "rs"))
+        .map(|p| {
+            let stem = p.file_stem().unwrap().to_string_lossy().into_owned();
+            let lines = std::fs::read_to_string(&p).unwrap().lines().count();
+            (stem, lines)
+        })
+        .collect();
+    out.sort();
+    out
+}
+
+/// A pipeline stage and a library module never share a name: "the interpolation" is one
+/// file, found where a newcomer looks. The stages (`host/src/pipeline/*.rs`) are named for what
+/// the stage does to the run (fill, detail, select); the algorithms they call keep theirs
+/// (`interpolate`, `lattice`, `spot`).
+#[test]
+fn a_stage_and_a_library_module_never_share_a_name() {
+    let top: Vec<String> = std::fs::read_dir(root().join("host/src"))
+        .unwrap()
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.is_dir() || p.extension().is_some_and(|x| x == "rs"))
+        .map(|p| p.file_stem().unwrap().to_string_lossy().into_owned())
+        .collect();
+    let twice: Vec<String> = files_in("host/src/pipeline")
+        .into_iter()
+        .map(|(stem, _)| stem)
+        .filter(|stem| stem != "mod" && top.contains(stem))
+        .collect();
+    assert!(
+        twice.is_empty(),
+        "named in host/src and host/src/pipeline: {twice:?}"
+    );
+}
+
+/// A stage's file stays readable: at most 800 lines.
+#[test]
+fn pipeline_files_stay_short() {
+    let long: Vec<(String, usize)> = files_in("host/src/pipeline")
+        .into_iter()
+        .filter(|(_, n)| *n > 800)
+        .collect();
+    assert!(long.is_empty(), "pipeline files over 800 lines: {long:?}");
 }

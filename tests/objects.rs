@@ -111,7 +111,7 @@ fn validation_holds_out_whole_turntable_angles() {
 /// unresolved, so an interpolated vertex kept one or two terms, a straight line in ln R_d that
 /// was 0.7 too high at 4 mm (measured frame by frame against the ground truth; the fitted
 /// vertices, the alpha texture (Eq. 6 shrank it to 1 here) and the fallback beyond r_max were
-/// not it). With the geometric curve grid of `pipeline::interpolate` the fitted model is at the
+/// not it). With the geometric curve grid of `pipeline::fill` the fitted model is at the
 /// baseline: 1.002x/0.992x/1.023x (r/g/b; 0.96x/0.99x/0.99x with Eq. 6's t1 at 0.3 of the
 /// brightest sample, which is off by default because it hurt the anisotropic slab); beyond 2 mm
 /// from x_i its squared log error is a fifth below the baseline's, and what is left is the laser

@@ -587,7 +587,7 @@ fn the_sample_store_opens_in_pyarrow() {
         .filter(|r| {
             matches!(
                 r.outcome,
-                Ok(subsurf::registration::RegistrationOutcome::Registered { .. })
+                Ok(subsurf::spot::RegistrationOutcome::Registered { .. })
             )
         })
         .count();

@@ -165,7 +165,7 @@ fn mesh_check<U: Stages>(
     ui: &U,
 ) -> Result<crate::align::MeshCheck, FitScanError> {
     let bound = run.opts.spot.laser_tolerance_mm;
-    let spots: Vec<(usize, crate::registration::Spot)> = run
+    let spots: Vec<(usize, crate::spot::Spot)> = run
         .store()
         .map(|s| {
             frames

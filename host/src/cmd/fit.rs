@@ -134,7 +134,7 @@ pub struct Args {
     /// Frames whose laser spot the camera sees more grazing than this (cos θ at the spot) are
     /// not fitted, nor evaluated with the model: their spot is foreshortened and x_i least
     /// certain. Registration keeps spots down to cos θ = 0.1.
-    #[arg(long, default_value_t = subsurf::registration::SPOT_COS_MIN)]
+    #[arg(long, default_value_t = subsurf::spot::SPOT_COS_MIN)]
     pub spot_cos_min: f64,
     /// Largest disagreement between detected spot and laser ray (mm).
     #[arg(long, default_value_t = 2.0)]

@@ -18,9 +18,9 @@ use crate::progress::Progress;
 use crate::samples::SampleCounts;
 
 use super::ModelChoice;
+use super::findings::{AlphaReport, AlphaRound, BASELINE_POOL, FailReason, TermDropped};
 use super::load::Context;
 use super::register::RegisteredFrame;
-use super::report::{AlphaReport, AlphaRound, BASELINE_POOL, FailReason, TermDropped};
 use super::select::{ChannelSamples, GroupSample, Groups, group_samples};
 
 mod baseline;
@@ -333,7 +333,7 @@ pub struct GroupFit {
     pub isotropic_fallback: bool,
     /// Per channel, the brightest sample as captured (before any division by alpha): the
     /// reference of Eq. 6's t1 ([`crate::model::IntensityWindow::for_light`]), kept so the
-    /// lattice pass ([`super::lattice`]) uses this light position's very window.
+    /// lattice pass ([`super::detail`]) uses this light position's very window.
     pub s_max: [f64; 3],
 }
 

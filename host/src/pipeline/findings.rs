@@ -418,9 +418,9 @@ pub struct AlphaReport {
     /// Per channel, the pseudo-samples at alpha = 1 Eq. 6 was shrunk with in the last round
     /// (noise over texture variance, [`crate::model::empirical_prior`]).
     pub prior: [f64; 3],
-    /// alpha finer than the mesh ([`super::lattice`]); `None` with `--alpha-lattice off`.
+    /// alpha finer than the mesh ([`super::detail`]); `None` with `--alpha-lattice off`.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub lattice: Option<super::lattice::LatticeReport>,
+    pub lattice: Option<super::detail::LatticeReport>,
 }
 
 /// Wall time per stage, into the report.
