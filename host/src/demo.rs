@@ -420,9 +420,10 @@ fn measure<U: Stages>(
         let fit_s = tf.elapsed().as_secs_f64();
         timings.push((name, fit_s));
         let tv = Instant::now();
-        let (held_out, held_out_rgb) = evaluate(ui, &ds, &fitted.model, &held, &opts, "held out")?;
+        let (held_out, held_out_rgb) =
+            evaluate(ui, &ds, &fitted.model, &held, &opts, "log E held out")?;
         let (in_sample, in_sample_rgb) =
-            evaluate(ui, &ds, &fitted.model, &train, &opts, "in sample")?;
+            evaluate(ui, &ds, &fitted.model, &train, &opts, "log E in sample")?;
         evaluations.push((name, tv.elapsed().as_secs_f64()));
         ui.say(&format!(
             "fit ({name}): {} s, log E held out {}, in sample {}",
@@ -444,8 +445,22 @@ fn measure<U: Stages>(
         });
     }
     let te = Instant::now();
-    let truth_held = evaluate(ui, &ds, &truth_file, &held, &opts, "truth")?;
-    let truth_in = evaluate(ui, &ds, &truth_file, &train, &opts, "truth")?;
+    let truth_held = evaluate(
+        ui,
+        &ds,
+        &truth_file,
+        &held,
+        &opts,
+        "log E of the truth, held out",
+    )?;
+    let truth_in = evaluate(
+        ui,
+        &ds,
+        &truth_file,
+        &train,
+        &opts,
+        "log E of the truth, in sample",
+    )?;
     timings.push((
         "ground truth's error (the floor)",
         te.elapsed().as_secs_f64(),
