@@ -334,7 +334,7 @@ fn row_percent(report: &str, label: &str) -> f64 {
         .unwrap_or_else(|e| panic!("`{cell}` in `{line}`: {e}"))
 }
 
-/// Issue 43 item 4: with Blender, the demo judges Cycles' render of the exported model against
+/// With Blender, the demo judges Cycles' render of the exported model against
 /// the ground truth in the measure it judges subsurf's render by, with Cycles' own two-seed
 /// noise beside it, and shows the (Cycles − truth) / truth picture.
 #[test]

@@ -6,7 +6,7 @@
 //! and brightness) → per-vertex fits with every fifth frame held out (three solver presets: the
 //! speed/accuracy trade) → the fitted model and the simulation's ground truth rendered under the
 //! same lights, and their difference → with Blender, the model exported and rendered in Cycles,
-//! judged against the same ground truth with Cycles' two-seed noise beside it (issue 43) →
+//! judged against the same ground truth with Cycles' two-seed noise beside it →
 //! held-out against in-sample error → fall-off plot, model maps → `report.md` and a
 //! self-contained `report.html`, all in one folder.
 //!
@@ -184,8 +184,8 @@ pub struct LightComparison {
 }
 
 /// The shown model exported to Blender and rendered by Cycles under the key light, judged
-/// against the ground truth as subsurf's render is (issue 43 item 4: which renderer is closer
-/// to the real material, not how close the two renderers are to each other).
+/// against the ground truth as subsurf's render is: the question is which renderer is closer
+/// to the real material, not how close the two renderers are to each other.
 #[derive(Debug, Clone)]
 pub struct InBlender {
     /// Cycles against subsurf's render of the same model, with Cycles' two-seed noise.

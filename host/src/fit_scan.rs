@@ -35,7 +35,7 @@ pub struct FitScanSettings {
     pub fixed_order: bool,
     /// Solver preset (`None`: exact).
     pub preset: Option<Preset>,
-    /// `--preset reference`: the exact path before issue 40 ([`crate::pipeline::Speed`],
+    /// `--preset reference`: the exact path without the cuts ([`crate::pipeline::Speed`],
     /// [`CvSettings::reference`]).
     pub reference: bool,
     /// Samples closer than this to x_i are dropped (mm).

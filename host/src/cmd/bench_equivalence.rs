@@ -7,9 +7,9 @@ use subsurf::bench::equivalence::{run_case, table};
 
 use super::progress::Bar;
 
-/// The default fit against the reference preset (the exact path before issue 40's cuts) on
+/// The default fit against the reference preset (the exact path without the cuts) on
 /// each scan, back to back from one sample store: CPU and wall time, and the equivalence
-/// criteria of issue 40 (paired change of held-out log E on test frames and in the training
+/// criteria of a cut (paired change of held-out log E on test frames and in the training
 /// frames' cross-validation, the choices, RMS change of ln R_d and ln alpha).
 #[derive(Debug, clap::Args)]
 pub struct EquivalenceBench {

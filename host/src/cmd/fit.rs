@@ -28,7 +28,7 @@ pub enum PresetArg {
     Balanced,
     /// Exact, automatic order, 8 direction segments.
     Best,
-    /// The exact default as it was before issue 40's cuts (every fold's fill solved and refitted
+    /// The exact default without its cost cuts (every fold's fill solved and refitted
     /// everywhere, every round scored until two in a row do not lower the best at all): the
     /// reference `subsurf bench equivalence` checks the default against.
     Reference,

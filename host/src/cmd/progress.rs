@@ -125,11 +125,12 @@ pub struct StageBars(pub &'static str);
 impl Stages for StageBars {
     type Bar = Bar;
     fn stage(&self, len: u64, msg: &str) -> Bar {
-        // Off a terminal the stage says its end; the steps within it only with --verbose.
-        let mut bar = Bar::with_lines(styled(self.0), false);
+        // Off a terminal a named stage says its end, the steps within it only with --verbose;
+        // an unnamed one (a whole `subsurf fit`) is its steps, and each says its end.
+        let mut bar = Bar::with_lines(styled(self.0), msg.is_empty());
         bar.0.set_length(len);
         bar.0.set_message(msg.to_string());
-        bar.2 = Some((msg.to_string(), Instant::now()));
+        bar.2 = (!msg.is_empty()).then(|| (msg.to_string(), Instant::now()));
         bar
     }
     fn finish(&self, bar: Bar) {

@@ -51,8 +51,8 @@ pub struct FillHow<'a> {
     /// The default path solves the Laplace equation to [`super::FILL_TOLERANCE`]: with needed
     /// vertices as the weights of the known ones at those vertices, kept from `warm` while the
     /// known set is the same, and refits only the needed vertices; the reference solves all of
-    /// it from scratch to [`crate::interpolate::RTOL`] and refits every vertex, as before
-    /// issue 40 (the same models at the needed vertices, within the tolerance).
+    /// it from scratch to [`crate::interpolate::RTOL`] and refits every vertex, the exact
+    /// path without the cuts (the same models at the needed vertices, within the tolerance).
     pub speed: Speed,
     /// The previous round's fill of the same run.
     pub warm: Option<&'a FillState>,
@@ -126,7 +126,7 @@ pub fn fill(
     } else {
         2
     };
-    // The reference refits every vertex, as before issue 40 (the models at the needed ones are
+    // The reference refits every vertex, the exact path without the cuts (the models at the needed ones are
     // the same either way).
     let needed = |v: usize| {
         how.speed == Speed::Reference

@@ -259,7 +259,7 @@ pub enum FitWarning {
     /// No homogeneous baseline could be fitted (at any order). Below each light position's
     /// smallest sampled distance its model then continues with its slope there, which cannot
     /// steepen towards x_i as measured fall-offs do: renders come out dark (the tradeoff
-    /// benchmark's sphere: 11–14 %, BENCHMARKS.md, issue 28).
+    /// benchmark's sphere: 11–14 %, BENCHMARKS.md).
     NoBaseline,
     /// The run's fits and exact fits of the same light positions disagree in the reflectance
     /// they predict within reach by more than the tolerance and the noise ([`super::check`]).

@@ -636,7 +636,8 @@ impl Setup {
             .filter(|f| f.as_ref().is_ok_and(|g| g.isotropic_fallback))
             .count();
         report.alpha = fitted.alpha_report.clone();
-        // A preset's approximations against exact fits of a sample of light positions (issue 28).
+        // A preset's approximations against exact fits of a sample of light positions:
+        // an approximation may make a model noisier, never biased (`check`).
         report.reflectance_check = check::reflectance(ctx, regs, groups, &fitted, fitter, progress);
         clock.lap("check", report);
         // alpha finer than the mesh (section 5): Eq. 6 per lattice point, with the final fits.

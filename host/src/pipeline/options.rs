@@ -80,12 +80,12 @@ pub struct PipelineOptions {
     /// down to [`crate::spot::SPOT_COS_FLOOR`], so whether they help is a choice of the
     /// fit ([`crate::spot::SPOT_COS_MIN`] by default, chosen by cross-validation).
     pub spot_cos_min: f64,
-    /// The fit's computational path (issue 40): the default's cuts, or the exact reference.
+    /// The fit's computational path: the default's cuts, or the exact reference.
     pub speed: Speed,
 }
 
-/// How the fit computes what the reference computes exactly (issue 40: "the same predictions,
-/// not the same bits"); the cross-validation's folds and the final fit take the same path, so
+/// How the fit computes what the reference computes exactly (the rule for a cut: the same
+/// predictions, not the same bits); the cross-validation's folds and the final fit take the same path, so
 /// the folds score the procedure that ships.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
 #[serde(rename_all = "kebab-case")]
@@ -97,7 +97,7 @@ pub enum Speed {
     /// (`pipeline::fill::FillHow`).
     #[default]
     Default,
-    /// The exact path before issue 40 (`subsurf fit --preset reference`): every solve from
+    /// The exact path without the cuts (`subsurf fit --preset reference`): every solve from
     /// scratch to the solvers' own tolerances.
     Reference,
 }

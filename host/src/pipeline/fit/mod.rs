@@ -70,18 +70,18 @@ pub trait Fitter: Sync {
     }
 
     /// Whether the pipeline around this fitter takes the default's cuts that agree with the
-    /// exact path within rounding, not to the bit (issue 40): the loops around its solves (ln
+    /// exact path within rounding, not to the bit: the loops around its solves (ln
     /// R_d of a fit at every sample, ln s, the terms' support) take the vectorised exp and ln
     /// ([`crate::model::ExpSum::ln_eval_many`], [`crate::fit::ln_many`]: within a few ulp of
     /// libm's), and a light position's shared joint fit at one segment starts from the red fit
     /// its order choice made and is checked for support itself ([`light::fit_samples`]). The
-    /// default's fitter does; the reference preset's (libm's throughout, the exact path before
-    /// issue 40) and any fitter that does not say do not.
+    /// default's fitter does; the reference preset's (libm's throughout, the exact path
+    /// without the cuts) and any fitter that does not say do not.
     fn rounding_cuts(&self) -> bool {
         false
     }
 
-    /// This fitter as the reference preset runs it (the exact path before issue 40: libm's
+    /// This fitter as the reference preset runs it (the exact path without the cuts: libm's
     /// exp and ln, [`crate::fit::FitOptions::libm`]); `None`: it is that already.
     fn reference(&self) -> Option<Box<dyn Fitter>> {
         None
