@@ -1,4 +1,4 @@
-//! Issue 41: replay (a recorded dataset as rig and camera) and the adaptive planner. A replay
+//! Replay (a recorded dataset as rig and camera) and the adaptive planner. A replay
 //! copies exactly the frames it asked for into a normal dataset; an adaptive scan killed and
 //! resumed ends with the same frames as one not killed; a homogeneous material stops earlier
 //! than a veined one. Every scan here is small (a 48 px simulated bead): seconds in a debug

@@ -88,7 +88,7 @@ fn hdr_brackets_merge_into_radiance_frames() {
         .filter(|e| e.value)
         .count();
     assert_eq!(triggers, 9 + 3);
-    // Issue 39, item 5: with no floor given, scan.json's is the dark frames' (the longest
+    // With no floor given, scan.json's is the dark frames' (the longest
     // exposure's, 1 s), and it is the sensor's: 3 read-noise σ, within 8 % of the level where
     // one pixel's SNR (shot noise too) is 3. The laser never came on before the first frame's
     // capture program.

@@ -1,4 +1,4 @@
-//! `subsurf align` (issue 24, part 2): the user's mesh, in its own pose and in metres, placed in the
+//! `subsurf align`: the user's mesh, in its own pose and in metres, placed in the
 //! turntable frame from the scan's own laser spots, through the binary as a user runs it.
 //!
 //! Two objects: the outside renderer's sample-torus (a body of revolution: its angle about the
@@ -210,7 +210,7 @@ fn an_asymmetric_blob_in_metres_is_placed_uniquely_and_fits_as_the_true_mesh() {
     assert!(rec["rms_px"].as_f64().unwrap() < 0.1, "{rec}");
     let aligned = read_mesh(&ds.join("object.aligned.obj"));
     assert!(ds.join("object.aligned.png").is_file());
-    // A known unit (issue 42): `--scale` holds the scale instead of estimating it.
+    // A known unit: `--scale` holds the scale instead of estimating it.
     let known = ok(&[
         "align",
         "--scan",

@@ -72,8 +72,8 @@ fn the_firmware_core_never_imports_embassy() {
 }
 
 #[test]
-fn registration_selection_and_samples_touch_no_files() {
-    for f in ["registration.rs", "selection.rs", "samples.rs"] {
+fn spot_lights_and_samples_touch_no_files() {
+    for f in ["spot.rs", "pipeline/select/lights.rs", "samples.rs"] {
         let text = std::fs::read_to_string(root().join("host/src").join(f)).unwrap();
         for needle in ["std::fs", "File::", "fs::write", "fs::read"] {
             assert!(!text.contains(needle), "{f} names {needle}");
@@ -146,18 +146,19 @@ fn one_vertex_model_type_set_and_one_tangent_frame_rule() {
     assert_eq!(rules, ["host/model/src/model/aniso.rs"], "{rules:?}");
 }
 
-/// The README's wiring table is what a person wires a bench from: it must name the pins the
-/// board's pin map uses, and must not call an input the scans require optional (issue 26: the
-/// exposure-active output was "optional" while scans refused every unconfirmed capture).
+/// The guide's wiring table is what a person wires a bench from: it must name the pins the
+/// board's pin map uses, and must not call an input the scans require optional (a table that
+/// once called the exposure-active output "optional" left benches whose every capture the scan
+/// refused as unconfirmed).
 #[test]
-fn the_readme_wiring_table_matches_the_board_s_pin_map() {
-    let readme = std::fs::read_to_string(root().join("README.md")).expect("README.md");
+fn the_guide_s_wiring_table_matches_the_board_s_pin_map() {
+    let readme = std::fs::read_to_string(root().join("docs/guide/rig.md")).expect("rig.md");
     let pins =
         std::fs::read_to_string(root().join("firmware/src/bin/board/pins.rs")).expect("pins.rs");
     let table = readme
         .split("| Function | Nucleo pin (MCU) | Connect to |")
         .nth(1)
-        .expect("the README's wiring table")
+        .expect("the guide's wiring table")
         .split("\n\n")
         .next()
         .unwrap_or_default();
@@ -165,7 +166,7 @@ fn the_readme_wiring_table_matches_the_board_s_pin_map() {
         !table.to_ascii_lowercase().contains("optional"),
         "the wiring table calls something optional:\n{table}"
     );
-    // Every MCU pin of the pin map's table (`| PA0 ...`, `| PC6 ...`) appears in the README's.
+    // Every MCU pin of the pin map's table (`| PA0 ...`, `| PC6 ...`) appears in the guide's.
     for line in pins.lines().filter(|l| l.starts_with("//! |")) {
         let cells: Vec<&str> = line.split('|').map(str::trim).collect();
         let Some(mcu) = cells.get(2) else { continue };
@@ -179,10 +180,64 @@ fn the_readme_wiring_table_matches_the_board_s_pin_map() {
             {
                 assert!(
                     table.contains(pin),
-                    "{pin} of pins.rs is missing from the README's wiring table"
+                    "{pin} of pins.rs is missing from the guide's wiring table"
                 );
             }
         }
     }
     assert!(table.contains("TIM3_CH2"), "the trigger's timer");
+}
+
+/// The files directly in `dir` (relative to the workspace root): their stems and line counts.
+fn files_in(dir: &str) -> Vec<(String, usize)> {
+    let mut out: Vec<(String, usize)> = std::fs::read_dir(root().join(dir))
+        .unwrap()
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.extension().is_some_and(|x| x == "rs"))
+        .map(|p| {
+            let stem = p.file_stem().unwrap().to_string_lossy().into_owned();
+            let lines = std::fs::read_to_string(&p).unwrap().lines().count();
+            (stem, lines)
+        })
+        .collect();
+    out.sort();
+    out
+}
+
+/// A pipeline stage and a library module never share a name: "the interpolation" is one
+/// file, found where a newcomer looks. The stages (`host/src/pipeline/*.rs`) are named for what
+/// the stage does to the run (fill, detail, select); the algorithms they call keep theirs
+/// (`interpolate`, `lattice`, `spot`).
+#[test]
+fn a_stage_and_a_library_module_never_share_a_name() {
+    let top: Vec<String> = std::fs::read_dir(root().join("host/src"))
+        .unwrap()
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.is_dir() || p.extension().is_some_and(|x| x == "rs"))
+        .map(|p| p.file_stem().unwrap().to_string_lossy().into_owned())
+        .collect();
+    let twice: Vec<String> = files_in("host/src/pipeline")
+        .into_iter()
+        .map(|(stem, _)| stem)
+        .filter(|stem| stem != "mod" && top.contains(stem))
+        .collect();
+    assert!(
+        twice.is_empty(),
+        "named in host/src and host/src/pipeline: {twice:?}"
+    );
+}
+
+/// A stage's file stays readable (at most 800 lines) and the binary stays thin: `cmd/` parses
+/// arguments and calls the library, under 3,500 lines in all.
+#[test]
+fn pipeline_files_stay_short_and_the_commands_thin() {
+    let long: Vec<(String, usize)> = files_in("host/src/pipeline")
+        .into_iter()
+        .filter(|(_, n)| *n > 800)
+        .collect();
+    assert!(long.is_empty(), "pipeline files over 800 lines: {long:?}");
+    let cmd: usize = files_in("host/src/cmd").iter().map(|(_, n)| n).sum();
+    assert!(cmd < 3500, "host/src/cmd/ has {cmd} lines");
 }

@@ -1,4 +1,4 @@
-//! Curved objects (issue 4): a noise-free simulated sphere, every 7th frame held out of the fit.
+//! Curved objects: a noise-free simulated sphere, every 7th frame held out of the fit.
 //! The fitted per-vertex model must predict the held-out frames about as well as the ground
 //! truth does (the floor left by pixel sampling and registration; measured 1.45–1.65× of it on
 //! this small scan, 1.4× on the 4-angle scan of the issue), must claim no term its
@@ -83,7 +83,7 @@ fn noise_free_sphere_predicts_held_out_frames_near_the_floor() {
         // Since samples lit by the laser spot's light and grazing samples are dropped (scanfit,
         // samples.rs), the floor is ~0.0015 instead of ~0.02 and the fit's own error dominates:
         // the bound is on the fitted model, the floor must stay well below it. (Pooling the three
-        // cameras' views of each spot, issue 16, brought the fit from ~0.0062 to ~0.0050 on the
+        // cameras' views of each spot brought the fit from ~0.0062 to ~0.0050 on the
         // same scan through the CLI, so the floor is now a quarter of it, no longer less.)
         assert!(
             f < 0.05 && g < 0.4 * f,

@@ -334,7 +334,7 @@ fn row_percent(report: &str, label: &str) -> f64 {
         .unwrap_or_else(|e| panic!("`{cell}` in `{line}`: {e}"))
 }
 
-/// Issue 43 item 4: with Blender, the demo judges Cycles' render of the exported model against
+/// With Blender, the demo judges Cycles' render of the exported model against
 /// the ground truth in the measure it judges subsurf's render by, with Cycles' own two-seed
 /// noise beside it, and shows the (Cycles − truth) / truth picture.
 #[test]
@@ -371,4 +371,54 @@ fn demo_shows_cycles_against_the_ground_truth_with_its_noise() {
     let s = image_stats(&out.join("render-difference-blender-key-light.png")).unwrap();
     assert_eq!((s.width, s.height), (420, 174), "{s:?}");
     assert!(s.distinct_colours > 20 && s.luma_std > 5.0, "{s:?}");
+}
+
+/// Off a terminal (a log file, CI) the demo says one line per stage when it ends, with its time,
+/// and its results: no progress counts, at most 30 lines in all. With `--quiet` only the results
+/// are left; with `--verbose` each step's start and end are there too.
+#[test]
+fn demo_output_off_a_terminal_is_one_line_per_stage() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = |flag: Option<&str>| {
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_subsurf"));
+        cmd.args(flag).args([
+            "demo",
+            "--size",
+            "48",
+            "--angles",
+            "2",
+            "--raster",
+            "6",
+            "--target-mm",
+            "3",
+            "--picture",
+            "64",
+            "--no-blender",
+            "--out",
+        ]);
+        let o = cmd.arg(dir.path()).output().unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let mut text = String::from_utf8(o.stdout).unwrap();
+        text.push_str(&String::from_utf8(o.stderr).unwrap());
+        text
+    };
+    let normal = run(None);
+    let lines: Vec<&str> = normal.lines().collect();
+    assert!(lines.len() <= 30, "{} lines:\n{normal}", lines.len());
+    assert!(
+        lines
+            .iter()
+            .any(|l| l.starts_with("scan in ") && l.ends_with(" s")),
+        "{normal}"
+    );
+    assert!(
+        !normal.contains(" 0/"),
+        "a progress count off a terminal:\n{normal}"
+    );
+    let quiet = run(Some("--quiet"));
+    assert!(!quiet.contains("scan in "), "{quiet}");
+    assert!(quiet.contains("demo results in"), "{quiet}");
+    let verbose = run(Some("--verbose"));
+    assert!(verbose.lines().count() > lines.len(), "{verbose}");
+    assert!(verbose.contains(" ..."), "{verbose}");
 }

@@ -1,4 +1,4 @@
-//! Anisotropic per-vertex fits (Eq. 3) on a simulated anisotropic slab (issue 4): the model with
+//! Anisotropic per-vertex fits (Eq. 3) on a simulated anisotropic slab: the model with
 //! direction segments predicts held-out frames better than the isotropic one (Eq. 9), and the
 //! direction of slowest fall-off and the along/across ratio it recovers match the simulated
 //! material's vein axis and anisotropy.

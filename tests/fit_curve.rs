@@ -41,7 +41,7 @@ fn nist_params(v: &Value) -> Vec<f64> {
         .collect()
 }
 
-/// NIST's certified b1..b6 of Lanczos1, 2 and 3 and the digits issue 13 asks for.
+/// NIST's certified b1..b6 of Lanczos1, 2 and 3 and the digits a fitter of them must reach.
 const NIST: [(&str, [f64; 6], f64); 3] = [
     (
         "lanczos1.csv",
@@ -360,7 +360,7 @@ fn bad_files_name_the_line() {
     assert!(!ok && err.contains("file.csv"), "{err}");
 }
 
-/// Issue 13: two samples determine one term; the order falls to it and the output says so. One
+/// Two samples determine one term; the order falls to it and the output says so. One
 /// sample determines nothing: reported, not fatal.
 #[test]
 fn few_samples_fit_the_order_they_determine() {

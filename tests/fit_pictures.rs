@@ -1,4 +1,4 @@
-//! `subsurf fit` draws its pictures beside the report (issue 4): the per-vertex error map
+//! `subsurf fit` draws its pictures beside the report: the per-vertex error map
 //! log E(x_i) and the model picture with the vertex status; `--no-pictures` skips them.
 use std::path::Path;
 use std::process::Command;
@@ -61,7 +61,7 @@ fn fit_writes_an_error_map_and_a_model_picture_beside_the_report() {
     assert!(report["process_peak_rss_mib"].as_f64().unwrap() > 0.0);
 
     // Error map: one 420x420 panel under a 34-pixel title, seen from the front and from
-    // behind (issue 42).
+    // behind.
     let error_png = out.join("fit-report-error-map.png");
     assert!(
         stdout.contains(&error_png.display().to_string()),

@@ -1,4 +1,4 @@
-//! The speed/accuracy presets on a scan like `subsurf bench tradeoff`'s (issue 28): a preset may
+//! The speed/accuracy presets on a scan like `subsurf bench tradeoff`'s: a preset may
 //! make a model noisier than the exact fit, never biased against it.
 //!
 //! Before the fix the draft preset's whole-object baseline fit ran out of its 30 iterations (the

@@ -227,7 +227,7 @@ fn sections_outside_flash_and_ram_are_refused() {
     }
 }
 
-/// Issue 38, finding I: code in the profile's flash sectors (0x0800_4000..0x0800_C000) would be
+/// Code in the profile's flash sectors (0x0800_4000..0x0800_C000) would be
 /// overwritten by the next profile save, and flashing it would destroy the stored profile.
 #[test]
 fn sections_in_the_profile_sectors_are_refused() {

@@ -31,6 +31,7 @@ mod fit_pictures;
 mod fit_presets;
 mod fit_scale;
 mod flash;
+mod guide;
 mod objects;
 mod outside;
 mod render;

@@ -1,4 +1,4 @@
-//! Curved objects (issue 11): the model of a turntable scan predicts frames it never saw, never
+//! Curved objects: the model of a turntable scan predicts frames it never saw, never
 //! worse than the homogeneous baseline, and the alpha rounds (Eq. 6) never increase the training
 //! objective. On the outside renderer's sample-torus (`shared/data/`, beside the repository).
 use std::path::PathBuf;
@@ -99,7 +99,7 @@ fn validation_holds_out_whole_turntable_angles() {
 /// --raster 5 --size 96 --anisotropy 0`, with the field's own seed 1: four angles, 25 laser
 /// targets each, most missing the ring), whole turntable angles held out (`validate::holdout`).
 /// The fitted model, with each light position's order chosen from its samples, must predict the
-/// held-out frames no worse than the homogeneous baseline alone (issue 11: "never worse than the
+/// held-out frames no worse than the homogeneous baseline alone ("never worse than the
 /// simplest honest model"), and stay within 2.5x of the floor (the ground truth's own error on
 /// the same frames, from pixel noise and registration; isotropic material, so the ground-truth
 /// model is exact).
@@ -111,13 +111,13 @@ fn validation_holds_out_whole_turntable_angles() {
 /// unresolved, so an interpolated vertex kept one or two terms, a straight line in ln R_d that
 /// was 0.7 too high at 4 mm (measured frame by frame against the ground truth; the fitted
 /// vertices, the alpha texture (Eq. 6 shrank it to 1 here) and the fallback beyond r_max were
-/// not it). With the geometric curve grid of `pipeline::interpolate` the fitted model is at the
+/// not it). With the geometric curve grid of `pipeline::fill` the fitted model is at the
 /// baseline: 1.002x/0.992x/1.023x (r/g/b; 0.96x/0.99x/0.99x with Eq. 6's t1 at 0.3 of the
 /// brightest sample, which is off by default because it hurt the anisotropic slab); beyond 2 mm
 /// from x_i its squared log error is a fifth below the baseline's, and what is left is the laser
 /// spot's glow within 2 mm, which no subsurface model describes (the ground truth is further off
 /// there than either). The bound is the measured 1.023x with a little margin, not yet "never
-/// above" (issue 11 stays open on this).
+/// above").
 #[test]
 fn sparse_simulated_torus_is_at_the_baseline_and_near_the_floor() {
     use subsurf::modelfile::ModelFile;

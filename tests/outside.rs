@@ -1,4 +1,4 @@
-//! Files other tools write and read (issue 24): a scan's frames written as camera files by
+//! Files other tools write and read: a scan's frames written as camera files by
 //! outside writers (16-bit TIFF by tifffile, raw DNG by PiDNG, checked with rawpy/LibRaw) fit
 //! like the EXR frames; a fitted model opens in trimesh and Open3D with positions, normals and
 //! faces intact.
@@ -165,7 +165,7 @@ fn camera_files(
         .arg(&job))
 }
 
-/// Issue 24: sample-slab's frames converted to 16-bit TIFF (tifffile) and to raw DNG (PiDNG, a
+/// Sample-slab's frames converted to 16-bit TIFF (tifffile) and to raw DNG (PiDNG, a
 /// Bayer mosaic; read back by rawpy/LibRaw) decode to exactly the quantised frames and fit, on
 /// the same training frames, exactly as those quantised values do as float EXR (to 0.1 % of
 /// held-out error: decoding adds nothing); against the original EXR frames' held-out error
@@ -290,7 +290,7 @@ fn camera_files_from_outside_writers_fit_like_the_exr_frames() {
 /// and more (the ×64 one the spot's core, the ×4096 one most of the lit slab).
 const BRACKET_GAINS: [f64; 3] = [1.0, 64.0, 4096.0];
 
-/// Issue 24, HDR capture as another camera program writes it: sample-slab's frames as a bracket
+/// HDR capture as another camera program writes it: sample-slab's frames as a bracket
 /// of 16-bit exposures, one file per exposure (tifffile: 16-bit RGB TIFF at ×1, ×64, ×4096; PiDNG:
 /// raw DNG at ×1 and ×64), listed per frame in `scan.json`'s `brackets`, the longer exposures
 /// clipped over much of the image. Merged per pixel ([`subsurf::dataset::merge_hdr`]) the
@@ -434,7 +434,7 @@ fn bracketed_camera_files_fit_like_the_exr_frames() {
     }
 }
 
-/// Done-when of issue 24: a fitted model opens in trimesh (and Open3D where it is installed, and
+/// A fitted model opens in trimesh (and Open3D where it is installed, and
 /// Blender's importer where Blender is) with positions, normals and faces as subsurf reads them.
 #[test]
 fn a_fitted_model_opens_in_trimesh_and_open3d() {
@@ -553,7 +553,7 @@ fn check_outside_readers(py: &Path, path: &Path, m: &ModelFile) {
     }
 }
 
-/// Issue 23: the sample store opens in pyarrow (and pandas): the frames, the registered ones, and
+/// The sample store opens in pyarrow (and pandas): the frames, the registered ones, and
 /// per sample file the rows, the samples per channel and their sums read as subsurf holds them.
 #[test]
 fn the_sample_store_opens_in_pyarrow() {
@@ -587,7 +587,7 @@ fn the_sample_store_opens_in_pyarrow() {
         .filter(|r| {
             matches!(
                 r.outcome,
-                Ok(subsurf::registration::RegistrationOutcome::Registered { .. })
+                Ok(subsurf::spot::RegistrationOutcome::Registered { .. })
             )
         })
         .count();
@@ -642,7 +642,7 @@ fn the_sample_store_opens_in_pyarrow() {
     }
 }
 
-/// Issue 39, item 5: a camera's dataset without `noise_floor`, as a new user writes one:
+/// A camera's dataset without `noise_floor`, as a new user writes one:
 /// sample-pebble's frames as 16-bit TIFF brackets (×1, ×64, ×4096; tifffile), once with the
 /// renders' floor in the decoded units and once without the key. Without it the floor is
 /// measured from the frames (`pipeline::noise`), and the fit's held-out green error (frames
@@ -769,7 +769,7 @@ fn a_bracketed_scan_without_a_noise_floor_fits_as_with_it() {
     assert!((b / a - 1.0).abs() <= 0.02, "{a} {b}");
 }
 
-/// Issue 40: a mesh as scanners deliver it, far finer than the frames' pixels. sample-pebble's
+/// A mesh as scanners deliver it, far finer than the frames' pixels. sample-pebble's
 /// mesh subdivided twice by trimesh (40,962 vertices; the frames support about 11,000) is fitted
 /// at the frames' level of detail and the model prolonged to every vertex: the model has the
 /// given mesh's vertices, the report says what was fitted, and the held-out frames judge it

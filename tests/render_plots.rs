@@ -64,7 +64,7 @@ fn error_maps_and_model_viewer() {
         (300, 320),
     )
     .unwrap();
-    // Two panels, each seen from the front and from behind (issue 42).
+    // Two panels, each seen from the front and from behind.
     let (w, h) = plot::surface_picture_size(2, (300, 320), true);
     assert_picture(&png, w, h);
     let png = dir.path().join("m.png");

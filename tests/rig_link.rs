@@ -8,7 +8,7 @@ use subsurf::link::{FaultConfig, MemoryLink};
 use subsurf::rig::{RigClient, RigClientError};
 use subsurf_protocol::{Capture, Command, EventKind, GalvoPoint, ProgramHeader, RigError};
 
-/// Issue 2's acceptance scenario: 1% of bytes dropped, 1% corrupted, 1% of frames duplicated,
+/// The lossy link's acceptance scenario: 1% of bytes dropped, 1% corrupted, 1% of frames duplicated,
 /// both directions; 10,000 commands; every one executed exactly once, in order. Lost events are
 /// replayed: every capture's `Captured` report reaches the script, once, in order.
 #[test]

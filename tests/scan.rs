@@ -1,4 +1,4 @@
-//! End-to-end tests of scan processing (issue 4): real sample data, simulated scans with ground
+//! End-to-end tests of scan processing: real sample data, simulated scans with ground
 //! truth, and broken inputs.
 use std::path::{Path, PathBuf};
 

@@ -1,4 +1,4 @@
-//! End to end, as a user runs it (issue 6): `subsurf scan --sim --camera sim` of the built-in
+//! End to end, as a user runs it: `subsurf scan --sim --camera sim` of the built-in
 //! object, `subsurf fit` with every fifth frame held out, `subsurf evaluate` of the fitted model
 //! and of the scan's `ground-truth.ply` on the held-out frames.
 use std::path::Path;

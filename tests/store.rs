@@ -1,4 +1,4 @@
-//! The sample store (issue 23): each frame decoded once per fit, a store spilled to disk or opened
+//! The sample store: each frame decoded once per fit, a store spilled to disk or opened
 //! from the dataset's cache fits the very model an in-memory one does, and a cache is used only
 //! for the frames and options it was made from.
 use std::path::Path;

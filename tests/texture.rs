@@ -1,4 +1,4 @@
-//! alpha finer than the mesh (issue 16, section 5: "the modulation texture alpha(x_o) is
+//! alpha finer than the mesh (section 5: "the modulation texture alpha(x_o) is
 //! determined as higher resolution texture"), judged on frames the fit never saw, at surface
 //! points between the vertices, beside the ground truth (the best case) and at the vertices
 //! (where a face lattice has no detail, so both fits must agree there).
@@ -167,7 +167,7 @@ fn a_fit_is_the_same_on_any_number_of_threads() {
     assert!(one == fit_on(3), "1 and 3 threads differ");
 }
 
-/// Issue 25: a round (the alpha step and the refit together) is kept only if the training
+/// A round (the alpha step and the refit together) is kept only if the training
 /// objective of the model it leaves falls against the last kept round's, so the objective is
 /// non-increasing round after round, on a scan where several rounds run (the textured slab runs
 /// all 8: objective 95.5, 52.8, 51.4, ... 51.1). The model after round r handed out by

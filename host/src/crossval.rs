@@ -29,9 +29,9 @@ use crate::modelfile::ModelFile;
 use crate::pipeline::{
     AlphaLattice, Context, CvCandidate, CvChoice, CvReport, FitOutput, FitRounds, Fitter,
     LogEStats, PipelineError, PipelineOptions, Prepared,
+    fill::FillState,
     fit::{Fitted, OrderCache},
     fit_prepared_with,
-    interpolate::FillState,
 };
 use crate::progress::Progress;
 use rayon::prelude::*;
@@ -94,7 +94,7 @@ pub struct CvSettings {
     /// Whether Eq. 6's upper threshold t1 is chosen per scan, off against [`T1_CANDIDATE`]
     /// (when the run's options leave it off; `subsurf fit --alpha-t1-share` fixes it).
     pub t1: bool,
-    /// Whether the lattice of alpha finer than the mesh (`face_alpha`, [`crate::pipeline::lattice`])
+    /// Whether the lattice of alpha finer than the mesh (`face_alpha`, [`crate::pipeline::detail`])
     /// is written only when the folds, judged at surface points, say it predicts better
     /// ([`judge_lattice`]); `subsurf fit --alpha-lattice` given fixes it. Only where the run's
     /// lattice is on and the fit on every frame wrote one.
@@ -611,7 +611,7 @@ fn choose_rounds(
 /// surface points, without its lattice of alpha finer than the mesh (first) and with it
 /// (second): per fold the fit of the other folds at the rounds the final fit runs, finished
 /// with its lattice stage, its model judged twice, as it is and with its `face_alpha` dropped
-/// (the lattice changes nothing else of a model: [`crate::pipeline::lattice`] reads the fit,
+/// (the lattice changes nothing else of a model: [`crate::pipeline::detail`] reads the fit,
 /// never changes it).
 ///
 /// Why at surface points: at the vertices the lattice's detail is 0 by construction, so the

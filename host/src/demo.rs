@@ -6,7 +6,7 @@
 //! and brightness) → per-vertex fits with every fifth frame held out (three solver presets: the
 //! speed/accuracy trade) → the fitted model and the simulation's ground truth rendered under the
 //! same lights, and their difference → with Blender, the model exported and rendered in Cycles,
-//! judged against the same ground truth with Cycles' two-seed noise beside it (issue 43) →
+//! judged against the same ground truth with Cycles' two-seed noise beside it →
 //! held-out against in-sample error → fall-off plot, model maps → `report.md` and a
 //! self-contained `report.html`, all in one folder.
 //!
@@ -184,8 +184,8 @@ pub struct LightComparison {
 }
 
 /// The shown model exported to Blender and rendered by Cycles under the key light, judged
-/// against the ground truth as subsurf's render is (issue 43 item 4: which renderer is closer
-/// to the real material, not how close the two renderers are to each other).
+/// against the ground truth as subsurf's render is: the question is which renderer is closer
+/// to the real material, not how close the two renderers are to each other.
 #[derive(Debug, Clone)]
 pub struct InBlender {
     /// Cycles against subsurf's render of the same model, with Cycles' two-seed noise.
@@ -420,9 +420,10 @@ fn measure<U: Stages>(
         let fit_s = tf.elapsed().as_secs_f64();
         timings.push((name, fit_s));
         let tv = Instant::now();
-        let (held_out, held_out_rgb) = evaluate(ui, &ds, &fitted.model, &held, &opts, "held out")?;
+        let (held_out, held_out_rgb) =
+            evaluate(ui, &ds, &fitted.model, &held, &opts, "log E held out")?;
         let (in_sample, in_sample_rgb) =
-            evaluate(ui, &ds, &fitted.model, &train, &opts, "in sample")?;
+            evaluate(ui, &ds, &fitted.model, &train, &opts, "log E in sample")?;
         evaluations.push((name, tv.elapsed().as_secs_f64()));
         ui.say(&format!(
             "fit ({name}): {} s, log E held out {}, in sample {}",
@@ -444,8 +445,22 @@ fn measure<U: Stages>(
         });
     }
     let te = Instant::now();
-    let truth_held = evaluate(ui, &ds, &truth_file, &held, &opts, "truth")?;
-    let truth_in = evaluate(ui, &ds, &truth_file, &train, &opts, "truth")?;
+    let truth_held = evaluate(
+        ui,
+        &ds,
+        &truth_file,
+        &held,
+        &opts,
+        "log E of the truth, held out",
+    )?;
+    let truth_in = evaluate(
+        ui,
+        &ds,
+        &truth_file,
+        &train,
+        &opts,
+        "log E of the truth, in sample",
+    )?;
     timings.push((
         "ground truth's error (the floor)",
         te.elapsed().as_secs_f64(),

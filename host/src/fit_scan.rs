@@ -35,7 +35,7 @@ pub struct FitScanSettings {
     pub fixed_order: bool,
     /// Solver preset (`None`: exact).
     pub preset: Option<Preset>,
-    /// `--preset reference`: the exact path before issue 40 ([`crate::pipeline::Speed`],
+    /// `--preset reference`: the exact path without the cuts ([`crate::pipeline::Speed`],
     /// [`CvSettings::reference`]).
     pub reference: bool,
     /// Samples closer than this to x_i are dropped (mm).
@@ -165,7 +165,7 @@ fn mesh_check<U: Stages>(
     ui: &U,
 ) -> Result<crate::align::MeshCheck, FitScanError> {
     let bound = run.opts.spot.laser_tolerance_mm;
-    let spots: Vec<(usize, crate::registration::Spot)> = run
+    let spots: Vec<(usize, crate::spot::Spot)> = run
         .store()
         .map(|s| {
             frames

@@ -1,7 +1,7 @@
 //! The subsurf host library: everything the `subsurf` binary does, as typed, testable pieces.
 //!
 //! Modules follow the pipeline of Fuchs et al. 2005: the rig is driven (`link`, `rig`, `sim`,
-//! `scan`), images become samples (`dataset`, `geometry`, `registration`, `selection`), samples
+//! `scan`), images become samples (`dataset`, `geometry`, `spot`, `pipeline`), samples
 //! become a model (`model`, `fit`), and the model is rendered and judged (`render`, `plot`).
 #![warn(missing_docs)]
 
@@ -26,15 +26,14 @@ pub mod modelfile;
 pub mod pipeline;
 pub mod plot;
 pub mod progress;
-pub mod registration;
 pub mod render;
 pub mod report;
 pub mod rig;
 pub mod samples;
 pub mod scan;
-pub mod selection;
 pub mod sim;
 pub mod simulate;
+pub mod spot;
 pub mod store;
 pub mod util;
 pub mod validate;

@@ -1,4 +1,4 @@
-//! The level of detail the frames support (issue 40): a mesh much finer than a camera pixel's
+//! The level of detail the frames support: a mesh much finer than a camera pixel's
 //! footprint on the object is fitted on a coarser copy of itself, and the model is carried back
 //! to every vertex of the mesh given.
 //!

@@ -1310,7 +1310,7 @@ impl Cursor<'_> {
 
 /// The current writer's elements read as fixed records: [`ModelFile::parse`]'s columns, without
 /// a lookup and a conversion through f64 per value. A prolonged model of 650,000 vertices is
-/// 100 MB and was read at 160 MB/s by the columns alone (issue 40): every fit writes and reads
+/// 100 MB and was read at 160 MB/s by the columns alone: every fit writes and reads
 /// back its model, and `evaluate` and `render` read it. The same values as the columns read
 /// (test `the_record_reader_reads_as_the_column_reader`).
 mod rows {

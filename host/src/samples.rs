@@ -20,10 +20,10 @@
 //! 0.16–0.79 of the true value.
 use crate::dataset::{FrameSpec, Image};
 use crate::geometry::{CoverageMap, Scene, V3, Visible, dist};
-use crate::registration::Spot;
+use crate::spot::Spot;
 
 /// Largest share of a sample's value the laser spot's light (the Gaussian fitted by
-/// [`crate::registration::detect_spot`], at the nearest corner of the sample's bilinear
+/// [`crate::spot::detect_spot`], at the nearest corner of the sample's bilinear
 /// neighbourhood) may make up: 0.5 % is an error of 0.005 in ln s, below the sensor noise at any
 /// sensible noise floor.
 pub const SPOT_SHARE: f64 = 0.005;
@@ -317,7 +317,7 @@ mod tests {
             cos_min: 0.2,
             coverage: true,
         };
-        let spot = crate::registration::detect_spot(&img, 0.0, opts.saturation);
+        let spot = crate::spot::detect_spot(&img, 0.0, opts.saturation);
         assert!(spot.is_some_and(|s| !s.saturated && (s.u - 14.0).abs() < 0.5));
         let (s, c) = frame_samples(
             &img,
@@ -485,7 +485,7 @@ mod tests {
             cos_min: 0.2,
             coverage: false,
         };
-        let spot = crate::registration::detect_spot(&img, 0.0, opts.saturation);
+        let spot = crate::spot::detect_spot(&img, 0.0, opts.saturation);
         assert!(
             spot.is_some_and(|s| !s.saturated),
             "an unclipped spot: {spot:?}"

@@ -55,7 +55,7 @@ impl MeshCheck {
 pub fn check_spots(
     ds: &Dataset,
     scene: &Scene,
-    spots: &[(usize, crate::registration::Spot)],
+    spots: &[(usize, crate::spot::Spot)],
     max_gap_px: f64,
     bound_mm: f64,
 ) -> MeshCheck {

@@ -8,7 +8,7 @@ use rayon::prelude::*;
 use crate::dataset::{Dataset, DatasetError, FrameSpec};
 use crate::geometry::{Camera, V3, add_scaled, dist, dot, normalize, sub, world_to_turntable};
 use crate::progress::Progress;
-use crate::registration::{Spot, detect_spot};
+use crate::spot::{Spot, detect_spot};
 
 /// One triangulated laser spot.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]

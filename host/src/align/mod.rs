@@ -977,7 +977,7 @@ mod tests {
         Mesh::new(pos, tris).0
     }
 
-    /// Issue 42: an ellipsoid with three distinct axes has four proper symmetries (the identity
+    /// An ellipsoid with three distinct axes has four proper symmetries (the identity
     /// and a half turn about each axis), not the two that the turntable axis alone shows; lying
     /// tilted off the axis it has no turntable symmetry at all and still four.
     #[test]

@@ -19,7 +19,7 @@ pub struct Similarity {
 impl Similarity {
     /// The rotation in words: its angle and the unit axis it turns about (right-handed, object
     /// frame), e.g. `126.40° about (0.120, -0.985, 0.100)`; the angle alone does not say where the
-    /// mesh was turned (issue 42).
+    /// mesh was turned.
     pub fn rotation_in_words(&self) -> String {
         match axis_angle(&self.rotation) {
             Some((axis, angle)) => format!(

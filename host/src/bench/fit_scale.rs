@@ -1,6 +1,5 @@
 //! `subsurf bench fit-scale`: how `subsurf fit` grows with frames, vertices and image size
-//! (issue 4's scale benchmark; the size axis is issue 23's: a camera-resolution fit against its
-//! one decode pass). For every (size, vertices, frames) it simulates a sphere scan with `subsurf
+//! (the size axis: a camera-resolution fit against its one decode pass). For every (size, vertices, frames) it simulates a sphere scan with `subsurf
 //! simulate`, fits it with `subsurf fit` in a fresh process (so each run's peak RSS is its own),
 //! reads the stage timings and peak memory from the fit report, deletes the dataset before the next
 //! one is written (the disk holds one dataset at a time); then the table, the growth ratios and a

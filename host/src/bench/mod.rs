@@ -4,4 +4,5 @@
 pub mod acquisition;
 pub mod equivalence;
 pub mod fit_scale;
+pub mod one_pass;
 pub mod tradeoff;

@@ -224,8 +224,8 @@ fn quality_name(q: Option<Quality>) -> &'static str {
     }
 }
 
-/// How a row fits: a preset, the default fit, or the reference preset (issue 40: the exact path
-/// before the default was made cheaper, shown beside it so the trade is measured). Rows fit
+/// How a row fits: a preset, the default fit, or the reference preset (the exact path
+/// without the default's cost cuts, shown beside it so the trade is measured). Rows fit
 /// without cross-validation, all alike.
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum FitChoice {
@@ -562,7 +562,7 @@ pub fn write_section(path: &Path, text: &str) -> Result<(), std::io::Error> {
     let new = match (old.find(BEGIN), old.find(END)) {
         (Some(a), Some(z)) if a < z => format!("{}{body}{}", &old[..a], &old[z + END.len()..]),
         _ => format!(
-            "{}\n## Whole chain: speed vs. accuracy (`render` engineer)\n\n\
+            "{}\n## Whole chain: speed vs. accuracy\n\n\
              Command: `cargo build --release -p subsurf && ./target/release/subsurf bench tradeoff \
              --write-benchmarks BENCHMARKS.md`\n\n{body}\n",
             old.trim_end()

@@ -31,10 +31,10 @@ enum Bench {
     /// One read of the frames: `subsurf fit` wall time against one decode pass over the same
     /// frames, measured in the same run, with the ratio, peak RSS and frame reads.
     OnePass(super::bench_one_pass::OnePassBench),
-    /// Acquisition planners (issue 41): learning curves of dense, coverage, random and adaptive
+    /// Acquisition planners: learning curves of dense, coverage, random and adaptive
     /// planning, held-out error on test frames against frames and rig time.
     Acquisition(super::bench_acquisition::AcquisitionBench),
-    /// The default fit against `--preset reference` (issue 40): time and the equivalence of
+    /// The default fit against `--preset reference`: time and the equivalence of
     /// predictions and choices, per scan.
     Equivalence(super::bench_equivalence::EquivalenceBench),
 }

@@ -3,7 +3,7 @@
 //! `report.md`/`report.html` in one folder. Parsing and the stages' bars only; the run is
 //! `subsurf::demo`, its report `subsurf::report::demo`.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use anyhow::Result;
 use subsurf::demo::{DemoOptions, run_demo};
@@ -63,13 +63,15 @@ pub fn run_cmd(args: Args) -> Result<()> {
         &options,
         &StageBars("{msg:>12} {bar:40} {pos}/{len} {elapsed}"),
     )?;
-    println!("demo results in {}:", display(&args.out));
-    for f in files {
-        println!("  {}", display(&f));
-    }
+    // One line for the files: off a terminal the whole run stays within a screen.
+    let names: Vec<String> = files
+        .iter()
+        .map(|f| f.strip_prefix(&args.out).unwrap_or(f).display().to_string())
+        .collect();
+    println!(
+        "demo results in {}: {}",
+        args.out.display(),
+        names.join(", ")
+    );
     Ok(())
-}
-
-fn display(p: &Path) -> String {
-    p.display().to_string()
 }

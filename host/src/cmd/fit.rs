@@ -28,7 +28,7 @@ pub enum PresetArg {
     Balanced,
     /// Exact, automatic order, 8 direction segments.
     Best,
-    /// The exact default as it was before issue 40's cuts (every fold's fill solved and refitted
+    /// The exact default without its cost cuts (every fold's fill solved and refitted
     /// everywhere, every round scored until two in a row do not lower the best at all): the
     /// reference `subsurf bench equivalence` checks the default against.
     Reference,
@@ -134,7 +134,7 @@ pub struct Args {
     /// Frames whose laser spot the camera sees more grazing than this (cos θ at the spot) are
     /// not fitted, nor evaluated with the model: their spot is foreshortened and x_i least
     /// certain. Registration keeps spots down to cos θ = 0.1.
-    #[arg(long, default_value_t = subsurf::registration::SPOT_COS_MIN)]
+    #[arg(long, default_value_t = subsurf::spot::SPOT_COS_MIN)]
     pub spot_cos_min: f64,
     /// Largest disagreement between detected spot and laser ray (mm).
     #[arg(long, default_value_t = 2.0)]

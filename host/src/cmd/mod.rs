@@ -32,6 +32,12 @@ mod simulate;
 #[derive(Debug, Parser)]
 #[command(name = "subsurf", version, about)]
 pub struct Cli {
+    /// No progress display: only results, warnings and errors.
+    #[arg(short, long, global = true, conflicts_with = "verbose")]
+    quiet: bool,
+    /// More progress off a terminal: each step's start and end, and its count now and then.
+    #[arg(short, long, global = true)]
+    verbose: bool,
     #[command(subcommand)]
     command: Command,
 }
@@ -77,6 +83,13 @@ enum Command {
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
+    use subsurf::progress::Verbosity;
+    let set_verbosity = progress::set_verbosity;
+    set_verbosity(match (cli.quiet, cli.verbose) {
+        (true, _) => Verbosity::Quiet,
+        (false, true) => Verbosity::Verbose,
+        (false, false) => Verbosity::Normal,
+    });
     match cli.command {
         Command::Ports(args) => ports::run(args),
         Command::Flash(args) => flash::run(args),

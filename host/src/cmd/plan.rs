@@ -1,13 +1,13 @@
 //! `subsurf plan`: what a scan will do, before anything moves — frames, expected duration,
 //! predicted coverage.
 use anyhow::{Context, bail};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use subsurf::calib::Calibration;
 use subsurf::dataset::{Mesh, load_obj};
 use subsurf::scan::plan::{
     PlanOptions, PlanScene, RigTiming, ScanPlan, coverage_plan, dense_for_target, dense_raster,
-    estimate_duration, predict_coverage,
+    describe, load_plan,
 };
 use subsurf::scan::setup::{builtin_calibration, builtin_object, rig_timing, scan_exposures_s};
 
@@ -179,66 +179,24 @@ pub fn make_plan(a: &PlanArgs, r: &Resolved) -> anyhow::Result<(ScanPlan, PlanSc
     Ok((plan, scene, opts))
 }
 
-fn load_plan(p: &Path) -> anyhow::Result<ScanPlan> {
-    let text =
-        std::fs::read_to_string(p).with_context(|| format!("cannot read {}", p.display()))?;
-    let plan: ScanPlan =
-        serde_json::from_str(&text).with_context(|| format!("{} is not a plan", p.display()))?;
-    if plan.format != subsurf::scan::plan::PLAN_FORMAT {
-        bail!(
-            "{}: format {:?} is not {:?}",
-            p.display(),
-            plan.format,
-            subsurf::scan::plan::PLAN_FORMAT
-        );
-    }
-    Ok(plan)
-}
-
 /// The simulated rig's timing (what `--sim` scans run on).
 pub fn sim_timing(a: &PlanArgs) -> RigTiming {
     let p = subsurf_firmware::sim::SimParams::default();
     rig_timing(&p.profile, a.speed, a.accel, a.interval_us)
 }
 
-fn describe(plan: &ScanPlan, scene: &PlanScene, opts: &PlanOptions, t: &RigTiming) -> String {
-    let cov = predict_coverage(scene, plan, opts.raster);
-    let est = estimate_duration(plan, t, 0);
-    format!(
-        "{} planner: {} frames at {} turntable angles, {} exposure(s) each\n\
-         expected duration {:.1} s (homing {:.1}, turntable {:.1}, galvo settle {:.1}, exposure {:.1}, dark frames {:.1}, other {:.1})\n\
-         predicted coverage: {} of {} coverable vertices ({:.1}%) have an x_i within {} mm; {} vertices in all",
-        plan.planner,
-        plan.frame_count(),
-        plan.angles.len(),
-        plan.exposures_s.len(),
-        est.total_s(),
-        est.home_s,
-        est.turntable_s,
-        est.settle_s,
-        est.exposure_s,
-        est.dark_s,
-        est.overhead_s,
-        cov.covered,
-        cov.coverable,
-        100.0 * cov.fraction(),
-        plan.target_mm,
-        cov.vertices,
-    )
-}
-
 pub fn run(args: Args) -> anyhow::Result<()> {
     let r = resolve(&args.plan)?;
     let (plan, scene, opts) = make_plan(&args.plan, &r)?;
     let timing = sim_timing(&args.plan);
-    println!("{}", describe(&plan, &scene, &opts, &timing));
+    println!("{}", describe(&plan, &scene, opts.raster, &timing));
     if args.compare {
         let dense = dense_for_target(&scene, &opts)?;
         println!(
             "for comparison, the coarsest dense raster reaching {:.0}% coverage:",
             100.0 * opts.coverage
         );
-        println!("{}", describe(&dense, &scene, &opts, &timing));
+        println!("{}", describe(&dense, &scene, opts.raster, &timing));
     }
     if let Some(p) = &args.save {
         std::fs::write(p, serde_json::to_string_pretty(&plan)? + "\n")

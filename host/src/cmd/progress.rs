@@ -1,82 +1,81 @@
-//! The library's progress reports ([`subsurf::progress::Progress`]) drawn as an `indicatif` bar:
-//! the only place the binary's progress display meets the library.
-//!
-//! When stderr is not a terminal (a batch job, a pipe, CI), `indicatif` draws nothing, and a long
-//! fit used to print nothing for minutes (issue 40: a 650,000-vertex mesh, 20 minutes of
-//! silence). There the bar becomes plain lines on stderr: one per stage as it starts, a count at
-//! most every [`PLAIN_EVERY`], and every `println` line.
+//! The library's progress reports ([`subsurf::progress::Progress`]) shown to a person: an
+//! `indicatif` bar when stderr is a terminal, the library's plain [`Lines`] when it is not (a
+//! pipe, a log file, CI: one line per stage when it ends). The only place the binary's progress
+//! display meets the library.
 use std::io::IsTerminal;
-use std::sync::Mutex;
-use std::time::{Duration, Instant};
-use subsurf::progress::{Progress, Stages};
+use std::sync::atomic::{AtomicU8, Ordering};
+use std::time::Instant;
+use subsurf::progress::{Lines, Progress, Stages, Verbosity};
 
-/// Least time between two count lines of one stage in plain mode.
-const PLAIN_EVERY: Duration = Duration::from_secs(10);
+static VERBOSITY: AtomicU8 = AtomicU8::new(1);
 
-/// An `indicatif` bar as the library's progress receiver (dereferences to the bar for styling
-/// and finishing).
-pub struct Bar(pub indicatif::ProgressBar, Option<Plain>);
-
-/// Plain lines for a stderr that is no terminal.
-struct Plain {
-    started: Instant,
-    state: Mutex<PlainState>,
+/// Sets the verbosity of every display (from `--quiet` and `--verbose`).
+pub fn set_verbosity(v: Verbosity) {
+    VERBOSITY.store(v as u8, Ordering::Relaxed);
 }
 
-#[derive(Default)]
-struct PlainState {
-    stage: String,
-    len: u64,
-    pos: u64,
-    last: Option<Instant>,
-}
-
-impl Plain {
-    /// `None` when stderr is a terminal (the bar draws) or the bar is hidden on purpose.
-    fn for_stderr(hidden: bool) -> Option<Plain> {
-        (!hidden && !std::io::stderr().is_terminal()).then(|| Plain {
-            started: Instant::now(),
-            state: Mutex::new(PlainState::default()),
-        })
-    }
-
-    fn line(&self, s: &PlainState) {
-        let t = self.started.elapsed().as_secs_f64();
-        if s.len > 0 {
-            eprintln!("[{t:7.1} s] {} {}/{}", s.stage, s.pos, s.len);
-        } else {
-            eprintln!("[{t:7.1} s] {}", s.stage);
-        }
-    }
-
-    fn with(&self, f: impl FnOnce(&mut PlainState) -> bool) {
-        let Ok(mut s) = self.state.lock() else {
-            return;
-        };
-        if f(&mut s) {
-            s.last = Some(Instant::now());
-            self.line(&s);
-        }
+fn verbosity() -> Verbosity {
+    match VERBOSITY.load(Ordering::Relaxed) {
+        0 => Verbosity::Quiet,
+        1 => Verbosity::Normal,
+        _ => Verbosity::Verbose,
     }
 }
+
+/// Whether progress is shown as lines: stderr is no terminal and progress is not off.
+fn as_lines() -> bool {
+    verbosity() != Verbosity::Quiet && !std::io::stderr().is_terminal()
+}
+
+/// An `indicatif` bar as the library's progress receiver (dereferences to the bar for styling);
+/// off a terminal the bar draws nothing and the stages' lines go to stderr.
+pub struct Bar(
+    pub indicatif::ProgressBar,
+    Option<Lines>,
+    Option<(String, Instant)>,
+);
 
 impl Bar {
-    /// A bar from `bar` (plain lines instead when stderr is no terminal).
+    /// A bar from `bar` (lines instead when stderr is no terminal; nothing with `--quiet`).
     pub fn new(bar: indicatif::ProgressBar) -> Bar {
-        Bar(bar, Plain::for_stderr(false))
+        Bar::with_lines(bar, true)
+    }
+
+    /// `ends`: whether off a terminal each step says its end (not where its stage says its own).
+    fn with_lines(bar: indicatif::ProgressBar, ends: bool) -> Bar {
+        match verbosity() {
+            Verbosity::Quiet => Bar::hidden(),
+            v => Bar(
+                bar,
+                as_lines().then(|| Lines::new(v, ends, |l| eprintln!("{l}"))),
+                None,
+            ),
+        }
     }
 
     /// A bar drawn with `template` (the default style if the template is invalid).
     pub fn with_template(template: &str) -> Bar {
-        let style = indicatif::ProgressStyle::with_template(template)
-            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar());
-        Bar::new(indicatif::ProgressBar::new(0).with_style(style))
+        Bar::new(styled(template))
     }
 
-    /// A bar that draws nothing (`--quiet`): no plain lines either.
+    /// A bar that draws nothing: no lines either.
     pub fn hidden() -> Bar {
-        Bar(indicatif::ProgressBar::hidden(), Plain::for_stderr(true))
+        Bar(indicatif::ProgressBar::hidden(), None, None)
     }
+
+    /// Ends the display: the bar goes; off a terminal the current step's line.
+    pub fn finish_and_clear(&self) {
+        if let Some(l) = &self.1 {
+            l.finish();
+        }
+        self.0.finish_and_clear();
+    }
+}
+
+fn styled(template: &str) -> indicatif::ProgressBar {
+    let style = indicatif::ProgressStyle::with_template(template)
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar());
+    indicatif::ProgressBar::new(0).with_style(style)
 }
 
 impl std::ops::Deref for Bar {
@@ -89,84 +88,56 @@ impl std::ops::Deref for Bar {
 impl Progress for Bar {
     fn set_message(&self, msg: &str) {
         self.0.set_message(msg.to_string());
-        if let Some(p) = &self.1 {
-            p.with(|s| {
-                let new = s.stage != msg;
-                if new {
-                    s.stage = msg.to_string();
-                    s.pos = 0;
-                    s.len = 0;
-                }
-                new
-            });
-        }
+        self.1.as_ref().inspect(|l| l.set_message(msg));
     }
     fn set_length(&self, len: u64) {
         self.0.set_length(len);
-        if let Some(p) = &self.1 {
-            p.with(|s| {
-                s.len = len;
-                false
-            });
-        }
+        self.1.as_ref().inspect(|l| l.set_length(len));
     }
     fn set_position(&self, pos: u64) {
         self.0.set_position(pos);
-        if let Some(p) = &self.1 {
-            p.with(|s| {
-                s.pos = pos;
-                false
-            });
-        }
+        self.1.as_ref().inspect(|l| l.set_position(pos));
     }
     fn inc(&self, n: u64) {
         self.0.inc(n);
-        if let Some(p) = &self.1 {
-            p.with(|s| {
-                s.pos = s.pos.saturating_add(n);
-                let due = s.last.is_none_or(|t| t.elapsed() >= PLAIN_EVERY);
-                due || (s.len > 0 && s.pos == s.len)
-            });
-        }
+        self.1.as_ref().inspect(|l| l.inc(n));
     }
     fn start(&self, msg: &str, len: u64) {
         self.0.set_message(msg.to_string());
         self.0.set_length(len);
         self.0.set_position(0);
-        if let Some(p) = &self.1 {
-            p.with(|s| {
-                s.stage = msg.to_string();
-                s.len = len;
-                s.pos = 0;
-                true
-            });
-        }
+        self.1.as_ref().inspect(|l| l.start(msg, len));
     }
     fn println(&self, line: &str) {
         match &self.1 {
-            // A bar that draws nothing prints nothing either.
-            Some(_) => eprintln!("{line}"),
+            Some(l) => l.println(line),
+            None if verbosity() == Verbosity::Quiet => {}
             None => self.0.println(line),
         }
     }
 }
 
-/// One bar per stage drawn with the template it holds, cleared when the stage ends; the
-/// library's lines printed on stdout, its warnings on stderr (`subsurf demo`, `bench tradeoff`,
-/// `fit`).
+/// One bar per stage drawn with the template it holds, cleared when the stage ends; off a
+/// terminal one line per stage when it ends, with its time. The library's lines are printed on
+/// stdout, its warnings on stderr (`subsurf demo`, `bench tradeoff`, `fit`).
 pub struct StageBars(pub &'static str);
 
 impl Stages for StageBars {
     type Bar = Bar;
     fn stage(&self, len: u64, msg: &str) -> Bar {
-        let p = Bar::with_template(self.0);
-        // The bar's own length and name (no plain line yet: the stage's work reports that).
-        p.0.set_length(len);
-        p.0.set_message(msg.to_string());
-        p
+        // Off a terminal a named stage says its end, the steps within it only with --verbose;
+        // an unnamed one (a whole `subsurf fit`) is its steps, and each says its end.
+        let mut bar = Bar::with_lines(styled(self.0), msg.is_empty());
+        bar.0.set_length(len);
+        bar.0.set_message(msg.to_string());
+        bar.2 = (!msg.is_empty()).then(|| (msg.to_string(), Instant::now()));
+        bar
     }
     fn finish(&self, bar: Bar) {
         bar.finish_and_clear();
+        if let (Some((name, since)), true) = (&bar.2, as_lines()) {
+            eprintln!("{name} in {:.1} s", since.elapsed().as_secs_f64());
+        }
     }
     fn say(&self, line: &str) {
         println!("{line}");

@@ -2,7 +2,6 @@
 //! planning (`cmd/plan.rs`), the camera, Ctrl-C and printing here; the scan is
 //! `subsurf::scan::acquire`.
 use anyhow::bail;
-use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -81,9 +80,6 @@ pub struct Args {
     /// --noise-floor, scan.json then has none and `subsurf fit` measures one from the frames.
     #[arg(long)]
     pub no_dark_frames: bool,
-    /// No progress bar.
-    #[arg(long)]
-    pub quiet: bool,
     /// Memory for the sample store extracted as frames arrive (MiB), as `subsurf fit --memory`.
     #[arg(long, default_value_t = (subsurf::store::DEFAULT_BUDGET >> 20) as u64)]
     pub memory: u64,
@@ -122,11 +118,7 @@ fn finish(progress: &Bar, result: Result<Vec<String>, AcquireError>) -> anyhow::
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     if let Some(src) = args.replay.clone() {
-        let progress = if args.quiet {
-            Bar::hidden()
-        } else {
-            Bar::with_template("{msg:>12} {bar:30} {pos}/{len}")
-        };
+        let progress = Bar::with_template("{msg:>12} {bar:30} {pos}/{len}");
         let exclude = match &args.exclude_frames {
             Some(f) => subsurf::dataset::parse_frame_list(f).map_err(anyhow::Error::msg)?,
             None => Vec::new(),
@@ -194,18 +186,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             white: args.white_level,
         },
     )?;
-    let progress = if args.quiet {
-        Bar::hidden()
-    } else {
-        let p = Bar::new(ProgressBar::new(cfg.plan.frame_count() as u64));
-        p.set_style(
-            ProgressStyle::with_template(
-                "{bar:30} {pos}/{len} frames  {per_sec}  ETA {eta}  {msg}",
-            )
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
-        );
-        p
-    };
+    let progress = Bar::with_template("{bar:30} {pos}/{len} frames  {per_sec}  ETA {eta}  {msg}");
+    subsurf::progress::Progress::set_length(&progress, cfg.plan.frame_count() as u64);
     let steer = (args.plan.planner == Planner::Adaptive && args.plan.plan.is_none()).then(|| {
         (
             args.adaptive.settings(),

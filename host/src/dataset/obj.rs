@@ -3,7 +3,7 @@
 //!
 //! Written by hand, not left to `tobj`, because `tobj` reads line by line on one thread and
 //! hashes every face corner: on a 655,362-vertex scanner mesh (53 MB) that was about 0.8 s of a
-//! 6 s fit, the largest part of it nothing else could overlap (issue 40). This reader only
+//! 6 s fit, the largest part of it nothing else could overlap. This reader only
 //! accepts what it can read exactly as tobj does; for anything else ([`common_obj`] returns
 //! `None`) the caller reads the file with tobj, whose reading stays the reference
 //! (`dataset::mesh`'s tests compare the two).

@@ -6,8 +6,8 @@ use crate::dataset::Dataset;
 use crate::modelfile::{ModelFile, ModelShape, NO_RANGE, VertexModel, VertexStatus};
 
 use super::error::OwnFit;
-use super::interpolate::Refit;
-use super::report::{FitReport, ModelSize};
+use super::fill::Refit;
+use super::findings::{FitReport, ModelSize};
 
 /// The numbers `model` stores and those of the same model with every vertex at n = `max_terms`
 /// (the file's largest n when unknown) and m = `max_segments`.

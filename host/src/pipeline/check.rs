@@ -1,7 +1,7 @@
 //! The fit report's reflectance check: a preset's approximate fits (distance bins, every k-th
 //! sample, a short iteration limit) against exact fits of the same light positions.
 //!
-//! Why (issue 28): the draft preset rendered the benchmark's sphere 11–14 % dark while its
+//! Why: the draft preset once rendered the benchmark's sphere 11–14 % dark while its
 //! held-out log E was within 2x of balanced's, so the one figure a fit prints did not warn. An
 //! approximation may make a model noisier, never biased; the figure a bias shows in is the
 //! light a model sends back, the total diffuse reflectance 2π ∫ r R_d(r) dr
@@ -12,8 +12,8 @@
 //! the report warns when the mean difference is a bias ([`ReflectanceCheck::biased`]). Never
 //! changes a fit.
 //!
-//! What it cannot see: a bias of the rule both fits share. The draft preset's bias of issue 28
-//! was of that kind (its run had no baseline, so every model continued below r_min by its
+//! What it cannot see: a bias of the rule both fits share. The draft preset's dark renders
+//! were of that kind (its run had no baseline, so every model continued below r_min by its
 //! slope there); the report warns about that case on its own (`FitWarning::NoBaseline`).
 use rayon::prelude::*;
 
@@ -163,7 +163,7 @@ mod tests {
     fn a_bias_stands_above_the_tolerance_and_the_noise() {
         // The draft preset on sample-torus: noisy, unbiased.
         assert!(!check(-0.018, 0.10).biased());
-        // Issue 28's size of bias, tight or noisy.
+        // The size of the draft preset's dark renders, tight or noisy.
         assert!(check(-0.13, 0.01).biased());
         assert!(check(0.13, 0.2).biased());
         // Beyond the tolerance but within twice its standard error: not shown to be a bias.

@@ -12,10 +12,10 @@ use crate::model::{ColourModel, LogEAccumulator};
 use crate::modelfile::{ModelShape, params_of};
 use crate::progress::Progress;
 
+use super::findings::{FailReason, FitReport, LogEStats, OrderCount};
 use super::fit::{Fitted, ln_rd_with};
 use super::load::Context;
 use super::register::RegisteredFrame;
-use super::report::{FailReason, FitReport, LogEStats, OrderCount};
 use super::select::{Groups, group_samples};
 use super::{OUTLIER_MIN_LOG_E, PipelineError, PipelineOptions};
 

@@ -20,13 +20,13 @@ use crate::geometry::{Camera, SurfacePoints, Visible};
 use crate::lattice::{is_corner, points};
 use crate::model::TangentFrame;
 use crate::progress::Progress;
-use crate::registration::RegistrationOutcome;
+use crate::spot::RegistrationOutcome;
 use crate::store::arrow::{CACHE_DIR, Target, Writer};
 use crate::store::{
     Extracted, ExtractionKey, FrameRecord, SampleStore, StoreBuilder, StoreError, StorePoints,
 };
 
-use super::lattice::face_levels;
+use super::detail::face_levels;
 use super::load::Context;
 use super::{PipelineError, PipelineOptions};
 
@@ -91,7 +91,7 @@ pub fn extraction_options(opts: &PipelineOptions) -> String {
 }
 
 /// The lattice points a fit of `frames` samples alpha at (section 5's "higher resolution
-/// texture", [`super::lattice`]): each face's level by [`face_levels`] over the views (camera,
+/// texture", [`super::detail`]): each face's level by [`face_levels`] over the views (camera,
 /// turntable angle) of the frames, the points between the corners (a corner is a vertex, whose
 /// alpha the fit rounds give). `None` when the lattice is off.
 pub fn fit_points(ctx: &Context, frames: &[usize]) -> Option<StorePoints> {

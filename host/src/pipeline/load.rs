@@ -10,8 +10,8 @@ use std::sync::{Arc, Mutex};
 
 use crate::dataset::{Dataset, DatasetError, FrameSpec};
 use crate::geometry::{Camera, CoverageMap, Scene, SurfacePoints, V3, Visible};
-use crate::registration::RegistrationOutcome;
 use crate::samples::{SampleCounts, frame_samples};
+use crate::spot::RegistrationOutcome;
 use crate::store::{FrameSamples, PointSet, SampleStore, StoreError, StorePoints};
 
 use super::register::RegisteredFrame;
@@ -170,13 +170,13 @@ impl<'a> Context<'a> {
 
     /// Registers the frame `f` (its `scan.json` entry) from its image `img` (the rule of
     /// [`Context::register`]), with the spot detected in it
-    /// ([`crate::registration::register_frame_detected`]).
+    /// ([`crate::spot::register_frame_detected`]).
     pub fn register_image(
         &self,
         img: &crate::dataset::Image,
         f: &FrameSpec,
-    ) -> (RegistrationOutcome, Option<crate::registration::Spot>) {
-        crate::registration::register_frame_detected(
+    ) -> (RegistrationOutcome, Option<crate::spot::Spot>) {
+        crate::spot::register_frame_detected(
             img,
             f,
             &self.cams[f.camera],
@@ -211,7 +211,7 @@ impl<'a> Context<'a> {
         img: &crate::dataset::Image,
         f: &FrameSpec,
         x_i: V3,
-        spot: &crate::registration::Spot,
+        spot: &crate::spot::Spot,
     ) -> (Vec<crate::samples::Sample>, SampleCounts) {
         let vis = self.visible(f.camera, f.turntable_deg);
         let cov = self.coverage(f.camera, f.turntable_deg);
@@ -236,7 +236,7 @@ impl<'a> Context<'a> {
         img: &crate::dataset::Image,
         f: &FrameSpec,
         x_i: V3,
-        spot: &crate::registration::Spot,
+        spot: &crate::spot::Spot,
         pts: &StorePoints,
         visible: &[Visible],
     ) -> (Vec<crate::samples::Sample>, SampleCounts) {

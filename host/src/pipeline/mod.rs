@@ -7,9 +7,11 @@
 //! - [`select`]: the closest x_i per vertex and channel; vertices that chose the same lights
 //!   form a group and share one fit; a group's samples.
 //! - [`fit`]: one model per group (Eq. 1/3/5/9), with the alpha rounds (Eq. 6).
-//! - [`lattice`]: alpha finer than the mesh, Eq. 6 per point of a per-face lattice (section 5).
+//! - [`detail`] (stage `lattice`): alpha finer than the mesh, Eq. 6 per point of a per-face
+//!   lattice (section 5); the lattice's geometry is [`crate::lattice`].
 //! - [`error`]: log E(x_i) (Eq. 8) of every fit with alpha, and which fits are accepted.
-//! - [`interpolate`]: a model for every vertex without an accepted fit, from its neighbours.
+//! - [`fill`] (stage `interpolate`): a model for every vertex without an accepted fit, from its
+//!   neighbours; the graph interpolation itself is [`crate::interpolate`].
 //! - [`assemble`]: the model file and the vertex counts.
 //!
 //! Frames are read again by each pass rather than kept, so memory does not grow with the frame
@@ -17,16 +19,16 @@
 //! fitted. Progress goes to a [`Progress`]; each stage's wall time into the report.
 pub mod assemble;
 pub mod check;
+pub mod detail;
 pub mod error;
 pub mod extract;
+pub mod fill;
+mod findings;
 pub mod fit;
-pub mod interpolate;
-pub mod lattice;
 pub mod load;
 pub mod noise;
 mod options;
 pub mod register;
-mod report;
 pub mod select;
 
 use crate::dataset::{Dataset, DatasetError};
@@ -35,6 +37,10 @@ use crate::modelfile::ModelFile;
 use crate::progress::Progress;
 
 pub use extract::{Cache, StoreOptions};
+pub use findings::{
+    AlphaReport, AlphaRound, BASELINE_POOL, BaselineReport, CvCandidate, CvChoice, CvReport,
+    FailReason, FitReport, FitWarning, FrameCounts, LogEStats, ModelSize, OrderCount, TermDropped,
+};
 pub use fit::{
     Fitter, MIN_DECAY, MIN_SHARE, MIN_SUPPORT, SEGMENT_MAX_RATE_RATIO, unsupported_term,
 };
@@ -44,10 +50,6 @@ pub use options::{
     Speed, fit_record,
 };
 pub use register::{RegisteredFrame, register_one};
-pub use report::{
-    AlphaReport, AlphaRound, BASELINE_POOL, BaselineReport, CvCandidate, CvChoice, CvReport,
-    FailReason, FitReport, FitWarning, FrameCounts, LogEStats, ModelSize, OrderCount, TermDropped,
-};
 
 /// A fit within this log E (3 % RMS) is never an outlier, however good the typical fit is
 /// (noise-free scans: log E ~ 1e-4 with relative spread far above `outlier_factor`).
@@ -247,7 +249,7 @@ fn check_options(opts: &PipelineOptions) -> Result<(), PipelineError> {
             opts.alpha_shrinkage
         )));
     }
-    let floor = crate::registration::SPOT_COS_FLOOR;
+    let floor = crate::spot::SPOT_COS_FLOOR;
     if !(floor..=1.0).contains(&opts.spot_cos_min) {
         return Err(PipelineError::Invalid(format!(
             "the spot's grazing limit must be {floor}..=1 (cos θ), got {}",
@@ -350,7 +352,7 @@ impl Prepared {
         cache.fill(ctx, &self.setup.regs, &self.setup.groups, fitter, progress);
     }
 
-    /// The lattice of alpha finer than the mesh that the lattice stage ([`lattice::fit_lattice`])
+    /// The lattice of alpha finer than the mesh that the lattice stage ([`detail::fit_lattice`])
     /// finds from `fitted` (a state of this selection's rounds, [`FitRounds::fitted`]) under the
     /// run `ctx`: the model's `face_alpha` were it finished with `ctx`'s settings. The stages
     /// after it do not depend on it, so the cross-validation adds it to a fold's model judged at
@@ -361,7 +363,7 @@ impl Prepared {
         fitted: &fit::Fitted,
     ) -> Option<crate::lattice::FaceAlpha> {
         let setup = &self.setup;
-        lattice::fit_lattice(ctx, &setup.regs, &setup.groups, fitted, &()).face_alpha
+        detail::fit_lattice(ctx, &setup.regs, &setup.groups, fitted, &()).face_alpha
     }
 
     /// The baseline and round 0 fitted ([`fit::AlphaRounds::start`]), round 0's candidates
@@ -400,8 +402,8 @@ pub struct FitRounds<'r, 'a> {
     fitter: &'r dyn Fitter,
     progress: &'r dyn Progress,
     rounds: fit::AlphaRounds<'r, 'a>,
-    /// The last finish's fill, the next one's start ([`interpolate::FillHow::warm`]).
-    last_fill: std::sync::Mutex<Option<interpolate::FillState>>,
+    /// The last finish's fill, the next one's start ([`fill::FillHow::warm`]).
+    last_fill: std::sync::Mutex<Option<fill::FillState>>,
 }
 
 impl FitRounds<'_, '_> {
@@ -433,7 +435,7 @@ impl FitRounds<'_, '_> {
     /// others without a fit of their own are left without one. At the needed vertices the
     /// same models as [`FitRounds::model_file`]'s, on the reference path bit for bit; on the
     /// default path within the fill's tolerance, its weights kept from this run's previous
-    /// fill ([`interpolate::FillHow`]).
+    /// fill ([`fill::FillHow`]).
     pub fn model_file_for(&self, needed: &[bool]) -> Result<ModelFile, PipelineError> {
         self.finish(Figures::ModelOnly, Some(needed))
             .map(|out| out.model)
@@ -448,7 +450,7 @@ impl FitRounds<'_, '_> {
             .last_fill
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner);
-        let how = interpolate::FillHow {
+        let how = fill::FillHow {
             needed,
             speed: self.ctx.opts.speed,
             warm: last.as_ref(),
@@ -466,9 +468,9 @@ impl FitRounds<'_, '_> {
         Ok(out)
     }
 
-    /// The last finish's fill state ([`interpolate::FillHow::warm`]), for another run on the
+    /// The last finish's fill state ([`fill::FillHow::warm`]), for another run on the
     /// same mesh to start from ([`FitRounds::start_fill_from`]).
-    pub fn fill_state(&self) -> Option<interpolate::FillState> {
+    pub fn fill_state(&self) -> Option<fill::FillState> {
         self.last_fill
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
@@ -480,7 +482,7 @@ impl FitRounds<'_, '_> {
     /// folds, so a fold's known vertices, and with them the interpolation's weights, are
     /// mostly the same in both. The fill uses the weights only where their known set and
     /// targets are its own, so the model is the same bit for bit.
-    pub fn start_fill_from(&self, state: interpolate::FillState) {
+    pub fn start_fill_from(&self, state: fill::FillState) {
         self.last_fill
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
@@ -502,14 +504,14 @@ fn finish_state(
     fitter: &dyn Fitter,
     progress: &dyn Progress,
     figures: Figures,
-    fill: &interpolate::FillHow,
-) -> Result<(FitOutput, interpolate::FillState), PipelineError> {
+    fill: &fill::FillHow,
+) -> Result<(FitOutput, fill::FillState), PipelineError> {
     let mut run = Setup {
         frames: setup.frames.clone(),
         report: setup.report.clone(),
         regs: Vec::new(),
         groups: select::Groups::default(),
-        clock: report::StageClock::start(),
+        clock: findings::StageClock::start(),
         figures,
     };
     run.finish_with(
@@ -540,7 +542,7 @@ struct Setup {
     report: FitReport,
     regs: Vec<RegisteredFrame>,
     groups: select::Groups,
-    clock: report::StageClock,
+    clock: findings::StageClock,
     /// What [`Setup::finish_with`] computes besides the model.
     figures: Figures,
 }
@@ -566,7 +568,7 @@ impl Setup {
         report
             .stage_seconds
             .insert("extract".into(), store.report().seconds);
-        let mut clock = report::StageClock::start();
+        let mut clock = findings::StageClock::start();
         // Registration: the spot in every frame, x_i on the mesh (found by the extraction pass).
         let regs = register::registered(ctx, frames, &mut report.frames);
         clock.lap("registration", &mut report);
@@ -601,9 +603,9 @@ impl Setup {
             std::mem::take(&mut self.regs),
             std::mem::take(&mut self.groups),
         );
-        let how = interpolate::FillHow {
+        let how = fill::FillHow {
             speed: ctx.opts.speed,
-            ..interpolate::FillHow::default()
+            ..fill::FillHow::default()
         };
         self.finish_with(ctx, &regs, &groups, fitted, fitter, progress, &how)
             .map(|(out, _)| out)
@@ -620,8 +622,8 @@ impl Setup {
         fitted: fit::Fitted,
         fitter: &dyn Fitter,
         progress: &dyn Progress,
-        fill: &interpolate::FillHow,
-    ) -> Result<(FitOutput, interpolate::FillState), PipelineError> {
+        fill: &fill::FillHow,
+    ) -> Result<(FitOutput, fill::FillState), PipelineError> {
         let opts = &ctx.opts;
         let ds = ctx.ds;
         let report = &mut self.report;
@@ -634,11 +636,12 @@ impl Setup {
             .filter(|f| f.as_ref().is_ok_and(|g| g.isotropic_fallback))
             .count();
         report.alpha = fitted.alpha_report.clone();
-        // A preset's approximations against exact fits of a sample of light positions (issue 28).
+        // A preset's approximations against exact fits of a sample of light positions:
+        // an approximation may make a model noisier, never biased (`check`).
         report.reflectance_check = check::reflectance(ctx, regs, groups, &fitted, fitter, progress);
         clock.lap("check", report);
         // alpha finer than the mesh (section 5): Eq. 6 per lattice point, with the final fits.
-        let lattice = lattice::fit_lattice(ctx, regs, groups, &fitted, progress);
+        let lattice = detail::fit_lattice(ctx, regs, groups, &fitted, progress);
         if opts.alpha_lattice.max_level().is_some() {
             report.alpha.lattice = Some(lattice.report);
         }
@@ -652,7 +655,7 @@ impl Setup {
             self.figures == Figures::All,
             progress,
         );
-        report.baseline = fitted.baseline.as_ref().map(|b| report::BaselineReport {
+        report.baseline = fitted.baseline.as_ref().map(|b| findings::BaselineReport {
             terms: b.params.terms,
             params: b.params.params.clone(),
             r_range: b.params.r_range,
@@ -672,8 +675,7 @@ impl Setup {
                 .max_by_key(|(_, c)| **c)
                 .map_or(shape.terms, |(n, _)| *n),
         };
-        let (refits, fill_state) =
-            interpolate::fill(&ctx.scene, &own, &shape, common_n, fitter, fill);
+        let (refits, fill_state) = fill::fill(&ctx.scene, &own, &shape, common_n, fitter, fill);
         let mut model = assemble::model_file(ds, shape, &own, &refits, &fitted.alpha, report);
         model.baseline = fitted.baseline.as_ref().map(|b| b.params.clone());
         model.face_alpha = lattice.face_alpha;

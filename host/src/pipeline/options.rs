@@ -4,8 +4,8 @@ use crate::dataset::Dataset;
 use crate::fit::{FitOptions, Preset};
 use crate::model::IntensityWindow;
 use crate::modelfile::ColourMode;
-use crate::registration::SpotOptions;
 use crate::samples::SampleOptions;
+use crate::spot::SpotOptions;
 
 /// Which model variant each vertex gets.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
@@ -67,7 +67,7 @@ pub struct PipelineOptions {
     pub alpha_tolerance: f64,
     /// alpha finer than the mesh (section 5: "the modulation texture alpha(x_o) is determined
     /// as higher resolution texture"): Eq. 6 per point of a per-face lattice after the rounds
-    /// ([`super::lattice`]), written as the model file's `face_alpha` where the images support it.
+    /// ([`super::detail`]), written as the model file's `face_alpha` where the images support it.
     pub alpha_lattice: AlphaLattice,
     /// Eq. 6's shrinkage towards alpha = 1: this multiple of the empirical-Bayes pseudo-count
     /// ([`crate::model::empirical_prior`], noise over the texture's spread) at the vertices and
@@ -77,27 +77,27 @@ pub struct PipelineOptions {
     /// Frames whose laser spot the camera sees at a grazing angle (cos θ between the normal at
     /// the laser's hit and the direction to the camera below this) are not fitted: their spot is
     /// foreshortened and its back-projected x_i least certain. Registration keeps such frames
-    /// down to [`crate::registration::SPOT_COS_FLOOR`], so whether they help is a choice of the
-    /// fit ([`crate::registration::SPOT_COS_MIN`] by default, chosen by cross-validation).
+    /// down to [`crate::spot::SPOT_COS_FLOOR`], so whether they help is a choice of the
+    /// fit ([`crate::spot::SPOT_COS_MIN`] by default, chosen by cross-validation).
     pub spot_cos_min: f64,
-    /// The fit's computational path (issue 40): the default's cuts, or the exact reference.
+    /// The fit's computational path: the default's cuts, or the exact reference.
     pub speed: Speed,
 }
 
-/// How the fit computes what the reference computes exactly (issue 40: "the same predictions,
-/// not the same bits"); the cross-validation's folds and the final fit take the same path, so
+/// How the fit computes what the reference computes exactly (the rule for a cut: the same
+/// predictions, not the same bits); the cross-validation's folds and the final fit take the same path, so
 /// the folds score the procedure that ships.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Speed {
     /// The default: the fills (failed vertices, alpha) solved by a sparse Cholesky factor of
-    /// their Laplace rows (`interpolate::Laplace`; conjugate gradients to [`FILL_TOLERANCE`]
+    /// their Laplace rows (`crate::interpolate::Laplace`; conjugate gradients to [`FILL_TOLERANCE`]
     /// where it cannot be had), and in the cross-validation's folds only at the vertices their
     /// held-out frames read, as weights of the known vertices kept from round to round
-    /// (`pipeline::interpolate::FillHow`).
+    /// (`pipeline::fill::FillHow`).
     #[default]
     Default,
-    /// The exact path before issue 40 (`subsurf fit --preset reference`): every solve from
+    /// The exact path without the cuts (`subsurf fit --preset reference`): every solve from
     /// scratch to the solvers' own tolerances.
     Reference,
 }
@@ -113,7 +113,7 @@ pub const FILL_TOLERANCE: f64 = 1e-9;
 pub enum AlphaLattice {
     /// Per vertex only: no lattice pass, no `face_alpha` element (the behaviour before format 5).
     Off,
-    /// Each face's level from the pixel footprint ([`super::lattice::face_levels`]), at most
+    /// Each face's level from the pixel footprint ([`super::detail::face_levels`]), at most
     /// [`crate::lattice::MAX_LEVEL`].
     Auto,
     /// As `Auto`, at most this level (1..=[`crate::lattice::MAX_LEVEL`]).
@@ -188,7 +188,7 @@ impl PipelineOptions {
             alpha_tolerance: 2e-3,
             alpha_lattice: AlphaLattice::Auto,
             alpha_shrinkage: 1.0,
-            spot_cos_min: crate::registration::SPOT_COS_MIN,
+            spot_cos_min: crate::spot::SPOT_COS_MIN,
             speed: Speed::Default,
         }
         .with_noise_floor(floor)

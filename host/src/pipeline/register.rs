@@ -6,10 +6,10 @@
 //! when the extraction pass decodes it ([`super::extract`]); this stage reads the outcome from the
 //! run's sample store. Never keeps an image.
 use crate::geometry::V3;
-use crate::registration::{RegistrationOutcome, Spot};
+use crate::spot::{RegistrationOutcome, Spot};
 
+use super::findings::FrameCounts;
 use super::load::Context;
-use super::report::FrameCounts;
 
 /// A frame whose spot lies on the object: its light position x_i and the spot it was found at.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -50,15 +50,15 @@ impl RegisteredFrame {
 }
 
 /// Whether the camera sees frame `reg`'s spot more grazing than the run's `spot_cos_min`
-/// ([`crate::registration::spot_cos`]): registration keeps such frames down to
-/// [`crate::registration::SPOT_COS_FLOOR`], the run decides whether to use them.
+/// ([`crate::spot::spot_cos`]): registration keeps such frames down to
+/// [`crate::spot::SPOT_COS_FLOOR`], the run decides whether to use them.
 pub fn too_grazing(ctx: &Context, reg: &RegisteredFrame) -> bool {
     let min = ctx.opts.spot_cos_min;
-    if min <= crate::registration::SPOT_COS_FLOOR {
+    if min <= crate::spot::SPOT_COS_FLOOR {
         return false;
     }
     let f = &ctx.ds.spec.frames[reg.frame];
-    crate::registration::spot_cos(&ctx.scene, f, ctx.camera(f.camera), reg.x_i, reg.triangle)
+    crate::spot::spot_cos(&ctx.scene, f, ctx.camera(f.camera), reg.x_i, reg.triangle)
         .is_none_or(|c| c < min)
 }
 

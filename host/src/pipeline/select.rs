@@ -1,21 +1,24 @@
 //! Stage `select` (section 5: "data is then collected from all images in which a particular
 //! location on the object was illuminated yielding an incident light position x_i [...] we select
 //! for each vertex in the mesh the closest light position x_i"): registered frames whose x_i agree
-//! within the pooling tolerance form one light position ([`crate::selection::pool`]); vertices
+//! within the pooling tolerance form one light position ([`lights::pool`]); vertices
 //! that chose the same light position per channel form a group and share one fit; a group's
 //! samples are read from every frame of its light positions.
 //!
 //! Owns which samples a fit sees (and in which direction φ around x_i each lies); never fits.
+
+pub mod lights;
+
 use std::collections::BTreeMap;
 
 use crate::geometry::{Scene, V3, dist};
 use crate::model::TangentFrame;
 use crate::samples::{Sample, SampleCounts};
-use crate::selection::{Light, pool, select};
+use lights::{Light, pool, select};
 
+use super::findings::FailReason;
 use super::load::Context;
 use super::register::RegisteredFrame;
-use super::report::FailReason;
 
 /// One sample of a group in one colour channel.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -24,7 +27,7 @@ pub struct GroupSample {
     pub r: f64,
     /// s(x_i, x_o), radiance.
     pub s: f64,
-    /// The vertex x_o (in the lattice pass, [`super::lattice`]: the surface point's index).
+    /// The vertex x_o (in the lattice pass, [`super::detail`]: the surface point's index).
     pub vertex: u32,
     /// The registered frame (index into the registered frames) the sample was read from: with
     /// `vertex`, it identifies one observation, whose channels form one row of the joint fit.
@@ -259,7 +262,7 @@ pub fn add_frame_samples(
 /// its direction φ in `frame` ([`group_frame`]) around `l`'s own x_i (its distance `Sample::r`
 /// is from that x_i too), and the channels the group takes from it (bit c: `l` belongs to the
 /// light position channel c selected and the sample's channel c is valid). The one rule
-/// [`group_samples`] and the lattice pass ([`super::lattice`]) measure samples by. Without
+/// [`group_samples`] and the lattice pass ([`super::detail`]) measure samples by. Without
 /// `directions`, φ is not measured (`None`): for a model it cannot change
 /// ([`crate::model::LnEvaluator::uses_direction`]).
 pub fn frame_observations<'a>(

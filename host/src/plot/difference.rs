@@ -53,8 +53,8 @@ fn nice_range(x: f64) -> f64 {
 }
 
 /// What the two images of a difference picture are, for its caption `(image − reference) /
-/// reference`: a model against the ground truth, or Cycles against subsurf's render (issue 42:
-/// `export --render` called the latter "model against truth").
+/// reference`: a model against the ground truth, or Cycles against subsurf's render (a caption
+/// that called the latter "model against truth" misled the reader).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Compared<'a> {
     /// The image judged (`model` in `difference_picture`).
@@ -229,7 +229,7 @@ mod tests {
         assert!(difference_picture(&p, &flat(1.0, 10), &flat(1.0, 11), 1e-3).is_err());
     }
 
-    /// Issue 42: the caption names what was compared (Cycles against subsurf for `export
+    /// The caption names what was compared (Cycles against subsurf for `export
     /// --render`), and the picture draws that caption, not "model − truth".
     #[test]
     fn the_caption_names_the_two_images() {

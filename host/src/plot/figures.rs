@@ -67,7 +67,7 @@ pub fn falloff_figure(
 }
 
 /// The error map's title: the log E stored per vertex is measured on the samples the fit used,
-/// so it is in-sample (optimistic); `subsurf evaluate` judges held-out frames (issue 42).
+/// so it is in-sample (optimistic); `subsurf evaluate` judges held-out frames.
 pub const ERROR_MAP_TITLE: &str =
     "In-sample reconstruction error per x_i (on the fit's own frames)";
 

@@ -528,7 +528,7 @@ mod tests {
             .count()
     }
 
-    /// Issue 42: a picture shows the far side too. A sphere red on the side away from the view
+    /// A picture shows the far side too. A sphere red on the side away from the view
     /// and blue towards it: the front view is blue, the view below it (turned 180°) red.
     #[test]
     fn the_far_side_is_shown_below_the_front() {
@@ -593,7 +593,7 @@ mod tests {
         );
     }
 
-    /// Issue 42: the model viewer's status has a legend of swatches, not a 0–2 colour bar, and
+    /// The model viewer's status has a legend of swatches, not a 0–2 colour bar, and
     /// alpha has a scale (a grey ramp from 0).
     #[test]
     fn status_has_swatches_and_alpha_a_scale() {
@@ -624,7 +624,7 @@ mod tests {
         assert!(greys > 1000, "{greys}");
     }
 
-    /// Issue 42: where a scalar panel has grey vertices its legend names them; with none, no
+    /// Where a scalar panel has grey vertices its legend names them; with none, no
     /// swatch.
     #[test]
     fn missing_values_have_a_legend() {

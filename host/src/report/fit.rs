@@ -464,7 +464,7 @@ pub fn alpha_summary(a: &crate::pipeline::AlphaReport) -> String {
 }
 
 /// The lattice pass in one sentence: whether a lattice was written, its levels, the points
-/// with data, the prior and the RMS detail per channel ([`crate::pipeline::lattice`]).
+/// with data, the prior and the RMS detail per channel ([`crate::pipeline::detail`]).
 pub fn lattice_summary(a: &crate::pipeline::AlphaReport) -> String {
     let Some(l) = &a.lattice else {
         return "off (alpha per vertex only)".into();

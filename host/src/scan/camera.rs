@@ -505,8 +505,9 @@ mod tests {
         assert!(e.contains("JPEG") && e.contains("16-bit"), "{e}");
     }
 
-    /// Issue 26, finding 10: the offset outlived a rig reboot, whose exposure count restarts
-    /// at 0 while the camera keeps counting: every image after the reconnect was a mismatch.
+    /// The offset must not outlive a rig reboot, whose exposure count restarts
+    /// at 0 while the camera keeps counting: otherwise every image after the reconnect is a
+    /// mismatch.
     #[test]
     fn dir_camera_learns_the_offset_again_after_a_rig_reboot() {
         let d = tempfile::tempdir().unwrap();

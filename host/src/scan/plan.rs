@@ -8,14 +8,14 @@
 //!
 //! Coverage of a plan is predicted by casting each target's laser ray at the mesh
 //! ([`PlanScene::laser_hit`]); a spot counts only where processing will register it: the camera
-//! sees it by registration's own rule ([`crate::registration::spot_visible`], the one visibility
+//! sees it by registration's own rule ([`crate::spot::spot_visible`], the one visibility
 //! rule of [`crate::geometry::Scene::sees`] with registration's grazing limit
-//! [`crate::registration::SPOT_COS_MIN`]), so the plan predicts exactly the frames the fit uses.
+//! [`crate::spot::SPOT_COS_MIN`]), so the plan predicts exactly the frames the fit uses.
 
 use crate::calib::Calibration;
 use crate::dataset::{FrameChannel, Mesh};
 use crate::geometry::{Scene, cross, dot, normalize, sub, turntable_to_world, world_to_turntable};
-use crate::registration::spot_visible;
+use crate::spot::spot_visible;
 use serde::{Deserialize, Serialize};
 
 /// The format string of a saved plan.
@@ -37,6 +37,22 @@ pub enum PlanError {
          extrinsics, galvo model) and that the object sits on the turntable"
     )]
     NothingVisible,
+    /// A saved plan cannot be read.
+    #[error("cannot read {path}: {source}")]
+    Read {
+        /// The plan's path.
+        path: String,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// A saved plan is not a plan of this format.
+    #[error("{path} is not a plan ({PLAN_FORMAT}): {why}")]
+    NotAPlan {
+        /// The plan's path.
+        path: String,
+        /// Why.
+        why: String,
+    },
 }
 
 /// One turntable stop and the galvo targets fired there, in firing order.
@@ -665,6 +681,54 @@ pub fn estimate_duration(plan: &ScanPlan, t: &RigTiming, frame_from: usize) -> D
         }
     }
     est
+}
+
+/// A plan saved by `subsurf plan --save`, checked to be of [`PLAN_FORMAT`].
+pub fn load_plan(path: &std::path::Path) -> Result<ScanPlan, PlanError> {
+    let shown = path.display().to_string();
+    let text = std::fs::read_to_string(path).map_err(|source| PlanError::Read {
+        path: shown.clone(),
+        source,
+    })?;
+    let plan: ScanPlan = serde_json::from_str(&text).map_err(|e| PlanError::NotAPlan {
+        path: shown.clone(),
+        why: e.to_string(),
+    })?;
+    if plan.format != PLAN_FORMAT {
+        return Err(PlanError::NotAPlan {
+            path: shown,
+            why: format!("format {:?}", plan.format),
+        });
+    }
+    Ok(plan)
+}
+
+/// What a plan will do, for a person: its frames, its expected duration by part and its
+/// predicted coverage (`subsurf plan`).
+pub fn describe(plan: &ScanPlan, scene: &PlanScene, raster: usize, t: &RigTiming) -> String {
+    let cov = predict_coverage(scene, plan, raster);
+    let est = estimate_duration(plan, t, 0);
+    format!(
+        "{} planner: {} frames at {} turntable angles, {} exposure(s) each\n\
+         expected duration {:.1} s (homing {:.1}, turntable {:.1}, galvo settle {:.1}, exposure {:.1}, dark frames {:.1}, other {:.1})\n\
+         predicted coverage: {} of {} coverable vertices ({:.1}%) have an x_i within {} mm; {} vertices in all",
+        plan.planner,
+        plan.frame_count(),
+        plan.angles.len(),
+        plan.exposures_s.len(),
+        est.total_s(),
+        est.home_s,
+        est.turntable_s,
+        est.settle_s,
+        est.exposure_s,
+        est.dark_s,
+        est.overhead_s,
+        cov.covered,
+        cov.coverable,
+        100.0 * cov.fraction(),
+        plan.target_mm,
+        cov.vertices,
+    )
 }
 
 #[cfg(test)]

@@ -30,8 +30,8 @@ use super::{
     Extracted, ExtractionKey, FrameRecord, PointSet, SampleStore, StoreError, StorePoints,
 };
 use crate::geometry::V3;
-use crate::registration::{RegistrationOutcome, Spot};
 use crate::samples::{Sample, SampleCounts};
+use crate::spot::{RegistrationOutcome, Spot};
 
 /// The `format` of a store's `manifest.json`.
 pub const FORMAT: &str = "subsurf-samples/1";

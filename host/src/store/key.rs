@@ -13,7 +13,7 @@ use crate::dataset::{Dataset, confined_path};
 
 /// The version of the rules that turn an image into a store's content (registration, sampling):
 /// bumped whenever they change, so that no cache made by older rules is used. 2: spots seen down
-/// to `registration::SPOT_COS_FLOOR` are registered (the fit chooses whether to use them).
+/// to `spot::SPOT_COS_FLOOR` are registered (the fit chooses whether to use them).
 pub const EXTRACTION_RULES: u32 = 2;
 
 /// Why a key could not be made.

@@ -20,8 +20,8 @@ use std::sync::Arc;
 
 use crate::geometry::{SurfacePoints, V3};
 use crate::model::TangentFrame;
-use crate::registration::RegistrationOutcome;
 use crate::samples::{Sample, SampleCounts};
+use crate::spot::RegistrationOutcome;
 
 pub mod arrow;
 mod key;
@@ -53,8 +53,8 @@ pub struct FrameRecord {
     /// Registration's outcome, or why the image could not be read.
     pub outcome: Result<RegistrationOutcome, String>,
     /// The spot detected in the image, whatever the mesh made of it
-    /// ([`crate::registration::register_frame_detected`]).
-    pub spot: Option<crate::registration::Spot>,
+    /// ([`crate::spot::register_frame_detected`]).
+    pub spot: Option<crate::spot::Spot>,
     /// Why channel samples were dropped, at the vertices and at the lattice points.
     pub counts: [SampleCounts; 2],
 }

@@ -79,7 +79,7 @@ pub(super) fn fit_baseline(
     // As the interpolation's refits do: one term fewer while the fit fails. The pooled curve's
     // top term often runs its rate to 0 (a constant, which the drop rule then removes), and the
     // solver gets there slowly: at the draft preset's iteration limit that fit failed, the run
-    // kept no baseline, and its renders came out 11–14 % dark (BENCHMARKS.md, issue 28).
+    // kept no baseline, and its renders came out 11–14 % dark (BENCHMARKS.md, the tradeoff benchmark).
     let max_n = fitter.max_terms().unwrap_or(1);
     let (model, terms, _) = fit_samples(&pooled, &choice, fitter, false, &mut Vec::new())
         .or_else(|e| {

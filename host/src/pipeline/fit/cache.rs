@@ -48,7 +48,7 @@ pub struct OrderCache {
     /// pool, in order: the same pooled samples, the same fit. The cross-validation's candidates
     /// of one fold (t1 off and on) share their training frames, and the baseline, fitted to the
     /// samples as captured, does not depend on t1: it was fitted once per candidate and fold,
-    /// a twentieth of the 655,362-vertex pebble's CPU (issue 40).
+    /// a twentieth of the 655,362-vertex pebble's CPU.
     baselines: std::sync::Mutex<
         std::collections::HashMap<Vec<OrderKey>, std::sync::Arc<Option<FittedBaseline>>>,
     >,

@@ -26,7 +26,7 @@ pub fn unsupported_term(f: &ExpSum, r: &[f64]) -> Option<TermDropped> {
 /// them: their range, and (taken at the first fall-off of two terms or more) the distinct
 /// distances, sorted. Held so that the fits of one set of distances (every candidate order, the
 /// refits with a term fewer, the shared colour's fit of all channels, whose distances are the
-/// red ones three times) sort them once: the sort was a twentieth of a fit (issue 23).
+/// red ones three times) sort them once: the sort was a twentieth of a fit.
 pub(crate) struct Distances<'r> {
     r: &'r [f64],
     pub(super) lo: f64,
@@ -580,7 +580,7 @@ pub(super) fn order_candidates(
                 // fewer terms predicts the frames it never saw worse, by the fit's own
                 // cross-validation on the training frames (sample-torus, 5 folds of whole
                 // turntable angles, mean log E r/g/b: 0.702/0.683/0.700 against
-                // 0.693/0.674/0.691 with them interpolated; BENCHMARKS, issue 24).
+                // 0.693/0.674/0.691 with them interpolated; BENCHMARKS.md).
                 Err(FailReason::TooFewSamples) if m == 1 && n == max_n => {
                     return Err(FailReason::TooFewSamples);
                 }

@@ -18,9 +18,9 @@ use crate::progress::Progress;
 use crate::samples::SampleCounts;
 
 use super::ModelChoice;
+use super::findings::{AlphaReport, AlphaRound, BASELINE_POOL, FailReason, TermDropped};
 use super::load::Context;
 use super::register::RegisteredFrame;
-use super::report::{AlphaReport, AlphaRound, BASELINE_POOL, FailReason, TermDropped};
 use super::select::{ChannelSamples, GroupSample, Groups, group_samples};
 
 mod baseline;
@@ -70,18 +70,18 @@ pub trait Fitter: Sync {
     }
 
     /// Whether the pipeline around this fitter takes the default's cuts that agree with the
-    /// exact path within rounding, not to the bit (issue 40): the loops around its solves (ln
+    /// exact path within rounding, not to the bit: the loops around its solves (ln
     /// R_d of a fit at every sample, ln s, the terms' support) take the vectorised exp and ln
     /// ([`crate::model::ExpSum::ln_eval_many`], [`crate::fit::ln_many`]: within a few ulp of
     /// libm's), and a light position's shared joint fit at one segment starts from the red fit
     /// its order choice made and is checked for support itself ([`light::fit_samples`]). The
-    /// default's fitter does; the reference preset's (libm's throughout, the exact path before
-    /// issue 40) and any fitter that does not say do not.
+    /// default's fitter does; the reference preset's (libm's throughout, the exact path
+    /// without the cuts) and any fitter that does not say do not.
     fn rounding_cuts(&self) -> bool {
         false
     }
 
-    /// This fitter as the reference preset runs it (the exact path before issue 40: libm's
+    /// This fitter as the reference preset runs it (the exact path without the cuts: libm's
     /// exp and ln, [`crate::fit::FitOptions::libm`]); `None`: it is that already.
     fn reference(&self) -> Option<Box<dyn Fitter>> {
         None
@@ -333,7 +333,7 @@ pub struct GroupFit {
     pub isotropic_fallback: bool,
     /// Per channel, the brightest sample as captured (before any division by alpha): the
     /// reference of Eq. 6's t1 ([`crate::model::IntensityWindow::for_light`]), kept so the
-    /// lattice pass ([`super::lattice`]) uses this light position's very window.
+    /// lattice pass ([`super::detail`]) uses this light position's very window.
     pub s_max: [f64; 3],
 }
 

@@ -47,7 +47,7 @@ impl ObjectiveStats {
 /// A chunk of groups folds its Eq. 6 accumulators sparsely, one slot per vertex its samples
 /// reach (`slots`, `vertices`); the merged state is dense, one entry per mesh vertex. Why:
 /// dense per-chunk arrays cost the chunks × the vertices (32 × 144 bytes × 655,362 vertices,
-/// 3 GB, on sample-pebble's mesh subdivided to scanner density, issue 40) for samples that
+/// 3 GB, on sample-pebble's mesh subdivided to scanner density) for samples that
 /// reach a few thousand vertices each. The sums are added in the same order as before. The
 /// slots are found with foldhash, not std's SipHash: every sample of every round of every fold
 /// looks its vertex up (a twentieth of `scan1024`'s CPU with SipHash), the keys are our own

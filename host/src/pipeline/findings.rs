@@ -259,7 +259,7 @@ pub enum FitWarning {
     /// No homogeneous baseline could be fitted (at any order). Below each light position's
     /// smallest sampled distance its model then continues with its slope there, which cannot
     /// steepen towards x_i as measured fall-offs do: renders come out dark (the tradeoff
-    /// benchmark's sphere: 11–14 %, BENCHMARKS.md, issue 28).
+    /// benchmark's sphere: 11–14 %, BENCHMARKS.md).
     NoBaseline,
     /// The run's fits and exact fits of the same light positions disagree in the reflectance
     /// they predict within reach by more than the tolerance and the noise ([`super::check`]).
@@ -418,9 +418,9 @@ pub struct AlphaReport {
     /// Per channel, the pseudo-samples at alpha = 1 Eq. 6 was shrunk with in the last round
     /// (noise over texture variance, [`crate::model::empirical_prior`]).
     pub prior: [f64; 3],
-    /// alpha finer than the mesh ([`super::lattice`]); `None` with `--alpha-lattice off`.
+    /// alpha finer than the mesh ([`super::detail`]); `None` with `--alpha-lattice off`.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub lattice: Option<super::lattice::LatticeReport>,
+    pub lattice: Option<super::detail::LatticeReport>,
 }
 
 /// Wall time per stage, into the report.

@@ -344,7 +344,7 @@ pub fn spot_cos(
 /// [`RegistrationOutcome::NoSpot`]: whatever is brightest in it is scattered light, not the spot,
 /// and would be registered up to the laser tolerance away from the true x_i.
 ///
-/// Measured on `shared/data/sample-torus` (issue 11): of its 96 training frames 24 have a laser
+/// Measured on `shared/data/sample-torus`: of its 96 training frames 24 have a laser
 /// ray that misses the mesh and 16 a hit the camera cannot see — none of them for the grazing
 /// limit (cos θ = 0.64 at every one) but because the near tube hides the hit: the line of sight
 /// from the camera meets the near tube 16.8 mm before the hit. Their brightest pixel is the spot's

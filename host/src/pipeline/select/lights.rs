@@ -1,4 +1,4 @@
-//! Selection (section 5): "we select for each vertex in the mesh the closest light position x_i".
+//! Light positions, the algorithm of stage `select` (section 5): "we select for each vertex in the mesh the closest light position x_i".
 //! A vertex whose closest x_i is farther than a limit has no data (it is interpolated later).
 //!
 //! A light position is every frame that lit (nearly) the same point: "data is then collected from
