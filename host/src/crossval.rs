@@ -1,5 +1,5 @@
 //! The fit's choices made by how well the model predicts frames its fit did not see, not by
-//! how well it fits (issue 25): k-fold cross-validation over the training frames.
+//! how well it fits: k-fold cross-validation over the training frames.
 //!
 //! The folds are turntable-aware ([`folds`]): whole turntable angles when the scan has several
 //! (a frame at an angle the fit saw has its x_i beside a fitted one and would measure little
@@ -42,7 +42,7 @@ pub const DEFAULT_FOLDS: usize = 5;
 
 /// Rounds in a row without a real improvement after which the folds' alpha rounds stop
 /// (`--cv-patience`): two, with a real improvement being at least [`MIN_GAIN_SE`] standard
-/// errors (Prechelt 1998's early stopping with a minimum improvement). Issue 40: the rounds'
+/// errors (Prechelt 1998's early stopping with a minimum improvement). Why: the rounds'
 /// held-out curve of real scans moves by less than a thousandth after round 1, so most of the
 /// rounds the reference preset ([`CvSettings::reference`]) scores are within noise of each
 /// other. Two, not one: with one, the simulated blob's t1 choice flipped between two
@@ -56,7 +56,7 @@ pub const DEFAULT_PATIENCE: usize = 2;
 /// half. Below it, a round is noise, and with [`DEFAULT_PATIENCE`] the folds stop.
 pub const MIN_GAIN_SE: f64 = 0.5;
 
-/// The patience of the reference preset, as before issue 40: two rounds in a row without any
+/// The patience of the reference preset, the exact path: two rounds in a row without any
 /// lower error ("a single round may tie within rounding of the best and the next still
 /// fall").
 pub const REFERENCE_PATIENCE: usize = 2;
@@ -103,7 +103,7 @@ pub struct CvSettings {
 
 impl CvSettings {
     /// The cross-validation of the reference preset (`subsurf fit --preset reference`): the
-    /// exact path before issue 40, kept so that the default's equivalence can be re-checked
+    /// exact path without the cost cuts, kept so that the default's equivalence can be re-checked
     /// (`subsurf bench equivalence`): five folds for every choice, every round scored until two
     /// in a row do not lower the best at all.
     pub fn reference() -> Self {

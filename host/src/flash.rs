@@ -30,7 +30,7 @@ pub const DEFAULT_CHIP: &str = "STM32F446RETx";
 pub const FLASH: std::ops::Range<u64> = 0x0800_0000..0x0808_0000;
 /// Flash sectors 1 and 2 (16 KiB each): the rig profile's record log (`firmware/board/memory.x`,
 /// `store.rs`). No loaded section may lie there: flashing would overwrite the stored profile and
-/// the next profile save would erase code (issue 38, I).
+/// the next profile save would erase code.
 pub const PROFILE_SECTORS: std::ops::Range<u64> = 0x0800_4000..0x0800_C000;
 /// STM32F446RE SRAM: 128 KiB at 0x2000_0000.
 pub const RAM: std::ops::Range<u64> = 0x2000_0000..0x2002_0000;

@@ -1,4 +1,4 @@
-//! `subsurf bench acquisition` (issue 41): the learning curves of the planners — dense (in its
+//! `subsurf bench acquisition`: the learning curves of the planners — dense (in its
 //! order), coverage, random and adaptive — as held-out error on test frames no planner may pick,
 //! against frames and against rig time.
 //!

@@ -4,7 +4,7 @@
 //! Why measure: the floor decides which samples are noise (dropped), Eq. 6's t2 and Eq. 8's
 //! threshold t, so a missing floor (0) lets pixels of pure noise into every fit and every error:
 //! sample-pebble's frames as 16-bit TIFF brackets without the key moved the held-out green error
-//! from 0.379 to 0.773 (issue 39). A real camera's dataset has no floor unless its user measured
+//! from 0.379 to 0.773. A real camera's dataset has no floor unless its user measured
 //! one, so it must come from the frames.
 //!
 //! How: the noise level function of the frames (Foi et al. 2008, "Practical Poissonian-Gaussian

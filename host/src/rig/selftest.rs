@@ -813,8 +813,8 @@ fn capture_at<L: ByteLink>(
     ))
 }
 
-/// The e-stop; with consent to light, pressed while a laser shines (issue 38, J: the e-stop's cut
-/// was never seen with a laser on), the cut watched like the interlock's.
+/// The e-stop; with consent to light, pressed while a laser shines (a cut never
+/// seen with a laser on is not a checked cut), the cut watched like the interlock's.
 fn estop<L: ByteLink>(
     rig: &mut RigClient<L>,
     prompt: &mut dyn Prompt,
@@ -1063,7 +1063,7 @@ mod tests {
         (report, rig.into_link().link, person.asked)
     }
 
-    /// Issue 26, finding 9: the interlock is checked, and the laser cut with a laser on; every
+    /// The interlock is checked, and the laser cut with a laser on; every
     /// step passes on a healthy rig with a person there.
     #[test]
     fn with_a_person_the_interlock_and_a_laser_cut_with_the_laser_on_pass() {
@@ -1114,7 +1114,7 @@ mod tests {
         assert_eq!(verdict(&r, "interlock"), Verdict::Pass);
     }
 
-    /// Issue 38, finding B: a profile whose laser polarity is not the wiring's lit the laser at
+    /// A profile whose laser polarity is not the wiring's lit the laser at
     /// every boot and at `profile send`. The self-test catches it with no light: the arming
     /// check fails, and no light step asks for consent or switches a laser on.
     #[test]

@@ -1,4 +1,4 @@
-//! Acquisition steered by predicted error (issue 41): after each batch of frames the scan fits a
+//! Acquisition steered by predicted error: after each batch of frames the scan fits a
 //! model from its own sample store, estimates the model's held-out error by cross-validation,
 //! and asks for the next batch where the model is least certain, until that error has stopped
 //! falling.

@@ -1,4 +1,4 @@
-//! The noise floor a scan measures from its own dark frames (issue 39, item 5).
+//! The noise floor a scan measures from its own dark frames.
 //!
 //! Why: `noise_floor` decides which pixels are noise in every fit and every error (Eq. 6's t2,
 //! Eq. 8's t), and in a real camera's units nobody knows it without measuring. A constant
