@@ -154,8 +154,9 @@ fn ctrl_c_stops_cleanly_with_the_laser_off() {
     camera.stop_after = None;
     let s = run(&cfg, &mut rig, &mut camera, &()).unwrap();
     assert!(s.resumed_from >= 4, "{s:?}");
-    // The dark frames were taken once, by the first run; the resumed one kept their floor.
-    assert_eq!(camera.dark_shots, cfg.plan.exposures_s.len());
+    // The dark frames (two per exposure) were taken once, by the first run; the resumed one kept
+    // their floor.
+    assert_eq!(camera.dark_shots, 2 * cfg.plan.exposures_s.len());
     assert_eq!(s.dark_frames.len(), cfg.plan.exposures_s.len());
     let ds = Dataset::open(&cfg.out).unwrap();
     assert_eq!(

@@ -221,8 +221,32 @@ pub struct DarkFrame {
     /// Robust standard deviation of the raw values (1.4826 × the median absolute deviation):
     /// the read noise.
     pub sigma: f64,
-    /// The radiance this frame detects: (max(median, 0) + 3 sigma) / exposure_s.
+    /// The radiance this frame detects: 3 sigma / exposure_s where the dark level was subtracted
+    /// from the lit frames (`subtracted`), else (max(median, 0) + 3 sigma) / exposure_s.
     pub floor: f64,
+    /// The second dark frame of the same exposure, whose difference from the first gives
+    /// `sigma` without the offset or the sensor's fixed pattern in it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub second: Option<String>,
+    /// What was subtracted from every lit frame of this exposure before it was written (its
+    /// pixels are then light alone); `None`: nothing (older scans, or one dark frame).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub subtracted: Option<DarkSubtracted>,
+}
+
+/// The dark level a scan subtracted from the lit frames of one exposure.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DarkSubtracted {
+    /// The dark frames' median (`median`) from every pixel: the sensor's fixed pattern is below
+    /// what two dark frames resolve.
+    Median,
+    /// Each pixel's own dark level, the mean of the two dark frames, written as this image
+    /// (raw values): the fixed pattern stands above the noise of that mean.
+    PerPixel {
+        /// The level image, relative to the dataset directory.
+        image: String,
+    },
 }
 
 /// Rejects absolute paths and any `..`, so a dataset can only name files inside its directory.

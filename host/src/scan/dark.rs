@@ -17,7 +17,7 @@
 //!
 //! Handwritten: the median and MAD of one image, a few lines; the point is which statistics.
 
-use crate::dataset::{DarkFrame, Image};
+use crate::dataset::{DarkFrame, DarkSubtracted, Image};
 use crate::pipeline::noise::FLOOR_SNR;
 
 /// Fewest finite pixel values a dark frame needs for its statistics.
@@ -72,7 +72,131 @@ pub fn measure(img: &Image, exposure_s: f64, image: String) -> Result<DarkFrame,
         median,
         sigma,
         floor,
+        second: None,
+        subtracted: None,
     })
+}
+
+/// The dark level a scan subtracts from the lit frames of one exposure, in memory.
+#[derive(Debug, Clone, PartialEq)]
+pub enum DarkLevel {
+    /// One value for every pixel.
+    Constant(f64),
+    /// Each pixel's own (raw values, the dark frames' size).
+    PerPixel(Image),
+}
+
+impl DarkLevel {
+    /// Subtracts the level from the raw frame `img`, leaving pixels at or above `saturation`
+    /// (clipped: the HDR merge and the fit must still see them as clipped) and non-finite ones
+    /// as they are. A per-pixel level of another size than the frame is refused.
+    pub fn subtract(&self, img: &mut Image, saturation: f32) -> Result<(), String> {
+        match self {
+            DarkLevel::Constant(l) => {
+                let l = *l as f32;
+                for v in img.data.iter_mut() {
+                    if v.is_finite() && *v < saturation {
+                        *v -= l;
+                    }
+                }
+            }
+            DarkLevel::PerPixel(level) => {
+                if (level.width, level.height) != (img.width, img.height) {
+                    return Err(format!(
+                        "the dark level is {}x{}, the frame {}x{}",
+                        level.width, level.height, img.width, img.height
+                    ));
+                }
+                let (c, lc) = (img.channels, level.channels.max(1));
+                for (n, v) in img.data.iter_mut().enumerate() {
+                    let (px, k) = (n / c, n % c);
+                    let l = level.data[px * lc + k.min(lc - 1)];
+                    if v.is_finite() && *v < saturation && l.is_finite() {
+                        *v -= l;
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The statistics of two dark frames `a`, `b` of one exposure and the level to subtract from the
+/// lit frames of that exposure (`image`, `second`: their names in the dataset; `level_image`:
+/// where a per-pixel level is written).
+///
+/// Why two: their difference holds the read noise twice and neither the offset nor the fixed
+/// pattern, so σ = 1.4826 · MAD(a − b) / √2 is the noise alone, where one frame's spread counted a
+/// fixed pattern as noise. The level is their mean: per pixel where the fixed pattern resolves
+/// (the mean's spread over pixels, s, exceeds σ: then the fixed pattern's variance s² − σ²/2 is
+/// above the σ²/2 a per-pixel estimate adds, and subtracting it per pixel leaves less error than
+/// one value), else its median. Once the level is subtracted the floor is 3 σ / t.
+pub fn measure_pair(
+    a: &Image,
+    b: &Image,
+    exposure_s: f64,
+    image: String,
+    second: String,
+    level_image: String,
+) -> Result<(DarkFrame, DarkLevel), DarkError> {
+    if !(exposure_s.is_finite() && exposure_s > 0.0) {
+        return Err(DarkError::Exposure(exposure_s));
+    }
+    if (a.width, a.height, a.channels) != (b.width, b.height, b.channels) {
+        return Err(DarkError::TooFewPixels {
+            exposure_s,
+            finite: 0,
+        });
+    }
+    let pairs: Vec<(f64, f64)> = a
+        .data
+        .iter()
+        .zip(&b.data)
+        .map(|(&x, &y)| (x as f64, y as f64))
+        .filter(|(x, y)| x.is_finite() && y.is_finite())
+        .collect();
+    if pairs.len() < MIN_PIXELS {
+        return Err(DarkError::TooFewPixels {
+            exposure_s,
+            finite: pairs.len(),
+        });
+    }
+    let mut diff: Vec<f64> = pairs.iter().map(|(x, y)| x - y).collect();
+    let mid = median_of(&mut diff);
+    let mut dev: Vec<f64> = diff.iter().map(|d| (d - mid).abs()).collect();
+    let sigma = MAD_TO_SIGMA * median_of(&mut dev) / std::f64::consts::SQRT_2;
+    let mut mean: Vec<f64> = pairs.iter().map(|(x, y)| 0.5 * (x + y)).collect();
+    let median = median_of(&mut mean);
+    let mut spread: Vec<f64> = mean.iter().map(|m| (m - median).abs()).collect();
+    let s = MAD_TO_SIGMA * median_of(&mut spread);
+    let (level, subtracted) = if s > sigma {
+        let mut img = a.clone();
+        for (v, (&x, &y)) in img.data.iter_mut().zip(a.data.iter().zip(&b.data)) {
+            *v = if x.is_finite() && y.is_finite() {
+                0.5 * (x + y)
+            } else {
+                median as f32
+            };
+        }
+        (
+            DarkLevel::PerPixel(img),
+            DarkSubtracted::PerPixel { image: level_image },
+        )
+    } else {
+        (DarkLevel::Constant(median), DarkSubtracted::Median)
+    };
+    Ok((
+        DarkFrame {
+            image,
+            exposure_s,
+            median,
+            sigma,
+            floor: FLOOR_SNR * sigma / exposure_s,
+            second: Some(second),
+            subtracted: Some(subtracted),
+        },
+        level,
+    ))
 }
 
 /// The dataset's floor from its dark frames: the lowest (the longest exposure's, as a rule);
@@ -132,6 +256,45 @@ pub fn image_name(b: usize, exposure_us: u32) -> String {
     format!("dark/{b:02}-{exposure_us}us.exr")
 }
 
+/// Where a scan writes the second dark frame of bracket `b`.
+pub fn second_name(b: usize, exposure_us: u32) -> String {
+    format!("dark/{b:02}-{exposure_us}us-b.exr")
+}
+
+/// Where a scan writes the per-pixel dark level of bracket `b`.
+pub fn level_name(b: usize, exposure_us: u32) -> String {
+    format!("dark/{b:02}-{exposure_us}us-level.exr")
+}
+
+/// The level of each dark frame that records one as subtracted, by exposure, read back from the
+/// dataset directory `dir` (a per-pixel level from its image): what a resumed scan subtracts.
+pub fn levels_of(
+    dir: &std::path::Path,
+    dark: &[DarkFrame],
+) -> Result<Vec<(f64, DarkLevel)>, String> {
+    let mut out = Vec::new();
+    for d in dark {
+        match &d.subtracted {
+            None => {}
+            Some(DarkSubtracted::Median) => out.push((d.exposure_s, DarkLevel::Constant(d.median))),
+            Some(DarkSubtracted::PerPixel { image }) => {
+                let path = crate::dataset::confined_path(dir, image).map_err(|e| e.to_string())?;
+                let img = crate::dataset::read_image(&path).map_err(|e| e.to_string())?;
+                out.push((d.exposure_s, DarkLevel::PerPixel(img)));
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// The level of `levels` for exposure `exposure_s` (within a millionth).
+pub fn level_for(levels: &[(f64, DarkLevel)], exposure_s: f64) -> Option<&DarkLevel> {
+    levels
+        .iter()
+        .find(|(t, _)| (t - exposure_s).abs() <= 1e-6 * exposure_s.abs())
+        .map(|(_, l)| l)
+}
+
 /// Median of finite values (reorders `v`; `v` not empty).
 fn median_of(v: &mut [f64]) -> f64 {
     let n = v.len();
@@ -182,6 +345,65 @@ mod tests {
         };
         assert_eq!(floor_of(&[d.clone(), longer.clone()]), Some(longer.floor));
         assert_eq!(floor_of(&[]), None);
+    }
+
+    /// Two dark frames with an offset and a fixed pattern: σ from their difference is the read
+    /// noise alone (one frame's spread would count the pattern), the pattern resolves and is
+    /// subtracted per pixel, leaving a lit frame's light; without a pattern the median is.
+    #[test]
+    fn two_dark_frames_give_the_noise_without_the_offset_or_the_pattern() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(3);
+        let read = Normal::new(0.0, 0.0005).unwrap();
+        let pattern_n = Normal::new(0.0, 0.002).unwrap();
+        let pattern: Vec<f64> = (0..128 * 128).map(|_| pattern_n.sample(&mut rng)).collect();
+        let frame = |rng: &mut rand::rngs::StdRng, with_pattern: bool| {
+            image(
+                pattern
+                    .iter()
+                    .map(|p| (0.01 + if with_pattern { *p } else { 0.0 } + read.sample(rng)) as f32)
+                    .collect::<Vec<_>>(),
+                128,
+            )
+        };
+        let (a, b) = (frame(&mut rng, true), frame(&mut rng, true));
+        let (d, level) = measure_pair(&a, &b, 0.5, "a".into(), "b".into(), "level".into()).unwrap();
+        assert!((d.sigma / 0.0005 - 1.0).abs() < 0.04, "{d:?}");
+        assert!((d.median - 0.01).abs() < 1e-4, "{d:?}");
+        assert!((d.floor - 3.0 * d.sigma / 0.5).abs() < 1e-12);
+        assert!(matches!(
+            d.subtracted,
+            Some(DarkSubtracted::PerPixel { .. })
+        ));
+        let single = measure(&a, 0.5, "a".into()).unwrap();
+        assert!(
+            single.sigma > 3.0 * d.sigma,
+            "one frame counts the pattern: {single:?}"
+        );
+        // A lit frame: light 0.1 on top of the same offset and pattern.
+        let mut lit = frame(&mut rng, true);
+        for v in lit.data.iter_mut() {
+            *v += 0.1;
+        }
+        level.subtract(&mut lit, f32::INFINITY).unwrap();
+        let mean = lit.data.iter().map(|&v| v as f64).sum::<f64>() / lit.data.len() as f64;
+        let rms = (lit
+            .data
+            .iter()
+            .map(|&v| (v as f64 - 0.1).powi(2))
+            .sum::<f64>()
+            / lit.data.len() as f64)
+            .sqrt();
+        assert!((mean - 0.1).abs() < 1e-4, "{mean}");
+        assert!(rms < 0.0005 * 1.5, "{rms}: the pattern is gone");
+        // A clipped pixel stays clipped.
+        let mut clipped = image(vec![20.0f32; 128 * 128], 128);
+        level.subtract(&mut clipped, 20.0).unwrap();
+        assert!(clipped.data.iter().all(|&v| v == 20.0));
+        // No pattern: the median.
+        let (a, b) = (frame(&mut rng, false), frame(&mut rng, false));
+        let (d, level) = measure_pair(&a, &b, 0.5, "a".into(), "b".into(), "level".into()).unwrap();
+        assert_eq!(d.subtracted, Some(DarkSubtracted::Median));
+        assert!(matches!(level, DarkLevel::Constant(m) if (m - 0.01).abs() < 1e-4));
     }
 
     /// A negative offset (a black level set too high) counts as none; a frame without finite

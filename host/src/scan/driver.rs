@@ -269,6 +269,9 @@ pub struct Scan<'a> {
     pending_sink: Option<PendingSink>,
     /// The dark frames taken (this run or a resumed one's, from the scan's state).
     dark: Vec<DarkFrame>,
+    /// The dark level of each exposure, subtracted from every lit frame before it is merged and
+    /// written ([`super::dark::measure_pair`]).
+    dark_levels: Vec<(f64, super::dark::DarkLevel)>,
     frames: Vec<super::plan::PlannedFrame>,
     resumed_from: usize,
     written: usize,
@@ -306,6 +309,11 @@ impl<'a> Scan<'a> {
                 cfg.noise_floor.or(super::dark::floor_of(&dark)),
             )?;
         }
+        let dark_levels =
+            super::dark::levels_of(&cfg.out, &dark).map_err(|message| ScanError::Dark {
+                exposure_s: 0.0,
+                message: format!("reading the dark level back: {message}"),
+            })?;
         let all = cfg.plan.frames();
         let frames = match &cfg.order {
             None => all,
@@ -324,6 +332,7 @@ impl<'a> Scan<'a> {
             sink: None,
             pending_sink: None,
             dark,
+            dark_levels,
             frames,
             resumed_from: done,
             written: 0,
@@ -391,43 +400,63 @@ impl<'a> Scan<'a> {
             })
         })?;
         let mut dark = Vec::with_capacity(exposures_us.len());
+        let mut levels = Vec::with_capacity(exposures_us.len());
         for (b, &exp_us) in exposures_us.iter().enumerate() {
-            let mut attempts = 0u32;
-            let img = loop {
-                self.check_stop()?;
-                match self.dark_shot(rig, camera, b, exp_us)? {
-                    Ok(img) => break img,
-                    Err(e) => {
-                        attempts += 1;
-                        self.retries += 1;
-                        if attempts > self.cfg.camera_retries {
-                            return Err(ScanError::Camera {
-                                frame: 0,
-                                attempts,
-                                source: e,
-                            });
+            let mut pair = Vec::with_capacity(2);
+            for second in [false, true] {
+                let mut attempts = 0u32;
+                // The second frame of a pair is shot as bracket b of a frame past the first's.
+                let shot_frame = b + usize::from(second) * exposures_us.len();
+                let img = loop {
+                    self.check_stop()?;
+                    match self.dark_shot(rig, camera, shot_frame, b, exp_us)? {
+                        Ok(img) => break img,
+                        Err(e) => {
+                            attempts += 1;
+                            self.retries += 1;
+                            if attempts > self.cfg.camera_retries {
+                                return Err(ScanError::Camera {
+                                    frame: 0,
+                                    attempts,
+                                    source: e,
+                                });
+                            }
+                            progress.println(&format!(
+                                "dark frame {b}: {e}; retrying ({attempts}/{})",
+                                self.cfg.camera_retries
+                            ));
                         }
-                        progress.println(&format!(
-                            "dark frame {b}: {e}; retrying ({attempts}/{})",
-                            self.cfg.camera_retries
-                        ));
                     }
-                }
-            };
+                };
+                pair.push(img);
+            }
             let exposure_s = exp_us as f64 * 1e-6;
             let name = super::dark::image_name(b, exp_us);
-            let d = super::dark::measure(&img, exposure_s, name.clone()).map_err(|e| {
-                ScanError::Dark {
-                    exposure_s,
-                    message: e.to_string(),
-                }
-            })?;
-            let bytes = encode_exr(&img).map_err(|e| ScanError::Dark {
+            let second = super::dark::second_name(b, exp_us);
+            let level_name = super::dark::level_name(b, exp_us);
+            let dark_err = |message: String| ScanError::Dark {
                 exposure_s,
-                message: e.to_string(),
-            })?;
-            write_atomic(&self.cfg.out.join(&name), &bytes)?;
+                message,
+            };
+            let (d, level) = super::dark::measure_pair(
+                &pair[0],
+                &pair[1],
+                exposure_s,
+                name.clone(),
+                second.clone(),
+                level_name.clone(),
+            )
+            .map_err(|e| dark_err(e.to_string()))?;
+            for (img, path) in pair.iter().zip([&name, &second]) {
+                let bytes = encode_exr(img).map_err(|e| dark_err(e.to_string()))?;
+                write_atomic(&self.cfg.out.join(path), &bytes)?;
+            }
+            if let super::dark::DarkLevel::PerPixel(img) = &level {
+                let bytes = encode_exr(img).map_err(|e| dark_err(e.to_string()))?;
+                write_atomic(&self.cfg.out.join(&level_name), &bytes)?;
+            }
             dark.push(d);
+            levels.push((exposure_s, level));
         }
         let state = serde_json::to_vec_pretty(&dark).map_err(|e| {
             ScanError::Journal(WriteError::Io {
@@ -436,9 +465,19 @@ impl<'a> Scan<'a> {
             })
         })?;
         write_atomic(&dark_state(&self.cfg.out), &state)?;
+        // The values a resumed run reads back from the state, not the ones in memory:
+        // serde_json's float parser may land one ulp away from a 17-digit value, and a resumed
+        // scan must write the same scan.json as an uninterrupted one.
+        let dark: Vec<DarkFrame> = serde_json::from_slice(&state).unwrap_or(dark);
+        for (d, (_, level)) in dark.iter().zip(levels.iter_mut()) {
+            if let super::dark::DarkLevel::Constant(m) = level {
+                *m = d.median;
+            }
+        }
         let floor = self.cfg.noise_floor.or(super::dark::floor_of(&dark));
         self.writer.set_dark_frames(dark.clone(), floor)?;
         self.dark = dark;
+        self.dark_levels = levels;
         Ok(())
     }
 
@@ -447,11 +486,12 @@ impl<'a> Scan<'a> {
         &mut self,
         rig: &mut RigClient<L>,
         camera: &mut dyn Camera,
+        frame: usize,
         b: usize,
         exp_us: u32,
     ) -> Result<Result<Image, CameraError>, ScanError> {
         let mut shot = Shot {
-            frame: b,
+            frame,
             bracket: b,
             turntable_deg: 0.0,
             galvo: [0, 0],
@@ -884,6 +924,18 @@ impl<'a> Scan<'a> {
         brackets: &mut Vec<Bracket>,
         camera: &dyn Camera,
     ) -> Result<(), ScanError> {
+        // The dark level of each exposure off every bracket first: the merge and the fit see
+        // light alone (clipped pixels stay clipped).
+        for b in brackets.iter_mut() {
+            if let Some(level) = super::dark::level_for(&self.dark_levels, b.exposure_s) {
+                level
+                    .subtract(&mut b.image, camera.saturation())
+                    .map_err(|message| ScanError::Image {
+                        frame: f.index,
+                        message,
+                    })?;
+            }
+        }
         let (image, exposure_s) = if brackets.len() == 1 {
             let b = brackets.remove(0);
             (b.image, b.exposure_s)

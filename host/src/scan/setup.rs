@@ -201,14 +201,33 @@ pub fn camera_from_spec_with(
     levels: Levels,
 ) -> Result<Box<dyn Camera>, super::camera::CameraError> {
     levels.check().map_err(super::camera::CameraError::Spec)?;
-    if spec == "sim" || spec.starts_with("sim:") {
+    if spec == "sim" || spec.starts_with("sim:") || spec.starts_with("sim+") {
+        // `+dark=V`: the simulated sensor reads V raw units of offset on every pixel (a camera
+        // whose black level is not removed), which the scan's dark frames measure and subtract.
+        let (spec, dark_offset) = match spec.split_once("+dark=") {
+            Some((s, v)) => (
+                s,
+                v.parse::<f64>()
+                    .ok()
+                    .filter(|v| v.is_finite() && *v >= 0.0)
+                    .ok_or_else(|| {
+                        super::camera::CameraError::Spec(format!(
+                            "+dark= takes a raw offset >= 0, got {v:?}"
+                        ))
+                    })?,
+            ),
+            None => (spec, 0.0),
+        };
         let field = sim_material(spec).ok_or_else(|| {
             super::camera::CameraError::Spec(format!(
                 "unknown simulated material in {spec:?}: use sim, sim:marble, sim:veined or \
-                 sim:homogeneous"
+                 sim:homogeneous (then +dark=OFFSET for a sensor offset)"
             ))
         })?;
-        let sensor = sim_sensor();
+        let sensor = Sensor {
+            dark_offset,
+            ..sim_sensor()
+        };
         return Ok(Box::new(
             SimCamera::new(mesh.clone(), calib, field, sensor, seed)?.with_spot(sim_spot()),
         ));

@@ -61,6 +61,9 @@ pub struct Sensor {
     pub read_noise: f64,
     /// Raw value at which pixels clip; `None` = never.
     pub saturation: Option<f64>,
+    /// The sensor's offset: raw units every pixel reads on top of its light and noise, dark
+    /// frames included (a black level the camera does not remove).
+    pub dark_offset: f64,
     /// Standard deviation (mm) of a tangential offset between where the laser light enters
     /// (`x_i`, where scattering starts) and where its spot appears: misregistration of `x_i`.
     pub misregistration_mm: f64,
@@ -74,6 +77,7 @@ impl Sensor {
             gain: None,
             read_noise: 0.0,
             saturation: None,
+            dark_offset: 0.0,
             misregistration_mm: 0.0,
         }
     }
@@ -85,6 +89,7 @@ impl Sensor {
             gain: Some(1e6),
             read_noise: 2e-5,
             saturation: Some(20.0),
+            dark_offset: 0.0,
             misregistration_mm: 0.0,
         }
     }
@@ -351,6 +356,9 @@ fn sense(img: &mut Image, sensor: &Sensor, rng: &mut rand::rngs::StdRng) {
             && sensor.read_noise > 0.0
         {
             raw += read.sample(rng);
+        }
+        if sensor.dark_offset.is_finite() {
+            raw += sensor.dark_offset;
         }
         if let Some(s) = sensor.saturation {
             raw = raw.min(s);
