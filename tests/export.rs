@@ -387,6 +387,73 @@ fn predicts_images_judged_as_images_give_the_models_figures() {
             "frame {fa}: {a} vs {b}"
         );
     }
+    // The ring yardstick: the model and its own images judged on the same rings (fixed by
+    // the frame's samples) agree within the bilinear read's rounding, beside the per-sample keys.
+    let r_model = evaluate(&["--rings"]);
+    let r_images = evaluate(&["--rings", "--images", images.to_str().unwrap()]);
+    for key in [
+        "ring_mean_log_e",
+        "ring_per_frame",
+        "rings",
+        "mean_log_e",
+        "per_frame",
+    ] {
+        assert!(r_images.get(key).is_some(), "{key} missing: {r_images}");
+    }
+    assert_eq!(r_model["mean_log_e"], of_model["mean_log_e"]);
+    let ring_edges = |v: &serde_json::Value| v["rings"]["frames"].clone();
+    let edges_of = |v: &serde_json::Value| -> Vec<serde_json::Value> {
+        ring_edges(v)
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|f| f["edges"].clone())
+            .collect()
+    };
+    assert_eq!(
+        edges_of(&r_model),
+        edges_of(&r_images),
+        "the same rings for both"
+    );
+    let ring_mean = |v: &serde_json::Value| -> Vec<f64> {
+        v["ring_mean_log_e"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .collect()
+    };
+    let (rm, ri) = (ring_mean(&r_model), ring_mean(&r_images));
+    eprintln!("rings: model {rm:?}, images {ri:?}");
+    for (a, b) in rm.iter().zip(&ri) {
+        assert!(
+            (a - b).abs() <= 0.01,
+            "ring mean log E: model {rm:?}, its images {ri:?}"
+        );
+    }
+    for f in edges_of(&r_model) {
+        assert!(
+            f.as_array().unwrap().len() >= 3,
+            "at least two rings a frame: {f}"
+        );
+    }
+    // Twice as bright is ln 2 off in every ring, whatever the model's own error.
+    let bright_rings = tmp.path().join("bright-rings");
+    std::fs::create_dir_all(&bright_rings).unwrap();
+    for k in frames {
+        let name = format!("{k:06}.exr");
+        let mut img = subsurf::dataset::read_image(&images.join(&name)).unwrap();
+        img.data.iter_mut().for_each(|v| *v *= 2.0);
+        subsurf::dataset::write_exr(&bright_rings.join(&name), &img).unwrap();
+    }
+    let rb = ring_mean(&evaluate(&[
+        "--rings",
+        "--images",
+        bright_rings.to_str().unwrap(),
+    ]));
+    for (b, m) in rb.iter().zip(&ri) {
+        assert!(*b >= 2f64.ln() - m - 1e-9, "twice as bright: {rb:?}");
+    }
     // The frames as their own prediction: exact.
     let own = tmp.path().join("own");
     std::fs::create_dir_all(&own).unwrap();

@@ -45,11 +45,23 @@ fn parse_threads(v: &str) -> Result<usize, ExportError> {
 /// code is `export::cycles`'s reading).
 pub const MIN_VERSION: (u32, u32) = (3, 4);
 
-/// A Blender executable and its version.
+/// How a [`Blender`] runs a script.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Kind {
+    /// A Blender executable: `blender -b --factory-startup --python script -- …`.
+    #[default]
+    Binary,
+    /// A Python that imports `bpy` (the `bpy` module from PyPI): `python script -- …`.
+    Python,
+}
+
+/// A Blender executable (or a Python with the `bpy` module) and its version.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Blender {
     /// The executable.
     pub path: PathBuf,
+    /// Blender itself or a Python importing `bpy`.
+    pub kind: Kind,
     /// `(major, minor)` from `blender --version`.
     pub version: (u32, u32),
     /// The version line as Blender prints it.
@@ -72,22 +84,7 @@ pub fn find_blender(explicit: Option<&Path>) -> Result<Option<Blender>, ExportEr
     let Some(path) = candidate else {
         return Ok(None);
     };
-    let out = Command::new(&path)
-        .args(["-b", "--factory-startup", "--version"])
-        .output()
-        .map_err(|e| ExportError::Blender(format!("running {}: {e}", path.display())))?;
-    let text = String::from_utf8_lossy(&out.stdout);
-    let line = text
-        .lines()
-        .find(|l| l.trim_start().starts_with("Blender "))
-        .ok_or_else(|| {
-            ExportError::Blender(format!(
-                "{} --version printed no `Blender X.Y` line",
-                path.display()
-            ))
-        })?
-        .trim()
-        .to_string();
+    let (kind, line) = version_line(&path)?;
     let version = parse_version(&line)
         .ok_or_else(|| ExportError::Blender(format!("cannot read a version from `{line}`")))?;
     if version < MIN_VERSION {
@@ -98,9 +95,45 @@ pub fn find_blender(explicit: Option<&Path>) -> Result<Option<Blender>, ExportEr
     }
     Ok(Some(Blender {
         path,
+        kind,
         version,
         version_line: line,
     }))
+}
+
+/// Asks `path` for its version: as Blender (`-b --factory-startup --version`), else as a Python
+/// importing `bpy` (which prints `Blender X.Y.Z` from `bpy.app.version_string`).
+fn version_line(path: &Path) -> Result<(Kind, String), ExportError> {
+    let first_line = |out: &std::process::Output| {
+        String::from_utf8_lossy(&out.stdout)
+            .lines()
+            .find(|l| l.trim_start().starts_with("Blender "))
+            .map(|l| l.trim().to_string())
+    };
+    let running =
+        |e: std::io::Error| ExportError::Blender(format!("running {}: {e}", path.display()));
+    let out = Command::new(path)
+        .args(["-b", "--factory-startup", "--version"])
+        .output()
+        .map_err(running)?;
+    if let Some(line) = first_line(&out) {
+        return Ok((Kind::Binary, line));
+    }
+    let out = Command::new(path)
+        .args(["-c", "import bpy; print('Blender', bpy.app.version_string)"])
+        .output()
+        .map_err(running)?;
+    first_line(&out).map(|l| (Kind::Python, l)).ok_or_else(|| {
+        ExportError::Blender(format!(
+            "{} is neither Blender (--version printed no `Blender X.Y` line) nor a Python \
+             that imports bpy: {}",
+            path.display(),
+            String::from_utf8_lossy(&out.stderr)
+                .lines()
+                .last()
+                .unwrap_or("")
+        ))
+    })
 }
 
 fn parse_version(line: &str) -> Option<(u32, u32)> {
@@ -148,17 +181,20 @@ impl Blender {
         let script = dir.join(BUILD_SCRIPT);
         let threads = render_threads(run.threads)?;
         let mut cmd = Command::new(&self.path);
-        cmd.args(["-b", "--factory-startup"]);
-        if threads > 0 {
-            // Blender's own option as well as the script's: it also bounds the threads Blender
-            // starts before the script runs.
-            cmd.args(["-t", &threads.to_string()]);
+        match self.kind {
+            Kind::Binary => {
+                cmd.args(["-b", "--factory-startup"]);
+                if threads > 0 {
+                    // Blender's own option as well as the script's: it also bounds the threads
+                    // Blender starts before the script runs.
+                    cmd.args(["-t", &threads.to_string()]);
+                }
+                cmd.args(["--python-exit-code", "1", "--python"]);
+            }
+            // The module runs the script as any Python does; a failing script exits non-zero.
+            Kind::Python => {}
         }
-        cmd.args(["--python-exit-code", "1", "--python"])
-            .arg(&script)
-            .arg("--")
-            .arg("--dir")
-            .arg(dir);
+        cmd.arg(&script).arg("--").arg("--dir").arg(dir);
         if let Some(exr) = &run.render {
             cmd.arg("--render").arg(exr);
         }
@@ -346,6 +382,7 @@ mod tests {
         std::fs::set_permissions(&fake, std::fs::Permissions::from_mode(0o755)).unwrap();
         let b = Blender {
             path: fake,
+            kind: Kind::Binary,
             version: (3, 4),
             version_line: "Blender 3.4.1".into(),
         };
@@ -369,6 +406,35 @@ mod tests {
         let e = parse_threads("all").unwrap_err();
         assert!(e.to_string().contains(THREADS_ENV), "{e}");
         assert_eq!(render_threads(3).unwrap(), 3);
+    }
+
+    /// A Python that imports `bpy` is found by its `bpy.app.version_string` and runs the script
+    /// itself (`python build_blend.py -- …`), without Blender's own options; a stand-in Python
+    /// that refuses Blender's options, as a real one does.
+    #[cfg(unix)]
+    #[test]
+    fn a_python_with_bpy_is_a_blender() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = tempfile::tempdir().unwrap();
+        let fake = dir.path().join("python3");
+        std::fs::write(
+            &fake,
+            "#!/bin/sh\n\
+             case \"$1\" in -b) echo 'unknown option --factory-startup' >&2; exit 2;;\n\
+             -c) echo 'Blender 5.0.1'; exit 0;; esac\n\
+             case \"$1\" in */build_blend.py) ;; *) exit 3;; esac\n\
+             [ \"$2\" = -- ] || exit 4\n\
+             while [ \"$1\" != --dir ]; do shift; done; d=\"$2\"\n\
+             touch \"$d/model.blend\"; echo \"SUBSURF wrote $d/model.blend\"\n",
+        )
+        .unwrap();
+        std::fs::set_permissions(&fake, std::fs::Permissions::from_mode(0o755)).unwrap();
+        let b = find_blender(Some(&fake)).unwrap().unwrap();
+        assert_eq!(b.kind, Kind::Python);
+        assert_eq!(b.version, (5, 0));
+        assert_eq!(b.version_line, "Blender 5.0.1");
+        b.run(dir.path(), &Run::default()).unwrap();
+        assert!(dir.path().join("model.blend").is_file());
     }
 
     /// A missing executable is an error naming it, not a panic.
