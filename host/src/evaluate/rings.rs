@@ -19,8 +19,8 @@
 //! radius and noise floor (a channel enters a ring where its sample is above the floor t, as
 //! it enters Eq. 8). Per ring and channel the means of the measured samples and of the
 //! predictions over the same samples give `ln E_ring = ln(mean prediction / mean measured)`;
-//! a ring whose prediction is black throughout is judged at the floor (`ln(t / mean
-//! measured)`) and counted. The frame's ring log E is the root mean square of its rings'
+//! a ring whose mean prediction is at or below the floor t (black, or a renderer's truncated
+//! tail) is judged at the floor (`ln(t / mean measured)`, as a black sample is) and counted. The frame's ring log E is the root mean square of its rings'
 //! `ln E_ring` (each ring one term: Eq. 8 over rings).
 
 use rayon::prelude::*;
@@ -92,7 +92,7 @@ pub struct FrameRings {
     pub log_e: [Option<f64>; 3],
     /// The rings, inner first.
     pub rings: Vec<Ring>,
-    /// Ring channels whose prediction is black throughout, judged at the noise floor.
+    /// Ring channels whose mean prediction is at or below the noise floor, judged at the floor.
     pub unlit: u64,
     /// Why the frame was not judged, if it was not.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -167,7 +167,10 @@ pub fn judge_rings(frame: usize, samples: &[RingSample], t: f64) -> FrameRings {
                 continue;
             }
             let (m, p) = (m / n as f64, p / n as f64);
-            let ln_p = if p > 0.0 {
+            // A ring mean below the floor is light the frames cannot tell from none: judged
+            // as the floor, as a black sample is (else a renderer's truncated tail would count
+            // without bound).
+            let ln_p = if p > t && p > 0.0 {
                 p.ln()
             } else {
                 out.unlit += 1;
@@ -482,5 +485,10 @@ mod tests {
         assert_eq!(f.log_e[2], None);
         assert_eq!(f.unlit, 1);
         assert_eq!(judge_rings(0, &[], 0.01).log_e, [None; 3]);
+        // A mean prediction above 0 but below the floor is judged at the floor too.
+        let dim: Vec<RingSample> = s.iter().map(|x| sample(x.r, 1.0, 1e-6)).collect();
+        let f = judge_rings(3, &dim, 0.01);
+        assert!((f.log_e[1].unwrap() - 0.01f64.ln().abs()).abs() < 1e-12);
+        assert_eq!(f.unlit, 3);
     }
 }
