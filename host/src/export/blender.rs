@@ -158,6 +158,9 @@ pub struct Run {
     /// Build and render the scene of this scan frame (`frames.json`, [`super::frames`])
     /// instead of `scene.json`'s.
     pub frame: Option<usize>,
+    /// Instead of any scene: measure Cycles' subsurface response (the half-lit slab's edge
+    /// response per method and albedo, [`Blender::measure`]) into this JSON file.
+    pub measure: Option<PathBuf>,
 }
 
 impl Blender {
@@ -209,6 +212,9 @@ impl Blender {
         if let Some(k) = run.frame {
             cmd.args(["--frame", &k.to_string()]);
         }
+        if let Some(m) = &run.measure {
+            cmd.arg("--measure").arg(m);
+        }
         let (status, text) = run_reporting(cmd, progress)
             .map_err(|e| ExportError::Blender(format!("running {}: {e}", self.path.display())))?;
         let log = dir.join("blender.log");
@@ -238,6 +244,59 @@ impl Blender {
             )));
         }
         Ok(())
+    }
+}
+
+/// One row of [`Blender::measure`]: a method at an albedo, the Christensen-Burley shape fitted
+/// to the half-lit slab's edge response (radius 1).
+#[derive(Clone, Debug, PartialEq, serde::Deserialize, serde::Serialize)]
+pub struct ResponseRow {
+    /// The Principled BSDF's `subsurface_method`.
+    pub method: String,
+    /// The albedo (3.x: Subsurface Color; v2: Base Color).
+    pub albedo: f64,
+    /// The fitted Burley `d` over the Subsurface Radius.
+    pub d_per_radius: f64,
+    /// The plateau of the lit side times π over the albedo (1: a point scatters its albedo).
+    pub plateau_pi_per_albedo: f64,
+    /// RMS residual of the fit relative to the plateau (how far from the Burley shape).
+    pub shape_rms: f64,
+}
+
+/// What [`Blender::measure`] writes (`subsurf-cycles-response/1`).
+#[derive(Clone, Debug, PartialEq, serde::Deserialize, serde::Serialize)]
+pub struct Response {
+    /// Blender's version string.
+    pub blender: String,
+    /// Samples per pixel of the renders.
+    pub samples: u32,
+    /// Per method and albedo.
+    pub rows: Vec<ResponseRow>,
+}
+
+impl Blender {
+    /// Measures this Blender's subsurface response: `build_blend.py --measure` renders a slab
+    /// much larger than the profile, half of it lit from above by a sun of strength 1, seen
+    /// across the edge, for each method (Christensen-Burley and both random walks) at six
+    /// albedos, and fits the Burley shape to each edge response. The export's radius
+    /// (`cycles::RADIUS_PER_D`) and colour assume what its Christensen-Burley rows show: `d =
+    /// radius / (4π)` and a plateau of `albedo / π`; [`super::cycles::MEASURED_BURLEY`] keeps
+    /// the figures of the versions measured. The script is written into `dir`, the figures to
+    /// `dir/cycles-response.json`.
+    pub fn measure(&self, dir: &Path, samples: u32) -> Result<Response, ExportError> {
+        std::fs::create_dir_all(dir).map_err(|e| ExportError::io(dir, e))?;
+        let script = dir.join(BUILD_SCRIPT);
+        std::fs::write(&script, super::BUILD_BLEND_PY).map_err(|e| ExportError::io(&script, e))?;
+        let out = dir.join("cycles-response.json");
+        let run = Run {
+            samples: Some(samples),
+            measure: Some(out.clone()),
+            ..Run::default()
+        };
+        self.run(dir, &run)?;
+        let text = std::fs::read_to_string(&out).map_err(|e| ExportError::io(&out, e))?;
+        serde_json::from_str(&text)
+            .map_err(|e| ExportError::Blender(format!("{}: {e}", out.display())))
     }
 }
 

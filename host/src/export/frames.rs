@@ -304,6 +304,7 @@ pub fn render_frames(
                 threads: 0,
                 seed,
                 frame: Some(s.frame),
+                measure: None,
             },
         )?;
         if !exr.is_file() {

@@ -558,6 +558,7 @@ pub fn compare_with(
             threads: 0,
             seed: 0,
             frame: None,
+            measure: None,
         },
         progress,
     )?;
@@ -581,6 +582,7 @@ pub fn compare_with(
                 threads: 0,
                 seed: 1,
                 frame: None,
+                measure: None,
             },
             progress,
         )?;
