@@ -52,7 +52,9 @@ pub enum Prediction<'a> {
     /// The model: alpha(x_o) · R_d(x_i → x_o) (Eq. 9), as the per-sample evaluation.
     Model,
     /// An image per frame (`subsurf evaluate --images`): its bilinear read at the sample's
-    /// projection over the frame's exposure, against the frames or a reference's images.
+    /// projection over the frame's exposure, against the frames or a reference's images (a
+    /// second render judged against a first: the rings and their samples are still the
+    /// frame's, the reference's reads, black ones included, what is measured in them).
     Images(&'a FrameImages, Reference<'a>),
 }
 
@@ -163,10 +165,15 @@ pub fn judge_rings(frame: usize, samples: &[RingSample], t: f64) -> FrameRings {
                 p += x.predicted[c].max(0.0);
                 n += 1;
             }
-            if n == 0 || m <= 0.0 {
+            if n == 0 {
                 continue;
             }
-            let (m, p) = (m / n as f64, p / n as f64);
+            // A reference render's ring mean below the floor is judged at the floor as well
+            // (two black renders agree); the frames' means are above it by construction.
+            let (m, p) = ((m / n as f64).max(t), p / n as f64);
+            if m <= 0.0 {
+                continue;
+            }
             // A ring mean below the floor is light the frames cannot tell from none: judged
             // as the floor, as a black sample is (else a renderer's truncated tail would count
             // without bound).
@@ -344,7 +351,14 @@ fn ring_samples(
                         Some(tr) => tr[c].0 / f.exposure_s,
                     };
                     predicted[c] = read[c].0 / f.exposure_s;
-                    if measured[c] > t && measured[c].is_finite() && predicted[c].is_finite() {
+                    // The rings are the frame's (its samples above the floor), whatever is
+                    // measured in them: a reference render's black pixels count in its ring
+                    // means, as the frame's samples do, rather than only its lit ones.
+                    if s.value[c] > t
+                        && s.value[c].is_finite()
+                        && measured[c].is_finite()
+                        && predicted[c].is_finite()
+                    {
                         ok |= 1 << c;
                     }
                 }
