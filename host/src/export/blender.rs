@@ -136,6 +136,43 @@ fn version_line(path: &Path) -> Result<(Kind, String), ExportError> {
     })
 }
 
+/// The newest usable Blender among `$SUBSURF_BLENDER`, `blender` on the `PATH` and the
+/// Pythons on the `PATH` (`python3`, `python`) that import `bpy`; `None` when there is none.
+/// A candidate that is not a Blender is passed over; when none is usable, the first error.
+pub fn find_newest_blender() -> Result<Option<Blender>, ExportError> {
+    // (candidate, whether it must be a Blender: a Python without bpy is merely passed over).
+    let mut candidates: Vec<(PathBuf, bool)> = std::env::var_os(BLENDER_ENV)
+        .map(|p| (PathBuf::from(p), true))
+        .into_iter()
+        .collect();
+    if let Some(paths) = std::env::var_os("PATH") {
+        for (name, must) in [("blender", true), ("python3", false), ("python", false)] {
+            if let Some(p) = std::env::split_paths(&paths)
+                .map(|d| d.join(name))
+                .find(|p| p.is_file())
+            {
+                candidates.push((p, must));
+            }
+        }
+    }
+    let (mut best, mut first_error): (Option<Blender>, Option<ExportError>) = (None, None);
+    for (c, must) in candidates {
+        match find_blender(Some(&c)) {
+            Ok(Some(b)) if best.as_ref().is_none_or(|x| b.version > x.version) => best = Some(b),
+            Ok(_) => {}
+            Err(e) if must => {
+                first_error.get_or_insert(e);
+            }
+            Err(_) => {}
+        }
+    }
+    match (best, first_error) {
+        (Some(b), _) => Ok(Some(b)),
+        (None, Some(e)) => Err(e),
+        (None, None) => Ok(None),
+    }
+}
+
 fn parse_version(line: &str) -> Option<(u32, u32)> {
     let v = line.split_whitespace().nth(1)?;
     let mut it = v.split('.');

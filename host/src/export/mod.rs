@@ -34,7 +34,7 @@ use crate::modelfile::ModelFile;
 use crate::progress::Progress;
 use crate::render::{self, Light, RenderOptions};
 use crate::report::{Figure, Report, Table, fmt};
-pub use blender::{Blender, Kind, Run, find_blender, read_render};
+pub use blender::{Blender, Kind, Run, find_blender, find_newest_blender, read_render};
 pub use convert::{ColourRule, Source, VertexConversion};
 pub use mesh::{ExportMesh, Refinement};
 
