@@ -116,17 +116,7 @@ pub fn run(args: Args) -> Result<()> {
     let Format::Blender = args.format;
     if args.measure_cycles {
         let b = export::find_blender(args.blender.as_deref())?.context("no Blender found")?;
-        let r = b.measure(&args.out, args.samples)?;
-        println!(
-            "{} ({} samples): method, albedo, d / radius, plateau π / albedo, shape RMS",
-            r.blender, r.samples
-        );
-        for x in &r.rows {
-            println!(
-                "{:<26} {:.2} {:.4} {:.4} {:.4}",
-                x.method, x.albedo, x.d_per_radius, x.plateau_pi_per_albedo, x.shape_rms
-            );
-        }
+        print!("{}", b.measure(&args.out, args.samples)?.text());
         return Ok(());
     }
     let model = match &args.model {

@@ -311,6 +311,23 @@ pub struct Response {
     pub rows: Vec<ResponseRow>,
 }
 
+impl Response {
+    /// The rows as a table, one per method and albedo.
+    pub fn text(&self) -> String {
+        let mut o = format!(
+            "{} ({} samples): method, albedo, d / radius, plateau π / albedo, shape RMS\n",
+            self.blender, self.samples
+        );
+        for x in &self.rows {
+            o += &format!(
+                "{:<26} {:.2} {:.4} {:.4} {:.4}\n",
+                x.method, x.albedo, x.d_per_radius, x.plateau_pi_per_albedo, x.shape_rms
+            );
+        }
+        o
+    }
+}
+
 impl Blender {
     /// Measures this Blender's subsurface response: `build_blend.py --measure` renders a slab
     /// much larger than the profile, half of it lit from above by a sun of strength 1, seen
