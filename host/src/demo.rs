@@ -563,7 +563,7 @@ fn measure<U: Stages>(
     let blender = if args.no_blender {
         None
     } else {
-        export::find_blender(None).unwrap_or_else(|e| {
+        export::find_newest_blender().unwrap_or_else(|e| {
             ui.say(&format!("not rendering in Blender: {e}"));
             None
         })

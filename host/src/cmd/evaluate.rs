@@ -37,6 +37,11 @@ pub struct Args {
     /// Eq. 8 as judging the model; the model still says which light positions apply.
     #[arg(long)]
     pub images: Option<PathBuf>,
+    /// Also judge by rings around x_i: Eq. 8 over ring means of linear radiance (a renderer's
+    /// noise averages out; docs/validation.md), JSON keys `ring_mean_log_e`, `ring_per_frame`,
+    /// `rings` beside the per-sample ones.
+    #[arg(long, conflicts_with = "against")]
+    pub rings: bool,
     /// Change the evaluation protocol: samples closer than this to x_i (mm) are not compared
     /// (default: the protocol's 0.5 for every model). Figures under a changed protocol compare
     /// only with figures under the same one.
@@ -152,10 +157,33 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     for w in report.in_sample_warning().iter().chain(&report.warnings) {
         eprintln!("{w}");
     }
+    let rings = args
+        .rings
+        .then(|| {
+            let images = args.images.as_ref().map(FrameImages::new);
+            subsurf::evaluate::evaluate_rings_stored(
+                &ds,
+                &model,
+                images.as_ref(),
+                &frames,
+                &opts,
+                points,
+                &store,
+                &bar,
+            )
+        })
+        .transpose()?;
     if args.json {
-        println!("{}", serde_json::to_string(&report)?);
+        let mut v = serde_json::to_value(&report)?;
+        if let (Some((per, st)), Some(obj)) = (&rings, v.as_object_mut()) {
+            obj.extend(subsurf::evaluate::rings::json_keys(per, st));
+        }
+        println!("{v}");
     } else {
         print!("{}", report.text());
+        if let Some((_, st)) = &rings {
+            println!("ring mean log E (r, g, b): {:?}", st.mean);
+        }
     }
     Ok(())
 }

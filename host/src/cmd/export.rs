@@ -80,6 +80,10 @@ pub struct Args {
     /// Blender executable (default: `$SUBSURF_BLENDER`, else `blender` on the PATH).
     #[arg(long)]
     blender: Option<PathBuf>,
+    /// Only measure the Blender's subsurface response (the half-lit slab's edge response per
+    /// method and albedo, `--samples` per pixel) into OUT/cycles-response.json.
+    #[arg(long, conflicts_with_all = ["render", "no_blender"])]
+    measure_cycles: bool,
     /// Do not run Blender even if it is installed (no `.blend`).
     #[arg(long, conflicts_with = "render")]
     no_blender: bool,
@@ -110,6 +114,11 @@ pub struct Args {
 
 pub fn run(args: Args) -> Result<()> {
     let Format::Blender = args.format;
+    if args.measure_cycles {
+        let b = export::find_blender(args.blender.as_deref())?.context("no Blender found")?;
+        print!("{}", b.measure(&args.out, args.samples)?.text());
+        return Ok(());
+    }
     let model = match &args.model {
         Some(p) => load_model(p)?,
         None => builtin(&args.builtin)?,

@@ -162,10 +162,10 @@ pub fn evaluate_images_in(
 
 /// A frame ready to be judged: registered, with a model at x_i, its samples and where they
 /// project.
-struct Judged {
-    x_i: crate::geometry::V3,
-    samples: std::sync::Arc<Vec<crate::samples::Sample>>,
-    uv: std::collections::HashMap<u32, (f64, f64)>,
+pub(super) struct Judged {
+    pub(super) x_i: crate::geometry::V3,
+    pub(super) samples: std::sync::Arc<Vec<crate::samples::Sample>>,
+    pub(super) uv: std::collections::HashMap<u32, (f64, f64)>,
 }
 
 /// One frame: skipped for the reasons a model's frame is skipped (then its images are not
@@ -215,7 +215,12 @@ fn judge_one(
 
 /// Frame `k` registered (x_i), the model present at x_i, its samples from the store and their
 /// pixel coordinates; or why the frame is not judged.
-fn prepare(ctx: &Context, model: &ModelFile, k: usize, set: PointSet) -> Result<Judged, String> {
+pub(super) fn prepare(
+    ctx: &Context,
+    model: &ModelFile,
+    k: usize,
+    set: PointSet,
+) -> Result<Judged, String> {
     let reg = register_one(ctx, k)?;
     let x_i = reg.x_i;
     // The frames judged are the model's: where it has no model at x_i, neither is judged.

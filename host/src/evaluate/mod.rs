@@ -11,6 +11,7 @@ use crate::progress::Progress;
 use crate::store::StorePoints;
 
 pub mod images;
+pub mod rings;
 pub mod summary;
 pub use images::{FrameImages, ImageProblem, Reference, evaluate_images_in};
 pub use summary::{Clustering, Figures, Paired};
@@ -347,6 +348,27 @@ pub fn evaluate_images_stored(
 ) -> Result<(Vec<FrameEval>, LogEStats), EvaluateError> {
     let ctx = judged_store(ds, &[model], frames, opts, at, store, progress)?;
     evaluate_images_in(&ctx, model, images, Reference::Frames, frames, at, progress)
+}
+
+/// `frames` of `ds` judged by their rings ([`rings`], `subsurf evaluate --rings`): `model`'s
+/// prediction, or with `images` those images', on the samples the per-sample evaluation uses.
+#[allow(clippy::too_many_arguments)]
+pub fn evaluate_rings_stored(
+    ds: &Dataset,
+    model: &ModelFile,
+    images: Option<&FrameImages>,
+    frames: &[usize],
+    opts: &PipelineOptions,
+    at: EvalPoints,
+    store: &StoreOptions,
+    progress: &dyn Progress,
+) -> Result<(Vec<rings::FrameRings>, LogEStats), EvaluateError> {
+    let ctx = judged_store(ds, &[model], frames, opts, at, store, progress)?;
+    let prediction = match images {
+        Some(i) => rings::Prediction::Images(i, Reference::Frames),
+        None => rings::Prediction::Model,
+    };
+    rings::evaluate_rings_in(&ctx, model, prediction, frames, at, progress)
 }
 
 /// The run that judges `models` on `frames`: the dataset under `opts` with the store of those

@@ -45,11 +45,23 @@ fn parse_threads(v: &str) -> Result<usize, ExportError> {
 /// code is `export::cycles`'s reading).
 pub const MIN_VERSION: (u32, u32) = (3, 4);
 
-/// A Blender executable and its version.
+/// How a [`Blender`] runs a script.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Kind {
+    /// A Blender executable: `blender -b --factory-startup --python script -- …`.
+    #[default]
+    Binary,
+    /// A Python that imports `bpy` (the `bpy` module from PyPI): `python script -- …`.
+    Python,
+}
+
+/// A Blender executable (or a Python with the `bpy` module) and its version.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Blender {
     /// The executable.
     pub path: PathBuf,
+    /// Blender itself or a Python importing `bpy`.
+    pub kind: Kind,
     /// `(major, minor)` from `blender --version`.
     pub version: (u32, u32),
     /// The version line as Blender prints it.
@@ -72,22 +84,7 @@ pub fn find_blender(explicit: Option<&Path>) -> Result<Option<Blender>, ExportEr
     let Some(path) = candidate else {
         return Ok(None);
     };
-    let out = Command::new(&path)
-        .args(["-b", "--factory-startup", "--version"])
-        .output()
-        .map_err(|e| ExportError::Blender(format!("running {}: {e}", path.display())))?;
-    let text = String::from_utf8_lossy(&out.stdout);
-    let line = text
-        .lines()
-        .find(|l| l.trim_start().starts_with("Blender "))
-        .ok_or_else(|| {
-            ExportError::Blender(format!(
-                "{} --version printed no `Blender X.Y` line",
-                path.display()
-            ))
-        })?
-        .trim()
-        .to_string();
+    let (kind, line) = version_line(&path)?;
     let version = parse_version(&line)
         .ok_or_else(|| ExportError::Blender(format!("cannot read a version from `{line}`")))?;
     if version < MIN_VERSION {
@@ -98,9 +95,82 @@ pub fn find_blender(explicit: Option<&Path>) -> Result<Option<Blender>, ExportEr
     }
     Ok(Some(Blender {
         path,
+        kind,
         version,
         version_line: line,
     }))
+}
+
+/// Asks `path` for its version: as Blender (`-b --factory-startup --version`), else as a Python
+/// importing `bpy` (which prints `Blender X.Y.Z` from `bpy.app.version_string`).
+fn version_line(path: &Path) -> Result<(Kind, String), ExportError> {
+    let first_line = |out: &std::process::Output| {
+        String::from_utf8_lossy(&out.stdout)
+            .lines()
+            .find(|l| l.trim_start().starts_with("Blender "))
+            .map(|l| l.trim().to_string())
+    };
+    let running =
+        |e: std::io::Error| ExportError::Blender(format!("running {}: {e}", path.display()));
+    let out = Command::new(path)
+        .args(["-b", "--factory-startup", "--version"])
+        .output()
+        .map_err(running)?;
+    if let Some(line) = first_line(&out) {
+        return Ok((Kind::Binary, line));
+    }
+    let out = Command::new(path)
+        .args(["-c", "import bpy; print('Blender', bpy.app.version_string)"])
+        .output()
+        .map_err(running)?;
+    first_line(&out).map(|l| (Kind::Python, l)).ok_or_else(|| {
+        ExportError::Blender(format!(
+            "{} is neither Blender (--version printed no `Blender X.Y` line) nor a Python \
+             that imports bpy: {}",
+            path.display(),
+            String::from_utf8_lossy(&out.stderr)
+                .lines()
+                .last()
+                .unwrap_or("")
+        ))
+    })
+}
+
+/// The newest usable Blender among `$SUBSURF_BLENDER`, `blender` on the `PATH` and the
+/// Pythons on the `PATH` (`python3`, `python`) that import `bpy`; `None` when there is none.
+/// A candidate that is not a Blender is passed over; when none is usable, the first error.
+pub fn find_newest_blender() -> Result<Option<Blender>, ExportError> {
+    // (candidate, whether it must be a Blender: a Python without bpy is merely passed over).
+    let mut candidates: Vec<(PathBuf, bool)> = std::env::var_os(BLENDER_ENV)
+        .map(|p| (PathBuf::from(p), true))
+        .into_iter()
+        .collect();
+    if let Some(paths) = std::env::var_os("PATH") {
+        for (name, must) in [("blender", true), ("python3", false), ("python", false)] {
+            if let Some(p) = std::env::split_paths(&paths)
+                .map(|d| d.join(name))
+                .find(|p| p.is_file())
+            {
+                candidates.push((p, must));
+            }
+        }
+    }
+    let (mut best, mut first_error): (Option<Blender>, Option<ExportError>) = (None, None);
+    for (c, must) in candidates {
+        match find_blender(Some(&c)) {
+            Ok(Some(b)) if best.as_ref().is_none_or(|x| b.version > x.version) => best = Some(b),
+            Ok(_) => {}
+            Err(e) if must => {
+                first_error.get_or_insert(e);
+            }
+            Err(_) => {}
+        }
+    }
+    match (best, first_error) {
+        (Some(b), _) => Ok(Some(b)),
+        (None, Some(e)) => Err(e),
+        (None, None) => Ok(None),
+    }
 }
 
 fn parse_version(line: &str) -> Option<(u32, u32)> {
@@ -125,6 +195,9 @@ pub struct Run {
     /// Build and render the scene of this scan frame (`frames.json`, [`super::frames`])
     /// instead of `scene.json`'s.
     pub frame: Option<usize>,
+    /// Instead of any scene: measure Cycles' subsurface response (the half-lit slab's edge
+    /// response per method and albedo, [`Blender::measure`]) into this JSON file.
+    pub measure: Option<PathBuf>,
 }
 
 impl Blender {
@@ -148,17 +221,20 @@ impl Blender {
         let script = dir.join(BUILD_SCRIPT);
         let threads = render_threads(run.threads)?;
         let mut cmd = Command::new(&self.path);
-        cmd.args(["-b", "--factory-startup"]);
-        if threads > 0 {
-            // Blender's own option as well as the script's: it also bounds the threads Blender
-            // starts before the script runs.
-            cmd.args(["-t", &threads.to_string()]);
+        match self.kind {
+            Kind::Binary => {
+                cmd.args(["-b", "--factory-startup"]);
+                if threads > 0 {
+                    // Blender's own option as well as the script's: it also bounds the threads
+                    // Blender starts before the script runs.
+                    cmd.args(["-t", &threads.to_string()]);
+                }
+                cmd.args(["--python-exit-code", "1", "--python"]);
+            }
+            // The module runs the script as any Python does; a failing script exits non-zero.
+            Kind::Python => {}
         }
-        cmd.args(["--python-exit-code", "1", "--python"])
-            .arg(&script)
-            .arg("--")
-            .arg("--dir")
-            .arg(dir);
+        cmd.arg(&script).arg("--").arg("--dir").arg(dir);
         if let Some(exr) = &run.render {
             cmd.arg("--render").arg(exr);
         }
@@ -172,6 +248,9 @@ impl Blender {
         cmd.args(["--seed", &run.seed.to_string()]);
         if let Some(k) = run.frame {
             cmd.args(["--frame", &k.to_string()]);
+        }
+        if let Some(m) = &run.measure {
+            cmd.arg("--measure").arg(m);
         }
         let (status, text) = run_reporting(cmd, progress)
             .map_err(|e| ExportError::Blender(format!("running {}: {e}", self.path.display())))?;
@@ -202,6 +281,76 @@ impl Blender {
             )));
         }
         Ok(())
+    }
+}
+
+/// One row of [`Blender::measure`]: a method at an albedo, the Christensen-Burley shape fitted
+/// to the half-lit slab's edge response (radius 1).
+#[derive(Clone, Debug, PartialEq, serde::Deserialize, serde::Serialize)]
+pub struct ResponseRow {
+    /// The Principled BSDF's `subsurface_method`.
+    pub method: String,
+    /// The albedo (3.x: Subsurface Color; v2: Base Color).
+    pub albedo: f64,
+    /// The fitted Burley `d` over the Subsurface Radius.
+    pub d_per_radius: f64,
+    /// The plateau of the lit side times π over the albedo (1: a point scatters its albedo).
+    pub plateau_pi_per_albedo: f64,
+    /// RMS residual of the fit relative to the plateau (how far from the Burley shape).
+    pub shape_rms: f64,
+}
+
+/// What [`Blender::measure`] writes (`subsurf-cycles-response/1`).
+#[derive(Clone, Debug, PartialEq, serde::Deserialize, serde::Serialize)]
+pub struct Response {
+    /// Blender's version string.
+    pub blender: String,
+    /// Samples per pixel of the renders.
+    pub samples: u32,
+    /// Per method and albedo.
+    pub rows: Vec<ResponseRow>,
+}
+
+impl Response {
+    /// The rows as a table, one per method and albedo.
+    pub fn text(&self) -> String {
+        let mut o = format!(
+            "{} ({} samples): method, albedo, d / radius, plateau π / albedo, shape RMS\n",
+            self.blender, self.samples
+        );
+        for x in &self.rows {
+            o += &format!(
+                "{:<26} {:.2} {:.4} {:.4} {:.4}\n",
+                x.method, x.albedo, x.d_per_radius, x.plateau_pi_per_albedo, x.shape_rms
+            );
+        }
+        o
+    }
+}
+
+impl Blender {
+    /// Measures this Blender's subsurface response: `build_blend.py --measure` renders a slab
+    /// much larger than the profile, half of it lit from above by a sun of strength 1, seen
+    /// across the edge, for each method (Christensen-Burley and both random walks) at six
+    /// albedos, and fits the Burley shape to each edge response. The export's radius
+    /// (`cycles::RADIUS_PER_D`) and colour assume what its Christensen-Burley rows show: `d =
+    /// radius / (4π)` and a plateau of `albedo / π`; [`super::cycles::MEASURED_BURLEY`] keeps
+    /// the figures of the versions measured. The script is written into `dir`, the figures to
+    /// `dir/cycles-response.json`.
+    pub fn measure(&self, dir: &Path, samples: u32) -> Result<Response, ExportError> {
+        std::fs::create_dir_all(dir).map_err(|e| ExportError::io(dir, e))?;
+        let script = dir.join(BUILD_SCRIPT);
+        std::fs::write(&script, super::BUILD_BLEND_PY).map_err(|e| ExportError::io(&script, e))?;
+        let out = dir.join("cycles-response.json");
+        let run = Run {
+            samples: Some(samples),
+            measure: Some(out.clone()),
+            ..Run::default()
+        };
+        self.run(dir, &run)?;
+        let text = std::fs::read_to_string(&out).map_err(|e| ExportError::io(&out, e))?;
+        serde_json::from_str(&text)
+            .map_err(|e| ExportError::Blender(format!("{}: {e}", out.display())))
     }
 }
 
@@ -346,6 +495,7 @@ mod tests {
         std::fs::set_permissions(&fake, std::fs::Permissions::from_mode(0o755)).unwrap();
         let b = Blender {
             path: fake,
+            kind: Kind::Binary,
             version: (3, 4),
             version_line: "Blender 3.4.1".into(),
         };
@@ -369,6 +519,35 @@ mod tests {
         let e = parse_threads("all").unwrap_err();
         assert!(e.to_string().contains(THREADS_ENV), "{e}");
         assert_eq!(render_threads(3).unwrap(), 3);
+    }
+
+    /// A Python that imports `bpy` is found by its `bpy.app.version_string` and runs the script
+    /// itself (`python build_blend.py -- …`), without Blender's own options; a stand-in Python
+    /// that refuses Blender's options, as a real one does.
+    #[cfg(unix)]
+    #[test]
+    fn a_python_with_bpy_is_a_blender() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = tempfile::tempdir().unwrap();
+        let fake = dir.path().join("python3");
+        std::fs::write(
+            &fake,
+            "#!/bin/sh\n\
+             case \"$1\" in -b) echo 'unknown option --factory-startup' >&2; exit 2;;\n\
+             -c) echo 'Blender 5.0.1'; exit 0;; esac\n\
+             case \"$1\" in */build_blend.py) ;; *) exit 3;; esac\n\
+             [ \"$2\" = -- ] || exit 4\n\
+             while [ \"$1\" != --dir ]; do shift; done; d=\"$2\"\n\
+             touch \"$d/model.blend\"; echo \"SUBSURF wrote $d/model.blend\"\n",
+        )
+        .unwrap();
+        std::fs::set_permissions(&fake, std::fs::Permissions::from_mode(0o755)).unwrap();
+        let b = find_blender(Some(&fake)).unwrap().unwrap();
+        assert_eq!(b.kind, Kind::Python);
+        assert_eq!(b.version, (5, 0));
+        assert_eq!(b.version_line, "Blender 5.0.1");
+        b.run(dir.path(), &Run::default()).unwrap();
+        assert!(dir.path().join("model.blend").is_file());
     }
 
     /// A missing executable is an error naming it, not a panic.

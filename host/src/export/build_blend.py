@@ -1,10 +1,15 @@
 """Builds the Blender scene of a `subsurf export --format blender` folder.
 
-Run it in Blender 3.4 or newer, in the export folder or with its path:
+Run it in Blender 3.4 or newer, in the export folder or with its path, or with a Python that
+imports `bpy` (the `bpy` module from PyPI, `pip install bpy`):
 
     blender -b --factory-startup --python build_blend.py                  # writes model.blend
     blender -b --factory-startup --python build_blend.py -- --render cycles.exr --samples 64
     blender --python build_blend.py                                       # opens the scene
+    python build_blend.py -- --render cycles.exr                          # bpy as a module
+
+It reads `bpy.app.version` and uses that version's API (custom normals without auto smooth from
+4.1, Principled v2's inputs from 4.0).
 
 It reads `model.glb` (the mesh, in metres, with the converted parameters as custom attributes:
 Blender 3.4's glTF importer drops those, so this script reads the file itself) and `scene.json`
@@ -13,10 +18,11 @@ Blender 3.4's glTF importer drops those, so this script reads the file itself) a
 - the mesh with its normals and four point attributes: `subsurface_colour` (total diffuse
   reflectance per channel), `subsurface_radius` (metres), `alpha` (the modulation texture, Eq. 2/6
   of Fuchs et al. 2005) and `conversion_log_e`;
-- the material: Attribute nodes feeding a Principled BSDF (Subsurface 1, method Christensen-Burley,
-  Specular 0, Roughness 0): Subsurface Color = subsurface_colour x alpha x the Fresnel
-  transmission out of the surface relative to normal incidence, Subsurface Radius =
-  subsurface_radius (Blender scales the radius by the Subsurface factor, here 1); with two lobes
+- the material: Attribute nodes feeding a Principled BSDF that is only its subsurface closure
+  (method Christensen-Burley; 3.x: Subsurface 1, Specular 0; 4.0 on: Subsurface Weight 1,
+  Subsurface Scale 1, Specular IOR Level 0, Coat and Sheen 0): the albedo (3.x Subsurface Color,
+  v2 Base Color) = subsurface_colour x alpha x the Fresnel transmission out of the surface
+  relative to normal incidence, Subsurface Radius = subsurface_radius; with two lobes
   (`scene.json` "lobes": 2) a second, slow Principled BSDF fed by `subsurface_colour_slow` and
   `subsurface_radius_slow`, mixed in by a Mix Shader whose factor is the `lobe_mix` attribute;
 - the lights and the camera of the subsurf render, a black world, Cycles on the CPU, colour
@@ -44,11 +50,16 @@ import bpy
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
+# The running Blender's version picks its API: the mesh's normals (auto smooth went in 4.1) and
+# the Principled BSDF's inputs (Principled v2 from 4.0).
+VERSION = tuple(bpy.app.version[:2])
+PRINCIPLED_V2 = VERSION >= (4, 0)
+
 
 def parse_args():
     argv = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else []
     opts = {"dir": HERE, "blend": None, "render": None, "samples": None, "seed": 0,
-            "threads": 0, "compare": False, "frame": None}
+            "threads": 0, "compare": False, "frame": None, "measure": None}
     i = 0
     while i < len(argv):
         a = argv[i]
@@ -57,7 +68,7 @@ def parse_args():
             i += 1
             continue
         if a not in ("--dir", "--blend", "--render", "--samples", "--seed", "--threads",
-                     "--frame"):
+                     "--frame", "--measure"):
             raise SystemExit("build_blend.py: unknown option %r" % a)
         if i + 1 >= len(argv):
             raise SystemExit("build_blend.py: %s needs a value" % a)
@@ -110,6 +121,7 @@ def build_mesh(doc, blob):
     nrm = accessor(doc, blob, attr["NORMAL"], "f")
     idx = accessor(doc, blob, prim["indices"], "I")
     nv, nt = len(pos) // 3, len(idx) // 3
+    alpha, colours = None, []
     mesh = bpy.data.meshes.new("subsurf model")
     mesh.vertices.add(nv)
     mesh.vertices.foreach_set("co", pos)
@@ -121,8 +133,10 @@ def build_mesh(doc, blob):
     mesh.polygons.foreach_set("use_smooth", array.array("b", [1]) * nt)
     mesh.update(calc_edges=True)
     mesh.validate()
-    # The model's own normals, as the subsurf renderer shades with them.
-    mesh.use_auto_smooth = True
+    # The model's own normals, as the subsurf renderer shades with them. Before 4.1 custom
+    # normals count only with auto smooth on; from 4.1 a mesh with custom normals uses them.
+    if VERSION < (4, 1):
+        mesh.use_auto_smooth = True
     mesh.normals_split_custom_set_from_vertices(
         [tuple(nrm[3 * v:3 * v + 3]) for v in range(nv)])
     for gltf_name, name, kind in (
@@ -137,6 +151,10 @@ def build_mesh(doc, blob):
             # The slow lobe's attributes are written only with two lobes.
             continue
         values = accessor(doc, blob, attr[gltf_name], "f")
+        if name == "alpha":
+            alpha = values
+        elif name.startswith("subsurface_colour"):
+            colours.append(values)
         a = mesh.attributes.new(name, kind, "POINT")
         if kind == "FLOAT_COLOR":
             rgba = array.array("f", [1.0]) * (4 * nv)
@@ -145,7 +163,19 @@ def build_mesh(doc, blob):
             a.data.foreach_set("color", rgba)
         else:
             a.data.foreach_set("vector", values)
-    return mesh
+    largest = max((c * a for col in colours for c, a in zip(col, alpha if alpha is not None else [1.0] * len(col))), default=0.0)
+    return mesh, largest
+
+
+def light_scale_for(largest_albedo):
+    """What the lights carry of the albedo: 1, or on Principled v2 the largest albedo above 1.
+
+    A fitted colour is in the scan's units and may exceed 1. Blender 3.x's Principled takes it as
+    it is; Principled v2 clamps its base colour to 1, so there the material's albedo is divided
+    by this factor and every light's power multiplied by it: the same radiance leaves the object
+    (the scene has no other surface and a black world), and the material stays below 1.
+    """
+    return max(1.0, largest_albedo) if PRINCIPLED_V2 else 1.0
 
 
 def attribute_node(nt, name, location):
@@ -157,13 +187,34 @@ def attribute_node(nt, name, location):
 
 
 def principled(nt, method, location):
+    """A Principled BSDF that is only its subsurface closure: no specular, sheen or coat.
+
+    Blender 3.x: Subsurface 1 (albedo = Subsurface Color, radius = Subsurface Radius), Specular
+    0, Sheen 0. Principled v2 (4.0 on): Subsurface Weight 1 and Subsurface Scale 1 (radius =
+    Subsurface Radius x Scale), the Base Color is the albedo; Specular IOR Level 0 makes the
+    dielectric layer's F0 zero, so Cycles builds no specular closure and the layer takes no light
+    from the subsurface one beneath; Coat and Sheen weights 0. Cycles' kernel clamps v2's base
+    colour to 1 (`clamped_base_color`): see `light_scale_for`.
+    """
     bsdf = nt.nodes.new("ShaderNodeBsdfPrincipled")
     bsdf.location = location
+    if PRINCIPLED_V2 and method == "RANDOM_WALK_FIXED_RADIUS":
+        # 4.0 dropped the fixed-radius walk; its nearest is the plain random walk.
+        method = "RANDOM_WALK"
     bsdf.subsurface_method = method
-    bsdf.inputs["Subsurface"].default_value = 1.0
-    bsdf.inputs["Specular"].default_value = 0.0
     bsdf.inputs["Roughness"].default_value = 0.0
-    bsdf.inputs["Sheen"].default_value = 0.0
+    if PRINCIPLED_V2:
+        bsdf.inputs["Subsurface Weight"].default_value = 1.0
+        bsdf.inputs["Subsurface Scale"].default_value = 1.0
+        bsdf.inputs["Specular IOR Level"].default_value = 0.0
+        bsdf.inputs["Coat Weight"].default_value = 0.0
+        bsdf.inputs["Sheen Weight"].default_value = 0.0
+        bsdf.inputs["Metallic"].default_value = 0.0
+        bsdf.inputs["Transmission Weight"].default_value = 0.0
+    else:
+        bsdf.inputs["Subsurface"].default_value = 1.0
+        bsdf.inputs["Specular"].default_value = 0.0
+        bsdf.inputs["Sheen"].default_value = 0.0
     return bsdf
 
 
@@ -203,6 +254,16 @@ def albedo_of(nt, scene, colour_name, y):
         nt.links.new(albedo, scale.inputs[0])
         nt.links.new(relative.outputs["Value"], scale.inputs["Scale"])
         albedo = scale.outputs["Vector"]
+    k = scene.get("_light_scale", 1.0)
+    if k != 1.0:
+        # Principled v2 clamps the albedo to 1: the material holds albedo / k, the lights k.
+        down = nt.nodes.new("ShaderNodeVectorMath")
+        down.operation = "SCALE"
+        down.label = "1 / light scale"
+        down.location = (450, y + 150)
+        nt.links.new(albedo, down.inputs[0])
+        down.inputs["Scale"].default_value = 1.0 / k
+        albedo = down.outputs["Vector"]
     return albedo
 
 
@@ -211,7 +272,8 @@ def lobe(nt, scene, colour_name, radius_name, y):
     bsdf = principled(nt, scene["method"], (600, y))
     albedo = albedo_of(nt, scene, colour_name, y)
     radius = attribute_node(nt, radius_name, (-600, y - 250))
-    nt.links.new(albedo, bsdf.inputs["Subsurface Color"])
+    if not PRINCIPLED_V2:
+        nt.links.new(albedo, bsdf.inputs["Subsurface Color"])
     nt.links.new(albedo, bsdf.inputs["Base Color"])
     nt.links.new(radius.outputs["Vector"], bsdf.inputs["Subsurface Radius"])
     return bsdf
@@ -219,7 +281,9 @@ def lobe(nt, scene, colour_name, radius_name, y):
 
 def build_material(scene):
     mat = bpy.data.materials.new("subsurf material")
-    mat.use_nodes = True
+    if VERSION < (5, 0):
+        # From 5.0 a material is always its node tree.
+        mat.use_nodes = True
     nt = mat.node_tree
     for n in list(nt.nodes):
         nt.nodes.remove(n)
@@ -242,23 +306,23 @@ def build_material(scene):
     return mat
 
 
-def build_lights(sc, lights, hidden=False):
+def build_lights(sc, lights, hidden=False, scale=1.0):
     from mathutils import Matrix
     for k, l in enumerate(lights):
         name = "%s %d" % (l["type"].lower(), k)
         if l["type"] == "POINT":
             data = bpy.data.lights.new(name, "POINT")
-            data.energy = l["power"]
+            data.energy = l["power"] * scale
             data.shadow_soft_size = 0.0
         elif l["type"] == "SPOT":
             data = bpy.data.lights.new(name, "SPOT")
-            data.energy = l["power"]
+            data.energy = l["power"] * scale
             data.shadow_soft_size = 0.0
             data.spot_size = l["spot_size"]
             data.spot_blend = l["spot_blend"]
         else:
             data = bpy.data.lights.new(name, "SUN")
-            data.energy = l["strength"]
+            data.energy = l["strength"] * scale
             data.angle = 0.0
         data.color = l["colour"]
         obj = bpy.data.objects.new(name, data)
@@ -300,8 +364,197 @@ def build_camera(sc, c):
     sc.render.pixel_aspect_y = 1.0
 
 
+# --- The measurement of Cycles' subsurface response (`--measure OUT.json`) -------------------
+#
+# A slab much larger and thicker than the profile's reach, lit from straight above by a sun of
+# strength 1 on one half (x < 0; a shadow caster the camera does not see covers the other), seen
+# by an orthographic camera from above across the edge. The image along x is the profile's edge
+# response, plateau x (1 - F(x)) on the lit side and plateau x F(x) on the dark one, with F the
+# share of a point's scattered light that lands beyond a line at distance x. Fitting the
+# Christensen-Burley shape (d and the plateau) to it gives, per method and albedo, what the
+# export assumes: d / radius (1/(4 pi) in 3.4's kernel) and plateau x pi / albedo (1: a point
+# scatters exactly its albedo). The material is the export's own (`principled`).
+
+MEASURE_ALBEDOS = ((0.1, 0.5, 0.8), (0.95, 0.3, 0.65))
+MEASURE_HALF_WIDTH = 0.8  # metres seen either side of the edge; the radius is 1 m
+MEASURE_PIXELS = 160
+
+
+def burley_edge(x, d):
+    """F(x): the share of a unit Burley profile (shape d, truncated at 16 d and renormalised)
+    beyond a line at distance x >= 0: the integral over r > x of 2 r p(r) arccos(x / r)."""
+    rmax = 16.0 * d
+    if x >= rmax:
+        return 0.0
+    cdf = 1.0 - 0.25 * math.exp(-16.0) - 0.75 * math.exp(-16.0 / 3.0)
+    lo = max(x, 1e-6 * d)
+    n = 200
+    total = 0.0
+    a, b = math.log(lo), math.log(rmax)
+    h = (b - a) / n
+    for k in range(n + 1):
+        r = math.exp(a + k * h)
+        p = (math.exp(-r / d) + math.exp(-r / (3.0 * d))) / (8.0 * math.pi * d * r) / cdf
+        f = 2.0 * r * p * math.acos(min(1.0, x / r)) * r  # d r = r d ln r
+        total += f * (1.0 if 0 < k < n else 0.5)
+    return total * h
+
+
+def fit_edge(xs, ys):
+    """The Burley shape d and plateau P best fitting the edge response ys at xs (x < 0 lit):
+    least squares in P for each d (closed form), golden section over ln d."""
+    def model(d):
+        return [1.0 - burley_edge(-x, d) if x < 0 else burley_edge(x, d) for x in xs]
+
+    def cost(ln_d):
+        m = model(math.exp(ln_d))
+        p = sum(a * b for a, b in zip(m, ys)) / max(sum(a * a for a in m), 1e-30)
+        return sum((p * a - b) ** 2 for a, b in zip(m, ys)), p
+
+    grid = [math.log(0.005) + k * (math.log(0.5) - math.log(0.005)) / 24 for k in range(25)]
+    best = min(range(len(grid)), key=lambda k: cost(grid[k])[0])
+    lo, hi = grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]
+    g = (math.sqrt(5.0) - 1.0) / 2.0
+    for _ in range(40):
+        a, b = hi - g * (hi - lo), lo + g * (hi - lo)
+        if cost(a)[0] < cost(b)[0]:
+            hi = b
+        else:
+            lo = a
+    ln_d = 0.5 * (lo + hi)
+    c, p = cost(ln_d)
+    rms = math.sqrt(c / len(xs)) / max(p, 1e-30)
+    return math.exp(ln_d), p, rms
+
+
+def measure_scene(method, albedo, samples, threads, seed):
+    """Renders the half-lit slab for one method and three albedos (one per channel); returns the
+    edge response per channel as (xs, [ys_r, ys_g, ys_b])."""
+    from mathutils import Matrix
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    sc = bpy.context.scene
+    mesh = bpy.data.meshes.new("slab")
+    # A box 8 m across and 4 m deep, its top face at z = 0.
+    v = [(x, y, z) for z in (-4.0, 0.0) for y in (-4.0, 4.0) for x in (-4.0, 4.0)]
+    f = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2), (1, 3, 7, 5)]
+    mesh.from_pydata(v, [], f)
+    mesh.update()
+    mat = bpy.data.materials.new("measured")
+    if VERSION < (5, 0):
+        mat.use_nodes = True
+    nt = mat.node_tree
+    for n in list(nt.nodes):
+        nt.nodes.remove(n)
+    out = nt.nodes.new("ShaderNodeOutputMaterial")
+    bsdf = principled(nt, method, (0, 0))
+    colour = tuple(albedo) + (1.0,)
+    bsdf.inputs["Base Color"].default_value = colour
+    if not PRINCIPLED_V2:
+        bsdf.inputs["Subsurface Color"].default_value = colour
+    bsdf.inputs["Subsurface Radius"].default_value = (1.0, 1.0, 1.0)
+    nt.links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
+    mesh.materials.append(mat)
+    slab = bpy.data.objects.new("slab", mesh)
+    sc.collection.objects.link(slab)
+    # The shadow caster over x > 0, unseen by the camera.
+    cover = bpy.data.meshes.new("cover")
+    cover.from_pydata([(0.0, -5.0, 1.0), (6.0, -5.0, 1.0), (6.0, 5.0, 1.0), (0.0, 5.0, 1.0)],
+                      [], [(0, 1, 2, 3)])
+    # Black: light the slab scatters upwards must not come back from it.
+    black = bpy.data.materials.new("black")
+    if VERSION < (5, 0):
+        black.use_nodes = True
+    bnt = black.node_tree
+    for n in list(bnt.nodes):
+        bnt.nodes.remove(n)
+    bout = bnt.nodes.new("ShaderNodeOutputMaterial")
+    dark = bnt.nodes.new("ShaderNodeBsdfDiffuse")
+    dark.inputs["Color"].default_value = (0.0, 0.0, 0.0, 1.0)
+    bnt.links.new(dark.outputs["BSDF"], bout.inputs["Surface"])
+    cover.materials.append(black)
+    cover_obj = bpy.data.objects.new("cover", cover)
+    cover_obj.visible_camera = False
+    sc.collection.objects.link(cover_obj)
+    sun = bpy.data.lights.new("sun", "SUN")
+    sun.energy = 1.0
+    sun.angle = 0.0
+    sun_obj = bpy.data.objects.new("sun", sun)
+    sc.collection.objects.link(sun_obj)
+    cam = bpy.data.cameras.new("camera")
+    cam.type = "ORTHO"
+    cam.ortho_scale = 2.0 * MEASURE_HALF_WIDTH
+    cam_obj = bpy.data.objects.new("camera", cam)
+    cam_obj.matrix_world = Matrix.Translation((0.0, 0.0, 3.0))
+    sc.collection.objects.link(cam_obj)
+    sc.camera = cam_obj
+    world = bpy.data.worlds.new("black")
+    if VERSION < (5, 0):
+        world.use_nodes = True
+    world.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.0
+    sc.world = world
+    sc.render.engine = "CYCLES"
+    sc.cycles.device = "CPU"
+    sc.cycles.samples = samples
+    sc.cycles.seed = seed
+    sc.cycles.use_denoising = False
+    sc.cycles.use_adaptive_sampling = False
+    sc.cycles.sample_clamp_direct = 0.0
+    sc.cycles.sample_clamp_indirect = 0.0
+    sc.cycles.pixel_filter_type = "BOX"
+    sc.cycles.filter_width = 0.01
+    if threads:
+        sc.render.threads_mode = "FIXED"
+        sc.render.threads = threads
+    sc.view_settings.view_transform = "Standard"
+    sc.view_settings.look = "None"
+    sc.render.resolution_x = MEASURE_PIXELS
+    sc.render.resolution_y = 4
+    sc.render.resolution_percentage = 100
+    sc.render.image_settings.file_format = "OPEN_EXR"
+    sc.render.image_settings.color_depth = "32"
+    import tempfile
+    path = os.path.join(tempfile.mkdtemp(prefix="subsurf-measure-"), "edge.exr")
+    sc.render.filepath = path
+    bpy.ops.render.render(write_still=True)
+    img = bpy.data.images.load(path)
+    w, h = img.size
+    px = list(img.pixels)
+    xs = [(-MEASURE_HALF_WIDTH + (i + 0.5) * 2.0 * MEASURE_HALF_WIDTH / w) for i in range(w)]
+    ys = [[sum(px[4 * (j * w + i) + c] for j in range(h)) / h for i in range(w)]
+          for c in range(3)]
+    os.remove(path)
+    return xs, ys
+
+
+def measure(out_path, samples, threads, seed):
+    """Measures every method's edge response at MEASURE_ALBEDOS; writes out_path (JSON)."""
+    methods = ["BURLEY", "RANDOM_WALK",
+               "RANDOM_WALK_SKIN" if PRINCIPLED_V2 else "RANDOM_WALK_FIXED_RADIUS"]
+    rows = []
+    for method in methods:
+        for albedo in MEASURE_ALBEDOS:
+            xs, ys = measure_scene(method, albedo, samples, threads, seed)
+            for c in range(3):
+                d, plateau, rms = fit_edge(xs, ys[c])
+                rows.append({"method": method, "albedo": albedo[c], "d_per_radius": d,
+                             "plateau_pi_per_albedo": plateau * math.pi / albedo[c],
+                             "shape_rms": rms})
+                print("SUBSURF measured %s albedo %.2f: d/radius %.4f, plateau pi/albedo %.4f, "
+                      "shape rms %.4f" % (method, albedo[c], d, plateau * math.pi / albedo[c],
+                                          rms))
+    with open(out_path, "w") as f:
+        json.dump({"format": "subsurf-cycles-response/1", "blender": bpy.app.version_string,
+                   "version": list(VERSION), "samples": samples, "radius_m": 1.0,
+                   "half_width_m": MEASURE_HALF_WIDTH, "pixels": MEASURE_PIXELS,
+                   "rows": rows}, f, indent=1)
+    print("SUBSURF wrote %s" % out_path)
+
+
 def main():
     opts = parse_args()
+    if opts["measure"]:
+        measure(opts["measure"], opts["samples"] or 256, opts["threads"], opts["seed"])
+        return
     folder = opts["dir"]
     with open(os.path.join(folder, "scene.json")) as f:
         scene = json.load(f)
@@ -312,8 +565,14 @@ def main():
     sc.unit_settings.system = "METRIC"
     sc.unit_settings.scale_length = 1.0
     sc.unit_settings.length_unit = "MILLIMETERS"
-    mesh = build_mesh(doc, blob)
-    mesh.materials.append(build_material(scene))
+    mesh, largest = build_mesh(doc, blob)
+    k = light_scale_for(largest)
+    scene["_light_scale"] = k
+    print("SUBSURF Blender %s, Principled %s, light scale %.6g"
+          % (bpy.app.version_string, "v2" if PRINCIPLED_V2 else "v1", k))
+    mat = build_material(scene)
+    mat["subsurf_light_scale"] = k
+    mesh.materials.append(mat)
     obj = bpy.data.objects.new("subsurf model", mesh)
     sc.collection.objects.link(obj)
     frames, entry = (None, None)
@@ -321,13 +580,14 @@ def main():
         from mathutils import Matrix
         frames, entry = frame_scene(folder, opts["frame"])
         obj.matrix_world = Matrix(entry["object_matrix"])
-        build_lights(sc, [entry["laser"]], hidden=True)
+        build_lights(sc, [entry["laser"]], hidden=True, scale=k)
         build_camera(sc, entry["camera"])
     else:
-        build_lights(sc, scene["lights"])
+        build_lights(sc, scene["lights"], scale=k)
         build_camera(sc, scene["camera"])
     world = bpy.data.worlds.new("black")
-    world.use_nodes = True
+    if VERSION < (5, 0):
+        world.use_nodes = True
     world.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.0
     sc.world = world
     r = scene["render"]

@@ -42,6 +42,39 @@ use std::f64::consts::PI;
 /// `0.25 · M_1_PI_F`, so `radius = 4π d`.
 pub const RADIUS_PER_D: f64 = 4.0 * PI;
 
+/// Cycles' Christensen-Burley response as measured in one Blender version (`subsurf export
+/// --measure-cycles`, [`super::Blender::measure`]: the half-lit slab's edge response at albedos
+/// 0.1 to 0.95, 256 samples; the same at every albedo, as the kernel says).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct MeasuredBurley {
+    /// The version measured.
+    pub blender: &'static str,
+    /// The fitted `d` over the Subsurface Radius (the kernel: 1/(4π) = 0.0796).
+    pub d_per_radius: f64,
+    /// The lit plateau · π / albedo (the kernel: 1).
+    pub plateau: f64,
+}
+
+/// The versions measured. The export writes `radius = 4π d` and the albedo as the colour in
+/// every version: each row is within 1 % of that (a unit test checks).
+pub const MEASURED_BURLEY: [MeasuredBurley; 3] = [
+    MeasuredBurley {
+        blender: "3.4.1",
+        d_per_radius: 0.0803,
+        plateau: 1.0015,
+    },
+    MeasuredBurley {
+        blender: "4.2.23 LTS",
+        d_per_radius: 0.0796,
+        plateau: 1.0005,
+    },
+    MeasuredBurley {
+        blender: "5.0.1",
+        d_per_radius: 0.0794,
+        plateau: 1.0000,
+    },
+];
+
 /// Cycles truncates the Burley profile at `BURLEY_TRUNCATE · d` (`bssrdf.h`).
 pub const TRUNCATE: f64 = 16.0;
 
@@ -271,6 +304,16 @@ fn minimise_1d(cost: impl Fn(f64) -> f64, a: f64, b: f64) -> Option<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Every Blender measured scatters as the export assumes: d = radius / (4π), plateau the
+    /// albedo / π, within 1 %.
+    #[test]
+    fn every_measured_blender_is_the_kernels_burley() {
+        for m in MEASURED_BURLEY {
+            assert!((m.d_per_radius * RADIUS_PER_D - 1.0).abs() < 0.01, "{m:?}");
+            assert!((m.plateau - 1.0).abs() < 0.01, "{m:?}");
+        }
+    }
 
     /// ∫ R 2πr dr over (0, 16 d) of the renormalised profile is 1 (the albedo), by Simpson in
     /// ln r; Cycles' constant is what the closed form gives.

@@ -304,6 +304,7 @@ pub fn render_frames(
                 threads: 0,
                 seed,
                 frame: Some(s.frame),
+                measure: None,
             },
         )?;
         if !exr.is_file() {
@@ -333,6 +334,13 @@ pub struct FrameRow {
     /// log E of the second seed's render against the first on the same samples (Cycles' own
     /// noise; both renders' noise, so √2 times one render's).
     pub noise_log_e: Option<[Option<f64>; 3]>,
+    /// The ring yardstick ([`crate::evaluate::rings`]): Eq. 8 over the means of linear radiance
+    /// in rings around x_i, Cycles' render against the frame.
+    pub cycles_ring_log_e: [Option<f64>; 3],
+    /// The same rings for subsurf's model.
+    pub subsurf_ring_log_e: [Option<f64>; 3],
+    /// The same rings, the second seed's render against the first.
+    pub noise_ring_log_e: Option<[Option<f64>; 3]>,
     /// Channel samples Cycles left black where the frame has light (judged at the noise floor).
     pub unlit: u64,
     /// Channel samples compared.
@@ -352,8 +360,17 @@ pub struct FramesComparison {
     pub subsurf_mean_log_e: [Option<f64>; 3],
     /// The second seed's mean log E against the first.
     pub noise_mean_log_e: Option<[Option<f64>; 3]>,
-    /// Cycles' mean over subsurf's, green (the yardstick: at most 1.15).
+    /// Cycles' mean over subsurf's, green.
     pub ratio_green: Option<f64>,
+    /// The ring yardstick's means over the frames both judged: Cycles, subsurf, and the second
+    /// seed against the first.
+    pub cycles_ring_mean_log_e: [Option<f64>; 3],
+    /// subsurf's model on the same rings.
+    pub subsurf_ring_mean_log_e: [Option<f64>; 3],
+    /// The second seed against the first, on the same rings (two renders' noise).
+    pub noise_ring_mean_log_e: Option<[Option<f64>; 3]>,
+    /// Cycles' ring mean over subsurf's, green.
+    pub ring_ratio_green: Option<f64>,
     /// Per frame.
     pub per_frame: Vec<FrameRow>,
     /// Frames asked for that were not rendered or not judged, and why.
@@ -424,6 +441,23 @@ pub fn judge_frames(
     } else {
         None
     };
+    use crate::evaluate::rings::{Prediction, evaluate_rings_in};
+    let (ring_ours, _) = evaluate_rings_in(ctx, model, Prediction::Model, &frames, at, progress)?;
+    let (ring_theirs, _) = evaluate_rings_in(
+        ctx,
+        model,
+        Prediction::Images(&cycles, Reference::Frames),
+        &frames,
+        at,
+        progress,
+    )?;
+    let ring_noise = if noise {
+        let second = FrameImages::new(dir.join(NOISE_DIR));
+        let p = Prediction::Images(&second, Reference::Images(&cycles));
+        Some(evaluate_rings_in(ctx, model, p, &frames, at, progress)?.0)
+    } else {
+        None
+    };
     let fitted = model.fitted_frames.as_deref().unwrap_or(&[]);
     let mut skipped = scenes.skipped.clone();
     let mut rows = Vec::new();
@@ -442,6 +476,9 @@ pub fn judge_frames(
             cycles_log_e: a.log_e,
             subsurf_log_e: b.log_e,
             noise_log_e: noise_e.map(|e| e.log_e),
+            cycles_ring_log_e: ring_theirs[n].log_e,
+            subsurf_ring_log_e: ring_ours[n].log_e,
+            noise_ring_log_e: ring_noise.as_ref().map(|v| v[n].log_e),
             unlit: a.unlit.unwrap_or(0),
             samples: a.samples,
             seconds: seconds.get(n).copied().unwrap_or(0.0),
@@ -463,7 +500,27 @@ pub fn judge_frames(
         (Some(a), Some(b)) if b > 0.0 => Some(a / b),
         _ => None,
     };
+    let ring_both = |c: usize| -> Vec<&FrameRow> {
+        refs.iter()
+            .copied()
+            .filter(|r| r.cycles_ring_log_e[c].is_some() && r.subsurf_ring_log_e[c].is_some())
+            .collect()
+    };
+    let cycles_ring_mean_log_e =
+        [0, 1, 2].map(|c| mean_of(&ring_both(c), |r| r.cycles_ring_log_e[c]));
+    let subsurf_ring_mean_log_e =
+        [0, 1, 2].map(|c| mean_of(&ring_both(c), |r| r.subsurf_ring_log_e[c]));
+    let noise_ring_mean_log_e =
+        noise.then(|| [0, 1, 2].map(|c| mean_of(&refs, |r| r.noise_ring_log_e.and_then(|n| n[c]))));
+    let ring_ratio_green = match (cycles_ring_mean_log_e[1], subsurf_ring_mean_log_e[1]) {
+        (Some(a), Some(b)) if b > 0.0 => Some(a / b),
+        _ => None,
+    };
     Ok(FramesComparison {
+        cycles_ring_mean_log_e,
+        subsurf_ring_mean_log_e,
+        noise_ring_mean_log_e,
+        ring_ratio_green,
         samples: scenes.samples,
         cycles_mean_log_e,
         subsurf_mean_log_e,

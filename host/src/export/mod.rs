@@ -34,7 +34,7 @@ use crate::modelfile::ModelFile;
 use crate::progress::Progress;
 use crate::render::{self, Light, RenderOptions};
 use crate::report::{Figure, Report, Table, fmt};
-pub use blender::{Blender, Run, find_blender, read_render};
+pub use blender::{Blender, Kind, Run, find_blender, find_newest_blender, read_render};
 pub use convert::{ColourRule, Source, VertexConversion};
 pub use mesh::{ExportMesh, Refinement};
 
@@ -558,6 +558,7 @@ pub fn compare_with(
             threads: 0,
             seed: 0,
             frame: None,
+            measure: None,
         },
         progress,
     )?;
@@ -581,6 +582,7 @@ pub fn compare_with(
                 threads: 0,
                 seed: 1,
                 frame: None,
+                measure: None,
             },
             progress,
         )?;
@@ -911,15 +913,23 @@ fn frames_section(rep: &mut Report, f: &frames::FramesComparison) {
         "Cycles log E (r / g / b)",
         "subsurf log E",
         "Cycles noise",
+        "rings: Cycles / subsurf / noise (green)",
         "black samples",
         "seconds",
     ]);
+    let g = |v: [Option<f64>; 3]| fmt::opt(v[1], |x| fmt::sig(x, 3));
     for r in &f.per_frame {
         t.row([
             format!("{}{}", r.frame, if r.fitted { " (fitted)" } else { "" }),
             rgb(r.cycles_log_e),
             rgb(r.subsurf_log_e),
             r.noise_log_e.map(rgb).unwrap_or_else(|| "–".into()),
+            format!(
+                "{} / {} / {}",
+                g(r.cycles_ring_log_e),
+                g(r.subsurf_ring_log_e),
+                r.noise_ring_log_e.map(g).unwrap_or_else(|| "–".into())
+            ),
             format!("{} of {}", r.unlit, r.samples),
             fmt::sig(r.seconds, 3),
         ]);
@@ -929,15 +939,22 @@ fn frames_section(rep: &mut Report, f: &frames::FramesComparison) {
         rgb(f.cycles_mean_log_e),
         rgb(f.subsurf_mean_log_e),
         f.noise_mean_log_e.map(rgb).unwrap_or_else(|| "–".into()),
+        format!(
+            "{} / {} / {}",
+            g(f.cycles_ring_mean_log_e),
+            g(f.subsurf_ring_mean_log_e),
+            f.noise_ring_mean_log_e.map(g).unwrap_or_else(|| "–".into())
+        ),
         String::new(),
         fmt::sig(f.cycles_seconds, 3),
     ]);
     rep.table(
         t,
         Some(format!(
-            "Cycles' mean log E over subsurf's (green): {}. Frames marked fitted were used by \
-             the model's fit (in-sample for both). Skipped: {}.",
+            "Cycles' mean log E over subsurf's (green): {}; on the rings {}. Frames marked \
+             fitted were used by the model's fit (in-sample for both). Skipped: {}.",
             fmt::opt(f.ratio_green, |x| fmt::sig(x, 3)),
+            fmt::opt(f.ring_ratio_green, |x| fmt::sig(x, 3)),
             if f.skipped.is_empty() {
                 "none".to_string()
             } else {
@@ -976,6 +993,35 @@ pub fn frames_text(f: &frames::FramesComparison) -> String {
         rgb(f.cycles_mean_log_e),
         rgb(f.subsurf_mean_log_e),
         f.noise_mean_log_e.map(rgb).unwrap_or_else(|| "–".into())
+    );
+    let _ = writeln!(
+        o,
+        "rings (Eq. 8 over ring means of linear radiance around x_i):"
+    );
+    for r in &f.per_frame {
+        let _ = writeln!(
+            o,
+            "{:<12} {:<28} {:<28} {}",
+            r.frame,
+            rgb(r.cycles_ring_log_e),
+            rgb(r.subsurf_ring_log_e),
+            r.noise_ring_log_e.map(rgb).unwrap_or_else(|| "–".into())
+        );
+    }
+    let _ = writeln!(
+        o,
+        "{:<12} {:<28} {:<28} {}",
+        "ring mean",
+        rgb(f.cycles_ring_mean_log_e),
+        rgb(f.subsurf_ring_mean_log_e),
+        f.noise_ring_mean_log_e
+            .map(rgb)
+            .unwrap_or_else(|| "–".into())
+    );
+    let _ = writeln!(
+        o,
+        "rings: Cycles / subsurf (green) {}",
+        fmt::opt(f.ring_ratio_green, |x| fmt::sig(x, 3))
     );
     let _ = writeln!(
         o,
