@@ -4,7 +4,6 @@ use std::path::PathBuf;
 use anyhow::Context;
 use subsurf::evaluate::{EvalPoints, FrameImages, evaluate_images_stored, evaluate_models_stored};
 use subsurf::modelfile::ModelFile;
-use subsurf::pipeline::PipelineOptions;
 use subsurf::report::evaluate::{EvaluateReport, Protocol};
 
 use super::progress::Bar;
@@ -92,27 +91,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let against = args.against.as_ref().map(read).transpose()?;
     // Every model of a dataset is judged by the dataset's protocol, never by its fit's options
     // (docs/validation.md); flags change the protocol for every model alike.
-    let (mut opts, floor) = if args.noise_floor.is_some() && ds.spec.noise_floor.is_none() {
-        // The flag replaces the floor: nothing to measure.
-        let o = PipelineOptions::evaluation_protocol(&ds);
-        (o, subsurf::pipeline::NoiseFloor::default())
-    } else {
-        subsurf::pipeline::evaluation_protocol(&ds).context("the dataset's noise floor")?
+    let changes = subsurf::pipeline::ProtocolChanges {
+        noise_floor: args.noise_floor,
+        exclusion_radius_mm: args.exclusion_radius,
+        coverage_check: args.coverage_check,
     };
-    let source = floor.source.clone();
-    let overridden =
-        args.noise_floor.is_some() || args.exclusion_radius.is_some() || args.coverage_check;
-    let source = match args.noise_floor {
-        Some(f) => {
-            opts = opts.with_noise_floor(f);
-            "--noise-floor".to_string()
-        }
-        None => source,
-    };
-    if let Some(x) = args.exclusion_radius {
-        opts.samples.exclusion_radius_mm = x;
-    }
-    opts.samples.coverage |= args.coverage_check;
+    let (opts, source, overridden) = subsurf::pipeline::evaluation_protocol_with(&ds, changes)
+        .context("the dataset's noise floor")?;
     let bar = if args.json {
         Bar::hidden()
     } else {
@@ -128,13 +113,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         budget: usize::try_from(args.memory.saturating_mul(1 << 20)).unwrap_or(usize::MAX),
         cache: args.cache.clone(),
     };
-    let evals = match &args.images {
-        Some(dir) => {
-            let images = FrameImages::new(dir);
-            vec![evaluate_images_stored(
-                &ds, &model, &images, &frames, &opts, points, &store, &bar,
-            )?]
-        }
+    let images = args.images.as_ref().map(FrameImages::new);
+    let evals = match &images {
+        Some(images) => vec![evaluate_images_stored(
+            &ds, &model, images, &frames, &opts, points, &store, &bar,
+        )?],
         None => {
             let models: Vec<&ModelFile> = std::iter::once(&model).chain(against.as_ref()).collect();
             evaluate_models_stored(&ds, &models, &frames, &opts, points, &store, &bar)?
@@ -157,22 +140,19 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     for w in report.in_sample_warning().iter().chain(&report.warnings) {
         eprintln!("{w}");
     }
-    let rings = args
-        .rings
-        .then(|| {
-            let images = args.images.as_ref().map(FrameImages::new);
-            subsurf::evaluate::evaluate_rings_stored(
-                &ds,
-                &model,
-                images.as_ref(),
-                &frames,
-                &opts,
-                points,
-                &store,
-                &bar,
-            )
-        })
-        .transpose()?;
+    let rings = match args.rings {
+        true => Some(subsurf::evaluate::evaluate_rings_stored(
+            &ds,
+            &model,
+            images.as_ref(),
+            &frames,
+            &opts,
+            points,
+            &store,
+            &bar,
+        )?),
+        false => None,
+    };
     if args.json {
         let mut v = serde_json::to_value(&report)?;
         if let (Some((per, st)), Some(obj)) = (&rings, v.as_object_mut()) {

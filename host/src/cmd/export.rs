@@ -156,24 +156,8 @@ pub fn run(args: Args) -> Result<()> {
     let exported = export::export(&model, &opts, &bar).context("converting the model")?;
     bar.finish_and_clear();
     let mut written = exported.write(&args.out)?;
-    let s = &exported.summary;
-    println!(
-        "{} vertices → Cycles subsurface colour and radius ({} written, {} triangles)",
-        fmt::count(s.vertices),
-        fmt::count(s.written[0]),
-        fmt::count(s.written[1])
-    );
-    if let Some(st) = &s.conversion_log_e {
-        println!(
-            "conversion log E (converted profile against the fitted one): median {}, 95th \
-             percentile {}, largest {} (mean of R, G, B)",
-            fmt::log_e(st.median.iter().sum::<f64>() / 3.0),
-            fmt::log_e(st.p95.iter().sum::<f64>() / 3.0),
-            fmt::log_e(st.max.iter().copied().fold(0.0, f64::max)),
-        );
-    }
-    for line in exported.dropped_lines() {
-        println!("dropped: {line}");
+    for line in exported.summary_lines() {
+        println!("{line}");
     }
     let mut comparison = None;
     let mut frames = None;

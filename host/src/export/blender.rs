@@ -473,7 +473,7 @@ mod tests {
         }
     }
 
-    /// Issue 42: a run reports Cycles' samples as they are printed, and leaves no `.blend1`
+    /// A run reports Cycles' samples as they are printed, and leaves no `.blend1`
     /// beside the `.blend` it wrote (a stand-in Blender that writes one, as a Blender keeping
     /// backups does).
     #[cfg(unix)]

@@ -99,7 +99,7 @@ pub struct SlowLobe {
     pub weight: f64,
 }
 
-/// What the subsurface colour is (issue 43's conversion candidates, chosen by how well Cycles
+/// What the subsurface colour is (the conversion candidates, chosen by how well Cycles
 /// predicts a scan's training frames: docs/export.md). The default is [`ColourRule::Fitted`]:
 /// on sample-torus's training frames Cycles' mean log E (green) was 1.36 with it against 2.01
 /// with [`ColourRule::Total`] (subsurf's model 0.80 on the same samples).
@@ -115,7 +115,7 @@ pub enum ColourRule {
     /// measured, and the light of a slow term no Burley shape holds is given up.
     #[default]
     Fitted,
-    /// Two Burley lobes, a near and a slow one, mixed by a Mix Shader (issue 43 item 3): the
+    /// Two Burley lobes, a near and a slow one, mixed by a Mix Shader: the
     /// fitted exponentials (Eq. 1, every direction segment's, Eq. 3 averaged) split at the
     /// largest gap in their rates into a fast and a slow group; T is split between the lobes as
     /// the groups' own reflectances `Σ 2π c_k / d_k²` split it, and each lobe's radius is the

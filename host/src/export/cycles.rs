@@ -155,7 +155,7 @@ pub fn fit_shape(r: &[f64], ln_target: &[f64], total: f64) -> Option<(f64, f64)>
 /// search is [`fit_shape`]'s over `d` alone.
 ///
 /// Why: with `A` fixed to the fall-off's total reflectance T, a fall-off whose slow term holds
-/// much of T puts all of it within Cycles' short profile, too bright near x_i (issue 43: 1.3–1.6×
+/// much of T puts all of it within Cycles' short profile, too bright near x_i (1.3–1.6×
 /// on sample-torus) and black beyond 16 d. A free `A` matches the profile over the sampled
 /// distances in Eq. 8's own measure, giving up the light no Burley shape can place.
 pub fn fit_shape_free(r: &[f64], ln_target: &[f64]) -> Option<(f64, f64, f64)> {
@@ -200,7 +200,7 @@ pub fn fit_shape_free(r: &[f64], ln_target: &[f64]) -> Option<(f64, f64, f64)> {
 /// `(d_near, d_slow, A, rms)`.
 ///
 /// Why the share is fixed and the amplitude free: the share is the fitted terms' split of the
-/// light (issue 43: "weights split T the way the fitted c_k split it"), while the amplitude is
+/// light ("weights split T the way the fitted c_k split it"), while the amplitude is
 /// fitted as [`fit_shape_free`]'s (on sample-torus's training frames a free amplitude beat T,
 /// docs/export.md). For given shapes the best `ln A` is the mean residual (closed form); the two
 /// shapes are found on a grid over two decades beyond the distances either side, then

@@ -1,5 +1,5 @@
 //! A scan's frames rendered in Cycles with the exported material, and judged by the frames
-//! themselves (issue 43; `subsurf export --scan S --frames F --render`, docs/export.md).
+//! themselves (`subsurf export --scan S --frames F --render`, docs/export.md).
 //!
 //! Why: the export is for people who render the captured material in their own scenes, and the
 //! question they have is whether Cycles, given it, looks like the object they scanned. Every

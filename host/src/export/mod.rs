@@ -436,6 +436,33 @@ impl Export {
         Ok(p)
     }
 
+    /// What `subsurf export` prints of the conversion: the vertices and triangles written, the
+    /// conversion's log E against the fitted profile, and what was dropped.
+    pub fn summary_lines(&self) -> Vec<String> {
+        let s = &self.summary;
+        let mut out = vec![format!(
+            "{} vertices → Cycles subsurface colour and radius ({} written, {} triangles)",
+            fmt::count(s.vertices),
+            fmt::count(s.written[0]),
+            fmt::count(s.written[1])
+        )];
+        if let Some(st) = &s.conversion_log_e {
+            out.push(format!(
+                "conversion log E (converted profile against the fitted one): median {}, 95th \
+                 percentile {}, largest {} (mean of R, G, B)",
+                fmt::log_e(st.median.iter().sum::<f64>() / 3.0),
+                fmt::log_e(st.p95.iter().sum::<f64>() / 3.0),
+                fmt::log_e(st.max.iter().copied().fold(0.0, f64::max)),
+            ));
+        }
+        out.extend(
+            self.dropped_lines()
+                .into_iter()
+                .map(|l| format!("dropped: {l}")),
+        );
+        out
+    }
+
     /// What the export dropped, in words (empty when nothing): printed by the command and shown
     /// in the report.
     pub fn dropped_lines(&self) -> Vec<String> {

@@ -216,7 +216,7 @@ pub fn beam_watts(flux: f64) -> f64 {
     std::f64::consts::PI * flux * METRES_PER_MM * METRES_PER_MM
 }
 
-/// A scan frame's laser as a Cycles spot light (issue 43): a point `standoff_mm` before the hit
+/// A scan frame's laser as a Cycles spot light: a point `standoff_mm` before the hit
 /// point `hit_mm` along the ray `direction` (world frame, mm), its cone just wide enough to
 /// light a disk of radius `footprint_mm` there, carrying the beam power `watts` onto it.
 ///

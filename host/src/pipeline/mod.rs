@@ -195,6 +195,48 @@ pub fn evaluation_protocol(ds: &Dataset) -> Result<(PipelineOptions, NoiseFloor)
     ))
 }
 
+/// The rules a judge changes for every model alike (`subsurf evaluate`'s protocol flags).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct ProtocolChanges {
+    /// A noise floor instead of the dataset's.
+    pub noise_floor: Option<f64>,
+    /// An exclusion radius (mm) instead of the protocol's.
+    pub exclusion_radius_mm: Option<f64>,
+    /// Drop samples whose neighbourhood the surface does not cover.
+    pub coverage_check: bool,
+}
+
+/// The evaluation protocol of `ds` ([`evaluation_protocol`]) with `changes`: the options, where
+/// the floor came from, and whether any rule was changed (figures under a changed protocol
+/// compare only with figures under the same one). A floor given where the dataset has none
+/// replaces it without measuring one.
+pub fn evaluation_protocol_with(
+    ds: &Dataset,
+    changes: ProtocolChanges,
+) -> Result<(PipelineOptions, String, bool), PipelineError> {
+    let (mut opts, floor) = if changes.noise_floor.is_some() && ds.spec.noise_floor.is_none() {
+        (
+            PipelineOptions::evaluation_protocol(ds),
+            NoiseFloor::default(),
+        )
+    } else {
+        evaluation_protocol(ds)?
+    };
+    let mut source = floor.source;
+    if let Some(f) = changes.noise_floor {
+        opts = opts.with_noise_floor(f);
+        source = "--noise-floor".into();
+    }
+    if let Some(x) = changes.exclusion_radius_mm {
+        opts.samples.exclusion_radius_mm = x;
+    }
+    opts.samples.coverage |= changes.coverage_check;
+    let changed = changes.noise_floor.is_some()
+        || changes.exclusion_radius_mm.is_some()
+        || changes.coverage_check;
+    Ok((opts, source, changed))
+}
+
 /// The context that judges the models of the run `run` on `frames` by the dataset's evaluation
 /// protocol ([`PipelineOptions::evaluation_protocol`], or `protocol` when given): the run itself
 /// when its samples were read by the protocol's rules (every fit with the default sample rules:
