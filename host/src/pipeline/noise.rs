@@ -311,9 +311,9 @@ fn floor_of(mut pts: Vec<(f64, f64)>, frames: Vec<usize>) -> Result<NoiseEstimat
     // glint or a texture edge among a bin's pixels is left out, where a plain RMS would let a
     // few of them set the noise. Not the median absolute deviation: a Monte Carlo renderer's
     // photon noise (and a camera's at low light) is heavy-tailed, its tails are the noise, and
-    // the MAD reads it low (on the outside renderer's sample-pebble 0.45x the RMS, which moved
-    // the held-out error by 4 % against the given floor, where the trimmed RMS keeps it within
-    // 2 %: tests/outside.rs). For Gaussian noise the trim lowers σ by 0.6 %.
+    // the MAD reads it low (on the outside renderer's frames its floors came out 0.45-0.9x the
+    // RMS's, below the floors their scan.json gives). For Gaussian noise the trim lowers σ by
+    // 0.6 %.
     let levels: Vec<(f64, f64, usize)> = bins
         .into_values()
         .filter(|b| b.1.len() >= MIN_PER_BIN)
