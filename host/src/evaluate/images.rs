@@ -138,10 +138,7 @@ pub fn evaluate_images_in(
     progress: &dyn Progress,
 ) -> Result<(Vec<FrameEval>, LogEStats), EvaluateError> {
     super::check_mesh(ctx.ds, model)?;
-    let set = match at {
-        EvalPoints::Vertices => PointSet::Vertices,
-        EvalPoints::Surface { .. } => PointSet::Lattice,
-    };
+    let set = at.point_set();
     progress.start("judge images", frames.len() as u64);
     let evals: Result<Vec<FrameEval>, EvaluateError> = frames
         .par_iter()

@@ -230,6 +230,16 @@ pub enum EvalPoints {
     },
 }
 
+impl EvalPoints {
+    /// The sample store's point set these points are read from.
+    pub fn point_set(self) -> crate::store::PointSet {
+        match self {
+            EvalPoints::Vertices => crate::store::PointSet::Vertices,
+            EvalPoints::Surface { .. } => crate::store::PointSet::Lattice,
+        }
+    }
+}
+
 /// Table-1 statistics of one frame.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct FrameEval {
@@ -436,10 +446,7 @@ pub fn evaluate_in(
 ) -> Result<(Vec<FrameEval>, LogEStats), EvaluateError> {
     use rayon::prelude::*;
     check_mesh(ctx.ds, model)?;
-    let set = match at {
-        EvalPoints::Vertices => crate::store::PointSet::Vertices,
-        EvalPoints::Surface { .. } => crate::store::PointSet::Lattice,
-    };
+    let set = at.point_set();
     progress.start("evaluate", frames.len() as u64);
     let evals: Vec<FrameEval> = frames
         .par_iter()

@@ -206,10 +206,7 @@ pub fn evaluate_rings_in(
     progress: &dyn Progress,
 ) -> Result<(Vec<FrameRings>, LogEStats), EvaluateError> {
     super::check_mesh(ctx.ds, model)?;
-    let set = match at {
-        EvalPoints::Vertices => PointSet::Vertices,
-        EvalPoints::Surface { .. } => PointSet::Lattice,
-    };
+    let set = at.point_set();
     progress.start("rings", frames.len() as u64);
     let t = ctx.opts.error_threshold;
     let evals: Result<Vec<FrameRings>, EvaluateError> = frames
