@@ -44,3 +44,4 @@ mod scan;
 mod scan_fit;
 mod store;
 mod texture;
+mod volume;

@@ -37,6 +37,7 @@ pub mod spot;
 pub mod store;
 pub mod util;
 pub mod validate;
+pub mod volume;
 
 /// The model and its fitting live in the `subsurf-model` crate (no files, no rig); re-exported
 /// here so `subsurf::model` and `subsurf::fit` name them as before.

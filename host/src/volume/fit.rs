@@ -1,0 +1,528 @@
+//! A homogeneous medium (σ_t and α per channel) fitted to a scan's frames through the tracer.
+//!
+//! The fit compares rings, not pixels: each frame's judged pixels are grouped by the distance of
+//! the surface point they see from x_i (log-spaced, four rings per factor e), and the loss is the
+//! squared difference of the logs of the ring sums. A ring sums many pixels and many photons, so
+//! the tracer's noise falls in it; a per-pixel loss of noisy predictions is biased (the log of a
+//! noisy prediction is low on average), and the bias pulls α towards 1.
+//!
+//! Each channel's rings depend on its own (σ_t, α) only, so the three channels are fitted apart
+//! from one trace: the records' likelihood ratios give every channel's rings and their
+//! derivatives in closed form. Each round re-traces at the estimate so that the ratios stay
+//! near 1.
+
+use super::trace::{Boundary, FrameGeometry, Record, TraceSettings, taps, trace_frame};
+use crate::dataset::{Dataset, Image};
+use crate::geometry::{Scene, V3, dist, normalize, world_to_turntable};
+
+/// Rings per factor e of distance from x_i.
+pub const RINGS_PER_E: f64 = 4.0;
+/// The innermost ring's inner edge, mm.
+pub const RING_START_MM: f64 = 0.1;
+/// Pixels closer than this to x_i are not judged (the spot itself: the laser's footprint and
+/// the single scattering under it depend on the beam's shape, which the frames do not give).
+pub const EXCLUDE_MM: f64 = 0.5;
+/// Pixels farther than this from x_i are not judged.
+pub const OUTER_MM: f64 = 15.0;
+
+/// Gauss-Newton steps per round. Few: a step is taken from the records' likelihood ratios,
+/// which are exact at the round's reference and grow heavy-tailed away from it (their typical
+/// sum is low there), so a fit run to convergence within one trace stops short of the medium
+/// that explains the frames. A couple of steps per fresh trace follow the valley of (σ, α)
+/// instead (on sample-slab from 1.3/mm, 0.96 it reaches the published medium in about ten
+/// rounds of 1,000 photons a frame).
+pub const STEPS: usize = 2;
+
+/// Records a ring needs in a round's trace to be judged in that round.
+pub const MIN_RECORDS: usize = 50;
+
+/// Ring index of a distance from x_i (`None` outside the judged band).
+pub fn ring_of(d: f64) -> Option<u32> {
+    (EXCLUDE_MM..=OUTER_MM)
+        .contains(&d)
+        .then(|| (RINGS_PER_E * (d / RING_START_MM).ln()).floor().max(0.0) as u32)
+}
+
+/// Inner edge of ring `j`, mm.
+pub fn ring_edge(j: u32) -> f64 {
+    RING_START_MM * (j as f64 / RINGS_PER_E).exp()
+}
+
+/// One frame as the fit sees it: its geometry, each pixel's ring (or none) and the data's ring
+/// sums.
+#[derive(Debug, Clone)]
+pub struct FrameRings {
+    /// Frame index in the dataset.
+    pub frame: usize,
+    /// The laser's entry and the camera.
+    pub geo: FrameGeometry,
+    /// Per pixel (row-major) its ring, `u32::MAX` for none.
+    pub pixel_ring: Vec<u32>,
+    /// Rings in this frame (`max ring + 1`).
+    pub rings: usize,
+    /// Per ring its judged pixels.
+    pub count: Vec<usize>,
+    /// Per ring and channel the data's sum of radiance.
+    pub data: Vec<[f64; 3]>,
+}
+
+/// Each pixel's ring around x_i: the surface point the pixel's centre sees (the first hit of
+/// the camera ray), its distance from x_i.
+pub fn pixel_rings(scene: &Scene, geo: &FrameGeometry) -> Vec<u32> {
+    let cam = &geo.camera;
+    let centre = world_to_turntable(cam.center(), geo.deg);
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    let inv = invert3(cam_rotation(cam));
+    (0..w * h)
+        .map(|p| {
+            let (i, j) = ((p % w) as f64, (p / w) as f64);
+            let ray_cam = [(i - cam.cx) / cam.fx, (j - cam.cy) / cam.fy, 1.0];
+            let world_dir = mat_vec(&inv, ray_cam);
+            let Some(d) = normalize(world_to_turntable(world_dir, geo.deg)) else {
+                return u32::MAX;
+            };
+            match scene.cast(centre, d, f64::MAX) {
+                Some(hit) => ring_of(dist(hit.point, geo.x_i)).unwrap_or(u32::MAX),
+                None => u32::MAX,
+            }
+        })
+        .collect()
+}
+
+fn cam_rotation(cam: &crate::geometry::Camera) -> [[f64; 3]; 3] {
+    let m = &cam.camera_from_world;
+    std::array::from_fn(|r| std::array::from_fn(|c| m[r][c]))
+}
+
+/// The inverse of a rotation is its transpose.
+fn invert3(r: [[f64; 3]; 3]) -> [[f64; 3]; 3] {
+    std::array::from_fn(|a| std::array::from_fn(|b| r[b][a]))
+}
+
+fn mat_vec(m: &[[f64; 3]; 3], v: V3) -> V3 {
+    std::array::from_fn(|r| m[r][0] * v[0] + m[r][1] * v[1] + m[r][2] * v[2])
+}
+
+impl FrameRings {
+    /// The frame's rings and the data's sums from its image (radiance, as
+    /// [`Dataset::read_frame`] gives it divided by the exposure).
+    pub fn new(
+        scene: &Scene,
+        geo: FrameGeometry,
+        frame: usize,
+        img: &Image,
+        exposure_s: f64,
+    ) -> FrameRings {
+        let pixel_ring = pixel_rings(scene, &geo);
+        let rings = pixel_ring
+            .iter()
+            .filter(|&&r| r != u32::MAX)
+            .map(|&r| r as usize + 1)
+            .max()
+            .unwrap_or(0);
+        let mut count = vec![0; rings];
+        let mut data = vec![[0.0; 3]; rings];
+        for (p, &r) in pixel_ring.iter().enumerate() {
+            if r == u32::MAX {
+                continue;
+            }
+            count[r as usize] += 1;
+            for (c, d) in data[r as usize].iter_mut().enumerate() {
+                let ch = if img.channels == 3 { c } else { 0 };
+                let v = img.data[p * img.channels + ch] as f64 / exposure_s;
+                if v.is_finite() {
+                    *d += v;
+                }
+            }
+        }
+        FrameRings {
+            frame,
+            geo,
+            pixel_ring,
+            rings,
+            count,
+            data,
+        }
+    }
+}
+
+/// A record's share of one ring: the filter's taps that land on the ring's pixels, summed.
+#[derive(Debug, Clone, Copy)]
+pub struct RingRecord {
+    /// Global ring index (over all frames).
+    pub ring: u32,
+    /// Collisions.
+    pub k: u32,
+    /// Medium length, mm.
+    pub length: f32,
+    /// ln of the contribution to the ring's sum in the reference medium.
+    pub ln_w: f32,
+}
+
+/// The frames' records distributed over their rings.
+pub fn ring_records(frame: &FrameRings, first_ring: u32, records: &[Record]) -> Vec<RingRecord> {
+    let (w, h) = (
+        frame.geo.camera.width as usize,
+        frame.geo.camera.height as usize,
+    );
+    let mut out = Vec::with_capacity(records.len());
+    let mut share: Vec<(u32, f64)> = Vec::with_capacity(4);
+    for r in records {
+        share.clear();
+        for (p, t) in taps(r.u as f64, r.v as f64, w, h) {
+            let ring = frame.pixel_ring[p];
+            if ring == u32::MAX {
+                continue;
+            }
+            match share.iter_mut().find(|s| s.0 == ring) {
+                Some(s) => s.1 += t,
+                None => share.push((ring, t)),
+            }
+        }
+        for &(ring, t) in &share {
+            out.push(RingRecord {
+                ring: first_ring + ring,
+                k: r.k,
+                length: r.length,
+                ln_w: r.ln_w + t.ln() as f32,
+            });
+        }
+    }
+    out
+}
+
+/// The ring sums of one channel in the medium (σ, α), with their derivatives in
+/// (ln σ, ln(1 − α)).
+fn ring_sums(
+    recs: &[RingRecord],
+    rings: usize,
+    reference: &TraceSettings,
+    sigma: f64,
+    albedo: f64,
+) -> Vec<[f64; 3]> {
+    use rayon::prelude::*;
+    let a = (sigma / reference.sigma_t).ln() + (albedo / reference.albedo).ln();
+    let b = sigma - reference.sigma_t;
+    let da2 = -(1.0 - albedo) / albedo;
+    recs.par_chunks(1 << 16)
+        .fold(
+            || vec![[0.0; 3]; rings],
+            |mut acc, chunk| {
+                for r in chunk {
+                    let (k, l) = (r.k as f64, r.length as f64);
+                    let e = (r.ln_w as f64 + k * a - b * l).exp();
+                    let s = &mut acc[r.ring as usize];
+                    s[0] += e;
+                    s[1] += e * (k - sigma * l);
+                    s[2] += e * k * da2;
+                }
+                acc
+            },
+        )
+        .reduce(
+            || vec![[0.0; 3]; rings],
+            |mut x, y| {
+                for (a, b) in x.iter_mut().zip(&y) {
+                    for c in 0..3 {
+                        a[c] += b[c];
+                    }
+                }
+                x
+            },
+        )
+}
+
+/// What the fit is given.
+#[derive(Debug, Clone)]
+pub struct HomogeneousFit {
+    /// Photons per frame and round.
+    pub photons: usize,
+    /// Rounds of trace-and-fit.
+    pub rounds: usize,
+    /// Henyey-Greenstein asymmetry, held fixed.
+    pub g: f64,
+    /// The start: extinction 1/mm and albedo for every channel.
+    pub start: (f64, f64),
+    /// A ring's mean radiance must exceed this (the data's noise floor) to be judged.
+    pub floor: f64,
+    /// Seed of the common random numbers.
+    pub seed: u64,
+}
+
+/// The fitted medium.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Homogeneous {
+    /// Extinction per channel, 1/mm.
+    pub sigma_t: [f64; 3],
+    /// Single-scattering albedo per channel.
+    pub albedo: [f64; 3],
+    /// Henyey-Greenstein asymmetry.
+    pub g: f64,
+    /// Per channel the ring loss at the end (mean squared log ratio) and the rings judged.
+    pub loss: [(f64, usize); 3],
+}
+
+/// Why a volume fit could not run.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum VolumeFitError {
+    /// No frame has a laser ray that meets the mesh.
+    #[error("no frame to fit: none of the frames given has a laser ray that meets the mesh")]
+    NoFrames,
+    /// No ring is above the floor in some channel.
+    #[error("channel {0}: no ring of any frame is above the noise floor")]
+    NoRings(usize),
+    /// The dataset could not be read.
+    #[error(transparent)]
+    Dataset(#[from] crate::dataset::DatasetError),
+    /// The mesh could not be prepared.
+    #[error(transparent)]
+    Geometry(#[from] crate::geometry::GeometryError),
+}
+
+/// The frames' geometry from the dataset's laser rays (frames without one, or whose ray misses
+/// the mesh, are left out).
+pub fn frame_geometry(scene: &Scene, ds: &Dataset, k: usize) -> Option<FrameGeometry> {
+    let f = ds.spec.frames.get(k)?;
+    let laser = f.laser.as_ref()?;
+    let cam = ds.spec.cameras.get(f.camera)?;
+    FrameGeometry::new(scene, cam, f.turntable_deg, laser.origin, laser.direction)
+}
+
+/// Fits a homogeneous medium to the frames `frames` of `ds` (module docs).
+pub fn fit_homogeneous(
+    ds: &Dataset,
+    frames: &[usize],
+    opts: &HomogeneousFit,
+    progress: &dyn Fn(usize, &Homogeneous),
+) -> Result<Homogeneous, VolumeFitError> {
+    let scene = Scene::new(ds.mesh.clone())?;
+    let boundary = Boundary::of(&scene);
+    let mut judged = Vec::new();
+    for &k in frames {
+        let Some(geo) = frame_geometry(&scene, ds, k) else {
+            continue;
+        };
+        let img = ds.read_frame(k)?;
+        let exposure = ds.spec.frames[k].exposure_s;
+        judged.push(FrameRings::new(&scene, geo, k, &img, exposure));
+    }
+    if judged.is_empty() {
+        return Err(VolumeFitError::NoFrames);
+    }
+    let mut first = Vec::with_capacity(judged.len());
+    let mut total = 0u32;
+    for f in &judged {
+        first.push(total);
+        total += f.rings as u32;
+    }
+    // Per channel the rings judged: mean above the floor, a few pixels at least.
+    let mut data: [Vec<(usize, f64)>; 3] = Default::default();
+    for (fi, f) in judged.iter().enumerate() {
+        for j in 0..f.rings {
+            for (c, d) in data.iter_mut().enumerate() {
+                let n = f.count[j];
+                if n >= 4 && f.data[j][c] > n as f64 * opts.floor {
+                    d.push((first[fi] as usize + j, f.data[j][c].ln()));
+                }
+            }
+        }
+    }
+    for (c, d) in data.iter().enumerate() {
+        if d.is_empty() {
+            return Err(VolumeFitError::NoRings(c));
+        }
+    }
+    let mut model = Homogeneous {
+        sigma_t: [opts.start.0; 3],
+        albedo: [opts.start.1; 3],
+        g: opts.g,
+        loss: [(f64::INFINITY, 0); 3],
+    };
+    for round in 0..opts.rounds {
+        let sigma0 = geo_mean(&model.sigma_t);
+        let alpha_max = model.albedo.iter().cloned().fold(0.0, f64::max);
+        let reference = TraceSettings {
+            sigma_t: sigma0,
+            albedo: 1.0 - 0.5 * (1.0 - alpha_max),
+            g: opts.g,
+            photons: opts.photons,
+            seed: opts.seed ^ round as u64,
+        };
+        let mut recs = Vec::new();
+        for (fi, f) in judged.iter().enumerate() {
+            let r = trace_frame(&scene, boundary, &f.geo, &reference, f.frame);
+            recs.extend(ring_records(f, first[fi], &r));
+        }
+        // Rings the trace reached with too few records to be more than noise are left out of
+        // this round (a ring the trace left dark would read as infinitely far off).
+        let mut hits = vec![0usize; total as usize];
+        for r in &recs {
+            hits[r.ring as usize] += 1;
+        }
+        for (c, rings_c) in data.iter().enumerate() {
+            let judged: Vec<(usize, f64)> = rings_c
+                .iter()
+                .copied()
+                .filter(|&(ring, _)| hits[ring] >= MIN_RECORDS)
+                .collect();
+            if judged.is_empty() {
+                return Err(VolumeFitError::NoRings(c));
+            }
+            let (s, a, loss) = fit_channel(
+                &recs,
+                total as usize,
+                &judged,
+                &reference,
+                (model.sigma_t[c], model.albedo[c]),
+            );
+            model.sigma_t[c] = s;
+            model.albedo[c] = a;
+            model.loss[c] = (loss, judged.len());
+        }
+        progress(round, &model);
+    }
+    Ok(model)
+}
+
+fn geo_mean(v: &[f64; 3]) -> f64 {
+    (v.iter().map(|x| x.ln()).sum::<f64>() / 3.0).exp()
+}
+
+/// One channel's (σ, α) by damped Gauss-Newton on the rings' log ratios, in (ln σ, ln(1 − α)),
+/// kept inside the box where the records' likelihood ratios stay bounded (σ within a factor 2
+/// of the reference, α at most the reference's). Two parameters in a box: a damped
+/// Gauss-Newton with projection is a few lines, where the least-squares crates have no bounds.
+fn fit_channel(
+    recs: &[RingRecord],
+    rings: usize,
+    data: &[(usize, f64)],
+    reference: &TraceSettings,
+    start: (f64, f64),
+) -> (f64, f64, f64) {
+    let lo = [
+        (reference.sigma_t / 2.0).ln(),
+        (1.0 - reference.albedo).ln(),
+    ];
+    let hi = [(reference.sigma_t * 2.0).ln(), (0.5f64).ln()];
+    let clamp = |t: [f64; 2]| [t[0].clamp(lo[0], hi[0]), t[1].clamp(lo[1], hi[1])];
+    let eval = |t: [f64; 2]| {
+        let (s, a) = (t[0].exp(), 1.0 - t[1].exp());
+        let sums = ring_sums(recs, rings, reference, s, a);
+        let mut loss = 0.0;
+        let (mut jtj, mut jtr) = ([[0.0; 2]; 2], [0.0; 2]);
+        for &(ring, ln_d) in data {
+            let m = sums[ring];
+            // A ring the trace left dark counts as far below the data, with no gradient.
+            let (res, g) = if m[0] > 0.0 {
+                (m[0].ln() - ln_d, [m[1] / m[0], m[2] / m[0]])
+            } else {
+                (-(f64::MAX.ln()), [0.0, 0.0])
+            };
+            loss += res * res;
+            for x in 0..2 {
+                jtr[x] += g[x] * res;
+                for y in 0..2 {
+                    jtj[x][y] += g[x] * g[y];
+                }
+            }
+        }
+        (loss / data.len() as f64, jtj, jtr)
+    };
+    let mut t = clamp([start.0.ln(), (1.0 - start.1).max(1e-12).ln()]);
+    let (mut loss, mut jtj, mut jtr) = eval(t);
+    let mut lambda = 1e-3;
+    for _ in 0..STEPS {
+        let a = [
+            [jtj[0][0] * (1.0 + lambda) + 1e-12, jtj[0][1]],
+            [jtj[1][0], jtj[1][1] * (1.0 + lambda) + 1e-12],
+        ];
+        let det = a[0][0] * a[1][1] - a[0][1] * a[1][0];
+        if det.abs() < 1e-300 || !det.is_finite() {
+            break;
+        }
+        let step = [
+            -(a[1][1] * jtr[0] - a[0][1] * jtr[1]) / det,
+            -(a[0][0] * jtr[1] - a[1][0] * jtr[0]) / det,
+        ];
+        let next = clamp([t[0] + step[0], t[1] + step[1]]);
+        let (l2, j2, r2) = eval(next);
+        if l2 < loss {
+            let moved = (next[0] - t[0]).abs() + (next[1] - t[1]).abs();
+            (t, loss, jtj, jtr) = (next, l2, j2, r2);
+            lambda = (lambda / 3.0).max(1e-9);
+            if moved < 1e-6 {
+                break;
+            }
+        } else {
+            lambda *= 4.0;
+            if lambda > 1e8 {
+                break;
+            }
+        }
+    }
+    (t[0].exp(), 1.0 - t[1].exp(), loss)
+}
+
+/// The frames `frames` of `ds` predicted in the medium `model` with `photons` per frame, as
+/// images (radiance per watt of laser, the dataset's units); frames whose laser ray misses the
+/// mesh come out black.
+pub fn predict(
+    ds: &Dataset,
+    frames: &[usize],
+    model: &Homogeneous,
+    photons: usize,
+    seed: u64,
+) -> Result<Vec<(usize, Image)>, VolumeFitError> {
+    let scene = Scene::new(ds.mesh.clone())?;
+    let boundary = Boundary::of(&scene);
+    let alpha_max = model.albedo.iter().cloned().fold(0.0, f64::max);
+    let reference = TraceSettings {
+        sigma_t: geo_mean(&model.sigma_t),
+        albedo: alpha_max,
+        g: model.g,
+        photons,
+        seed,
+    };
+    let mut out = Vec::new();
+    for &k in frames {
+        let f = ds
+            .spec
+            .frames
+            .get(k)
+            .ok_or_else(|| crate::dataset::DatasetError::Invalid(format!("no frame {k}")))?;
+        let cam = &ds.spec.cameras[f.camera];
+        let (w, h) = (cam.width as usize, cam.height as usize);
+        let img = match frame_geometry(&scene, ds, k) {
+            Some(geo) => {
+                let r = trace_frame(&scene, boundary, &geo, &reference, k);
+                super::trace::image(&r, &reference, model.sigma_t, model.albedo, w, h)
+            }
+            None => Image::new(w, h, 3),
+        };
+        out.push((k, img));
+    }
+    Ok(out)
+}
+
+/// The ring sums of `records` (one frame's trace in `reference`) in the medium (σ_t, α) per
+/// channel: what [`FrameRings::data`] holds for the frame's own image.
+pub fn model_rings(
+    frame: &FrameRings,
+    records: &[Record],
+    reference: &TraceSettings,
+    sigma_t: [f64; 3],
+    albedo: [f64; 3],
+) -> Vec<[f64; 3]> {
+    let recs = ring_records(frame, 0, records);
+    let mut out = vec![[0.0; 3]; frame.rings];
+    for c in 0..3 {
+        for (j, s) in ring_sums(&recs, frame.rings, reference, sigma_t[c], albedo[c])
+            .iter()
+            .enumerate()
+        {
+            out[j][c] = s[0];
+        }
+    }
+    out
+}
