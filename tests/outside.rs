@@ -642,18 +642,18 @@ fn the_sample_store_opens_in_pyarrow() {
     }
 }
 
-/// A camera's dataset without `noise_floor`, as a new user writes one:
-/// sample-pebble's frames as 16-bit TIFF brackets (×1, ×64, ×4096; tifffile), once with the
-/// renders' floor in the decoded units and once without the key. Without it the floor is
-/// measured from the frames (`pipeline::noise`), and the fit's held-out green error (frames
-/// 96–103, judged on the same samples: the given floor's) is within 2 % of the fit with the
-/// floor. Before, a missing floor was 0 and moved it from 0.379 to 0.773.
-#[test]
-fn a_bracketed_scan_without_a_noise_floor_fits_as_with_it() {
+/// A camera's dataset without `noise_floor`, as a new user writes one: a shared dataset's
+/// frames as 16-bit TIFF brackets (×1, ×64, ×4096; tifffile), once with the renders' floor in
+/// the decoded units and once without the key. Without it the floor is measured from the frames
+/// (`pipeline::noise`), and the fit's held-out green error (the dataset's test frames, judged
+/// on the same samples: the given floor's) is within 2 % of the fit with the floor. Before, a
+/// missing floor was 0 and moved sample-pebble's from 0.379 to 0.773. With the black level also
+/// left out of scan.json, the fit refuses with a message that names it, or lands within 2 %.
+fn a_bracketed_dataset_without_a_noise_floor_fits_as_with_it(dataset: &str, held: &str) {
     let Some(py) = python("numpy, tifffile, pidng, rawpy") else {
         return;
     };
-    let Some(src) = shared("sample-pebble") else {
+    let Some(src) = shared(dataset) else {
         return;
     };
     let tmp = tempfile::tempdir().unwrap();
@@ -677,13 +677,17 @@ fn a_bracketed_scan_without_a_noise_floor_fits_as_with_it() {
     }
     std::fs::create_dir_all(given.join("frames")).unwrap();
     camera_files(&py, tmp.path(), &ds, dn_per_unit, frames);
-    let floor = ds.spec.noise_floor.expect("sample-pebble gives its floor") * scale;
-    let missing = tmp.path().join("missing");
-    for (dir, key) in [(&given, Some(floor)), (&missing, None)] {
+    let floor = ds
+        .spec
+        .noise_floor
+        .expect("the shared datasets give their floor")
+        * scale;
+    let (missing, no_black) = (tmp.path().join("missing"), tmp.path().join("no-black"));
+    for dir in [&given, &missing, &no_black] {
         std::fs::create_dir_all(dir).unwrap();
         std::fs::copy(src.join(&ds.spec.mesh), dir.join(&ds.spec.mesh)).unwrap();
         let mut spec: serde_json::Value = serde_json::to_value(&ds.spec).unwrap();
-        spec["noise_floor"] = serde_json::json!(key);
+        spec["noise_floor"] = floor.into();
         spec["black_level"] = BLACK.into();
         spec["white_level"] = WHITE.into();
         for (k, f) in spec["frames"]
@@ -693,8 +697,6 @@ fn a_bracketed_scan_without_a_noise_floor_fits_as_with_it() {
             .enumerate()
         {
             let e = f["exposure_s"].as_f64().unwrap();
-            // The dataset without the key reads the same files (through a link to the other's
-            // frames folder: paths stay inside the dataset).
             f["image"] = name(k, 0).into();
             f["brackets"] = BRACKET_GAINS
                 .iter()
@@ -703,9 +705,14 @@ fn a_bracketed_scan_without_a_noise_floor_fits_as_with_it() {
                 .map(|(b, g)| serde_json::json!({"image": name(k, b), "exposure_s": e * g}))
                 .collect();
         }
-        if dir == &missing {
-            std::os::unix::fs::symlink(given.join("frames"), missing.join("frames")).unwrap();
+        if dir != &given {
+            // The datasets without the key read the same files (through a link to the other's
+            // frames folder: paths stay inside the dataset).
+            std::os::unix::fs::symlink(given.join("frames"), dir.join("frames")).unwrap();
             spec.as_object_mut().unwrap().remove("noise_floor");
+        }
+        if dir == &no_black {
+            spec.as_object_mut().unwrap().remove("black_level");
         }
         std::fs::write(
             dir.join("scan.json"),
@@ -713,28 +720,39 @@ fn a_bracketed_scan_without_a_noise_floor_fits_as_with_it() {
         )
         .unwrap();
     }
-    let held = "96-103";
-    let fit = |scan: &Path| -> (PathBuf, serde_json::Value) {
+    let fit = |scan: &Path| -> Result<(PathBuf, serde_json::Value), String> {
         let model = scan.join("m.ply");
         let report = scan.join("fit-report.json");
-        subsurf(&[
-            "fit",
-            "--scan",
-            scan.to_str().unwrap(),
-            "--out",
-            model.to_str().unwrap(),
-            "--exclude-frames",
-            held,
-            "--no-pictures",
-            "--cache",
-            "off",
-        ]);
-        let r: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(report).unwrap()).unwrap();
-        (model, r)
+        let o = Command::new(env!("CARGO_BIN_EXE_subsurf"))
+            .args(["fit", "--scan", scan.to_str().unwrap(), "--out"])
+            .arg(&model)
+            .args(["--exclude-frames", held, "--no-pictures", "--cache", "off"])
+            .output()
+            .unwrap();
+        if !o.status.success() {
+            return Err(String::from_utf8_lossy(&o.stderr).into_owned());
+        }
+        let r = serde_json::from_str(&std::fs::read_to_string(report).unwrap()).unwrap();
+        Ok((model, r))
     };
-    let (with_floor, _) = fit(&given);
-    let (without, report) = fit(&missing);
+    // Held-out green (mean log E and its clustered SE) on the samples of the given floor.
+    let judge = |model: &Path| -> (f64, f64) {
+        let mut a = vec!["evaluate", "--model", model.to_str().unwrap()];
+        a.extend([
+            "--scan",
+            given.to_str().unwrap(),
+            "--frames",
+            held,
+            "--json",
+        ]);
+        a.extend(["--cache", "off"]);
+        let v: serde_json::Value = serde_json::from_str(&subsurf(&a)).unwrap();
+        let green = |key: &str| v[key][1].as_f64().unwrap_or(f64::NAN);
+        (green("mean_log_e"), green("se_log_e"))
+    };
+    let (with_floor, _) = fit(&given).unwrap();
+    let (a, a_se) = judge(&with_floor);
+    let (without, report) = fit(&missing).unwrap();
     let measured = report["noise_floor"]["value"].as_f64().unwrap();
     assert!(
         report["noise_floor"]["source"]
@@ -744,29 +762,57 @@ fn a_bracketed_scan_without_a_noise_floor_fits_as_with_it() {
         "{}",
         report["noise_floor"]
     );
+    let (b, b_se) = judge(&without);
     eprintln!(
-        "noise floor: given {floor:.3e}, measured {measured:.3e} ({:.2}x)",
-        measured / floor
-    );
-    assert!(measured > floor / 4.0 && measured < floor * 4.0);
-    let judge = |model: &Path, scan: &Path, extra: &[&str]| -> f64 {
-        let mut a = vec!["evaluate", "--model", model.to_str().unwrap()];
-        a.extend(["--scan", scan.to_str().unwrap(), "--frames", held, "--json"]);
-        a.extend(["--cache", "off"]);
-        a.extend(extra);
-        let v: serde_json::Value = serde_json::from_str(&subsurf(&a)).unwrap();
-        v["mean_log_e"][1].as_f64().unwrap()
-    };
-    let a = judge(&with_floor, &given, &[]);
-    let b = judge(&without, &given, &[]);
-    let own = judge(&without, &missing, &[]);
-    let zero = judge(&with_floor, &given, &["--noise-floor", "0"]);
-    eprintln!(
-        "held-out green: with the floor {a:.4}, measured {b:.4} ({:+.2} %; {own:.4} on its own \
-         protocol), judged with no floor {zero:.4}",
+        "{dataset}: noise floor given {floor:.3e}, measured {measured:.3e} ({:.2}x); held-out \
+         green with the floor {a:.4} ± {a_se:.4}, measured {b:.4} ± {b_se:.4} ({:+.2} %)",
+        measured / floor,
         100.0 * (b / a - 1.0)
     );
+    // With the black level left in too: refused with a message naming it, or within 2 %.
+    let no_black_within = match fit(&no_black) {
+        Err(message) => {
+            eprintln!("{dataset} without the black level: refused: {message}");
+            assert!(message.contains("black_level"), "{message}");
+            true
+        }
+        Ok((model, report)) => {
+            let (c, c_se) = judge(&model);
+            eprintln!(
+                "{dataset} without the black level: floor {}, held-out green {c:.4} ± {c_se:.4} \
+                 ({:+.2} %)",
+                report["noise_floor"]["value"],
+                100.0 * (c / a - 1.0)
+            );
+            (c / a - 1.0).abs() <= 0.02
+        }
+    };
+    assert!(measured > floor / 4.0 && measured < floor * 4.0);
     assert!((b / a - 1.0).abs() <= 0.02, "{a} {b}");
+    assert!(
+        no_black_within,
+        "without the black level: neither refused nor within 2 %"
+    );
+}
+
+#[test]
+fn a_bracketed_slab_without_a_noise_floor_fits_as_with_it() {
+    a_bracketed_dataset_without_a_noise_floor_fits_as_with_it("sample-slab", "1,5");
+}
+
+#[test]
+fn a_bracketed_pebble_without_a_noise_floor_fits_as_with_it() {
+    a_bracketed_dataset_without_a_noise_floor_fits_as_with_it("sample-pebble", "96-103");
+}
+
+/// Ignored: the torus's measured floor is its noise's (a third of the signal at 3e-6), 0.15x
+/// the floor its scan.json gives, and its fit at that floor is worse on its training folds as on
+/// its test frames (docs/validation.md, "The noise floor, measured where `scan.json` has none").
+/// `cargo test -- --ignored` runs it.
+#[test]
+#[ignore = "sample-torus: the measured floor is 0.15x scan.json's and the fit with it is worse (docs/validation.md)"]
+fn a_bracketed_torus_without_a_noise_floor_fits_as_with_it() {
+    a_bracketed_dataset_without_a_noise_floor_fits_as_with_it("sample-torus", "96-103");
 }
 
 /// A mesh as scanners deliver it, far finer than the frames' pixels. sample-pebble's
