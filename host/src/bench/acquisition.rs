@@ -603,7 +603,7 @@ impl Bench {
                         r.frames,
                         100.0 * r.share,
                         r.rig_s,
-                        r.stop
+                        r.stop.split(':').next().unwrap_or_default()
                     )
                 } else {
                     " | | | ".to_string()

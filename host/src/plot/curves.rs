@@ -351,7 +351,17 @@ pub fn learning_curves(
     root.fill(&WHITE).map_err(&e)?;
     let root = root.titled(title, ("sans-serif", 20)).map_err(&e)?;
     let (left, right) = root.split_horizontally(600);
-    let colours = [BLUE, RED, GREEN, MAGENTA, CYAN, BLACK];
+    let colours = [
+        BLUE,
+        RED,
+        GREEN,
+        MAGENTA,
+        CYAN,
+        BLACK,
+        RGBColor(230, 140, 0),
+        RGBColor(120, 60, 160),
+        RGBColor(140, 90, 40),
+    ];
     let n = curves.len().max(1) as f64;
     for (area, by_time) in [(&left, false), (&right, true)] {
         let xmax = if by_time { tmax } else { fmax };
