@@ -1,7 +1,7 @@
 //! Replay (a recorded dataset as rig and camera) and the adaptive planner. A replay
 //! copies exactly the frames it asked for into a normal dataset; an adaptive scan killed and
-//! resumed ends with the same frames as one not killed; a homogeneous material stops earlier
-//! than a veined one. Every scan here is small (a 48 px simulated bead): seconds in a debug
+//! resumed ends with the same frames as one not killed; a stalled error stops a scan only on
+//! enough folds. Every scan here is small (a 48 px simulated bead): seconds in a debug
 //! build.
 use std::path::Path;
 use std::process::{Command, Stdio};
@@ -26,6 +26,11 @@ fn subsurf(args: &[&str]) -> String {
 /// A small simulated bead (`--vertices`, 4 angles × `raster`² laser targets, 48 px) with the
 /// material `field` (`subsurf simulate` flags).
 fn bead(dir: &Path, vertices: usize, raster: usize, field: &[&str]) {
+    bead_at(dir, "4", vertices, raster, field)
+}
+
+/// [`bead`] with `angles` turntable angles.
+fn bead_at(dir: &Path, angles: &str, vertices: usize, raster: usize, field: &[&str]) {
     let mut args = vec![
         "simulate".to_string(),
         "--out".into(),
@@ -37,7 +42,7 @@ fn bead(dir: &Path, vertices: usize, raster: usize, field: &[&str]) {
         "--size".into(),
         "48".into(),
         "--angles".into(),
-        "4".into(),
+        angles.into(),
         "--raster".into(),
         raster.to_string(),
         "--anisotropy".into(),
@@ -195,35 +200,56 @@ fn an_adaptive_scan_killed_and_resumed_ends_with_the_same_frames() {
     assert_eq!(check_copies(&src, &cut), check_copies(&src, &whole));
 }
 
-/// The stopping rule follows the material: a homogeneous bead's cross-validated error stops
-/// falling with fewer frames than a veined one's (the same geometry, candidates and settings).
-/// The settings are explicit — batches of 13 frames after a start of 26, stop at the first
-/// batch within noise — because on a bead this small (600 vertices, 48 px, 4 angles) the
-/// default patience of two batches of 26 runs both scans to the end of the pool.
+/// A stalled error stops the scan only once the comparison with the best rests on enough folds
+/// (five, the default `min_clusters`). A homogeneous bead of 4 turntable angles (at most 4
+/// folds) whose cross-validated error stops falling after a few batches runs on to the budget,
+/// where the old rule stopped it on comparisons of 4 clusters; the same stall on a bead of 6
+/// angles stops it. Patience 1 and small batches keep both scans short.
 #[test]
-fn a_homogeneous_material_stops_earlier_than_a_veined_one() {
+fn a_stall_stops_the_scan_only_on_enough_folds() {
     let tmp = tempfile::tempdir().unwrap();
-    let frames = |field: &[&str], name: &str| -> usize {
-        let src = tmp.path().join(name);
-        bead(&src, 600, 6, field);
-        let out = tmp.path().join(format!("{name}-adaptive"));
-        replay(
-            &src,
-            &out,
-            "adaptive",
-            &["--start-frames", "26", "--batch", "13", "--patience", "1"],
-        );
-        let r = AcquisitionReport::load(&out).unwrap().unwrap();
-        assert!(
-            r.stopped
-                .as_deref()
-                .is_some_and(|s| s.contains("stopped falling")),
-            "{name}: {:?}",
-            r.stopped
-        );
-        r.order().len()
+    let run = |angles: &str, raster: usize, field: &[&str], extra: &[&str]| -> AcquisitionReport {
+        let src = tmp.path().join(format!("bead-{angles}"));
+        bead_at(&src, angles, 600, raster, field);
+        let out = tmp.path().join(format!("bead-{angles}-adaptive"));
+        let mut args = vec!["--patience", "1"];
+        args.extend_from_slice(extra);
+        replay(&src, &out, "adaptive", &args);
+        AcquisitionReport::load(&out).unwrap().unwrap()
     };
-    let homogeneous = frames(HOMOGENEOUS, "homogeneous");
-    let veined = frames(VEINED, "veined");
-    assert!(homogeneous < veined, "{homogeneous} vs {veined} frames");
+    let four = run(
+        "4",
+        6,
+        HOMOGENEOUS,
+        &[
+            "--start-frames",
+            "26",
+            "--batch",
+            "13",
+            "--max-frames",
+            "91",
+        ],
+    );
+    let stalled = four
+        .curve
+        .iter()
+        .any(|p| p.batch > p.best_batch && p.cv_log_e.is_some());
+    assert!(stalled, "the 4-angle bead should stall: {:?}", four.curve);
+    assert!(four.curve.iter().all(|p| p.gain_clusters <= 4));
+    assert!(
+        four.stopped
+            .as_deref()
+            .is_some_and(|s| s.contains("max-frames")),
+        "{:?}",
+        four.stopped
+    );
+    let six = run("6", 4, VEINED, &["--start-frames", "16", "--batch", "16"]);
+    assert!(
+        six.stopped
+            .as_deref()
+            .is_some_and(|s| s.contains("stopped falling")),
+        "{:?}",
+        six.stopped
+    );
+    assert!(six.order().len() < 96, "{}", six.order().len());
 }

@@ -450,7 +450,7 @@ fn rounds_exhausted(
     // The best so far changes only by a real gain; the rounds after it count as stalled.
     for r in 1..per_round.len() {
         match paired_gain(&per_round[best], &per_round[r], clusters) {
-            Some((gain, se)) if gain > 0.0 && gain >= min_gain_se * se => {
+            Some((gain, se)) if counts_as_gain(gain, se, min_gain_se) => {
                 best = r;
                 stalled = 0;
             }
@@ -458,6 +458,22 @@ fn rounds_exhausted(
         }
     }
     stalled >= patience
+}
+
+/// Whether a paired fall of held-out error `gain` (positive: better) with standard error `se`
+/// counts as a real gain: it exceeds `min_gain_se` standard errors ([`MIN_GAIN_SE`], half, for the
+/// alpha rounds and the adaptive planner's stop alike; 0: any fall counts). An SE that could not
+/// be measured, or is zero or not finite, counts as infinite
+/// ([`crate::evaluate::summary::ClusteredMean::decision_se`]), so with `min_gain_se` above 0 no
+/// gain counts on a spread nobody measured.
+pub fn counts_as_gain(gain: f64, se: f64, min_gain_se: f64) -> bool {
+    if !(gain.is_finite() && gain > 0.0) {
+        return false;
+    }
+    if min_gain_se <= 0.0 {
+        return true;
+    }
+    se.is_finite() && se > 0.0 && gain >= min_gain_se * se
 }
 
 /// How much `b` lowers `a`'s held-out error (mean over the frames both predicted of the paired
@@ -979,6 +995,20 @@ fn drop_lattice(out: &mut FitOutput) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The one minimum-gain rule: more than half an SE counts; a missing (infinite), zero or
+    /// non-finite SE never does while a minimum is asked for; a fall of zero or less never does.
+    #[test]
+    fn a_gain_counts_only_above_the_minimum_on_a_measured_se() {
+        assert!(counts_as_gain(0.06, 0.1, MIN_GAIN_SE));
+        assert!(!counts_as_gain(0.04, 0.1, MIN_GAIN_SE));
+        assert!(!counts_as_gain(1.0, f64::INFINITY, MIN_GAIN_SE));
+        assert!(!counts_as_gain(1.0, 0.0, MIN_GAIN_SE));
+        assert!(!counts_as_gain(1.0, f64::NAN, MIN_GAIN_SE));
+        assert!(!counts_as_gain(0.0, 0.1, 0.0));
+        assert!(!counts_as_gain(-0.1, 0.1, MIN_GAIN_SE));
+        assert!(counts_as_gain(1e-9, f64::INFINITY, 0.0));
+    }
 
     fn errors(v: &[(usize, f64)]) -> Errors {
         v.iter().map(|&(f, e)| (f, [e; 3])).collect()

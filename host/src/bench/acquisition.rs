@@ -1,29 +1,34 @@
-//! `subsurf bench acquisition`: the learning curves of the planners — dense (in its
-//! order), coverage, random and adaptive — as held-out error on test frames no planner may pick,
-//! against frames and against rig time.
+//! `subsurf bench acquisition`: the adaptive planner judged as a planner, by the protocol
+//! docs/acquisition.md declares ("How the planners are judged"): at its stopping point against
+//! the whole pool (a two-one-sided test at [`MARGIN`], `bench::equivalence`'s test), and against
+//! coverage and random orders (several seeds) at equal frame counts and at equal rig time
+//! (non-inferiority at the same margin), every comparison paired per test frame with its
+//! standard error clustered by the one rule of every judge; for several start sets.
 //!
 //! Every planner draws from the same pool (a recorded dataset's frames minus the test frames,
-//! replayed: [`crate::scan::replay::Replay`]), so the curves differ only by which frames each
-//! takes. Each point is a fit of a prefix of the planner's order and its error on the test
-//! frames, judged as `subsurf evaluate` judges (the dataset's evaluation protocol, at the
-//! vertices, the mean over frames of Eq. 8's log E with its standard error clustered by
-//! turntable angle). All fits run from one sample store of the dataset (each frame decoded once).
-//! The curves' fits are the adaptive planner's own cheap fit ([`assessment_options`]); the
-//! issue's comparison — the adaptive scan's final frames against the whole pool — is also made
-//! with the default fit of `subsurf fit`.
+//! replayed: [`crate::scan::replay::Replay`], counted over the frames predicted to show a spot),
+//! so the planners differ only by which frames each takes. Each figure is a fit of a set of
+//! frames and its error on the test frames, judged as `subsurf evaluate` judges (the dataset's
+//! evaluation protocol, at the vertices, each frame's mean over its channels of Eq. 8's log E).
+//! All fits are the adaptive planner's own assessment fit ([`assessment_options`]) from one
+//! sample store of the dataset (each frame decoded once); a frame set fitted twice is fitted once.
+//! The test frames judge only: nothing here chooses a setting by them.
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use rand::SeedableRng;
 use rand::seq::SliceRandom;
 
+use super::equivalence::{Tost, frame_errors, tost_at};
 use crate::crossval::{CvSettings, fit_scan_in};
 use crate::dataset::Dataset;
+use crate::evaluate::summary::t95;
 use crate::evaluate::{Clustering, EvalPoints, Figures, evaluate_in};
 use crate::pipeline::{Context, PipelineError, PipelineOptions, StoreOptions};
 use crate::progress::Progress;
 use crate::scan::adaptive::{
-    AdaptiveError, AdaptiveSettings, FrameSource, assessment_options, cover_order, rig_seconds,
-    run_adaptive,
+    AdaptiveError, AdaptiveSettings, FrameSource, assessment_options, cover_order,
+    in_turntable_order, rig_seconds, run_adaptive,
 };
 use crate::scan::replay::{Replay, ReplayError};
 
@@ -57,12 +62,41 @@ pub enum BenchError {
     Invalid(String),
 }
 
+/// The equivalence and non-inferiority margin of every test (log E), declared in
+/// docs/acquisition.md before the run.
+pub const MARGIN: f64 = 0.01;
+
+/// The largest share of the pool's frames the adaptive scan may take and still meet the
+/// project's bar.
+pub const MAX_SHARE: f64 = 0.6;
+
+/// What to run beside the dataset.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BenchOptions {
+    /// The adaptive planner's start sets (`AdaptiveSettings::start_seed`), each run to its stop.
+    pub start_seeds: Vec<u64>,
+    /// Seeds of the random planner's orders, each judged on its own.
+    pub random_seeds: Vec<u64>,
+    /// The margin ([`MARGIN`]).
+    pub margin: f64,
+}
+
+impl Default for BenchOptions {
+    fn default() -> Self {
+        BenchOptions {
+            start_seeds: vec![0, 1, 2],
+            random_seeds: vec![1, 2, 3],
+            margin: MARGIN,
+        }
+    }
+}
+
 /// A fit's error on the test frames.
 #[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
 pub struct TestError {
     /// Mean over the test frames of log E (each frame's mean over its channels).
     pub log_e: Option<f64>,
-    /// Its standard error clustered by turntable angle.
+    /// Its standard error clustered by the one rule (turntable angle, or raster neighbourhood).
     pub se: Option<f64>,
     /// Per channel r, g, b (`subsurf evaluate`'s `mean_log_e`, `se_log_e`).
     pub rgb: [Option<f64>; 3],
@@ -70,22 +104,80 @@ pub struct TestError {
     pub rgb_se: [Option<f64>; 3],
     /// Test frames judged.
     pub frames: usize,
+    /// Clusters of the standard error.
+    pub clusters: usize,
     /// Why there is no figure, where there is none (too few frames for any fit).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub failed: Option<String>,
+    /// Each test frame's log E (mean over its channels): what the paired tests pair.
+    #[serde(skip)]
+    pub per_frame: BTreeMap<usize, f64>,
 }
 
-/// One point of a learning curve.
+/// One point of a learning curve: a planner's first `frames` frames.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct Point {
-    /// The planner.
+    /// The planner (`adaptive start 0`, `coverage`, `random seed 1`, ...).
     pub planner: String,
-    /// Frames fitted (a prefix of the planner's order).
+    /// Frames fitted.
     pub frames: usize,
     /// Their rig time (s, [`rig_seconds`]).
     pub rig_s: f64,
     /// Error on the test frames.
     pub test: TestError,
+    /// The paired difference to the whole pool (this − pool) over the test frames.
+    pub vs_pool: Tost,
+}
+
+/// One comparison of the adaptive scan at its stop with another frame set.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct Comparison {
+    /// The other planner.
+    pub against: String,
+    /// `stop` (the whole pool), `equal frames` or `equal rig time`.
+    pub at: String,
+    /// The other set's frames and rig time.
+    pub frames: usize,
+    /// See `frames`.
+    pub rig_s: f64,
+    /// The paired difference adaptive − other per test frame and its 90 % interval.
+    pub paired: Tost,
+    /// Against the pool: equivalent (the interval inside ±margin); against the others:
+    /// non-inferior (its upper end below +margin).
+    pub pass: bool,
+}
+
+/// One start set's adaptive scan and its comparisons.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct StartRun {
+    /// `AdaptiveSettings::start_seed`.
+    pub start_seed: u64,
+    /// Frames at the stop, and their share of the pool.
+    pub frames: usize,
+    /// See `frames`.
+    pub share: f64,
+    /// Rig time at the stop (homing per batch, the fits waited for).
+    pub rig_s: f64,
+    /// Why it stopped.
+    pub stop: String,
+    /// Its error on the test frames.
+    pub test: TestError,
+    /// Against the pool, then coverage and each random seed at equal frames and rig time.
+    pub comparisons: Vec<Comparison>,
+}
+
+impl StartRun {
+    /// The project's bar on this start set: equivalent to the whole pool with at most
+    /// [`MAX_SHARE`] of its frames, and non-inferior to coverage and every random seed at equal
+    /// frame counts.
+    pub fn meets_the_bar(&self) -> bool {
+        self.share <= MAX_SHARE
+            && self
+                .comparisons
+                .iter()
+                .filter(|c| c.at != "equal rig time")
+                .all(|c| c.pass)
+    }
 }
 
 /// The benchmark of one dataset.
@@ -95,46 +187,51 @@ pub struct Bench {
     pub dataset: String,
     /// The test frames (never candidates).
     pub test_frames: Vec<usize>,
-    /// Candidates (pool frames).
+    /// Pool frames: candidates predicted to show a spot.
     pub pool: usize,
-    /// Every planner's curve points.
+    /// The pool's rig time (one batch in turntable order).
+    pub pool_rig_s: f64,
+    /// The whole pool's fit on the test frames.
+    pub pool_test: TestError,
+    /// The margin of every test.
+    pub margin: f64,
+    /// Each start set's run.
+    pub starts: Vec<StartRun>,
+    /// The curves' points (adaptive batch ends per start set; coverage and random at the same
+    /// counts).
     pub points: Vec<Point>,
-    /// The adaptive scan: frames, rig time, why it stopped.
-    pub adaptive_frames: usize,
-    /// See `adaptive_frames`.
-    pub adaptive_rig_s: f64,
-    /// See `adaptive_frames`.
-    pub adaptive_stop: String,
-    /// The pool's rig time in dense order.
-    pub dense_rig_s: f64,
-    /// The default fit (`subsurf fit`) on the adaptive scan's frames, on the test frames.
-    pub default_adaptive: TestError,
-    /// The default fit on the whole pool, on the test frames.
-    pub default_pool: TestError,
+    /// Fits made (frame sets fitted once each).
+    pub fits: usize,
     /// Wall time of the benchmark (s).
     pub seconds: f64,
 }
 
-impl Bench {
-    /// The issue's check on a recorded dataset: the adaptive scan's model (default fit) within
-    /// one standard error of the whole pool's, with at most half the pool's frames.
-    pub fn within_one_se_at_half(&self) -> Option<bool> {
-        let (a, p) = (self.default_adaptive.log_e?, self.default_pool.log_e?);
-        let se = self.default_pool.se?;
-        Some(a <= p + se && 2 * self.adaptive_frames <= self.pool)
-    }
+/// The fits of one benchmark, each frame set fitted once.
+struct Fitter<'a> {
+    run: &'a Context<'a>,
+    judge: &'a Context<'a>,
+    test: &'a [usize],
+    cv: CvSettings,
+    fit: crate::fit::FitOptions,
+    done: BTreeMap<Vec<usize>, TestError>,
+}
 
-    /// The issue's check on the simulated rig: the adaptive curve's last error within 5 % of
-    /// the dense scan's (the whole pool), at most 40 % of its rig time.
-    pub fn within_5_percent_at_40(&self) -> Option<bool> {
-        let last = |name: &str| self.points.iter().rfind(|p| p.planner == name);
-        let (a, d) = (last("adaptive")?, last("dense")?);
-        Some(a.test.log_e? <= 1.05 * d.test.log_e? && a.rig_s <= 0.4 * d.rig_s)
+impl Fitter<'_> {
+    /// The fit of `frames` judged on the test frames (a set too small for any fit: no figure).
+    fn test(&mut self, frames: &[usize]) -> Result<TestError, BenchError> {
+        let mut key = frames.to_vec();
+        key.sort_unstable();
+        key.dedup();
+        if let Some(t) = self.done.get(&key) {
+            return Ok(t.clone());
+        }
+        let t = fit_and_test(self.run, self.judge, &key, self.test, &self.cv, &self.fit)?;
+        self.done.insert(key, t.clone());
+        Ok(t)
     }
 }
 
-/// The fit behind each curve point, from the run `run` (a store of every frame) judged by
-/// `judge`.
+/// The fit of `frames` from the run `run` (a store of every frame) judged by `judge` on `test`.
 fn fit_and_test(
     run: &Context,
     judge: &Context,
@@ -143,10 +240,8 @@ fn fit_and_test(
     cv: &CvSettings,
     fit: &crate::fit::FitOptions,
 ) -> Result<TestError, BenchError> {
-    let mut frames = frames.to_vec();
-    frames.sort_unstable();
-    // A prefix too short for any fit (few frames show a spot) is a point without a figure.
-    let out = match fit_scan_in(run, judge, &frames, cv, fit, &()) {
+    // A set too small for any fit (few frames show a spot) is a point without a figure.
+    let out = match fit_scan_in(run, judge, frames, cv, fit, &()) {
         Ok(out) => out,
         Err(PipelineError::NothingFitted(why)) => {
             return Ok(TestError {
@@ -164,19 +259,10 @@ fn fit_and_test(
     let (evals, _) = evaluate_in(judge, &out.model, test, EvalPoints::Vertices, &())?;
     let clusters = Clustering::of_frames(judge.ds, &evals);
     let fig = Figures::of(&evals, &clusters);
-    let per: Vec<(f64, f64, (bool, usize))> = evals
+    let per_frame = frame_errors(&evals);
+    let per: Vec<(f64, f64, (bool, usize))> = per_frame
         .iter()
-        .filter(|e| e.skipped.is_none())
-        .filter_map(|e| {
-            let ch: Vec<f64> = e.log_e.iter().flatten().copied().collect();
-            (!ch.is_empty()).then(|| {
-                (
-                    ch.iter().sum::<f64>() / ch.len() as f64,
-                    1.0,
-                    clusters.cluster(e.frame),
-                )
-            })
-        })
+        .map(|(&f, &e)| (e, 1.0, clusters.cluster(f)))
         .collect();
     let m = crate::evaluate::summary::clustered_mean(&per);
     let fin = |x: Option<f64>| x.filter(|v| v.is_finite());
@@ -186,19 +272,45 @@ fn fit_and_test(
         rgb: fig.mean_log_e.map(fin),
         rgb_se: fig.se_log_e.map(fin),
         frames: fig.frames,
+        clusters: m.map_or(0, |m| m.clusters),
         failed: None,
+        per_frame,
     })
 }
 
-/// Benchmarks the planners on the recorded dataset `src` with `test` held out: the adaptive
-/// scan replayed into `work/adaptive` (resumed if there), then every planner's curve. `seed`
-/// orders the random planner.
+/// The paired test of `b − a` per test frame at `margin` (no mean cap beyond the margin).
+fn paired(a: &TestError, b: &TestError, clusters: &Clustering, margin: f64) -> Tost {
+    tost_at(&a.per_frame, &b.per_frame, clusters, margin, margin)
+}
+
+/// Non-inferiority of `adaptive` to `other`: the 90 % interval's upper end of adaptive − other
+/// below `margin` (or identical predictions). Fails when the interval is unbounded.
+fn non_inferior(t: &Tost, margin: f64) -> bool {
+    t.identical || t.interval.is_some_and(|[_, hi]| hi < margin)
+}
+
+/// The longest prefix of `order` whose rig time (one batch in turntable order) is at most `t`.
+fn prefix_within(order: &[usize], t: f64, rig: &dyn Fn(&[usize]) -> f64) -> usize {
+    let mut n = 0;
+    for k in 1..=order.len() {
+        if rig(&order[..k]) <= t {
+            n = k;
+        } else {
+            break;
+        }
+    }
+    n
+}
+
+/// Benchmarks the planners on the recorded dataset `src` with `test` held out: for each start
+/// set, the adaptive scan replayed into `work/adaptive-sN` (resumed if there), then the fits the
+/// protocol compares. `log` sees each line as it is made.
 pub fn bench_replay(
     src: &Path,
     test: &[usize],
     work: &Path,
     settings: &AdaptiveSettings,
-    seed: u64,
+    opts: &BenchOptions,
     progress: &dyn Progress,
     log: &mut dyn FnMut(&str),
 ) -> Result<Bench, BenchError> {
@@ -208,24 +320,64 @@ pub fn bench_replay(
             "no test frames: say which frames no planner may pick".into(),
         ));
     }
-    let mut replay = Replay::open(src, &work.join("adaptive"), test)?;
-    log("adaptive scan (replayed):");
-    let rep = run_adaptive(&mut replay, settings, progress, &mut |p| {
-        log(&format!("  {}", p.line()))
-    })?;
-    log(&format!(
-        "  stopped: {}",
-        rep.stopped.as_deref().unwrap_or("-")
-    ));
+    if opts.start_seeds.is_empty() {
+        return Err(BenchError::Invalid("no start set to run".into()));
+    }
+    let mut reports = Vec::new();
+    let mut replay = None;
+    for &seed in &opts.start_seeds {
+        let mut r = Replay::open(src, &work.join(format!("adaptive-s{seed}")), test)?;
+        log(&format!("adaptive scan, start set {seed} (replayed):"));
+        let s = AdaptiveSettings {
+            start_seed: seed,
+            ..settings.clone()
+        };
+        let rep = run_adaptive(&mut r, &s, progress, &mut |p| {
+            log(&format!("  {}", p.line()))
+        })?;
+        log(&format!(
+            "  stopped: {}",
+            rep.stopped.as_deref().unwrap_or("-")
+        ));
+        reports.push((seed, rep));
+        replay = Some(r);
+    }
+    let Some(replay) = replay else {
+        return Err(BenchError::Invalid("no start set to run".into()));
+    };
     let cands = replay.candidates().to_vec();
     let (timing, exposures) = (*replay.timing(), replay.exposures_s().to_vec());
     let ds: &Dataset = replay.recorded();
-    let rig = |order: &[usize]| rig_seconds(&cands, order, &timing, &exposures);
-    let adaptive_order = rep.order();
-    let dense: Vec<usize> = cands.iter().map(|c| c.id).collect();
+    // A fixed plan is one batch, captured in turntable order.
+    let rig = |order: &[usize]| {
+        rig_seconds(
+            &cands,
+            &[in_turntable_order(&cands, order)],
+            &[],
+            &timing,
+            &exposures,
+        )
+    };
+    let pool: Vec<usize> = cands
+        .iter()
+        .filter(|c| c.x_i.is_some())
+        .map(|c| c.id)
+        .collect();
+    if pool.is_empty() {
+        return Err(BenchError::Invalid(
+            "no pool frame is predicted to show a spot".into(),
+        ));
+    }
     let coverage = cover_order(&cands, &ds.mesh.positions, 2.0);
-    let mut random = dense.clone();
-    random.shuffle(&mut rand::rngs::StdRng::seed_from_u64(seed));
+    let randoms: Vec<(u64, Vec<usize>)> = opts
+        .random_seeds
+        .iter()
+        .map(|&seed| {
+            let mut o = pool.clone();
+            o.shuffle(&mut rand::rngs::StdRng::seed_from_u64(seed));
+            (seed, o)
+        })
+        .collect();
     // One store of every frame: each fit below reads it, no frame is decoded twice.
     let all: Vec<usize> = (0..ds.spec.frames.len()).collect();
     let (protocol, floor) = crate::pipeline::evaluation_protocol(ds)
@@ -245,72 +397,118 @@ pub fn bench_replay(
     let (cheap, cheap_fit) = assessment_options(ds, floor.value);
     let cheap_run = run.with_options(cheap).map_err(fail)?;
     // The adaptive planner's own assessment rule (`scan::adaptive`): the reference folds.
-    let cheap_cv = CvSettings {
-        folds: settings.folds,
-        t1: false,
-        ..CvSettings::reference()
+    let mut fitter = Fitter {
+        run: &cheap_run,
+        judge: &judge,
+        test,
+        cv: CvSettings {
+            folds: settings.folds,
+            t1: false,
+            ..CvSettings::reference()
+        },
+        fit: cheap_fit,
+        done: BTreeMap::new(),
     };
-    // The curves' points: the adaptive scan's batch ends, and the same frame counts for the
-    // others (up to each order's length), plus each order's end.
-    let mut counts: Vec<usize> = rep.curve.iter().map(|p| p.frames).collect();
-    counts.push(dense.len());
-    counts.sort_unstable();
-    counts.dedup();
-    let mut jobs: Vec<(&str, Vec<usize>)> = Vec::new();
-    for (name, order) in [
-        ("dense", &dense),
-        ("coverage", &coverage),
-        ("random", &random),
-        ("adaptive", &adaptive_order),
-    ] {
-        let mut ns: Vec<usize> = counts
-            .iter()
-            .copied()
-            .filter(|&n| n < order.len())
-            .collect();
-        ns.push(order.len());
-        ns.dedup();
-        for n in ns {
-            jobs.push((name, order[..n].to_vec()));
-        }
-    }
-    progress.start("learning curves", jobs.len() as u64 + 2);
+    let m = opts.margin;
+    log("fitting the whole pool");
+    let pool_test = fitter.test(&pool)?;
+    let clusters = {
+        let judged: Vec<(usize, Option<[f64; 3]>)> = test.iter().map(|&f| (f, None)).collect();
+        Clustering::rule(ds, &judged, crate::evaluate::summary::ErrorSource::HeldOut)
+    };
     let mut points = Vec::new();
-    for (name, frames) in &jobs {
-        let t = fit_and_test(&cheap_run, &judge, frames, test, &cheap_cv, &cheap_fit)?;
+    let mut point = |fitter: &mut Fitter, name: &str, frames: &[usize], rig_s: f64| {
+        let t = fitter.test(frames)?;
+        let vs_pool = paired(&pool_test, &t, &clusters, m);
         points.push(Point {
             planner: name.to_string(),
             frames: frames.len(),
-            rig_s: rig(frames),
-            test: t,
+            rig_s,
+            test: t.clone(),
+            vs_pool,
         });
-        progress.inc(1);
+        Ok::<TestError, BenchError>(t)
+    };
+    let mut starts = Vec::new();
+    for (seed, rep) in &reports {
+        let name = format!("adaptive start {seed}");
+        log(&format!("judging {name}"));
+        let mut last = TestError::default();
+        for (k, p) in rep.curve.iter().enumerate() {
+            let frames: Vec<usize> = rep.batches[..=k.min(rep.batches.len() - 1)].concat();
+            last = point(&mut fitter, &name, &frames, p.rig_s)?;
+        }
+        let order = rep.order();
+        let n = order.len();
+        let rig_s = rep.curve.last().map_or(0.0, |p| p.rig_s);
+        let mut comparisons = vec![Comparison {
+            against: "whole pool".into(),
+            at: "stop".into(),
+            frames: pool.len(),
+            rig_s: rig(&pool),
+            paired: paired(&pool_test, &last, &clusters, m),
+            pass: false,
+        }];
+        comparisons[0].pass = comparisons[0].paired.pass;
+        let others: Vec<(String, &Vec<usize>)> =
+            std::iter::once(("coverage".to_string(), &coverage))
+                .chain(randoms.iter().map(|(s, o)| (format!("random seed {s}"), o)))
+                .collect();
+        for (other, o) in &others {
+            let equal_frames = &o[..n.min(o.len())];
+            let equal_time = &o[..prefix_within(o, rig_s, &rig)];
+            for (at, frames) in [
+                ("equal frames", equal_frames),
+                ("equal rig time", equal_time),
+            ] {
+                let t = fitter.test(frames)?;
+                let p = paired(&t, &last, &clusters, m);
+                comparisons.push(Comparison {
+                    against: other.clone(),
+                    at: at.into(),
+                    frames: frames.len(),
+                    rig_s: rig(frames),
+                    pass: non_inferior(&p, m),
+                    paired: p,
+                });
+            }
+        }
+        starts.push(StartRun {
+            start_seed: *seed,
+            frames: n,
+            share: n as f64 / pool.len() as f64,
+            rig_s,
+            stop: rep.stopped.clone().unwrap_or_default(),
+            test: last,
+            comparisons,
+        });
     }
-    // The issue's comparison, with `subsurf fit`'s default fit.
-    let default_fit = crate::fit::FitOptions::default();
-    let default_cv = CvSettings::default();
-    let default_adaptive = fit_and_test(
-        &run,
-        &judge,
-        &adaptive_order,
-        test,
-        &default_cv,
-        &default_fit,
-    )?;
-    progress.inc(1);
-    let default_pool = fit_and_test(&run, &judge, &dense, test, &default_cv, &default_fit)?;
-    progress.inc(1);
+    // The others' curves at the first start set's batch ends and at the pool.
+    if let Some((_, rep)) = reports.first() {
+        let mut counts: Vec<usize> = rep.curve.iter().map(|p| p.frames).collect();
+        counts.push(pool.len());
+        counts.dedup();
+        for (name, o) in std::iter::once(("coverage".to_string(), &coverage))
+            .chain(randoms.iter().map(|(s, o)| (format!("random seed {s}"), o)))
+        {
+            log(&format!("the {name} curve"));
+            let mut ns: Vec<usize> = counts.iter().map(|&c| c.min(o.len())).collect();
+            ns.dedup();
+            for n in ns {
+                point(&mut fitter, &name, &o[..n], rig(&o[..n]))?;
+            }
+        }
+    }
     Ok(Bench {
         dataset: src.display().to_string(),
         test_frames: test.to_vec(),
-        pool: dense.len(),
+        pool: pool.len(),
+        pool_rig_s: rig(&pool),
+        pool_test,
+        margin: m,
+        starts,
         points,
-        adaptive_frames: adaptive_order.len(),
-        adaptive_rig_s: rig(&adaptive_order),
-        adaptive_stop: rep.stopped.clone().unwrap_or_default(),
-        dense_rig_s: rig(&dense),
-        default_adaptive,
-        default_pool,
+        fits: fitter.done.len(),
         seconds: clock.elapsed().as_secs_f64(),
     })
 }
@@ -373,69 +571,82 @@ pub fn work_dir(root: &Path, name: &str) -> PathBuf {
 }
 
 impl Bench {
-    /// The curves as a Markdown table (planner, frames, rig time, test log E ± SE), then the
-    /// issue's comparisons, for BENCHMARKS.md.
+    /// The verdicts as Markdown: the pool, then per start set the stop and each comparison
+    /// (paired mean ± SE, 90 % interval, pass), for BENCHMARKS.md and docs/acquisition.md.
     pub fn table(&self) -> String {
         let f = |x: Option<f64>| x.map_or("–".to_string(), |v| format!("{v:.4}"));
-        let mut s = String::from(
-            "| planner | frames | rig time (s) | test log E ± SE (mean of r, g, b) | r / g / b |\n\
-             | --- | ---: | ---: | --- | --- |\n",
-        );
-        for p in &self.points {
-            s.push_str(&format!(
-                "| {} | {} | {:.1} | {} ± {} | {} / {} / {} |\n",
-                p.planner,
-                p.frames,
-                p.rig_s,
-                f(p.test.log_e),
-                f(p.test.se),
-                f(p.test.rgb[0]),
-                f(p.test.rgb[1]),
-                f(p.test.rgb[2]),
-            ));
-        }
-        s.push_str(&format!(
-            "\nadaptive: {} of {} pool frames, rig time {:.1} s of dense's {:.1} s ({:.0} %); {}\n\
-             default fit on the adaptive frames: test log E {} ± {} (r/g/b {} / {} / {}); on the \
-             whole pool: {} ± {} (r/g/b {} / {} / {})\n",
-            self.adaptive_frames,
-            self.pool,
-            self.adaptive_rig_s,
-            self.dense_rig_s,
-            100.0 * self.adaptive_rig_s / self.dense_rig_s.max(1e-9),
-            self.adaptive_stop,
-            f(self.default_adaptive.log_e),
-            f(self.default_adaptive.se),
-            f(self.default_adaptive.rgb[0]),
-            f(self.default_adaptive.rgb[1]),
-            f(self.default_adaptive.rgb[2]),
-            f(self.default_pool.log_e),
-            f(self.default_pool.se),
-            f(self.default_pool.rgb[0]),
-            f(self.default_pool.rgb[1]),
-            f(self.default_pool.rgb[2]),
-        ));
-        let yes = |b: Option<bool>| match b {
-            Some(true) => "met",
-            Some(false) => "not met",
-            None => "not measurable",
+        let iv = |t: &Tost| {
+            t.interval.map_or("unbounded".to_string(), |[a, b]| {
+                format!("[{a:.4}, {b:.4}]")
+            })
         };
+        let mut s = format!(
+            "pool: {} frames that show a spot, rig time {:.1} s; test log E {} ± {} ({} frames, \
+             {} clusters); margin {}\n\n\
+             | start | frames (share) | rig time (s) | stop | against | at | their frames | \
+             adaptive − other ± SE | 90 % interval | pass |\n\
+             | --- | --- | ---: | --- | --- | --- | ---: | --- | --- | --- |\n",
+            self.pool,
+            self.pool_rig_s,
+            f(self.pool_test.log_e),
+            f(self.pool_test.se),
+            self.pool_test.frames,
+            self.pool_test.clusters,
+            self.margin
+        );
+        for r in &self.starts {
+            for (i, c) in r.comparisons.iter().enumerate() {
+                let lead = if i == 0 {
+                    format!(
+                        "{} | {} ({:.0} %) | {:.1} | {}",
+                        r.start_seed,
+                        r.frames,
+                        100.0 * r.share,
+                        r.rig_s,
+                        r.stop.split(':').next().unwrap_or_default()
+                    )
+                } else {
+                    " | | | ".to_string()
+                };
+                s.push_str(&format!(
+                    "| {lead} | {} | {} | {} | {:+.4} ± {} | {} | {} |\n",
+                    c.against,
+                    c.at,
+                    c.frames,
+                    c.paired.mean,
+                    f(c.paired.se),
+                    iv(&c.paired),
+                    if c.pass { "yes" } else { "no" }
+                ));
+            }
+        }
+        let met = self.starts.iter().filter(|r| r.meets_the_bar()).count();
         s.push_str(&format!(
-            "within one SE of the whole pool with at most half its frames (default fits): {}; \
-             within 5 % of dense's error (last points of the curves) in at most 40 % of its rig \
-             time: {}\n",
-            yes(self.within_one_se_at_half()),
-            yes(self.within_5_percent_at_40())
+            "\nthe bar (equivalent to the pool with at most {:.0} % of its frames, non-inferior to \
+             coverage and every random seed at equal frames) met on {met} of {} start sets; {} \
+             fits, {:.0} s\n",
+            100.0 * MAX_SHARE,
+            self.starts.len(),
+            self.fits,
+            self.seconds
         ));
         s
     }
 
-    /// The curves for [`crate::plot::learning_curves`].
+    /// The curves for [`crate::plot::learning_curves`]: each point's paired difference to the
+    /// whole pool on the test frames with its 95 % half-width (t on clusters − 1 degrees of
+    /// freedom), a scale on which planners a few hundredths apart can be told apart.
     pub fn curves(&self) -> Vec<crate::plot::LearningCurve> {
         let mut out: Vec<crate::plot::LearningCurve> = Vec::new();
         for p in &self.points {
-            let Some(e) = p.test.log_e else { continue };
-            let pt = (p.frames as f64, p.rig_s, e);
+            if p.test.log_e.is_none() || p.vs_pool.frames == 0 {
+                continue;
+            }
+            let half = match (p.vs_pool.se, p.vs_pool.dof) {
+                (Some(se), Some(dof)) => t95(dof) * se,
+                _ => f64::NAN,
+            };
+            let pt = (p.frames as f64, p.rig_s, p.vs_pool.mean, half);
             match out.iter_mut().find(|c| c.name == p.planner) {
                 Some(c) => c.points.push(pt),
                 None => out.push(crate::plot::LearningCurve {
@@ -445,5 +656,56 @@ impl Bench {
             }
         }
         out
+    }
+
+    /// Draws [`Bench::curves`] to `path`.
+    pub fn plot(&self, path: &Path) -> Result<(), crate::plot::PlotError> {
+        let name = Path::new(&self.dataset)
+            .file_name()
+            .map_or(String::new(), |n| n.to_string_lossy().to_string());
+        crate::plot::learning_curves(
+            path,
+            &format!("learning curves: {name} (95 % intervals; dashed: the margin)"),
+            "test log E − the whole pool's, paired",
+            &self.curves(),
+            Some(self.margin),
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Non-inferiority needs a bounded interval whose upper end is below the margin; one
+    /// cluster never passes, identical predictions do.
+    #[test]
+    fn non_inferiority_reads_the_upper_end_and_fails_on_one_cluster() {
+        let four = Clustering::of_folds(&[vec![0, 1], vec![2, 3], vec![4, 5], vec![6, 7]]);
+        let one = Clustering::of_folds(&[(0..8).collect()]);
+        let te = |v: &[f64]| TestError {
+            per_frame: v.iter().copied().enumerate().collect(),
+            ..TestError::default()
+        };
+        let base = te(&[0.5; 8]);
+        let better = te(&[0.45, 0.46, 0.44, 0.47, 0.45, 0.46, 0.44, 0.45]);
+        let worse = te(&[0.55, 0.56, 0.54, 0.57, 0.55, 0.56, 0.54, 0.55]);
+        // adaptive − other: better than the other passes, clearly worse fails.
+        assert!(non_inferior(&paired(&base, &better, &four, MARGIN), MARGIN));
+        assert!(!non_inferior(&paired(&base, &worse, &four, MARGIN), MARGIN));
+        let t = paired(&base, &better, &one, MARGIN);
+        assert!(!t.pass && !non_inferior(&t, MARGIN), "{t:?}");
+        assert!(non_inferior(&paired(&base, &base, &one, MARGIN), MARGIN));
+        // Equivalence at the declared margin: a fall of 0.05 is not equivalent.
+        assert!(!paired(&base, &better, &four, MARGIN).pass);
+    }
+
+    /// The equal-rig-time prefix is the longest within the time.
+    #[test]
+    fn the_equal_time_prefix_is_the_longest_within_it() {
+        let rig = |o: &[usize]| 10.0 * o.len() as f64;
+        assert_eq!(prefix_within(&[4, 5, 6, 7], 25.0, &rig), 2);
+        assert_eq!(prefix_within(&[4, 5], 5.0, &rig), 0);
+        assert_eq!(prefix_within(&[4, 5], 100.0, &rig), 2);
     }
 }

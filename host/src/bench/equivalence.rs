@@ -63,7 +63,7 @@ pub struct Side {
 }
 
 /// A paired change (default − reference) per frame and its two-one-sided test.
-#[derive(Debug, Clone, Default, serde::Serialize)]
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
 pub struct Tost {
     /// Frames compared.
     pub frames: usize,
@@ -277,7 +277,7 @@ fn channel_mean(v: &[f64; 3]) -> Option<f64> {
 }
 
 /// Each judged frame's log E, the mean over its channels.
-fn frame_errors(evals: &[FrameEval]) -> BTreeMap<usize, f64> {
+pub(crate) fn frame_errors(evals: &[FrameEval]) -> BTreeMap<usize, f64> {
     evals
         .iter()
         .filter(|e| e.skipped.is_none())
@@ -295,6 +295,20 @@ fn mean_of(m: &BTreeMap<usize, f64>) -> Option<f64> {
 /// ([`crate::evaluate::summary::ClusteredMean::decision_se`]): the test fails, unless every
 /// change is exactly zero.
 fn tost(a: &BTreeMap<usize, f64>, b: &BTreeMap<usize, f64>, clusters: &Clustering) -> Tost {
+    tost_at(a, b, clusters, MARGIN, MAX_WORSE)
+}
+
+/// [`tost`] at another `margin` and largest worse mean `max_worse` (`bench acquisition`'s
+/// declared margin): `pass` when the 90 % interval of the paired change `b − a` lies inside
+/// ±`margin` and its mean is at most `max_worse`, or every change is exactly zero. The interval's
+/// upper end below `margin` alone is the one-sided non-inferiority test at 5 % ([`Tost::interval`]).
+pub fn tost_at(
+    a: &BTreeMap<usize, f64>,
+    b: &BTreeMap<usize, f64>,
+    clusters: &Clustering,
+    margin: f64,
+    max_worse: f64,
+) -> Tost {
     let d: Vec<(f64, f64, (bool, usize))> = a
         .iter()
         .filter_map(|(f, x)| b.get(f).map(|y| (y - x, 1.0, clusters.cluster(*f))))
@@ -308,7 +322,7 @@ fn tost(a: &BTreeMap<usize, f64>, b: &BTreeMap<usize, f64>, clusters: &Clusterin
     let identical = d.iter().all(|v| v.0 == 0.0);
     let interval = m.interval(0.90);
     let pass = identical
-        || interval.is_some_and(|[lo, hi]| lo > -MARGIN && hi < MARGIN && m.mean <= MAX_WORSE);
+        || interval.is_some_and(|[lo, hi]| lo > -margin && hi < margin && m.mean <= max_worse);
     Tost {
         frames: m.frames,
         clusters: m.clusters,

@@ -3,7 +3,7 @@
 use anyhow::{Context, bail};
 use std::path::PathBuf;
 
-use subsurf::bench::acquisition::{bench_replay, record_sim_dense};
+use subsurf::bench::acquisition::{BenchOptions, bench_replay, record_sim_dense};
 
 use super::plan::AdaptiveArgs;
 use super::progress::Bar;
@@ -32,9 +32,12 @@ pub struct AcquisitionBench {
     /// Working directory (the replays, the sample store; kept, resumed by a second run).
     #[arg(long)]
     work: PathBuf,
-    /// Seed of the random planner's order.
-    #[arg(long, default_value_t = 1)]
-    seed: u64,
+    /// Seeds of the random planner's orders, each judged on its own.
+    #[arg(long, value_delimiter = ',', default_value = "1,2,3")]
+    random_seeds: Vec<u64>,
+    /// The adaptive planner's start sets (`--start-seed` of each run).
+    #[arg(long, value_delimiter = ',', default_value = "0,1,2")]
+    start_seeds: Vec<u64>,
     /// Draw the curves here (PNG).
     #[arg(long)]
     plot: Option<PathBuf>,
@@ -66,7 +69,11 @@ pub fn bench_acquisition(a: AcquisitionBench) -> anyhow::Result<()> {
         &test,
         &a.work,
         &a.adaptive.settings(),
-        a.seed,
+        &BenchOptions {
+            start_seeds: a.start_seeds.clone(),
+            random_seeds: a.random_seeds.clone(),
+            margin: subsurf::bench::acquisition::MARGIN,
+        },
         &bar,
         &mut |line| bar.suspend(|| println!("{line}")),
     )
@@ -81,10 +88,7 @@ pub fn bench_acquisition(a: AcquisitionBench) -> anyhow::Result<()> {
     );
     println!("{}", b.table());
     if let Some(p) = &a.plot {
-        let name = src
-            .file_name()
-            .map_or(String::new(), |n| n.to_string_lossy().to_string());
-        subsurf::plot::learning_curves(p, &format!("learning curves: {name}"), &b.curves())
+        b.plot(p)
             .with_context(|| format!("drawing {}", p.display()))?;
         println!("plot: {}", p.display());
     }

@@ -90,12 +90,15 @@ pub struct AdaptiveArgs {
     /// Frames per batch (default: as many as the start).
     #[arg(long)]
     pub batch: Option<usize>,
-    /// Batches in a row whose improvement is within its standard error before the scan stops.
+    /// Batches after the best so far, none gaining on it by half an SE, before the scan stops.
     #[arg(long, default_value_t = subsurf::scan::adaptive::DEFAULT_PATIENCE)]
     pub patience: usize,
     /// Cross-validation folds of each assessment.
     #[arg(long, default_value_t = subsurf::crossval::DEFAULT_FOLDS)]
     pub cv_folds: usize,
+    /// Which sparse start: 0 from the densest spot, any other a start drawn by this seed.
+    #[arg(long, default_value_t = 0)]
+    pub start_seed: u64,
 }
 
 impl AdaptiveArgs {
@@ -109,7 +112,8 @@ impl AdaptiveArgs {
             max_frames: self.max_frames,
             max_rig_s: self.max_rig_time,
             folds: self.cv_folds,
-            near_mm: None,
+            start_seed: self.start_seed,
+            ..Default::default()
         }
     }
 }

@@ -298,43 +298,71 @@ pub fn pareto_plot(
     Ok(front)
 }
 
-/// One planner's learning curve for [`learning_curves`]: `(frames, rig seconds, error)` per
-/// point.
+/// One planner's learning curve for [`learning_curves`]: `(frames, rig seconds, error, half
+/// width of its 95 % interval)` per point (a non-finite half-width: no interval drawn).
 #[derive(Clone, Debug, PartialEq)]
 pub struct LearningCurve {
     /// Legend text.
     pub name: String,
     /// The points, in acquisition order.
-    pub points: Vec<(f64, f64, f64)>,
+    pub points: Vec<(f64, f64, f64, f64)>,
 }
 
-/// Learning curves side by side: held-out error against frames (left) and against rig time
-/// (right), one line per planner. Non-finite points are left out.
+/// Learning curves side by side: `y_desc` (an error, or an error's paired difference to a
+/// reference, which separates curves that the frames' own spread would hide) against frames
+/// (left) and against rig time (right), one line per planner with each point's 95 % interval as
+/// an error bar, each curve's points nudged sideways by a little so the bars do not hide each
+/// other; `band` draws dashed lines at ±band (a declared margin) where given, and then the y axis
+/// is asinh(y / band) (labelled in y): linear within a few margins of zero, where planners that
+/// matter differ, logarithmic beyond, so one planner's far-off point does not flatten the others.
+/// Non-finite points are left out.
 pub fn learning_curves(
     path: &Path,
     title: &str,
+    y_desc: &str,
     curves: &[LearningCurve],
+    band: Option<f64>,
 ) -> Result<(), PlotError> {
     register_font();
-    let finite = |p: &&(f64, f64, f64)| p.0.is_finite() && p.1.is_finite() && p.2.is_finite();
-    let all: Vec<(f64, f64, f64)> = curves
+    type P = (f64, f64, f64, f64);
+    let finite = |p: &&P| p.0.is_finite() && p.1.is_finite() && p.2.is_finite();
+    let all: Vec<P> = curves
         .iter()
         .flat_map(|c| c.points.iter().filter(finite).copied())
         .collect();
     if all.is_empty() {
         return Err(PlotError::Empty("no finite learning-curve point".into()));
     }
-    let max = |f: fn(&(f64, f64, f64)) -> f64| all.iter().map(f).fold(0.0, f64::max);
+    let b = band.filter(|b| b.is_finite() && *b > 0.0);
+    // The axis transform and its inverse for the labels.
+    let fwd = move |y: f64| b.map_or(y, |b| (y / b).asinh());
+    let back = move |v: f64| b.map_or(v, |b| b * v.sinh());
+    let half = |p: &P| if p.3.is_finite() { p.3.abs() } else { 0.0 };
+    // A point as drawn: (y, low, high) on the axis' scale.
+    let drawn = |p: &P| (fwd(p.2), fwd(p.2 - half(p)), fwd(p.2 + half(p)));
+    let max = |f: fn(&P) -> f64| all.iter().map(f).fold(0.0, f64::max);
     let (fmax, tmax) = (max(|p| p.0).max(1.0), max(|p| p.1).max(1e-3));
-    let emin = all.iter().map(|p| p.2).fold(f64::INFINITY, f64::min);
-    let emax = max(|p| p.2);
+    let edge = b.map_or(0.0, fwd);
+    let emin = all.iter().map(|p| drawn(p).1).fold(-edge, f64::min);
+    let emax = all.iter().map(|p| drawn(p).2).fold(edge, f64::max);
     let pad = 0.05 * (emax - emin).max(1e-3);
     let e = draw_err(path);
     let root = BitMapBackend::new(path, (1200, 480)).into_drawing_area();
     root.fill(&WHITE).map_err(&e)?;
     let root = root.titled(title, ("sans-serif", 20)).map_err(&e)?;
     let (left, right) = root.split_horizontally(600);
-    let colours = [BLUE, RED, GREEN, MAGENTA, CYAN, BLACK];
+    let colours = [
+        BLUE,
+        RED,
+        GREEN,
+        MAGENTA,
+        CYAN,
+        BLACK,
+        RGBColor(230, 140, 0),
+        RGBColor(120, 60, 160),
+        RGBColor(140, 90, 40),
+    ];
+    let n = curves.len().max(1) as f64;
     for (area, by_time) in [(&left, false), (&right, true)] {
         let xmax = if by_time { tmax } else { fmax };
         let mut chart = ChartBuilder::on(area)
@@ -346,26 +374,65 @@ pub fn learning_curves(
         chart
             .configure_mesh()
             .x_desc(if by_time { "rig time (s)" } else { "frames" })
-            .y_desc("held-out log E (test frames)")
+            .y_desc(y_desc)
+            .y_label_formatter(&|v| format!("{:.3}", back(*v)))
             .draw()
             .map_err(&e)?;
+        if b.is_some() {
+            for y in [-edge, edge] {
+                chart
+                    .draw_series(DashedLineSeries::new(
+                        vec![(0.0, y), (xmax * 1.05, y)],
+                        6,
+                        4,
+                        BLACK.mix(0.6).stroke_width(1),
+                    ))
+                    .map_err(&e)?;
+            }
+        }
         for (i, c) in curves.iter().enumerate() {
             let colour = colours[i % colours.len()];
-            let pts: Vec<(f64, f64)> = c
+            let nudge = (i as f64 - (n - 1.0) / 2.0) * 0.006 * xmax;
+            let pts: Vec<(f64, (f64, f64, f64))> = c
                 .points
                 .iter()
                 .filter(finite)
-                .map(|p| (if by_time { p.1 } else { p.0 }, p.2))
+                .map(|p| ((if by_time { p.1 } else { p.0 }) + nudge, drawn(p)))
                 .collect();
             chart
-                .draw_series(LineSeries::new(pts.clone(), colour.stroke_width(2)))
+                .draw_series(LineSeries::new(
+                    pts.iter().map(|p| (p.0, p.1.0)),
+                    colour.stroke_width(2),
+                ))
                 .map_err(&e)?
                 .label(c.name.clone())
                 .legend(move |(x, y)| {
                     PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(2))
                 });
             chart
-                .draw_series(pts.iter().map(|&p| Circle::new(p, 3, colour.filled())))
+                .draw_series(
+                    pts.iter()
+                        .filter(|p| p.1.2 > p.1.1)
+                        .map(|&(x, (_, lo, hi))| {
+                            PathElement::new(vec![(x, lo), (x, hi)], colour.stroke_width(1))
+                        }),
+                )
+                .map_err(&e)?;
+            // The bars' caps, a hundredth of the axis wide.
+            let cap = 0.01 * xmax;
+            for end in [1usize, 2] {
+                chart
+                    .draw_series(pts.iter().filter(|p| p.1.2 > p.1.1).map(|&(x, y)| {
+                        let y = if end == 1 { y.1 } else { y.2 };
+                        PathElement::new(vec![(x - cap, y), (x + cap, y)], colour.stroke_width(1))
+                    }))
+                    .map_err(&e)?;
+            }
+            chart
+                .draw_series(
+                    pts.iter()
+                        .map(|&p| Circle::new((p.0, p.1.0), 3, colour.filled())),
+                )
                 .map_err(&e)?;
         }
         chart

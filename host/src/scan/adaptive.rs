@@ -25,10 +25,13 @@
 //!   (frames that failed count as the worst); the held-out error of its turntable angle (an
 //!   angle not yet seen counts as the worst). The best-scoring candidates are taken greedily,
 //!   each pick making its neighbourhood "close" for the next.
-//! - **Stop** ([`stop_reason`]) when the cross-validated error has stopped falling: its last
-//!   improvement, paired over the frames both assessments judged (so a batch of hard frames does
-//!   not look like a loss), is below its clustered standard error; or at `until_error`,
-//!   `max_frames` or `max_rig_s`, whichever comes first.
+//! - **Stop** ([`stop_reason`]) when the cross-validated error has stopped falling: for
+//!   `patience` assessments no point gained on the best so far by the cross-validation's own
+//!   minimum gain ([`crate::crossval::counts_as_gain`], half a standard error of the paired
+//!   difference over the frames both judged, clustered by fold; so a batch of hard frames does
+//!   not look like a loss, and a slow steady fall adds up against the best), and the comparison
+//!   rests on at least `min_clusters` folds; or at `until_error`, `max_frames` or `max_rig_s`,
+//!   whichever comes first.
 //!
 //! Resumable: the batches are written to `acquisition.json` before they are acquired and the
 //! assessments are deterministic, so a scan killed at any point and run again ends with the
@@ -133,16 +136,36 @@ pub trait FrameSource {
     fn describe(&self) -> String;
 }
 
-/// The rig time (s) of acquiring `order` (candidate ids of `cands`) from a homed rig, by the
-/// plan's own estimate ([`estimate_duration`]: turntable moves between consecutive angles,
-/// galvo settling, every exposure and the per-capture overhead); the one rig time of every
-/// planner's learning curve, so replayed and simulated scans are compared alike.
+/// The rig time (s) of acquiring `batches` (candidate ids of `cands`, each batch in its capture
+/// order) with the fits `fit_waits_s` in between, by the plan's own estimate
+/// ([`estimate_duration`]): every batch is one session of the scan driver, so it starts with a
+/// homing and its turntable moves start from home; then galvo settling, every exposure and the
+/// per-capture overhead; the dark frames once; and the rig waits, idle, for each assessment's fit
+/// (it does not capture while the fit runs). The one rig time of every planner's learning curve,
+/// so replayed and simulated scans are compared alike; a fixed plan is one batch and no wait.
 pub fn rig_seconds(
+    cands: &[Candidate],
+    batches: &[Vec<usize>],
+    fit_waits_s: &[f64],
+    t: &RigTiming,
+    exposures_s: &[f64],
+) -> f64 {
+    let mut s = 0.0;
+    for (k, b) in batches.iter().enumerate() {
+        let e = batch_duration(cands, b, t, exposures_s);
+        s += e.total_s() - if k > 0 { e.dark_s } else { 0.0 };
+    }
+    s += fit_waits_s.iter().filter(|w| w.is_finite()).sum::<f64>();
+    if s.is_finite() { s.max(0.0) } else { 0.0 }
+}
+
+/// One batch's session from a homed rig (homing, dark frames and captures in `order`).
+fn batch_duration(
     cands: &[Candidate],
     order: &[usize],
     t: &RigTiming,
     exposures_s: &[f64],
-) -> f64 {
+) -> super::plan::DurationEstimate {
     let by_id: BTreeMap<usize, &Candidate> = cands.iter().map(|c| (c.id, c)).collect();
     let mut angles: Vec<AnglePlan> = Vec::new();
     for id in order {
@@ -166,8 +189,17 @@ pub fn rig_seconds(
         channel: FrameChannel::Rgb,
         angles,
     };
-    let s = estimate_duration(&plan, t, 0).total_s();
-    if s.is_finite() { s } else { 0.0 }
+    estimate_duration(&plan, t, 0)
+}
+
+/// `order` sorted by turntable angle, then id: how a fixed plan is captured, so the turntable
+/// turns once round.
+pub fn in_turntable_order(cands: &[Candidate], order: &[usize]) -> Vec<usize> {
+    let by_id: BTreeMap<usize, f64> = cands.iter().map(|c| (c.id, c.turntable_deg)).collect();
+    let mut v = order.to_vec();
+    let deg = |id: &usize| by_id.get(id).map_or(0.0, |d| d.rem_euclid(360.0));
+    v.sort_by(|a, b| deg(a).total_cmp(&deg(b)).then(a.cmp(b)));
+    v
 }
 
 /// Settings of the adaptive planner. Every constant is an argument; the defaults are fractions
@@ -179,11 +211,22 @@ pub struct AdaptiveSettings {
     pub start: Option<usize>,
     /// Frames per later batch; `None`: as many as the start.
     pub batch: Option<usize>,
-    /// Assessments in a row whose improvement is below its standard error before the scan
-    /// stops ([`DEFAULT_PATIENCE`], two: one batch may improve within noise and the next still
-    /// fall), so one noisy comparison of a few early frames in a few clusters does not end the
-    /// scan.
+    /// Assessments after the best so far, none gaining on it by the minimum gain, before the
+    /// scan stops ([`DEFAULT_PATIENCE`], two, the cross-validation's own patience: one batch may
+    /// gain within noise and the next still fall).
     pub patience: usize,
+    /// The minimum gain, in standard errors of the paired difference
+    /// ([`crate::crossval::MIN_GAIN_SE`], the alpha rounds' own rule).
+    #[serde(default = "default_min_gain_se")]
+    pub min_gain_se: f64,
+    /// Clusters (folds) the comparison with the best must rest on before the scan may stop on a
+    /// stalled error ([`DEFAULT_MIN_CLUSTERS`]).
+    #[serde(default = "default_min_clusters")]
+    pub min_clusters: usize,
+    /// Which sparse start ([`start_batch`]): 0 the one that starts at the densest x_i, any other
+    /// value a start at a candidate drawn by this seed.
+    #[serde(default)]
+    pub start_seed: u64,
     /// Stop once the cross-validated error is at most this.
     pub until_error: Option<f64>,
     /// Stop before more frames than this.
@@ -200,12 +243,30 @@ pub struct AdaptiveSettings {
 /// Assessments in a row within noise before the adaptive scan stops (`--patience`).
 pub const DEFAULT_PATIENCE: usize = 2;
 
+/// Clusters a stop must rest on: five, the cross-validation's default folds
+/// ([`crate::crossval::DEFAULT_FOLDS`]) and the fewest at which `subsurf evaluate` stops warning
+/// that the interval rests on too few degrees of freedom
+/// ([`crate::evaluate::summary::FEW_CLUSTERS`]): below it a "no gain" is no evidence, since half
+/// a standard error measured on two to four clusters is itself a guess.
+pub const DEFAULT_MIN_CLUSTERS: usize = crate::evaluate::summary::FEW_CLUSTERS;
+
+fn default_min_gain_se() -> f64 {
+    crate::crossval::MIN_GAIN_SE
+}
+
+fn default_min_clusters() -> usize {
+    DEFAULT_MIN_CLUSTERS
+}
+
 impl Default for AdaptiveSettings {
     fn default() -> Self {
         AdaptiveSettings {
             start: None,
             batch: None,
             patience: DEFAULT_PATIENCE,
+            min_gain_se: crate::crossval::MIN_GAIN_SE,
+            min_clusters: DEFAULT_MIN_CLUSTERS,
+            start_seed: 0,
             until_error: None,
             max_frames: None,
             max_rig_s: None,
@@ -245,6 +306,12 @@ impl AdaptiveSettings {
                 "the near radius must be positive mm, got {r}"
             )));
         }
+        if !(self.min_gain_se.is_finite() && self.min_gain_se >= 0.0) {
+            return Err(AdaptiveError::Invalid(format!(
+                "the minimum gain must be a finite number of standard errors >= 0, got {}",
+                self.min_gain_se
+            )));
+        }
         if self.folds < 2 {
             return Err(AdaptiveError::Invalid(
                 "the adaptive planner cross-validates: it needs at least 2 folds".into(),
@@ -265,17 +332,31 @@ pub struct CurvePoint {
     pub rig_s: f64,
     /// Cross-validated held-out log E: the mean over the frames the folds predicted.
     pub cv_log_e: Option<f64>,
-    /// Its standard error, clustered by turntable angle.
+    /// Its standard error, clustered by fold.
     pub cv_se: Option<f64>,
     /// Frames the folds predicted.
     pub judged: usize,
-    /// Clusters (turntable angles) they fell into.
+    /// Clusters (folds) they fell into.
     pub clusters: usize,
     /// The fall of the held-out error since the previous point, paired over the frames both
     /// judged (positive: better).
     pub improvement: Option<f64>,
-    /// Its standard error, clustered by turntable angle.
+    /// Its standard error, clustered by fold.
     pub improvement_se: Option<f64>,
+    /// The batch of the best point so far after this one: it moves only by a gain on the
+    /// previous best that counts ([`crate::crossval::counts_as_gain`]).
+    #[serde(default)]
+    pub best_batch: usize,
+    /// The fall of the held-out error from the best point before this one to this one, paired
+    /// over the frames both judged (positive: better).
+    #[serde(default)]
+    pub gain: Option<f64>,
+    /// Its standard error, clustered by fold.
+    #[serde(default)]
+    pub gain_se: Option<f64>,
+    /// Clusters (folds) of that comparison.
+    #[serde(default)]
+    pub gain_clusters: usize,
     /// Wall time of the fit and its cross-validation (s).
     pub fit_s: f64,
     /// Each judged frame's held-out log E (frame index → mean over its channels).
@@ -290,9 +371,19 @@ impl CurvePoint {
             (Some(d), se) => format!(", improved by {} ± {}", f(Some(d)), f(se)),
             _ => String::new(),
         };
+        let best = match self.gain {
+            Some(g) if self.best_batch != self.batch || self.batch > 1 => format!(
+                "; against the best before: {} ± {} over {} folds, best now batch {}",
+                f(Some(g)),
+                f(self.gain_se),
+                self.gain_clusters,
+                self.best_batch
+            ),
+            _ => String::new(),
+        };
         format!(
             "batch {}: {} frames, rig time {:.1} s, cross-validated log E {} ± {} ({} frames \
-             judged, {} angles){delta}; fit {:.1} s",
+             judged, {} folds){delta}{best}; fit {:.1} s",
             self.batch,
             self.frames,
             self.rig_s,
@@ -525,15 +616,15 @@ fn clustered(
     }
 }
 
-/// The fall of the held-out error from `prev` to `cur`, paired over the frames both judged, and
-/// its standard error clustered by the folds of `cur`'s cross-validation (`folds`), which
-/// judged the current errors (`None` with fewer than two clusters).
+/// The fall of the held-out error from `prev` to `cur`, paired over the frames both judged, its
+/// standard error clustered by the folds of `cur`'s cross-validation (`folds`), which judged the
+/// current errors (`None` with fewer than two clusters), and the clusters.
 fn paired_improvement(
     ds: &Dataset,
     folds: &[Vec<usize>],
     prev: &BTreeMap<usize, f64>,
     cur: &BTreeMap<usize, f64>,
-) -> (Option<f64>, Option<f64>) {
+) -> (Option<f64>, Option<f64>, usize) {
     let common: BTreeMap<usize, f64> = cur
         .iter()
         .filter_map(|(f, c)| Some((*f, prev.get(f)? - c)))
@@ -544,8 +635,8 @@ fn paired_improvement(
         .map(|(&f, &d)| (d, 1.0, clusters.cluster(f)))
         .collect();
     match clustered_mean(&v) {
-        Some(m) => (finite(m.mean), m.se.and_then(finite)),
-        None => (None, None),
+        Some(m) => (finite(m.mean), m.se.and_then(finite), m.clusters),
+        None => (None, None, 0),
     }
 }
 
@@ -554,27 +645,36 @@ fn dist2(a: [f64; 3], b: [f64; 3]) -> f64 {
 }
 
 /// The sparse coverage start: up to `n` candidates predicted to show a spot, the first the one
-/// whose x_i has the most of `vertices` within `near_mm`, each next the one whose x_i is
-/// farthest from every x_i chosen (ties to the lowest id): few frames spread over the object.
+/// whose x_i has the most of `vertices` within `near_mm` (`seed` 0) or one drawn by `seed`
+/// (another start set, to judge the planner on more than one start), each next the one whose
+/// x_i is farthest from every x_i chosen (ties to the lowest id): few frames spread over the
+/// object.
 pub fn start_batch(
     cands: &[Candidate],
     vertices: &[[f64; 3]],
     near_mm: f64,
     n: usize,
+    seed: u64,
 ) -> Vec<usize> {
+    use rand::{Rng, SeedableRng};
     let useful: Vec<(&Candidate, [f64; 3])> =
         cands.iter().filter_map(|c| Some((c, c.x_i?))).collect();
-    let Some(first) = useful
-        .iter()
-        .max_by_key(|(c, x)| {
-            let near = vertices
-                .iter()
-                .filter(|v| dist2(**v, *x) <= near_mm * near_mm)
-                .count();
-            (near, std::cmp::Reverse(c.id))
-        })
-        .map(|(c, _)| c.id)
-    else {
+    let drawn = (seed != 0 && !useful.is_empty()).then(|| {
+        let i = rand::rngs::StdRng::seed_from_u64(seed).random_range(0..useful.len());
+        useful[i].0.id
+    });
+    let Some(first) = drawn.or_else(|| {
+        useful
+            .iter()
+            .max_by_key(|(c, x)| {
+                let near = vertices
+                    .iter()
+                    .filter(|v| dist2(**v, *x) <= near_mm * near_mm)
+                    .count();
+                (near, std::cmp::Reverse(c.id))
+            })
+            .map(|(c, _)| c.id)
+    }) else {
         return Vec::new();
     };
     let mut chosen = vec![first];
@@ -768,9 +868,27 @@ fn angle_key(deg: f64) -> u64 {
     ((d * 1e6).round() / 1e6).to_bits()
 }
 
-/// Whether a point's paired improvement is below its standard error.
-fn within_noise(p: &CurvePoint) -> bool {
-    matches!((p.improvement, p.improvement_se), (Some(d), Some(se)) if d < se)
+/// The best point so far once `cur` joins a curve whose best so far is `best` (`None`: `cur`
+/// is the first with a figure): `cur` replaces it only when its paired gain on it (`gain`, `se`
+/// of `cur` against `best`) counts by the cross-validation's minimum-gain rule
+/// ([`crate::crossval::counts_as_gain`]); a missing or zero SE never counts.
+pub fn next_best(
+    best: Option<&CurvePoint>,
+    cur_batch: usize,
+    cur_has_figure: bool,
+    gain: Option<f64>,
+    se: Option<f64>,
+    min_gain_se: f64,
+) -> usize {
+    match best {
+        Some(b) if b.cv_log_e.is_some() || !cur_has_figure => {
+            let counts = gain.is_some_and(|g| {
+                crate::crossval::counts_as_gain(g, se.unwrap_or(f64::INFINITY), min_gain_se)
+            });
+            if counts { cur_batch } else { b.batch }
+        }
+        _ => cur_batch,
+    }
 }
 
 /// Why the scan stops after the last point of `curve`, if it does.
@@ -784,13 +902,17 @@ pub fn stop_reason(curve: &[CurvePoint], s: &AdaptiveSettings) -> Option<String>
         ));
     }
     let patience = s.patience.max(1);
-    if curve.len() >= patience
-        && curve[curve.len() - patience..].iter().all(within_noise)
-        && let (Some(d), Some(se)) = (p.improvement, p.improvement_se)
-    {
+    let stalled = p.batch.saturating_sub(p.best_batch);
+    if stalled >= patience && p.gain_clusters >= s.min_clusters.max(2) && p.cv_log_e.is_some() {
+        let f = |x: Option<f64>| x.map_or("-".to_string(), |v| format!("{v:.4}"));
         return Some(format!(
-            "the cross-validated error stopped falling: the last {patience} batch(es) improved \
-             it within noise, the last by {d:.4}, below its clustered standard error {se:.4}"
+            "the cross-validated error stopped falling: {stalled} batch(es) since batch {} \
+             gained on it by less than {} standard errors, the last by {} ± {} over {} folds",
+            p.best_batch,
+            s.min_gain_se,
+            f(p.gain),
+            f(p.gain_se),
+            p.gain_clusters
         ));
     }
     if s.max_frames.is_some_and(|m| p.frames >= m) {
@@ -804,33 +926,36 @@ pub fn stop_reason(curve: &[CurvePoint], s: &AdaptiveSettings) -> Option<String>
     None
 }
 
-/// `batch` cut so that the scan (`order` then the batch) stays within `max_frames` and
-/// `max_rig_s`.
+/// `batch` cut so that the scan (`batches`, the fits `waits_s`, then the batch) stays within
+/// `max_frames` and `max_rig_s`.
 fn within_budget(
     source: &dyn FrameSource,
-    order: &[usize],
+    batches: &[Vec<usize>],
+    waits_s: &[f64],
     batch: Vec<usize>,
     s: &AdaptiveSettings,
 ) -> Vec<usize> {
-    let mut out = order.to_vec();
-    let mut kept = Vec::new();
+    let done: usize = batches.iter().map(Vec::len).sum();
+    let mut kept: Vec<usize> = Vec::new();
     for id in batch {
-        if s.max_frames.is_some_and(|m| out.len() >= m) {
+        if s.max_frames.is_some_and(|m| done + kept.len() >= m) {
             break;
         }
-        out.push(id);
-        if let Some(t) = s.max_rig_s
-            && rig_seconds(
+        kept.push(id);
+        if let Some(t) = s.max_rig_s {
+            let mut all = batches.to_vec();
+            all.push(kept.clone());
+            let rig = rig_seconds(
                 source.candidates(),
-                &out,
+                &all,
+                waits_s,
                 source.timing(),
                 source.exposures_s(),
-            ) > t
-        {
-            out.pop();
-            continue;
+            );
+            if rig > t {
+                kept.pop();
+            }
         }
-        kept.push(id);
     }
     kept
 }
@@ -901,7 +1026,8 @@ pub fn run_adaptive(
             let first = within_budget(
                 source,
                 &[],
-                start_batch(source.candidates(), &vertices, near, start),
+                &[],
+                start_batch(source.candidates(), &vertices, near, start, s.start_seed),
                 s,
             );
             if first.is_empty() {
@@ -949,16 +1075,37 @@ pub fn run_adaptive(
             a.near_mm = r;
         }
         let ds = Dataset::open(&dir)?;
-        let (improvement, improvement_se) = match rep.curve.last() {
+        let (improvement, improvement_se, _) = match rep.curve.last() {
             Some(prev) => paired_improvement(&ds, &a.folds, &prev.per_frame, &a.per_frame),
-            None => (None, None),
+            None => (None, None, 0),
         };
+        let best = rep
+            .curve
+            .last()
+            .and_then(|p| rep.curve.iter().find(|q| q.batch == p.best_batch));
+        let (gain, gain_se, gain_clusters) = match best {
+            Some(b) => paired_improvement(&ds, &a.folds, &b.per_frame, &a.per_frame),
+            None => (None, None, 0),
+        };
+        let batch_no = rep.batches.len();
+        let best_batch = next_best(
+            best,
+            batch_no,
+            a.mean.is_some(),
+            gain,
+            gain_se,
+            s.min_gain_se,
+        );
+        let fit_s = finite(a.seconds).unwrap_or(0.0);
+        let mut waits: Vec<f64> = rep.curve.iter().map(|p| p.fit_s).collect();
+        waits.push(fit_s);
         let point = CurvePoint {
-            batch: rep.batches.len(),
+            batch: batch_no,
             frames: order.len(),
             rig_s: rig_seconds(
                 source.candidates(),
-                &order,
+                &rep.batches,
+                &waits,
                 source.timing(),
                 source.exposures_s(),
             ),
@@ -968,7 +1115,11 @@ pub fn run_adaptive(
             clusters: a.clusters,
             improvement,
             improvement_se,
-            fit_s: finite(a.seconds).unwrap_or(0.0),
+            best_batch,
+            gain,
+            gain_se,
+            gain_clusters,
+            fit_s,
             per_frame: a.per_frame.clone(),
         };
         each(&point);
@@ -979,7 +1130,8 @@ pub fn run_adaptive(
             None => {
                 let next = within_budget(
                     source,
-                    &order,
+                    &rep.batches,
+                    &waits,
                     next_batch(source.candidates(), &order, &a, batch),
                     s,
                 );
@@ -1086,11 +1238,15 @@ mod tests {
             .map(|i| cand(i, 0.0, (i != 3).then_some([i as f64, 0.0, 0.0])))
             .collect();
         let verts: Vec<[f64; 3]> = (0..10).map(|i| [i as f64, 0.0, 0.0]).collect();
-        let s = start_batch(&cands, &verts, 1.5, 3);
+        let s = start_batch(&cands, &verts, 1.5, 3, 0);
         assert_eq!(s.len(), 3);
         assert!(!s.contains(&3));
         // After the densest, the farthest: both ends.
         assert!(s.contains(&0) || s.contains(&9), "{s:?}");
+        // Another start set: as many frames, still no miss.
+        let other = start_batch(&cands, &verts, 1.5, 3, 7);
+        assert_eq!(other.len(), 3);
+        assert!(!other.contains(&3), "{other:?}");
         let cover = cover_order(&cands, &verts, 1.0);
         assert!(!cover.contains(&3));
         // Every vertex within 1 mm of a chosen x_i.
@@ -1137,35 +1293,78 @@ mod tests {
         assert!(b.iter().all(|&id| id >= 10), "{b:?}");
     }
 
-    /// The stopping rule: an improvement within its standard error stops; a clear one does not;
-    /// the budget and the error goal stop.
-    #[test]
-    fn the_scan_stops_when_the_error_stops_falling() {
-        let p = CurvePoint {
-            batch: 2,
-            frames: 12,
+    fn point(batch: usize, best_batch: usize, gain: Option<f64>, se: Option<f64>) -> CurvePoint {
+        CurvePoint {
+            batch,
+            frames: 12 * batch,
             rig_s: 30.0,
             cv_log_e: Some(0.3),
             cv_se: Some(0.02),
-            judged: 12,
-            clusters: 4,
-            improvement: Some(0.05),
-            improvement_se: Some(0.01),
+            judged: 12 * batch,
+            clusters: 5,
+            improvement: gain,
+            improvement_se: se,
+            best_batch,
+            gain,
+            gain_se: se,
+            gain_clusters: 5,
             fit_s: 1.0,
             per_frame: BTreeMap::new(),
-        };
+        }
+    }
+
+    /// The best so far moves only by a gain of more than half a standard error; a missing or
+    /// zero SE never counts as a gain, however large the fall.
+    #[test]
+    fn the_best_moves_only_by_a_gain_that_counts() {
+        let best = point(1, 1, None, None);
+        let g = crate::crossval::MIN_GAIN_SE;
+        assert_eq!(
+            next_best(Some(&best), 2, true, Some(0.05), Some(0.02), g),
+            2
+        );
+        assert_eq!(
+            next_best(Some(&best), 2, true, Some(0.005), Some(0.02), g),
+            1
+        );
+        assert_eq!(next_best(Some(&best), 2, true, Some(0.5), None, g), 1);
+        assert_eq!(next_best(Some(&best), 2, true, Some(0.5), Some(0.0), g), 1);
+        assert_eq!(
+            next_best(Some(&best), 2, true, Some(-0.05), Some(0.01), g),
+            1
+        );
+        assert_eq!(next_best(None, 1, true, None, None, g), 1);
+        // A first figure after points without one is the best.
+        let mut none = best.clone();
+        none.cv_log_e = None;
+        assert_eq!(next_best(Some(&none), 2, true, None, None, g), 2);
+    }
+
+    /// The stopping rule: `patience` batches since the best stop, fewer do not; a comparison on
+    /// fewer folds than `min_clusters` never stops (a missing SE there is no evidence of a
+    /// plateau); the budget and the error goal stop.
+    #[test]
+    fn the_scan_stops_when_the_error_stops_falling() {
         let s = AdaptiveSettings::default();
+        let p = point(2, 2, Some(0.05), Some(0.01));
         assert_eq!(stop_reason(std::slice::from_ref(&p), &s), None);
-        let mut q = p.clone();
-        q.improvement = Some(0.005);
-        // Once within noise is not enough with the default patience; twice in a row is.
+        // One batch since the best is not enough with the default patience; two are.
+        let q = point(3, 2, Some(0.005), Some(0.01));
         assert_eq!(stop_reason(&[p.clone(), q.clone()], &s), None);
-        assert!(stop_reason(&[q.clone(), q.clone()], &s).is_some());
+        let r = point(4, 2, Some(0.004), Some(0.01));
+        assert!(stop_reason(&[p.clone(), q.clone(), r.clone()], &s).is_some());
+        // The same stall on four folds, or with a missing SE on one fold, does not stop.
+        let mut few = r.clone();
+        few.gain_clusters = 4;
+        assert_eq!(stop_reason(&[p.clone(), q.clone(), few], &s), None);
+        let mut lone = point(4, 2, Some(0.3), None);
+        lone.gain_clusters = 1;
+        assert_eq!(stop_reason(&[p.clone(), q.clone(), lone], &s), None);
         let impatient = AdaptiveSettings {
             patience: 1,
             ..AdaptiveSettings::default()
         };
-        assert!(stop_reason(std::slice::from_ref(&q), &impatient).is_some());
+        assert!(stop_reason(&[p.clone(), q.clone()], &impatient).is_some());
         let goal = AdaptiveSettings {
             until_error: Some(0.31),
             ..AdaptiveSettings::default()
@@ -1176,7 +1375,7 @@ mod tests {
                 .contains("until-error")
         );
         let frames = AdaptiveSettings {
-            max_frames: Some(12),
+            max_frames: Some(24),
             ..AdaptiveSettings::default()
         };
         assert!(
@@ -1195,9 +1394,10 @@ mod tests {
         );
     }
 
-    /// Rig time grows with frames and with every new turntable angle.
+    /// Rig time grows with frames and with every new turntable angle; every batch adds a
+    /// homing, and every assessment's fit is waited for.
     #[test]
-    fn rig_time_counts_moves_and_captures() {
+    fn rig_time_counts_moves_captures_homing_and_fit_waits() {
         let t = super::super::setup::rig_timing(
             &subsurf_firmware::sim::SimParams::default().profile,
             None,
@@ -1207,12 +1407,25 @@ mod tests {
         let cands: Vec<Candidate> = (0..4)
             .map(|i| cand(i, if i < 2 { 0.0 } else { 180.0 }, None))
             .collect();
-        let one = rig_seconds(&cands, &[0], &t, &[0.01]);
-        let same = rig_seconds(&cands, &[0, 1], &t, &[0.01]);
-        let moved = rig_seconds(&cands, &[0, 2], &t, &[0.01]);
+        let rig = |b: &[Vec<usize>], w: &[f64]| rig_seconds(&cands, b, w, &t, &[0.01]);
+        let one = rig(&[vec![0]], &[]);
+        let same = rig(&[vec![0, 1]], &[]);
+        let moved = rig(&[vec![0, 2]], &[]);
         assert!(
             one > 0.0 && same > one && moved > same,
             "{one} {same} {moved}"
         );
+        // Two batches: a second homing (the second session starts from home).
+        let split = rig(&[vec![0], vec![1]], &[]);
+        assert!(t.home_s > 0.0);
+        assert!(
+            split >= same + t.home_s - 1e-9,
+            "{split} {same} {}",
+            t.home_s
+        );
+        // The fits are waited for.
+        let waited = rig(&[vec![0], vec![1]], &[2.5, 4.0]);
+        assert!((waited - split - 6.5).abs() < 1e-9, "{waited} {split}");
+        assert_eq!(in_turntable_order(&cands, &[3, 0, 2, 1]), vec![0, 1, 2, 3]);
     }
 }
