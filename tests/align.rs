@@ -427,3 +427,85 @@ fn too_few_spots_and_spots_on_a_plane_are_refused_with_the_reason() {
     let spec = std::fs::read_to_string(slab.join("scan.json")).unwrap();
     assert!(!spec.contains("alignment"));
 }
+
+/// sample-pebble (an ellipsoid of a heterogeneous jade-like medium, 30 × 20 × 14 mm, lying on the
+/// turntable with its centre 7 mm up) in metres and any pose, aligned from the training frames'
+/// spots: what the alignment costs on the held-out frames, against the fit on the true mesh.
+///
+/// The pebble's surface has the four poses of an ellipsoid (its mesh maps onto itself, vertex
+/// onto vertex, by the half turns about its axes), so the pose is judged against the nearest of
+/// them. The held-out change is judged as any two models are (docs/validation.md): the paired
+/// per-frame change with its standard error clustered by turntable angle (4 angles, t95 3.18).
+/// At main the aligned pose is 0.05 mm RMS from the truth (its own uncertainty is 0.07 mm), and
+/// the held-out green is +15 % (+0.058 ± 0.058): one held-out frame of six, whose x_i sits among
+/// interpolated vertices, jumps when the mesh moves by a few hundredths of a mm, and moves the
+/// true mesh itself by 0.02–0.05 mm in random directions and 2 of 10 such fits jump the same
+/// way (BENCHMARKS.md, "`subsurf align`"): noise at this test set's resolution, not the spots'
+/// depth, which no model of it tried did better than the one depth along the laser ray.
+#[test]
+fn sample_pebble_in_metres_is_aligned_and_the_held_out_cost_is_noise() {
+    let Some(shared_pebble) = shared("sample-pebble") else {
+        eprintln!("SKIPPED: shared/data/sample-pebble is absent");
+        return;
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let ds = tmp.path().join("pebble");
+    copy_dir(&shared_pebble, &ds);
+    let held = "96-103";
+    let truth = read_mesh(&shared_pebble.join("object.obj"));
+    write_moved(&truth, &user_pose(), &ds.join("object.obj"));
+    let v = align(&ds, held);
+    let rec = v["alignment"].clone();
+    println!("pebble alignment: {rec}");
+    assert_eq!(rec["symmetry"]["poses"], 4, "{rec}");
+    let scale = rec["scale"].as_f64().unwrap();
+    assert!((scale - 1000.0).abs() < 5.0, "{rec}");
+    let aligned = read_mesh(&ds.join("object.aligned.obj"));
+    // The pose against the nearest of the truth's four: vertex i against the turned truth's.
+    let centre = Vector3::new(0.0, 0.0, 7.0);
+    let pose_rms = [
+        Matrix3::identity(),
+        Matrix3::from_diagonal(&Vector3::new(1.0, -1.0, -1.0)),
+        Matrix3::from_diagonal(&Vector3::new(-1.0, 1.0, -1.0)),
+        Matrix3::from_diagonal(&Vector3::new(-1.0, -1.0, 1.0)),
+    ]
+    .iter()
+    .map(|g| {
+        let s: f64 = truth
+            .positions
+            .iter()
+            .zip(&aligned.positions)
+            .map(|(t, a)| {
+                let t = g * (Vector3::from(*t) - centre) + centre;
+                (t - Vector3::from(*a)).norm_squared()
+            })
+            .sum();
+        (s / truth.positions.len() as f64).sqrt()
+    })
+    .fold(f64::INFINITY, f64::min);
+    let rms = surface_rms(&aligned, &truth);
+    println!(
+        "pebble: aligned surface RMS {rms:.4} mm, vertex RMS from the nearest true pose {pose_rms:.4} mm"
+    );
+    assert!(rms < 0.1 && pose_rms < 0.1, "{rms} {pose_rms}");
+
+    let reference = tmp.path().join("reference");
+    copy_dir(&shared_pebble, &reference);
+    let ref_model = tmp.path().join("true.ply");
+    fit(&reference, &ref_model, held);
+    let before = held_out(&ref_model, &reference, held);
+    let after_model = tmp.path().join("aligned.ply");
+    fit(&ds, &after_model, held);
+    let after = held_out(&after_model, &ds, held);
+    let (d, se) = paired_change(&after_model, &ds, &ref_model, &reference, held);
+    println!(
+        "pebble held-out mean log E: true mesh {:?}, aligned {:?}; change {d:?} ± {se:?}",
+        before.0, after.0
+    );
+    for c in 0..3 {
+        assert!(
+            d[c].abs() <= 3.18 * se[c],
+            "{after:?} vs {before:?}: {d:?} ± {se:?}"
+        );
+    }
+}

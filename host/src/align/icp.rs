@@ -9,6 +9,7 @@
 use nalgebra::{SMatrix, SVector, Vector3};
 use rayon::prelude::*;
 
+use super::DepthModel;
 use super::evidence::SpotPoint;
 use super::similarity::{Similarity, a, v};
 use crate::geometry::{Scene, V3, dot};
@@ -16,9 +17,13 @@ use crate::geometry::{Scene, V3, dot};
 /// 7 × 7: [scale, rotation (3), translation (3)], the first four scaled by the points' radius so
 /// every column is a length.
 pub(crate) type Mat7 = SMatrix<f64, 7, 7>;
-/// 8 × 8: the pose's 7 and the spot depth.
-pub(crate) type Mat8 = SMatrix<f64, 8, 8>;
-type Vec8 = SVector<f64, 8>;
+/// 9 × 9: the pose's 7 and the spot depth's two coefficients ([`DepthModel`]).
+pub(crate) type Mat9 = SMatrix<f64, 9, 9>;
+type Vec9 = SVector<f64, 9>;
+
+/// The spot depth's coefficients, mm: the first is the depth itself (kept >= 0), the second
+/// (when the model has one) its change with the angle of incidence.
+pub(crate) type Depth = [f64; 2];
 
 /// Inliers are within this many robust sigmas of the surface.
 const INLIER_SIGMAS: f64 = 3.0;
@@ -35,8 +40,12 @@ pub(crate) struct Match {
     pub y: V3,
     /// The surface's unit normal there (outwards when the orientation is known).
     pub m: V3,
-    /// Distance of the spot point from it, mm.
+    /// Distance of the spot point (moved by the spot depth) from it, mm.
     pub d: f64,
+    /// The spot point moved by the spot depth: where the light entered, object frame.
+    pub p: V3,
+    /// The directions the depth's coefficients move the spot point along.
+    pub b: [V3; 2],
     /// Could the camera and the laser both see this side of the surface?
     pub facing: bool,
 }
@@ -55,21 +64,23 @@ pub(crate) struct Problem<'a> {
     pub cutoff_mm: f64,
     /// The known scale (`subsurf align --scale`), held instead of estimated.
     pub scale: Option<f64>,
+    /// How the spot depth moves a spot point.
+    pub model: DepthModel,
 }
 
 /// The result of the point-to-plane refinement.
 #[derive(Debug, Clone)]
 pub(crate) struct Refined {
     pub pose: Similarity,
-    /// The spot depth: how far along its laser ray inside the surface each spot was seen, mm.
-    pub depth: f64,
+    /// The spot depth's coefficients ([`DepthModel`]), mm.
+    pub depth: Depth,
     pub matches: Vec<Option<Match>>,
     pub inlier: Vec<bool>,
     /// Robust sigma of the final residuals, mm.
     pub sigma_mm: f64,
     /// Normal matrix of the inliers' point-to-plane rows (normalised pose columns, then the
-    /// depth's).
-    pub info: Mat8,
+    /// depth's two).
+    pub info: Mat9,
     /// The centre and radius the columns are normalised by.
     pub centre: V3,
     pub radius: f64,
@@ -91,16 +102,29 @@ pub(crate) fn median(x: &[f64]) -> f64 {
 }
 
 impl Problem<'_> {
-    /// Every point's closest surface point under `pose`, each point first moved back along its
-    /// laser ray by the spot depth `depth` (mm).
-    pub fn matches(&self, pose: &Similarity, depth: f64) -> Vec<Option<Match>> {
+    /// Every point's closest surface point under `pose`, each point first moved back by the
+    /// spot depth `depth` ([`DepthModel`]). A model that depends on the surface's normal takes
+    /// it from the point moved along its laser ray by the depth, then looks again.
+    pub fn matches(&self, pose: &Similarity, depth: &Depth) -> Vec<Option<Match>> {
         self.points
             .par_iter()
             .map(|sp| {
-                let p = surface_point(sp, depth);
-                let c = self.scene.closest(pose.invert(p), f64::INFINITY)?;
-                let n = self.scene.face_normal(c.triangle)?;
-                let m = pose.turn(n);
+                let closest = |p: V3| {
+                    let c = self.scene.closest(pose.invert(p), f64::INFINITY)?;
+                    let n = self.scene.face_normal(c.triangle)?;
+                    Some((c, pose.turn(n)))
+                };
+                let along_laser = surface_point(sp, depth[0]);
+                let (b, (c, m)) = if self.model.needs_normal() {
+                    let (_, m0) = closest(along_laser)?;
+                    let b = self.model.directions(sp, m0);
+                    let p = add(sp.point, depth, &b);
+                    (b, closest(p)?)
+                } else {
+                    let b = self.model.directions(sp, [0.0; 3]);
+                    (b, closest(add(sp.point, depth, &b))?)
+                };
+                let p = add(sp.point, depth, &b);
                 let y = pose.apply(c.point);
                 let facing = self.orientation == 0.0
                     || (self.orientation * dot(m, sp.to_camera) > FACING_SLACK
@@ -114,6 +138,8 @@ impl Problem<'_> {
                     y,
                     m,
                     d: c.distance * pose.scale,
+                    p,
+                    b,
                     facing,
                 })
             })
@@ -168,7 +194,7 @@ impl Problem<'_> {
     pub fn icp_points(&self, start: Similarity, iterations: usize) -> Option<Similarity> {
         let mut pose = start;
         for _ in 0..iterations {
-            let matches = self.matches(&pose, 0.0);
+            let matches = self.matches(&pose, &[0.0; 2]);
             let (w, _) = self.weights(&matches);
             let mut from = Vec::with_capacity(w.len());
             let mut to = Vec::with_capacity(w.len());
@@ -223,14 +249,14 @@ impl Problem<'_> {
     /// outer iteration the robust sigma, the inliers (within 3 sigma) and their Huber weights are
     /// fixed, and a step is taken only when it lowers
     /// the inliers' Huber cost of their distances from the surface (else the damping grows). With
-    /// `fit_depth` the spot depth is estimated with the pose (from `depth`, kept >= 0: the light
-    /// comes from below the surface, never above), else held at `depth`. The damping keeps null
-    /// directions of the normal matrix (a symmetry, or a pose the points cannot fix) where the
-    /// start put them; the caller judges them from `info`.
+    /// `fit_depth` the spot depth's coefficients are estimated with the pose (from `depth`, the
+    /// depth itself kept >= 0: the light comes from below the surface, never above), else held
+    /// at `depth`. The damping keeps null directions of the normal matrix (a symmetry, or a pose
+    /// the points cannot fix) where the start put them; the caller judges them from `info`.
     pub fn refine(
         &self,
         start: Similarity,
-        depth: f64,
+        depth: Depth,
         fit_depth: bool,
         iterations: usize,
     ) -> Refined {
@@ -238,13 +264,13 @@ impl Problem<'_> {
         let cv = v(centre);
         let (mut pose, mut depth) = (start, depth);
         let mut lambda = 1e-4;
-        let mut matches = self.matches(&pose, depth);
+        let mut matches = self.matches(&pose, &depth);
         for _ in 0..iterations {
             let (w, sigma) = self.weights(&matches);
             let mask: Vec<bool> = w.iter().map(|w| *w > 0.0).collect();
             let cost = |m: &[Option<Match>]| huber_cost(m, &mask, HUBER * sigma);
             let before = cost(&matches);
-            let (info, rhs) = normal_equations(self.points, &matches, &w, cv, radius, depth);
+            let (info, rhs) = normal_equations(&matches, &w, cv, radius);
             let mut accepted = false;
             for _ in 0..12 {
                 let Some((next, next_depth)) =
@@ -252,7 +278,7 @@ impl Problem<'_> {
                 else {
                     break;
                 };
-                let m = self.matches(&next, next_depth);
+                let m = self.matches(&next, &next_depth);
                 let after = cost(&m);
                 if after < before {
                     let gain = before - after;
@@ -272,7 +298,7 @@ impl Problem<'_> {
         let (w, sigma_mm) = self.weights(&matches);
         let inlier: Vec<bool> = w.iter().map(|w| *w > 0.0).collect();
         let ones: Vec<f64> = inlier.iter().map(|i| f64::from(u8::from(*i))).collect();
-        let (info, _) = normal_equations(self.points, &matches, &ones, cv, radius, depth);
+        let (info, _) = normal_equations(&matches, &ones, cv, radius);
         Refined {
             pose,
             depth,
@@ -285,25 +311,36 @@ impl Problem<'_> {
         }
     }
 
+    /// Which of the depth's two coefficients are estimated.
+    pub fn free_depth(&self, fit_depth: bool) -> [bool; 2] {
+        [fit_depth, fit_depth && self.model.terms() > 1]
+    }
+
     /// One damped step: `(H + λ·diag(H))·x = −g` (Marquardt's scaling, plus a floor so null
-    /// directions stay put), the depth held when it is not fitted or the free step would take it
-    /// below zero. `None` when the system cannot be solved.
+    /// directions stay put), the depth's coefficients held when they are not fitted, and the
+    /// depth itself held at zero when the free step would take it below. `None` when the system
+    /// cannot be solved.
     #[allow(clippy::too_many_arguments)]
     fn lm_step(
         &self,
-        info: &Mat8,
-        rhs: &Vec8,
+        info: &Mat9,
+        rhs: &Vec9,
         lambda: f64,
         pose: Similarity,
-        depth: f64,
+        depth: Depth,
         fit_depth: bool,
         centre: V3,
         radius: f64,
-    ) -> Option<(Similarity, f64)> {
-        // Held unknowns (the depth when not free, the scale when known) get a zero step.
-        let solve = |free: bool| {
+    ) -> Option<(Similarity, Depth)> {
+        let free = self.free_depth(fit_depth);
+        // Held unknowns (depth coefficients not free, the scale when known) get a zero step.
+        let solve = |free: [bool; 2]| {
             let (mut a, mut b) = (*info, *rhs);
-            let held = [(!free).then_some(7), self.scale.map(|_| 0)];
+            let held = [
+                (!free[0]).then_some(7),
+                (!free[1]).then_some(8),
+                self.scale.map(|_| 0),
+            ];
             for k in held.into_iter().flatten() {
                 a.row_mut(k).fill(0.0);
                 a.column_mut(k).fill(0.0);
@@ -311,21 +348,22 @@ impl Problem<'_> {
                 b[k] = 0.0;
             }
             let floor = 1e-12 * a.trace().max(f64::MIN_POSITIVE);
-            for k in 0..8 {
+            for k in 0..9 {
                 a[(k, k)] += lambda * a[(k, k)] + floor;
             }
             a.cholesky().map(|c| c.solve(&b))
         };
-        let mut step = solve(fit_depth)?;
-        if fit_depth && depth - step[7] < 0.0 {
-            step = solve(false)?;
-            step[7] = depth;
+        let mut step = solve(free)?;
+        if free[0] && depth[0] - step[7] < 0.0 {
+            // Held at zero: the step that takes it there, the rest solved with it held.
+            step = solve([false, free[1]])?;
+            step[7] = depth[0];
         }
         let delta: [f64; 7] =
             std::array::from_fn(|k| if k < 4 { -step[k] / radius } else { -step[k] });
         let next = pose.moved(&delta, centre);
-        let next_depth = depth - step[7];
-        (next.is_finite() && next_depth.is_finite()).then_some((next, next_depth))
+        let next_depth = [depth[0] - step[7], depth[1] - step[8]];
+        (next.is_finite() && next_depth.iter().all(|d| d.is_finite())).then_some((next, next_depth))
     }
 }
 
@@ -343,22 +381,31 @@ fn huber_cost(matches: &[Option<Match>], mask: &[bool], k: f64) -> f64 {
         .sum()
 }
 
-/// Where the spot's light entered: the triangulated point moved back along its laser ray by
-/// the spot depth. In a translucent object the camera sees the spot's centroid below the
-/// surface, along the beam (measured on sample-torus: the triangulated points lie 0.01–0.21 mm
-/// inside the true surface, median 0.15 mm); the depth is estimated with the pose.
+/// The triangulated point moved back along its laser ray by `depth`: where the light entered
+/// under [`DepthModel::Laser`]. In a translucent object the camera sees the spot's centroid
+/// below the surface (measured on sample-torus: the triangulated points lie 0.01–0.21 mm inside
+/// the true surface, median 0.15 mm); the depth is estimated with the pose.
 pub(crate) fn surface_point(sp: &SpotPoint, depth: f64) -> V3 {
     crate::geometry::add_scaled(sp.point, depth, sp.to_laser)
 }
 
-/// One point-to-plane row: e = m·(y − p) for the surface point p of `sp` at spot depth `depth`,
-/// and its gradient in the normalised motion [σ·ρ, ω·ρ, τ] about `centre` (y moves by
-/// σ(y − c) + ω × (y − c) + τ) and in the depth (p moves along the laser ray).
-fn row(m: &Match, sp: &SpotPoint, depth: f64, centre: Vector3<f64>, radius: f64) -> (Vec8, f64) {
+/// `p + depth[0]·b[0] + depth[1]·b[1]`.
+fn add(p: V3, depth: &Depth, b: &[V3; 2]) -> V3 {
+    crate::geometry::add_scaled(
+        crate::geometry::add_scaled(p, depth[0], b[0]),
+        depth[1],
+        b[1],
+    )
+}
+
+/// One point-to-plane row: e = m·(y − p) for the spot's surface point p (moved by the spot
+/// depth), and its gradient in the normalised motion [σ·ρ, ω·ρ, τ] about `centre` (y moves by
+/// σ(y − c) + ω × (y − c) + τ) and in the depth's coefficients (p moves along `b`).
+fn row(m: &Match, centre: Vector3<f64>, radius: f64) -> (Vec9, f64) {
     let (mv, yc) = (v(m.m), v(m.y) - centre);
-    let e = mv.dot(&(v(m.y) - v(surface_point(sp, depth))));
+    let e = mv.dot(&(v(m.y) - v(m.p)));
     let r = yc.cross(&mv) / radius;
-    let j = Vec8::from_column_slice(&[
+    let j = Vec9::from_column_slice(&[
         mv.dot(&yc) / radius,
         r.x,
         r.y,
@@ -366,27 +413,26 @@ fn row(m: &Match, sp: &SpotPoint, depth: f64, centre: Vector3<f64>, radius: f64)
         mv.x,
         mv.y,
         mv.z,
-        -mv.dot(&v(sp.to_laser)),
+        -mv.dot(&v(m.b[0])),
+        -mv.dot(&v(m.b[1])),
     ]);
     (j, e)
 }
 
 fn normal_equations(
-    points: &[SpotPoint],
     matches: &[Option<Match>],
     w: &[f64],
     centre: Vector3<f64>,
     radius: f64,
-    depth: f64,
-) -> (Mat8, Vec8) {
-    let mut info = Mat8::zeros();
-    let mut rhs = Vec8::zeros();
-    for ((m, sp), wi) in matches.iter().zip(points).zip(w) {
+) -> (Mat9, Vec9) {
+    let mut info = Mat9::zeros();
+    let mut rhs = Vec9::zeros();
+    for (m, wi) in matches.iter().zip(w) {
         let Some(m) = m else { continue };
         if *wi <= 0.0 {
             continue;
         }
-        let (j, e) = row(m, sp, depth, centre, radius);
+        let (j, e) = row(m, centre, radius);
         info += *wi * j * j.transpose();
         rhs += *wi * e * j;
     }

@@ -23,17 +23,18 @@ use crate::geometry::{GeometryError, Scene, V3, cross, dot, sub};
 use crate::progress::Progress;
 
 pub mod check;
+mod depth;
 pub mod evidence;
 mod icp;
 mod search;
 mod similarity;
 
 pub use check::{CheckError, MeshCheck, check_mesh, check_spots};
+pub use depth::{DepthModel, REFRACTIVE_INDEX};
 pub use evidence::{Evidence, EvidenceOptions, NoPoint, SpotPoint, spot_points, triangulate};
 pub use similarity::Similarity;
 
 use icp::{Mat7, Problem, Refined, displacement_rows, median};
-use nalgebra::SMatrix;
 use similarity::v;
 
 /// Why the pose could not be estimated.
@@ -153,6 +154,8 @@ pub struct AlignOptions {
     /// spot's centre: a translucent object's light comes from below its surface), mm: `None`
     /// estimates it with the pose, a number holds it (0 for an opaque object).
     pub spot_depth: Option<f64>,
+    /// How the spot depth moves a spot point ([`DepthModel`]).
+    pub depth_model: DepthModel,
     /// The scale from mesh units to mm when it is known (`subsurf align --scale`): `None`
     /// estimates it with the pose, a number holds it, so the search fits rotation and
     /// translation only (a mesh whose unit is known is not rescaled to fit noisy spots).
@@ -174,6 +177,7 @@ impl AlignOptions {
             min_inlier_share: 0.5,
             max_pose_sigma_px: 0.25,
             spot_depth: None,
+            depth_model: DepthModel::Laser,
             scale: None,
         }
     }
@@ -211,6 +215,10 @@ pub struct Aligned {
     pub hypotheses: usize,
     /// Distinct poses the search converged to (the chosen one included).
     pub distinct_poses: usize,
+    /// The spot depth's model.
+    pub depth_model: DepthModel,
+    /// The depth's coefficients ([`DepthModel`]), mm.
+    pub depth: [f64; 2],
 }
 
 impl Aligned {
@@ -293,6 +301,7 @@ pub fn align_points(
         floor_mm: 0.05 * footprint,
         cutoff_mm: 3.0 * footprint,
         scale: opts.scale,
+        model: opts.depth_model,
     };
     let pts: Vec<V3> = evidence.points.iter().map(|p| p.point).collect();
     let starts = search::hypotheses(source, &pts, opts.scale);
@@ -303,7 +312,7 @@ pub fn align_points(
             let pose = problem.icp_points(*s, 40);
             progress.inc(1);
             let pose = pose?;
-            Some((pose, problem.score(&problem.matches(&pose, 0.0))))
+            Some((pose, problem.score(&problem.matches(&pose, &[0.0; 2]))))
         })
         .collect();
     tried.sort_by(|a, b| a.1.total_cmp(&b.1));
@@ -312,8 +321,8 @@ pub fn align_points(
     };
     // Refine every start that ended near the best, then keep the best refined one.
     let (depth0, fit_depth) = match opts.spot_depth {
-        Some(d) => (d, false),
-        None => (0.0, true),
+        Some(d) => ([d, 0.0], false),
+        None => ([0.0; 2], true),
     };
     let probe = probe_vertices(source);
     let mut finals: Vec<(Refined, f64)> = tried
@@ -357,7 +366,7 @@ pub fn align_points(
     // inliers for a depth above the surface).
     let best = problem.refine(best.pose, depth0, false, 100);
     let best = if fit_depth {
-        problem.refine(best.pose, 0.0, true, 100)
+        problem.refine(best.pose, [0.0; 2], true, 100)
     } else {
         best
     };
@@ -403,7 +412,7 @@ pub fn align_points(
         &scene,
         &probe,
         &best,
-        fit_depth,
+        problem.free_depth(fit_depth),
         LeftOut {
             turntable_turn: axis == Some(Symmetry::TurntableAxis { fold: None }),
             scale: opts.scale.is_some(),
@@ -439,9 +448,9 @@ pub fn align_points(
         (_, Some(motion)) => Some(Symmetry::Other { motion }),
         (axis, None) => {
             let tol = (0.5 * footprint).max(3.0 * best.sigma_mm);
-            let here = problem.score(&problem.matches(&pose, best.depth));
+            let here = problem.score(&problem.matches(&pose, &best.depth));
             let fits = |p: &Similarity| {
-                problem.score(&problem.matches(p, best.depth)) - here <= best.sigma_mm.powi(2)
+                problem.score(&problem.matches(p, &best.depth)) - here <= best.sigma_mm.powi(2)
             };
             finite_symmetry(&scene, source, &probe, &pose, axis, tol, &fits)
         }
@@ -463,7 +472,7 @@ pub fn align_points(
         rms_mm,
         rms_px,
         pose_sigma_mm,
-        spot_depth_mm: best.depth,
+        spot_depth_mm: best.depth[0],
         symmetry,
     };
     Ok(Aligned {
@@ -474,6 +483,8 @@ pub fn align_points(
         residuals,
         hypotheses: starts.len(),
         distinct_poses: distinct.len(),
+        depth_model: opts.depth_model,
+        depth: best.depth,
     })
 }
 
@@ -563,7 +574,7 @@ fn uncertainty(
     scene: &Scene,
     probe: &[V3],
     best: &Refined,
-    fit_depth: bool,
+    free_depth: [bool; 2],
     left_out: LeftOut,
     sigma_mm: f64,
     bound_mm: f64,
@@ -572,9 +583,20 @@ fn uncertainty(
     let pose = &best.pose;
     let h = &best.info;
     let mut info: Mat7 = h.fixed_view::<7, 7>(0, 0).into_owned();
-    if fit_depth && h[(7, 7)] > 0.0 {
-        let c: SMatrix<f64, 7, 1> = h.fixed_view::<7, 1>(0, 7).into_owned();
-        info -= c * c.transpose() / h[(7, 7)];
+    let free: Vec<usize> = free_depth
+        .iter()
+        .zip([7, 8])
+        .filter(|(f, _)| **f)
+        .map(|(_, k)| k)
+        .collect();
+    if !free.is_empty() {
+        let k = free.len();
+        let d = nalgebra::DMatrix::from_fn(k, k, |i, j| h[(free[i], free[j])]);
+        let c = nalgebra::DMatrix::from_fn(7, k, |i, j| h[(i, free[j])]);
+        if let Some(di) = d.try_inverse() {
+            let s = &c * di * c.transpose();
+            info -= Mat7::from_fn(|i, j| s[(i, j)]);
+        }
     }
     let verts: Vec<V3> = probe.iter().map(|p| pose.apply(*p)).collect();
     let mut g = Mat7::zeros();
@@ -853,6 +875,7 @@ mod tests {
             min_inlier_share: 0.5,
             max_pose_sigma_px: 0.25,
             spot_depth: None,
+            depth_model: DepthModel::Laser,
             scale: None,
         }
     }

@@ -4,7 +4,7 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, anyhow};
-use subsurf::align::{AlignOptions, align};
+use subsurf::align::{AlignOptions, DepthModel, align};
 
 use super::progress::Bar;
 
@@ -43,6 +43,11 @@ pub struct Args {
     /// a number holds it (0 for an opaque object).
     #[arg(long, default_value = "auto")]
     pub spot_depth: String,
+    /// Along what the spot depth moves a spot back to the surface: `laser` (one depth along
+    /// the laser ray), `incidence` (changing with the angle of incidence), `refracted` (seen
+    /// through a surface of index 1.5).
+    #[arg(long, default_value = "laser")]
+    pub spot_depth_model: DepthModel,
     /// The scale from mesh units to mm when it is known (1000 for a mesh in metres, 25.4 in
     /// inches): held instead of estimated, so the search fits rotation and translation only.
     #[arg(long)]
@@ -88,6 +93,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 })?,
         ),
     };
+    opts.depth_model = args.spot_depth_model;
     opts.scale = args.scale;
     let bar = if args.json {
         Bar::hidden()
@@ -129,6 +135,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             },
             "hypotheses": out.hypotheses,
             "distinct_poses": out.distinct_poses,
+            "spot_depth": {"model": out.depth_model, "mm": out.depth},
             "residuals": out.residuals,
         });
         println!("{}", serde_json::to_string_pretty(&v)?);
