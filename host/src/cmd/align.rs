@@ -3,7 +3,7 @@
 //! `scan.json`.
 use std::path::PathBuf;
 
-use anyhow::{Context, anyhow};
+use anyhow::Context;
 use subsurf::align::{AlignOptions, DepthModel, align};
 
 use super::progress::Bar;
@@ -43,9 +43,7 @@ pub struct Args {
     /// a number holds it (0 for an opaque object).
     #[arg(long, default_value = "auto")]
     pub spot_depth: String,
-    /// Along what the spot depth moves a spot back to the surface: `laser` (one depth along
-    /// the laser ray), `incidence` (changing with the angle of incidence), `refracted` (seen
-    /// through a surface of index 1.5).
+    /// How a spot is moved back to the surface: `laser`, `incidence` or `refracted` (index 1.5).
     #[arg(long, default_value = "laser")]
     pub spot_depth_model: DepthModel,
     /// The scale from mesh units to mm when it is known (1000 for a mesh in metres, 25.4 in
@@ -82,16 +80,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     opts.max_rms_px = args.max_rms_px;
     opts.min_inlier_share = args.min_inlier_share;
     opts.max_pose_sigma_px = args.max_pose_sigma_px;
-    opts.spot_depth = match args.spot_depth.as_str() {
-        "auto" => None,
-        d => Some(
-            d.parse::<f64>()
-                .ok()
-                .filter(|d| d.is_finite())
-                .ok_or_else(|| {
-                    anyhow!("--spot-depth must be `auto` or a number of mm, not {d:?}")
-                })?,
-        ),
+    let depth = args.spot_depth.as_str();
+    let mm = depth.parse::<f64>().ok().filter(|d| d.is_finite());
+    opts.spot_depth = match (depth, mm) {
+        ("auto", _) => None,
+        (_, Some(d)) => Some(d),
+        _ => anyhow::bail!("--spot-depth must be `auto` or a number of mm, not {depth:?}"),
     };
     opts.depth_model = args.spot_depth_model;
     opts.scale = args.scale;
