@@ -45,3 +45,4 @@ mod scan_fit;
 mod store;
 mod texture;
 mod volume;
+mod volume_dielectric;

@@ -6,16 +6,17 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use subsurf::dataset::{Dataset, Mesh, read_image, write_obj};
 use subsurf::geometry::{Camera, Scene};
+use subsurf::volume::dielectric::Surface;
 use subsurf::volume::fit::{FrameRings, frame_geometry, model_rings, ring_edge};
 use subsurf::volume::trace::{Boundary, FrameGeometry, TraceSettings, trace_frame};
 
-fn workspace() -> PathBuf {
+pub(crate) fn workspace() -> PathBuf {
     PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/.."))
 }
 
 /// The Python with Mitsuba 3: `$SUBSURF_MITSUBA_PYTHON`, else the venv `.ci/run` makes. `None`
 /// (after printing `SKIPPED:`) when absent and CI is not set.
-fn mitsuba() -> Option<PathBuf> {
+pub(crate) fn mitsuba() -> Option<PathBuf> {
     let py = std::env::var_os("SUBSURF_MITSUBA_PYTHON")
         .map(PathBuf::from)
         .unwrap_or_else(|| workspace().join(".ci/.venv-mitsuba/bin/python"));
@@ -196,6 +197,7 @@ fn compare(py: &Path, dir: &Path, case: &Case) -> Vec<(f64, [f64; 3], [f64; 3])>
         g: case.g,
         photons: 200_000,
         seed: 5,
+        surface: Surface::IndexMatched,
     };
     let records = trace_frame(&scene, Boundary::of(&scene), &geo, &settings, 0);
     let frame = FrameRings::new(&scene, geo, 0, &img, 1.0);
@@ -286,6 +288,7 @@ fn sample_slab_rings_follow_from_its_published_medium() {
         g: 0.0,
         photons: 60_000,
         seed: 11,
+        surface: Surface::IndexMatched,
     };
     let records = trace_frame(&scene, Boundary::Open, &geo, &settings, k);
     let img = ds.read_frame(k).unwrap();

@@ -11,6 +11,10 @@ from the light with next-event estimation to the camera: two estimators of the s
 scene.json: {"mesh": path, "sigma_t": s, "albedo": [r, g, b], "g": g,
              "camera": {"width", "height", "fov_x_deg", "origin", "target", "up"},
              "spot": {"position", "target", "cutoff_deg"}, "spp": n, "seed": k}
+
+With "bsdf": a Mitsuba BSDF dict (e.g. {"type": "roughdielectric", "distribution": "ggx",
+"alpha": 0.2, "int_ior": 1.55, "ext_ior": 1.0}) the boundary is that BSDF instead of the
+index-matched `null`.
 """
 import json
 import math
@@ -63,7 +67,7 @@ scene = mi.load_dict(
             "type": "obj",
             "filename": spec["mesh"],
             "face_normals": True,
-            "bsdf": {"type": "null"},
+            "bsdf": spec.get("bsdf", {"type": "null"}),
             "interior": {
                 "type": "homogeneous",
                 "sigma_t": spec["sigma_t"],

@@ -11,6 +11,7 @@
 //! derivatives in closed form. Each round re-traces at the estimate so that the ratios stay
 //! near 1.
 
+use super::dielectric::Surface;
 use super::trace::{Boundary, FrameGeometry, Record, TraceSettings, taps, trace_frame};
 use crate::dataset::{Dataset, Image};
 use crate::geometry::{Scene, V3, dist, normalize, world_to_turntable};
@@ -348,6 +349,7 @@ pub fn fit_homogeneous(
             g: opts.g,
             photons: opts.photons,
             seed: opts.seed ^ round as u64,
+            surface: Surface::IndexMatched,
         };
         let mut recs = Vec::new();
         for (fi, f) in judged.iter().enumerate() {
@@ -483,6 +485,7 @@ pub fn predict(
         g: model.g,
         photons,
         seed,
+        surface: Surface::IndexMatched,
     };
     let mut out = Vec::new();
     for &k in frames {

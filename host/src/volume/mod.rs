@@ -13,6 +13,9 @@
 //!   nearby medium from one trace.
 //! - [`fit`]: a homogeneous medium (six numbers) fitted to a scan's frames by ring sums around
 //!   x_i, and its predicted frames.
+//! - [`dielectric`]: a rough dielectric boundary instead of the index-matched one (GGX
+//!   microfacets, Fresnel, refraction), with the tracer's photons through it.
 
+pub mod dielectric;
 pub mod fit;
 pub mod trace;

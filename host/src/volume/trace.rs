@@ -24,6 +24,7 @@
 //! Written here rather than taken from a renderer: no Rust crate traces a participating medium
 //! behind a triangle mesh, and the likelihood-ratio records are what make the fit affordable.
 
+use super::dielectric::{RoughDielectric, Surface};
 use crate::dataset::Image;
 use crate::geometry::{
     Camera, Scene, V3, add_scaled, dist, dot, normalize, sub, world_to_turntable,
@@ -35,10 +36,10 @@ use rayon::prelude::*;
 /// filter (`gaussian`, stddev 0.5 px, radius 4 stddev), which the outside renderer's datasets
 /// were made with.
 pub const FILTER_STDDEV_PX: f64 = 0.5;
-const FILTER_RADIUS_PX: f64 = 4.0 * FILTER_STDDEV_PX;
+pub(super) const FILTER_RADIUS_PX: f64 = 4.0 * FILTER_STDDEV_PX;
 /// Collisions after which a photon is given up: at α = 0.999 the survival to this depth is
 /// below 1e-4 and what remains lies far beyond any judged ring.
-const MAX_COLLISIONS: u32 = 20_000;
+pub(super) const MAX_COLLISIONS: u32 = 20_000;
 /// A hit this close ahead of a crossing is that crossing again: the BVH's ray test reports the
 /// triangle just crossed a few 1e-5 mm ahead, and a ray through a shared edge or vertex meets
 /// each triangle there.
@@ -59,6 +60,8 @@ pub struct TraceSettings {
     pub photons: usize,
     /// Seed of the common random numbers: the same seed traces the same paths.
     pub seed: u64,
+    /// The medium's boundary: index-matched, or a rough dielectric (`super::dielectric`).
+    pub surface: Surface,
 }
 
 /// One frame's geometry in the object frame: the laser's entry point and direction and the
@@ -110,7 +113,7 @@ impl FrameGeometry {
 
     /// Where photon's light enters: x_i along the ray, or for a cone a direction drawn
     /// uniformly in its solid angle and cast at the mesh (`None`: it misses).
-    fn launch(&self, scene: &Scene, rng: &mut impl Rng) -> Option<(V3, V3, u32)> {
+    pub(super) fn launch(&self, scene: &Scene, rng: &mut impl Rng) -> Option<(V3, V3, u32)> {
         if self.cone <= 0.0 {
             return Some((self.x_i, self.dir, self.triangle));
         }
@@ -128,7 +131,7 @@ impl FrameGeometry {
 }
 
 /// Two unit vectors completing `d` to an orthonormal frame.
-fn frame_of(d: V3) -> (V3, V3) {
+pub(super) fn frame_of(d: V3) -> (V3, V3) {
     let a = if d[0].abs() < 0.9 {
         [1.0, 0.0, 0.0]
     } else {
@@ -196,7 +199,7 @@ impl Boundary {
 
 /// The first hit of the ray from `p` along `d` within `t_max`; after a crossing (`skip`, the
 /// triangle crossed) hits within [`PHANTOM_MM`] are that crossing again and are stepped over.
-fn next_hit(
+pub(super) fn next_hit(
     scene: &Scene,
     mut p: V3,
     d: V3,
@@ -221,7 +224,7 @@ fn next_hit(
 }
 
 /// Number of surface crossings on the segment from `p` to `q`.
-fn crossings(scene: &Scene, p: V3, q: V3) -> usize {
+pub(super) fn crossings(scene: &Scene, p: V3, q: V3) -> usize {
     let Some(d) = normalize(sub(q, p)) else {
         return 0;
     };
@@ -305,7 +308,7 @@ pub fn hg(cos: f64, g: f64) -> f64 {
 }
 
 /// A direction scattered from `d` by Henyey-Greenstein with asymmetry `g`.
-fn sample_hg(d: V3, g: f64, rng: &mut impl Rng) -> V3 {
+pub(super) fn sample_hg(d: V3, g: f64, rng: &mut impl Rng) -> V3 {
     let (x1, x2): (f64, f64) = (rng.random(), rng.random());
     let cos = if g.abs() < 1e-4 {
         1.0 - 2.0 * x1
@@ -324,7 +327,7 @@ fn sample_hg(d: V3, g: f64, rng: &mut impl Rng) -> V3 {
 }
 
 /// The seed of photon `n` of frame `frame`: independent streams, the same for every medium.
-fn photon_seed(seed: u64, frame: usize, n: usize) -> u64 {
+pub(super) fn photon_seed(seed: u64, frame: usize, n: usize) -> u64 {
     let mut z = seed ^ ((frame as u64) << 40) ^ (n as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
     z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
     z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
@@ -332,7 +335,8 @@ fn photon_seed(seed: u64, frame: usize, n: usize) -> u64 {
 }
 
 /// Traces one frame's photons in the reference medium and returns every collision's
-/// next-event record that lands in the image. `frame` only seeds the random numbers.
+/// next-event record that lands in the image (behind a rough dielectric, every surface
+/// event's: `super::dielectric`). `frame` only seeds the random numbers.
 pub fn trace_frame(
     scene: &Scene,
     boundary: Boundary,
@@ -340,6 +344,10 @@ pub fn trace_frame(
     settings: &TraceSettings,
     frame: usize,
 ) -> Vec<Record> {
+    if let Surface::RoughDielectric { ior, alpha } = settings.surface {
+        let bsdf = RoughDielectric { eta: ior, alpha };
+        return super::dielectric::trace_frame(scene, boundary, geo, settings, bsdf, frame);
+    }
     let cam = &geo.camera;
     let centre = world_to_turntable(cam.center(), geo.deg);
     let ln_power = -(settings.photons.max(1) as f64).ln();
@@ -557,6 +565,7 @@ mod tests {
             g: 0.2,
             photons: 4000,
             seed,
+            surface: Surface::IndexMatched,
         };
         let reference = at(1.5, 0.95, 3);
         let recs = trace_frame(&scene, Boundary::Closed, &geo, &reference, 0);
