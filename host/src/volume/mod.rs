@@ -15,4 +15,6 @@
 //!   x_i, and its predicted frames.
 
 pub mod fit;
+pub mod local;
+pub mod medium;
 pub mod trace;

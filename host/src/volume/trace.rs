@@ -110,7 +110,7 @@ impl FrameGeometry {
 
     /// Where photon's light enters: x_i along the ray, or for a cone a direction drawn
     /// uniformly in its solid angle and cast at the mesh (`None`: it misses).
-    fn launch(&self, scene: &Scene, rng: &mut impl Rng) -> Option<(V3, V3, u32)> {
+    pub(super) fn launch(&self, scene: &Scene, rng: &mut impl Rng) -> Option<(V3, V3, u32)> {
         if self.cone <= 0.0 {
             return Some((self.x_i, self.dir, self.triangle));
         }
@@ -221,7 +221,7 @@ fn next_hit(
 }
 
 /// Number of surface crossings on the segment from `p` to `q`.
-fn crossings(scene: &Scene, p: V3, q: V3) -> usize {
+pub(super) fn crossings(scene: &Scene, p: V3, q: V3) -> usize {
     let Some(d) = normalize(sub(q, p)) else {
         return 0;
     };
@@ -240,17 +240,17 @@ fn crossings(scene: &Scene, p: V3, q: V3) -> usize {
 }
 
 /// Where a photon is and which way it goes.
-struct Photon {
-    p: V3,
-    d: V3,
+pub(super) struct Photon {
+    pub(super) p: V3,
+    pub(super) d: V3,
     /// The triangle last crossed (or entered through).
-    skip: Option<u32>,
+    pub(super) skip: Option<u32>,
 }
 
 /// Moves the photon `s` mm of medium along its direction: out through the boundary and back in
 /// where the straight line meets the mesh again (index-matched: no refraction, no reflection).
 /// `false` when it leaves for good.
-fn fly(scene: &Scene, ph: &mut Photon, mut s: f64) -> bool {
+pub(super) fn fly(scene: &Scene, ph: &mut Photon, mut s: f64) -> bool {
     let mut inside = true;
     for _ in 0..64 {
         let reach = if inside { s } else { f64::MAX };
@@ -274,9 +274,15 @@ fn fly(scene: &Scene, ph: &mut Photon, mut s: f64) -> bool {
     false
 }
 
-/// Length of medium on the straight line from `p` (inside) to `q` (outside the mesh); `None`
-/// when the line never leaves the medium (an open face's medium seen past the face's edge).
-fn medium_length(scene: &Scene, p: V3, q: V3) -> Option<f64> {
+/// The sum of `depth(start, direction, length)` over the pieces of medium on the straight line
+/// from `p` (inside) to `q` (outside the mesh): their length, or their optical depth in a
+/// heterogeneous medium; `None` when the line never leaves the medium.
+pub(super) fn medium_depth(
+    scene: &Scene,
+    p: V3,
+    q: V3,
+    depth: &dyn Fn(V3, V3, f64) -> f64,
+) -> Option<f64> {
     let d = normalize(sub(q, p))?;
     let mut left = dist(p, q);
     let (mut at, mut skip, mut inside, mut len) = (p, None, true, 0.0);
@@ -284,7 +290,7 @@ fn medium_length(scene: &Scene, p: V3, q: V3) -> Option<f64> {
         match next_hit(scene, at, d, left, skip) {
             Some((t, hp, tri)) => {
                 if inside {
-                    len += t;
+                    len += depth(at, d, t);
                 }
                 left -= t;
                 at = hp;
@@ -305,7 +311,7 @@ pub fn hg(cos: f64, g: f64) -> f64 {
 }
 
 /// A direction scattered from `d` by Henyey-Greenstein with asymmetry `g`.
-fn sample_hg(d: V3, g: f64, rng: &mut impl Rng) -> V3 {
+pub(super) fn sample_hg(d: V3, g: f64, rng: &mut impl Rng) -> V3 {
     let (x1, x2): (f64, f64) = (rng.random(), rng.random());
     let cos = if g.abs() < 1e-4 {
         1.0 - 2.0 * x1
@@ -324,7 +330,7 @@ fn sample_hg(d: V3, g: f64, rng: &mut impl Rng) -> V3 {
 }
 
 /// The seed of photon `n` of frame `frame`: independent streams, the same for every medium.
-fn photon_seed(seed: u64, frame: usize, n: usize) -> u64 {
+pub(super) fn photon_seed(seed: u64, frame: usize, n: usize) -> u64 {
     let mut z = seed ^ ((frame as u64) << 40) ^ (n as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
     z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
     z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
@@ -372,7 +378,7 @@ pub fn trace_frame(
                     break;
                 }
                 // Next event towards the pinhole.
-                if let Some(r) = nee(scene, cam, geo.deg, centre, &ph, g) {
+                if let Some(r) = nee(scene, cam, geo.deg, centre, &ph, g, &|_, _, t| t) {
                     let l_cam = r.2;
                     out.push(Record {
                         u: r.0[0] as f32,
@@ -398,14 +404,16 @@ pub fn trace_frame(
 }
 
 /// The next event from the photon's collision towards the camera: pixel coordinates, ln of the
-/// phase function times the pinhole's radiance factor, and the length of medium to cross.
-fn nee(
+/// phase function times the pinhole's radiance factor, and the medium to cross: the sum of
+/// `depth` over its pieces (their length, or their optical depth).
+pub(super) fn nee(
     scene: &Scene,
     cam: &Camera,
     deg: f64,
     centre: V3,
     ph: &Photon,
     g: f64,
+    depth: &dyn Fn(V3, V3, f64) -> f64,
 ) -> Option<([f64; 2], f64, f64)> {
     let to_cam = normalize(sub(centre, ph.p))?;
     let world = crate::geometry::turntable_to_world(ph.p, deg);
@@ -416,7 +424,7 @@ fn nee(
     if uv[0] < -0.5 - r || uv[1] < -0.5 - r || uv[0] > w - 0.5 + r || uv[1] > h - 0.5 + r {
         return None;
     }
-    let l_cam = medium_length(scene, ph.p, centre)?;
+    let l_cam = medium_depth(scene, ph.p, centre, depth)?;
     // A point of intensity I (W/sr) at distance r seen by a pinhole pixel of solid angle
     // cos³θ / (f_x f_y) reads as the radiance I / r² / Ω = I f_x f_y r / z³.
     let range = dist(centre, ph.p);
