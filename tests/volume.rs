@@ -190,13 +190,7 @@ fn compare(py: &Path, dir: &Path, case: &Case) -> Vec<(f64, [f64; 3], [f64; 3])>
     let scene = Scene::new(case.mesh.clone()).unwrap();
     let mut geo = FrameGeometry::new(&scene, &cam, 0.0, light, [0.0, 0.0, -1.0]).unwrap();
     geo.cone = cutoff_deg.to_radians();
-    let settings = TraceSettings {
-        sigma_t: case.sigma_t,
-        albedo: case.albedo.iter().cloned().fold(0.0, f64::max),
-        g: case.g,
-        photons: 200_000,
-        seed: 5,
-    };
+    let settings = TraceSettings::for_medium([case.sigma_t; 3], case.albedo, case.g, 200_000, 5);
     let records = trace_frame(&scene, Boundary::of(&scene), &geo, &settings, 0);
     let frame = FrameRings::new(&scene, geo, 0, &img, 1.0);
     let model = model_rings(&frame, &records, &settings, [case.sigma_t; 3], case.albedo);
@@ -280,13 +274,7 @@ fn sample_slab_rings_follow_from_its_published_medium() {
     assert_eq!(Boundary::of(&scene), Boundary::Open);
     let k = 4;
     let geo = frame_geometry(&scene, &ds, k).unwrap();
-    let settings = TraceSettings {
-        sigma_t: 2.0,
-        albedo: 0.99,
-        g: 0.0,
-        photons: 60_000,
-        seed: 11,
-    };
+    let settings = TraceSettings::for_medium([2.0; 3], [0.99, 0.985, 0.98], 0.0, 60_000, 11);
     let records = trace_frame(&scene, Boundary::Open, &geo, &settings, k);
     let img = ds.read_frame(k).unwrap();
     let frame = FrameRings::new(&scene, geo, k, &img, ds.spec.frames[k].exposure_s);

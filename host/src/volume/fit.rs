@@ -11,7 +11,7 @@
 //! derivatives in closed form. Each round re-traces at the estimate so that the ratios stay
 //! near 1.
 
-use super::trace::{Boundary, FrameGeometry, Record, TraceSettings, taps, trace_frame};
+use super::trace::{Boundary, FrameGeometry, Record, TraceSettings, geo_mean, taps, trace_frame};
 use crate::dataset::{Dataset, Image};
 use crate::geometry::{Scene, V3, dist, normalize, world_to_turntable};
 
@@ -342,6 +342,8 @@ pub fn fit_homogeneous(
     for round in 0..opts.rounds {
         let sigma0 = geo_mean(&model.sigma_t);
         let alpha_max = model.albedo.iter().cloned().fold(0.0, f64::max);
+        // Not `TraceSettings::for_medium`: the fit keeps each α at most the reference's, so the
+        // reference albedo sits halfway from the largest estimate to 1, leaving α room to rise.
         let reference = TraceSettings {
             sigma_t: sigma0,
             albedo: 1.0 - 0.5 * (1.0 - alpha_max),
@@ -383,10 +385,6 @@ pub fn fit_homogeneous(
         progress(round, &model);
     }
     Ok(model)
-}
-
-fn geo_mean(v: &[f64; 3]) -> f64 {
-    (v.iter().map(|x| x.ln()).sum::<f64>() / 3.0).exp()
 }
 
 /// One channel's (σ, α) by damped Gauss-Newton on the rings' log ratios, in (ln σ, ln(1 − α)),
@@ -476,14 +474,7 @@ pub fn predict(
 ) -> Result<Vec<(usize, Image)>, VolumeFitError> {
     let scene = Scene::new(ds.mesh.clone())?;
     let boundary = Boundary::of(&scene);
-    let alpha_max = model.albedo.iter().cloned().fold(0.0, f64::max);
-    let reference = TraceSettings {
-        sigma_t: geo_mean(&model.sigma_t),
-        albedo: alpha_max,
-        g: model.g,
-        photons,
-        seed,
-    };
+    let reference = TraceSettings::for_medium(model.sigma_t, model.albedo, model.g, photons, seed);
     let mut out = Vec::new();
     for &k in frames {
         let f = ds

@@ -61,6 +61,33 @@ pub struct TraceSettings {
     pub seed: u64,
 }
 
+impl TraceSettings {
+    /// The reference medium for a medium given channel by channel: σ_0 the geometric mean of
+    /// the three σ (the likelihood ratio's variance grows with ln(σ/σ_0) on either side) and
+    /// α_0 the largest albedo (the ratio (α/α_0)^k stays at most 1 and cannot blow up over
+    /// many collisions).
+    pub fn for_medium(
+        sigma_t: [f64; 3],
+        albedo: [f64; 3],
+        g: f64,
+        photons: usize,
+        seed: u64,
+    ) -> TraceSettings {
+        TraceSettings {
+            sigma_t: geo_mean(&sigma_t),
+            albedo: albedo.iter().cloned().fold(0.0, f64::max),
+            g,
+            photons,
+            seed,
+        }
+    }
+}
+
+/// Geometric mean of three positive values.
+pub(crate) fn geo_mean(v: &[f64; 3]) -> f64 {
+    (v.iter().map(|x| x.ln()).sum::<f64>() / 3.0).exp()
+}
+
 /// One frame's geometry in the object frame: the laser's entry point and direction and the
 /// camera.
 #[derive(Debug, Clone)]
