@@ -13,7 +13,7 @@
 
 use super::trace::{Boundary, FrameGeometry, Record, TraceSettings, geo_mean, taps, trace_frame};
 use crate::dataset::{Dataset, Image};
-use crate::geometry::{Scene, V3, dist, normalize, world_to_turntable};
+use crate::geometry::{Scene, dist, normalize, world_to_turntable};
 
 /// Rings per factor e of distance from x_i.
 pub const RINGS_PER_E: f64 = 4.0;
@@ -67,40 +67,26 @@ pub struct FrameRings {
 }
 
 /// Each pixel's ring around x_i: the surface point the pixel's centre sees (the first hit of
-/// the camera ray), its distance from x_i.
+/// the camera ray, through the camera's distortion as the tracer projects with it), its
+/// distance from x_i.
 pub fn pixel_rings(scene: &Scene, geo: &FrameGeometry) -> Vec<u32> {
     let cam = &geo.camera;
-    let centre = world_to_turntable(cam.center(), geo.deg);
     let (w, h) = (cam.width as usize, cam.height as usize);
-    let inv = invert3(cam_rotation(cam));
     (0..w * h)
         .map(|p| {
             let (i, j) = ((p % w) as f64, (p / w) as f64);
-            let ray_cam = [(i - cam.cx) / cam.fx, (j - cam.cy) / cam.fy, 1.0];
-            let world_dir = mat_vec(&inv, ray_cam);
+            let Some((origin, world_dir)) = cam.ray(i, j) else {
+                return u32::MAX;
+            };
             let Some(d) = normalize(world_to_turntable(world_dir, geo.deg)) else {
                 return u32::MAX;
             };
-            match scene.cast(centre, d, f64::MAX) {
+            match scene.cast(world_to_turntable(origin, geo.deg), d, f64::MAX) {
                 Some(hit) => ring_of(dist(hit.point, geo.x_i)).unwrap_or(u32::MAX),
                 None => u32::MAX,
             }
         })
         .collect()
-}
-
-fn cam_rotation(cam: &crate::geometry::Camera) -> [[f64; 3]; 3] {
-    let m = &cam.camera_from_world;
-    std::array::from_fn(|r| std::array::from_fn(|c| m[r][c]))
-}
-
-/// The inverse of a rotation is its transpose.
-fn invert3(r: [[f64; 3]; 3]) -> [[f64; 3]; 3] {
-    std::array::from_fn(|a| std::array::from_fn(|b| r[b][a]))
-}
-
-fn mat_vec(m: &[[f64; 3]; 3], v: V3) -> V3 {
-    std::array::from_fn(|r| m[r][0] * v[0] + m[r][1] * v[1] + m[r][2] * v[2])
 }
 
 impl FrameRings {
