@@ -507,7 +507,7 @@ pub fn image(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::dataset::Mesh;
+    use crate::geometry::shapes;
 
     /// The phase function integrates to 1 over the sphere and its samples have mean cosine g.
     #[test]
@@ -532,32 +532,7 @@ mod tests {
 
     /// A box [-20, 20]² × [-20, 0] mm.
     fn block() -> Scene {
-        let (a, b) = (20.0, -20.0);
-        let p = vec![
-            [-a, -a, b],
-            [a, -a, b],
-            [a, a, b],
-            [-a, a, b],
-            [-a, -a, 0.0],
-            [a, -a, 0.0],
-            [a, a, 0.0],
-            [-a, a, 0.0],
-        ];
-        let t = vec![
-            [0, 2, 1],
-            [0, 3, 2],
-            [4, 5, 6],
-            [4, 6, 7],
-            [0, 1, 5],
-            [0, 5, 4],
-            [1, 2, 6],
-            [1, 6, 5],
-            [2, 3, 7],
-            [2, 7, 6],
-            [3, 0, 4],
-            [3, 4, 7],
-        ];
-        Scene::new(Mesh::new(p, t).0).unwrap()
+        Scene::new(shapes::block([-20.0, -20.0, -20.0], [20.0, 20.0, 0.0])).unwrap()
     }
 
     /// The images of a medium reweighted from a trace in another (the likelihood ratio) agree
