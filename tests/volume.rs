@@ -5,7 +5,7 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use subsurf::dataset::{Dataset, Mesh, read_image, write_obj};
-use subsurf::geometry::{Camera, Scene};
+use subsurf::geometry::{Camera, Scene, shapes};
 use subsurf::volume::fit::{FrameRings, frame_geometry, model_rings, ring_edge};
 use subsurf::volume::trace::{Boundary, FrameGeometry, TraceSettings, trace_frame};
 
@@ -39,103 +39,14 @@ fn mitsuba() -> Option<PathBuf> {
 
 /// A box [-15, 15]² × [-15, 0] mm: its top face at z = 0.
 fn block() -> Mesh {
-    let (a, b) = (15.0, -15.0);
-    let p = vec![
-        [-a, -a, b],
-        [a, -a, b],
-        [a, a, b],
-        [-a, a, b],
-        [-a, -a, 0.0],
-        [a, -a, 0.0],
-        [a, a, 0.0],
-        [-a, a, 0.0],
-    ];
-    let t = vec![
-        [0, 2, 1],
-        [0, 3, 2],
-        [4, 5, 6],
-        [4, 6, 7],
-        [0, 1, 5],
-        [0, 5, 4],
-        [1, 2, 6],
-        [1, 6, 5],
-        [2, 3, 7],
-        [2, 7, 6],
-        [3, 0, 4],
-        [3, 4, 7],
-    ];
-    Mesh::new(p, t).0
+    shapes::block([-15.0, -15.0, -15.0], [15.0, 15.0, 0.0])
 }
 
 /// A sphere of radius `r` with its top at z = 0: an icosahedron subdivided `n` times.
 fn sphere(r: f64, n: usize) -> Mesh {
-    let f = (1.0 + 5f64.sqrt()) / 2.0;
-    let mut p: Vec<[f64; 3]> = vec![
-        [-1.0, f, 0.0],
-        [1.0, f, 0.0],
-        [-1.0, -f, 0.0],
-        [1.0, -f, 0.0],
-        [0.0, -1.0, f],
-        [0.0, 1.0, f],
-        [0.0, -1.0, -f],
-        [0.0, 1.0, -f],
-        [f, 0.0, -1.0],
-        [f, 0.0, 1.0],
-        [-f, 0.0, -1.0],
-        [-f, 0.0, 1.0],
-    ];
-    let mut t: Vec<[u32; 3]> = vec![
-        [0, 11, 5],
-        [0, 5, 1],
-        [0, 1, 7],
-        [0, 7, 10],
-        [0, 10, 11],
-        [1, 5, 9],
-        [5, 11, 4],
-        [11, 10, 2],
-        [10, 7, 6],
-        [7, 1, 8],
-        [3, 9, 4],
-        [3, 4, 2],
-        [3, 2, 6],
-        [3, 6, 8],
-        [3, 8, 9],
-        [4, 9, 5],
-        [2, 4, 11],
-        [6, 2, 10],
-        [8, 6, 7],
-        [9, 8, 1],
-    ];
-    for _ in 0..n {
-        let mut mid = std::collections::HashMap::new();
-        let mut next = Vec::new();
-        for tri in &t {
-            let mut m = [0u32; 3];
-            for e in 0..3 {
-                let (a, b) = (tri[e], tri[(e + 1) % 3]);
-                m[e] = *mid.entry((a.min(b), a.max(b))).or_insert_with(|| {
-                    let (pa, pb) = (p[a as usize], p[b as usize]);
-                    p.push(std::array::from_fn(|c| (pa[c] + pb[c]) / 2.0));
-                    (p.len() - 1) as u32
-                });
-            }
-            next.extend([
-                [tri[0], m[0], m[2]],
-                [tri[1], m[1], m[0]],
-                [tri[2], m[2], m[1]],
-                [m[0], m[1], m[2]],
-            ]);
-        }
-        t = next;
-    }
-    let p = p
-        .iter()
-        .map(|v| {
-            let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
-            [r * v[0] / l, r * v[1] / l, r * v[2] / l - r]
-        })
-        .collect();
-    Mesh::new(p, t).0
+    let m = shapes::icosphere(r, n);
+    let p = m.positions.iter().map(|v| [v[0], v[1], v[2] - r]).collect();
+    Mesh::new(p, m.triangles).0
 }
 
 struct Case {
@@ -190,13 +101,7 @@ fn compare(py: &Path, dir: &Path, case: &Case) -> Vec<(f64, [f64; 3], [f64; 3])>
     let scene = Scene::new(case.mesh.clone()).unwrap();
     let mut geo = FrameGeometry::new(&scene, &cam, 0.0, light, [0.0, 0.0, -1.0]).unwrap();
     geo.cone = cutoff_deg.to_radians();
-    let settings = TraceSettings {
-        sigma_t: case.sigma_t,
-        albedo: case.albedo.iter().cloned().fold(0.0, f64::max),
-        g: case.g,
-        photons: 200_000,
-        seed: 5,
-    };
+    let settings = TraceSettings::for_medium([case.sigma_t; 3], case.albedo, case.g, 200_000, 5);
     let records = trace_frame(&scene, Boundary::of(&scene), &geo, &settings, 0);
     let frame = FrameRings::new(&scene, geo, 0, &img, 1.0);
     let model = model_rings(&frame, &records, &settings, [case.sigma_t; 3], case.albedo);
@@ -280,13 +185,7 @@ fn sample_slab_rings_follow_from_its_published_medium() {
     assert_eq!(Boundary::of(&scene), Boundary::Open);
     let k = 4;
     let geo = frame_geometry(&scene, &ds, k).unwrap();
-    let settings = TraceSettings {
-        sigma_t: 2.0,
-        albedo: 0.99,
-        g: 0.0,
-        photons: 60_000,
-        seed: 11,
-    };
+    let settings = TraceSettings::for_medium([2.0; 3], [0.99, 0.985, 0.98], 0.0, 60_000, 11);
     let records = trace_frame(&scene, Boundary::Open, &geo, &settings, k);
     let img = ds.read_frame(k).unwrap();
     let frame = FrameRings::new(&scene, geo, k, &img, ds.spec.frames[k].exposure_s);

@@ -61,6 +61,33 @@ pub struct TraceSettings {
     pub seed: u64,
 }
 
+impl TraceSettings {
+    /// The reference medium for a medium given channel by channel: σ_0 the geometric mean of
+    /// the three σ (the likelihood ratio's variance grows with ln(σ/σ_0) on either side) and
+    /// α_0 the largest albedo (the ratio (α/α_0)^k stays at most 1 and cannot blow up over
+    /// many collisions).
+    pub fn for_medium(
+        sigma_t: [f64; 3],
+        albedo: [f64; 3],
+        g: f64,
+        photons: usize,
+        seed: u64,
+    ) -> TraceSettings {
+        TraceSettings {
+            sigma_t: geo_mean(&sigma_t),
+            albedo: albedo.iter().cloned().fold(0.0, f64::max),
+            g,
+            photons,
+            seed,
+        }
+    }
+}
+
+/// Geometric mean of three positive values.
+pub(crate) fn geo_mean(v: &[f64; 3]) -> f64 {
+    (v.iter().map(|x| x.ln()).sum::<f64>() / 3.0).exp()
+}
+
 /// One frame's geometry in the object frame: the laser's entry point and direction and the
 /// camera.
 #[derive(Debug, Clone)]
@@ -488,7 +515,7 @@ pub fn image(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::dataset::Mesh;
+    use crate::geometry::shapes;
 
     /// The phase function integrates to 1 over the sphere and its samples have mean cosine g.
     #[test]
@@ -513,32 +540,7 @@ mod tests {
 
     /// A box [-20, 20]² × [-20, 0] mm.
     fn block() -> Scene {
-        let (a, b) = (20.0, -20.0);
-        let p = vec![
-            [-a, -a, b],
-            [a, -a, b],
-            [a, a, b],
-            [-a, a, b],
-            [-a, -a, 0.0],
-            [a, -a, 0.0],
-            [a, a, 0.0],
-            [-a, a, 0.0],
-        ];
-        let t = vec![
-            [0, 2, 1],
-            [0, 3, 2],
-            [4, 5, 6],
-            [4, 6, 7],
-            [0, 1, 5],
-            [0, 5, 4],
-            [1, 2, 6],
-            [1, 6, 5],
-            [2, 3, 7],
-            [2, 7, 6],
-            [3, 0, 4],
-            [3, 4, 7],
-        ];
-        Scene::new(Mesh::new(p, t).0).unwrap()
+        Scene::new(shapes::block([-20.0, -20.0, -20.0], [20.0, 20.0, 0.0])).unwrap()
     }
 
     /// The images of a medium reweighted from a trace in another (the likelihood ratio) agree
