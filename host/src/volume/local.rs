@@ -99,10 +99,9 @@ pub fn interpolate(
         let d = dist(l.x_i, x);
         let w = (-(d * d) / (2.0 * h * h)).exp() * (l.rings as f64).sqrt();
         den += w;
-        for c in 0..3 {
-            for q in 0..2 {
-                num[c][q] += w * l.theta[c][q];
-            }
+        for (n, t) in num.iter_mut().zip(&l.theta) {
+            n[0] += w * t[0];
+            n[1] += w * t[1];
         }
     }
     if den > 0.0 {
@@ -161,11 +160,11 @@ pub fn image_rings(frame: &FrameRings, img: &Image) -> Vec<[f64; 3]> {
         if r == u32::MAX {
             continue;
         }
-        for c in 0..3 {
+        for (c, o) in out[r as usize].iter_mut().enumerate() {
             let ch = if img.channels == 3 { c } else { 0 };
             let v = img.data[p * img.channels + ch] as f64;
             if v.is_finite() {
-                out[r as usize][c] += v;
+                *o += v;
             }
         }
     }
@@ -178,10 +177,9 @@ fn ring_loss(frame: &FrameRings, model: &[[f64; 3]], floor: f64) -> (f64, usize)
     let (mut sum, mut n) = (0.0, 0);
     for (j, m) in model.iter().enumerate() {
         let cnt = frame.count[j];
-        for c in 0..3 {
-            let d = frame.data[j][c];
-            if cnt >= 4 && d > cnt as f64 * floor && m[c] > 0.0 {
-                let r = (m[c] / d).ln();
+        for (&mc, &d) in m.iter().zip(&frame.data[j]) {
+            if cnt >= 4 && d > cnt as f64 * floor && mc > 0.0 {
+                let r = (mc / d).ln();
                 sum += r * r;
                 n += 1;
             }

@@ -122,6 +122,7 @@ impl GridChannel {
 
 /// One frame's next events in a grid channel: pixel coordinates and the contribution to the
 /// pixel's radiance (per watt of laser) before the reconstruction filter.
+#[allow(clippy::too_many_arguments)]
 pub fn trace_channel(
     scene: &Scene,
     boundary: Boundary,
