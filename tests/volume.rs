@@ -344,3 +344,159 @@ fn the_fit_recovers_sample_slabs_published_medium() {
         assert!((m.albedo[c] - t).abs() < 0.004, "{m:?}");
     }
 }
+
+/// sample-slab, or `None` (after printing `SKIPPED:`) where the shared data is absent.
+fn sample_slab() -> Option<PathBuf> {
+    let dir = workspace().join("../shared/data/sample-slab");
+    if dir.join("scan.json").is_file() {
+        Some(dir)
+    } else {
+        eprintln!("SKIPPED: {} is absent", dir.display());
+        None
+    }
+}
+
+/// A volume model read back from its file predicts the same images as the fit's `predict` with
+/// the same medium on the dataset's mesh, bit for bit; a grid whose cells differ is refused
+/// with the typed error until the tracer follows it.
+#[test]
+fn a_volume_model_from_its_file_predicts_as_the_fit_does() {
+    use subsurf::volume::fit::{Homogeneous, predict};
+    use subsurf::volume::{FitInfo, MediumGrid, VolumeError, VolumeModel, predict_model};
+    let Some(dir) = sample_slab() else {
+        return;
+    };
+    let ds = Dataset::open(&dir).unwrap();
+    let medium = Homogeneous {
+        sigma_t: [2.0, 1.9, 2.1],
+        albedo: [0.99, 0.985, 0.98],
+        g: 0.2,
+        loss: [(0.0, 0); 3],
+    };
+    let info = FitInfo {
+        frames: vec![0],
+        photons: 1,
+        rounds: 1,
+        loss: [0.0; 3],
+        rings: [0; 3],
+        seconds: 0.0,
+        subsurf_version: "test".into(),
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let path = tmp.path().join("v.json");
+    VolumeModel::homogeneous(&ds.mesh, &medium, info)
+        .write(&path)
+        .unwrap();
+    let model = VolumeModel::read(&path).unwrap();
+    let ours = predict_model(&ds, &[4, 6], &model, 3000, 5).unwrap();
+    let theirs = predict(&ds, &[4, 6], &medium, 3000, 5).unwrap();
+    assert_eq!(ours.len(), 2);
+    for ((k, a), (j, b)) in ours.iter().zip(&theirs) {
+        assert_eq!(k, j);
+        assert!(a.data.iter().any(|&v| v > 0.0), "frame {k} is black");
+        assert_eq!(a.data, b.data, "frame {k}");
+    }
+    let mut grid = model.clone();
+    let (lo, hi) = model.mesh.bounds();
+    grid.grid = MediumGrid::homogeneous(lo, hi, medium.sigma_t, medium.albedo);
+    grid.grid.dims = [2, 1, 1];
+    grid.grid.cell_mm[0] /= 2.0;
+    grid.grid.sigma_t = vec![[2.0; 3], [3.0; 3]];
+    grid.grid.albedo = vec![[0.99; 3]; 2];
+    let e = predict_model(&ds, &[4], &grid, 100, 5).unwrap_err();
+    assert!(matches!(e, VolumeError::Heterogeneous(2)), "{e}");
+}
+
+/// `subsurf fit --model-kind volume` on sample-slab's training frames (few photons and rounds:
+/// a check of the plumbing, not of the figures) writes a volume model that reads back, and
+/// `evaluate` and `predict` take it: finite figures on frames it was fitted to, a lit image.
+#[test]
+fn fit_evaluate_and_predict_take_a_volume_model() {
+    use subsurf::volume::VolumeModel;
+    let Some(dir) = sample_slab() else {
+        return;
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("slab.json");
+    let run = |args: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_subsurf"))
+            .args(args)
+            .output()
+            .unwrap()
+    };
+    let scan = dir.to_str().unwrap();
+    let fit = |out: &Path| {
+        run(&[
+            "fit",
+            "--scan",
+            scan,
+            "--model-kind",
+            "volume",
+            "--exclude-frames",
+            "1,5",
+            "--volume-photons",
+            "300",
+            "--volume-rounds",
+            "2",
+            "--out",
+            out.to_str().unwrap(),
+        ])
+    };
+    let refused = fit(&tmp.path().join("slab.ply"));
+    assert!(!refused.status.success());
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert!(err.contains(".json"), "{err}");
+    let o = fit(&out);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let said = String::from_utf8_lossy(&o.stdout);
+    assert!(said.contains("volume: σ_t"), "{said}");
+    let model = VolumeModel::read(&out).unwrap();
+    assert_eq!(model.fit.frames, [0, 2, 3, 4, 6, 7, 8]);
+    assert_eq!((model.fit.photons, model.fit.rounds), (300, 2));
+    assert!(model.grid.is_uniform());
+    assert!(
+        model.grid.sigma_t[0]
+            .iter()
+            .all(|s| s.is_finite() && *s > 0.0)
+    );
+    let o = run(&[
+        "evaluate",
+        "--model",
+        out.to_str().unwrap(),
+        "--scan",
+        scan,
+        "--frames",
+        "3,4",
+        "--photons",
+        "3000",
+        "--json",
+        "--cache",
+        "off",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(v["volume_photons"], 3000, "{v}");
+    assert_eq!(v["in_sample_frames"], serde_json::json!([3, 4]), "{v}");
+    for c in 0..3 {
+        let m = v["in_sample"]["mean_log_e"][c].as_f64();
+        assert!(m.is_some_and(|m| m.is_finite() && m > 0.0), "{v}");
+    }
+    let img = tmp.path().join("p.exr");
+    let o = run(&[
+        "predict",
+        "--model",
+        out.to_str().unwrap(),
+        "--scan",
+        scan,
+        "--frame",
+        "4",
+        "--photons",
+        "2000",
+        "--out",
+        img.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let img = read_image(&img).unwrap();
+    assert!(img.data.iter().all(|v| v.is_finite()));
+    assert!(img.data.iter().any(|&v| v > 0.0));
+}
