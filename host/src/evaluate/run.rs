@@ -153,6 +153,9 @@ pub struct EvaluateSettings {
     pub rings: bool,
 }
 
+/// The rings of the frames judged ([`super::rings`]): per frame, and the mean over frames.
+pub type Rings = (Vec<FrameRings>, LogEStats);
+
 /// The report of `judged` on `frames` of `ds`, and with `settings.rings` its rings (per frame,
 /// and the mean over frames).
 pub fn evaluate_report(
@@ -161,7 +164,7 @@ pub fn evaluate_report(
     judged: Judged,
     settings: &EvaluateSettings,
     progress: &dyn Progress,
-) -> Result<(EvaluateReport, Option<(Vec<FrameRings>, LogEStats)>), EvaluateError> {
+) -> Result<(EvaluateReport, Option<Rings>), EvaluateError> {
     // Every model of a dataset is judged by the dataset's protocol, never by its fit's options
     // (docs/validation.md); flags change the protocol for every model alike.
     let (opts, source, overridden) = evaluation_protocol_with(ds, settings.changes)?;
@@ -274,7 +277,7 @@ fn volume_report(
 /// The report as `subsurf evaluate` prints it: one JSON object (with the rings' keys), or text.
 pub fn report_text(
     report: &EvaluateReport,
-    rings: Option<&(Vec<FrameRings>, LogEStats)>,
+    rings: Option<&Rings>,
     json: bool,
 ) -> Result<String, serde_json::Error> {
     if json {
