@@ -459,27 +459,40 @@ pub fn predict(
     seed: u64,
 ) -> Result<Vec<(usize, Image)>, VolumeFitError> {
     let scene = Scene::new(ds.mesh.clone())?;
-    let boundary = Boundary::of(&scene);
+    frames
+        .iter()
+        .map(|&k| Ok((k, predict_in(&scene, ds, k, model, photons, seed)?)))
+        .collect()
+}
+
+/// Frame `k` of `ds` predicted in the medium `model` inside the mesh of `scene` ([`predict`]).
+pub fn predict_in(
+    scene: &Scene,
+    ds: &Dataset,
+    k: usize,
+    model: &Homogeneous,
+    photons: usize,
+    seed: u64,
+) -> Result<Image, VolumeFitError> {
+    let boundary = Boundary::of(scene);
     let reference = TraceSettings::for_medium(model.sigma_t, model.albedo, model.g, photons, seed);
-    let mut out = Vec::new();
-    for &k in frames {
-        let f = ds
-            .spec
-            .frames
-            .get(k)
-            .ok_or_else(|| crate::dataset::DatasetError::Invalid(format!("no frame {k}")))?;
-        let cam = &ds.spec.cameras[f.camera];
-        let (w, h) = (cam.width as usize, cam.height as usize);
-        let img = match frame_geometry(&scene, ds, k) {
-            Some(geo) => {
-                let r = trace_frame(&scene, boundary, &geo, &reference, k);
-                super::trace::image(&r, &reference, model.sigma_t, model.albedo, w, h)
-            }
-            None => Image::new(w, h, 3),
-        };
-        out.push((k, img));
-    }
-    Ok(out)
+    let f = ds
+        .spec
+        .frames
+        .get(k)
+        .ok_or_else(|| crate::dataset::DatasetError::Invalid(format!("no frame {k}")))?;
+    let cam =
+        ds.spec.cameras.get(f.camera).ok_or_else(|| {
+            crate::dataset::DatasetError::Invalid(format!("frame {k}: no camera"))
+        })?;
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    Ok(match frame_geometry(scene, ds, k) {
+        Some(geo) => {
+            let r = trace_frame(scene, boundary, &geo, &reference, k);
+            super::trace::image(&r, &reference, model.sigma_t, model.albedo, w, h)
+        }
+        None => Image::new(w, h, 3),
+    })
 }
 
 /// The ring sums of `records` (one frame's trace in `reference`) in the medium (σ_t, α) per

@@ -13,8 +13,15 @@
 //!   nearby medium from one trace.
 //! - [`fit`]: a homogeneous medium (six numbers) fitted to a scan's frames by ring sums around
 //!   x_i, and its predicted frames.
+//! - [`model`]: the volume model and its file (JSON, docs/model-format.md), and its predicted
+//!   frames ([`predict_model`]).
 
 pub mod fit;
 pub mod local;
 pub mod medium;
+pub mod model;
 pub mod trace;
+
+pub use model::{
+    BoundaryModel, FitInfo, MediumGrid, VolumeError, VolumeMesh, VolumeModel, predict_model,
+};
