@@ -325,7 +325,7 @@ fn sample_slab() -> Option<PathBuf> {
 #[test]
 fn a_volume_model_from_its_file_predicts_as_the_fit_does() {
     use subsurf::volume::fit::{Homogeneous, predict};
-    use subsurf::volume::{FitInfo, MediumGrid, VolumeError, VolumeModel, predict_model};
+    use subsurf::volume::{FitInfo, MediumGrid, VolumeModel, predict_model};
     let Some(dir) = sample_slab() else {
         return;
     };
