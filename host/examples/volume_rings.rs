@@ -45,12 +45,8 @@ fn main() -> Result<()> {
     let scene = Scene::new(ds.mesh.clone())?;
     let geo = frame_geometry(&scene, &ds, k).context("the frame's laser ray misses the mesh")?;
     let settings = TraceSettings {
-        sigma_t: (sigma.iter().map(|x| x.ln()).sum::<f64>() / 3.0).exp(),
-        albedo: albedo.iter().cloned().fold(0.0, f64::max),
-        g,
-        photons,
-        seed: 1,
         surface,
+        ..TraceSettings::for_medium(sigma, albedo, g, photons, 1)
     };
     let records = trace_frame(&scene, Boundary::of(&scene), &geo, &settings, k);
     let img = ds.read_frame(k)?;

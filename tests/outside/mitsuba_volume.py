@@ -15,6 +15,11 @@ scene.json: {"mesh": path, "sigma_t": s, "albedo": [r, g, b], "g": g,
 With "bsdf": a Mitsuba BSDF dict (e.g. {"type": "roughdielectric", "distribution": "ggx",
 "alpha": 0.2, "int_ior": 1.55, "ext_ior": 1.0}) the boundary is that BSDF instead of the
 index-matched `null`.
+
+With "grid": {"origin", "cell_mm", "dims", "sigma_t": [per cell], "albedo": [[r, g, b] per
+cell]} (cells x fastest, then y, then z) the medium is heterogeneous instead: Mitsuba's
+`heterogeneous` medium over two `gridvolume`s with nearest-cell lookup, piecewise constant as
+subsurf's grid.
 """
 import json
 import math
@@ -32,6 +37,43 @@ cutoff = spot["cutoff_deg"]
 # blends the two smoothly, a sliver that changes the power by far less than the noise).
 intensity = 1.0 / (2.0 * math.pi * (1.0 - math.cos(math.radians(cutoff))))
 T = mi.ScalarTransform4f
+
+
+def interior(spec):
+    phase = {"type": "hg", "g": spec["g"]}
+    grid = spec.get("grid")
+    if grid is None:
+        return {
+            "type": "homogeneous",
+            "sigma_t": spec["sigma_t"],
+            "albedo": {"type": "rgb", "value": spec["albedo"]},
+            "phase": phase,
+        }
+    import numpy as np
+
+    nx, ny, nz = grid["dims"]
+    size = [c * n for c, n in zip(grid["cell_mm"], grid["dims"])]
+    to_world = T().translate(grid["origin"]) @ T().scale(size)
+    sigma = np.array(grid["sigma_t"], dtype=np.float32).reshape(nz, ny, nx, 1)
+    albedo = np.array(grid["albedo"], dtype=np.float32).reshape(nz, ny, nx, 3)
+    return {
+        "type": "heterogeneous",
+        "sigma_t": {
+            "type": "gridvolume",
+            "grid": mi.VolumeGrid(sigma),
+            "filter_type": "nearest",
+            "to_world": to_world,
+        },
+        "albedo": {
+            "type": "gridvolume",
+            "grid": mi.VolumeGrid(albedo),
+            "filter_type": "nearest",
+            "to_world": to_world,
+        },
+        "scale": 1.0,
+        "phase": phase,
+    }
+
 scene = mi.load_dict(
     {
         "type": "scene",
@@ -68,12 +110,7 @@ scene = mi.load_dict(
             "filename": spec["mesh"],
             "face_normals": True,
             "bsdf": spec.get("bsdf", {"type": "null"}),
-            "interior": {
-                "type": "homogeneous",
-                "sigma_t": spec["sigma_t"],
-                "albedo": {"type": "rgb", "value": spec["albedo"]},
-                "phase": {"type": "hg", "g": spec["g"]},
-            },
+            "interior": interior(spec),
         },
     }
 )

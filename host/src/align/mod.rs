@@ -823,6 +823,7 @@ fn turn_of(g: &Similarity) -> Option<crate::dataset::Turn> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::geometry::shapes::ellipsoid;
     use crate::simulate::SimObject;
     use nalgebra::{Rotation3, Vector3};
 
@@ -924,80 +925,6 @@ mod tests {
         assert_eq!(out.record.symmetry, None);
         assert!(out.record.inlier_share > 0.85 && out.record.inlier_share < 0.95);
         assert!(out.record.rms_mm < 0.05 && out.record.pose_sigma_mm < 0.05);
-    }
-
-    /// An ellipsoid with semi-axes `abc` along x, y, z: an icosphere (an icosahedron with each
-    /// face split in 4, `levels` times; its half turns about x, y and z map it onto itself)
-    /// scaled, so its mesh has exactly the ellipsoid's symmetries.
-    fn ellipsoid(abc: [f64; 3], levels: usize) -> Mesh {
-        let t = (1.0 + 5f64.sqrt()) / 2.0;
-        let mut pos: Vec<V3> = vec![
-            [-1.0, t, 0.0],
-            [1.0, t, 0.0],
-            [-1.0, -t, 0.0],
-            [1.0, -t, 0.0],
-            [0.0, -1.0, t],
-            [0.0, 1.0, t],
-            [0.0, -1.0, -t],
-            [0.0, 1.0, -t],
-            [t, 0.0, -1.0],
-            [t, 0.0, 1.0],
-            [-t, 0.0, -1.0],
-            [-t, 0.0, 1.0],
-        ];
-        let mut tris: Vec<[u32; 3]> = vec![
-            [0, 11, 5],
-            [0, 5, 1],
-            [0, 1, 7],
-            [0, 7, 10],
-            [0, 10, 11],
-            [1, 5, 9],
-            [5, 11, 4],
-            [11, 10, 2],
-            [10, 7, 6],
-            [7, 1, 8],
-            [3, 9, 4],
-            [3, 4, 2],
-            [3, 2, 6],
-            [3, 6, 8],
-            [3, 8, 9],
-            [4, 9, 5],
-            [2, 4, 11],
-            [6, 2, 10],
-            [8, 6, 7],
-            [9, 8, 1],
-        ];
-        for _ in 0..levels {
-            let mut mid = std::collections::HashMap::new();
-            let mut next = Vec::new();
-            for tri in &tris {
-                let m: Vec<u32> = (0..3)
-                    .map(|k| {
-                        let (a, b) = (tri[k], tri[(k + 1) % 3]);
-                        *mid.entry((a.min(b), a.max(b))).or_insert_with(|| {
-                            let (p, q) = (pos[a as usize], pos[b as usize]);
-                            pos.push(std::array::from_fn(|i| 0.5 * (p[i] + q[i])));
-                            pos.len() as u32 - 1
-                        })
-                    })
-                    .collect();
-                next.extend([
-                    [tri[0], m[0], m[2]],
-                    [tri[1], m[1], m[0]],
-                    [tri[2], m[2], m[1]],
-                    [m[0], m[1], m[2]],
-                ]);
-            }
-            tris = next;
-        }
-        let pos = pos
-            .iter()
-            .map(|p| {
-                let n = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
-                std::array::from_fn(|i| abc[i] * p[i] / n)
-            })
-            .collect();
-        Mesh::new(pos, tris).0
     }
 
     /// An ellipsoid with three distinct axes has four proper symmetries (the identity

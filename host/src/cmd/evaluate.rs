@@ -2,18 +2,21 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use subsurf::evaluate::{EvalPoints, FrameImages, evaluate_images_stored, evaluate_models_stored};
+use subsurf::evaluate::EvalPoints;
 use subsurf::modelfile::ModelFile;
-use subsurf::report::evaluate::{EvaluateReport, Protocol};
 
 use super::progress::Bar;
 
 /// Print mean and median log E (Eq. 8, Table 1) of a model on frames of a scan.
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// The model (PLY written by `subsurf fit`).
+    /// The model written by `subsurf fit`: the empirical model (PLY) or a volume (JSON), told
+    /// apart by the file's content.
     #[arg(long)]
     pub model: PathBuf,
+    /// Photons per frame of a volume model's predictions.
+    #[arg(long, default_value_t = subsurf::evaluate::run::VOLUME_PHOTONS)]
+    pub photons: usize,
     /// The scan dataset: its folder or its `scan.json`.
     #[arg(long)]
     pub scan: PathBuf,
@@ -81,89 +84,43 @@ pub enum At {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
+    use subsurf::evaluate::run::{AnyModel, EvaluateSettings, evaluate_report, report_text};
     let (ds, frames) = super::open_frames(
         &args.scan,
         args.frames.as_deref(),
         args.exclude_frames.as_deref(),
     )?;
     let read = |p: &PathBuf| ModelFile::read(p).with_context(|| format!("reading {}", p.display()));
-    let model = read(&args.model)?;
+    let model = AnyModel::read(&args.model)?;
     let against = args.against.as_ref().map(read).transpose()?;
-    // Every model of a dataset is judged by the dataset's protocol, never by its fit's options
-    // (docs/validation.md); flags change the protocol for every model alike.
-    let changes = subsurf::pipeline::ProtocolChanges {
-        noise_floor: args.noise_floor,
-        exclusion_radius_mm: args.exclusion_radius,
-        coverage_check: args.coverage_check,
-    };
-    let (opts, source, overridden) = subsurf::pipeline::evaluation_protocol_with(&ds, changes)
-        .context("the dataset's noise floor")?;
-    let bar = if args.json {
-        Bar::hidden()
-    } else {
-        Bar::new(indicatif::ProgressBar::new(0))
-    };
-    let points = match args.at {
-        At::Vertices => EvalPoints::Vertices,
-        At::Surface => EvalPoints::Surface {
-            level: args.surface_level,
+    let judged = model.judged(against.as_ref(), args.images.as_deref(), args.photons)?;
+    let settings = EvaluateSettings {
+        changes: subsurf::pipeline::ProtocolChanges {
+            noise_floor: args.noise_floor,
+            exclusion_radius_mm: args.exclusion_radius,
+            coverage_check: args.coverage_check,
         },
+        points: match args.at {
+            At::Vertices => EvalPoints::Vertices,
+            At::Surface => EvalPoints::Surface {
+                level: args.surface_level,
+            },
+        },
+        store: subsurf::pipeline::StoreOptions {
+            budget: usize::try_from(args.memory.saturating_mul(1 << 20)).unwrap_or(usize::MAX),
+            cache: args.cache.clone(),
+        },
+        rings: args.rings,
     };
-    let store = subsurf::pipeline::StoreOptions {
-        budget: usize::try_from(args.memory.saturating_mul(1 << 20)).unwrap_or(usize::MAX),
-        cache: args.cache.clone(),
+    let bar = match args.json {
+        true => Bar::hidden(),
+        false => Bar::new(indicatif::ProgressBar::new(0)),
     };
-    let images = args.images.as_ref().map(FrameImages::new);
-    let evals = match &images {
-        Some(images) => vec![evaluate_images_stored(
-            &ds, &model, images, &frames, &opts, points, &store, &bar,
-        )?],
-        None => {
-            let models: Vec<&ModelFile> = std::iter::once(&model).chain(against.as_ref()).collect();
-            evaluate_models_stored(&ds, &models, &frames, &opts, points, &store, &bar)?
-        }
-    };
+    let (report, rings) = evaluate_report(&ds, &frames, judged, &settings, &bar)?;
     bar.finish_and_clear();
-    let protocol = Protocol::of(&opts, overridden, source, &model);
-    let mut report = EvaluateReport::new(
-        &ds,
-        &model,
-        &evals[0].0,
-        against
-            .as_ref()
-            .zip(evals.get(1))
-            .map(|(m, e)| (m, &e.0[..])),
-        points,
-        protocol,
-    );
-    report.images = args.images.clone();
     for w in report.in_sample_warning().iter().chain(&report.warnings) {
         eprintln!("{w}");
     }
-    let rings = match args.rings {
-        true => Some(subsurf::evaluate::evaluate_rings_stored(
-            &ds,
-            &model,
-            images.as_ref(),
-            &frames,
-            &opts,
-            points,
-            &store,
-            &bar,
-        )?),
-        false => None,
-    };
-    if args.json {
-        let mut v = serde_json::to_value(&report)?;
-        if let (Some((per, st)), Some(obj)) = (&rings, v.as_object_mut()) {
-            obj.extend(subsurf::evaluate::rings::json_keys(per, st));
-        }
-        println!("{v}");
-    } else {
-        print!("{}", report.text());
-        if let Some((_, st)) = &rings {
-            println!("ring mean log E (r, g, b): {:?}", st.mean);
-        }
-    }
+    print!("{}", report_text(&report, rings.as_ref(), args.json)?);
     Ok(())
 }

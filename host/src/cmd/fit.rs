@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use subsurf::fit::Preset;
 use subsurf::fit_scan::{FitScanSettings, fit_scan};
 use subsurf::modelfile::ColourMode;
+use subsurf::volume::model::{ModelKind, VolumeFitSettings};
 
 use super::progress::StageBars;
 
@@ -40,9 +41,19 @@ pub struct Args {
     /// The scan dataset: its folder or its `scan.json`.
     #[arg(long)]
     pub scan: PathBuf,
-    /// Output model (binary PLY).
+    /// Output model (binary PLY; a volume's JSON, its name ending in `.json`).
     #[arg(long, default_value = "model.ply")]
     pub out: PathBuf,
+    /// `empirical`: the per-vertex model; `volume`: a homogeneous scattering volume on the
+    /// scan's mesh (docs/volume.md), of the flags below only the frames' and `--noise-floor`.
+    #[arg(long, default_value = "empirical")]
+    pub model_kind: ModelKind,
+    /// Volume fit: photons per frame and round (default 1,500).
+    #[arg(long)]
+    pub volume_photons: Option<usize>,
+    /// Volume fit: rounds of trace and fit (default 12).
+    #[arg(long)]
+    pub volume_rounds: Option<usize>,
     /// Output report (default: `fit-report.json` beside the model).
     #[arg(long)]
     pub report: Option<PathBuf>,
@@ -187,6 +198,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         args.frames.as_deref(),
         args.exclude_frames.as_deref(),
     )?;
+    let stages = StageBars("{msg:>12} {bar:40} {pos}/{len} {eta}");
+    if args.model_kind == ModelKind::Volume {
+        let mut s = VolumeFitSettings::defaults(&ds, args.out);
+        s.fit.photons = args.volume_photons.unwrap_or(s.fit.photons);
+        s.fit.rounds = args.volume_rounds.unwrap_or(s.fit.rounds);
+        s.fit.floor = args.noise_floor.unwrap_or(s.fit.floor);
+        subsurf::volume::model::fit_volume(&ds, &frames, &s, &stages)?;
+        return Ok(());
+    }
     let preset = match args.preset {
         PresetArg::Exact | PresetArg::Reference => None,
         PresetArg::Draft => Some(Preset::Draft),
@@ -230,7 +250,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         no_pictures: args.no_pictures,
         full_mesh: args.full_mesh,
     };
-    let stages = StageBars("{msg:>12} {bar:40} {pos}/{len} {eta}");
     fit_scan(&ds, &frames, &settings, &stages)?;
     Ok(())
 }

@@ -3,14 +3,12 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use subsurf::dataset::{Dataset, write_exr};
-use subsurf::evaluate::predict_frame;
-use subsurf::modelfile::ModelFile;
-use subsurf::pipeline::PipelineOptions;
+use subsurf::evaluate::run::{AnyModel, VOLUME_PHOTONS, predict_any};
 
 /// Render the model's prediction of frame K (laser at that frame's x_i) as an OpenEXR image.
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// The model (PLY written by `subsurf fit`).
+    /// The model written by `subsurf fit`: the empirical model (PLY) or a volume (JSON).
     #[arg(long)]
     pub model: PathBuf,
     /// The scan dataset: its folder or its `scan.json`.
@@ -22,15 +20,16 @@ pub struct Args {
     /// Output image (.exr).
     #[arg(long)]
     pub out: PathBuf,
+    /// Photons of a volume model's prediction.
+    #[arg(long, default_value_t = VOLUME_PHOTONS)]
+    pub photons: usize,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let ds =
         Dataset::open(&args.scan).with_context(|| format!("opening {}", args.scan.display()))?;
-    let model = ModelFile::read(&args.model)
-        .with_context(|| format!("reading {}", args.model.display()))?;
-    let opts = PipelineOptions::for_dataset(&ds);
-    let img = predict_frame(&ds, &model, args.frame, &opts)?;
+    let model = AnyModel::read(&args.model)?;
+    let img = predict_any(&ds, &model, args.frame, args.photons)?;
     write_exr(&args.out, &img).with_context(|| format!("writing {}", args.out.display()))?;
     println!("wrote {}", args.out.display());
     Ok(())

@@ -55,22 +55,52 @@ pub enum ImageProblem {
         /// The camera's height.
         want_h: usize,
     },
+    /// The model could not predict the frame.
+    #[error("not made: {0}")]
+    NotMade(BoxError),
     /// NaN or infinite pixels.
     #[error("{0} non-finite pixel values")]
     NonFinite(usize),
 }
 
-/// A folder of predicted frames ([`image_name`]).
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct FrameImages {
-    /// The folder.
+/// The predicted frames: a folder of images ([`image_name`]), or images made on demand (a
+/// volume model traced per frame), judged alike.
+#[derive(Clone)]
+pub struct FrameImages<'a> {
+    /// The folder (for made images: only named in errors).
     pub dir: PathBuf,
+    made: Option<&'a MakeImage<'a>>,
 }
 
-impl FrameImages {
+/// Makes frame `k`'s predicted image (the camera's size, finite values).
+pub type MakeImage<'a> = dyn Fn(usize) -> Result<Image, BoxError> + Sync + 'a;
+/// Why an image could not be made.
+pub type BoxError = Box<dyn std::error::Error + Send + Sync>;
+
+impl std::fmt::Debug for FrameImages<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("FrameImages")
+            .field("dir", &self.dir)
+            .field("made", &self.made.is_some())
+            .finish()
+    }
+}
+
+impl<'a> FrameImages<'a> {
     /// The images in `dir`.
-    pub fn new(dir: impl Into<PathBuf>) -> FrameImages {
-        FrameImages { dir: dir.into() }
+    pub fn new(dir: impl Into<PathBuf>) -> FrameImages<'a> {
+        FrameImages {
+            dir: dir.into(),
+            made: None,
+        }
+    }
+
+    /// Images made by `make` when a frame is judged (`name` stands for the folder in errors).
+    pub fn made(name: impl Into<PathBuf>, make: &'a MakeImage<'a>) -> FrameImages<'a> {
+        FrameImages {
+            dir: name.into(),
+            made: Some(make),
+        }
     }
 
     /// Frame `k`'s file.
@@ -88,11 +118,16 @@ impl FrameImages {
 
     /// Frame `k`'s image, checked: the size of the camera `(w, h)` and every value finite.
     pub fn read(&self, k: usize, size: (usize, usize)) -> Result<Image, EvaluateError> {
-        let path = self.path(k);
-        if !path.is_file() {
-            return Err(self.error(k, ImageProblem::Missing));
-        }
-        let img = read_image(&path).map_err(|e| self.error(k, ImageProblem::Unreadable(e)))?;
+        let img = match self.made {
+            Some(make) => make(k).map_err(|e| self.error(k, ImageProblem::NotMade(e)))?,
+            None => {
+                let path = self.path(k);
+                if !path.is_file() {
+                    return Err(self.error(k, ImageProblem::Missing));
+                }
+                read_image(&path).map_err(|e| self.error(k, ImageProblem::Unreadable(e)))?
+            }
+        };
         if (img.width, img.height) != size {
             return Err(self.error(
                 k,
@@ -119,7 +154,7 @@ pub enum Reference<'a> {
     Frames,
     /// Another renderer's images at the same samples' points: how far two renders differ
     /// (two seeds of Cycles: its own noise, on the yardstick's samples).
-    Images(&'a FrameImages),
+    Images(&'a FrameImages<'a>),
 }
 
 /// Judges the images `images` as predictions of `frames` on the run `ctx` (whose sample store
@@ -130,14 +165,16 @@ pub enum Reference<'a> {
 /// an error naming its frame.
 pub fn evaluate_images_in(
     ctx: &Context,
-    model: &ModelFile,
+    model: Option<&ModelFile>,
     images: &FrameImages,
     reference: Reference,
     frames: &[usize],
     at: EvalPoints,
     progress: &dyn Progress,
 ) -> Result<(Vec<FrameEval>, LogEStats), EvaluateError> {
-    super::check_mesh(ctx.ds, model)?;
+    if let Some(model) = model {
+        super::check_mesh(ctx.ds, model)?;
+    }
     let set = at.point_set();
     progress.start("judge images", frames.len() as u64);
     let evals: Result<Vec<FrameEval>, EvaluateError> = frames
@@ -170,7 +207,7 @@ pub(super) struct Judged {
 /// checked (a problem is an error naming the frame) and the frame judged.
 fn judge_one(
     ctx: &Context,
-    model: &ModelFile,
+    model: Option<&ModelFile>,
     images: &FrameImages,
     reference: Reference,
     k: usize,
@@ -214,14 +251,17 @@ fn judge_one(
 /// pixel coordinates; or why the frame is not judged.
 pub(super) fn prepare(
     ctx: &Context,
-    model: &ModelFile,
+    model: Option<&ModelFile>,
     k: usize,
     set: PointSet,
 ) -> Result<Judged, String> {
     let reg = register_one(ctx, k)?;
     let x_i = reg.x_i;
-    // The frames judged are the model's: where it has no model at x_i, neither is judged.
-    model_at(ctx, model, reg.triangle, x_i).ok_or("no model at x_i")?;
+    // The frames judged are the model's: where it has no model at x_i, neither is judged (a
+    // volume, `None`, predicts wherever the laser meets the mesh).
+    if let Some(model) = model {
+        model_at(ctx, model, reg.triangle, x_i).ok_or("no model at x_i")?;
+    }
     let store = ctx.store().ok_or("no sample store")?;
     let fs = store
         .samples(k, set)

@@ -12,6 +12,7 @@ use crate::store::StorePoints;
 
 pub mod images;
 pub mod rings;
+pub mod run;
 pub mod summary;
 pub use images::{FrameImages, ImageProblem, Reference, evaluate_images_in};
 pub use summary::{Clustering, Figures, Paired};
@@ -52,6 +53,12 @@ pub enum EvaluateError {
         /// What is wrong with it.
         problem: ImageProblem,
     },
+    /// Options that do not go together.
+    #[error("{0}")]
+    Usage(&'static str),
+    /// The volume model cannot predict frames.
+    #[error("the volume model: {0}")]
+    Volume(#[from] crate::volume::VolumeError),
     /// A frame could not be used.
     #[error("frame {frame}: {reason}")]
     Frame {
@@ -344,11 +351,12 @@ pub fn evaluate_models_stored(
 
 /// The images of `images` judged as predictions of `frames` of `ds` (`subsurf evaluate
 /// --images`), on the samples [`evaluate_models_stored`] judges `model` on: the same store, the
-/// same rules, Eq. 8 ([`images::evaluate_images_in`]). `model` says which light positions apply.
+/// same rules, Eq. 8 ([`images::evaluate_images_in`]). `model`, if given, says which light
+/// positions apply.
 #[allow(clippy::too_many_arguments)]
 pub fn evaluate_images_stored(
     ds: &Dataset,
-    model: &ModelFile,
+    model: Option<&ModelFile>,
     images: &FrameImages,
     frames: &[usize],
     opts: &PipelineOptions,
@@ -356,7 +364,7 @@ pub fn evaluate_images_stored(
     store: &StoreOptions,
     progress: &dyn Progress,
 ) -> Result<(Vec<FrameEval>, LogEStats), EvaluateError> {
-    let ctx = judged_store(ds, &[model], frames, opts, at, store, progress)?;
+    let ctx = judged_store(ds, model.as_slice(), frames, opts, at, store, progress)?;
     evaluate_images_in(&ctx, model, images, Reference::Frames, frames, at, progress)
 }
 
@@ -365,7 +373,7 @@ pub fn evaluate_images_stored(
 #[allow(clippy::too_many_arguments)]
 pub fn evaluate_rings_stored(
     ds: &Dataset,
-    model: &ModelFile,
+    model: Option<&ModelFile>,
     images: Option<&FrameImages>,
     frames: &[usize],
     opts: &PipelineOptions,
@@ -373,7 +381,7 @@ pub fn evaluate_rings_stored(
     store: &StoreOptions,
     progress: &dyn Progress,
 ) -> Result<(Vec<rings::FrameRings>, LogEStats), EvaluateError> {
-    let ctx = judged_store(ds, &[model], frames, opts, at, store, progress)?;
+    let ctx = judged_store(ds, model.as_slice(), frames, opts, at, store, progress)?;
     let prediction = match images {
         Some(i) => rings::Prediction::Images(i, Reference::Frames),
         None => rings::Prediction::Model,
@@ -417,7 +425,15 @@ pub fn judged_store<'a>(
 /// it was fitted to (second: in-sample, optimistic), by the frames its file records
 /// ([`ModelFile::fitted_frames`]); a model without the record has every frame in the first.
 pub fn split_fitted(model: &ModelFile, evals: &[FrameEval]) -> (Vec<FrameEval>, Vec<FrameEval>) {
-    let fitted = model.fitted_frames.as_deref().unwrap_or(&[]);
+    split_frames(model.fitted_frames.as_deref(), evals)
+}
+
+/// [`split_fitted`] by the fitted frames `fitted` (sorted), if known.
+pub fn split_frames(
+    fitted: Option<&[usize]>,
+    evals: &[FrameEval],
+) -> (Vec<FrameEval>, Vec<FrameEval>) {
+    let fitted = fitted.unwrap_or(&[]);
     evals
         .iter()
         .cloned()

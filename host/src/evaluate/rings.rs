@@ -55,7 +55,7 @@ pub enum Prediction<'a> {
     /// projection over the frame's exposure, against the frames or a reference's images (a
     /// second render judged against a first: the rings and their samples are still the
     /// frame's, the reference's reads, black ones included, what is measured in them).
-    Images(&'a FrameImages, Reference<'a>),
+    Images(&'a FrameImages<'a>, Reference<'a>),
 }
 
 /// One sample as the rings see it: its distance from x_i, the measured value and the
@@ -199,13 +199,15 @@ pub fn judge_rings(frame: usize, samples: &[RingSample], t: f64) -> FrameRings {
 /// (the model's, or images'), and the mean over frames of the rings' log E.
 pub fn evaluate_rings_in(
     ctx: &Context,
-    model: &ModelFile,
+    model: Option<&ModelFile>,
     prediction: Prediction,
     frames: &[usize],
     at: EvalPoints,
     progress: &dyn Progress,
 ) -> Result<(Vec<FrameRings>, LogEStats), EvaluateError> {
-    super::check_mesh(ctx.ds, model)?;
+    if let Some(model) = model {
+        super::check_mesh(ctx.ds, model)?;
+    }
     let set = at.point_set();
     progress.start("rings", frames.len() as u64);
     let t = ctx.opts.error_threshold;
@@ -240,7 +242,7 @@ pub fn evaluate_rings_in(
 /// the per-sample evaluation skips it), the outer an image that cannot be read.
 fn ring_samples(
     ctx: &Context,
-    model: &ModelFile,
+    model: Option<&ModelFile>,
     prediction: Prediction,
     k: usize,
     set: PointSet,
@@ -256,8 +258,13 @@ fn ring_samples(
         Err(e) => return Ok(Err(e)),
     };
     let x_i = reg.x_i;
-    let Some(at) = model_at(ctx, model, reg.triangle, x_i) else {
-        return Ok(Err("no model at x_i".into()));
+    // Images of a volume (no model file) are judged wherever the laser meets the mesh.
+    let at = match model {
+        Some(m) => match model_at(ctx, m, reg.triangle, x_i) {
+            Some(at) => Some((m, at)),
+            None => return Ok(Err("no model at x_i".into())),
+        },
+        None => None,
     };
     let Some(store) = ctx.store() else {
         return Ok(Err("no sample store".into()));
@@ -285,6 +292,9 @@ fn ring_samples(
     let mut out = Vec::with_capacity(fs.samples.len());
     match prediction {
         Prediction::Model => {
+            let Some((model, at)) = at else {
+                return Ok(Err("no model to predict with".into()));
+            };
             for s in fs.samples.iter() {
                 let p = s.vertex as usize;
                 let x_o = position(p);

@@ -417,7 +417,7 @@ pub fn judge_frames(
     let cycles = FrameImages::new(dir.join(FRAMES_DIR));
     let (theirs, _) = evaluate_images_in(
         ctx,
-        model,
+        Some(model),
         &cycles,
         Reference::Frames,
         &frames,
@@ -429,7 +429,7 @@ pub fn judge_frames(
         Some(
             evaluate_images_in(
                 ctx,
-                model,
+                Some(model),
                 &second,
                 Reference::Images(&cycles),
                 &frames,
@@ -442,10 +442,11 @@ pub fn judge_frames(
         None
     };
     use crate::evaluate::rings::{Prediction, evaluate_rings_in};
-    let (ring_ours, _) = evaluate_rings_in(ctx, model, Prediction::Model, &frames, at, progress)?;
+    let (ring_ours, _) =
+        evaluate_rings_in(ctx, Some(model), Prediction::Model, &frames, at, progress)?;
     let (ring_theirs, _) = evaluate_rings_in(
         ctx,
-        model,
+        Some(model),
         Prediction::Images(&cycles, Reference::Frames),
         &frames,
         at,
@@ -454,7 +455,7 @@ pub fn judge_frames(
     let ring_noise = if noise {
         let second = FrameImages::new(dir.join(NOISE_DIR));
         let p = Prediction::Images(&second, Reference::Images(&cycles));
-        Some(evaluate_rings_in(ctx, model, p, &frames, at, progress)?.0)
+        Some(evaluate_rings_in(ctx, Some(model), p, &frames, at, progress)?.0)
     } else {
         None
     };

@@ -13,6 +13,7 @@ use crate::dataset::Mesh;
 
 mod camera;
 mod coverage;
+pub mod shapes;
 mod surface;
 pub use camera::Camera;
 pub use coverage::CoverageMap;

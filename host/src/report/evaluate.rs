@@ -3,7 +3,7 @@
 //! second model's paired difference. The JSON keys are documented in docs/validation.md.
 use std::fmt::Write as _;
 
-use crate::evaluate::{Clustering, EvalPoints, Figures, FrameEval, Paired, split_fitted};
+use crate::evaluate::{Clustering, EvalPoints, Figures, FrameEval, Paired, split_frames};
 use crate::modelfile::{FitRecord, ModelFile};
 use crate::pipeline::{PipelineOptions, fit_record};
 
@@ -43,6 +43,9 @@ pub struct EvaluateReport {
     /// model's own.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub images: Option<std::path::PathBuf>,
+    /// The photons per frame of a volume model's predictions, when the model judged is one.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub volume_photons: Option<usize>,
     /// Of those images: channel samples they leave black where the frame has light above the
     /// noise floor (judged as the floor), over every frame judged.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -77,14 +80,16 @@ impl Protocol {
         opts: &PipelineOptions,
         overridden: bool,
         noise_floor_source: String,
-        model: &ModelFile,
+        model: Option<&ModelFile>,
     ) -> Protocol {
         let rules = fit_record(opts);
         Protocol {
             overridden,
             noise_floor_source,
             rules,
-            fit_rules_differ: model.fitted_with.is_some_and(|r| r != rules),
+            fit_rules_differ: model
+                .and_then(|m| m.fitted_with)
+                .is_some_and(|r| r != rules),
         }
     }
 }
@@ -99,12 +104,33 @@ impl EvaluateReport {
         points: EvalPoints,
         protocol: Protocol,
     ) -> EvaluateReport {
+        let fitted = |m: &ModelFile| m.fitted_frames.clone();
+        EvaluateReport::of_frames(
+            ds,
+            fitted(model).as_deref(),
+            evals,
+            against.map(|(m, e)| (fitted(m), e)),
+            points,
+            protocol,
+        )
+    }
+
+    /// The report of judged frames `evals` of a model whose fit used the frames `fitted` (if
+    /// known; sorted), and a second model's (its fitted frames, its judged frames).
+    pub fn of_frames(
+        ds: &crate::dataset::Dataset,
+        fitted_frames: Option<&[usize]>,
+        evals: &[FrameEval],
+        against: Option<(Option<Vec<usize>>, &[FrameEval])>,
+        points: EvalPoints,
+        protocol: Protocol,
+    ) -> EvaluateReport {
         let clusters = Clustering::of_frames(ds, evals);
-        let (held, fitted) = split_fitted(model, evals);
+        let (held, fitted) = split_frames(fitted_frames, evals);
         let against = against.map(|(bm, b)| {
             // Only frames neither model was fitted to: a difference of in-sample errors says
             // nothing about prediction.
-            let (b_held, _) = split_fitted(bm, b);
+            let (b_held, _) = split_frames(bm.as_deref(), b);
             Paired::of(&held, &b_held, &clusters)
         });
         let skipped = evals.iter().filter(|e| e.skipped.is_some()).count();
@@ -123,13 +149,14 @@ impl EvaluateReport {
             frames: held_out.frames,
             skipped,
             held_out,
-            fitted_frames_known: model.fitted_frames.is_some(),
+            fitted_frames_known: fitted_frames.is_some(),
             in_sample: (!fitted.is_empty()).then(|| Figures::of(&fitted, &clusters)),
             in_sample_frames: fitted.iter().map(|e| e.frame).collect(),
             against,
             local_share: crate::evaluate::local_share(&held),
             protocol,
             images: None,
+            volume_photons: None,
             unlit: evals.iter().filter_map(|e| e.unlit).reduce(|a, b| a + b),
             per_frame: held.into_iter().chain(fitted).collect(),
         }
@@ -165,11 +192,15 @@ impl EvaluateReport {
             },
             self.skipped
         );
-        if let Some(dir) = &self.images {
+        let what = match (&self.images, self.volume_photons) {
+            (_, Some(n)) => Some(format!("the volume model's images, {n} photons a frame,")),
+            (Some(dir), None) => Some(format!("the images in {} (not the model),", dir.display())),
+            (None, None) => None,
+        };
+        if let Some(what) = what {
             let _ = writeln!(
                 o,
-                "predictions: the images in {} (not the model), on the model's samples and rules{}",
-                dir.display(),
+                "predictions: {what} on the dataset's samples and rules{}",
                 self.unlit
                     .filter(|&n| n > 0)
                     .map(|n| format!(

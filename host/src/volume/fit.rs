@@ -12,9 +12,9 @@
 //! near 1.
 
 use super::dielectric::Surface;
-use super::trace::{Boundary, FrameGeometry, Record, TraceSettings, taps, trace_frame};
+use super::trace::{Boundary, FrameGeometry, Record, TraceSettings, geo_mean, taps, trace_frame};
 use crate::dataset::{Dataset, Image};
-use crate::geometry::{Scene, V3, dist, normalize, world_to_turntable};
+use crate::geometry::{Scene, dist, normalize, world_to_turntable};
 
 /// Rings per factor e of distance from x_i.
 pub const RINGS_PER_E: f64 = 4.0;
@@ -68,40 +68,26 @@ pub struct FrameRings {
 }
 
 /// Each pixel's ring around x_i: the surface point the pixel's centre sees (the first hit of
-/// the camera ray), its distance from x_i.
+/// the camera ray, through the camera's distortion as the tracer projects with it), its
+/// distance from x_i.
 pub fn pixel_rings(scene: &Scene, geo: &FrameGeometry) -> Vec<u32> {
     let cam = &geo.camera;
-    let centre = world_to_turntable(cam.center(), geo.deg);
     let (w, h) = (cam.width as usize, cam.height as usize);
-    let inv = invert3(cam_rotation(cam));
     (0..w * h)
         .map(|p| {
             let (i, j) = ((p % w) as f64, (p / w) as f64);
-            let ray_cam = [(i - cam.cx) / cam.fx, (j - cam.cy) / cam.fy, 1.0];
-            let world_dir = mat_vec(&inv, ray_cam);
+            let Some((origin, world_dir)) = cam.ray(i, j) else {
+                return u32::MAX;
+            };
             let Some(d) = normalize(world_to_turntable(world_dir, geo.deg)) else {
                 return u32::MAX;
             };
-            match scene.cast(centre, d, f64::MAX) {
+            match scene.cast(world_to_turntable(origin, geo.deg), d, f64::MAX) {
                 Some(hit) => ring_of(dist(hit.point, geo.x_i)).unwrap_or(u32::MAX),
                 None => u32::MAX,
             }
         })
         .collect()
-}
-
-fn cam_rotation(cam: &crate::geometry::Camera) -> [[f64; 3]; 3] {
-    let m = &cam.camera_from_world;
-    std::array::from_fn(|r| std::array::from_fn(|c| m[r][c]))
-}
-
-/// The inverse of a rotation is its transpose.
-fn invert3(r: [[f64; 3]; 3]) -> [[f64; 3]; 3] {
-    std::array::from_fn(|a| std::array::from_fn(|b| r[b][a]))
-}
-
-fn mat_vec(m: &[[f64; 3]; 3], v: V3) -> V3 {
-    std::array::from_fn(|r| m[r][0] * v[0] + m[r][1] * v[1] + m[r][2] * v[2])
 }
 
 impl FrameRings {
@@ -343,6 +329,8 @@ pub fn fit_homogeneous(
     for round in 0..opts.rounds {
         let sigma0 = geo_mean(&model.sigma_t);
         let alpha_max = model.albedo.iter().cloned().fold(0.0, f64::max);
+        // Not `TraceSettings::for_medium`: the fit keeps each α at most the reference's, so the
+        // reference albedo sits halfway from the largest estimate to 1, leaving α room to rise.
         let reference = TraceSettings {
             sigma_t: sigma0,
             albedo: 1.0 - 0.5 * (1.0 - alpha_max),
@@ -385,10 +373,6 @@ pub fn fit_homogeneous(
         progress(round, &model);
     }
     Ok(model)
-}
-
-fn geo_mean(v: &[f64; 3]) -> f64 {
-    (v.iter().map(|x| x.ln()).sum::<f64>() / 3.0).exp()
 }
 
 /// One channel's (σ, α) by damped Gauss-Newton on the rings' log ratios, in (ln σ, ln(1 − α)),
@@ -477,35 +461,40 @@ pub fn predict(
     seed: u64,
 ) -> Result<Vec<(usize, Image)>, VolumeFitError> {
     let scene = Scene::new(ds.mesh.clone())?;
-    let boundary = Boundary::of(&scene);
-    let alpha_max = model.albedo.iter().cloned().fold(0.0, f64::max);
-    let reference = TraceSettings {
-        sigma_t: geo_mean(&model.sigma_t),
-        albedo: alpha_max,
-        g: model.g,
-        photons,
-        seed,
-        surface: Surface::IndexMatched,
-    };
-    let mut out = Vec::new();
-    for &k in frames {
-        let f = ds
-            .spec
-            .frames
-            .get(k)
-            .ok_or_else(|| crate::dataset::DatasetError::Invalid(format!("no frame {k}")))?;
-        let cam = &ds.spec.cameras[f.camera];
-        let (w, h) = (cam.width as usize, cam.height as usize);
-        let img = match frame_geometry(&scene, ds, k) {
-            Some(geo) => {
-                let r = trace_frame(&scene, boundary, &geo, &reference, k);
-                super::trace::image(&r, &reference, model.sigma_t, model.albedo, w, h)
-            }
-            None => Image::new(w, h, 3),
-        };
-        out.push((k, img));
-    }
-    Ok(out)
+    frames
+        .iter()
+        .map(|&k| Ok((k, predict_in(&scene, ds, k, model, photons, seed)?)))
+        .collect()
+}
+
+/// Frame `k` of `ds` predicted in the medium `model` inside the mesh of `scene` ([`predict`]).
+pub fn predict_in(
+    scene: &Scene,
+    ds: &Dataset,
+    k: usize,
+    model: &Homogeneous,
+    photons: usize,
+    seed: u64,
+) -> Result<Image, VolumeFitError> {
+    let boundary = Boundary::of(scene);
+    let reference = TraceSettings::for_medium(model.sigma_t, model.albedo, model.g, photons, seed);
+    let f = ds
+        .spec
+        .frames
+        .get(k)
+        .ok_or_else(|| crate::dataset::DatasetError::Invalid(format!("no frame {k}")))?;
+    let cam =
+        ds.spec.cameras.get(f.camera).ok_or_else(|| {
+            crate::dataset::DatasetError::Invalid(format!("frame {k}: no camera"))
+        })?;
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    Ok(match frame_geometry(scene, ds, k) {
+        Some(geo) => {
+            let r = trace_frame(scene, boundary, &geo, &reference, k);
+            super::trace::image(&r, &reference, model.sigma_t, model.albedo, w, h)
+        }
+        None => Image::new(w, h, 3),
+    })
 }
 
 /// The ring sums of `records` (one frame's trace in `reference`) in the medium (σ_t, α) per

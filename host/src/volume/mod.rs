@@ -15,7 +15,16 @@
 //!   x_i, and its predicted frames.
 //! - [`dielectric`]: a rough dielectric boundary instead of the index-matched one (GGX
 //!   microfacets, Fresnel, refraction), with the tracer's photons through it.
+//! - [`model`]: the volume model and its file (JSON, docs/model-format.md), and its predicted
+//!   frames ([`predict_model`]).
 
 pub mod dielectric;
 pub mod fit;
+pub mod local;
+pub mod medium;
+pub mod model;
 pub mod trace;
+
+pub use model::{
+    BoundaryModel, FitInfo, MediumGrid, VolumeError, VolumeMesh, VolumeModel, predict_model,
+};

@@ -64,6 +64,34 @@ pub struct TraceSettings {
     pub surface: Surface,
 }
 
+impl TraceSettings {
+    /// The reference medium for a medium given channel by channel: σ_0 the geometric mean of
+    /// the three σ (the likelihood ratio's variance grows with ln(σ/σ_0) on either side) and
+    /// α_0 the largest albedo (the ratio (α/α_0)^k stays at most 1 and cannot blow up over
+    /// many collisions).
+    pub fn for_medium(
+        sigma_t: [f64; 3],
+        albedo: [f64; 3],
+        g: f64,
+        photons: usize,
+        seed: u64,
+    ) -> TraceSettings {
+        TraceSettings {
+            sigma_t: geo_mean(&sigma_t),
+            albedo: albedo.iter().cloned().fold(0.0, f64::max),
+            g,
+            photons,
+            seed,
+            surface: super::dielectric::Surface::IndexMatched,
+        }
+    }
+}
+
+/// Geometric mean of three positive values.
+pub(crate) fn geo_mean(v: &[f64; 3]) -> f64 {
+    (v.iter().map(|x| x.ln()).sum::<f64>() / 3.0).exp()
+}
+
 /// One frame's geometry in the object frame: the laser's entry point and direction and the
 /// camera.
 #[derive(Debug, Clone)]
@@ -243,17 +271,17 @@ pub(super) fn crossings(scene: &Scene, p: V3, q: V3) -> usize {
 }
 
 /// Where a photon is and which way it goes.
-struct Photon {
-    p: V3,
-    d: V3,
+pub(super) struct Photon {
+    pub(super) p: V3,
+    pub(super) d: V3,
     /// The triangle last crossed (or entered through).
-    skip: Option<u32>,
+    pub(super) skip: Option<u32>,
 }
 
 /// Moves the photon `s` mm of medium along its direction: out through the boundary and back in
 /// where the straight line meets the mesh again (index-matched: no refraction, no reflection).
 /// `false` when it leaves for good.
-fn fly(scene: &Scene, ph: &mut Photon, mut s: f64) -> bool {
+pub(super) fn fly(scene: &Scene, ph: &mut Photon, mut s: f64) -> bool {
     let mut inside = true;
     for _ in 0..64 {
         let reach = if inside { s } else { f64::MAX };
@@ -277,9 +305,15 @@ fn fly(scene: &Scene, ph: &mut Photon, mut s: f64) -> bool {
     false
 }
 
-/// Length of medium on the straight line from `p` (inside) to `q` (outside the mesh); `None`
-/// when the line never leaves the medium (an open face's medium seen past the face's edge).
-fn medium_length(scene: &Scene, p: V3, q: V3) -> Option<f64> {
+/// The sum of `depth(start, direction, length)` over the pieces of medium on the straight line
+/// from `p` (inside) to `q` (outside the mesh): their length, or their optical depth in a
+/// heterogeneous medium; `None` when the line never leaves the medium.
+pub(super) fn medium_depth(
+    scene: &Scene,
+    p: V3,
+    q: V3,
+    depth: &dyn Fn(V3, V3, f64) -> f64,
+) -> Option<f64> {
     let d = normalize(sub(q, p))?;
     let mut left = dist(p, q);
     let (mut at, mut skip, mut inside, mut len) = (p, None, true, 0.0);
@@ -287,7 +321,7 @@ fn medium_length(scene: &Scene, p: V3, q: V3) -> Option<f64> {
         match next_hit(scene, at, d, left, skip) {
             Some((t, hp, tri)) => {
                 if inside {
-                    len += t;
+                    len += depth(at, d, t);
                 }
                 left -= t;
                 at = hp;
@@ -380,7 +414,7 @@ pub fn trace_frame(
                     break;
                 }
                 // Next event towards the pinhole.
-                if let Some(r) = nee(scene, cam, geo.deg, centre, &ph, g) {
+                if let Some(r) = nee(scene, cam, geo.deg, centre, &ph, g, &|_, _, t| t) {
                     let l_cam = r.2;
                     out.push(Record {
                         u: r.0[0] as f32,
@@ -406,14 +440,16 @@ pub fn trace_frame(
 }
 
 /// The next event from the photon's collision towards the camera: pixel coordinates, ln of the
-/// phase function times the pinhole's radiance factor, and the length of medium to cross.
-fn nee(
+/// phase function times the pinhole's radiance factor, and the medium to cross: the sum of
+/// `depth` over its pieces (their length, or their optical depth).
+pub(super) fn nee(
     scene: &Scene,
     cam: &Camera,
     deg: f64,
     centre: V3,
     ph: &Photon,
     g: f64,
+    depth: &dyn Fn(V3, V3, f64) -> f64,
 ) -> Option<([f64; 2], f64, f64)> {
     let to_cam = normalize(sub(centre, ph.p))?;
     let world = crate::geometry::turntable_to_world(ph.p, deg);
@@ -424,7 +460,7 @@ fn nee(
     if uv[0] < -0.5 - r || uv[1] < -0.5 - r || uv[0] > w - 0.5 + r || uv[1] > h - 0.5 + r {
         return None;
     }
-    let l_cam = medium_length(scene, ph.p, centre)?;
+    let l_cam = medium_depth(scene, ph.p, centre, depth)?;
     // A point of intensity I (W/sr) at distance r seen by a pinhole pixel of solid angle
     // cos³θ / (f_x f_y) reads as the radiance I / r² / Ω = I f_x f_y r / z³.
     let range = dist(centre, ph.p);
@@ -488,7 +524,7 @@ pub fn image(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::dataset::Mesh;
+    use crate::geometry::shapes;
 
     /// The phase function integrates to 1 over the sphere and its samples have mean cosine g.
     #[test]
@@ -513,32 +549,7 @@ mod tests {
 
     /// A box [-20, 20]² × [-20, 0] mm.
     fn block() -> Scene {
-        let (a, b) = (20.0, -20.0);
-        let p = vec![
-            [-a, -a, b],
-            [a, -a, b],
-            [a, a, b],
-            [-a, a, b],
-            [-a, -a, 0.0],
-            [a, -a, 0.0],
-            [a, a, 0.0],
-            [-a, a, 0.0],
-        ];
-        let t = vec![
-            [0, 2, 1],
-            [0, 3, 2],
-            [4, 5, 6],
-            [4, 6, 7],
-            [0, 1, 5],
-            [0, 5, 4],
-            [1, 2, 6],
-            [1, 6, 5],
-            [2, 3, 7],
-            [2, 7, 6],
-            [3, 0, 4],
-            [3, 4, 7],
-        ];
-        Scene::new(Mesh::new(p, t).0).unwrap()
+        Scene::new(shapes::block([-20.0, -20.0, -20.0], [20.0, 20.0, 0.0])).unwrap()
     }
 
     /// The images of a medium reweighted from a trace in another (the likelihood ratio) agree
