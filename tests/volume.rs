@@ -39,6 +39,22 @@ pub(crate) fn mitsuba() -> Option<PathBuf> {
     Some(py)
 }
 
+/// Runs the script `tests/outside/NAME` with Mitsuba's Python on `args`; its output, after
+/// asserting that it succeeded.
+pub(crate) fn run_mitsuba(py: &Path, name: &str, args: &[&Path]) -> std::process::Output {
+    let o = Command::new(py)
+        .arg(workspace().join("tests/outside").join(name))
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(
+        o.status.success(),
+        "mitsuba: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    o
+}
+
 /// A box [-15, 15]² × [-15, 0] mm: its top face at z = 0.
 fn block() -> Mesh {
     shapes::block([-15.0, -15.0, -15.0], [15.0, 15.0, 0.0])
@@ -100,16 +116,7 @@ fn compare(py: &Path, dir: &Path, case: &Case) -> Vec<(f64, [f64; 3], [f64; 3])>
     let spec_path = dir.join(format!("{}.json", case.name));
     std::fs::write(&spec_path, spec.to_string()).unwrap();
     let exr = dir.join(format!("{}.exr", case.name));
-    let o = Command::new(py)
-        .arg(workspace().join("tests/outside/mitsuba_volume.py"))
-        .args([&spec_path, &exr])
-        .output()
-        .unwrap();
-    assert!(
-        o.status.success(),
-        "mitsuba: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
+    run_mitsuba(py, "mitsuba_volume.py", &[&spec_path, &exr]);
     let img = read_image(&exr).unwrap();
     let scene = Scene::new(case.mesh.clone()).unwrap();
     let mut geo = FrameGeometry::new(&scene, &cam, 0.0, light, [0.0, 0.0, -1.0]).unwrap();

@@ -1,8 +1,7 @@
 //! The rough dielectric boundary against Mitsuba 3: its BSDF value by value
 //! (`tests/outside/mitsuba_bsdf.py`, `roughdielectric`).
 
-use crate::volume::{mitsuba, workspace};
-use std::process::Command;
+use crate::volume::{mitsuba, run_mitsuba};
 use subsurf::volume::dielectric::{RoughDielectric, Transport};
 
 /// The boundary of sample-pebble, as its README gives it: GGX width 0.2, index 1.55 inside.
@@ -54,16 +53,7 @@ fn mitsuba_roughdielectric_values_agree_with_the_bsdf() {
     });
     let spec_path = tmp.path().join("pairs.json");
     std::fs::write(&spec_path, spec.to_string()).unwrap();
-    let o = Command::new(&py)
-        .arg(workspace().join("tests/outside/mitsuba_bsdf.py"))
-        .arg(&spec_path)
-        .output()
-        .unwrap();
-    assert!(
-        o.status.success(),
-        "mitsuba: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
+    let o = run_mitsuba(&py, "mitsuba_bsdf.py", &[&spec_path]);
     let out: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     let values = out["values"].as_array().unwrap();
     assert_eq!(values.len(), pairs.len());

@@ -108,20 +108,10 @@ impl FrameRings {
             .max()
             .unwrap_or(0);
         let mut count = vec![0; rings];
-        let mut data = vec![[0.0; 3]; rings];
-        for (p, &r) in pixel_ring.iter().enumerate() {
-            if r == u32::MAX {
-                continue;
-            }
+        for &r in pixel_ring.iter().filter(|&&r| r != u32::MAX) {
             count[r as usize] += 1;
-            for (c, d) in data[r as usize].iter_mut().enumerate() {
-                let ch = if img.channels == 3 { c } else { 0 };
-                let v = img.data[p * img.channels + ch] as f64 / exposure_s;
-                if v.is_finite() {
-                    *d += v;
-                }
-            }
         }
+        let data = ring_sums_of(&pixel_ring, rings, img, exposure_s);
         FrameRings {
             frame,
             geo,
@@ -131,6 +121,30 @@ impl FrameRings {
             data,
         }
     }
+}
+
+/// Per ring and channel the sum of an image's radiance (its values divided by `exposure_s`)
+/// over the pixels `pixel_ring` puts in the ring; values that are not finite are left out.
+pub fn ring_sums_of(
+    pixel_ring: &[u32],
+    rings: usize,
+    img: &Image,
+    exposure_s: f64,
+) -> Vec<[f64; 3]> {
+    let mut data = vec![[0.0; 3]; rings];
+    for (p, &r) in pixel_ring.iter().enumerate() {
+        if r == u32::MAX {
+            continue;
+        }
+        for (c, d) in data[r as usize].iter_mut().enumerate() {
+            let ch = if img.channels == 3 { c } else { 0 };
+            let v = img.data[p * img.channels + ch] as f64 / exposure_s;
+            if v.is_finite() {
+                *d += v;
+            }
+        }
+    }
+    data
 }
 
 /// A record's share of one ring: the filter's taps that land on the ring's pixels, summed.
@@ -461,23 +475,43 @@ pub fn predict(
     seed: u64,
 ) -> Result<Vec<(usize, Image)>, VolumeFitError> {
     let scene = Scene::new(ds.mesh.clone())?;
+    let boundary = Boundary::of(&scene);
     frames
         .iter()
-        .map(|&k| Ok((k, predict_in(&scene, ds, k, model, photons, seed)?)))
+        .map(|&k| {
+            Ok((
+                k,
+                predict_in(&scene, boundary, ds, k, model, photons, seed)?,
+            ))
+        })
         .collect()
 }
 
 /// Frame `k` of `ds` predicted in the medium `model` inside the mesh of `scene` ([`predict`]).
 pub fn predict_in(
     scene: &Scene,
+    boundary: Boundary,
     ds: &Dataset,
     k: usize,
     model: &Homogeneous,
     photons: usize,
     seed: u64,
 ) -> Result<Image, VolumeFitError> {
-    let boundary = Boundary::of(scene);
     let reference = TraceSettings::for_medium(model.sigma_t, model.albedo, model.g, photons, seed);
+    frame_image(scene, ds, k, &|geo, w, h| {
+        let r = trace_frame(scene, boundary, geo, &reference, k);
+        super::trace::image(&r, &reference, model.sigma_t, model.albedo, w, h)
+    })
+}
+
+/// Frame `k`'s image drawn by `draw` (given the frame's geometry and the image's size), black
+/// where the frame's laser ray misses the mesh; an error for a frame or camera the scan lacks.
+pub fn frame_image(
+    scene: &Scene,
+    ds: &Dataset,
+    k: usize,
+    draw: &dyn Fn(&FrameGeometry, usize, usize) -> Image,
+) -> Result<Image, VolumeFitError> {
     let f = ds
         .spec
         .frames
@@ -489,10 +523,7 @@ pub fn predict_in(
         })?;
     let (w, h) = (cam.width as usize, cam.height as usize);
     Ok(match frame_geometry(scene, ds, k) {
-        Some(geo) => {
-            let r = trace_frame(scene, boundary, &geo, &reference, k);
-            super::trace::image(&r, &reference, model.sigma_t, model.albedo, w, h)
-        }
+        Some(geo) => draw(&geo, w, h),
         None => Image::new(w, h, 3),
     })
 }

@@ -155,20 +155,7 @@ pub fn grid_of(
 /// The ring sums of an image over a frame's rings (what [`FrameRings::data`] holds for the
 /// frame's own image).
 pub fn image_rings(frame: &FrameRings, img: &Image) -> Vec<[f64; 3]> {
-    let mut out = vec![[0.0; 3]; frame.rings];
-    for (p, &r) in frame.pixel_ring.iter().enumerate() {
-        if r == u32::MAX {
-            continue;
-        }
-        for (c, o) in out[r as usize].iter_mut().enumerate() {
-            let ch = if img.channels == 3 { c } else { 0 };
-            let v = img.data[p * img.channels + ch] as f64;
-            if v.is_finite() {
-                *o += v;
-            }
-        }
-    }
-    out
+    super::fit::ring_sums_of(&frame.pixel_ring, frame.rings, img, 1.0)
 }
 
 /// Squared log ratios of a frame's judged rings (the data's mean above `floor`, at least 4

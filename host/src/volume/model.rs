@@ -492,7 +492,12 @@ impl VolumeModel {
             Err(e) => return Err(e),
         };
         let scene = Scene::new(self.mesh.to_mesh()).map_err(VolumeFitError::from)?;
-        Ok(Predictor { scene, medium })
+        let boundary = super::trace::Boundary::of(&scene);
+        Ok(Predictor {
+            scene,
+            boundary,
+            medium,
+        })
     }
 }
 
@@ -509,6 +514,7 @@ pub fn is_volume_file(path: &Path) -> bool {
 /// A volume model ready to predict frames: its mesh as the tracer's scene.
 pub struct Predictor {
     scene: Scene,
+    boundary: super::trace::Boundary,
     medium: Medium,
 }
 
@@ -531,38 +537,30 @@ impl Predictor {
         match &self.medium {
             Medium::Homogeneous(m) => Ok(super::fit::predict_in(
                 &self.scene,
+                self.boundary,
                 ds,
                 k,
                 m,
                 photons,
                 seed,
             )?),
-            Medium::Grid(grid, g) => {
-                let f = ds.spec.frames.get(k).ok_or_else(|| {
-                    VolumeFitError::from(crate::dataset::DatasetError::Invalid(format!(
-                        "no frame {k}"
-                    )))
-                })?;
-                let cam = ds.spec.cameras.get(f.camera).ok_or_else(|| {
-                    VolumeFitError::from(crate::dataset::DatasetError::Invalid(format!(
-                        "frame {k}: no camera {}",
-                        f.camera
-                    )))
-                })?;
-                Ok(match super::fit::frame_geometry(&self.scene, ds, k) {
-                    Some(geo) => super::medium::grid_image(
+            Medium::Grid(grid, g) => Ok(super::fit::frame_image(
+                &self.scene,
+                ds,
+                k,
+                &|geo, _, _| {
+                    super::medium::grid_image(
                         &self.scene,
-                        super::trace::Boundary::of(&self.scene),
-                        &geo,
+                        self.boundary,
+                        geo,
                         grid,
                         *g,
                         photons,
                         seed,
                         k,
-                    ),
-                    None => Image::new(cam.width as usize, cam.height as usize, 3),
-                })
-            }
+                    )
+                },
+            )?),
         }
     }
 }
