@@ -931,3 +931,155 @@ fn camera_file_small_slab(dir: &Path) {
     }
     std::fs::write(&scan, serde_json::to_vec_pretty(&spec).unwrap()).unwrap();
 }
+
+/// The sum of channel `c` of `img` over the render border of frame `k`'s scene in
+/// `frames.json` (the only pixels Cycles rendered), a pixel inside its edges (where Blender
+/// versions round the border differently).
+fn border_sum(
+    img: &subsurf::dataset::Image,
+    scenes: &serde_json::Value,
+    k: usize,
+    c: usize,
+) -> f64 {
+    let s = scenes["frames"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|s| s["frame"] == k)
+        .unwrap();
+    let b: Vec<f64> = match s["border"].as_array() {
+        Some(b) => b.iter().map(|x| x.as_f64().unwrap()).collect(),
+        None => vec![0.0, 1.0, 0.0, 1.0],
+    };
+    let (w, h) = (img.width as f64, img.height as f64);
+    let mut sum = 0.0;
+    for j in 0..img.height {
+        for i in 0..img.width {
+            // Blender's border: fractions from the bottom left; pixel centres.
+            let (x, y) = ((i as f64 + 0.5) / w, 1.0 - (j as f64 + 0.5) / h);
+            let inside = |z: f64, lo: f64, hi: f64, n: f64| z >= lo + 1.0 / n && z <= hi - 1.0 / n;
+            if inside(x, b[0], b[1], w) && inside(y, b[2], b[3], h) {
+                sum += img.data[(j * img.width + i) * img.channels + c] as f64;
+            }
+        }
+    }
+    sum
+}
+
+/// A volume model's export in every Blender at hand: the medium as a Principled Volume inside
+/// the mesh, two frames of the small scan rendered by Cycles' own volume path tracer and judged
+/// beside subsurf's trace of the same medium. The two renderers of one medium agree: per frame
+/// and channel, the light over the rendered region within 10 % of subsurf's trace (measured at
+/// 1024 samples: Blender 3.4.1 −1 to +2 %, 5.0.1 −4 to −6 %), and Cycles against the trace on
+/// the frame's rings (`agreement_ring_mean_log_e`, green) below 0.15 (measured 0.074 and 0.047).
+/// A grid of two cells builds its lookup, and where the Blender carries OpenVDB, its
+/// `medium.vdb`.
+#[test]
+fn every_blender_renders_a_volume_model_as_subsurfs_tracer_does() {
+    use subsurf::volume::fit::Homogeneous;
+    use subsurf::volume::{FitInfo, MediumGrid, VolumeModel, predict_model};
+    let tmp = tempfile::tempdir().unwrap();
+    let slab = crate::fixture::small_slab();
+    let d = slab.to_str().unwrap();
+    let ds = subsurf::dataset::Dataset::open(slab).unwrap();
+    let medium = Homogeneous {
+        sigma_t: [2.0, 1.5, 2.5],
+        albedo: [0.98, 0.95, 0.9],
+        g: 0.2,
+        loss: [(0.0, 0); 3],
+    };
+    let info = FitInfo {
+        frames: vec![],
+        photons: 1,
+        rounds: 1,
+        loss: [0.0; 3],
+        rings: [0; 3],
+        seconds: 0.0,
+        subsurf_version: "test".into(),
+    };
+    // The small slab's face closed into a block 8 mm deep: the renderers of a volume fill what
+    // a closed surface bounds (the export closes an open face itself, by its own depth).
+    let mut model = VolumeModel::homogeneous(&ds.mesh, &medium, info);
+    let (lo, hi) = model.mesh.bounds();
+    let block = subsurf::geometry::shapes::block([lo[0], lo[1], hi[2] - 8.0], hi);
+    model.mesh = subsurf::volume::VolumeMesh::of(&block);
+    let path = tmp.path().join("medium.json");
+    model.write(&path).unwrap();
+    let mut grid = model.clone();
+    let (lo, hi) = model.mesh.bounds();
+    grid.grid = MediumGrid::homogeneous(lo, hi, medium.sigma_t, medium.albedo);
+    grid.grid.dims = [2, 1, 1];
+    grid.grid.cell_mm[0] /= 2.0;
+    grid.grid.sigma_t = vec![[2.0; 3], [4.0, 3.0, 2.0]];
+    grid.grid.albedo = vec![[0.98; 3], [0.9, 0.95, 0.99]];
+    let grid_path = tmp.path().join("grid.json");
+    grid.write(&grid_path).unwrap();
+    let frames = [5usize, 10];
+    let ours = predict_model(&ds, &frames, &model, 200_000, 3).unwrap();
+    let cache = tmp.path().join("cache");
+    let c = cache.to_str().unwrap();
+    let all = blenders();
+    for (n, b) in all.iter().enumerate() {
+        let bl = b.to_str().unwrap();
+        let out = tmp.path().join(format!("volume-{n}"));
+        let printed = subsurf(&[
+            "export",
+            "--model",
+            path.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--scan",
+            d,
+            "--frames",
+            "5,10",
+            "--render",
+            "--samples",
+            "1024",
+            "--photons",
+            "200000",
+            "--cache",
+            c,
+            "--blender",
+            bl,
+        ]);
+        eprintln!("{bl}:\n{printed}");
+        assert!(out.join("model.blend").is_file(), "{bl}: {printed}");
+        let scenes = json(&out.join("frames.json"));
+        for (k, img) in &ours {
+            let exr = out.join(format!("frames/{k:06}.exr"));
+            let theirs = subsurf::dataset::read_exr_with_alpha(&exr).unwrap().0;
+            for ch in 0..3 {
+                let (a, b) = (
+                    border_sum(&theirs, &scenes, *k, ch),
+                    border_sum(img, &scenes, *k, ch),
+                );
+                eprintln!("{bl}: frame {k} channel {ch}: Cycles {a:.5e}, subsurf {b:.5e}");
+                assert!(
+                    (a / b - 1.0).abs() < 0.1,
+                    "{bl}: frame {k} channel {ch}: {a} / {b}"
+                );
+            }
+        }
+        let f = &json(&out.join("export-report.json"))["frames"];
+        let agree = f["agreement_ring_mean_log_e"][1].as_f64().unwrap();
+        assert!(
+            agree < 0.15,
+            "{bl}: Cycles against subsurf's trace on rings {agree}: {f}"
+        );
+        let gout = tmp.path().join(format!("grid-{n}"));
+        subsurf(&[
+            "export",
+            "--model",
+            grid_path.to_str().unwrap(),
+            "--out",
+            gout.to_str().unwrap(),
+            "--blender",
+            bl,
+        ]);
+        assert!(gout.join("model.blend").is_file(), "{bl}");
+        if n + 1 == all.len() && std::env::var_os("SUBSURF_BPY_PYTHON").is_some() {
+            // The newest Blender (the bpy module) carries OpenVDB.
+            assert!(gout.join("medium.vdb").is_file(), "{bl}: no medium.vdb");
+        }
+    }
+}

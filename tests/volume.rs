@@ -240,6 +240,57 @@ fn mitsuba_renders_of_a_box_and_a_sphere_agree_with_the_tracer() {
     }
 }
 
+/// sample-torus's mesh (a ring: light leaves the tube and meets the ring again across its
+/// hole) under the spot, its tube's top at the origin: Mitsuba 3 and subsurf's tracer on every
+/// ring, the far ones included, within 5 % where the rings hold at least 1 % of the brightest
+/// ring's light. Ignored: on the torus the tracer reads 0.8–0.9 of both Mitsuba and Cycles
+/// within 3 mm of the spot and 1.3 times them across the ring (docs/volume.md, "Export to
+/// Blender"), a fault not found yet; run it with `--ignored` to see the rings.
+#[test]
+#[ignore = "the tracer disagrees with Mitsuba and Cycles on the torus (docs/volume.md)"]
+fn mitsuba_and_the_tracer_agree_on_a_torus_far_from_the_spot() {
+    let Some(py) = mitsuba() else {
+        return;
+    };
+    let dir = workspace().join("../shared/data/sample-torus");
+    if !dir.join("scan.json").is_file() {
+        eprintln!("SKIPPED: {} is absent", dir.display());
+        return;
+    }
+    let ds = Dataset::open(&dir).unwrap();
+    // The tube's top (ρ = 13 mm, z = 12 mm) moved to the origin, under the spot.
+    let p = ds
+        .mesh
+        .positions
+        .iter()
+        .map(|v| [v[0] - 13.0, v[1], v[2] - 12.0])
+        .collect();
+    let mesh = Mesh::new(p, ds.mesh.triangles.clone()).0;
+    let tmp = tempfile::tempdir().unwrap();
+    let case = Case {
+        name: "torus",
+        mesh,
+        sigma_t: 2.0,
+        albedo: [0.97, 0.95, 0.9],
+        g: 0.0,
+        grid: None,
+        grid_albedo: Vec::new(),
+    };
+    let rings = compare(&py, tmp.path(), &case);
+    let top: [f64; 3] = std::array::from_fn(|c| rings.iter().map(|r| r.1[c]).fold(0.0, f64::max));
+    let mut off = Vec::new();
+    for (r, data, model) in &rings {
+        let ratio: [f64; 3] = std::array::from_fn(|c| model[c] / data[c]);
+        eprintln!("torus ring {r:.2} mm: subsurf / mitsuba {ratio:.3?} (mitsuba {data:?})");
+        for c in 0..3 {
+            if data[c] > 0.01 * top[c] && (ratio[c] - 1.0).abs() >= 0.05 {
+                off.push((*r, c, ratio[c]));
+            }
+        }
+    }
+    assert!(off.is_empty(), "torus: rings off by 5 % or more: {off:?}");
+}
+
 /// The outside renderer's sample-slab (a homogeneous slab, σ_t = 2/mm, albedo 0.99 / 0.985 /
 /// 0.98, isotropic, index-matched, as its README gives them) is predicted from the published
 /// medium alone: frame 4's ring sums from 0.5 to 4.5 mm within 5 % in every channel, with the

@@ -40,7 +40,7 @@ pub enum Lattice {
     Drop,
 }
 
-/// Export a model for Blender's Cycles (Principled BSDF subsurface colour and radius per vertex).
+/// Export a model for Blender's Cycles: Burley subsurface per vertex, or a Principled Volume.
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// The fitted model (`docs/model-format.md`).
@@ -97,10 +97,8 @@ pub struct Args {
     /// Speed/accuracy of subsurf's render for `--render`.
     #[arg(long, value_enum, default_value_t = Quality::Balanced)]
     quality: Quality,
-    /// The model's scan dataset: with `--render`, Cycles renders its frames (`--frames`) with
-    /// the exported material — each frame's camera, exposure, laser and turntable angle — into
-    /// `OUT/frames/<frame>.exr`, and the report judges them by the frames, next to subsurf's
-    /// model (`subsurf evaluate`'s log E on the same samples).
+    /// With `--render`, Cycles renders this scan's frames (`--frames`: camera, exposure, laser,
+    /// turntable) into `OUT/frames/`, judged by the frames beside subsurf's model or trace.
     #[arg(long, requires = "render")]
     scan: Option<PathBuf>,
     /// Frames of `--scan` to render, e.g. `96-103` (default: all).
@@ -110,6 +108,9 @@ pub struct Args {
     /// `subsurf evaluate --cache`.
     #[arg(long, default_value = "dataset")]
     cache: subsurf::pipeline::Cache,
+    /// Photons per frame of a volume model's own trace beside Cycles' (`--scan`).
+    #[arg(long, default_value_t = subsurf::evaluate::run::VOLUME_PHOTONS)]
+    photons: usize,
 }
 
 pub fn run(args: Args) -> Result<()> {
@@ -119,32 +120,9 @@ pub fn run(args: Args) -> Result<()> {
         print!("{}", b.measure(&args.out, args.samples)?.text());
         return Ok(());
     }
-    let model = match &args.model {
-        Some(p) => load_model(p)?,
-        None => builtin(&args.builtin)?,
-    };
-    let lights = lights_or_default(&args.lights, &model)?;
-    let camera = resolve_camera(&args.camera, parse_size(&args.size)?, &model)?;
-    let transport = Method::Hierarchical(args.quality.params());
-    let opts = ExportOptions {
-        lattice: match args.lattice {
-            Lattice::Refine => LatticeMode::Refine,
-            Lattice::Drop => LatticeMode::Drop,
-        },
-        eta: (args.eta > 0.0).then_some(args.eta),
-        lights,
-        camera,
-        samples: args.samples,
-        colour: match args.colour {
-            ColourArg::Total => export::ColourRule::Total,
-            ColourArg::Fitted => export::ColourRule::Fitted,
-            ColourArg::TwoLobe => export::ColourRule::TwoLobe,
-        },
-    };
-    let blender = if args.no_blender {
-        None
-    } else {
-        export::find_blender(args.blender.as_deref())?
+    let blender = match args.no_blender {
+        true => None,
+        false => export::find_blender(args.blender.as_deref())?,
     };
     if args.render && blender.is_none() {
         bail!(
@@ -152,6 +130,31 @@ pub fn run(args: Args) -> Result<()> {
             export::blender::BLENDER_ENV
         );
     }
+    if let Some(p) = args.model.as_deref()
+        && subsurf::volume::model::is_volume_file(p)
+    {
+        return volume(&args, p, blender.as_ref());
+    }
+    let model = match &args.model {
+        Some(p) => load_model(p)?,
+        None => builtin(&args.builtin)?,
+    };
+    let transport = Method::Hierarchical(args.quality.params());
+    let opts = ExportOptions {
+        lattice: match args.lattice {
+            Lattice::Refine => LatticeMode::Refine,
+            Lattice::Drop => LatticeMode::Drop,
+        },
+        eta: (args.eta > 0.0).then_some(args.eta),
+        lights: lights_or_default(&args.lights, model.bounds())?,
+        camera: resolve_camera(&args.camera, parse_size(&args.size)?, model.bounds())?,
+        samples: args.samples,
+        colour: match args.colour {
+            ColourArg::Total => export::ColourRule::Total,
+            ColourArg::Fitted => export::ColourRule::Fitted,
+            ColourArg::TwoLobe => export::ColourRule::TwoLobe,
+        },
+    };
     let bar = Bar::with_template("{msg:>12} {bar:40} {pos}/{len} {elapsed}");
     let exported = export::export(&model, &opts, &bar).context("converting the model")?;
     bar.finish_and_clear();
@@ -174,13 +177,10 @@ pub fn run(args: Args) -> Result<()> {
                     args.samples,
                     if args.noise { ", two seeds" } else { "" }
                 );
-                let store = subsurf::pipeline::StoreOptions {
-                    cache: args.cache.clone(),
-                    ..Default::default()
-                };
+                let store = subsurf::pipeline::StoreOptions::cached(args.cache.clone());
                 let (_, cmp) = export::frames::render_and_judge(
                     &ds,
-                    &model,
+                    export::frames::Subject::Empirical(&model),
                     &list,
                     args.samples,
                     b,
@@ -243,5 +243,37 @@ pub fn run(args: Args) -> Result<()> {
     for f in written {
         println!("  {}", f.display());
     }
+    Ok(())
+}
+
+/// A volume model: its medium as a Principled Volume, judged by `--scan`'s frames if given.
+fn volume(args: &Args, path: &std::path::Path, blender: Option<&export::Blender>) -> Result<()> {
+    let model = subsurf::volume::VolumeModel::read(path)
+        .with_context(|| format!("reading {}", path.display()))?;
+    let b = model.mesh.bounds();
+    let opts = export::volume::VolumeExportOptions {
+        lights: lights_or_default(&args.lights, b)?,
+        camera: resolve_camera(&args.camera, parse_size(&args.size)?, b)?,
+        samples: args.samples,
+        render: args.render,
+    };
+    let open = |s: &PathBuf| super::open_frames(s, args.frames.as_deref(), None);
+    let scan = args.scan.as_ref().map(open).transpose()?;
+    let run = scan.as_ref().map(|(ds, frames)| export::volume::FramesRun {
+        ds,
+        frames,
+        noise: args.noise,
+        photons: args.photons,
+        store: subsurf::pipeline::StoreOptions::cached(args.cache.clone()),
+    });
+    let bar = Bar::with_template("{msg:>16} {bar:40} {pos}/{len} {elapsed}");
+    let r = export::volume::export_volume(&model, &opts, &args.out, blender, run, &bar);
+    bar.finish_and_clear();
+    let r = r.context("exporting the volume model")?;
+    r.frames
+        .iter()
+        .for_each(|f| print!("{}", export::frames_text(f)));
+    println!("wrote into {}:", args.out.display());
+    r.files.iter().for_each(|f| println!("  {}", f.display()));
     Ok(())
 }

@@ -41,14 +41,11 @@ pub fn parse_size(s: &str) -> Result<(u32, u32)> {
 pub fn resolve_camera(
     spec: &str,
     size: (u32, u32),
-    model: &subsurf::modelfile::ModelFile,
+    (lo, hi): ([f64; 3], [f64; 3]),
 ) -> Result<Camera> {
     let spec: CameraSpec = spec.parse()?;
     Ok(match spec {
-        CameraSpec::Auto(dir) => {
-            let (lo, hi) = model.bounds();
-            Camera::framing(lo, hi, dir, size.0, size.1)?
-        }
+        CameraSpec::Auto(dir) => Camera::framing(lo, hi, dir, size.0, size.1)?,
         CameraSpec::LookAt {
             eye,
             target,
@@ -64,12 +61,9 @@ pub fn resolve_camera(
 }
 
 /// The lights of `--light` specs, or the renderer's default key and fill lights for `model`.
-pub fn lights_or_default(
-    specs: &[String],
-    model: &subsurf::modelfile::ModelFile,
-) -> Result<Vec<Light>> {
+pub fn lights_or_default(specs: &[String], bounds: ([f64; 3], [f64; 3])) -> Result<Vec<Light>> {
     if specs.is_empty() {
-        return Ok(Light::defaults_for(model.bounds()));
+        return Ok(Light::defaults_for(bounds));
     }
     Ok(specs
         .iter()

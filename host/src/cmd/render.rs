@@ -52,8 +52,8 @@ pub fn run(args: Args) -> Result<()> {
         Some(p) => load_model(p)?,
         None => builtin(&args.builtin)?,
     };
-    let lights = lights_or_default(&args.lights, &model)?;
-    let camera = resolve_camera(&args.camera, parse_size(&args.size)?, &model)?;
+    let lights = lights_or_default(&args.lights, model.bounds())?;
+    let camera = resolve_camera(&args.camera, parse_size(&args.size)?, model.bounds())?;
     let options = RenderOptions {
         method: if args.exact {
             Method::Exact

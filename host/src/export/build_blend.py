@@ -36,6 +36,14 @@ between surfaces, so the two images compare pixel for pixel), `--dir DIR` (the e
 the object turned by the turntable, the laser as a narrow spot light on x_i whose power carries
 the frame's exposure; default `--blend` frames/K.blend; `subsurf export --scan --render`).
 
+A volume model's export (`scene.json` "kind": "volume") builds instead the model's mesh with a
+material that is only a Principled Volume (Density, Color, Absorption Color, Anisotropy as the
+export computed them from sigma_t and albedo) behind no surface shader (index-matched: Cycles'
+rays cross the surface unbent) or a GGX Glass BSDF (a dielectric boundary). A grid whose cells
+differ is read by nearest lookup from two float images at the shading point's object
+coordinates, and also written as `medium.vdb` (grids `density`, `color`, `absorption_color`)
+where this Blender has the `openvdb` module.
+
 Only the Python standard library is used (Debian's Blender has no numpy).
 """
 
@@ -333,6 +341,174 @@ def build_lights(sc, lights, hidden=False, scale=1.0):
         sc.collection.objects.link(obj)
 
 
+def build_volume_mesh(scene):
+    mesh = bpy.data.meshes.new("subsurf volume")
+    mesh.from_pydata([tuple(v) for v in scene["vertices_m"]], [],
+                     [tuple(t) for t in scene["triangles"]])
+    mesh.update(calc_edges=True)
+    mesh.validate()
+    return mesh
+
+
+def grid_images(grid):
+    """The cells' Color and Absorption Color as float images: cell (x, y, z) at pixel
+    (x + nx z, y), so that one 2D lookup with closest interpolation reads one cell."""
+    nx, ny, nz = grid["dims"]
+    w, h = nx * nz, ny
+    out = []
+    for key in ("color", "absorption_color"):
+        img = bpy.data.images.new("subsurf " + key, w, h, alpha=True, float_buffer=True)
+        img.colorspace_settings.name = "Non-Color"
+        px = [0.0] * (4 * w * h)
+        for k, cell in enumerate(grid["cells"]):
+            x, y, z = k % nx, (k // nx) % ny, k // (nx * ny)
+            p = 4 * (y * w + x + nx * z)
+            px[p:p + 3] = cell[key]
+            px[p + 3] = 1.0
+        img.pixels = px
+        img.pack()
+        out.append(img)
+    return out
+
+
+def grid_lookup(nt, grid, images):
+    """Nodes reading the cell at the shading point: index = clamp(floor((p - origin) / cell)),
+    the image coordinate of that cell's pixel centre; returns the two images' Color outputs."""
+    nx, ny, nz = grid["dims"]
+    tc = nt.nodes.new("ShaderNodeTexCoord")
+    tc.location = (-1400, -400)
+
+    def vmath(op, a, b=None, loc=(0, 0)):
+        n = nt.nodes.new("ShaderNodeVectorMath")
+        n.operation = op
+        n.location = loc
+        nt.links.new(a, n.inputs[0])
+        if b is not None:
+            n.inputs[1].default_value = b
+        return n.outputs["Vector"]
+
+    p = vmath("SUBTRACT", tc.outputs["Object"], grid["origin_m"], (-1200, -400))
+    p = vmath("DIVIDE", p, grid["cell_m"], (-1050, -400))
+    p = vmath("FLOOR", p, None, (-900, -400))
+    p = vmath("MAXIMUM", p, (0.0, 0.0, 0.0), (-750, -400))
+    p = vmath("MINIMUM", p, (nx - 1, ny - 1, nz - 1), (-600, -400))
+    sep = nt.nodes.new("ShaderNodeSeparateXYZ")
+    sep.location = (-450, -400)
+    nt.links.new(p, sep.inputs[0])
+
+    def math(op, a, b, c=None, loc=(0, 0)):
+        n = nt.nodes.new("ShaderNodeMath")
+        n.operation = op
+        n.location = loc
+        nt.links.new(a, n.inputs[0])
+        n.inputs[1].default_value = b
+        if c is not None:
+            n.inputs[2].default_value = c
+        return n.outputs["Value"]
+
+    # u = (x + nx z + 0.5) / (nx nz), v = (y + 0.5) / ny
+    col = math("MULTIPLY_ADD", sep.outputs["Z"], float(nx), 0.5, (-300, -300))
+    add = nt.nodes.new("ShaderNodeMath")
+    add.operation = "ADD"
+    add.location = (-150, -300)
+    nt.links.new(sep.outputs["X"], add.inputs[0])
+    nt.links.new(col, add.inputs[1])
+    u = math("DIVIDE", add.outputs["Value"], float(nx * nz), None, (0, -300))
+    v = math("MULTIPLY_ADD", sep.outputs["Y"], 1.0 / ny, 0.5 / ny, (0, -450))
+    uv = nt.nodes.new("ShaderNodeCombineXYZ")
+    uv.location = (150, -400)
+    nt.links.new(u, uv.inputs["X"])
+    nt.links.new(v, uv.inputs["Y"])
+    outs = []
+    for k, img in enumerate(images):
+        t = nt.nodes.new("ShaderNodeTexImage")
+        t.location = (300, -300 - 250 * k)
+        t.image = img
+        t.interpolation = "Closest"
+        t.extension = "EXTEND"
+        nt.links.new(uv.outputs["Vector"], t.inputs["Vector"])
+        outs.append(t.outputs["Color"])
+    return outs
+
+
+def write_vdb(folder, grid):
+    """The cells as OpenVDB grids for other renderers, where this Blender carries the module."""
+    # Blender's own Python carries the module (`openvdb` from 4.4, `pyopenvdb` before); `bpy`
+    # as a module keeps it in Blender's site-packages, outside the venv's path.
+    import glob
+    local = bpy.utils.resource_path("LOCAL")
+    sys.path.extend(glob.glob(os.path.join(local, "python", "lib", "python3*", "site-packages")))
+    vdb = None
+    for name in ("openvdb", "pyopenvdb"):
+        try:
+            vdb = __import__(name)
+            break
+        except ImportError:
+            pass
+    if vdb is None:
+        print("SUBSURF no openvdb module in this Blender: medium.vdb not written")
+        return
+    nx, ny, nz = grid["dims"]
+    sx, sy, sz = grid["cell_m"]
+    ox, oy, oz = grid["origin_m"]
+    # Index (i, j, k) covers [origin + i cell, origin + (i + 1) cell): the voxel's centre.
+    m = [[sx, 0, 0, 0], [0, sy, 0, 0], [0, 0, sz, 0],
+         [ox + 0.5 * sx, oy + 0.5 * sy, oz + 0.5 * sz, 1]]
+    grids = []
+    for name, kind in (("density", vdb.FloatGrid), ("color", vdb.Vec3SGrid),
+                       ("absorption_color", vdb.Vec3SGrid)):
+        g = kind()
+        g.name = name
+        g.transform = vdb.createLinearTransform(m)
+        acc = g.getAccessor()
+        for k, cell in enumerate(grid["cells"]):
+            ijk = (k % nx, (k // nx) % ny, k // (nx * ny))
+            value = cell[name]
+            acc.setValueOn(ijk, tuple(value) if isinstance(value, list) else value)
+        grids.append(g)
+    path = os.path.join(folder, "medium.vdb")
+    vdb.write(path, grids=grids)
+    print("SUBSURF wrote %s" % path)
+
+
+def build_volume_material(scene, folder):
+    mat = bpy.data.materials.new("subsurf volume")
+    if VERSION < (5, 0):
+        mat.use_nodes = True
+    nt = mat.node_tree
+    for n in list(nt.nodes):
+        nt.nodes.remove(n)
+    out = nt.nodes.new("ShaderNodeOutputMaterial")
+    out.location = (1100, 0)
+    pv = nt.nodes.new("ShaderNodeVolumePrincipled")
+    pv.location = (700, 0)
+    m = scene["medium"]
+    pv.inputs["Density"].default_value = m["density"]
+    pv.inputs["Color"].default_value = tuple(m["color"]) + (1.0,)
+    pv.inputs["Absorption Color"].default_value = tuple(m["absorption_color"]) + (1.0,)
+    pv.inputs["Anisotropy"].default_value = scene["anisotropy"]
+    grid = scene.get("grid")
+    if grid:
+        pv.inputs["Density"].default_value = grid["cells"][0]["density"]
+        colour, absorption = grid_lookup(nt, grid, grid_images(grid))
+        nt.links.new(colour, pv.inputs["Color"])
+        nt.links.new(absorption, pv.inputs["Absorption Color"])
+        write_vdb(folder, grid)
+    nt.links.new(pv.outputs["Volume"], out.inputs["Volume"])
+    b = scene["boundary"]
+    if b["kind"] == "glass":
+        glass = nt.nodes.new("ShaderNodeBsdfGlass")
+        glass.location = (700, 400)
+        glass.distribution = "GGX"
+        glass.inputs["Roughness"].default_value = b["roughness"]
+        glass.inputs["IOR"].default_value = b["ior"]
+        nt.links.new(glass.outputs["BSDF"], out.inputs["Surface"])
+    # Index-matched: no surface shader, so Cycles' rays cross the surface unbent.
+    if hasattr(mat, "cycles") and hasattr(mat.cycles, "homogeneous_volume"):
+        mat.cycles.homogeneous_volume = not grid
+    return mat
+
+
 def frame_scene(folder, k):
     """Scan frame k's entry of frames.json and the file's render settings."""
     with open(os.path.join(folder, "frames.json")) as f:
@@ -558,20 +734,29 @@ def main():
     folder = opts["dir"]
     with open(os.path.join(folder, "scene.json")) as f:
         scene = json.load(f)
-    doc, blob = read_glb(os.path.join(folder, scene["mesh"]))
+    volume = scene.get("kind") == "volume"
+    if volume and opts["compare"]:
+        raise SystemExit("--compare is for an empirical model's export, not a volume's")
+    doc, blob = (None, None) if volume else read_glb(os.path.join(folder, scene["mesh"]))
     bpy.ops.wm.read_factory_settings(use_empty=True)
     sc = bpy.context.scene
     sc.name = "subsurf"
     sc.unit_settings.system = "METRIC"
     sc.unit_settings.scale_length = 1.0
     sc.unit_settings.length_unit = "MILLIMETERS"
-    mesh, largest = build_mesh(doc, blob)
-    k = light_scale_for(largest)
-    scene["_light_scale"] = k
-    print("SUBSURF Blender %s, Principled %s, light scale %.6g"
-          % (bpy.app.version_string, "v2" if PRINCIPLED_V2 else "v1", k))
-    mat = build_material(scene)
-    mat["subsurf_light_scale"] = k
+    if volume:
+        # A medium's light is rendered at its own power: no scale.
+        mesh, k = build_volume_mesh(scene), 1.0
+        print("SUBSURF Blender %s, Principled Volume" % bpy.app.version_string)
+        mat = build_volume_material(scene, folder)
+    else:
+        mesh, largest = build_mesh(doc, blob)
+        k = light_scale_for(largest)
+        scene["_light_scale"] = k
+        print("SUBSURF Blender %s, Principled %s, light scale %.6g"
+              % (bpy.app.version_string, "v2" if PRINCIPLED_V2 else "v1", k))
+        mat = build_material(scene)
+        mat["subsurf_light_scale"] = k
     mesh.materials.append(mat)
     obj = bpy.data.objects.new("subsurf model", mesh)
     sc.collection.objects.link(obj)
@@ -601,6 +786,16 @@ def main():
     # Clamping would cut the subsurface samples' high weights (biased, darker).
     sc.cycles.sample_clamp_direct = 0.0
     sc.cycles.sample_clamp_indirect = 0.0
+    if volume:
+        # Every scattering event is a volume bounce; a glass boundary's crossings are
+        # transmission bounces; an index-matched one's are transparent ones.
+        n = r["bounces"]
+        sc.cycles.max_bounces = n
+        sc.cycles.volume_bounces = n
+        sc.cycles.transmission_bounces = n
+        sc.cycles.glossy_bounces = n
+        sc.cycles.transparent_max_bounces = n
+        sc.cycles.diffuse_bounces = 0
     if opts["threads"]:
         sc.render.threads_mode = "FIXED"
         sc.render.threads = opts["threads"]

@@ -32,6 +32,47 @@ use crate::geometry::V3;
 use crate::modelfile::ModelFile;
 use crate::pipeline::{Context, register_one};
 use crate::progress::Progress;
+use crate::volume::VolumeModel;
+
+/// What Cycles renders and what it is judged beside: an empirical model's material (Burley),
+/// or a volume model's medium (Principled Volume, docs/volume.md), each next to subsurf's own
+/// prediction of the same frames on the same samples.
+#[derive(Clone, Copy, Debug)]
+pub enum Subject<'a> {
+    /// An empirical model: its conversion rendered, its own prediction beside.
+    Empirical(&'a ModelFile),
+    /// A volume model: its medium rendered, its own trace with `photons` per frame beside.
+    Volume {
+        /// The model.
+        model: &'a VolumeModel,
+        /// Photons per frame of subsurf's trace.
+        photons: usize,
+    },
+}
+
+impl Subject<'_> {
+    fn bounds(&self) -> ([f64; 3], [f64; 3]) {
+        match self {
+            Subject::Empirical(m) => m.bounds(),
+            Subject::Volume { model, .. } => model.mesh.bounds(),
+        }
+    }
+
+    fn model(&self) -> Option<&ModelFile> {
+        match self {
+            Subject::Empirical(m) => Some(m),
+            Subject::Volume { .. } => None,
+        }
+    }
+
+    /// The Cycles beam power (W) that carries `flux` of the scan's laser unit.
+    fn beam_watts(&self, flux: f64) -> f64 {
+        match self {
+            Subject::Empirical(_) => scene::beam_watts(flux),
+            Subject::Volume { .. } => scene::volume_beam_watts(flux),
+        }
+    }
+}
 
 /// The frame scenes' file in an export folder.
 pub const FRAMES_FILE: &str = "frames.json";
@@ -130,7 +171,7 @@ fn turn(v: V3, deg: f64) -> V3 {
 /// cannot reproduce is skipped with its reason.
 pub fn frame_scenes(
     ctx: &Context,
-    model: &ModelFile,
+    subject: Subject,
     frames: &[usize],
     samples: u32,
 ) -> Result<FrameScenes, ExportError> {
@@ -139,7 +180,7 @@ pub fn frame_scenes(
     }
     let ds = ctx.ds;
     // Clipping around the object at any turntable angle: its bounds swept about the axis.
-    let (lo, hi) = model.bounds();
+    let (lo, hi) = subject.bounds();
     let reach = [lo[0], hi[0]]
         .iter()
         .flat_map(|&x| [lo[1], hi[1]].map(|y| x.hypot(y)))
@@ -155,7 +196,7 @@ pub fn frame_scenes(
         skipped: Vec::new(),
     };
     for &k in frames {
-        match frame_scene(ctx, model, k, bounds) {
+        match frame_scene(ctx, subject, k, bounds) {
             Ok(s) => out.frames.push(s),
             Err(reason) => out.skipped.push(SkippedFrame { frame: k, reason }),
         }
@@ -179,7 +220,7 @@ pub fn frame_scenes(
 
 fn frame_scene(
     ctx: &Context,
-    model: &ModelFile,
+    subject: Subject,
     k: usize,
     bounds: ([f64; 3], [f64; 3]),
 ) -> Result<FrameScene, String> {
@@ -190,7 +231,9 @@ fn frame_scene(
         .get(k)
         .ok_or_else(|| format!("the dataset has {} frames", ctx.ds.spec.frames.len()))?;
     let reg = register_one(ctx, k)?;
-    crate::evaluate::model_at(ctx, model, reg.triangle, reg.x_i).ok_or("no model at x_i")?;
+    if let Some(model) = subject.model() {
+        crate::evaluate::model_at(ctx, model, reg.triangle, reg.x_i).ok_or("no model at x_i")?;
+    }
     let cam = ctx.camera(f.camera);
     let camera = scene::camera(cam, bounds).map_err(|e| e.to_string())?;
     let hit = turn(reg.x_i, f.turntable_deg);
@@ -212,7 +255,7 @@ fn frame_scene(
         direction,
         STANDOFF_MM,
         footprint_mm,
-        scene::beam_watts(LASER_POWER * f.exposure_s),
+        subject.beam_watts(LASER_POWER * f.exposure_s),
     )
     .map_err(|e| e.to_string())?;
     let border = border(ctx, k, (cam.width as f64, cam.height as f64));
@@ -341,6 +384,8 @@ pub struct FrameRow {
     pub subsurf_ring_log_e: [Option<f64>; 3],
     /// The same rings, the second seed's render against the first.
     pub noise_ring_log_e: Option<[Option<f64>; 3]>,
+    /// A volume model: the same rings, Cycles' render against subsurf's trace.
+    pub agreement_ring_log_e: Option<[Option<f64>; 3]>,
     /// Channel samples Cycles left black where the frame has light (judged at the noise floor).
     pub unlit: u64,
     /// Channel samples compared.
@@ -371,6 +416,9 @@ pub struct FramesComparison {
     pub noise_ring_mean_log_e: Option<[Option<f64>; 3]>,
     /// Cycles' ring mean over subsurf's, green.
     pub ring_ratio_green: Option<f64>,
+    /// A volume model: the mean over frames of Cycles' render against subsurf's trace on the
+    /// same rings (the two renderers of one medium; their noise included).
+    pub agreement_ring_mean_log_e: Option<[Option<f64>; 3]>,
     /// Per frame.
     pub per_frame: Vec<FrameRow>,
     /// Frames asked for that were not rendered or not judged, and why.
@@ -399,10 +447,10 @@ pub struct Renders {
 
 /// Judges the renders of `scenes` in `dir/frames` (and, when rendered, `dir/frames-seed1`)
 /// against the frames on `ctx` (the evaluation protocol's run with its store), next to
-/// `model`'s own figures on the same samples.
+/// `subject`'s own figures on the same samples.
 pub fn judge_frames(
     ctx: &Context,
-    model: &ModelFile,
+    subject: Subject,
     dir: &Path,
     scenes: &FrameScenes,
     renders: &Renders,
@@ -413,11 +461,45 @@ pub fn judge_frames(
     let noise_seconds = renders.noise_seconds.unwrap_or(0.0);
     let frames: Vec<usize> = scenes.frames.iter().map(|s| s.frame).collect();
     let at = EvalPoints::Vertices;
-    let (ours, _) = crate::evaluate::evaluate_in(ctx, model, &frames, at, progress)?;
+    let model = subject.model();
+    use crate::evaluate::rings::{Prediction, evaluate_rings_in};
+    // subsurf's own figures: the empirical model's prediction, or the volume's traced images
+    // (made once per frame, read by both yardsticks).
+    let predictor = match subject {
+        Subject::Volume { model: v, .. } => Some(v.predictor().map_err(|e| {
+            ExportError::Invalid(format!("the volume model cannot be traced: {e}"))
+        })?),
+        Subject::Empirical(_) => None,
+    };
+    let photons = match subject {
+        Subject::Volume { photons, .. } => photons,
+        Subject::Empirical(_) => 0,
+    };
+    let kept: std::sync::Mutex<Vec<(usize, crate::dataset::Image)>> = Default::default();
+    let make = |k: usize| -> Result<crate::dataset::Image, crate::evaluate::images::BoxError> {
+        if let Some((_, img)) = kept
+            .lock()
+            .ok()
+            .and_then(|v| v.iter().find(|(f, _)| *f == k).cloned())
+        {
+            return Ok(img);
+        }
+        let p = predictor.as_ref().ok_or("no volume model")?;
+        let img = p.frame(ctx.ds, k, photons, crate::evaluate::run::VOLUME_SEED)?;
+        if let Ok(mut v) = kept.lock() {
+            v.push((k, img.clone()));
+        }
+        Ok(img)
+    };
+    let traced = FrameImages::made(PathBuf::from("(volume model)"), &make);
+    let ours = match model {
+        Some(m) => crate::evaluate::evaluate_in(ctx, m, &frames, at, progress)?.0,
+        None => evaluate_images_in(ctx, None, &traced, Reference::Frames, &frames, at, progress)?.0,
+    };
     let cycles = FrameImages::new(dir.join(FRAMES_DIR));
     let (theirs, _) = evaluate_images_in(
         ctx,
-        Some(model),
+        model,
         &cycles,
         Reference::Frames,
         &frames,
@@ -426,27 +508,19 @@ pub fn judge_frames(
     )?;
     let noise_evals = if noise {
         let second = FrameImages::new(dir.join(NOISE_DIR));
-        Some(
-            evaluate_images_in(
-                ctx,
-                Some(model),
-                &second,
-                Reference::Images(&cycles),
-                &frames,
-                at,
-                progress,
-            )?
-            .0,
-        )
+        let r = Reference::Images(&cycles);
+        Some(evaluate_images_in(ctx, model, &second, r, &frames, at, progress)?.0)
     } else {
         None
     };
-    use crate::evaluate::rings::{Prediction, evaluate_rings_in};
-    let (ring_ours, _) =
-        evaluate_rings_in(ctx, Some(model), Prediction::Model, &frames, at, progress)?;
+    let own = match model {
+        Some(_) => Prediction::Model,
+        None => Prediction::Images(&traced, Reference::Frames),
+    };
+    let (ring_ours, _) = evaluate_rings_in(ctx, model, own, &frames, at, progress)?;
     let (ring_theirs, _) = evaluate_rings_in(
         ctx,
-        Some(model),
+        model,
         Prediction::Images(&cycles, Reference::Frames),
         &frames,
         at,
@@ -455,11 +529,23 @@ pub fn judge_frames(
     let ring_noise = if noise {
         let second = FrameImages::new(dir.join(NOISE_DIR));
         let p = Prediction::Images(&second, Reference::Images(&cycles));
-        Some(evaluate_rings_in(ctx, Some(model), p, &frames, at, progress)?.0)
+        Some(evaluate_rings_in(ctx, model, p, &frames, at, progress)?.0)
     } else {
         None
     };
-    let fitted = model.fitted_frames.as_deref().unwrap_or(&[]);
+    // A volume's trace is an image too: Cycles judged against it on the same rings says how
+    // far the two renderers of one medium agree, apart from how far both are from the frames.
+    let agreement = match model {
+        Some(_) => None,
+        None => {
+            let p = Prediction::Images(&cycles, Reference::Images(&traced));
+            Some(evaluate_rings_in(ctx, model, p, &frames, at, progress)?.0)
+        }
+    };
+    let fitted = match subject {
+        Subject::Empirical(m) => m.fitted_frames.as_deref().unwrap_or(&[]),
+        Subject::Volume { model, .. } => &model.fit.frames[..],
+    };
     let mut skipped = scenes.skipped.clone();
     let mut rows = Vec::new();
     for (n, (a, b)) in theirs.iter().zip(&ours).enumerate() {
@@ -473,13 +559,14 @@ pub fn judge_frames(
         let noise_e: Option<&FrameEval> = noise_evals.as_ref().map(|v| &v[n]);
         rows.push(FrameRow {
             frame: a.frame,
-            fitted: fitted.binary_search(&a.frame).is_ok(),
+            fitted: fitted.contains(&a.frame),
             cycles_log_e: a.log_e,
             subsurf_log_e: b.log_e,
             noise_log_e: noise_e.map(|e| e.log_e),
             cycles_ring_log_e: ring_theirs[n].log_e,
             subsurf_ring_log_e: ring_ours[n].log_e,
             noise_ring_log_e: ring_noise.as_ref().map(|v| v[n].log_e),
+            agreement_ring_log_e: agreement.as_ref().map(|v| v[n].log_e),
             unlit: a.unlit.unwrap_or(0),
             samples: a.samples,
             seconds: seconds.get(n).copied().unwrap_or(0.0),
@@ -517,7 +604,11 @@ pub fn judge_frames(
         (Some(a), Some(b)) if b > 0.0 => Some(a / b),
         _ => None,
     };
+    let agreement_ring_mean_log_e = agreement
+        .is_some()
+        .then(|| [0, 1, 2].map(|c| mean_of(&refs, |r| r.agreement_ring_log_e.and_then(|n| n[c]))));
     Ok(FramesComparison {
+        agreement_ring_mean_log_e,
         cycles_ring_mean_log_e,
         subsurf_ring_mean_log_e,
         noise_ring_mean_log_e,
@@ -540,7 +631,7 @@ pub fn judge_frames(
 #[allow(clippy::too_many_arguments)]
 pub fn render_and_judge(
     ds: &Dataset,
-    model: &ModelFile,
+    subject: Subject,
     frames: &[usize],
     samples: u32,
     blender: &Blender,
@@ -551,16 +642,17 @@ pub fn render_and_judge(
 ) -> Result<(FrameScenes, FramesComparison), ExportError> {
     let (opts, _) = crate::pipeline::evaluation_protocol(ds)
         .map_err(|e| ExportError::Invalid(format!("the dataset's noise floor: {e}")))?;
+    let models: Vec<&ModelFile> = subject.model().into_iter().collect();
     let ctx = crate::evaluate::judged_store(
         ds,
-        &[model],
+        &models,
         frames,
         &opts,
         EvalPoints::Vertices,
         store,
         progress,
     )?;
-    let scenes = frame_scenes(&ctx, model, frames, samples)?;
+    let scenes = frame_scenes(&ctx, subject, frames, samples)?;
     write_frame_scenes(dir, &scenes)?;
     let seconds = render_frames(blender, dir, &scenes, FRAMES_DIR, 0, progress)?;
     let noise_seconds = if noise {
@@ -576,7 +668,7 @@ pub fn render_and_judge(
         seconds,
         noise_seconds,
     };
-    let cmp = judge_frames(&ctx, model, dir, &scenes, &renders, progress)?;
+    let cmp = judge_frames(&ctx, subject, dir, &scenes, &renders, progress)?;
     Ok((scenes, cmp))
 }
 

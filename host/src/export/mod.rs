@@ -13,9 +13,13 @@
 //!    units, and the script that builds the node tree and the scene ([`blender`] runs it).
 //! 4. [`compare`]: the same scene rendered by Cycles and by [`crate::render`], their mean
 //!    relative pixel error and difference picture.
+//! 5. [`volume`]: a volume model ([`crate::volume`]) needs no conversion: its medium becomes a
+//!    Principled Volume inside its mesh, rendered by Cycles' volume scattering, and judged by a
+//!    scan's frames beside subsurf's own trace ([`frames::Subject::Volume`]).
 //!
-//! Reads models only through [`ModelFile`]. Touches files only in [`Export::write`],
-//! [`compare`] and [`write_report`]; runs Blender only in [`blender`].
+//! Reads models only through [`ModelFile`] and [`crate::volume::VolumeModel`]. Touches files
+//! only in [`Export::write`], [`volume`], [`compare`] and [`write_report`]; runs Blender only
+//! in [`blender`].
 
 pub mod blender;
 pub mod convert;
@@ -24,6 +28,7 @@ pub mod frames;
 pub mod gltf;
 pub mod mesh;
 pub mod scene;
+pub mod volume;
 
 use std::path::{Path, PathBuf};
 
@@ -1050,6 +1055,21 @@ pub fn frames_text(f: &frames::FramesComparison) -> String {
         "rings: Cycles / subsurf (green) {}",
         fmt::opt(f.ring_ratio_green, |x| fmt::sig(x, 3))
     );
+    if let Some(a) = f.agreement_ring_mean_log_e {
+        let _ = writeln!(
+            o,
+            "rings, Cycles against subsurf's trace of the same medium: {} (per frame {})",
+            rgb(a),
+            f.per_frame
+                .iter()
+                .map(|r| r
+                    .agreement_ring_log_e
+                    .map(rgb)
+                    .unwrap_or_else(|| "–".into()))
+                .collect::<Vec<_>>()
+                .join("; ")
+        );
+    }
     let _ = writeln!(
         o,
         "Cycles / subsurf (green): {}; {} frames skipped; Cycles {}",

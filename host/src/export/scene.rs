@@ -216,6 +216,16 @@ pub fn beam_watts(flux: f64) -> f64 {
     std::f64::consts::PI * flux * METRES_PER_MM * METRES_PER_MM
 }
 
+/// The beam power, in Blender watts, that gives a Cycles volume's radiance the scan's units
+/// for a laser of power `flux` in the scan's units.
+///
+/// Why no π: a volume is rendered by its physics, so radiance is power per m² per steradian
+/// as subsurf's tracer computes it per mm² (its images are the frames' units, checked against
+/// Mitsuba 3 and sample-slab, docs/volume.md); only the area changes, 10⁻⁶ m² per mm².
+pub fn volume_beam_watts(flux: f64) -> f64 {
+    flux * METRES_PER_MM * METRES_PER_MM
+}
+
 /// A scan frame's laser as a Cycles spot light: a point `standoff_mm` before the hit
 /// point `hit_mm` along the ray `direction` (world frame, mm), its cone just wide enough to
 /// light a disk of radius `footprint_mm` there, carrying the beam power `watts` onto it.

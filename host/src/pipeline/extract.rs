@@ -39,6 +39,16 @@ pub struct StoreOptions {
     pub cache: Cache,
 }
 
+impl StoreOptions {
+    /// The default memory budget with the store's files in `cache`.
+    pub fn cached(cache: Cache) -> StoreOptions {
+        StoreOptions {
+            cache,
+            ..Default::default()
+        }
+    }
+}
+
 impl Default for StoreOptions {
     fn default() -> Self {
         StoreOptions {
