@@ -243,11 +243,12 @@ fn mitsuba_renders_of_a_box_and_a_sphere_agree_with_the_tracer() {
 /// sample-torus's mesh (a ring: light leaves the tube and meets the ring again across its
 /// hole) under the spot, its tube's top at the origin: Mitsuba 3 and subsurf's tracer on every
 /// ring, the far ones included, within 5 % where the rings hold at least 1 % of the brightest
-/// ring's light. Ignored: on the torus the tracer reads 0.8–0.9 of both Mitsuba and Cycles
-/// within 3 mm of the spot and 1.3 times them across the ring (docs/volume.md, "Export to
-/// Blender"), a fault not found yet; run it with `--ignored` to see the rings.
+/// ring's light. Ignored: against six Mitsuba seeds the tracer reads 5–11 % low at 5–10 mm from
+/// the spot, on the tube's silhouettes (docs/volume.md, "Export to Blender"), a fault not found
+/// yet; one seed's far rings are noisier than the tolerance too. Run it with `--ignored` to see
+/// the rings.
 #[test]
-#[ignore = "the tracer disagrees with Mitsuba and Cycles on the torus (docs/volume.md)"]
+#[ignore = "the tracer reads 5-11 % below Mitsuba at 5-10 mm on the torus (docs/volume.md)"]
 fn mitsuba_and_the_tracer_agree_on_a_torus_far_from_the_spot() {
     let Some(py) = mitsuba() else {
         return;

@@ -181,7 +181,7 @@ impl Scene {
     /// `0 <= t <= t_max`, `t` in mm along the normalised direction.
     pub fn cast(&self, origin: V3, dir: V3, t_max: f64) -> Option<Hit> {
         let d = normalize(dir)?;
-        let first = self.cast_once(origin, d, t_max);
+        let first = self.cast_strict(origin, d, t_max);
         if first.is_some() {
             return first;
         }
@@ -194,14 +194,19 @@ impl Scene {
         let h = 10.0 * self.eps;
         [e1, e2, e1.map(|x| -x), e2.map(|x| -x)]
             .iter()
-            .find_map(|e| self.cast_once(add_scaled(origin, h, *e), d, t_max))
+            .find_map(|e| self.cast_strict(add_scaled(origin, h, *e), d, t_max))
             .map(|hit| Hit {
                 point: add_scaled(origin, hit.t, d),
                 ..hit
             })
     }
 
-    fn cast_once(&self, origin: V3, d: V3, t_max: f64) -> Option<Hit> {
+    /// The first hit of the ray from `origin` along the unit direction `d` within `t_max`,
+    /// without [`Scene::cast`]'s retry from nudged origins. For rays that start on the surface
+    /// (a photon that has just crossed it): there a sideways nudge can put the origin behind the
+    /// face just left, and at grazing incidence the nudged ray meets that face again a
+    /// millimetre's fraction ahead, a crossing that is not there.
+    pub fn cast_strict(&self, origin: V3, d: V3, t_max: f64) -> Option<Hit> {
         let ray = Ray::new(
             PVec::new(origin[0], origin[1], origin[2]),
             PVec::new(d[0], d[1], d[2]),
