@@ -69,11 +69,27 @@ pub enum ImageProblem {
 pub struct FrameImages<'a> {
     /// The folder (for made images: only named in errors).
     pub dir: PathBuf,
-    made: Option<&'a MakeImage<'a>>,
+    made: Option<&'a dyn MakeImage>,
 }
 
-/// Makes frame `k`'s predicted image (the camera's size, finite values).
-pub type MakeImage<'a> = dyn Fn(usize) -> Result<Image, BoxError> + Sync + 'a;
+/// Makes frame `k`'s predicted image (the camera's size, finite values): a closure, or a volume
+/// model's [`crate::volume::TracedFrames`].
+pub trait MakeImage: Sync {
+    /// Frame `k`'s image.
+    fn make(&self, k: usize) -> Result<Image, BoxError>;
+}
+
+impl<F: Fn(usize) -> Result<Image, BoxError> + Sync> MakeImage for F {
+    fn make(&self, k: usize) -> Result<Image, BoxError> {
+        self(k)
+    }
+}
+
+impl MakeImage for crate::volume::TracedFrames<'_> {
+    fn make(&self, k: usize) -> Result<Image, BoxError> {
+        Ok(self.image(k)?)
+    }
+}
 /// Why an image could not be made.
 pub type BoxError = Box<dyn std::error::Error + Send + Sync>;
 
@@ -96,7 +112,7 @@ impl<'a> FrameImages<'a> {
     }
 
     /// Images made by `make` when a frame is judged (`name` stands for the folder in errors).
-    pub fn made(name: impl Into<PathBuf>, make: &'a MakeImage<'a>) -> FrameImages<'a> {
+    pub fn made(name: impl Into<PathBuf>, make: &'a dyn MakeImage) -> FrameImages<'a> {
         FrameImages {
             dir: name.into(),
             made: Some(make),
@@ -119,7 +135,9 @@ impl<'a> FrameImages<'a> {
     /// Frame `k`'s image, checked: the size of the camera `(w, h)` and every value finite.
     pub fn read(&self, k: usize, size: (usize, usize)) -> Result<Image, EvaluateError> {
         let img = match self.made {
-            Some(make) => make(k).map_err(|e| self.error(k, ImageProblem::NotMade(e)))?,
+            Some(make) => make
+                .make(k)
+                .map_err(|e| self.error(k, ImageProblem::NotMade(e)))?,
             None => {
                 let path = self.path(k);
                 if !path.is_file() {

@@ -6,9 +6,8 @@
 //! prediction of a frame is an image, made when the frame is judged and read at the samples'
 //! projections by the same rules; no file is written in between.
 use std::path::PathBuf;
-use std::sync::Mutex;
 
-use super::images::{BoxError, FrameImages};
+use super::images::FrameImages;
 use super::rings::{FrameRings, Prediction};
 use super::{EvalPoints, EvaluateError, FrameEval, Reference};
 use crate::dataset::{Dataset, Image};
@@ -16,7 +15,7 @@ use crate::modelfile::ModelFile;
 use crate::pipeline::{LogEStats, ProtocolChanges, StoreOptions, evaluation_protocol_with};
 use crate::progress::Progress;
 use crate::report::evaluate::{EvaluateReport, Protocol};
-use crate::volume::VolumeModel;
+use crate::volume::{TracedFrames, VolumeModel};
 
 /// Photons per frame of a volume model's predictions unless told otherwise: enough that the
 /// trace's own noise is well below the figures' (docs/volume.md).
@@ -215,25 +214,9 @@ pub fn evaluate_report(
         }
         Judged::Volume { model, photons } => {
             let predictor = model.predictor()?;
-            // The rings read each frame's image again: made once, kept while both judge.
-            let kept: Mutex<Vec<(usize, Image)>> = Mutex::new(Vec::new());
-            let make = |k: usize| -> Result<Image, BoxError> {
-                if let Some((_, img)) = kept
-                    .lock()
-                    .ok()
-                    .and_then(|v| v.iter().find(|(f, _)| *f == k).cloned())
-                {
-                    return Ok(img);
-                }
-                let img = predictor.frame(ds, k, photons, VOLUME_SEED)?;
-                if settings.rings
-                    && let Ok(mut v) = kept.lock()
-                {
-                    v.push((k, img.clone()));
-                }
-                Ok(img)
-            };
-            let images = FrameImages::made(PathBuf::from("(volume model)"), &make);
+            // The rings read each frame's image again: kept while both judge.
+            let traced = TracedFrames::new(&predictor, ds, photons, VOLUME_SEED, settings.rings);
+            let images = FrameImages::made(TracedFrames::NAME, &traced);
             let ctx = super::judged_store(ds, &[], frames, &opts, points, store, progress)?;
             let (evals, _) = super::evaluate_images_in(
                 &ctx,

@@ -287,8 +287,9 @@ def lobe(nt, scene, colour_name, radius_name, y):
     return bsdf
 
 
-def build_material(scene):
-    mat = bpy.data.materials.new("subsurf material")
+def empty_material(name):
+    """A new material with an empty node tree but its output node: (material, tree, output)."""
+    mat = bpy.data.materials.new(name)
     if VERSION < (5, 0):
         # From 5.0 a material is always its node tree.
         mat.use_nodes = True
@@ -297,6 +298,11 @@ def build_material(scene):
         nt.nodes.remove(n)
     out = nt.nodes.new("ShaderNodeOutputMaterial")
     out.location = (1100, 0)
+    return mat, nt, out
+
+
+def build_material(scene):
+    mat, nt, out = empty_material("subsurf material")
     near = lobe(nt, scene, "subsurface_colour", "subsurface_radius", 0)
     if scene.get("lobes", 1) == 2:
         # Two lobes: the slow Principled BSDF mixed in by the lobe_mix attribute (the slow
@@ -472,14 +478,7 @@ def write_vdb(folder, grid):
 
 
 def build_volume_material(scene, folder):
-    mat = bpy.data.materials.new("subsurf volume")
-    if VERSION < (5, 0):
-        mat.use_nodes = True
-    nt = mat.node_tree
-    for n in list(nt.nodes):
-        nt.nodes.remove(n)
-    out = nt.nodes.new("ShaderNodeOutputMaterial")
-    out.location = (1100, 0)
+    mat, nt, out = empty_material("subsurf volume")
     pv = nt.nodes.new("ShaderNodeVolumePrincipled")
     pv.location = (700, 0)
     m = scene["medium"]

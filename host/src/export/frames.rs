@@ -32,7 +32,7 @@ use crate::geometry::V3;
 use crate::modelfile::ModelFile;
 use crate::pipeline::{Context, register_one};
 use crate::progress::Progress;
-use crate::volume::VolumeModel;
+use crate::volume::{TracedFrames, VolumeModel};
 
 /// What Cycles renders and what it is judged beside: an empirical model's material (Burley),
 /// or a volume model's medium (Principled Volume, docs/volume.md), each next to subsurf's own
@@ -464,37 +464,40 @@ pub fn judge_frames(
     let model = subject.model();
     use crate::evaluate::rings::{Prediction, evaluate_rings_in};
     // subsurf's own figures: the empirical model's prediction, or the volume's traced images
-    // (made once per frame, read by both yardsticks).
+    // (traced once per frame, read by both yardsticks).
     let predictor = match subject {
         Subject::Volume { model: v, .. } => Some(v.predictor().map_err(|e| {
             ExportError::Invalid(format!("the volume model cannot be traced: {e}"))
         })?),
         Subject::Empirical(_) => None,
     };
-    let photons = match subject {
-        Subject::Volume { photons, .. } => photons,
-        Subject::Empirical(_) => 0,
+    let traced = match (subject, &predictor) {
+        (Subject::Volume { photons, .. }, Some(p)) => Some(TracedFrames::new(
+            p,
+            ctx.ds,
+            photons,
+            crate::evaluate::run::VOLUME_SEED,
+            true,
+        )),
+        _ => None,
     };
-    let kept: std::sync::Mutex<Vec<(usize, crate::dataset::Image)>> = Default::default();
-    let make = |k: usize| -> Result<crate::dataset::Image, crate::evaluate::images::BoxError> {
-        if let Some((_, img)) = kept
-            .lock()
-            .ok()
-            .and_then(|v| v.iter().find(|(f, _)| *f == k).cloned())
-        {
-            return Ok(img);
+    let traced = traced
+        .as_ref()
+        .map(|t| FrameImages::made(TracedFrames::NAME, t));
+    let (ours, own) = match (model, &traced) {
+        (Some(m), _) => (
+            crate::evaluate::evaluate_in(ctx, m, &frames, at, progress)?.0,
+            Prediction::Model,
+        ),
+        (None, Some(t)) => (
+            evaluate_images_in(ctx, None, t, Reference::Frames, &frames, at, progress)?.0,
+            Prediction::Images(t, Reference::Frames),
+        ),
+        (None, None) => {
+            return Err(ExportError::Invalid(
+                "nothing to judge the renders by".into(),
+            ));
         }
-        let p = predictor.as_ref().ok_or("no volume model")?;
-        let img = p.frame(ctx.ds, k, photons, crate::evaluate::run::VOLUME_SEED)?;
-        if let Ok(mut v) = kept.lock() {
-            v.push((k, img.clone()));
-        }
-        Ok(img)
-    };
-    let traced = FrameImages::made(PathBuf::from("(volume model)"), &make);
-    let ours = match model {
-        Some(m) => crate::evaluate::evaluate_in(ctx, m, &frames, at, progress)?.0,
-        None => evaluate_images_in(ctx, None, &traced, Reference::Frames, &frames, at, progress)?.0,
     };
     let cycles = FrameImages::new(dir.join(FRAMES_DIR));
     let (theirs, _) = evaluate_images_in(
@@ -512,10 +515,6 @@ pub fn judge_frames(
         Some(evaluate_images_in(ctx, model, &second, r, &frames, at, progress)?.0)
     } else {
         None
-    };
-    let own = match model {
-        Some(_) => Prediction::Model,
-        None => Prediction::Images(&traced, Reference::Frames),
     };
     let (ring_ours, _) = evaluate_rings_in(ctx, model, own, &frames, at, progress)?;
     let (ring_theirs, _) = evaluate_rings_in(
@@ -535,10 +534,10 @@ pub fn judge_frames(
     };
     // A volume's trace is an image too: Cycles judged against it on the same rings says how
     // far the two renderers of one medium agree, apart from how far both are from the frames.
-    let agreement = match model {
-        Some(_) => None,
-        None => {
-            let p = Prediction::Images(&cycles, Reference::Images(&traced));
+    let agreement = match &traced {
+        None => None,
+        Some(t) => {
+            let p = Prediction::Images(&cycles, Reference::Images(t));
             Some(evaluate_rings_in(ctx, model, p, &frames, at, progress)?.0)
         }
     };

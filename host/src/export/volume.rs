@@ -61,6 +61,18 @@ pub fn principled_volume(
     sigma_t_mm: [f64; 3],
     albedo: [f64; 3],
 ) -> Result<PrincipledVolume, ExportError> {
+    let d = sigma_t_mm.iter().copied().fold(0.0, f64::max);
+    principled_volume_at(sigma_t_mm, albedo, d)
+}
+
+/// [`principled_volume`] with a given density `d_mm` (per mm, at least the largest σ_t): a
+/// grid's cells share one density, the grid's largest σ_t, so that Cycles' majorant is that
+/// density and each cell's colours carry its own σ_s and σ_a.
+fn principled_volume_at(
+    sigma_t_mm: [f64; 3],
+    albedo: [f64; 3],
+    d_mm: f64,
+) -> Result<PrincipledVolume, ExportError> {
     if sigma_t_mm.iter().any(|s| !(s.is_finite() && *s > 0.0))
         || albedo
             .iter()
@@ -71,7 +83,12 @@ pub fn principled_volume(
              the albedo within [0, 1]"
         )));
     }
-    let d = sigma_t_mm.iter().copied().fold(0.0, f64::max);
+    if !(d_mm.is_finite() && sigma_t_mm.iter().all(|s| *s <= d_mm)) {
+        return Err(ExportError::Invalid(format!(
+            "a Principled Volume density of {d_mm} /mm is below the medium's σ_t {sigma_t_mm:?} /mm"
+        )));
+    }
+    let d = d_mm;
     let color = [0, 1, 2].map(|c| albedo[c] * sigma_t_mm[c] / d);
     let absorption_color = [0, 1, 2].map(|c| {
         let free = d - albedo[c] * sigma_t_mm[c];
@@ -315,24 +332,7 @@ fn blender_grid(grid: &MediumGrid) -> Result<BlenderGrid, ExportError> {
         .sigma_t
         .iter()
         .zip(&grid.albedo)
-        .map(|(s, a)| {
-            let mut p = principled_volume(*s, *a)?;
-            let scale = p.density * METRES_PER_MM / d;
-            p.color = p.color.map(|c| c * scale);
-            // σ_a = (1 − C)(1 − √A) D with the common D: the cell's own σ_a fixes √A.
-            p.absorption_color = [0, 1, 2].map(|c| {
-                let sigma_a = (1.0 - a[c]) * s[c];
-                let free = d - p.color[c] * d;
-                let share = if free > 0.0 {
-                    (sigma_a / free).clamp(0.0, 1.0)
-                } else {
-                    1.0
-                };
-                (1.0 - share).powi(2)
-            });
-            p.density = d / METRES_PER_MM;
-            Ok(p)
-        })
+        .map(|(s, a)| principled_volume_at(*s, *a, d))
         .collect::<Result<Vec<_>, ExportError>>()?;
     Ok(BlenderGrid {
         origin_m: grid.origin.map(|x| x * METRES_PER_MM),

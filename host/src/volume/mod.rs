@@ -26,5 +26,6 @@ pub mod model;
 pub mod trace;
 
 pub use model::{
-    BoundaryModel, FitInfo, MediumGrid, VolumeError, VolumeMesh, VolumeModel, predict_model,
+    BoundaryModel, FitInfo, MediumGrid, TracedFrames, VolumeError, VolumeMesh, VolumeModel,
+    predict_model,
 };

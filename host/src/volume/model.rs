@@ -565,6 +565,60 @@ impl Predictor {
     }
 }
 
+/// A volume model's frames traced when they are judged, each kept once traced when `keep` is
+/// set: the per-pixel and the ring yardsticks read the same frame, and a trace costs seconds
+/// where a copy costs nothing.
+pub struct TracedFrames<'a> {
+    predictor: &'a Predictor,
+    ds: &'a Dataset,
+    photons: usize,
+    seed: u64,
+    keep: bool,
+    kept: std::sync::Mutex<Vec<(usize, Image)>>,
+}
+
+impl<'a> TracedFrames<'a> {
+    /// What stands for the folder of these images in errors.
+    pub const NAME: &'static str = "(volume model)";
+
+    /// Frames of `ds` traced by `predictor` with `photons` and `seed`.
+    pub fn new(
+        predictor: &'a Predictor,
+        ds: &'a Dataset,
+        photons: usize,
+        seed: u64,
+        keep: bool,
+    ) -> TracedFrames<'a> {
+        TracedFrames {
+            predictor,
+            ds,
+            photons,
+            seed,
+            keep,
+            kept: std::sync::Mutex::new(Vec::new()),
+        }
+    }
+
+    /// Frame `k`'s image: the kept one, or traced now (and kept when asked to).
+    pub fn image(&self, k: usize) -> Result<Image, VolumeError> {
+        let found = self
+            .kept
+            .lock()
+            .ok()
+            .and_then(|v| v.iter().find(|(f, _)| *f == k).map(|(_, img)| img.clone()));
+        if let Some(img) = found {
+            return Ok(img);
+        }
+        let img = self.predictor.frame(self.ds, k, self.photons, self.seed)?;
+        if self.keep
+            && let Ok(mut v) = self.kept.lock()
+        {
+            v.push((k, img.clone()));
+        }
+        Ok(img)
+    }
+}
+
 /// The frames `frames` of `ds` predicted by the model `model` with `photons` per frame (per
 /// channel for a heterogeneous grid), traced on the model's own mesh behind an index-matched
 /// boundary; a dielectric boundary is an error until the tracer has it.
