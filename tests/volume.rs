@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use subsurf::dataset::{Dataset, Mesh, read_image, write_obj};
 use subsurf::geometry::{Camera, Scene, shapes};
+use subsurf::volume::dielectric::Surface;
 use subsurf::volume::fit::{FrameRings, frame_geometry, model_rings, ring_edge};
 use subsurf::volume::local::image_rings;
 use subsurf::volume::medium::{GridChannel, grid_image};
@@ -77,11 +78,33 @@ struct Case {
     grid: Option<GridChannel>,
     /// Per cell the albedo of each channel, beside `grid` (whose own albedo is unused).
     grid_albedo: Vec<[f64; 3]>,
+    /// A rough dielectric boundary (index inside, GGX α) instead of an index-matched one.
+    dielectric: Option<(f64, f64)>,
 }
 
 /// Renders `case` in Mitsuba and in subsurf's tracer and compares their ring sums around x_i
-/// (log-spaced, 4 per factor e, from 0.5 mm): the ratio per ring, channel by channel.
+/// (log-spaced, 4 per factor e, from 0.5 mm): per ring its inner edge, Mitsuba's and subsurf's
+/// sums, channel by channel (one seed of each).
 fn compare(py: &Path, dir: &Path, case: &Case) -> Vec<(f64, [f64; 3], [f64; 3])> {
+    compare_seeds(py, dir, case, &[3], &[5])
+        .into_iter()
+        .map(|(r, data, model)| (r, data[0], model[0]))
+        .collect()
+}
+
+/// One ring's inner edge (mm), its sums in each Mitsuba render and in each trace.
+type SeededRing = (f64, Vec<[f64; 3]>, Vec<[f64; 3]>);
+
+/// [`compare`] with a Mitsuba render per seed of `mitsuba_seeds` and a trace (200,000 photons)
+/// per seed of `trace_seeds`: per ring the sums of each render and of each trace, so that both
+/// renderers' own noise can be told from a difference between them.
+fn compare_seeds(
+    py: &Path,
+    dir: &Path,
+    case: &Case,
+    mitsuba_seeds: &[u32],
+    trace_seeds: &[u64],
+) -> Vec<SeededRing> {
     let mesh_path = dir.join(format!("{}.obj", case.name));
     write_obj(&mesh_path, &case.mesh).unwrap();
     let (w, h, f) = (64u32, 64u32, 400.0);
@@ -92,64 +115,91 @@ fn compare(py: &Path, dir: &Path, case: &Case) -> Vec<(f64, [f64; 3], [f64; 3])>
     // the lit volume often enough: with a 5° spot its two-seed ring noise at 512 samples a
     // pixel was 5-15 %, with this one 1-2.5 % out to 4 mm.
     let (light, cutoff_deg) = ([0.0, 0.0, 4.0], 25.0f64);
-    let spec = serde_json::json!({
-        "mesh": mesh_path,
-        "sigma_t": case.sigma_t,
-        "albedo": case.albedo,
-        "g": case.g,
-        "camera": {
-            "width": w, "height": h,
-            "fov_x_deg": 2.0 * (w as f64 / 2.0 / f).atan().to_degrees(),
-            "origin": eye, "target": [0.0, 0.0, 0.0], "up": [0.0, 1.0, 0.0],
-        },
-        "spot": {"position": light, "target": [0.0, 0.0, 0.0], "cutoff_deg": cutoff_deg},
-        "spp": 1536,
-        "seed": 3,
-    });
-    let mut spec = spec;
-    if let Some(g) = &case.grid {
-        spec["grid"] = serde_json::json!({
-            "origin": g.origin, "cell_mm": g.cell_mm, "dims": g.dims,
-            "sigma_t": g.sigma_t, "albedo": case.grid_albedo,
-        });
-    }
-    let spec_path = dir.join(format!("{}.json", case.name));
-    std::fs::write(&spec_path, spec.to_string()).unwrap();
-    let exr = dir.join(format!("{}.exr", case.name));
-    run_mitsuba(py, "mitsuba_volume.py", &[&spec_path, &exr]);
-    let img = read_image(&exr).unwrap();
     let scene = Scene::new(case.mesh.clone()).unwrap();
     let mut geo = FrameGeometry::new(&scene, &cam, 0.0, light, [0.0, 0.0, -1.0]).unwrap();
     geo.cone = cutoff_deg.to_radians();
-    if let Some(g) = &case.grid {
-        let channels: [GridChannel; 3] = std::array::from_fn(|c| GridChannel {
-            albedo: case.grid_albedo.iter().map(|a| a[c]).collect(),
-            ..g.clone()
-        });
-        let ours = grid_image(
-            &scene,
-            Boundary::of(&scene),
-            &geo,
-            &channels,
-            case.g,
-            200_000,
-            5,
-            0,
-        );
-        let frame = FrameRings::new(&scene, geo, 0, &img, 1.0);
-        let model = image_rings(&frame, &ours);
-        return (0..frame.rings)
-            .filter(|&j| frame.count[j] > 0)
-            .map(|j| (ring_edge(j as u32), frame.data[j], model[j]))
-            .collect();
-    }
-    let settings = TraceSettings::for_medium([case.sigma_t; 3], case.albedo, case.g, 200_000, 5);
-    let records = trace_frame(&scene, Boundary::of(&scene), &geo, &settings, 0);
-    let frame = FrameRings::new(&scene, geo, 0, &img, 1.0);
-    let model = model_rings(&frame, &records, &settings, [case.sigma_t; 3], case.albedo);
+    let renders: Vec<_> = mitsuba_seeds
+        .iter()
+        .map(|&seed| {
+            let mut spec = serde_json::json!({
+                "mesh": mesh_path,
+                "sigma_t": case.sigma_t,
+                "albedo": case.albedo,
+                "g": case.g,
+                "camera": {
+                    "width": w, "height": h,
+                    "fov_x_deg": 2.0 * (w as f64 / 2.0 / f).atan().to_degrees(),
+                    "origin": eye, "target": [0.0, 0.0, 0.0], "up": [0.0, 1.0, 0.0],
+                },
+                "spot": {"position": light, "target": [0.0, 0.0, 0.0], "cutoff_deg": cutoff_deg},
+                "spp": 1536,
+                "seed": seed,
+            });
+            if let Some((ior, alpha)) = case.dielectric {
+                spec["bsdf"] = serde_json::json!({
+                    "type": "roughdielectric", "distribution": "ggx", "alpha": alpha,
+                    "int_ior": ior, "ext_ior": 1.0,
+                });
+            }
+            if let Some(g) = &case.grid {
+                spec["grid"] = serde_json::json!({
+                    "origin": g.origin, "cell_mm": g.cell_mm, "dims": g.dims,
+                    "sigma_t": g.sigma_t, "albedo": case.grid_albedo,
+                });
+            }
+            let spec_path = dir.join(format!("{}-{seed}.json", case.name));
+            std::fs::write(&spec_path, spec.to_string()).unwrap();
+            let exr = dir.join(format!("{}-{seed}.exr", case.name));
+            run_mitsuba(py, "mitsuba_volume.py", &[&spec_path, &exr]);
+            FrameRings::new(&scene, geo.clone(), 0, &read_image(&exr).unwrap(), 1.0)
+        })
+        .collect();
+    let frame = &renders[0];
+    let traces: Vec<Vec<[f64; 3]>> = trace_seeds
+        .iter()
+        .map(|&seed| match &case.grid {
+            Some(g) => {
+                let channels: [GridChannel; 3] = std::array::from_fn(|c| GridChannel {
+                    albedo: case.grid_albedo.iter().map(|a| a[c]).collect(),
+                    ..g.clone()
+                });
+                let ours = grid_image(
+                    &scene,
+                    Boundary::of(&scene),
+                    &geo,
+                    &channels,
+                    case.g,
+                    200_000,
+                    seed,
+                    0,
+                );
+                image_rings(frame, &ours)
+            }
+            None => {
+                let mut settings = TraceSettings::for_medium(
+                    [case.sigma_t; 3],
+                    case.albedo,
+                    case.g,
+                    200_000,
+                    seed,
+                );
+                if let Some((ior, alpha)) = case.dielectric {
+                    settings.surface = Surface::RoughDielectric { ior, alpha };
+                }
+                let records = trace_frame(&scene, Boundary::of(&scene), &geo, &settings, 0);
+                model_rings(frame, &records, &settings, [case.sigma_t; 3], case.albedo)
+            }
+        })
+        .collect();
     (0..frame.rings)
         .filter(|&j| frame.count[j] > 0)
-        .map(|j| (ring_edge(j as u32), frame.data[j], model[j]))
+        .map(|j| {
+            (
+                ring_edge(j as u32),
+                renders.iter().map(|r| r.data[j]).collect(),
+                traces.iter().map(|t| t[j]).collect(),
+            )
+        })
         .collect()
 }
 
@@ -174,6 +224,7 @@ fn mitsuba_renders_of_a_box_and_a_sphere_agree_with_the_tracer() {
             g: 0.0,
             grid: None,
             grid_albedo: Vec::new(),
+            dielectric: None,
         },
         Case {
             name: "sphere",
@@ -183,6 +234,7 @@ fn mitsuba_renders_of_a_box_and_a_sphere_agree_with_the_tracer() {
             g: 0.3,
             grid: None,
             grid_albedo: Vec::new(),
+            dielectric: None,
         },
         // Heterogeneous: the box in 2 × 1 × 3 cells, the top 5 mm denser on one side of the
         // spot than on the other, its albedo different again, over a middle and a deep layer.
@@ -207,6 +259,7 @@ fn mitsuba_renders_of_a_box_and_a_sphere_agree_with_the_tracer() {
                 [0.9, 0.85, 0.7],
                 [0.97, 0.95, 0.9],
             ],
+            dielectric: None,
         },
     ];
     for case in &cases {
@@ -240,15 +293,94 @@ fn mitsuba_renders_of_a_box_and_a_sphere_agree_with_the_tracer() {
     }
 }
 
+/// The mean of `x` and its standard error.
+fn mean_se(x: &[f64]) -> (f64, f64) {
+    let n = x.len() as f64;
+    let m = x.iter().sum::<f64>() / n;
+    let var = x.iter().map(|v| (v - m).powi(2)).sum::<f64>() / (n - 1.0).max(1.0);
+    (m, (var / n).sqrt())
+}
+
+/// The two-sided 95 % t value at `dof` degrees of freedom (1 to 10; beyond, 10's).
+fn t95(dof: usize) -> f64 {
+    const T: [f64; 10] = [
+        12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228,
+    ];
+    T[dof.clamp(1, 10) - 1]
+}
+
+/// Judges seeded rings ([`compare_seeds`]): every ring holding at least `share` of the
+/// brightest ring's light, and the rings in `band` (mm) summed, are off when their ratio of
+/// means (subsurf / Mitsuba) is further from 1 than 2 % plus the 95 % t-interval of both
+/// sides' seed spreads (its degrees of freedom those of the fewer seeds, Mitsuba's). Returns the rings off (ring, channel, ratio, se) and how many
+/// ring-channels were judged to within ±5 % (so that a test cannot pass by noise alone).
+fn judge_seeded(
+    name: &str,
+    rings: &[SeededRing],
+    share: f64,
+    band: (f64, f64),
+) -> (Vec<(f64, usize, f64, f64)>, usize) {
+    let ratio = |data: &[f64], model: &[f64]| {
+        let ((m, se_m), (t, se_t)) = (mean_se(data), mean_se(model));
+        let r = t / m;
+        (r, r * ((se_m / m).powi(2) + (se_t / t).powi(2)).sqrt())
+    };
+    let channel = |v: &[[f64; 3]], c: usize| v.iter().map(|x| x[c]).collect::<Vec<_>>();
+    let top: [f64; 3] = std::array::from_fn(|c| {
+        rings
+            .iter()
+            .map(|r| mean_se(&channel(&r.1, c)).0)
+            .fold(0.0, f64::max)
+    });
+    let t = t95(rings[0].1.len().min(rings[0].2.len()) - 1);
+    let (mut off, mut sharp) = (Vec::new(), 0);
+    for (r, data, model) in rings {
+        let judged: Vec<(f64, f64)> = (0..3)
+            .map(|c| ratio(&channel(data, c), &channel(model, c)))
+            .collect();
+        eprintln!("{name} ring {r:.2} mm: subsurf / mitsuba (ratio, se) {judged:.3?}");
+        for (c, (q, se)) in judged.iter().enumerate() {
+            if mean_se(&channel(data, c)).0 > share * top[c] {
+                sharp += usize::from(t * se < 0.05);
+                if (q - 1.0).abs() > 0.02 + t * se {
+                    off.push((*r, c, *q, *se));
+                }
+            }
+        }
+    }
+    let rows: Vec<usize> = (0..rings.len())
+        .filter(|&j| (band.0..band.1).contains(&rings[j].0))
+        .collect();
+    // Per seed, the band's sum: Mitsuba's renders (`model` false) or subsurf's traces.
+    let sum = |model: bool, c: usize| -> Vec<f64> {
+        let side = |j: usize| if model { &rings[j].2 } else { &rings[j].1 };
+        (0..side(rows[0]).len())
+            .map(|s| rows.iter().map(|&j| side(j)[s][c]).sum())
+            .collect()
+    };
+    for c in 0..3 {
+        let (q, se) = ratio(&sum(false, c), &sum(true, c));
+        eprintln!(
+            "{name} band {:.1}-{:.1} mm, channel {c}: subsurf / mitsuba {q:.3} ± {se:.3}",
+            band.0, band.1
+        );
+        if (q - 1.0).abs() > 0.02 + t * se {
+            off.push((band.0, c, q, se));
+        }
+    }
+    (off, sharp)
+}
+
 /// sample-torus's mesh (a ring: light leaves the tube and meets the ring again across its
 /// hole) under the spot, its tube's top at the origin: Mitsuba 3 and subsurf's tracer on every
-/// ring, the far ones included, within 5 % where the rings hold at least 1 % of the brightest
-/// ring's light. Ignored: against six Mitsuba seeds the tracer reads 5–11 % low at 5–10 mm from
-/// the spot, on the tube's silhouettes (docs/volume.md, "Export to Blender"), a fault not found
-/// yet; one seed's far rings are noisier than the tolerance too. Run it with `--ignored` to see
-/// the rings.
+/// ring holding at least 1 % of the brightest ring's light, the far ones included, and on the
+/// band 3.7–10 mm as a whole, each within 2 % plus the 95 % t-interval of the two renderers'
+/// seed noise (three Mitsuba seeds, eight traces: 2 degrees of freedom, t95 4.30). One trace against one render is not enough out there: a single trace's rings at
+/// 5–10 mm range 0.79–1.19 of Mitsuba's mean over six seeds, and one seed read as a 5–11 %
+/// deficit until its own noise was measured (docs/volume.md). Ignored for its time (three
+/// Mitsuba renders, about 4 minutes); run it with `--ignored` to see the rings.
 #[test]
-#[ignore = "the tracer reads 5-11 % below Mitsuba at 5-10 mm on the torus (docs/volume.md)"]
+#[ignore = "about 4 minutes: three Mitsuba renders of the torus"]
 fn mitsuba_and_the_tracer_agree_on_a_torus_far_from_the_spot() {
     let Some(py) = mitsuba() else {
         return;
@@ -276,20 +408,55 @@ fn mitsuba_and_the_tracer_agree_on_a_torus_far_from_the_spot() {
         g: 0.0,
         grid: None,
         grid_albedo: Vec::new(),
+        dielectric: None,
     };
-    let rings = compare(&py, tmp.path(), &case);
-    let top: [f64; 3] = std::array::from_fn(|c| rings.iter().map(|r| r.1[c]).fold(0.0, f64::max));
-    let mut off = Vec::new();
-    for (r, data, model) in &rings {
-        let ratio: [f64; 3] = std::array::from_fn(|c| model[c] / data[c]);
-        eprintln!("torus ring {r:.2} mm: subsurf / mitsuba {ratio:.3?} (mitsuba {data:?})");
-        for c in 0..3 {
-            if data[c] > 0.01 * top[c] && (ratio[c] - 1.0).abs() >= 0.05 {
-                off.push((*r, c, ratio[c]));
-            }
-        }
-    }
-    assert!(off.is_empty(), "torus: rings off by 5 % or more: {off:?}");
+    let rings = compare_seeds(
+        &py,
+        tmp.path(),
+        &case,
+        &[3, 4, 5],
+        &[1, 2, 3, 4, 5, 6, 7, 8],
+    );
+    let (off, sharp) = judge_seeded("torus", &rings, 0.01, (3.7, 10.0));
+    assert!(
+        off.is_empty(),
+        "torus: rings beyond their noise (ring, channel, ratio, se): {off:?}"
+    );
+    assert!(sharp >= 18, "only {sharp} ring-channels judged within ±5 %");
+}
+
+/// The box-and-sphere test's sphere (radius 6 mm, σ_t 1/mm, albedo 0.95 / 0.9 / 0.8, g 0.3)
+/// behind sample-pebble's boundary, a rough dielectric (index 1.55, GGX α 0.2): Mitsuba 3's
+/// `volpath` with its `roughdielectric` and subsurf's tracer, next events from the surface, on
+/// every ring holding at least 5 % of the brightest ring's light and on the band 1–6 mm, within
+/// 2 % plus the 95 % t-interval of both renderers' seed noise (eight Mitsuba seeds, eight
+/// traces: 7 degrees of freedom, t95 2.36). Ignored for its time (eight Mitsuba renders, about
+/// 2 minutes).
+#[test]
+#[ignore = "about 2 minutes: eight Mitsuba renders behind a rough dielectric"]
+fn mitsuba_and_the_tracer_agree_behind_a_rough_dielectric() {
+    let Some(py) = mitsuba() else {
+        return;
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let case = Case {
+        name: "glass-sphere",
+        mesh: sphere(6.0, 3),
+        sigma_t: 1.0,
+        albedo: [0.95, 0.9, 0.8],
+        g: 0.3,
+        grid: None,
+        grid_albedo: Vec::new(),
+        dielectric: Some((1.55, 0.2)),
+    };
+    let seeds: Vec<u32> = (3..11).collect();
+    let rings = compare_seeds(&py, tmp.path(), &case, &seeds, &[1, 2, 3, 4, 5, 6, 7, 8]);
+    let (off, sharp) = judge_seeded("dielectric sphere", &rings, 0.05, (1.0, 6.0));
+    assert!(
+        off.is_empty(),
+        "rings beyond their noise (ring, channel, ratio, se): {off:?}"
+    );
+    assert!(sharp >= 15, "only {sharp} ring-channels judged within ±5 %");
 }
 
 /// The outside renderer's sample-slab (a homogeneous slab, σ_t = 2/mm, albedo 0.99 / 0.985 /
