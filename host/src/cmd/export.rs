@@ -180,7 +180,7 @@ pub fn run(args: Args) -> Result<()> {
                 let store = subsurf::pipeline::StoreOptions::cached(args.cache.clone());
                 let (_, cmp) = export::frames::render_and_judge(
                     &ds,
-                    export::frames::Subject::Empirical(&model),
+                    export::frames::Subject::Empirical(&model, Some(&exported)),
                     &list,
                     args.samples,
                     b,

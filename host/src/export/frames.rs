@@ -39,8 +39,10 @@ use crate::volume::{TracedFrames, VolumeModel};
 /// prediction of the same frames on the same samples.
 #[derive(Clone, Copy, Debug)]
 pub enum Subject<'a> {
-    /// An empirical model: its conversion rendered, its own prediction beside.
-    Empirical(&'a ModelFile),
+    /// An empirical model: its conversion rendered, its own prediction beside; with the
+    /// conversion itself, Cycles' expected render replayed in closed form beside too
+    /// ([`super::replay`]).
+    Empirical(&'a ModelFile, Option<&'a super::Export>),
     /// A volume model: its medium rendered, its own trace with `photons` per frame beside.
     Volume {
         /// The model.
@@ -53,14 +55,14 @@ pub enum Subject<'a> {
 impl Subject<'_> {
     fn bounds(&self) -> ([f64; 3], [f64; 3]) {
         match self {
-            Subject::Empirical(m) => m.bounds(),
+            Subject::Empirical(m, _) => m.bounds(),
             Subject::Volume { model, .. } => model.mesh.bounds(),
         }
     }
 
     fn model(&self) -> Option<&ModelFile> {
         match self {
-            Subject::Empirical(m) => Some(m),
+            Subject::Empirical(m, _) => Some(m),
             Subject::Volume { .. } => None,
         }
     }
@@ -68,7 +70,7 @@ impl Subject<'_> {
     /// The Cycles beam power (W) that carries `flux` of the scan's laser unit.
     fn beam_watts(&self, flux: f64) -> f64 {
         match self {
-            Subject::Empirical(_) => scene::beam_watts(flux),
+            Subject::Empirical(..) => scene::beam_watts(flux),
             Subject::Volume { .. } => scene::volume_beam_watts(flux),
         }
     }
@@ -120,6 +122,8 @@ pub struct FrameScene {
     /// Whether the laser's direction is the frame's `laser` ray (else the surface normal at
     /// x_i: a dataset without laser rays).
     pub laser_ray: bool,
+    /// The laser's direction (world frame, unit).
+    pub laser_direction: [f64; 3],
     /// The frame's exposure (the shortest of its brackets), which the light's power carries.
     pub exposure_s: f64,
     /// The part of the image Cycles renders, `[min_x, max_x, min_y, max_y]` as fractions of
@@ -269,6 +273,7 @@ fn frame_scene(
         x_i_mm: reg.x_i,
         footprint_mm,
         laser_ray,
+        laser_direction: crate::geometry::normalize(direction).unwrap_or(direction),
         exposure_s: f.exposure_s,
         border,
     })
@@ -386,12 +391,27 @@ pub struct FrameRow {
     pub noise_ring_log_e: Option<[Option<f64>; 3]>,
     /// A volume model: the same rings, Cycles' render against subsurf's trace.
     pub agreement_ring_log_e: Option<[Option<f64>; 3]>,
+    /// An empirical model's conversion: Cycles' expected render ([`super::replay`]) judged
+    /// like Cycles' render, per sample, by rings, and Cycles' render against it on the same
+    /// rings (where the replay is right, one render's noise: the second seed's column / √2).
+    pub replay: Option<ReplayRow>,
     /// Channel samples Cycles left black where the frame has light (judged at the noise floor).
     pub unlit: u64,
     /// Channel samples compared.
     pub samples: u64,
     /// Seconds of Cycles' render (Blender's start included).
     pub seconds: f64,
+}
+
+/// One frame's figures of Cycles' expected render ([`super::replay`]).
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct ReplayRow {
+    /// log E per sample against the frame.
+    pub log_e: [Option<f64>; 3],
+    /// Ring log E against the frame.
+    pub ring_log_e: [Option<f64>; 3],
+    /// Cycles' render judged against the replay on the frame's rings.
+    pub cycles_ring_log_e: [Option<f64>; 3],
 }
 
 /// Cycles judged by the frames it must reproduce, next to subsurf's model.
@@ -419,6 +439,15 @@ pub struct FramesComparison {
     /// A volume model: the mean over frames of Cycles' render against subsurf's trace on the
     /// same rings (the two renderers of one medium; their noise included).
     pub agreement_ring_mean_log_e: Option<[Option<f64>; 3]>,
+    /// An empirical model's conversion: the replay's means over the frames judged (per
+    /// sample, rings, Cycles' render against it on the rings).
+    pub replay_mean_log_e: Option<[Option<f64>; 3]>,
+    /// The replay's ring mean (the same frames as `subsurf_ring_mean_log_e`).
+    pub replay_ring_mean_log_e: Option<[Option<f64>; 3]>,
+    /// Cycles' render against the replay, ring mean.
+    pub replay_agreement_ring_mean_log_e: Option<[Option<f64>; 3]>,
+    /// The replay's ring mean over subsurf's, green.
+    pub replay_ring_ratio_green: Option<f64>,
     /// Per frame.
     pub per_frame: Vec<FrameRow>,
     /// Frames asked for that were not rendered or not judged, and why.
@@ -443,6 +472,8 @@ pub struct Renders {
     pub seconds: Vec<f64>,
     /// Seconds of the second seed's renders, when there are any.
     pub noise_seconds: Option<f64>,
+    /// The Cycles that rendered them (the replay follows its kernel).
+    pub kernel: super::replay::Kernel,
 }
 
 /// Judges the renders of `scenes` in `dir/frames` (and, when rendered, `dir/frames-seed1`)
@@ -469,7 +500,7 @@ pub fn judge_frames(
         Subject::Volume { model: v, .. } => Some(v.predictor().map_err(|e| {
             ExportError::Invalid(format!("the volume model cannot be traced: {e}"))
         })?),
-        Subject::Empirical(_) => None,
+        Subject::Empirical(..) => None,
     };
     let traced = match (subject, &predictor) {
         (Subject::Volume { photons, .. }, Some(p)) => Some(TracedFrames::new(
@@ -541,8 +572,21 @@ pub fn judge_frames(
             Some(evaluate_rings_in(ctx, model, p, &frames, at, progress)?.0)
         }
     };
+    let replay = match subject {
+        Subject::Empirical(m, Some(export)) => {
+            let r = super::replay::Replay::new(
+                ctx,
+                scenes,
+                &export.mesh,
+                export.scene.exit_fresnel_ior,
+                renders.kernel,
+            )?;
+            Some(judge_replay(ctx, m, &r, &cycles, &frames, progress)?)
+        }
+        _ => None,
+    };
     let fitted = match subject {
-        Subject::Empirical(m) => m.fitted_frames.as_deref().unwrap_or(&[]),
+        Subject::Empirical(m, _) => m.fitted_frames.as_deref().unwrap_or(&[]),
         Subject::Volume { model, .. } => &model.fit.frames[..],
     };
     let mut skipped = scenes.skipped.clone();
@@ -566,6 +610,7 @@ pub fn judge_frames(
             subsurf_ring_log_e: ring_ours[n].log_e,
             noise_ring_log_e: ring_noise.as_ref().map(|v| v[n].log_e),
             agreement_ring_log_e: agreement.as_ref().map(|v| v[n].log_e),
+            replay: replay.as_ref().map(|v| v[n]),
             unlit: a.unlit.unwrap_or(0),
             samples: a.samples,
             seconds: seconds.get(n).copied().unwrap_or(0.0),
@@ -606,7 +651,21 @@ pub fn judge_frames(
     let agreement_ring_mean_log_e = agreement
         .is_some()
         .then(|| [0, 1, 2].map(|c| mean_of(&refs, |r| r.agreement_ring_log_e.and_then(|n| n[c]))));
+    let replay_of = |f: fn(&ReplayRow) -> [Option<f64>; 3]| {
+        replay.is_some().then(|| {
+            [0, 1, 2].map(|c| mean_of(&ring_both(c), |r| r.replay.as_ref().and_then(|p| f(p)[c])))
+        })
+    };
+    let replay_ring_mean_log_e = replay_of(|p| p.ring_log_e);
+    let replay_ring_ratio_green = match (replay_ring_mean_log_e, subsurf_ring_mean_log_e[1]) {
+        (Some([_, Some(a), _]), Some(b)) if b > 0.0 => Some(a / b),
+        _ => None,
+    };
     Ok(FramesComparison {
+        replay_mean_log_e: replay_of(|p| p.log_e),
+        replay_ring_mean_log_e,
+        replay_agreement_ring_mean_log_e: replay_of(|p| p.cycles_ring_log_e),
+        replay_ring_ratio_green,
         agreement_ring_mean_log_e,
         cycles_ring_mean_log_e,
         subsurf_ring_mean_log_e,
@@ -622,6 +681,38 @@ pub fn judge_frames(
         noise_floor: ctx.opts.error_threshold,
         cycles_seconds: seconds.iter().sum::<f64>() + noise_seconds,
     })
+}
+
+/// Per frame of `frames`, the replay `replay` judged against the frames (per sample and by
+/// rings) and Cycles' renders `cycles` judged against it (rings).
+fn judge_replay(
+    ctx: &Context,
+    model: &ModelFile,
+    replay: &super::replay::Replay,
+    cycles: &FrameImages,
+    frames: &[usize],
+    progress: &dyn Progress,
+) -> Result<Vec<ReplayRow>, ExportError> {
+    use crate::evaluate::rings::{Prediction, evaluate_rings_in};
+    let at = EvalPoints::Vertices;
+    let images = FrameImages::made(super::replay::Replay::NAME, replay);
+    let m = Some(model);
+    let (per_sample, _) =
+        evaluate_images_in(ctx, m, &images, Reference::Frames, frames, at, progress)?;
+    let p = Prediction::Images(&images, Reference::Frames);
+    let (rings, _) = evaluate_rings_in(ctx, m, p, frames, at, progress)?;
+    let p = Prediction::Images(cycles, Reference::Images(&images));
+    let (against, _) = evaluate_rings_in(ctx, m, p, frames, at, progress)?;
+    Ok(per_sample
+        .iter()
+        .zip(&rings)
+        .zip(&against)
+        .map(|((a, b), c)| ReplayRow {
+            log_e: a.log_e,
+            ring_log_e: b.log_e,
+            cycles_ring_log_e: c.log_e,
+        })
+        .collect())
 }
 
 /// The whole of `subsurf export --scan --frames --render`: the protocol's run on `frames` of
@@ -666,6 +757,7 @@ pub fn render_and_judge(
     let renders = Renders {
         seconds,
         noise_seconds,
+        kernel: super::replay::Kernel::of(blender.version),
     };
     let cmp = judge_frames(&ctx, subject, dir, &scenes, &renders, progress)?;
     Ok((scenes, cmp))

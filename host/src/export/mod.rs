@@ -27,6 +27,7 @@ pub mod cycles;
 pub mod frames;
 pub mod gltf;
 pub mod mesh;
+pub mod replay;
 pub mod scene;
 pub mod volume;
 
@@ -1065,6 +1066,29 @@ pub fn frames_text(f: &frames::FramesComparison) -> String {
                 .map(|r| r
                     .agreement_ring_log_e
                     .map(rgb)
+                    .unwrap_or_else(|| "–".into()))
+                .collect::<Vec<_>>()
+                .join("; ")
+        );
+    }
+    if let (Some(a), Some(b), Some(c)) = (
+        f.replay_mean_log_e,
+        f.replay_ring_mean_log_e,
+        f.replay_agreement_ring_mean_log_e,
+    ) {
+        let _ = writeln!(
+            o,
+            "Cycles' expected render (closed-form replay): log E {}, rings {} (replay / \
+             subsurf, green {}); Cycles' render against it, rings {} (per frame {})",
+            rgb(a),
+            rgb(b),
+            fmt::opt(f.replay_ring_ratio_green, |x| fmt::sig(x, 3)),
+            rgb(c),
+            f.per_frame
+                .iter()
+                .map(|r| r
+                    .replay
+                    .map(|p| rgb(p.cycles_ring_log_e))
                     .unwrap_or_else(|| "–".into()))
                 .collect::<Vec<_>>()
                 .join("; ")
