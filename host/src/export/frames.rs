@@ -695,7 +695,16 @@ fn judge_replay(
 ) -> Result<Vec<ReplayRow>, ExportError> {
     use crate::evaluate::rings::{Prediction, evaluate_rings_in};
     let at = EvalPoints::Vertices;
-    let images = FrameImages::made(super::replay::Replay::NAME, replay);
+    // Made once per frame: three judges read each image.
+    use crate::evaluate::images::MakeImage;
+    use rayon::prelude::*;
+    let made: Vec<_> = frames.par_iter().map(|&k| (k, replay.make(k))).collect();
+    let kept = |k: usize| match made.iter().find(|(f, _)| *f == k) {
+        Some((_, Ok(img))) => Ok(img.clone()),
+        Some((_, Err(e))) => Err(e.to_string().into()),
+        None => replay.make(k),
+    };
+    let images = FrameImages::made(super::replay::Replay::NAME, &kept);
     let m = Some(model);
     let (per_sample, _) =
         evaluate_images_in(ctx, m, &images, Reference::Frames, frames, at, progress)?;

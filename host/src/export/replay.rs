@@ -56,8 +56,6 @@ use crate::pipeline::Context;
 
 /// Cycles' `BURLEY_TRUNCATE`: the profile ends at 16 d.
 const TRUNCATE: f64 = super::cycles::TRUNCATE;
-/// Cycles' `BURLEY_TRUNCATE_CDF`: the share of the untruncated profile within 16 d.
-const TRUNCATE_CDF: f64 = 0.996_379_009_370_832_8;
 /// The axis picks of the disk step: the normal half the time, each tangent a quarter.
 const PICK: [f64; 3] = [0.5, 0.25, 0.25];
 /// Rings and spokes of the laser cone's quadrature: the footprint is half a pixel, so this
@@ -88,13 +86,13 @@ impl Kernel {
 }
 
 /// Cycles' `bssrdf_burley_pdf` (which its `bssrdf_eval` returns per channel): the truncated
-/// Burley profile as a radial density, `(e^{−r/d} + e^{−r/(3d)}) / (4d) / CDF(16)`, 0 from 16 d.
+/// Burley profile as a radial density, `(e^{−r/d} + e^{−r/(3d)}) / (4d) / CDF(16)` — the area
+/// profile [`super::cycles::ln_profile`] times `2π r` — for `0 < r < 16 d`, else 0.
 pub fn burley_radial(d: f64, r: f64) -> f64 {
-    if d.is_nan() || d <= 0.0 || r >= TRUNCATE * d {
+    if d.is_nan() || d <= 0.0 || r <= 0.0 || r >= TRUNCATE * d {
         return 0.0;
     }
-    let e3 = (-r / (3.0 * d)).exp();
-    (e3 * e3 * e3 + e3) / (4.0 * d) / TRUNCATE_CDF
+    2.0 * PI * r * super::cycles::ln_profile(r, d).exp()
 }
 
 /// Cycles' `make_orthonormals`: the tangents of the disk frame around `n`.
@@ -117,9 +115,8 @@ pub fn disk_kernel(p: V3, axes: [V3; 3], x: V3, n_x: V3, d: [f64; 3]) -> [f64; 3
     let r = dist(x, p);
     let q = [0, 1, 2].map(|a| PICK[a] * dot(n_x, axes[a]).abs());
     let s2: f64 = q.iter().map(|v| v * v).sum();
-    let sampled = d.iter().filter(|&&v| v > 0.0).count() as f64;
     let mut k = [0.0; 3];
-    if s2.is_nan() || s2 <= 0.0 || sampled == 0.0 {
+    if s2.is_nan() || s2 <= 0.0 {
         return k;
     }
     let eval = d.map(|dc| burley_radial(dc, r));
