@@ -225,7 +225,7 @@ fn export_writes_the_scene_and_reports_the_conversion_error() {
     assert!(s.distinct_colours > 20, "{s:?}");
 }
 
-/// Issue 43 item 3's candidate: `--colour two-lobe` on the built-in torus (a slow third term)
+/// A candidate conversion: `--colour two-lobe` on the built-in torus (a slow third term)
 /// writes the slow lobe (scene "lobes": 2, the slow attributes, shares in [0, 1]) and fits the
 /// fall-off never worse than one fitted lobe (its starting point). On this torus the terms'
 /// split of the light holds the two lobes together: measured, both median log E 0.269 — the
@@ -376,8 +376,8 @@ fn anisotropy_and_a_lattice_are_reported_with_their_cost() {
 /// noise 9.6 %), because the demo's sphere (radius 4 mm) is no larger than its fall-off's reach
 /// (3d ≈ 3.6 mm) and Cycles' disk probes gather more of the light than the renderer's
 /// surface sum there (docs/export.md). The bounds hold that finding: uniformly brighter, the
-/// same silhouette, nothing else. (Those figures are with the colour T; since issue 43 item 4 the
-/// demo exports with the default fitted colour, measured 21.7 % here, still uniformly brighter.)
+/// same silhouette, nothing else. (Those figures are with the colour T; since the demo judges Cycles
+/// against the ground truth it exports with the default fitted colour, measured 21.7 % here, still uniformly brighter.)
 #[test]
 fn the_demo_model_renders_in_blender_like_subsurfs_render() {
     if blender().is_none() {
@@ -441,7 +441,7 @@ fn figures(v: &serde_json::Value) -> (Vec<f64>, Vec<(u64, Option<f64>)>) {
 }
 
 /// `subsurf evaluate --images` judges any renderer's pictures of a scan's frames like a model
-/// (issue 43): the frames themselves, judged as images, are exact (log E 0: the same points,
+/// (what the Cycles renders of scan frames are judged by): the frames themselves, judged as images, are exact (log E 0: the same points,
 /// neighbourhoods and units as the samples); `subsurf predict`'s images of the small slab's
 /// frames (the simulation's true model) give the model's figures on the same samples, up to
 /// where the prediction is taken (the bilinear read of pixel-centre predictions against the
@@ -666,7 +666,7 @@ fn bracketed_small_slab(dir: &Path) {
     std::fs::write(&scan, serde_json::to_vec_pretty(&spec).unwrap()).unwrap();
 }
 
-/// Issue 43: `subsurf export --scan S --frames F --render` renders two frames of a small scan in
+/// `subsurf export --scan S --frames F --render` renders two frames of a small scan in
 /// Cycles with the exported material (the frame's camera and exposure, the laser as a narrow
 /// spot on x_i) into `frames/<frame>.exr`, and its report judges them like a model, beside the
 /// model's own log E. The scan is the small slab with exposure brackets (exposure 0.5 s: the
@@ -1082,4 +1082,110 @@ fn every_blender_renders_a_volume_model_as_subsurfs_tracer_does() {
             assert!(gout.join("medium.vdb").is_file(), "{bl}: no medium.vdb");
         }
     }
+}
+
+/// `export --colour auto --scan S`: every candidate conversion replayed on the frames the model
+/// was fitted on (never its held-out ones), subsurf's own prediction beside, and the cheapest
+/// candidate the training frames cannot tell from the best exported; without training frames or
+/// without a scan, a clear error.
+#[test]
+fn the_colour_rule_is_chosen_by_the_replay_of_the_training_frames_only() {
+    let ds = crate::fixture::small_slab();
+    let tmp = tempfile::tempdir().unwrap();
+    let (d, cache) = (ds.to_str().unwrap(), tmp.path().join("cache"));
+    let c = cache.to_str().unwrap();
+    let model = tmp.path().join("m.ply");
+    let m = model.to_str().unwrap();
+    subsurf(&[
+        "fit",
+        "--scan",
+        d,
+        "--out",
+        m,
+        "--exclude-frames",
+        "5,10",
+        "--no-pictures",
+        "--cache",
+        c,
+    ]);
+    let out = tmp.path().join("auto");
+    let printed = subsurf(&[
+        "export",
+        "--model",
+        m,
+        "--out",
+        out.to_str().unwrap(),
+        "--scan",
+        d,
+        "--colour",
+        "auto",
+        "--no-blender",
+        "--cache",
+        c,
+    ]);
+    assert!(printed.contains("chosen:"), "{printed}");
+    let choice = json(&out.join("colour-choice.json"));
+    let frames: Vec<u64> = choice["frames"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| f.as_u64().unwrap())
+        .collect();
+    assert!(frames.len() >= 4, "{choice}");
+    assert!(!frames.contains(&5) && !frames.contains(&10), "{choice}");
+    let cands = choice["candidates"].as_array().unwrap();
+    let names: Vec<&str> = cands
+        .iter()
+        .map(|c| c["colour"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, ["fitted", "total", "two-lobe"], "{choice}");
+    let score = |c: &serde_json::Value| c["score"].as_f64().unwrap();
+    for c in cands.iter().chain([&choice["model"]]) {
+        assert!(score(c).is_finite() && score(c) > 0.0, "{c}");
+    }
+    assert!(choice["model"]["colour"].is_null(), "{choice}");
+    let best = (0..3)
+        .min_by(|&a, &b| score(&cands[a]).total_cmp(&score(&cands[b])))
+        .unwrap();
+    let chosen = names
+        .iter()
+        .position(|n| *n == choice["colour"].as_str().unwrap())
+        .unwrap();
+    // The first candidate in cost order whose paired difference from the best reaches 0.
+    let tied = |i: usize| {
+        i == best
+            || cands[i]["difference_ci95"]
+                .as_array()
+                .is_some_and(|iv| iv[0].as_f64().unwrap() <= 0.0)
+    };
+    assert_eq!(chosen, (0..3).find(|&i| tied(i)).unwrap(), "{choice}");
+    assert!(
+        (score(&cands[best]) - score(&cands[chosen])).abs() <= 1e-12 || chosen < best,
+        "{choice}"
+    );
+    // What was written is the chosen conversion.
+    let scene = json(&out.join("scene.json"));
+    assert_eq!(scene["lobes"], cands[chosen]["lobes"], "{scene}");
+    // No training frames named (a simulator's ground truth), or no scan: told, nothing chosen.
+    let truth = ds.join("ground-truth.ply");
+    let t = truth.to_str().unwrap();
+    let o = tmp.path().join("none");
+    let o = o.to_str().unwrap();
+    let err = subsurf_fails(&[
+        "export",
+        "--model",
+        t,
+        "--out",
+        o,
+        "--scan",
+        d,
+        "--colour",
+        "auto",
+        "--no-blender",
+        "--cache",
+        c,
+    ]);
+    assert!(err.contains("fitted on"), "{err}");
+    let err = subsurf_fails(&["export", "--model", m, "--out", o, "--colour", "auto"]);
+    assert!(err.contains("--colour auto needs --scan"), "{err}");
 }

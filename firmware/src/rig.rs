@@ -1180,8 +1180,8 @@ impl<H: Hardware> Rig<H> {
                 profile.validate().map_err(RigError::BadProfile)?;
                 // Dark and disarmed before the write (an erase stalls every interrupt on the
                 // board), whatever its outcome; the reply waits for flash to read the profile
-                // back (issue 38, E): a failed save leaves the old profile in force, the one a
-                // reset would bring back.
+                // back: a failed save leaves the old profile in force, the one a reset would
+                // bring back.
                 self.armed = false;
                 self.lasers = 0;
                 self.sync_lasers();
@@ -1222,7 +1222,8 @@ impl<H: Hardware> Rig<H> {
                 if !self.profile_known {
                     return Err(RigError::ProfileNotStored);
                 }
-                // A wrong polarity is caught here, before anything asks for light (issue 38, B).
+                // A wrong polarity (its "off" is the laser's "on") is caught here, before
+                // anything asks for light.
                 if !self.hw.lines_idle_off(self.profile.laser.active_low) {
                     return Err(RigError::LaserPolarity);
                 }
@@ -1319,8 +1320,8 @@ impl<H: Hardware> Rig<H> {
         if !self.inputs.interlock_closed {
             return Err(RigError::InterlockOpen);
         }
-        // No guessed mechanics (issue 38, G): the board keeps EN released until a profile is
-        // stored, so a motion now would only count steps nobody makes.
+        // No guessed mechanics: the board keeps EN released until a profile is stored, so a
+        // motion now would only count steps nobody makes.
         if !self.profile_known {
             return Err(RigError::ProfileNotStored);
         }

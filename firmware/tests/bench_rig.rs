@@ -1,6 +1,6 @@
-//! What a real bench exercises and the old simulator never did (issue 15's findings), each in
-//! the simulator: camera confirmation and read-out, sessions across a reset, the board's galvo,
-//! the rig profile, two-pass homing, exposure timing, and the time limits on light.
+//! What a real bench exercises and the old simulator never did, each in the simulator: camera
+//! confirmation and read-out, sessions across a reset, the board's galvo, the rig profile,
+//! two-pass homing, exposure timing, and the time limits on light.
 
 use subsurf_firmware::rig::Micros;
 use subsurf_firmware::sim::{SimCamera, SimParams, SimRig};

@@ -326,8 +326,8 @@ mod timed_exposure {
         ));
     }
 
-    /// Issue 38, finding J: `tail_us = 0` with `trigger_us = exposure_us` (a level-triggered
-    /// camera, no trigger latency) fell back to software edges; it is timed by the counters.
+    /// On a real bench, `tail_us = 0` with `trigger_us = exposure_us` (a level-triggered camera,
+    /// no trigger latency) fell back to software edges; it is timed by the counters.
     #[test]
     fn a_trigger_as_long_as_the_window_is_timed_in_hardware() {
         let m = Margins {
@@ -567,8 +567,8 @@ mod profile_flash {
         assert_eq!(f.latest(), Some(bytes as &[u8]));
     }
 
-    /// Issue 38, finding F: a record of another profile layout, or with bytes after the profile,
-    /// is no profile, never a misread one.
+    /// A record of another profile layout, or with bytes after the profile, is no profile, never
+    /// a misread one (its bytes in the wrong fields, a polarity among them).
     #[test]
     fn another_layout_or_trailing_bytes_read_as_no_profile() {
         use subsurf_protocol::RigProfile;
@@ -879,7 +879,7 @@ mod cut_off {
         (outside, inside)
     }
 
-    /// Issue 38, finding B: a stored polarity that is not the wiring's gives no light at all,
+    /// A stored polarity that is not the wiring's (as on a real bench) gives no light at all,
     /// neither at boot, nor in a window, nor at any fault; the right one gives light only inside
     /// its window.
     #[test]
@@ -924,8 +924,9 @@ mod cut_off {
         }
     }
 
-    /// Finding 1 (issue 26): from reset until the profile is known, and at every fault after, a
-    /// laser pin is never on, whichever polarity the driver is wired with, and none is known.
+    /// From reset until the profile is known, and at every fault after, a laser pin is never on,
+    /// whichever polarity the driver is wired with, and none is known (at the board's first
+    /// power-on, active-low lasers lit at every boot).
     #[test]
     fn laser_pins_are_off_from_reset_with_no_profile() {
         for wired_active_low in [false, true] {
@@ -938,8 +939,8 @@ mod cut_off {
         }
     }
 
-    /// What issue 26's cut-off did, in the same model: it drove the *stored* off level, push-pull.
-    /// With the wrong polarity stored that is "on": the light of finding B.
+    /// What the old cut-off did, in the same model: it drove the *stored* off level, push-pull.
+    /// With the wrong polarity stored that is "on": the light a real bench showed.
     #[test]
     fn the_old_cut_off_lit_a_wrongly_stored_polarity() {
         let mut line = Line::at_reset(true);

@@ -1,7 +1,7 @@
-//! Issue 38, the board on a real bench, part two: what happens when something else fails (a wrong
-//! profile, a save that did not happen, a late step interrupt, an unconfigured board), each
-//! finding the simulator can show, in the simulator (the board-only ones are in
-//! `board_model.rs` and `pulse_train.rs`).
+//! The board on a real bench after its first power-on (`power_on.rs`): what happens when
+//! something else fails (a wrong profile, a save that did not happen, a late step interrupt, an
+//! unconfigured board), each finding the simulator can show, in the simulator (the board-only
+//! ones are in `board_model.rs` and `pulse_train.rs`).
 
 use subsurf_firmware::sim::SimParams;
 use subsurf_protocol::*;

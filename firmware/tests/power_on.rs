@@ -1,5 +1,5 @@
-//! Issue 26, the board's first power-on on a real bench: each finding the simulator can show, in
-//! the simulator (the board-only ones are in `board_model.rs` and `pulse_train.rs`).
+//! The board's first power-on on a real bench: each finding the simulator can show, in the
+//! simulator (the board-only ones are in `board_model.rs` and `pulse_train.rs`).
 
 use subsurf_firmware::rig::Micros;
 use subsurf_firmware::sim::{SimCamera, SimParams};
@@ -313,8 +313,8 @@ fn a_rig_without_a_stored_profile_refuses_light_until_one_is_set() {
 
 // ---------------------------------------------------------------------------------------------
 // Finding 2: a profile save blocks every interrupt while the flash erases, so the core stores
-// the profile only while nothing moves or emits (since issue 38, E: inside `SetProfile`, which a
-// moving rig refuses).
+// the profile only while nothing moves or emits (inside `SetProfile`, which a moving rig
+// refuses, since a save is answered only once flash reads it back).
 
 #[test]
 fn the_profile_is_persisted_only_while_idle_and_dark() {

@@ -370,7 +370,7 @@ fn moves_back_and_forth_keep_direction_and_dir_set_up() {
     assert_exact(&motions, &run, DEFAULT_PULSE_US);
 }
 
-/// Issue 38, finding C: an interrupt later than one period. TIM2 preloads its period, so the
+/// An interrupt later than one period, as on a real bench. TIM2 preloads its period, so the
 /// period after the missed update repeats the stale preload: a pulse nobody counts, and the
 /// position (counted by time) is off without a word. The hardware's own update count (TIM4 on
 /// TIM2's update) exposes it, and the train stops at once (Klipper's "Timer too close").

@@ -170,7 +170,7 @@ fn scenario() -> Vec<u8> {
     s.send(4_500 * ms, 25, Command::Heartbeat);
     s.send(6_000 * ms, 26, Command::Heartbeat);
     s.send(6_000 * ms + 1, 27, Command::Status);
-    // Issue 38, finding B: lasers wired active low under the default (active-high) profile. The
+    // Lasers wired active low under the default (active-high) profile, as on a real bench. The
     // rig refuses to arm, so no laser command is accepted; wired right again, it arms.
     s.record(6_010 * ms, KIND_LASER_WIRING, &[1]);
     s.send(6_010 * ms + 1, 28, Command::Arm);
@@ -307,11 +307,11 @@ fn the_scenario_exercises_every_path_it_claims() {
         &reply(20)[..],
         [Err(RigError::UnknownVersion { .. })]
     ));
-    // A wrong laser polarity: no arming, no light (issue 38, B).
+    // A wrong laser polarity: no arming, no light.
     assert!(matches!(&reply(28)[..], [Err(RigError::LaserPolarity)]));
     assert!(matches!(&reply(29)[..], [Err(RigError::NotArmed)]));
     assert!(matches!(&reply(30)[..], [Ok(Response::Ack)]));
-    // A save is acknowledged only once flash reads it back (issue 38, E).
+    // A save is acknowledged only once flash reads it back.
     assert!(matches!(
         &reply(32)[..],
         [Err(RigError::ProfileNotSaved(SaveError::Verify))]
@@ -319,7 +319,7 @@ fn the_scenario_exercises_every_path_it_claims() {
     assert!(matches!(&reply(33)[..], [Ok(Response::Profile(p))] if *p == RigProfile::DEFAULT));
     assert!(matches!(&reply(34)[..], [Ok(Response::Ack)]));
     assert!(matches!(&reply(35)[..], [Ok(Response::Profile(p))] if p.motor.microsteps == 32));
-    // A late step interrupt stops the move and is reported (issue 38, C).
+    // A late step interrupt stops the move and is reported.
     assert!(
         matches!(&reply(39)[..], [Ok(Response::Ack)]),
         "{:?}",

@@ -206,7 +206,7 @@ fn anisotropic(c: &mut Crit) {
     g.finish();
 }
 
-/// A light position as the default fit solves it in every round (Eq. 5, issue 40): 1,600
+/// A light position as the default fit solves it in every round (Eq. 5, a hot path): 1,600
 /// observations with all three channels (channel scales 0.8 and 0.6), shared colour, m = 1,
 /// n = 3, started from the red samples' isotropic fit. "default" is the pipeline's solve (the
 /// scales in closed form, the fall-off fitted to one curve: `aniso::separable_scales`),

@@ -1,7 +1,7 @@
 //! How precisely a held-out set's mean log E (Eq. 8, Table 1: the mean over frames of each
 //! frame's RMS log ratio) is known from its samples: the bootstrap standard error of
 //! `subsurf evaluate`'s mean, resampling each frame's vertices (all channels of a vertex together)
-//! with replacement, the model fixed. Behind BENCHMARKS.md's `subsurf align` section (issue 24):
+//! with replacement, the model fixed. Behind BENCHMARKS.md's `subsurf align` section:
 //! the held-out error of sample-torus moves under sub-pixel motions of the mesh by about this
 //! much.
 //!

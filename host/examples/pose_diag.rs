@@ -1,5 +1,5 @@
-//! What changes in a fit when the mesh moves (issue 24, BENCHMARKS.md's `subsurf align`
-//! section): the diagnostics behind "why a sub-pixel motion of the mesh moves held-out error".
+//! What changes in a fit when the mesh moves (BENCHMARKS.md's `subsurf align` section, mesh
+//! registration): the diagnostics behind "why a sub-pixel motion of the mesh moves held-out error".
 //!
 //! ```sh
 //! # per frame: x_i, its triangle and the corners' models (status, order, log E, sampled range)

@@ -1,6 +1,6 @@
-//! Which of a preset's settings moves a model, one at a time (issue 28: the draft preset rendered
-//! the tradeoff benchmark's sphere 11–14 % dark). Fits a scan with variants of the fit options,
-//! each the same as a preset but for one setting, and prints per variant:
+//! Which of a preset's settings moves a model, one at a time (made when the draft preset
+//! rendered the tradeoff benchmark's sphere 11–14 % dark). Fits a scan with variants of the fit
+//! options, each the same as a preset but for one setting, and prints per variant:
 //!
 //! - `render`: the pipeline's fit, its exact render against the exact render of the ground truth
 //!   (mean relative pixel error, absolute and signed, as `bench tradeoff`), whether the run has a

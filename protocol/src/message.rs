@@ -16,16 +16,17 @@ use crate::profile::{ProfileError, RigProfile};
 /// the [`RigProfile`] (`SetProfile`/`GetProfile`), camera confirmation in [`Captured`], and cut
 /// [`Config`] down to the session's heartbeat. Version 4 appended
 /// [`RigError::ProfileNotStored`]: a board without a stored profile does not know its laser and
-/// trigger polarities and refuses to arm (see `docs/protocol.md`). Version 5 (issue 38) appended
-/// [`RigError::LaserPolarity`]: the board refuses to arm when its undriven laser lines contradict
-/// the profile's polarity; [`RigError::ProfileNotSaved`] and [`Command::GetStoredProfile`]: a
-/// `SetProfile` is answered only after flash reads it back; [`Fault::StepLate`] and
-/// [`HaltReason::StepLate`]: a step interrupt later than one timer period stops the motion.
-/// Version 6 (issue 39) appended [`Command::DarkCapture`]: the camera triggered with every laser
-/// off, for the dark frames a scan measures its noise floor from (its [`Captured`] says `lit`
-/// false; every earlier encoding is unchanged). Version 7 appended [`Command::BoardRegisters`] and
-/// [`Response::BoardRegisters`]: the board's registers that only hardware can show (brown-out
-/// level, flash accelerator, debug freeze, the step counter's wiring), for the self-test.
+/// trigger polarities and refuses to arm (see `docs/protocol.md`). Version 5 (more of what a real
+/// bench needs) appended [`RigError::LaserPolarity`]: the board refuses to arm when its undriven
+/// laser lines contradict the profile's polarity; [`RigError::ProfileNotSaved`] and
+/// [`Command::GetStoredProfile`]: a `SetProfile` is answered only after flash reads it back;
+/// [`Fault::StepLate`] and [`HaltReason::StepLate`]: a step interrupt later than one timer period
+/// stops the motion. Version 6 appended [`Command::DarkCapture`]: the camera triggered with every
+/// laser off, for the dark frames a scan measures its noise floor from (its [`Captured`] says
+/// `lit` false; every earlier encoding is unchanged). Version 7 appended
+/// [`Command::BoardRegisters`] and [`Response::BoardRegisters`]: the board's registers that only
+/// hardware can show (brown-out level, flash accelerator, debug freeze, the step counter's
+/// wiring), for the self-test.
 pub const PROTOCOL_VERSION: u16 = 7;
 
 /// Galvo points per [`Command::ProgramPoints`] chunk: 32 points of at most 6 bytes each keep the

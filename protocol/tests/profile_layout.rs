@@ -1,4 +1,4 @@
-//! Issue 38, finding F: the board's flash record of a [`RigProfile`] is keyed on
+//! The board's flash record of a [`RigProfile`] is keyed on
 //! [`RigProfile::LAYOUT`], and this test ties that key to the struct. It walks the profile's own
 //! `Serialize` impl with a serializer that writes the *shape* (struct and field names, primitive
 //! types, enum names with every variant's name and wire index, in order) instead of the values,

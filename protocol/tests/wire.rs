@@ -237,7 +237,8 @@ fn default_profile_is_valid_and_bounds_are_enforced() {
     let mut bad = p;
     bad.motor.step_pulse_us = 1;
     assert_eq!(bad.validate(), Err(ProfileError::StepTiming));
-    // Issue 26: what the board cannot do is refused, not clamped or ignored.
+    // What the board cannot do is refused, not clamped or ignored (as its first power-on
+    // showed).
     let mut bad = p;
     bad.motor.step_pulse_us = MAX_STEP_PULSE_US + 1;
     bad.motor.max_speed = 1_000;

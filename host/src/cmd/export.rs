@@ -9,7 +9,6 @@ use super::models::{builtin, lights_or_default, load_model, parse_size, resolve_
 use super::progress::Bar;
 use subsurf::export::{self, ExportOptions, LatticeMode};
 use subsurf::render::{Method, Quality, RenderOptions};
-use subsurf::report::fmt;
 
 /// The renderers `export` writes for.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -19,7 +18,7 @@ pub enum Format {
     Blender,
 }
 
-/// What the subsurface colour is (docs/export.md: chosen by Cycles' log E on training frames).
+/// What the subsurface colour is (docs/export.md).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum ColourArg {
     /// The fall-off's total diffuse reflectance T.
@@ -29,15 +28,9 @@ pub enum ColourArg {
     /// Two Burley lobes (near and slow Principled BSDFs mixed by a Mix Shader), T split between
     /// them as the fitted terms' reflectances split it.
     TwoLobe,
-}
-
-/// Face lattice handling.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
-pub enum Lattice {
-    /// Cut the mesh at the lattice's level: alpha per lattice point.
-    Refine,
-    /// Keep the model's mesh; alpha per vertex (the report says what the detail was worth).
-    Drop,
+    /// Chosen among the three by Cycles' render replayed in closed form on the training frames
+    /// of `--scan` the model was fitted on, judged by rings (`colour-choice.json`).
+    Auto,
 }
 
 /// Export a model for Blender's Cycles: Burley subsurface per vertex, or a Principled Volume.
@@ -56,8 +49,8 @@ pub struct Args {
     #[arg(long)]
     out: PathBuf,
     /// Alpha finer than the mesh (`face_alpha`): refine the mesh, or drop the detail.
-    #[arg(long, value_enum, default_value_t = Lattice::Refine)]
-    lattice: Lattice,
+    #[arg(long, value_enum, default_value_t = LatticeMode::Refine)]
+    lattice: LatticeMode,
     /// A light of the scene (as `subsurf render --light`); default: the render's key and fill.
     #[arg(long = "light")]
     lights: Vec<String>,
@@ -73,8 +66,7 @@ pub struct Args {
     /// Cycles samples per pixel.
     #[arg(long, default_value_t = 64)]
     samples: u32,
-    /// What the subsurface colour is (default chosen by Cycles' log E on a scan's training
-    /// frames, docs/export.md).
+    /// What the subsurface colour is (docs/export.md).
     #[arg(long, value_enum, default_value_t = ColourArg::Fitted)]
     colour: ColourArg,
     /// Blender executable (default: `$SUBSURF_BLENDER`, else `blender` on the PATH).
@@ -97,9 +89,10 @@ pub struct Args {
     /// Speed/accuracy of subsurf's render for `--render`.
     #[arg(long, value_enum, default_value_t = Quality::Balanced)]
     quality: Quality,
-    /// With `--render`, Cycles renders this scan's frames (`--frames`: camera, exposure, laser,
-    /// turntable) into `OUT/frames/`, judged by the frames beside subsurf's model or trace.
-    #[arg(long, requires = "render")]
+    /// The model's scan: with `--render`, Cycles renders its frames (`--frames`: camera,
+    /// exposure, laser, turntable) into `OUT/frames/`, judged by the frames beside subsurf's
+    /// model or trace; with `--colour auto`, its training frames choose the colour.
+    #[arg(long)]
     scan: Option<PathBuf>,
     /// Frames of `--scan` to render, e.g. `96-103` (default: all).
     #[arg(long, requires = "scan")]
@@ -130,10 +123,12 @@ pub fn run(args: Args) -> Result<()> {
             export::blender::BLENDER_ENV
         );
     }
+    let open = |s: &PathBuf| super::open_frames(s, args.frames.as_deref(), None);
+    let scan = args.scan.as_ref().map(open).transpose()?;
     if let Some(p) = args.model.as_deref()
         && subsurf::volume::model::is_volume_file(p)
     {
-        return volume(&args, p, blender.as_ref());
+        return volume(&args, p, blender.as_ref(), scan.as_ref());
     }
     let model = match &args.model {
         Some(p) => load_model(p)?,
@@ -141,10 +136,7 @@ pub fn run(args: Args) -> Result<()> {
     };
     let transport = Method::Hierarchical(args.quality.params());
     let opts = ExportOptions {
-        lattice: match args.lattice {
-            Lattice::Refine => LatticeMode::Refine,
-            Lattice::Drop => LatticeMode::Drop,
-        },
+        lattice: args.lattice,
         eta: (args.eta > 0.0).then_some(args.eta),
         lights: lights_or_default(&args.lights, model.bounds())?,
         camera: resolve_camera(&args.camera, parse_size(&args.size)?, model.bounds())?,
@@ -152,13 +144,24 @@ pub fn run(args: Args) -> Result<()> {
         colour: match args.colour {
             ColourArg::Total => export::ColourRule::Total,
             ColourArg::Fitted => export::ColourRule::Fitted,
-            ColourArg::TwoLobe => export::ColourRule::TwoLobe,
+            ColourArg::TwoLobe | ColourArg::Auto => export::ColourRule::TwoLobe,
         },
     };
     let bar = Bar::with_template("{msg:>12} {bar:40} {pos}/{len} {elapsed}");
-    let exported = export::export(&model, &opts, &bar).context("converting the model")?;
+    let store = subsurf::pipeline::StoreOptions::cached(args.cache.clone());
+    let auto = match (args.colour, &scan) {
+        (ColourArg::Auto, Some((ds, _))) => Some((ds, blender.as_ref().map(|b| b.version))),
+        (ColourArg::Auto, None) => bail!("--colour auto needs --scan (the model's scan)"),
+        _ => None,
+    };
+    let (exported, choice) = export::choose::export_choosing(&model, &opts, auto, &store, &bar)
+        .context("converting the model")?;
     bar.finish_and_clear();
     let mut written = exported.write(&args.out)?;
+    if let Some(c) = &choice {
+        print!("{}", c.text());
+        written.push(c.write(&args.out)?);
+    }
     for line in exported.summary_lines() {
         println!("{line}");
     }
@@ -167,21 +170,17 @@ pub fn run(args: Args) -> Result<()> {
     let bar = Bar::with_template("{msg:>16} {bar:40} {pos}/{len} {elapsed}");
     match &blender {
         Some(b) => {
-            if let Some(scan) = &args.scan {
-                let (ds, list) = super::open_frames(scan, args.frames.as_deref(), None)?;
+            if let (true, Some((ds, list))) = (args.render, &scan) {
+                let (n, seeds) = (list.len(), if args.noise { ", two seeds" } else { "" });
+                let (dir, v) = (ds.dir.display(), &b.version_line);
                 println!(
-                    "rendering {} frames of {} in {} (Cycles, {} samples{})…",
-                    list.len(),
-                    scan.display(),
-                    b.version_line,
-                    args.samples,
-                    if args.noise { ", two seeds" } else { "" }
+                    "rendering {n} frames of {dir} in {v} (Cycles, {} samples{seeds})…",
+                    args.samples
                 );
-                let store = subsurf::pipeline::StoreOptions::cached(args.cache.clone());
                 let (_, cmp) = export::frames::render_and_judge(
-                    &ds,
+                    ds,
                     export::frames::Subject::Empirical(&model, Some(&exported)),
-                    &list,
+                    list,
                     args.samples,
                     b,
                     &args.out,
@@ -208,14 +207,7 @@ pub fn run(args: Args) -> Result<()> {
                 let c = export::compare_with(&model, &opts, &ropts, b, &args.out, args.noise, &bar);
                 bar.finish_and_clear();
                 let c = c?;
-                println!(
-                    "Cycles against subsurf's render: mean relative pixel error {} over lit \
-                     pixels{}",
-                    fmt::percent(c.mean_relative_error, 1),
-                    c.cycles_noise
-                        .map(|n| format!(" (Cycles' own noise {})", fmt::percent(n, 1)))
-                        .unwrap_or_default()
-                );
+                println!("{}", c.line());
                 written.extend(c.files.iter().cloned());
                 comparison = Some(c);
             } else {
@@ -247,7 +239,12 @@ pub fn run(args: Args) -> Result<()> {
 }
 
 /// A volume model: its medium as a Principled Volume, judged by `--scan`'s frames if given.
-fn volume(args: &Args, path: &std::path::Path, blender: Option<&export::Blender>) -> Result<()> {
+fn volume(
+    args: &Args,
+    path: &std::path::Path,
+    blender: Option<&export::Blender>,
+    scan: Option<&(subsurf::dataset::Dataset, Vec<usize>)>,
+) -> Result<()> {
     let model = subsurf::volume::VolumeModel::read(path)
         .with_context(|| format!("reading {}", path.display()))?;
     let b = model.mesh.bounds();
@@ -257,9 +254,7 @@ fn volume(args: &Args, path: &std::path::Path, blender: Option<&export::Blender>
         samples: args.samples,
         render: args.render,
     };
-    let open = |s: &PathBuf| super::open_frames(s, args.frames.as_deref(), None);
-    let scan = args.scan.as_ref().map(open).transpose()?;
-    let run = scan.as_ref().map(|(ds, frames)| export::volume::FramesRun {
+    let run = scan.map(|(ds, frames)| export::volume::FramesRun {
         ds,
         frames,
         noise: args.noise,

@@ -124,6 +124,17 @@ pub enum ColourRule {
     TwoLobe,
 }
 
+impl ColourRule {
+    /// The rule's name on the command line and in the files (`total`, `fitted`, `two-lobe`).
+    pub fn name(self) -> &'static str {
+        match self {
+            ColourRule::Total => "total",
+            ColourRule::Fitted => "fitted",
+            ColourRule::TwoLobe => "two-lobe",
+        }
+    }
+}
+
 /// Converts every vertex of `model` (validated by [`crate::render::validate`]) by
 /// [`ColourRule::Total`] (the mesh tests' reference).
 pub fn convert(model: &ModelFile, progress: &dyn Progress) -> Vec<VertexConversion> {

@@ -57,7 +57,7 @@ pub struct MeasuredBurley {
 
 /// The versions measured. The export writes `radius = 4π d` and the albedo as the colour in
 /// every version: each row is within 1 % of that (a unit test checks).
-pub const MEASURED_BURLEY: [MeasuredBurley; 3] = [
+pub const MEASURED_BURLEY: [MeasuredBurley; 4] = [
     MeasuredBurley {
         blender: "3.4.1",
         d_per_radius: 0.0803,
@@ -65,6 +65,11 @@ pub const MEASURED_BURLEY: [MeasuredBurley; 3] = [
     },
     MeasuredBurley {
         blender: "4.2.23 LTS",
+        d_per_radius: 0.0796,
+        plateau: 1.0005,
+    },
+    MeasuredBurley {
+        blender: "4.5.15 LTS",
         d_per_radius: 0.0796,
         plateau: 1.0005,
     },

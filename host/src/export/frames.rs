@@ -696,14 +696,7 @@ fn judge_replay(
     use crate::evaluate::rings::{Prediction, evaluate_rings_in};
     let at = EvalPoints::Vertices;
     // Made once per frame: three judges read each image.
-    use crate::evaluate::images::MakeImage;
-    use rayon::prelude::*;
-    let made: Vec<_> = frames.par_iter().map(|&k| (k, replay.make(k))).collect();
-    let kept = |k: usize| match made.iter().find(|(f, _)| *f == k) {
-        Some((_, Ok(img))) => Ok(img.clone()),
-        Some((_, Err(e))) => Err(e.to_string().into()),
-        None => replay.make(k),
-    };
+    let kept = replay.kept(frames);
     let images = FrameImages::made(super::replay::Replay::NAME, &kept);
     let m = Some(model);
     let (per_sample, _) =

@@ -22,6 +22,7 @@
 //! in [`blender`].
 
 pub mod blender;
+pub mod choose;
 pub mod convert;
 pub mod cycles;
 pub mod frames;
@@ -106,7 +107,7 @@ impl ExportError {
 }
 
 /// What to do with alpha finer than the mesh (`face_alpha`).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
 pub enum LatticeMode {
     /// Cut the mesh at the lattice's level, alpha per lattice point ([`mesh::refined_mesh`]).
@@ -534,6 +535,19 @@ pub struct Comparison {
     pub subsurf_seconds: f64,
     /// Files: Cycles EXR and PNG, subsurf EXR and PNG, difference PNG.
     pub files: Vec<PathBuf>,
+}
+
+impl Comparison {
+    /// The line `subsurf export --render` prints.
+    pub fn line(&self) -> String {
+        format!(
+            "Cycles against subsurf's render: mean relative pixel error {} over lit pixels{}",
+            fmt::percent(self.mean_relative_error, 1),
+            self.cycles_noise
+                .map(|n| format!(" (Cycles' own noise {})", fmt::percent(n, 1)))
+                .unwrap_or_default()
+        )
+    }
 }
 
 /// The lit-pixel floor of the comparison: channels above this share of the renderer's

@@ -326,6 +326,35 @@ impl<'a> Replay<'a> {
     }
 }
 
+/// Replayed frames made once, in parallel, and kept ([`Replay::kept`]): several judges read
+/// each image, and a replayed frame costs a path tracer's worth of ray casts.
+pub struct Kept {
+    images: Vec<(usize, Result<Image, String>)>,
+}
+
+impl MakeImage for Kept {
+    fn make(&self, k: usize) -> Result<Image, BoxError> {
+        match self.images.iter().find(|(f, _)| *f == k) {
+            Some((_, Ok(img))) => Ok(img.clone()),
+            Some((_, Err(e))) => Err(e.clone().into()),
+            None => Err(format!("frame {k} was not replayed").into()),
+        }
+    }
+}
+
+impl Replay<'_> {
+    /// Every frame of `frames` replayed now and kept.
+    pub fn kept(&self, frames: &[usize]) -> Kept {
+        use rayon::prelude::*;
+        Kept {
+            images: frames
+                .par_iter()
+                .map(|&k| (k, self.make(k).map_err(|e| e.to_string())))
+                .collect(),
+        }
+    }
+}
+
 impl MakeImage for Replay<'_> {
     fn make(&self, k: usize) -> Result<Image, BoxError> {
         let s = self

@@ -119,7 +119,8 @@ pub fn plan_window(
     }
     // A trigger as long as the window after it (`tail_us = 0`, a level-triggered camera with
     // `trigger_us = exposure_us`) is timed too: the two counters are independent, the trigger
-    // just falls on the laser's last tick. It used to fall back to software edges (issue 38, J).
+    // just falls on the laser's last tick. It used to fall back to software edges (found on a
+    // real bench).
     if trigger_us == 0 || u64::from(trigger_us) > after_us {
         return Err(ExposureError::BadTrigger);
     }

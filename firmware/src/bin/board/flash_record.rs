@@ -66,7 +66,7 @@ const CRC: crc::Crc<u32> = crc::Crc::<u32>::new(&crc::CRC_32_ISO_HDLC);
 /// The key makes a record name the layout it was written with: the record's format version
 /// does not change when `RigProfile` gains, loses or retypes a field, and postcard has no field
 /// names, so without it a new firmware would decode an old record's bytes into the wrong fields
-/// (a polarity among them) and could still pass `validate()` (issue 38, F).
+/// (a polarity among them) and could still pass `validate()`.
 pub fn encode_profile<'b>(profile: &RigProfile, out: &'b mut [u8]) -> Option<&'b [u8]> {
     let (key, rest) = out.split_at_mut_checked(4)?;
     key.copy_from_slice(&RigProfile::LAYOUT.to_le_bytes());

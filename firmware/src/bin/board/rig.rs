@@ -320,7 +320,8 @@ fn follow_enable(rig: &mut Rig<Hardware>) {
 }
 
 /// A step interrupt ran after the following update event (the train stopped the timer): the
-/// core faults with `StepLate`, clears `homed` and reports it (issue 38, C).
+/// core faults with `StepLate`, clears `homed` and reports it (the timer repeated a stale
+/// period: a step nobody counted).
 fn check_overruns(rig: &mut Rig<Hardware>) {
     let overruns = rig.hw_mut().stepper.take_overruns();
     if overruns > 0 {

@@ -10,8 +10,8 @@
 //! with no pull ([`park`], one MODER write per pin), and the resistor does the rest. The panic
 //! and HardFault handlers, the e-stop and interlock interrupt and the light's deadline timer all
 //! park this way, so a wrong stored polarity cannot make any of them drive the "on" level
-//! (issue 38, finding B: they used to drive the stored "off" level, which a wrong polarity made
-//! "on").
+//! (found on a real bench: they used to drive the stored "off" level, which a wrong polarity
+//! made "on").
 //!
 //! Inside a window a pin drives its active level:
 //! - active low: **open-drain** ([`output_type`]). The pin can only pull low; its "inactive" is

@@ -45,10 +45,10 @@ pub struct AnisoOptions {
     /// caller that judged a segment's own fit implausible refits with it anchored.
     #[serde(default)]
     pub anchored: u64,
-    /// The reference preset's joint solve (the exact path before issue 40): libm's exp and ln
-    /// in the one-segment normal equations instead of the vectorised ones of the isotropic
-    /// fit's kernel, and the solve run to the last digits of the cost instead of
-    /// [`JOINT_FTOL`].
+    /// The reference preset's joint solve (every fit's exact path before the default was made
+    /// faster): libm's exp and ln in the one-segment normal equations instead of the vectorised
+    /// ones of the isotropic fit's kernel, and the solve run to the last digits of the cost
+    /// instead of [`JOINT_FTOL`].
     #[serde(default)]
     pub libm: bool,
 }
@@ -188,8 +188,8 @@ impl RowModel {
         // exp(b_lk), the rate magnitudes: once per evaluation, not once per sample and term as
         // before (the same values). With the exps and logs that are exactly 1 and 0 skipped
         // (one segment's weight, the largest term's share), a row makes 2 exps and 1 log at
-        // n = 3, m = 1 instead of 11 and 3: it was the fit's largest cost (issue 23), and it
-        // gives the same bits.
+        // n = 3, m = 1 instead of 11 and 3: it was the fit's largest cost, and it gives the
+        // same bits.
         RowModel {
             n,
             m,
@@ -376,8 +376,8 @@ const ROW_BLOCK: usize = 16;
 impl AnisoProblem<'_> {
     /// [`Problem::normal_equations`] of one segment (m = 1, the pipeline's default model) with
     /// N terms: the rows [`Problem::eval`] gives, accumulated into JᵀJ, Jᵀres and the cost
-    /// without the generic accumulation's index lists (which took most of the joint fit's time,
-    /// issue 23), [`ROW_BLOCK`] rows at a time.
+    /// without the generic accumulation's index lists (which took most of the joint fit's
+    /// time), [`ROW_BLOCK`] rows at a time.
     ///
     /// With `LIBM` every entry receives the same products in the same order as the generic
     /// path (row by row, each channel's row of an observation in turn), the shares and ln R_d
@@ -387,9 +387,9 @@ impl AnisoProblem<'_> {
     /// Without it (the default) the exact isotropic fit's branch-free exp and ln
     /// (`isotropic::exp_nonpositive`, `isotropic::ln_positive`) take a block's lanes at once,
     /// which vectorises under the SIMD dispatch; libm's calls do not, and they were a third of
-    /// the default fit's CPU on `scan1024` (perf, issue 40). Loops, not the isotropic kernel's
-    /// closures: a closure is not forced inline, and the per-row accumulation then ran out of
-    /// line (measured 30 % slower).
+    /// the default fit's CPU on `scan1024`. Loops, not the isotropic kernel's closures: a
+    /// closure is not forced inline, and the per-row accumulation then ran out of line
+    /// (measured 30 % slower).
     #[inline(always)]
     #[allow(clippy::needless_range_loop)] // lane loops over parallel fixed-size arrays
     fn normal_blocks<const N: usize, const LIBM: bool>(
@@ -823,8 +823,8 @@ pub fn fit_colour(
 
 /// [`fit_colour`] of shared colour (Eq. 5) at m = 1 started from `start`, an isotropic fit of
 /// these rows' red samples at n terms that the caller has already made (the pipeline's order
-/// choice fits exactly that: issue 40), instead of fitting it again. Used where it has n terms
-/// and the fit is shared at one segment; otherwise, and with `None`, the fit starts as
+/// choice fits exactly that), instead of fitting it again. Used where it has n terms and the
+/// fit is shared at one segment; otherwise, and with `None`, the fit starts as
 /// [`fit_colour`] does. The minimum is the same; the iterations to it, and so the last bits,
 /// may differ.
 pub fn fit_colour_from(
@@ -959,7 +959,8 @@ fn clean_channel(r: &[f64], s: &[f64]) -> (Vec<f64>, SampleReport) {
 }
 
 /// The one curve the shared colour's fall-off is fitted to where every observation holds all
-/// three channels (or none), the channel scales being `scales` in closed form (Eq. 5, issue 40).
+/// three channels (or none), the channel scales being `scales` in closed form (Eq. 5): the
+/// default fit's cheaper solve.
 ///
 /// Why: with y_cj the log samples (normalised, [`fit_joint`]), f_j = ln R_d at row j and σ_c
 /// the channel scales (σ_r = 0), write σ_c = σ̄ + e_c with Σ e_c = 0 and ȳ_j = mean_c y_cj.
@@ -1196,11 +1197,11 @@ fn fit_joint(
     // point it stops at is the one it would have stopped at, up to the steps rounding let
     // through.
     //
-    // Off the reference preset (issue 40), the solve stops at a relative cost change of
-    // [`JOINT_FTOL`], as the isotropic fit's exact polish does: the last digits of the cost
-    // move no prediction (ln R_d changes far below the samples' noise) but took a quarter of
-    // the iterations (`scan1024`: 7.35 a fit to 1e-15, 5.61 to 1e-10). The reference keeps
-    // the solve to the last digit, so its models keep their bits.
+    // Off the reference preset, the solve stops at a relative cost change of [`JOINT_FTOL`],
+    // as the isotropic fit's exact polish does: the last digits of the cost move no prediction
+    // (ln R_d changes far below the samples' noise) but took a quarter of the iterations
+    // (`scan1024`: 7.35 a fit to 1e-15, 5.61 to 1e-10). The reference keeps the solve to the
+    // last digit, so its models keep their bits.
     let settings = Settings {
         max_iterations: options.max_iterations,
         stop_on_predicted: true,

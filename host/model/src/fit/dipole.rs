@@ -769,8 +769,9 @@ mod tests {
         [sigma * (c / det).sqrt(), sigma * (a / det).sqrt()]
     }
 
-    /// Issue 13: every material of Jensen's measured table, every channel, free scale and
-    /// absolute, from exact profiles (1e-4) and with 1 % multiplicative noise (5 %).
+    /// The fit's accuracy on measured materials: every material of Jensen's measured table,
+    /// every channel, free scale and absolute, from exact profiles (1e-4) and with 1 %
+    /// multiplicative noise (5 %).
     #[test]
     fn jensen_table_round_trip() {
         use crate::model::dipole::MATERIALS;

@@ -415,7 +415,7 @@ fn block_terms<const N: usize>(
 /// ([`block_terms`]) under the SIMD dispatch, so a model's ln R_d at a light position's
 /// thousands of samples costs what its normal equations' exponentials cost, not a libm call per
 /// term and sample (the scalar [`crate::model::ExpSum::ln_eval_with`] was a sixth of the
-/// cross-validation's CPU on `scan1024`, issue 40). Within a few ulp of libm's (the tests
+/// cross-validation's CPU on `scan1024`). Within a few ulp of libm's (the tests
 /// bound it), not its bits: the reference preset keeps the scalar path. A lane whose largest
 /// exponent is not finite (a distance of ±∞ or NaN) gets an unspecified value and makes it
 /// return `false`: the caller then takes the scalar path for those.
@@ -486,8 +486,8 @@ fn ln_sum_exp_many_n<const N: usize>(
 
 /// ln x at every value of `x`, into `out` (as far as both reach), by [`ln_positive`] under
 /// the SIMD dispatch: what the fit's samples' ln s cost once per round and light position
-/// (issue 40). Within a few ulp of `f64::ln`; values that are not finite and positive (0,
-/// negative, NaN, ∞, whose logs are −∞, NaN or ∞) take `f64::ln` itself.
+/// (a hot path of the default fit). Within a few ulp of `f64::ln`; values that are not finite
+/// and positive (0, negative, NaN, ∞, whose logs are −∞, NaN or ∞) take `f64::ln` itself.
 pub fn ln_many(x: &[f64], out: &mut [f64]) {
     let len = x.len().min(out.len());
     let (x, out) = (&x[..len], &mut out[..len]);
@@ -562,7 +562,7 @@ impl super::simd::Kernel for ExactNormal<'_, '_> {
 /// instruction set): under the SIMD dispatch the block's exp and ln run at the CPU's full
 /// width, where the closures of the shared kernel ([`log_sum_exp_points`], [`LogRows::rows`])
 /// are not forced inline into it (measured: the exact isotropic fit was a quarter of the
-/// default fit's CPU on `scan1024`, issue 40).
+/// default fit's CPU on `scan1024`).
 #[inline(always)]
 #[allow(clippy::needless_range_loop)] // index loops over parallel arrays vectorise
 fn exact_normal_n<const N: usize>(

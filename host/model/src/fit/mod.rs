@@ -99,7 +99,7 @@ pub struct FitOptions {
     /// libm's exp and ln in the joint fit's one-segment normal equations instead of the
     /// vectorised ones of the exact isotropic fit (`isotropic::log_sum_exp_points`), and the
     /// joint solve to the last digits of its cost instead of [`aniso::JOINT_FTOL`]: the
-    /// reference preset's exact path before issue 40.
+    /// reference preset's exact path, the one every fit took before the default was made faster.
     #[serde(default)]
     pub libm: bool,
 }
@@ -124,7 +124,7 @@ impl Default for FitOptions {
 impl FitOptions {
     /// The same fit without the fast mode's approximations: every sample, no distance bins, at
     /// least the default iteration limit; `None` when these options are that already. What an
-    /// approximate fit is checked against (the fit report's reflectance check, issue 28: a
+    /// approximate fit is checked against (the fit report's reflectance check: a
     /// preset may be noisier than the exact fit, never biased against it).
     pub fn exact_counterpart(&self) -> Option<FitOptions> {
         let exact = FitOptions {

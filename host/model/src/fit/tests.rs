@@ -80,9 +80,10 @@ fn start(v: [f64; 6]) -> Vec<Term> {
     v.chunks(2).map(|p| Term { c: p[0], d: -p[1] }).collect()
 }
 
-/// Issue 13: the linear objective from both NIST starts reaches ≥ 9 certified digits on
-/// Lanczos1 and 2 and ≥ 8 on Lanczos3 (the hardest of the family), with NIST's residual sum of
-/// squares; and never fewer digits than the reference crate from the same start.
+/// The fit's accuracy on NIST's reference problems: the linear objective from both NIST starts
+/// reaches ≥ 9 certified digits on Lanczos1 and 2 and ≥ 8 on Lanczos3 (the hardest of the
+/// family), with NIST's residual sum of squares; and never fewer digits than the reference crate
+/// from the same start.
 #[test]
 fn nist_lanczos_family_linear_objective_both_starts() {
     for which in 1..=3 {
@@ -346,8 +347,8 @@ fn one_to_three_samples_fail_cleanly_without_order_reduction() {
     ));
 }
 
-/// Issue 13: with `reduce_order`, k samples fit n' = min(n, ⌊k/2⌋) terms, the fit says so, and
-/// the samples are honoured exactly where they determine the model.
+/// With `reduce_order`, k samples fit n' = min(n, ⌊k/2⌋) terms, the fit says so, and the
+/// samples are honoured exactly where they determine the model.
 #[test]
 fn few_samples_order_falls_to_what_they_determine() {
     let truth = model(&[(0.3, -0.5), (2.0, -3.0)]);
@@ -451,7 +452,7 @@ fn random_curve(seed: &mut u64, samples: usize) -> (ExpSum, Vec<f64>, Vec<f64>) 
     (truth, r, s)
 }
 
-/// Issue 13: from no start but the automatic one, random well-separated 3-term curves with 1 %
+/// From no start but the automatic one, random well-separated 3-term curves with 1 %
 /// noise converge (< 0.2 % not converged: none of 400) to the noise level.
 #[test]
 fn random_curves_converge_from_the_automatic_start() {
@@ -1015,7 +1016,7 @@ fn vectorisable_ln_matches_std() {
     assert!((super::isotropic::ln_positive(sub) - sub.ln()).abs() < 4e-16 * sub.ln().abs());
 }
 
-/// The vectorised ln R_d of many distances (issue 40's default path) against the scalar
+/// The vectorised ln R_d of many distances (the default fit's hot path) against the scalar
 /// evaluation the reference keeps: within a few ulp of ln R_d's magnitude at every term count,
 /// over 13 decades of distance (where terms underflow against each other), in blocks of every
 /// length around the kernel's; the values a block cannot take (±∞, NaN) are the scalar's.

@@ -53,8 +53,8 @@ impl ColourModel {
     }
 
     /// ln R_d of one channel (0 = r, 1 = g, 2 = b): `self.ln_eval(r, phi)[channel]` to the bit,
-    /// without the other channels' evaluations (the fit's loops take one channel's samples at a
-    /// time, and evaluated all three for each: issue 23). NaN for a channel index above 2.
+    /// without the other channels' evaluations (the fit's hottest loops take one channel's
+    /// samples at a time, and evaluated all three for each). NaN for a channel index above 2.
     pub fn ln_eval_channel(&self, channel: usize, r: f64, phi: Option<f64>) -> f64 {
         match self {
             Self::PerChannel { channels } => channels
@@ -71,7 +71,7 @@ impl ColourModel {
 
     /// The model ready for many evaluations: ln s_g, ln s_b and every term's ln c_k taken once,
     /// not at every evaluation (at n = 3 terms an evaluation took 4 logs and 2 exps, now 1 and
-    /// 2: issue 23). Its evaluations are [`ColourModel::ln_eval`]'s and
+    /// 2, on the fit's hottest path). Its evaluations are [`ColourModel::ln_eval`]'s and
     /// [`ColourModel::ln_eval_channel`]'s to the bit.
     pub fn ln_evaluator(&self) -> LnEvaluator<'_> {
         let ln_scale = match self {

@@ -124,7 +124,7 @@ impl ExpSum {
     /// [`ExpSum::ln_eval_with`] at every distance of `r`, into `out` (as far as both reach),
     /// vectorised: the fit's branch-free exp and ln under the SIMD dispatch, within a few ulp
     /// of the scalar evaluation (a test bounds it), not its bits. The hot loops of the default
-    /// fit take it (ln R_d at every sample of a light position, every round: issue 40); the
+    /// fit take it (ln R_d at every sample of a light position, every round); the
     /// reference preset keeps the scalar path. Distances where the largest term is not finite
     /// (±∞, NaN) and sums of more than [`MAX_TERMS`] terms take the scalar path, the same values.
     pub fn ln_eval_many(&self, ln_c: &[f64], r: &[f64], out: &mut [f64]) {

@@ -96,7 +96,7 @@ pub enum ModelError {
 ///
 /// Each value is computed once (up to [`LSE_INLINE`] values held on the stack, more in a `Vec`):
 /// the values are closures over `ln c_k + d_k·r`, and running them twice, once for the maximum
-/// and once for the sum, cost a log per term per evaluation, the fit's hottest path (issue 23).
+/// and once for the sum, cost a log per term per evaluation, on the fit's hottest path.
 /// The arithmetic is the one it was, so the result is the same to the bit.
 pub(crate) fn log_sum_exp(values: impl Iterator<Item = f64>) -> f64 {
     let mut held = [0.0; LSE_INLINE];
@@ -122,7 +122,7 @@ const LSE_INLINE: usize = 32;
 /// [`log_sum_exp`] of values already held: for callers with a handful of values in an array
 /// (a fall-off's n ≤ [`MAX_TERMS`] terms, a blend's one or two segments), the same bits without
 /// the iterator and the 32 slots [`log_sum_exp`] clears on every call (with them,
-/// `log_sum_exp` itself was a tenth of a cross-validated fit's CPU at 1024 px: issue 23).
+/// `log_sum_exp` itself was a tenth of a cross-validated fit's CPU at 1024 px).
 #[inline]
 pub(crate) fn log_sum_exp_of(held: &[f64]) -> f64 {
     let m = held.iter().copied().fold(f64::NEG_INFINITY, f64::max);
@@ -136,7 +136,7 @@ pub(crate) fn log_sum_exp_of(held: &[f64]) -> f64 {
 }
 
 /// `x.exp()`, skipping the call at ±0 where it is exactly 1: the largest term of every
-/// log-sum-exp is exp(0), and a one-term sum is nothing else (issue 23: a third of the fit's
+/// log-sum-exp is exp(0), and a one-term sum is nothing else (a third of the fit's
 /// exps). Bit for bit `x.exp()`.
 #[inline]
 pub(crate) fn exp_exact_at_zero(x: f64) -> f64 {
