@@ -1188,4 +1188,15 @@ fn the_colour_rule_is_chosen_by_the_replay_of_the_training_frames_only() {
     assert!(err.contains("fitted on"), "{err}");
     let err = subsurf_fails(&["export", "--model", m, "--out", o, "--colour", "auto"]);
     assert!(err.contains("--colour auto needs --scan"), "{err}");
+    let err = subsurf_fails(&[
+        "export",
+        "--model",
+        m,
+        "--out",
+        o,
+        "--scan",
+        d,
+        "--no-blender",
+    ]);
+    assert!(err.contains("--scan is read with --render"), "{err}");
 }

@@ -123,6 +123,9 @@ pub fn run(args: Args) -> Result<()> {
             export::blender::BLENDER_ENV
         );
     }
+    if args.scan.is_some() && !args.render && args.colour != ColourArg::Auto {
+        bail!("--scan is read with --render (its frames rendered) or --colour auto");
+    }
     let open = |s: &PathBuf| super::open_frames(s, args.frames.as_deref(), None);
     let scan = args.scan.as_ref().map(open).transpose()?;
     if let Some(p) = args.model.as_deref()
