@@ -147,7 +147,8 @@ pub fn run(args: Args) -> Result<()> {
         colour: match args.colour {
             ColourArg::Total => export::ColourRule::Total,
             ColourArg::Fitted => export::ColourRule::Fitted,
-            ColourArg::TwoLobe | ColourArg::Auto => export::ColourRule::TwoLobe,
+            ColourArg::TwoLobe => export::ColourRule::TwoLobe,
+            ColourArg::Auto => export::ColourRule::default(), // replaced by the choice below
         },
     };
     let bar = Bar::with_template("{msg:>12} {bar:40} {pos}/{len} {elapsed}");

@@ -97,7 +97,7 @@ impl ColourChoice {
     pub fn text(&self) -> String {
         let mut s = format!(
             "colour rule chosen by the replay of {} training frames ({} skipped; {} clusters by \
-             {}, rings, Cycles {:?}):\n",
+             {}, rings, Cycles kernel {}):\n",
             self.frames.len(),
             self.skipped.len(),
             self.clusters,
@@ -133,14 +133,9 @@ impl ColourChoice {
         s + &format!("  chosen: {} ({})\n", self.colour.name(), self.reason)
     }
 
-    /// Writes [`CHOICE_FILE`] into the export folder `dir`.
+    /// Writes [`CHOICE_FILE`] into the export folder `dir` (written already).
     pub fn write(&self, dir: &std::path::Path) -> Result<std::path::PathBuf, ExportError> {
-        let p = dir.join(CHOICE_FILE);
-        let json = serde_json::to_vec_pretty(self)
-            .map_err(|e| ExportError::Invalid(format!("{CHOICE_FILE}: {e}")))?;
-        std::fs::create_dir_all(dir).map_err(|e| ExportError::io(dir, e))?;
-        std::fs::write(&p, json).map_err(|e| ExportError::io(&p, e))?;
-        Ok(p)
+        super::write_json(dir, CHOICE_FILE, self)
     }
 }
 

@@ -319,11 +319,7 @@ fn border(ctx: &Context, k: usize, (w, h): (f64, f64)) -> Option<[f64; 4]> {
 
 /// Writes `frames.json` into the export folder `dir`.
 pub fn write_frame_scenes(dir: &Path, scenes: &FrameScenes) -> Result<PathBuf, ExportError> {
-    let p = dir.join(FRAMES_FILE);
-    let json = serde_json::to_vec_pretty(scenes)
-        .map_err(|e| ExportError::Invalid(format!("{FRAMES_FILE}: {e}")))?;
-    std::fs::write(&p, json).map_err(|e| ExportError::io(&p, e))?;
-    Ok(p)
+    super::write_json(dir, FRAMES_FILE, scenes)
 }
 
 /// Renders every scene of `scenes` (written to `dir` with the rest of the export) in Cycles

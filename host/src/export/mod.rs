@@ -282,6 +282,15 @@ pub struct RenderSettings {
     pub compare_diffuse_bounces: u32,
 }
 
+/// Writes `value` as pretty JSON to `dir/name` (the folder exists); returns the path.
+fn write_json(dir: &Path, name: &str, value: &impl Serialize) -> Result<PathBuf, ExportError> {
+    let p = dir.join(name);
+    let json = serde_json::to_vec_pretty(value)
+        .map_err(|e| ExportError::Invalid(format!("{name}: {e}")))?;
+    std::fs::write(&p, json).map_err(|e| ExportError::io(&p, e))?;
+    Ok(p)
+}
+
 /// Converts `model` (checked by [`render::validate`]) for Blender.
 pub fn export(
     model: &ModelFile,
