@@ -40,6 +40,12 @@ use crate::scan::setup::{
     sim_exposures_s, sim_field, sim_noise_floor, write_ground_truth,
 };
 
+/// The demo's export scales the colour by Cycles' gather against subsurf's under the key light
+/// it renders with ([`export::GatherMode::Lights`]): on the demo's 4 mm sphere, no larger than
+/// the profile's reach, Cycles' disk step otherwise gathers a quarter more light than subsurf's
+/// renderer and its picture is that much brighter than the truth (docs/export.md).
+pub const GATHER: export::GatherMode = export::GatherMode::Lights;
+
 /// The demo's settings (the command's flags; `None`: the built-in default).
 #[derive(Debug, Clone)]
 pub struct DemoOptions {
@@ -194,6 +200,8 @@ pub struct InBlender {
     pub dir: PathBuf,
     /// The conversion used (the export's default).
     pub colour: export::ColourRule,
+    /// The gather correction used ([`GATHER`]).
+    pub gather: export::GatherMode,
     /// Mean relative pixel error of Cycles' render against the ground truth's over lit pixels:
     /// the measure of [`Fitted::render_error`], so the two stand side by side.
     pub against_truth: f64,
@@ -582,6 +590,7 @@ fn measure<U: Stages>(
             camera: cam.clone(),
             samples: args.blender_samples,
             colour,
+            gather: GATHER,
         };
         let p = ui.stage(0, "export");
         let exported = export::export(&model, &opts, &p)?;
@@ -634,6 +643,7 @@ fn measure<U: Stages>(
             comparison: c,
             dir,
             colour,
+            gather: GATHER,
             against_truth,
             truth_difference,
         });

@@ -37,10 +37,10 @@ pub struct Args {
     #[arg(long, default_value_t = 480)]
     picture: u32,
     /// Cycles samples per pixel of the "in Blender" render (when Blender is present; two seeds,
-    /// the second for Cycles' own noise). 128: the noise, about 12 % per pixel on the default
-    /// picture, is below Cycles' distance from the truth (about 20 %), and both renders take
-    /// about a minute on one core (32 samples: 30 % noise; 512: 6 %, six minutes).
-    #[arg(long, default_value_t = 128)]
+    /// the second for Cycles' own noise). 512: the noise, about 3 % per pixel on the default
+    /// picture, is below the 5 % the export's Cycles render is from the truth, and both renders
+    /// take about a minute on two cores (128 samples: 6 % noise, 7 % from the truth).
+    #[arg(long, default_value_t = 512)]
     blender_samples: u32,
     /// Skip the "in Blender" render even when Blender is present.
     #[arg(long)]

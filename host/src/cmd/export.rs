@@ -7,7 +7,8 @@ use anyhow::{Context, Result, bail};
 
 use super::models::{builtin, lights_or_default, load_model, parse_size, resolve_camera};
 use super::progress::Bar;
-use subsurf::export::{self, ExportOptions, LatticeMode};
+use subsurf::export::choose::ColourArg;
+use subsurf::export::{self, ExportOptions, GatherMode, LatticeMode};
 use subsurf::render::{Method, Quality, RenderOptions};
 
 /// The renderers `export` writes for.
@@ -16,21 +17,6 @@ pub enum Format {
     /// Blender 3.4+ (Cycles): binary glTF with custom attributes, the scene, the script that
     /// builds the node tree; the `.blend` when Blender is present.
     Blender,
-}
-
-/// What the subsurface colour is (docs/export.md).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
-pub enum ColourArg {
-    /// The fall-off's total diffuse reflectance T.
-    Total,
-    /// Amplitude fitted with the Burley shape in log space over the sampled distances.
-    Fitted,
-    /// Two Burley lobes (near and slow Principled BSDFs mixed by a Mix Shader), T split between
-    /// them as the fitted terms' reflectances split it.
-    TwoLobe,
-    /// Chosen among the three by Cycles' render replayed in closed form on the training frames
-    /// of `--scan` the model was fitted on, judged by rings (`colour-choice.json`).
-    Auto,
 }
 
 /// Export a model for Blender's Cycles: Burley subsurface per vertex, or a Principled Volume.
@@ -69,6 +55,9 @@ pub struct Args {
     /// What the subsurface colour is (docs/export.md).
     #[arg(long, value_enum, default_value_t = ColourArg::Fitted)]
     colour: ColourArg,
+    /// Scale the colour by how Cycles gathers light on the model's shape against subsurf.
+    #[arg(long, value_enum, default_value_t = GatherMode::Off)]
+    gather: GatherMode,
     /// Blender executable (default: `$SUBSURF_BLENDER`, else `blender` on the PATH).
     #[arg(long)]
     blender: Option<PathBuf>,
@@ -144,12 +133,8 @@ pub fn run(args: Args) -> Result<()> {
         lights: lights_or_default(&args.lights, model.bounds())?,
         camera: resolve_camera(&args.camera, parse_size(&args.size)?, model.bounds())?,
         samples: args.samples,
-        colour: match args.colour {
-            ColourArg::Total => export::ColourRule::Total,
-            ColourArg::Fitted => export::ColourRule::Fitted,
-            ColourArg::TwoLobe => export::ColourRule::TwoLobe,
-            ColourArg::Auto => export::ColourRule::default(), // replaced by the choice below
-        },
+        colour: args.colour.rule(), // with `auto`, replaced by the choice below
+        gather: args.gather,
     };
     let bar = Bar::with_template("{msg:>12} {bar:40} {pos}/{len} {elapsed}");
     let store = subsurf::pipeline::StoreOptions::cached(args.cache.clone());

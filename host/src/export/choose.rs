@@ -139,6 +139,33 @@ impl ColourChoice {
     }
 }
 
+/// What the subsurface colour is, as `subsurf export --colour` asks for it (docs/export.md).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum ColourArg {
+    /// The fall-off's total diffuse reflectance T.
+    Total,
+    /// Amplitude fitted with the Burley shape in log space over the sampled distances.
+    Fitted,
+    /// Two Burley lobes (near and slow Principled BSDFs mixed by a Mix Shader), T split between
+    /// them as the fitted terms' reflectances split it.
+    TwoLobe,
+    /// Chosen among the three by Cycles' render replayed in closed form on the training frames
+    /// of `--scan` the model was fitted on, judged by rings (`colour-choice.json`).
+    Auto,
+}
+
+impl ColourArg {
+    /// The rule asked for; `Auto` gives the default, which [`export_choosing`] replaces.
+    pub fn rule(self) -> ColourRule {
+        match self {
+            ColourArg::Total => ColourRule::Total,
+            ColourArg::Fitted => ColourRule::Fitted,
+            ColourArg::TwoLobe => ColourRule::TwoLobe,
+            ColourArg::Auto => ColourRule::default(),
+        }
+    }
+}
+
 /// [`super::export`] with `opts`, or, given `auto` (the model's scan and the version of the
 /// Blender that will render it, if known), with the colour rule [`choose_colour`] chooses by
 /// that scan's training frames in that version's kernel (Blender 4.0 on when none is known).

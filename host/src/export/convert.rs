@@ -162,6 +162,20 @@ pub fn convert_with(
     out
 }
 
+/// Per vertex, the total diffuse reflectance `∫ R̄_d 2πr dr` of its fall-off as the renderer
+/// evaluates it (what it gathers on a plane under unit irradiance); `None` without a model.
+pub fn totals(model: &ModelFile) -> Vec<Option<[f64; 3]>> {
+    let f = Falloffs::new(model);
+    (0..model.len())
+        .into_par_iter()
+        .map(|i| {
+            (model.vertices[i].status != VertexStatus::NoModel && f.is_active(i))
+                .then(|| Integrated::of(&f, i).map(|p| p.total))
+                .flatten()
+        })
+        .collect()
+}
+
 fn convert_one(model: &ModelFile, f: &Falloffs, i: usize, rule: ColourRule) -> VertexConversion {
     let vm = &model.vertices[i];
     let none = VertexConversion {

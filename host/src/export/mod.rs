@@ -26,6 +26,7 @@ pub mod choose;
 pub mod convert;
 pub mod cycles;
 pub mod frames;
+pub mod gather;
 pub mod gltf;
 pub mod mesh;
 pub mod replay;
@@ -131,6 +132,25 @@ pub struct ExportOptions {
     pub samples: u32,
     /// What the subsurface colour is.
     pub colour: ColourRule,
+    /// Whether and under which light each vertex's colour is scaled by how much more (or less)
+    /// Cycles' disk step gathers there than subsurf's renderer ([`gather`]).
+    pub gather: GatherMode,
+}
+
+/// The gather correction of the export ([`gather`]): 1 on flat ground, below 1 on an object no
+/// larger than the profile's reach, where Cycles gathers more.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum GatherMode {
+    /// No correction: the colour rule's colour as it is.
+    #[default]
+    Off,
+    /// Measured under a unit irradiance everywhere: a property of material and shape, right
+    /// under any light to the extent the light is even on the profile's scale.
+    Uniform,
+    /// Measured under the exported scene's lights (uniform where they leave a vertex dark):
+    /// Cycles then renders this scene as subsurf does, other lights less exactly.
+    Lights,
 }
 
 /// Summary statistics of one per-vertex quantity per channel.
@@ -225,6 +245,9 @@ pub struct ExportSummary {
     pub refinement: Refinement,
     /// What was left out.
     pub dropped: Dropped,
+    /// The gather correction (`--gather`), when applied.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gather: Option<gather::GatherSummary>,
     /// Vertices with a subsurface colour above 1 in some channel (more light out than in: a
     /// calibration to check; Cycles takes it as it is).
     pub colour_above_one: usize,
@@ -306,7 +329,28 @@ pub fn export(
     if opts.samples == 0 {
         return Err(ExportError::Invalid("samples must be at least 1".into()));
     }
-    let vertices = convert::convert_with(model, opts.colour, progress);
+    let mut vertices = convert::convert_with(model, opts.colour, progress);
+    let reference = match opts.gather {
+        GatherMode::Off => None,
+        GatherMode::Uniform => Some(gather::Reference::Uniform),
+        GatherMode::Lights => Some(gather::Reference::Lights(&opts.lights, opts.eta)),
+    };
+    let gathered = match reference {
+        Some(r) => {
+            progress.start("gathering", model.len() as u64);
+            let totals = convert::totals(model);
+            let q = gather::Quadrature::default();
+            Some(gather::correct(
+                model,
+                &mut vertices,
+                &totals,
+                r,
+                q,
+                progress,
+            )?)
+        }
+        None => None,
+    };
     let (mesh, refinement) = match opts.lattice {
         LatticeMode::Refine => mesh::refined_mesh(model, &vertices),
         LatticeMode::Drop => (mesh::vertex_mesh(model, &vertices), Refinement::default()),
@@ -358,6 +402,7 @@ pub fn export(
                 .flatten(),
             lattice_detail,
         },
+        gather: gathered,
         colour_above_one: vertices
             .iter()
             .filter(|v| v.colour.iter().any(|&c| c > 1.0))
@@ -469,6 +514,20 @@ impl Export {
                 fmt::log_e(st.median.iter().sum::<f64>() / 3.0),
                 fmt::log_e(st.p95.iter().sum::<f64>() / 3.0),
                 fmt::log_e(st.max.iter().copied().fold(0.0, f64::max)),
+            ));
+        }
+        if let Some(g) = &s.gather {
+            out.push(format!(
+                "gather factor ({} light): colour × {} (median; {} to {}, 5th to 95th \
+                 percentile) on {} vertices; Cycles gathers {} of the planar total under \
+                 uniform light, subsurf {} (median, green)",
+                g.reference,
+                fmt::sig(g.factor[0], 3),
+                fmt::sig(g.factor[1], 3),
+                fmt::sig(g.factor[2], 3),
+                fmt::count(g.vertices),
+                fmt::sig(g.median_gather[0], 3),
+                fmt::sig(g.median_gather[1], 3),
             ));
         }
         out.extend(

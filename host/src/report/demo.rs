@@ -180,11 +180,16 @@ pub fn demo_report(run: &DemoRun) -> Report {
             Some(format!(
                 "Per channel over lit pixels (truth above 0.1 % of its brightest), the measure \
                  of the speed-and-accuracy table's render column. The exported model (`subsurf \
-                 export`'s default conversion, `{}` subsurface colour: per-vertex colour and \
-                 radius of Cycles' Principled BSDF, docs/export.md) rendered in Cycles ({}, \
+                 export`'s default conversion, `{}` subsurface colour scaled by `--gather {}`: \
+                 per-vertex colour and radius of Cycles' Principled BSDF, docs/export.md) \
+                 rendered in Cycles ({}, \
                  two seeds) under the key light; the noise row is the part of Cycles' figure \
                  its sampling alone explains. Export and report: `{}/`.",
                 serde_json::to_value(b.colour)
+                    .ok()
+                    .and_then(|v| v.as_str().map(str::to_string))
+                    .unwrap_or_default(),
+                serde_json::to_value(b.gather)
                     .ok()
                     .and_then(|v| v.as_str().map(str::to_string))
                     .unwrap_or_default(),
