@@ -15,7 +15,7 @@
 //! surface point (light from every side, so the factor belongs to the material and the shape,
 //! not to one scene's lights):
 //! - subsurf: `G_s(x_o) = Σ_i R_d(x_i → x_o) A_i`, the renderer's own transport
-//!   ([`crate::render::hierarchy::Transport`]) with `E = 1`;
+//!   ([`crate::render::Transport`]) with `E = 1`;
 //! - Cycles: `G_c(P)`, the expectation of its disk step per unit Base Color with `E = 1`,
 //!   computed by quadrature over the step's own random choices (axis, channel, disk radius in
 //!   its inverse CDF, angle), every probe cast through the mesh and every hit weighted as
