@@ -158,7 +158,7 @@ struct Lit {
 }
 
 /// Per channel, the exported attributes interpolated at a point of triangle `t` with weights `w`.
-fn lerp(values: &[[f64; 3]], t: [u32; 3], w: [f64; 3]) -> [f64; 3] {
+pub(super) fn lerp(values: &[[f64; 3]], t: [u32; 3], w: [f64; 3]) -> [f64; 3] {
     let mut out = [0.0; 3];
     for k in 0..3 {
         for (c, o) in out.iter_mut().enumerate() {
