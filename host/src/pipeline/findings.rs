@@ -30,7 +30,9 @@ pub enum FailReason {
 pub enum TermDropped {
     /// The term hardly decays over the sampled distances (|d|·(r_max − r_min) below
     /// [`super::MIN_DECAY`]): it is indistinguishable from a constant there and would never
-    /// decay beyond (fits produce d ≈ −1e−16 such terms).
+    /// decay beyond (fits produce d ≈ −1e−16 such terms). Counted only where the fall-off has
+    /// no other term: beside others it is kept, held at the least decay
+    /// (`with_least_decay` in the fit stage's `light` module), since dropping it changes the curve's shape.
     NonDecaying,
     /// The term carries at least [`super::MIN_SHARE`] of R_d at fewer than
     /// [`super::MIN_SUPPORT`] distinct sampled distances: typically a fall-off steeper than the

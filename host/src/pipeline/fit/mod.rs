@@ -86,6 +86,51 @@ pub trait Fitter: Sync {
     fn reference(&self) -> Option<Box<dyn Fitter>> {
         None
     }
+
+    /// Whether a term that hardly decays beside others is held at the least decay
+    /// ([`light::with_least_decay`]) rather than dropped with a refit of one term fewer. Light
+    /// positions hold it (their fall-off then changes continuously with their samples); the
+    /// homogeneous baseline, whose shape continues every model beyond its sampled distances, drops
+    /// it ([`Dropping`]), so that no constant runs on past them.
+    fn holds_slow_terms(&self) -> bool {
+        true
+    }
+}
+
+/// `inner` with terms that hardly decay dropped, not held ([`Fitter::holds_slow_terms`]).
+pub(super) struct Dropping<'a> {
+    pub(super) inner: &'a dyn Fitter,
+}
+
+impl Fitter for Dropping<'_> {
+    fn fit(&self, r: &[f64], s: &[f64], terms: Option<usize>) -> Result<ExpSum, FailReason> {
+        self.inner.fit(r, s, terms)
+    }
+
+    fn fit_colour_from(
+        &self,
+        rows: &ColourRows,
+        n: usize,
+        m: usize,
+        colour: ColourMode,
+        anchored: u64,
+        start: Option<&ExpSum>,
+    ) -> Result<ColourModel, FailReason> {
+        self.inner
+            .fit_colour_from(rows, n, m, colour, anchored, start)
+    }
+
+    fn max_terms(&self) -> Option<usize> {
+        self.inner.max_terms()
+    }
+
+    fn rounding_cuts(&self) -> bool {
+        self.inner.rounding_cuts()
+    }
+
+    fn holds_slow_terms(&self) -> bool {
+        false
+    }
 }
 
 /// The fitting engine's solver failures as the pipeline's reasons (the one mapping).
@@ -312,6 +357,10 @@ impl Fitter for AtMost<'_> {
 
     fn rounding_cuts(&self) -> bool {
         self.inner.rounding_cuts()
+    }
+
+    fn holds_slow_terms(&self) -> bool {
+        self.inner.holds_slow_terms()
     }
 }
 
@@ -731,5 +780,81 @@ mod tests {
             FailReason::from(FitFailure::NonFinite),
             FailReason::NonPhysical
         );
+    }
+
+    /// A term that hardly decays is held at the least decay a supported term has: at the limit
+    /// the fall-off is the same on either side of it (no jump), and within ±5 % of the given one
+    /// over the sampled range; terms held at one rate are joined.
+    #[test]
+    fn a_non_decaying_term_is_held_at_the_least_decay_continuously() {
+        use super::light::with_least_decay;
+        let (lo, hi) = (2.4, 12.6);
+        let limit = MIN_DECAY / (hi - lo);
+        let f = |d: f64| ExpSum::new(vec![Term { c: 1e-3, d: -0.7 }, Term { c: 3e-5, d }]).unwrap();
+        let rs: Vec<f64> = (0..=50).map(|k| lo + (hi - lo) * k as f64 / 50.0).collect();
+        // Just above the limit: supported, nothing to do; just below: held, and the same curve.
+        let above = f(-limit * (1.0 + 1e-9));
+        assert_eq!(unsupported_term(&above, &rs), None);
+        let below = f(-limit * (1.0 - 1e-9));
+        assert_eq!(
+            unsupported_term(&below, &rs),
+            Some(TermDropped::NonDecaying)
+        );
+        let held = with_least_decay(&below, lo, hi).unwrap();
+        assert_eq!(unsupported_term(&held, &rs), None);
+        for &r in &rs {
+            assert!((held.ln_eval(r) - above.ln_eval(r)).abs() < 1e-8, "{r}");
+        }
+        // Far below (d ≈ −1e−16): within e^{±MIN_DECAY/2} over the range.
+        let flat = f(-1e-16);
+        let held = with_least_decay(&flat, lo, hi).unwrap();
+        assert_eq!(held.n(), 2);
+        for &r in &rs {
+            assert!(
+                (held.ln_eval(r) - flat.ln_eval(r)).abs() <= 0.5 * MIN_DECAY + 1e-9,
+                "{r}"
+            );
+        }
+        // Two flat terms end at one rate: joined.
+        let two = ExpSum::new(vec![
+            Term { c: 1e-3, d: -0.7 },
+            Term { c: 2e-5, d: -1e-4 },
+            Term { c: 1e-5, d: -1e-3 },
+        ])
+        .unwrap();
+        let held = with_least_decay(&two, lo, hi).unwrap();
+        assert_eq!(held.n(), 2);
+        assert_eq!(unsupported_term(&held, &rs), None);
+        assert_eq!(with_least_decay(&two, 3.0, 3.0), None);
+    }
+
+    /// Samples of a fall-off with a slow tail whose fit's slowest rate falls below the limit:
+    /// the fit keeps both terms, the slow one held at the limit, instead of refitting one term of
+    /// another shape.
+    #[test]
+    fn a_slow_tail_keeps_its_term_held_at_the_least_decay() {
+        let truth =
+            ExpSum::new(vec![Term { c: 1e-3, d: -0.7 }, Term { c: 4e-5, d: -1e-4 }]).unwrap();
+        let r: Vec<f64> = (0..200).map(|k| 2.4 + 10.2 * k as f64 / 199.0).collect();
+        let s: Vec<f64> = r.iter().map(|&x| truth.eval(x)).collect();
+        let opts = FitOptions {
+            terms: crate::fit::Terms::Fixed(2),
+            ..Default::default()
+        };
+        let mut dropped = Vec::new();
+        let f = super::light::fit_supported(&opts, &r, &s, None, &mut dropped).unwrap();
+        assert_eq!(f.n(), 2, "{f:?}");
+        assert!(dropped.is_empty(), "{dropped:?}");
+        let worst = r
+            .iter()
+            .zip(&s)
+            .map(|(&x, &y)| (f.ln_eval(x) - y.ln()).abs())
+            .fold(0.0, f64::max);
+        assert!(worst < 0.5 * MIN_DECAY, "{worst} {f:?}");
+        // Dropped instead (the baseline's rule), the same samples get one term of another shape.
+        let mut dropped = Vec::new();
+        let g = super::light::fit_supported(&Dropping { inner: &opts }, &r, &s, None, &mut dropped);
+        assert_eq!(g.map(|g| g.n()), Ok(1));
+        assert_eq!(dropped, [TermDropped::NonDecaying]);
     }
 }
