@@ -169,8 +169,9 @@ fn camera_files(
 /// Bayer mosaic; read back by rawpy/LibRaw) decode to exactly the quantised frames and fit, on
 /// the same training frames, exactly as those quantised values do as float EXR (to 0.1 % of
 /// held-out error: decoding adds nothing); against the original EXR frames' held-out error
-/// (frames 1 and 5, the dataset's test set) the quantisation itself moves it by 0.8 / 1.3 /
-/// 0.8 % (r/g/b), asserted within 2 %.
+/// (frames 1 and 5, the dataset's test set) the quantisation itself moves it by 2.5 / 2.7 /
+/// 0.5 % (r/g/b), asserted within 3 % (0.8 / 1.3 / 0.8 % within 2 % before the fit held slow
+/// terms: the EXR fit, reading the dim tail unquantised, gained that much).
 #[test]
 fn camera_files_from_outside_writers_fit_like_the_exr_frames() {
     let Some(py) = python("numpy, tifffile, pidng, rawpy") else {
@@ -273,9 +274,12 @@ fn camera_files_from_outside_writers_fit_like_the_exr_frames() {
                 e[c],
                 float[c]
             );
+            // 3 %: the 16-bit copy (1 DN = 5.8e-6, the floor 3.4 DN) fits 0.1760 / 0.1622 /
+            // 0.1719, where the EXR fit was before it held slow terms; the EXR's own fit, which
+            // reads the dim tail unquantised, is now 2.5 / 2.7 / 0.5 % lower.
             let rel = (e[c] - original[c]).abs() / original[c];
             assert!(
-                rel <= 0.02,
+                rel <= 0.03,
                 "{name} channel {c}: held-out {:.4} vs EXR {:.4} ({:.2} %)",
                 e[c],
                 original[c],
@@ -296,8 +300,11 @@ const BRACKET_GAINS: [f64; 3] = [1.0, 64.0, 4096.0];
 /// clipped over much of the image. Merged per pixel ([`subsurf::dataset::merge_hdr`]) the
 /// frames equal the float frames within the ×1 exposure's quantisation, and to within 0.5 %
 /// where the values lie above the noise floor (one exposure: up to 15 %); the fit's held-out
-/// error (frames 1 and 5, the dataset's test set) is within 1 % of the EXR fit's in every
-/// channel, where one exposure moved it by up to 1.3 %.
+/// error (frames 1 and 5, the dataset's test set) is within 2.5 % of the EXR fit's in every
+/// channel, closer than one exposure's 2.5 / 2.7 / 0.5 %. (The bound was 1 % against 1.3 % before
+/// the fit held slow terms rather than dropping them: that made the EXR fit's figure 2 % lower,
+/// 0.1717 / 0.1580 / 0.1728, by the dim tail the 16-bit copies quantise; the TIFF and DNG
+/// brackets lie 1.1–1.3 / 1.6–2.0 / 0.2–0.3 % above it.)
 #[test]
 fn bracketed_camera_files_fit_like_the_exr_frames() {
     let Some(py) = python("numpy, tifffile, pidng, rawpy") else {
@@ -424,7 +431,7 @@ fn bracketed_camera_files_fit_like_the_exr_frames() {
         for c in 0..3 {
             let rel = (e[c] - original[c]).abs() / original[c];
             assert!(
-                rel <= 0.01,
+                rel <= 0.025,
                 "{name} channel {c}: held-out {:.4} vs EXR {:.4} ({:.2} %)",
                 e[c],
                 original[c],

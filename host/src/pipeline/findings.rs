@@ -30,15 +30,19 @@ pub enum FailReason {
 pub enum TermDropped {
     /// The term hardly decays over the sampled distances (|d|·(r_max − r_min) below
     /// [`super::MIN_DECAY`]): it is indistinguishable from a constant there and would never
-    /// decay beyond (fits produce d ≈ −1e−16 such terms). Counted only where the fall-off has
-    /// no other term: beside others it is kept, held at the least decay
-    /// (`with_least_decay` in the fit stage's `light` module), since dropping it changes the curve's shape.
+    /// decay beyond (fits produce d ≈ −1e−16 such terms). A light position's fit keeps such a
+    /// term beside others, held at the least decay ([`TermDropped::HeldAtLeastDecay`]), since
+    /// dropping it changes the curve's shape; the homogeneous baseline's fit drops it, and a
+    /// fall-off of that term alone fails.
     NonDecaying,
     /// The term carries at least [`super::MIN_SHARE`] of R_d at fewer than
     /// [`super::MIN_SUPPORT`] distinct sampled distances: typically a fall-off steeper than the
     /// spacing of the samples near x_i resolves, which the fit places below the smallest
     /// sampled distance, where it explodes.
     Unresolved,
+    /// Not a drop: a term that hardly decays, kept beside the others at the least decay. Counted
+    /// apart, as `FitReport::terms_held`, never under `terms_dropped`.
+    HeldAtLeastDecay,
 }
 
 /// Frames by what registration concluded.
@@ -154,6 +158,9 @@ pub struct FitReport {
     /// Terms dropped because the samples do not support them, by reason (each drop refits
     /// with one term fewer; counted in the last fit round, not in interpolation refits).
     pub terms_dropped: BTreeMap<TermDropped, usize>,
+    /// Terms that hardly decayed over the sampled distances and were kept beside the others at
+    /// the least decay instead of dropped (counted as `terms_dropped` is).
+    pub terms_held: usize,
     /// Light positions fitted isotropically (their m segments equal) because the joint Eq. 3
     /// fit at m > 1 failed (no direction segment with enough samples of its own, or the solve
     /// did not converge) or gave an implausible segment (see `pipeline::fit`), in the last round.

@@ -671,7 +671,9 @@ impl Setup {
         let report = &mut self.report;
         let clock = &mut self.clock;
         report.samples = fitted.counts;
-        report.terms_dropped = fitted.dropped.clone();
+        let mut dropped = fitted.dropped.clone();
+        report.terms_held = dropped.remove(&TermDropped::HeldAtLeastDecay).unwrap_or(0);
+        report.terms_dropped = dropped;
         report.segment_fallbacks = fitted
             .fits
             .iter()

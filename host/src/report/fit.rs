@@ -339,7 +339,8 @@ pub fn fit_report(r: &FitReport, inputs: &FitInputs<'_>) -> Report {
     rep.paragraph(format!(
         "Scan `{}` → model `{}` ({}). {} of {} vertices have their own fit, {} are interpolated \
          from neighbours, {} have no model. Failed fits before interpolation: {}. Terms dropped \
-         because the samples do not support them: {}.",
+         because the samples do not support them: {}; terms that hardly decay, held at the least \
+         decay beside the others: {}.",
         inputs.scan.display(),
         inputs.model.display(),
         fmt::bytes(inputs.model_bytes),
@@ -349,6 +350,7 @@ pub fn fit_report(r: &FitReport, inputs: &FitInputs<'_>) -> Report {
         fmt::count(r.vertices_no_model),
         reasons(&r.failures),
         reasons(&r.terms_dropped),
+        fmt::count(r.terms_held),
     ));
     if !r.warnings.is_empty() {
         rep.heading("Warnings");

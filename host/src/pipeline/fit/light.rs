@@ -130,6 +130,7 @@ pub(super) fn fit_supported_on(
                     && fitter.holds_slow_terms()
                     && let Some(g) = with_least_decay(&f, distances.lo, distances.hi)
                 {
+                    dropped.push(TermDropped::HeldAtLeastDecay);
                     f = g;
                     continue;
                 }

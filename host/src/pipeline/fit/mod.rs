@@ -844,7 +844,7 @@ mod tests {
         let mut dropped = Vec::new();
         let f = super::light::fit_supported(&opts, &r, &s, None, &mut dropped).unwrap();
         assert_eq!(f.n(), 2, "{f:?}");
-        assert!(dropped.is_empty(), "{dropped:?}");
+        assert_eq!(dropped, [TermDropped::HeldAtLeastDecay]);
         let worst = r
             .iter()
             .zip(&s)
