@@ -80,14 +80,14 @@ pub(super) fn fit_baseline(
     // top term often runs its rate to 0 (a constant, which the drop rule then removes), and the
     // solver gets there slowly: at the draft preset's iteration limit that fit failed, the run
     // kept no baseline, and its renders came out 11–14 % dark (BENCHMARKS.md, the tradeoff benchmark).
-    let fitter = &Dropping { inner: fitter };
+    let fitter = &AtMost::dropping(fitter);
     let max_n = fitter.max_terms().unwrap_or(1);
     let (model, terms, _) = fit_samples(&pooled, &choice, fitter, false, &mut Vec::new())
         .or_else(|e| {
             (1..max_n)
                 .rev()
                 .find_map(|n| {
-                    let at_most = AtMost { inner: fitter, n };
+                    let at_most = AtMost::terms(fitter, n);
                     fit_samples(&pooled, &choice, &at_most, false, &mut Vec::new()).ok()
                 })
                 .ok_or(e)

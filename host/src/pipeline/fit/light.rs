@@ -565,7 +565,7 @@ pub(super) fn fit_candidate(
         ..*choice
     };
     match n {
-        Some(n) => fit_samples(data, &c, &AtMost { inner: fitter, n }, order_kept, dropped),
+        Some(n) => fit_samples(data, &c, &AtMost::terms(fitter, n), order_kept, dropped),
         None => fit_samples(data, &c, fitter, order_kept, dropped),
     }
     .map(|(model, n, path)| (model, n, m, false, path))

@@ -91,45 +91,9 @@ pub trait Fitter: Sync {
     /// ([`light::with_least_decay`]) rather than dropped with a refit of one term fewer. Light
     /// positions hold it (their fall-off then changes continuously with their samples); the
     /// homogeneous baseline, whose shape continues every model beyond its sampled distances, drops
-    /// it ([`Dropping`]), so that no constant runs on past them.
+    /// it ([`AtMost::dropping`]), so that no constant runs on past them.
     fn holds_slow_terms(&self) -> bool {
         true
-    }
-}
-
-/// `inner` with terms that hardly decay dropped, not held ([`Fitter::holds_slow_terms`]).
-pub(super) struct Dropping<'a> {
-    pub(super) inner: &'a dyn Fitter,
-}
-
-impl Fitter for Dropping<'_> {
-    fn fit(&self, r: &[f64], s: &[f64], terms: Option<usize>) -> Result<ExpSum, FailReason> {
-        self.inner.fit(r, s, terms)
-    }
-
-    fn fit_colour_from(
-        &self,
-        rows: &ColourRows,
-        n: usize,
-        m: usize,
-        colour: ColourMode,
-        anchored: u64,
-        start: Option<&ExpSum>,
-    ) -> Result<ColourModel, FailReason> {
-        self.inner
-            .fit_colour_from(rows, n, m, colour, anchored, start)
-    }
-
-    fn max_terms(&self) -> Option<usize> {
-        self.inner.max_terms()
-    }
-
-    fn rounding_cuts(&self) -> bool {
-        self.inner.rounding_cuts()
-    }
-
-    fn holds_slow_terms(&self) -> bool {
-        false
     }
 }
 
@@ -325,17 +289,44 @@ impl ColourRows {
     }
 }
 
-/// A fitter that fits at most `n` terms: its own setting (`terms = None`) means n. The order
-/// choice ([`fit_order`]) wraps the run's fitter in it for each candidate n.
-struct AtMost<'a> {
-    inner: &'a dyn Fitter,
-    n: usize,
+/// The run's fitter narrowed: at most `n` terms where `n` is set (its own setting, `terms =
+/// None`, then means n; the order choice [`fit_order`] tries each candidate n this way), and
+/// terms that hardly decay dropped instead of held where `holds` is false (the baseline's rule,
+/// [`Fitter::holds_slow_terms`]). One wrapper for both, so that every forwarded method is
+/// written once.
+pub(super) struct AtMost<'a> {
+    pub(super) inner: &'a dyn Fitter,
+    pub(super) n: Option<usize>,
+    pub(super) holds: bool,
+}
+
+impl<'a> AtMost<'a> {
+    /// At most `n` terms, the slow-term rule of `inner`.
+    pub(super) fn terms(inner: &'a dyn Fitter, n: usize) -> Self {
+        Self {
+            inner,
+            n: Some(n),
+            holds: inner.holds_slow_terms(),
+        }
+    }
+
+    /// `inner`'s own order, terms that hardly decay dropped.
+    pub(super) fn dropping(inner: &'a dyn Fitter) -> Self {
+        Self {
+            inner,
+            n: None,
+            holds: false,
+        }
+    }
 }
 
 impl Fitter for AtMost<'_> {
     fn fit(&self, r: &[f64], s: &[f64], terms: Option<usize>) -> Result<ExpSum, FailReason> {
-        let n = terms.map_or(self.n, |t| t.min(self.n));
-        self.inner.fit(r, s, Some(n))
+        let terms = match self.n {
+            Some(n) => Some(terms.map_or(n, |t| t.min(n))),
+            None => terms,
+        };
+        self.inner.fit(r, s, terms)
     }
 
     fn fit_colour_from(
@@ -347,12 +338,13 @@ impl Fitter for AtMost<'_> {
         anchored: u64,
         start: Option<&ExpSum>,
     ) -> Result<ColourModel, FailReason> {
+        let n = self.n.map_or(n, |at_most| n.min(at_most));
         self.inner
-            .fit_colour_from(rows, n.min(self.n), m, colour, anchored, start)
+            .fit_colour_from(rows, n, m, colour, anchored, start)
     }
 
     fn max_terms(&self) -> Option<usize> {
-        Some(self.n)
+        self.n.or_else(|| self.inner.max_terms())
     }
 
     fn rounding_cuts(&self) -> bool {
@@ -360,7 +352,7 @@ impl Fitter for AtMost<'_> {
     }
 
     fn holds_slow_terms(&self) -> bool {
-        self.inner.holds_slow_terms()
+        self.holds
     }
 }
 
@@ -853,7 +845,7 @@ mod tests {
         assert!(worst < 0.5 * MIN_DECAY, "{worst} {f:?}");
         // Dropped instead (the baseline's rule), the same samples get one term of another shape.
         let mut dropped = Vec::new();
-        let g = super::light::fit_supported(&Dropping { inner: &opts }, &r, &s, None, &mut dropped);
+        let g = super::light::fit_supported(&AtMost::dropping(&opts), &r, &s, None, &mut dropped);
         assert_eq!(g.map(|g| g.n()), Ok(1));
         assert_eq!(dropped, [TermDropped::NonDecaying]);
     }
