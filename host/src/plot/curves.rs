@@ -110,12 +110,7 @@ pub fn tradeoff_curve(
     if pts.is_empty() {
         return Err(PlotError::Empty("no finite points".into()));
     }
-    let emax = pts.iter().map(|p| p.1).fold(0.0, f64::max).max(1e-6);
-    let epos = pts
-        .iter()
-        .map(|p| p.1)
-        .filter(|&v| v > 0.0)
-        .fold(f64::INFINITY, f64::min);
+    let (emax, epos) = error_span(pts.iter().map(|p| p.1));
     let efloor = if epos.is_finite() {
         epos / 3.0
     } else {
@@ -133,24 +128,14 @@ pub fn tradeoff_curve(
         .max(reference_seconds);
     let e = draw_err(path);
     let root = BitMapBackend::new(path, (720, 480)).into_drawing_area();
-    root.fill(&WHITE).map_err(&e)?;
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, ("sans-serif", 18))
-        .margin(12)
-        .x_label_area_size(40)
-        .y_label_area_size(60)
-        .build_cartesian_2d(
-            (efloor..emax * 2.0).log_scale(),
-            (tmin / 2.0..tmax * 2.0).log_scale(),
-        )
-        .map_err(&e)?;
-    chart
-        .configure_mesh()
-        .x_desc("mean relative error")
-        .y_desc("wall time (s)")
-        .x_label_formatter(&|v| format!("{v:.0e}"))
-        .draw()
-        .map_err(&e)?;
+    let mut chart = error_time_chart(
+        &root,
+        path,
+        title,
+        efloor..emax * 2.0,
+        tmin / 2.0..tmax * 2.0,
+        ("mean relative error", "wall time (s)"),
+    )?;
     let line: Vec<(f64, f64)> = pts.iter().map(|&(t, err)| (err.max(efloor), t)).collect();
     chart
         .draw_series(LineSeries::new(line.clone(), BLUE.stroke_width(2)))
@@ -176,6 +161,48 @@ pub fn tradeoff_curve(
         .map_err(&e)?;
     root.present().map_err(&e)?;
     Ok(())
+}
+
+/// The error axis of the speed/accuracy plots: its top (at least 1e-6) and the smallest
+/// positive error (infinite where none is), from which each plot sets the floor its log scale
+/// draws an error of 0 at.
+fn error_span(errors: impl Iterator<Item = f64> + Clone) -> (f64, f64) {
+    let emax = errors.clone().fold(0.0, f64::max).max(1e-6);
+    let epos = errors.filter(|&v| v > 0.0).fold(f64::INFINITY, f64::min);
+    (emax, epos)
+}
+
+/// A chart with both axes on a log scale, on a bitmap.
+type LogLogChart<'a, 'b> =
+    ChartContext<'a, BitMapBackend<'b>, Cartesian2d<LogCoord<f64>, LogCoord<f64>>>;
+
+/// The log–log chart both speed/accuracy plots draw on: `root` cleared to white, error `x`
+/// against wall time `y`, with their axis descriptions `desc`.
+fn error_time_chart<'a, 'b>(
+    root: &'a DrawingArea<BitMapBackend<'b>, plotters::coord::Shift>,
+    path: &Path,
+    title: &str,
+    x: std::ops::Range<f64>,
+    y: std::ops::Range<f64>,
+    desc: (&str, &str),
+) -> Result<LogLogChart<'a, 'b>, PlotError> {
+    let e = draw_err(path);
+    root.fill(&WHITE).map_err(&e)?;
+    let mut chart = ChartBuilder::on(root)
+        .caption(title, ("sans-serif", 18))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(60)
+        .build_cartesian_2d(x.log_scale(), y.log_scale())
+        .map_err(&e)?;
+    chart
+        .configure_mesh()
+        .x_desc(desc.0)
+        .y_desc(desc.1)
+        .x_label_formatter(&|v| format!("{v:.0e}"))
+        .draw()
+        .map_err(&e)?;
+    Ok(chart)
 }
 
 /// One configuration of a speed/accuracy study for [`pareto_plot`].
@@ -227,12 +254,7 @@ pub fn pareto_plot(
         return Err(PlotError::Empty("no finite points".into()));
     }
     let front = pareto_front(points);
-    let emax = ok.iter().map(|p| p.error).fold(0.0, f64::max).max(1e-6);
-    let epos = ok
-        .iter()
-        .map(|p| p.error)
-        .filter(|&v| v > 0.0)
-        .fold(f64::INFINITY, f64::min);
+    let (emax, epos) = error_span(ok.iter().map(|p| p.error));
     let efloor = if epos.is_finite() {
         (epos / 3.0).min(emax / 10.0)
     } else {
@@ -242,24 +264,17 @@ pub fn pareto_plot(
     let tmax = ok.iter().map(|p| p.seconds).fold(0.0, f64::max);
     let e = draw_err(path);
     let root = BitMapBackend::new(path, size).into_drawing_area();
-    root.fill(&WHITE).map_err(&e)?;
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, ("sans-serif", 18))
-        .margin(12)
-        .x_label_area_size(40)
-        .y_label_area_size(60)
-        .build_cartesian_2d(
-            (efloor..emax * 3.0).log_scale(),
-            (tmin / 1.5..tmax * 1.5).log_scale(),
-        )
-        .map_err(&e)?;
-    chart
-        .configure_mesh()
-        .x_desc("mean relative pixel error against the reference")
-        .y_desc("wall time, whole chain (s)")
-        .x_label_formatter(&|v| format!("{v:.0e}"))
-        .draw()
-        .map_err(&e)?;
+    let mut chart = error_time_chart(
+        &root,
+        path,
+        title,
+        efloor..emax * 3.0,
+        tmin / 1.5..tmax * 1.5,
+        (
+            "mean relative pixel error against the reference",
+            "wall time, whole chain (s)",
+        ),
+    )?;
     let at = |p: &TradeoffPoint| (p.error.max(efloor), p.seconds);
     chart
         .draw_series(
