@@ -295,9 +295,9 @@ impl ColourRows {
 /// [`Fitter::holds_slow_terms`]). One wrapper for both, so that every forwarded method is
 /// written once.
 pub(super) struct AtMost<'a> {
-    pub(super) inner: &'a dyn Fitter,
-    pub(super) n: Option<usize>,
-    pub(super) holds: bool,
+    inner: &'a dyn Fitter,
+    n: Option<usize>,
+    holds: bool,
 }
 
 impl<'a> AtMost<'a> {
