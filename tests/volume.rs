@@ -694,3 +694,56 @@ fn fit_evaluate_and_predict_take_a_volume_model() {
     assert!(img.data.iter().all(|v| v.is_finite()));
     assert!(img.data.iter().any(|&v| v > 0.0));
 }
+
+/// A grid fitted cell by cell (`volume::gridfit`, the settings `--volume-cells` uses) to
+/// sample-slab's training frames, whose medium is homogeneous (σ_t = 2/mm, albedo 0.99 /
+/// 0.985 / 0.98), finds no heterogeneity the frames do not have: every cell the training light
+/// reached stays near the published medium, and the rings fit as well as the homogeneous
+/// medium's do.
+#[test]
+fn a_grid_fitted_to_the_homogeneous_slab_stays_at_its_published_medium() {
+    use subsurf::volume::fit::{HomogeneousFit, fit_homogeneous};
+    use subsurf::volume::gridfit::{GridFit, fit_grid};
+    let Some(dir) = sample_slab() else {
+        return;
+    };
+    let ds = Dataset::open(&dir).unwrap();
+    let train = [0, 2, 3, 4, 6, 7, 8];
+    let opts = HomogeneousFit {
+        photons: 1500,
+        rounds: 12,
+        g: 0.0,
+        start: (2.0, 0.98),
+        floor: ds.spec.noise_floor.unwrap(),
+        seed: 1,
+    };
+    let global = fit_homogeneous(&ds, &train, &opts, &|_, _| {}).unwrap();
+    let fitted = fit_grid(&ds, &train, &global, &GridFit::defaults(opts, 6), &|s| {
+        eprintln!("{s}")
+    })
+    .unwrap();
+    assert!(fitted.active >= 4, "{} cells fitted", fitted.active);
+    let truth = [0.99, 0.985, 0.98];
+    let (mut s_dev, mut a_dev) = (0.0f64, 0.0f64);
+    for (c, g) in fitted.grid.iter().enumerate() {
+        for (s, a) in g.sigma_t.iter().zip(&g.albedo) {
+            s_dev = s_dev.max((s / 2.0).ln().abs());
+            a_dev = a_dev.max(((1.0 - a) / (1.0 - truth[c])).ln().abs());
+        }
+    }
+    eprintln!("largest deviation: ln σ_t {s_dev:.3}, ln(1 − α) {a_dev:.3}");
+    eprintln!(
+        "ring loss grid {:?}, homogeneous {:?}",
+        fitted.loss, global.loss
+    );
+    assert!(s_dev < 0.15, "σ_t off by {s_dev} in ln");
+    assert!(a_dev < 0.35, "1 − albedo off by {a_dev} in ln");
+    for c in 0..3 {
+        assert!(
+            fitted.loss[c].0 <= 1.5 * global.loss[c].0 + 0.01,
+            "{:?} {:?}",
+            fitted.loss,
+            global.loss
+        );
+    }
+}

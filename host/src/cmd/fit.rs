@@ -54,6 +54,10 @@ pub struct Args {
     /// Volume fit: rounds of trace and fit (default 12).
     #[arg(long)]
     pub volume_rounds: Option<usize>,
+    /// Volume fit: then a grid of this many cells along the longest side, cell by cell (default
+    /// 1: homogeneous; docs/volume.md).
+    #[arg(long, default_value_t = 1)]
+    pub volume_cells: usize,
     /// Output report (default: `fit-report.json` beside the model).
     #[arg(long)]
     pub report: Option<PathBuf>,
@@ -204,6 +208,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         s.fit.photons = args.volume_photons.unwrap_or(s.fit.photons);
         s.fit.rounds = args.volume_rounds.unwrap_or(s.fit.rounds);
         s.fit.floor = args.noise_floor.unwrap_or(s.fit.floor);
+        s.cells = args.volume_cells;
         subsurf::volume::model::fit_volume(&ds, &frames, &s, &stages)?;
         return Ok(());
     }

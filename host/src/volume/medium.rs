@@ -48,10 +48,6 @@ impl GridChannel {
         })
     }
 
-    fn index(&self, c: [usize; 3]) -> usize {
-        c[0] + self.dims[0] * (c[1] + self.dims[1] * c[2])
-    }
-
     /// σ_t at a point (the nearest cell outside the grid).
     pub fn sigma_at(&self, p: V3) -> f64 {
         self.sigma_t[self.index(self.cell3(p))]
@@ -69,8 +65,17 @@ impl GridChannel {
 
     /// Optical depth ∫ σ_t along the segment from `p` in the unit direction `d` over `len` mm.
     pub fn optical_depth(&self, p: V3, d: V3, len: f64) -> f64 {
+        let mut tau = 0.0;
+        self.for_each_cell(p, d, len, &mut |cell, l| tau += self.sigma_t[cell] * l);
+        tau
+    }
+
+    /// Calls `f(cell, length)` for each cell the segment from `p` in the unit direction `d`
+    /// over `len` mm passes through, in order (Amanatides and Woo's traversal; beyond the grid
+    /// the edge cell goes on, as [`GridChannel::sigma_at`] has it).
+    pub fn for_each_cell(&self, p: V3, d: V3, len: f64, f: &mut dyn FnMut(usize, f64)) {
         if len <= 0.0 {
-            return 0.0;
+            return;
         }
         let mut cell = self.cell3(p);
         // Parametric distance to the next cell wall per axis, and between walls.
@@ -87,17 +92,17 @@ impl GridChannel {
                 next[a] = ((wall - p[a]) / d[a]).max(0.0);
             }
         }
-        let (mut t, mut tau) = (0.0, 0.0);
+        let mut t = 0.0;
         let limit = self.dims.iter().sum::<usize>() + 4;
         for _ in 0..limit {
             let a = (0..3)
                 .min_by(|&x, &y| next[x].total_cmp(&next[y]))
                 .unwrap_or(0);
             let end = next[a].min(len);
-            tau += self.sigma_t[self.index(cell)] * (end - t);
+            f(self.index(cell), end - t);
             t = end;
             if t >= len {
-                return tau;
+                return;
             }
             // Into the neighbour; beyond the grid's last cell the edge cell goes on.
             let beyond = if d[a] > 0.0 {
@@ -116,7 +121,12 @@ impl GridChannel {
                 next[a] += step[a];
             }
         }
-        tau + self.sigma_t[self.index(cell)] * (len - t).max(0.0)
+        f(self.index(cell), (len - t).max(0.0));
+    }
+
+    /// The flat index of a cell's three indices (x fastest).
+    pub fn index(&self, c: [usize; 3]) -> usize {
+        c[0] + self.dims[0] * (c[1] + self.dims[1] * c[2])
     }
 }
 

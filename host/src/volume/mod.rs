@@ -20,6 +20,7 @@
 
 pub mod dielectric;
 pub mod fit;
+pub mod gridfit;
 pub mod local;
 pub mod medium;
 pub mod model;

@@ -246,6 +246,22 @@ impl MediumGrid {
         (self.sigma_t[i], self.albedo[i])
     }
 
+    /// The grid of three channel grids that share their cells (`super::gridfit`'s result).
+    pub fn of_channels(g: &[GridChannel; 3]) -> MediumGrid {
+        let n = g[0].sigma_t.len();
+        MediumGrid {
+            origin: g[0].origin,
+            cell_mm: g[0].cell_mm,
+            dims: g[0].dims,
+            sigma_t: (0..n)
+                .map(|i| std::array::from_fn(|c| g[c].sigma_t[i]))
+                .collect(),
+            albedo: (0..n)
+                .map(|i| std::array::from_fn(|c| g[c].albedo[i]))
+                .collect(),
+        }
+    }
+
     /// Whether every cell holds the same medium.
     pub fn is_uniform(&self) -> bool {
         let same = |v: &[[f64; 3]]| v.iter().all(|x| *x == v[0]);
@@ -664,6 +680,9 @@ pub struct VolumeFitSettings {
     pub fit: HomogeneousFit,
     /// Where the model goes (`.json`).
     pub out: PathBuf,
+    /// Cells along the mesh's longest side of a grid fitted cell by cell after the homogeneous
+    /// medium (`super::gridfit`, with its cross-validated penalties); 1: the homogeneous medium.
+    pub cells: usize,
 }
 
 impl VolumeFitSettings {
@@ -680,6 +699,7 @@ impl VolumeFitSettings {
                 seed: 1,
             },
             out,
+            cells: 1,
         }
     }
 }
@@ -722,6 +742,18 @@ pub fn fit_volume<S: crate::progress::Stages>(
     });
     stages.finish(bar);
     let m = fitted?;
+    let grid = if settings.cells > 1 {
+        let gopts = super::gridfit::GridFit::defaults(opts.clone(), settings.cells);
+        let bar = stages.stage(gopts.rounds as u64, "volume grid");
+        let g = super::gridfit::fit_grid(ds, frames, &m, &gopts, &|s| {
+            bar.set_message(s);
+            bar.inc(1);
+        });
+        stages.finish(bar);
+        Some(g?)
+    } else {
+        None
+    };
     let mut used: Vec<usize> = frames.to_vec();
     used.sort_unstable();
     used.dedup();
@@ -734,7 +766,19 @@ pub fn fit_volume<S: crate::progress::Stages>(
         seconds: t0.elapsed().as_secs_f64(),
         subsurf_version: env!("CARGO_PKG_VERSION").to_string(),
     };
-    let model = VolumeModel::homogeneous(&ds.mesh, &m, fit);
+    let mut model = VolumeModel::homogeneous(&ds.mesh, &m, fit);
+    if let Some(g) = &grid {
+        model.grid = MediumGrid::of_channels(&g.grid);
+        model.fit.rounds += g.rounds;
+        model.fit.loss = g.loss.map(|l| if l.0.is_finite() { l.0 } else { 0.0 });
+        model.fit.rings = g.loss.map(|l| l.1);
+        model.fit.seconds = t0.elapsed().as_secs_f64();
+        stages.say(&format!(
+            "volume grid: {:?} cells of {:.2} mm, {} reached by the training light; ring loss \
+             {:.4}/{:.4}/{:.4}",
+            model.grid.dims, model.grid.cell_mm[0], g.active, g.loss[0].0, g.loss[1].0, g.loss[2].0
+        ));
+    }
     model.write(&settings.out)?;
     stages.say(&format!(
         "volume: σ_t {:.4}/{:.4}/{:.4} /mm, albedo {:.5}/{:.5}/{:.5}, g {}; {} frames, {:.1} s; \
