@@ -160,6 +160,30 @@ pub struct RingRecord {
     pub ln_w: f32,
 }
 
+/// Into `share`, the rings a point at pixel coordinates (u, v) lands on through the filter's
+/// taps, each with the taps' weight on the ring's pixels summed (rings of `pixel_ring`, an image
+/// of `w` × `h`).
+pub(super) fn ring_shares(
+    pixel_ring: &[u32],
+    u: f64,
+    v: f64,
+    w: usize,
+    h: usize,
+    share: &mut Vec<(u32, f64)>,
+) {
+    share.clear();
+    for (p, t) in taps(u, v, w, h) {
+        let ring = pixel_ring[p];
+        if ring == u32::MAX {
+            continue;
+        }
+        match share.iter_mut().find(|s| s.0 == ring) {
+            Some(s) => s.1 += t,
+            None => share.push((ring, t)),
+        }
+    }
+}
+
 /// The frames' records distributed over their rings.
 pub fn ring_records(frame: &FrameRings, first_ring: u32, records: &[Record]) -> Vec<RingRecord> {
     let (w, h) = (
@@ -169,17 +193,7 @@ pub fn ring_records(frame: &FrameRings, first_ring: u32, records: &[Record]) -> 
     let mut out = Vec::with_capacity(records.len());
     let mut share: Vec<(u32, f64)> = Vec::with_capacity(4);
     for r in records {
-        share.clear();
-        for (p, t) in taps(r.u as f64, r.v as f64, w, h) {
-            let ring = frame.pixel_ring[p];
-            if ring == u32::MAX {
-                continue;
-            }
-            match share.iter_mut().find(|s| s.0 == ring) {
-                Some(s) => s.1 += t,
-                None => share.push((ring, t)),
-            }
-        }
+        ring_shares(&frame.pixel_ring, r.u as f64, r.v as f64, w, h, &mut share);
         for &(ring, t) in &share {
             out.push(RingRecord {
                 ring: first_ring + ring,
@@ -290,6 +304,49 @@ pub fn frame_geometry(scene: &Scene, ds: &Dataset, k: usize) -> Option<FrameGeom
     FrameGeometry::new(scene, cam, f.turntable_deg, laser.origin, laser.direction)
 }
 
+/// The frames' rings (frames whose laser ray misses the mesh left out).
+pub(super) fn frame_rings(
+    scene: &Scene,
+    ds: &Dataset,
+    frames: &[usize],
+) -> Result<Vec<FrameRings>, VolumeFitError> {
+    let mut out = Vec::new();
+    for &k in frames {
+        let Some(geo) = frame_geometry(scene, ds, k) else {
+            continue;
+        };
+        let img = ds.read_frame(k)?;
+        let exposure = ds.spec.frames[k].exposure_s;
+        out.push(FrameRings::new(scene, geo, k, &img, exposure));
+    }
+    Ok(out)
+}
+
+/// Per channel the judged rings: (global ring, ln of the data's sum).
+pub(super) type ChannelRings = [Vec<(usize, f64)>; 3];
+
+/// Per channel the rings judged: (global ring over all `frames`, ln of the data's sum), the
+/// data's mean above `floor` and at least 4 pixels; each frame's first global ring; the rings
+/// in all.
+pub(super) fn judged_rings(frames: &[FrameRings], floor: f64) -> (ChannelRings, Vec<u32>, usize) {
+    let mut data: ChannelRings = Default::default();
+    let mut first = Vec::with_capacity(frames.len());
+    let mut total = 0usize;
+    for f in frames {
+        first.push(total as u32);
+        for j in 0..f.rings {
+            for (c, d) in data.iter_mut().enumerate() {
+                let n = f.count[j];
+                if n >= 4 && f.data[j][c] > n as f64 * floor {
+                    d.push((total + j, f.data[j][c].ln()));
+                }
+            }
+        }
+        total += f.rings;
+    }
+    (data, first, total)
+}
+
 /// Fits a homogeneous medium to the frames `frames` of `ds` (module docs).
 pub fn fit_homogeneous(
     ds: &Dataset,
@@ -299,36 +356,11 @@ pub fn fit_homogeneous(
 ) -> Result<Homogeneous, VolumeFitError> {
     let scene = Scene::new(ds.mesh.clone())?;
     let boundary = Boundary::of(&scene);
-    let mut judged = Vec::new();
-    for &k in frames {
-        let Some(geo) = frame_geometry(&scene, ds, k) else {
-            continue;
-        };
-        let img = ds.read_frame(k)?;
-        let exposure = ds.spec.frames[k].exposure_s;
-        judged.push(FrameRings::new(&scene, geo, k, &img, exposure));
-    }
+    let judged = frame_rings(&scene, ds, frames)?;
     if judged.is_empty() {
         return Err(VolumeFitError::NoFrames);
     }
-    let mut first = Vec::with_capacity(judged.len());
-    let mut total = 0u32;
-    for f in &judged {
-        first.push(total);
-        total += f.rings as u32;
-    }
-    // Per channel the rings judged: mean above the floor, a few pixels at least.
-    let mut data: [Vec<(usize, f64)>; 3] = Default::default();
-    for (fi, f) in judged.iter().enumerate() {
-        for j in 0..f.rings {
-            for (c, d) in data.iter_mut().enumerate() {
-                let n = f.count[j];
-                if n >= 4 && f.data[j][c] > n as f64 * opts.floor {
-                    d.push((first[fi] as usize + j, f.data[j][c].ln()));
-                }
-            }
-        }
-    }
+    let (data, first, total) = judged_rings(&judged, opts.floor);
     for (c, d) in data.iter().enumerate() {
         if d.is_empty() {
             return Err(VolumeFitError::NoRings(c));
@@ -360,7 +392,7 @@ pub fn fit_homogeneous(
         }
         // Rings the trace reached with too few records to be more than noise are left out of
         // this round (a ring the trace left dark would read as infinitely far off).
-        let mut hits = vec![0usize; total as usize];
+        let mut hits = vec![0usize; total];
         for r in &recs {
             hits[r.ring as usize] += 1;
         }
@@ -375,7 +407,7 @@ pub fn fit_homogeneous(
             }
             let (s, a, loss) = fit_channel(
                 &recs,
-                total as usize,
+                total,
                 &judged,
                 &reference,
                 (model.sigma_t[c], model.albedo[c]),

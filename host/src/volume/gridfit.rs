@@ -26,13 +26,13 @@
 
 use super::fit::{
     FrameRings, Homogeneous, HomogeneousFit, MIN_RECORDS, VolumeFitError, fit_homogeneous,
-    frame_geometry,
+    frame_rings, judged_rings, ring_shares,
 };
-use super::local::grid_of;
+use super::local::{grid_of, theta_of as homogeneous_theta};
 use super::medium::GridChannel;
-use super::trace::{Boundary, Photon, crossings, nee, next_hit, photon_seed, sample_hg, taps};
+use super::trace::{Boundary, Photon, crossings, fly_pieces, nee, photon_seed, sample_hg};
 use crate::dataset::Dataset;
-use crate::geometry::{Scene, V3, add_scaled, world_to_turntable};
+use crate::geometry::{Scene, V3, world_to_turntable};
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 use std::cell::RefCell;
@@ -121,40 +121,6 @@ impl CellTrace {
     }
 }
 
-/// Moves the photon `s` mm of medium along its direction (as `super::trace`'s flight: out
-/// through the boundary and back in where the line meets the mesh), calling `piece` with each
-/// stretch of medium flown. `false` when it leaves for good.
-fn fly_pieces(
-    scene: &Scene,
-    ph: &mut Photon,
-    mut s: f64,
-    piece: &mut dyn FnMut(V3, V3, f64),
-) -> bool {
-    let mut inside = true;
-    for _ in 0..64 {
-        let reach = if inside { s } else { f64::MAX };
-        match next_hit(scene, ph.p, ph.d, reach, ph.skip) {
-            Some((t, hp, tri)) => {
-                if inside {
-                    piece(ph.p, ph.d, t);
-                    s -= t;
-                }
-                ph.p = hp;
-                ph.skip = Some(tri);
-                inside = !inside;
-            }
-            None if inside => {
-                piece(ph.p, ph.d, s);
-                ph.p = add_scaled(ph.p, s, ph.d);
-                ph.skip = None;
-                return true;
-            }
-            None => return false,
-        }
-    }
-    false
-}
-
 fn add_to(path: &mut Vec<(u32, u32, f64)>, cell: usize, k: u32, l: f64) {
     let cell = cell as u32;
     match path.iter_mut().find(|e| e.0 == cell) {
@@ -236,17 +202,7 @@ fn trace_cells(
                 };
                 if let Some(r) = nee(scene, cam, geo.deg, centre, &ph, g, &depth) {
                     let ln = ln_power + albedo.ln() + r.1 + ln_fxfy - r.2;
-                    share.clear();
-                    for (p, t) in taps(r.0[0], r.0[1], w, h) {
-                        let ring = frame.pixel_ring[p];
-                        if ring == u32::MAX {
-                            continue;
-                        }
-                        match share.iter_mut().find(|s| s.0 == ring) {
-                            Some(s) => s.1 += t,
-                            None => share.push((ring, t)),
-                        }
-                    }
+                    ring_shares(&frame.pixel_ring, r.0[0], r.0[1], w, h, &mut share);
                     if ln.is_finite() && !share.is_empty() {
                         let mut cells = path.clone();
                         for &(c, l) in leg.borrow().iter() {
@@ -410,20 +366,35 @@ struct Judged {
     jtr: nalgebra::DVector<f64>,
 }
 
-#[allow(clippy::too_many_arguments)]
-fn judge(
-    trace: &CellTrace,
+/// What a round's fit of every channel shares: the trace and the parameters' layout.
+struct Round<'a> {
+    trace: &'a CellTrace,
+    /// Rings over all frames.
     rings: usize,
-    data: &[(usize, f64)],
-    hits: &[usize],
-    reference: &GridChannel,
-    theta: &Theta,
-    target: &[f64; 2],
-    active: &[usize],
-    active_of: &[u32],
-    pairs: &[(u32, u32, usize)],
-    opts: &GridFit,
-) -> Judged {
+    /// Records per ring (a ring with fewer than [`MIN_RECORDS`] is not judged this round).
+    hits: &'a [usize],
+    reference: &'a GridChannel,
+    /// The cells fitted, and each cell's place among them (`u32::MAX`: not fitted).
+    active: &'a [usize],
+    active_of: &'a [u32],
+    /// The smoothness penalty's neighbour pairs ([`neighbours`]).
+    pairs: &'a [(u32, u32, usize)],
+    opts: &'a GridFit,
+}
+
+/// One channel's loss at `theta`, with its normal equations: `data` the channel's judged
+/// rings, `target` its homogeneous medium (the pull's).
+fn judge(round: &Round, data: &[(usize, f64)], target: &[f64; 2], theta: &Theta) -> Judged {
+    let Round {
+        trace,
+        rings,
+        hits,
+        reference,
+        active,
+        active_of,
+        pairs,
+        opts,
+    } = *round;
     let n = 2 * active.len();
     let (sums, grads) = ring_sums(trace, rings, reference, theta, active_of);
     let mut jtj = nalgebra::DMatrix::<f64>::zeros(n, n);
@@ -499,53 +470,6 @@ pub struct FittedGrid {
     pub rounds: usize,
 }
 
-/// The frames' rings (frames whose laser ray misses the mesh left out).
-fn frame_rings(
-    scene: &Scene,
-    ds: &Dataset,
-    frames: &[usize],
-) -> Result<Vec<FrameRings>, VolumeFitError> {
-    let mut out = Vec::new();
-    for &k in frames {
-        let Some(geo) = frame_geometry(scene, ds, k) else {
-            continue;
-        };
-        let img = ds.read_frame(k)?;
-        out.push(FrameRings::new(
-            scene,
-            geo,
-            k,
-            &img,
-            ds.spec.frames[k].exposure_s,
-        ));
-    }
-    Ok(out)
-}
-
-/// Per channel the judged rings: (global ring, ln of the data's sum).
-type ChannelRings = [Vec<(usize, f64)>; 3];
-
-/// Per channel the rings judged: (global ring, ln of the data's sum), mean above the floor and
-/// at least 4 pixels; and each frame's first global ring.
-fn judged_rings(frames: &[FrameRings], floor: f64) -> (ChannelRings, Vec<u32>, usize) {
-    let mut data: [Vec<(usize, f64)>; 3] = Default::default();
-    let mut first = Vec::with_capacity(frames.len());
-    let mut total = 0usize;
-    for f in frames {
-        first.push(total as u32);
-        for j in 0..f.rings {
-            for (c, d) in data.iter_mut().enumerate() {
-                let n = f.count[j];
-                if n >= 4 && f.data[j][c] > n as f64 * floor {
-                    d.push((total + j, f.data[j][c].ln()));
-                }
-            }
-        }
-        total += f.rings;
-    }
-    (data, first, total)
-}
-
 /// The reference grid a round traces in: per cell σ_ref the channels' geometric mean and α_ref
 /// halfway from the largest channel's albedo to 1 (the fit keeps every α at most α_ref, so the
 /// ratios (α/α_ref)^k stay at most 1).
@@ -595,21 +519,32 @@ pub fn fit_grid(
     let scene = Scene::new(ds.mesh.clone())?;
     let boundary = Boundary::of(&scene);
     let fr = frame_rings(&scene, ds, frames)?;
+    fit_grid_on(&scene, boundary, &fr, global, opts, progress)
+}
+
+/// [`fit_grid`] on frames already read.
+fn fit_grid_on(
+    scene: &Scene,
+    boundary: Boundary,
+    fr: &[FrameRings],
+    global: &Homogeneous,
+    opts: &GridFit,
+    progress: &dyn Fn(&str),
+) -> Result<FittedGrid, VolumeFitError> {
     if fr.is_empty() {
         return Err(VolumeFitError::NoFrames);
     }
-    let (data, first, total) = judged_rings(&fr, opts.global.floor);
-    let gt: [[f64; 2]; 3] =
-        std::array::from_fn(|c| [global.sigma_t[c].ln(), (1.0 - global.albedo[c]).ln()]);
-    let mut grid = grid_of(&scene, opts.cells, &|_| gt);
+    let (data, first, total) = judged_rings(fr, opts.global.floor);
+    let gt = homogeneous_theta(global);
+    let mut grid = grid_of(scene, opts.cells, &|_| gt);
     let mut loss = [(f64::INFINITY, 0); 3];
     let mut active_n = 0;
     for round in 0..opts.rounds {
         let reference = reference_of(&grid);
         let trace = trace_all(
-            &scene,
+            scene,
             boundary,
-            &fr,
+            fr,
             &first,
             &reference,
             opts.global.g,
@@ -637,28 +572,34 @@ pub fn fit_grid(
         }
         active_n = active.len();
         let pairs = neighbours(&reference, &active, &active_of);
+        // The box where the ratios stay tame: σ within a factor 2 of the reference's, α at most
+        // the reference's.
+        let lo: Vec<[f64; 2]> = (0..reference.sigma_t.len())
+            .map(|i| {
+                [
+                    (reference.sigma_t[i] / 2.0).ln(),
+                    (1.0 - reference.albedo[i]).ln(),
+                ]
+            })
+            .collect();
+        let hi: Vec<[f64; 2]> = (0..reference.sigma_t.len())
+            .map(|i| [(reference.sigma_t[i] * 2.0).ln(), 0.5f64.ln()])
+            .collect();
+        let shared = Round {
+            trace: &trace,
+            rings: total,
+            hits: &hits,
+            reference: &reference,
+            active: &active,
+            active_of: &active_of,
+            pairs: &pairs,
+            opts,
+        };
         let results: Vec<(Theta, f64, usize)> = (0..3)
             .into_par_iter()
             .map(|c| {
                 let mut theta = theta_of(&grid[c]);
-                // The box where the ratios stay tame: σ within a factor 2 of the reference's,
-                // α at most the reference's.
-                let lo: Vec<[f64; 2]> = (0..theta.len())
-                    .map(|i| {
-                        [
-                            (reference.sigma_t[i] / 2.0).ln(),
-                            (1.0 - reference.albedo[i]).ln(),
-                        ]
-                    })
-                    .collect();
-                let hi: Vec<[f64; 2]> = (0..theta.len())
-                    .map(|i| [(reference.sigma_t[i] * 2.0).ln(), 0.5f64.ln()])
-                    .collect();
-                let args = (&trace, total, &data[c], &hits[..], &reference);
-                let mut j0 = judge(
-                    args.0, args.1, args.2, args.3, args.4, &theta, &gt[c], &active, &active_of,
-                    &pairs, opts,
-                );
+                let mut j0 = judge(&shared, &data[c], &gt[c], &theta);
                 let mut lambda = 1e-3;
                 for _ in 0..super::fit::STEPS {
                     let mut a = j0.jtj.clone();
@@ -677,10 +618,7 @@ pub fn fit_grid(
                                 (theta[cell][x] + step[2 * j + x]).clamp(lo[cell][x], hi[cell][x]);
                         }
                     }
-                    let j1 = judge(
-                        args.0, args.1, args.2, args.3, args.4, &next, &gt[c], &active, &active_of,
-                        &pairs, opts,
-                    );
+                    let j1 = judge(&shared, &data[c], &gt[c], &next);
                     if j1.loss < j0.loss {
                         theta = next;
                         j0 = j1;
@@ -725,25 +663,23 @@ pub fn fit_grid(
     })
 }
 
-/// Mean squared log ratio of the rings of `frames` (judged as the fit judges them) in the grid,
+/// Mean squared log ratio of the rings of `fr` (judged as the fit judges them) in the grid,
 /// from a trace of `photons` per frame in it: the cross-validation's score.
-pub fn ring_loss(
-    ds: &Dataset,
-    frames: &[usize],
+fn ring_loss(
+    scene: &Scene,
+    boundary: Boundary,
+    fr: &[FrameRings],
     grid: &[GridChannel; 3],
     opts: &GridFit,
     photons: usize,
     seed: u64,
-) -> Result<(f64, usize), VolumeFitError> {
-    let scene = Scene::new(ds.mesh.clone())?;
-    let boundary = Boundary::of(&scene);
-    let fr = frame_rings(&scene, ds, frames)?;
-    let (data, first, total) = judged_rings(&fr, opts.global.floor);
+) -> (f64, usize) {
+    let (data, first, total) = judged_rings(fr, opts.global.floor);
     let reference = reference_of(grid);
     let trace = trace_all(
-        &scene,
+        scene,
         boundary,
-        &fr,
+        fr,
         &first,
         &reference,
         opts.global.g,
@@ -766,7 +702,7 @@ pub fn ring_loss(
             }
         }
     }
-    Ok((if n > 0 { sum / n as f64 } else { f64::INFINITY }, n))
+    (if n > 0 { sum / n as f64 } else { f64::INFINITY }, n)
 }
 
 /// One candidate's cross-validated score.
@@ -795,6 +731,11 @@ pub fn cross_validate(
 ) -> Result<Vec<Scored>, VolumeFitError> {
     let (folds, rule) = crate::crossval::folds(ds, frames, folds);
     progress(&format!("cross-validation: {rule}"));
+    // The mesh and every frame's rings once; the folds take their frames from them.
+    let scene = Scene::new(ds.mesh.clone())?;
+    let boundary = Boundary::of(&scene);
+    let all = frame_rings(&scene, ds, frames)?;
+    let seed = opts.global.seed ^ 0x5eed;
     let mut sums = vec![(0.0, 0usize); candidates.len() + 1];
     for (i, fold) in folds.iter().enumerate() {
         let train: Vec<usize> = frames
@@ -802,13 +743,12 @@ pub fn cross_validate(
             .copied()
             .filter(|f| !fold.contains(f))
             .collect();
+        let (held, kept): (Vec<FrameRings>, Vec<FrameRings>) =
+            all.iter().cloned().partition(|f| fold.contains(&f.frame));
         let global = fit_homogeneous(ds, &train, &opts.global, &|_, _| {})?;
-        let scene = Scene::new(ds.mesh.clone())?;
-        let gt: [[f64; 2]; 3] =
-            std::array::from_fn(|c| [global.sigma_t[c].ln(), (1.0 - global.albedo[c]).ln()]);
+        let gt = homogeneous_theta(&global);
         let hom = grid_of(&scene, opts.cells, &|_| gt);
-        let seed = opts.global.seed ^ 0x5eed;
-        let (l, n) = ring_loss(ds, fold, &hom, opts, opts.photons, seed)?;
+        let (l, n) = ring_loss(&scene, boundary, &held, &hom, opts, opts.photons, seed);
         sums[0].0 += l * n as f64;
         sums[0].1 += n;
         progress(&format!(
@@ -821,8 +761,16 @@ pub fn cross_validate(
                 pull,
                 ..opts.clone()
             };
-            let fitted = fit_grid(ds, &train, &global, &o, &|_| {})?;
-            let (l, n) = ring_loss(ds, fold, &fitted.grid, opts, opts.photons, seed)?;
+            let fitted = fit_grid_on(&scene, boundary, &kept, &global, &o, &|_| {})?;
+            let (l, n) = ring_loss(
+                &scene,
+                boundary,
+                &held,
+                &fitted.grid,
+                opts,
+                opts.photons,
+                seed,
+            );
             sums[j + 1].0 += l * n as f64;
             sums[j + 1].1 += n;
             progress(&format!(

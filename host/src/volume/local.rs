@@ -80,7 +80,8 @@ pub struct Grown {
     pub grid: [GridChannel; 3],
 }
 
-fn theta_of(m: &Homogeneous) -> [[f64; 2]; 3] {
+/// A homogeneous medium as (ln σ_t, ln(1 − α)) per channel.
+pub(super) fn theta_of(m: &Homogeneous) -> [[f64; 2]; 3] {
     std::array::from_fn(|c| [m.sigma_t[c].ln(), (1.0 - m.albedo[c]).ln()])
 }
 

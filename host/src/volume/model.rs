@@ -757,22 +757,20 @@ pub fn fit_volume<S: crate::progress::Stages>(
     let mut used: Vec<usize> = frames.to_vec();
     used.sort_unstable();
     used.dedup();
+    // The loss the file reports is that of the medium it holds: the grid's where one was fitted.
+    let loss = grid.as_ref().map_or(m.loss, |g| g.loss);
     let fit = FitInfo {
         frames: used,
         photons: opts.photons,
-        rounds: opts.rounds,
-        loss: m.loss.map(|l| if l.0.is_finite() { l.0 } else { 0.0 }),
-        rings: m.loss.map(|l| l.1),
+        rounds: opts.rounds + grid.as_ref().map_or(0, |g| g.rounds),
+        loss: loss.map(|l| if l.0.is_finite() { l.0 } else { 0.0 }),
+        rings: loss.map(|l| l.1),
         seconds: t0.elapsed().as_secs_f64(),
         subsurf_version: env!("CARGO_PKG_VERSION").to_string(),
     };
     let mut model = VolumeModel::homogeneous(&ds.mesh, &m, fit);
     if let Some(g) = &grid {
         model.grid = MediumGrid::of_channels(&g.grid);
-        model.fit.rounds += g.rounds;
-        model.fit.loss = g.loss.map(|l| if l.0.is_finite() { l.0 } else { 0.0 });
-        model.fit.rings = g.loss.map(|l| l.1);
-        model.fit.seconds = t0.elapsed().as_secs_f64();
         stages.say(&format!(
             "volume grid: {:?} cells of {:.2} mm, {} reached by the training light; ring loss \
              {:.4}/{:.4}/{:.4}",

@@ -289,13 +289,25 @@ pub(super) struct Photon {
 /// Moves the photon `s` mm of medium along its direction: out through the boundary and back in
 /// where the straight line meets the mesh again (index-matched: no refraction, no reflection).
 /// `false` when it leaves for good.
-pub(super) fn fly(scene: &Scene, ph: &mut Photon, mut s: f64) -> bool {
+pub(super) fn fly(scene: &Scene, ph: &mut Photon, s: f64) -> bool {
+    fly_pieces(scene, ph, s, &mut |_, _, _| {})
+}
+
+/// [`fly`], calling `piece(start, direction, length)` with each stretch of medium flown (a grid
+/// fit counts the length per cell).
+pub(super) fn fly_pieces(
+    scene: &Scene,
+    ph: &mut Photon,
+    mut s: f64,
+    piece: &mut dyn FnMut(V3, V3, f64),
+) -> bool {
     let mut inside = true;
     for _ in 0..64 {
         let reach = if inside { s } else { f64::MAX };
         match next_hit(scene, ph.p, ph.d, reach, ph.skip) {
             Some((t, hp, tri)) => {
                 if inside {
+                    piece(ph.p, ph.d, t);
                     s -= t;
                 }
                 ph.p = hp;
@@ -303,6 +315,7 @@ pub(super) fn fly(scene: &Scene, ph: &mut Photon, mut s: f64) -> bool {
                 inside = !inside;
             }
             None if inside => {
+                piece(ph.p, ph.d, s);
                 ph.p = add_scaled(ph.p, s, ph.d);
                 ph.skip = None;
                 return true;
