@@ -1054,6 +1054,7 @@ fn every_blender_renders_a_volume_model_as_subsurfs_tracer_does() {
         albedo: [0.98, 0.95, 0.9],
         g: 0.2,
         loss: [(0.0, 0); 3],
+        surface: subsurf::volume::dielectric::Surface::IndexMatched,
     };
     let info = FitInfo {
         frames: vec![],

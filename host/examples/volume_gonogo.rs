@@ -37,6 +37,7 @@ fn main() -> Result<()> {
             .unwrap_or((2.0, 0.98)),
         floor: ds.spec.noise_floor.unwrap_or(0.0),
         seed: 1,
+        surface: subsurf::volume::dielectric::Surface::IndexMatched,
     };
     let t0 = std::time::Instant::now();
     let model = fit_homogeneous(&ds, &train, &opts, &|round, m| {

@@ -38,6 +38,7 @@ fn main() -> Result<()> {
             start: (2.0, 0.98),
             floor: ds.spec.noise_floor.unwrap_or(0.0),
             seed: 1,
+            surface: subsurf::volume::dielectric::Surface::IndexMatched,
         },
         cells: env("CELLS", 12.0) as usize,
         photons: env("PHOTONS", 2000.0) as usize,

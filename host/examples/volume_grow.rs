@@ -41,6 +41,7 @@ fn main() -> Result<()> {
             start: (2.0, 0.98),
             floor: ds.spec.noise_floor.unwrap_or(0.0),
             seed: 1,
+            surface: subsurf::volume::dielectric::Surface::IndexMatched,
         },
         photons: env("LOCAL_PHOTONS", 3000),
         rounds: env("LOCAL_ROUNDS", 8),

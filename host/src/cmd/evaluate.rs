@@ -14,9 +14,10 @@ pub struct Args {
     /// apart by the file's content.
     #[arg(long)]
     pub model: PathBuf,
-    /// Photons per frame of a volume model's predictions.
-    #[arg(long, default_value_t = subsurf::evaluate::run::VOLUME_PHOTONS)]
-    pub photons: usize,
+    /// Photons per frame of a volume model's predictions (default 1 million; 4 million behind a
+    /// dielectric boundary).
+    #[arg(long)]
+    pub photons: Option<usize>,
     /// The scan dataset: its folder or its `scan.json`.
     #[arg(long)]
     pub scan: PathBuf,

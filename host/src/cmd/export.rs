@@ -90,9 +90,10 @@ pub struct Args {
     /// `subsurf evaluate --cache`.
     #[arg(long, default_value = "dataset")]
     cache: subsurf::pipeline::Cache,
-    /// Photons per frame of a volume model's own trace beside Cycles' (`--scan`).
-    #[arg(long, default_value_t = subsurf::evaluate::run::VOLUME_PHOTONS)]
-    photons: usize,
+    /// Photons per frame of a volume model's own trace beside Cycles' (`--scan`; default as
+    /// `subsurf evaluate`'s).
+    #[arg(long)]
+    photons: Option<usize>,
 }
 
 pub fn run(args: Args) -> Result<()> {
@@ -247,7 +248,7 @@ fn volume(
         ds,
         frames,
         noise: args.noise,
-        photons: args.photons,
+        photons: subsurf::evaluate::run::volume_photons(&model, args.photons),
         store: subsurf::pipeline::StoreOptions::cached(args.cache.clone()),
     });
     let bar = Bar::with_template("{msg:>16} {bar:40} {pos}/{len} {elapsed}");

@@ -48,7 +48,7 @@ pub struct Args {
     /// scan's mesh (docs/volume.md), of the flags below only the frames' and `--noise-floor`.
     #[arg(long, default_value = "empirical")]
     pub model_kind: ModelKind,
-    /// Volume fit: photons per frame and round (default 1,500).
+    /// Volume fit: photons per frame and round (default 1,500; 6,000 behind a dielectric).
     #[arg(long)]
     pub volume_photons: Option<usize>,
     /// Volume fit: rounds of trace and fit (default 12).
@@ -58,6 +58,12 @@ pub struct Args {
     /// 1: homogeneous; docs/volume.md).
     #[arg(long, default_value_t = 1)]
     pub volume_cells: usize,
+    /// Volume fit: the boundary, `index-matched` or `dielectric:IOR:ROUGHNESS` (GGX width α).
+    #[arg(long, default_value = "index-matched")]
+    pub volume_boundary: subsurf::volume::model::BoundaryModel,
+    /// Volume fit: the phase function's Henyey-Greenstein g, held fixed.
+    #[arg(long, default_value_t = 0.0)]
+    pub volume_g: f64,
     /// Output report (default: `fit-report.json` beside the model).
     #[arg(long)]
     pub report: Option<PathBuf>,
@@ -204,7 +210,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     )?;
     let stages = StageBars("{msg:>12} {bar:40} {pos}/{len} {eta}");
     if args.model_kind == ModelKind::Volume {
-        let mut s = VolumeFitSettings::defaults(&ds, args.out);
+        let mut s = VolumeFitSettings::defaults(&ds, args.out)
+            .behind(args.volume_boundary.surface()?, args.volume_g);
         s.fit.photons = args.volume_photons.unwrap_or(s.fit.photons);
         s.fit.rounds = args.volume_rounds.unwrap_or(s.fit.rounds);
         s.fit.floor = args.noise_floor.unwrap_or(s.fit.floor);

@@ -3,7 +3,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use subsurf::dataset::{Dataset, write_exr};
-use subsurf::evaluate::run::{AnyModel, VOLUME_PHOTONS, predict_any};
+use subsurf::evaluate::run::{AnyModel, predict_any};
 
 /// Render the model's prediction of frame K (laser at that frame's x_i) as an OpenEXR image.
 #[derive(Debug, clap::Args)]
@@ -20,9 +20,9 @@ pub struct Args {
     /// Output image (.exr).
     #[arg(long)]
     pub out: PathBuf,
-    /// Photons of a volume model's prediction.
-    #[arg(long, default_value_t = VOLUME_PHOTONS)]
-    pub photons: usize,
+    /// Photons of a volume model's prediction (default 1 million; 4 million behind a dielectric).
+    #[arg(long)]
+    pub photons: Option<usize>,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {

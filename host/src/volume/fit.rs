@@ -262,6 +262,8 @@ pub struct HomogeneousFit {
     pub floor: f64,
     /// Seed of the common random numbers.
     pub seed: u64,
+    /// The boundary the medium is traced behind, held fixed.
+    pub surface: Surface,
 }
 
 /// The fitted medium.
@@ -273,6 +275,8 @@ pub struct Homogeneous {
     pub albedo: [f64; 3],
     /// Henyey-Greenstein asymmetry.
     pub g: f64,
+    /// The boundary it lies behind.
+    pub surface: Surface,
     /// Per channel the ring loss at the end (mean squared log ratio) and the rings judged.
     pub loss: [(f64, usize); 3],
 }
@@ -287,6 +291,12 @@ pub enum VolumeFitError {
     /// No ring is above the floor in some channel.
     #[error("channel {0}: no ring of any frame is above the noise floor")]
     NoRings(usize),
+    /// A grid was asked for behind a dielectric boundary: the grid's tracer is index-matched.
+    #[error(
+        "a grid is fitted behind an index-matched boundary only: fit a dielectric's medium \
+         homogeneous (--volume-cells 1)"
+    )]
+    GridBehindDielectric,
     /// The dataset could not be read.
     #[error(transparent)]
     Dataset(#[from] crate::dataset::DatasetError),
@@ -370,6 +380,7 @@ pub fn fit_homogeneous(
         sigma_t: [opts.start.0; 3],
         albedo: [opts.start.1; 3],
         g: opts.g,
+        surface: opts.surface,
         loss: [(f64::INFINITY, 0); 3],
     };
     for round in 0..opts.rounds {
@@ -383,7 +394,7 @@ pub fn fit_homogeneous(
             g: opts.g,
             photons: opts.photons,
             seed: opts.seed ^ round as u64,
-            surface: Surface::IndexMatched,
+            surface: opts.surface,
         };
         let mut recs = Vec::new();
         for (fi, f) in judged.iter().enumerate() {
@@ -529,7 +540,10 @@ pub fn predict_in(
     photons: usize,
     seed: u64,
 ) -> Result<Image, VolumeFitError> {
-    let reference = TraceSettings::for_medium(model.sigma_t, model.albedo, model.g, photons, seed);
+    let reference = TraceSettings {
+        surface: model.surface,
+        ..TraceSettings::for_medium(model.sigma_t, model.albedo, model.g, photons, seed)
+    };
     frame_image(scene, ds, k, &|geo, w, h| {
         let r = trace_frame(scene, boundary, geo, &reference, k);
         super::trace::image(&r, &reference, model.sigma_t, model.albedo, w, h)

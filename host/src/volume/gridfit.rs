@@ -24,6 +24,7 @@
 //! differentiable mode traces a laser spot from the light on two cores), and the normal
 //! equations are solved by nalgebra's Cholesky.
 
+use super::dielectric::Surface;
 use super::fit::{
     FrameRings, Homogeneous, HomogeneousFit, MIN_RECORDS, VolumeFitError, fit_homogeneous,
     frame_rings, judged_rings, ring_shares,
@@ -533,6 +534,9 @@ fn fit_grid_on(
 ) -> Result<FittedGrid, VolumeFitError> {
     if fr.is_empty() {
         return Err(VolumeFitError::NoFrames);
+    }
+    if global.surface != Surface::IndexMatched || opts.global.surface != Surface::IndexMatched {
+        return Err(VolumeFitError::GridBehindDielectric);
     }
     let (data, first, total) = judged_rings(fr, opts.global.floor);
     let gt = homogeneous_theta(global);

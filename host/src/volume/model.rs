@@ -11,10 +11,14 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
+use super::dielectric::Surface;
 use super::fit::{Homogeneous, HomogeneousFit, VolumeFitError};
 use super::medium::GridChannel;
 use crate::dataset::{Dataset, Image, Mesh};
 use crate::geometry::Scene;
+
+/// The smallest GGX width the dielectric tracer follows.
+pub const MIN_ROUGHNESS: f64 = 1e-3;
 
 /// The `format` of a volume model file.
 pub const FORMAT: &str = "subsurf-volume";
@@ -42,13 +46,66 @@ pub struct VolumeModel {
 pub enum BoundaryModel {
     /// The medium outside has the object's index: light crosses the surface unbent.
     IndexMatched,
-    /// A dielectric interface of index `ior` and GGX roughness `roughness` (not traced yet).
+    /// A rough dielectric interface of index `ior` and GGX width `roughness` (traced around a
+    /// homogeneous medium, [`super::dielectric`]).
     Dielectric {
         /// Index of refraction inside over outside.
         ior: f64,
         /// GGX roughness α (0: smooth).
         roughness: f64,
     },
+}
+
+impl BoundaryModel {
+    /// The file's boundary of the tracer's.
+    pub fn of(s: Surface) -> BoundaryModel {
+        match s {
+            Surface::IndexMatched => BoundaryModel::IndexMatched,
+            Surface::RoughDielectric { ior, alpha } => BoundaryModel::Dielectric {
+                ior,
+                roughness: alpha,
+            },
+        }
+    }
+
+    /// The tracer's boundary (`roughness` is the GGX width α, [`super::dielectric`]); a smooth
+    /// dielectric is refused.
+    pub fn surface(self) -> Result<Surface, VolumeError> {
+        match self {
+            BoundaryModel::IndexMatched => Ok(Surface::IndexMatched),
+            BoundaryModel::Dielectric { ior, roughness } if roughness < MIN_ROUGHNESS => {
+                Err(VolumeError::Dielectric { ior, roughness })
+            }
+            BoundaryModel::Dielectric { ior, roughness } => Ok(Surface::RoughDielectric {
+                ior,
+                alpha: roughness,
+            }),
+        }
+    }
+}
+
+impl std::str::FromStr for BoundaryModel {
+    type Err = String;
+    /// `index-matched`, or `dielectric:IOR:ROUGHNESS` (the GGX width α).
+    fn from_str(s: &str) -> Result<BoundaryModel, String> {
+        let bad = || format!("boundary `{s}`: index-matched or dielectric:IOR:ROUGHNESS");
+        if s == "index-matched" {
+            return Ok(BoundaryModel::IndexMatched);
+        }
+        let mut it = s.strip_prefix("dielectric:").ok_or_else(bad)?.split(':');
+        let (Some(i), Some(r), None) = (it.next(), it.next(), it.next()) else {
+            return Err(bad());
+        };
+        let (ior, roughness): (f64, f64) =
+            (i.parse().map_err(|_| bad())?, r.parse().map_err(|_| bad())?);
+        let b = BoundaryModel::Dielectric { ior, roughness };
+        if !(ior.is_finite() && ior > 0.0) || b.surface().is_err() || roughness > 1.0 {
+            return Err(format!(
+                "boundary `{s}`: the index must be > 0, the roughness {MIN_ROUGHNESS} to 1"
+            ));
+        }
+        Ok(b)
+    }
 }
 
 /// The medium on a regular grid of cells in the object frame; σ_t and albedo constant within a
@@ -177,11 +234,18 @@ pub enum VolumeError {
     /// The medium varies from cell to cell: the tracer follows one medium so far.
     #[error("a heterogeneous medium (a grid of {0} cells that differ) is not traced yet")]
     Heterogeneous(usize),
-    /// A dielectric boundary: the tracer crosses the surface index-matched only so far.
-    #[error("a dielectric boundary (ior {ior}) is not traced yet: only index-matched is")]
+    /// A dielectric boundary the tracer cannot follow: around a grid whose cells differ (the
+    /// grid tracer is index-matched), or smooth (a mirror-like interface is a delta the next
+    /// events towards the camera never meet).
+    #[error(
+        "a dielectric boundary (ior {ior}, roughness {roughness}) is traced only around a \
+         homogeneous medium and with roughness at least {MIN_ROUGHNESS}"
+    )]
     Dielectric {
         /// Its index.
         ior: f64,
+        /// Its GGX width.
+        roughness: f64,
     },
     /// The trace failed (the mesh, the dataset).
     #[error(transparent)]
@@ -380,7 +444,7 @@ impl VolumeModel {
         let (lo, hi) = mesh.bounds();
         VolumeModel {
             g: m.g,
-            boundary: BoundaryModel::IndexMatched,
+            boundary: BoundaryModel::of(m.surface),
             grid: MediumGrid::homogeneous(lo, hi, m.sigma_t, m.albedo),
             mesh,
             fit,
@@ -470,19 +534,23 @@ impl VolumeModel {
         VolumeModel::from_json(&text)
     }
 
-    /// The medium as the homogeneous tracer takes it: a uniform grid behind an index-matched
-    /// boundary; else why it cannot be traced yet.
+    /// The medium as the homogeneous tracer takes it: a uniform grid; else why it cannot be
+    /// traced as one medium.
     pub fn as_homogeneous(&self) -> Result<Homogeneous, VolumeError> {
-        if let BoundaryModel::Dielectric { ior, .. } = self.boundary {
-            return Err(VolumeError::Dielectric { ior });
-        }
+        let surface = self.boundary.surface()?;
         if !self.grid.is_uniform() {
-            return Err(VolumeError::Heterogeneous(self.grid.cells()));
+            return Err(match self.boundary {
+                BoundaryModel::Dielectric { ior, roughness } => {
+                    VolumeError::Dielectric { ior, roughness }
+                }
+                BoundaryModel::IndexMatched => VolumeError::Heterogeneous(self.grid.cells()),
+            });
         }
         Ok(Homogeneous {
             sigma_t: self.grid.sigma_t[0],
             albedo: self.grid.albedo[0],
             g: self.g,
+            surface,
             loss: [0, 1, 2].map(|c| (self.fit.loss[c], self.fit.rings[c])),
         })
     }
@@ -697,12 +765,28 @@ impl VolumeFitSettings {
                 start: (2.0, 0.98),
                 floor: ds.spec.noise_floor.unwrap_or(0.0),
                 seed: 1,
+                surface: Surface::IndexMatched,
             },
             out,
             cells: 1,
         }
     }
+
+    /// The medium behind `surface`, with `g`: behind a dielectric 6,000 photons a frame and
+    /// round, not 1,500 (there a ring's light comes only from where photons meet the surface,
+    /// so its sums are noisier; chosen by cross-validation over sample-pebble's training
+    /// angles, docs/volume.md).
+    pub fn behind(mut self, surface: Surface, g: f64) -> VolumeFitSettings {
+        if surface != Surface::IndexMatched {
+            self.fit.photons = DIELECTRIC_FIT_PHOTONS;
+        }
+        (self.fit.surface, self.fit.g) = (surface, g);
+        self
+    }
 }
+
+/// Photons a frame and round of a fit behind a dielectric ([`VolumeFitSettings::behind`]).
+pub const DIELECTRIC_FIT_PHOTONS: usize = 6000;
 
 /// Fits a homogeneous volume to the frames `frames` of `ds` and writes it to `settings.out`
 /// (which must end in `.json`: the empirical model's files are PLY): one stage whose steps are
@@ -725,6 +809,10 @@ pub fn fit_volume<S: crate::progress::Stages>(
     }
     let t0 = std::time::Instant::now();
     let opts = &settings.fit;
+    check("g", opts.g, opts.g.abs() < 1.0, "finite with |g| < 1")?;
+    if settings.cells > 1 && opts.surface != Surface::IndexMatched {
+        return Err(VolumeFitError::GridBehindDielectric.into());
+    }
     let bar = stages.stage(opts.rounds as u64, "volume fit");
     let fitted = super::fit::fit_homogeneous(ds, frames, opts, &|round, m| {
         bar.set_message(&format!(
@@ -1002,5 +1090,52 @@ mod tests {
             roughness: 0.0,
         };
         assert!(matches!(d.predictor(), Err(VolumeError::Dielectric { .. })));
+        // A rough dielectric around one medium is traced; around cells that differ it is not.
+        d.boundary = BoundaryModel::Dielectric {
+            ior: 1.55,
+            roughness: 0.2,
+        };
+        let h = d.as_homogeneous().unwrap();
+        assert_eq!(
+            h.surface,
+            Surface::RoughDielectric {
+                ior: 1.55,
+                alpha: 0.2
+            }
+        );
+        assert!(d.predictor().is_ok());
+        let mut g = model();
+        g.boundary = d.boundary;
+        assert!(matches!(g.predictor(), Err(VolumeError::Dielectric { .. })));
+    }
+
+    #[test]
+    fn a_boundary_is_read_from_its_flag() {
+        assert_eq!("index-matched".parse(), Ok(BoundaryModel::IndexMatched));
+        assert_eq!(
+            "dielectric:1.55:0.2".parse(),
+            Ok(BoundaryModel::Dielectric {
+                ior: 1.55,
+                roughness: 0.2
+            })
+        );
+        for bad in [
+            "dielectric",
+            "dielectric:1.55",
+            "dielectric:1.55:0.2:1",
+            "dielectric:x:0.2",
+            "dielectric:-1:0.2",
+            "dielectric:NaN:0.2",
+            "dielectric:1.55:0",
+            "dielectric:1.55:2",
+            "glass",
+        ] {
+            assert!(bad.parse::<BoundaryModel>().is_err(), "{bad}");
+        }
+        let b = BoundaryModel::Dielectric {
+            ior: 1.4,
+            roughness: 0.3,
+        };
+        assert_eq!(BoundaryModel::of(b.surface().unwrap()), b);
     }
 }
