@@ -603,6 +603,37 @@ fn a_volume_model_from_its_file_predicts_as_the_fit_does() {
     );
 }
 
+/// `subsurf` with `args`, its output whatever it is.
+fn run(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_subsurf"))
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+/// `subsurf predict` of the volume model `model` writes frame `frame` of `scan` as a finite
+/// image with light in it.
+fn predicts_a_lit_frame(model: &Path, scan: &str, frame: &str, photons: &str, dir: &Path) {
+    let img = dir.join("p.exr");
+    let o = run(&[
+        "predict",
+        "--model",
+        model.to_str().unwrap(),
+        "--scan",
+        scan,
+        "--frame",
+        frame,
+        "--photons",
+        photons,
+        "--out",
+        img.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let img = read_image(&img).unwrap();
+    assert!(img.data.iter().all(|v| v.is_finite()));
+    assert!(img.data.iter().any(|&v| v > 0.0));
+}
+
 /// `subsurf fit --model-kind volume` on sample-slab's training frames (few photons and rounds:
 /// a check of the plumbing, not of the figures) writes a volume model that reads back, and
 /// `evaluate` and `predict` take it: finite figures on frames it was fitted to, a lit image.
@@ -614,12 +645,6 @@ fn fit_evaluate_and_predict_take_a_volume_model() {
     };
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("slab.json");
-    let run = |args: &[&str]| {
-        Command::new(env!("CARGO_BIN_EXE_subsurf"))
-            .args(args)
-            .output()
-            .unwrap()
-    };
     let scan = dir.to_str().unwrap();
     let fit = |out: &Path| {
         run(&[
@@ -677,24 +702,7 @@ fn fit_evaluate_and_predict_take_a_volume_model() {
         let m = v["in_sample"]["mean_log_e"][c].as_f64();
         assert!(m.is_some_and(|m| m.is_finite() && m > 0.0), "{v}");
     }
-    let img = tmp.path().join("p.exr");
-    let o = run(&[
-        "predict",
-        "--model",
-        out.to_str().unwrap(),
-        "--scan",
-        scan,
-        "--frame",
-        "4",
-        "--photons",
-        "2000",
-        "--out",
-        img.to_str().unwrap(),
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let img = read_image(&img).unwrap();
-    assert!(img.data.iter().all(|v| v.is_finite()));
-    assert!(img.data.iter().any(|&v| v > 0.0));
+    predicts_a_lit_frame(&out, scan, "4", "2000", tmp.path());
 }
 
 /// A grid fitted cell by cell (`volume::gridfit`, the settings `--volume-cells` uses) to
@@ -771,12 +779,6 @@ fn behind_its_rough_dielectric_the_pebble_fits_inside_its_published_medium() {
     let scan = dir.to_str().unwrap();
     let frames: Vec<String> = (0..96).step_by(4).map(|k| k.to_string()).collect();
     let frames = frames.join(",");
-    let run = |args: &[&str]| {
-        Command::new(env!("CARGO_BIN_EXE_subsurf"))
-            .args(args)
-            .output()
-            .unwrap()
-    };
     let fit = |name: &str, extra: &[&str]| {
         let out = tmp.path().join(name);
         let mut a = vec!["fit", "--scan", scan, "--model-kind", "volume", "--frames"];
@@ -823,24 +825,7 @@ fn behind_its_rough_dielectric_the_pebble_fits_inside_its_published_medium() {
         im.grid.sigma_t[0], im.grid.albedo[0]
     );
     assert!(im.grid.sigma_t[0].iter().all(|&s| s < 0.94), "{im:?}");
-    let img = tmp.path().join("p.exr");
-    let o = run(&[
-        "predict",
-        "--model",
-        out.to_str().unwrap(),
-        "--scan",
-        scan,
-        "--frame",
-        "97",
-        "--photons",
-        "20000",
-        "--out",
-        img.to_str().unwrap(),
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let img = read_image(&img).unwrap();
-    assert!(img.data.iter().all(|v| v.is_finite()));
-    assert!(img.data.iter().any(|&v| v > 0.0));
+    predicts_a_lit_frame(&out, scan, "97", "20000", tmp.path());
     let (_, o) = fit(
         "grid.json",
         &[&dielectric[..], &["--volume-cells", "4"]].concat(),
