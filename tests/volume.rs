@@ -169,6 +169,7 @@ fn compare_seeds(
                     &geo,
                     &channels,
                     case.g,
+                    Surface::IndexMatched,
                     200_000,
                     seed,
                     0,
@@ -764,8 +765,8 @@ fn a_grid_fitted_to_the_homogeneous_slab_stays_at_its_published_medium() {
 /// sample-pebble's training frames with a medium inside the README's published ranges (σ_t
 /// 0.94–3.6/mm, albedo 0.90–0.995 in every channel), where the index-matched fit of the same
 /// frames puts σ_t below them (the light the dielectric keeps inside by internal reflection is
-/// read as a thinner medium). The file keeps the boundary, `predict` traces it, and a grid
-/// behind it is refused with a message.
+/// read as a thinner medium). The file keeps the boundary and `predict` traces it; a grid
+/// fitted behind it does the same.
 #[test]
 fn behind_its_rough_dielectric_the_pebble_fits_inside_its_published_medium() {
     use subsurf::volume::VolumeModel;
@@ -826,11 +827,25 @@ fn behind_its_rough_dielectric_the_pebble_fits_inside_its_published_medium() {
     );
     assert!(im.grid.sigma_t[0].iter().all(|&s| s < 0.94), "{im:?}");
     predicts_a_lit_frame(&out, scan, "97", "20000", tmp.path());
-    let (_, o) = fit(
+    // A grid behind the same boundary: its cells differ, stay inside the published ranges,
+    // and the file traces behind the dielectric.
+    let (out_grid, o) = fit(
         "grid.json",
         &[&dielectric[..], &["--volume-cells", "4"]].concat(),
     );
-    assert!(!o.status.success());
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(err.contains("index-matched"), "{err}");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let gm = VolumeModel::read(&out_grid).unwrap();
+    assert_eq!(gm.boundary, m.boundary);
+    assert!(
+        gm.grid.cells() > 1 && !gm.grid.is_uniform(),
+        "{:?}",
+        gm.grid
+    );
+    for (s, a) in gm.grid.sigma_t.iter().zip(&gm.grid.albedo) {
+        for c in 0..3 {
+            assert!((0.94..=3.6).contains(&s[c]), "a cell's σ_t {s:?}");
+            assert!((0.90..=0.995).contains(&a[c]), "a cell's albedo {a:?}");
+        }
+    }
+    predicts_a_lit_frame(&out_grid, scan, "97", "20000", tmp.path());
 }

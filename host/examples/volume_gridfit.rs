@@ -8,8 +8,10 @@
 //!
 //! Environment: `CELLS` (cells along the longest side, 12), `PHOTONS` (per frame and round,
 //! 2000), `ROUNDS` (8), `SMOOTH` and `PULL` (the penalties' weights, `gridfit::SMOOTH` and `PULL`), `G` (0);
+//! `BOUNDARY` (`index-matched`, or `dielectric:IOR:ROUGHNESS` as `subsurf fit --volume-boundary`);
 //! `CV=s1:p1,s2:p2,…` scores those candidates and the homogeneous medium by cross-validation
-//! over whole turntable angles of TRAIN (`FOLDS`, 4) first and fits the best.
+//! over whole turntable angles of TRAIN (`FOLDS`, 4) first and fits the best, judging the
+//! held-out rings by a trace of `JUDGE` photons a frame (`PHOTONS`).
 use anyhow::{Context, Result};
 use subsurf::dataset::{Dataset, parse_frame_list};
 use subsurf::volume::fit::{HomogeneousFit, fit_homogeneous};
@@ -30,15 +32,23 @@ fn main() -> Result<()> {
     };
     let t0 = std::time::Instant::now();
     let say = |s: &str| eprintln!("{s} ({:.0} s)", t0.elapsed().as_secs_f64());
+    let boundary: BoundaryModel = std::env::var("BOUNDARY")
+        .unwrap_or_else(|_| "index-matched".into())
+        .parse()
+        .map_err(anyhow::Error::msg)?;
+    let surface = boundary.surface()?;
     let mut opts = GridFit {
         global: HomogeneousFit {
-            photons: 1500,
+            photons: match surface {
+                subsurf::volume::dielectric::Surface::IndexMatched => 1500,
+                _ => subsurf::volume::model::DIELECTRIC_FIT_PHOTONS,
+            },
             rounds: 12,
             g: env("G", 0.0),
             start: (2.0, 0.98),
             floor: ds.spec.noise_floor.unwrap_or(0.0),
             seed: 1,
-            surface: subsurf::volume::dielectric::Surface::IndexMatched,
+            surface,
         },
         cells: env("CELLS", 12.0) as usize,
         photons: env("PHOTONS", 2000.0) as usize,
@@ -54,7 +64,9 @@ fn main() -> Result<()> {
                 Some((s.parse().ok()?, p.parse().ok()?))
             })
             .collect();
-        let scored = cross_validate(&ds, &train, &opts, &cands, env("FOLDS", 4.0) as usize, &say)?;
+        let judge = env("JUDGE", opts.photons as f64) as usize;
+        let folds = env("FOLDS", 4.0) as usize;
+        let scored = cross_validate(&ds, &train, &opts, &cands, folds, judge, &say)?;
         for s in &scored {
             println!(
                 "cv: smooth {} pull {}: ring loss {:.4} over {} rings",
@@ -92,7 +104,7 @@ fn main() -> Result<()> {
     frames.dedup();
     let model = VolumeModel {
         g: opts.global.g,
-        boundary: BoundaryModel::IndexMatched,
+        boundary,
         grid,
         mesh: VolumeMesh::of(&ds.mesh),
         fit: FitInfo {

@@ -11,6 +11,7 @@
 use anyhow::{Context, Result};
 use subsurf::dataset::{Dataset, parse_frame_list, write_exr};
 use subsurf::geometry::Scene;
+use subsurf::volume::dielectric::Surface;
 use subsurf::volume::fit::{HomogeneousFit, frame_geometry};
 use subsurf::volume::local::{LocalFit, grow};
 use subsurf::volume::medium::grid_image;
@@ -77,7 +78,17 @@ fn main() -> Result<()> {
         let f = &ds.spec.frames[k];
         let cam = &ds.spec.cameras[f.camera];
         let img = match frame_geometry(&scene, &ds, k) {
-            Some(geo) => grid_image(&scene, boundary, &geo, &grown.grid, g, photons, 7, k),
+            Some(geo) => grid_image(
+                &scene,
+                boundary,
+                &geo,
+                &grown.grid,
+                g,
+                Surface::IndexMatched,
+                photons,
+                7,
+                k,
+            ),
             None => subsurf::dataset::Image::new(cam.width as usize, cam.height as usize, 3),
         };
         write_exr(&out.join(subsurf::evaluate::images::image_name(k)), &img)?;

@@ -27,6 +27,7 @@
 //! [`Record::ln_w_in`] still give every nearby medium: the surface's events do not depend on
 //! σ_t or α.
 
+use super::medium::{GridChannel, add_to};
 use super::trace::{
     Boundary, FILTER_RADIUS_PX, FrameGeometry, MAX_COLLISIONS, Record, TraceSettings, crossings,
     frame_of, next_hit, photon_seed, sample_hg,
@@ -41,6 +42,9 @@ use std::f64::consts::PI;
 
 /// Surface events after which a photon is given up (internal reflections that never end).
 const MAX_SURFACE_EVENTS: u32 = 10_000;
+
+/// Tentative collisions (real and, in a grid, null ones) after which a photon is given up.
+const MAX_TENTATIVE: u32 = 200_000;
 
 /// What happens to light where it meets the mesh.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -387,12 +391,14 @@ pub(super) fn trace_frame(
                     k: 0,
                     length: 0.0,
                     ln_beta: 0.0,
+                    path: Vec::new(),
                 };
                 photon.run(
                     scene,
                     boundary,
                     geo,
                     settings,
+                    None,
                     &bsdf,
                     &pinhole,
                     &mut rng,
@@ -415,6 +421,79 @@ pub(super) fn trace_frame(
         })
 }
 
+/// What [`trace_grid_frame`] hands each surface event to: the accumulator, pixel coordinates,
+/// ln of the contribution and the path's cells (cell, real collisions, medium length).
+pub(super) type EmitFn<'a, T> = dyn Fn(&mut T, [f64; 2], f64, &[(u32, u32, f64)]) + Sync + 'a;
+
+/// Traces one frame's photons through a rough dielectric boundary in the grid medium `grid`
+/// (one channel; free flights by delta tracking) and hands every surface event that lands in
+/// the image to `emit`: pixel coordinates, ln of its contribution to the pixel's radiance per
+/// watt of laser (before the reconstruction filter), and the path's cells so far (cell, real
+/// collisions there, medium length through it). A photon's events go to one accumulator made
+/// by `init`; `merge` joins them.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn trace_grid_frame<T: Send>(
+    scene: &Scene,
+    boundary: Boundary,
+    geo: &FrameGeometry,
+    grid: &GridChannel,
+    g: f64,
+    bsdf: RoughDielectric,
+    photons: usize,
+    seed: u64,
+    frame: usize,
+    init: &(dyn Fn() -> T + Sync),
+    emit: &EmitFn<'_, T>,
+    merge: &(dyn Fn(T, T) -> T + Sync),
+) -> T {
+    let major = grid.majorant();
+    if !(major > 0.0 && major.is_finite()) {
+        return init();
+    }
+    let pinhole = Pinhole {
+        cam: &geo.camera,
+        deg: geo.deg,
+        centre: world_to_turntable(geo.camera.center(), geo.deg),
+    };
+    // The walk reads only g from these in a grid (σ_t and α come from the cells).
+    let settings = TraceSettings::for_medium([major; 3], [1.0; 3], g, photons, seed);
+    let ln_power = -(photons.max(1) as f64).ln();
+    let ln_fxfy = (geo.camera.fx * geo.camera.fy).ln();
+    (0..photons)
+        .into_par_iter()
+        .fold(init, |mut out, n| {
+            let mut rng = rand::rngs::StdRng::seed_from_u64(photon_seed(seed, frame, n));
+            if let Some((entry, dir, tri)) = geo.launch(scene, &mut rng) {
+                let photon = Walk {
+                    p: entry,
+                    d: dir,
+                    on: Some(tri),
+                    skip: Some(tri),
+                    inside: false,
+                    k: 0,
+                    length: 0.0,
+                    ln_beta: 0.0,
+                    path: Vec::new(),
+                };
+                photon.run(
+                    scene,
+                    boundary,
+                    geo,
+                    &settings,
+                    Some(grid),
+                    &bsdf,
+                    &pinhole,
+                    &mut rng,
+                    &mut |uv, w: &Walk, ln| {
+                        emit(&mut out, uv, ln_power + w.ln_beta + ln + ln_fxfy, &w.path);
+                    },
+                );
+            }
+            out
+        })
+        .reduce(init, merge)
+}
+
 /// One photon's state between events.
 struct Walk {
     p: V3,
@@ -431,6 +510,10 @@ struct Walk {
     length: f64,
     /// ln of the photon's weight: the BSDF samples' weights (1 in the medium).
     ln_beta: f64,
+    /// In a grid medium, the cells of the path so far: (cell, real collisions there, medium
+    /// length through it in mm), what a grid fit's likelihood ratios need (`super::gridfit`);
+    /// empty in a homogeneous medium, whose `k` and `length` say it all.
+    path: Vec<(u32, u32, f64)>,
 }
 
 impl Walk {
@@ -441,13 +524,17 @@ impl Walk {
         boundary: Boundary,
         geo: &FrameGeometry,
         settings: &TraceSettings,
+        grid: Option<&GridChannel>,
         bsdf: &RoughDielectric,
         pinhole: &Pinhole,
         rng: &mut impl Rng,
         emit: &mut dyn FnMut([f64; 2], &Walk, f64),
     ) {
         let (sigma0, albedo0, g) = (settings.sigma_t, settings.albedo, settings.g);
+        // In a grid, free flights by delta tracking against its largest σ_t (`super::medium`).
+        let rate = grid.map_or(sigma0, GridChannel::majorant);
         let mut surface_events = 0;
+        let mut tentative = 0;
         loop {
             if let Some(tri) = self.on.take() {
                 surface_events += 1;
@@ -497,18 +584,23 @@ impl Walk {
                 }
             }
             let x: f64 = rng.random();
-            let s = -(1.0 - x).ln() / sigma0;
-            if let Some((t, hp, tri)) = next_hit(scene, self.p, self.d, s, self.skip) {
-                self.length += t;
+            let s = -(1.0 - x).ln() / rate;
+            let hit = next_hit(scene, self.p, self.d, s, self.skip);
+            let flown = hit.map_or(s, |h| h.0);
+            if let Some(gr) = grid {
+                let path = &mut self.path;
+                gr.for_each_cell(self.p, self.d, flown, &mut |c, l| add_to(path, c, 0, l));
+            }
+            self.length += flown;
+            if let Some((_, hp, tri)) = hit {
                 self.p = hp;
                 self.on = Some(tri);
                 continue;
             }
             self.p = add_scaled(self.p, s, self.d);
-            self.length += s;
-            self.k += 1;
             self.skip = None;
-            if self.k > MAX_COLLISIONS {
+            tentative += 1;
+            if tentative > MAX_TENTATIVE {
                 return;
             }
             if boundary == Boundary::Open && crossings(scene, self.p, geo.origin).is_multiple_of(2)
@@ -516,8 +608,24 @@ impl Walk {
                 // Beyond the open face's reach: not part of the medium.
                 return;
             }
-            // Absorption by survival: the weight stays and α_0^k is the chance to go on.
-            if rng.random::<f64>() >= albedo0 {
+            let albedo = match grid {
+                Some(gr) => {
+                    // Delta tracking: a null collision leaves the photon on its way.
+                    let cell = gr.index(gr.cell3(self.p));
+                    if rng.random::<f64>() * rate >= gr.sigma_t[cell] {
+                        continue;
+                    }
+                    add_to(&mut self.path, cell, 1, 0.0);
+                    gr.albedo[cell]
+                }
+                None => albedo0,
+            };
+            self.k += 1;
+            if self.k > MAX_COLLISIONS {
+                return;
+            }
+            // Absorption by survival: the weight stays and α^k is the chance to go on.
+            if rng.random::<f64>() >= albedo {
                 return;
             }
             self.d = sample_hg(self.d, g, rng);

@@ -291,12 +291,10 @@ pub enum VolumeFitError {
     /// No ring is above the floor in some channel.
     #[error("channel {0}: no ring of any frame is above the noise floor")]
     NoRings(usize),
-    /// A grid was asked for behind a dielectric boundary: the grid's tracer is index-matched.
-    #[error(
-        "a grid is fitted behind an index-matched boundary only: fit a dielectric's medium \
-         homogeneous (--volume-cells 1)"
-    )]
-    GridBehindDielectric,
+    /// A grid fit was started from a homogeneous medium traced behind another boundary than
+    /// its own: the start and the grid must share the surface.
+    #[error("the grid's boundary is not the one its homogeneous start was fitted behind")]
+    BoundaryMismatch,
     /// The dataset could not be read.
     #[error(transparent)]
     Dataset(#[from] crate::dataset::DatasetError),

@@ -258,6 +258,7 @@ pub fn grow(
                     &fr.geo,
                     &grid,
                     opts.global.g,
+                    opts.global.surface,
                     opts.cv_photons,
                     opts.global.seed ^ 0x5eed,
                     fr.frame,

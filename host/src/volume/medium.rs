@@ -9,6 +9,7 @@
 //! cell by cell (Amanatides and Woo's traversal), so the next-event estimate carries no
 //! tracking noise.
 
+use super::dielectric::{RoughDielectric, Surface, trace_grid_frame};
 use super::trace::{
     Boundary, FrameGeometry, Photon, crossings, fly, nee, photon_seed, sample_hg, taps,
 };
@@ -130,6 +131,19 @@ impl GridChannel {
     }
 }
 
+/// Adds `k` real collisions and `l` mm of medium in `cell` to a path's cells (a grid fit's
+/// records, `super::gridfit`).
+pub(super) fn add_to(path: &mut Vec<(u32, u32, f64)>, cell: usize, k: u32, l: f64) {
+    let cell = cell as u32;
+    match path.iter_mut().find(|e| e.0 == cell) {
+        Some(e) => {
+            e.1 += k;
+            e.2 += l;
+        }
+        None => path.push((cell, k, l)),
+    }
+}
+
 /// One frame's next events in a grid channel: pixel coordinates and the contribution to the
 /// pixel's radiance (per watt of laser) before the reconstruction filter.
 #[allow(clippy::too_many_arguments)]
@@ -199,8 +213,8 @@ pub fn trace_channel(
         })
 }
 
-/// A frame's image in a grid medium, one trace per channel (each channel has its own σ_t, so
-/// its own free flights).
+/// A frame's image in a grid medium behind `surface`, one trace per channel (each channel has
+/// its own σ_t, so its own free flights).
 #[allow(clippy::too_many_arguments)]
 pub fn grid_image(
     scene: &Scene,
@@ -208,6 +222,7 @@ pub fn grid_image(
     geo: &FrameGeometry,
     channels: &[GridChannel; 3],
     g: f64,
+    surface: Surface,
     photons: usize,
     seed: u64,
     frame: usize,
@@ -215,7 +230,33 @@ pub fn grid_image(
     let (w, h) = (geo.camera.width as usize, geo.camera.height as usize);
     let mut img = Image::new(w, h, 3);
     for (c, grid) in channels.iter().enumerate() {
-        for (u, v, e) in trace_channel(scene, boundary, geo, grid, g, photons, seed, frame) {
+        let events = match surface {
+            Surface::IndexMatched => {
+                trace_channel(scene, boundary, geo, grid, g, photons, seed, frame)
+            }
+            Surface::RoughDielectric { ior, alpha } => trace_grid_frame(
+                scene,
+                boundary,
+                geo,
+                grid,
+                g,
+                RoughDielectric { eta: ior, alpha },
+                photons,
+                seed,
+                frame,
+                &Vec::new,
+                &|out: &mut Vec<(f32, f32, f64)>, uv, ln, _| {
+                    if ln.is_finite() {
+                        out.push((uv[0] as f32, uv[1] as f32, ln.exp()));
+                    }
+                },
+                &|mut a, mut b| {
+                    a.append(&mut b);
+                    a
+                },
+            ),
+        };
+        for (u, v, e) in events {
             for (p, t) in taps(u as f64, v as f64, w, h) {
                 img.data[p * 3 + c] += (e * t) as f32;
             }

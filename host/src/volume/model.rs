@@ -46,8 +46,8 @@ pub struct VolumeModel {
 pub enum BoundaryModel {
     /// The medium outside has the object's index: light crosses the surface unbent.
     IndexMatched,
-    /// A rough dielectric interface of index `ior` and GGX width `roughness` (traced around a
-    /// homogeneous medium, [`super::dielectric`]).
+    /// A rough dielectric interface of index `ior` and GGX width `roughness`
+    /// ([`super::dielectric`]).
     Dielectric {
         /// Index of refraction inside over outside.
         ior: f64,
@@ -234,12 +234,11 @@ pub enum VolumeError {
     /// The medium varies from cell to cell: the tracer follows one medium so far.
     #[error("a heterogeneous medium (a grid of {0} cells that differ) is not traced yet")]
     Heterogeneous(usize),
-    /// A dielectric boundary the tracer cannot follow: around a grid whose cells differ (the
-    /// grid tracer is index-matched), or smooth (a mirror-like interface is a delta the next
-    /// events towards the camera never meet).
+    /// A dielectric boundary the tracer cannot follow: a smooth one (a mirror-like interface is
+    /// a delta the next events towards the camera never meet).
     #[error(
-        "a dielectric boundary (ior {ior}, roughness {roughness}) is traced only around a \
-         homogeneous medium and with roughness at least {MIN_ROUGHNESS}"
+        "a dielectric boundary (ior {ior}, roughness {roughness}) is traced only with roughness \
+         at least {MIN_ROUGHNESS}"
     )]
     Dielectric {
         /// Its index.
@@ -539,12 +538,7 @@ impl VolumeModel {
     pub fn as_homogeneous(&self) -> Result<Homogeneous, VolumeError> {
         let surface = self.boundary.surface()?;
         if !self.grid.is_uniform() {
-            return Err(match self.boundary {
-                BoundaryModel::Dielectric { ior, roughness } => {
-                    VolumeError::Dielectric { ior, roughness }
-                }
-                BoundaryModel::IndexMatched => VolumeError::Heterogeneous(self.grid.cells()),
-            });
+            return Err(VolumeError::Heterogeneous(self.grid.cells()));
         }
         Ok(Homogeneous {
             sigma_t: self.grid.sigma_t[0],
@@ -572,7 +566,9 @@ impl VolumeModel {
     pub fn predictor(&self) -> Result<Predictor, VolumeError> {
         let medium = match self.as_homogeneous() {
             Ok(m) => Medium::Homogeneous(m),
-            Err(VolumeError::Heterogeneous(_)) => Medium::Grid(Box::new(self.channels()), self.g),
+            Err(VolumeError::Heterogeneous(_)) => {
+                Medium::Grid(Box::new(self.channels()), self.g, self.boundary.surface()?)
+            }
             Err(e) => return Err(e),
         };
         let scene = Scene::new(self.mesh.to_mesh()).map_err(VolumeFitError::from)?;
@@ -604,7 +600,8 @@ pub struct Predictor {
 
 enum Medium {
     Homogeneous(Homogeneous),
-    Grid(Box<[GridChannel; 3]>, f64),
+    /// The cells per channel, g and the boundary.
+    Grid(Box<[GridChannel; 3]>, f64, Surface),
 }
 
 impl Predictor {
@@ -628,7 +625,7 @@ impl Predictor {
                 photons,
                 seed,
             )?),
-            Medium::Grid(grid, g) => Ok(super::fit::frame_image(
+            Medium::Grid(grid, g, surface) => Ok(super::fit::frame_image(
                 &self.scene,
                 ds,
                 k,
@@ -639,6 +636,7 @@ impl Predictor {
                         geo,
                         grid,
                         *g,
+                        *surface,
                         photons,
                         seed,
                         k,
@@ -810,9 +808,6 @@ pub fn fit_volume<S: crate::progress::Stages>(
     let t0 = std::time::Instant::now();
     let opts = &settings.fit;
     check("g", opts.g, opts.g.abs() < 1.0, "finite with |g| < 1")?;
-    if settings.cells > 1 && opts.surface != Surface::IndexMatched {
-        return Err(VolumeFitError::GridBehindDielectric.into());
-    }
     let bar = stages.stage(opts.rounds as u64, "volume fit");
     let fitted = super::fit::fit_homogeneous(ds, frames, opts, &|round, m| {
         bar.set_message(&format!(
@@ -1090,7 +1085,8 @@ mod tests {
             roughness: 0.0,
         };
         assert!(matches!(d.predictor(), Err(VolumeError::Dielectric { .. })));
-        // A rough dielectric around one medium is traced; around cells that differ it is not.
+        // A rough dielectric is traced around one medium and around cells that differ; a
+        // smooth one around neither.
         d.boundary = BoundaryModel::Dielectric {
             ior: 1.55,
             roughness: 0.2,
@@ -1106,6 +1102,11 @@ mod tests {
         assert!(d.predictor().is_ok());
         let mut g = model();
         g.boundary = d.boundary;
+        assert!(g.predictor().is_ok());
+        g.boundary = BoundaryModel::Dielectric {
+            ior: 1.5,
+            roughness: 0.0,
+        };
         assert!(matches!(g.predictor(), Err(VolumeError::Dielectric { .. })));
     }
 
