@@ -370,55 +370,29 @@ pub(super) fn trace_frame(
     bsdf: RoughDielectric,
     frame: usize,
 ) -> Vec<Record> {
-    let pinhole = Pinhole {
-        cam: &geo.camera,
-        deg: geo.deg,
-        centre: world_to_turntable(geo.camera.center(), geo.deg),
-    };
-    let ln_power = -(settings.photons.max(1) as f64).ln();
-    let ln_fxfy = (geo.camera.fx * geo.camera.fy).ln();
-    (0..settings.photons)
-        .into_par_iter()
-        .fold(Vec::new, |mut out, n| {
-            let mut rng = rand::rngs::StdRng::seed_from_u64(photon_seed(settings.seed, frame, n));
-            if let Some((entry, dir, tri)) = geo.launch(scene, &mut rng) {
-                let photon = Walk {
-                    p: entry,
-                    d: dir,
-                    on: Some(tri),
-                    skip: Some(tri),
-                    inside: false,
-                    k: 0,
-                    length: 0.0,
-                    ln_beta: 0.0,
-                    path: Vec::new(),
-                };
-                photon.run(
-                    scene,
-                    boundary,
-                    geo,
-                    settings,
-                    None,
-                    &bsdf,
-                    &pinhole,
-                    &mut rng,
-                    &mut |uv, w: &Walk, ln| {
-                        out.push(Record {
-                            u: uv[0] as f32,
-                            v: uv[1] as f32,
-                            k: w.k,
-                            length: w.length as f32,
-                            ln_w: (ln_power + w.ln_beta + ln + ln_fxfy) as f32,
-                        });
-                    },
-                );
-            }
-            out
-        })
-        .reduce(Vec::new, |mut a, mut b| {
+    walk_frame(
+        scene,
+        boundary,
+        geo,
+        settings,
+        None,
+        bsdf,
+        frame,
+        &Vec::new,
+        &|out: &mut Vec<Record>, uv, ln, w| {
+            out.push(Record {
+                u: uv[0] as f32,
+                v: uv[1] as f32,
+                k: w.k,
+                length: w.length as f32,
+                ln_w: ln as f32,
+            });
+        },
+        &|mut a, mut b| {
             a.append(&mut b);
             a
-        })
+        },
+    )
 }
 
 /// What [`trace_grid_frame`] hands each surface event to: the accumulator, pixel coordinates,
@@ -450,19 +424,53 @@ pub(super) fn trace_grid_frame<T: Send>(
     if !(major > 0.0 && major.is_finite()) {
         return init();
     }
+    // The walk reads only g, the photons and the seed from these in a grid (σ_t and α come
+    // from the cells).
+    let settings = TraceSettings::for_medium([major; 3], [1.0; 3], g, photons, seed);
+    walk_frame(
+        scene,
+        boundary,
+        geo,
+        &settings,
+        Some((grid, major)),
+        bsdf,
+        frame,
+        init,
+        &|out, uv, ln, w| emit(out, uv, ln, &w.path),
+        merge,
+    )
+}
+
+/// What [`walk_frame`] hands each surface event to, with the photon's state.
+type WalkEmit<'a, T> = dyn Fn(&mut T, [f64; 2], f64, &Walk) + Sync + 'a;
+
+/// One frame's photons walked through the boundary, in the medium of `settings` or in `grid`
+/// (with its majorant): every surface event that lands in the image goes to `emit` with ln of
+/// its whole contribution (the photon's share of 1 W, its BSDF weights, the pinhole's factor).
+#[allow(clippy::too_many_arguments)]
+fn walk_frame<T: Send>(
+    scene: &Scene,
+    boundary: Boundary,
+    geo: &FrameGeometry,
+    settings: &TraceSettings,
+    grid: Option<(&GridChannel, f64)>,
+    bsdf: RoughDielectric,
+    frame: usize,
+    init: &(dyn Fn() -> T + Sync),
+    emit: &WalkEmit<'_, T>,
+    merge: &(dyn Fn(T, T) -> T + Sync),
+) -> T {
     let pinhole = Pinhole {
         cam: &geo.camera,
         deg: geo.deg,
         centre: world_to_turntable(geo.camera.center(), geo.deg),
     };
-    // The walk reads only g from these in a grid (σ_t and α come from the cells).
-    let settings = TraceSettings::for_medium([major; 3], [1.0; 3], g, photons, seed);
-    let ln_power = -(photons.max(1) as f64).ln();
+    let ln_power = -(settings.photons.max(1) as f64).ln();
     let ln_fxfy = (geo.camera.fx * geo.camera.fy).ln();
-    (0..photons)
+    (0..settings.photons)
         .into_par_iter()
         .fold(init, |mut out, n| {
-            let mut rng = rand::rngs::StdRng::seed_from_u64(photon_seed(seed, frame, n));
+            let mut rng = rand::rngs::StdRng::seed_from_u64(photon_seed(settings.seed, frame, n));
             if let Some((entry, dir, tri)) = geo.launch(scene, &mut rng) {
                 let photon = Walk {
                     p: entry,
@@ -479,13 +487,13 @@ pub(super) fn trace_grid_frame<T: Send>(
                     scene,
                     boundary,
                     geo,
-                    &settings,
-                    Some(grid),
+                    settings,
+                    grid,
                     &bsdf,
                     &pinhole,
                     &mut rng,
                     &mut |uv, w: &Walk, ln| {
-                        emit(&mut out, uv, ln_power + w.ln_beta + ln + ln_fxfy, &w.path);
+                        emit(&mut out, uv, ln_power + w.ln_beta + ln + ln_fxfy, w);
                     },
                 );
             }
@@ -524,7 +532,7 @@ impl Walk {
         boundary: Boundary,
         geo: &FrameGeometry,
         settings: &TraceSettings,
-        grid: Option<&GridChannel>,
+        grid: Option<(&GridChannel, f64)>,
         bsdf: &RoughDielectric,
         pinhole: &Pinhole,
         rng: &mut impl Rng,
@@ -532,7 +540,7 @@ impl Walk {
     ) {
         let (sigma0, albedo0, g) = (settings.sigma_t, settings.albedo, settings.g);
         // In a grid, free flights by delta tracking against its largest σ_t (`super::medium`).
-        let rate = grid.map_or(sigma0, GridChannel::majorant);
+        let rate = grid.map_or(sigma0, |(_, major)| major);
         let mut surface_events = 0;
         let mut tentative = 0;
         loop {
@@ -587,7 +595,7 @@ impl Walk {
             let s = -(1.0 - x).ln() / rate;
             let hit = next_hit(scene, self.p, self.d, s, self.skip);
             let flown = hit.map_or(s, |h| h.0);
-            if let Some(gr) = grid {
+            if let Some((gr, _)) = grid {
                 let path = &mut self.path;
                 gr.for_each_cell(self.p, self.d, flown, &mut |c, l| add_to(path, c, 0, l));
             }
@@ -609,7 +617,7 @@ impl Walk {
                 return;
             }
             let albedo = match grid {
-                Some(gr) => {
+                Some((gr, _)) => {
                     // Delta tracking: a null collision leaves the photon on its way.
                     let cell = gr.index(gr.cell3(self.p));
                     if rng.random::<f64>() * rate >= gr.sigma_t[cell] {
