@@ -242,6 +242,10 @@ pub(super) fn next_hit(
     mut t_max: f64,
     skip: Option<u32>,
 ) -> Option<(f64, V3, u32)> {
+    // Most flights end deep inside, where no surface is near: the cast's answer is known.
+    if t_max < scene.clearance(p) {
+        return None;
+    }
     let mut travelled = 0.0;
     for _ in 0..4 {
         let h = scene.cast_strict(p, d, t_max)?;
