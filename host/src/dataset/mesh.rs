@@ -173,8 +173,8 @@ impl Mesh {
             .sum()
     }
 
-    /// Length of the bounding box diagonal (mm): the scale for geometric tolerances.
-    pub fn diagonal(&self) -> f64 {
+    /// The bounding box (min, max corner; infinite and reversed for no vertices).
+    pub fn bounds(&self) -> ([f64; 3], [f64; 3]) {
         let mut lo = [f64::INFINITY; 3];
         let mut hi = [f64::NEG_INFINITY; 3];
         for p in &self.positions {
@@ -183,6 +183,12 @@ impl Mesh {
                 hi[k] = hi[k].max(p[k]);
             }
         }
+        (lo, hi)
+    }
+
+    /// Length of the bounding box diagonal (mm): the scale for geometric tolerances.
+    pub fn diagonal(&self) -> f64 {
+        let (lo, hi) = self.bounds();
         norm(sub(hi, lo))
     }
 }

@@ -37,18 +37,10 @@ impl Clearance {
             n: [0; 3],
             d: Vec::new(),
         };
-        let pos = &scene.mesh.positions;
-        if pos.is_empty() || scene.mesh.triangles.is_empty() {
+        if scene.mesh.triangles.is_empty() {
             return empty;
         }
-        let mut lo = [f64::INFINITY; 3];
-        let mut hi = [f64::NEG_INFINITY; 3];
-        for p in pos {
-            for c in 0..3 {
-                lo[c] = lo[c].min(p[c]);
-                hi[c] = hi[c].max(p[c]);
-            }
-        }
+        let (lo, hi) = scene.mesh.bounds();
         let diag = dist(lo, hi);
         if !(diag > 0.0 && diag.is_finite()) {
             return empty;
