@@ -9,9 +9,10 @@
 //! Environment: `CELLS` (cells along the longest side, 12), `PHOTONS` (per frame and round,
 //! 2000), `ROUNDS` (8), `SMOOTH` and `PULL` (the penalties' weights, `gridfit::SMOOTH` and `PULL`), `G` (0);
 //! `BOUNDARY` (`index-matched`, or `dielectric:IOR:ROUGHNESS` as `subsurf fit --volume-boundary`);
-//! `CV=s1:p1,s2:p2,…` scores those candidates and the homogeneous medium by cross-validation
+//! `SECTORS` (per ring, 1); `CV=s1:p1,s2:p2,…` scores those candidates and the homogeneous medium by cross-validation
 //! over whole turntable angles of TRAIN (`FOLDS`, 4) first and fits the best, judging the
-//! held-out rings by a trace of `JUDGE` photons a frame (`PHOTONS`).
+//! held-out rings by a trace of `JUDGE` photons a frame (`PHOTONS`), each ring in `JUDGE_SECTORS`
+//! (`SECTORS`).
 use anyhow::{Context, Result};
 use subsurf::dataset::{Dataset, parse_frame_list};
 use subsurf::volume::fit::{HomogeneousFit, fit_homogeneous};
@@ -55,6 +56,7 @@ fn main() -> Result<()> {
         rounds: env("ROUNDS", 8.0) as usize,
         smooth: env("SMOOTH", subsurf::volume::gridfit::SMOOTH),
         pull: env("PULL", subsurf::volume::gridfit::PULL),
+        sectors: env("SECTORS", subsurf::volume::gridfit::SECTORS as f64) as usize,
     };
     if let Ok(cv) = std::env::var("CV") {
         let cands: Vec<(f64, f64)> = cv
@@ -66,7 +68,17 @@ fn main() -> Result<()> {
             .collect();
         let judge = env("JUDGE", opts.photons as f64) as usize;
         let folds = env("FOLDS", 4.0) as usize;
-        let scored = cross_validate(&ds, &train, &opts, &cands, folds, judge, &say)?;
+        let judge_sectors = env("JUDGE_SECTORS", opts.sectors as f64) as usize;
+        let scored = cross_validate(
+            &ds,
+            &train,
+            &opts,
+            &cands,
+            folds,
+            judge,
+            judge_sectors,
+            &say,
+        )?;
         for s in &scored {
             println!(
                 "cv: smooth {} pull {}: ring loss {:.4} over {} rings",

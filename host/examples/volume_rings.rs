@@ -6,7 +6,8 @@
 //! ```
 //!
 //! With `ior,alpha` (e.g. `1.55,0.2`) the boundary is a rough dielectric instead of
-//! index-matched.
+//! index-matched. With `SECTORS=n` in the environment each ring is split into n sectors of
+//! azimuth about the beam (`volume::fit::pixel_bins`), a line each.
 use anyhow::{Context, Result};
 use subsurf::dataset::Dataset;
 use subsurf::geometry::Scene;
@@ -50,7 +51,13 @@ fn main() -> Result<()> {
     };
     let records = trace_frame(&scene, Boundary::of(&scene), &geo, &settings, k);
     let img = ds.read_frame(k)?;
-    let frame = FrameRings::new(&scene, geo, k, &img, ds.spec.frames[k].exposure_s);
+    let sectors: usize = std::env::var("SECTORS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(1)
+        .max(1);
+    let frame =
+        FrameRings::with_sectors(&scene, geo, k, &img, ds.spec.frames[k].exposure_s, sectors);
     let model = model_rings(&frame, &records, &settings, sigma, albedo);
     println!(
         "{} records; boundary {:?}",
@@ -63,8 +70,9 @@ fn main() -> Result<()> {
         }
         let ratio: [f64; 3] = std::array::from_fn(|c| m[c] / frame.data[j][c]);
         println!(
-            "ring {:6.2} mm {:5} px: data {:.3e} model/data {:.3?}",
-            ring_edge(j as u32),
+            "ring {:6.2} mm sector {} {:5} px: data {:.3e} model/data {:.3?}",
+            ring_edge((j / sectors) as u32),
+            j % sectors,
             frame.count[j],
             frame.data[j][1],
             ratio

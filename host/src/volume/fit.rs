@@ -14,7 +14,7 @@
 use super::dielectric::Surface;
 use super::trace::{Boundary, FrameGeometry, Record, TraceSettings, geo_mean, taps, trace_frame};
 use crate::dataset::{Dataset, Image};
-use crate::geometry::{Scene, dist, normalize, world_to_turntable};
+use crate::geometry::{Scene, V3, cross, dist, dot, normalize, world_to_turntable};
 
 /// Rings per factor e of distance from x_i.
 pub const RINGS_PER_E: f64 = 4.0;
@@ -71,8 +71,19 @@ pub struct FrameRings {
 /// the camera ray, through the camera's distortion as the tracer projects with it), its
 /// distance from x_i.
 pub fn pixel_rings(scene: &Scene, geo: &FrameGeometry) -> Vec<u32> {
+    pixel_bins(scene, geo, 1)
+}
+
+/// Each pixel's bin around x_i: its ring ([`pixel_rings`]) split into `sectors` equal sectors of
+/// azimuth about the laser's direction (bin `ring · sectors + sector`), so that light that leaves
+/// one side of the spot brighter than the other is seen as such (a ring sum averages a vein on
+/// one side with the clear medium on the other). The sectors start from the turntable's axis
+/// projected across the beam (its x axis where the beam runs along it).
+pub fn pixel_bins(scene: &Scene, geo: &FrameGeometry, sectors: usize) -> Vec<u32> {
     let cam = &geo.camera;
     let (w, h) = (cam.width as usize, cam.height as usize);
+    let sectors = sectors.max(1);
+    let (e1, e2) = beam_frame(geo.dir);
     (0..w * h)
         .map(|p| {
             let (i, j) = ((p % w) as f64, (p / w) as f64);
@@ -82,12 +93,32 @@ pub fn pixel_rings(scene: &Scene, geo: &FrameGeometry) -> Vec<u32> {
             let Some(d) = normalize(world_to_turntable(world_dir, geo.deg)) else {
                 return u32::MAX;
             };
-            match scene.cast(world_to_turntable(origin, geo.deg), d, f64::MAX) {
-                Some(hit) => ring_of(dist(hit.point, geo.x_i)).unwrap_or(u32::MAX),
-                None => u32::MAX,
-            }
+            let Some(hit) = scene.cast(world_to_turntable(origin, geo.deg), d, f64::MAX) else {
+                return u32::MAX;
+            };
+            let Some(ring) = ring_of(dist(hit.point, geo.x_i)) else {
+                return u32::MAX;
+            };
+            let o = [0, 1, 2].map(|k| hit.point[k] - geo.x_i[k]);
+            let (a, b) = (dot(o, e1), dot(o, e2));
+            let turn = (b.atan2(a) / std::f64::consts::TAU).rem_euclid(1.0);
+            let sector = ((turn * sectors as f64) as usize).min(sectors - 1);
+            ring * sectors as u32 + sector as u32
         })
         .collect()
+}
+
+/// Two unit vectors across the beam `dir`: the turntable's axis (z) with its part along the beam
+/// taken out (x where the beam is within 25 degrees of the axis), and the beam crossed with it.
+fn beam_frame(dir: V3) -> (V3, V3) {
+    let axis = if dir[2].abs() < 0.9 {
+        [0.0, 0.0, 1.0]
+    } else {
+        [1.0, 0.0, 0.0]
+    };
+    let along = dot(axis, dir);
+    let e1 = normalize([0, 1, 2].map(|k| axis[k] - along * dir[k])).unwrap_or([1.0, 0.0, 0.0]);
+    (e1, cross(dir, e1))
 }
 
 impl FrameRings {
@@ -100,7 +131,19 @@ impl FrameRings {
         img: &Image,
         exposure_s: f64,
     ) -> FrameRings {
-        let pixel_ring = pixel_rings(scene, &geo);
+        FrameRings::with_sectors(scene, geo, frame, img, exposure_s, 1)
+    }
+
+    /// [`FrameRings::new`] with each ring split into `sectors` ([`pixel_bins`]).
+    pub fn with_sectors(
+        scene: &Scene,
+        geo: FrameGeometry,
+        frame: usize,
+        img: &Image,
+        exposure_s: f64,
+        sectors: usize,
+    ) -> FrameRings {
+        let pixel_ring = pixel_bins(scene, &geo, sectors);
         let rings = pixel_ring
             .iter()
             .filter(|&&r| r != u32::MAX)
@@ -312,11 +355,13 @@ pub fn frame_geometry(scene: &Scene, ds: &Dataset, k: usize) -> Option<FrameGeom
     FrameGeometry::new(scene, cam, f.turntable_deg, laser.origin, laser.direction)
 }
 
-/// The frames' rings (frames whose laser ray misses the mesh left out).
+/// The frames' rings, each in `sectors` ([`pixel_bins`]; frames whose laser ray misses the mesh
+/// left out).
 pub(super) fn frame_rings(
     scene: &Scene,
     ds: &Dataset,
     frames: &[usize],
+    sectors: usize,
 ) -> Result<Vec<FrameRings>, VolumeFitError> {
     let mut out = Vec::new();
     for &k in frames {
@@ -325,7 +370,9 @@ pub(super) fn frame_rings(
         };
         let img = ds.read_frame(k)?;
         let exposure = ds.spec.frames[k].exposure_s;
-        out.push(FrameRings::new(scene, geo, k, &img, exposure));
+        out.push(FrameRings::with_sectors(
+            scene, geo, k, &img, exposure, sectors,
+        ));
     }
     Ok(out)
 }
@@ -364,7 +411,7 @@ pub fn fit_homogeneous(
 ) -> Result<Homogeneous, VolumeFitError> {
     let scene = Scene::new(ds.mesh.clone())?;
     let boundary = Boundary::of(&scene);
-    let judged = frame_rings(&scene, ds, frames)?;
+    let judged = frame_rings(&scene, ds, frames, 1)?;
     if judged.is_empty() {
         return Err(VolumeFitError::NoFrames);
     }
