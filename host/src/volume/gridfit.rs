@@ -48,11 +48,12 @@ const MAX_EVENTS: u32 = 200_000;
 pub const SMOOTH: f64 = 3.0;
 /// The pull's weight, chosen with [`SMOOTH`].
 pub const PULL: f64 = 0.3;
-/// Sectors per ring the grid is fitted to ([`super::fit::pixel_bins`]). Whole rings: four
-/// sectors predict sample-torus's held-out angles better by cross-validation, but a grid fitted
-/// to them leaves the homogeneous sample-slab's published medium (a cell's σ_t off by a factor
-/// 1.5 to 1.9) and puts a cell of sample-pebble outside its published albedos, so they are not the
-/// default (docs/volume.md, "Rings split into sectors").
+/// Sectors per ring the grid is fitted to ([`super::fit::pixel_bins`]). Whole rings: at the
+/// same photons four sectors predict sample-torus's held-out angles better by cross-validation,
+/// but their grid follows the trace's noise (a sector has a quarter of its ring's records): it
+/// leaves the homogeneous sample-slab's published medium (a cell's σ_t off by a factor 1.5 to
+/// 1.9; within 1.1 at four times the photons) and puts a cell of sample-pebble outside its
+/// published albedos, so they are not the default (docs/volume.md, "Rings split into sectors").
 pub const SECTORS: usize = 1;
 /// Rounds of the grid fit, as cross-validated.
 pub const ROUNDS: usize = 6;
