@@ -14,7 +14,9 @@
 use super::dielectric::Surface;
 use super::trace::{Boundary, FrameGeometry, Record, TraceSettings, geo_mean, taps, trace_frame};
 use crate::dataset::{Dataset, Image};
-use crate::geometry::{Scene, V3, cross, dist, dot, normalize, world_to_turntable};
+use crate::geometry::{
+    Scene, V3, add_scaled, cross, dist, dot, normalize, sub, world_to_turntable,
+};
 
 /// Rings per factor e of distance from x_i.
 pub const RINGS_PER_E: f64 = 4.0;
@@ -67,15 +69,10 @@ pub struct FrameRings {
     pub data: Vec<[f64; 3]>,
 }
 
-/// Each pixel's ring around x_i: the surface point the pixel's centre sees (the first hit of
-/// the camera ray, through the camera's distortion as the tracer projects with it), its
-/// distance from x_i.
-pub fn pixel_rings(scene: &Scene, geo: &FrameGeometry) -> Vec<u32> {
-    pixel_bins(scene, geo, 1)
-}
-
-/// Each pixel's bin around x_i: its ring ([`pixel_rings`]) split into `sectors` equal sectors of
-/// azimuth about the laser's direction (bin `ring · sectors + sector`), so that light that leaves
+/// Each pixel's bin around x_i: the ring of the surface point the pixel's centre sees (the first
+/// hit of the camera ray, through the camera's distortion as the tracer projects with it), by its
+/// distance from x_i, split into `sectors` equal sectors of azimuth about the laser's direction
+/// (bin `ring · sectors + sector`; with one sector the bin is the ring), so that light that leaves
 /// one side of the spot brighter than the other is seen as such (a ring sum averages a vein on
 /// one side with the clear medium on the other). The sectors start from the turntable's axis
 /// projected across the beam (its x axis where the beam runs along it).
@@ -99,7 +96,7 @@ pub fn pixel_bins(scene: &Scene, geo: &FrameGeometry, sectors: usize) -> Vec<u32
             let Some(ring) = ring_of(dist(hit.point, geo.x_i)) else {
                 return u32::MAX;
             };
-            let o = [0, 1, 2].map(|k| hit.point[k] - geo.x_i[k]);
+            let o = sub(hit.point, geo.x_i);
             let (a, b) = (dot(o, e1), dot(o, e2));
             let turn = (b.atan2(a) / std::f64::consts::TAU).rem_euclid(1.0);
             let sector = ((turn * sectors as f64) as usize).min(sectors - 1);
@@ -116,8 +113,7 @@ fn beam_frame(dir: V3) -> (V3, V3) {
     } else {
         [1.0, 0.0, 0.0]
     };
-    let along = dot(axis, dir);
-    let e1 = normalize([0, 1, 2].map(|k| axis[k] - along * dir[k])).unwrap_or([1.0, 0.0, 0.0]);
+    let e1 = normalize(add_scaled(axis, -dot(axis, dir), dir)).unwrap_or([1.0, 0.0, 0.0]);
     (e1, cross(dir, e1))
 }
 

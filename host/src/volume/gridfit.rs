@@ -788,11 +788,13 @@ pub fn cross_validate(
     let scene = Scene::new(ds.mesh.clone())?;
     let boundary = Boundary::of(&scene);
     let all = frame_rings(&scene, ds, frames, opts.sectors)?;
-    let judged = if judge_sectors == opts.sectors {
-        all.clone()
+    // The judge's bins, where they are not the fits' own.
+    let other = if judge_sectors == opts.sectors {
+        None
     } else {
-        frame_rings(&scene, ds, frames, judge_sectors)?
+        Some(frame_rings(&scene, ds, frames, judge_sectors)?)
     };
+    let judged = other.as_deref().unwrap_or(&all);
     let seed = opts.global.seed ^ 0x5eed;
     let mut sums = vec![(0.0, 0usize); candidates.len() + 1];
     for (i, fold) in folds.iter().enumerate() {
